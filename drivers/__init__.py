@@ -1,0 +1,1 @@
+"""Device drivers (actuators, cameras), scripted motions and acquisition; simulated hardware in ``drivers.sim``."""
