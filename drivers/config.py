@@ -1,0 +1,248 @@
+"""Bench configuration (TOML) and the URI -> backend factory.
+
+A bench file names its devices by URI; device code never asks whether it is simulated::
+
+    [actuators]
+    uri = "modbus+tcp://127.0.0.1:5020"     # modbus+rtu:///dev/ttyUSB0?baudrate=115200,
+                                            # modbus+rtu+tcp://HOST:PORT, serial:///dev/ttyACM0
+    speed_m_s = 0.05
+    [actuators.limits]
+    q_min = [-0.1, -0.1, -0.1, -0.1]
+    q_max = [0.8, 0.8, 0.8, 0.8]
+    [actuators.register_map]                # overrides of drivers.registermap.RegisterMap
+    word_order = "big"
+    [camera]
+    uri = "genicam://?cti=/opt/vendor/x.cti&serial=SN"   # v4l2:///dev/video0, replay://DATASET, sim://HOST:PORT
+    [operator]
+    uri = "console"                         # or sim://HOST:PORT (the simulated operator)
+    [nominal]
+    file = "nominal.json"                   # optional: the a priori geometry; default calib.parameters.NOMINAL
+
+Vendor libraries are optional: a missing one raises :class:`drivers.errors.MissingExtraError` naming the
+extra to install.
+"""
+
+from __future__ import annotations
+
+import json
+import tomllib
+from pathlib import Path
+from typing import Any
+from urllib.parse import parse_qs, unquote, urlsplit
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from calib.errors import InputError
+from calib.parameters import NOMINAL, I4Parameters
+
+from .interfaces import Actuators, Camera, Operator, SoftLimitsM
+from .registermap import RegisterMap
+
+
+class LimitsConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    q_min: list[float] = Field(default_factory=lambda: [-0.10] * 4, min_length=4, max_length=4)
+    q_max: list[float] = Field(default_factory=lambda: [0.80] * 4, min_length=4, max_length=4)
+
+
+class ActuatorsConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    uri: str
+    speed_m_s: float = Field(0.05, gt=0)
+    accel_m_s2: float = Field(0.5, gt=0)
+    timeout_s: float = Field(0.5, gt=0, description="reply timeout of one request")
+    retries: int = Field(3, ge=0)
+    poll_s: float = Field(0.002, ge=0)
+    settle_s: float = Field(0.0, ge=0)
+    in_position_m: float = Field(2e-5, gt=0)
+    home_timeout_s: float = Field(60.0, gt=0)
+    home_on_connect: bool = Field(True, description="home the axes before a run when they are not homed")
+    limits: LimitsConfig = LimitsConfig()
+    register_map: dict[str, Any] = Field(default_factory=dict)
+
+
+class CameraConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    uri: str
+    timeout_s: float = Field(2.0, gt=0)
+    exposure_us: float | None = None
+    gain_db: float | None = None
+    pixel_format: str | None = None
+    width: int | None = None
+    height: int | None = None
+    grab_retries: int = Field(1, ge=0, description="grabs retried after a timeout or a corrupt frame")
+
+
+class OperatorConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    uri: str = "console"
+
+
+class AcquisitionConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    line_rate_hz: float | None = Field(None, gt=0, description="override the plan's guided-line sampling rate")
+    settle_s: float = Field(0.0, ge=0)
+
+
+class NominalConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    file: str | None = None
+
+
+class BenchConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    name: str = "bench"
+    actuators: ActuatorsConfig
+    camera: CameraConfig
+    operator: OperatorConfig = OperatorConfig()
+    acquisition: AcquisitionConfig = AcquisitionConfig()
+    nominal: NominalConfig = NominalConfig()
+    source: str | None = Field(None, exclude=True)
+
+    def soft_limits(self) -> SoftLimitsM:
+        lim = self.actuators.limits
+        return SoftLimitsM(tuple(lim.q_min), tuple(lim.q_max))  # type: ignore[arg-type]
+
+    def calib_limits(self):
+        from calib.plan import SoftLimits
+
+        return SoftLimits(q_min=self.actuators.limits.q_min, q_max=self.actuators.limits.q_max)
+
+    def nominal_parameters(self) -> I4Parameters:
+        if not self.nominal.file:
+            return NOMINAL
+        path = Path(self.nominal.file)
+        if self.source and not path.is_absolute():
+            path = Path(self.source).parent / path
+        try:
+            data = json.loads(path.read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise InputError("nominal geometry file not found", file=str(path)) from None
+        except json.JSONDecodeError as exc:
+            raise InputError(f"not valid JSON: {exc.msg}", file=str(path)) from None
+        for key in ("parameters", "nominal"):
+            if isinstance(data, dict) and isinstance(data.get(key), dict):
+                data = data[key]
+        try:
+            return I4Parameters.from_mapping(data)
+        except (ValueError, TypeError) as exc:
+            raise InputError(str(exc), file=str(path)) from None
+
+    def register_map(self) -> RegisterMap:
+        try:
+            return RegisterMap.model_validate(self.actuators.register_map)
+        except ValidationError as exc:
+            err = exc.errors()[0]
+            raise InputError(err["msg"], file=self.source,
+                             field="actuators.register_map." + ".".join(map(str, err["loc"]))) from None
+
+
+def load_bench(path: str | Path) -> BenchConfig:
+    p = Path(path)
+    try:
+        data = tomllib.loads(p.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError("bench file not found", file=str(p)) from None
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(f"not valid TOML: {exc}", file=str(p)) from None
+    try:
+        cfg = BenchConfig.model_validate(data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        raise InputError(err["msg"], file=str(p), field=".".join(map(str, err["loc"]))) from None
+    cfg.source = str(p)
+    return cfg
+
+
+# -- URIs -----------------------------------------------------------------------------------------
+def parse_uri(uri: str) -> tuple[str, str, int | None, str, dict[str, str]]:
+    """``(scheme, host, port, path, query)`` of a device URI."""
+    parts = urlsplit(uri)
+    if not parts.scheme:
+        raise InputError(f"device URI {uri!r} has no scheme (e.g. modbus+tcp://127.0.0.1:5020)", field="uri")
+    query = {k: v[-1] for k, v in parse_qs(parts.query).items()}
+    try:
+        port = parts.port
+    except ValueError:
+        raise InputError(f"bad port in device URI {uri!r}", field="uri") from None
+    return parts.scheme.lower(), parts.hostname or "", port, unquote(parts.path), query
+
+
+def open_actuators(cfg: BenchConfig) -> Actuators:
+    """The actuators backend named by ``cfg.actuators.uri`` (not yet connected)."""
+    a = cfg.actuators
+    scheme, host, port, path, query = parse_uri(a.uri)
+    common = dict(limits=cfg.soft_limits(), nominal=cfg.nominal_parameters())
+    if scheme in ("modbus+tcp", "modbus", "modbus+rtu+tcp", "modbus+rtu"):
+        from .modbus import ModbusActuators
+
+        kw: dict[str, Any] = dict(regmap=cfg.register_map(), speed_m_s=a.speed_m_s, accel_m_s2=a.accel_m_s2,
+                                  timeout_s=float(query.get("timeout", a.timeout_s)), retries=a.retries,
+                                  poll_s=a.poll_s, settle_s=a.settle_s, in_position_m=a.in_position_m,
+                                  home_timeout_s=a.home_timeout_s, **common)
+        if scheme == "modbus+rtu":
+            if not path:
+                raise InputError(f"{a.uri!r}: a serial device path is needed, e.g. modbus+rtu:///dev/ttyUSB0",
+                                 field="actuators.uri")
+            return ModbusActuators(transport="rtu", serial_port=path,
+                                   baudrate=int(query.get("baudrate", 115200)), **kw)
+        transport = "rtu-tcp" if scheme == "modbus+rtu+tcp" else "tcp"
+        return ModbusActuators(transport=transport, host=host or "127.0.0.1", port=port or 502, **kw)
+    if scheme in ("serial", "serial+tcp"):
+        from .serial_ascii import SerialAsciiActuators
+
+        url = f"socket://{host}:{port}" if scheme == "serial+tcp" else path
+        if not url:
+            raise InputError(f"{a.uri!r}: a serial device path is needed, e.g. serial:///dev/ttyACM0",
+                             field="actuators.uri")
+        return SerialAsciiActuators(url, baudrate=int(query.get("baudrate", 115200)),
+                                    timeout_s=float(query.get("timeout", a.timeout_s)), speed_m_s=a.speed_m_s,
+                                    accel_m_s2=a.accel_m_s2, poll_s=max(a.poll_s, 0.001), retries=a.retries,
+                                    in_position_m=a.in_position_m, home_timeout_s=a.home_timeout_s, **common)
+    raise InputError(f"unknown actuators URI scheme {scheme!r} in {a.uri!r} (modbus+tcp, modbus+rtu, "
+                     "modbus+rtu+tcp, serial, serial+tcp)", field="actuators.uri")
+
+
+def open_camera(cfg: BenchConfig | CameraConfig | str) -> Camera:
+    """The camera backend named by a URI (not yet opened)."""
+    c = cfg.camera if isinstance(cfg, BenchConfig) else (cfg if isinstance(cfg, CameraConfig)
+                                                         else CameraConfig(uri=cfg))
+    scheme, host, port, path, query = parse_uri(c.uri)
+    if scheme == "sim":
+        from .cameras.sim import SimCamera
+
+        if not host or not port:
+            raise InputError(f"{c.uri!r}: sim cameras are served by a simulated bench: sim://HOST:PORT "
+                             "(run `i4cal sim-bench`)", field="camera.uri")
+        return SimCamera(host, port, timeout_s=c.timeout_s)
+    if scheme == "genicam":
+        from .cameras.genicam import GenICamCamera
+
+        return GenICamCamera(cti=query.get("cti"), serial=query.get("serial"), timeout_s=c.timeout_s)
+    if scheme == "v4l2":
+        from .cameras.v4l2 import V4L2Camera
+
+        dev: str | int = (host + path) if host else path
+        if isinstance(dev, str) and dev.isdigit():
+            dev = int(dev)
+        return V4L2Camera(dev, timeout_s=c.timeout_s)
+    if scheme == "replay":
+        from .cameras.replay import ReplayCamera
+
+        return ReplayCamera(host + path if host else path, loop=query.get("loop", "0") in ("1", "true"))
+    raise InputError(f"unknown camera URI scheme {scheme!r} in {c.uri!r} (genicam, v4l2, replay, sim)",
+                     field="camera.uri")
+
+
+def open_operator(cfg: BenchConfig) -> Operator:
+    uri = cfg.operator.uri
+    if uri in ("console", "console://"):
+        from .acquisition import ConsoleOperator
+
+        return ConsoleOperator()
+    scheme, host, port, _, _ = parse_uri(uri)
+    if scheme == "sim":
+        from .cameras.sim import SimOperator
+
+        return SimOperator(host, port)
+    raise InputError(f"unknown operator URI {uri!r} (console, sim://HOST:PORT)", field="operator.uri")

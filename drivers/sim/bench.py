@@ -1,0 +1,261 @@
+"""The simulated bench: a Modbus controller and a camera frame server sharing one true mechanism.
+
+In process (tests, demos)::
+
+    async with SimBench(port=0) as bench:          # free ports on 127.0.0.1
+        bench.actuators_uri   # "modbus+tcp://127.0.0.1:P"
+        bench.camera_uri      # "sim://127.0.0.1:F"
+        bench.operator_uri    # "sim://127.0.0.1:F"
+
+As a process: ``i4cal sim-bench [--port N]`` (Modbus TCP on N, RTU-over-TCP on N+1, frames on N+2).
+
+Frame endpoint (loopback TCP, one request per line, any number per connection):
+
+* ``GRAB\\n`` -> ``OK {json}\\n`` + payload, where json = ``{"height", "width", "channels", "dtype",
+  "nbytes", "crc32", "seq", "q_true", "pose_true", "t"}`` and the payload is the raw image (C order);
+  or ``ERR message\\n``.
+* ``LINE {"start_pose", "end_pose", "samples", "rate_hz"}\\n`` -> ``OK {}\\n``: the simulated operator
+  starts guiding the free mechanism along the truly straight segment; ``ENDLINE\\n`` -> ``OK {}\\n``.
+* ``INFO\\n`` -> ``OK {"width", "height", "renderer"}\\n``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import time
+import zlib
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ..registermap import DEFAULT_MAP, RegisterMap
+from .controller import SimController
+from .mechanism import AxisConfig, Mechanism
+from .twin import BenchGeometry
+
+log = logging.getLogger(__name__)
+
+
+class FallbackRenderer:
+    """Used when :mod:`drivers.sim.render` is not available: a grey image with the true joint values."""
+
+    def __init__(self, geometry: BenchGeometry | None = None, width: int = 1024, height: int = 768) -> None:
+        self.geometry = geometry
+        self.width, self.height = width, height
+
+    def render(self, q_true: np.ndarray, pose_true: np.ndarray) -> np.ndarray:
+        import cv2
+
+        img = np.full((self.height, self.width), 64, np.uint8)
+        for k, v in enumerate(q_true):
+            cv2.putText(img, f"q{k + 1}={v * 1e3:9.3f}", (40, 80 + 60 * k), cv2.FONT_HERSHEY_SIMPLEX, 1.5,
+                        255, 2)
+        x = int(np.clip((pose_true[0] - 0.5) / 1.0 * self.width, 0, self.width - 1))
+        cv2.circle(img, (x, self.height // 2 + 100), 20, 200, -1)
+        return img
+
+
+def default_renderer(geometry: BenchGeometry, seed: int = 0) -> Any:
+    """The image-level twin's renderer when importable, else :class:`FallbackRenderer`."""
+    try:
+        from .render import BenchRenderer  # type: ignore[import-not-found]
+    except Exception as exc:  # not there yet, or broken: the bench still runs
+        log.warning("drivers.sim.render unavailable (%s); using the fallback renderer", exc)
+        return FallbackRenderer(geometry)
+    return BenchRenderer(geometry, seed=seed)
+
+
+@dataclass
+class CameraFaults:
+    timeouts: int = 0   # ignore this many GRAB requests (the client times out)
+    corrupt: int = 0    # corrupt this many frames (payload no longer matches its CRC)
+    render_errors: int = 0
+
+
+class FrameServer:
+    """Serves rendered frames of the mechanism's TRUE state (actual axis positions -> truth DKM)."""
+
+    def __init__(self, mechanism: Mechanism, renderer: Any) -> None:
+        self.mechanism = mechanism
+        self.renderer = renderer
+        self.faults = CameraFaults()
+        self.seq = 0
+        self._server: asyncio.base_events.Server | None = None
+        self._writers: set[asyncio.StreamWriter] = set()
+
+    async def start(self, host: str = "127.0.0.1", port: int = 0) -> tuple[str, int]:
+        self._server = await asyncio.start_server(self._handle, host, port)
+        return self._server.sockets[0].getsockname()[:2]
+
+    async def close(self) -> None:
+        for w in list(self._writers):
+            with contextlib.suppress(Exception):
+                w.transport.abort()
+        if self._server is not None:
+            self._server.close()
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(self._server.wait_closed(), 1.0)
+
+    def render_now(self) -> tuple[np.ndarray, dict[str, Any]]:
+        q = self.mechanism.q_true()
+        pose = self.mechanism.pose_true(q)
+        img = np.ascontiguousarray(self.renderer.render(q, pose))
+        self.seq += 1
+        return img, {"seq": self.seq, "q_true": q.tolist(), "pose_true": pose.tolist(), "t": time.monotonic()}
+
+    async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        self._writers.add(writer)
+        try:
+            while line := await reader.readline():
+                cmd, _, arg = line.decode(errors="replace").strip().partition(" ")
+                try:
+                    if cmd == "GRAB":
+                        if self.faults.timeouts > 0:
+                            self.faults.timeouts -= 1
+                            continue  # never answer this one
+                        if self.faults.render_errors > 0:
+                            self.faults.render_errors -= 1
+                            raise RuntimeError("sensor readout error (injected)")
+                        img, meta = await asyncio.to_thread(self.render_now)
+                        payload = img.tobytes()
+                        hdr = {"height": img.shape[0], "width": img.shape[1],
+                               "channels": 1 if img.ndim == 2 else img.shape[2], "dtype": str(img.dtype),
+                               "nbytes": len(payload), "crc32": zlib.crc32(payload), **meta}
+                        if self.faults.corrupt > 0:
+                            self.faults.corrupt -= 1
+                            b = bytearray(payload)
+                            b[len(b) // 3: len(b) // 3 + 4096] = bytes(4096)[: len(b) - len(b) // 3]
+                            b[len(b) // 2] ^= 0xFF
+                            payload = bytes(b)
+                        writer.write(b"OK " + json.dumps(hdr).encode() + b"\n" + payload)
+                    elif cmd == "LINE":
+                        a = json.loads(arg)
+                        self.mechanism.begin_line(a["start_pose"], a["end_pose"], int(a["samples"]),
+                                                  float(a["rate_hz"]))
+                        writer.write(b"OK {}\n")
+                    elif cmd == "ENDLINE":
+                        self.mechanism.end_line()
+                        writer.write(b"OK {}\n")
+                    elif cmd == "INFO":
+                        r = self.renderer
+                        writer.write(b"OK " + json.dumps({"renderer": type(r).__name__}).encode() + b"\n")
+                    else:
+                        writer.write(f"ERR unknown command {cmd!r}\n".encode())
+                except Exception as exc:
+                    writer.write(f"ERR {type(exc).__name__}: {exc}".replace("\n", " ").encode() + b"\n")
+                await writer.drain()
+        except (ConnectionError, OSError):
+            pass
+        finally:
+            self._writers.discard(writer)
+            with contextlib.suppress(Exception):
+                writer.close()
+
+
+class SimBench:
+    """Mechanism + Modbus controller (TCP, and RTU over TCP) + frame server, all on 127.0.0.1.
+
+    ``port=0`` picks free ports; otherwise Modbus TCP on ``port``, RTU-over-TCP on ``port + 1`` and the
+    frame endpoint on ``port + 2``.
+    """
+
+    def __init__(self, *, port: int = 0, geometry: BenchGeometry | None = None,
+                 axis_config: AxisConfig | None = None, regmap: RegisterMap = DEFAULT_MAP,
+                 renderer: Any = None, seed: int = 0, rtu: bool = True,
+                 initial_q: Any = None) -> None:
+        self.geometry = geometry or BenchGeometry()
+        if initial_q is None:
+            from calib.kinematics import ikm
+            from calib.plan import Workspace
+
+            initial_q = ikm(self.geometry.truth, Workspace().centre())
+        self.mechanism = Mechanism(self.geometry, axis_config or fast_axis_config(), initial_q=initial_q, seed=seed)
+        self.controller = SimController(self.mechanism, regmap)
+        self.renderer = renderer if renderer is not None else default_renderer(self.geometry, seed)
+        self.frames = FrameServer(self.mechanism, self.renderer)
+        self.port = port
+        self.rtu = rtu
+        self.tcp_address: tuple[str, int] | None = None
+        self.rtu_url: str | None = None
+        self.frame_address: tuple[str, int] | None = None
+
+    async def start(self) -> SimBench:
+        p = self.port
+        self.tcp_address = await self.controller.serve_tcp("127.0.0.1", p)
+        if self.rtu:
+            self.rtu_url = await self.controller.serve_rtu(f"socket://127.0.0.1:{p + 1}" if p else None)
+        self.frame_address = await self.frames.start("127.0.0.1", p + 2 if p else 0)
+        return self
+
+    async def stop(self) -> None:
+        await self.frames.close()
+        await self.controller.shutdown()
+
+    async def __aenter__(self) -> SimBench:
+        return await self.start()
+
+    async def __aexit__(self, *exc: Any) -> None:
+        await self.stop()
+
+    # -- URIs ---------------------------------------------------------------------------------------
+    @property
+    def actuators_uri(self) -> str:
+        h, p = self.tcp_address
+        return f"modbus+tcp://{h}:{p}"
+
+    @property
+    def actuators_rtu_uri(self) -> str | None:
+        if not self.rtu_url:
+            return None
+        return "modbus+rtu+tcp://" + self.rtu_url.removeprefix("socket://")
+
+    @property
+    def camera_uri(self) -> str:
+        h, p = self.frame_address
+        return f"sim://{h}:{p}"
+
+    @property
+    def operator_uri(self) -> str:
+        return self.camera_uri
+
+    def uris(self) -> dict[str, str]:
+        out = {"actuators": self.actuators_uri, "camera": self.camera_uri, "operator": self.operator_uri}
+        if self.actuators_rtu_uri:
+            out["actuators_rtu"] = self.actuators_rtu_uri
+        return out
+
+    def bench_config(self, **overrides: Any):
+        """A :class:`drivers.config.BenchConfig` pointing at this bench, with fast sim speeds."""
+        from ..config import BenchConfig
+
+        data: dict[str, Any] = {"actuators": {"uri": self.actuators_uri, "speed_m_s": 2.0, "accel_m_s2": 40.0,
+                                              "timeout_s": 0.5, "poll_s": 0.001},
+                                "camera": {"uri": self.camera_uri},
+                                "operator": {"uri": self.operator_uri}}
+        for k, v in overrides.items():
+            if isinstance(v, dict) and isinstance(data.get(k), dict):
+                data[k] = {**data[k], **v}
+            else:
+                data[k] = v
+        return BenchConfig.model_validate(data)
+
+
+def fast_axis_config() -> AxisConfig:
+    """Sim speeds high enough that a full plan acquires in a few seconds."""
+    return AxisConfig(default_speed=2.0, accel=40.0, home_speed=2.0)
+
+
+async def serve_forever(port: int = 5020, *, seed: int = 0, print_fn=print) -> None:
+    """Run a :class:`SimBench` until cancelled (the body of ``i4cal sim-bench``)."""
+    bench = SimBench(port=port, axis_config=fast_axis_config(), seed=seed)
+    await bench.start()
+    try:
+        for k, v in bench.uris().items():
+            print_fn(f"{k} = {v}")
+        await asyncio.Event().wait()
+    finally:
+        await bench.stop()

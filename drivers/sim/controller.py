@@ -1,0 +1,279 @@
+"""A simulated four-axis controller that is a real Modbus server (pymodbus 3.16 SimDevice actions).
+
+It serves a :class:`drivers.registermap.RegisterMap` (the default map unless told otherwise) over
+TCP on loopback (``ModbusTcpServer``) or with RTU framing over a socket (``ModbusSerialServer`` with
+``port="socket://127.0.0.1:P"``) or a pty. Every request runs the device action first: it brings the
+shared :class:`~drivers.sim.mechanism.Mechanism` up to date, refreshes the read-only registers
+(status, actual position, alarm code) and applies the control bits of a write.
+
+Fault injection (:class:`Faults`, for tests): exception replies, dropped replies, a cut connection,
+and, through :class:`DelayProxy` (a small TCP proxy in front of the server), delayed replies.
+Delays are not injected by sleeping inside an action: the server keeps one pending PDU per
+connection and a reply delayed there can leave with the next request's transaction id.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from dataclasses import dataclass
+
+from pymodbus import FramerType
+from pymodbus.constants import ExcCodes
+from pymodbus.server import ModbusSerialServer, ModbusTcpServer
+from pymodbus.simulator import DataType, SimData, SimDevice
+
+from ..registermap import DEFAULT_MAP, RegisterMap
+from .mechanism import Mechanism
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Faults:
+    """Counters of faults still to inject (each use decrements); set them from a test."""
+
+    exception_code: int = 0       # reply with this Modbus exception code ...
+    exception_count: int = 0      # ... to this many requests
+    drop_replies: int = 0         # swallow this many replies
+
+
+class SimController:
+    """Modbus front end of a :class:`Mechanism` for one register map."""
+
+    def __init__(self, mechanism: Mechanism, regmap: RegisterMap = DEFAULT_MAP) -> None:
+        self.mechanism = mechanism
+        self.map = regmap
+        self.faults = Faults()
+        self.requests = 0
+        self._servers: list = []
+        # unit -> list of (axis index, offset)
+        self._units: dict[int, list[tuple[int, int]]] = {}
+        for i, a in enumerate(regmap.axes):
+            self._units.setdefault(a.unit, []).append((i, a.offset))
+
+    # -- devices --------------------------------------------------------------------------------
+    def devices(self) -> list[SimDevice]:
+        m = self.map
+        rw = {m.target, m.target + 1, m.speed, m.speed + 1, m.control}
+        ro = {m.status, m.actual, m.actual + 1, m.alarm_code}
+        out = []
+        for unit, axes in self._units.items():
+            flags: dict[int, bool] = {}
+            for _, off in axes:
+                flags.update({off + r: False for r in rw})
+                flags.update({off + r: True for r in ro})
+            blocks: list[SimData] = []
+            addrs = sorted(flags)
+            start = prev = addrs[0]
+            for a in [*addrs[1:], None]:
+                if a is not None and a == prev + 1 and flags[a] == flags[start]:
+                    prev = a
+                    continue
+                blocks.append(SimData(start, count=prev - start + 1, values=0, datatype=DataType.REGISTERS,
+                                      readonly=flags[start]))
+                if a is not None:
+                    start = prev = a
+            out.append(SimDevice(unit, simdata=blocks, action=self._action_for(unit)))
+        return out
+
+    def _action_for(self, unit: int):
+        axes = self._units[unit]
+
+        async def action(fc: int, start_address: int, address: int, count: int, registers: list[int],
+                         set_values) -> ExcCodes | None:
+            return self._action(axes, fc, start_address, address, count, registers, set_values)
+
+        return action
+
+    def _action(self, axes, fc, start_address, address, count, registers, set_values) -> ExcCodes | None:
+        self.requests += 1
+        f = self.faults
+        if f.exception_count > 0:
+            f.exception_count -= 1
+            return ExcCodes(f.exception_code or ExcCodes.DEVICE_BUSY)
+        m = self.map
+        mech = self.mechanism
+        now = mech.update()
+        values = None
+        if set_values is not None and fc in (6, 16, 23):
+            values = list(set_values) if isinstance(set_values, list) else [set_values]
+
+        def reg(abs_addr: int) -> int:
+            if values is not None and address <= abs_addr < address + len(values):
+                return int(values[abs_addr - address])
+            return int(registers[abs_addr - start_address])
+
+        with mech.lock:
+            for axis, off in axes:
+                ax = mech.axes[axis]
+                if values is not None:
+                    ctrl_addr = off + m.control
+                    target_m = m.counts_to_m(m.from_regs32([reg(off + m.target), reg(off + m.target + 1)]))
+                    speed = m.counts_to_speed(m.from_regs32([reg(off + m.speed), reg(off + m.speed + 1)]))
+                    if address <= ctrl_addr < address + len(values):
+                        bits = int(values[ctrl_addr - address])
+                        cb = m.control_bits
+                        free = bool(bits & (1 << cb.free))
+                        if free != ax.free:
+                            ax.set_free(free, now)
+                        if bits & (1 << cb.stop):
+                            ax.stop(now)
+                        if bits & (1 << cb.reset):
+                            ax.reset(now)
+                        if bits & (1 << cb.home):
+                            ax.home(now)
+                        if bits & (1 << cb.start):
+                            ax.start(target_m, speed, now)
+                        keep = bits & (1 << cb.free)
+                        set_values[ctrl_addr - address] = keep
+                    elif m.start_mode == "target_write" and address <= off + m.target < address + len(values):
+                        ax.start(target_m, speed, now)
+                ax.update(now)
+                self._refresh(registers, start_address, off, ax)
+        return None
+
+    def _refresh(self, registers, start_address, off, ax) -> None:
+        m = self.map
+        sb = m.status_bits
+        st = 0
+        if not ax.free and not ax.alarm_code:
+            st |= 1 << sb.ready
+        if ax.moving:
+            st |= 1 << sb.moving
+        if ax.in_position():
+            st |= 1 << sb.in_position
+        if ax.alarm_code:
+            st |= 1 << sb.alarm
+        if ax.homed:
+            st |= 1 << sb.homed
+        axis = self.mechanism.axes.index(ax)
+        enc = m.to_regs32(m.m_to_counts(self.mechanism.encoder_m(axis)))
+        registers[off + m.status - start_address] = st
+        registers[off + m.actual - start_address] = enc[0]
+        registers[off + m.actual + 1 - start_address] = enc[1]
+        registers[off + m.alarm_code - start_address] = ax.alarm_code & 0xFFFF
+
+    # -- fault helpers ---------------------------------------------------------------------------
+    def _trace_packet(self, sending: bool, data: bytes) -> bytes:
+        if sending and self.faults.drop_replies > 0:
+            self.faults.drop_replies -= 1
+            return b""
+        return data
+
+    def cut_connections(self) -> int:
+        """Abort every open client connection (the server keeps listening); returns how many."""
+        n = 0
+        for srv in self._servers:
+            for conn in list(getattr(srv, "active_connections", {}).values()):
+                with contextlib.suppress(Exception):
+                    conn.transport.abort()
+                    n += 1
+        return n
+
+    # -- servers --------------------------------------------------------------------------------
+    async def serve_tcp(self, host: str = "127.0.0.1", port: int = 0) -> tuple[str, int]:
+        """Start a Modbus TCP server; returns the bound (host, port) (``port=0``: a free one)."""
+        if port == 0:
+            port = _free_port(host)
+        srv = ModbusTcpServer(self.devices(), address=(host, port), trace_packet=self._trace_packet)
+        await srv.serve_forever(background=True)
+        self._servers.append(srv)
+        return host, port
+
+    async def serve_rtu(self, port: str | None = None, baudrate: int = 115200) -> str:
+        """Start a Modbus RTU server; ``port`` is a serial device (e.g. a pty) or ``None`` for RTU over a
+        loopback socket. Returns the pyserial URL/device a client opens."""
+        if port is None:
+            tcp_port = _free_port("127.0.0.1")
+            port = f"socket://127.0.0.1:{tcp_port}"
+        srv = ModbusSerialServer(self.devices(), framer=FramerType.RTU, port=port, baudrate=baudrate,
+                                 trace_packet=self._trace_packet)
+        await srv.serve_forever(background=True)
+        self._servers.append(srv)
+        return port
+
+    async def shutdown(self) -> None:
+        for srv in self._servers:
+            with contextlib.suppress(Exception):
+                await srv.shutdown()
+        self._servers.clear()
+
+
+def _free_port(host: str = "127.0.0.1") -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+class DelayProxy:
+    """A TCP proxy on loopback in front of a server: delays or drops server->client data on demand.
+
+    ``delay_s`` applies to each chunk from the server while ``delay_count`` > 0 (then decremented);
+    ``cut()`` closes every proxied connection.
+    """
+
+    def __init__(self, target: tuple[str, int]) -> None:
+        self.target = target
+        self.delay_s = 0.0
+        self.delay_count = 0
+        self._server: asyncio.base_events.Server | None = None
+        self._writers: set[asyncio.StreamWriter] = set()
+        self._tasks: set[asyncio.Task] = set()
+
+    async def start(self, host: str = "127.0.0.1", port: int = 0) -> tuple[str, int]:
+        self._server = await asyncio.start_server(self._handle, host, port)
+        return self._server.sockets[0].getsockname()[:2]
+
+    async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        try:
+            ur, uw = await asyncio.open_connection(*self.target)
+        except OSError:
+            writer.close()
+            return
+        self._writers |= {writer, uw}
+
+        async def pump(src: asyncio.StreamReader, dst: asyncio.StreamWriter, delayed: bool) -> None:
+            try:
+                while data := await src.read(65536):
+                    if delayed and self.delay_count > 0:
+                        self.delay_count -= 1
+                        d = self.delay_s
+                        t = asyncio.get_running_loop().time() + d
+
+                        async def later(data=data, t=t):
+                            await asyncio.sleep(max(0.0, t - asyncio.get_running_loop().time()))
+                            if not dst.is_closing():
+                                dst.write(data)
+
+                        task = asyncio.create_task(later())
+                        self._tasks.add(task)
+                        task.add_done_callback(self._tasks.discard)
+                        continue
+                    dst.write(data)
+                    await dst.drain()
+            except (ConnectionError, OSError):
+                pass
+            finally:
+                with contextlib.suppress(Exception):
+                    dst.close()
+
+        await asyncio.gather(pump(reader, uw, False), pump(ur, writer, True))
+
+    def cut(self) -> None:
+        for w in list(self._writers):
+            with contextlib.suppress(Exception):
+                w.transport.abort()
+        self._writers.clear()
+
+    async def close(self) -> None:
+        self.cut()
+        for t in list(self._tasks):
+            t.cancel()
+        if self._server is not None:
+            self._server.close()
+            with contextlib.suppress(Exception):
+                await self._server.wait_closed()
