@@ -1,0 +1,175 @@
+"""ChArUco board: construction from a :class:`~calib.dataset.BoardSpec`, detection and pose.
+
+Uses OpenCV >= 4.7's API: ``cv2.aruco.CharucoDetector``, ``board.matchImagePoints``, ``solvePnP``
+(IPPE/iterative) then ``solvePnPRefineLM``. The board frame is OpenCV's: origin at the board's
+top-left outer corner, x along the ``squares_x`` side, y along the ``squares_y`` side, z into the
+board (away from a camera that sees its face).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from ..camera import CameraModel
+from ..dataset import BoardSpec
+
+Array = NDArray[np.float64]
+
+#: Below this many ChArUco corners the board is reported missing.
+DEFAULT_MIN_CORNERS = 6
+
+
+def make_board(spec: BoardSpec) -> cv2.aruco.CharucoBoard:
+    """The OpenCV board described by ``spec`` (legacy layout when ``spec.legacy_pattern``)."""
+    name = spec.dictionary
+    if not hasattr(cv2.aruco, name):
+        raise ValueError(f"unknown ArUco dictionary {name!r}")
+    dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
+    board = cv2.aruco.CharucoBoard((spec.squares_x, spec.squares_y), spec.square_length_m, spec.marker_length_m,
+                                   dictionary)
+    board.setLegacyPattern(bool(spec.legacy_pattern))
+    return board
+
+
+def board_corners(spec: BoardSpec) -> tuple[NDArray[np.int_], Array]:
+    """All ChArUco corner ids (M,) and their nominal positions in the board frame (M, 3), metres."""
+    pts = np.asarray(make_board(spec).getChessboardCorners(), dtype=np.float64).reshape(-1, 3)
+    return np.arange(pts.shape[0]), pts
+
+
+@dataclass
+class BoardDetection:
+    """ChArUco corners found in an image: ids (M,) and distorted pixel positions (M, 2)."""
+
+    ids: NDArray[np.int_]
+    pixels: Array
+    n_markers: int
+
+
+@dataclass
+class BoardPose:
+    """``camera_from_board`` measured in one image.
+
+    Attributes
+    ----------
+    R : ndarray, shape (3, 3)
+    t : ndarray, shape (3,)
+        Metres.
+    rms_px : float
+        RMS reprojection error of the corners used, pixels.
+    n_corners : int
+    cov : ndarray, shape (6, 6)
+        Covariance of (rotation vector [rad], t [m]), from the PnP Jacobian scaled by the residual
+        variance (floored at 0.05 px so that a perfect fit does not claim infinite precision).
+    """
+
+    R: Array
+    t: Array
+    rms_px: float
+    n_corners: int
+    cov: Array
+
+    def to_dict(self) -> dict:
+        return {"R": self.R.tolist(), "t": self.t.tolist(), "rms_px": self.rms_px, "n_corners": self.n_corners,
+                "cov": self.cov.tolist()}
+
+
+class BoardDetector:
+    """Finds a ChArUco board and measures its pose.
+
+    Parameters
+    ----------
+    spec : BoardSpec
+    min_corners : int
+        Fewer corners than this: no pose (the reason says how many were found).
+    """
+
+    def __init__(self, spec: BoardSpec, min_corners: int = DEFAULT_MIN_CORNERS) -> None:
+        self.spec = spec
+        self.board = make_board(spec)
+        self.min_corners = int(min_corners)
+        dp = cv2.aruco.DetectorParameters()
+        dp.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+        cp = cv2.aruco.CharucoParameters()
+        cp.tryRefineMarkers = True
+        self.detector = cv2.aruco.CharucoDetector(self.board, cp, dp)
+        self.ids_all, self.points_nominal = board_corners(spec)
+        self.points = self.points_nominal.copy()
+
+    def use_refined_points(self, ids: NDArray[np.int_], points: Array) -> None:
+        """Use corner coordinates refined by intrinsic calibration (calibrateCameraRO) for poses."""
+        pts = self.points_nominal.copy()
+        pts[np.asarray(ids, dtype=int)] = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        self.points = pts
+
+    def detect(self, image: np.ndarray) -> BoardDetection:
+        """Detect ChArUco corners (sub-pixel) in an 8/16-bit mono or colour image."""
+        gray = to_gray8(image)
+        ch_corners, ch_ids, _mk_corners, mk_ids = self.detector.detectBoard(gray)
+        n_markers = 0 if mk_ids is None else len(mk_ids)
+        if ch_ids is None or len(ch_ids) == 0:
+            return BoardDetection(np.zeros(0, dtype=int), np.zeros((0, 2)), n_markers)
+        return BoardDetection(np.asarray(ch_ids, dtype=int).reshape(-1),
+                              np.asarray(ch_corners, dtype=np.float64).reshape(-1, 2), n_markers)
+
+    def pose(self, detection: BoardDetection, camera: CameraModel) -> BoardPose | str:
+        """Pose from a detection, or the reason why there is none (a string)."""
+        n = detection.ids.size
+        if n < self.min_corners:
+            return (f"board not found: {n} ChArUco corners ({detection.n_markers} markers), "
+                    f"need at least {self.min_corners}")
+        obj = self.points[detection.ids]
+        img = detection.pixels
+        # planar board: IPPE gives the two-fold ambiguity resolved by reprojection, then LM refinement
+        ok, rvec, tvec = cv2.solvePnP(obj, img, camera.K, camera.dist, flags=cv2.SOLVEPNP_IPPE)
+        if not ok:
+            ok, rvec, tvec = cv2.solvePnP(obj, img, camera.K, camera.dist, flags=cv2.SOLVEPNP_ITERATIVE)
+            if not ok:
+                return "board pose failed: solvePnP did not converge"
+        rvec, tvec = cv2.solvePnPRefineLM(obj, img, camera.K, camera.dist, rvec, tvec)
+        proj, jac = cv2.projectPoints(obj, rvec, tvec, camera.K, camera.dist)
+        res = proj.reshape(-1, 2) - img
+        rms = float(np.sqrt(np.mean(np.sum(res ** 2, axis=1))))
+        J = jac[:, :6]
+        dof = max(2 * n - 6, 1)
+        sigma2 = max(float(np.sum(res ** 2)) / dof, 0.05 ** 2)
+        try:
+            cov = sigma2 * np.linalg.inv(J.T @ J)
+        except np.linalg.LinAlgError:
+            return "board pose failed: degenerate corner configuration"
+        R, _ = cv2.Rodrigues(rvec)
+        if float(tvec.reshape(-1)[2]) <= 0:
+            return "board pose failed: board behind the camera"
+        return BoardPose(R, tvec.reshape(3).astype(np.float64), rms, int(n), cov)
+
+    def measure(self, image: np.ndarray, camera: CameraModel) -> BoardPose | str:
+        """Detect then pose (or the reason)."""
+        return self.pose(self.detect(image), camera)
+
+    def outline_camera(self, R: Array, t: Array, margin_m: float = 0.012) -> Array:
+        """The board's outline (4 corners plus a margin) in the camera frame, shape (4, 3)."""
+        w, h = self.spec.size_m
+        m = margin_m
+        c = np.array([[-m, -m, 0.0], [w + m, -m, 0.0], [w + m, h + m, 0.0], [-m, h + m, 0.0]])
+        return c @ np.asarray(R).T + np.asarray(t)
+
+
+def to_gray8(image: np.ndarray) -> np.ndarray:
+    """An 8-bit single-channel view of an 8/16-bit mono or colour image."""
+    img = image
+    if img.ndim == 3:
+        if img.shape[2] == 4:
+            img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY)
+        elif img.shape[2] == 3:
+            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        else:
+            img = img[:, :, 0]
+    if img.dtype == np.uint16:
+        img = (img >> 8).astype(np.uint8)
+    elif img.dtype != np.uint8:
+        img = np.clip(img, 0, 255).astype(np.uint8)
+    return img
