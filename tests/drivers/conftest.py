@@ -2,25 +2,10 @@
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
+from drv_helpers import FAST, TinyRenderer
 
-from drivers.modbus import ModbusActuators
 from drivers.sim.bench import SimBench
-from drivers.sim.mechanism import AxisConfig
-
-
-class TinyRenderer:
-    """A fake renderer: a small image whose pixels encode the true q (mm) it was asked to draw."""
-
-    def render(self, q_true, pose_true):
-        img = np.zeros((24, 32), np.uint8)
-        img[0, :4] = np.clip(np.round(np.asarray(q_true) * 100), 0, 255).astype(np.uint8)
-        img[1:, :] = 7
-        return img
-
-
-FAST = AxisConfig(default_speed=2.0, accel=40.0, home_speed=4.0, encoder_noise_m=3e-7)
 
 
 @pytest.fixture
@@ -31,13 +16,3 @@ async def bench():
         yield b
     finally:
         await b.stop()
-
-
-def make_modbus(bench: SimBench, transport: str = "tcp", **kw) -> ModbusActuators:
-    host, port = bench.tcp_address
-    if transport == "rtu-tcp":
-        port = int(bench.rtu_url.rsplit(":", 1)[1])
-    opts = dict(transport=transport, host=host, port=port, speed_m_s=2.0, accel_m_s2=40.0, timeout_s=0.2,
-                retries=2, backoff_s=0.01, poll_s=0.001, move_timeout_margin_s=0.5)
-    opts.update(kw)
-    return ModbusActuators(**opts)
