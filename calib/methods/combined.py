@@ -1,0 +1,240 @@
+"""The paper's proposal: the Jacobian estimated from the legs in the base frame (eq. 8).
+
+For each fit pose k, vision gives every rod's axis direction in the camera frame; the base frame
+(:mod:`calib.baseframe`) turns it into the base frame, where the pose-dependent entries of the
+IKM Jacobian are the ratios ``u_iy / u_ix`` and ``u_iz / u_ix`` (eq. 4; sign and norm of u do not
+matter). The model computes the same entries from the encoder values through the DKM, as a
+function of the four identifiable combinations only. The fit minimises the Frobenius norm of the
+difference (eq. 8) with ``scipy.optimize.least_squares``; each rod contributes its own estimate
+of its leg's Jacobian row.
+
+Standard deviations combine (i) the per-pose noise (rod directions and encoders), with the
+direction-noise level estimated from the residuals, and (ii) the base-frame rotation's
+covariance propagated through the fit: the base frame is common to all poses and its error does
+not show in the residuals.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from ..baseframe import BaseFrameResult, base_frame_from_observations
+from ..errors import ConvergenceError, IdentifiabilityError
+from ..kinematics import pose_from_joints_reduced
+from ..observations import Observations, PhaseArrays
+from ..parameters import COMBINATION_NAMES
+from ..transforms import rotvec_to_matrix
+from .result import MethodResult, check_excitation, combos_dict, std_dict
+
+Weighting = Literal["frobenius", "gls"]
+
+# sign of u_x in each leg's model direction: u1 = (f1, Y+c, Z), u2 = (-f1, Y+c, Z), ...
+_SX = np.array([1.0, -1.0, 1.0, -1.0])
+
+
+def model_ratios(combos: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Jacobian entries ``(u_iy/u_ix, u_iz/u_ix)`` predicted from encoder values.
+
+    Parameters
+    ----------
+    combos : ndarray, shape (4,)
+        ``(L, H-D, S-q02/2, S-(q04-q03)/2)`` in metres.
+    q : ndarray, shape (N, 4)
+
+    Returns
+    -------
+    ndarray, shape (N, 4, 2)
+    """
+    c = combos[1]
+    Y, Z, f1, f3 = pose_from_joints_reduced(combos, q)
+    out = np.empty((q.shape[0], 4, 2))
+    for i, (f, yoff) in enumerate(((f1, Y + c), (f1, Y + c), (f3, Y - c), (f3, Y - c))):
+        out[:, i, 0] = yoff / (_SX[i] * f)
+        out[:, i, 1] = Z / (_SX[i] * f)
+    return out
+
+
+def _ratio_grad(u: np.ndarray) -> np.ndarray:
+    """d(u_y/u_x, u_z/u_x)/du, shape (M, 2, 3)."""
+    ux, uy, uz = u[:, 0], u[:, 1], u[:, 2]
+    G = np.zeros((u.shape[0], 2, 3))
+    G[:, 0, 0] = -uy / ux ** 2
+    G[:, 0, 1] = 1.0 / ux
+    G[:, 1, 0] = -uz / ux ** 2
+    G[:, 1, 2] = 1.0 / ux
+    return G
+
+
+class _Problem:
+    """Residuals of eq. 8 for the rods observed in the fit poses."""
+
+    def __init__(self, data: PhaseArrays, R_cb: np.ndarray, min_ux: float = 0.05) -> None:
+        k_idx, leg_idx, rod_idx = np.nonzero(data.has_rod)
+        u_cam = data.rod_u[k_idx, leg_idx, rod_idx]
+        self.u_cam = u_cam
+        self.k = k_idx
+        self.leg = leg_idx
+        self.rod = rod_idx
+        self.q = data.q
+        self.R_cb = R_cb
+        uB = u_cam @ R_cb
+        keep = np.abs(uB[:, 0]) >= min_ux
+        self.dropped = int((~keep).sum())
+        for name in ("u_cam", "k", "leg", "rod"):
+            setattr(self, name, getattr(self, name)[keep])
+        self.n_poses = len(np.unique(self.k))
+
+    def measured(self, R_cb: np.ndarray | None = None) -> np.ndarray:
+        uB = self.u_cam @ (self.R_cb if R_cb is None else R_cb)
+        return uB[:, 1:] / uB[:, :1]
+
+    def model(self, combos: np.ndarray, q: np.ndarray | None = None) -> np.ndarray:
+        r = model_ratios(combos, self.q if q is None else q)
+        return r[self.k, self.leg]
+
+    def residuals(self, combos: np.ndarray) -> np.ndarray:
+        return (self.model(combos) - self.measured()).ravel()
+
+    def noise_shape(self, use_rod_cov: np.ndarray | None = None) -> np.ndarray:
+        """Relative covariance of each rod's 2 ratio residuals for direction noise, (M, 2, 2)."""
+        uB = self.u_cam @ self.R_cb
+        G = _ratio_grad(uB)
+        P = np.eye(3)[None] - uB[:, :, None] * uB[:, None, :]
+        if use_rod_cov is not None:
+            P = np.einsum("ji,mjk,kl->mil", self.R_cb, use_rod_cov, self.R_cb)
+        return np.einsum("mij,mjk,mlk->mil", G, P, G)
+
+
+def _jac(fun, x: np.ndarray, h: float = 1e-7) -> np.ndarray:
+    cols = []
+    for i in range(x.size):
+        e = np.zeros_like(x)
+        e[i] = h
+        cols.append((fun(x + e) - fun(x - e)) / (2 * h))
+    return np.column_stack(cols)
+
+
+def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None = None,
+                       weighting: Weighting = "frobenius", phases: tuple[str, ...] = ("poses",),
+                       encoder_std_m: float = 1e-6) -> MethodResult:
+    """Identify the four combinations from leg observations and the base frame (eq. 8).
+
+    Parameters
+    ----------
+    obs : Observations
+        Needs board poses in the ``rotation`` and ``translation`` phases (base frame) and rod
+        directions in the fit phases.
+    base_frame : BaseFrameResult, optional
+        Computed from ``obs`` when not given.
+    weighting : {"frobenius", "gls"}
+        ``"frobenius"``: the paper's eq. 8 (every Jacobian entry weighs the same).
+        ``"gls"``: each rod's two entries whitened by their predicted direction-noise covariance
+        (the maximum-likelihood fit for direction noise; more efficient when legs are steep).
+    phases : tuple of str
+        Phases whose frames are fit poses.
+    encoder_std_m : float
+        Encoder noise, metres (propagated; negligible against direction noise in practice).
+
+    Returns
+    -------
+    MethodResult
+
+    Raises
+    ------
+    IdentifiabilityError
+        Missing base-frame phases, too few rods, or a pose set that does not excite a parameter.
+    ConvergenceError
+        The fit did not converge.
+    """
+    bf = base_frame or base_frame_from_observations(obs)
+    data = obs.arrays(*phases)
+    if len(data) == 0:
+        raise IdentifiabilityError(f"no frames in phase(s) {', '.join(phases)} for the combined fit")
+    prob = _Problem(data, bf.camera_from_base_R)
+    m = prob.u_cam.shape[0]
+    if m * 2 < 8 or prob.n_poses < 2:
+        raise IdentifiabilityError(
+            f"the combined fit has {m} rod observations in {prob.n_poses} pose(s); it needs rods in at least "
+            "2 poses (20 recommended)")
+    x0 = np.array([obs.nominal.combinations()[k] for k in COMBINATION_NAMES])
+    check_excitation(_jac(prob.residuals, x0), COMBINATION_NAMES)
+
+    rod_cov = _rod_covariances(obs, data, prob)
+    shape = prob.noise_shape(rod_cov)
+    if weighting == "gls":
+        Wh = np.linalg.cholesky(np.linalg.inv(shape + 1e-30 * np.eye(2))).transpose(0, 2, 1)  # L^T L = C^-1
+    elif weighting == "frobenius":
+        Wh = np.broadcast_to(np.eye(2), (m, 2, 2))
+    else:
+        raise ValueError(f"weighting must be 'frobenius' or 'gls', got {weighting!r}")
+
+    def wres(x: np.ndarray) -> np.ndarray:
+        r = prob.residuals(x).reshape(m, 2)
+        return np.einsum("mij,mj->mi", Wh, r).ravel()
+
+    sol = least_squares(wres, x0, method="lm", xtol=1e-14, ftol=1e-14, gtol=1e-14, max_nfev=500)
+    if sol.status <= 0 or not np.all(np.isfinite(sol.x)):
+        raise ConvergenceError(f"combined fit did not converge: {sol.message}")
+    x = sol.x
+    J = _jac(prob.residuals, x)  # unweighted, (2m, 4)
+    check_excitation(J, COMBINATION_NAMES)
+    r = prob.residuals(x).reshape(m, 2)
+
+    # direction-noise scale from the whitened residuals
+    Cinv = np.linalg.inv(shape + 1e-300 * np.eye(2))
+    chi2 = float(np.einsum("mi,mij,mj->", r, Cinv, r))
+    dof = max(2 * m - 4, 1)
+    s2 = chi2 / dof
+    # per-rod residual covariance, plus encoder noise (correlates the rods of a pose)
+    n = 2 * m
+    Sigma = np.zeros((n, n))
+    for a in range(m):
+        Sigma[2 * a:2 * a + 2, 2 * a:2 * a + 2] = s2 * shape[a]
+    if encoder_std_m > 0:
+        Dq = np.zeros((n, 4 * len(data)))
+        for j in range(4):
+            dq = np.zeros_like(prob.q)
+            dq[:, j] = 1e-7
+            d = ((prob.model(x, prob.q + dq) - prob.model(x, prob.q - dq)) / 2e-7).reshape(m, 2)
+            Dq[np.arange(n), 4 * np.repeat(prob.k, 2) + j] = d.ravel()
+        Sigma += encoder_std_m ** 2 * Dq @ Dq.T
+    Wfull = np.zeros((n, n))
+    for a in range(m):
+        Wfull[2 * a:2 * a + 2, 2 * a:2 * a + 2] = Wh[a].T @ Wh[a]
+    H = J.T @ Wfull @ J
+    A = np.linalg.solve(H, J.T @ Wfull)  # d x / d r (up to sign)
+    cov_pose = A @ Sigma @ A.T
+
+    def r_of_w(w: np.ndarray) -> np.ndarray:
+        R = rotvec_to_matrix(w) @ bf.camera_from_base_R
+        return (prob.model(x) - prob.measured(R)).ravel()
+
+    Jw = _jac(r_of_w, np.zeros(3), 1e-7)
+    Bw = A @ Jw
+    cov_base = Bw @ bf.cov_rotvec @ Bw.T
+    cov = cov_pose + cov_base
+    return MethodResult(
+        method="combined", combinations=combos_dict(x), combinations_std=std_dict(cov), covariance=cov,
+        residual_rms=float(np.sqrt(np.mean(r ** 2))), residual_unit="Jacobian entry (dimensionless)",
+        n_observations=2 * m, n_poses=prob.n_poses, iterations=int(sol.nfev), converged=True,
+        message=str(sol.message),
+        std_breakdown={"legs_and_encoders": std_dict(cov_pose), "base_frame": std_dict(cov_base)},
+        diagnostics={"weighting": weighting, "direction_noise_scale": float(np.sqrt(s2)),
+                     "rods_dropped_near_vertical": prob.dropped, "base_frame": bf.summary()},
+        residuals=r)
+
+
+def _rod_covariances(obs: Observations, data: PhaseArrays, prob: _Problem) -> np.ndarray | None:
+    """Per-rod direction covariances (camera frame) when every used rod carries one (extra field ``cov_u``)."""
+    covs = []
+    for k, leg, rod in zip(prob.k, prob.leg, prob.rod, strict=True):
+        frame = obs.frames[int(data.index[k])]
+        rods = frame.legs.get(str(leg + 1)) if frame.legs else None
+        c = getattr(rods[rod], "cov_u", None) if rods and rods[rod] is not None else None
+        if c is None:
+            return None
+        covs.append(np.asarray(c, dtype=np.float64))
+    return np.asarray(covs) if covs else None

@@ -1,0 +1,226 @@
+"""End-effector observation only (the paper's reference [8]): inverse-kinematic residuals.
+
+Each board pose ``camera_from_board_k`` gives, through the unknown ``base_from_camera`` and
+``board_from_ee`` transforms, an end-effector pose (X, Y, Z, theta) with ``T = T_per_rad theta``.
+The IKM of that pose must reproduce the encoder values. The unknowns are the four identifiable
+combinations, two joint offsets (what X and T offsets and S, q03 become once only the combinations
+are kept), the camera rotation (3) and its y, z position (2), the board tilt on the end-effector
+(2) and its horizontal offset (2): 15 in all. Its x position and the board's height and yaw on the
+end-effector are gauge freedoms that the offsets absorb and are held fixed. Besides the four IKM
+residuals per pose, the pose's tilt (the end-effector only turns about z_B) gives two more.
+
+Weighting and uncertainty: each pose's residuals are a linear function of its board-pose error
+(6 dof) plus encoder noise. The board-pose noise covariance is estimated from the residuals
+themselves (mapping them back to board-pose errors), the fit is re-weighted with it
+(generalised least squares, the maximum-likelihood estimate for Gaussian pose noise), and the
+standard deviations come from the weighted normal matrix.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from ..baseframe import base_frame_from_observations
+from ..errors import ConvergenceError, I4calError, IdentifiabilityError
+from ..kinematics import dkm
+from ..observations import Observations
+from ..parameters import COMBINATION_NAMES
+from ..transforms import orthonormalize, rot_z, rotvec_to_matrix
+from .result import MethodResult, check_excitation, combos_dict, std_dict
+
+_NAMES = (*COMBINATION_NAMES, "o1", "o3", "w_x", "w_y", "w_z", "t_y", "t_z", "tilt_x", "tilt_y", "b_x", "b_y")
+
+
+def _kabsch(P: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """Rotation R minimising |R P_i + t - Q_i|, P and Q of shape (N, 3)."""
+    Pc = P - P.mean(axis=0)
+    Qc = Q - Q.mean(axis=0)
+    U, _, Vt = np.linalg.svd(Pc.T @ Qc)
+    d = np.sign(np.linalg.det(Vt.T @ U.T))
+    return Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+
+
+class _Model:
+    def __init__(self, R: np.ndarray, t: np.ndarray, q: np.ndarray, T_per_rad: float, R_bc0: np.ndarray,
+                 t_bc_x: float, R_eb0: np.ndarray, t_eb_z: float, theta_ref: np.ndarray) -> None:
+        self.R, self.t, self.q = R, t, q
+        self.Tpr = T_per_rad
+        self.R_bc0, self.t_bc_x = R_bc0, t_bc_x
+        self.R_eb0, self.t_eb_z = R_eb0, t_eb_z
+        self.theta_ref = theta_ref
+
+    def ee_poses(self, x: np.ndarray, R: np.ndarray | None = None, t: np.ndarray | None = None):
+        R = self.R if R is None else R
+        t = self.t if t is None else t
+        R_bc = rotvec_to_matrix(x[6:9]) @ self.R_bc0
+        t_bc = np.array([self.t_bc_x, x[9], x[10]])
+        R_eb = self.R_eb0 @ rotvec_to_matrix(np.array([x[11], x[12], 0.0]))
+        t_eb = np.array([x[13], x[14], self.t_eb_z])
+        R_be = R_bc @ R @ R_eb.T  # base_from_ee rotations, (N, 3, 3)
+        p = (R_bc @ (t - np.einsum("nij,j->ni", R @ R_eb.T, t_eb)).T).T + t_bc
+        theta = np.arctan2(R_be[:, 1, 0], R_be[:, 0, 0])
+        theta = self.theta_ref + (theta - self.theta_ref + np.pi) % (2 * np.pi) - np.pi
+        tilt = np.column_stack([R_be[:, 2, 1], -R_be[:, 2, 0]])
+        return p, theta, tilt
+
+    def residuals(self, x: np.ndarray, R: np.ndarray | None = None, t: np.ndarray | None = None) -> np.ndarray:
+        """Per pose (N, 6): 4 IKM residuals (m), 2 tilt residuals (rad)."""
+        L, c, s1, s3, o1, o3 = x[:6]
+        p, theta, tilt = self.ee_poses(x, R, t)
+        X, Y, Z = p.T
+        T = self.Tpr * theta
+        f1 = np.sqrt(np.maximum(L ** 2 - (Y + c) ** 2 - Z ** 2, 1e-12))
+        f3 = np.sqrt(np.maximum(L ** 2 - (Y - c) ** 2 - Z ** 2, 1e-12))
+        qm = np.column_stack([X + T - f1 + o1, X + T + f1 + 2 * s1 + o1, X - T - f3 + o3,
+                              X - T + f3 + 2 * s3 + o3])
+        return np.column_stack([qm - self.q, tilt])
+
+
+def _fd(fun, x: np.ndarray, h: float = 1e-7) -> np.ndarray:
+    cols = []
+    for i in range(x.size):
+        e = np.zeros_like(x)
+        e[i] = h
+        cols.append((fun(x + e) - fun(x - e)) / (2 * h))
+    return np.column_stack(cols)
+
+
+def calibrate_end_effector(obs: Observations, *, phases: tuple[str, ...] = ("poses",),
+                           encoder_std_m: float = 1e-6, iterations: int = 3) -> MethodResult:
+    """Identify the four combinations from board poses and encoders (IKM residuals).
+
+    Parameters
+    ----------
+    obs : Observations
+        Needs board poses in ``phases`` (and, for the initial camera orientation, the rotation and
+        translation phases when present).
+    phases : tuple of str
+        Phases whose frames enter the fit (the paper uses the 20-pose set).
+    encoder_std_m : float
+        Encoder noise, metres.
+    iterations : int
+        Re-weighting passes (noise covariance estimated from the residuals).
+
+    Returns
+    -------
+    MethodResult
+    """
+    nominal = obs.nominal
+    data = obs.arrays(*phases)
+    data = data.subset(data.has_board)
+    n = len(data)
+    if n < 4:
+        raise IdentifiabilityError(
+            f"the end-effector method has {n} board pose(s) in phase(s) {', '.join(phases)}; it needs at least "
+            "4 (20 recommended)")
+    R, t, q = data.board_R, data.board_t, data.q
+    try:
+        poses_nom = dkm(nominal, q)
+    except I4calError as exc:
+        raise IdentifiabilityError(f"cannot initialise the end-effector fit: {exc}") from None
+    theta_nom = poses_nom[:, 3] / nominal.T_per_rad
+    # initial camera orientation: base frame when available, else Kabsch on positions
+    try:
+        R_bc0 = base_frame_from_observations(obs).camera_from_base_R.T
+    except I4calError:
+        R_bc0 = _kabsch(t, poses_nom[:, :3])
+    R_eb0 = orthonormalize(np.sum(rot_z(-theta_nom) @ R_bc0 @ R, axis=0))
+    # initial translations: p_k = R_bc R_k (-R_eb^T t_eb) + R_bc t_k + t_bc (linear)
+    A = np.zeros((3 * n, 6))
+    b = np.zeros(3 * n)
+    for k in range(n):
+        A[3 * k:3 * k + 3, :3] = -R_bc0 @ R[k] @ R_eb0.T
+        A[3 * k:3 * k + 3, 3:] = np.eye(3)
+        b[3 * k:3 * k + 3] = poses_nom[k, :3] - R_bc0 @ t[k]
+    sol0 = np.linalg.lstsq(A, b, rcond=None)[0]
+    t_eb0, t_bc0 = sol0[:3], sol0[3:]
+    model = _Model(R, t, q, nominal.T_per_rad, R_bc0, t_bc0[0], R_eb0, t_eb0[2], theta_nom)
+    combos0 = np.array([nominal.combinations()[k] for k in COMBINATION_NAMES])
+    x0 = np.concatenate([combos0, [-nominal.S, -nominal.S - nominal.q03], np.zeros(3), t_bc0[1:], [0.0, 0.0],
+                         t_eb0[:2]])
+    # put the offsets where the nominal pose says they are
+    r0 = model.residuals(x0)
+    x0[4] -= np.mean(r0[:, :2])
+    x0[5] -= np.mean(r0[:, 2:4])
+
+    Wh = np.broadcast_to(np.diag([1.0, 1.0, 1.0, 1.0, 1.0, 1.0]), (n, 6, 6)).copy()
+
+    def wres(x: np.ndarray) -> np.ndarray:
+        return np.einsum("nij,nj->ni", Wh, model.residuals(x)).ravel()
+
+    check_excitation(_fd(lambda x: model.residuals(x).ravel(), x0), _NAMES)
+    p = x0.size
+    x = x0
+    nfev = 0
+    Sigma_b = np.zeros((6, 6))
+    for _ in range(max(iterations, 1)):
+        sol = _solve(wres, x)
+        if sol.status <= 0 or not np.all(np.isfinite(sol.x)):
+            raise ConvergenceError(f"end-effector fit did not converge: {sol.message}")
+        x = sol.x
+        nfev += sol.nfev
+        r = model.residuals(x)
+        if np.sqrt(np.mean(r ** 2)) < 1e-12:
+            break  # noise-free data: nothing to weight
+        # map residuals back to board-pose errors (rotation left-perturbation, translation), per pose
+        Ak = _pose_sensitivity(model, x)  # (n, 6, 6)
+        eps = np.linalg.solve(Ak, r[..., None])[..., 0]
+        Sigma_b = eps.T @ eps / max(n - p / 6.0, 1.0)
+        Cr = Ak @ Sigma_b @ Ak.transpose(0, 2, 1)
+        Cr[:, :4, :4] += encoder_std_m ** 2 * np.eye(4)
+        Cr += 1e-30 * np.eye(6)
+        Wh = np.linalg.cholesky(np.linalg.inv(Cr)).transpose(0, 2, 1)
+    r = model.residuals(x)
+    J = _fd(wres, x)
+    check_excitation(J, _NAMES)
+    if np.sqrt(np.mean(r ** 2)) < 1e-12:
+        cov_full = np.zeros((p, p))
+    else:
+        chi2 = float(np.sum(wres(x) ** 2))
+        dof = max(6 * n - p, 1)
+        cov_full = np.linalg.inv(J.T @ J) * max(chi2 / dof, 1e-300) if iterations <= 1 else np.linalg.inv(J.T @ J)
+    cov = cov_full[:4, :4]
+    return MethodResult(
+        method="end-effector", combinations=combos_dict(x[:4]), combinations_std=std_dict(cov), covariance=cov,
+        residual_rms=float(np.sqrt(np.mean(r[:, :4] ** 2))), residual_unit="m (IKM joint residual)",
+        n_observations=6 * n, n_poses=n, iterations=int(nfev), converged=True, message=str(sol.message),
+        diagnostics={
+            "tilt_residual_rms_deg": float(np.rad2deg(np.sqrt(np.mean(r[:, 4:] ** 2)))),
+            "board_noise_std": {"rotation_deg": np.rad2deg(np.sqrt(np.diag(Sigma_b)[:3])).tolist(),
+                                "translation_mm": (np.sqrt(np.diag(Sigma_b)[3:]) * 1e3).tolist()},
+            "camera_tilt_deg": float(np.rad2deg(np.linalg.norm(x[6:9]))),
+            "board_offset_on_ee_m": [float(x[13]), float(x[14])],
+        },
+        residuals=r)
+
+
+def _solve(fun, x0: np.ndarray):
+    """Trust-region least squares with Jacobian scaling, restarted until the cost stops decreasing."""
+    sol = least_squares(fun, x0, method="trf", x_scale="jac", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=3000)
+    nfev = sol.nfev
+    for _ in range(5):
+        again = least_squares(fun, sol.x, method="trf", x_scale="jac", xtol=1e-15, ftol=1e-15, gtol=1e-15,
+                              max_nfev=3000)
+        nfev += again.nfev
+        if again.cost >= sol.cost * (1 - 1e-12):
+            break
+        sol = again
+    sol.nfev = nfev
+    return sol
+
+
+def _pose_sensitivity(model: _Model, x: np.ndarray, h: float = 1e-7) -> np.ndarray:
+    """d residuals_k / d (board pose error_k), shape (N, 6, 6): rotation (left, camera frame) then translation."""
+    n = model.R.shape[0]
+    A = np.zeros((n, 6, 6))
+    for j in range(6):
+        d = np.zeros(6)
+        d[j] = h
+        outs = []
+        for sgn in (1.0, -1.0):
+            Rp = rotvec_to_matrix(sgn * d[:3]) @ model.R
+            tp = model.t + sgn * d[3:]
+            outs.append(model.residuals(x, Rp, tp))
+        A[:, :, j] = (outs[0] - outs[1]) / (2 * h)
+    return A
