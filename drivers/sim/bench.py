@@ -232,7 +232,7 @@ class SimBench:
         """A :class:`drivers.config.BenchConfig` pointing at this bench, with fast sim speeds."""
         from ..config import BenchConfig
 
-        data: dict[str, Any] = {"actuators": {"uri": self.actuators_uri, "speed_m_s": 2.0, "accel_m_s2": 40.0,
+        data: dict[str, Any] = {"actuators": {"uri": self.actuators_uri, "speed_m_s": 10.0, "accel_m_s2": 1000.0,
                                               "timeout_s": 0.5, "poll_s": 0.001},
                                 "camera": {"uri": self.camera_uri},
                                 "operator": {"uri": self.operator_uri}}
@@ -246,7 +246,7 @@ class SimBench:
 
 def fast_axis_config() -> AxisConfig:
     """Sim speeds high enough that a full plan acquires in a few seconds."""
-    return AxisConfig(default_speed=2.0, accel=40.0, home_speed=2.0)
+    return AxisConfig(default_speed=10.0, accel=1000.0, home_speed=10.0)
 
 
 async def serve_forever(port: int = 5020, *, seed: int = 0, print_fn=print) -> None:

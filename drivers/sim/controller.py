@@ -42,8 +42,11 @@ class Faults:
 class SimController:
     """Modbus front end of a :class:`Mechanism` for one register map."""
 
-    def __init__(self, mechanism: Mechanism, regmap: RegisterMap = DEFAULT_MAP) -> None:
+    def __init__(self, mechanism: Mechanism, regmap: RegisterMap = DEFAULT_MAP, watchdog_s: float = 0.5) -> None:
         self.mechanism = mechanism
+        self.watchdog_s = watchdog_s
+        self._last_request = 0.0
+        self._watchdog_task: asyncio.Task | None = None
         self.map = regmap
         self.faults = Faults()
         self.requests = 0
@@ -89,6 +92,7 @@ class SimController:
 
     def _action(self, axes, fc, start_address, address, count, registers, set_values) -> ExcCodes | None:
         self.requests += 1
+        self._last_request = self.mechanism.clock()
         f = self.faults
         if f.exception_count > 0:
             f.exception_count -= 1
@@ -172,6 +176,23 @@ class SimController:
                     n += 1
         return n
 
+    async def _watchdog(self) -> None:
+        """Communication watchdog: a move with no request from the master for ``watchdog_s`` is stopped."""
+        mech = self.mechanism
+        while True:
+            await asyncio.sleep(min(0.05, self.watchdog_s / 4))
+            now = mech.update()
+            if now - self._last_request > self.watchdog_s:
+                with mech.lock:
+                    for ax in mech.axes:
+                        if ax.moving:
+                            log.warning("watchdog: no request for %.2f s during a move; stopping", self.watchdog_s)
+                            ax.stop(now)
+
+    def _start_watchdog(self) -> None:
+        if self.watchdog_s and self._watchdog_task is None:
+            self._watchdog_task = asyncio.create_task(self._watchdog())
+
     # -- servers --------------------------------------------------------------------------------
     async def serve_tcp(self, host: str = "127.0.0.1", port: int = 0) -> tuple[str, int]:
         """Start a Modbus TCP server; returns the bound (host, port) (``port=0``: a free one)."""
@@ -180,6 +201,7 @@ class SimController:
         srv = ModbusTcpServer(self.devices(), address=(host, port), trace_packet=self._trace_packet)
         await srv.serve_forever(background=True)
         self._servers.append(srv)
+        self._start_watchdog()
         return host, port
 
     async def serve_rtu(self, port: str | None = None, baudrate: int = 115200) -> str:
@@ -192,9 +214,15 @@ class SimController:
                                  trace_packet=self._trace_packet)
         await srv.serve_forever(background=True)
         self._servers.append(srv)
+        self._start_watchdog()
         return port
 
     async def shutdown(self) -> None:
+        if self._watchdog_task is not None:
+            self._watchdog_task.cancel()
+            with contextlib.suppress(BaseException):
+                await self._watchdog_task
+            self._watchdog_task = None
         for srv in self._servers:
             with contextlib.suppress(Exception):
                 await srv.shutdown()

@@ -19,7 +19,7 @@ class TinyRenderer:
         return img
 
 
-FAST = AxisConfig(default_speed=2.0, accel=40.0, home_speed=4.0, encoder_noise_m=3e-7)
+FAST = AxisConfig(default_speed=10.0, accel=1000.0, home_speed=10.0, encoder_noise_m=3e-7)
 
 
 def make_modbus(bench: SimBench, transport: str = "tcp", **kw) -> ModbusActuators:

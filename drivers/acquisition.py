@@ -1,0 +1,408 @@
+"""Execute a motion plan on a bench and record a dataset as it goes.
+
+For every pose: move (the driver checks limits, derives a timeout, stops on error), wait until in
+position and settled, read the encoders, grab a frame, write it (:class:`calib.dataset.DatasetWriter`,
+crash-safe, one frame at a time) and report progress. A ``line`` step sets the drives free (control
+bit 4), asks the operator to guide the end-effector along the ruler and records encoders + frames at
+the line's rate.
+
+The run can be paused, resumed and aborted (abort stops the actuators). A fault stops motion, keeps
+every frame already written, and raises :class:`AcquisitionError` naming the pose and the cause; a new
+run with ``resume=True`` continues from the first pose not yet recorded.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from calib.dataset import BoardSpec, CameraSpec, Dataset, DatasetWriter, LegsSpec
+from calib.errors import InputError
+from calib.kinematics import ikm
+from calib.parameters import NOMINAL, I4Parameters
+from calib.plan import Plan, SoftLimits, line_poses, validate_plan
+
+from .errors import AbortedError, DeviceError, DeviceTimeoutError, FrameError
+from .interfaces import Actuators, Camera, Frame, Operator
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Unit:
+    """One recorded frame of the plan: a pose, or one sample of a guided line."""
+
+    index: int
+    step: int
+    phase: str
+    q: tuple[float, ...] | None = None
+    line_sample: int | None = None
+
+
+def plan_units(plan: Plan) -> list[Unit]:
+    out: list[Unit] = []
+    for si, step in enumerate(plan.steps):
+        if step.line is not None:
+            out += [Unit(len(out) + k, si, step.phase, None, k) for k in range(step.line.samples)]
+        else:
+            out.append(Unit(len(out), si, step.phase, tuple(step.q) if step.q is not None else None))
+    return out
+
+
+@dataclass
+class Progress:
+    state: str  # starting, running, paused, done, failed, aborted
+    done: int
+    total: int
+    phase: str = ""
+    elapsed_s: float = 0.0
+    eta_s: float | None = None
+    message: str = ""
+
+
+@dataclass
+class RunResult:
+    path: Path
+    frames: int
+    total: int
+    recorded_now: int
+    elapsed_s: float
+    per_pose_overhead_s: list[float] = field(default_factory=list)
+
+
+class AcquisitionError(DeviceError):
+    """A run stopped on a fault: names the pose and why; the dataset keeps every frame written before."""
+
+    def __init__(self, message: str, *, pose: int, step: int, phase: str, cause: BaseException,
+                 frames_kept: int) -> None:
+        self.pose, self.step, self.phase, self.cause, self.frames_kept = pose, step, phase, cause, frames_kept
+        super().__init__(message)
+
+
+class ConsoleOperator:
+    """A person guides the line; prompted on the terminal (stdin)."""
+
+    async def begin_line(self, start_pose, end_pose, samples: int, rate_hz: float) -> None:
+        print(f"Drives are free. Guide the end-effector along the ruler from {np.round(start_pose, 4).tolist()} "
+              f"to {np.round(end_pose, 4).tolist()} in about {samples / rate_hz:.0f} s, starting when you press "
+              "Enter.", flush=True)
+        await asyncio.to_thread(input)
+
+    async def end_line(self) -> None:
+        print("Line recorded; the drives will be re-energised.", flush=True)
+
+
+class Acquisition:
+    """Runs ``plan`` on ``actuators`` + ``camera`` into the dataset directory ``out``."""
+
+    def __init__(self, plan: Plan, actuators: Actuators, camera: Camera, out: str | Path, *,
+                 operator: Operator | None = None, nominal: I4Parameters = NOMINAL,
+                 limits: SoftLimits | None = None, resume: bool = False,
+                 progress: Callable[[Progress], None] | None = None, settle_s: float = 0.0,
+                 grab_timeout_s: float = 2.0, grab_retries: int = 1, line_rate_hz: float | None = None,
+                 home: bool = True, board: BoardSpec | None = None, legs: LegsSpec | None = None,
+                 camera_spec: dict[str, Any] | None = None, extra: dict[str, Any] | None = None) -> None:
+        self.plan = plan
+        self.actuators = actuators
+        self.camera = camera
+        self.operator = operator
+        self.out = Path(out)
+        self.nominal = nominal
+        self.limits = limits or SoftLimits()
+        self.resume_run = resume
+        self.progress_cb = progress
+        self.settle_s = settle_s
+        self.grab_timeout_s = grab_timeout_s
+        self.grab_retries = grab_retries
+        self.line_rate_hz = line_rate_hz
+        self.home = home
+        self.board = board or BoardSpec()
+        self.legs = legs or LegsSpec(rod_radius_m=0.008, rods_per_leg=2, rod_spacing_m=0.06)
+        self.camera_spec = camera_spec or {}
+        self.extra = extra or {}
+        self.units = plan_units(plan)
+        self._go = asyncio.Event()
+        self._go.set()
+        self._aborting = False
+        self._task: asyncio.Task | None = None
+        self._writer: DatasetWriter | None = None
+        self._t0 = 0.0
+        self._done_now = 0
+        self.state = "idle"
+        self.overheads: list[float] = []
+        self.timings: list[tuple[float, float, float]] = []  # (start, in position, written) per pose
+
+    # -- control ----------------------------------------------------------------------------------
+    def pause(self) -> None:
+        """Stop after the current pose (the mechanism stays where it is)."""
+        self._go.clear()
+        self._emit("paused", "paused")
+
+    def resume(self) -> None:
+        self._go.set()
+        self._emit("running", "resumed")
+
+    def abort(self) -> None:
+        """Stop the actuators now and end the run (frames written so far are kept)."""
+        self._aborting = True
+        self._go.set()
+        if self._task is not None and not self._task.done():
+            self._task.cancel()
+
+    # -- progress ---------------------------------------------------------------------------------
+    def _emit(self, state: str, message: str = "", phase: str = "") -> None:
+        self.state = state
+        done = len(self._writer) if self._writer is not None else 0
+        elapsed = time.monotonic() - self._t0 if self._t0 else 0.0
+        eta = None
+        if self._done_now and state == "running":
+            eta = elapsed / self._done_now * (len(self.units) - done)
+        if self.progress_cb is not None:
+            try:
+                self.progress_cb(Progress(state, done, len(self.units), phase, elapsed, eta, message))
+            except Exception:  # a broken progress display must not break the run
+                log.exception("progress callback failed")
+
+    # -- run --------------------------------------------------------------------------------------
+    async def run(self) -> RunResult:
+        self._task = asyncio.current_task()
+        try:
+            return await self._run()
+        except asyncio.CancelledError:
+            if self._aborting:
+                await self._safe_stop()
+                n = len(self._writer) if self._writer else 0
+                self._mark("aborted", None, "aborted on request")
+                self._emit("aborted", f"aborted; motion stopped; {n} frames kept in {self.out}")
+                raise AbortedError(f"acquisition aborted; motion stopped; {n} frames kept in {self.out}") from None
+            await self._safe_stop()
+            raise
+        finally:
+            self._task = None
+
+    async def _safe_stop(self) -> None:
+        try:
+            await asyncio.shield(self.actuators.stop())
+        except Exception as exc:
+            log.error("could not stop the actuators: %s", exc)
+
+    def _mark(self, state: str, pose: int | None, reason: str) -> None:
+        if self._writer is not None:
+            with contextlib.suppress(Exception):
+                self._writer.set_extra("acquisition", {"state": state, "failed_pose": pose, "reason": reason,
+                                                       "frames": len(self._writer), "total": len(self.units)})
+
+    async def _run(self) -> RunResult:
+        validate_plan(self.plan, self.nominal, self.limits)  # nothing moves before the whole plan is checked
+        self._emit("starting", "connecting")
+        await self.camera.open()
+        await self.actuators.connect()
+        start = self._open_dataset_prefix()
+        st = await self.actuators.status()
+        if st.alarms:
+            from .modbus import alarm_message
+
+            ax, code = next(iter(st.alarms.items()))
+            raise DeviceError(f"controller in alarm before the run: {alarm_message(ax, code)}; nothing moved; "
+                              "clear the cause and reset the alarm")
+        if any(a.free for a in st.axes):
+            await self.actuators.set_free(False)
+        if self.home and not st.homed:
+            self._emit("starting", "homing")
+            await self.actuators.home()
+        if self._writer is None:
+            first = await self._grab()  # the camera works before anything moves; its size sizes the dataset
+            self._create_dataset(first)
+        self._t0 = time.monotonic()
+        self._emit("running", f"starting at pose {start + 1}/{len(self.units)}")
+        i = start
+        while i < len(self.units):
+            u = self.units[i]
+            await self._go.wait()
+            step = self.plan.steps[u.step]
+            try:
+                if step.line is not None:
+                    i = await self._line(i)
+                    continue
+                await self._pose(u)
+            except AcquisitionError:
+                raise
+            except (DeviceError, InputError, OSError) as exc:
+                await self._fail(u, exc)
+            i += 1
+        self._mark("done", None, "")
+        self._emit("done", f"{len(self._writer)} frames in {self.out}")
+        self._writer.close()
+        return RunResult(self.out, len(self._writer), len(self.units), self._done_now,
+                         time.monotonic() - self._t0, list(self.overheads))
+
+    async def _fail(self, u: Unit, exc: BaseException) -> None:
+        await self._safe_stop()
+        with contextlib.suppress(Exception):
+            if self.plan.steps[u.step].line is not None:
+                await self.actuators.set_free(False)
+        n = len(self._writer) if self._writer else 0
+        where = f"pose {u.index + 1}/{len(self.units)} (plan step {u.step}, phase '{u.phase}'"
+        where += f", line sample {u.line_sample})" if u.line_sample is not None else (
+            f", q = {np.round(np.asarray(u.q) * 1e3, 3).tolist()} mm)" if u.q else ")")
+        msg = (f"{where} failed: {exc}; motion stopped; {n} frames kept in {self.out}; "
+               "resume the run to continue from this pose")
+        self._mark("failed", u.index, str(exc))
+        self._emit("failed", msg, u.phase)
+        raise AcquisitionError(msg, pose=u.index, step=u.step, phase=u.phase, cause=exc, frames_kept=n) from exc
+
+    # -- dataset ----------------------------------------------------------------------------------
+    def _open_dataset_prefix(self) -> int:
+        meta = self.out / "dataset.json"
+        if not meta.exists():
+            return 0
+        if not self.resume_run:
+            raise InputError("dataset already exists; resume it or choose another directory", file=str(self.out))
+        ds = Dataset.open(self.out)
+        n = len(ds.frames)
+        if n > len(self.units):
+            raise InputError(f"dataset has {n} frames, more than the plan's {len(self.units)}", file=str(self.out))
+        for k in range(n):
+            if ds.frames[k].phase != self.units[k].phase:
+                raise InputError(f"dataset does not match the plan: frame {k} is '{ds.frames[k].phase}', the "
+                                 f"plan's pose {k + 1} is '{self.units[k].phase}'", file=str(self.out), frame=k)
+        stored = ds.document.model_dump().get("plan")
+        if isinstance(stored, dict) and stored.get("name") not in (None, self.plan.name):
+            raise InputError(f"dataset was recorded with plan {stored.get('name')!r}, not {self.plan.name!r}",
+                             file=str(self.out))
+        self._writer = DatasetWriter(self.out, camera=ds.document.camera, board=ds.document.board,
+                                     legs=ds.document.legs, nominal=self.nominal.as_dict(), resume=True)
+        return n
+
+    def _create_dataset(self, first: Frame) -> None:
+        h, w = first.image.shape[:2]
+        cam = CameraSpec(width=w, height=h, **self.camera_spec)
+        self._writer = DatasetWriter(self.out, camera=cam, board=self.board, legs=self.legs,
+                                     nominal=self.nominal.as_dict(),
+                                     extra={"plan": self.plan.model_dump(mode="json", exclude_none=True),
+                                            **self.extra})
+
+    def _write(self, u: Unit, q: np.ndarray, frame: Frame, **extra: Any) -> None:
+        img = frame.image
+        if img.dtype not in (np.uint8, np.uint16):
+            raise FrameError(f"camera delivered {img.dtype} pixels; the dataset stores 8 or 16 bit")
+        meta = frame.meta or {}
+        if "q_true" in meta and "pose_true" in meta:
+            extra["truth"] = {"q": list(meta["q_true"]), "pose": list(meta["pose_true"])}
+        self._writer.add_frame(u.phase, q, img, **extra)
+        self._done_now += 1
+
+    # -- steps ------------------------------------------------------------------------------------
+    async def _grab(self) -> Frame:
+        last: Exception | None = None
+        for _ in range(self.grab_retries + 1):
+            try:
+                return await self.camera.grab(self.grab_timeout_s)
+            except (DeviceTimeoutError, FrameError) as exc:
+                last = exc
+                log.warning("grab failed (%s); retrying", exc)
+        raise last  # type: ignore[misc]
+
+    async def _pose(self, u: Unit) -> None:
+        t_start = time.perf_counter()
+        if u.q is not None:
+            await self.actuators.move(np.asarray(u.q))
+        t_moved = time.perf_counter()
+        if self.settle_s:
+            await asyncio.sleep(self.settle_s)
+        st = await self.actuators.status()
+        if st.alarms:
+            from .errors import AlarmError
+            from .modbus import alarm_message
+
+            ax, code = next(iter(st.alarms.items()))
+            raise AlarmError(alarm_message(ax, code), code=code, axis=ax)
+        q = st.positions
+        frame = await self._grab()
+        self._write(u, q, frame, q_target=list(u.q) if u.q is not None else None)
+        t_end = time.perf_counter()
+        self.timings.append((t_start, t_moved, t_end))
+        self._emit("running", "", u.phase)
+
+    async def _line(self, i: int) -> int:
+        """Record the guided line whose first not-yet-recorded sample is unit ``i``; returns the next unit."""
+        u0 = self.units[i]
+        step = self.plan.steps[u0.step]
+        line = step.line
+        k0 = u0.line_sample or 0
+        rate = self.line_rate_hz or line.rate_hz
+        poses = line_poses(line)
+        if self.operator is None:
+            raise DeviceError("a guided line needs an operator (bench [operator] uri)")
+        # bring the mechanism near the ruler's start (nominal model), then let go
+        try:
+            await self.actuators.move(ikm(self.nominal, poses[k0]))
+            await self.actuators.set_free(True)
+            await self.operator.begin_line(poses[k0].tolist(), poses[-1].tolist(), line.samples - k0, rate)
+        except (DeviceError, InputError, OSError) as exc:
+            await self._fail(u0, exc)
+        t0 = time.monotonic()
+        try:
+            for k in range(k0, line.samples):
+                u = self.units[i + (k - k0)]
+                if self._aborting:
+                    raise asyncio.CancelledError
+                try:
+                    await asyncio.sleep(max(0.0, t0 + (k - k0 + 0.5) / rate - time.monotonic()))
+                    st = await self.actuators.status()
+                    if st.alarms:
+                        from .errors import AlarmError
+                        from .modbus import alarm_message
+
+                        ax, code = next(iter(st.alarms.items()))
+                        raise AlarmError(alarm_message(ax, code), code=code, axis=ax)
+                    frame = await self._grab()
+                    q2 = await self.actuators.read_encoders()
+                    spread = float(np.max(np.abs(q2 - st.positions)))
+                    self._write(u, st.positions, frame, line_sample=k, line_step=u.step, q_spread_m=spread)
+                    self._emit("running", "", u.phase)
+                except AcquisitionError:
+                    raise
+                except (DeviceError, InputError, OSError) as exc:
+                    with contextlib.suppress(Exception):
+                        await self.operator.end_line()
+                    await self._fail(u, exc)
+        finally:
+            with contextlib.suppress(Exception):
+                await self.operator.end_line()
+            with contextlib.suppress(Exception):
+                await self.actuators.set_free(False)
+        return i + (line.samples - k0)
+
+
+async def acquire(plan: Plan, bench_config, out: str | Path, *, resume: bool = False,
+                  progress: Callable[[Progress], None] | None = None, **kw: Any) -> RunResult:
+    """Open the bench's devices (by URI), run ``plan`` into ``out`` and close the devices."""
+    from .config import open_actuators, open_camera, open_operator
+
+    cfg = bench_config
+    actuators = open_actuators(cfg)
+    camera = open_camera(cfg)
+    operator = open_operator(cfg)
+    opts: dict[str, Any] = dict(nominal=cfg.nominal_parameters(), limits=cfg.calib_limits(),
+                                settle_s=cfg.acquisition.settle_s, grab_timeout_s=cfg.camera.timeout_s,
+                                grab_retries=cfg.camera.grab_retries, line_rate_hz=cfg.acquisition.line_rate_hz,
+                                home=cfg.actuators.home_on_connect)
+    opts.update(kw)
+    acq = Acquisition(plan, actuators, camera, out, operator=operator, resume=resume, progress=progress, **opts)
+    try:
+        return await acq.run()
+    finally:
+        for dev in (camera, actuators, operator):
+            close = getattr(dev, "close", None)
+            if close is not None:
+                with contextlib.suppress(Exception):
+                    await close()
