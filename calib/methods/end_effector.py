@@ -87,7 +87,7 @@ def _fd(fun, x: np.ndarray, h: float = 1e-7) -> np.ndarray:
 
 
 def calibrate_end_effector(obs: Observations, *, phases: tuple[str, ...] = ("poses",),
-                           encoder_std_m: float = 1e-6, iterations: int = 3) -> MethodResult:
+                           encoder_std_m: float = 1e-6, iterations: int = 2) -> MethodResult:
     """Identify the four combinations from board poses and encoders (IKM residuals).
 
     Parameters
@@ -127,14 +127,15 @@ def calibrate_end_effector(obs: Observations, *, phases: tuple[str, ...] = ("pos
         R_bc0 = _kabsch(t, poses_nom[:, :3])
     R_eb0 = orthonormalize(np.sum(rot_z(-theta_nom) @ R_bc0 @ R, axis=0))
     # initial translations: p_k = R_bc R_k (-R_eb^T t_eb) + R_bc t_k + t_bc (linear)
-    A = np.zeros((3 * n, 6))
+    # the board's height on the end-effector is a gauge freedom (a z offset of the camera): hold it at 0
+    A = np.zeros((3 * n, 5))
     b = np.zeros(3 * n)
     for k in range(n):
-        A[3 * k:3 * k + 3, :3] = -R_bc0 @ R[k] @ R_eb0.T
-        A[3 * k:3 * k + 3, 3:] = np.eye(3)
+        A[3 * k:3 * k + 3, :2] = -(R_bc0 @ R[k] @ R_eb0.T)[:, :2]
+        A[3 * k:3 * k + 3, 2:] = np.eye(3)
         b[3 * k:3 * k + 3] = poses_nom[k, :3] - R_bc0 @ t[k]
     sol0 = np.linalg.lstsq(A, b, rcond=None)[0]
-    t_eb0, t_bc0 = sol0[:3], sol0[3:]
+    t_eb0, t_bc0 = np.array([sol0[0], sol0[1], 0.0]), sol0[2:]
     model = _Model(R, t, q, nominal.T_per_rad, R_bc0, t_bc0[0], R_eb0, t_eb0[2], theta_nom)
     combos0 = np.array([nominal.combinations()[k] for k in COMBINATION_NAMES])
     x0 = np.concatenate([combos0, [-nominal.S, -nominal.S - nominal.q03], np.zeros(3), t_bc0[1:], [0.0, 0.0],
@@ -154,23 +155,27 @@ def calibrate_end_effector(obs: Observations, *, phases: tuple[str, ...] = ("pos
     x = x0
     nfev = 0
     Sigma_b = np.zeros((6, 6))
-    for _ in range(max(iterations, 1)):
+    weighted = False
+    for npass in range(max(iterations, 1)):
+        if npass > 0:
+            r = model.residuals(x)
+            if np.sqrt(np.mean(r ** 2)) < 1e-12:
+                break  # noise-free data: nothing to weight
+            # map residuals back to board-pose errors (rotation left-perturbation, translation), per pose;
+            # a diagonal noise covariance (6 variances) stays stable with 20 poses
+            Ak = _pose_sensitivity(model, x)  # (n, 6, 6)
+            eps = np.linalg.solve(Ak, r[..., None])[..., 0]
+            Sigma_b = np.diag(np.diag(eps.T @ eps)) / max(n - p / 6.0, 1.0)
+            Cr = Ak @ Sigma_b @ Ak.transpose(0, 2, 1)
+            Cr[:, :4, :4] += encoder_std_m ** 2 * np.eye(4)
+            Cr += 1e-30 * np.eye(6)
+            Wh = np.linalg.cholesky(np.linalg.inv(Cr)).transpose(0, 2, 1)
+            weighted = True
         sol = _solve(wres, x)
         if sol.status <= 0 or not np.all(np.isfinite(sol.x)):
             raise ConvergenceError(f"end-effector fit did not converge: {sol.message}")
         x = sol.x
         nfev += sol.nfev
-        r = model.residuals(x)
-        if np.sqrt(np.mean(r ** 2)) < 1e-12:
-            break  # noise-free data: nothing to weight
-        # map residuals back to board-pose errors (rotation left-perturbation, translation), per pose
-        Ak = _pose_sensitivity(model, x)  # (n, 6, 6)
-        eps = np.linalg.solve(Ak, r[..., None])[..., 0]
-        Sigma_b = eps.T @ eps / max(n - p / 6.0, 1.0)
-        Cr = Ak @ Sigma_b @ Ak.transpose(0, 2, 1)
-        Cr[:, :4, :4] += encoder_std_m ** 2 * np.eye(4)
-        Cr += 1e-30 * np.eye(6)
-        Wh = np.linalg.cholesky(np.linalg.inv(Cr)).transpose(0, 2, 1)
     r = model.residuals(x)
     J = _fd(wres, x)
     check_excitation(J, _NAMES)
@@ -179,7 +184,7 @@ def calibrate_end_effector(obs: Observations, *, phases: tuple[str, ...] = ("pos
     else:
         chi2 = float(np.sum(wres(x) ** 2))
         dof = max(6 * n - p, 1)
-        cov_full = np.linalg.inv(J.T @ J) * max(chi2 / dof, 1e-300) if iterations <= 1 else np.linalg.inv(J.T @ J)
+        cov_full = np.linalg.inv(J.T @ J) * max(chi2 / dof, 1e-300)
     cov = cov_full[:4, :4]
     return MethodResult(
         method="end-effector", combinations=combos_dict(x[:4]), combinations_std=std_dict(cov), covariance=cov,
@@ -196,17 +201,32 @@ def calibrate_end_effector(obs: Observations, *, phases: tuple[str, ...] = ("pos
 
 
 def _solve(fun, x0: np.ndarray):
-    """Trust-region least squares with Jacobian scaling, restarted until the cost stops decreasing."""
+    """Trust-region least squares, then Gauss-Newton polishing to full precision."""
     sol = least_squares(fun, x0, method="trf", x_scale="jac", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=3000)
-    nfev = sol.nfev
-    for _ in range(5):
-        again = least_squares(fun, sol.x, method="trf", x_scale="jac", xtol=1e-15, ftol=1e-15, gtol=1e-15,
-                              max_nfev=3000)
-        nfev += again.nfev
-        if again.cost >= sol.cost * (1 - 1e-12):
+    x = sol.x
+    r = fun(x)
+    cost = float(r @ r)
+    for _ in range(50):
+        J = _fd(fun, x, 1e-6)
+        step = np.linalg.lstsq(J, -r, rcond=None)[0]
+        improved = False
+        for alpha in (1.0, 0.5, 0.25, 0.125, 0.0625):  # backtracking line search
+            x_new = x + alpha * step
+            r_new = fun(x_new)
+            c_new = float(r_new @ r_new)
+            sol.nfev += 1
+            if c_new < cost:
+                improved = True
+                break
+        sol.nfev += 2 * x.size
+        if not improved:
             break
-        sol = again
-    sol.nfev = nfev
+        done = cost - c_new < 1e-14 * max(cost, 1e-300)
+        x, r, cost = x_new, r_new, c_new
+        if done:
+            break
+    sol.x = x
+    sol.fun = r
     return sol
 
 

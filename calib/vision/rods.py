@@ -37,6 +37,7 @@ from ..transforms import Rigid
 
 Array = NDArray[np.float64]
 
+_CORR = 1.0
 ROD_KEYS = [(leg, rod) for leg in range(4) for rod in range(2)]
 
 
@@ -141,6 +142,7 @@ class RodSettings:
     band_px: float = 18.0          #: search half-band around each predicted limb line
     step_px: float = 3.0           #: spacing of the profiles along the axis
     sigma_px: float = 1.0          #: derivative-of-Gaussian scale on the profiles
+    sample_px: float = 0.5         #: sample spacing along each profile
     min_contrast: float = 6.0      #: minimum |gradient| (grey levels per px) of an edge
     width_tolerance: float = 0.35  #: accepted relative deviation of the limb spacing from the prediction
     ransac_iters: int = 150
@@ -263,11 +265,11 @@ def _edges_1d(g: Array, min_contrast: float, side: int = 3) -> tuple[Array, Arra
     safe = np.where(np.abs(den) > 1e-12, den, -1e-12)
     off = np.clip(0.5 * (y0 - y2) / safe, -0.5, 0.5)
     gp = g[pi, si]
-    s2 = np.clip(-y1 / safe, 0.4, 6.0)
+    s2 = np.clip(-y1 / safe, 0.3, 60.0)
     amp = gp * np.sqrt(2 * np.pi * s2)
     kL = g[pi, si - side]
     kR = g[pi, si + side]
-    corr = np.clip((kR - kL) * s2 / amp, -0.5, 0.5)
+    corr = np.clip((kR - kL) * s2 / amp, -0.5, 0.5) * _CORR
     return pi, si + off - corr, gp
 
 
@@ -396,17 +398,18 @@ def measure_rod(gray: np.ndarray, camera: CameraModel, pred: RodPrediction, radi
     o2 = off2[0] + frac * (off2[1] - off2[0])
     lo = np.minimum(o1, o2).min() - s.band_px
     hi = np.maximum(o1, o2).max() + s.band_px
-    offs = np.arange(lo, hi + 1e-9, 1.0)
+    ds = s.sample_px
+    offs = np.arange(lo, hi + 1e-9, ds)
     grid = centres[:, None, :] + offs[None, :, None] * n_dir[None, None, :]  # (P, S, 2) ideal px
     gpx = camera.distort_normalized(camera.from_ideal_pixels(grid.reshape(-1, 2))).astype(np.float32)
     img = gray if gray.dtype == np.float32 else gray.astype(np.float32)
     prof = cv2.remap(img, gpx[:, 0].reshape(len(ts), -1), gpx[:, 1].reshape(len(ts), -1), cv2.INTER_LINEAR,
                      borderMode=cv2.BORDER_REPLICATE)
-    ker = _gauss_deriv_kernel(s.sigma_px)
+    ker = _gauss_deriv_kernel(s.sigma_px / ds)
     g = cv2.filter2D(prof, cv2.CV_32F, ker[None, ::-1].astype(np.float32), borderType=cv2.BORDER_REPLICATE)
-    g = g.astype(np.float64)
-    pi, pos, sg = _edges_1d(g, s.min_contrast)
-    off_pos = lo + pos
+    g = g.astype(np.float64) / ds  # grey levels per pixel
+    pi, pos, sg = _edges_1d(g, s.min_contrast, max(2, int(round(3.0 / ds))))
+    off_pos = lo + pos * ds
     # pair selection per profile
     pw = np.abs(o2 - o1)
     pc = 0.5 * (o1 + o2)
