@@ -139,6 +139,8 @@ class Acquisition:
         self.state = "idle"
         self.overheads: list[float] = []
         self.timings: list[tuple[float, float, float]] = []  # (start, in position, written) per pose
+        self._record_s: float | None = None  # running estimate of one grab + write
+        self.line_still_m = 1e-5  # encoders before and after a line frame agree within this
 
     # -- control ----------------------------------------------------------------------------------
     def pause(self) -> None:
@@ -218,8 +220,10 @@ class Acquisition:
         if self.home and not st.homed:
             self._emit("starting", "homing")
             await self.actuators.home()
+        t_grab = time.perf_counter()
+        first = await self._grab()  # the camera works before anything moves; its size sizes the dataset
+        self._note_record_time(time.perf_counter() - t_grab)
         if self._writer is None:
-            first = await self._grab()  # the camera works before anything moves; its size sizes the dataset
             self._create_dataset(first)
         self._t0 = time.monotonic()
         self._emit("running", f"starting at pose {start + 1}/{len(self.units)}")
@@ -330,7 +334,17 @@ class Acquisition:
         self._write(u, q, frame, q_target=list(u.q) if u.q is not None else None)
         t_end = time.perf_counter()
         self.timings.append((t_start, t_moved, t_end))
+        self._note_record_time(t_end - t_moved)
         self._emit("running", "", u.phase)
+
+    def _note_record_time(self, dt: float) -> None:
+        self._record_s = dt if self._record_s is None else 0.7 * self._record_s + 0.3 * dt
+
+    def line_rate(self, requested_hz: float) -> float:
+        """The line's sampling rate: as requested, capped to what grab + write sustain (the operator is told)."""
+        if self._record_s:
+            return min(requested_hz, 0.35 / self._record_s)
+        return requested_hz
 
     async def _line(self, i: int) -> int:
         """Record the guided line whose first not-yet-recorded sample is unit ``i``; returns the next unit."""
@@ -338,7 +352,7 @@ class Acquisition:
         step = self.plan.steps[u0.step]
         line = step.line
         k0 = u0.line_sample or 0
-        rate = self.line_rate_hz or line.rate_hz
+        rate = self.line_rate(self.line_rate_hz or line.rate_hz)
         poses = line_poses(line)
         if self.operator is None:
             raise DeviceError("a guided line needs an operator (bench [operator] uri)")
@@ -357,17 +371,23 @@ class Acquisition:
                     raise asyncio.CancelledError
                 try:
                     await asyncio.sleep(max(0.0, t0 + (k - k0 + 0.5) / rate - time.monotonic()))
-                    st = await self.actuators.status()
-                    if st.alarms:
-                        from .errors import AlarmError
-                        from .modbus import alarm_message
+                    t_rec = time.perf_counter()
+                    for _attempt in range(3):  # the frame must match the encoders (still across the grab)
+                        st = await self.actuators.status()
+                        if st.alarms:
+                            from .errors import AlarmError
+                            from .modbus import alarm_message
 
-                        ax, code = next(iter(st.alarms.items()))
-                        raise AlarmError(alarm_message(ax, code), code=code, axis=ax)
-                    frame = await self._grab()
-                    q2 = await self.actuators.read_encoders()
-                    spread = float(np.max(np.abs(q2 - st.positions)))
-                    self._write(u, st.positions, frame, line_sample=k, line_step=u.step, q_spread_m=spread)
+                            ax, code = next(iter(st.alarms.items()))
+                            raise AlarmError(alarm_message(ax, code), code=code, axis=ax)
+                        frame = await self._grab()
+                        q2 = await self.actuators.read_encoders()
+                        spread = float(np.max(np.abs(q2 - st.positions)))
+                        if spread <= self.line_still_m:
+                            break
+                    self._write(u, st.positions, frame, line_sample=k, line_step=u.step, q_spread_m=spread,
+                                line_rate_hz=rate)
+                    self._note_record_time(time.perf_counter() - t_rec)
                     self._emit("running", "", u.phase)
                 except AcquisitionError:
                     raise

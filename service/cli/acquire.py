@@ -1,0 +1,84 @@
+"""``i4cal acquire``: run a motion plan on a bench and record a dataset, with a progress bar."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import signal
+from pathlib import Path
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "acquire", help="run a motion plan on a bench and record a dataset",
+        description=("Validates the plan against the bench's soft limits and nominal model, then for every pose "
+                     "moves, waits in position, reads the encoders, grabs and writes a frame. A fault stops the "
+                     "motion, keeps the frames written and names the pose; --resume continues from there."))
+    p.add_argument("--bench", required=True, help="bench configuration file (TOML), e.g. deploy/bench-sim.toml")
+    p.add_argument("--plan", default="full",
+                   help="a plan name (full, rotation-sweep, equal-translation, pose-set, lock-actuator, line, "
+                        "validation) or a plan JSON file")
+    p.add_argument("--out", required=True, help="dataset directory to write")
+    p.add_argument("--resume", action="store_true", help="continue a partial dataset from its first missing pose")
+    p.add_argument("--seed", type=int, default=0, help="seed of a generated plan")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(handler=_run)
+
+
+def _load_plan(spec: str, nominal, seed: int):
+    from calib.plan import PLAN_NAMES, Plan, make_plan
+
+    if spec in PLAN_NAMES:
+        return make_plan(spec, nominal, seed=seed)
+    return Plan.load(spec)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from drivers.acquisition import AcquisitionError, Acquisition
+    from drivers.config import load_bench, open_actuators, open_camera, open_operator
+
+    cfg = load_bench(args.bench)
+    nominal = cfg.nominal_parameters()
+    plan = _load_plan(args.plan, nominal, args.seed)
+    console = Console(stderr=True)
+    bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                   TextColumn("{task.fields[phase]}"), TimeRemainingColumn(), console=console,
+                   disable=args.no_progress)
+    task = bar.add_task("acquire", total=None, phase="")
+
+    def on_progress(p) -> None:
+        bar.update(task, total=p.total, completed=p.done, phase=p.phase or p.state)
+        if p.state in ("paused", "failed", "aborted") and p.message:
+            console.print(f"[yellow]{p.state}[/]: {p.message}")
+
+    async def main() -> int:
+        actuators, camera, operator = open_actuators(cfg), open_camera(cfg), open_operator(cfg)
+        acq = Acquisition(plan, actuators, camera, Path(args.out), operator=operator, nominal=nominal,
+                          limits=cfg.calib_limits(), resume=args.resume, progress=on_progress,
+                          settle_s=cfg.acquisition.settle_s, grab_timeout_s=cfg.camera.timeout_s,
+                          grab_retries=cfg.camera.grab_retries, line_rate_hz=cfg.acquisition.line_rate_hz,
+                          home=cfg.actuators.home_on_connect)
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, acq.abort)  # abort stops the actuators, keeps the frames
+        try:
+            with bar:
+                res = await acq.run()
+        finally:
+            for dev in (camera, actuators, operator):
+                close = getattr(dev, "close", None)
+                if close is not None:
+                    try:
+                        await close()
+                    except Exception:
+                        pass
+        console.print(f"{res.frames}/{res.total} frames in {res.path} ({res.elapsed_s:.1f} s)")
+        return 0
+
+    try:
+        return asyncio.run(main())
+    except AcquisitionError:
+        raise  # one clear line from the CLI (an I4calError)

@@ -1,0 +1,30 @@
+"""``i4cal sim-bench``: run the simulated bench (Modbus controller + camera frame server) as a process."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "sim-bench", help="run the simulated bench on 127.0.0.1 and print its device URIs",
+        description=("Starts a simulated four-axis Modbus controller (default register map, see docs/drivers.md) "
+                     "on 127.0.0.1: Modbus TCP on PORT, Modbus RTU framing over TCP on PORT+1, and the simulated "
+                     "camera/operator endpoint on PORT+2. Runs until interrupted."))
+    p.add_argument("--port", type=int, default=5020, help="Modbus TCP port (default 5020)")
+    p.add_argument("--seed", type=int, default=0, help="seed of encoder and image noise")
+    p.set_defaults(handler=_run)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from drivers.sim.bench import serve_forever
+
+    def out(line: str) -> None:
+        print(line, flush=True)
+
+    try:
+        asyncio.run(serve_forever(args.port, seed=args.seed, print_fn=out))
+    except KeyboardInterrupt:
+        pass
+    return 0

@@ -1,0 +1,197 @@
+"""Acquisition of plans on the in-process simulated bench (real loopback sockets, tiny fake renderer)."""
+
+from __future__ import annotations
+
+import asyncio
+
+import numpy as np
+import pytest
+from drv_helpers import FAST, TinyRenderer
+
+from calib.dataset import Dataset
+from calib.errors import InputError
+from calib.kinematics import dkm
+from calib.parameters import NOMINAL
+from calib.plan import Plan, Step, make_plan
+from drivers.acquisition import Acquisition, AcquisitionError, acquire, plan_units
+from drivers.config import open_actuators, open_camera, open_operator
+from drivers.errors import AbortedError
+from drivers.sim.bench import SimBench
+from drivers.sim.mechanism import ALARM_DRIVE_FAULT
+
+
+def small_plan() -> Plan:
+    full = make_plan("full", NOMINAL)
+    steps = [s for s in full.steps if s.phase == "rotation"][:3] + \
+        [s for s in full.steps if s.phase == "poses"][:4]
+    line = make_plan("line", NOMINAL, line_samples=9).steps
+    return Plan(name="small", steps=steps + line + [s for s in full.steps if s.phase == "validation"][:2])
+
+
+def make_acq(bench, plan, out, **kw):
+    cfg = bench.bench_config(acquisition={"line_rate_hz": 100.0})
+    opts = dict(operator=open_operator(cfg), nominal=NOMINAL, limits=cfg.calib_limits(), grab_timeout_s=0.3,
+                grab_retries=1, line_rate_hz=100.0)
+    opts.update(kw)
+    return Acquisition(plan, open_actuators(cfg), open_camera(cfg), out, **opts)
+
+
+async def close(acq):
+    for d in (acq.actuators, acq.camera, acq.operator):
+        await d.close()
+
+
+async def test_full_plan_on_the_sim_bench(bench, tmp_path):
+    plan = make_plan("full", NOMINAL)
+    seen = []
+    cfg = bench.bench_config(acquisition={"line_rate_hz": 100.0})
+    res = await acquire(plan, cfg, tmp_path / "ds", progress=lambda p: seen.append(p))
+    n = len(plan_units(plan))
+    assert res.frames == n == 121
+    ds = Dataset.open(tmp_path / "ds")
+    assert [f.phase for f in ds.frames] == [u.phase for u in plan_units(plan)]
+    assert ds.document.camera.width == 32 and ds.load_image(n - 1).shape == (24, 32)
+    for f in ds.frames:  # encoders are what the true mechanism did, frames show the true mechanism
+        truth = f.model_extra["truth"]
+        assert f.model_extra.get("q_spread_m", 0.0) > 1e-5 or np.allclose(f.q, truth["q"], atol=3e-6)
+    line = [f for f in ds.frames if f.phase == "line"]
+    assert len(line) == 51
+    # the operator moved the TRUE mechanism along a truly straight segment
+    poses = np.array([f.model_extra["truth"]["pose"] for f in line])
+    d = poses[-1, :3] - poses[0, :3]
+    off = poses[:, :3] - poses[0, :3] - np.outer((poses[:, :3] - poses[0, :3]) @ d / (d @ d), d)
+    assert np.abs(off).max() < 1e-9
+    assert sorted({f.model_extra["line_sample"] for f in line}) == list(range(51))
+    assert sum(f.model_extra["q_spread_m"] > 1e-5 for f in line) <= 2  # frames match encoders
+    # ... which the nominal model would not call straight
+    nom = dkm(NOMINAL, np.array([f.q for f in line]))
+    dn = nom[-1, :3] - nom[0, :3]
+    offn = nom[:, :3] - nom[0, :3] - np.outer((nom[:, :3] - nom[0, :3]) @ dn / (dn @ dn), dn)
+    assert np.abs(offn).max() > 1e-5
+    assert seen[-1].state == "done" and seen[-1].done == n
+    assert any(p.eta_s is not None for p in seen)
+
+
+async def test_alarm_mid_run_then_resume(bench, tmp_path):
+    plan = small_plan()
+    out = tmp_path / "ds"
+    acq = make_acq(bench, plan, out)
+    bench.mechanism.axes[1].pending_alarm = None
+    orig_move = acq.actuators.move
+    calls = {"n": 0}
+
+    async def move(q, *a, **k):
+        calls["n"] += 1
+        if calls["n"] == 5:  # the 5th pose: axis 2 faults half-way
+            bench.mechanism.inject_alarm(1, ALARM_DRIVE_FAULT, 0.5)
+        return await orig_move(q, *a, **k)
+
+    acq.actuators.move = move
+    with pytest.raises(AcquisitionError, match=r"pose 5/18 \(plan step 4, phase 'poses'.*axis 2 in alarm, "
+                                               r"code 0x10.*motion stopped; 4 frames kept") as ei:
+        await acq.run()
+    await close(acq)
+    assert ei.value.pose == 4 and ei.value.frames_kept == 4
+    assert not any(a.moving for a in bench.mechanism.axes)
+    ds = Dataset.open(out)
+    assert len(ds.frames) == 4 and ds.document.model_extra["acquisition"]["state"] == "failed"
+    assert all(ds.load_image(i) is not None for i in range(4))
+    # the operator clears the fault; the run resumes from pose 5
+    bench.mechanism.axes[1].alarm_code = 0
+    acq2 = make_acq(bench, plan, out, resume=True)
+    res = await acq2.run()
+    await close(acq2)
+    assert res.frames == 18 and res.recorded_now == 14
+    ds = Dataset.open(out)
+    assert [f.phase for f in ds.frames] == [u.phase for u in plan_units(plan)]
+    assert ds.document.model_extra["acquisition"]["state"] == "done"
+
+
+async def test_camera_stops_delivering(bench, tmp_path):
+    plan = small_plan()
+    out = tmp_path / "ds"
+    acq = make_acq(bench, plan, out)
+    n = {"k": 0}
+    orig = acq.camera.grab
+
+    async def grab(t):
+        n["k"] += 1
+        if n["k"] == 4:
+            bench.frames.faults.timeouts = 5  # the camera goes silent
+        return await orig(t)
+
+    acq.camera.grab = grab
+    with pytest.raises(AcquisitionError, match=r"pose 3/18.*no reply from the simulated bench.*2 frames kept"):
+        await acq.run()
+    await close(acq)
+    assert not any(a.moving for a in bench.mechanism.axes)
+    assert len(Dataset.open(out).frames) == 2
+    bench.frames.faults.timeouts = 0
+    acq2 = make_acq(bench, plan, out, resume=True)
+    assert (await acq2.run()).frames == 18
+    await close(acq2)
+
+
+async def test_corrupt_frame_is_retried(bench, tmp_path):
+    bench.frames.faults.corrupt = 1
+    acq = make_acq(bench, small_plan(), tmp_path / "ds")
+    res = await acq.run()
+    await close(acq)
+    assert res.frames == 18 and bench.frames.faults.corrupt == 0
+
+
+async def test_plan_outside_limits_moves_nothing(bench, tmp_path):
+    plan = Plan(name="bad", steps=[Step(phase="poses", q=[0.3, 0.3, 0.3, 0.3]),
+                                   Step(phase="poses", q=[0.3, 0.95, 0.3, 0.3])])
+    acq = make_acq(bench, plan, tmp_path / "ds")
+    q0 = bench.mechanism.q_true()
+    with pytest.raises(InputError, match="q2 = 950.000 mm is outside the soft limits"):
+        await acq.run()
+    await close(acq)
+    assert np.array_equal(bench.mechanism.q_true(), q0)
+    assert bench.controller.requests == 0
+
+
+async def test_controller_in_alarm_at_start(bench, tmp_path):
+    bench.mechanism.axes[3].alarm_code = 0x40
+    acq = make_acq(bench, small_plan(), tmp_path / "ds")
+    with pytest.raises(Exception, match="axis 4 in alarm, code 0x40 \\(overload\\)"):
+        await acq.run()
+    await close(acq)
+
+
+async def test_pause_resume_abort(bench, tmp_path):
+    plan = small_plan()
+    states = []
+    acq = make_acq(bench, plan, tmp_path / "ds", progress=lambda p: states.append((p.state, p.done)))
+    task = asyncio.create_task(acq.run())
+    while not any(s == "running" and d >= 2 for s, d in states):
+        await asyncio.sleep(0.002)
+    acq.pause()
+    await asyncio.sleep(0.1)
+    n_paused = len(Dataset.open(tmp_path / "ds").frames)
+    await asyncio.sleep(0.1)
+    assert len(Dataset.open(tmp_path / "ds").frames) == n_paused  # nothing happens while paused
+    assert not any(a.moving for a in bench.mechanism.axes)
+    acq.resume()
+    while not any(s == "running" and d >= n_paused + 2 for s, d in states):
+        await asyncio.sleep(0.001)
+    acq.abort()
+    with pytest.raises(AbortedError, match="motion stopped"):
+        await task
+    await close(acq)
+    assert not any(a.moving for a in bench.mechanism.axes)
+    ds = Dataset.open(tmp_path / "ds")
+    assert n_paused + 2 <= len(ds.frames) < 18
+    assert ds.document.model_extra["acquisition"]["state"] == "aborted"
+
+
+async def test_existing_dataset_needs_resume(bench, tmp_path):
+    out = tmp_path / "ds"
+    acq = make_acq(bench, small_plan(), out)
+    await acq.run()
+    await close(acq)
+    acq = make_acq(bench, small_plan(), out)
+    with pytest.raises(InputError, match="already exists"):
+        await acq.run()
+    await close(acq)
