@@ -1,0 +1,411 @@
+"""Dataset v1 -> observations v1: intrinsics, board poses and rods for every frame.
+
+Stages (each over a process pool when ``workers > 1``, with ``progress(done, total)`` callbacks):
+
+1. Intrinsics: given (argument), else from the dataset's ``camera`` (K, dist), else calibrated
+   from the ``camera`` phase with :func:`calib.camera.calibrate_intrinsics` (calibrateCameraRO);
+   the refined board geometry is then used for every board pose.
+2. Board poses (ChArUco) for every non-``camera`` frame.
+3. Coarse camera placement: ``camera_from_base`` and ``ee_from_board`` fitted to all board poses
+   with the *nominal* model's end-effector poses (hand-eye least squares; the rotation about z_B is
+   initialised by a 1-D search). This is the prior that predicts every rod's image; it needs board
+   poses in at least 3 frames with some rotation of the end-effector (the ``rotation`` phase).
+4. Rods: the eight rods of every frame, predicted from the nominal model, the encoder values and
+   the coarse placement, then measured (:mod:`calib.vision.rods`); the board (measured, or
+   predicted when missing) is an occluder.
+
+A frame whose image is missing or unreadable, a hidden board, a rod that leaves the image: each is
+reported per frame (``missing`` in the frame, ``summary`` per phase) and the rest goes on.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from ..camera import CameraModel, IntrinsicsResult, calibrate_intrinsics
+from ..dataset import Dataset
+from ..errors import I4calError, InputError
+from ..kinematics import dkm
+from ..observations import FORMAT
+from ..transforms import Rigid, matrix_to_rotvec, rot_z, rotvec_to_matrix
+from .board import BoardDetector, to_gray8
+from .rods import ROD_KEYS, RodSettings, image_ideal_bbox, leg_parallelism, measure_rods, predict_rods, rod_name
+
+Progress = Callable[[int, int], None]
+
+
+@dataclass
+class ExtractOptions:
+    """Settings of :func:`extract_dataset`."""
+
+    min_corners: int = 6
+    rods: RodSettings | None = None
+    min_placement_frames: int = 3
+
+
+@dataclass
+class ExtractionResult:
+    """What :func:`extract_dataset` found.
+
+    Attributes
+    ----------
+    observations : dict
+        An observations v1 document (validates with :meth:`calib.observations.Observations.from_dict`).
+    summary : dict
+        ``{"phases": {phase: {...counts, "missing": {reason: count}}}, "frames": {index: [reasons]}, ...}``.
+    camera : CameraModel
+    intrinsics : IntrinsicsResult or None
+        When calibrated from the ``camera`` phase.
+    camera_from_base : Rigid or None
+        The coarse placement used to predict the rods.
+    """
+
+    observations: dict[str, Any]
+    summary: dict[str, Any]
+    camera: CameraModel
+    intrinsics: IntrinsicsResult | None
+    camera_from_base: Rigid | None
+    ee_from_board: Rigid | None
+
+
+# ---------------------------------------------------------------------------------------------
+# worker side
+_W: dict[str, Any] = {}
+
+
+def _init_worker(root: str, camera: dict | None, refined: tuple[list, list] | None, min_corners: int,
+                 rod_settings: dict | None) -> None:
+    ds = Dataset.open(root)
+    _W["ds"] = ds
+    _W["det"] = BoardDetector(ds.document.board, min_corners)
+    if refined is not None:
+        _W["det"].use_refined_points(np.asarray(refined[0]), np.asarray(refined[1]))
+    _W["cam"] = CameraModel.from_dict(camera) if camera is not None else None
+    _W["rs"] = RodSettings(**rod_settings) if rod_settings else RodSettings()
+    _W["bbox"] = image_ideal_bbox(_W["cam"]) if _W["cam"] is not None else None
+
+
+def _read_gray(i: int) -> np.ndarray:
+    img = _W["ds"].load_image(i)
+    if img.ndim == 3:
+        img = to_gray8(img) if img.dtype == np.uint8 else img[..., :3].mean(axis=2)
+    return img
+
+
+def _task_detect(i: int) -> tuple[int, Any]:
+    """Camera-phase frame: ChArUco corners (ids, pixels) or the reason."""
+    try:
+        img = _W["ds"].load_image(i)
+    except InputError as exc:
+        return i, exc.reason
+    d = _W["det"].detect(img)
+    return i, (d.ids.tolist(), d.pixels.tolist())
+
+
+def _task_board(i: int) -> tuple[int, Any]:
+    try:
+        img = _W["ds"].load_image(i)
+    except InputError as exc:
+        return i, {"image_error": exc.reason}
+    res = _W["det"].measure(img, _W["cam"])
+    if isinstance(res, str):
+        return i, {"reason": res}
+    return i, {"pose": res.to_dict()}
+
+
+def _task_rods(args: tuple[int, dict, dict | None]) -> tuple[int, Any]:
+    i, cfb, board = args
+    ds: Dataset = _W["ds"]
+    cam: CameraModel = _W["cam"]
+    fr = ds.frames[i]
+    try:
+        img = _read_gray(i)
+    except InputError as exc:
+        return i, {"image_error": exc.reason}
+    doc = ds.document
+    nominal = doc.nominal.parameters()
+    spacing = doc.legs.rod_spacing_m if doc.legs.rod_spacing_m is not None else 0.0
+    try:
+        preds = predict_rods(nominal, fr.q, Rigid.from_dict(cfb), spacing)
+    except I4calError as exc:
+        return i, {"reason": f"no rod prediction: {exc}"}
+    occ = []
+    if board is not None:
+        oc = _W["det"].outline_camera(np.asarray(board["R"]), np.asarray(board["t"]))
+        if np.all(oc[:, 2] > 0):
+            occ.append(cam.to_ideal_pixels(oc[:, :2] / oc[:, 2:3]))
+    ms = measure_rods(img.astype(np.float32), cam, preds, doc.legs.rod_radius_m, _W["rs"], occ, seed=i,
+                      ideal_bbox=_W["bbox"])
+    rods = {rod_name(m.leg, m.rod): (m.to_dict() if m.ok else m.reason) for m in ms}
+    par = {k: v * 1e3 for k, v in leg_parallelism(ms).items()}
+    return i, {"rods": rods, "parallel_mrad": par}
+
+
+def _run(fn: Callable, items: list, workers: int, init_args: tuple, progress: Progress | None,
+         offset: int, total: int) -> list:
+    out = []
+    if workers <= 1 or len(items) < 4:
+        _init_worker(*init_args)
+        for k, it in enumerate(items):
+            out.append(fn(it))
+            if progress:
+                progress(offset + k + 1, total)
+        return out
+    with ProcessPoolExecutor(max_workers=workers, initializer=_init_worker, initargs=init_args) as ex:
+        for k, r in enumerate(ex.map(fn, items, chunksize=max(1, len(items) // (8 * workers)))):
+            out.append(r)
+            if progress:
+                progress(offset + k + 1, total)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+def fit_placement(q: np.ndarray, board_R: np.ndarray, board_t: np.ndarray, nominal) -> tuple[Rigid, Rigid, float]:
+    """Coarse ``camera_from_base`` and ``ee_from_board`` from board poses and the nominal model.
+
+    Solves ``camera_from_base * base_from_ee(dkm(nominal, q_k)) * ee_from_board = camera_from_board_k``
+    in the least-squares sense (rotation residuals weighted as 0.1 m/rad).
+
+    Parameters
+    ----------
+    q : ndarray, shape (N, 4)
+    board_R : ndarray, shape (N, 3, 3)
+    board_t : ndarray, shape (N, 3)
+
+    Returns
+    -------
+    camera_from_base, ee_from_board : Rigid
+    rms_m : float
+        RMS of the translation residuals, metres.
+    """
+    poses = dkm(nominal, q)
+    th = poses[:, 3] / nominal.T_per_rad
+    RB = rot_z(th)
+    tB = np.column_stack([poses[:, 0], nominal.H + poses[:, 1], poses[:, 2]])
+    # z_B in the camera: axis of the relative rotation between the most rotated pair
+    k0 = int(np.argmin(th))
+    k1 = int(np.argmax(th))
+    if th[k1] - th[k0] > 0.05:
+        rv = matrix_to_rotvec(board_R[k1] @ board_R[k0].T)
+        z = rv / np.linalg.norm(rv)
+    else:
+        z = None
+    best = None
+    candidates = []
+    if z is not None:
+        a = np.cross(z, [1.0, 0, 0])
+        if np.linalg.norm(a) < 0.1:
+            a = np.cross(z, [0, 1.0, 0])
+        a /= np.linalg.norm(a)
+        b = np.cross(z, a)
+        for phi in np.deg2rad(np.arange(0, 360, 5)):
+            x = np.cos(phi) * a + np.sin(phi) * b
+            candidates.append(np.column_stack([x, np.cross(z, x), z]))
+    else:
+        candidates = [rotvec_to_matrix(v) for v in np.random.default_rng(0).normal(0, 2.0, (200, 3))]
+    n = len(q)
+    for RC in candidates:
+        # o_k - RC tB_k = RC RB_k e + tC
+        A = np.zeros((3 * n, 6))
+        rhs = np.zeros(3 * n)
+        for k in range(n):
+            A[3 * k:3 * k + 3, :3] = RC @ RB[k]
+            A[3 * k:3 * k + 3, 3:] = np.eye(3)
+            rhs[3 * k:3 * k + 3] = board_t[k] - RC @ tB[k]
+        sol, *_ = np.linalg.lstsq(A, rhs, rcond=None)
+        r = float(np.sum((A @ sol - rhs) ** 2))
+        if best is None or r < best[0]:
+            RE = np.mean([(RC @ RB[k]).T @ board_R[k] for k in range(n)], axis=0)
+            U, _, Vt = np.linalg.svd(RE)
+            RE = U @ np.diag([1, 1, np.linalg.det(U @ Vt)]) @ Vt
+            best = (r, RC, sol[3:], RE, sol[:3])
+
+    _, RC, tC, RE, tE = best
+
+    def resid(p: np.ndarray) -> np.ndarray:
+        Rc = rotvec_to_matrix(p[:3])
+        Re = rotvec_to_matrix(p[6:9])
+        out = []
+        for k in range(n):
+            Rp = Rc @ RB[k] @ Re
+            tp = Rc @ (RB[k] @ p[9:12] + tB[k]) + p[3:6]
+            out.append(0.1 * matrix_to_rotvec(Rp @ board_R[k].T))
+            out.append(tp - board_t[k])
+        return np.concatenate(out)
+
+    p0 = np.concatenate([matrix_to_rotvec(RC), tC, matrix_to_rotvec(RE), tE])
+    sol = least_squares(resid, p0, method="lm")
+    C = Rigid(rotvec_to_matrix(sol.x[:3]), sol.x[3:6])
+    E = Rigid(rotvec_to_matrix(sol.x[6:9]), sol.x[9:12])
+    rt = sol.fun.reshape(-1, 2, 3)[:, 1]
+    return C, E, float(np.sqrt(np.mean(np.sum(rt ** 2, axis=1))))
+
+
+def _short(reason: str) -> str:
+    return reason.split(":")[0].split("(")[0].strip()
+
+
+def extract_dataset(dataset: str | Path | Dataset, *, camera: CameraModel | None = None,
+                    workers: int | None = None, progress: Progress | None = None,
+                    options: ExtractOptions | None = None) -> ExtractionResult:
+    """Extract observations v1 from a dataset v1 directory.
+
+    Parameters
+    ----------
+    dataset : path or Dataset
+    camera : CameraModel, optional
+        Known intrinsics; default: the dataset's, else calibrated from its ``camera`` phase.
+    workers : int, optional
+        Processes (default: ``os.cpu_count()``); 1 runs in this process.
+    progress : callable(done, total), optional
+        Called after every frame of every stage (``total`` counts all stages).
+
+    Raises
+    ------
+    InputError
+        No intrinsics can be had (none given, none in the dataset, the ``camera`` phase too poor).
+    """
+    ds = dataset if isinstance(dataset, Dataset) else Dataset.open(dataset)
+    opts = options or ExtractOptions()
+    workers = max(1, int(workers or os.cpu_count() or 1))
+    doc = ds.document
+    frames = ds.frames
+    cam_idx = [i for i, f in enumerate(frames) if f.phase == "camera"]
+    obs_idx = [i for i, f in enumerate(frames) if f.phase != "camera"]
+    rs = opts.rods or RodSettings()
+    rs_dict = dict(rs.__dict__)
+    root = str(ds.root)
+    intr: IntrinsicsResult | None = None
+    refined = None
+    per_frame: dict[int, list[str]] = {}
+    need_calib = camera is None and (doc.camera.K is None or doc.camera.dist is None)
+    total = (len(cam_idx) if need_calib else 0) + 2 * len(obs_idx)
+    done = 0
+    if camera is None and not need_calib:
+        camera = CameraModel(np.asarray(doc.camera.K), np.asarray(doc.camera.dist), doc.camera.width,
+                             doc.camera.height)
+    if need_calib:
+        if not cam_idx:
+            raise InputError("no intrinsics: the dataset has neither camera.K/dist nor a 'camera' phase",
+                             file=root, field="camera")
+        det = _run(_task_detect, cam_idx, workers, (root, None, None, opts.min_corners, rs_dict), progress,
+                   done, total)
+        done += len(cam_idx)
+        views = {}
+        for i, r in det:
+            if isinstance(r, str):
+                per_frame.setdefault(i, []).append(f"image: {r}")
+            else:
+                views[i] = (np.asarray(r[0], dtype=int), np.asarray(r[1]).reshape(-1, 2), None)
+        ids_all, pts = BoardDetector(doc.board).ids_all, BoardDetector(doc.board).points_nominal
+        intr = calibrate_intrinsics(views, (doc.camera.width, doc.camera.height), ids_all, pts)
+        for i, reason in intr.rejected.items():
+            per_frame.setdefault(i, []).append(f"camera view rejected: {reason}")
+        camera = intr.camera
+        refined = (intr.board_ids.tolist(), intr.board_points.tolist())
+    assert camera is not None
+    init = (root, camera.to_dict(), refined, opts.min_corners, rs_dict)
+    boards = dict(_run(_task_board, obs_idx, workers, init, progress, done, total))
+    done += len(obs_idx)
+    good = [i for i in obs_idx if "pose" in boards[i]]
+    C = E = None
+    placement_rms = None
+    placement_reason = None
+    if len(good) >= opts.min_placement_frames:
+        qk = np.array([frames[i].q for i in good])
+        bR = np.array([boards[i]["pose"]["R"] for i in good])
+        bt = np.array([boards[i]["pose"]["t"] for i in good])
+        try:
+            C, E, placement_rms = fit_placement(qk, bR, bt, doc.nominal.parameters())
+        except (I4calError, np.linalg.LinAlgError, ValueError) as exc:
+            placement_reason = f"coarse camera placement failed: {exc}"
+    else:
+        placement_reason = (f"no coarse camera placement: board poses in {len(good)} frames, "
+                            f"need {opts.min_placement_frames}")
+    rod_items = []
+    rods: dict[int, Any] = {}
+    for i in obs_idx:
+        if "image_error" in boards[i] or C is None:
+            continue
+        b = boards[i].get("pose")
+        if b is None and E is not None:
+            try:
+                pose = dkm(doc.nominal.parameters(), np.asarray(frames[i].q))
+                nb = C @ Rigid(rot_z(pose[3] / doc.nominal.T_per_rad),
+                               np.array([pose[0], doc.nominal.H + pose[1], pose[2]])) @ E
+                b = {"R": nb.R.tolist(), "t": nb.t.tolist()}
+            except I4calError:
+                b = None
+        rod_items.append((i, C.to_dict(), b))
+    rods = dict(_run(_task_rods, rod_items, workers, init, progress, done, total))
+    if progress:
+        progress(total, total)
+    # -- assemble --------------------------------------------------------------------------------
+    out_frames = []
+    phases: dict[str, dict[str, Any]] = {}
+    for i in obs_idx:
+        f = frames[i]
+        ph = phases.setdefault(f.phase, {"frames": 0, "board": 0, "rods": 0, "rods_total": 0, "missing": {}})
+        ph["frames"] += 1
+        ph["rods_total"] += 8
+        missing: dict[str, str] = {}
+        b = boards[i]
+        board = None
+        if "image_error" in b:
+            missing["image"] = b["image_error"]
+        elif "pose" in b:
+            board = b["pose"]
+            ph["board"] += 1
+        else:
+            missing["board"] = b["reason"]
+        legs: dict[str, list] = {str(k): [None, None] for k in range(1, 5)}
+        r = rods.get(i)
+        par = {}
+        for leg, rod in ROD_KEYS:
+            key = rod_name(leg, rod)
+            if "image" in missing:
+                missing[key] = "image unreadable"
+            elif r is None:
+                missing[key] = placement_reason or "no prediction"
+            elif "reason" in r:
+                missing[key] = r["reason"]
+            else:
+                v = r["rods"][key]
+                if isinstance(v, str):
+                    missing[key] = v
+                else:
+                    legs[str(leg + 1)][rod] = v
+                    ph["rods"] += 1
+        if r is not None and "parallel_mrad" in r:
+            par = r["parallel_mrad"]
+        for k, v in missing.items():
+            kind = "board" if k == "board" else ("image" if k == "image" else "rod")
+            label = f"{kind}: {_short(v)}"
+            ph["missing"][label] = ph["missing"].get(label, 0) + 1
+            per_frame.setdefault(i, []).append(f"{k}: {v}")
+        fr: dict[str, Any] = {"phase": f.phase, "q": list(f.q), "board": board, "legs": legs, "missing": missing,
+                              "image": f.image, "dataset_frame": i, "leg_parallel_mrad": par}
+        extra = f.model_extra or {}
+        if "truth" in extra:
+            fr["truth"] = extra["truth"]
+        out_frames.append(fr)
+    summary = {"phases": phases, "frames": {str(k): v for k, v in sorted(per_frame.items())},
+               "camera": intr.summary() if intr else {"source": "given" if not need_calib else "dataset"},
+               "placement": {"ok": C is not None, "rms_m": placement_rms, "reason": placement_reason}}
+    extraction = {"camera": camera.to_dict(), "summary": summary,
+                  "camera_from_base_coarse": C.to_dict() if C else None,
+                  "ee_from_board_coarse": E.to_dict() if E else None,
+                  "rod_settings": rs_dict, "min_corners": opts.min_corners}
+    obs = {"format": FORMAT, "nominal": doc.nominal.model_dump(), "frames": out_frames, "extraction": extraction}
+    dextra = doc.model_extra or {}
+    if "truth" in dextra:
+        obs["truth"] = dextra["truth"]
+    return ExtractionResult(obs, summary, camera, intr, C, E)

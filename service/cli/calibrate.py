@@ -1,0 +1,66 @@
+"""``i4cal calibrate``: identify the parameters from observations (or a dataset) and print Tables I-III."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from calib.errors import InputError
+from calib.observations import Observations
+from calib.pipeline import METHOD_NAMES, calibrate, to_jsonable
+
+
+def load_observations(path: str, console=None) -> Observations:
+    """An observations file, or a dataset directory (extracted on the fly)."""
+    p = Path(path)
+    if p.is_dir() or p.name == "dataset.json":
+        try:
+            from calib.vision.extract import extract_dataset  # noqa: PLC0415
+        except ImportError as exc:  # pragma: no cover
+            raise InputError(f"cannot extract a dataset here: {exc}", file=str(p)) from None
+        doc, _summary = extract_dataset(p)
+        return Observations.from_dict(doc, source=str(p))
+    return Observations.load(p)
+
+
+def handler(args: argparse.Namespace) -> int:
+    from rich.console import Console
+
+    from ._output import print_result
+
+    methods = list(METHOD_NAMES) if args.method == "all" else [args.method]
+    err = Console(stderr=True)
+    obs = load_observations(args.observations)
+    with err.status("calibrating...", spinner="dots") if not args.json else _null():
+        doc = calibrate(obs, methods, strict=args.method != "all")
+    doc = to_jsonable(doc)
+    if args.output:
+        Path(args.output).write_text(json.dumps(doc, indent=1), encoding="utf-8")
+    if args.json:
+        json.dump(doc, sys.stdout)
+        sys.stdout.write("\n")
+    else:
+        print_result(doc, Console())
+    failed = [m for m, e in doc["methods"].items() if not e.get("converged")]
+    return 1 if failed and len(failed) == len(methods) else 0
+
+
+class _null:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *a):
+        return False
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("calibrate", help="identify the kinematic parameters from observations or a dataset",
+                       description="Identify the I4 parameters with one or all methods and print the paper's "
+                                   "Tables I-III (a priori vs each method, displacement gaps, straightness).")
+    p.add_argument("observations", metavar="OBS", help="observations v1 JSON file, or a dataset v1 directory")
+    p.add_argument("--method", "-m", default="all", choices=[*METHOD_NAMES, "all"])
+    p.add_argument("--json", action="store_true", help="print one JSON object to stdout")
+    p.add_argument("-o", "--output", help="also write the result JSON to this file")
+    p.set_defaults(handler=handler)
