@@ -333,23 +333,8 @@ class ModbusActuators:
         dmax = float(dist.max())
         speeds = np.full(4, v) if dmax == 0 else np.maximum(v * dist / dmax, v * 1e-3)
         timeout = timeout_s if timeout_s is not None else self.move_timeout(dist, speeds)
-        m = self.map
         try:
-            for i in range(4):
-                unit, _ = m.addr(i, "target")
-                off = m.axes[i].offset
-                tregs = m.to_regs32(m.m_to_counts(target[i]))
-                sregs = m.to_regs32(m.speed_to_counts(speeds[i]))
-                if m.start_mode == "target_write":
-                    await self.write(unit, off + m.speed, sregs)
-                    await self.write(unit, off + m.target, tregs)
-                elif m.speed == m.target + 2 and m.control == m.target + 4:
-                    ctrl = m.bit("control", "start")
-                    await self.write(unit, off + m.target, [*tregs, *sregs, ctrl])
-                else:
-                    await self.write(unit, off + m.speed, sregs)
-                    await self.write(unit, off + m.target, tregs)
-                    await self._control(i, "start")
+            await self._start_move(target, speeds)
 
             def arrived(s: ActuatorStatus) -> bool:
                 return s.in_position and bool(np.all(np.abs(s.positions - target) <= self.in_position_m))
@@ -363,6 +348,23 @@ class ModbusActuators:
         except BaseException:
             await self._stop_quietly()
             raise
+
+    async def _start_move(self, target: np.ndarray, speeds: np.ndarray) -> None:
+        m = self.map
+        for i in range(4):
+            unit, _ = m.addr(i, "target")
+            off = m.axes[i].offset
+            tregs = m.to_regs32(m.m_to_counts(target[i]))
+            sregs = m.to_regs32(m.speed_to_counts(speeds[i]))
+            if m.start_mode == "target_write":
+                await self.write(unit, off + m.speed, sregs)
+                await self.write(unit, off + m.target, tregs)
+            elif m.speed == m.target + 2 and m.control == m.target + 4:
+                await self.write(unit, off + m.target, [*tregs, *sregs, m.bit("control", "start")])
+            else:
+                await self.write(unit, off + m.speed, sregs)
+                await self.write(unit, off + m.target, tregs)
+                await self._control(i, "start")
 
     async def _wait(self, done, timeout_s: float, what: str) -> ActuatorStatus:
         t_end = time.monotonic() + timeout_s

@@ -39,13 +39,42 @@ class Faults:
     drop_replies: int = 0         # swallow this many replies
 
 
+def apply_control(ax, bits: int, target_m: float, speed_m_s: float, now: float, cb) -> None:
+    """Apply control bits (free, stop, reset, home, start; in that order) to one simulated axis."""
+    free = bool(bits & (1 << cb.free))
+    if free != ax.free:
+        ax.set_free(free, now)
+    if bits & (1 << cb.stop):
+        ax.stop(now)
+    if bits & (1 << cb.reset):
+        ax.reset(now)
+    if bits & (1 << cb.home):
+        ax.home(now)
+    if bits & (1 << cb.start):
+        ax.start(target_m, speed_m_s, now)
+
+
+def status_word(ax, sb) -> int:
+    st = 0
+    if not ax.free and not ax.alarm_code:
+        st |= 1 << sb.ready
+    if ax.moving:
+        st |= 1 << sb.moving
+    if ax.in_position():
+        st |= 1 << sb.in_position
+    if ax.alarm_code:
+        st |= 1 << sb.alarm
+    if ax.homed:
+        st |= 1 << sb.homed
+    return st
+
+
 class SimController:
     """Modbus front end of a :class:`Mechanism` for one register map."""
 
     def __init__(self, mechanism: Mechanism, regmap: RegisterMap = DEFAULT_MAP, watchdog_s: float = 0.5) -> None:
         self.mechanism = mechanism
         self.watchdog_s = watchdog_s
-        self._last_request = 0.0
         self._watchdog_task: asyncio.Task | None = None
         self.map = regmap
         self.faults = Faults()
@@ -92,7 +121,7 @@ class SimController:
 
     def _action(self, axes, fc, start_address, address, count, registers, set_values) -> ExcCodes | None:
         self.requests += 1
-        self._last_request = self.mechanism.clock()
+        self.mechanism.last_contact = self.mechanism.clock()
         f = self.faults
         if f.exception_count > 0:
             f.exception_count -= 1
@@ -119,17 +148,7 @@ class SimController:
                     if address <= ctrl_addr < address + len(values):
                         bits = int(values[ctrl_addr - address])
                         cb = m.control_bits
-                        free = bool(bits & (1 << cb.free))
-                        if free != ax.free:
-                            ax.set_free(free, now)
-                        if bits & (1 << cb.stop):
-                            ax.stop(now)
-                        if bits & (1 << cb.reset):
-                            ax.reset(now)
-                        if bits & (1 << cb.home):
-                            ax.home(now)
-                        if bits & (1 << cb.start):
-                            ax.start(target_m, speed, now)
+                        apply_control(ax, bits, target_m, speed, now, cb)
                         keep = bits & (1 << cb.free)
                         set_values[ctrl_addr - address] = keep
                     elif m.start_mode == "target_write" and address <= off + m.target < address + len(values):
@@ -140,18 +159,7 @@ class SimController:
 
     def _refresh(self, registers, start_address, off, ax) -> None:
         m = self.map
-        sb = m.status_bits
-        st = 0
-        if not ax.free and not ax.alarm_code:
-            st |= 1 << sb.ready
-        if ax.moving:
-            st |= 1 << sb.moving
-        if ax.in_position():
-            st |= 1 << sb.in_position
-        if ax.alarm_code:
-            st |= 1 << sb.alarm
-        if ax.homed:
-            st |= 1 << sb.homed
+        st = status_word(ax, m.status_bits)
         axis = self.mechanism.axes.index(ax)
         enc = m.to_regs32(m.m_to_counts(self.mechanism.encoder_m(axis)))
         registers[off + m.status - start_address] = st
@@ -182,7 +190,7 @@ class SimController:
         while True:
             await asyncio.sleep(min(0.05, self.watchdog_s / 4))
             now = mech.update()
-            if now - self._last_request > self.watchdog_s:
+            if now - mech.last_contact > self.watchdog_s:
                 with mech.lock:
                     for ax in mech.axes:
                         if ax.moving:
@@ -305,3 +313,81 @@ class DelayProxy:
             self._server.close()
             with contextlib.suppress(Exception):
                 await self._server.wait_closed()
+
+
+class AsciiServer:
+    """The simulated controller's serial ASCII front end (protocol in :mod:`drivers.serial_ascii`), on a
+    loopback TCP socket (a client opens it as the pyserial URL ``socket://127.0.0.1:P``)."""
+
+    def __init__(self, mechanism: Mechanism) -> None:
+        self.mechanism = mechanism
+        self.drop_replies = 0
+        self.garble_replies = 0
+        self._server: asyncio.base_events.Server | None = None
+        self._writers: set[asyncio.StreamWriter] = set()
+
+    async def start(self, host: str = "127.0.0.1", port: int = 0) -> tuple[str, int]:
+        self._server = await asyncio.start_server(self._handle, host, port)
+        return self._server.sockets[0].getsockname()[:2]
+
+    def reply(self, line: str) -> str | None:
+        from ..registermap import ControlBits, StatusBits
+
+        seq, _, rest = line.strip().partition(" ")
+        if not seq.startswith("#"):
+            return "#? ERR 1 framing: expected #SEQ CMD"
+        cmd, *args = rest.split()
+        mech = self.mechanism
+        now = mech.update()
+        mech.last_contact = now
+        try:
+            with mech.lock:
+                if cmd == "ID?":
+                    out = "OK I4ASCII 1"
+                elif cmd == "STAT?":
+                    vals = []
+                    for i, ax in enumerate(mech.axes):
+                        ax.update(now)
+                        vals += [status_word(ax, StatusBits()), round(mech.encoder_m(i) * 1e6), ax.alarm_code]
+                    out = "OK " + " ".join(map(str, vals))
+                elif cmd == "MOVE" and len(args) == 8:
+                    for i, ax in enumerate(mech.axes):
+                        ax.start(int(args[i]) / 1e6, int(args[4 + i]) / 1e6, now)
+                    out = "OK"
+                elif cmd == "CTRL" and len(args) == 2 and args[0] in "1234":
+                    ax = mech.axes[int(args[0]) - 1]
+                    bits = int(args[1])
+                    apply_control(ax, bits, ax.target, 0.0, now, ControlBits())
+                    out = "OK"
+                else:
+                    out = f"ERR 2 unknown command or arguments: {rest[:40]}"
+        except ValueError:
+            out = "ERR 3 bad number"
+        return f"{seq} {out}"
+
+    async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        self._writers.add(writer)
+        try:
+            while line := await reader.readline():
+                out = self.reply(line.decode(errors="replace"))
+                if self.drop_replies > 0:
+                    self.drop_replies -= 1
+                    continue
+                if self.garble_replies > 0:
+                    self.garble_replies -= 1
+                    writer.write(b"\x15\xfe garbage\n")
+                writer.write(out.encode() + b"\r\n")
+                await writer.drain()
+        except (ConnectionError, OSError):
+            pass
+        finally:
+            self._writers.discard(writer)
+            with contextlib.suppress(Exception):
+                writer.close()
+
+    async def close(self) -> None:
+        for w in list(self._writers):
+            with contextlib.suppress(Exception):
+                w.transport.abort()
+        if self._server is not None:
+            self._server.close()

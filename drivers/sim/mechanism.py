@@ -210,6 +210,7 @@ class Mechanism:
         self.rng = np.random.default_rng(seed)
         self.lock = threading.RLock()
         self._guide: _Guide | None = None
+        self.last_contact = self.clock()  # last request from a master (the controller's watchdog reads it)
 
     # -- state ----------------------------------------------------------------------------------
     def update(self) -> float:
