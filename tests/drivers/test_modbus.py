@@ -222,3 +222,15 @@ def test_register_words():
     assert m.from_regs32(m.to_regs32(123456789)) == 123456789
     lm = RegisterMap(word_order="little")
     assert lm.to_regs32(0x12345678) == [0x5678, 0x1234]
+
+
+async def test_watchdog_stops_a_move_when_the_master_goes_silent(bench):
+    act = make_modbus(bench)
+    async with act:
+        await act.home(timeout_s=5)
+        regs = act.map.to_regs32(700000) + act.map.to_regs32(100000)  # 0.7 m at 0.1 m/s: 7 s
+        await act.write(1, 0, [*regs, 1])
+        await act.close()  # the master dies mid-move
+        await asyncio.sleep(bench.controller.watchdog_s + 0.2)
+        assert not bench.mechanism.axes[0].moving
+        assert bench.mechanism.axes[0].pos < 0.2
