@@ -278,6 +278,9 @@ class Observations:
         return PhaseArrays(index, q, bR, bt, hb, ru, rp, hr, hp)
 
 
+_MODEL_TAGS = {"Rod", "Board", "Frame", "Nominal", "list[nullable[Rod]]", "nullable[Rod]", "none", "[key]"}
+
+
 def _input_error(exc: ValidationError, source: str | None) -> InputError:
     err = exc.errors()[0]
     loc = list(err.get("loc", ()))
@@ -286,7 +289,7 @@ def _input_error(exc: ValidationError, source: str | None) -> InputError:
         frame = int(loc[1])
         loc = loc[2:]
     # drop pydantic's union-branch tags (e.g. 'Rod') from the path
-    parts = [str(p) for p in loc if not (isinstance(p, str) and p[:1].isupper())]
+    parts = [str(p) for p in loc if p not in _MODEL_TAGS]
     field = ".".join(parts) if parts else None
     msg = err.get("msg", "invalid value")
     if msg.startswith("Value error, "):

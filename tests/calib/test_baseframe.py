@@ -1,0 +1,53 @@
+import numpy as np
+import pytest
+
+from calib.baseframe import base_frame_from_observations, estimate_base_frame, fit_rotation_axis
+from calib.errors import IdentifiabilityError
+from calib.observations import Observations
+from calib.transforms import matrix_to_rotvec, rot_z
+from drivers.sim.twin import GeometricTwin
+
+
+def test_noise_free_base_frame_is_exact(noise_free_obs):
+    obs, twin = noise_free_obs
+    bf = base_frame_from_observations(obs)
+    err = matrix_to_rotvec(twin.geometry.camera_from_base.R @ bf.camera_from_base_R.T)
+    assert np.linalg.norm(err) < 1e-10
+    assert bf.translation_scale == pytest.approx(1.0, abs=1e-9)
+    assert bf.orthogonality_error_deg < 1e-8
+
+
+def test_base_frame_covariance_matches_monte_carlo(paper_plan):
+    twin = GeometricTwin()
+    errs, covs = [], []
+    for seed in range(60):
+        bf = base_frame_from_observations(Observations.from_dict(twin.observations(plan=paper_plan, seed=seed)))
+        errs.append(matrix_to_rotvec(twin.geometry.camera_from_base.R @ bf.camera_from_base_R.T))
+        covs.append(np.diag(bf.cov_rotvec))
+    ratio = np.std(errs, axis=0, ddof=1) / np.sqrt(np.mean(covs, axis=0))
+    assert np.all((ratio > 0.75) & (ratio < 1.3)), ratio
+
+
+def test_rotation_axis_sign_follows_T():
+    z = np.array([0.1, -0.2, 0.97])
+    z /= np.linalg.norm(z)
+    from calib.transforms import rotvec_to_matrix
+    T = np.linspace(-0.05, 0.05, 8)
+    R = np.array([rotvec_to_matrix(z * t / 0.02) for t in T]) @ rot_z(0.3)
+    zf, *_ = fit_rotation_axis(R, T)
+    np.testing.assert_allclose(zf, z, atol=1e-12)
+    zf2, *_ = fit_rotation_axis(R, -T)
+    np.testing.assert_allclose(zf2, -z, atol=1e-12)
+
+
+def test_no_rotation_is_an_identifiability_error(noise_free_obs):
+    obs = noise_free_obs[0]
+    rot = obs.arrays("rotation")
+    still = rot.subset(np.zeros(len(rot), dtype=bool) | True)
+    Rs = np.repeat(still.board_R[:1], len(still), axis=0)
+    from dataclasses import replace
+    with pytest.raises(IdentifiabilityError, match="z_B is not excited"):
+        estimate_base_frame(replace(still, board_R=Rs), obs.arrays("translation"))
+    tr = obs.arrays("translation")
+    with pytest.raises(IdentifiabilityError, match="x_B"):
+        estimate_base_frame(rot, replace(tr, q=np.repeat(tr.q[:1], len(tr), axis=0)))

@@ -1,0 +1,157 @@
+"""The three methods: exact recovery without noise, honest standard deviations with noise."""
+
+import numpy as np
+import pytest
+
+from calib.errors import IdentifiabilityError
+from calib.methods import calibrate_combined, calibrate_end_effector, calibrate_legs
+from calib.observations import Observations
+from calib.parameters import COMBINATION_NAMES, PARAMETER_NAMES
+from drivers.sim.twin import GeometricTwin, NoiseSpec
+
+N_TRIALS = 60
+
+
+def test_noise_free_combined_recovers_truth(noise_free_obs):
+    obs, twin = noise_free_obs
+    r = calibrate_combined(obs)
+    truth = twin.geometry.truth.combinations()
+    for k in COMBINATION_NAMES:
+        assert abs(r.combinations[k] - truth[k]) < 1e-8, k
+    assert r.converged and r.n_poses == 20
+
+
+def test_noise_free_end_effector_recovers_truth(noise_free_obs):
+    obs, twin = noise_free_obs
+    r = calibrate_end_effector(obs)
+    truth = twin.geometry.truth.combinations()
+    for k in COMBINATION_NAMES:
+        assert abs(r.combinations[k] - truth[k]) < 1e-8, k
+
+
+def test_noise_free_legs_recovers_all_seven(noise_free_obs):
+    obs, twin = noise_free_obs
+    r = calibrate_legs(obs)
+    truth = twin.geometry.truth.seven()
+    for k in PARAMETER_NAMES:
+        assert abs(r.parameters[k] - truth[k]) < 1e-8, k
+    t4 = twin.geometry.truth.combinations()
+    for k in COMBINATION_NAMES:
+        assert abs(r.combinations[k] - t4[k]) < 1e-8, k
+
+
+@pytest.fixture(scope="module")
+def monte_carlo(paper_plan):
+    """Every method on N_TRIALS noisy data sets (same poses, seeded noise on rods, boards and encoders)."""
+    twin = GeometricTwin(noise=NoiseSpec())
+    out = {m: {"err": [], "std": []} for m in ("combined", "end-effector", "legs")}
+    t4 = twin.geometry.truth.combinations()
+    truth = np.array([t4[k] for k in COMBINATION_NAMES])
+    for seed in range(100, 100 + N_TRIALS):
+        obs = Observations.from_dict(twin.observations(plan=paper_plan, seed=seed))
+        for name, fn in (("combined", calibrate_combined), ("end-effector", calibrate_end_effector),
+                         ("legs", calibrate_legs)):
+            r = fn(obs)
+            out[name]["err"].append(r.vector() - truth)
+            out[name]["std"].append(r.std_vector())
+    return {m: {k: np.asarray(v) for k, v in d.items()} for m, d in out.items()}
+
+
+@pytest.mark.parametrize("method", ["combined", "end-effector", "legs"])
+def test_errors_lie_within_four_reported_std(monte_carlo, method):
+    d = monte_carlo[method]
+    z = np.abs(d["err"]) / d["std"]
+    assert z.max() < 4.0, f"{method}: max |error|/std = {z.max():.2f}"
+
+
+@pytest.mark.parametrize("method", ["combined", "end-effector", "legs"])
+def test_reported_std_matches_monte_carlo_spread(monte_carlo, method):
+    d = monte_carlo[method]
+    empirical = d["err"].std(axis=0, ddof=1)
+    reported = np.sqrt(np.mean(d["std"] ** 2, axis=0))
+    ratio = empirical / reported
+    assert np.all((ratio > 1 / 1.3) & (ratio < 1.3)), f"{method}: empirical/reported = {np.round(ratio, 3)}"
+
+
+def test_combined_std_includes_the_base_frame(noisy_obs):
+    r = calibrate_combined(noisy_obs[0])
+    bf = r.std_breakdown["base_frame"]
+    legs = r.std_breakdown["legs_and_encoders"]
+    for k in COMBINATION_NAMES:
+        assert bf[k] > 0
+        assert r.combinations_std[k] == pytest.approx(np.hypot(bf[k], legs[k]), rel=1e-6)
+
+
+def test_base_frame_error_dominates_when_boards_are_noisy(paper_plan):
+    """With noisy board poses and precise rods, a residual-only std would be far too small."""
+    noise = NoiseSpec(rod_direction_rad=5e-5, rod_point_m=5e-5, board_rotation_rad=2e-3,
+                      board_translation_m=(5e-4, 5e-4, 1.5e-3), encoder_m=1e-6)
+    twin = GeometricTwin(noise=noise)
+    t4 = twin.geometry.truth.combinations()
+    truth = np.array([t4[k] for k in COMBINATION_NAMES])
+    errs, stds, resid_only = [], [], []
+    for seed in range(40):
+        r = calibrate_combined(Observations.from_dict(twin.observations(plan=paper_plan, seed=seed)))
+        errs.append(r.vector() - truth)
+        stds.append(r.std_vector())
+        resid_only.append([r.std_breakdown["legs_and_encoders"][k] for k in COMBINATION_NAMES])
+    emp = np.std(errs, axis=0, ddof=1)
+    rep = np.sqrt(np.mean(np.square(stds), axis=0))
+    assert np.all(np.sqrt(np.mean(np.square(resid_only), axis=0)) < emp / 3)  # residuals alone: far too small
+    ratio = emp / rep
+    assert np.all((ratio > 1 / 1.3) & (ratio < 1.3)), np.round(ratio, 3)
+
+
+def test_gls_weighting_is_also_honest_and_no_worse(paper_plan):
+    twin = GeometricTwin()
+    t4 = twin.geometry.truth.combinations()
+    truth = np.array([t4[k] for k in COMBINATION_NAMES])
+    e_f, e_g, s_g = [], [], []
+    for seed in range(40):
+        obs = Observations.from_dict(twin.observations(plan=paper_plan, seed=500 + seed))
+        e_f.append(calibrate_combined(obs).vector() - truth)
+        rg = calibrate_combined(obs, weighting="gls")
+        e_g.append(rg.vector() - truth)
+        s_g.append(rg.std_vector())
+    ratio = np.std(e_g, axis=0, ddof=1) / np.sqrt(np.mean(np.square(s_g), axis=0))
+    assert np.all((ratio > 1 / 1.3) & (ratio < 1.3))
+    assert np.sqrt(np.mean(np.square(e_g))) <= 1.05 * np.sqrt(np.mean(np.square(e_f)))
+
+
+def _drop_phase(obs: Observations, phase: str) -> Observations:
+    d = obs.to_dict()
+    d["frames"] = [f for f in d["frames"] if f["phase"] != phase]
+    return Observations.from_dict(d)
+
+
+def test_degenerate_pose_set_names_the_parameter(noise_free_obs):
+    obs, _ = noise_free_obs
+    d = obs.to_dict()
+    poses = [f for f in d["frames"] if f["phase"] == "poses"]
+    for f in poses:  # every fit pose identical: nothing varies
+        f["q"] = poses[0]["q"]
+        f["legs"] = poses[0]["legs"]
+    with pytest.raises(IdentifiabilityError) as ei:
+        calibrate_combined(Observations.from_dict(d))
+    assert ei.value.parameter in COMBINATION_NAMES
+    assert "does not excite parameter" in str(ei.value)
+
+
+def test_missing_phases_give_clear_errors(noise_free_obs):
+    obs, _ = noise_free_obs
+    with pytest.raises(IdentifiabilityError, match="rotation phase"):
+        calibrate_combined(_drop_phase(obs, "rotation"))
+    with pytest.raises(IdentifiabilityError, match="translation phase"):
+        calibrate_combined(_drop_phase(obs, "translation"))
+    with pytest.raises(IdentifiabilityError, match="lock-3"):
+        calibrate_legs(_drop_phase(obs, "lock-3"))
+    with pytest.raises(IdentifiabilityError, match="board pose"):
+        calibrate_end_effector(_drop_phase(obs, "poses"))
+
+
+def test_unlocked_actuator_is_refused(noise_free_obs):
+    d = noise_free_obs[0].to_dict()
+    lock = [f for f in d["frames"] if f["phase"] == "lock-2"]
+    lock[0]["q"][1] += 0.01
+    with pytest.raises(IdentifiabilityError, match="not locked"):
+        calibrate_legs(Observations.from_dict(d))

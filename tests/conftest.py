@@ -1,0 +1,33 @@
+"""Shared fixtures: seeded simulated observations on the geometric twin."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from calib.observations import Observations
+from calib.parameters import NOMINAL
+from calib.plan import make_plan
+from drivers.sim.twin import GeometricTwin, NoiseSpec
+
+
+@pytest.fixture(scope="session")
+def paper_plan():
+    return make_plan("full", NOMINAL, seed=0)
+
+
+@pytest.fixture(scope="session")
+def noise_free_obs(paper_plan) -> tuple[Observations, GeometricTwin]:
+    twin = GeometricTwin(noise=NoiseSpec.zero())
+    return Observations.from_dict(twin.observations(plan=paper_plan, seed=0)), twin
+
+
+@pytest.fixture(scope="session")
+def noisy_obs(paper_plan) -> tuple[Observations, GeometricTwin]:
+    twin = GeometricTwin()
+    return Observations.from_dict(twin.observations(plan=paper_plan, seed=7)), twin
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(12345)
