@@ -140,7 +140,8 @@ class Acquisition:
         self.overheads: list[float] = []
         self.timings: list[tuple[float, float, float]] = []  # (start, in position, written) per pose
         self._record_s: float | None = None  # running estimate of one grab + write
-        self.line_still_m = 1e-5  # encoders before and after a line frame agree within this
+        self.line_still_m = 1e-5
+        self._pending: asyncio.Future | None = None  # encoders before and after a line frame agree within this
 
     # -- control ----------------------------------------------------------------------------------
     def pause(self) -> None:
@@ -181,11 +182,15 @@ class Acquisition:
         except asyncio.CancelledError:
             if self._aborting:
                 await self._safe_stop()
+                with contextlib.suppress(Exception):
+                    await self._flush_writes()
                 n = len(self._writer) if self._writer else 0
                 self._mark("aborted", None, "aborted on request")
                 self._emit("aborted", f"aborted; motion stopped; {n} frames kept in {self.out}")
                 raise AbortedError(f"acquisition aborted; motion stopped; {n} frames kept in {self.out}") from None
             await self._safe_stop()
+            with contextlib.suppress(Exception):
+                await self._flush_writes()
             raise
         finally:
             self._task = None
@@ -242,6 +247,7 @@ class Acquisition:
             except (DeviceError, InputError, OSError) as exc:
                 await self._fail(u, exc)
             i += 1
+        await self._flush_writes()
         self._mark("done", None, "")
         self._emit("done", f"{len(self._writer)} frames in {self.out}")
         self._writer.close()
@@ -250,6 +256,8 @@ class Acquisition:
 
     async def _fail(self, u: Unit, exc: BaseException) -> None:
         await self._safe_stop()
+        with contextlib.suppress(Exception):
+            await self._flush_writes()
         with contextlib.suppress(Exception):
             if self.plan.steps[u.step].line is not None:
                 await self.actuators.set_free(False)
@@ -304,6 +312,17 @@ class Acquisition:
         self._writer.add_frame(u.phase, q, img, **extra)
         self._done_now += 1
 
+    async def _write_behind(self, u: Unit, q: np.ndarray, frame: Frame, **extra: Any) -> None:
+        """Write a frame in a worker thread while the next pose's move starts (frames stay in order: one
+        write at a time; :meth:`_flush_writes` waits for the last one)."""
+        await self._flush_writes()
+        self._pending = asyncio.ensure_future(asyncio.to_thread(self._write, u, q, frame, **extra))
+
+    async def _flush_writes(self) -> None:
+        p, self._pending = self._pending, None
+        if p is not None:
+            await asyncio.shield(p)
+
     # -- steps ------------------------------------------------------------------------------------
     async def _grab(self) -> Frame:
         last: Exception | None = None
@@ -331,7 +350,7 @@ class Acquisition:
             raise AlarmError(alarm_message(ax, code), code=code, axis=ax)
         q = st.positions
         frame = await self._grab()
-        self._write(u, q, frame, q_target=list(u.q) if u.q is not None else None)
+        await self._write_behind(u, q, frame, q_target=list(u.q) if u.q is not None else None)
         t_end = time.perf_counter()
         self.timings.append((t_start, t_moved, t_end))
         self._note_record_time(t_end - t_moved)
@@ -356,6 +375,7 @@ class Acquisition:
         poses = line_poses(line)
         if self.operator is None:
             raise DeviceError("a guided line needs an operator (bench [operator] uri)")
+        await self._flush_writes()
         # bring the mechanism near the ruler's start (nominal model), then let go
         try:
             await self.actuators.move(ikm(self.nominal, poses[k0]))
