@@ -168,11 +168,14 @@ def _run(fn: Callable, items: list, workers: int, init_args: tuple, progress: Pr
 
 
 # ---------------------------------------------------------------------------------------------
-def fit_placement(q: np.ndarray, board_R: np.ndarray, board_t: np.ndarray, nominal) -> tuple[Rigid, Rigid, float]:
+def fit_placement(q: np.ndarray, board_R: np.ndarray, board_t: np.ndarray, nominal, board_height_m: float = 0.0
+                  ) -> tuple[Rigid, Rigid, float]:
     """Coarse ``camera_from_base`` and ``ee_from_board`` from board poses and the nominal model.
 
     Solves ``camera_from_base * base_from_ee(dkm(nominal, q_k)) * ee_from_board = camera_from_board_k``
-    in the least-squares sense (rotation residuals weighted as 0.1 m/rad).
+    in the least-squares sense (rotation residuals weighted as 0.1 m/rad). All end-effector rotations
+    are about z_B, so the height of the board's origin above E (along z_E) and the camera's height
+    trade off exactly: the former is fixed to ``board_height_m`` (a ruler measurement is enough).
 
     Parameters
     ----------
@@ -214,14 +217,15 @@ def fit_placement(q: np.ndarray, board_R: np.ndarray, board_t: np.ndarray, nomin
     n = len(q)
     for RC in candidates:
         # o_k - RC tB_k = RC RB_k e + tC
-        A = np.zeros((3 * n, 6))
+        A = np.zeros((3 * n, 5))
         rhs = np.zeros(3 * n)
         for k in range(n):
-            A[3 * k:3 * k + 3, :3] = RC @ RB[k]
-            A[3 * k:3 * k + 3, 3:] = np.eye(3)
-            rhs[3 * k:3 * k + 3] = board_t[k] - RC @ tB[k]
+            A[3 * k:3 * k + 3, :2] = (RC @ RB[k])[:, :2]
+            A[3 * k:3 * k + 3, 2:] = np.eye(3)
+            rhs[3 * k:3 * k + 3] = board_t[k] - RC @ tB[k] - RC @ RB[k] @ np.array([0, 0, board_height_m])
         sol, *_ = np.linalg.lstsq(A, rhs, rcond=None)
         r = float(np.sum((A @ sol - rhs) ** 2))
+        sol = np.array([sol[0], sol[1], board_height_m, *sol[2:]])
         if best is None or r < best[0]:
             RE = np.mean([(RC @ RB[k]).T @ board_R[k] for k in range(n)], axis=0)
             U, _, Vt = np.linalg.svd(RE)
@@ -236,15 +240,15 @@ def fit_placement(q: np.ndarray, board_R: np.ndarray, board_t: np.ndarray, nomin
         out = []
         for k in range(n):
             Rp = Rc @ RB[k] @ Re
-            tp = Rc @ (RB[k] @ p[9:12] + tB[k]) + p[3:6]
+            tp = Rc @ (RB[k] @ np.array([p[9], p[10], board_height_m]) + tB[k]) + p[3:6]
             out.append(0.1 * matrix_to_rotvec(Rp @ board_R[k].T))
             out.append(tp - board_t[k])
         return np.concatenate(out)
 
-    p0 = np.concatenate([matrix_to_rotvec(RC), tC, matrix_to_rotvec(RE), tE])
+    p0 = np.concatenate([matrix_to_rotvec(RC), tC, matrix_to_rotvec(RE), tE[:2]])
     sol = least_squares(resid, p0, method="lm")
     C = Rigid(rotvec_to_matrix(sol.x[:3]), sol.x[3:6])
-    E = Rigid(rotvec_to_matrix(sol.x[6:9]), sol.x[9:12])
+    E = Rigid(rotvec_to_matrix(sol.x[6:9]), np.array([sol.x[9], sol.x[10], board_height_m]))
     rt = sol.fun.reshape(-1, 2, 3)[:, 1]
     return C, E, float(np.sqrt(np.mean(np.sum(rt ** 2, axis=1))))
 
@@ -324,7 +328,8 @@ def extract_dataset(dataset: str | Path | Dataset, *, camera: CameraModel | None
         bR = np.array([boards[i]["pose"]["R"] for i in good])
         bt = np.array([boards[i]["pose"]["t"] for i in good])
         try:
-            C, E, placement_rms = fit_placement(qk, bR, bt, doc.nominal.parameters())
+            height = float((doc.board.model_extra or {}).get("height_above_ee_m", 0.0))
+            C, E, placement_rms = fit_placement(qk, bR, bt, doc.nominal.parameters(), height)
         except (I4calError, np.linalg.LinAlgError, ValueError) as exc:
             placement_reason = f"coarse camera placement failed: {exc}"
     else:

@@ -217,8 +217,10 @@ class BenchRenderer:
         cover *= np.clip(0.5 + np.minimum(s_ax, L - s_ax) * scale, 0.0, 1.0)
         tot = np.maximum(da + db, 1e-9)
         rho = np.clip((db - da) / tot, -1.0, 1.0)
-        c = np.sqrt(np.maximum(1.0 - rho * rho, 0.0))
-        shade = 120.0 + 85.0 * c + 25.0 * rho + 45.0 * np.exp(-((rho - 0.35) / 0.15) ** 2)
+        c = np.sqrt(np.maximum(1.0 - rho * rho, 0.0))  # cosine of the view angle on the surface
+        # diffuse light from a broad source plus a specular streak; smooth up to the limbs
+        # (matte paint: the shading flattens towards the limbs, where the surface turns away)
+        shade = 140.0 + 55.0 * c ** 4 + 20.0 * rho * c * c + 35.0 * np.exp(-((rho - 0.35) / 0.15) ** 2)
         zb = zbuf[y0:y1, x0:x1]
         front = (depth < zb) & (cover > 0)
         sub = img[y0:y1, x0:x1]
@@ -258,9 +260,9 @@ class BenchRenderer:
         texel_per_px = self._ppm * float(np.median(lam[valid])) / f if np.any(valid) else 1.0
         level = int(np.clip(np.floor(np.log2(max(texel_per_px, 1.0))), 0, len(self._tex_levels) - 1))
         tex = self._tex_levels[level]
-        ppm = self._ppm / 2 ** level
-        mapx = ((nx + m) * ppm - 0.5).astype(np.float32)
-        mapy = ((ny + m) * ppm - 0.5).astype(np.float32)
+        # level-0 texel-centre coordinates, then level L (pyrDown: texel j of level L sits at 2^L j)
+        mapx = (((nx + m) * self._ppm - 0.5) / 2 ** level).astype(np.float32)
+        mapy = (((ny + m) * self._ppm - 0.5) / 2 ** level).astype(np.float32)
         val = cv2.remap(tex, mapx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=237.0)
         zb = zbuf[y0:y1, x0:x1]
         front = (depth < zb) & (cover > 0)
