@@ -189,7 +189,7 @@ class GenICamCamera:
                     self.stats["fetched"] += 1
                     incomplete = False
                     try:
-                        incomplete = bool(buf._buffer.is_incomplete)  # noqa: SLF001
+                        incomplete = bool(buf._buffer.is_incomplete)
                     except Exception:
                         pass
                     if incomplete or not buf.payload.components:

@@ -37,7 +37,7 @@ def _run(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-    from drivers.acquisition import AcquisitionError, Acquisition
+    from drivers.acquisition import Acquisition, AcquisitionError
     from drivers.config import load_bench, open_actuators, open_camera, open_operator
 
     cfg = load_bench(args.bench)

@@ -6,7 +6,6 @@ import asyncio
 
 import numpy as np
 import pytest
-from drv_helpers import FAST, TinyRenderer
 
 from calib.dataset import Dataset
 from calib.errors import InputError
@@ -16,7 +15,6 @@ from calib.plan import Plan, Step, make_plan
 from drivers.acquisition import Acquisition, AcquisitionError, acquire, plan_units
 from drivers.config import open_actuators, open_camera, open_operator
 from drivers.errors import AbortedError
-from drivers.sim.bench import SimBench
 from drivers.sim.mechanism import ALARM_DRIVE_FAULT
 
 

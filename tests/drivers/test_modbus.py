@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 import pytest
+from drv_helpers import FAST, TinyRenderer, make_modbus
 
 from calib.parameters import NOMINAL
 from drivers.errors import AlarmError, DeviceConnectionError, DeviceTimeoutError, LimitError, ProtocolError
@@ -15,8 +16,6 @@ from drivers.registermap import AxisAddress, RegisterMap
 from drivers.sim.bench import SimBench
 from drivers.sim.controller import DelayProxy
 from drivers.sim.mechanism import ALARM_DRIVE_FAULT
-
-from drv_helpers import FAST, TinyRenderer, make_modbus
 
 Q_A = np.array([0.40, 0.41, 0.42, 0.43])
 Q_B = np.array([0.30, 0.31, 0.35, 0.36])
