@@ -1,0 +1,91 @@
+"""Camera model and intrinsic calibration (calibrateCameraRO) on synthetic corner data."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from calib.camera import CameraModel, calibrate_intrinsics
+from calib.dataset import BoardSpec
+from calib.errors import InputError
+from calib.transforms import rotvec_to_matrix
+from calib.vision.board import board_corners
+
+K = np.array([[774.2, 0.0, 515.3], [0.0, 774.2, 380.6], [0.0, 0.0, 1.0]])
+DIST = np.array([-0.30, 0.10, 4e-4, -3e-4, 0.0])
+
+
+def test_project_undistort_round_trip():
+    cam = CameraModel(K, DIST, 1024, 768)
+    rng = np.random.default_rng(0)
+    px = rng.uniform([0, 0], [1023, 767], size=(200, 2))
+    xn = cam.undistort_points(px)
+    back = cam.distort_normalized(xn)
+    assert np.abs(back - px).max() < 1e-6
+    pts = np.column_stack([xn * 0.7, np.full(len(xn), 0.7)])
+    assert np.abs(cam.project(pts) - px).max() < 1e-6
+    assert np.allclose(cam.from_ideal_pixels(cam.to_ideal_pixels(xn)), xn)
+
+
+def test_json_round_trip(tmp_path):
+    cam = CameraModel(K, DIST, 1024, 768, {"note": "x"})
+    cam.save(tmp_path / "cam.json")
+    back = CameraModel.load(tmp_path / "cam.json")
+    assert np.allclose(back.K, K) and np.allclose(back.dist, DIST) and back.size == (1024, 768)
+    assert back.extra["note"] == "x"
+
+
+def test_validation_names_the_shape(tmp_path):
+    with pytest.raises(ValueError, match=r"K must have shape \(3, 3\)"):
+        CameraModel(np.eye(2), DIST, 10, 10)
+    with pytest.raises(ValueError, match="dist must have"):
+        CameraModel(K, np.zeros(3), 10, 10)
+    (tmp_path / "bad.json").write_text('{"K": [[1,0,0],[0,1,0],[0,0,1]], "width": 4}')
+    with pytest.raises(InputError, match="height"):
+        CameraModel.load(tmp_path / "bad.json")
+
+
+def _views(n, rng, noise_px, board_points):
+    cam = CameraModel(K, DIST, 1024, 768)
+    views = {}
+    for i in range(n):
+        R = rotvec_to_matrix(rng.normal(0, 0.35, 3))
+        z = rng.uniform(0.3, 0.55)
+        c = np.array([rng.uniform(-0.2, 0.2) * z, rng.uniform(-0.15, 0.15) * z, z])
+        t = c - R @ np.array([0.12, 0.08, 0.0])
+        px = cam.project(board_points @ R.T + t) + rng.normal(0, noise_px, (len(board_points), 2))
+        views[i] = (np.arange(len(board_points)), px, None)
+    return views
+
+
+def test_calibrate_ro_recovers_intrinsics_and_rejects_views():
+    ids, pts = board_corners(BoardSpec())
+    rng = np.random.default_rng(1)
+    # a slightly wrong board (manufacturing error): the nominal points are given to the calibration
+    true_pts = pts.copy()
+    true_pts[:, :2] += rng.normal(0, 2e-4, (len(pts), 2))
+    views = _views(15, rng, 0.05, true_pts)
+    views[100] = (ids[:7], views[0][1][:7], None)                      # partial board
+    bad = views[3][1].copy()
+    bad[5] += 6.0                                                    # one grossly wrong corner
+    views[101] = (ids, bad, None)
+    res = calibrate_intrinsics(views, (1024, 768), ids, pts)
+    assert "partial board" in res.rejected[100]
+    assert "outlier view" in res.rejected[101]
+    # within 4 of the reported standard deviations
+    Kc = res.camera.K
+    for name, est, true in (("fx", Kc[0, 0], K[0, 0]), ("fy", Kc[1, 1], K[1, 1]), ("cx", Kc[0, 2], K[0, 2]),
+                            ("cy", Kc[1, 2], K[1, 2])):
+        assert abs(est - true) < 4 * res.std[name], (name, est, true, res.std[name])
+        assert res.std[name] < 3.0
+    assert np.abs(res.camera.dist[:2] - DIST[:2]).max() < 0.01
+    assert res.rms_px < 0.1
+    assert set(res.std) >= {"fx", "fy", "cx", "cy", "k1"}
+    assert len(res.per_view_rms_px) == 15
+
+
+def test_calibrate_needs_enough_views():
+    ids, pts = board_corners(BoardSpec())
+    views = _views(3, np.random.default_rng(2), 0.05, pts)
+    with pytest.raises(InputError, match="at least 5"):
+        calibrate_intrinsics(views, (1024, 768), ids, pts)
