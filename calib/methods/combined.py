@@ -163,68 +163,102 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
     check_excitation(_jac(prob.residuals, x0), COMBINATION_NAMES)
 
     rod_cov = _rod_covariances(obs, data, prob)
-    shape = prob.noise_shape(rod_cov)
+    shape = prob.noise_shape(rod_cov)  # relative covariance of each rod's two entries, (m, 2, 2)
     if weighting == "gls":
         Wh = np.linalg.cholesky(np.linalg.inv(shape + 1e-30 * np.eye(2))).transpose(0, 2, 1)  # L^T L = C^-1
     elif weighting == "frobenius":
         Wh = np.broadcast_to(np.eye(2), (m, 2, 2))
     else:
         raise ValueError(f"weighting must be 'frobenius' or 'gls', got {weighting!r}")
+    R0 = bf.camera_from_base_R
+    cov_w = bf.cov_rotvec
+    joint = bool(np.all(np.linalg.eigvalsh(cov_w) > 1e-20))
+    Lw = np.linalg.cholesky(np.linalg.inv(cov_w)).T if joint else None
 
-    def wres(x: np.ndarray) -> np.ndarray:
-        r = prob.residuals(x).reshape(m, 2)
+    def eq8(xi: np.ndarray, w: np.ndarray) -> np.ndarray:
+        R = rotvec_to_matrix(w) @ R0
+        r = (prob.model(xi) - prob.measured(R)).reshape(m, 2)
         return np.einsum("mij,mj->mi", Wh, r).ravel()
 
-    sol = least_squares(wres, x0, method="lm", xtol=1e-14, ftol=1e-14, gtol=1e-14, max_nfev=500)
+    # 1. the paper's fit: eq. 8 with the base frame of step 1
+    sol = least_squares(lambda xi: eq8(xi, np.zeros(3)), x0, method="lm", xtol=1e-14, ftol=1e-14, gtol=1e-14,
+                        max_nfev=500)
     if sol.status <= 0 or not np.all(np.isfinite(sol.x)):
         raise ConvergenceError(f"combined fit did not converge: {sol.message}")
-    x = sol.x
-    J = _jac(prob.residuals, x)  # unweighted, (2m, 4)
-    check_excitation(J, COMBINATION_NAMES)
-    r = prob.residuals(x).reshape(m, 2)
-
-    # direction-noise scale from the whitened residuals
+    x = np.concatenate([sol.x, np.zeros(3)])
+    nfev = sol.nfev
+    # direction-noise scale from the whitened residuals: sigma^2 = chi2 / dof
     Cinv = np.linalg.inv(shape + 1e-300 * np.eye(2))
-    chi2 = float(np.einsum("mi,mij,mj->", r, Cinv, r))
-    dof = max(2 * m - 4, 1)
-    s2 = chi2 / dof
-    # per-rod residual covariance, plus encoder noise (correlates the rods of a pose)
-    n = 2 * m
-    Sigma = np.zeros((n, n))
-    for a in range(m):
-        Sigma[2 * a:2 * a + 2, 2 * a:2 * a + 2] = s2 * shape[a]
-    if encoder_std_m > 0:
-        Dq = np.zeros((n, 4 * len(data)))
-        for j in range(4):
-            dq = np.zeros_like(prob.q)
-            dq[:, j] = 1e-7
-            d = ((prob.model(x, prob.q + dq) - prob.model(x, prob.q - dq)) / 2e-7).reshape(m, 2)
-            Dq[np.arange(n), 4 * np.repeat(prob.k, 2) + j] = d.ravel()
-        Sigma += encoder_std_m ** 2 * Dq @ Dq.T
-    Wfull = np.zeros((n, n))
-    for a in range(m):
-        Wfull[2 * a:2 * a + 2, 2 * a:2 * a + 2] = Wh[a].T @ Wh[a]
-    H = J.T @ Wfull @ J
-    A = np.linalg.solve(H, J.T @ Wfull)  # d x / d r (up to sign)
-    cov_pose = A @ Sigma @ A.T
 
-    def r_of_w(w: np.ndarray) -> np.ndarray:
-        R = rotvec_to_matrix(w) @ bf.camera_from_base_R
-        return (prob.model(x) - prob.measured(R)).ravel()
+    def noise_scale(xx: np.ndarray) -> float:
+        r = (prob.model(xx[:4]) - prob.measured(rotvec_to_matrix(xx[4:]) @ R0)).reshape(m, 2)
+        return float(np.einsum("mi,mij,mj->", r, Cinv, r)) / max(2 * m - 4, 1)
 
-    Jw = _jac(r_of_w, np.zeros(3), 1e-7)
-    Bw = A @ Jw
-    cov_base = Bw @ bf.cov_rotvec @ Bw.T
-    cov = cov_pose + cov_base
+    s2 = noise_scale(x)
+    # 2. the base frame's rotation is common to every pose: its error does not average out and it
+    #    inflates the residuals. Re-estimate it jointly with the parameters, with the step-1 estimate
+    #    and its covariance as a prior, so that the fit and its covariance account for it.
+    if joint and s2 > 0:
+        for _ in range(3):
+            sc = 1.0 / np.sqrt(s2)
+
+            def full(xx: np.ndarray, sc: float = sc) -> np.ndarray:
+                return np.concatenate([sc * eq8(xx[:4], xx[4:]), Lw @ xx[4:]])
+
+            sol = least_squares(full, x, method="lm", xtol=1e-14, ftol=1e-14, gtol=1e-14, max_nfev=500)
+            if sol.status <= 0 or not np.all(np.isfinite(sol.x)):
+                raise ConvergenceError(f"combined joint fit did not converge: {sol.message}")
+            x = sol.x
+            nfev += sol.nfev
+            s2_new = noise_scale(x)
+            if abs(s2_new - s2) <= 1e-3 * s2:
+                s2 = s2_new
+                break
+            s2 = s2_new
+    xi, w = x[:4], x[4:]
+    J4 = _jac(lambda v: eq8(v, w), xi)  # whitened-by-weights, (2m, 4)
+    check_excitation(J4, COMBINATION_NAMES)
+    r = (prob.model(xi) - prob.measured(rotvec_to_matrix(w) @ R0)).reshape(m, 2)
+    # covariance: sandwich with the rods' noise model (scaled by the measured sigma^2) and the prior
+    Wfull = np.zeros((2 * m, 2 * m))
+    Sig = np.zeros((2 * m, 2 * m))
+    for a in range(m):
+        Wa = Wh[a].T @ Wh[a]
+        Wfull[2 * a:2 * a + 2, 2 * a:2 * a + 2] = Wa
+        Sig[2 * a:2 * a + 2, 2 * a:2 * a + 2] = s2 * shape[a]
+    Jr = _jac(lambda v: (prob.model(v[:4]) - prob.measured(rotvec_to_matrix(v[4:]) @ R0)).ravel(), x)  # (2m, 7)
+    cov_pose_fixed = _sandwich(Jr[:, :4], Wfull, Sig)
+    if joint and s2 > 0:
+        # joint normal equations: data term (weights W / s2 ... via sandwich) and the prior on w
+        Pw = np.zeros((7, 7))
+        Pw[4:, 4:] = np.linalg.inv(cov_w)
+        Wd = Wfull / s2  # the joint fit weighs the data by 1/s2 against the prior
+        H = Jr.T @ Wd @ Jr + Pw
+        Hinv = np.linalg.inv(H)
+        B = Hinv @ Jr.T @ Wd
+        cov_full = B @ Sig @ B.T + Hinv @ Pw @ Hinv
+        cov = cov_full[:4, :4]
+    else:
+        cov = cov_pose_fixed.copy()
+    cov_base = cov - cov_pose_fixed
+    base_std = {k: float(np.sqrt(max(cov_base[i, i], 0.0))) for i, k in enumerate(COMBINATION_NAMES)}
     return MethodResult(
-        method="combined", combinations=combos_dict(x), combinations_std=std_dict(cov), covariance=cov,
+        method="combined", combinations=combos_dict(xi), combinations_std=std_dict(cov), covariance=cov,
         residual_rms=float(np.sqrt(np.mean(r ** 2))), residual_unit="Jacobian entry (dimensionless)",
-        n_observations=2 * m, n_poses=prob.n_poses, iterations=int(sol.nfev), converged=True,
+        n_observations=2 * m, n_poses=prob.n_poses, iterations=int(nfev), converged=True,
         message=str(sol.message),
-        std_breakdown={"legs_and_encoders": std_dict(cov_pose), "base_frame": std_dict(cov_base)},
+        std_breakdown={"legs_and_encoders": std_dict(cov_pose_fixed), "base_frame": base_std},
         diagnostics={"weighting": weighting, "direction_noise_scale": float(np.sqrt(s2)),
-                     "rods_dropped_near_vertical": prob.dropped, "base_frame": bf.summary()},
+                     "rods_dropped_near_vertical": prob.dropped, "base_frame": bf.summary(),
+                     "base_frame_refinement_deg": float(np.rad2deg(np.linalg.norm(w))),
+                     "joint_base_frame": joint},
         residuals=r)
+
+
+def _sandwich(J: np.ndarray, W: np.ndarray, Sig: np.ndarray) -> np.ndarray:
+    H = J.T @ W @ J
+    A = np.linalg.solve(H, J.T @ W)
+    return A @ Sig @ A.T
 
 
 def _rod_covariances(obs: Observations, data: PhaseArrays, prob: _Problem) -> np.ndarray | None:

@@ -73,32 +73,29 @@ def test_reported_std_matches_monte_carlo_spread(monte_carlo, method):
     assert np.all((ratio > 1 / 1.3) & (ratio < 1.3)), f"{method}: empirical/reported = {np.round(ratio, 3)}"
 
 
-def test_combined_std_includes_the_base_frame(noisy_obs):
+def test_combined_refines_the_base_frame_jointly(noisy_obs):
     r = calibrate_combined(noisy_obs[0])
-    bf = r.std_breakdown["base_frame"]
-    legs = r.std_breakdown["legs_and_encoders"]
+    assert r.diagnostics["joint_base_frame"]
+    assert set(r.std_breakdown) == {"legs_and_encoders", "base_frame"}
     for k in COMBINATION_NAMES:
-        assert bf[k] > 0
-        assert r.combinations_std[k] == pytest.approx(np.hypot(bf[k], legs[k]), rel=1e-6)
+        assert r.combinations_std[k] >= r.std_breakdown["legs_and_encoders"][k] * (1 - 1e-6)
 
 
-def test_base_frame_error_dominates_when_boards_are_noisy(paper_plan):
-    """With noisy board poses and precise rods, a residual-only std would be far too small."""
+def test_std_stays_honest_when_board_poses_are_noisy(paper_plan):
+    """Noisy board poses (a poor base frame) and precise rods: the base frame's error does not average
+    over the poses; the reported std must still match the Monte-Carlo spread."""
     noise = NoiseSpec(rod_direction_rad=5e-5, rod_point_m=5e-5, board_rotation_rad=2e-3,
                       board_translation_m=(5e-4, 5e-4, 1.5e-3), encoder_m=1e-6)
     twin = GeometricTwin(noise=noise)
     t4 = twin.geometry.truth.combinations()
     truth = np.array([t4[k] for k in COMBINATION_NAMES])
-    errs, stds, resid_only = [], [], []
+    errs, stds = [], []
     for seed in range(40):
         r = calibrate_combined(Observations.from_dict(twin.observations(plan=paper_plan, seed=seed)))
         errs.append(r.vector() - truth)
         stds.append(r.std_vector())
-        resid_only.append([r.std_breakdown["legs_and_encoders"][k] for k in COMBINATION_NAMES])
-    emp = np.std(errs, axis=0, ddof=1)
-    rep = np.sqrt(np.mean(np.square(stds), axis=0))
-    assert np.all(np.sqrt(np.mean(np.square(resid_only), axis=0)) < emp / 3)  # residuals alone: far too small
-    ratio = emp / rep
+        assert np.all(np.abs(errs[-1]) < 4 * stds[-1])
+    ratio = np.std(errs, axis=0, ddof=1) / np.sqrt(np.mean(np.square(stds), axis=0))
     assert np.all((ratio > 1 / 1.3) & (ratio < 1.3)), np.round(ratio, 3)
 
 
