@@ -49,6 +49,7 @@ class ExtractOptions:
     min_corners: int = 6
     rods: RodSettings | None = None
     min_placement_frames: int = 3
+    max_placement_rms_m: float = 0.02
 
 
 @dataclass
@@ -139,7 +140,8 @@ def _task_rods(args: tuple[int, dict, dict | None]) -> tuple[int, Any]:
         return i, {"reason": f"no rod prediction: {exc}"}
     occ = []
     if board is not None:
-        oc = _W["det"].outline_camera(np.asarray(board["R"]), np.asarray(board["t"]))
+        # the board (with its margin) plus ~15 mm so that its edges stay out of the profiles
+        oc = _W["det"].outline_camera(np.asarray(board["R"]), np.asarray(board["t"]), margin_m=0.028)
         if np.all(oc[:, 2] > 0):
             occ.append(cam.to_ideal_pixels(oc[:, :2] / oc[:, 2:3]))
     ms = measure_rods(img.astype(np.float32), cam, preds, doc.legs.rod_radius_m, _W["rs"], occ, seed=i,
@@ -194,24 +196,26 @@ def fit_placement(q: np.ndarray, board_R: np.ndarray, board_t: np.ndarray, nomin
     RB = rot_z(th)
     tB = np.column_stack([poses[:, 0], nominal.H + poses[:, 1], poses[:, 2]])
     # z_B in the camera: axis of the relative rotation between the most rotated pair
+    # (the pair whose rotation is closest to 90 deg: its rotation vector is unambiguous)
     k0 = int(np.argmin(th))
-    k1 = int(np.argmax(th))
-    if th[k1] - th[k0] > 0.05:
+    k1 = int(np.argmin(np.abs(np.abs(th - th[k0]) - np.pi / 2)))
+    if abs(th[k1] - th[k0]) > 0.05:
         rv = matrix_to_rotvec(board_R[k1] @ board_R[k0].T)
-        z = rv / np.linalg.norm(rv)
+        z = rv / np.linalg.norm(rv) * np.sign(th[k1] - th[k0])
     else:
         z = None
     best = None
     candidates = []
     if z is not None:
-        a = np.cross(z, [1.0, 0, 0])
-        if np.linalg.norm(a) < 0.1:
-            a = np.cross(z, [0, 1.0, 0])
-        a /= np.linalg.norm(a)
-        b = np.cross(z, a)
-        for phi in np.deg2rad(np.arange(0, 360, 5)):
-            x = np.cos(phi) * a + np.sin(phi) * b
-            candidates.append(np.column_stack([x, np.cross(z, x), z]))
+        for zz in (z, -z):
+            a = np.cross(zz, [1.0, 0, 0])
+            if np.linalg.norm(a) < 0.1:
+                a = np.cross(zz, [0, 1.0, 0])
+            a /= np.linalg.norm(a)
+            b = np.cross(zz, a)
+            for phi in np.deg2rad(np.arange(0, 360, 5)):
+                x = np.cos(phi) * a + np.sin(phi) * b
+                candidates.append(np.column_stack([x, np.cross(zz, x), zz]))
     else:
         candidates = [rotvec_to_matrix(v) for v in np.random.default_rng(0).normal(0, 2.0, (200, 3))]
     n = len(q)
@@ -330,6 +334,11 @@ def extract_dataset(dataset: str | Path | Dataset, *, camera: CameraModel | None
         try:
             height = float((doc.board.model_extra or {}).get("height_above_ee_m", 0.0))
             C, E, placement_rms = fit_placement(qk, bR, bt, doc.nominal.parameters(), height)
+            if placement_rms > opts.max_placement_rms_m:
+                placement_reason = (f"coarse camera placement inconsistent: board residual RMS "
+                                    f"{placement_rms * 1e3:.1f} mm > {opts.max_placement_rms_m * 1e3:.0f} mm "
+                                    "(too few board poses, or too little motion among them)")
+                C = E = None
         except (I4calError, np.linalg.LinAlgError, ValueError) as exc:
             placement_reason = f"coarse camera placement failed: {exc}"
     else:

@@ -414,6 +414,7 @@ def measure_rod(gray: np.ndarray, camera: CameraModel, pred: RodPrediction, radi
     pw = np.abs(o2 - o1)
     pc = 0.5 * (o1 + o2)
     left_is_1 = (o1 < o2)  # the limb with the smaller offset
+    pol: list[int] = []
     e1: list[tuple[int, float]] = []
     e2: list[tuple[int, float]] = []
     order = np.argsort(pi, kind="stable")
@@ -438,13 +439,22 @@ def measure_rod(gray: np.ndarray, camera: CameraModel, pred: RodPrediction, radi
         score = (np.minimum(np.abs(gg[ii]), np.abs(gg[jj]))
                  / (1.0 + (np.abs(cen - pc[k]) / 4.0) ** 2 + (np.abs(xo[jj] - xo[ii]) - pw[k]) ** 2 / 4.0))
         m = int(np.argmax(score))
+        lo_i = ii[m] if xo[ii[m]] < xo[jj[m]] else jj[m]
         x_lo, x_hi = sorted((xo[ii[m]], xo[jj[m]]))
+        pol.append(1 if gg[lo_i] > 0 else -1)
         if left_is_1[k]:
             e1.append((k, x_lo))
             e2.append((k, x_hi))
         else:
             e1.append((k, x_hi))
             e2.append((k, x_lo))
+    # one polarity per rod (brighter or darker than its surroundings): the pairs of the other
+    # polarity are gaps between two bright things (e.g. the two rods of a leg), dropped
+    if pol:
+        polarity = np.asarray(pol)
+        keep = polarity == (1 if polarity.sum() >= 0 else -1)
+        e1 = [e for e, kp in zip(e1, keep, strict=True) if kp]
+        e2 = [e for e, kp in zip(e2, keep, strict=True) if kp]
     lines = []
     rms = []
     npts = []

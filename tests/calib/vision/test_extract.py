@@ -1,0 +1,147 @@
+"""Extraction from a small rendered dataset: found/missing per frame with reasons, damaged frames."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+
+import numpy as np
+import pytest
+
+from calib.camera import CameraModel
+from calib.dataset import CameraSpec, Dataset, DatasetWriter, LegsSpec
+from calib.observations import Observations
+from calib.plan import Plan, make_plan
+from calib.vision.extract import extract_dataset
+from drivers.sim.render import BenchRenderer, RenderSettings
+from drivers.sim.twin import BenchGeometry, GeometricTwin
+
+
+@pytest.fixture(scope="module")
+def small_dataset(tmp_path_factory):
+    """5 rotation + 3 translation + 4 poses frames, true intrinsics known; frames 8-11 damaged on purpose."""
+    g = BenchGeometry()
+    rs = RenderSettings()
+    r = BenchRenderer(g, rs, seed=4)
+    steps = (make_plan("rotation-sweep", g.nominal, n_base=5).steps
+             + make_plan("equal-translation", g.nominal, n_base=3).steps
+             + make_plan("pose-set", g.nominal, n_fit=4).steps)
+    tp = GeometricTwin(g).true_poses(Plan(name="small", steps=steps))
+    root = tmp_path_factory.mktemp("ds")
+    cam = r.camera
+    board = rs.board.model_copy(update={"height_above_ee_m": 0.035})
+    w = DatasetWriter(root, camera=CameraSpec(width=1024, height=768, K=cam.K.tolist(), dist=cam.dist.tolist()),
+                      board=board, legs=LegsSpec(rod_radius_m=g.rod_radius_m, rod_spacing_m=g.rod_spacing_m),
+                      nominal=g.nominal.as_dict())
+    rng = np.random.default_rng(0)
+    for k, (ph, q, pose) in enumerate(tp):
+        img = r.render(q, pose, rng, board_visible=(k != 10))    # frame 10: board hidden
+        if k == 11:                                              # frame 11: leg 1's rods painted out
+            top, bot = g.rod_segments_base(q, pose)
+            img = img.copy()
+            for rod in range(2):
+                seg = np.linspace(0.2, 1.0, 40)[:, None] * (bot[0, rod] - top[0, rod]) + top[0, rod]
+                px = np.clip(cam.project(g.camera_from_base.apply(seg)), -4000, 4000).astype(int)
+                for a, b in zip(px[:-1], px[1:], strict=True):
+                    cv2.line(img, (int(a[0]), int(a[1])), (int(b[0]), int(b[1])), 50, thickness=40)
+        w.add_frame(ph, q, img, truth={"q": q.tolist(), "pose": pose.tolist()})
+    w.close()
+    (root / "frames/000008.png").unlink()                                         # missing file
+    data = (root / "frames/000009.png").read_bytes()
+    (root / "frames/000009.png").write_bytes(data[: len(data) // 3])               # truncated
+    return root, g, cam
+
+
+def test_extract_reports_per_frame_reasons_and_processes_the_rest(small_dataset):
+    root, g, cam = small_dataset
+    calls = []
+    res = extract_dataset(root, workers=1, progress=lambda d, t: calls.append((d, t)))
+    assert calls and calls[-1][0] == calls[-1][1]
+    obs = Observations.from_dict(res.observations)       # valid observations v1
+    fr = res.observations["frames"]
+    assert len(fr) == 12
+    assert res.summary["placement"]["ok"]
+    assert "corrupt or truncated" in fr[9]["missing"]["image"]
+    assert "missing" in fr[8]["missing"]["image"]
+    assert fr[9]["board"] is None and fr[8]["board"] is None
+    assert "board not found" in fr[10]["missing"]["board"]
+    # the board-less frame still gets its rods (predicted from the model)
+    assert sum(r is not None for leg in fr[10]["legs"].values() for r in leg) >= 6
+    assert fr[11]["legs"]["1"] == [None, None]
+    assert "leg1.rod0" in fr[11]["missing"] and "leg1.rod1" in fr[11]["missing"]
+    # every other frame: board and most rods
+    for i in range(8):
+        assert fr[i]["board"] is not None
+        assert sum(r is not None for leg in fr[i]["legs"].values() for r in leg) >= 6
+    s = res.summary
+    assert s["phases"]["rotation"]["frames"] == 5 and s["phases"]["poses"]["frames"] == 4
+    assert s["phases"]["poses"]["missing"]["image: image file missing"] == 1
+    assert s["phases"]["poses"]["missing"]["board: board not found"] == 1
+    assert "9" in s["frames"] and "8" in s["frames"] and "10" in s["frames"]
+    assert obs.arrays("rotation").has_board.sum() == 5
+
+
+def test_rod_outside_the_image_has_a_reason(small_dataset):
+    from calib.vision.rods import RodPrediction, measure_rod
+
+    _, _, cam = small_dataset
+    img = np.full((768, 1024), 50, np.float32)
+    pred = RodPrediction(0, 0, np.array([3.0, 0.0, 1.0]), np.array([3.0, 0.5, 1.2]))
+    m = measure_rod(img, cam, pred, 0.008)
+    assert not m.ok and "outside the image" in m.reason
+    pred = RodPrediction(0, 0, np.array([0.0, 0.0, 0.7]), np.array([0.1, 0.1, 0.7]))
+    m = measure_rod(img, cam, pred, 0.008)
+    assert not m.ok and "too few limb edge points" in m.reason
+
+
+def test_cli_extract(small_dataset, tmp_path):
+    from service.cli import main
+
+    root, _, _ = small_dataset
+    out = tmp_path / "obs.json"
+    assert main(["extract", str(root), "-o", str(out), "--workers", "1", "--quiet"]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["format"] == "i4cal.observations/1" and len(doc["frames"]) == 12
+    assert main(["extract", str(tmp_path / "nowhere"), "-o", str(out), "--quiet"]) == 2
+
+
+def test_dataset_writer_is_crash_safe(tmp_path):
+    """A run cut off leaves a valid dataset of the frames written so far; stray temporaries are harmless."""
+    g = BenchGeometry()
+    w = DatasetWriter(tmp_path, camera=CameraSpec(width=8, height=6), board=RenderSettings().board,
+                      legs=LegsSpec(rod_radius_m=0.008), nominal=g.nominal.as_dict())
+    img = np.zeros((6, 8), np.uint8)
+    w.add_frame("poses", [0.1, 0.2, 0.3, 0.4], img)
+    w.add_frame("poses", [0.1, 0.2, 0.3, 0.5], img)
+    # a crash while writing the third frame: its temporaries exist, dataset.json is the old one
+    (tmp_path / "frames/.000002.png.tmp").write_bytes(b"\x89PNG partial")
+    (tmp_path / ".dataset.json.tmp").write_text('{"format": "i4cal.dataset/1", "frames": [')
+    ds = Dataset.open(tmp_path)
+    assert len(ds.frames) == 2 and ds.load_image(1).shape == (6, 8)
+    # resuming appends after the last complete frame
+    w2 = DatasetWriter(tmp_path, camera=CameraSpec(width=8, height=6), board=RenderSettings().board,
+                       legs=LegsSpec(rod_radius_m=0.008), nominal=g.nominal.as_dict(), resume=True)
+    assert w2.add_frame("poses", [0, 0, 0, 0], img) == 2
+    assert len(Dataset.open(tmp_path).frames) == 3
+
+
+def test_dataset_validation_names_frame_and_field(tmp_path):
+    from calib.errors import InputError
+
+    g = BenchGeometry()
+    w = DatasetWriter(tmp_path, camera=CameraSpec(width=8, height=6), board=RenderSettings().board,
+                      legs=LegsSpec(rod_radius_m=0.008), nominal=g.nominal.as_dict())
+    w.add_frame("poses", [0.1, 0.2, 0.3, 0.4], None)
+    doc = json.loads((tmp_path / "dataset.json").read_text())
+    doc["frames"][0]["q"] = [1, 2]
+    (tmp_path / "dataset.json").write_text(json.dumps(doc))
+    with pytest.raises(InputError) as e:
+        Dataset.open(tmp_path)
+    assert e.value.frame == 0 and e.value.field == "q"
+
+
+def test_camera_model_from_dataset_spec_matches(small_dataset):
+    root, _, cam = small_dataset
+    d = Dataset.open(root).document.camera
+    assert np.allclose(CameraModel(np.asarray(d.K), np.asarray(d.dist), d.width, d.height).K, cam.K)
