@@ -14,9 +14,17 @@ def _mm(v: float | None, digits: int = 3) -> str:
     return "-" if v is None else f"{v * 1e3:.{digits}f}"
 
 
+def make_console(stderr: bool = False) -> Console:
+    """A console that does not squeeze tables when the output is a file or a pipe."""
+    con = Console(stderr=stderr)
+    if not con.is_terminal:
+        con = Console(stderr=stderr, width=150)
+    return con
+
+
 def print_result(doc: dict[str, Any], console: Console | None = None) -> None:
     """Print Table I (a priori vs each method, with std), Table II (gaps) and Table III (straightness)."""
-    con = console or Console()
+    con = console or make_console()
     t1 = Table(title="Table I - identifiable parameters (mm; ± one standard deviation)", title_justify="left")
     t1.add_column("parameter set")
     for k in COMBINATION_NAMES:

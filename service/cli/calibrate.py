@@ -28,7 +28,7 @@ def load_observations(path: str, console=None) -> Observations:
 def handler(args: argparse.Namespace) -> int:
     from rich.console import Console
 
-    from ._output import print_result
+    from ._output import make_console, print_result
 
     methods = list(METHOD_NAMES) if args.method == "all" else [args.method]
     err = Console(stderr=True)
@@ -42,7 +42,7 @@ def handler(args: argparse.Namespace) -> int:
         json.dump(doc, sys.stdout)
         sys.stdout.write("\n")
     else:
-        print_result(doc, Console())
+        print_result(doc, make_console())
     failed = [m for m, e in doc["methods"].items() if not e.get("converged")]
     return 1 if failed and len(failed) == len(methods) else 0
 

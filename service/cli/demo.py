@@ -13,9 +13,9 @@ def handler(args: argparse.Namespace) -> int:
     from calib.pipeline import calibrate, to_jsonable
     from drivers.sim.twin import GeometricTwin
 
-    from ._output import print_result
+    from ._output import make_console, print_result
 
-    con = Console()
+    con = make_console()
     t0 = time.perf_counter()
     con.rule("[bold]i4cal demo[/bold] - simulated I4 bench")
     twin = GeometricTwin()
