@@ -140,14 +140,14 @@ class RodSettings:
     """Tuning of the rod extraction (pixels are ideal, undistorted pixels)."""
 
     band_px: float = 18.0          #: search half-band around each predicted limb line
-    step_px: float = 3.0           #: spacing of the profiles along the axis
+    step_px: float = 4.0           #: spacing of the profiles along the axis
     sigma_px: float = 1.0          #: derivative-of-Gaussian scale on the profiles
     sample_px: float = 0.5         #: sample spacing along each profile
     min_contrast: float = 6.0      #: minimum |gradient| (grey levels per px) of an edge
     width_tolerance: float = 0.35  #: accepted relative deviation of the limb spacing from the prediction
     ransac_iters: int = 150
     inlier_px: float = 1.0         #: RANSAC inlier threshold
-    min_points: int = 20           #: per limb, after outlier rejection
+    min_points: int = 15           #: per limb, after outlier rejection
     min_length_px: float = 40.0    #: visible length needed
     max_rms_px: float = 0.8        #: residual RMS above this: rod rejected
     min_plane_angle_rad: float = 2e-3
@@ -273,6 +273,15 @@ def _edges_1d(g: Array, min_contrast: float, side: int = 3) -> tuple[Array, Arra
     return pi, si + off - corr, gp
 
 
+_TRIU: dict[int, tuple[NDArray[np.int_], NDArray[np.int_]]] = {}
+
+
+def _triu(n: int) -> tuple[NDArray[np.int_], NDArray[np.int_]]:
+    if n not in _TRIU:
+        _TRIU[n] = np.triu_indices(n, 1)
+    return _TRIU[n]
+
+
 def _gauss_deriv_kernel(sigma: float) -> Array:
     r = max(2, int(np.ceil(3 * sigma)))
     x = np.arange(-r, r + 1, dtype=np.float64)
@@ -374,12 +383,12 @@ def measure_rod(gray: np.ndarray, camera: CameraModel, pred: RodPrediction, radi
     # keep centres inside the image (after distortion) and outside occluders
     xn = camera.from_ideal_pixels(centres)
     dpx = camera.distort_normalized(xn)
-    # guard against the polynomial's fold-back far outside the field of view
-    back = camera.from_ideal_pixels(camera.to_ideal_pixels(camera.undistort_points(np.clip(
-        dpx, [0, 0], [camera.width - 1, camera.height - 1]))))
+    # guard against the distortion polynomial's fold-back far outside the field of view: the
+    # samples must lie inside the ideal-pixel bounding box of the image
     inside = ((dpx[:, 0] >= s.border_px) & (dpx[:, 0] <= camera.width - 1 - s.border_px)
               & (dpx[:, 1] >= s.border_px) & (dpx[:, 1] <= camera.height - 1 - s.border_px)
-              & (np.linalg.norm(back - xn, axis=1) < 1e-3))
+              & (centres[:, 0] >= box[0]) & (centres[:, 0] <= box[2])
+              & (centres[:, 1] >= box[1]) & (centres[:, 1] <= box[3]))
     half = 0.5 * float(np.max(np.abs(np.concatenate([off1 - off2]))))
     if occluders:
         for poly in occluders:
@@ -429,7 +438,7 @@ def measure_rod(gray: np.ndarray, camera: CameraModel, pred: RodPrediction, radi
         xo, gg = xo[near], gg[near]
         if xo.size < 2:
             continue
-        ii, jj = np.triu_indices(xo.size, 1)
+        ii, jj = _triu(xo.size)
         wdt = np.abs(xo[jj] - xo[ii])
         ok = (np.abs(wdt - pw[k]) < s.width_tolerance * pw[k]) & (gg[ii] * gg[jj] < 0)
         if not ok.any():
