@@ -145,3 +145,12 @@ def test_camera_model_from_dataset_spec_matches(small_dataset):
     root, _, cam = small_dataset
     d = Dataset.open(root).document.camera
     assert np.allclose(CameraModel(np.asarray(d.K), np.asarray(d.dist), d.width, d.height).K, cam.K)
+
+
+def test_shipped_dataset_schema_matches_the_models():
+    from pathlib import Path
+
+    from calib.dataset import dataset_json_schema
+
+    shipped = Path(__file__).resolve().parents[3] / "calib/schemas/dataset-v1.schema.json"
+    assert json.loads(shipped.read_text()) == dataset_json_schema()

@@ -1,0 +1,55 @@
+"""Rendered paper-sized dataset -> extract -> the three methods (slow: ~1 min on 2 cores).
+
+Bounds are derived from the measured noise, not tuned: the intrinsics within 4 of the standard
+deviations calibrateCameraRO reports; the base frame within 4 of its own reported angular standard
+deviations (plus 2 mrad for the nominal-model and board-error bias); the combined method's four
+combinations within 4 of the standard deviations it reports from its residuals.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from calib.baseframe import base_frame_from_observations
+from calib.observations import Observations
+from calib.parameters import COMBINATION_NAMES
+from calib.pipeline import calibrate
+from calib.transforms import Rigid, matrix_to_rotvec
+from calib.vision.extract import extract_dataset
+from drivers.sim.imaging import simulate_dataset
+
+
+@pytest.mark.slow
+def test_rendered_dataset_calibrates(tmp_path):
+    ds = simulate_dataset(tmp_path / "ds", seed=0)
+    truth = json.loads((ds / "dataset.json").read_text())["truth"]
+    res = extract_dataset(ds, workers=2)
+    # intrinsics from the camera phase
+    K = np.asarray(truth["K"])
+    it = res.intrinsics
+    assert it is not None and it.rms_px < 0.3
+    for name, est, true in (("fx", it.camera.K[0, 0], K[0, 0]), ("fy", it.camera.K[1, 1], K[1, 1]),
+                            ("cx", it.camera.K[0, 2], K[0, 2]), ("cy", it.camera.K[1, 2], K[1, 2])):
+        assert abs(est - true) < 4 * it.std[name] + 0.5, (name, est, true, it.std[name])
+    obs = Observations.from_dict(res.observations)
+    counts = res.summary["phases"]
+    assert all(c["board"] == c["frames"] for c in counts.values())
+    assert sum(c["rods"] for c in counts.values()) > 0.9 * sum(c["rods_total"] for c in counts.values())
+    # base frame
+    bf = base_frame_from_observations(obs)
+    Rt = Rigid.from_dict(truth["camera_from_base"]).R
+    ang = np.linalg.norm(matrix_to_rotvec(bf.camera_from_base_R @ Rt.T))
+    assert ang < 4 * max(bf.z_std_rad, bf.x_std_rad) + 2e-3, ang
+    # the three methods run; the combined one recovers the four combinations
+    doc = calibrate(obs)
+    for m in ("combined", "end-effector", "legs"):
+        assert "parameters" in doc["methods"][m], doc["methods"][m]
+    comb = doc["methods"]["combined"]
+    for name in COMBINATION_NAMES:
+        err = comb["parameters"][name] - truth["combinations"][name]
+        std = comb["std"][name]
+        assert abs(err) < 4 * std, (name, err, std)
+        assert std < 0.02
