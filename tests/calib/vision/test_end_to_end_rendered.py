@@ -42,6 +42,7 @@ def test_rendered_dataset_calibrates(tmp_path):
     bf = base_frame_from_observations(obs)
     Rt = Rigid.from_dict(truth["camera_from_base"]).R
     ang = np.linalg.norm(matrix_to_rotvec(bf.camera_from_base_R @ Rt.T))
+    print(f"base frame: {ang * 1e3:.2f} mrad from the truth")
     assert ang < 4 * max(bf.z_std_rad, bf.x_std_rad) + 2e-3, ang
     # the three methods run; the combined one recovers the four combinations
     doc = calibrate(obs)
@@ -51,5 +52,6 @@ def test_rendered_dataset_calibrates(tmp_path):
     for name in COMBINATION_NAMES:
         err = comb["parameters"][name] - truth["combinations"][name]
         std = comb["std"][name]
+        print(f"combined {name}: error {err * 1e3:+.2f} mm, reported std {std * 1e3:.2f} mm")
         assert abs(err) < 4 * std, (name, err, std)
-        assert std < 0.02
+        assert std < 0.04  # sanity: the rod-direction noise (~5 mrad) gives std of 5-25 mm
