@@ -192,7 +192,7 @@ def _fit_line_tls(pts: Array, w: Array | None = None) -> Array:
     c = (w[:, None] * pts).sum(0) / w.sum()
     d = pts - c
     C = (w[:, None, None] * d[:, :, None] * d[:, None, :]).sum(0)
-    evals, evecs = np.linalg.eigh(C)
+    _, evecs = np.linalg.eigh(C)
     n = evecs[:, 0]
     return np.array([n[0], n[1], -n @ c])
 
@@ -318,7 +318,6 @@ def measure_rod(gray: np.ndarray, camera: CameraModel, pred: RodPrediction, radi
     rng = rng or np.random.default_rng(0)
     out = RodMeasurement(pred.leg, pred.rod)
     K = camera.K
-    f = camera.focal_px
     top, bot = pred.top.copy(), pred.bottom.copy()
     # clip the segment to z >= near
     if top[2] < s.near_m and bot[2] < s.near_m:
@@ -417,7 +416,7 @@ def measure_rod(gray: np.ndarray, camera: CameraModel, pred: RodPrediction, radi
     ker = _gauss_deriv_kernel(s.sigma_px / ds)
     g = cv2.filter2D(prof, cv2.CV_32F, ker[None, ::-1].astype(np.float32), borderType=cv2.BORDER_REPLICATE)
     g = g.astype(np.float64) / ds  # grey levels per pixel
-    pi, pos, sg = _edges_1d(g, s.min_contrast, max(2, int(round(3.0 / ds))))
+    pi, pos, sg = _edges_1d(g, s.min_contrast, max(2, round(3.0 / ds)))
     off_pos = lo + pos * ds
     # pair selection per profile
     pw = np.abs(o2 - o1)

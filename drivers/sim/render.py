@@ -126,10 +126,10 @@ class BenchRenderer:
         self.board_spec = spec
         board = make_board(spec)
         ppm = 3000.0  # texels per metre of the finest level
-        wpx = int(round(spec.squares_x * spec.square_length_m * ppm))
-        hpx = int(round(spec.squares_y * spec.square_length_m * ppm))
+        wpx = round(spec.squares_x * spec.square_length_m * ppm)
+        hpx = round(spec.squares_y * spec.square_length_m * ppm)
         pattern = board.generateImage((wpx, hpx), marginSize=0, borderBits=1).astype(np.float32)
-        mpx = int(round(s.board_margin_m * ppm))
+        mpx = round(s.board_margin_m * ppm)
         tex = np.full((hpx + 2 * mpx, wpx + 2 * mpx), 255.0, dtype=np.float32)
         tex[mpx:mpx + hpx, mpx:mpx + wpx] = pattern
         tex = 22.0 + tex * (215.0 / 255.0)

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 
 import cv2
-
 import numpy as np
 import pytest
 
@@ -43,7 +43,7 @@ def small_dataset(tmp_path_factory):
             for rod in range(2):
                 seg = np.linspace(0.2, 1.0, 40)[:, None] * (bot[0, rod] - top[0, rod]) + top[0, rod]
                 px = np.clip(cam.project(g.camera_from_base.apply(seg)), -4000, 4000).astype(int)
-                for a, b in zip(px[:-1], px[1:], strict=True):
+                for a, b in itertools.pairwise(px):
                     cv2.line(img, (int(a[0]), int(a[1])), (int(b[0]), int(b[1])), 50, thickness=40)
         w.add_frame(ph, q, img, truth={"q": q.tolist(), "pose": pose.tolist()})
     w.close()
@@ -54,7 +54,7 @@ def small_dataset(tmp_path_factory):
 
 
 def test_extract_reports_per_frame_reasons_and_processes_the_rest(small_dataset):
-    root, g, cam = small_dataset
+    root, _, _ = small_dataset
     calls = []
     res = extract_dataset(root, workers=1, progress=lambda d, t: calls.append((d, t)))
     assert calls and calls[-1][0] == calls[-1][1]

@@ -40,7 +40,10 @@ def test_zero_levels_give_a_clean_image(frames):
 
 
 def test_rods_drawn_where_the_truth_projects(frames):
-    """The rod's axis projects onto bright rod pixels; a point 1.6 radii off the axis does not (the two rods of a leg can be close in the image)."""
+    """The rod's axis projects onto bright rod pixels; a point 1.6 radii off the axis does not.
+
+    (Not 3 radii: the two rods of a leg can be close in the image.)
+    """
     g, tp = frames
     _, q, pose = tp[1]
     r = BenchRenderer(g, RenderSettings.clean(), seed=0)
