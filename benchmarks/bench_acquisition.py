@@ -83,7 +83,8 @@ async def main(n_poses: int, real: bool) -> None:
             rec.append(t_end - t_moved)
         print(f"{n_poses} poses in {total:.2f} s ({'real renderer' if real else 'constant 1024x768 image'})")
         print(f"overhead per pose beyond the simulated motion: median {statistics.median(over) * 1e3:.1f} ms, "
-              f"p90 {np.percentile(over, 90) * 1e3:.1f} ms (target <= 30 ms); of which the grab (the PNG write overlaps the next move) "
+              f"p90 {np.percentile(over, 90) * 1e3:.1f} ms (target <= 30 ms); "
+              "of which the grab (the PNG write overlaps the next move) "
               f"median {statistics.median(rec) * 1e3:.1f} ms")
         await act.close()
 

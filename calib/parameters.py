@@ -70,7 +70,7 @@ class I4Parameters:
         """All fields, including ``T_per_rad``."""
         return asdict(self)
 
-    def vector(self) -> "list[float]":
+    def vector(self) -> list[float]:
         """The seven parameters in :data:`PARAMETER_NAMES` order."""
         return [getattr(self, n) for n in PARAMETER_NAMES]
 
@@ -78,12 +78,12 @@ class I4Parameters:
         """The four identifiable combinations (see :func:`identifiable_parameters`)."""
         return identifiable_parameters(self)
 
-    def replace(self, **changes: Any) -> "I4Parameters":
+    def replace(self, **changes: Any) -> I4Parameters:
         """A copy with some fields changed."""
         return replace(self, **changes)
 
     @classmethod
-    def from_vector(cls, values: "Any", T_per_rad: float = DEFAULT_T_PER_RAD) -> "I4Parameters":
+    def from_vector(cls, values: Any, T_per_rad: float = DEFAULT_T_PER_RAD) -> I4Parameters:
         """Build from seven values in :data:`PARAMETER_NAMES` order."""
         vals = [float(v) for v in values]
         if len(vals) != 7:
@@ -91,7 +91,7 @@ class I4Parameters:
         return cls(*vals, T_per_rad=T_per_rad)
 
     @classmethod
-    def from_mapping(cls, data: "dict[str, Any]") -> "I4Parameters":
+    def from_mapping(cls, data: dict[str, Any]) -> I4Parameters:
         """Build from a mapping with the seven names (and optionally ``T_per_rad``)."""
         missing = [n for n in PARAMETER_NAMES if n not in data]
         if missing:
@@ -102,7 +102,7 @@ class I4Parameters:
         return cls(**kw)
 
     @classmethod
-    def from_combinations(cls, combos: "dict[str, float]", reference: "I4Parameters") -> "I4Parameters":
+    def from_combinations(cls, combos: dict[str, float], reference: I4Parameters) -> I4Parameters:
         """Complete four identified combinations into seven parameters.
 
         The parts no Jacobian- or IKM-based method sees (H, S, q03: constant offsets of X

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections.abc import Callable, Iterable
 from typing import Any
@@ -99,10 +100,8 @@ def calibrate(obs: Observations, methods: Iterable[str] = METHOD_NAMES, *, stric
                 if "seven" in entry and "parameters" in truth:
                     te[name]["seven"] = {k: entry["seven"][k] - truth["parameters"][k] for k in PARAMETER_NAMES}
         out["truth_errors"] = te
-        try:
+        with contextlib.suppress(I4calError, KeyError, ValueError):
             out["validation"]["truth"] = validate(obs, I4Parameters.from_mapping(truth["parameters"]))
-        except (I4calError, KeyError, ValueError):
-            pass
     return out
 
 

@@ -158,7 +158,7 @@ def line_poses(line: LineSpec) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 def _good(params: I4Parameters, poses: np.ndarray, ws: Workspace, limits: SoftLimits) -> np.ndarray:
     c = params.H - params.D
-    X, Y, Z, T = poses.T
+    _X, Y, Z, _T = poses.T
     f1sq = params.L ** 2 - (Y + c) ** 2 - Z ** 2
     f3sq = params.L ** 2 - (Y - c) ** 2 - Z ** 2
     ok = (f1sq > ws.min_leg_x_m ** 2) & (f3sq > ws.min_leg_x_m ** 2)

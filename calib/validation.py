@@ -52,7 +52,7 @@ def straightness(obs: Observations, params: I4Parameters) -> dict:
     """RMS distance (mm) of the DKM positions of the ``line`` phase to their least-squares line."""
     d = obs.arrays("line")
     if len(d) < 3:
-        return {"rms_mm": None, "n": int(len(d)), "length_mm": None}
+        return {"rms_mm": None, "n": len(d), "length_mm": None}
     P = dkm(params, d.q)[:, :3]
     c = P.mean(axis=0)
     _, _, Vt = np.linalg.svd(P - c)
@@ -60,7 +60,7 @@ def straightness(obs: Observations, params: I4Parameters) -> dict:
     rel = P - c
     dist = np.linalg.norm(rel - np.outer(rel @ axis, axis), axis=1)
     s = rel @ axis
-    return {"rms_mm": float(np.sqrt(np.mean(dist ** 2)) * 1e3), "n": int(len(d)),
+    return {"rms_mm": float(np.sqrt(np.mean(dist ** 2)) * 1e3), "n": len(d),
             "length_mm": float((s.max() - s.min()) * 1e3)}
 
 

@@ -110,13 +110,13 @@ class RegisterMap(BaseModel):
         return v
 
     def m_to_counts(self, m: float) -> int:
-        return int(round(m * self.counts_per_m))
+        return round(m * self.counts_per_m)
 
     def counts_to_m(self, c: int) -> float:
         return c / self.counts_per_m
 
     def speed_to_counts(self, v_m_s: float) -> int:
-        return int(round(v_m_s * self.speed_counts_per_m))
+        return round(v_m_s * self.speed_counts_per_m)
 
     def counts_to_speed(self, c: int) -> float:
         return c / self.speed_counts_per_m

@@ -44,7 +44,6 @@ def test_production_drivers_import_sim_only_lazily():
 def test_import_linter_contracts(tmp_path):
     import shutil
     import subprocess
-
     import sys
 
     exe = shutil.which("lint-imports", path=str(Path(sys.executable).parent)) or shutil.which("lint-imports")

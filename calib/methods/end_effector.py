@@ -155,7 +155,6 @@ def calibrate_end_effector(obs: Observations, *, phases: tuple[str, ...] = ("pos
     x = x0
     nfev = 0
     Sigma_b = np.zeros((6, 6))
-    weighted = False
     for npass in range(max(iterations, 1)):
         if npass > 0:
             r = model.residuals(x)
@@ -170,7 +169,6 @@ def calibrate_end_effector(obs: Observations, *, phases: tuple[str, ...] = ("pos
             Cr[:, :4, :4] += encoder_std_m ** 2 * np.eye(4)
             Cr += 1e-30 * np.eye(6)
             Wh = np.linalg.cholesky(np.linalg.inv(Cr)).transpose(0, 2, 1)
-            weighted = True
         sol = _solve(wres, x)
         if sol.status <= 0 or not np.all(np.isfinite(sol.x)):
             raise ConvergenceError(f"end-effector fit did not converge: {sol.message}")

@@ -187,7 +187,7 @@ def calibrate_legs(obs: Observations, *, fit_phases: tuple[str, ...] = ("poses",
         d = obs.arrays(f"lock-{i + 1}")
         if len(d) == 0:
             raise IdentifiabilityError(f"the legs method needs the lock-{i + 1} phase (actuator {i + 1} locked)",
-                                       parameter="A%d" % (i + 1))
+                                       parameter=f"A{i + 1}")
         spread = float(np.ptp(d.q[:, i]))
         if spread > 1e-4:
             raise IdentifiabilityError(
@@ -215,7 +215,7 @@ def calibrate_legs(obs: Observations, *, fit_phases: tuple[str, ...] = ("poses",
     U_filled = np.where(has_leg[..., None], U, 0.0)
     x2 = None
     seven = pipe.run(P, U_filled)
-    x2 = seven[1:4].tolist() + [seven[0]]
+    x2 = [*seven[1:4].tolist(), seven[0]]
     x2 = np.array(x2)
 
     # ---- uncertainty: linear propagation with numerical derivatives

@@ -11,6 +11,7 @@ Incomplete buffers are requeued and fetched again; a buffer is always given back
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import glob
 import os
 import time
@@ -133,10 +134,8 @@ class GenICamCamera:
             return False
         try:
             if hasattr(nm, "TriggerSelector"):
-                try:
+                with contextlib.suppress(Exception):
                     nm.TriggerSelector.value = "FrameStart"
-                except Exception:
-                    pass
             nm.TriggerMode.value = "On"
             nm.TriggerSource.value = "Software"
             return True
@@ -188,10 +187,8 @@ class GenICamCamera:
                 with ia.fetch(timeout=left) as buf:
                     self.stats["fetched"] += 1
                     incomplete = False
-                    try:
+                    with contextlib.suppress(Exception):
                         incomplete = bool(buf._buffer.is_incomplete)
-                    except Exception:
-                        pass
                     if incomplete or not buf.payload.components:
                         self.stats["incomplete"] += 1
                         continue  # leaving the block requeues the buffer

@@ -50,7 +50,8 @@ def print_result(doc: dict[str, Any], console: Console | None = None) -> None:
         for k in PARAMETER_NAMES:
             t7.add_column(k, justify="right")
         t7.add_row("a priori", *[_mm(doc["nominal"][k], 2) for k in PARAMETER_NAMES])
-        t7.add_row("legs", *[f"{legs['seven'][k] * 1e3:.2f} ± {legs['seven_std'][k] * 1e3:.2f}" for k in PARAMETER_NAMES])
+        t7.add_row("legs", *[f"{legs['seven'][k] * 1e3:.2f} ± {legs['seven_std'][k] * 1e3:.2f}"
+                             for k in PARAMETER_NAMES])
         con.print(t7)
     t2 = Table(title="Table II - displacement gaps, vision vs model (mm)  /  Table III - straightness (mm)",
                title_justify="left")

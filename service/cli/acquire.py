@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import signal
 from pathlib import Path
 
@@ -71,10 +72,8 @@ def _run(args: argparse.Namespace) -> int:
             for dev in (camera, actuators, operator):
                 close = getattr(dev, "close", None)
                 if close is not None:
-                    try:
+                    with contextlib.suppress(Exception):
                         await close()
-                    except Exception:
-                        pass
         console.print(f"{res.frames}/{res.total} frames in {res.path} ({res.elapsed_s:.1f} s)")
         return 0
 

@@ -17,7 +17,7 @@ def load_observations(path: str, console=None) -> Observations:
     p = Path(path)
     if p.is_dir() or p.name == "dataset.json":
         try:
-            from calib.vision.extract import extract_dataset  # noqa: PLC0415
+            from calib.vision.extract import extract_dataset
         except ImportError as exc:  # pragma: no cover
             raise InputError(f"cannot extract a dataset here: {exc}", file=str(p)) from None
         doc, _summary = extract_dataset(p)
@@ -33,7 +33,7 @@ def handler(args: argparse.Namespace) -> int:
     methods = list(METHOD_NAMES) if args.method == "all" else [args.method]
     err = Console(stderr=True)
     obs = load_observations(args.observations)
-    with err.status("calibrating...", spinner="dots") if not args.json else _null():
+    with err.status("calibrating...", spinner="dots") if not args.json else _Null():
         doc = calibrate(obs, methods, strict=args.method != "all")
     doc = to_jsonable(doc)
     if args.output:
@@ -47,7 +47,7 @@ def handler(args: argparse.Namespace) -> int:
     return 1 if failed and len(failed) == len(methods) else 0
 
 
-class _null:
+class _Null:
     def __enter__(self):
         return self
 

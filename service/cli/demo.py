@@ -7,7 +7,6 @@ import time
 
 
 def handler(args: argparse.Namespace) -> int:
-    from rich.console import Console
 
     from calib.observations import Observations
     from calib.pipeline import calibrate, to_jsonable

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 
 
 def register(subparsers) -> None:
@@ -23,8 +24,6 @@ def _run(args: argparse.Namespace) -> int:
     def out(line: str) -> None:
         print(line, flush=True)
 
-    try:
+    with contextlib.suppress(KeyboardInterrupt):
         asyncio.run(serve_forever(args.port, seed=args.seed, print_fn=out))
-    except KeyboardInterrupt:
-        pass
     return 0

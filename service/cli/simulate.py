@@ -12,7 +12,8 @@ def noise_from_args(args: argparse.Namespace):
 
     base = NoiseSpec().scaled(args.noise)
     kw = {
-        "rod_direction_rad": base.rod_direction_rad if args.rod_direction_mrad is None else args.rod_direction_mrad * 1e-3,
+        "rod_direction_rad": base.rod_direction_rad if args.rod_direction_mrad is None
+        else args.rod_direction_mrad * 1e-3,
         "rod_point_m": base.rod_point_m if args.rod_point_mm is None else args.rod_point_mm * 1e-3,
         "board_rotation_rad": base.board_rotation_rad if args.board_rotation_mrad is None
         else args.board_rotation_mrad * 1e-3,
@@ -32,7 +33,7 @@ def handler(args: argparse.Namespace) -> int:
     con = Console(stderr=True)
     out = Path(args.out)
     if args.images:
-        from drivers.sim.imaging import simulate_dataset  # noqa: PLC0415
+        from drivers.sim.imaging import simulate_dataset
 
         path = simulate_dataset(out, seed=args.seed)
         con.print(f"wrote dataset [bold]{path}[/bold]")

@@ -50,7 +50,8 @@ def test_noise_options(tmp_path):
     assert main(["simulate", "--out", str(p), "--noise", "0"]) == 0
     doc = json.loads(p.read_text())
     assert doc["noise"]["rod_direction_rad"] == 0
-    assert main(["simulate", "--out", str(p), "--rod-direction-mrad", "2", "--board-translation-mm", "1", "1", "2"]) == 0
+    args = ["simulate", "--out", str(p), "--rod-direction-mrad", "2", "--board-translation-mm", "1", "1", "2"]
+    assert main(args) == 0
     doc = json.loads(p.read_text())
     assert doc["noise"]["rod_direction_rad"] == pytest.approx(2e-3)
     assert doc["noise"]["board_translation_m"] == pytest.approx([1e-3, 1e-3, 2e-3])
