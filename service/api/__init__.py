@@ -1,0 +1,13 @@
+"""HTTP API, versioned under ``/api/v1``: one router per resource."""
+
+from fastapi import APIRouter
+
+from . import calibration, datasets, devices, runs
+
+api_router = APIRouter(prefix="/api/v1")
+api_router.include_router(runs.router)
+api_router.include_router(datasets.router)
+api_router.include_router(calibration.router)
+api_router.include_router(devices.router)
+
+__all__ = ["api_router"]

@@ -1,0 +1,226 @@
+"""Datasets: upload a recorded dataset (zip or tar archive) to calibrate it offline."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import shutil
+import tarfile
+import tempfile
+import zipfile
+from datetime import datetime
+from pathlib import Path, PurePosixPath
+from typing import Annotated
+
+from fastapi import APIRouter, HTTPException, Query, Request, status
+from pydantic import BaseModel
+from sqlalchemy import select
+
+from calib.errors import I4calError
+
+from ..auth import Reader, Writer
+from ..db import DatasetRecord
+from ..worker import new_id, now
+from .deps import DatasetId, Manager, SettingsDep, not_found
+
+router = APIRouter(prefix="/datasets", tags=["datasets"])
+
+ARCHIVE_TYPES = ("application/zip", "application/x-zip-compressed", "application/x-tar", "application/gzip",
+                 "application/x-gzip", "application/octet-stream")
+
+
+class DatasetOut(BaseModel):
+    id: str
+    name: str
+    created_at: datetime
+    frames: int
+    size_bytes: int
+
+
+def dataset_out(d: DatasetRecord) -> DatasetOut:
+    return DatasetOut(id=d.id, name=d.name, created_at=d.created_at, frames=d.frames, size_bytes=d.size_bytes)
+
+
+class ArchiveError(ValueError):
+    pass
+
+
+def _safe_member(name: str) -> PurePosixPath | None:
+    """The member's relative path, or None for a directory entry; raises on anything that could escape."""
+    if "\\" in name or "\x00" in name or len(name) > 1024:
+        raise ArchiveError(f"archive member {name[:80]!r}: bad characters in the name")
+    p = PurePosixPath(name)
+    if p.is_absolute() or name.startswith("/") or (p.parts and ":" in p.parts[0]):
+        raise ArchiveError(f"archive member {name[:80]!r} has an absolute path")
+    parts = [x for x in p.parts if x not in ("", ".")]
+    if any(x == ".." for x in parts):
+        raise ArchiveError(f"archive member {name[:80]!r} escapes the archive ('..')")
+    if not parts or name.endswith("/"):
+        return None
+    return PurePosixPath(*parts)
+
+
+def _copy_limited(src, dst_path: Path, budget: list[int]) -> None:
+    with open(dst_path, "wb") as dst:
+        while chunk := src.read(1 << 20):
+            budget[0] -= len(chunk)
+            if budget[0] < 0:
+                raise ArchiveError("archive unpacks to more than the configured limit")
+            dst.write(chunk)
+
+
+def unpack_archive(archive: Path, dest: Path, *, max_bytes: int, max_members: int) -> None:
+    """Unpack a zip or tar(.gz) into ``dest``: regular files and directories only, no member outside ``dest``,
+    at most ``max_members`` members and ``max_bytes`` unpacked (counted while writing)."""
+    dest.mkdir(parents=True, exist_ok=False)
+    root = dest.resolve()
+    budget = [max_bytes]
+
+    def target(rel: PurePosixPath) -> Path:
+        t = (root / rel).resolve()
+        if root not in t.parents:
+            raise ArchiveError(f"archive member {str(rel)[:80]!r} escapes the data directory")
+        t.parent.mkdir(parents=True, exist_ok=True)
+        return t
+
+    if zipfile.is_zipfile(archive):
+        with zipfile.ZipFile(archive) as zf:
+            infos = zf.infolist()
+            if len(infos) > max_members:
+                raise ArchiveError(f"archive has {len(infos)} members, more than {max_members}")
+            for info in infos:
+                mode = (info.external_attr >> 16) & 0o170000
+                if mode and mode not in (0o100000, 0o040000):
+                    raise ArchiveError(f"archive member {info.filename[:80]!r} is not a regular file")
+                rel = _safe_member(info.filename)
+                if rel is None or info.is_dir():
+                    continue
+                if info.file_size > budget[0]:
+                    raise ArchiveError("archive unpacks to more than the configured limit")
+                with zf.open(info) as src:
+                    _copy_limited(src, target(rel), budget)
+        return
+    try:
+        tf = tarfile.open(archive, mode="r:*")
+    except (tarfile.TarError, OSError, EOFError) as exc:
+        raise ArchiveError(f"not a zip or tar archive ({exc})") from None
+    with tf:
+        n = 0
+        try:
+            for m in tf:
+                n += 1
+                if n > max_members:
+                    raise ArchiveError(f"archive has more than {max_members} members")
+                rel = _safe_member(m.name)
+                if m.isdir() or rel is None:
+                    continue
+                if not m.isfile():
+                    raise ArchiveError(f"archive member {m.name[:80]!r} is not a regular file (link or device)")
+                if m.size > budget[0]:
+                    raise ArchiveError("archive unpacks to more than the configured limit")
+                src = tf.extractfile(m)
+                if src is None:
+                    continue
+                with src:
+                    _copy_limited(src, target(rel), budget)
+        except (tarfile.TarError, EOFError, OSError) as exc:
+            raise ArchiveError(f"broken archive ({exc})") from None
+
+
+def _find_root(dest: Path) -> Path:
+    if (dest / "dataset.json").is_file():
+        return dest
+    subs = [p for p in dest.iterdir() if p.is_dir()]
+    if len(subs) == 1 and (subs[0] / "dataset.json").is_file():
+        return subs[0]
+    raise ArchiveError("no dataset.json at the archive's top level (or in its single top directory)")
+
+
+def _ingest(archive: Path, dest: Path, max_bytes: int, max_members: int) -> tuple[str, int, int]:
+    from calib.dataset import Dataset
+
+    unpack_archive(archive, dest, max_bytes=max_bytes, max_members=max_members)
+    root = _find_root(dest)
+    try:
+        ds = Dataset.open(root)
+    except I4calError as exc:
+        raise ArchiveError(f"not a valid dataset v1: {exc}") from None
+    for i in range(len(ds.frames)):
+        p = ds.image_path(i)
+        if p is not None and root.resolve() not in p.resolve().parents:
+            raise ArchiveError(f"frame {i}: image path escapes the dataset")
+    size = sum(f.stat().st_size for f in dest.rglob("*") if f.is_file())
+    return str(root.relative_to(dest.parent.parent)), len(ds.frames), size
+
+
+@router.post("", status_code=status.HTTP_201_CREATED, response_model=DatasetOut,
+             openapi_extra={"requestBody": {"required": True, "description": "a zip or tar(.gz) archive of a "
+                                            "dataset v1 directory (dataset.json + frames)",
+                                            "content": {"application/zip": {"schema": {"type": "string",
+                                                                                       "format": "binary"}},
+                                                        "application/gzip": {"schema": {"type": "string",
+                                                                                        "format": "binary"}}}}},
+             responses={401: {"description": "no or wrong token"}, 413: {"description": "archive too large"},
+                        415: {"description": "not an archive type"},
+                        422: {"description": "not a safe archive of a valid dataset"}})
+async def upload_dataset(request: Request, manager: Manager, settings: SettingsDep, _: Writer,
+                         name: Annotated[str, Query(max_length=255, pattern=r"^[\w .,()+-]*$")] = "") -> DatasetOut:
+    """Upload a recorded dataset as an archive (request body); calibrate it with ``POST /api/v1/runs
+    {"dataset": id}``."""
+    ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    if ctype not in ARCHIVE_TYPES:
+        raise HTTPException(status.HTTP_415_UNSUPPORTED_MEDIA_TYPE,
+                            detail=f"send the archive as one of {', '.join(ARCHIVE_TYPES[:4])}")
+    limit = settings.max_upload_bytes
+    clen = request.headers.get("content-length")
+    if clen is not None and clen.isdigit() and int(clen) > limit:
+        raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE if hasattr(status, "HTTP_413_CONTENT_TOO_LARGE")
+                            else 413, detail=f"archive larger than {limit} bytes")
+    tmpdir = manager.data_dir / "tmp"
+    tmpdir.mkdir(parents=True, exist_ok=True)
+    fd, tmpname = tempfile.mkstemp(dir=tmpdir, suffix=".upload")
+    tmp = Path(tmpname)
+    did = new_id()
+    dest = manager.data_dir / "datasets" / did
+    try:
+        got = 0
+        with os.fdopen(fd, "wb") as f:
+            async for chunk in request.stream():
+                got += len(chunk)
+                if got > limit:
+                    raise HTTPException(413, detail=f"archive larger than {limit} bytes")
+                await asyncio.to_thread(f.write, chunk) if len(chunk) > (1 << 20) else f.write(chunk)
+        if got == 0:
+            raise HTTPException(422, detail=[{"loc": ["body"], "msg": "empty body", "type": "value_error"}])
+        try:
+            rel, frames, size = await asyncio.to_thread(_ingest, tmp, dest, settings.max_unpacked_bytes,
+                                                         settings.max_archive_members)
+        except ArchiveError as exc:
+            shutil.rmtree(dest, ignore_errors=True)
+            raise HTTPException(422, detail=[{"loc": ["body"], "msg": str(exc), "type": "value_error"}]) from None
+    except BaseException:
+        shutil.rmtree(dest, ignore_errors=True)
+        raise
+    finally:
+        tmp.unlink(missing_ok=True)
+    rec = DatasetRecord(id=did, name=name, path=rel, frames=frames, size_bytes=size, created_at=now())
+    with manager.db.session() as s:
+        s.add(rec)
+    return dataset_out(rec)
+
+
+@router.get("", response_model=list[DatasetOut], responses={401: {"description": "reads closed, no token"}})
+async def list_datasets(manager: Manager, _: Reader, limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+                        offset: Annotated[int, Query(ge=0, le=1_000_000)] = 0) -> list[DatasetOut]:
+    with manager.db.session() as s:
+        rows = s.scalars(select(DatasetRecord).order_by(DatasetRecord.created_at.desc()).limit(limit).offset(offset))
+        return [dataset_out(d) for d in rows]
+
+
+@router.get("/{dataset_id}", response_model=DatasetOut, responses={404: {"description": "no such dataset"}})
+async def read_dataset(dataset_id: DatasetId, manager: Manager, _: Reader) -> DatasetOut:
+    with manager.db.session() as s:
+        d = s.get(DatasetRecord, dataset_id)
+        if d is None:
+            raise not_found("dataset")
+        return dataset_out(d)

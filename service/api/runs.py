@@ -1,0 +1,415 @@
+"""Runs: start (on the bench, or offline from an uploaded dataset), watch, control, results, data."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import tempfile
+import zipfile
+from datetime import datetime
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, Header, Query, Request, status
+from fastapi import Path as PathParam
+from fastapi.responses import FileResponse, Response, StreamingResponse
+from pydantic import BaseModel, ConfigDict, Field
+from starlette.background import BackgroundTask
+
+from calib.errors import InputError
+
+from ..auth import Reader, Writer
+from ..worker import STATES, RunConflict, RunManager
+from .calibration import CalibrationOut, calibration_out
+from .deps import ID_PATTERN, Manager, RunId, conflict, get_run, not_found, unprocessable
+
+router = APIRouter(prefix="/runs", tags=["runs"])
+
+MethodName = Literal["combined", "end-effector", "legs"]
+PlanName = Literal["full", "rotation-sweep", "equal-translation", "pose-set", "lock-actuator", "line", "validation"]
+
+
+class RunCreate(BaseModel):
+    """Start a run: a plan on the bench (named or inline), or an uploaded dataset calibrated offline."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"plan": "full", "methods": ["combined", "end-effector", "legs"], "note": "weekly check"},
+        {"dataset": "0123456789abcdef0123456789abcdef", "methods": ["combined"]}]})
+    plan: PlanName | dict[str, Any] | None = Field(
+        None, description="a plan name, or an inline plan (i4cal.plan/1); default 'full' unless a dataset is given")
+    methods: list[MethodName] = Field(["combined", "end-effector", "legs"], max_length=3,
+                                      description="methods to identify with; [] records the dataset only")
+    bench: str | None = Field(None, max_length=64, description="bench name (default: this service's bench)")
+    note: str = Field("", max_length=2000)
+    dataset: str | None = Field(None, pattern=ID_PATTERN, description="calibrate this uploaded dataset offline")
+
+
+class Progress(BaseModel):
+    done: int
+    total: int
+    phase: str
+    paused: bool = False
+    pose: list[float] | None = Field(None, description="joint targets of the pose being executed, m")
+    last_frame: int | None = None
+
+
+class RunOut(BaseModel):
+    id: str
+    state: Literal[STATES]  # type: ignore[valid-type]
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+    bench: str | None
+    note: str
+    plan: str | None = Field(description="plan name")
+    methods: list[str]
+    dataset: str | None = Field(description="source dataset of an offline run")
+    progress: Progress
+    timings: dict[str, float]
+    error: str | None
+    has_result: bool
+
+
+def run_out(manager: RunManager, run) -> RunOut:
+    a = manager.active.get(run.id)
+    return RunOut(id=run.id, state=run.state, created_at=run.created_at, started_at=run.started_at,
+                  finished_at=run.finished_at, bench=run.bench, note=run.note or "", plan=run.plan_name,
+                  methods=list(run.methods or []), dataset=run.source_dataset,
+                  progress=Progress(done=run.done or 0, total=run.total or 0, phase=run.phase or "",
+                                    paused=bool(a and a.paused), pose=a.pose if a else None,
+                                    last_frame=a.last_frame if a else None),
+                  timings=run.timings or {}, error=run.error, has_result=run.result is not None)
+
+
+class ApplyBody(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    method: MethodName | None = Field(None, description="default: combined, else legs, else end-effector")
+
+
+ERRORS: dict[int | str, dict[str, Any]] = {401: {"description": "no or wrong bearer token"},
+                                           404: {"description": "no such run"}}
+
+
+def _resolve_plan(body: RunCreate, manager: RunManager):
+    from calib.plan import Plan, make_plan, validate_plan
+
+    bench = manager.bench
+    if bench is None:
+        raise unprocessable(InputError("this service has no bench configured; upload a dataset instead",
+                                       field="bench"))
+    nominal = bench.config.nominal_parameters()
+    spec = body.plan if body.plan is not None else "full"
+    try:
+        if isinstance(spec, str):
+            sz = manager.settings.plan_sizes
+            plan = make_plan(spec, nominal, seed=sz.seed, n_base=sz.n_base, n_fit=sz.n_fit, n_lock=sz.n_lock,
+                             n_validation=sz.n_validation, line_samples=sz.line_samples)
+        else:
+            plan = Plan.from_dict(spec)
+            if len(plan.steps) == 0:
+                raise InputError("a plan needs at least one step", field="steps")
+            if len(plan.steps) > 10_000:
+                raise InputError("at most 10000 steps", field="steps")
+        validate_plan(plan, nominal, bench.config.calib_limits())
+    except InputError as exc:
+        raise unprocessable(exc, ("body", "plan")) from None
+    return plan
+
+
+@router.post("", status_code=status.HTTP_202_ACCEPTED, response_model=RunOut,
+             responses={**ERRORS, 409: {"description": "another run holds the bench"},
+                        422: {"description": "invalid request: the field is named"}})
+async def create_run(body: RunCreate, manager: Manager, _: Writer) -> RunOut:
+    """Validate the request and the whole plan before anything moves, then start the run."""
+    if body.dataset is not None and body.plan is not None:
+        raise unprocessable(InputError("give a plan or a dataset, not both", field="plan"))
+    plan = None
+    plan_name = None
+    if body.dataset is None:
+        if manager.bench_holder is not None:
+            raise conflict(f"run {manager.bench_holder} holds the bench")
+        plan = _resolve_plan(body, manager)
+        plan_name = plan.name
+    try:
+        run = manager.create(plan=plan, plan_name=plan_name, methods=list(dict.fromkeys(body.methods)),
+                             note=body.note, bench=body.bench, dataset_id=body.dataset)
+    except RunConflict as exc:
+        raise conflict(str(exc)) from None
+    except InputError as exc:
+        raise unprocessable(exc) from None
+    return run_out(manager, manager.get(run.id))
+
+
+@router.get("", response_model=list[RunOut], responses={401: ERRORS[401]})
+async def list_runs(manager: Manager, _: Reader, limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+                    offset: Annotated[int, Query(ge=0, le=1_000_000)] = 0,
+                    state: Annotated[Literal[STATES] | None, Query()] = None) -> list[RunOut]:  # type: ignore[valid-type]
+    return [run_out(manager, r) for r in manager.list(limit, offset, state)]
+
+
+@router.get("/{run_id}", response_model=RunOut, responses=ERRORS)
+async def read_run(run_id: RunId, manager: Manager, _: Reader) -> RunOut:
+    return run_out(manager, get_run(manager, run_id))
+
+
+def _sse(ev: dict[str, Any]) -> str:
+    return f"id: {ev['seq']}\nevent: {ev['type']}\ndata: {json.dumps(ev)}\n\n"
+
+
+@router.get("/{run_id}/events", responses={**ERRORS, 200: {"content": {"text/event-stream": {}},
+                                                           "description": "Server-Sent Events"}})
+async def run_events(run_id: RunId, manager: Manager, _: Reader, request: Request,
+                     last_event_id: Annotated[str | None, Header(max_length=20)] = None,
+                     after: Annotated[int, Query(ge=0, le=2**31)] = 0,
+                     follow: bool = True) -> StreamingResponse:
+    """State changes, acquisition progress (pose i/N), extraction progress, fits: past events, then live ones
+    until the run ends. Resumes after ``Last-Event-ID`` (or ``after``)."""
+    get_run(manager, run_id)
+    start = after
+    if last_event_id and last_event_id.isdigit():
+        start = max(start, int(last_event_id))
+
+    async def gen():
+        q = manager.subscribe(run_id)
+        last = start
+        try:
+            for ev in manager.events(run_id, last):
+                last = ev["seq"]
+                yield _sse(ev)
+            if not follow or run_id not in manager.active:
+                return
+            while True:
+                try:
+                    ev = await asyncio.wait_for(q.get(), 15.0)
+                except TimeoutError:
+                    if await request.is_disconnected():
+                        return
+                    yield ": keep-alive\n\n"
+                    continue
+                if ev is None:
+                    return
+                if ev["seq"] <= last:
+                    continue
+                last = ev["seq"]
+                yield _sse(ev)
+        finally:
+            manager.unsubscribe(run_id, q)
+
+    return StreamingResponse(gen(), media_type="text/event-stream",
+                             headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
+
+
+def _control(manager: RunManager, run_id: str, what: str) -> RunOut:
+    get_run(manager, run_id)
+    try:
+        run = getattr(manager, what)(run_id)
+    except RunConflict as exc:
+        raise conflict(str(exc)) from None
+    return run_out(manager, run)
+
+
+@router.post("/{run_id}/abort", response_model=RunOut, status_code=status.HTTP_202_ACCEPTED, responses=ERRORS)
+async def abort_run(run_id: RunId, manager: Manager, _: Writer) -> RunOut:
+    """Stop the actuators now and end the run (frames kept). Always accepted from a token holder."""
+    return _control(manager, run_id, "abort")
+
+
+@router.post("/{run_id}/pause", response_model=RunOut, responses={**ERRORS, 409: {"description": "not acquiring"}})
+async def pause_run(run_id: RunId, manager: Manager, _: Writer) -> RunOut:
+    """Stop after the current pose."""
+    return _control(manager, run_id, "pause")
+
+
+@router.post("/{run_id}/resume", response_model=RunOut, status_code=status.HTTP_202_ACCEPTED,
+             responses={**ERRORS, 409: {"description": "not paused or interrupted, or the bench is held"}})
+async def resume_run(run_id: RunId, manager: Manager, _: Writer) -> RunOut:
+    """Resume a paused acquisition, or an interrupted run from its partial dataset."""
+    return _control(manager, run_id, "resume")
+
+
+@router.get("/{run_id}/result", responses={**ERRORS, 409: {"description": "no result (yet)"}})
+async def run_result(run_id: RunId, manager: Manager, _: Reader) -> dict[str, Any]:
+    """Per method: parameters with standard deviations, residuals, identifiability, validation (the JSON of
+    ``i4cal calibrate --json``)."""
+    run = get_run(manager, run_id)
+    if run.result is None:
+        raise conflict(f"run is {run.state}; no result")
+    return run.result
+
+
+@router.post("/{run_id}/apply", response_model=CalibrationOut, status_code=status.HTTP_201_CREATED,
+             responses={**ERRORS, 409: {"description": "no converged result"}})
+async def apply_run(run_id: RunId, manager: Manager, _: Writer, body: ApplyBody | None = None) -> CalibrationOut:
+    """Make this run's result (one method) the bench's current calibration."""
+    get_run(manager, run_id)
+    try:
+        cal = manager.apply(run_id, body.method if body else None)
+    except RunConflict as exc:
+        raise conflict(str(exc)) from None
+    except InputError as exc:
+        raise unprocessable(exc) from None
+    return calibration_out(cal)
+
+
+# -- data ------------------------------------------------------------------------------------------
+def _dataset_dir(manager: RunManager, run) -> Path:
+    p = manager.dataset_path(run).resolve()
+    if manager.data_dir not in p.parents or not (p / "dataset.json").is_file():
+        raise not_found("dataset of this run")
+    return p
+
+
+def _zip_dir(src: Path) -> Path:
+    fd, name = tempfile.mkstemp(suffix=".zip")
+    import os
+
+    os.close(fd)
+    with zipfile.ZipFile(name, "w", zipfile.ZIP_STORED) as zf:
+        for f in sorted(src.rglob("*")):
+            if f.is_file() and not f.is_symlink() and not f.name.endswith(".tmp"):
+                zf.write(f, f"dataset/{f.relative_to(src).as_posix()}")
+    return Path(name)
+
+
+@router.get("/{run_id}/dataset", responses={**ERRORS, 200: {"content": {"application/zip": {}}}},
+            response_class=FileResponse)
+async def download_dataset(run_id: RunId, manager: Manager, _: Reader) -> FileResponse:
+    """The run's dataset (dataset v1: dataset.json + PNG frames) as a zip archive."""
+    src = _dataset_dir(manager, get_run(manager, run_id))
+    path = await asyncio.to_thread(_zip_dir, src)
+    return FileResponse(path, media_type="application/zip", filename=f"i4cal-{run_id}.zip",
+                        background=BackgroundTask(path.unlink, missing_ok=True))
+
+
+class FrameInfo(BaseModel):
+    index: int
+    phase: str
+    q: list[float]
+    board: bool | None = None
+    rods: int | None = None
+    missing: dict[str, str] | None = None
+
+
+def _observations(manager: RunManager, run) -> dict[int, dict[str, Any]]:
+    p = manager.run_dir(run) / "observations.json"
+    if not p.is_file():
+        return {}
+    doc = json.loads(p.read_text(encoding="utf-8"))
+    return {int(f["dataset_frame"]): f for f in doc.get("frames", []) if "dataset_frame" in f}
+
+
+@router.get("/{run_id}/frames", response_model=list[FrameInfo], responses=ERRORS)
+async def list_frames(run_id: RunId, manager: Manager, _: Reader) -> list[FrameInfo]:
+    """The run's frames, with what extraction found in each (once extracted)."""
+    run = get_run(manager, run_id)
+    src = _dataset_dir(manager, run)
+    doc = json.loads((src / "dataset.json").read_text(encoding="utf-8"))
+    obs = await asyncio.to_thread(_observations, manager, run)
+    out = []
+    for i, f in enumerate(doc.get("frames", [])):
+        o = obs.get(i)
+        rods = None
+        if o is not None:
+            rods = sum(1 for leg in (o.get("legs") or {}).values() for r in leg if r)
+        out.append(FrameInfo(index=i, phase=f.get("phase", ""), q=f.get("q", []),
+                             board=None if o is None else o.get("board") is not None, rods=rods,
+                             missing=None if o is None else o.get("missing")))
+    return out
+
+
+@router.get("/{run_id}/frames/{index}", responses={**ERRORS, 200: {"content": {"image/png": {}}}},
+            response_class=Response)
+async def frame_image(run_id: RunId, manager: Manager, _: Reader,
+                      index: Annotated[str, PathParam(pattern=r"^(latest|[0-9]{1,7})$")],
+                      annotate: bool = True,
+                      max_width: Annotated[int, Query(ge=64, le=8192)] = 1024) -> Response:
+    """A frame as PNG with the detected board outline and rod lines drawn (``latest``: the last frame)."""
+    run = get_run(manager, run_id)
+    src = _dataset_dir(manager, run)
+    png = await asyncio.to_thread(_render_frame, manager, run, src, index, annotate, max_width)
+    if png is None:
+        raise not_found("frame")
+    return Response(png, media_type="image/png", headers={"Cache-Control": "no-store"})
+
+
+def _render_frame(manager: RunManager, run, src: Path, index: str, annotate: bool, max_width: int) -> bytes | None:
+    import cv2
+    import numpy as np
+
+    doc = json.loads((src / "dataset.json").read_text(encoding="utf-8"))
+    frames = doc.get("frames", [])
+    if not frames:
+        return None
+    i = len(frames) - 1 if index == "latest" else int(index)
+    if i >= len(frames) or not frames[i].get("image"):
+        return None
+    path = (src / frames[i]["image"]).resolve()
+    if src not in path.parents or not path.is_file():
+        return None
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        return None
+    if img.dtype == np.uint16:
+        img = (img >> 8).astype(np.uint8)
+    if img.ndim == 2:
+        img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+    if annotate:
+        o = _observations(manager, run).get(i)
+        if o is not None:
+            _draw(img, o, doc)
+    h, w = img.shape[:2]
+    if w > max_width:
+        img = cv2.resize(img, (max_width, int(round(h * max_width / w))), interpolation=cv2.INTER_AREA)
+    ok, buf = cv2.imencode(".png", img)
+    return buf.tobytes() if ok else None
+
+
+def _draw(img, o: dict[str, Any], doc: dict[str, Any]) -> None:
+    import cv2
+    import numpy as np
+
+    from calib.camera import CameraModel
+
+    cam_d = doc.get("camera") or {}
+    if cam_d.get("K") is None:
+        return
+    try:
+        cam = CameraModel(np.asarray(cam_d["K"], float), np.asarray(cam_d.get("dist") or [], float),
+                          int(cam_d["width"]), int(cam_d["height"]))
+    except (KeyError, ValueError, TypeError):
+        return
+
+    def proj(pts):
+        pts = np.asarray(pts, float)
+        pts = pts[pts[:, 2] > 1e-3]
+        return cam.project(pts) if len(pts) else np.zeros((0, 2))
+
+    b = o.get("board")
+    if b:
+        board = doc.get("board") or {}
+        sx = board.get("squares_x", 6) * board.get("square_length_m", 0.04)
+        sy = board.get("squares_y", 4) * board.get("square_length_m", 0.04)
+        R, t = np.asarray(b["R"]), np.asarray(b["t"])
+        corners = np.array([[0, 0, 0], [sx, 0, 0], [sx, sy, 0], [0, sy, 0]]) @ R.T + t
+        uv = proj(corners)
+        if len(uv) == 4:
+            cv2.polylines(img, [np.round(uv).astype(np.int32)], True, (0, 200, 0), 3, cv2.LINE_AA)
+        axes = np.array([[0, 0, 0], [0.05, 0, 0], [0, 0.05, 0]]) @ R.T + t
+        a = proj(axes)
+        if len(a) == 3:
+            p0 = tuple(int(v) for v in np.round(a[0]))
+            cv2.line(img, p0, tuple(int(v) for v in np.round(a[1])), (0, 0, 255), 2, cv2.LINE_AA)
+            cv2.line(img, p0, tuple(int(v) for v in np.round(a[2])), (0, 255, 0), 2, cv2.LINE_AA)
+    for rods in (o.get("legs") or {}).values():
+        for r in rods or []:
+            if not r or r.get("point") is None:
+                continue
+            p, u = np.asarray(r["point"], float), np.asarray(r["u"], float)
+            seg = np.array([p + s * u for s in np.linspace(-0.6, 0.6, 25)])
+            uv = proj(seg)
+            inside = (uv[:, 0] > -2000) & (uv[:, 0] < 4000) & (uv[:, 1] > -2000) & (uv[:, 1] < 4000)
+            if inside.sum() >= 2:
+                cv2.polylines(img, [np.round(uv[inside]).astype(np.int32)], False, (255, 120, 0), 2, cv2.LINE_AA)
+    cv2.putText(img, o.get("phase", ""), (20, 40), cv2.FONT_HERSHEY_SIMPLEX, 1.0, (0, 220, 255), 2, cv2.LINE_AA)
+
+

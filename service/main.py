@@ -1,0 +1,72 @@
+"""Assemble the service: ``create_app(settings)``.
+
+The lifespan opens the database (Alembic migrations to head), marks runs left active by a crash as
+interrupted, creates the bench (a configured one, or an in-process simulated bench) and the run manager;
+the routers in :mod:`service.api` read them from ``app.state``.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from pathlib import Path
+
+from fastapi import FastAPI
+from fastapi.responses import FileResponse, RedirectResponse
+from fastapi.staticfiles import StaticFiles
+
+from . import __version__
+from .api import api_router
+from .api.health import router as health_router
+from .db import Database
+from .settings import Settings
+from .worker import Bench, RunManager
+
+STATIC = Path(__file__).resolve().parent / "static"
+log = logging.getLogger("i4cal.service")
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    settings = settings or Settings()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        settings.data_dir.mkdir(parents=True, exist_ok=True)
+        for sub in ("runs", "datasets", "tmp"):
+            (settings.data_dir / sub).mkdir(exist_ok=True)
+        db = Database(settings.db_url)
+        db.upgrade()
+        bench = await Bench.from_settings(settings)
+        manager = RunManager(settings, db, bench)
+        interrupted = manager.recover()
+        if interrupted:
+            log.warning("runs interrupted by the last stop (resume them): %s", ", ".join(interrupted))
+        app.state.settings, app.state.db, app.state.manager = settings, db, manager
+        try:
+            yield
+        finally:
+            await manager.shutdown()
+            if bench is not None:
+                await bench.close()
+            db.dispose()
+
+    app = FastAPI(title="i4cal service", version=__version__, lifespan=lifespan,
+                  description="Acquisition and kinematic calibration of I4 parallel robots: runs on the bench, "
+                              "live progress, results, the current calibration. State-changing requests need a "
+                              "bearer token (`i4cal token create`).",
+                  openapi_url="/api/v1/openapi.json", docs_url="/api/v1/docs", redoc_url=None)
+    app.state.settings = settings
+    app.include_router(api_router)
+    app.include_router(health_router)
+    app.mount("/static", StaticFiles(directory=STATIC), name="static")
+
+    @app.get("/", include_in_schema=False)
+    async def index() -> RedirectResponse:
+        return RedirectResponse("/dashboard")
+
+    @app.get("/dashboard", include_in_schema=False)
+    async def dashboard() -> FileResponse:
+        return FileResponse(STATIC / "index.html", media_type="text/html", headers={"Cache-Control": "no-cache"})
+
+    return app

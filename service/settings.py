@@ -1,0 +1,112 @@
+"""Service settings (pydantic-settings): a TOML file, then ``I4CAL_*`` environment variables on top.
+
+::
+
+    data_dir = "/var/lib/i4cal"          # database (SQLite, WAL), datasets, results
+    database_url = ""                    # default sqlite:///<data_dir>/i4cal.db; postgresql+psycopg://... accepted
+    host = "127.0.0.1"
+    port = 8000
+    bench_file = "deploy/bench-sim.toml" # the bench this service drives (or sim_bench = true)
+    sim_bench = false                    # start an in-process simulated bench on loopback
+    open_reads = true                    # GET endpoints without a token
+    token_hashes = []                    # sha256 hex of accepted bearer tokens (`i4cal token create` stores more)
+
+Environment: ``I4CAL_DATA_DIR``, ``I4CAL_PORT``, ``I4CAL_OPEN_READS``, ... (nested: ``I4CAL_PLAN_SIZES__N_FIT``).
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, Field
+from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
+
+from calib.errors import InputError
+
+
+class PlanSizes(BaseModel):
+    """Sizes of the named plans the service generates (``calib.plan.make_plan`` keywords)."""
+
+    n_base: int = Field(10, ge=3, le=500)
+    n_fit: int = Field(20, ge=3, le=2000)
+    n_lock: int = Field(5, ge=1, le=500)
+    n_validation: int = Field(10, ge=1, le=2000)
+    line_samples: int = Field(51, ge=3, le=5000)
+    seed: int = 0
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="I4CAL_", env_nested_delimiter="__", extra="forbid")
+
+    data_dir: Path = Field(Path("i4cal-data"), description="database, datasets and results live here")
+    database_url: str | None = Field(None, description="SQLAlchemy URL; default SQLite in data_dir")
+    host: str = "127.0.0.1"
+    port: int = Field(8000, ge=0, le=65535)
+    bench_name: str = "bench"
+    bench_file: Path | None = Field(None, description="bench TOML (drivers.config)")
+    bench: dict[str, Any] | None = Field(None, description="inline bench configuration (same fields as the TOML)")
+    sim_bench: bool = Field(False, description="start an in-process simulated bench and drive it")
+    sim_port: int = Field(0, ge=0, le=65535, description="simulated bench base port (0: free ports)")
+    sim_fast_renderer: bool = Field(False, description="simulated frames without the image-level twin")
+    camera_file: Path | None = Field(None, description="known intrinsics (i4cal.camera/1 JSON) for extraction")
+    open_reads: bool = Field(True, description="GET endpoints answer without a token")
+    token_hashes: list[str] = Field(default_factory=list, description="sha256 hex digests of accepted tokens")
+    max_upload_bytes: int = Field(512 * 1024 * 1024, gt=0)
+    max_unpacked_bytes: int = Field(4 * 1024 * 1024 * 1024, gt=0)
+    max_archive_members: int = Field(100_000, gt=0)
+    extraction_workers: int = Field(1, ge=1, le=64)
+    plan_sizes: PlanSizes = PlanSizes()
+    config_file: Path | None = Field(None, exclude=True)
+
+    @classmethod
+    def settings_customise_sources(cls, settings_cls, init_settings, env_settings, dotenv_settings,
+                                   file_secret_settings) -> tuple[PydanticBaseSettingsSource, ...]:
+        return (init_settings, env_settings, file_secret_settings)
+
+    @property
+    def db_url(self) -> str:
+        if self.database_url:
+            return self.database_url
+        return f"sqlite:///{(self.data_dir / 'i4cal.db').resolve()}"
+
+    @property
+    def datasets_dir(self) -> Path:
+        return self.data_dir / "datasets"
+
+    @property
+    def runs_dir(self) -> Path:
+        return self.data_dir / "runs"
+
+
+def load_settings(path: str | Path | None = None, **overrides: Any) -> Settings:
+    """Settings from a TOML file (optional), environment variables override the file, keywords override both."""
+    import os
+
+    data: dict[str, Any] = {}
+    if path is not None:
+        p = Path(path)
+        try:
+            data = tomllib.loads(p.read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise InputError("service configuration not found", file=str(p)) from None
+        except tomllib.TOMLDecodeError as exc:
+            raise InputError(f"not valid TOML: {exc}", file=str(p)) from None
+        base = p.parent
+        for key in ("data_dir", "bench_file", "camera_file"):
+            if isinstance(data.get(key), str) and not Path(data[key]).is_absolute():
+                data[key] = str(base / data[key])
+        data["config_file"] = str(p)
+    # environment wins over the file: drop file keys that the environment sets
+    env_keys = {k[len("I4CAL_"):].split("__")[0].lower() for k in os.environ if k.startswith("I4CAL_")}
+    data = {k: v for k, v in data.items() if k not in env_keys}
+    data.update(overrides)
+    from pydantic import ValidationError
+
+    try:
+        return Settings(**data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        raise InputError(err["msg"], file=str(path) if path else None,
+                         field=".".join(map(str, err["loc"]))) from None
