@@ -177,7 +177,7 @@ def ml_combined(obs, noise: MeasurementNoise, *, start=None) -> np.ndarray:
         e_tra = (tra.board_t - (t0[None, :] + s[:, None] * R[:, 0][None, :])) / sig_t
         return np.concatenate([e_rods.ravel(), e_rot.ravel(), e_tra.ravel()])
 
-    w0 = matrix_to_rotvec(start.diagnostics.get("_R_cb", R_cb0) @ R_cb0.T) if False else np.zeros(3)
+    w0 = np.zeros(3)  # the camera rotation starts at the base-frame estimate
     t00 = (tra.board_t - s[:, None] * R_cb0[:, 0][None, :]).mean(axis=0)
     x0 = np.concatenate([start.vector(), w0, np.zeros(3), th0, t00])
     sol = least_squares(resid, x0, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=2000)
