@@ -140,14 +140,14 @@ class RodSettings:
     """Tuning of the rod extraction (pixels are ideal, undistorted pixels)."""
 
     band_px: float = 18.0          #: search half-band around each predicted limb line
-    step_px: float = 4.0           #: spacing of the profiles along the axis
+    step_px: float = 3.0           #: spacing of the profiles along the axis
     sigma_px: float = 1.0          #: derivative-of-Gaussian scale on the profiles
     sample_px: float = 0.5         #: sample spacing along each profile
     min_contrast: float = 6.0      #: minimum |gradient| (grey levels per px) of an edge
     width_tolerance: float = 0.35  #: accepted relative deviation of the limb spacing from the prediction
     ransac_iters: int = 150
     inlier_px: float = 1.0         #: RANSAC inlier threshold
-    min_points: int = 15           #: per limb, after outlier rejection
+    min_points: int = 20           #: per limb, after outlier rejection
     min_length_px: float = 40.0    #: visible length needed
     max_rms_px: float = 0.8        #: residual RMS above this: rod rejected
     min_plane_angle_rad: float = 2e-3
