@@ -20,8 +20,7 @@ def load_observations(path: str, console=None) -> Observations:
             from calib.vision.extract import extract_dataset
         except ImportError as exc:  # pragma: no cover
             raise InputError(f"cannot extract a dataset here: {exc}", file=str(p)) from None
-        doc, _summary = extract_dataset(p)
-        return Observations.from_dict(doc, source=str(p))
+        return Observations.from_dict(extract_dataset(p).observations, source=str(p))
     return Observations.load(p)
 
 
