@@ -227,3 +227,150 @@ async def test_upload_dataset_and_offline_run(service):
     assert run["state"] == "failed" and run["error"] and run["dataset"] == ds["id"]
     assert run["timings"].get("acquisition_s") is None
     np.testing.assert_allclose(service.sim.mechanism.q_true(), q0, atol=1e-9)
+
+
+async def test_full_run_real_images_results_apply(tmp_path):
+    """A reduced 'full' plan on the image-level twin: acquisition, extraction, the three methods, apply."""
+    from drivers.sim.bench import SimBench
+
+    async with SimBench(port=0, seed=3) as sim:
+        cam = tmp_path / "camera.json"
+        sim.renderer.settings.camera().save(cam)
+        svc = await start_service(make_settings(tmp_path, sim, camera_file=cam, extraction_workers=2), sim)
+        c = svc.client
+        try:
+            r = await c.post(f"{API}/runs", json={"plan": "full", "methods": ["combined", "end-effector", "legs"]},
+                             headers=AUTH)
+            assert r.status_code == 202, r.text
+            rid = r.json()["id"]
+            run = await wait_state(c, rid, timeout=300)
+            assert run["state"] == "done", run
+            assert {"acquisition_s", "extraction_s", "calibration_s"} <= set(run["timings"])
+            res = (await c.get(f"{API}/runs/{rid}/result")).json()
+            assert res["format"] == "i4cal.result/1"
+            for m in ("combined", "end-effector", "legs"):
+                e = res["methods"][m]
+                assert e["converged"], (m, e.get("error"))
+                assert set(e["parameters"]) == {"L", "H-D", "S-q02/2", "S-(q04-q03)/2"}
+                assert all(v is not None and v > 0 for v in e["std"].values())
+            assert "seven" in res["methods"]["legs"]
+            truth = sim.geometry.truth.combinations()
+            for m in ("combined", "end-effector"):  # a sanity bound; accuracy is the calib tests' business
+                e = res["methods"][m]
+                assert all(abs(e["parameters"][k] - truth[k]) < 5 * e["std"][k] for k in truth), (m, e)
+            evs = await read_events(c, rid)
+            kinds = {e["type"] for e in evs}
+            assert {"state", "progress", "extraction", "fit"} <= kinds
+            stages = {e["data"].get("stage") for e in evs if e["type"] == "progress"}
+            assert stages == {"acquisition", "extraction"}
+            frames = (await c.get(f"{API}/runs/{rid}/frames")).json()
+            assert sum(bool(f["board"]) for f in frames) > len(frames) // 2
+            assert sum(f["rods"] or 0 for f in frames) > 4 * len(frames)
+            png = await c.get(f"{API}/runs/{rid}/frames/{frames[-1]['index']}")
+            assert png.status_code == 200 and png.content[:4] == b"\x89PNG"
+            assert (await c.get(f"{API}/calibration/current")).status_code == 404
+            assert (await c.post(f"{API}/runs/{rid}/apply", json={"method": "legs"})).status_code == 401
+            r = await c.post(f"{API}/runs/{rid}/apply", json={"method": "legs"}, headers=AUTH)
+            assert r.status_code == 201, r.text
+            r = await c.post(f"{API}/runs/{rid}/apply", headers=AUTH)
+            assert r.status_code == 201 and r.json()["method"] == "combined"
+            cur = (await c.get(f"{API}/calibration/current")).json()
+            assert cur["run_id"] == rid and cur["method"] == "combined" and cur["software_version"]
+            assert set(cur["combinations"]) == {"L", "H-D", "S-q02/2", "S-(q04-q03)/2"}
+            hist = (await c.get(f"{API}/calibration/history")).json()
+            assert [h["method"] for h in hist] == ["combined", "legs"]
+            assert set(hist[1]["parameters"]) == {"H", "q02", "q03", "q04", "S", "D", "L"}
+        finally:
+            await c.aclose()
+            await svc.stop()
+
+
+async def test_killed_service_restarts_interrupted_then_resumes(tmp_path, sim):
+    """SIGKILL the service (a real process) mid-run: on restart the run is interrupted with its frames intact, and
+    resuming it continues the acquisition to done."""
+    import json
+    import os
+    import signal
+    import socket
+    import subprocess
+    import sys
+
+    import httpx
+
+    from calib.dataset import Dataset
+    from service.auth import hash_token
+    from tests.service.conftest import TOKEN
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    bench = sim.bench_config(acquisition={"line_rate_hz": 50.0}).model_dump(mode="json", exclude={"source"})
+    bench["actuators"].update(speed_m_s=0.3, accel_m_s2=3.0)
+    cfg = tmp_path / "service.toml"
+    lines = [f'data_dir = "{tmp_path / "data"}"', f"port = {port}", f'token_hashes = ["{hash_token(TOKEN)}"]',
+             "[plan_sizes]", "n_fit = 16", "[bench]", f"name = {json.dumps(bench['name'])}"]
+    for sec in ("actuators", "camera", "operator", "acquisition"):
+        lines.append(f"[bench.{sec}]")
+        lines += [f"{k} = {json.dumps(v)}" for k, v in bench[sec].items()
+                  if v is not None and not isinstance(v, dict)]
+    cfg.write_text("\n".join(lines) + "\n")
+    url = f"http://127.0.0.1:{port}"
+
+    async def launch() -> subprocess.Popen:
+        p = subprocess.Popen([sys.executable, "-m", "service", "serve", "--config", str(cfg), "--log-level",
+                              "warning"], env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        async with httpx.AsyncClient(base_url=url) as c:
+            for _ in range(300):
+                try:
+                    if (await c.get("/readyz")).status_code == 200:
+                        return p
+                except httpx.TransportError:
+                    pass
+                assert p.poll() is None, "service exited"
+                await asyncio.sleep(0.05)
+        raise AssertionError("service did not start")
+
+    proc = await launch()
+    try:
+        async with httpx.AsyncClient(base_url=url, timeout=30) as c:
+            r = await c.post(f"{API}/runs", json={"plan": "pose-set", "methods": []}, headers=AUTH)
+            assert r.status_code == 202, r.text
+            rid = r.json()["id"]
+            async with asyncio.timeout(30):
+                while (await c.get(f"{API}/runs/{rid}")).json()["progress"]["done"] < 4:
+                    await asyncio.sleep(0.02)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(10)
+        ds_dir = tmp_path / "data" / "runs" / rid / "dataset"
+        kept = len(Dataset.open(ds_dir).frames)
+        assert 4 <= kept < 16
+        await asyncio.sleep(1.0)  # the controller's watchdog stops the axes of a dead host
+        sim.mechanism.update()
+        assert not any(ax.moving for ax in sim.mechanism.axes)
+        proc = await launch()
+        async with httpx.AsyncClient(base_url=url, timeout=30) as c:
+            run = (await c.get(f"{API}/runs/{rid}")).json()
+            assert run["state"] == "interrupted" and "resume" in run["error"]
+            assert len((await c.get(f"{API}/runs/{rid}/frames")).json()) == kept
+            ds = Dataset.open(ds_dir)
+            for i in range(kept):
+                assert ds.load_image(i).size > 0
+            r = await c.post(f"{API}/runs/{rid}/resume", headers=AUTH)
+            assert r.status_code == 202, r.text
+            run = await wait_state(c, rid, timeout=60)
+            assert run["state"] == "done", run
+            ds = Dataset.open(ds_dir)
+            assert len(ds.frames) == 16
+            evs = await read_events(c, rid)
+            states = [e["data"]["state"] for e in evs if e["type"] == "state"]
+            assert states[-3:] == ["queued", "acquiring", "done"] and "interrupted" in states
+            starts = [e["data"]["message"] for e in evs if e["type"] == "progress" and "starting at" in
+                      (e["data"]["message"] or "")]
+            assert starts[-1].startswith(f"starting at pose {kept + 1}/16")
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(20)
+            except subprocess.TimeoutExpired:
+                proc.kill()
