@@ -1,0 +1,268 @@
+// i4cal dashboard: plain JavaScript against /api/v1 (no build step).
+"use strict";
+const API = "/api/v1";
+const $ = (sel) => document.querySelector(sel);
+const COMBOS = ["L", "H-D", "S-q02/2", "S-(q04-q03)/2"];
+const SEVEN = ["H", "q02", "q03", "q04", "S", "D", "L"];
+const ACTIVE = ["queued", "acquiring", "extracting", "calibrating"];
+let selected = null;
+let source = null;
+let frameTimer = null;
+
+const tokenInput = $("#token");
+tokenInput.value = localStorage.getItem("i4cal-token") || "";
+tokenInput.addEventListener("change", () => localStorage.setItem("i4cal-token", tokenInput.value.trim()));
+
+function headers(json) {
+  const h = {};
+  const t = tokenInput.value.trim();
+  if (t) h["Authorization"] = "Bearer " + t;
+  if (json) h["Content-Type"] = "application/json";
+  return h;
+}
+
+async function api(method, path, body) {
+  const r = await fetch(API + path, { method, headers: headers(body !== undefined),
+    body: body === undefined ? undefined : JSON.stringify(body) });
+  let data = null;
+  try { data = await r.json(); } catch (e) { /* not JSON */ }
+  if (!r.ok) {
+    let msg = data && data.detail ? data.detail : r.statusText;
+    if (Array.isArray(msg)) msg = msg.map((d) => (d.loc || []).join(".") + ": " + d.msg).join("; ");
+    throw new Error(r.status + " " + msg);
+  }
+  return data;
+}
+
+function say(text, isError) {
+  const m = $("#message");
+  m.textContent = text;
+  m.className = isError ? "error" : "";
+}
+
+const mm = (v) => (v === null || v === undefined ? "–" : (v * 1e3).toFixed(3));
+const pm = (v, s) => mm(v) + (s === null || s === undefined ? "" : " ± " + mm(s));
+const esc = (s) => String(s ?? "").replace(/[&<>"]/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;" }[c]));
+
+// -- runs list ---------------------------------------------------------------------------------
+async function refreshRuns() {
+  let runs;
+  try { runs = await api("GET", "/runs?limit=50"); } catch (e) { say(e.message, true); return; }
+  const tb = $("#runs tbody");
+  tb.innerHTML = "";
+  for (const r of runs) {
+    const tr = document.createElement("tr");
+    tr.dataset.id = r.id;
+    tr.dataset.state = r.state;
+    if (r.id === selected) tr.className = "selected";
+    tr.innerHTML = `<td><code>${r.id.slice(0, 8)}</code></td><td><span class="state ${r.state}">${r.state}</span></td>` +
+      `<td>${esc(r.plan || (r.dataset ? "dataset " + r.dataset.slice(0, 8) : ""))}</td>` +
+      `<td>${r.progress.done}/${r.progress.total}</td><td>${new Date(r.created_at).toLocaleString()}</td><td>${esc(r.note)}</td>`;
+    tr.addEventListener("click", () => select(r.id));
+    tb.appendChild(tr);
+  }
+  if (!selected && runs.length) select(runs[0].id);
+}
+
+async function refreshDevices() {
+  try {
+    const d = await api("GET", "/devices");
+    $("#bench").textContent = d.bench ? `bench: ${d.bench}${d.simulated ? " (simulated)" : ""}` : "no bench";
+    $("#devices").innerHTML = d.devices.map((x) =>
+      `<span class="dev ${x.state}" title="${esc(x.last_error || x.uri)}">${x.name}: ${x.state}</span>`).join("");
+  } catch (e) { /* reads may be closed */ }
+}
+
+async function refreshCurrent() {
+  try {
+    const c = await api("GET", "/calibration/current");
+    $("#current").innerHTML = `<p>${esc(c.method)} from run <code>${c.run_id.slice(0, 8)}</code>, applied ` +
+      `${new Date(c.applied_at).toLocaleString()} (i4cal ${esc(c.software_version)})</p><table><tr>` +
+      COMBOS.map((k) => `<th>${k}</th>`).join("") + "</tr><tr>" +
+      COMBOS.map((k) => `<td>${pm(c.combinations[k], c.combinations_std && c.combinations_std[k])}</td>`).join("") +
+      "</tr></table>";
+    $("#current").className = "";
+  } catch (e) { /* none yet */ }
+}
+
+// -- one run -----------------------------------------------------------------------------------
+async function select(id) {
+  selected = id;
+  document.querySelectorAll("#runs tbody tr").forEach((tr) => tr.classList.toggle("selected", tr.dataset.id === id));
+  $("#live-panel").hidden = false;
+  $("#run-id").textContent = id.slice(0, 8);
+  $("#log").innerHTML = "";
+  $("#download").href = `${API}/runs/${id}/dataset`;
+  $("#results-panel").hidden = true;
+  if (source) source.close();
+  const run = await api("GET", "/runs/" + id);
+  showRun(run);
+  source = new EventSource(`${API}/runs/${id}/events`);
+  source.onmessage = null;
+  for (const type of ["state", "progress", "extraction", "fit", "paused", "resumed", "applied"]) {
+    source.addEventListener(type, (ev) => onEvent(id, JSON.parse(ev.data)));
+  }
+  source.onerror = () => { if (source) { source.close(); source = null; } };
+  if (run.has_result) showResult(id);
+}
+
+function showRun(run) {
+  const st = $("#run-state");
+  st.textContent = run.state + (run.progress.paused ? " (paused)" : "");
+  st.className = "state " + run.state;
+  $("#live-panel").dataset.state = run.state;
+  setProgress(run.progress.done, run.progress.total);
+  $("#phase").textContent = run.progress.phase || "";
+  $("#pose").textContent = run.progress.pose ? run.progress.pose.map((v) => (v * 1e3).toFixed(1)).join(", ") + " mm" : "";
+  $("#run-error").textContent = run.error || "";
+  if (run.progress.total || run.progress.done) loadFrame(run.id);
+}
+
+function setProgress(done, total) {
+  $("#progress").max = Math.max(total, 1);
+  $("#progress").value = done;
+  $("#progress-text").textContent = `${done}/${total}`;
+}
+
+function loadFrame(id) {
+  if (frameTimer) return;
+  frameTimer = setTimeout(() => {
+    frameTimer = null;
+    const img = $("#frame");
+    const probe = new Image();
+    probe.onload = () => { img.src = probe.src; $("#frame-caption").textContent = "last frame"; };
+    probe.src = `${API}/runs/${id}/frames/latest?max_width=800&t=${Date.now()}`;
+  }, 250);
+}
+
+function log(text) {
+  const li = document.createElement("li");
+  li.textContent = new Date().toLocaleTimeString() + " " + text;
+  const ol = $("#log");
+  ol.appendChild(li);
+  while (ol.children.length > 200) ol.removeChild(ol.firstChild);
+  ol.scrollTop = ol.scrollHeight;
+}
+
+function onEvent(id, ev) {
+  if (id !== selected) return;
+  const d = ev.data;
+  if (ev.type === "state") {
+    log("state: " + d.state + (d.error ? " — " + d.error : ""));
+    api("GET", "/runs/" + id).then(showRun);
+    if (d.state === "done") showResult(id);
+    refreshRuns();
+  } else if (ev.type === "progress") {
+    setProgress(d.done, d.total);
+    $("#phase").textContent = (d.stage === "acquisition" ? d.phase || d.state : d.stage) || "";
+    if (d.pose) $("#pose").textContent = d.pose.map((v) => (v * 1e3).toFixed(1)).join(", ") + " mm";
+    if (d.stage === "acquisition") {
+      if (d.message) log(d.message);
+      loadFrame(id);
+    }
+  } else if (ev.type === "extraction") {
+    log("extraction: " + Object.entries(d.phases || {}).map(([p, c]) => `${p} board ${c.board}/${c.frames} rods ${c.rods}/${c.rods_total}`).join("; "));
+    loadFrame(id);
+  } else if (ev.type === "fit") {
+    log(`fit ${d.method}: ${d.state}`);
+  } else {
+    log(ev.type);
+  }
+}
+
+async function showResult(id) {
+  let res;
+  try { res = await api("GET", `/runs/${id}/result`); } catch (e) { return; }
+  if (id !== selected) return;
+  const methods = Object.keys(res.methods);
+  const nom = res.nominal_combinations || {};
+  let h = "<tr><th></th><th>a priori</th>" + methods.map((m) => `<th>${m}</th>`).join("") + "</tr>";
+  for (const k of COMBOS) {
+    h += `<tr><th>${k}</th><td>${mm(nom[k])}</td>` + methods.map((m) => {
+      const e = res.methods[m];
+      return `<td>${e.parameters ? pm(e.parameters[k], e.std && e.std[k]) : esc(e.error || "failed")}</td>`;
+    }).join("") + "</tr>";
+  }
+  h += "<tr><th>residual RMS</th><td></td>" + methods.map((m) => {
+    const e = res.methods[m];
+    return `<td>${e.residual_rms != null ? e.residual_rms.toExponential(3) + " " + esc(e.residual_unit || "") : "–"}</td>`;
+  }).join("") + "</tr>";
+  $("#table1").innerHTML = h;
+  const sevenMethods = methods.filter((m) => res.methods[m].seven);
+  let h2 = "<tr><th></th><th>a priori</th>" + sevenMethods.map((m) => `<th>${m}</th>`).join("") + "</tr>";
+  for (const k of SEVEN) {
+    h2 += `<tr><th>${k}</th><td>${mm(res.nominal[k])}</td>` + sevenMethods.map((m) =>
+      `<td>${pm(res.methods[m].seven[k], res.methods[m].seven_std && res.methods[m].seven_std[k])}</td>`).join("") + "</tr>";
+  }
+  $("#table2").innerHTML = sevenMethods.length ? h2 : "<tr><td class=muted>no method of this run identifies the seven parameters (legs does)</td></tr>";
+  const cols = ["a priori", ...methods];
+  const val = res.validation || {};
+  const f = (x, key) => (x && x[key] != null ? Number(x[key]).toFixed(3) : "–");
+  let h3 = "<tr><th></th>" + cols.map((c) => `<th>${c}</th>`).join("") + "</tr>";
+  for (const [label, part, key] of [["gaps (fit poses) RMS mm", "gaps_poses", "rms_mm"],
+    ["gaps (validation) RMS mm", "gaps_validation", "rms_mm"], ["gaps (validation) max mm", "gaps_validation", "max_abs_mm"],
+    ["straightness RMS mm", "straightness", "rms_mm"]]) {
+    h3 += `<tr><th>${label}</th>` + cols.map((c) => `<td>${f((val[c] || {})[part], key)}</td>`).join("") + "</tr>";
+  }
+  $("#table3").innerHTML = h3;
+  $("#plot").innerHTML = residualPlot(cols.map((c) => [c, ((val[c] || {}).gaps_validation || {}).gaps_mm || []]));
+  const sel = $("#apply-method");
+  sel.innerHTML = methods.filter((m) => res.methods[m].converged).map((m) => `<option>${m}</option>`).join("");
+  $("#results-panel").hidden = false;
+  $("#results-panel").dataset.run = id;
+}
+
+function residualPlot(series) {
+  const W = 640, H = 220, pad = 36;
+  const all = series.flatMap(([, g]) => g).filter((v) => v != null);
+  if (!all.length) return "<p class=muted>no validation gaps</p>";
+  const n = Math.max(...series.map(([, g]) => g.length));
+  const ymax = Math.max(...all.map(Math.abs), 1e-6);
+  const colors = ["#888", "#1f77b4", "#d62728", "#2ca02c", "#9467bd"];
+  const x = (i) => pad + (i + 0.5) * (W - 2 * pad) / Math.max(n, 1);
+  const y = (v) => H / 2 - v / ymax * (H / 2 - 14);
+  let s = `<svg width="${W}" height="${H}" viewBox="0 0 ${W} ${H}" role="img" aria-label="residual plot">` +
+    `<line x1="${pad}" x2="${W - pad}" y1="${H / 2}" y2="${H / 2}" stroke="#999"/>` +
+    `<text x="2" y="14" font-size="11">+${ymax.toFixed(2)} mm</text><text x="2" y="${H - 4}" font-size="11">-${ymax.toFixed(2)} mm</text>`;
+  series.forEach(([name, g], k) => {
+    const c = colors[k % colors.length];
+    g.forEach((v, i) => { if (v != null) s += `<circle cx="${x(i) + (k - 1) * 3}" cy="${y(v)}" r="3" fill="${c}"><title>${name} #${i}: ${v.toFixed(3)} mm</title></circle>`; });
+    s += `<text x="${W - pad - 110}" y="${14 + 13 * k}" font-size="11" fill="${c}">● ${name}</text>`;
+  });
+  return s + "</svg>";
+}
+
+// -- actions -----------------------------------------------------------------------------------
+$("#start-form").addEventListener("submit", async (ev) => {
+  ev.preventDefault();
+  const methods = [...document.querySelectorAll("#methods input:checked")].map((i) => i.value);
+  try {
+    const run = await api("POST", "/runs", { plan: $("#plan").value, methods, note: $("#note").value });
+    say(`run ${run.id.slice(0, 8)} started`);
+    selected = run.id;
+    await refreshRuns();
+    select(run.id);
+  } catch (e) { say(e.message, true); }
+});
+
+for (const action of ["pause", "resume", "abort"]) {
+  $("#" + action).addEventListener("click", async () => {
+    if (!selected) return;
+    try { showRun(await api("POST", `/runs/${selected}/${action}`)); say(action + " accepted"); } catch (e) { say(e.message, true); }
+  });
+}
+
+$("#apply").addEventListener("click", async () => {
+  const run = $("#results-panel").dataset.run;
+  try {
+    const c = await api("POST", `/runs/${run}/apply`, { method: $("#apply-method").value });
+    say(`applied ${c.method} of run ${c.run_id.slice(0, 8)}`);
+    refreshCurrent();
+  } catch (e) { say(e.message, true); }
+});
+
+refreshRuns();
+refreshDevices();
+refreshCurrent();
+setInterval(refreshRuns, 3000);
+setInterval(refreshDevices, 5000);
