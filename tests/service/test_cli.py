@@ -81,8 +81,20 @@ def test_missing_file_and_missing_phase_errors(tmp_path, obs_file):
     assert res.returncode == 2 and "rotation phase" in res.stderr and "Traceback" not in res.stderr
 
 
-def test_demo_prints_the_comparison():
-    res = run("demo")
+def test_quick_demo_prints_the_comparison():
+    res = run("demo", "--quick")
     assert res.returncode == 0, res.stderr
     for word in ("Table I", "Table II", "combined", "end-effector", "legs", "a priori"):
+        assert word in res.stdout
+
+
+@pytest.mark.slow
+def test_full_demo_runs_the_bench_over_modbus_and_extracts_images(tmp_path):
+    res = run("demo", "--out", str(tmp_path))
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert "modbus+tcp://127.0.0.1:" in res.stdout
+    assert (tmp_path / "dataset" / "dataset.json").exists()
+    doc = json.loads((tmp_path / "observations.json").read_text())
+    assert sum(f.get("board") is not None for f in doc["frames"]) > 100
+    for word in ("Table I", "Table II", "combined", "end-effector", "legs"):
         assert word in res.stdout
