@@ -8,7 +8,6 @@ frame (metres; z along the optical axis). "Ideal pixels" are undistorted pixel c
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -160,21 +159,15 @@ class CameraModel:
             raise InputError(str(exc), file=source) from None
 
     def save(self, path: str | Path) -> None:
-        p = Path(path)
-        tmp = p.with_name(p.name + ".tmp")
-        tmp.write_text(json.dumps(self.to_dict(), indent=1), encoding="utf-8")
-        tmp.replace(p)
+        from .jsonio import write_json_atomic
+
+        write_json_atomic(path, self.to_dict())
 
     @classmethod
     def load(cls, path: str | Path) -> CameraModel:
-        p = Path(path)
-        try:
-            data = json.loads(p.read_text(encoding="utf-8"))
-        except FileNotFoundError:
-            raise InputError("file not found", file=str(p)) from None
-        except json.JSONDecodeError as exc:
-            raise InputError(f"not valid JSON: {exc.msg} at line {exc.lineno}", file=str(p)) from None
-        return cls.from_dict(data, source=str(p))
+        from .jsonio import read_json
+
+        return cls.from_dict(read_json(path), source=str(path))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -10,7 +10,6 @@ Reading validates every frame and reports the first bad field with its frame ind
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -21,6 +20,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from .errors import InputError
+from .jsonio import read_json, write_json_atomic
 from .parameters import PARAMETER_NAMES, I4Parameters
 
 FORMAT = "i4cal.observations/1"
@@ -209,28 +209,13 @@ class Observations:
 
     @classmethod
     def load(cls, path: str | Path) -> Observations:
-        path = Path(path)
-        try:
-            text = path.read_text(encoding="utf-8")
-        except FileNotFoundError:
-            raise InputError("file not found", file=str(path)) from None
-        except OSError as exc:
-            raise InputError(f"cannot read: {exc.strerror}", file=str(path)) from None
-        try:
-            data = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise InputError(f"not valid JSON: {exc.msg} at line {exc.lineno} column {exc.colno}",
-                             file=str(path)) from None
-        return cls.from_dict(data, source=str(path))
+        return cls.from_dict(read_json(path), source=str(path))
 
     def to_dict(self) -> dict[str, Any]:
         return self.document.model_dump(mode="json", exclude_none=False)
 
     def save(self, path: str | Path) -> None:
-        path = Path(path)
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text(json.dumps(self.to_dict(), indent=1), encoding="utf-8")
-        tmp.replace(path)
+        write_json_atomic(path, self.to_dict())
 
     # -- views ------------------------------------------------------------------------------
     @property

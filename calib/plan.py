@@ -9,7 +9,6 @@ method, a guided 500 mm line for straightness, and separate validation poses.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -17,6 +16,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from .errors import InputError, UnreachableError
+from .jsonio import read_json
 from .kinematics import dkm, ikm
 from .parameters import I4Parameters
 
@@ -84,14 +84,7 @@ class Plan(BaseModel):
 
     @classmethod
     def load(cls, path: str | Path) -> Plan:
-        p = Path(path)
-        try:
-            data = json.loads(p.read_text(encoding="utf-8"))
-        except FileNotFoundError:
-            raise InputError("plan file not found", file=str(p)) from None
-        except json.JSONDecodeError as exc:
-            raise InputError(f"not valid JSON: {exc.msg} at line {exc.lineno}", file=str(p)) from None
-        return cls.from_dict(data, source=str(p))
+        return cls.from_dict(read_json(path, "plan file"), source=str(path))
 
     @classmethod
     def from_dict(cls, data: Any, source: str | None = None) -> Plan:
