@@ -84,6 +84,8 @@ def calibrate(obs: Observations, methods: Iterable[str] = METHOD_NAMES, *, stric
             entry["identifiability"] = identifiability(name, full, fit.q) if len(fit) else None
         except I4calError as exc:
             entry["identifiability"] = {"error": str(exc)}
+        if name == "combined" and bf is not None:
+            entry["bound"] = _bound_for(obs, full, res, bf)
         out["methods"][name] = entry
         try:
             out["validation"][name] = validate(obs, full)
@@ -103,6 +105,28 @@ def calibrate(obs: Observations, methods: Iterable[str] = METHOD_NAMES, *, stric
         with contextlib.suppress(I4calError, KeyError, ValueError):
             out["validation"]["truth"] = validate(obs, I4Parameters.from_mapping(truth["parameters"]))
     return out
+
+
+def _bound_for(obs: Observations, params: I4Parameters, res: MethodResult, bf: BaseFrameResult) -> dict:
+    """The Cramer-Rao bound of the combined method for these poses, at the noise levels this run measured."""
+    from .bound import MeasurementNoise, crlb_combined
+    from .plan import Plan, Step
+
+    steps = [Step(phase=f.phase, q=f.q) for f in obs.frames if f.phase in ("rotation", "translation", "poses")]
+    sigma_dir = float(res.diagnostics.get("direction_noise_scale", 0.0))
+    sig_r = bf.rotation_residual_rms_rad / np.sqrt(2.0)  # two tangent components carry the residual
+    sig_t = bf.translation_residual_rms_m / np.sqrt(3.0)
+    if min(sigma_dir, sig_r, sig_t) <= 0:
+        return {"std": None, "note": "noise-free data: the bound is zero"}
+    try:
+        b = crlb_combined(params, Plan(name="observed", steps=steps),
+                          MeasurementNoise(sigma_dir, sig_r, (sig_t, sig_t, sig_t)), bf.camera_from_base_R)
+    except (ValueError, np.linalg.LinAlgError) as exc:
+        return {"std": None, "note": str(exc)}
+    b["efficiency_std_ratio"] = {k: res.combinations_std[k] / v for k, v in b["std"].items()}
+    b["note"] = ("Cramer-Rao bound for these poses at the noise levels measured in this run "
+                 "(isotropic approximations of the rod-direction and board-pose noise)")
+    return b
 
 
 def to_jsonable(x: Any) -> Any:

@@ -33,6 +33,9 @@ def test_calibrate_json_contract(obs_file, capsys):
     assert set(doc["methods"]["legs"]["seven"]) == {"H", "q02", "q03", "q04", "S", "D", "L"}
     assert {"a priori", "combined", "end-effector", "legs"} <= set(doc["validation"])
     assert doc["methods"]["combined"]["identifiability"]["finds_paper_four"]
+    bound = doc["methods"]["combined"]["bound"]["std"]
+    for k in COMBINATION_NAMES:  # the reported std cannot beat the Cramer-Rao bound by much
+        assert 0 < bound[k] < 1.2 * doc["methods"]["combined"]["std"][k]
     # every method beats the a priori geometry on the validation poses
     ap = doc["validation"]["a priori"]["gaps_validation"]["rms_mm"]
     for m in ("combined", "end-effector", "legs"):
