@@ -38,10 +38,11 @@ def main() -> int:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     tmp = Path(tempfile.mkdtemp(prefix="i4cal-bench-"))
-    sizes = "" if args.paper_plan else "[plan_sizes]\nn_base = 6\nn_fit = 10\nn_lock = 4\nn_validation = 4\nline_samples = 11\n"
+    sizes = "" if args.paper_plan else ("[plan_sizes]\nn_base = 6\nn_fit = 10\nn_lock = 4\nn_validation = 4\n"
+                                        "line_samples = 11\n")
     cfg = tmp / "service.toml"
-    cfg.write_text(f'data_dir = "{tmp / "data"}"\nport = {port}\nsim_bench = true\nextraction_workers = {args.workers}\n'
-                   f'token_hashes = ["{hash_token(TOKEN)}"]\n{sizes}')
+    cfg.write_text(f'data_dir = "{tmp / "data"}"\nport = {port}\nsim_bench = true\n'
+                   f'extraction_workers = {args.workers}\ntoken_hashes = ["{hash_token(TOKEN)}"]\n{sizes}')
     proc = subprocess.Popen([sys.executable, "-m", "service", "serve", "--config", str(cfg), "--log-level", "warning"],
                             env={**os.environ, "PYTHONUNBUFFERED": "1"})
     url = f"http://127.0.0.1:{port}"
@@ -87,7 +88,7 @@ def main() -> int:
     for st, d in lat.items():
         for ep, xs in d.items():
             xs = sorted(xs)
-            p99 = xs[min(len(xs) - 1, int(round(0.99 * (len(xs) - 1))))]
+            p99 = xs[min(len(xs) - 1, round(0.99 * (len(xs) - 1)))]
             print(f"{st:<12} {ep:<8} {len(xs):>5} {statistics.median(xs):>8.1f} {p99:>8.1f} {xs[-1]:>8.1f}")
     return 0
 

@@ -5,7 +5,7 @@ may use its own process pool), so status and health keep answering while a run g
 holds the bench; offline runs (from an uploaded dataset) never touch it. Every state change and progress
 report is persisted as an event and pushed to the live subscribers (Server-Sent Events).
 
-No HTTP here: errors are :class:`RunConflict` / :class:`RunNotFound` / :class:`calib.errors.InputError`,
+No HTTP here: errors are :class:`RunConflictError` / :class:`RunNotFoundError` / :class:`calib.errors.InputError`,
 turned into status codes by the routers.
 """
 
@@ -39,11 +39,11 @@ TERMINAL_STATES = ("done", "failed", "aborted")
 STATES = (*ACTIVE_STATES, *TERMINAL_STATES, "interrupted")
 
 
-class RunConflict(Exception):
+class RunConflictError(Exception):
     """The request conflicts with the current state (bench held, run not active...)."""
 
 
-class RunNotFound(Exception):
+class RunNotFoundError(Exception):
     pass
 
 
@@ -113,7 +113,8 @@ class Bench:
 
             renderer = FallbackRenderer() if settings.sim_fast_renderer else None
             sim = await SimBench(port=settings.sim_port, renderer=renderer).start()
-            cfg = sim.bench_config(name=settings.bench_name, acquisition={"line_rate_hz": 50.0})
+            cfg = sim.bench_config(name=settings.bench_name, acquisition={"line_rate_hz": 50.0},
+                                   camera={"timeout_s": 10.0})
             st = getattr(sim.renderer, "settings", None)
             if st is not None and hasattr(st, "camera") and not camera_spec:
                 cam = st.camera()
@@ -244,7 +245,7 @@ class RunManager:
         with self.db.session() as s:
             run = s.get(Run, run_id)
             if run is None:
-                raise RunNotFound(run_id)
+                raise RunNotFoundError(run_id)
             return run
 
     def list(self, limit: int = 100, offset: int = 0, state: str | None = None) -> list[Run]:
@@ -285,10 +286,11 @@ class RunManager:
             if bench not in (None, self.bench.name):
                 raise InputError(f"unknown bench {bench!r}; this service drives {self.bench.name!r}", field="bench")
             if self.bench_holder is not None:
-                raise RunConflict(f"run {self.bench_holder} holds the bench")
+                raise RunConflictError(f"run {self.bench_holder} holds the bench")
             ds_dir = f"runs/{rid}/dataset"
         run = Run(id=rid, state="queued", created_at=now(), bench=None if dataset_id else self.bench.name,
-                  note=note, plan_name=plan_name, plan=plan.model_dump(mode="json", exclude_none=True) if plan else None,
+                  note=note, plan_name=plan_name,
+                  plan=plan.model_dump(mode="json", exclude_none=True) if plan else None,
                   methods=methods, source_dataset=dataset_id, dataset_dir=ds_dir, timings={},
                   total=len(plan_units(plan)) if plan else 0)
         (self.data_dir / "runs" / rid).mkdir(parents=True, exist_ok=True)
@@ -303,7 +305,7 @@ class RunManager:
         acquire = run.source_dataset is None and not self._acquisition_complete(run)
         if acquire:
             if self.bench_holder is not None:
-                raise RunConflict(f"run {self.bench_holder} holds the bench")
+                raise RunConflictError(f"run {self.bench_holder} holds the bench")
             self.bench_holder = run.id
             a.holds_bench = True
         self.active[run.id] = a
@@ -326,13 +328,13 @@ class RunManager:
         a = self.active.get(run_id)
         if a is not None:
             if a.acq is None or run.state != "acquiring":
-                raise RunConflict(f"run is {run.state}; only an acquisition can be paused and resumed")
+                raise RunConflictError(f"run is {run.state}; only an acquisition can be paused and resumed")
             a.acq.resume()
             a.paused = False
             self.emit(run_id, "resumed", {})
             return self.get(run_id)
         if run.state != "interrupted":
-            raise RunConflict(f"run is {run.state}; only a paused or interrupted run can be resumed")
+            raise RunConflictError(f"run is {run.state}; only a paused or interrupted run can be resumed")
         self._set(run_id, state="queued", error=None)
         self._start(run, resume=True)
         return self.get(run_id)
@@ -341,7 +343,7 @@ class RunManager:
         run = self.get(run_id)
         a = self.active.get(run_id)
         if a is None or a.acq is None or run.state != "acquiring":
-            raise RunConflict(f"run is {run.state}; only an acquisition can be paused")
+            raise RunConflictError(f"run is {run.state}; only an acquisition can be paused")
         a.acq.pause()
         a.paused = True
         self.emit(run_id, "paused", {})
@@ -354,12 +356,28 @@ class RunManager:
             if run.state in ("interrupted", "queued"):
                 self._set(run_id, state="aborted", finished_at=now(), error="aborted on request")
             return self.get(run_id)
+        first = not a.aborting
         a.aborting = True
         if a.acq is not None:
             a.acq.abort()  # stops the actuators, keeps the frames
+            if first:
+                asyncio.get_running_loop().create_task(self._insist_abort(a))
         elif a.task is not None:
             a.task.cancel()
         return self.get(run_id)
+
+    async def _insist_abort(self, a: ActiveRun) -> None:
+        """Repeat the abort until the run ends: a cancellation delivered while a device request is in flight can be
+        absorbed by the device client (the request is retried), so one cancel is not always enough."""
+        for _ in range(600):
+            await asyncio.sleep(0.05)
+            if a.task is None or a.task.done():
+                return
+            acq = a.acq
+            if acq is not None:
+                acq.abort()
+            else:
+                a.task.cancel()
 
     async def wait(self, run_id: str) -> None:
         a = self.active.get(run_id)
@@ -537,18 +555,18 @@ class RunManager:
 
         run = self.get(run_id)
         if run.state != "done" or not run.result:
-            raise RunConflict(f"run is {run.state} without a result; nothing to apply")
+            raise RunConflictError(f"run is {run.state} without a result; nothing to apply")
         methods = run.result.get("methods", {})
         if method is None:
             method = next((m for m in ("combined", "legs", "end-effector") if methods.get(m, {}).get("converged")),
                           None)
             if method is None:
-                raise RunConflict("no method of this run converged; nothing to apply")
+                raise RunConflictError("no method of this run converged; nothing to apply")
         entry = methods.get(method)
         if entry is None:
             raise InputError(f"run has no result for method {method!r}", field="method")
         if not entry.get("converged") or not entry.get("parameters"):
-            raise RunConflict(f"method {method!r} did not converge in this run; nothing to apply")
+            raise RunConflictError(f"method {method!r} did not converge in this run; nothing to apply")
         bench = run.bench or (self.bench.name if self.bench else "bench")
         payload = {
             "bench": bench, "run_id": run.id, "method": method, "software_version": __version__,

@@ -101,7 +101,7 @@ def unpack_archive(archive: Path, dest: Path, *, max_bytes: int, max_members: in
                     _copy_limited(src, target(rel), budget)
         return
     try:
-        tf = tarfile.open(archive, mode="r:*")
+        tf = tarfile.open(archive, mode="r:*")  # noqa: SIM115 (closed by the with below)
     except (tarfile.TarError, OSError, EOFError) as exc:
         raise ArchiveError(f"not a zip or tar archive ({exc})") from None
     with tf:

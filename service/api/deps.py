@@ -9,7 +9,7 @@ from fastapi import Depends, HTTPException, Path, Request, status
 from calib.errors import InputError
 
 from ..settings import Settings
-from ..worker import Bench, RunManager, RunNotFound
+from ..worker import Bench, RunManager, RunNotFoundError
 
 ID_PATTERN = r"^[0-9a-f]{32}$"
 
@@ -55,5 +55,5 @@ def unprocessable(exc: InputError, prefix: tuple[Any, ...] = ("body",)) -> HTTPE
 def get_run(manager: RunManager, run_id: str):
     try:
         return manager.get(run_id)
-    except RunNotFound:
+    except RunNotFoundError:
         raise not_found("run") from None

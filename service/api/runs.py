@@ -19,7 +19,7 @@ from starlette.background import BackgroundTask
 from calib.errors import InputError
 
 from ..auth import Reader, Writer
-from ..worker import STATES, RunConflict, RunManager
+from ..worker import STATES, RunConflictError, RunManager
 from .calibration import CalibrationOut, calibration_out
 from .deps import ID_PATTERN, Manager, RunId, conflict, get_run, not_found, unprocessable
 
@@ -133,7 +133,7 @@ async def create_run(body: RunCreate, manager: Manager, _: Writer) -> RunOut:
     try:
         run = manager.create(plan=plan, plan_name=plan_name, methods=list(dict.fromkeys(body.methods)),
                              note=body.note, bench=body.bench, dataset_id=body.dataset)
-    except RunConflict as exc:
+    except RunConflictError as exc:
         raise conflict(str(exc)) from None
     except InputError as exc:
         raise unprocessable(exc) from None
@@ -203,7 +203,7 @@ def _control(manager: RunManager, run_id: str, what: str) -> RunOut:
     get_run(manager, run_id)
     try:
         run = getattr(manager, what)(run_id)
-    except RunConflict as exc:
+    except RunConflictError as exc:
         raise conflict(str(exc)) from None
     return run_out(manager, run)
 
@@ -244,7 +244,7 @@ async def apply_run(run_id: RunId, manager: Manager, _: Writer, body: ApplyBody 
     get_run(manager, run_id)
     try:
         cal = manager.apply(run_id, body.method if body else None)
-    except RunConflict as exc:
+    except RunConflictError as exc:
         raise conflict(str(exc)) from None
     except InputError as exc:
         raise unprocessable(exc) from None
@@ -359,7 +359,7 @@ def _render_frame(manager: RunManager, run, src: Path, index: str, annotate: boo
             _draw(img, o, doc)
     h, w = img.shape[:2]
     if w > max_width:
-        img = cv2.resize(img, (max_width, int(round(h * max_width / w))), interpolation=cv2.INTER_AREA)
+        img = cv2.resize(img, (max_width, round(h * max_width / w)), interpolation=cv2.INTER_AREA)
     ok, buf = cv2.imencode(".png", img)
     return buf.tobytes() if ok else None
 

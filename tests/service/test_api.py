@@ -114,7 +114,7 @@ async def test_abort_mid_run_stops_actuators(tmp_path, sim):
         assert (await c.get(f"{API}/devices")).json()["held_by"] == rid
         r = await c.post(f"{API}/runs/{rid}/abort", headers=AUTH)
         assert r.status_code == 202
-        run = await wait_state(c, rid, timeout=10)
+        run = await wait_state(c, rid, timeout=5)
         assert run["state"] == "aborted" and 2 <= run["progress"]["done"] < 40
         sim.mechanism.update()
         assert not any(ax.moving for ax in sim.mechanism.axes)
