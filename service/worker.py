@@ -179,6 +179,7 @@ class RunManager:
         self._subs: dict[str, set[asyncio.Queue]] = {}
         self._seq: dict[str, int] = {}
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._pool: Any = None
         self.data_dir = settings.data_dir.resolve()
 
     # -- life --------------------------------------------------------------------------------------
@@ -198,6 +199,8 @@ class RunManager:
             if a.task is not None:
                 with contextlib.suppress(BaseException):
                     await asyncio.wait_for(a.task, 10)
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
 
     # -- events ------------------------------------------------------------------------------------
     def _next_seq(self, run_id: str) -> int:
@@ -538,15 +541,32 @@ class RunManager:
         return await asyncio.to_thread(Observations.from_dict, doc, str(path))
 
     async def _calibrate(self, run_id: str, run: Run, obs) -> dict[str, Any]:
-        from calib.pipeline import calibrate, to_jsonable
-
+        """One method at a time in a separate process (the fits hold the GIL): the loop stays responsive."""
         loop = asyncio.get_running_loop()
-        methods = list(run.methods)
+        if self._pool is None:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
 
-        def progress(method: str, state: str) -> None:
-            loop.call_soon_threadsafe(self.emit, run_id, "fit", {"method": method, "state": state})
-
-        doc = await asyncio.to_thread(lambda: clean_json(to_jsonable(calibrate(obs, methods, progress=progress))))
+            self._pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("forkserver"))
+        obs_doc = obs.to_dict()
+        doc: dict[str, Any] | None = None
+        for k, method in enumerate(run.methods):
+            self.emit(run_id, "fit", {"method": method, "state": "start"})
+            part = await loop.run_in_executor(self._pool, calibrate_one, obs_doc, method)
+            entry = part["methods"][method]
+            self.emit(run_id, "fit", {"method": method, "state": "done" if entry.get("converged") else "failed",
+                                      "iterations": entry.get("iterations"), "residual_rms": entry.get("residual_rms"),
+                                      "error": entry.get("error")})
+            if doc is None:
+                doc = part
+            else:
+                doc["methods"][method] = entry
+                if method in part["validation"]:
+                    doc["validation"][method] = part["validation"][method]
+                for name, te in (part.get("truth_errors") or {}).items():
+                    doc.setdefault("truth_errors", {})[name] = te
+            self._stage_progress(run_id, "calibration", k + 1, len(run.methods))
+        assert doc is not None
         return doc
 
     # -- calibration -------------------------------------------------------------------------------
@@ -598,6 +618,14 @@ class RunManager:
         path = path.resolve()
         if self.data_dir in path.parents:
             shutil.rmtree(path, ignore_errors=True)
+
+
+def calibrate_one(obs_doc: dict[str, Any], method: str) -> dict[str, Any]:
+    """Worker process: one method on the observations, the result document (JSON-safe)."""
+    from calib.observations import Observations
+    from calib.pipeline import calibrate, to_jsonable
+
+    return clean_json(to_jsonable(calibrate(Observations.from_dict(obs_doc), [method])))
 
 
 def plan_units(plan) -> list:

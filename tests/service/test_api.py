@@ -262,7 +262,7 @@ async def test_full_run_real_images_results_apply(tmp_path):
             kinds = {e["type"] for e in evs}
             assert {"state", "progress", "extraction", "fit"} <= kinds
             stages = {e["data"].get("stage") for e in evs if e["type"] == "progress"}
-            assert stages == {"acquisition", "extraction"}
+            assert stages == {"acquisition", "extraction", "calibration"}
             frames = (await c.get(f"{API}/runs/{rid}/frames")).json()
             assert sum(bool(f["board"]) for f in frames) > len(frames) // 2
             assert sum(f["rods"] or 0 for f in frames) > 4 * len(frames)
