@@ -236,6 +236,8 @@ class Acquisition:
         while i < len(self.units):
             u = self.units[i]
             await self._go.wait()
+            if self._aborting:  # a cancellation swallowed inside a device client must not lose the abort
+                raise asyncio.CancelledError
             step = self.plan.steps[u.step]
             try:
                 if step.line is not None:
