@@ -15,6 +15,7 @@ from collections.abc import Callable
 import numpy as np
 
 from .kinematics import dkm, ikm, jacobian_ratios, joint_points, leg_directions
+from .numdiff import central_jacobian
 from .parameters import PARAMETER_NAMES, I4Parameters, identifiable_parameters
 from .transforms import rot_z, rotvec_to_matrix
 
@@ -25,15 +26,6 @@ _KNOWN = {
     "S-q02/2": {"S": 1.0, "q02": -0.5},
     "S-(q04-q03)/2": {"S": 1.0, "q04": -0.5, "q03": 0.5},
 }
-
-
-def _fd(fun: Callable[[np.ndarray], np.ndarray], x: np.ndarray, h: float = 1e-6) -> np.ndarray:
-    cols = []
-    for i in range(x.size):
-        e = np.zeros_like(x)
-        e[i] = h
-        cols.append((fun(x + e) - fun(x - e)) / (2 * h))
-    return np.column_stack(cols)
 
 
 def _params(v: np.ndarray, ref: I4Parameters) -> I4Parameters:
@@ -80,7 +72,7 @@ def analyse(fun: Callable[[np.ndarray], np.ndarray], params: I4Parameters, n_nui
             rel_tol: float = 1e-7) -> dict:
     """Rank, singular values, condition number and identifiable combinations of a measurement model."""
     x0 = np.concatenate([np.asarray(params.vector()), np.zeros(n_nuisance)])
-    J = _fd(fun, x0)
+    J = central_jacobian(fun, x0, 1e-6)
     J7 = J[:, :7]
     if n_nuisance:
         Jn = J[:, 7:]

@@ -24,6 +24,7 @@ from scipy.optimize import least_squares
 from ..baseframe import BaseFrameResult, base_frame_from_observations
 from ..errors import ConvergenceError, IdentifiabilityError
 from ..kinematics import pose_from_joints_reduced
+from ..numdiff import central_jacobian
 from ..observations import Observations, PhaseArrays
 from ..parameters import COMBINATION_NAMES
 from ..transforms import rotvec_to_matrix
@@ -108,15 +109,6 @@ class _Problem:
         return np.einsum("mij,mjk,mlk->mil", G, P, G)
 
 
-def _jac(fun, x: np.ndarray, h: float = 1e-7) -> np.ndarray:
-    cols = []
-    for i in range(x.size):
-        e = np.zeros_like(x)
-        e[i] = h
-        cols.append((fun(x + e) - fun(x - e)) / (2 * h))
-    return np.column_stack(cols)
-
-
 def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None = None,
                        weighting: Weighting = "frobenius", phases: tuple[str, ...] = ("poses",),
                        encoder_std_m: float = 1e-6) -> MethodResult:
@@ -160,7 +152,7 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
             f"the combined fit has {m} rod observations in {prob.n_poses} pose(s); it needs rods in at least "
             "2 poses (20 recommended)")
     x0 = np.array([obs.nominal.combinations()[k] for k in COMBINATION_NAMES])
-    check_excitation(_jac(prob.residuals, x0), COMBINATION_NAMES)
+    check_excitation(central_jacobian(prob.residuals, x0), COMBINATION_NAMES)
 
     rod_cov = _rod_covariances(obs, data, prob)
     shape = prob.noise_shape(rod_cov)  # relative covariance of each rod's two entries, (m, 2, 2)
@@ -216,7 +208,7 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
                 break
             s2 = s2_new
     xi, w = x[:4], x[4:]
-    J4 = _jac(lambda v: eq8(v, w), xi)  # whitened-by-weights, (2m, 4)
+    J4 = central_jacobian(lambda v: eq8(v, w), xi)  # whitened-by-weights, (2m, 4)
     check_excitation(J4, COMBINATION_NAMES)
     r = (prob.model(xi) - prob.measured(rotvec_to_matrix(w) @ R0)).reshape(m, 2)
     # covariance: sandwich with the rods' noise model (scaled by the measured sigma^2) and the prior
@@ -226,7 +218,10 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
         Wa = Wh[a].T @ Wh[a]
         Wfull[2 * a:2 * a + 2, 2 * a:2 * a + 2] = Wa
         Sig[2 * a:2 * a + 2, 2 * a:2 * a + 2] = s2 * shape[a]
-    Jr = _jac(lambda v: (prob.model(v[:4]) - prob.measured(rotvec_to_matrix(v[4:]) @ R0)).ravel(), x)  # (2m, 7)
+    def raw(v: np.ndarray) -> np.ndarray:
+        return (prob.model(v[:4]) - prob.measured(rotvec_to_matrix(v[4:]) @ R0)).ravel()
+
+    Jr = central_jacobian(raw, x)  # unweighted, (2m, 7)
     cov_pose_fixed = _sandwich(Jr[:, :4], Wfull, Sig)
     if joint and s2 > 0:
         # joint normal equations: data term (weights W / s2 ... via sandwich) and the prior on w

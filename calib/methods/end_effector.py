@@ -24,6 +24,7 @@ from scipy.optimize import least_squares
 from ..baseframe import base_frame_from_observations
 from ..errors import ConvergenceError, I4calError, IdentifiabilityError
 from ..kinematics import dkm
+from ..numdiff import central_jacobian
 from ..observations import Observations
 from ..parameters import COMBINATION_NAMES
 from ..transforms import orthonormalize, rot_z, rotvec_to_matrix
@@ -75,15 +76,6 @@ class _Model:
         qm = np.column_stack([X + T - f1 + o1, X + T + f1 + 2 * s1 + o1, X - T - f3 + o3,
                               X - T + f3 + 2 * s3 + o3])
         return np.column_stack([qm - self.q, tilt])
-
-
-def _fd(fun, x: np.ndarray, h: float = 1e-7) -> np.ndarray:
-    cols = []
-    for i in range(x.size):
-        e = np.zeros_like(x)
-        e[i] = h
-        cols.append((fun(x + e) - fun(x - e)) / (2 * h))
-    return np.column_stack(cols)
 
 
 def calibrate_end_effector(obs: Observations, *, phases: tuple[str, ...] = ("poses",),
@@ -150,7 +142,7 @@ def calibrate_end_effector(obs: Observations, *, phases: tuple[str, ...] = ("pos
     def wres(x: np.ndarray) -> np.ndarray:
         return np.einsum("nij,nj->ni", Wh, model.residuals(x)).ravel()
 
-    check_excitation(_fd(lambda x: model.residuals(x).ravel(), x0), _NAMES)
+    check_excitation(central_jacobian(lambda x: model.residuals(x).ravel(), x0), _NAMES)
     p = x0.size
     x = x0
     nfev = 0
@@ -175,7 +167,7 @@ def calibrate_end_effector(obs: Observations, *, phases: tuple[str, ...] = ("pos
         x = sol.x
         nfev += sol.nfev
     r = model.residuals(x)
-    J = _fd(wres, x)
+    J = central_jacobian(wres, x)
     check_excitation(J, _NAMES)
     if np.sqrt(np.mean(r ** 2)) < 1e-12:
         cov_full = np.zeros((p, p))
@@ -205,7 +197,7 @@ def _solve(fun, x0: np.ndarray):
     r = fun(x)
     cost = float(r @ r)
     for _ in range(50):
-        J = _fd(fun, x, 1e-6)
+        J = central_jacobian(fun, x, 1e-6)
         step = np.linalg.lstsq(J, -r, rcond=None)[0]
         improved = False
         for alpha in (1.0, 0.5, 0.25, 0.125, 0.0625):  # backtracking line search
