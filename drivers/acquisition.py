@@ -425,26 +425,35 @@ class Acquisition:
         return i + (line.samples - k0)
 
 
-async def acquire(plan: Plan, bench_config, out: str | Path, *, resume: bool = False,
-                  progress: Callable[[Progress], None] | None = None, **kw: Any) -> RunResult:
-    """Open the bench's devices (by URI), run ``plan`` into ``out`` and close the devices."""
+def acquisition_from_config(plan: Plan, bench_config, out: str | Path, *, resume: bool = False,
+                            progress: Callable[[Progress], None] | None = None, **kw: Any) -> Acquisition:
+    """An :class:`Acquisition` on the bench's devices (opened by URI) with the bench file's settings."""
     from .config import open_actuators, open_camera, open_operator
 
     cfg = bench_config
-    actuators = open_actuators(cfg)
-    camera = open_camera(cfg)
-    operator = open_operator(cfg)
     opts: dict[str, Any] = dict(nominal=cfg.nominal_parameters(), limits=cfg.calib_limits(),
                                 settle_s=cfg.acquisition.settle_s, grab_timeout_s=cfg.camera.timeout_s,
                                 grab_retries=cfg.camera.grab_retries, line_rate_hz=cfg.acquisition.line_rate_hz,
                                 home=cfg.actuators.home_on_connect)
     opts.update(kw)
-    acq = Acquisition(plan, actuators, camera, out, operator=operator, resume=resume, progress=progress, **opts)
+    return Acquisition(plan, open_actuators(cfg), open_camera(cfg), Path(out), operator=open_operator(cfg),
+                       resume=resume, progress=progress, **opts)
+
+
+async def close_devices(acq: Acquisition) -> None:
+    """Close an acquisition's devices, ignoring errors (the run's own error is the one that matters)."""
+    for dev in (acq.camera, acq.actuators, acq.operator):
+        close = getattr(dev, "close", None)
+        if close is not None:
+            with contextlib.suppress(Exception):
+                await close()
+
+
+async def acquire(plan: Plan, bench_config, out: str | Path, *, resume: bool = False,
+                  progress: Callable[[Progress], None] | None = None, **kw: Any) -> RunResult:
+    """Open the bench's devices (by URI), run ``plan`` into ``out`` and close the devices."""
+    acq = acquisition_from_config(plan, bench_config, out, resume=resume, progress=progress, **kw)
     try:
         return await acq.run()
     finally:
-        for dev in (camera, actuators, operator):
-            close = getattr(dev, "close", None)
-            if close is not None:
-                with contextlib.suppress(Exception):
-                    await close()
+        await close_devices(acq)

@@ -448,8 +448,7 @@ class RunManager:
 
     async def _acquire(self, run_id: str, a: ActiveRun, resume: bool) -> None:
         from calib.plan import Plan
-        from drivers.acquisition import Acquisition, AcquisitionError
-        from drivers.config import open_actuators, open_camera, open_operator
+        from drivers.acquisition import AcquisitionError, acquisition_from_config, close_devices
         from drivers.errors import FrameError
 
         assert self.bench is not None
@@ -478,13 +477,9 @@ class RunManager:
                                            "total": p.total, "phase": p.phase, "eta_s": p.eta_s,
                                            "elapsed_s": p.elapsed_s, "message": p.message, "pose": a.pose})
 
-        actuators, camera, operator = open_actuators(cfg), open_camera(cfg), open_operator(cfg)
-        a.acq = Acquisition(plan, actuators, camera, out, operator=operator, nominal=cfg.nominal_parameters(),
-                            limits=cfg.calib_limits(), resume=resume or out.joinpath("dataset.json").exists(),
-                            progress=on_progress, settle_s=cfg.acquisition.settle_s,
-                            grab_timeout_s=cfg.camera.timeout_s, grab_retries=cfg.camera.grab_retries,
-                            line_rate_hz=cfg.acquisition.line_rate_hz, home=cfg.actuators.home_on_connect,
-                            camera_spec=dict(self.bench.camera_spec), extra={"service_run": run_id})
+        a.acq = acquisition_from_config(plan, cfg, out, resume=resume or out.joinpath("dataset.json").exists(),
+                                        progress=on_progress, camera_spec=dict(self.bench.camera_spec),
+                                        extra={"service_run": run_id})
         if a.aborting:
             a.acq.abort()
         try:
@@ -494,11 +489,7 @@ class RunManager:
             self.bench.devices[dev].fail(str(exc.cause))
             raise
         finally:
-            for dev in (camera, actuators, operator):
-                close = getattr(dev, "close", None)
-                if close is not None:
-                    with contextlib.suppress(Exception):
-                        await close()
+            await close_devices(a.acq)
 
     def _thread_progress(self, run_id: str, stage: str) -> Callable[[int, int], None]:
         loop = asyncio.get_running_loop()

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import contextlib
 import signal
 from pathlib import Path
 
@@ -38,8 +37,8 @@ def _run(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-    from drivers.acquisition import Acquisition, AcquisitionError
-    from drivers.config import load_bench, open_actuators, open_camera, open_operator
+    from drivers.acquisition import AcquisitionError, acquisition_from_config, close_devices
+    from drivers.config import load_bench
 
     cfg = load_bench(args.bench)
     nominal = cfg.nominal_parameters()
@@ -56,12 +55,7 @@ def _run(args: argparse.Namespace) -> int:
             console.print(f"[yellow]{p.state}[/]: {p.message}")
 
     async def main() -> int:
-        actuators, camera, operator = open_actuators(cfg), open_camera(cfg), open_operator(cfg)
-        acq = Acquisition(plan, actuators, camera, Path(args.out), operator=operator, nominal=nominal,
-                          limits=cfg.calib_limits(), resume=args.resume, progress=on_progress,
-                          settle_s=cfg.acquisition.settle_s, grab_timeout_s=cfg.camera.timeout_s,
-                          grab_retries=cfg.camera.grab_retries, line_rate_hz=cfg.acquisition.line_rate_hz,
-                          home=cfg.actuators.home_on_connect)
+        acq = acquisition_from_config(plan, cfg, Path(args.out), resume=args.resume, progress=on_progress)
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, acq.abort)  # abort stops the actuators, keeps the frames
@@ -69,11 +63,7 @@ def _run(args: argparse.Namespace) -> int:
             with bar:
                 res = await acq.run()
         finally:
-            for dev in (camera, actuators, operator):
-                close = getattr(dev, "close", None)
-                if close is not None:
-                    with contextlib.suppress(Exception):
-                        await close()
+            await close_devices(acq)
         console.print(f"{res.frames}/{res.total} frames in {res.path} ({res.elapsed_s:.1f} s)")
         return 0
 
