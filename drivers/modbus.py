@@ -3,7 +3,10 @@
 Every reply is checked (exception code, register count, unit id, echoed address); a request that
 gets no reply in time is retried on a *fresh* connection (the old one is closed), so a late reply
 can never be taken for the answer to another request; reconnection uses a bounded exponential
-back-off. One request is in flight at a time.
+back-off. One request is in flight at a time. On a serial line (RTU) a fresh connection is the same
+wire, and an RTU reply carries neither a transaction id nor the register address: after a timeout the
+port stays closed for ``late_reply_guard_s`` and is flushed when it reopens, so a reply up to
+``timeout_s + late_reply_guard_s`` late is discarded rather than taken for the next request's answer.
 
 A move follows one shape: check the targets (per-axis soft limits, then the nominal kinematic
 model), compute a timeout from the distances and speeds, write target + speed + start, poll until
@@ -84,6 +87,9 @@ class ModbusActuators:
     speed_m_s, accel_m_s2:
         Move speed of the axis that travels furthest (the others are scaled to arrive together) and the
         drive's acceleration, used only for the move timeout.
+    late_reply_guard_s:
+        RTU only: after a request timed out, the serial port stays closed this long (s) before it is
+        reopened and flushed, so that the late reply is discarded. ``None``: ``timeout_s``.
     """
 
     def __init__(self, *, transport: str = "tcp", host: str = "127.0.0.1", port: int = 502,
@@ -92,7 +98,8 @@ class ModbusActuators:
                  speed_m_s: float = 0.05, accel_m_s2: float = 0.5, timeout_s: float = 0.5, retries: int = 3,
                  backoff_s: float = 0.02, backoff_max_s: float = 1.0, poll_s: float = 0.002,
                  settle_s: float = 0.0, in_position_m: float = 2e-5, move_timeout_factor: float = 2.0,
-                 move_timeout_margin_s: float = 1.0, home_timeout_s: float = 60.0) -> None:
+                 move_timeout_margin_s: float = 1.0, home_timeout_s: float = 60.0,
+                 late_reply_guard_s: float | None = None) -> None:
         if transport not in ("tcp", "rtu", "rtu-tcp"):
             raise ValueError(f"unknown Modbus transport {transport!r}")
         self.transport = transport
@@ -112,6 +119,8 @@ class ModbusActuators:
         self.move_timeout_factor = float(move_timeout_factor)
         self.move_timeout_margin_s = float(move_timeout_margin_s)
         self.home_timeout_s = float(home_timeout_s)
+        self.late_reply_guard_s = float(self.timeout_s if late_reply_guard_s is None else late_reply_guard_s)
+        self._quiet_until = 0.0  # RTU: no new link before this monotonic time (a late reply may be on the wire)
         self._client: AsyncModbusTcpClient | AsyncModbusSerialClient | None = None
         self._lock = asyncio.Lock()
         self._free_bits = [0, 0, 0, 0]
@@ -185,7 +194,9 @@ class ModbusActuators:
                 try:
                     if self._client is None or not self._client.connected:
                         self.stats["reconnects"] += 1
-                        await self._open()
+                        if (quiet := self._quiet_until - time.monotonic()) > 0:
+                            await asyncio.sleep(quiet)
+                        await self._open()  # a serial port is flushed when it opens
                     self.stats["requests"] += 1
                     if kind == "read":
                         rr = await self._client.read_holding_registers(address, count=count_or_values,
@@ -203,6 +214,8 @@ class ModbusActuators:
                     # no reply in time: never reuse this link, a late reply could pair with the next request
                     last = f"no reply within {self.timeout_s:.3f} s ({type(exc).__name__})"
                     self._drop()
+                    if self.transport == "rtu":  # same wire: let the late reply land on a closed port
+                        self._quiet_until = time.monotonic() + self.late_reply_guard_s
                     continue
                 except ModbusException as exc:
                     last = f"Modbus error ({exc})"
