@@ -13,6 +13,7 @@ from .baseframe import BaseFrameResult, base_frame_from_observations
 from .errors import I4calError
 from .identifiability import identifiability
 from .methods import METHODS
+from .methods.iterations import IterationCallback
 from .methods.result import MethodResult
 from .observations import Observations
 from .parameters import COMBINATION_NAMES, PARAMETER_NAMES, I4Parameters
@@ -22,16 +23,18 @@ METHOD_NAMES = tuple(METHODS)
 RESULT_FORMAT = "i4cal.result/1"
 
 
-def run_method(name: str, obs: Observations, base_frame: BaseFrameResult | None = None) -> MethodResult:
+def run_method(name: str, obs: Observations, base_frame: BaseFrameResult | None = None, *,
+               on_iteration: IterationCallback | None = None) -> MethodResult:
     if name not in METHODS:
         raise I4calError(f"unknown method {name!r}; methods are {', '.join(METHODS)} or all")
     if name == "combined":
-        return METHODS[name](obs, base_frame=base_frame)
-    return METHODS[name](obs)
+        return METHODS[name](obs, base_frame=base_frame, on_iteration=on_iteration)
+    return METHODS[name](obs, on_iteration=on_iteration)
 
 
 def calibrate(obs: Observations, methods: Iterable[str] = METHOD_NAMES, *, strict: bool = False,
-              progress: Callable[[str, str], None] | None = None) -> dict[str, Any]:
+              progress: Callable[[str, str], None] | None = None,
+              on_iteration: IterationCallback | None = None) -> dict[str, Any]:
     """Run the methods, validate each result, and return the result document.
 
     Parameters
@@ -43,6 +46,9 @@ def calibrate(obs: Observations, methods: Iterable[str] = METHOD_NAMES, *, stric
         Raise the first method error instead of recording it in the document.
     progress : callable, optional
         Called as ``progress(method, state)`` with state ``"start"``/``"done"``/``"failed"``.
+    on_iteration : callable, optional
+        Called after each iteration of each method's fits with ``{"method", "stage", "iteration", "cost"}``
+        (:mod:`calib.methods.iterations`); it does not change the results.
 
     Returns
     -------
@@ -68,7 +74,7 @@ def calibrate(obs: Observations, methods: Iterable[str] = METHOD_NAMES, *, stric
             progress(name, "start")
         t0 = time.perf_counter()
         try:
-            res = run_method(name, obs, bf)
+            res = run_method(name, obs, bf, on_iteration=_tag(on_iteration, name))
         except I4calError as exc:
             if strict:
                 raise
@@ -105,6 +111,13 @@ def calibrate(obs: Observations, methods: Iterable[str] = METHOD_NAMES, *, stric
         with contextlib.suppress(I4calError, KeyError, ValueError):
             out["validation"]["truth"] = validate(obs, I4Parameters.from_mapping(truth["parameters"]))
     return out
+
+
+def _tag(on_iteration: IterationCallback | None, method: str) -> IterationCallback | None:
+    """``on_iteration`` with the method's name added to each report."""
+    if on_iteration is None:
+        return None
+    return lambda info: on_iteration({"method": method, **info})
 
 
 def _bound_for(obs: Observations, params: I4Parameters, res: MethodResult, bf: BaseFrameResult) -> dict:

@@ -28,6 +28,7 @@ from ..numdiff import central_jacobian
 from ..observations import Observations, PhaseArrays
 from ..parameters import COMBINATION_NAMES
 from ..transforms import rotvec_to_matrix
+from .iterations import IterationCallback, traced
 from .result import MethodResult, check_excitation, combos_dict, std_dict
 
 Weighting = Literal["frobenius", "gls"]
@@ -111,7 +112,7 @@ class _Problem:
 
 def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None = None,
                        weighting: Weighting = "frobenius", phases: tuple[str, ...] = ("poses",),
-                       encoder_std_m: float = 1e-6) -> MethodResult:
+                       encoder_std_m: float = 1e-6, on_iteration: IterationCallback | None = None) -> MethodResult:
     """Identify the four combinations from leg observations and the base frame (eq. 8).
 
     Parameters
@@ -129,6 +130,8 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
         Phases whose frames are fit poses.
     encoder_std_m : float
         Encoder noise, metres (propagated; negligible against direction noise in practice).
+    on_iteration : callable, optional
+        Receives ``{"stage", "iteration", "cost"}`` after each iteration of the fits (:mod:`.iterations`).
 
     Returns
     -------
@@ -173,8 +176,8 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
         return np.einsum("mij,mj->mi", Wh, r).ravel()
 
     # 1. the paper's fit: eq. 8 with the base frame of step 1
-    sol = least_squares(lambda xi: eq8(xi, np.zeros(3)), x0, method="lm", xtol=1e-14, ftol=1e-14, gtol=1e-14,
-                        max_nfev=500)
+    sol = least_squares(traced(lambda xi: eq8(xi, np.zeros(3)), on_iteration, "eq8"), x0, method="lm", xtol=1e-14,
+                        ftol=1e-14, gtol=1e-14, max_nfev=500)
     if sol.status <= 0 or not np.all(np.isfinite(sol.x)):
         raise ConvergenceError(f"combined fit did not converge: {sol.message}")
     x = np.concatenate([sol.x, np.zeros(3)])
@@ -191,13 +194,14 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
     #    inflates the residuals. Re-estimate it jointly with the parameters, with the step-1 estimate
     #    and its covariance as a prior, so that the fit and its covariance account for it.
     if joint and s2 > 0:
-        for _ in range(3):
+        for npass in range(3):
             sc = 1.0 / np.sqrt(s2)
 
             def full(xx: np.ndarray, sc: float = sc) -> np.ndarray:
                 return np.concatenate([sc * eq8(xx[:4], xx[4:]), Lw @ xx[4:]])
 
-            sol = least_squares(full, x, method="lm", xtol=1e-14, ftol=1e-14, gtol=1e-14, max_nfev=500)
+            sol = least_squares(traced(full, on_iteration, f"joint-{npass + 1}"), x, method="lm", xtol=1e-14,
+                                ftol=1e-14, gtol=1e-14, max_nfev=500)
             if sol.status <= 0 or not np.all(np.isfinite(sol.x)):
                 raise ConvergenceError(f"combined joint fit did not converge: {sol.message}")
             x = sol.x

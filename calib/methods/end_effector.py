@@ -28,6 +28,7 @@ from ..numdiff import central_jacobian
 from ..observations import Observations
 from ..parameters import COMBINATION_NAMES
 from ..transforms import orthonormalize, rot_z, rotvec_to_matrix
+from .iterations import IterationCallback, trf_callback
 from .result import MethodResult, check_excitation, combos_dict, std_dict
 
 _NAMES = (*COMBINATION_NAMES, "o1", "o3", "w_x", "w_y", "w_z", "t_y", "t_z", "tilt_x", "tilt_y", "b_x", "b_y")
@@ -79,7 +80,8 @@ class _Model:
 
 
 def calibrate_end_effector(obs: Observations, *, phases: tuple[str, ...] = ("poses",),
-                           encoder_std_m: float = 1e-6, iterations: int = 2) -> MethodResult:
+                           encoder_std_m: float = 1e-6, iterations: int = 2,
+                           on_iteration: IterationCallback | None = None) -> MethodResult:
     """Identify the four combinations from board poses and encoders (IKM residuals).
 
     Parameters
@@ -93,6 +95,8 @@ def calibrate_end_effector(obs: Observations, *, phases: tuple[str, ...] = ("pos
         Encoder noise, metres.
     iterations : int
         Re-weighting passes (noise covariance estimated from the residuals).
+    on_iteration : callable, optional
+        Receives ``{"stage", "iteration", "cost"}`` after each iteration of the fits (:mod:`.iterations`).
 
     Returns
     -------
@@ -161,7 +165,7 @@ def calibrate_end_effector(obs: Observations, *, phases: tuple[str, ...] = ("pos
             Cr[:, :4, :4] += encoder_std_m ** 2 * np.eye(4)
             Cr += 1e-30 * np.eye(6)
             Wh = np.linalg.cholesky(np.linalg.inv(Cr)).transpose(0, 2, 1)
-        sol = _solve(wres, x)
+        sol = _solve(wres, x, on_iteration, f"pass-{npass + 1}")
         if sol.status <= 0 or not np.all(np.isfinite(sol.x)):
             raise ConvergenceError(f"end-effector fit did not converge: {sol.message}")
         x = sol.x
@@ -190,12 +194,14 @@ def calibrate_end_effector(obs: Observations, *, phases: tuple[str, ...] = ("pos
         residuals=r)
 
 
-def _solve(fun, x0: np.ndarray):
+def _solve(fun, x0: np.ndarray, on_iteration: IterationCallback | None = None, stage: str = ""):
     """Trust-region least squares, then Gauss-Newton polishing to full precision."""
-    sol = least_squares(fun, x0, method="trf", x_scale="jac", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=3000)
+    sol = least_squares(fun, x0, method="trf", x_scale="jac", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=3000,
+                        callback=trf_callback(on_iteration, stage))
     x = sol.x
     r = fun(x)
     cost = float(r @ r)
+    polish = 0
     for _ in range(50):
         J = central_jacobian(fun, x, 1e-6)
         step = np.linalg.lstsq(J, -r, rcond=None)[0]
@@ -213,6 +219,9 @@ def _solve(fun, x0: np.ndarray):
             break
         done = cost - c_new < 1e-14 * max(cost, 1e-300)
         x, r, cost = x_new, r_new, c_new
+        if on_iteration is not None:
+            polish += 1
+            on_iteration({"stage": f"{stage} polish", "iteration": polish, "cost": 0.5 * cost})
         if done:
             break
     sol.x = x

@@ -24,6 +24,7 @@ from ..errors import ConvergenceError, IdentifiabilityError
 from ..observations import Observations, PhaseArrays
 from ..parameters import COMBINATION_NAMES, PARAMETER_NAMES, I4Parameters
 from ..transforms import unit
+from .iterations import IterationCallback, traced
 from .result import MethodResult, combos_dict, std_dict
 
 _PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
@@ -54,7 +55,7 @@ def intersect_lines(p: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return P, A, res
 
 
-def _step2(V: np.ndarray, x0: np.ndarray) -> np.ndarray:
+def _step2(V: np.ndarray, x0: np.ndarray, on_iteration: IterationCallback | None = None) -> np.ndarray:
     """(q02, q03, q04, H) from V (3, 3) rows OA2, OA3, OA4 at zero encoder (eq. 9)."""
     G = V @ V.T
     meas = np.array([G[a, b] for a, b in _PAIRS])
@@ -65,7 +66,8 @@ def _step2(V: np.ndarray, x0: np.ndarray) -> np.ndarray:
         Gb = Vb @ Vb.T
         return np.array([Gb[a, b] for a, b in _PAIRS])
 
-    sol = least_squares(lambda x: model(x) - meas, x0, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
+    sol = least_squares(traced(lambda x: model(x) - meas, on_iteration, "step 2"), x0, method="lm", xtol=1e-15,
+                        ftol=1e-15, gtol=1e-15)
     if sol.status <= 0:
         raise ConvergenceError(f"legs step 2 (eq. 9) did not converge: {sol.message}")
     return sol.x
@@ -92,18 +94,20 @@ class _LegsPipeline:
         A0 = A - self.q_lock[:, None] * x[None, :]
         return x, A0, A
 
-    def run(self, P: np.ndarray, U: np.ndarray, x2_init: np.ndarray | None = None) -> np.ndarray:
+    def run(self, P: np.ndarray, U: np.ndarray, x2_init: np.ndarray | None = None,
+            on_iteration: IterationCallback | None = None) -> np.ndarray:
         """Seven parameters (PARAMETER_NAMES order) from joint points P (4,2,3) and leg directions U (N,4,3)."""
         nom = self.nominal
         x, A0, _ = self.frame(P)
         V = A0[1:] - A0[0]
-        x2 = _step2(V, np.array([nom.q02, nom.q03, nom.q04, nom.H]) if x2_init is None else x2_init)
+        x2 = _step2(V, np.array([nom.q02, nom.q03, nom.q04, nom.H]) if x2_init is None else x2_init, on_iteration)
         q02, q03, q04, H = x2
         y = unit(V[1] - (V[1] @ x) * x)
-        L, S, D = self.steps34(x, y, A0, U, nom.L)
+        L, S, D = self.steps34(x, y, A0, U, nom.L, on_iteration)
         return np.array([H, q02, q03, q04, S, D, L])
 
-    def steps34(self, x: np.ndarray, y: np.ndarray, A0: np.ndarray, U: np.ndarray, L0: float):
+    def steps34(self, x: np.ndarray, y: np.ndarray, A0: np.ndarray, U: np.ndarray, L0: float,
+                on_iteration: IterationCallback | None = None):
         Aq = A0[None, :, :] + self.q_fit[:, :, None] * x[None, None, :]  # (N, 4, 3)
         # orient each leg direction from A to B (towards the rod's observed point)
         sgn = np.sign(np.einsum("nij,nij->ni", U, np.where(np.isnan(self.rod_p), 0.0, self.rod_p - Aq)))
@@ -124,7 +128,8 @@ class _LegsPipeline:
         if ok12.sum() + ok34.sum() < 3:
             raise IdentifiabilityError("legs step 3 needs both legs of a pair seen in at least 2 fit poses",
                                        parameter="L")
-        sol = least_squares(res, [L0], method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
+        sol = least_squares(traced(res, on_iteration, "step 3"), [L0], method="lm", xtol=1e-15, ftol=1e-15,
+                            gtol=1e-15)
         L = float(sol.x[0])
         B = Aq + L * Uo
         d12 = np.linalg.norm(B[ok12, 0] - B[ok12, 1], axis=1)
@@ -159,7 +164,8 @@ def _leg_directions(data: PhaseArrays) -> tuple[np.ndarray, np.ndarray, np.ndarr
 
 
 def calibrate_legs(obs: Observations, *, fit_phases: tuple[str, ...] = ("poses",),
-                   direction_std_rad: float | None = None) -> MethodResult:
+                   direction_std_rad: float | None = None,
+                   on_iteration: IterationCallback | None = None) -> MethodResult:
     """Identify all seven parameters from leg observations only (four steps).
 
     Parameters
@@ -171,6 +177,9 @@ def calibrate_legs(obs: Observations, *, fit_phases: tuple[str, ...] = ("poses",
         Phases used for steps 3 and 4 (the paper reuses the 20-pose set).
     direction_std_rad : float, optional
         Rod direction noise per tangent axis; estimated from the two rods of each leg when not given.
+    on_iteration : callable, optional
+        Receives ``{"stage", "iteration", "cost"}`` after each iteration of the fits of steps 2 and 3 (not of the
+        uncertainty propagation; :mod:`.iterations`).
 
     Returns
     -------
@@ -214,7 +223,7 @@ def calibrate_legs(obs: Observations, *, fit_phases: tuple[str, ...] = ("poses",
     pipe = _LegsPipeline(q_lock, data.q, pts, has_leg, nom)
     U_filled = np.where(has_leg[..., None], U, 0.0)
     x2 = None
-    seven = pipe.run(P, U_filled)
+    seven = pipe.run(P, U_filled, on_iteration=on_iteration)
     x2 = [*seven[1:4].tolist(), seven[0]]
     x2 = np.array(x2)
 
