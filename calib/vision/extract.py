@@ -40,6 +40,7 @@ from .board import BoardDetector, to_gray8
 from .rods import ROD_KEYS, RodSettings, image_ideal_bbox, leg_parallelism, measure_rods, predict_rods, rod_name
 
 Progress = Callable[[int, int], None]
+FrameCallback = Callable[[dict[str, Any]], None]
 
 
 @dataclass
@@ -152,18 +153,22 @@ def _task_rods(args: tuple[int, dict, dict | None]) -> tuple[int, Any]:
 
 
 def _run(fn: Callable, items: list, workers: int, init_args: tuple, progress: Progress | None,
-         offset: int, total: int) -> list:
+         offset: int, total: int, each: Callable[[Any], None] | None = None) -> list:
     out = []
     if workers <= 1 or len(items) < 4:
         _init_worker(*init_args)
         for k, it in enumerate(items):
             out.append(fn(it))
+            if each:
+                each(out[-1])
             if progress:
                 progress(offset + k + 1, total)
         return out
     with ProcessPoolExecutor(max_workers=workers, initializer=_init_worker, initargs=init_args) as ex:
         for k, r in enumerate(ex.map(fn, items, chunksize=max(1, len(items) // (8 * workers)))):
             out.append(r)
+            if each:
+                each(r)
             if progress:
                 progress(offset + k + 1, total)
     return out
@@ -263,7 +268,8 @@ def _short(reason: str) -> str:
 
 def extract_dataset(dataset: str | Path | Dataset, *, camera: CameraModel | None = None,
                     workers: int | None = None, progress: Progress | None = None,
-                    options: ExtractOptions | None = None) -> ExtractionResult:
+                    options: ExtractOptions | None = None, on_frame: FrameCallback | None = None
+                    ) -> ExtractionResult:
     """Extract observations v1 from a dataset v1 directory.
 
     Parameters
@@ -275,6 +281,9 @@ def extract_dataset(dataset: str | Path | Dataset, *, camera: CameraModel | None
         Processes (default: ``os.cpu_count()``); 1 runs in this process.
     progress : callable(done, total), optional
         Called after every frame of every stage (``total`` counts all stages).
+    on_frame : callable(info), optional
+        Called with what was found in each non-``camera`` frame, once after the board stage and once after the
+        rods stage (:func:`frame_info`).
 
     Raises
     ------
@@ -321,7 +330,8 @@ def extract_dataset(dataset: str | Path | Dataset, *, camera: CameraModel | None
         refined = (intr.board_ids.tolist(), intr.board_points.tolist())
     assert camera is not None
     init = (root, camera.to_dict(), refined, opts.min_corners, rs_dict)
-    boards = dict(_run(_task_board, obs_idx, workers, init, progress, done, total))
+    board_cb = None if on_frame is None else (lambda r: on_frame(frame_info(r[0], frames[r[0]].phase, r[1])))
+    boards = dict(_run(_task_board, obs_idx, workers, init, progress, done, total, board_cb))
     done += len(obs_idx)
     good = [i for i in obs_idx if "pose" in boards[i]]
     C = E = None
@@ -359,7 +369,13 @@ def extract_dataset(dataset: str | Path | Dataset, *, camera: CameraModel | None
             except I4calError:
                 b = None
         rod_items.append((i, C.to_dict(), b))
-    rods = dict(_run(_task_rods, rod_items, workers, init, progress, done, total))
+    rods_cb = None if on_frame is None else (
+        lambda r: on_frame(frame_info(r[0], frames[r[0]].phase, boards[r[0]], r[1])))
+    rods = dict(_run(_task_rods, rod_items, workers, init, progress, done, total, rods_cb))
+    if on_frame is not None:  # frames whose rods could not be looked for
+        for i in obs_idx:
+            if i not in rods:
+                on_frame(frame_info(i, frames[i].phase, boards[i], {"reason": placement_reason or "no prediction"}))
     if progress:
         progress(total, total)
     # -- assemble --------------------------------------------------------------------------------
@@ -423,3 +439,52 @@ def extract_dataset(dataset: str | Path | Dataset, *, camera: CameraModel | None
     if "truth" in dextra:
         obs["truth"] = dextra["truth"]
     return ExtractionResult(obs, summary, camera, intr, C, E)
+
+
+def frame_info(i: int, phase: str, board: dict[str, Any], rods: dict[str, Any] | None = None) -> dict[str, Any]:
+    """What extraction found in frame ``i`` (the ``on_frame`` report of :func:`extract_dataset`).
+
+    Parameters
+    ----------
+    i : int
+        Dataset frame index.
+    phase : str
+    board : dict
+        The board stage's result: ``{"pose": {...}}``, ``{"reason": str}`` or ``{"image_error": str}``.
+    rods : dict, optional
+        The rods stage's result (``{"rods": {name: dict | reason}, ...}`` or ``{"reason" | "image_error": str}``);
+        None after the board stage.
+
+    Returns
+    -------
+    dict
+        ``{"frame", "phase", "stage": "board" | "rods", "board": bool, "corners", "rms_px", "rods": int | None,
+        "rods_total": 8, "missing": {what: reason}, "detections": {"board": {"R", "t"} | None, "legs": {...}}}``;
+        ``detections`` has the observations v1 frame layout (camera frame, metres).
+    """
+    pose = board.get("pose")
+    missing: dict[str, str] = {}
+    if "image_error" in board:
+        missing["image"] = board["image_error"]
+    elif pose is None:
+        missing["board"] = board.get("reason", "board not found")
+    legs: dict[str, list] = {str(k): [None, None] for k in range(1, 5)}
+    found = None
+    if rods is not None:
+        found = 0
+        for leg, rod in ROD_KEYS:
+            key = rod_name(leg, rod)
+            if "image" in missing:
+                missing[key] = "image unreadable"
+            elif "rods" not in rods:
+                missing[key] = rods.get("reason") or rods.get("image_error") or "no prediction"
+            elif isinstance(rods["rods"][key], str):
+                missing[key] = rods["rods"][key]
+            else:
+                legs[str(leg + 1)][rod] = rods["rods"][key]
+                found += 1
+    return {"frame": int(i), "phase": phase, "stage": "board" if rods is None else "rods", "board": pose is not None,
+            "corners": None if pose is None else pose.get("n_corners"),
+            "rms_px": None if pose is None else pose.get("rms_px"), "rods": found, "rods_total": len(ROD_KEYS),
+            "missing": missing,
+            "detections": {"board": None if pose is None else {"R": pose["R"], "t": pose["t"]}, "legs": legs}}
