@@ -101,6 +101,7 @@ class GenICamCamera:
         nm = ia.remote_device.node_map
         self._trigger = self._setup_trigger(nm)
         self._info["software_trigger"] = self._trigger
+        self._info["trigger_mode"] = self._get(nm, "TriggerMode")  # read back from the device
         for name in ("Width", "Height", "PixelFormat"):
             v = self._get(nm, name)
             if v is not None:
