@@ -34,15 +34,22 @@ def main() -> int:
     ap.add_argument("--workers", type=int, default=2, help="extraction processes")
     ap.add_argument("--hz", type=float, default=20.0)
     args = ap.parse_args()
+    print_latencies(measure(args.paper_plan, args.workers, args.hz))
+    return 0
+
+
+def measure(paper_plan: bool = False, workers: int = 2, hz: float = 20.0) -> dict[str, dict[str, list[float]]]:
+    """Latencies (ms) of ``{run state: {"status" | "health": [...]}}`` polled while a run goes (also used by
+    ``i4cal bench speed``)."""
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     tmp = Path(tempfile.mkdtemp(prefix="i4cal-bench-"))
-    sizes = "" if args.paper_plan else ("[plan_sizes]\nn_base = 6\nn_fit = 10\nn_lock = 4\nn_validation = 4\n"
+    sizes = "" if paper_plan else ("[plan_sizes]\nn_base = 6\nn_fit = 10\nn_lock = 4\nn_validation = 4\n"
                                         "line_samples = 11\n")
     cfg = tmp / "service.toml"
     cfg.write_text(f'data_dir = "{tmp / "data"}"\nport = {port}\nsim_bench = true\n'
-                   f'extraction_workers = {args.workers}\ntoken_hashes = ["{hash_token(TOKEN)}"]\n{sizes}')
+                   f'extraction_workers = {workers}\ntoken_hashes = ["{hash_token(TOKEN)}"]\n{sizes}')
     proc = subprocess.Popen([sys.executable, "-m", "service", "serve", "--config", str(cfg), "--log-level", "warning"],
                             env={**os.environ, "PYTHONUNBUFFERED": "1"})
     url = f"http://127.0.0.1:{port}"
@@ -73,7 +80,7 @@ def main() -> int:
                 d["health"].append((t2 - t1) * 1e3)
                 if state in ("done", "failed", "aborted", "interrupted"):
                     break
-                time.sleep(max(0.0, 1.0 / args.hz - (time.perf_counter() - t0)))
+                time.sleep(max(0.0, 1.0 / hz - (time.perf_counter() - t0)))
             total = time.perf_counter() - t_start
             print(f"run {rid}: {state} in {total:.1f} s; timings {run['timings']}")
             if run.get("error"):
@@ -84,13 +91,16 @@ def main() -> int:
             proc.wait(30)
         except subprocess.TimeoutExpired:
             proc.kill()
+    return lat
+
+
+def print_latencies(lat: dict[str, dict[str, list[float]]]) -> None:
     print(f"{'state':<12} {'endpoint':<8} {'n':>5} {'p50 ms':>8} {'p99 ms':>8} {'max ms':>8}")
     for st, d in lat.items():
         for ep, xs in d.items():
             xs = sorted(xs)
             p99 = xs[min(len(xs) - 1, round(0.99 * (len(xs) - 1)))]
             print(f"{st:<12} {ep:<8} {len(xs):>5} {statistics.median(xs):>8.1f} {p99:>8.1f} {xs[-1]:>8.1f}")
-    return 0
 
 
 if __name__ == "__main__":
