@@ -12,7 +12,7 @@ from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Header, Query, Request, status
 from fastapi import Path as PathParam
-from fastapi.responses import FileResponse, Response, StreamingResponse
+from fastapi.responses import FileResponse, HTMLResponse, Response, StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field
 from starlette.background import BackgroundTask
 
@@ -237,6 +237,22 @@ async def run_result(run_id: RunId, manager: Manager, _: Reader) -> dict[str, An
     return run.result
 
 
+@router.get("/{run_id}/report", response_class=HTMLResponse,
+            responses={**ERRORS, 409: {"description": "no result (yet)"},
+                       200: {"content": {"text/html": {}}, "description": "one self-contained HTML file"}})
+async def run_report(run_id: RunId, manager: Manager, _: Reader,
+                     methods: Annotated[list[MethodName] | None, Query()] = None) -> HTMLResponse:
+    """The calibration report (parameters, uncertainties, bound, validation, residuals, identifiability, camera
+    calibration, worst frames, hashes) as one HTML file that opens offline (``i4cal report``)."""
+    from ..report import build_report, inputs_from_run
+
+    run = get_run(manager, run_id)
+    if run.result is None:
+        raise conflict(f"run is {run.state}; no result")
+    html = await asyncio.to_thread(lambda: build_report(inputs_from_run(manager.data_dir, run, methods)))
+    return HTMLResponse(html, headers={"Content-Disposition": f'inline; filename="i4cal-report-{run_id}.html"'})
+
+
 @router.post("/{run_id}/apply", response_model=CalibrationOut, status_code=status.HTTP_201_CREATED,
              responses={**ERRORS, 409: {"description": "no converged result"}})
 async def apply_run(run_id: RunId, manager: Manager, _: Writer, body: ApplyBody | None = None) -> CalibrationOut:
@@ -290,11 +306,15 @@ class FrameInfo(BaseModel):
     missing: dict[str, str] | None = None
 
 
-def _observations(manager: RunManager, run) -> dict[int, dict[str, Any]]:
+def _observations_doc(manager: RunManager, run) -> dict[str, Any] | None:
     p = manager.run_dir(run) / "observations.json"
     if not p.is_file():
-        return {}
-    doc = json.loads(p.read_text(encoding="utf-8"))
+        return None
+    return json.loads(p.read_text(encoding="utf-8"))
+
+
+def _observations(manager: RunManager, run) -> dict[int, dict[str, Any]]:
+    doc = _observations_doc(manager, run) or {}
     return {int(f["dataset_frame"]): f for f in doc.get("frames", []) if "dataset_frame" in f}
 
 
@@ -334,82 +354,18 @@ async def frame_image(run_id: RunId, manager: Manager, _: Reader,
 
 def _render_frame(manager: RunManager, run, src: Path, index: str, annotate: bool, max_width: int) -> bytes | None:
     import cv2
-    import numpy as np
+
+    from ..report.draw import annotated_frame, frame_camera
 
     doc = json.loads((src / "dataset.json").read_text(encoding="utf-8"))
     frames = doc.get("frames", [])
     if not frames:
         return None
     i = len(frames) - 1 if index == "latest" else int(index)
-    if i >= len(frames) or not frames[i].get("image"):
-        return None
-    path = (src / frames[i]["image"]).resolve()
-    if src not in path.parents or not path.is_file():
-        return None
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    obs_doc = _observations_doc(manager, run) if annotate else None
+    o = next((f for f in (obs_doc or {}).get("frames", []) if f.get("dataset_frame") == i), None)
+    img = annotated_frame(src, doc, i, o, frame_camera(doc, obs_doc), max_width)
     if img is None:
         return None
-    if img.dtype == np.uint16:
-        img = (img >> 8).astype(np.uint8)
-    if img.ndim == 2:
-        img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
-    if annotate:
-        o = _observations(manager, run).get(i)
-        if o is not None:
-            _draw(img, o, doc)
-    h, w = img.shape[:2]
-    if w > max_width:
-        img = cv2.resize(img, (max_width, round(h * max_width / w)), interpolation=cv2.INTER_AREA)
     ok, buf = cv2.imencode(".png", img)
     return buf.tobytes() if ok else None
-
-
-def _draw(img, o: dict[str, Any], doc: dict[str, Any]) -> None:
-    import cv2
-    import numpy as np
-
-    from calib.camera import CameraModel
-
-    cam_d = doc.get("camera") or {}
-    if cam_d.get("K") is None:
-        return
-    try:
-        cam = CameraModel(np.asarray(cam_d["K"], float), np.asarray(cam_d.get("dist") or [], float),
-                          int(cam_d["width"]), int(cam_d["height"]))
-    except (KeyError, ValueError, TypeError):
-        return
-
-    def proj(pts):
-        pts = np.asarray(pts, float)
-        pts = pts[pts[:, 2] > 1e-3]
-        return cam.project(pts) if len(pts) else np.zeros((0, 2))
-
-    b = o.get("board")
-    if b:
-        board = doc.get("board") or {}
-        sx = board.get("squares_x", 6) * board.get("square_length_m", 0.04)
-        sy = board.get("squares_y", 4) * board.get("square_length_m", 0.04)
-        R, t = np.asarray(b["R"]), np.asarray(b["t"])
-        corners = np.array([[0, 0, 0], [sx, 0, 0], [sx, sy, 0], [0, sy, 0]]) @ R.T + t
-        uv = proj(corners)
-        if len(uv) == 4:
-            cv2.polylines(img, [np.round(uv).astype(np.int32)], True, (0, 200, 0), 3, cv2.LINE_AA)
-        axes = np.array([[0, 0, 0], [0.05, 0, 0], [0, 0.05, 0]]) @ R.T + t
-        a = proj(axes)
-        if len(a) == 3:
-            p0 = tuple(int(v) for v in np.round(a[0]))
-            cv2.line(img, p0, tuple(int(v) for v in np.round(a[1])), (0, 0, 255), 2, cv2.LINE_AA)
-            cv2.line(img, p0, tuple(int(v) for v in np.round(a[2])), (0, 255, 0), 2, cv2.LINE_AA)
-    for rods in (o.get("legs") or {}).values():
-        for r in rods or []:
-            if not r or r.get("point") is None:
-                continue
-            p, u = np.asarray(r["point"], float), np.asarray(r["u"], float)
-            seg = np.array([p + s * u for s in np.linspace(-0.6, 0.6, 25)])
-            uv = proj(seg)
-            inside = (uv[:, 0] > -2000) & (uv[:, 0] < 4000) & (uv[:, 1] > -2000) & (uv[:, 1] < 4000)
-            if inside.sum() >= 2:
-                cv2.polylines(img, [np.round(uv[inside]).astype(np.int32)], False, (255, 120, 0), 2, cv2.LINE_AA)
-    cv2.putText(img, o.get("phase", ""), (20, 40), cv2.FONT_HERSHEY_SIMPLEX, 1.0, (0, 220, 255), 2, cv2.LINE_AA)
-
-

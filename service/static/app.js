@@ -57,7 +57,8 @@ async function refreshRuns() {
     if (r.id === selected) tr.className = "selected";
     tr.innerHTML = `<td><code>${r.id.slice(0, 8)}</code></td><td><span class="state ${r.state}">${r.state}</span></td>` +
       `<td>${esc(r.plan || (r.dataset ? "dataset " + r.dataset.slice(0, 8) : ""))}</td>` +
-      `<td>${r.progress.done}/${r.progress.total}</td><td>${new Date(r.created_at).toLocaleString()}</td><td>${esc(r.note)}</td>`;
+      `<td>${r.progress.done}/${r.progress.total}</td><td>${new Date(r.created_at).toLocaleString()}</td><td>${esc(r.note)}</td>` +
+      `<td>${r.has_result ? `<a class="report" href="${API}/runs/${r.id}/report" target="_blank" rel="noopener">report</a>` : ""}</td>`;
     tr.addEventListener("click", () => select(r.id));
     tb.appendChild(tr);
   }
