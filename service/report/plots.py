@@ -72,7 +72,8 @@ def gaps_plot(result: dict[str, Any]) -> str | None:
         for name, v in val.items():
             g = (v.get(key) or {}).get("gaps_mm") or []
             if g:
-                ax.plot(np.arange(1, len(g) + 1), g, marker="o", ms=3, lw=1, color=COLOURS.get(name), label=name)
+                ax.plot(np.arange(1, len(g) + 1), g, marker="o", ms=3, lw=1, color=COLOURS.get(name), label=name,
+                        ls=":" if name == "truth" else "-")
                 drawn = True
         ax.axhline(0.0, color="0.5", lw=0.8)
         ax.set_title(f"displacement gaps, {title}", fontsize=10)
