@@ -144,7 +144,7 @@ class RodSettings:
     sigma_px: float = 1.0          #: derivative-of-Gaussian scale on the profiles
     sample_px: float = 0.5         #: sample spacing along each profile
     min_contrast: float = 6.0      #: minimum |gradient| (grey levels per px) of an edge
-    width_tolerance: float = 0.35  #: accepted relative deviation of the limb spacing from the prediction
+    width_tolerance: float = 0.15  #: accepted relative deviation of the limb spacing from the prediction
     ransac_iters: int = 150
     inlier_px: float = 1.0         #: RANSAC inlier threshold
     min_points: int = 20           #: per limb, after outlier rejection
@@ -153,6 +153,8 @@ class RodSettings:
     min_plane_angle_rad: float = 2e-3
     border_px: float = 3.0         #: samples closer to the image border are dropped
     near_m: float = 0.05           #: the segment is clipped to z >= near_m
+    edge_bias_px: float = 0.06     #: slowly varying edge bias allowed for in ``cov_u`` (end-to-end, px)
+    neighbour_px: float = 4.0      #: limb points closer than this to another rod's predicted silhouette: dropped
 
 
 @dataclass
@@ -169,6 +171,7 @@ class RodMeasurement:
     plane_angle_rad: float = np.nan
     reason: str | None = None
     lines_px: list[Array] = field(default_factory=list)  # per limb (a, b, c) in ideal pixels, a^2+b^2=1
+    cov_u: Array | None = None  #: (3, 3) covariance of u (camera frame) from the limb edges' scatter
 
     @property
     def ok(self) -> bool:
@@ -181,6 +184,8 @@ class RodMeasurement:
              "n_points": [int(x) for x in self.n_points], "plane_angle_rad": float(self.plane_angle_rad)}
         if self.point is not None:
             d["point"] = self.point.tolist()
+        if self.cov_u is not None:
+            d["cov_u"] = self.cov_u.tolist()
         return d
 
 
@@ -273,15 +278,6 @@ def _edges_1d(g: Array, min_contrast: float, side: int = 3) -> tuple[Array, Arra
     return pi, si + off - corr, gp
 
 
-_TRIU: dict[int, tuple[NDArray[np.int_], NDArray[np.int_]]] = {}
-
-
-def _triu(n: int) -> tuple[NDArray[np.int_], NDArray[np.int_]]:
-    if n not in _TRIU:
-        _TRIU[n] = np.triu_indices(n, 1)
-    return _TRIU[n]
-
-
 def _gauss_deriv_kernel(sigma: float) -> Array:
     r = max(2, int(np.ceil(3 * sigma)))
     x = np.arange(-r, r + 1, dtype=np.float64)
@@ -297,9 +293,235 @@ def _inside_convex(pts: Array, poly: Array) -> NDArray[np.bool_]:
     return np.all(cr >= 0, axis=1) | np.all(cr <= 0, axis=1)
 
 
+@dataclass
+class _Segment:
+    """A predicted rod's visible axis segment in ideal pixels and its predicted limb offsets."""
+
+    a: Array            #: start (ideal px), shape (2,)
+    t_dir: Array        #: unit direction along the axis, shape (2,)
+    n_dir: Array        #: unit normal, shape (2,)
+    length: float       #: px
+    off1: Array         #: limb 1 offset along n at the start and the end (px), shape (2,)
+    off2: Array         #: limb 2 offset along n at the start and the end (px), shape (2,)
+
+    def limb_offsets(self, frac: Array) -> tuple[Array, Array]:
+        o1 = self.off1[0] + frac * (self.off1[1] - self.off1[0])
+        o2 = self.off2[0] + frac * (self.off2[1] - self.off2[0])
+        return o1, o2
+
+
+def _predicted_segment(camera: CameraModel, pred: RodPrediction, radius: float, near_m: float,
+                       box: Array) -> _Segment | str:
+    """The predicted rod in ideal pixels, clipped to z >= near and to the image; a reason if none."""
+    K = camera.K
+    top, bot = pred.top.copy(), pred.bottom.copy()
+    if top[2] < near_m and bot[2] < near_m:
+        return "predicted behind the camera"
+    if top[2] < near_m:
+        top = top + (bot - top) * (near_m - top[2]) / (bot[2] - top[2])
+    if bot[2] < near_m:
+        bot = bot + (top - bot) * (near_m - bot[2]) / (top[2] - bot[2])
+    try:
+        h1p, h2p = limb_planes(top, bot - top, radius)
+    except ValueError as exc:
+        return str(exc)
+    a2 = (K @ (top / top[2]))[:2]
+    b2 = (K @ (bot / bot[2]))[:2]
+    d2 = b2 - a2
+    t0, t1 = 0.0, 1.0  # Liang-Barsky clip to the ideal-pixel bounding box of the image
+    for p_, q_ in ((-d2[0], a2[0] - box[0]), (d2[0], box[2] - a2[0]), (-d2[1], a2[1] - box[1]),
+                   (d2[1], box[3] - a2[1])):
+        if abs(p_) < 1e-12:
+            if q_ < 0:
+                t0, t1 = 1.0, 0.0
+            continue
+        r_ = q_ / p_
+        if p_ < 0:
+            t0 = max(t0, r_)
+        else:
+            t1 = min(t1, r_)
+    if t1 <= t0:
+        return "rod predicted outside the image"
+    a2, b2 = a2 + t0 * d2, a2 + t1 * d2
+    length = float(np.linalg.norm(b2 - a2))
+    if length < 1e-6:
+        return "predicted rod seen end-on"
+    t_dir = (b2 - a2) / length
+    n_dir = np.array([-t_dir[1], t_dir[0]])
+    Kit = np.linalg.inv(K).T
+
+    def limb_offset(h: Array, c: Array) -> float:
+        lp = Kit @ h  # the limb line in ideal pixels
+        lp = lp / np.linalg.norm(lp[:2])
+        den = lp[:2] @ n_dir
+        return float(-(lp[:2] @ c + lp[2]) / den) if abs(den) > 1e-9 else np.nan
+
+    off1 = np.array([limb_offset(h1p, a2), limb_offset(h1p, b2)])
+    off2 = np.array([limb_offset(h2p, a2), limb_offset(h2p, b2)])
+    if not (np.all(np.isfinite(off1)) and np.all(np.isfinite(off2))):
+        return "degenerate predicted limb lines"
+    return _Segment(a2, t_dir, n_dir, length, off1, off2)
+
+
+def _seg_distance(pts: Array, a: Array, b: Array) -> tuple[Array, Array]:
+    """Distance (px) from points (N, 2) to the segment a-b and the fraction along it of the foot, each (N,)."""
+    d = b - a
+    L2 = float(d @ d)
+    t = np.clip(((pts - a) @ d) / L2, 0.0, 1.0) if L2 > 0 else np.zeros(len(pts))
+    foot = a[None] + t[:, None] * d[None]
+    return np.linalg.norm(pts - foot, axis=1), t
+
+
+def _pair_edges(pi: NDArray[np.int_], xo: Array, gs: Array, pc: Array, pw: Array, band_px: float,
+                width_tol: float) -> tuple[NDArray[np.int_], Array, Array, NDArray[np.int_]]:
+    """Per profile, the pair of opposite-polarity edges that best matches the predicted rod (vectorised).
+
+    Parameters
+    ----------
+    pi : ndarray of int, shape (E,)
+        Profile index of each edge, sorted ascending.
+    xo, gs : ndarray, shape (E,)
+        Edge offset along the profile normal (px) and signed gradient.
+    pc, pw : ndarray, shape (P,)
+        Predicted rod centre offset and width (px) per profile.
+
+    Returns
+    -------
+    k : ndarray of int, shape (M,)
+        Profiles with a pair.
+    x_lo, x_hi : ndarray, shape (M,)
+        The pair's lower and upper offsets (px).
+    polarity : ndarray of int, shape (M,)
+        +1 when the edge at ``x_lo`` rises (a rod brighter than its surroundings), -1 otherwise.
+    """
+    near = np.abs(xo - pc[pi]) < pw[pi] / 2 + band_px
+    pi, xo, gs = pi[near], xo[near], gs[near]
+    if pi.size < 2:
+        e = np.zeros(0, dtype=np.int_)
+        return e, np.zeros(0), np.zeros(0), e
+    counts = np.bincount(pi)
+    cand_i: list[NDArray[np.int_]] = []
+    cand_j: list[NDArray[np.int_]] = []
+    for d in range(1, int(counts.max())):
+        i = np.arange(pi.size - d)
+        same = pi[i] == pi[i + d]
+        cand_i.append(i[same])
+        cand_j.append(i[same] + d)
+    if not cand_i:
+        e = np.zeros(0, dtype=np.int_)
+        return e, np.zeros(0), np.zeros(0), e
+    ii = np.concatenate(cand_i)
+    jj = np.concatenate(cand_j)
+    k = pi[ii]
+    wdt = np.abs(xo[jj] - xo[ii])
+    ok = (np.abs(wdt - pw[k]) < width_tol * pw[k]) & (gs[ii] * gs[jj] < 0)
+    ii, jj, k, wdt = ii[ok], jj[ok], k[ok], wdt[ok]
+    if ii.size == 0:
+        e = np.zeros(0, dtype=np.int_)
+        return e, np.zeros(0), np.zeros(0), e
+    cen = 0.5 * (xo[ii] + xo[jj])
+    # the width is predicted far better than the position (a placement error shifts the rod more
+    # than it scales it): a pair of the wrong width (a limb and the edge of a specular streak, say)
+    # is penalised hard even when its edges are stronger than the true limb's
+    sw = 0.5 + 0.04 * pw[k]
+    score = (np.minimum(np.abs(gs[ii]), np.abs(gs[jj])) * np.exp(-0.5 * ((wdt - pw[k]) / sw) ** 2)
+             / (1.0 + (np.abs(cen - pc[k]) / 4.0) ** 2))
+    # best pair per profile: sort by (profile, -score) and take the first of each profile
+    order = np.lexsort((-score, k))
+    first = np.ones(order.size, dtype=bool)
+    first[1:] = k[order][1:] != k[order][:-1]
+    best = order[first]
+    i_b, j_b = ii[best], jj[best]
+    lo_is_i = xo[i_b] < xo[j_b]
+    x_lo = np.where(lo_is_i, xo[i_b], xo[j_b])
+    x_hi = np.where(lo_is_i, xo[j_b], xo[i_b])
+    g_lo = np.where(lo_is_i, gs[i_b], gs[j_b])
+    return k[best], x_lo, x_hi, np.where(g_lo > 0, 1, -1)
+
+
+def _line_cov(pts: Array, line: Array, max_lag: int = 12) -> tuple[Array, Array, float]:
+    """Centroid, direction and the effective residual variance of a TLS line through points (N, 2).
+
+    Returns (centroid (2,), unit direction (2,), s2 in px^2); the line's normal angle then has
+    variance ``s2 / sum(t^2)`` and its offset at the centroid ``s2 / N``. Edge errors of neighbouring
+    profiles are correlated (background texture and shading vary slowly along a limb), so ``s2`` is
+    the residual variance times the long-run factor ``1 + 2 sum_k w_k rho_k`` (autocorrelation of the
+    residuals ordered along the line, Bartlett weights, lags up to ``max_lag``), floored at 1.
+    """
+    c = pts.mean(0)
+    t_dir = np.array([line[1], -line[0]])
+    r = pts @ line[:2] + line[2]
+    n = len(r)
+    s2 = float(r @ r) / max(n - 2, 1)
+    rr = r[np.argsort((pts - c) @ t_dir)]
+    rr = rr - rr.mean()
+    v0 = float(rr @ rr)
+    factor = 1.0
+    if v0 > 0:
+        L = min(max_lag, n // 4)
+        for k in range(1, L + 1):
+            factor += 2.0 * (1.0 - k / (L + 1)) * float(rr[:-k] @ rr[k:]) / v0
+    return c, t_dir, s2 * max(factor, 1.0)
+
+
+def _u_from_lines(K: Array, lines: list[Array], inner: Array) -> Array:
+    """Axis direction from two limb lines (ideal px) with the planes' signs fixed by an interior point."""
+    hs = []
+    for line in lines:
+        h = K.T @ line
+        h = h / np.linalg.norm(h)
+        hs.append(h if h @ inner > 0 else -h)
+    u = np.cross(hs[0], hs[1])
+    return u / np.linalg.norm(u)
+
+
+def _direction_covariance(K: Array, fits: list[tuple[Array, Array, float, Array]], inner: Array,
+                          edge_bias_px: float = 0.06) -> Array:
+    """Covariance (3, 3) of the axis direction from the two limb fits' line uncertainties.
+
+    Each fit is (centroid, unit direction, sigma^2, points); the line is perturbed by a rotation about
+    its centroid (variance sigma^2 / sum t^2) and a shift along its normal (variance sigma^2 / N),
+    propagated to ``u = normalize(h1 x h2)`` by central differences. ``edge_bias_px`` adds a slowly
+    varying edge bias (sampling phase, shading, background) as a random linear trend along each limb
+    whose end-to-end difference has that standard deviation (angle variance ``(b / span)^2``, offset
+    variance ``(b / 2)^2``). The depth component of u is
+    ~1/(plane angle) times less precise than its image component: the covariance is strongly
+    anisotropic, which the combined method's GLS weighting uses.
+    """
+    def lines_of(p: Array) -> list[Array]:
+        out = []
+        for j, (c, td, _s2, _pts) in enumerate(fits):
+            ang, sh = p[2 * j], p[2 * j + 1]
+            cs, sn = np.cos(ang), np.sin(ang)
+            d = np.array([cs * td[0] - sn * td[1], sn * td[0] + cs * td[1]])
+            n = np.array([-d[1], d[0]])
+            out.append(np.array([n[0], n[1], -(n @ c) - sh]))
+        return out
+
+    # keep the sign convention of the fitted lines: the normal is (-d_y, d_x) of the direction
+    p0 = np.zeros(4)
+    u0 = _u_from_lines(K, lines_of(p0), inner)
+    var = []
+    for c, td, s2, pts in fits:
+        t = (pts - c) @ td
+        span = max(float(t.max() - t.min()), 1.0)
+        var += [s2 / max(float(t @ t), 1e-9) + (edge_bias_px / span) ** 2, s2 / len(pts) + (0.5 * edge_bias_px) ** 2]
+    J = np.zeros((3, 4))
+    for k in range(4):
+        e = np.zeros(4)
+        e[k] = 1e-6 if k % 2 == 0 else 1e-3
+        up = _u_from_lines(K, lines_of(p0 + e), inner)
+        um = _u_from_lines(K, lines_of(p0 - e), inner)
+        up = up if up @ u0 > 0 else -up
+        um = um if um @ u0 > 0 else -um
+        J[:, k] = (up - um) / (2 * e[k])
+    return J @ np.diag(var) @ J.T
+
+
 def measure_rod(gray: np.ndarray, camera: CameraModel, pred: RodPrediction, radius: float,
                 settings: RodSettings | None = None, occluders: list[Array] | None = None,
-                rng: np.random.Generator | None = None, ideal_bbox: Array | None = None) -> RodMeasurement:
+                rng: np.random.Generator | None = None, ideal_bbox: Array | None = None,
+                neighbours: list[tuple[Array, Array, float]] | None = None) -> RodMeasurement:
     """Measure one rod in an image.
 
     Parameters
@@ -313,97 +535,52 @@ def measure_rod(gray: np.ndarray, camera: CameraModel, pred: RodPrediction, radi
         Rod radius, metres.
     occluders : list of ndarray, shape (M, 2)
         Convex polygons in ideal pixels that hide the rod (e.g. the board); profiles inside are dropped.
+    ideal_bbox : ndarray, shape (4,), optional
+        :func:`image_ideal_bbox` of the camera (computed when not given).
+    neighbours : list of (a, b, half_width_px)
+        The other rods' predicted axis segments in ideal pixels (a, b shape (2,)) and half-widths:
+        a limb point closer to one of them than its half-width plus ``settings.neighbour_px`` is
+        dropped (its edge is merged with or hidden by the other rod's).
+
+    Returns
+    -------
+    RodMeasurement
+        With ``u``, ``point``, quality figures and ``cov_u`` (3x3 covariance of u from the limb
+        edges' residual scatter), or ``reason`` when the rod was not measured.
     """
     s = settings or RodSettings()
     rng = rng or np.random.default_rng(0)
     out = RodMeasurement(pred.leg, pred.rod)
     K = camera.K
-    top, bot = pred.top.copy(), pred.bottom.copy()
-    # clip the segment to z >= near
-    if top[2] < s.near_m and bot[2] < s.near_m:
-        out.reason = "predicted behind the camera"
-        return out
-    if top[2] < s.near_m:
-        top = top + (bot - top) * (s.near_m - top[2]) / (bot[2] - top[2])
-    if bot[2] < s.near_m:
-        bot = bot + (top - bot) * (s.near_m - bot[2]) / (top[2] - bot[2])
-    # the segment in ideal pixels, clipped to the (undistorted) image region
-    try:
-        h1p, h2p = limb_planes(top, bot - top, radius)
-    except ValueError as exc:
-        out.reason = str(exc)
-        return out
-    a_px = K @ (top / top[2])
-    b_px = K @ (bot / bot[2])
-    a2, b2 = a_px[:2], b_px[:2]
-    # clip the 2-D segment to the ideal-pixel bounding box of the image (Liang-Barsky)
     box = ideal_bbox if ideal_bbox is not None else image_ideal_bbox(camera)
-    d2 = b2 - a2
-    t0, t1 = 0.0, 1.0
-    for p_, q_ in ((-d2[0], a2[0] - box[0]), (d2[0], box[2] - a2[0]), (-d2[1], a2[1] - box[1]),
-                   (d2[1], box[3] - a2[1])):
-        if abs(p_) < 1e-12:
-            if q_ < 0:
-                t0, t1 = 1.0, 0.0
-            continue
-        r_ = q_ / p_
-        if p_ < 0:
-            t0 = max(t0, r_)
-        else:
-            t1 = min(t1, r_)
-    if t1 <= t0:
-        out.reason = "rod predicted outside the image"
+    seg = _predicted_segment(camera, pred, radius, s.near_m, box)
+    if isinstance(seg, str):
+        out.reason = seg
         return out
-    a2, b2 = a2 + t0 * d2, a2 + t1 * d2
-    length = float(np.linalg.norm(b2 - a2))
-    if length < 1e-6:
-        out.reason = "predicted rod seen end-on"
-        return out
-    t_dir = (b2 - a2) / length
-    n_dir = np.array([-t_dir[1], t_dir[0]])
-    # predicted limb offsets along n (ideal px), measured at the segment's middle
-    def limb_offset(h: Array, c: Array) -> float:
-        lp = np.linalg.inv(K).T @ h  # line in ideal pixels
-        lp = lp / np.linalg.norm(lp[:2])
-        # signed distance from point c along n to the line: solve lp.(c + x n) = 0
-        den = lp[:2] @ n_dir
-        return float(-(lp[:2] @ c + lp[2]) / den) if abs(den) > 1e-9 else np.nan
-    # limit the length sampled: image bounds are checked per sample below
-    ts = np.arange(0.0, length, s.step_px)
+    n_dir = seg.n_dir
+    ts = np.arange(0.0, seg.length, s.step_px)
     if ts.size > 1500:
-        ts = np.linspace(0.0, length, 1500)
-    centres = a2[None] + ts[:, None] * t_dir[None]
-    # width varies along the rod (perspective): interpolate the limb offsets between the ends
-    off1 = np.array([limb_offset(h1p, a2), limb_offset(h1p, b2)])
-    off2 = np.array([limb_offset(h2p, a2), limb_offset(h2p, b2)])
-    if not np.all(np.isfinite(off1)) or not np.all(np.isfinite(off2)):
-        out.reason = "degenerate predicted limb lines"
-        return out
-    # keep centres inside the image (after distortion) and outside occluders
-    xn = camera.from_ideal_pixels(centres)
-    dpx = camera.distort_normalized(xn)
-    # guard against the distortion polynomial's fold-back far outside the field of view: the
-    # samples must lie inside the ideal-pixel bounding box of the image
+        ts = np.linspace(0.0, seg.length, 1500)
+    centres = seg.a[None] + ts[:, None] * seg.t_dir[None]
+    # keep centres inside the image (after distortion; the ideal-pixel box guards against the
+    # distortion polynomial's fold-back far outside the field of view) and outside occluders
+    dpx = camera.distort_normalized(camera.from_ideal_pixels(centres))
     inside = ((dpx[:, 0] >= s.border_px) & (dpx[:, 0] <= camera.width - 1 - s.border_px)
               & (dpx[:, 1] >= s.border_px) & (dpx[:, 1] <= camera.height - 1 - s.border_px)
               & (centres[:, 0] >= box[0]) & (centres[:, 0] <= box[2])
               & (centres[:, 1] >= box[1]) & (centres[:, 1] <= box[3]))
-    half = 0.5 * float(np.max(np.abs(np.concatenate([off1 - off2]))))
-    if occluders:
-        for poly in occluders:
-            # a profile is hidden when any part of its span is inside the polygon
-            for k in (-1.0, 0.0, 1.0):
-                inside &= ~_inside_convex(centres + k * (half + 4.0) * n_dir[None], poly)
+    half = 0.5 * float(np.max(np.abs(seg.off1 - seg.off2)))
+    for poly in occluders or []:
+        # a profile is hidden when any part of its span is inside the polygon
+        for k in (-1.0, 0.0, 1.0):
+            inside &= ~_inside_convex(centres + k * (half + 4.0) * n_dir[None], poly)
     if inside.sum() * s.step_px < s.min_length_px:
         vis = inside.sum() * s.step_px
-        out.reason = (f"not enough of the rod visible ({vis:.0f} px of {length:.0f} px predicted; "
+        out.reason = (f"not enough of the rod visible ({vis:.0f} px of {seg.length:.0f} px predicted; "
                       "outside the image or hidden by the board)")
         return out
-    ts = ts[inside]
-    centres = centres[inside]
-    frac = ts / length
-    o1 = off1[0] + frac * (off1[1] - off1[0])
-    o2 = off2[0] + frac * (off2[1] - off2[0])
+    ts, centres = ts[inside], centres[inside]
+    o1, o2 = seg.limb_offsets(ts / seg.length)
     lo = np.minimum(o1, o2).min() - s.band_px
     hi = np.maximum(o1, o2).max() + s.band_px
     ds = s.sample_px
@@ -417,68 +594,43 @@ def measure_rod(gray: np.ndarray, camera: CameraModel, pred: RodPrediction, radi
     g = cv2.filter2D(prof, cv2.CV_32F, ker[None, ::-1].astype(np.float32), borderType=cv2.BORDER_REPLICATE)
     g = g.astype(np.float64) / ds  # grey levels per pixel
     pi, pos, sg = _edges_1d(g, s.min_contrast, max(2, round(3.0 / ds)))
-    off_pos = lo + pos * ds
-    # pair selection per profile
-    pw = np.abs(o2 - o1)
-    pc = 0.5 * (o1 + o2)
-    left_is_1 = (o1 < o2)  # the limb with the smaller offset
-    pol: list[int] = []
-    e1: list[tuple[int, float]] = []
-    e2: list[tuple[int, float]] = []
     order = np.argsort(pi, kind="stable")
-    pi, off_pos, sg = pi[order], off_pos[order], sg[order]
-    bounds = np.searchsorted(pi, np.arange(len(ts) + 1))
-    for k in range(len(ts)):
-        a, b = bounds[k], bounds[k + 1]
-        if b - a < 2:
-            continue
-        xo, gg = off_pos[a:b], sg[a:b]
-        near = np.abs(xo - pc[k]) < pw[k] / 2 + s.band_px
-        xo, gg = xo[near], gg[near]
-        if xo.size < 2:
-            continue
-        ii, jj = _triu(xo.size)
-        wdt = np.abs(xo[jj] - xo[ii])
-        ok = (np.abs(wdt - pw[k]) < s.width_tolerance * pw[k]) & (gg[ii] * gg[jj] < 0)
-        if not ok.any():
-            continue
-        ii, jj = ii[ok], jj[ok]
-        cen = 0.5 * (xo[ii] + xo[jj])
-        score = (np.minimum(np.abs(gg[ii]), np.abs(gg[jj]))
-                 / (1.0 + (np.abs(cen - pc[k]) / 4.0) ** 2 + (np.abs(xo[jj] - xo[ii]) - pw[k]) ** 2 / 4.0))
-        m = int(np.argmax(score))
-        lo_i = ii[m] if xo[ii[m]] < xo[jj[m]] else jj[m]
-        x_lo, x_hi = sorted((xo[ii[m]], xo[jj[m]]))
-        pol.append(1 if gg[lo_i] > 0 else -1)
-        if left_is_1[k]:
-            e1.append((k, x_lo))
-            e2.append((k, x_hi))
-        else:
-            e1.append((k, x_hi))
-            e2.append((k, x_lo))
-    # one polarity per rod (brighter or darker than its surroundings): the pairs of the other
-    # polarity are gaps between two bright things (e.g. the two rods of a leg), dropped
-    if pol:
-        polarity = np.asarray(pol)
-        keep = polarity == (1 if polarity.sum() >= 0 else -1)
-        e1 = [e for e, kp in zip(e1, keep, strict=True) if kp]
-        e2 = [e for e, kp in zip(e2, keep, strict=True) if kp]
-    lines = []
-    rms = []
-    npts = []
-    for e in (e1, e2):
-        if len(e) < s.min_points:
-            out.reason = (f"too few limb edge points ({len(e)} < {s.min_points}): rod not found in its search band")
+    k, x_lo, x_hi, pol = _pair_edges(pi[order], lo + pos[order] * ds, sg[order], 0.5 * (o1 + o2),
+                                     np.abs(o2 - o1), s.band_px, s.width_tolerance)
+    # one polarity per rod (brighter or darker than its surroundings): pairs of the other polarity
+    # are gaps between two bright things (e.g. the two rods of a leg), dropped
+    if k.size:
+        keep = pol == (1 if pol.sum() >= 0 else -1)
+        k, x_lo, x_hi = k[keep], x_lo[keep], x_hi[keep]
+    one_low = o1[k] < o2[k]
+    edges = (np.where(one_low, x_lo, x_hi), np.where(one_low, x_hi, x_lo))
+    pred_off = (o1[k], o2[k])
+    lines: list[Array] = []
+    fits = []
+    rms: list[float] = []
+    npts: list[int] = []
+    for x_e, x_p in zip(edges, pred_off, strict=True):
+        pts = centres[k] + x_e[:, None] * n_dir[None]
+        if neighbours:
+            # drop limb points whose edge may merge with another rod's silhouette
+            limb_pred = centres[k] + x_p[:, None] * n_dir[None]
+            clear = np.ones(len(pts), dtype=bool)
+            for a_n, b_n, hw in neighbours:
+                dist, _ = _seg_distance(limb_pred, a_n, b_n)
+                clear &= dist > hw + s.neighbour_px
+            pts = pts[clear]
+        if len(pts) < s.min_points:
+            out.reason = (f"too few limb edge points ({len(pts)} < {s.min_points}): rod not found in its "
+                          "search band, or too close to another rod")
             return out
-        kk = np.array([x[0] for x in e])
-        xo = np.array([x[1] for x in e])
-        pts = centres[kk] + xo[:, None] * n_dir[None]
         line, inl = robust_line(pts, rng, s.ransac_iters, s.inlier_px)
         if not np.all(np.isfinite(line)) or inl.sum() < s.min_points:
-            out.reason = f"limb line fit failed ({int(inl.sum())} inliers of {len(e)})"
+            out.reason = f"limb line fit failed ({int(inl.sum())} inliers of {len(pts)})"
             return out
         r = pts[inl] @ line[:2] + line[2]
         lines.append(line)
+        c, td, s2 = _line_cov(pts[inl], line)
+        fits.append((c, td, s2, pts[inl]))
         rms.append(float(np.sqrt(np.mean(r ** 2))))
         npts.append(int(inl.sum()))
     out.lines_px = lines
@@ -487,28 +639,19 @@ def measure_rod(gray: np.ndarray, camera: CameraModel, pred: RodPrediction, radi
     if max(rms) > s.max_rms_px:
         out.reason = f"limb edges too scattered (residual RMS {max(rms):.2f} px > {s.max_rms_px} px)"
         return out
-    # interpretation-plane normals h = K^T l, signed so that the predicted axis is on the positive side
-    mid = np.append(0.5 * (a2 + b2), 1.0)
-    # use the measured centre line for the sign test
+    # interpretation-plane normals h = K^T l, signed so that a point between the two measured limbs
+    # (near the middle of the visible part) is on their positive side
+    cmid = centres[len(centres) // 2]
+    xs = []
+    for line in lines:
+        den = line[:2] @ n_dir
+        xs.append(-(cmid @ line[:2] + line[2]) / den if abs(den) > 1e-9 else 0.0)
+    inner = np.linalg.inv(K) @ np.append(cmid + 0.5 * (xs[0] + xs[1]) * n_dir, 1.0)
     hs = []
     for line in lines:
         h = K.T @ line
         h = h / np.linalg.norm(h)
-        hs.append(h)
-    l_c = lines[0] * np.sign(lines[0][:2] @ lines[1][:2])
-    # a point between the two measured lines, near the middle of the visible part
-    cmid = centres[len(centres) // 2]
-    d1 = cmid @ lines[0][:2] + lines[0][2]
-    d2 = cmid @ lines[1][:2] + lines[1][2]
-    # move cmid along n to the midpoint between the limbs
-    n1 = lines[0][:2] @ n_dir
-    n2 = lines[1][:2] @ n_dir
-    x1 = -d1 / n1 if abs(n1) > 1e-9 else 0.0
-    x2 = -d2 / n2 if abs(n2) > 1e-9 else 0.0
-    inner = np.append(cmid + 0.5 * (x1 + x2) * n_dir, 1.0)
-    del l_c, mid
-    m_in = np.linalg.inv(K) @ inner
-    hs = [h if h @ m_in > 0 else -h for h in hs]
+        hs.append(h if h @ inner > 0 else -h)
     ang = float(np.arccos(np.clip(abs(hs[0] @ hs[1]), -1.0, 1.0)))
     out.plane_angle_rad = ang
     if ang < s.min_plane_angle_rad:
@@ -521,9 +664,17 @@ def measure_rod(gray: np.ndarray, camera: CameraModel, pred: RodPrediction, radi
         return out
     if u @ pred.u < 0:
         u = -u
+    # report the axis point seen at the middle of the visible part (nearest the ray through the
+    # centre line there), not the point nearest the camera centre, which for a rod seen obliquely
+    # lies far outside the image and carries the direction's error multiplied by that distance
+    ray = inner / np.linalg.norm(inner)
+    w = u - (u @ ray) * ray
+    if float(w @ w) > 1e-12:
+        X = X - ((X @ w) / float(w @ w)) * u
     out.h = (hs[0], hs[1])
     out.u = u
     out.point = X
+    out.cov_u = _direction_covariance(K, fits, inner, s.edge_bias_px)
     return out
 
 
@@ -537,11 +688,62 @@ def image_ideal_bbox(camera: CameraModel, margin_px: float = 2.0) -> Array:
 def measure_rods(gray: np.ndarray, camera: CameraModel, preds: list[RodPrediction], radius: float,
                  settings: RodSettings | None = None, occluders: list[Array] | None = None,
                  seed: int = 0, ideal_bbox: Array | None = None) -> list[RodMeasurement]:
-    """Measure every predicted rod of a frame (see :func:`measure_rod`)."""
+    """Measure every predicted rod of a frame (see :func:`measure_rod`).
+
+    Each rod's limb points near another rod's predicted silhouette are dropped. When the two rods of a
+    leg latch onto the same physical rod (a prediction off by about the rods' image spacing; their
+    measured axes then nearly coincide), the rod measured nearer its prediction is kept and the other
+    is measured again, predicted from it shifted by the rods' spacing.
+    """
+    s = settings or RodSettings()
     img = gray.astype(np.float32) if gray.dtype != np.float32 else gray
     rng = np.random.default_rng(seed)
     box = ideal_bbox if ideal_bbox is not None else image_ideal_bbox(camera)
-    return [measure_rod(img, camera, p, radius, settings, occluders, rng, box) for p in preds]
+    segs = [_predicted_segment(camera, p, radius, s.near_m, box) for p in preds]
+    sil = [None if isinstance(g, str) else
+           (g.a, g.a + g.length * g.t_dir, 0.5 * float(np.max(np.abs(g.off1 - g.off2)))) for g in segs]
+
+    def measure(i: int, pred: RodPrediction) -> RodMeasurement:
+        nb = [x for j, x in enumerate(sil) if j != i and x is not None]
+        return measure_rod(img, camera, pred, radius, s, occluders, rng, box, neighbours=nb)
+
+    out = [measure(i, p) for i, p in enumerate(preds)]
+    index = {(p.leg, p.rod): i for i, p in enumerate(preds)}
+    for leg in range(4):
+        i0, i1 = index.get((leg, 0)), index.get((leg, 1))
+        if i0 is None or i1 is None or not (out[i0].ok and out[i1].ok):
+            continue
+        spacing = float(np.linalg.norm(preds[i1].top - preds[i0].top))
+        if _line_distance(out[i0], out[i1]) > 0.5 * spacing:
+            continue
+        # the same rod twice: keep the one nearer its prediction, re-predict the other from it
+        d0, d1 = (_line_distance_to_point(out[i], preds[i].top) for i in (i0, i1))
+        keep, redo = (i0, i1) if d0 <= d1 else (i1, i0)
+        shift = preds[redo].top - preds[keep].top
+        m = out[keep]
+        top = _foot(m, preds[keep].top) + shift
+        bottom = _foot(m, preds[keep].bottom) + shift
+        again = measure(redo, RodPrediction(preds[redo].leg, preds[redo].rod, top, bottom))
+        if again.ok and _line_distance(out[keep], again) > 0.5 * spacing:
+            out[redo] = again
+        else:
+            out[redo] = RodMeasurement(preds[redo].leg, preds[redo].rod, reason=(
+                "both rods of the leg matched the same rod image and the other was not found beside it"))
+    return out
+
+
+def _foot(m: RodMeasurement, x: Array) -> Array:
+    """The point of a measured axis nearest x (camera frame, metres)."""
+    return m.point + ((x - m.point) @ m.u) * m.u
+
+
+def _line_distance_to_point(m: RodMeasurement, x: Array) -> float:
+    return float(np.linalg.norm(x - _foot(m, x)))
+
+
+def _line_distance(a: RodMeasurement, b: RodMeasurement) -> float:
+    """Distance (metres) between two measured axes, taken at a's point (the rods are near parallel)."""
+    return _line_distance_to_point(b, a.point)
 
 
 def leg_parallelism(meas: list[RodMeasurement]) -> dict[str, float]:

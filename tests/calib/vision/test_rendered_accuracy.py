@@ -1,9 +1,11 @@
 """Board pose and rod direction errors on rendered images at the default noise, against the truth.
 
-Measured on the full paper plan (121 frames, true intrinsics, default RenderSettings): board
-rotation error median ~1 mrad with the true board geometry, rod direction error median ~6 mrad
-with a heavy tail (90th percentile ~25 mrad) for the rods seen nearly end-on (the limb lines are
-nearly parallel: an edge error of 0.05 px tilts the axis by a few mrad in the viewing plane).
+Measured on 30 frames of the paper plan (true intrinsics, default RenderSettings): board rotation
+error median ~1 mrad with the true board geometry, rod direction error median ~6 mrad, 90th
+percentile ~19 mrad: the rods' limb lines are nearly parallel (interpretation planes 15-35 mrad
+apart), so a limb angle error of 0.07 mrad tilts the axis by ~5 mrad in the viewing plane; each
+rod's reported ``cov_u`` carries that anisotropy (normalised errors: robust std ~0.8-1.0, 3-5%
+beyond 3 sigma).
 The bounds below are those figures with a margin for the small sample, not tuned to pass.
 """
 
@@ -29,7 +31,7 @@ def measured():
     det.use_refined_points(np.arange(len(r.board_points_true)), r.board_points_true)  # as if calibrated
     tp = GeometricTwin(g).true_poses(make_plan("pose-set", g.nominal, n_fit=8, seed=5))
     rng = np.random.default_rng(0)
-    board_rot, board_t, rod_dir, rod_pt, n_rods = [], [], [], [], 0
+    board_rot, board_t, rod_dir, rod_pt, rod_z, n_rods = [], [], [], [], [], 0
     for _, q, pose in tp:
         img = r.render(q, pose, rng)
         bp = det.measure(img, cam)
@@ -45,10 +47,15 @@ def measured():
         for m in ms:
             n_rods += 1
             if m.ok:
-                rod_dir.append(np.arccos(min(1.0, abs(m.u @ u[m.leg, m.rod]))))
-                rod_pt.append(np.linalg.norm(m.point - p[m.leg, m.rod]))
+                ut = u[m.leg, m.rod] * np.sign(m.u @ u[m.leg, m.rod])
+                rod_dir.append(np.arccos(min(1.0, m.u @ ut)))
+                v = m.point - p[m.leg, m.rod]
+                rod_pt.append(np.linalg.norm(v - (v @ ut) * ut))  # distance to the true axis
+                # the direction error in the eigenbasis of the reported covariance (rank 2: u is unit)
+                w, V = np.linalg.eigh(m.cov_u)
+                rod_z.extend((V[:, 1:].T @ (ut - m.u)) / np.sqrt(w[1:]))
     return {k: np.array(v) for k, v in dict(board_rot=board_rot, board_t=board_t, rod_dir=rod_dir,
-                                            rod_pt=rod_pt).items()} | {"n_rods": n_rods}
+                                            rod_pt=rod_pt, rod_z=rod_z).items()} | {"n_rods": n_rods}
 
 
 def test_board_pose_error(measured):
@@ -65,4 +72,18 @@ def test_rod_direction_error(measured):
 
 
 def test_rod_point_error(measured):
-    assert np.median(measured["rod_pt"]) < 10e-3
+    # the reported point is the axis point seen at the middle of the rod's visible part
+    assert np.median(measured["rod_pt"]) < 5e-3
+
+
+def test_rod_direction_covariance_is_honest(measured):
+    """Each rod's ``cov_u`` (edge scatter + the 0.04 px edge-bias allowance) describes its error.
+
+    The normalised errors (error / reported std, along both axes of the covariance) of a correct
+    model are unit normal: robust std ~1, a few percent beyond 3 (heavier tails than a Gaussian
+    are expected from the remaining mismatched limbs; the bound below tolerates 8%).
+    """
+    z = measured["rod_z"]
+    robust_std = 1.4826 * np.median(np.abs(z - np.median(z)))
+    assert 0.6 < robust_std < 1.5, robust_std
+    assert np.mean(np.abs(z) > 3) < 0.08
