@@ -216,8 +216,9 @@ def missing_items(result: dict[str, Any], obs_doc: dict[str, Any] | None, datase
             m.add(f"method {name} failed: {e.get('error', 'no parameters')}")
         elif not e.get("converged"):
             m.add(f"method {name} did not converge: {e.get('message', '')}")
-    if "combined" in result.get("methods", {}) and not (result["methods"]["combined"].get("bound") or {}).get("std"):
-        note = (result["methods"]["combined"].get("bound") or {}).get("note", "no base frame")
+    comb = result.get("methods", {}).get("combined") or {}
+    if comb.get("parameters") and not (comb.get("bound") or {}).get("std"):
+        note = (comb.get("bound") or {}).get("note", "no base frame")
         m.add(f"no Cramer-Rao bound for the combined method ({note})")
     if any(n in result.get("methods", {}) for n in ("end-effector", "legs")):
         m.add("Cramer-Rao bound computed for the combined method only")

@@ -208,7 +208,7 @@ def _parameters(res: dict, methods: list[str], truth: dict[str, float] | None) -
     for m in methods:
         e = res["methods"][m]
         if not e.get("parameters"):
-            parts.append(Raw(f"<h3>{esc(m)}</h3><p>failed: {esc(e.get('error', ''))}</p>"))
+            parts.append(Raw(f"<h3>Method: {esc(m)}</h3><p>failed: {esc(e.get('error', ''))}</p>"))
             continue
         bound = (e.get("bound") or {}).get("std") or {}
         te = (res.get("truth_errors") or {}).get(m)

@@ -81,7 +81,10 @@ def gaps_plot(result: dict[str, Any]) -> str | None:
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.set_ylabel("gap (mm)")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=8)
+        else:
+            ax.text(0.5, 0.5, "no poses", transform=ax.transAxes, ha="center", va="center", color="0.4")
     return to_data_uri(fig) if drawn else None
 
 
