@@ -35,6 +35,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         settings.data_dir.mkdir(parents=True, exist_ok=True)
         for sub in ("runs", "datasets", "tmp"):
             (settings.data_dir / sub).mkdir(exist_ok=True)
+        import asyncio
+
+        from .jobs import warm_up
+
+        # the forkserver of the extraction and fit processes imports the heavy modules now, not during a run
+        warm = asyncio.get_running_loop().run_in_executor(None, warm_up)
         db = Database(settings.db_url)
         db.upgrade()
         bench = await Bench.from_settings(settings)
@@ -46,6 +52,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         try:
             yield
         finally:
+            warm.cancel()
             await manager.shutdown()
             if bench is not None:
                 await bench.close()

@@ -57,6 +57,8 @@ class Settings(BaseSettings):
     max_unpacked_bytes: int = Field(4 * 1024 * 1024 * 1024, gt=0)
     max_archive_members: int = Field(100_000, gt=0)
     extraction_workers: int = Field(1, ge=1, le=64)
+    job_niceness: int = Field(5, ge=0, le=19, description="nice increment of the extraction and fit processes "
+                                                          "(the server keeps the CPU it needs to answer)")
     plan_sizes: PlanSizes = PlanSizes()
     config_file: Path | None = Field(None, exclude=True)
 

@@ -1,9 +1,11 @@
 """Runs: the bench, the run manager and the run pipeline (acquire -> extract -> calibrate).
 
-Acquisition is async and runs in the event loop; extraction and fitting run in worker threads (extraction
-may use its own process pool), so status and health keep answering while a run goes on. One run at a time
-holds the bench; offline runs (from an uploaded dataset) never touch it. Every state change and progress
-report is persisted as an event and pushed to the live subscribers (Server-Sent Events).
+Acquisition is async and runs in the event loop; extraction and fitting run in child processes
+(:mod:`service.jobs`), so status and health keep answering while a run goes on. One run at a time holds the
+bench; offline runs (from an uploaded dataset) never touch it. Every state change and progress report is
+persisted as an event and pushed to the live subscribers (Server-Sent Events); the high-rate reports (extraction
+progress, per-frame results, fit iterations) are batched: at most one event of each kind per
+:data:`LIVE_INTERVAL_S` and run.
 
 No HTTP here: errors are :class:`RunConflictError` / :class:`RunNotFoundError` / :class:`calib.errors.InputError`,
 turned into status codes by the routers.
@@ -15,11 +17,9 @@ import asyncio
 import contextlib
 import json
 import logging
-import math
 import shutil
 import time
 import uuid
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -28,8 +28,10 @@ from typing import Any
 from sqlalchemy import func, select, update
 
 from calib.errors import I4calError, InputError
+from calib.jsonio import write_json_atomic
 
 from .db import Calibration, Database, DatasetRecord, Event, Run
+from .jobs import clean_json, run_job
 from .settings import Settings
 
 log = logging.getLogger("i4cal.service")
@@ -37,6 +39,9 @@ log = logging.getLogger("i4cal.service")
 ACTIVE_STATES = ("queued", "acquiring", "extracting", "calibrating")
 TERMINAL_STATES = ("done", "failed", "aborted")
 STATES = (*ACTIVE_STATES, *TERMINAL_STATES, "interrupted")
+#: Seconds between two batches of high-rate events of a run (progress, frames, iterations): with at most two kinds
+#: at a time (progress + frames, or iterations), a run writes at most ~10 such events per second.
+LIVE_INTERVAL_S = 0.2
 
 
 class RunConflictError(Exception):
@@ -49,23 +54,6 @@ class RunNotFoundError(Exception):
 
 def new_id() -> str:
     return uuid.uuid4().hex
-
-
-def clean_json(x: Any) -> Any:
-    """JSON-safe copy: numpy scalars/arrays to Python, non-finite floats to None."""
-    import numpy as np
-
-    if isinstance(x, dict):
-        return {str(k): clean_json(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [clean_json(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return clean_json(x.tolist())
-    if isinstance(x, np.generic):
-        x = x.item()
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
 
 
 def now() -> datetime:
@@ -167,6 +155,10 @@ class ActiveRun:
     last_frame: int | None = None
     pose: list[float] | None = None
     started: float = field(default_factory=time.monotonic)
+    #: extraction's detections per dataset frame (observations v1 frame layout), while the run is active
+    detections: dict[int, dict[str, Any]] = field(default_factory=dict)
+    last_extracted: int | None = None
+    job: Any = None  # service.jobs.Job: the extraction or fit process
 
 
 class RunManager:
@@ -178,8 +170,9 @@ class RunManager:
         self.bench_holder: str | None = None
         self._subs: dict[str, set[asyncio.Queue]] = {}
         self._seq: dict[str, int] = {}
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._pool: Any = None
+        self._live: dict[str, dict[str, Any]] = {}  # run id -> kind -> pending batch
+        self._live_timer: dict[str, asyncio.TimerHandle] = {}
+        self._live_last: dict[str, float] = {}
         self.data_dir = settings.data_dir.resolve()
 
     # -- life --------------------------------------------------------------------------------------
@@ -199,8 +192,6 @@ class RunManager:
             if a.task is not None:
                 with contextlib.suppress(BaseException):
                     await asyncio.wait_for(a.task, 10)
-        if self._pool is not None:
-            self._pool.shutdown(wait=False, cancel_futures=True)
 
     # -- events ------------------------------------------------------------------------------------
     def _next_seq(self, run_id: str) -> int:
@@ -366,6 +357,8 @@ class RunManager:
             if first:
                 asyncio.get_running_loop().create_task(self._insist_abort(a))
         elif a.task is not None:
+            if a.job is not None:
+                a.job.kill()
             a.task.cancel()
         return self.get(run_id)
 
@@ -404,13 +397,13 @@ class RunManager:
             if run.methods:
                 ts = time.monotonic()
                 self._set(run_id, state="extracting", phase="extraction", done=0, total=0)
-                obs = await self._extract(run_id, run)
+                await self._extract(run_id, run)
                 timings["extraction_s"] = time.monotonic() - ts
                 ts = time.monotonic()
                 self._set(run_id, state="calibrating", phase="calibration", done=0, total=len(run.methods))
-                doc = await self._calibrate(run_id, run, obs)
+                doc = await self._calibrate(run_id, run)
                 timings["calibration_s"] = time.monotonic() - ts
-                (self.run_dir(run) / "result.json").write_text(json.dumps(doc, indent=1), encoding="utf-8")
+                await asyncio.to_thread(write_json_atomic, self.run_dir(run) / "result.json", doc)
                 with self.db.session() as s:
                     s.execute(update(Run).where(Run.id == run_id).values(result=doc))
             timings["total_s"] = timings.get("total_s", 0.0) + time.monotonic() - t0
@@ -491,74 +484,109 @@ class RunManager:
         finally:
             await close_devices(a.acq)
 
-    def _thread_progress(self, run_id: str, stage: str) -> Callable[[int, int], None]:
-        loop = asyncio.get_running_loop()
-        last = [0.0]
+    # -- high-rate reports: batched ------------------------------------------------------------------
+    def _queue_live(self, run_id: str, kind: str, data: dict[str, Any]) -> None:
+        """Queue a high-rate report; :meth:`_flush_live` writes the batch at most every :data:`LIVE_INTERVAL_S`.
 
-        def cb(done: int, total: int) -> None:
-            t = time.monotonic()
-            if done < total and t - last[0] < 0.1:
-                return
-            last[0] = t
-            loop.call_soon_threadsafe(self._stage_progress, run_id, stage, done, total)
+        ``kind``: ``progress`` (the latest replaces the previous), ``frames`` or ``iterations`` (appended).
+        """
+        pending = self._live.setdefault(run_id, {})
+        if kind == "progress":
+            pending["progress"] = data
+        else:
+            pending.setdefault(kind, []).append(data)
+        if run_id not in self._live_timer:
+            loop = asyncio.get_running_loop()
+            delay = max(0.0, self._live_last.get(run_id, 0.0) + LIVE_INTERVAL_S - time.monotonic())
+            self._live_timer[run_id] = loop.call_later(delay, self._flush_live, run_id)
 
-        return cb
+    def _flush_live(self, run_id: str) -> None:
+        timer = self._live_timer.pop(run_id, None)
+        if timer is not None:
+            timer.cancel()
+        pending = self._live.pop(run_id, None)
+        if not pending:
+            return
+        self._live_last[run_id] = time.monotonic()
+        p = pending.pop("progress", None)
+        if p is not None:
+            with self.db.session() as s:
+                s.execute(update(Run).where(Run.id == run_id).values(done=p["done"], total=p["total"]))
+            self.emit(run_id, "progress", p)
+        for kind, items in pending.items():
+            self.emit(run_id, kind, {"count": len(items), "items": items})
+
+    def _end_live(self, run_id: str) -> None:
+        self._flush_live(run_id)
+        self._live_last.pop(run_id, None)
 
     def _stage_progress(self, run_id: str, stage: str, done: int, total: int) -> None:
         with self.db.session() as s:
             s.execute(update(Run).where(Run.id == run_id).values(done=done, total=total))
         self.emit(run_id, "progress", {"stage": stage, "done": done, "total": total})
 
-    async def _extract(self, run_id: str, run: Run):
-        from calib.observations import Observations
-        from calib.vision.extract import extract_dataset
-
+    # -- extraction and fits: child processes ---------------------------------------------------------
+    async def _extract(self, run_id: str, run: Run) -> dict[str, Any]:
+        """Extract the run's dataset in a child process into ``observations.json``; return the summary."""
         path = self.dataset_path(run)
-        cb = self._thread_progress(run_id, "extraction")
-        workers = self.settings.extraction_workers
+        a = self.active[run_id]
 
-        def work():
-            res = extract_dataset(path, workers=workers, progress=cb)
-            return res.observations, res.summary
+        def on_event(kind: str, data: dict[str, Any]) -> None:
+            if self.active.get(run_id) is not a:
+                return
+            if kind == "progress":
+                self._queue_live(run_id, "progress", {"stage": "extraction", **data})
+            elif kind == "frame":
+                det = data.pop("detections", None)
+                if det is not None:
+                    a.detections[data["frame"]] = {"phase": data["phase"], **det}
+                    a.last_extracted = a.last_frame = data["frame"]
+                self._queue_live(run_id, "frames", data)
 
-        doc, summary = await asyncio.to_thread(work)
-        (self.run_dir(run) / "observations.json").write_text(json.dumps(clean_json(doc)), encoding="utf-8")
-        summary = clean_json(summary)
+        try:
+            summary = await run_job("extract", {"dataset": str(path), "out": str(self.run_dir(run) /
+                                                                                  "observations.json"),
+                                                "workers": self.settings.extraction_workers}, on_event,
+                                    nice=self.settings.job_niceness, on_job=lambda j: setattr(a, "job", j))
+        finally:
+            self._end_live(run_id)
         with self.db.session() as s:
             s.execute(update(Run).where(Run.id == run_id).values(extraction=summary))
         self.emit(run_id, "extraction", {"phases": summary.get("phases", {}),
                                          "frames_with_missing": len(summary.get("frames", {})),
                                          "placement": summary.get("placement")})
-        return await asyncio.to_thread(Observations.from_dict, doc, str(path))
+        return summary
 
-    async def _calibrate(self, run_id: str, run: Run, obs) -> dict[str, Any]:
-        """One method at a time in a separate process (the fits hold the GIL): the loop stays responsive."""
-        loop = asyncio.get_running_loop()
-        if self._pool is None:
-            import multiprocessing
-            from concurrent.futures import ProcessPoolExecutor
+    async def _calibrate(self, run_id: str, run: Run) -> dict[str, Any]:
+        """The methods one after the other in a child process (the fits hold the GIL); return the result."""
+        a = self.active[run_id]
+        n = len(run.methods)
 
-            self._pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("forkserver"))
-        obs_doc = obs.to_dict()
-        doc: dict[str, Any] | None = None
-        for k, method in enumerate(run.methods):
-            self.emit(run_id, "fit", {"method": method, "state": "start"})
-            part = await loop.run_in_executor(self._pool, calibrate_one, obs_doc, method)
-            entry = part["methods"][method]
-            self.emit(run_id, "fit", {"method": method, "state": "done" if entry.get("converged") else "failed",
-                                      "iterations": entry.get("iterations"), "residual_rms": entry.get("residual_rms"),
-                                      "error": entry.get("error")})
-            if doc is None:
-                doc = part
-            else:
-                doc["methods"][method] = entry
-                if method in part["validation"]:
-                    doc["validation"][method] = part["validation"][method]
-                for name, te in (part.get("truth_errors") or {}).items():
-                    doc.setdefault("truth_errors", {})[name] = te
-            self._stage_progress(run_id, "calibration", k + 1, len(run.methods))
-        assert doc is not None
-        return doc
+        def on_event(kind: str, data: dict[str, Any]) -> None:
+            if self.active.get(run_id) is not a:
+                return
+            if kind == "iteration":
+                self._queue_live(run_id, "iterations", data)
+            elif kind == "fit":
+                self._flush_live(run_id)  # the iterations of a method come before its end
+                self.emit(run_id, "fit", data)
+                if data["state"] != "start":
+                    self._stage_progress(run_id, "calibration", data["index"] + 1, n)
+
+        try:
+            return await run_job("fit", {"observations": str(self.run_dir(run) / "observations.json"),
+                                         "methods": list(run.methods)}, on_event, nice=self.settings.job_niceness,
+                                 on_job=lambda j: setattr(a, "job", j))
+        finally:
+            self._end_live(run_id)
+
+    def live_detections(self, run_id: str, index: int | None) -> tuple[int | None, dict[str, Any] | None]:
+        """While a run extracts: the frame ``index`` (None: the last extracted one) and its detections, if any."""
+        a = self.active.get(run_id)
+        if a is None or a.last_extracted is None:
+            return index, None
+        i = a.last_extracted if index is None else index
+        return i, a.detections.get(i)
 
     # -- calibration -------------------------------------------------------------------------------
     def apply(self, run_id: str, method: str | None) -> Calibration:
@@ -609,14 +637,6 @@ class RunManager:
         path = path.resolve()
         if self.data_dir in path.parents:
             shutil.rmtree(path, ignore_errors=True)
-
-
-def calibrate_one(obs_doc: dict[str, Any], method: str) -> dict[str, Any]:
-    """Worker process: one method on the observations, the result document (JSON-safe)."""
-    from calib.observations import Observations
-    from calib.pipeline import calibrate, to_jsonable
-
-    return clean_json(to_jsonable(calibrate(Observations.from_dict(obs_doc), [method])))
 
 
 def plan_units(plan) -> list:

@@ -343,7 +343,8 @@ async def frame_image(run_id: RunId, manager: Manager, _: Reader,
                       index: Annotated[str, PathParam(pattern=r"^(latest|[0-9]{1,7})$")],
                       annotate: bool = True,
                       max_width: Annotated[int, Query(ge=64, le=8192)] = 1024) -> Response:
-    """A frame as PNG with the detected board outline and rod lines drawn (``latest``: the last frame)."""
+    """A frame as PNG with the detected board outline and rod lines drawn (``latest``: the last frame acquired, or,
+    while the run extracts, the last frame extracted)."""
     run = get_run(manager, run_id)
     src = _dataset_dir(manager, run)
     png = await asyncio.to_thread(_render_frame, manager, run, src, index, annotate, max_width)
@@ -362,8 +363,12 @@ def _render_frame(manager: RunManager, run, src: Path, index: str, annotate: boo
     if not frames:
         return None
     i = len(frames) - 1 if index == "latest" else int(index)
+    # while the run extracts: 'latest' is the last frame extracted, drawn with what was found in it
+    live_i, live = manager.live_detections(run.id, None if index == "latest" else i)
+    i = live_i if live_i is not None else i
     obs_doc = _observations_doc(manager, run) if annotate else None
     o = next((f for f in (obs_doc or {}).get("frames", []) if f.get("dataset_frame") == i), None)
+    o = live if o is None and annotate else o
     img = annotated_frame(src, doc, i, o, frame_camera(doc, obs_doc), max_width)
     if img is None:
         return None

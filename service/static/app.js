@@ -100,7 +100,8 @@ async function select(id) {
   showRun(run);
   source = new EventSource(`${API}/runs/${id}/events`);
   source.onmessage = null;
-  for (const type of ["state", "progress", "extraction", "fit", "paused", "resumed", "applied"]) {
+  $("#detail").textContent = "";
+  for (const type of ["state", "progress", "extraction", "frames", "fit", "iterations", "paused", "resumed", "applied"]) {
     source.addEventListener(type, (ev) => onEvent(id, JSON.parse(ev.data)));
   }
   source.onerror = () => { if (source) { source.close(); source = null; } };
@@ -131,7 +132,11 @@ function loadFrame(id) {
     frameTimer = null;
     const img = $("#frame");
     const probe = new Image();
-    probe.onload = () => { img.src = probe.src; $("#frame-caption").textContent = "last frame"; };
+    const extracting = $("#live-panel").dataset.state === "extracting";
+    probe.onload = () => {
+      img.src = probe.src;
+      $("#frame-caption").textContent = extracting ? "last frame extracted, with what was found in it" : "last frame";
+    };
     probe.src = `${API}/runs/${id}/frames/latest?max_width=800&t=${Date.now()}`;
   }, 250);
 }
@@ -164,8 +169,24 @@ function onEvent(id, ev) {
   } else if (ev.type === "extraction") {
     log("extraction: " + Object.entries(d.phases || {}).map(([p, c]) => `${p} board ${c.board}/${c.frames} rods ${c.rods}/${c.rods_total}`).join("; "));
     loadFrame(id);
+  } else if (ev.type === "frames") {
+    // per-frame extraction results, batched (at most a few events per second)
+    const f = d.items[d.items.length - 1];
+    const board = f.board ? `board ${f.corners} corners, ${Number(f.rms_px).toFixed(2)} px` : "no board";
+    const rods = f.rods === null ? "" : ` · rods ${f.rods}/${f.rods_total}`;
+    const miss = Object.keys(f.missing || {}).length;
+    $("#detail").textContent = `frame ${f.frame} (${f.phase}, ${f.stage}): ${board}${rods}` + (miss ? ` · ${miss} missing` : "");
+    for (const g of d.items) {
+      if (g.stage === "rods" && Object.keys(g.missing || {}).length) {
+        log(`frame ${g.frame}: ` + Object.entries(g.missing).map(([k, v]) => `${k}: ${v}`).join("; "));
+      }
+    }
+    loadFrame(id);
+  } else if (ev.type === "iterations") {
+    const it = d.items[d.items.length - 1];
+    $("#detail").textContent = `fit ${it.method} · ${it.stage} · iteration ${it.iteration} · cost ${Number(it.cost).toExponential(3)}`;
   } else if (ev.type === "fit") {
-    log(`fit ${d.method}: ${d.state}`);
+    log(`fit ${d.method}: ${d.state}` + (d.iterations ? ` (${d.iterations} evaluations)` : ""));
   } else {
     log(ev.type);
   }

@@ -48,8 +48,12 @@ async def test_dashboard_starts_a_run_and_shows_results(tmp_path):
                     # the live view moves: progress and a frame
                     await page.wait_for_function("document.querySelector('#progress').value > 0", timeout=60_000)
                     await page.wait_for_function("document.querySelector('#frame').naturalWidth > 0", timeout=60_000)
+                    # per-frame extraction results, then the fits' iterations, in the live view's detail line
+                    await page.wait_for_function(
+                        "/^frame \\d+ \\(/.test(document.querySelector('#detail').textContent)", timeout=240_000)
                     await page.wait_for_function(
                         "document.querySelector('#live-panel').dataset.state === 'done'", timeout=240_000)
+                    assert "iteration" in await page.inner_text("#detail")
                     await page.wait_for_selector("#results-panel:not([hidden])", timeout=30_000)
                     t1 = await page.inner_text("#table1")
                     for word in ("a priori", "combined", "end-effector", "legs", "S-(q04-q03)/2", "±"):

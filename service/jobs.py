@@ -1,0 +1,255 @@
+"""The long computations of a run (extraction, fits) in child processes, so that the server stays responsive.
+
+Why processes: extraction and the fits hold the GIL for most of their time; in a thread of the server process they
+delay every request (tens to hundreds of ms). And forking the server process itself (a process pool started from
+it) copies a large address space while holding the GIL. So a run's extraction and its fits each run in one child
+process forked by a *forkserver*: a small process that imported numpy, scipy, OpenCV and ``calib`` once
+(:func:`warm_up`, at service start-up), so that starting a job costs the server neither an import nor a fork of
+itself. Children run with a lower CPU priority (``nice``) than the server and lead their own process group (the
+extraction's own worker pool included), which is killed as a whole when the run is aborted or the service stops.
+
+A child reports through a pipe: ``("event", kind, data)`` messages (progress, per-frame results, fit iterations)
+and one final ``("result", value)`` or ``("error", kind, message)``. Large documents go through files: extraction
+writes ``observations.json`` itself, and the fit reads it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import multiprocessing
+import os
+import signal
+import threading
+import time
+import traceback
+from collections.abc import Callable
+from typing import Any
+
+from calib.errors import I4calError
+
+_CTX = multiprocessing.get_context("forkserver")
+#: Modules the forkserver imports once; every job child starts with them loaded.
+PRELOAD = ["numpy", "scipy.optimize", "cv2", "calib.pipeline", "calib.vision.extract", "service.jobs"]
+_warm_lock = threading.Lock()
+_warm = False
+
+Emit = Callable[[str, dict[str, Any]], None]
+
+
+class JobError(I4calError):
+    """A job's child process failed without a result (crashed, killed, internal error)."""
+
+
+def clean_json(x: Any) -> Any:
+    """JSON-safe copy: numpy scalars/arrays to Python, non-finite floats to None."""
+    import numpy as np
+
+    if isinstance(x, dict):
+        return {str(k): clean_json(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [clean_json(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return clean_json(x.tolist())
+    if isinstance(x, np.generic):
+        x = x.item()
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+def warm_up() -> None:
+    """Start the forkserver with :data:`PRELOAD` imported and wait until it forks (blocking: call it in a thread).
+
+    Idempotent; the forkserver lives as long as this process.
+    """
+    global _warm
+    with _warm_lock:
+        if _warm:
+            return
+        _CTX.set_forkserver_preload(PRELOAD)
+        p = _CTX.Process(target=_noop, name="i4cal-warm-up")
+        p.start()
+        p.join(120)
+        _warm = True
+
+
+def _noop() -> None:
+    return None
+
+
+# -- the child side --------------------------------------------------------------------------------
+def _child_main(conn: Any, target: str, kwargs: dict[str, Any], nice: int) -> None:
+    """Entry point of a job child: run ``JOBS[target](emit=..., **kwargs)`` and send back the outcome."""
+    with contextlib.suppress(OSError):
+        os.setpgid(0, 0)  # its own process group: abort kills the extraction's pool with it
+    if nice > 0:
+        with contextlib.suppress(OSError):
+            os.nice(nice)
+
+    def emit(kind: str, data: dict[str, Any]) -> None:
+        conn.send(("event", kind, data))
+
+    try:
+        result = JOBS[target](emit=emit, **kwargs)
+        conn.send(("result", result))
+    except I4calError as exc:
+        conn.send(("error", "input", str(exc)))
+    except BrokenPipeError:
+        pass  # the server went away
+    except BaseException as exc:  # reported to the server, which fails the run with it
+        with contextlib.suppress(BrokenPipeError):
+            conn.send(("error", "internal", f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}"))
+    finally:
+        conn.close()
+
+
+def extract_job(*, emit: Emit, dataset: str, out: str, workers: int) -> dict[str, Any]:
+    """Extract ``dataset`` (dataset v1) into ``out`` (observations v1); return the extraction summary.
+
+    Events: ``progress`` ``{"done", "total"}`` (at most 10/s) and ``frame`` (:func:`calib.vision.extract.frame_info`,
+    one per frame and stage).
+    """
+    from calib.jsonio import write_json_atomic
+    from calib.observations import Observations
+    from calib.vision.extract import extract_dataset
+
+    last = [0.0]
+
+    def progress(done: int, total: int) -> None:
+        t = time.monotonic()
+        if done < total and t - last[0] < 0.1:
+            return
+        last[0] = t
+        emit("progress", {"done": done, "total": total})
+
+    res = extract_dataset(dataset, workers=workers, progress=progress,
+                          on_frame=lambda info: emit("frame", clean_json(info)))
+    doc = clean_json(res.observations)
+    Observations.from_dict(doc, dataset)  # a run fails here, naming the field, rather than in the fit
+    write_json_atomic(out, doc, indent=None)
+    return clean_json(res.summary)
+
+
+def fit_job(*, emit: Emit, observations: str, methods: list[str]) -> dict[str, Any]:
+    """Identify with each method in turn; return the merged result document (``i4cal calibrate --json``).
+
+    Events: ``fit`` ``{"method", "state": "start" | "done" | "failed", ...}`` and ``iteration``
+    ``{"method", "stage", "iteration", "cost"}`` (every iteration of every fit).
+    """
+    from calib.observations import Observations
+    from calib.pipeline import calibrate, to_jsonable
+
+    obs = Observations.load(observations)
+    doc: dict[str, Any] | None = None
+    for k, method in enumerate(methods):
+        emit("fit", {"method": method, "state": "start", "index": k, "count": len(methods)})
+        part = clean_json(to_jsonable(calibrate(obs, [method], on_iteration=lambda info: emit("iteration", info))))
+        entry = part["methods"][method]
+        emit("fit", {"method": method, "state": "done" if entry.get("converged") else "failed", "index": k,
+                     "count": len(methods), "iterations": entry.get("iterations"),
+                     "residual_rms": entry.get("residual_rms"), "error": entry.get("error")})
+        if doc is None:
+            doc = part
+            continue
+        doc["methods"][method] = entry
+        if method in part["validation"]:
+            doc["validation"][method] = part["validation"][method]
+        for name, te in (part.get("truth_errors") or {}).items():
+            doc.setdefault("truth_errors", {})[name] = te
+    if doc is None:
+        raise I4calError("no method to fit")
+    return doc
+
+
+JOBS: dict[str, Callable[..., Any]] = {"extract": extract_job, "fit": fit_job}
+
+
+# -- the server side -------------------------------------------------------------------------------
+class Job:
+    """One child process running ``JOBS[target]``; :meth:`run` blocks (call it in a thread), :meth:`kill` doesn't."""
+
+    def __init__(self, target: str, kwargs: dict[str, Any], on_event: Callable[[str, dict[str, Any]], None],
+                 nice: int = 5) -> None:
+        if target not in JOBS:
+            raise ValueError(f"unknown job {target!r}")
+        self.target = target
+        self.on_event = on_event
+        self._recv, self._send = _CTX.Pipe(duplex=False)
+        self.process = _CTX.Process(target=_child_main, args=(self._send, target, kwargs, nice),
+                                    name=f"i4cal-{target}")
+        self.killed = False
+        self._ended = False
+
+    def run(self) -> Any:
+        """Start the child, forward its events to ``on_event`` (from this thread), return its result.
+
+        Raises
+        ------
+        I4calError
+            The job refused its input (the message of the child's error).
+        JobError
+            The child crashed, was killed, or failed with an internal error.
+        """
+        warm_up()
+        if self.killed:
+            raise JobError(f"{self.target} job cancelled")
+        self.process.start()
+        self._send.close()
+        if self.killed:  # kill() ran while the child was starting
+            self.kill()
+        try:
+            while True:
+                try:
+                    msg = self._recv.recv()
+                except (EOFError, OSError):
+                    break
+                if msg[0] == "event":
+                    self.on_event(msg[1], msg[2])
+                elif msg[0] == "result":
+                    return msg[1]
+                elif msg[0] == "error":
+                    if msg[1] == "input":
+                        raise I4calError(msg[2])
+                    raise JobError(f"{self.target} failed: {msg[2]}")
+        finally:
+            self._recv.close()
+            self.process.join(10)
+            self._ended = True
+        if self.killed:
+            raise JobError(f"{self.target} job cancelled")
+        raise JobError(f"the {self.target} process ended without a result (exit code {self.process.exitcode})")
+
+    def kill(self) -> None:
+        """Kill the child and its process group now (idempotent; safe before, during and after the start)."""
+        self.killed = True
+        pid = self.process.pid
+        if pid is None or self._ended:
+            return
+        try:
+            os.killpg(pid, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+
+
+async def run_job(target: str, kwargs: dict[str, Any], on_event: Callable[[str, dict[str, Any]], None],
+                  nice: int = 5, on_job: Callable[[Job], None] | None = None) -> Any:
+    """Run a job in a child process; ``on_event(kind, data)`` is called in the event loop for each event.
+
+    Cancelling the awaiting task kills the child (and its process group). ``on_job`` receives the :class:`Job`
+    before it starts (its ``process.pid`` is set once started).
+    """
+    import asyncio
+
+    loop = asyncio.get_running_loop()
+    job = Job(target, kwargs, lambda kind, data: loop.call_soon_threadsafe(on_event, kind, data), nice)
+    if on_job is not None:
+        on_job(job)
+    fut = loop.run_in_executor(None, job.run)
+    fut.add_done_callback(lambda f: f.cancelled() or f.exception())  # consumed even when nobody awaits it
+    try:
+        return await asyncio.shield(fut)
+    except asyncio.CancelledError:
+        job.kill()
+        raise
