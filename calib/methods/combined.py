@@ -31,7 +31,7 @@ from ..transforms import rotvec_to_matrix
 from .iterations import IterationCallback, traced
 from .result import MethodResult, check_excitation, combos_dict, std_dict
 
-Weighting = Literal["frobenius", "gls"]
+Weighting = Literal["auto", "frobenius", "gls"]
 
 # sign of u_x in each leg's model direction: u1 = (f1, Y+c, Z), u2 = (-f1, Y+c, Z), ...
 _SX = np.array([1.0, -1.0, 1.0, -1.0])
@@ -89,6 +89,12 @@ class _Problem:
             setattr(self, name, getattr(self, name)[keep])
         self.n_poses = len(np.unique(self.k))
 
+    def select(self, keep: np.ndarray) -> None:
+        """Keep only the rods where ``keep`` (bool, (M,)) is set."""
+        for name in ("u_cam", "k", "leg", "rod"):
+            setattr(self, name, getattr(self, name)[keep])
+        self.n_poses = len(np.unique(self.k))
+
     def measured(self, R_cb: np.ndarray | None = None) -> np.ndarray:
         uB = self.u_cam @ (self.R_cb if R_cb is None else R_cb)
         return uB[:, 1:] / uB[:, :1]
@@ -111,7 +117,7 @@ class _Problem:
 
 
 def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None = None,
-                       weighting: Weighting = "frobenius", phases: tuple[str, ...] = ("poses",),
+                       weighting: Weighting = "auto", phases: tuple[str, ...] = ("poses",),
                        encoder_std_m: float = 1e-6, on_iteration: IterationCallback | None = None) -> MethodResult:
     """Identify the four combinations from leg observations and the base frame (eq. 8).
 
@@ -122,7 +128,10 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
         directions in the fit phases.
     base_frame : BaseFrameResult, optional
         Computed from ``obs`` when not given.
-    weighting : {"frobenius", "gls"}
+    weighting : {"auto", "frobenius", "gls"}
+        ``"auto"`` (default): ``"gls"`` when every rod carries its measured direction covariance
+        (``cov_u``, as the image extraction reports it; a rod's depth direction is tens of times
+        less precise than its image direction), else ``"frobenius"``.
         ``"frobenius"``: the paper's eq. 8 (every Jacobian entry weighs the same).
         ``"gls"``: each rod's two entries whitened by their predicted direction-noise covariance
         (the maximum-likelihood fit for direction noise; more efficient when legs are steep).
@@ -158,13 +167,32 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
     check_excitation(central_jacobian(prob.residuals, x0), COMBINATION_NAMES)
 
     rod_cov = _rod_covariances(obs, data, prob)
+    if weighting == "auto":
+        weighting = "gls" if rod_cov is not None else "frobenius"
+    if weighting not in ("gls", "frobenius"):
+        raise ValueError(f"weighting must be 'auto', 'frobenius' or 'gls', got {weighting!r}")
+    # 0. outlier rods (a limb taken for another edge): a first fit, then every rod whose whitened
+    #    residual is beyond the chi-square(2) 99.9% quantile of a robust noise scale is dropped and
+    #    the fit repeated, until none is
+    rejected: list[dict[str, int]] = []
+    for _ in range(5):
+        shape = prob.noise_shape(rod_cov)
+        d2 = _whitened_d2(prob, shape, x0, on_iteration)
+        s2_robust = float(np.median(d2)) / _CHI2_2_MEDIAN
+        bad = d2 > _CHI2_2_999 * s2_robust
+        if not bad.any() or (~bad).sum() * 2 < 8:
+            break
+        rejected += [{"frame": int(data.index[k]), "leg": int(leg) + 1, "rod": int(rod)}
+                     for k, leg, rod in zip(prob.k[bad], prob.leg[bad], prob.rod[bad], strict=True)]
+        prob.select(~bad)
+        if rod_cov is not None:
+            rod_cov = rod_cov[~bad]
+    m = prob.u_cam.shape[0]
     shape = prob.noise_shape(rod_cov)  # relative covariance of each rod's two entries, (m, 2, 2)
     if weighting == "gls":
         Wh = np.linalg.cholesky(np.linalg.inv(shape + 1e-30 * np.eye(2))).transpose(0, 2, 1)  # L^T L = C^-1
-    elif weighting == "frobenius":
-        Wh = np.broadcast_to(np.eye(2), (m, 2, 2))
     else:
-        raise ValueError(f"weighting must be 'frobenius' or 'gls', got {weighting!r}")
+        Wh = np.broadcast_to(np.eye(2), (m, 2, 2))
     R0 = bf.camera_from_base_R
     cov_w = bf.cov_rotvec
     joint = bool(np.all(np.linalg.eigvalsh(cov_w) > 1e-20))
@@ -248,10 +276,31 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
         message=str(sol.message),
         std_breakdown={"legs_and_encoders": std_dict(cov_pose_fixed), "base_frame": base_std},
         diagnostics={"weighting": weighting, "direction_noise_scale": float(np.sqrt(s2)),
+                     "rods_rejected": rejected, "rods_used": int(m),
                      "rods_dropped_near_vertical": prob.dropped, "base_frame": bf.summary(),
                      "base_frame_refinement_deg": float(np.rad2deg(np.linalg.norm(w))),
                      "joint_base_frame": joint},
         residuals=r)
+
+
+_CHI2_2_999 = 13.8155  # chi-square, 2 dof, 99.9% quantile
+_CHI2_2_MEDIAN = 1.3863  # chi-square, 2 dof, median
+
+
+def _whitened_d2(prob: _Problem, shape: np.ndarray, x0: np.ndarray,
+                 on_iteration: IterationCallback | None) -> np.ndarray:
+    """Each rod's squared residual whitened by its noise shape after a GLS fit of eq. 8, (M,)."""
+    Cinv = np.linalg.inv(shape + 1e-300 * np.eye(2))
+    Wh = np.linalg.cholesky(Cinv).transpose(0, 2, 1)
+
+    def res(xi: np.ndarray) -> np.ndarray:
+        r = (prob.model(xi) - prob.measured()).reshape(-1, 2)
+        return np.einsum("mij,mj->mi", Wh, r).ravel()
+
+    sol = least_squares(traced(res, on_iteration, "outliers"), x0, method="lm", xtol=1e-12, ftol=1e-12,
+                        max_nfev=200)
+    r = (prob.model(sol.x) - prob.measured()).reshape(-1, 2)
+    return np.einsum("mi,mij,mj->m", r, Cinv, r)
 
 
 def _sandwich(J: np.ndarray, W: np.ndarray, Sig: np.ndarray) -> np.ndarray:
