@@ -1,0 +1,685 @@
+"""``i4cal bench speed``: the speed figures of this machine in one table (and ``--json PATH``).
+
+Sections (``--only a,b``; all by default), each with the target of the issue it comes from:
+
+* ``extraction``: board pose + eight rods on one rendered 1024x768 frame, single process (median ms;
+  target <= 20 ms).
+* ``extract-calibrate``: ``extract`` (all cores) + ``calibrate --method all`` of the paper-sized rendered
+  dataset (s; target <= 5 s), and the peak memory of that run (resident memory of the process and its
+  extraction workers together, sampled; target <= 500 MB). It runs in a fresh process, so that what the
+  other sections allocated is not counted.
+* ``fit``: each method's fit on the paper-sized observations of the geometric twin (median ms).
+* ``acquisition``: time per pose beyond the simulated motion itself (command, polling, grab, write) on the
+  simulated bench over Modbus TCP (median ms; target <= 30 ms); the camera serves a constant image unless
+  ``--real-renderer``.
+* ``modbus``: round trip of a 4-register read over TCP loopback, plain pymodbus client and through the
+  checked driver (median ms).
+* ``service``: latency of ``GET /api/v1/runs/{id}`` while a run acquires, extracts and calibrates in
+  ``i4cal serve`` (p50 / p99 ms; target p99 <= 50 ms); measured by ``benchmarks/bench_service.py`` of a
+  source checkout.
+
+Figures in ms, s and MB (display units); a section that fails is reported and the others still run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import datetime as dt
+import importlib.util
+import math
+import os
+import platform
+import resource
+import statistics
+import tempfile
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, Field, computed_field
+
+from calib.errors import I4calError, InputError
+
+FORMAT = "i4cal.bench-speed/1"
+SECTIONS = ("extraction", "extract-calibrate", "fit", "acquisition", "modbus", "service")
+ALIASES = {"extract_calibrate": "extract-calibrate", "calibrate": "extract-calibrate", "memory": "extract-calibrate",
+           "frame": "extraction", "acquire": "acquisition"}
+FINAL_STATES = ("done", "failed", "aborted", "interrupted")
+
+#: ``step(description, done, total)``: what a section is doing (``total`` None: no known end).
+Step = Callable[[str, float, "float | None"], None]
+
+
+def _no_step(description: str, done: float, total: float | None) -> None:
+    return None
+
+
+class Figure(BaseModel):
+    """One measured figure, in display units, with the target it must not exceed (if any)."""
+
+    key: str
+    section: str
+    label: str
+    value: float
+    unit: str
+    target: float | None = None
+    detail: str = ""
+
+    @computed_field  # type: ignore[prop-decorator]
+    @property
+    def met(self) -> bool | None:
+        return None if self.target is None else self.value <= self.target
+
+
+class SpeedOptions(BaseModel):
+    """Sizes of the measurements (defaults: the figures reported in the README)."""
+
+    frames: int = Field(30, ge=1, description="rendered frames timed one by one (extraction)")
+    dataset: str | None = Field(None, description="dataset v1 to extract (default: render the paper's plan)")
+    workers: int | None = Field(None, ge=1, description="extraction processes (default: all cores)")
+    poses: int = Field(40, ge=2, description="poses of the acquisition run")
+    real_renderer: bool = Field(False, description="acquisition: render frames instead of a constant image")
+    reads: int = Field(1000, ge=10, description="Modbus reads timed per client")
+    fit_repeats: int = Field(5, ge=1, description="fits timed per method")
+    service_plan: str = Field("paper", pattern="^(paper|reduced)$")
+    service_hz: float = Field(20.0, gt=0, description="status polls per second during the service run")
+    seed: int = 0
+
+
+class SpeedReport(BaseModel):
+    """What ``i4cal bench speed`` measured (``--json``: :meth:`to_json`)."""
+
+    format: str = FORMAT
+    machine: dict[str, Any]
+    sections: list[str]
+    options: SpeedOptions
+    figures: list[Figure] = Field(default_factory=list)
+    details: dict[str, dict[str, Any]] = Field(default_factory=dict)
+    errors: dict[str, str] = Field(default_factory=dict)
+    elapsed_s: float = 0.0
+
+    def to_json(self) -> dict[str, Any]:
+        """The JSON document: ``figures`` keyed by figure key."""
+        d = self.model_dump()
+        d["figures"] = {f.pop("key"): f for f in d["figures"]}
+        return d
+
+
+# -- helpers ---------------------------------------------------------------------------------------
+def machine_info() -> dict[str, Any]:
+    """Where the figures come from: CPU, cores, OS, Python, i4cal version, date."""
+    from service import __version__
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return {"cpu": cpu, "cores": cores, "platform": platform.platform(), "python": platform.python_version(),
+            "i4cal": __version__, "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds")}
+
+
+def percentile(xs: list[float], q: float) -> float:
+    """Linear-interpolated percentile ``q`` (0-100) of ``xs``."""
+    import numpy as np
+
+    return float(np.percentile(np.asarray(xs, dtype=float), q))
+
+
+def _children(pid: int) -> list[int]:
+    out: list[int] = []
+    try:
+        for task in os.listdir(f"/proc/{pid}/task"):
+            with open(f"/proc/{pid}/task/{task}/children") as f:
+                out += [int(x) for x in f.read().split()]
+    except OSError:
+        pass
+    return out
+
+
+def tree_rss_bytes(pid: int) -> int:
+    """Resident memory (bytes) of process ``pid`` and all its descendants (Linux ``/proc``; 0 elsewhere)."""
+    page = os.sysconf("SC_PAGE_SIZE")
+    total, todo, seen = 0, [pid], set()
+    while todo:
+        p = todo.pop()
+        if p in seen:
+            continue
+        seen.add(p)
+        try:
+            with open(f"/proc/{p}/statm") as f:
+                total += int(f.read().split()[1]) * page
+        except (OSError, ValueError, IndexError):
+            continue
+        todo += _children(p)
+    return total
+
+
+class RssSampler:
+    """Samples :func:`tree_rss_bytes` of this process every ``period_s`` in a thread; ``peak_mb`` is the maximum."""
+
+    def __init__(self, period_s: float = 0.02) -> None:
+        self.period_s = period_s
+        self.peak_bytes = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="rss-sampler", daemon=True)
+
+    def _run(self) -> None:
+        pid = os.getpid()
+        while True:
+            self.peak_bytes = max(self.peak_bytes, tree_rss_bytes(pid))
+            if self._stop.wait(self.period_s):
+                return
+
+    def __enter__(self) -> RssSampler:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self._stop.set()
+        self._thread.join()
+        self.peak_bytes = max(self.peak_bytes, tree_rss_bytes(os.getpid()))
+
+    @property
+    def peak_mb(self) -> float:
+        return self.peak_bytes / 2**20
+
+
+class ConstantRenderer:
+    """A constant 1024x768 8-bit image (seeded noise): the acquisition figure without rendering time."""
+
+    def __init__(self, seed: int = 0) -> None:
+        import numpy as np
+
+        rng = np.random.default_rng(seed)
+        self.img = (rng.random((768, 1024)) * 40 + 100).astype(np.uint8)
+
+    def render(self, q_true: Any, pose_true: Any) -> Any:
+        return self.img
+
+
+# -- extraction --------------------------------------------------------------------------------------
+def frame_times(n: int, step: Step = _no_step, seed: int = 0) -> list[float]:
+    """Board pose + eight rods on ``n`` rendered 1024x768 frames of the paper's plan, single process.
+
+    Returns
+    -------
+    list of float
+        Seconds per frame (rendering excluded).
+    """
+    from calib.plan import make_plan
+    from calib.vision.board import BoardDetector
+    from calib.vision.rods import image_ideal_bbox, measure_rods, predict_rods
+    from drivers.sim.render import BenchRenderer, RenderSettings
+    from drivers.sim.twin import BenchGeometry, GeometricTwin
+
+    g = BenchGeometry()
+    r = BenchRenderer(g, RenderSettings(), seed=seed)
+    cam = r.camera
+    det = BoardDetector(r.settings.board)
+    box = image_ideal_bbox(cam)
+    tp = GeometricTwin(g).true_poses(make_plan("full", g.nominal, seed=seed))[:n]
+    imgs = []
+    for k, (_, q, pose) in enumerate(tp):
+        step("extraction: rendering frames", k, len(tp))
+        imgs.append((q, r.render(q, pose)))
+    times = []
+    for k, (q, img) in enumerate(imgs):
+        step("extraction: board + 8 rods per frame", k, len(imgs))
+        t0 = time.perf_counter()
+        bp = det.measure(img, cam)
+        occ = []
+        if not isinstance(bp, str):
+            oc = det.outline_camera(bp.R, bp.t, margin_m=0.028)
+            occ.append(cam.to_ideal_pixels(oc[:, :2] / oc[:, 2:3]))
+        preds = predict_rods(g.nominal, q, g.camera_from_base, g.rod_spacing_m)
+        measure_rods(img, cam, preds, g.rod_radius_m, occluders=occ, ideal_bbox=box)
+        times.append(time.perf_counter() - t0)
+    return times
+
+
+def bench_extraction(opts: SpeedOptions, step: Step = _no_step) -> tuple[list[Figure], dict[str, Any]]:
+    t = frame_times(opts.frames, step, seed=opts.seed)
+    ms = [x * 1e3 for x in t]
+    fig = Figure(key="extraction_frame_median_ms", section="extraction", value=statistics.median(ms), unit="ms",
+                 label="board + 8 rods per 1024x768 frame, one process (median)", target=20.0,
+                 detail=f"{len(ms)} frames, min {min(ms):.1f}, max {max(ms):.1f} ms")
+    return [fig], {"frame_ms": ms}
+
+
+def _extract_calibrate_job(queue: Any, dataset: str, workers: int | None) -> None:
+    """Body of the fresh process of :func:`extract_calibrate`: puts ("progress", done, total) messages, then
+    ("result", dict) or ("error", text)."""
+    try:
+        from calib.observations import Observations
+        from calib.pipeline import calibrate
+        from calib.vision.extract import extract_dataset
+
+        def progress(done: int, total: int) -> None:
+            queue.put(("progress", done, total))
+
+        with RssSampler() as rss:
+            t0 = time.perf_counter()
+            res = extract_dataset(dataset, workers=workers, progress=progress)
+            t1 = time.perf_counter()
+            queue.put(("progress", -1, None))
+            doc = calibrate(Observations.from_dict(res.observations))
+            t2 = time.perf_counter()
+        failed = {k: e.get("error") for k, e in doc["methods"].items() if not e.get("parameters")}
+        n_workers = workers or os.cpu_count() or 1
+        main_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        worker_mb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+        queue.put(("result", {
+            "extract_s": t1 - t0, "calibrate_s": t2 - t1, "frames": len(res.observations["frames"]),
+            "workers": n_workers, "peak_main_mb": main_mb, "peak_largest_worker_mb": worker_mb,
+            # without /proc: the upper bound (every worker at its largest peak at the main's peak)
+            "peak_tree_mb": rss.peak_mb or main_mb + (n_workers if n_workers > 1 else 0) * worker_mb,
+            "peak_sampled": rss.peak_mb > 0, "methods_failed": failed}))
+    except BaseException as exc:
+        queue.put(("error", f"{type(exc).__name__}: {exc}"))
+
+
+def extract_calibrate(dataset: str | Path, workers: int | None = None, step: Step = _no_step) -> dict[str, Any]:
+    """Time ``extract`` + ``calibrate --method all`` of ``dataset`` in a fresh (spawned) process.
+
+    Returns
+    -------
+    dict
+        ``extract_s``, ``calibrate_s`` (s), ``frames``, ``workers``, ``peak_tree_mb`` (peak resident memory of
+        the process and its workers together, MB), ``peak_main_mb``, ``peak_largest_worker_mb``.
+    """
+    import multiprocessing as mp
+    import queue as queue_mod
+
+    ctx = mp.get_context("spawn")
+    q = ctx.Queue()
+    proc = ctx.Process(target=_extract_calibrate_job, args=(q, str(dataset), workers), name="i4cal-bench-extract")
+    proc.start()
+    try:
+        while True:
+            try:
+                msg = q.get(timeout=1.0)
+            except queue_mod.Empty:
+                if not proc.is_alive():
+                    raise I4calError(f"the extract + calibrate process died (exit code {proc.exitcode})") from None
+                continue
+            if msg[0] == "progress":
+                if msg[1] < 0:
+                    step("extract-calibrate: calibrate --method all", 0, None)
+                else:
+                    step("extract-calibrate: extract", msg[1], msg[2])
+            elif msg[0] == "error":
+                raise I4calError(f"extract + calibrate: {msg[1]}")
+            else:
+                return msg[1]
+    finally:
+        proc.join(timeout=30)
+        if proc.is_alive():
+            proc.kill()
+
+
+def bench_extract_calibrate(opts: SpeedOptions, step: Step = _no_step) -> tuple[list[Figure], dict[str, Any]]:
+    with tempfile.TemporaryDirectory(prefix="i4cal-bench-") as tmp:
+        details: dict[str, Any] = {}
+        if opts.dataset:
+            ds = Path(opts.dataset)
+            details["dataset"] = str(ds)
+        else:
+            from drivers.sim.imaging import simulate_dataset
+
+            t0 = time.perf_counter()
+            ds = simulate_dataset(Path(tmp) / "ds", seed=opts.seed,
+                                  progress=lambda d, n: step("extract-calibrate: rendering the dataset", d, n))
+            details["dataset"] = "paper's plan, rendered"
+            details["render_s"] = time.perf_counter() - t0
+        r = extract_calibrate(ds, opts.workers, step)
+    details.update(r)
+    total = r["extract_s"] + r["calibrate_s"]
+    figs = [Figure(key="extract_calibrate_s", section="extract-calibrate", value=total, unit="s", target=5.0,
+                   label=f"extract ({r['workers']} processes) + calibrate all, paper-sized dataset",
+                   detail=f"{r['frames']} frames; extract {r['extract_s']:.2f} s, calibrate {r['calibrate_s']:.2f} s"),
+            Figure(key="peak_memory_mb", section="extract-calibrate", value=r["peak_tree_mb"], unit="MB", target=500.0,
+                   label="peak memory of extract + calibrate (process + workers)",
+                   detail=f"main {r['peak_main_mb']:.0f} MB, largest worker {r['peak_largest_worker_mb']:.0f} MB")]
+    if r["methods_failed"]:
+        details["warning"] = f"methods failed: {r['methods_failed']}"
+    return figs, details
+
+
+# -- fits ----------------------------------------------------------------------------------------------
+def fit_times(repeats: int = 5, seed: int = 0, step: Step = _no_step) -> dict[str, list[float]]:
+    """Seconds per fit of each method on the paper-sized observations of the geometric twin (default noise)."""
+    from calib.baseframe import base_frame_from_observations
+    from calib.observations import Observations
+    from calib.parameters import NOMINAL
+    from calib.pipeline import METHOD_NAMES, run_method
+    from calib.plan import make_plan
+    from drivers.sim.twin import GeometricTwin
+
+    obs = Observations.from_dict(GeometricTwin().observations(plan=make_plan("full", NOMINAL, seed=seed), seed=seed))
+    bf = base_frame_from_observations(obs)
+    out: dict[str, list[float]] = {}
+    n = len(METHOD_NAMES) * repeats
+    for i, name in enumerate(METHOD_NAMES):
+        out[name] = []
+        for k in range(repeats):
+            step(f"fit: {name}", i * repeats + k, n)
+            t0 = time.perf_counter()
+            run_method(name, obs, bf)
+            out[name].append(time.perf_counter() - t0)
+    return out
+
+
+def bench_fit(opts: SpeedOptions, step: Step = _no_step) -> tuple[list[Figure], dict[str, Any]]:
+    t = fit_times(opts.fit_repeats, opts.seed, step)
+    figs = [Figure(key=f"fit_{name.replace('-', '_')}_ms", section="fit", unit="ms",
+                   value=statistics.median(xs) * 1e3, label=f"fit, {name} method (median)",
+                   detail=f"{len(xs)} fits, paper-sized observations (geometric twin)")
+            for name, xs in t.items()]
+    return figs, {"fit_ms": {k: [x * 1e3 for x in v] for k, v in t.items()}}
+
+
+# -- Modbus and acquisition on the simulated bench -------------------------------------------------------
+async def modbus_round_trips(reads: int = 1000, step: Step = _no_step) -> dict[str, list[float]]:
+    """Seconds per read of 4 holding registers over TCP loopback from the simulated controller.
+
+    Returns
+    -------
+    dict
+        ``raw`` (a plain pymodbus client), ``driver`` (:class:`drivers.modbus.ModbusActuators`, checked replies),
+        ``status`` (the driver's status of the four axes: four reads).
+    """
+    from pymodbus.client import AsyncModbusTcpClient
+
+    from drivers.config import open_actuators
+    from drivers.sim.bench import SimBench, fast_axis_config
+
+    out: dict[str, list[float]] = {"raw": [], "driver": [], "status": []}
+    async with SimBench(port=0, axis_config=fast_axis_config(), renderer=ConstantRenderer(), rtu=False) as b:
+        host, port = b.tcp_address
+        client = AsyncModbusTcpClient(host, port=port, timeout=1.0)
+        if not await client.connect():
+            raise I4calError(f"cannot connect to the simulated controller at {host}:{port}")
+        try:
+            for k in range(reads):
+                if k % 50 == 0:
+                    step("modbus: plain pymodbus client", k, reads)
+                t = time.perf_counter()
+                rr = await client.read_holding_registers(5, count=4, device_id=1)
+                out["raw"].append(time.perf_counter() - t)
+                if rr.isError() or len(rr.registers) != 4:
+                    raise I4calError(f"bad reply from the simulated controller: {rr}")
+        finally:
+            client.close()
+        act = open_actuators(b.bench_config())
+        await act.connect()
+        try:
+            for k in range(reads):
+                if k % 50 == 0:
+                    step("modbus: through the driver", k, reads)
+                t = time.perf_counter()
+                await act.read(1, 5, 4)
+                out["driver"].append(time.perf_counter() - t)
+            for _ in range(max(10, reads // 5)):
+                t = time.perf_counter()
+                await act.status()
+                out["status"].append(time.perf_counter() - t)
+        finally:
+            await act.close()
+    return out
+
+
+def bench_modbus(opts: SpeedOptions, step: Step = _no_step) -> tuple[list[Figure], dict[str, Any]]:
+    r = asyncio.run(modbus_round_trips(opts.reads, step))
+    ms = {k: [x * 1e3 for x in v] for k, v in r.items()}
+    figs = [Figure(key="modbus_round_trip_median_ms", section="modbus", unit="ms", value=statistics.median(ms["raw"]),
+                   label="Modbus TCP loopback round trip, read 4 registers (median)",
+                   detail=f"plain pymodbus client, {len(ms['raw'])} reads, p90 {percentile(ms['raw'], 90):.3f} ms"),
+            Figure(key="modbus_driver_round_trip_median_ms", section="modbus", unit="ms",
+                   value=statistics.median(ms["driver"]), label="the same through the checked driver (median)",
+                   detail=f"status of the 4 axes {statistics.median(ms['status']):.2f} ms")]
+    return figs, {k: {"median_ms": statistics.median(v), "p90_ms": percentile(v, 90), "n": len(v)}
+                  for k, v in ms.items()}
+
+
+def motion_time(d: float, v: float, a: float) -> float:
+    """Duration (s) of a trapezoidal (or triangular) move of ``d`` m at speed ``v`` m/s, acceleration ``a`` m/s^2."""
+    if d <= 0:
+        return 0.0
+    return d / v + v / a if d >= v * v / a else 2 * math.sqrt(d / a)
+
+
+async def acquisition_overheads(n_poses: int = 40, real_renderer: bool = False, seed: int = 0,
+                                step: Step = _no_step) -> dict[str, Any]:
+    """Run a ``pose-set`` plan on the simulated bench (Modbus TCP) and time each pose.
+
+    Returns
+    -------
+    dict
+        ``overhead_s`` (per pose after the first: wall time minus the simulated motion of the axis that travels
+        furthest), ``record_s`` (in position -> written), ``total_s``, ``poses``.
+    """
+    import numpy as np
+
+    from calib.parameters import NOMINAL
+    from calib.plan import Plan, pose_set
+    from drivers.acquisition import acquisition_from_config, close_devices
+    from drivers.sim.bench import SimBench, fast_axis_config
+
+    cfgax = fast_axis_config()
+    renderer = None if real_renderer else ConstantRenderer(seed)
+    async with SimBench(port=0, axis_config=cfgax, renderer=renderer, rtu=False, seed=seed) as b:
+        cfg = b.bench_config()
+        plan = Plan(name="pose-set", steps=pose_set(NOMINAL, n_poses, seed=3 + seed))
+        with tempfile.TemporaryDirectory(prefix="i4cal-bench-") as tmp:
+            acq = acquisition_from_config(plan, cfg, Path(tmp) / "ds",
+                                          progress=lambda p: step("acquisition: poses", p.done, p.total))
+            try:
+                t0 = time.perf_counter()
+                await acq.run()
+                total = time.perf_counter() - t0
+            finally:
+                await close_devices(acq)
+    v, a = cfg.actuators.speed_m_s, cfgax.accel
+    qs = [np.asarray(s.q) for s in plan.steps]
+    over, rec = [], []
+    for k in range(1, len(qs)):  # the first pose starts from home: skipped
+        t_start, t_moved, t_end = acq.timings[k]
+        d = float(np.max(np.abs(qs[k] - qs[k - 1])))
+        over.append((t_end - t_start) - motion_time(d, v, a))
+        rec.append(t_end - t_moved)
+    return {"overhead_s": over, "record_s": rec, "total_s": total, "poses": len(qs)}
+
+
+def bench_acquisition(opts: SpeedOptions, step: Step = _no_step) -> tuple[list[Figure], dict[str, Any]]:
+    r = asyncio.run(acquisition_overheads(opts.poses, opts.real_renderer, opts.seed, step))
+    over = [x * 1e3 for x in r["overhead_s"]]
+    rec = [x * 1e3 for x in r["record_s"]]
+    image = "rendered frames" if opts.real_renderer else "constant 1024x768 image"
+    fig = Figure(key="acquisition_overhead_median_ms", section="acquisition", unit="ms", value=statistics.median(over),
+                 target=30.0, label="acquisition overhead per pose beyond the motion (median)",
+                 detail=f"{r['poses']} poses, {image}; p90 {percentile(over, 90):.1f} ms; grab "
+                        f"{statistics.median(rec):.1f} ms")
+    return [fig], {"overhead_ms": over, "record_ms": rec, "total_s": r["total_s"], "camera": image}
+
+
+# -- service -------------------------------------------------------------------------------------------
+def bench_service_module() -> Any:
+    """``benchmarks/bench_service.py`` of the source checkout this package runs from (imported, not copied)."""
+    path = Path(__file__).resolve().parents[2] / "benchmarks" / "bench_service.py"
+    if not path.is_file():
+        raise I4calError(f"the service latency benchmark is benchmarks/bench_service.py of a source checkout "
+                         f"(not found at {path}); install i4cal from a checkout (pip install -e .)")
+    spec = importlib.util.spec_from_file_location("i4cal_bench_service", path)
+    mod = importlib.util.module_from_spec(spec)
+    assert spec.loader is not None
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def bench_service(opts: SpeedOptions, step: Step = _no_step) -> tuple[list[Figure], dict[str, Any]]:
+    mod = bench_service_module()
+    step(f"service: a run of the {opts.service_plan} plan in i4cal serve, status polled", 0, None)
+    lat: dict[str, dict[str, list[float]]] = mod.measure(paper_plan=opts.service_plan == "paper",
+                                                         workers=opts.workers or os.cpu_count() or 1,
+                                                         hz=opts.service_hz)
+    final = [s for s in lat if s in FINAL_STATES]
+    if final != ["done"]:
+        raise I4calError(f"the service run ended {', '.join(final) or 'without a final state'} "
+                         f"(states seen: {', '.join(lat)})")
+    active = [x for s, d in lat.items() if s not in FINAL_STATES for x in d["status"]]
+    if not active:
+        raise I4calError("no status sample while the run was going")
+    per_state = {s: {ep: {"n": len(xs), "p50_ms": percentile(xs, 50), "p99_ms": percentile(xs, 99),
+                          "max_ms": max(xs)} for ep, xs in d.items()} for s, d in lat.items()}
+    worst = max((s for s in per_state if s not in FINAL_STATES), key=lambda s: per_state[s]["status"]["p99_ms"])
+    detail = (f"{len(active)} polls at {opts.service_hz:g} Hz, {opts.service_plan} plan; worst p99 while "
+              f"{worst}: {per_state[worst]['status']['p99_ms']:.1f} ms")
+    figs = [Figure(key="service_status_p50_ms", section="service", unit="ms", value=percentile(active, 50),
+                   label="service status latency while a run goes (p50)", detail=detail),
+            Figure(key="service_status_p99_ms", section="service", unit="ms", value=percentile(active, 99),
+                   target=50.0, label="service status latency while a run goes (p99)",
+                   detail=f"max {max(active):.1f} ms")]
+    return figs, {"per_state": per_state, "plan": opts.service_plan}
+
+
+BENCHES: dict[str, Callable[[SpeedOptions, Step], tuple[list[Figure], dict[str, Any]]]] = {
+    "extraction": bench_extraction, "extract-calibrate": bench_extract_calibrate, "fit": bench_fit,
+    "acquisition": bench_acquisition, "modbus": bench_modbus, "service": bench_service}
+
+
+def parse_sections(text: str | None) -> list[str]:
+    """Section names of ``--only`` (comma-separated, aliases allowed) in the canonical order."""
+    if not text:
+        return list(SECTIONS)
+    names = set()
+    for raw in text.split(","):
+        name = ALIASES.get(raw.strip().lower(), raw.strip().lower())
+        if not name:
+            continue
+        if name not in SECTIONS:
+            raise InputError(f"unknown benchmark section {raw.strip()!r}; sections are {', '.join(SECTIONS)}",
+                             field="--only")
+        names.add(name)
+    return [s for s in SECTIONS if s in names]
+
+
+def run_speed(sections: list[str], opts: SpeedOptions | None = None, step: Step = _no_step,
+              on_section: Callable[[str, int], None] | None = None) -> SpeedReport:
+    """Run the named sections in order; a failing section is recorded in ``errors`` and the others still run."""
+    opts = opts or SpeedOptions()
+    report = SpeedReport(machine=machine_info(), sections=sections, options=opts)
+    t0 = time.perf_counter()
+    for i, name in enumerate(sections):
+        if on_section:
+            on_section(name, i)
+        try:
+            figs, details = BENCHES[name](opts, step)
+        except Exception as exc:
+            if os.environ.get("I4CAL_DEBUG"):
+                raise
+            report.errors[name] = str(exc) if isinstance(exc, I4calError) else f"{type(exc).__name__}: {exc}"
+            continue
+        report.figures += figs
+        report.details[name] = details
+    report.elapsed_s = time.perf_counter() - t0
+    return report
+
+
+# -- terminal ------------------------------------------------------------------------------------------
+def _fmt(v: float) -> str:
+    return f"{v:.3f}" if abs(v) < 1 else f"{v:.1f}" if abs(v) < 1000 else f"{v:.0f}"
+
+
+def print_report(report: SpeedReport, console: Any = None) -> None:
+    """The figures as a rich table: measured, target, met."""
+    from rich.table import Table
+
+    from service.cli._output import make_console
+
+    con = console or make_console()
+    m = report.machine
+    t = Table(title=f"i4cal bench speed - {m['cpu']}, {m['cores']} cores, Python {m['python']}, {m['date']}",
+              title_justify="left")
+    for col, just in (("section", "left"), ("figure", "left"), ("measured", "right"), ("target", "right"),
+                      ("vs target", "center"), ("notes", "left")):
+        t.add_column(col, justify=just)  # type: ignore[arg-type]
+    for f in report.figures:
+        met = "" if f.met is None else ("[green]met[/green]" if f.met else "[red]not met[/red]")
+        target = "-" if f.target is None else f"<= {_fmt(f.target)} {f.unit}"
+        t.add_row(f.section, f.label, f"{_fmt(f.value)} {f.unit}", target, met, f"[dim]{f.detail}[/dim]")
+    for name, err in report.errors.items():
+        t.add_row(name, "[red]failed[/red]", "-", "-", "", f"[red]{err}[/red]")
+    con.print(t)
+    con.print(f"[dim]{len(report.figures)} figures in {report.elapsed_s:.1f} s[/dim]")
+
+
+# -- command line --------------------------------------------------------------------------------------
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "speed", help="speed figures of this machine (extraction, fits, acquisition, Modbus, service, memory)",
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--only", metavar="LIST", default=None,
+                   help=f"comma-separated sections to run (default all): {','.join(SECTIONS)}")
+    p.add_argument("--json", metavar="PATH", default=None, help="also write the figures as JSON")
+    p.add_argument("--frames", type=int, default=30, metavar="N", help="frames timed for extraction (default 30)")
+    p.add_argument("--dataset", metavar="DIR", default=None,
+                   help="dataset v1 to extract and calibrate (default: render the paper's plan)")
+    p.add_argument("--workers", type=int, default=None, metavar="N", help="extraction processes (default: all cores)")
+    p.add_argument("--poses", type=int, default=40, metavar="N", help="poses of the acquisition run (default 40)")
+    p.add_argument("--real-renderer", action="store_true",
+                   help="acquisition: the bench renders frames (default: a constant image)")
+    p.add_argument("--reads", type=int, default=1000, metavar="N", help="Modbus reads timed per client (default 1000)")
+    p.add_argument("--fit-repeats", type=int, default=5, metavar="N", help="fits timed per method (default 5)")
+    p.add_argument("--service-plan", choices=("paper", "reduced"), default="paper",
+                   help="plan of the service run (default paper)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--quiet", action="store_true", help="no progress display")
+    p.set_defaults(handler=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from pydantic import ValidationError
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+
+    from calib.jsonio import write_json_atomic
+
+    sections = parse_sections(args.only)
+    try:
+        opts = SpeedOptions(frames=args.frames, dataset=args.dataset, workers=args.workers, poses=args.poses,
+                            real_renderer=args.real_renderer, reads=args.reads, fit_repeats=args.fit_repeats,
+                            service_plan=args.service_plan, seed=args.seed)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        raise InputError(err["msg"], field="--" + str(err["loc"][0]).replace("_", "-")) from None
+    if opts.dataset and not Path(opts.dataset).exists():
+        raise InputError(f"no dataset at {opts.dataset}", field="--dataset")
+    if args.quiet:
+        report = run_speed(sections, opts)
+    else:
+        with Progress(SpinnerColumn(), TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                      TimeElapsedColumn(), console=Console(stderr=True), transient=True) as bar:
+            overall = bar.add_task("sections", total=len(sections))
+            current = bar.add_task("", total=None)
+
+            def on_section(name: str, i: int) -> None:
+                bar.update(overall, completed=i, description=f"section {i + 1}/{len(sections)}: {name}")
+                bar.reset(current, total=None, description=name)
+
+            def step(description: str, done: float, total: float | None) -> None:
+                bar.update(current, description=description, completed=done, total=total)
+
+            report = run_speed(sections, opts, step, on_section)
+    print_report(report)
+    if args.json:
+        write_json_atomic(args.json, report.to_json(), indent=1)
+        Console(stderr=True).print(f"wrote {args.json}")
+    return 1 if report.errors else 0
