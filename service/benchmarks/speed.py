@@ -32,6 +32,7 @@ import os
 import platform
 import resource
 import statistics
+import sys
 import tempfile
 import threading
 import time
@@ -517,10 +518,18 @@ def bench_service_module() -> Any:
     if not path.is_file():
         raise I4calError(f"the service latency benchmark is benchmarks/bench_service.py of a source checkout "
                          f"(not found at {path}); install i4cal from a checkout (pip install -e .)")
-    spec = importlib.util.spec_from_file_location("i4cal_bench_service", path)
+    name = "i4cal_bench_service"
+    if name in sys.modules:
+        return sys.modules[name]
+    spec = importlib.util.spec_from_file_location(name, path)
+    assert spec is not None and spec.loader is not None
     mod = importlib.util.module_from_spec(spec)
-    assert spec.loader is not None
-    spec.loader.exec_module(mod)
+    sys.modules[name] = mod  # before running it: dataclasses look their module up there
+    try:
+        spec.loader.exec_module(mod)
+    except BaseException:
+        del sys.modules[name]
+        raise
     return mod
 
 

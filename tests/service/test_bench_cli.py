@@ -4,12 +4,13 @@ benchmarks, not asserted against targets here."""
 
 from __future__ import annotations
 
+import inspect
 import json
 import math
 import subprocess
 import sys
 
-from service.benchmarks.speed import SECTIONS, parse_sections
+from service.benchmarks.speed import SECTIONS, bench_service_module, parse_sections
 from service.cli import main
 
 
@@ -46,3 +47,10 @@ def test_sections_and_errors(capsys):
 def test_bench_lists_the_discovered_benchmarks(capsys):
     assert main(["bench"]) == 1
     assert "i4cal bench speed" in capsys.readouterr().out
+
+
+def test_service_section_imports_the_service_benchmark():
+    """The service figure comes from benchmarks/bench_service.py (imported from the checkout, not copied)."""
+    mod = bench_service_module()
+    assert {"paper_plan", "workers", "hz"} <= set(inspect.signature(mod.measure).parameters)
+    assert bench_service_module() is mod
