@@ -109,8 +109,12 @@ def combined_fisher(nominal: I4Parameters, q_fit: np.ndarray, q_rot: np.ndarray,
 
 
 def crlb_combined(nominal: I4Parameters, plan: Plan, noise: MeasurementNoise | None = None,
-                  camera_from_base_R: np.ndarray | None = None) -> dict:
+                  camera_from_base_R: np.ndarray | None = None, rod_cov: np.ndarray | None = None) -> dict:
     """Predicted standard deviations (the bound) of the four combinations for a plan, before any motion.
+
+    ``rod_cov`` (N_fit, 4, 3, 3), optional: per fit pose and leg, the covariance (camera frame) of the
+    leg's direction measurement (with ``noise.rods_per_leg`` rods averaged in it), e.g. from the
+    rods' measured ``cov_u``; default isotropic ``noise.rod_direction_rad``.
 
     Returns
     -------
@@ -123,7 +127,7 @@ def crlb_combined(nominal: I4Parameters, plan: Plan, noise: MeasurementNoise | N
     q_tra = _phase_q(plan, "translation")
     if len(q_fit) < 2 or len(q_rot) < 2 or len(q_tra) < 2:
         raise ValueError("the bound needs a plan with rotation, translation and pose-set steps")
-    F = combined_fisher(nominal, q_fit, q_rot, q_tra, noise, camera_from_base_R)
+    F = combined_fisher(nominal, q_fit, q_rot, q_tra, noise, camera_from_base_R, rod_cov)
     cov = np.linalg.inv(F)[:4, :4]
     return {"std": {k: float(np.sqrt(cov[i, i])) for i, k in enumerate(COMBINATION_NAMES)},
             "covariance": cov.tolist(),

@@ -121,25 +121,69 @@ def _tag(on_iteration: IterationCallback | None, method: str) -> IterationCallba
 
 
 def _bound_for(obs: Observations, params: I4Parameters, res: MethodResult, bf: BaseFrameResult) -> dict:
-    """The Cramer-Rao bound of the combined method for these poses, at the noise levels this run measured."""
+    """The Cramer-Rao bound of the combined method for these poses, at the noise levels this run measured.
+
+    With rods that carry their measured covariance (``cov_u``, image extraction) and the GLS fit, each
+    leg's direction noise is the information sum of its rods' covariances scaled by the fit's measured
+    noise scale; otherwise an isotropic direction noise of the measured scale (radians).
+    """
     from .bound import MeasurementNoise, crlb_combined
     from .plan import Plan, Step
 
     steps = [Step(phase=f.phase, q=f.q) for f in obs.frames if f.phase in ("rotation", "translation", "poses")]
-    sigma_dir = float(res.diagnostics.get("direction_noise_scale", 0.0))
+    scale = float(res.diagnostics.get("direction_noise_scale", 0.0))
     sig_r = bf.rotation_residual_rms_rad / np.sqrt(2.0)  # two tangent components carry the residual
     sig_t = bf.translation_residual_rms_m / np.sqrt(3.0)
-    if min(sigma_dir, sig_r, sig_t) <= 0:
+    if min(scale, sig_r, sig_t) <= 0:
         return {"std": None, "note": "noise-free data: the bound is zero"}
+    rod_cov = _leg_covariances(obs, scale ** 2) if res.diagnostics.get("weighting") == "gls" else None
+    noise = MeasurementNoise(scale if rod_cov is None else 0.0, sig_r, (sig_t, sig_t, sig_t),
+                             rods_per_leg=2 if rod_cov is None else 1)
     try:
-        b = crlb_combined(params, Plan(name="observed", steps=steps),
-                          MeasurementNoise(sigma_dir, sig_r, (sig_t, sig_t, sig_t)), bf.camera_from_base_R)
+        b = crlb_combined(params, Plan(name="observed", steps=steps), noise, bf.camera_from_base_R, rod_cov)
     except (ValueError, np.linalg.LinAlgError) as exc:
         return {"std": None, "note": str(exc)}
     b["efficiency_std_ratio"] = {k: res.combinations_std[k] / v for k, v in b["std"].items()}
-    b["note"] = ("Cramer-Rao bound for these poses at the noise levels measured in this run "
-                 "(isotropic approximations of the rod-direction and board-pose noise)")
+    b["note"] = ("Cramer-Rao bound for these poses at the noise levels measured in this run ("
+                 + ("each rod's measured direction covariance, scaled by the fit's noise scale"
+                    if rod_cov is not None else "isotropic rod-direction noise") + "; isotropic board-pose noise)")
     return b
+
+
+def _leg_covariances(obs: Observations, s2: float) -> np.ndarray | None:
+    """Per fit pose and leg, the direction covariance of the leg from its rods' ``cov_u``, (N, 4, 3, 3).
+
+    Information sum of the leg's rods in the plane normal to their mean direction; a leg without a
+    measured rod gets a covariance so large it carries no information. None when a rod lacks ``cov_u``.
+    """
+    out = []
+    for f in obs.frames:
+        if f.phase != "poses":
+            continue
+        legs = []
+        for leg in range(4):
+            rods = (f.legs or {}).get(str(leg + 1)) or []
+            info = np.zeros((3, 3))
+            for rod in rods:
+                if rod is None:
+                    continue
+                c = getattr(rod, "cov_u", None)
+                if c is None:
+                    return None
+                u = np.asarray(rod.u, dtype=np.float64)
+                T = np.linalg.svd(np.eye(3) - np.outer(u, u))[0][:, :2]
+                C2 = T.T @ (s2 * np.asarray(c, dtype=np.float64)) @ T
+                info += T @ np.linalg.inv(C2) @ T.T
+            if not info.any():
+                legs.append(1e6 * np.eye(3))
+                continue
+            # pseudo-inverse: nothing along the rods' own direction, which the bound projects out
+            # (a large variance there would leak into the model direction's tangent plane)
+            w, V = np.linalg.eigh(info)  # rank 2: the smallest eigenvalue is along the rods (zero)
+            inv = np.where(w[1:] > 1e-12 * w[-1], 1.0 / np.maximum(w[1:], 1e-300), 0.0)
+            legs.append(V[:, 1:] @ np.diag(inv) @ V[:, 1:].T)
+        out.append(legs)
+    return np.asarray(out) if out else None
 
 
 def to_jsonable(x: Any) -> Any:
