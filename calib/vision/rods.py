@@ -153,7 +153,7 @@ class RodSettings:
     min_plane_angle_rad: float = 2e-3
     border_px: float = 3.0         #: samples closer to the image border are dropped
     near_m: float = 0.05           #: the segment is clipped to z >= near_m
-    edge_bias_px: float = 0.06     #: slowly varying edge bias allowed for in ``cov_u`` (end-to-end, px)
+    edge_bias_px: float = 0.05     #: slowly varying edge bias allowed for in ``cov_u`` (end-to-end, px)
     neighbour_px: float = 4.0      #: limb points closer than this to another rod's predicted silhouette: dropped
 
 
@@ -191,15 +191,22 @@ class RodMeasurement:
 
 # ---------------------------------------------------------------------------------------------
 def _fit_line_tls(pts: Array, w: Array | None = None) -> Array:
-    """Total least squares line (a, b, c), a^2 + b^2 = 1, of points (N, 2) with optional weights."""
+    """Total least squares line (a, b, c), a^2 + b^2 = 1, of points (N, 2) with optional weights.
+
+    The normal is the minor axis of the (weighted) scatter matrix, in closed form for 2x2.
+    """
     if w is None:
-        w = np.ones(len(pts))
-    c = (w[:, None] * pts).sum(0) / w.sum()
-    d = pts - c
-    C = (w[:, None, None] * d[:, :, None] * d[:, None, :]).sum(0)
-    _, evecs = np.linalg.eigh(C)
-    n = evecs[:, 0]
-    return np.array([n[0], n[1], -n @ c])
+        c = pts.mean(0)
+        d = pts - c
+        sxx, syy, sxy = float(d[:, 0] @ d[:, 0]), float(d[:, 1] @ d[:, 1]), float(d[:, 0] @ d[:, 1])
+    else:
+        c = (w @ pts) / w.sum()
+        d = pts - c
+        wd = w[:, None] * d
+        sxx, syy, sxy = float(wd[:, 0] @ d[:, 0]), float(wd[:, 1] @ d[:, 1]), float(wd[:, 0] @ d[:, 1])
+    theta = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)  # major axis angle
+    n = np.array([-np.sin(theta), np.cos(theta)])
+    return np.array([n[0], n[1], -(n @ c)])
 
 
 def robust_line(pts: Array, rng: np.random.Generator, iters: int, inlier_px: float) -> tuple[Array, NDArray[np.bool_]]:
@@ -476,7 +483,7 @@ def _u_from_lines(K: Array, lines: list[Array], inner: Array) -> Array:
 
 
 def _direction_covariance(K: Array, fits: list[tuple[Array, Array, float, Array]], inner: Array,
-                          edge_bias_px: float = 0.06) -> Array:
+                          edge_bias_px: float = 0.0) -> Array:
     """Covariance (3, 3) of the axis direction from the two limb fits' line uncertainties.
 
     Each fit is (centroid, unit direction, sigma^2, points); the line is perturbed by a rotation about
@@ -488,33 +495,30 @@ def _direction_covariance(K: Array, fits: list[tuple[Array, Array, float, Array]
     ~1/(plane angle) times less precise than its image component: the covariance is strongly
     anisotropic, which the combined method's GLS weighting uses.
     """
-    def lines_of(p: Array) -> list[Array]:
-        out = []
-        for j, (c, td, _s2, _pts) in enumerate(fits):
-            ang, sh = p[2 * j], p[2 * j + 1]
-            cs, sn = np.cos(ang), np.sin(ang)
-            d = np.array([cs * td[0] - sn * td[1], sn * td[0] + cs * td[1]])
-            n = np.array([-d[1], d[0]])
-            out.append(np.array([n[0], n[1], -(n @ c) - sh]))
-        return out
-
-    # keep the sign convention of the fitted lines: the normal is (-d_y, d_x) of the direction
-    p0 = np.zeros(4)
-    u0 = _u_from_lines(K, lines_of(p0), inner)
+    # all 9 parameter sets (nominal, then +/- each of the 4) at once
     var = []
     for c, td, s2, pts in fits:
         t = (pts - c) @ td
         span = max(float(t.max() - t.min()), 1.0)
         var += [s2 / max(float(t @ t), 1e-9) + (edge_bias_px / span) ** 2, s2 / len(pts) + (0.5 * edge_bias_px) ** 2]
-    J = np.zeros((3, 4))
+    step = np.array([1e-6, 1e-3, 1e-6, 1e-3])
+    P = np.zeros((9, 4))
     for k in range(4):
-        e = np.zeros(4)
-        e[k] = 1e-6 if k % 2 == 0 else 1e-3
-        up = _u_from_lines(K, lines_of(p0 + e), inner)
-        um = _u_from_lines(K, lines_of(p0 - e), inner)
-        up = up if up @ u0 > 0 else -up
-        um = um if um @ u0 > 0 else -um
-        J[:, k] = (up - um) / (2 * e[k])
+        P[1 + 2 * k, k] = step[k]
+        P[2 + 2 * k, k] = -step[k]
+    hs = []
+    for j, (c, td, _s2, _pts) in enumerate(fits):
+        ang, sh = P[:, 2 * j], P[:, 2 * j + 1]
+        cs, sn = np.cos(ang), np.sin(ang)
+        d = np.stack([cs * td[0] - sn * td[1], sn * td[0] + cs * td[1]], axis=1)  # (9, 2)
+        lines = np.stack([-d[:, 1], d[:, 0], d[:, 1] * c[0] - d[:, 0] * c[1] - sh], axis=1)
+        h = lines @ K  # rows: (K^T l)^T
+        h /= np.linalg.norm(h, axis=1, keepdims=True)
+        hs.append(h * np.where(h @ inner > 0, 1.0, -1.0)[:, None])
+    u = np.cross(hs[0], hs[1])
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    u *= np.where(u @ u[0] > 0, 1.0, -1.0)[:, None]
+    J = ((u[1::2] - u[2::2]) / (2.0 * step[:, None])).T  # (3, 4)
     return J @ np.diag(var) @ J.T
 
 
