@@ -143,6 +143,13 @@ def _bound_for(obs: Observations, params: I4Parameters, res: MethodResult, bf: B
         b = crlb_combined(params, Plan(name="observed", steps=steps), noise, bf.camera_from_base_R, rod_cov)
     except (ValueError, np.linalg.LinAlgError) as exc:
         return {"std": None, "note": str(exc)}
+    cov_intr = res.diagnostics.get("intrinsics_covariance")
+    if cov_intr is not None:
+        # the intrinsics are nuisance parameters known from the camera calibration: their prior adds
+        cov = np.asarray(b["covariance"]) + np.asarray(cov_intr)
+        b["covariance"] = cov.tolist()
+        b["std"] = {k: float(np.sqrt(cov[i, i])) for i, k in enumerate(COMBINATION_NAMES)}
+        b["includes_intrinsics"] = True
     b["efficiency_std_ratio"] = {k: res.combinations_std[k] / v for k, v in b["std"].items()}
     b["note"] = ("Cramer-Rao bound for these poses at the noise levels measured in this run ("
                  + ("each rod's measured direction covariance, scaled by the fit's noise scale"

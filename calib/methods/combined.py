@@ -269,18 +269,79 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
         cov = cov_pose_fixed.copy()
     cov_base = cov - cov_pose_fixed
     base_std = {k: float(np.sqrt(max(cov_base[i, i], 0.0))) for i, k in enumerate(COMBINATION_NAMES)}
+    # the camera's intrinsics, calibrated once, are common to every rod: their error does not
+    # average out. First-order propagation when the rods carry their planes and the intrinsics their std
+    gain = B if (joint and s2 > 0) else np.hstack(
+        [np.linalg.solve(Jr[:, :4].T @ Wfull @ Jr[:, :4], Jr[:, :4].T @ Wfull).T, np.zeros((2 * m, 3))]).T
+    cov_intr = _intrinsics_covariance(obs, data, prob, rotvec_to_matrix(w) @ R0, gain[:4])
+    if cov_intr is not None:
+        cov = cov + cov_intr
     return MethodResult(
         method="combined", combinations=combos_dict(xi), combinations_std=std_dict(cov), covariance=cov,
         residual_rms=float(np.sqrt(np.mean(r ** 2))), residual_unit="Jacobian entry (dimensionless)",
         n_observations=2 * m, n_poses=prob.n_poses, iterations=int(nfev), converged=True,
         message=str(sol.message),
-        std_breakdown={"legs_and_encoders": std_dict(cov_pose_fixed), "base_frame": base_std},
+        std_breakdown={"legs_and_encoders": std_dict(cov_pose_fixed), "base_frame": base_std,
+                       **({"intrinsics": std_dict(cov_intr)} if cov_intr is not None else {})},
         diagnostics={"weighting": weighting, "direction_noise_scale": float(np.sqrt(s2)),
                      "rods_rejected": rejected, "rods_used": int(m),
+                     "intrinsics_covariance": None if cov_intr is None else cov_intr.tolist(),
                      "rods_dropped_near_vertical": prob.dropped, "base_frame": bf.summary(),
                      "base_frame_refinement_deg": float(np.rad2deg(np.linalg.norm(w))),
                      "joint_base_frame": joint},
         residuals=r)
+
+
+def _intrinsics_covariance(obs: Observations, data: PhaseArrays, prob: _Problem, R_cb: np.ndarray,
+                           gain: np.ndarray) -> np.ndarray | None:
+    """Covariance (4, 4) of the combinations due to the camera intrinsics' uncertainty, or None.
+
+    Needs every used rod's interpretation planes (extra field ``h``, two unit normals) and the
+    intrinsics' standard deviations (``extraction.camera.calibration.std``). A change of K to K'
+    maps each plane normal to ``K'^T K^-T h`` (exact for the pinhole part); a principal-point shift
+    also turns the board poses, hence the base frame, by about ``(dcy/fy, -dcx/fx, 0)`` rad, which is
+    applied to the base frame's rotation. fx and fy are taken as fully correlated (one focal scale,
+    the conservative choice when only their standard deviations are known), cx and cy independent.
+    ``gain`` (4, 2M) maps a change of the raw residuals to a change of the estimate.
+    """
+    extra = obs.document.model_extra or {}
+    cam = (extra.get("extraction") or {}).get("camera") or {}
+    std = (cam.get("calibration") or {}).get("std") or {}
+    if not cam.get("K") or not all(k in std for k in ("fx", "fy", "cx", "cy")):
+        return None
+    planes = []
+    for k, leg, rod in zip(prob.k, prob.leg, prob.rod, strict=True):
+        frame = obs.frames[int(data.index[k])]
+        rods = frame.legs.get(str(leg + 1)) if frame.legs else None
+        h = getattr(rods[rod], "h", None) if rods and rods[rod] is not None else None
+        if h is None:
+            return None
+        planes.append(np.asarray(h, dtype=np.float64))
+    H = np.asarray(planes)  # (M, 2, 3)
+    K = np.asarray(cam["K"], dtype=np.float64)
+    Kinv_T = np.linalg.inv(K).T
+    u0 = prob.u_cam
+
+    def measured(dfx: float, dfy: float, dcx: float, dcy: float) -> np.ndarray:
+        K2 = K + np.array([[dfx, 0, dcx], [0, dfy, dcy], [0, 0, 0]])
+        M = K2.T @ Kinv_T
+        h = np.einsum("ij,mkj->mki", M, H)
+        u = np.cross(h[:, 0], h[:, 1])
+        u /= np.linalg.norm(u, axis=1, keepdims=True)
+        u *= np.sign(np.sum(u * u0, axis=1))[:, None]
+        R = rotvec_to_matrix(np.array([dcy / K[1, 1], -dcx / K[0, 0], 0.0])) @ R_cb
+        uB = u @ R
+        return (uB[:, 1:] / uB[:, :1]).ravel()
+
+    sf = 0.5 * (float(std["fx"]) + float(std["fy"]))
+    cols = []
+    for d, sd in (((1.0, 1.0, 0.0, 0.0), sf), ((0.0, 0.0, 1.0, 0.0), float(std["cx"])),
+                  ((0.0, 0.0, 0.0, 1.0), float(std["cy"]))):
+        e = np.asarray(d)
+        dm = (measured(*e) - measured(*(-e))) / 2.0  # per pixel
+        cols.append(gain @ dm * sd)  # raw = model - measured: the estimate moves by -gain @ (-dm)
+    S = np.column_stack(cols)  # (4, 3): effect of one std of each
+    return S @ S.T
 
 
 _CHI2_2_999 = 13.8155  # chi-square, 2 dof, 99.9% quantile

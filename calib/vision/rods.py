@@ -186,6 +186,8 @@ class RodMeasurement:
             d["point"] = self.point.tolist()
         if self.cov_u is not None:
             d["cov_u"] = self.cov_u.tolist()
+        if self.h is not None:
+            d["h"] = [self.h[0].tolist(), self.h[1].tolist()]  # interpretation-plane normals (camera frame)
         return d
 
 
