@@ -527,7 +527,8 @@ def _direction_covariance(K: Array, fits: list[tuple[Array, Array, float, Array]
 def measure_rod(gray: np.ndarray, camera: CameraModel, pred: RodPrediction, radius: float,
                 settings: RodSettings | None = None, occluders: list[Array] | None = None,
                 rng: np.random.Generator | None = None, ideal_bbox: Array | None = None,
-                neighbours: list[tuple[Array, Array, float]] | None = None) -> RodMeasurement:
+                neighbours: list[tuple[Array, Array, float]] | None = None,
+                segment: _Segment | str | None = None) -> RodMeasurement:
     """Measure one rod in an image.
 
     Parameters
@@ -559,7 +560,7 @@ def measure_rod(gray: np.ndarray, camera: CameraModel, pred: RodPrediction, radi
     out = RodMeasurement(pred.leg, pred.rod)
     K = camera.K
     box = ideal_bbox if ideal_bbox is not None else image_ideal_bbox(camera)
-    seg = _predicted_segment(camera, pred, radius, s.near_m, box)
+    seg = segment if segment is not None else _predicted_segment(camera, pred, radius, s.near_m, box)
     if isinstance(seg, str):
         out.reason = seg
         return out
@@ -709,11 +710,11 @@ def measure_rods(gray: np.ndarray, camera: CameraModel, preds: list[RodPredictio
     sil = [None if isinstance(g, str) else
            (g.a, g.a + g.length * g.t_dir, 0.5 * float(np.max(np.abs(g.off1 - g.off2)))) for g in segs]
 
-    def measure(i: int, pred: RodPrediction) -> RodMeasurement:
+    def measure(i: int, pred: RodPrediction, seg: _Segment | str | None = None) -> RodMeasurement:
         nb = [x for j, x in enumerate(sil) if j != i and x is not None]
-        return measure_rod(img, camera, pred, radius, s, occluders, rng, box, neighbours=nb)
+        return measure_rod(img, camera, pred, radius, s, occluders, rng, box, neighbours=nb, segment=seg)
 
-    out = [measure(i, p) for i, p in enumerate(preds)]
+    out = [measure(i, p, segs[i]) for i, p in enumerate(preds)]
     index = {(p.leg, p.rod): i for i, p in enumerate(preds)}
     for leg in range(4):
         i0, i1 = index.get((leg, 0)), index.get((leg, 1))
