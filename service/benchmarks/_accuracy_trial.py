@@ -1,0 +1,211 @@
+"""Worker side of ``i4cal bench accuracy``: one camera calibration or one Monte-Carlo trial on the image-level twin.
+
+Both run in a process of the study's pool (or in the calling process with one worker) and return plain
+JSON-able dicts; every length in metres, except the displacement gaps (mm, as the result document gives them)
+and the edge noise (px). Each works in its own temporary directory, deleted afterwards.
+"""
+
+from __future__ import annotations
+
+import math
+import tempfile
+import time
+import traceback
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, Field
+
+#: Methods of :func:`calib.pipeline.calibrate`, in the order of its result document.
+METHODS: tuple[str, ...] = ("combined", "end-effector", "legs")
+
+
+class CameraTask(BaseModel):
+    """The study's camera phase: ``views`` board views (+ ``steps``, a few bench poses) rendered and calibrated."""
+
+    noise_sigma: float = Field(ge=0, description="renderer sensor noise, grey levels (std)")
+    seed: int
+    views: int = Field(ge=5)
+    steps: list[dict[str, Any]] = Field(description="plan steps rendered after the views (a few rotation poses)")
+
+
+class TrialTask(BaseModel):
+    """One trial: a true geometry, the plan it runs, the renderer's noise and the study's calibrated camera."""
+
+    key: str = Field(description="identifies the trial across study and sweep points: 'noise=..,fit=..,k=..'")
+    index: int = Field(ge=0)
+    seed: int = Field(description="seed of the rendered dataset (background, board error, sensor noise)")
+    truth: list[float] = Field(min_length=7, max_length=7, description="the seven true parameters, metres")
+    noise_sigma: float = Field(ge=0)
+    steps: list[dict[str, Any]]
+    camera: dict[str, Any] = Field(description="CameraModel.to_dict() of the study's calibrated camera")
+
+
+def init_worker() -> None:
+    """One OpenCV thread per process: the pool already uses every core."""
+    import cv2
+
+    cv2.setNumThreads(1)
+
+
+def _finite(x: Any) -> float | None:
+    """``x`` as a float, None when missing or not finite (JSON has no NaN)."""
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        return None
+    return v if math.isfinite(v) else None
+
+
+def _plan(steps: list[dict[str, Any]], name: str) -> Any:
+    from calib.plan import Plan
+
+    return Plan.model_validate({"name": name, "steps": steps})
+
+
+def calibrate_camera(task: CameraTask) -> dict[str, Any]:
+    """Render the camera phase and calibrate the intrinsics from it (what the lab does once).
+
+    Returns
+    -------
+    dict
+        ``camera`` (``CameraModel.to_dict()``), ``intrinsics`` (reprojection RMS px, views used, rejected),
+        ``true_camera`` (the renderer's), ``render_s``, ``extract_s``, ``noise_sigma``.
+    """
+    from calib.vision.extract import extract_dataset
+    from drivers.sim.imaging import simulate_dataset
+    from drivers.sim.render import RenderSettings
+    from drivers.sim.twin import BenchGeometry
+
+    rs = RenderSettings(noise_sigma=task.noise_sigma)
+    with tempfile.TemporaryDirectory(prefix="i4cal-acc-camera-") as tmp:
+        t0 = time.perf_counter()
+        path = simulate_dataset(Path(tmp) / "ds", seed=task.seed, geometry=BenchGeometry(), render=rs,
+                                plan=_plan(task.steps, "camera phase"), n_camera_views=task.views)
+        t1 = time.perf_counter()
+        res = extract_dataset(path, workers=1)
+        t2 = time.perf_counter()
+    if res.intrinsics is None:  # pragma: no cover - the dataset has no K: extraction calibrates or raises
+        raise RuntimeError("the camera phase gave no intrinsics")
+    s = res.intrinsics.summary()
+    K, Kt = res.camera.K, rs.camera().K
+    error = {"fx": K[0, 0] - Kt[0, 0], "fy": K[1, 1] - Kt[1, 1], "cx": K[0, 2] - Kt[0, 2], "cy": K[1, 2] - Kt[1, 2]}
+    return {"noise_sigma": task.noise_sigma, "source": "calibrated", "camera": res.camera.to_dict(),
+            "true_camera": rs.camera().to_dict(),
+            "intrinsics": {"rms_px": _finite(s.get("rms_px")), "n_views": s.get("n_views"),
+                           "rejected": {str(k): str(v) for k, v in (s.get("rejected") or {}).items()},
+                           "error_vs_true_px": {k: float(v) for k, v in error.items()}},
+            "render_s": t1 - t0, "extract_s": t2 - t1}
+
+
+def edge_noise_px(observations: dict[str, Any]) -> float | None:
+    """Median over every measured rod of the fit phases of its limb edges' residual RMS (``rms_px``), pixels."""
+    vals = []
+    for fr in observations.get("frames", []):
+        for rods in (fr.get("legs") or {}).values():
+            for rod in rods or []:
+                if rod:
+                    vals += [v for v in (_finite(x) for x in rod.get("rms_px") or []) if v is not None]
+    if not vals:
+        return None
+    vals.sort()
+    n = len(vals)
+    return vals[n // 2] if n % 2 else 0.5 * (vals[n // 2 - 1] + vals[n // 2])
+
+
+def _gap(validation: dict[str, Any], name: str) -> float | None:
+    v = validation.get(name) or {}
+    return _finite((v.get("gaps_validation") or {}).get("rms_mm"))
+
+
+def trial_record(doc: dict[str, Any], observations: dict[str, Any]) -> dict[str, Any]:
+    """The numbers of one trial from its result document (:func:`calib.pipeline.calibrate`) and observations.
+
+    Returns
+    -------
+    dict
+        ``methods``: per method ``ok``, ``error``, ``converged``, ``errors`` and ``std`` (metres, per
+        combination), ``gap_validation_rms_mm``; ``bound_std`` (the combined method's Cramer-Rao bound,
+        metres, None when the result has none); ``gap_a_priori_rms_mm``, ``gap_truth_rms_mm``;
+        ``edge_noise_px``; ``rods_found`` and ``rods_total``, ``boards_found`` and ``frames``.
+    """
+    from calib.parameters import COMBINATION_NAMES
+
+    truth_errors = doc.get("truth_errors") or {}
+    validation = doc.get("validation") or {}
+    methods: dict[str, Any] = {}
+    for name in METHODS:
+        entry = (doc.get("methods") or {}).get(name)
+        if entry is None:
+            continue
+        err = truth_errors.get(name)
+        std = entry.get("std") or {}
+        errors = {k: _finite(err.get(k)) for k in COMBINATION_NAMES} if err else None
+        stds = {k: _finite(std.get(k)) for k in COMBINATION_NAMES} if std else None
+        problem = entry.get("error")
+        if not problem and not errors:
+            problem = "no parameters"
+        elif errors and None in errors.values():
+            problem = "non-finite parameters"
+        rec: dict[str, Any] = {"ok": not problem, "error": problem or None,
+                               "converged": bool(entry.get("converged")), "errors": errors, "std": stds,
+                               "gap_validation_rms_mm": _gap(validation, name)}
+        if err and "seven" in err:
+            rec["seven_errors"] = {k: _finite(v) for k, v in err["seven"].items()}
+        methods[name] = rec
+    bound = ((doc.get("methods") or {}).get("combined") or {}).get("bound") or {}
+    bstd = bound.get("std")
+    frames = observations.get("frames", [])
+    rods = sum(1 for fr in frames for rs in (fr.get("legs") or {}).values() for r in rs or [] if r)
+    return {"methods": methods,
+            "bound_std": {k: _finite(bstd.get(k)) for k in COMBINATION_NAMES} if isinstance(bstd, dict) else None,
+            "bound_note": bound.get("note"),
+            "gap_a_priori_rms_mm": _gap(validation, "a priori"), "gap_truth_rms_mm": _gap(validation, "truth"),
+            "edge_noise_px": edge_noise_px(observations), "frames": len(frames),
+            "boards_found": sum(1 for fr in frames if fr.get("board")), "rods_found": rods,
+            "rods_total": 8 * len(frames)}
+
+
+def run_trial(task: TrialTask) -> dict[str, Any]:
+    """Render the trial's dataset for its true geometry, extract it with the study's camera, calibrate (all methods).
+
+    Never raises for what goes wrong inside the trial: the record then has ``error`` (and no methods).
+
+    Returns
+    -------
+    dict
+        ``key``, ``index``, ``seed``, ``truth`` (seven, metres), ``truth_combinations`` (metres), ``render_s``,
+        ``extract_s``, ``calibrate_s``, ``error`` (None) and the fields of :func:`trial_record`.
+    """
+    from calib.camera import CameraModel
+    from calib.observations import Observations
+    from calib.parameters import NOMINAL, I4Parameters
+    from calib.pipeline import calibrate
+    from calib.vision.extract import extract_dataset
+    from drivers.sim.imaging import simulate_dataset
+    from drivers.sim.render import RenderSettings
+    from drivers.sim.twin import BenchGeometry
+
+    truth = I4Parameters.from_vector(task.truth, T_per_rad=NOMINAL.T_per_rad)
+    out: dict[str, Any] = {"key": task.key, "index": task.index, "seed": task.seed, "noise_sigma": task.noise_sigma,
+                           "truth": truth.seven(), "truth_combinations": truth.combinations(), "error": None,
+                           "render_s": None, "extract_s": None, "calibrate_s": None}
+    try:
+        with tempfile.TemporaryDirectory(prefix="i4cal-acc-trial-") as tmp:
+            t0 = time.perf_counter()
+            path = simulate_dataset(Path(tmp) / "ds", seed=task.seed, geometry=BenchGeometry(truth=truth),
+                                    render=RenderSettings(noise_sigma=task.noise_sigma),
+                                    plan=_plan(task.steps, "trial"), n_camera_views=0)
+            out["render_s"] = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            res = extract_dataset(path, camera=CameraModel.from_dict(task.camera), workers=1)
+            out["extract_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        doc = calibrate(Observations.from_dict(res.observations))
+        out["calibrate_s"] = time.perf_counter() - t0
+        out.update(trial_record(doc, res.observations))
+    except Exception as exc:  # a failed trial is counted, never the end of the study
+        out["error"] = f"{type(exc).__name__}: {exc}"
+        out["traceback"] = traceback.format_exc(limit=6)
+        out["methods"] = {}
+    return out
