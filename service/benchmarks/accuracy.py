@@ -44,7 +44,7 @@ FORMAT = "i4cal.bench-accuracy/1"
 SWEEPS = ("noise", "poses")
 #: The paper-sized plan (``calib.plan.make_plan`` defaults): what a trial renders unless reduced.
 PAPER = {"n_base": 10, "n_fit": 20, "n_lock": 5, "n_validation": 10}
-QUICK = {"trials": 3, "n_base": 6, "n_fit": 10, "n_lock": 3, "n_validation": 8, "camera_views": 12,
+QUICK = {"trials": 3, "n_base": 6, "n_fit": 10, "n_lock": 3, "n_validation": 8,
          "sweep_trials": 2, "sweep_noise": [0.0, 4.0], "sweep_poses": [8, 12]}
 
 #: ``on_progress(description, done, total)`` over every task of the study (cameras and trials).
@@ -336,7 +336,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     a("--seed", type=int, default=None, help="seed of the whole study (default 0)")
     a("--workers", type=int, default=None, metavar="N", help="processes (default: all cores)")
     a("--json", metavar="PATH", default=None, help="also write every trial and the summaries as JSON")
-    a("--quick", action="store_true", help="3 trials of a small plan, 12 camera views (for tests)")
+    a("--quick", action="store_true", help="3 trials of a small plan; 2 trials per sweep point, 2 points (for tests)")
     a("--with-line", action="store_true", help="also render the guided line (51 frames per trial)")
     a("--spread-mm", type=float, default=None, metavar="MM",
       help="std of each true parameter around nominal (default: the twin's default truth's offsets, RMS)")
