@@ -407,8 +407,10 @@ class Acquisition:
                         spread = float(np.max(np.abs(q2 - st.positions)))
                         if spread <= self.line_still_m:
                             break
-                    self._write(u, st.positions, frame, line_sample=k, line_step=u.step, q_spread_m=spread,
-                                line_rate_hz=rate)
+                    # in a worker thread like a pose's frame: PNG encoding and the fsync'd dataset.json must not
+                    # stall the event loop (the service answers requests from it)
+                    await self._write_behind(u, st.positions, frame, line_sample=k, line_step=u.step,
+                                             q_spread_m=spread, line_rate_hz=rate)
                     self._note_record_time(time.perf_counter() - t_rec)
                     self._emit("running", "", u.phase)
                 except AcquisitionError:

@@ -7,6 +7,7 @@ the routers in :mod:`service.api` read them from ``app.state``.
 
 from __future__ import annotations
 
+import gc
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -44,8 +45,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         db = Database(settings.db_url)
         db.upgrade()
         bench = await Bench.from_settings(settings)
+        if bench is not None:
+            await asyncio.to_thread(bench.preload)
         manager = RunManager(settings, db, bench)
         interrupted = manager.recover()
+        # the objects of start-up (modules, the app, the bench) live as long as the service: out of the collector's
+        # sight, a full collection during a run scans only what the run allocates (one took ~130 ms otherwise)
+        gc.collect()
+        gc.freeze()
         if interrupted:
             log.warning("runs interrupted by the last stop (resume them): %s", ", ".join(interrupted))
         app.state.settings, app.state.db, app.state.manager = settings, db, manager

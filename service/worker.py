@@ -97,16 +97,14 @@ class Bench:
             cam = CameraModel.load(settings.camera_file)
             camera_spec = {"K": cam.K.tolist(), "dist": cam.dist.tolist()}
         if settings.sim_bench:
-            from drivers.sim.bench import FallbackRenderer, SimBench
+            from .simproc import SimBenchProcess
 
-            renderer = FallbackRenderer() if settings.sim_fast_renderer else None
-            sim = await SimBench(port=settings.sim_port, renderer=renderer).start()
-            cfg = sim.bench_config(name=settings.bench_name, acquisition={"line_rate_hz": 50.0},
-                                   camera={"timeout_s": 10.0})
-            st = getattr(sim.renderer, "settings", None)
-            if st is not None and hasattr(st, "camera") and not camera_spec:
-                cam = st.camera()
-                camera_spec = {"K": cam.K.tolist(), "dist": cam.dist.tolist()}
+            # its own process, as hardware would be: its rendering does not compete with requests for the GIL
+            sim = await SimBenchProcess(settings.sim_port, settings.sim_fast_renderer, name=settings.bench_name,
+                                        acquisition={"line_rate_hz": 50.0}, camera={"timeout_s": 10.0}).start()
+            cfg = BenchConfig.model_validate(sim.config)
+            if sim.camera is not None and not camera_spec:
+                camera_spec = sim.camera
             return cls(settings.bench_name, cfg, sim=sim, camera_spec=camera_spec)
         if settings.bench is not None:
             return cls(settings.bench_name, BenchConfig.model_validate(settings.bench), camera_spec=camera_spec)
@@ -117,6 +115,17 @@ class Bench:
     async def close(self) -> None:
         if self.sim is not None:
             await self.sim.stop()
+
+    def preload(self) -> None:
+        """Import the acquisition and the device backends now (blocking: in a thread at start-up), so that the first
+        run does not import them in the event loop."""
+        import drivers.acquisition  # noqa: F401
+        from drivers.config import open_actuators, open_camera
+
+        with contextlib.suppress(I4calError):
+            open_actuators(self.config)  # constructed, not connected: imports the backend's module
+        with contextlib.suppress(I4calError):
+            open_camera(self.config)
 
     async def probe(self, timeout_s: float = 3.0) -> None:
         """Connect to each device briefly and record its state (only while no run holds the bench)."""
