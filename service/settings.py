@@ -7,7 +7,7 @@
     host = "127.0.0.1"
     port = 8000
     bench_file = "deploy/bench-sim.toml" # the bench this service drives (or sim_bench = true)
-    sim_bench = false                    # start an in-process simulated bench on loopback
+    sim_bench = false                    # start a simulated bench (its own process) on loopback
     open_reads = true                    # GET endpoints without a token
     token_hashes = []                    # sha256 hex of accepted bearer tokens (`i4cal token create` stores more)
 
@@ -20,7 +20,7 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, field_validator
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
 from calib.errors import InputError
@@ -41,13 +41,15 @@ class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="I4CAL_", env_nested_delimiter="__", extra="forbid")
 
     data_dir: Path = Field(Path("i4cal-data"), description="database, datasets and results live here")
-    database_url: str | None = Field(None, description="SQLAlchemy URL; default SQLite in data_dir")
+    database_url: str | None = Field(None, description="SQLAlchemy URL: sqlite:///PATH or "
+                                     "postgresql+psycopg://USER:PASSWORD@HOST:PORT/DB (postgresql:// is taken as "
+                                     "psycopg; needs the 'postgres' extra); default SQLite in data_dir")
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=0, le=65535)
     bench_name: str = "bench"
     bench_file: Path | None = Field(None, description="bench TOML (drivers.config)")
     bench: dict[str, Any] | None = Field(None, description="inline bench configuration (same fields as the TOML)")
-    sim_bench: bool = Field(False, description="start an in-process simulated bench and drive it")
+    sim_bench: bool = Field(False, description="start a simulated bench (in its own process) and drive it")
     sim_port: int = Field(0, ge=0, le=65535, description="simulated bench base port (0: free ports)")
     sim_fast_renderer: bool = Field(False, description="simulated frames without the image-level twin")
     camera_file: Path | None = Field(None, description="known intrinsics (i4cal.camera/1 JSON) for extraction")
@@ -67,6 +69,11 @@ class Settings(BaseSettings):
                                    file_secret_settings) -> tuple[PydanticBaseSettingsSource, ...]:
         return (init_settings, env_settings, file_secret_settings)
 
+    @field_validator("database_url")
+    @classmethod
+    def _database_url(cls, v: str | None) -> str | None:
+        return normalize_database_url(v)
+
     @property
     def db_url(self) -> str:
         if self.database_url:
@@ -80,6 +87,28 @@ class Settings(BaseSettings):
     @property
     def runs_dir(self) -> Path:
         return self.data_dir / "runs"
+
+
+def normalize_database_url(url: str | None) -> str | None:
+    """The database URL the service uses: SQLite, or PostgreSQL through psycopg 3 (``postgresql://`` and
+    ``postgres://`` are taken as ``postgresql+psycopg://``); empty means the default SQLite file.
+
+    Raises
+    ------
+    ValueError
+        Another database or driver (only these two are tested).
+    """
+    if url is None or not url.strip():
+        return None
+    url = url.strip()
+    for prefix in ("postgres://", "postgresql://"):
+        if url.startswith(prefix):
+            url = "postgresql+psycopg://" + url[len(prefix):]
+    scheme = url.split("://", 1)[0] if "://" in url else ""
+    if scheme not in ("sqlite", "sqlite+pysqlite", "postgresql+psycopg"):
+        raise ValueError(f"unsupported database URL scheme {scheme or url!r}: use sqlite:///PATH or "
+                         "postgresql+psycopg://USER:PASSWORD@HOST:PORT/DATABASE")
+    return url
 
 
 def load_settings(path: str | Path | None = None, **overrides: Any) -> Settings:

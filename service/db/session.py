@@ -10,6 +10,8 @@ from sqlalchemy import create_engine, event
 from sqlalchemy.engine import Engine
 from sqlalchemy.orm import Session, sessionmaker
 
+from calib.errors import InputError
+
 MIGRATIONS = Path(__file__).resolve().parent.parent / "migrations"
 
 
@@ -27,10 +29,14 @@ class Database:
 
     def __init__(self, url: str) -> None:
         self.url = url
-        kw = {}
+        kw: dict = {}
         if url.startswith("sqlite"):
             kw["connect_args"] = {"check_same_thread": False}
-        self.engine: Engine = create_engine(url, future=True, pool_pre_ping=True, **kw)
+        try:
+            self.engine: Engine = create_engine(url, future=True, pool_pre_ping=True, **kw)
+        except ModuleNotFoundError as exc:  # the URL's driver is not installed
+            raise InputError(f"the database driver {exc.name!r} is not installed (PostgreSQL: "
+                             "pip install 'i4cal[postgres]')", field="database_url") from None
         if url.startswith("sqlite"):
             event.listen(self.engine, "connect", _sqlite_pragmas)
         self.sessions = sessionmaker(self.engine, expire_on_commit=False)

@@ -1,49 +1,22 @@
 """Live progress of extraction and fitting over Server-Sent Events, the live frame, and aborting a computation.
 
-An uploaded rendered dataset (image-level twin, reduced 'full' plan, known intrinsics) is calibrated offline: the
-extraction and the fits run in child processes (service.jobs) that report every frame and every fit iteration;
-the service batches them (at most one event of a kind per LIVE_INTERVAL_S).
+An uploaded rendered dataset (``rendered_zip``: image-level twin, reduced 'full' plan, known intrinsics) is
+calibrated offline: the extraction and the fits run in child processes (service.jobs) that report every frame and
+every fit iteration; the service batches them (at most one event of a kind per LIVE_INTERVAL_S).
 """
 
 from __future__ import annotations
 
 import asyncio
-import io
 import itertools
-import json
 import os
-import zipfile
 from datetime import datetime
-
-import pytest
 
 from service.worker import LIVE_INTERVAL_S
 from tests.service.conftest import AUTH, make_settings, read_events, start_service, wait_state
 
 API = "/api/v1"
 METHODS = ["combined", "end-effector", "legs"]
-
-
-@pytest.fixture(scope="module")
-def rendered_zip(tmp_path_factory) -> bytes:
-    """A reduced 'full' plan rendered by the image-level twin, its true intrinsics written in, as a zip."""
-    from calib.plan import make_plan
-    from drivers.sim.imaging import simulate_dataset
-    from drivers.sim.twin import BenchGeometry
-
-    g = BenchGeometry()
-    plan = make_plan("full", g.nominal, seed=2, n_base=6, n_fit=10, n_lock=4, n_validation=4, line_samples=11)
-    root = simulate_dataset(tmp_path_factory.mktemp("rendered") / "ds", seed=2, geometry=g, plan=plan,
-                            n_camera_views=0)
-    doc = json.loads((root / "dataset.json").read_text())
-    doc["camera"]["K"], doc["camera"]["dist"] = doc["truth"]["K"], doc["truth"]["dist"]
-    (root / "dataset.json").write_text(json.dumps(doc))
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w") as zf:
-        for f in sorted(root.rglob("*")):
-            if f.is_file():
-                zf.write(f, f"dataset/{f.relative_to(root).as_posix()}")
-    return buf.getvalue()
 
 
 async def _upload(c, data: bytes) -> str:
