@@ -1127,12 +1127,13 @@ def resolve_frames(detections: Mapping[int, RodDetection], camera: CameraModel, 
     placement : Rigid or None
         The consensus ``camera_from_base`` (coarse) of the associated frames.
     source : str
-        ``"prior"``, ``"consensus of N frames"`` or ``"none"``.
+        ``"prior"``, ``"consensus of N frames"`` (the frames associated alone) or ``"none"``.
     """
     s = settings or DetectSettings()
     solved = [d.camera_from_base for d in detections.values() if d.camera_from_base is not None]
     anchor = prior if prior is not None else consensus_placement(solved, s.prior_tol_rad / 2)
-    source = "prior" if prior is not None else (f"consensus of {len(solved)} frames" if anchor else "none")
+    n = len(solved)
+    source = "prior" if prior is not None else (f"consensus of {n} frame{'s' if n != 1 else ''}" if anchor else "none")
     out = dict(detections)
     if anchor is not None:
         for i, d in detections.items():

@@ -10,6 +10,8 @@ Stages (each over a process pool when ``workers > 1``, with ``progress(done, tot
    with the *nominal* model's end-effector poses (hand-eye least squares; the rotation about z_B is
    initialised by a 1-D search). This is the prior that predicts every rod's image; it needs board
    poses in at least 3 frames with some rotation of the end-effector (the ``rotation`` phase).
+   Without it, each frame's rods are found and associated from scratch (:mod:`calib.vision.detect`,
+   ``ExtractOptions.camera_prior`` or the frames' consensus resolving near-symmetric frames).
 4. Rods: the eight rods of every frame, predicted from the nominal model, the encoder values and
    the coarse placement, then measured (:mod:`calib.vision.rods`); the board (measured, or
    predicted when missing) is an occluder.
@@ -37,6 +39,7 @@ from ..kinematics import dkm
 from ..observations import FORMAT
 from ..transforms import Rigid, matrix_to_rotvec, rot_z, rotvec_to_matrix
 from .board import BoardDetector, to_gray8
+from .detect import DetectSettings, detect_rods, measure_detected, resolve_frames
 from .rods import ROD_KEYS, RodSettings, image_ideal_bbox, leg_parallelism, measure_rods, predict_rods, rod_name
 
 Progress = Callable[[int, int], None]
@@ -51,6 +54,11 @@ class ExtractOptions:
     rods: RodSettings | None = None
     min_placement_frames: int = 3
     max_placement_rms_m: float = 0.02
+    #: without a placement, find the rods from scratch in each frame (calib.vision.detect)
+    detect_fallback: bool = True
+    detect: DetectSettings | None = None
+    #: coarse camera_from_base known from the bench's mounting: resolves near-symmetric frames
+    camera_prior: Rigid | None = None
 
 
 @dataclass
@@ -123,8 +131,22 @@ def _task_board(i: int) -> tuple[int, Any]:
     return i, {"pose": res.to_dict()}
 
 
-def _task_rods(args: tuple[int, dict, dict | None]) -> tuple[int, Any]:
-    i, cfb, board = args
+def _task_find_rods(args: tuple[int, dict | None, dict]) -> tuple[int, Any]:
+    """No placement: the frame's rods found and associated from scratch (:func:`detect_rods`)."""
+    i, prior, settings = args
+    doc = _W["ds"].document
+    try:
+        img = _read_gray(i)
+    except InputError:
+        return i, None
+    return i, detect_rods(img, _W["cam"], doc.nominal.parameters(), _W["ds"].frames[i].q, doc.legs.rod_radius_m,
+                          doc.legs.rod_spacing_m, DetectSettings(**settings),
+                          Rigid.from_dict(prior) if prior else None)
+
+
+def _task_rods(args: tuple) -> tuple[int, Any]:
+    i, cfb, board = args[:3]
+    found = args[3] if len(args) > 3 else None  # a RodDetection when there is no placement
     ds: Dataset = _W["ds"]
     cam: CameraModel = _W["cam"]
     fr = ds.frames[i]
@@ -136,7 +158,7 @@ def _task_rods(args: tuple[int, dict, dict | None]) -> tuple[int, Any]:
     nominal = doc.nominal.parameters()
     spacing = doc.legs.rod_spacing_m if doc.legs.rod_spacing_m is not None else 0.0
     try:
-        preds = predict_rods(nominal, fr.q, Rigid.from_dict(cfb), spacing)
+        preds = predict_rods(nominal, fr.q, Rigid.from_dict(cfb), spacing) if found is None else []
     except I4calError as exc:
         return i, {"reason": f"no rod prediction: {exc}"}
     occ = []
@@ -145,8 +167,12 @@ def _task_rods(args: tuple[int, dict, dict | None]) -> tuple[int, Any]:
         oc = _W["det"].outline_camera(np.asarray(board["R"]), np.asarray(board["t"]), margin_m=0.028)
         if np.all(oc[:, 2] > 0):
             occ.append(cam.to_ideal_pixels(oc[:, :2] / oc[:, 2:3]))
-    ms = measure_rods(img.astype(np.float32), cam, preds, doc.legs.rod_radius_m, _W["rs"], occ, seed=i,
-                      ideal_bbox=_W["bbox"])
+    if found is None:
+        ms = measure_rods(img.astype(np.float32), cam, preds, doc.legs.rod_radius_m, _W["rs"], occ, seed=i,
+                          ideal_bbox=_W["bbox"])
+    else:
+        ms = measure_detected(img.astype(np.float32), cam, found, doc.legs.rod_radius_m, _W["rs"], occ, seed=i,
+                              ideal_bbox=_W["bbox"])
     rods = {rod_name(m.leg, m.rod): (m.to_dict() if m.ok else m.reason) for m in ms}
     par = {k: v * 1e3 for k, v in leg_parallelism(ms).items()}
     return i, {"rods": rods, "parallel_mrad": par}
@@ -354,9 +380,29 @@ def extract_dataset(dataset: str | Path | Dataset, *, camera: CameraModel | None
     else:
         placement_reason = (f"no coarse camera placement: board poses in {len(good)} frames, "
                             f"need {opts.min_placement_frames}")
-    rod_items = []
+    found: dict[int, Any] = {}
+    fallback = None
+    if C is None and opts.detect_fallback:  # no placement: the rods are found from scratch in each frame
+        dset = opts.detect or DetectSettings()
+        prior = opts.camera_prior.to_dict() if opts.camera_prior is not None else None
+        items = [(i, prior, dict(dset.__dict__)) for i in obs_idx if "image_error" not in boards[i]]
+        total += len(items)
+        found = {i: d for i, d in _run(_task_find_rods, items, workers, init, progress, done, total)
+                 if d is not None}
+        done += len(items)
+        found, placed, anchor = resolve_frames(found, camera, doc.nominal.parameters(),
+                                               {i: frames[i].q for i in found}, doc.legs.rod_radius_m,
+                                               doc.legs.rod_spacing_m or 0.0, opts.camera_prior, dset)
+        fallback = {"frames": len(found), "associated": sum(d.ok for d in found.values()),
+                    "ambiguous": sum(d.ambiguous for d in found.values()), "anchor": anchor,
+                    "camera_from_base": placed.to_dict() if placed is not None else None}
+    rod_items: list[tuple] = []
     rods: dict[int, Any] = {}
     for i in obs_idx:
+        if i in found:
+            cfb = found[i].camera_from_base
+            rod_items.append((i, cfb.to_dict() if cfb is not None else None, boards[i].get("pose"), found[i]))
+            continue
         if "image_error" in boards[i] or C is None:
             continue
         b = boards[i].get("pose")
@@ -429,7 +475,8 @@ def extract_dataset(dataset: str | Path | Dataset, *, camera: CameraModel | None
         out_frames.append(fr)
     summary = {"phases": phases, "frames": {str(k): v for k, v in sorted(per_frame.items())},
                "camera": intr.summary() if intr else {"source": "given" if not need_calib else "dataset"},
-               "placement": {"ok": C is not None, "rms_m": placement_rms, "reason": placement_reason}}
+               "placement": {"ok": C is not None, "rms_m": placement_rms, "reason": placement_reason,
+                             "detected": fallback}}
     extraction = {"camera": camera.to_dict(), "summary": summary,
                   "camera_from_base_coarse": C.to_dict() if C else None,
                   "ee_from_board_coarse": E.to_dict() if E else None,
