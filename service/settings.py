@@ -25,6 +25,9 @@ from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, Settings
 
 from calib.errors import InputError
 
+#: A bench name: 1-64 letters, digits, spaces, '.', '_' or '-' (it names calibrations and runs, in URLs too).
+BENCH_NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9 ._-]{0,63}$"
+
 
 class PlanSizes(BaseModel):
     """Sizes of the named plans the service generates (``calib.plan.make_plan`` keywords)."""
@@ -46,7 +49,9 @@ class Settings(BaseSettings):
                                      "psycopg; needs the 'postgres' extra); default SQLite in data_dir")
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=0, le=65535)
-    bench_name: str = "bench"
+    bench_name: str | None = Field(None, pattern=BENCH_NAME_PATTERN,
+                                   description="this bench's name (default: the bench file's name); services sharing "
+                                               "a database must have different names")
     bench_file: Path | None = Field(None, description="bench TOML (drivers.config)")
     bench: dict[str, Any] | None = Field(None, description="inline bench configuration (same fields as the TOML)")
     sim_bench: bool = Field(False, description="start a simulated bench (in its own process) and drive it")

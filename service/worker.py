@@ -25,7 +25,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import func, select, update
+from sqlalchemy import func, or_, select, update
 
 from calib.errors import I4calError, InputError
 from calib.jsonio import write_json_atomic
@@ -100,17 +100,20 @@ class Bench:
             from .simproc import SimBenchProcess
 
             # its own process, as hardware would be: its rendering does not compete with requests for the GIL
-            sim = await SimBenchProcess(settings.sim_port, settings.sim_fast_renderer, name=settings.bench_name,
-                                        acquisition={"line_rate_hz": 50.0}, camera={"timeout_s": 10.0}).start()
+            sim = await SimBenchProcess(settings.sim_port, settings.sim_fast_renderer,
+                                        name=settings.bench_name or "sim", acquisition={"line_rate_hz": 50.0},
+                                        camera={"timeout_s": 10.0}).start()
             cfg = BenchConfig.model_validate(sim.config)
             if sim.camera is not None and not camera_spec:
                 camera_spec = sim.camera
-            return cls(settings.bench_name, cfg, sim=sim, camera_spec=camera_spec)
+            return cls(bench_name(settings, cfg), cfg, sim=sim, camera_spec=camera_spec)
         if settings.bench is not None:
-            return cls(settings.bench_name, BenchConfig.model_validate(settings.bench), camera_spec=camera_spec)
-        if settings.bench_file is not None:
-            return cls(settings.bench_name, load_bench(settings.bench_file), camera_spec=camera_spec)
-        return None
+            cfg = BenchConfig.model_validate(settings.bench)
+        elif settings.bench_file is not None:
+            cfg = load_bench(settings.bench_file)
+        else:
+            return None
+        return cls(bench_name(settings, cfg), cfg, camera_spec=camera_spec)
 
     async def close(self) -> None:
         if self.sim is not None:
@@ -152,6 +155,25 @@ class Bench:
                 await cam.close()
 
 
+def bench_name(settings: Settings, cfg: Any) -> str:
+    """The bench's name: ``bench_name`` of the settings, else the bench configuration's ``name``.
+
+    Raises
+    ------
+    InputError
+        A name that cannot identify a bench (see :data:`service.settings.BENCH_NAME_PATTERN`).
+    """
+    import re
+
+    from .settings import BENCH_NAME_PATTERN
+
+    name = settings.bench_name or str(getattr(cfg, "name", "") or "bench")
+    if not re.fullmatch(BENCH_NAME_PATTERN, name):
+        raise InputError(f"bench name {name!r} must be 1-64 letters, digits, spaces, '.', '_' or '-' "
+                         "(set bench_name in the service configuration)", field="bench_name")
+    return name
+
+
 # ---------------------------------------------------------------------------------------------
 @dataclass
 class ActiveRun:
@@ -183,12 +205,20 @@ class RunManager:
         self._live_timer: dict[str, asyncio.TimerHandle] = {}
         self._live_last: dict[str, float] = {}
         self.data_dir = settings.data_dir.resolve()
+        #: this service's name in a shared database: its bench's (None: no bench and no bench_name)
+        self.name: str | None = bench.name if bench is not None else settings.bench_name
+
+    def owns(self, run: Run) -> bool:
+        """Whether this service executes ``run`` (runs of services sharing the database are theirs to control)."""
+        return run.service is None or run.service == self.name
 
     # -- life --------------------------------------------------------------------------------------
     def recover(self) -> list[str]:
         """Runs left active by a crash become ``interrupted`` (their frames are kept)."""
         with self.db.session() as s:
-            ids = list(s.scalars(select(Run.id).where(Run.state.in_(ACTIVE_STATES))))
+            mine = Run.service.is_(None) if self.name is None else or_(Run.service == self.name,
+                                                                         Run.service.is_(None))
+            ids = list(s.scalars(select(Run.id).where(Run.state.in_(ACTIVE_STATES), mine)))
         for rid in ids:
             self._set(rid, state="interrupted", error="the service stopped during the run; resume it to continue")
         return ids
@@ -251,11 +281,14 @@ class RunManager:
                 raise RunNotFoundError(run_id)
             return run
 
-    def list(self, limit: int = 100, offset: int = 0, state: str | None = None) -> list[Run]:
+    def list(self, limit: int = 100, offset: int = 0, state: str | None = None,
+             bench: str | None = None) -> list[Run]:
         with self.db.session() as s:
             q = select(Run).order_by(Run.created_at.desc()).limit(limit).offset(offset)
             if state:
                 q = q.where(Run.state == state)
+            if bench:
+                q = q.where(Run.bench == bench)
             return list(s.scalars(q))
 
     def _set(self, run_id: str, **values: Any) -> None:
@@ -281,6 +314,9 @@ class RunManager:
                 if ds is None:
                     raise InputError(f"no dataset {dataset_id!r}", field="dataset")
                 ds_dir = ds.path
+            if not (self.data_dir / ds_dir / "dataset.json").is_file():
+                raise InputError(f"dataset {dataset_id!r} is not on this service's disk (uploaded to another "
+                                 "service sharing the database?)", field="dataset")
             if not methods:
                 raise InputError("an offline run needs at least one method", field="methods")
         else:
@@ -291,7 +327,8 @@ class RunManager:
             if self.bench_holder is not None:
                 raise RunConflictError(f"run {self.bench_holder} holds the bench")
             ds_dir = f"runs/{rid}/dataset"
-        run = Run(id=rid, state="queued", created_at=now(), bench=None if dataset_id else self.bench.name,
+        run_bench = (bench or self.name) if dataset_id else self.bench.name
+        run = Run(id=rid, state="queued", created_at=now(), bench=run_bench, service=self.name,
                   note=note, plan_name=plan_name,
                   plan=plan.model_dump(mode="json", exclude_none=True) if plan else None,
                   methods=methods, source_dataset=dataset_id, dataset_dir=ds_dir, timings={},
@@ -336,6 +373,8 @@ class RunManager:
             a.paused = False
             self.emit(run_id, "resumed", {})
             return self.get(run_id)
+        if not self.owns(run):
+            raise RunConflictError(f"run belongs to the service of bench {run.service!r}; resume it there")
         if run.state != "interrupted":
             raise RunConflictError(f"run is {run.state}; only a paused or interrupted run can be resumed")
         self._set(run_id, state="queued", error=None)
@@ -356,6 +395,8 @@ class RunManager:
         run = self.get(run_id)
         a = self.active.get(run_id)
         if a is None:
+            if not self.owns(run) and run.state not in TERMINAL_STATES:
+                raise RunConflictError(f"run belongs to the service of bench {run.service!r}; abort it there")
             if run.state in ("interrupted", "queued"):
                 self._set(run_id, state="aborted", finished_at=now(), error="aborted on request")
             return self.get(run_id)
@@ -615,7 +656,7 @@ class RunManager:
             raise InputError(f"run has no result for method {method!r}", field="method")
         if not entry.get("converged") or not entry.get("parameters"):
             raise RunConflictError(f"method {method!r} did not converge in this run; nothing to apply")
-        bench = run.bench or (self.bench.name if self.bench else "bench")
+        bench = run.bench or self.name or "bench"
         payload = {
             "bench": bench, "run_id": run.id, "method": method, "software_version": __version__,
             "combinations": entry["parameters"], "combinations_std": entry.get("std"),
@@ -630,15 +671,20 @@ class RunManager:
         return cal
 
     def current_calibration(self, bench: str | None = None) -> Calibration | None:
+        """The newest calibration applied to ``bench`` (default: this service's bench; without one: any bench)."""
+        bench = bench or self.name
         with self.db.session() as s:
             q = select(Calibration).order_by(Calibration.applied_at.desc(), Calibration.id.desc()).limit(1)
             if bench:
                 q = q.where(Calibration.bench == bench)
             return s.scalar(q)
 
-    def calibration_history(self, limit: int = 100, offset: int = 0) -> list[Calibration]:
+    def calibration_history(self, limit: int = 100, offset: int = 0, bench: str | None = None) -> list[Calibration]:
+        """Applied calibrations, newest first: of ``bench``, or of every bench."""
         with self.db.session() as s:
             q = select(Calibration).order_by(Calibration.applied_at.desc(), Calibration.id.desc())
+            if bench:
+                q = q.where(Calibration.bench == bench)
             return list(s.scalars(q.limit(limit).offset(offset)))
 
     # -- datasets ----------------------------------------------------------------------------------

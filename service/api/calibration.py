@@ -9,6 +9,7 @@ from fastapi import APIRouter, Query
 from pydantic import BaseModel, Field
 
 from ..auth import Reader
+from ..settings import BENCH_NAME_PATTERN
 from .deps import Manager, not_found
 
 router = APIRouter(prefix="/calibration", tags=["calibration"])
@@ -43,16 +44,21 @@ def calibration_out(cal) -> CalibrationOut:
 @router.get("/current", response_model=CalibrationOut,
             responses={401: {"description": "reads are closed and no valid token"},
                        404: {"description": "no calibration applied yet"}})
-async def current_calibration(manager: Manager, _: Reader) -> CalibrationOut:
-    cal = manager.current_calibration()
+async def current_calibration(manager: Manager, _: Reader,
+                              bench: Annotated[str | None, Query(pattern=BENCH_NAME_PATTERN)] = None
+                              ) -> CalibrationOut:
+    """The calibration a controller loads: the newest applied to ``bench`` (default: this service's bench)."""
+    cal = manager.current_calibration(bench)
     if cal is None:
-        raise not_found("calibration")
+        raise not_found(f"calibration of bench {bench or manager.name!r}" if bench or manager.name else "calibration")
     return calibration_out(cal)
 
 
 @router.get("/history", response_model=list[CalibrationOut],
             responses={401: {"description": "reads are closed and no valid token"}})
 async def calibration_history(manager: Manager, _: Reader, limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-                              offset: Annotated[int, Query(ge=0, le=1_000_000)] = 0) -> list[CalibrationOut]:
-    """Every applied calibration, newest first."""
-    return [calibration_out(c) for c in manager.calibration_history(limit, offset)]
+                              offset: Annotated[int, Query(ge=0, le=1_000_000)] = 0,
+                              bench: Annotated[str | None, Query(pattern=BENCH_NAME_PATTERN)] = None
+                              ) -> list[CalibrationOut]:
+    """Every applied calibration, newest first (``bench``: only that bench's; default: every bench)."""
+    return [calibration_out(c) for c in manager.calibration_history(limit, offset, bench)]

@@ -12,6 +12,7 @@ router = APIRouter(tags=["health"])
 class Health(BaseModel):
     status: str
     version: str
+    bench: str | None = None
     active_runs: int = 0
     bench_held_by: str | None = None
 
@@ -21,7 +22,8 @@ async def healthz(request: Request) -> Health:
     from service import __version__
 
     m = request.app.state.manager
-    return Health(status="ok", version=__version__, active_runs=len(m.active), bench_held_by=m.bench_holder)
+    return Health(status="ok", version=__version__, bench=m.name, active_runs=len(m.active),
+                  bench_held_by=m.bench_holder)
 
 
 @router.get("/readyz", response_model=Health, responses={503: {"model": Health}})

@@ -19,6 +19,7 @@ from starlette.background import BackgroundTask
 from calib.errors import InputError
 
 from ..auth import Reader, Writer
+from ..settings import BENCH_NAME_PATTERN
 from ..worker import STATES, RunConflictError, RunManager
 from .calibration import CalibrationOut, calibration_out
 from .deps import ID_PATTERN, Manager, RunId, conflict, get_run, not_found, unprocessable
@@ -39,7 +40,9 @@ class RunCreate(BaseModel):
         None, description="a plan name, or an inline plan (i4cal.plan/1); default 'full' unless a dataset is given")
     methods: list[MethodName] = Field(["combined", "end-effector", "legs"], max_length=3,
                                       description="methods to identify with; [] records the dataset only")
-    bench: str | None = Field(None, max_length=64, description="bench name (default: this service's bench)")
+    bench: str | None = Field(None, pattern=BENCH_NAME_PATTERN,
+                              description="the bench the run belongs to (default: this service's bench; a plan runs "
+                                          "only on this service's bench, an uploaded dataset can be of any bench)")
     note: str = Field("", max_length=2000)
     dataset: str | None = Field(None, pattern=ID_PATTERN, description="calibrate this uploaded dataset offline")
 
@@ -59,7 +62,9 @@ class RunOut(BaseModel):
     created_at: datetime
     started_at: datetime | None
     finished_at: datetime | None
-    bench: str | None
+    bench: str | None = Field(description="the bench the run's data and results belong to")
+    service: str | None = Field(None, description="the service executing the run, named by its bench (a database "
+                                                  "can be shared by the services of several benches)")
     note: str
     plan: str | None = Field(description="plan name")
     methods: list[str]
@@ -73,7 +78,8 @@ class RunOut(BaseModel):
 def run_out(manager: RunManager, run) -> RunOut:
     a = manager.active.get(run.id)
     return RunOut(id=run.id, state=run.state, created_at=run.created_at, started_at=run.started_at,
-                  finished_at=run.finished_at, bench=run.bench, note=run.note or "", plan=run.plan_name,
+                  finished_at=run.finished_at, bench=run.bench, service=run.service, note=run.note or "",
+                  plan=run.plan_name,
                   methods=list(run.methods or []), dataset=run.source_dataset,
                   progress=Progress(done=run.done or 0, total=run.total or 0, phase=run.phase or "",
                                     paused=bool(a and a.paused), pose=a.pose if a else None,
@@ -143,8 +149,10 @@ async def create_run(body: RunCreate, manager: Manager, _: Writer) -> RunOut:
 @router.get("", response_model=list[RunOut], responses={401: ERRORS[401]})
 async def list_runs(manager: Manager, _: Reader, limit: Annotated[int, Query(ge=1, le=1000)] = 100,
                     offset: Annotated[int, Query(ge=0, le=1_000_000)] = 0,
-                    state: Annotated[Literal[STATES] | None, Query()] = None) -> list[RunOut]:  # type: ignore[valid-type]
-    return [run_out(manager, r) for r in manager.list(limit, offset, state)]
+                    state: Annotated[Literal[STATES] | None, Query()] = None,  # type: ignore[valid-type]
+                    bench: Annotated[str | None, Query(pattern=BENCH_NAME_PATTERN)] = None) -> list[RunOut]:
+    """Runs, newest first; ``bench``: only that bench's."""
+    return [run_out(manager, r) for r in manager.list(limit, offset, state, bench)]
 
 
 @router.get("/{run_id}", response_model=RunOut, responses=ERRORS)

@@ -56,7 +56,7 @@ async function refreshRuns() {
     tr.dataset.state = r.state;
     if (r.id === selected) tr.className = "selected";
     tr.innerHTML = `<td><code>${r.id.slice(0, 8)}</code></td><td><span class="state ${r.state}">${r.state}</span></td>` +
-      `<td>${esc(r.plan || (r.dataset ? "dataset " + r.dataset.slice(0, 8) : ""))}</td>` +
+      `<td>${esc(r.bench)}</td><td>${esc(r.plan || (r.dataset ? "dataset " + r.dataset.slice(0, 8) : ""))}</td>` +
       `<td>${r.progress.done}/${r.progress.total}</td><td>${new Date(r.created_at).toLocaleString()}</td><td>${esc(r.note)}</td>` +
       `<td>${r.has_result ? `<a class="report" href="${API}/runs/${r.id}/report" target="_blank" rel="noopener">report</a>` : ""}</td>`;
     tr.addEventListener("click", () => select(r.id));
@@ -77,7 +77,7 @@ async function refreshDevices() {
 async function refreshCurrent() {
   try {
     const c = await api("GET", "/calibration/current");
-    $("#current").innerHTML = `<p>${esc(c.method)} from run <code>${c.run_id.slice(0, 8)}</code>, applied ` +
+    $("#current").innerHTML = `<p>bench <b>${esc(c.bench)}</b>: ${esc(c.method)} from run <code>${c.run_id.slice(0, 8)}</code>, applied ` +
       `${new Date(c.applied_at).toLocaleString()} (i4cal ${esc(c.software_version)})</p><table><tr>` +
       COMBOS.map((k) => `<th>${k}</th>`).join("") + "</tr><tr>" +
       COMBOS.map((k) => `<td>${pm(c.combinations[k], c.combinations_std && c.combinations_std[k])}</td>`).join("") +

@@ -147,3 +147,16 @@ def rendered_zip(tmp_path_factory) -> bytes:
             if f.is_file():
                 zf.write(f, f"dataset/{f.relative_to(root).as_posix()}")
     return buf.getvalue()
+
+
+@pytest.fixture(scope="session")
+def postgres_url():
+    """A throwaway PostgreSQL cluster's URL (tests/service/pgcluster.py); skips, saying why, when none can start."""
+    from tests.service.pgcluster import ClusterUnavailableError, temporary_cluster
+
+    pytest.importorskip("psycopg", reason="psycopg is not installed (pip install -e '.[test]')")
+    try:
+        with temporary_cluster() as url:
+            yield url
+    except ClusterUnavailableError as exc:
+        pytest.skip(str(exc))

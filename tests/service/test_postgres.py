@@ -16,20 +16,9 @@ from sqlalchemy import inspect, text
 from service.db import Database
 from service.settings import Settings, normalize_database_url
 from tests.service.conftest import AUTH, make_settings, read_events, start_service, wait_state
-from tests.service.pgcluster import ClusterUnavailableError, temporary_cluster
 
 API = "/api/v1"
 METHODS = ["combined", "end-effector", "legs"]
-
-
-@pytest.fixture(scope="module")
-def postgres_url():
-    pytest.importorskip("psycopg", reason="psycopg is not installed (pip install -e '.[test]')")
-    try:
-        with temporary_cluster() as url:
-            yield url
-    except ClusterUnavailableError as exc:
-        pytest.skip(str(exc))
 
 
 @pytest.fixture
