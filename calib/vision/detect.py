@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import functools
 import itertools
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -129,7 +129,7 @@ class RodCandidate:
     centre: tuple[Array, Array]     # centre-line points at s0 and s1 (ideal px)
     bright: bool
     h: tuple[Array, Array]          # limb planes (camera), unit normals, the axis on their positive side
-    m: Array                        # the plane through the camera centre and the axis (bisects h)
+    m: Array                        # the axis plane: through the camera centre and the axis (bisects h)
 
     @property
     def length(self) -> float:
@@ -138,6 +138,8 @@ class RodCandidate:
 
 @dataclass
 class LegCandidate:
+    """Two rod candidates side by side at the rod spacing: a leg seen in the image."""
+
     rods: tuple[int, int]         # indices into the rod candidates
     d: Array                      # 3-D direction (camera), sign arbitrary
     sigma: float                  # its expected error, rad (centre-plane error / angle between the planes)
@@ -172,15 +174,19 @@ class RodDetection:
     rms_px : float
         Residual RMS of the limb end points to the predicted limb lines (ideal px).
     ambiguous : bool
+        Another labelling of the legs fits as well: every rod is None (see ``reason``).
     hypotheses : list of Hypothesis
-        Every accepted hypothesis, best first (for resolving an ambiguous frame with a prior).
+        Every accepted hypothesis, best first (diagnostics).
     directions : list of ndarray (3,) or None, length 8
-        Each associated rod's detected direction in the camera frame (its leg's direction from the
-        two rods' centre planes, oriented from the actuator to the plate).
+        Each associated rod's detected direction in the camera frame, oriented from the actuator to
+        the plate: its leg's direction from the two rods' axis planes, weighted with the nominal
+        model's at the fitted placement where those planes nearly coincide.
     rods : list of RodCandidate
     leg_candidates : list of LegCandidate
     counts : dict
         Numbers of segments, lines, rod and leg candidates.
+    reason : str or None
+        Why nothing was associated (no legs, no fit, ambiguous).
     """
 
     predictions: list[RodPrediction | None]
@@ -724,8 +730,13 @@ class _Fitter:
         return np.einsum("pmkj,mkej->pmke", lines, ends).reshape(len(X), -1)
 
 
-def _levenberg_marquardt(f, x0: Array, steps: Array, iters: int = 40, tol: float = 1e-7) -> tuple[Array, Array]:
-    """Minimise |f(x)|^2 (f batched: (P, n) -> (P, m)) with forward-difference Jacobians in one call each."""
+def _levenberg_marquardt(f: Callable[[Array], Array], x0: Array, steps: Array, iters: int = 40, tol: float = 1e-6
+                         ) -> tuple[Array, Array]:
+    """Minimise |f(x)|^2, f batched ((P, n) -> (P, m)): each forward-difference Jacobian is one call.
+
+    Returns the solution (n,) and its residuals (m,); stops when a step is below ``tol`` in every
+    coordinate or none decreases the cost.
+    """
     x = x0.astype(np.float64).copy()
     r = f(x[None])[0]
     cost = float(r @ r)
@@ -752,7 +763,7 @@ def _levenberg_marquardt(f, x0: Array, steps: Array, iters: int = 40, tol: float
                 improved = True
                 break
             lam *= 4
-        if not improved or np.all(np.abs(dx) < tol * 10):
+        if not improved or np.all(np.abs(dx) < tol):
             break
     return x, r
 
@@ -1030,7 +1041,7 @@ def _decide(rods: list[RodCandidate], legs_c: list[LegCandidate], counts: dict[s
     preds: list[RodPrediction | None] = []
     dirs: list[Array | None] = []
     reasons: dict[str, str] = {}
-    leg_dir = {lg: next(lc.d for lc in legs_c if set(lc.rods) == set(pair)) for lg, pair in best.legs.items()}
+    leg_c = {lg: next(lc for lc in legs_c if set(lc.rods) == set(pair)) for lg, pair in best.legs.items()}
     model = predict_rods(nominal, q, best.camera_from_base, spacing)
     for p in model:
         if p.leg not in best.legs or p.leg in unsure:
@@ -1039,7 +1050,7 @@ def _decide(rods: list[RodCandidate], legs_c: list[LegCandidate], counts: dict[s
             reasons[rod_name(p.leg, p.rod)] = unsure.get(p.leg) or (
                 f"leg {p.leg + 1} not detected: no rod pair in the image matches it (hidden or out of view)")
             continue
-        d = leg_dir[p.leg] if leg_dir[p.leg] @ p.u >= 0 else -leg_dir[p.leg]
+        d = _leg_direction(leg_c[p.leg], p.u, s.model_direction_rad)
         rc = rods[best.legs[p.leg][p.rod]]
         if p.rod == 0:
             preds.append(_prior_from_candidate(rc, d, p, radius))
@@ -1051,6 +1062,21 @@ def _decide(rods: list[RodCandidate], legs_c: list[LegCandidate], counts: dict[s
             preds.append(_prior_from_candidate(rc, d, shifted, radius))
         dirs.append(d)
     return RodDetection(preds, reasons, best.camera_from_base, best.rms_px, False, hyps, dirs, **kw)
+
+
+def _leg_direction(lc: LegCandidate, u_model: Array, sigma_model: float) -> Array:
+    """A leg's direction (camera frame, oriented like ``u_model``): the image's, weighted with the model's.
+
+    The image gives it as the intersection of the two rods' axis planes, ill-conditioned when they
+    are nearly the same plane (the leg seen edge-on, ``lc.sigma`` large) and wrong when a limb of
+    either rod is; the nominal model at the fitted placement gives ``u_model`` to ``sigma_model``.
+    Inverse-variance mean of the two; the model's alone when they disagree by more than 3 sigma.
+    """
+    d = lc.d if lc.d @ u_model >= 0 else -lc.d
+    if np.arccos(np.clip(d @ u_model, -1.0, 1.0)) > 3.0 * np.hypot(lc.sigma, sigma_model):
+        return u_model
+    v = d / lc.sigma ** 2 + u_model / sigma_model ** 2
+    return v / np.linalg.norm(v)
 
 
 def _prior_from_candidate(rc: RodCandidate, d: Array, model: RodPrediction, radius: float) -> RodPrediction:
@@ -1135,7 +1161,7 @@ def resolve_frames(detections: Mapping[int, RodDetection], camera: CameraModel, 
     n = len(solved)
     source = "prior" if prior is not None else (f"consensus of {n} frame{'s' if n != 1 else ''}" if anchor else "none")
     out = dict(detections)
-    if anchor is not None:
+    if anchor is not None and prior is None:  # (with a prior the detections already used it)
         for i, d in detections.items():
             if d.ambiguous:
                 out[i] = resolve(d, camera, nominal, q[i], rod_radius_m, rod_spacing_m, anchor, s)
