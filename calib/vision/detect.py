@@ -540,7 +540,7 @@ def find_rods(lines: list[Line2], canvas: np.ndarray, scale: float, origin: Arra
         u = across / wloc[:, None]
         inner_f = np.linspace(0.2, 0.8, 5)
         inner = A[:, None] + inner_f[None, :, None] * across[:, None]
-        out_off = np.maximum(0.5 * wloc, 3.0)[:, None]
+        out_off = 3.0  # px: close enough to stay in a narrow gap between the two rods of a leg
         outer_a = A - out_off * u
         outer_b = B + out_off * u
         Ii = _sample(canvas, _to_canvas(inner, scale, origin))
