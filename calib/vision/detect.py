@@ -100,6 +100,7 @@ class DetectSettings:
     ambiguity_ratio: float = 1.5            #: a rival within ratio x RMS + ambiguity_px is a tie
     ambiguity_px: float = 1.0
     prior_tol_rad: float = 0.5              #: hypotheses rotated farther from the prior are dropped
+    depth_tolerance: float = 0.12           #: a prior's depth / model's off the frame's median by more: moved
 
 
 @dataclass
@@ -1038,30 +1039,64 @@ def _decide(rods: list[RodCandidate], legs_c: list[LegCandidate], counts: dict[s
         for lg in orders:
             unsure[lg] = (f"leg {lg + 1}: which of its two rods is which is ambiguous (both orders fit, "
                           f"{best.rms_px:.1f} px vs {rival.rms_px:.1f} px)")
-    preds: list[RodPrediction | None] = []
-    dirs: list[Array | None] = []
     reasons: dict[str, str] = {}
-    leg_c = {lg: next(lc for lc in legs_c if set(lc.rods) == set(pair)) for lg, pair in best.legs.items()}
+    for leg, rod in ROD_KEYS:
+        if leg not in best.legs or leg in unsure:
+            reasons[rod_name(leg, rod)] = unsure.get(leg) or (
+                f"leg {leg + 1} not detected: no rod pair in the image matches it (hidden or out of view)")
     model = predict_rods(nominal, q, best.camera_from_base, spacing)
-    for p in model:
-        if p.leg not in best.legs or p.leg in unsure:
-            preds.append(None)
-            dirs.append(None)
-            reasons[rod_name(p.leg, p.rod)] = unsure.get(p.leg) or (
-                f"leg {p.leg + 1} not detected: no rod pair in the image matches it (hidden or out of view)")
-            continue
-        d = _leg_direction(leg_c[p.leg], p.u, s.model_direction_rad)
-        rc = rods[best.legs[p.leg][p.rod]]
-        if p.rod == 0:
-            preds.append(_prior_from_candidate(rc, d, p, radius))
-        else:
-            # rod 1 beside rod 0's prior: the leg's two priors stay one rod spacing apart
-            p0, m0 = preds[-1], model[2 * p.leg]
-            assert p0 is not None
-            shifted = RodPrediction(p.leg, 1, p0.top + (p.top - m0.top), p0.bottom + (p.bottom - m0.bottom))
-            preds.append(_prior_from_candidate(rc, d, shifted, radius))
-        dirs.append(d)
+    dirs: list[Array | None] = [None] * 8
+    for k, p in enumerate(model):
+        if rod_name(p.leg, p.rod) not in reasons:
+            lc = next(lc for lc in legs_c if set(lc.rods) == set(best.legs[p.leg]))
+            dirs[k] = _leg_direction(lc, p.u, s.model_direction_rad)
+    preds = _priors(rods, best, model, dirs, radius, np.ones(8))
+    # a width read off a candidate with one wrong limb puts its prior at a wrong depth: each rod's
+    # depth over the model's (the fitted placement's depth error is common to the frame) must agree
+    # with the frame's median; the outliers are moved to the median ratio
+    ratio = np.array([_depth_ratio(p, m, rods[best.legs[m.leg][m.rod]], camera.K) if p is not None else np.nan
+                      for p, m in zip(preds, model, strict=True)])
+    if np.sum(np.isfinite(ratio)) >= 4:
+        med = float(np.nanmedian(ratio))
+        off = np.isfinite(ratio) & (np.abs(ratio / med - 1.0) > s.depth_tolerance)
+        if off.any():
+            preds = _priors(rods, best, model, dirs, radius, np.where(off, med / ratio, 1.0))
     return RodDetection(preds, reasons, best.camera_from_base, best.rms_px, False, hyps, dirs, **kw)
+
+
+def _priors(rods: list[RodCandidate], best: Hypothesis, model: list[RodPrediction], dirs: list[Array | None],
+            radius: float, depth_scale: Array) -> list[RodPrediction | None]:
+    """The associated rods' priors (None where ``dirs`` is None), in ``ROD_KEYS`` order."""
+    preds: list[RodPrediction | None] = []
+    for k, p in enumerate(model):
+        d = dirs[k]
+        if d is None:
+            preds.append(None)
+            continue
+        rc = rods[best.legs[p.leg][p.rod]]
+        p0 = preds[k - 1] if p.rod == 1 else None
+        if p0 is not None:
+            # rod 1 beside rod 0's prior: the leg's two priors stay one rod spacing apart
+            m0 = model[k - 1]
+            p = RodPrediction(p.leg, 1, p0.top + (p.top - m0.top), p0.bottom + (p.bottom - m0.bottom))
+        preds.append(_prior_from_candidate(rc, d, p, radius, float(depth_scale[k])))
+    return preds
+
+
+def _depth_ratio(prior: RodPrediction, model: RodPrediction, rc: RodCandidate, K: Array) -> float:
+    """Depth of the prior's axis over the model's, where the ray through the rod's image middle meets them."""
+    ray = np.linalg.solve(K, np.append(0.5 * (rc.centre[0] + rc.centre[1]), 1.0))
+    ray = ray / np.linalg.norm(ray)
+
+    def along(a: Array, u: Array) -> float:
+        A2 = np.array([[u @ u, -u @ ray], [u @ ray, -1.0]])
+        try:
+            return float(np.linalg.solve(A2, np.array([-(a @ u), -(a @ ray)]))[1])
+        except np.linalg.LinAlgError:
+            return float("nan")
+
+    zp, zm = along(prior.top, prior.u), along(model.top, model.u)
+    return zp / zm if zm > 0 and zp > 0 else float("nan")
 
 
 def _leg_direction(lc: LegCandidate, u_model: Array, sigma_model: float) -> Array:
@@ -1079,15 +1114,17 @@ def _leg_direction(lc: LegCandidate, u_model: Array, sigma_model: float) -> Arra
     return v / np.linalg.norm(v)
 
 
-def _prior_from_candidate(rc: RodCandidate, d: Array, model: RodPrediction, radius: float) -> RodPrediction:
+def _prior_from_candidate(rc: RodCandidate, d: Array, model: RodPrediction, radius: float,
+                          depth_scale: float = 1.0) -> RodPrediction:
     """The rod's prior for measure_rod: its detected axis, over the model's extent.
 
     The axis lies in the candidate's axis plane (through the camera centre, bisecting its limb
     planes), along the leg's detected direction ``d`` projected into that plane (the two rods of a
     leg stay parallel), at the depth where both limb planes are tangent to a cylinder of the rod's
-    radius: its image is the detected rod to a pixel or so. The nominal model, centimetres off, only
-    gives the extent: the end points are the points of the axis nearest to ``model``'s (oriented
-    actuator to plate like ``d``). Falls back to ``model`` when the planes are degenerate.
+    radius (times ``depth_scale``, which moves the axis along the rays: same image, other width):
+    its image is the detected rod to a pixel or so. The nominal model, centimetres off, only gives
+    the extent: the end points are the points of the axis nearest to ``model``'s (oriented actuator
+    to plate like ``d``). Falls back to ``model`` when the planes are degenerate.
     """
     u = d - (d @ rc.m) * rc.m
     n = float(np.linalg.norm(u))
@@ -1095,7 +1132,7 @@ def _prior_from_candidate(rc: RodCandidate, d: Array, model: RodPrediction, radi
         return model
     u = u / n
     try:
-        X = np.linalg.solve(np.vstack([rc.h[0], rc.h[1], u]), np.array([radius, radius, 0.0]))
+        X = depth_scale * np.linalg.solve(np.vstack([rc.h[0], rc.h[1], u]), np.array([radius, radius, 0.0]))
     except np.linalg.LinAlgError:
         return model
     top = X + ((model.top - X) @ u) * u
