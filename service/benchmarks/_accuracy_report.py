@@ -73,7 +73,8 @@ def summarize(trials: list[dict[str, Any]]) -> dict[str, Any]:
     done = [t for t in trials if not t.get("error")]
     edge = [t["edge_noise_px"] for t in done if t.get("edge_noise_px") is not None]
     methods = {m: method_summary(trials, m) for m in METHODS}
-    timing = {k: _mean([t[k] for t in done if t.get(k) is not None]) for k in ("render_s", "extract_s", "calibrate_s")}
+    timing = {k: _mean([t[k] for t in done if t.get(k) is not None])
+              for k in ("render_s", "extract_s", "calibrate_s", "cpu_s")}
     rods = sum(t.get("rods_found", 0) for t in done), sum(t.get("rods_total", 0) for t in done)
     summary = {"trials": len(trials), "trials_failed": len(trials) - len(done),
                "a_priori_rms_error_m": a_priori_errors(trials),
@@ -248,7 +249,13 @@ def print_accuracy(doc: dict[str, Any], console: Any = None) -> None:
     con.print(f"[dim]per trial: {counts}; {cam_text}[/dim]")
     for note in doc["notes"]:
         con.print(f"[dim]note: {note}[/dim]")
-    con.print(f"[dim]{doc['elapsed_s']:.0f} s in all[/dim]")
+    load = doc.get("load_average") or {}
+    con.print(f"[dim]{doc['elapsed_s']:.0f} s in all ({doc['cpu_s']:.0f} CPU s in the workers; load average "
+              f"{_load_text(load.get('start'))} at the start, {_load_text(load.get('end'))} at the end)[/dim]")
+
+
+def _load_text(v: list[float] | None) -> str:
+    return "-" if not v else "/".join(f"{x:.1f}" for x in v)
 
 
 def _dpx(cam: dict[str, Any], key: str) -> str:

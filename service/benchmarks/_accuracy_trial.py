@@ -70,7 +70,7 @@ def calibrate_camera(task: CameraTask) -> dict[str, Any]:
     -------
     dict
         ``camera`` (``CameraModel.to_dict()``), ``intrinsics`` (reprojection RMS px, views used, rejected),
-        ``true_camera`` (the renderer's), ``render_s``, ``extract_s``, ``noise_sigma``.
+        ``true_camera`` (the renderer's), ``render_s``, ``extract_s``, ``cpu_s``, ``noise_sigma``, ``source``.
     """
     from calib.vision.extract import extract_dataset
     from drivers.sim.imaging import simulate_dataset
@@ -78,6 +78,7 @@ def calibrate_camera(task: CameraTask) -> dict[str, Any]:
     from drivers.sim.twin import BenchGeometry
 
     rs = RenderSettings(noise_sigma=task.noise_sigma)
+    cpu0 = time.process_time()
     with tempfile.TemporaryDirectory(prefix="i4cal-acc-camera-") as tmp:
         t0 = time.perf_counter()
         path = simulate_dataset(Path(tmp) / "ds", seed=task.seed, geometry=BenchGeometry(), render=rs,
@@ -95,7 +96,7 @@ def calibrate_camera(task: CameraTask) -> dict[str, Any]:
             "intrinsics": {"rms_px": _finite(s.get("rms_px")), "n_views": s.get("n_views"),
                            "rejected": {str(k): str(v) for k, v in (s.get("rejected") or {}).items()},
                            "error_vs_true_px": {k: float(v) for k, v in error.items()}},
-            "render_s": t1 - t0, "extract_s": t2 - t1}
+            "render_s": t1 - t0, "extract_s": t2 - t1, "cpu_s": time.process_time() - cpu0}
 
 
 def edge_noise_px(observations: dict[str, Any]) -> float | None:
@@ -175,7 +176,8 @@ def run_trial(task: TrialTask) -> dict[str, Any]:
     -------
     dict
         ``key``, ``index``, ``seed``, ``truth`` (seven, metres), ``truth_combinations`` (metres), ``render_s``,
-        ``extract_s``, ``calibrate_s``, ``error`` (None) and the fields of :func:`trial_record`.
+        ``extract_s``, ``calibrate_s`` (wall), ``cpu_s`` (CPU time of the whole trial: its cost on an idle core),
+        ``error`` (None) and the fields of :func:`trial_record`.
     """
     from calib.camera import CameraModel
     from calib.observations import Observations
@@ -189,7 +191,8 @@ def run_trial(task: TrialTask) -> dict[str, Any]:
     truth = I4Parameters.from_vector(task.truth, T_per_rad=NOMINAL.T_per_rad)
     out: dict[str, Any] = {"key": task.key, "index": task.index, "seed": task.seed, "noise_sigma": task.noise_sigma,
                            "truth": truth.seven(), "truth_combinations": truth.combinations(), "error": None,
-                           "render_s": None, "extract_s": None, "calibrate_s": None}
+                           "render_s": None, "extract_s": None, "calibrate_s": None, "cpu_s": None}
+    cpu0 = time.process_time()
     try:
         with tempfile.TemporaryDirectory(prefix="i4cal-acc-trial-") as tmp:
             t0 = time.perf_counter()
@@ -204,6 +207,7 @@ def run_trial(task: TrialTask) -> dict[str, Any]:
         doc = calibrate(Observations.from_dict(res.observations))
         out["calibrate_s"] = time.perf_counter() - t0
         out.update(trial_record(doc, res.observations))
+        out["cpu_s"] = time.process_time() - cpu0
     except Exception as exc:  # a failed trial is counted, never the end of the study
         out["error"] = f"{type(exc).__name__}: {exc}"
         out["traceback"] = traceback.format_exc(limit=6)

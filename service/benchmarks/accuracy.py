@@ -19,8 +19,10 @@ seed across points (common random numbers), and identical trials are run once.
 JSON (``--json PATH``, format ``i4cal.bench-accuracy/1``): ``command``, ``argv``, ``version``, ``machine``,
 ``options``, ``spread_m``, ``plans`` (frames per phase for each fit size), ``notes``, ``cameras`` (per noise
 level: the calibrated camera, its reprojection RMS), ``study`` and ``sweeps.noise`` / ``sweeps.poses`` (lists)
-as points ``{"sweep", "value", "noise_sigma", "n_fit", "trials": [per-trial records], "summary"}``, and
-``elapsed_s``. Lengths in metres (``*_m``), gaps in mm (``*_mm``), edge noise in px.
+as points ``{"sweep", "value", "noise_sigma", "n_fit", "trials": [per-trial records], "summary"}``,
+``elapsed_s`` (wall), ``cpu_s`` (CPU time of the cameras and trials: divided by the cores, about the wall time
+on an idle machine) and ``load_average`` at the start and end. Lengths in metres (``*_m``), gaps in mm
+(``*_mm``), edge noise in px.
 """
 
 from __future__ import annotations
@@ -210,6 +212,7 @@ def run_accuracy(opts: AccuracyOptions, on_progress: OnProgress | None = None) -
     from service.benchmarks.speed import machine_info
 
     t_start = time.perf_counter()
+    load_start = _load()
     points = study_points(opts)
     spread = spread_m(opts)
     fits = sorted({p.n_fit for p in points})
@@ -277,7 +280,9 @@ def run_accuracy(opts: AccuracyOptions, on_progress: OnProgress | None = None) -
             "workers": workers, "spread_m": spread, "plans": {str(n): plan_counts(s) for n, s in steps.items()},
             "notes": plan_notes(opts), "cameras": cameras, "study": study,
             "sweeps": {s: [p for p in out_points if p["sweep"] == s] for s in opts.sweeps},
-            "elapsed_s": time.perf_counter() - t_start}
+            "elapsed_s": time.perf_counter() - t_start,
+            "cpu_s": sum(r.get("cpu_s") or 0.0 for r in [*records.values(), *cameras.values()]),
+            "load_average": {"start": load_start, "end": _load()}}
 
 
 def true_camera(noise_sigma: float) -> dict[str, Any]:
@@ -286,6 +291,14 @@ def true_camera(noise_sigma: float) -> dict[str, Any]:
 
     cam = RenderSettings(noise_sigma=noise_sigma).camera().to_dict()
     return {"noise_sigma": noise_sigma, "source": "true", "camera": cam, "true_camera": cam, "intrinsics": None}
+
+
+def _load() -> list[float] | None:
+    """1, 5 and 15-minute load averages (the machine is shared: the figures say how busy it was)."""
+    try:
+        return [round(x, 2) for x in os.getloadavg()]
+    except OSError:
+        return None
 
 
 def _cores() -> int:

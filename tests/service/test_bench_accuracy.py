@@ -27,10 +27,10 @@ from service.benchmarks.accuracy import (
 from service.cli import main
 
 TOP_KEYS = {"format", "command", "argv", "version", "machine", "options", "workers", "spread_m", "plans", "notes",
-            "cameras", "study", "sweeps", "elapsed_s"}
+            "cameras", "study", "sweeps", "elapsed_s", "cpu_s", "load_average"}
 TRIAL_KEYS = {"key", "index", "seed", "noise_sigma", "truth", "truth_combinations", "error", "render_s", "extract_s",
-              "calibrate_s", "methods", "bound_std", "gap_a_priori_rms_mm", "gap_truth_rms_mm", "edge_noise_px",
-              "frames", "boards_found", "rods_found", "rods_total"}
+              "calibrate_s", "cpu_s", "methods", "bound_std", "gap_a_priori_rms_mm", "gap_truth_rms_mm",
+              "edge_noise_px", "frames", "boards_found", "rods_found", "rods_total"}
 METHOD_SUMMARY_KEYS = {"n_ok", "n_failed", "failures", "rms_error_m", "mean_std_m", "std_over_error", "bound_rms_m",
                        "efficiency", "gap_validation_rms_mm", "gap_below_a_priori", "gap_trials"}
 
@@ -53,7 +53,7 @@ def test_quick_study_json_contract(quick):
     doc, _ = quick
     assert set(doc) == TOP_KEYS and doc["format"] == "i4cal.bench-accuracy/1"
     assert doc["command"] == "i4cal bench accuracy --quick --sweep-poses 8,10 --sweep poses"
-    assert doc["machine"]["cores"] >= 1 and doc["version"] and doc["elapsed_s"] > 0
+    assert doc["machine"]["cores"] >= 1 and doc["version"] and doc["elapsed_s"] > 0 and doc["cpu_s"] > 0
     assert math.isclose(doc["spread_m"], default_spread_m()) and 0.003 < doc["spread_m"] < 0.008
     study = doc["study"]
     assert (study["sweep"], study["noise_sigma"], study["n_fit"]) == (None, 2.0, 10)
