@@ -83,6 +83,9 @@ def _child_main(conn: Any, target: str, kwargs: dict[str, Any], nice: int) -> No
     """Entry point of a job child: run ``JOBS[target](emit=..., **kwargs)`` and send back the outcome."""
     with contextlib.suppress(OSError):
         os.setpgid(0, 0)  # its own process group: abort kills the extraction's pool with it
+    # a forkserver's child would start the extraction's pool through a forkserver of its own (a fresh interpreter
+    # importing numpy, OpenCV, calib: ~1 s per extraction); this child is single-threaded: fork it directly
+    multiprocessing.set_start_method("fork", force=True)
     if nice > 0:
         with contextlib.suppress(OSError):
             os.nice(nice)
