@@ -485,6 +485,29 @@ def _plane(K: Array, line: Array) -> Array:
     return h / np.linalg.norm(h)
 
 
+def _inside_fraction(canvas: np.ndarray, scale: float, origin: Array, pa: list[Array], pb: list[Array],
+                     bright: bool, need: float) -> float:
+    """Fraction of 9 profiles across the span between two lines where the inside is brighter (darker)
+    than both outsides by ``need`` grey levels: its darkest (brightest) of 5 samples against the
+    brighter (darker) of the samples 3 px beyond each line (near enough to stay in a narrow gap
+    between the two rods of a leg). ``pa``, ``pb``: each line's points at the span's ends (ideal px).
+    """
+    fr = np.linspace(0.05, 0.95, 9)
+    A = pa[0][None] + fr[:, None] * (pa[1] - pa[0])[None]
+    B = pb[0][None] + fr[:, None] * (pb[1] - pb[0])[None]
+    across = B - A
+    u = across / np.linalg.norm(across, axis=1)[:, None]
+    inner = A[:, None] + np.linspace(0.2, 0.8, 5)[None, :, None] * across[:, None]
+    Ii = _sample(canvas, _to_canvas(inner, scale, origin))
+    Ia = _sample(canvas, _to_canvas(A - 3.0 * u, scale, origin))
+    Ib = _sample(canvas, _to_canvas(B + 3.0 * u, scale, origin))
+    if bright:
+        margin = Ii.min(axis=1) - np.maximum(Ia, Ib)
+    else:
+        margin = np.minimum(Ia, Ib) - Ii.max(axis=1)
+    return float(np.mean(margin > need))
+
+
 def find_rods(lines: list[Line2], canvas: np.ndarray, scale: float, origin: Array, camera: CameraModel,
               radius: float, settings: DetectSettings) -> list[RodCandidate]:
     """Pairs of lines that bound a rod (see the module docstring, step 3)."""
@@ -508,17 +531,8 @@ def find_rods(lines: list[Line2], canvas: np.ndarray, scale: float, origin: Arra
         s0, s1 = max(ea[0], eb[0]), min(ea[1], eb[1])
         if s1 - s0 < settings.min_rod_px:
             continue
-        # points on each line at s0, s1 (along t through a's frame)
-        nrm = np.array([-t[1], t[0]])
-
-        def at(line: Line2, s: float, t=t, nrm=nrm) -> Array:
-            # point x = s t + k nrm with line.n . x + c = 0
-            den = line.n @ nrm
-            k = -(line.c + s * (line.n @ t)) / den
-            return s * t + k * nrm
-
-        pa = [at(a, s0), at(a, s1)]
-        pb = [at(b, s0), at(b, s1)]
+        pa = [_line_point(a, s0, t), _line_point(a, s1, t)]
+        pb = [_line_point(b, s0, t), _line_point(b, s1, t)]
         wd = (float(np.linalg.norm(pb[0] - pa[0])), float(np.linalg.norm(pb[1] - pa[1])))
         if min(wd) < wmin or max(wd) > wmax:
             continue
@@ -531,27 +545,8 @@ def find_rods(lines: list[Line2], canvas: np.ndarray, scale: float, origin: Arra
         bright = bool(fa)
         if (settings.polarity == "bright" and not bright) or (settings.polarity == "dark" and bright):
             continue
-        # inside brighter (darker) than outside along the whole overlap
-        k = 9
-        fr = np.linspace(0.05, 0.95, k)
-        A = pa[0][None] + fr[:, None] * (pa[1] - pa[0])[None]
-        B = pb[0][None] + fr[:, None] * (pb[1] - pb[0])[None]
-        across = B - A
-        wloc = np.linalg.norm(across, axis=1)
-        u = across / wloc[:, None]
-        inner_f = np.linspace(0.2, 0.8, 5)
-        inner = A[:, None] + inner_f[None, :, None] * across[:, None]
-        out_off = 3.0  # px: close enough to stay in a narrow gap between the two rods of a leg
-        outer_a = A - out_off * u
-        outer_b = B + out_off * u
-        Ii = _sample(canvas, _to_canvas(inner, scale, origin))
-        Ia = _sample(canvas, _to_canvas(outer_a, scale, origin))
-        Ib = _sample(canvas, _to_canvas(outer_b, scale, origin))
-        sign = 1.0 if bright else -1.0
-        margin = sign * (Ii.min(axis=1) if bright else Ii.max(axis=1)) - sign * (
-            np.maximum(Ia, Ib) if bright else np.minimum(Ia, Ib))
-        need = 0.3 * min(a.contrast, b.contrast)
-        if np.mean(margin > need) < 0.7:
+        inside = _inside_fraction(canvas, scale, origin, pa, pb, bright, 0.3 * min(a.contrast, b.contrast))
+        if inside < 0.7:
             continue
         # limb lines as (a, b, c) with the axis on the positive side of their planes
         centre = (0.5 * (pa[0] + pb[0]), 0.5 * (pa[1] + pb[1]))
@@ -566,7 +561,7 @@ def find_rods(lines: list[Line2], canvas: np.ndarray, scale: float, origin: Arra
         m = hs[0] - hs[1]
         m = m / np.linalg.norm(m)
         rc = RodCandidate((a, b), s0, s1, t, wd, centre, bright, (hs[0], hs[1]), m)
-        score = (s1 - s0) * float(np.mean(margin > need)) * np.sqrt(np.mean(wd))
+        score = (s1 - s0) * inside * np.sqrt(np.mean(wd))
         cands.append((score, i, j, rc))
     # each line bounds at most one rod of each polarity (the inner limb of a bright rod also bounds
     # the dark gap between the two rods of its leg): best score first
