@@ -1,6 +1,6 @@
 """First-frame rod detection (calib.vision.detect) on frames rendered by the image-level twin.
 
-Bounds, from the measurement behind docs/vision.md ("First frame without a prior"): over 364 seeded
+Bounds, from the measurement behind docs/vision.md ("First frame without a prior"): over 363 seeded
 frames of the paper's plan (12 render seeds, default noise) with the mounting prior, every frame's
 legs were associated correctly; the detected rod directions were 8 mrad from the truth at the
 median and ~50 mrad at worst, the rods measured from the detector's priors 5.4 mrad (median). A
