@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import gc
 import os
+import shutil
 import signal
 import socket
 import statistics
@@ -188,6 +189,7 @@ def measure(paper_plan: bool = False, workers: int = 2, hz: float = 20.0, *,
                 p.wait(30)
             except subprocess.TimeoutExpired:
                 p.kill()
+        shutil.rmtree(tmp, ignore_errors=True)  # the run's dataset (~100 MB of frames for the paper plan)
     return lat
 
 
