@@ -214,6 +214,8 @@ def run_accuracy(opts: AccuracyOptions, on_progress: OnProgress | None = None) -
     t_start = time.perf_counter()
     load_start = _load()
     points = study_points(opts)
+    if not points:
+        raise InputError("nothing to run: --trials 0 and no --sweep", field="--trials")
     spread = spread_m(opts)
     fits = sorted({p.n_fit for p in points})
     steps = {n: plan_steps(opts, n) for n in fits}

@@ -166,6 +166,8 @@ def test_options_errors_and_command_line(capsys):
     assert "--sweep-trials" in capsys.readouterr().err
     assert main(["bench", "accuracy", "--sweep-poses", "2,8"]) == 2
     assert "--sweep-poses" in capsys.readouterr().err
+    assert main(["bench", "accuracy", "--trials", "0"]) == 2
+    assert "nothing to run" in capsys.readouterr().err
     assert main(["bench"]) == 1
     assert "i4cal bench accuracy" in capsys.readouterr().out
     opts = AccuracyOptions(trials=20, seed=3, noise_sigma=4.0, sweeps=["poses", "noise"], sweep_noise=[0, 2.5],
