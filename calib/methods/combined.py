@@ -309,15 +309,9 @@ def _intrinsics_covariance(obs: Observations, data: PhaseArrays, prob: _Problem,
     std = (cam.get("calibration") or {}).get("std") or {}
     if not cam.get("K") or not all(k in std for k in ("fx", "fy", "cx", "cy")):
         return None
-    planes = []
-    for k, leg, rod in zip(prob.k, prob.leg, prob.rod, strict=True):
-        frame = obs.frames[int(data.index[k])]
-        rods = frame.legs.get(str(leg + 1)) if frame.legs else None
-        h = getattr(rods[rod], "h", None) if rods and rods[rod] is not None else None
-        if h is None:
-            return None
-        planes.append(np.asarray(h, dtype=np.float64))
-    H = np.asarray(planes)  # (M, 2, 3)
+    H = _rod_field(obs, data, prob, "h")  # (M, 2, 3)
+    if H is None:
+        return None
     K = np.asarray(cam["K"], dtype=np.float64)
     Kinv_T = np.linalg.inv(K).T
     u0 = prob.u_cam
@@ -372,12 +366,17 @@ def _sandwich(J: np.ndarray, W: np.ndarray, Sig: np.ndarray) -> np.ndarray:
 
 def _rod_covariances(obs: Observations, data: PhaseArrays, prob: _Problem) -> np.ndarray | None:
     """Per-rod direction covariances (camera frame) when every used rod carries one (extra field ``cov_u``)."""
-    covs = []
+    return _rod_field(obs, data, prob, "cov_u")
+
+
+def _rod_field(obs: Observations, data: PhaseArrays, prob: _Problem, name: str) -> np.ndarray | None:
+    """An extra field of every used rod, stacked as float64 (M, ...); None when a rod lacks it or none is used."""
+    values = []
     for k, leg, rod in zip(prob.k, prob.leg, prob.rod, strict=True):
         frame = obs.frames[int(data.index[k])]
         rods = frame.legs.get(str(leg + 1)) if frame.legs else None
-        c = getattr(rods[rod], "cov_u", None) if rods and rods[rod] is not None else None
-        if c is None:
+        v = getattr(rods[rod], name, None) if rods and rods[rod] is not None else None
+        if v is None:
             return None
-        covs.append(np.asarray(c, dtype=np.float64))
-    return np.asarray(covs) if covs else None
+        values.append(np.asarray(v, dtype=np.float64))
+    return np.asarray(values) if values else None

@@ -372,13 +372,12 @@ def _predicted_segment(camera: CameraModel, pred: RodPrediction, radius: float, 
     return _Segment(a2, t_dir, n_dir, length, off1, off2)
 
 
-def _seg_distance(pts: Array, a: Array, b: Array) -> tuple[Array, Array]:
-    """Distance (px) from points (N, 2) to the segment a-b and the fraction along it of the foot, each (N,)."""
+def _seg_distance(pts: Array, a: Array, b: Array) -> Array:
+    """Distance (px) from points (N, 2) to the segment a-b, shape (N,)."""
     d = b - a
     L2 = float(d @ d)
     t = np.clip(((pts - a) @ d) / L2, 0.0, 1.0) if L2 > 0 else np.zeros(len(pts))
-    foot = a[None] + t[:, None] * d[None]
-    return np.linalg.norm(pts - foot, axis=1), t
+    return np.linalg.norm(pts - (a[None] + t[:, None] * d[None]), axis=1)
 
 
 def _pair_edges(pi: NDArray[np.int_], xo: Array, gs: Array, pc: Array, pw: Array, band_px: float,
@@ -471,17 +470,6 @@ def _line_cov(pts: Array, line: Array, max_lag: int = 12) -> tuple[Array, Array,
         for k in range(1, L + 1):
             factor += 2.0 * (1.0 - k / (L + 1)) * float(rr[:-k] @ rr[k:]) / v0
     return c, t_dir, s2 * max(factor, 1.0)
-
-
-def _u_from_lines(K: Array, lines: list[Array], inner: Array) -> Array:
-    """Axis direction from two limb lines (ideal px) with the planes' signs fixed by an interior point."""
-    hs = []
-    for line in lines:
-        h = K.T @ line
-        h = h / np.linalg.norm(h)
-        hs.append(h if h @ inner > 0 else -h)
-    u = np.cross(hs[0], hs[1])
-    return u / np.linalg.norm(u)
 
 
 def _direction_covariance(K: Array, fits: list[tuple[Array, Array, float, Array]], inner: Array,
@@ -623,8 +611,7 @@ def measure_rod(gray: np.ndarray, camera: CameraModel, pred: RodPrediction, radi
             limb_pred = centres[k] + x_p[:, None] * n_dir[None]
             clear = np.ones(len(pts), dtype=bool)
             for a_n, b_n, hw in neighbours:
-                dist, _ = _seg_distance(limb_pred, a_n, b_n)
-                clear &= dist > hw + s.neighbour_px
+                clear &= _seg_distance(limb_pred, a_n, b_n) > hw + s.neighbour_px
             pts = pts[clear]
         if len(pts) < s.min_points:
             out.reason = (f"too few limb edge points ({len(pts)} < {s.min_points}): rod not found in its "

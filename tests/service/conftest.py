@@ -160,3 +160,21 @@ def postgres_url():
             yield url
     except ClusterUnavailableError as exc:
         pytest.skip(str(exc))
+
+
+def empty_database_url(request, tmp_path, name: str) -> str:
+    """An empty database for ``request.param`` ("sqlite": a file ``name`` in tmp_path; "postgres": the
+    throwaway cluster's database with its schema dropped and recreated)."""
+    from sqlalchemy import text
+
+    from service.db import Database
+
+    if request.param == "sqlite":
+        return f"sqlite:///{tmp_path / name}"
+    url = request.getfixturevalue("postgres_url")
+    db = Database(url)
+    with db.engine.begin() as conn:
+        conn.execute(text("DROP SCHEMA public CASCADE"))
+        conn.execute(text("CREATE SCHEMA public"))
+    db.dispose()
+    return url

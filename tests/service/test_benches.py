@@ -7,27 +7,17 @@ from __future__ import annotations
 import asyncio
 
 import pytest
-from sqlalchemy import text
 
 from drivers.sim.bench import SimBench
 from drivers.sim.mechanism import AxisConfig
-from service.db import Database
-from tests.service.conftest import AUTH, TinyRenderer, make_settings, start_service, wait_state
+from tests.service.conftest import AUTH, TinyRenderer, empty_database_url, make_settings, start_service, wait_state
 
 API = "/api/v1"
 
 
 @pytest.fixture(params=["sqlite", "postgres"])
 def shared_db(request, tmp_path) -> str:
-    if request.param == "sqlite":
-        return f"sqlite:///{tmp_path / 'lab.db'}"
-    url = request.getfixturevalue("postgres_url")
-    db = Database(url)
-    with db.engine.begin() as conn:
-        conn.execute(text("DROP SCHEMA public CASCADE"))
-        conn.execute(text("CREATE SCHEMA public"))
-    db.dispose()
-    return url
+    return empty_database_url(request, tmp_path, "lab.db")
 
 
 async def test_two_benches_share_a_database(tmp_path, sim, shared_db, rendered_zip):

@@ -14,19 +14,12 @@ from service.db import Base, Database
 from service.db.session import MIGRATIONS
 from service.settings import Settings
 from service.worker import RunManager
+from tests.service.conftest import empty_database_url
 
 
 @pytest.fixture(params=["sqlite", "postgres"])
 def empty_db(request, tmp_path) -> str:
-    if request.param == "sqlite":
-        return f"sqlite:///{tmp_path / 'm.db'}"
-    url = request.getfixturevalue("postgres_url")
-    db = Database(url)
-    with db.engine.begin() as conn:
-        conn.execute(text("DROP SCHEMA public CASCADE"))
-        conn.execute(text("CREATE SCHEMA public"))
-    db.dispose()
-    return url
+    return empty_database_url(request, tmp_path, "m.db")
 
 
 def _upgrade(db: Database, rev: str) -> None:
