@@ -1,26 +1,52 @@
 """Legs observation only (the paper's reference [9], section IV.A.2), in four steps.
 
 1. ``lock-i`` phases: with actuator i locked, each rod of leg i turns about its fixed upper spherical
-   joint, so its axis lines (direction and point, from the rod radius) pass through that joint: the
-   least-squares intersection gives it; the two joints' midpoint is A_i at the locked encoder value.
+   joint, so its axis passes through that joint in every frame: the joint is the point that best
+   satisfies every frame's axis constraint; the two joints' midpoint is A_i at the locked encoder value.
    x_B is the direction A1 -> A2 (and A3 -> A4); ``A_i(q_i = 0) = A_i - q_i x_B``.
 2. (q02, q03, q04, H) from the scalar products of ``V = (OA2, OA3, OA4)|q=0`` (eq. 9, 10), O = A1(q1 = 0).
 3. L from the invariance of |B1 B2| and |B3 B4| over the fit poses (eq. 11), with
    ``B_i = A_i(q_i) + L u_i``.
 4. S from |B1 B2| = |B3 B4| = 2S; D from the distance 2D between B1 and B3 (and B2, B4) along y_B.
 
-All seven parameters are identified. Standard deviations propagate (linearly, with numerical
-derivatives of steps 2-4) the covariance of the joint centres from step 1 (from the line
-residuals) and the noise of the leg directions in the fit poses (estimated from the disagreement
-of the two parallel rods of each leg).
+All seven parameters are identified.
+
+Weighting. When the rods carry what the image extraction measures (extra fields ``h``, the two
+interpretation-plane normals, and ``cov_u``, the direction's covariance; observations v1), the
+method uses the measurement's real noise, which is far from isotropic: a rod's image position is
+precise, its depth (from its apparent width) tens of times less so.
+
+* Step 1 solves the two plane equations ``h_q . X = r`` of every frame (r the rod radius, read as
+  ``h . point``) for the joint X by weighted least squares, each equation weighed by the variance of
+  its limb line (angle and offset, from the limb's edge scatter ``rms_px`` over ``n_points``, the
+  extraction's edge-bias allowance, scaled per rod so that it reproduces the rod's ``cov_u``),
+  propagated to the distance of X from the plane. Frames whose two equations are beyond the
+  chi-square(2) 99.9% quantile of a robust scale are dropped. Without ``h``: the least-squares
+  intersection of the axis lines (direction and point), all lines weighing the same.
+* Steps 3 and 4 are solved together: per fit pose, ``|B1 B2| - 2S``, ``|B3 B4| - 2S``,
+  ``(B3 - B1) . y_B - 2D`` and ``(B4 - B2) . y_B - 2D`` vanish (eq. 11 and step 4 with the constant
+  made explicit); (L, S, D) minimise these residuals whitened by their covariance from the leg
+  directions' covariance (generalised least squares). A leg's direction is the covariance-weighted
+  mean of its two rods (``cov_u``; isotropic without it); a pair of rods that disagree beyond the
+  chi-square(2) 99.9% quantile, or a pose whose whitened residuals are beyond their chi-square
+  99.9% quantile, is dropped.
+
+Standard deviations: the joints' covariance (from the weighted fit, scaled by its residual
+chi-square per degree of freedom) propagated linearly through steps 2-4 (numerical derivatives),
+plus the GLS covariance of (L, S, D), scaled by its residual chi-square per degree of freedom.
+The two parts come from different frames (``lock-i`` and fit phases) and are independent.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy.optimize import least_squares
+from scipy.stats import chi2
 
 from ..errors import ConvergenceError, IdentifiabilityError
+from ..numdiff import central_jacobian
 from ..observations import Observations, PhaseArrays
 from ..parameters import COMBINATION_NAMES, PARAMETER_NAMES, I4Parameters
 from ..transforms import unit
@@ -28,6 +54,10 @@ from .iterations import IterationCallback, traced
 from .result import MethodResult, combos_dict, std_dict
 
 _PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+_CHI2_2_999 = 13.8155  # chi-square, 2 dof, 99.9% quantile
+_CHI2_2_MEDIAN = 1.3863  # chi-square, 2 dof, median
+#: the four step-3/4 equations of a pose: (leg a, leg b) of |Ba Bb| - 2S, then of (Bb - Ba) . y - 2D
+_EQ_LEGS = ((0, 1), (2, 3), (0, 2), (1, 3))
 
 
 def intersect_lines(p: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -55,6 +85,145 @@ def intersect_lines(p: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return P, A, res
 
 
+@dataclass(frozen=True)
+class PlaneObservation:
+    """One rod seen in one frame: its two interpretation planes and their noise model.
+
+    Attributes
+    ----------
+    h : ndarray, shape (2, 3)
+        Unit plane normals (camera frame), signed so that the axis is on their positive side.
+    r : float
+        Rod radius, metres: ``h_q . X = r`` for every axis point X.
+    dh : ndarray, shape (2, 2, 3) or None
+        ``d h_q / d(angle, offset)`` of limb q's image line (rad, px); None: no noise model.
+    var : ndarray, shape (2, 2) or None
+        Variances of each limb line's angle (rad^2) and offset (px^2).
+    """
+
+    h: np.ndarray
+    r: float
+    dh: np.ndarray | None = None
+    var: np.ndarray | None = None
+
+    def variances(self, X: np.ndarray) -> np.ndarray:
+        """Variances (2,) of the two equations ``h_q . X - r`` at X (m^2; 1 without a noise model)."""
+        if self.dh is None or self.var is None:
+            return np.ones(2)
+        g = self.dh @ X  # (2, 2)
+        return np.sum(g ** 2 * self.var, axis=1) + 1e-30
+
+
+def limb_line_noise(K: np.ndarray, h: np.ndarray, point: np.ndarray, rms_px: np.ndarray, n_points: np.ndarray,
+                    cov_u: np.ndarray | None = None, step_px: float = 3.0,
+                    edge_bias_px: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    """Noise model of a rod's two limb lines: plane-normal derivatives and line variances.
+
+    Each limb line (image, ideal pixels: ``l ~ K^-T h``) is perturbed by a rotation about its
+    centroid (the foot of the rod point's image on it) and a shift along its normal. The variances
+    are those of a TLS line through ``n_points`` edge points ``step_px`` apart with residual RMS
+    ``rms_px`` (angle ``s^2 / sum t^2``, offset ``s^2 / N``) plus a slowly varying edge bias
+    (``edge_bias_px`` end to end); with ``cov_u`` they are scaled so that the direction covariance
+    they imply has the trace of ``cov_u`` (which accounts for the edges' correlation along a limb).
+
+    Parameters
+    ----------
+    K : ndarray, shape (3, 3)
+        Camera matrix (ideal pixels).
+    h : ndarray, shape (2, 3)
+        Interpretation-plane normals, camera frame.
+    point : ndarray, shape (3,)
+        An axis point in view (camera frame, metres).
+    rms_px, n_points : ndarray, shape (2,)
+        Each limb's edge residual RMS (px) and number of edge points.
+    cov_u : ndarray, shape (3, 3), optional
+        The rod direction's covariance.
+    step_px, edge_bias_px : float
+        The extraction's profile spacing and edge-bias allowance (px).
+
+    Returns
+    -------
+    dh : ndarray, shape (2, 2, 3)
+        ``d h_q / d angle`` (per rad) and ``d h_q / d offset`` (per px) for each limb q.
+    var : ndarray, shape (2, 2)
+        Variances of (angle, offset) per limb, rad^2 and px^2.
+    """
+    x = K @ point
+    c0 = x[:2] / x[2]
+    KinvT = np.linalg.inv(K).T
+    dh = np.zeros((2, 2, 3))
+    var = np.zeros((2, 2))
+    for q in range(2):
+        line = KinvT @ h[q]
+        line = line / np.linalg.norm(line[:2])
+        n = line[:2]
+        c = c0 - (n @ c0 + line[2]) * n
+
+        def plane(dth: float, doff: float, n: np.ndarray = n, c: np.ndarray = c, q: int = q) -> np.ndarray:
+            cs, sn = np.cos(dth), np.sin(dth)
+            n2 = np.array([cs * n[0] - sn * n[1], sn * n[0] + cs * n[1]])
+            hh = K.T @ np.array([n2[0], n2[1], -(n2 @ c) - doff])
+            hh = hh / np.linalg.norm(hh)
+            return hh if hh @ h[q] > 0 else -hh
+
+        dh[q, 0] = (plane(1e-6, 0.0) - plane(-1e-6, 0.0)) / 2e-6
+        dh[q, 1] = (plane(0.0, 1e-3) - plane(0.0, -1e-3)) / 2e-3
+        npts = max(float(n_points[q]), 3.0)
+        s2 = float(rms_px[q]) ** 2
+        span = step_px * (npts - 1.0)
+        st2 = step_px ** 2 * npts * (npts ** 2 - 1.0) / 12.0
+        var[q] = [s2 / st2 + (edge_bias_px / span) ** 2, s2 / npts + (0.5 * edge_bias_px) ** 2]
+    if cov_u is not None:
+        m = np.cross(h[0], h[1])
+        nm = float(np.linalg.norm(m))
+        u = m / nm
+        Pu = np.eye(3) - np.outer(u, u)
+        M = np.zeros((3, 3))
+        for q in range(2):
+            for p in range(2):
+                dm = np.cross(dh[0, p], h[1]) if q == 0 else np.cross(h[0], dh[1, p])
+                du = Pu @ dm / nm
+                M += var[q, p] * np.outer(du, du)
+        tm = float(np.trace(M))
+        if tm > 0 and np.all(np.isfinite(cov_u)):
+            var = var * (float(np.trace(cov_u)) / tm)
+    return dh, var
+
+
+def joint_from_planes(obs: list[PlaneObservation], iterations: int = 4) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Weighted least-squares point X of ``h_q . X = r`` over a rod's frames.
+
+    Parameters
+    ----------
+    obs : list of PlaneObservation
+        At least 2 frames.
+
+    Returns
+    -------
+    X : ndarray, shape (3,)
+        Metres, camera frame.
+    normal_matrix : ndarray, shape (3, 3)
+        ``sum w h h^T`` with ``w`` the inverse equation variances; X's covariance is its inverse
+        (times the chi-square scale when the variances are relative).
+    d2 : ndarray, shape (M,)
+        Each frame's two residuals squared, each divided by its variance, summed.
+    """
+    Hm = np.stack([o.h for o in obs])  # (M, 2, 3)
+    r = np.array([o.r for o in obs])
+    X = np.linalg.lstsq(Hm.reshape(-1, 3), np.repeat(r, 2), rcond=None)[0]
+    A = np.eye(3)
+    v = np.ones((len(obs), 2))
+    for _ in range(iterations):
+        v = np.stack([o.variances(X) for o in obs])
+        w = 1.0 / v
+        A = np.einsum("mq,mqi,mqj->ij", w, Hm, Hm)
+        if np.linalg.cond(A) > 1e12:
+            raise IdentifiabilityError("the rod planes of a locked leg do not locate its joint (rod barely moved)")
+        X = np.linalg.solve(A, np.einsum("mq,mqi,m->i", w, Hm, r))
+    res = Hm @ X - r[:, None]
+    return X, A, np.sum(res ** 2 / v, axis=1)
+
+
 def _step2(V: np.ndarray, x0: np.ndarray, on_iteration: IterationCallback | None = None) -> np.ndarray:
     """(q02, q03, q04, H) from V (3, 3) rows OA2, OA3, OA4 at zero encoder (eq. 9)."""
     G = V @ V.T
@@ -73,16 +242,41 @@ def _step2(V: np.ndarray, x0: np.ndarray, on_iteration: IterationCallback | None
     return sol.x
 
 
+def _gls_pair(u: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Covariance-weighted mean of two aligned unit directions (2, 3) with covariances (2, 3, 3).
+
+    Returns the mean (3,), its covariance (3, 3) and the pair's disagreement, chi-square with 2 dof.
+    """
+    m = unit(u[0] + u[1])
+    T = np.linalg.svd(np.eye(3) - np.outer(m, m))[0][:, :2]  # tangent basis at the mean
+    e = u @ T  # (2, 2) tangent coordinates
+    Ct = np.einsum("ai,kab,bj->kij", T, C, T) + 1e-18 * np.eye(2)
+    Wi = np.linalg.inv(Ct)
+    Cm = np.linalg.inv(Wi.sum(axis=0))
+    em = Cm @ np.einsum("kij,kj->i", Wi, e)
+    de = e[0] - e[1]
+    d2 = float(de @ np.linalg.solve(Ct[0] + Ct[1], de))
+    return unit(m + T @ em), T @ Cm @ T.T, d2
+
+
 class _LegsPipeline:
     """Steps 2-4 as a function of the joint points (step 1 output) and the fit-pose leg directions."""
 
     def __init__(self, q_lock: np.ndarray, q_fit: np.ndarray, rod_p: np.ndarray, has_leg: np.ndarray,
-                 nominal: I4Parameters) -> None:
+                 cov_leg: np.ndarray, nominal: I4Parameters) -> None:
         self.q_lock = q_lock  # (4,) locked value of each actuator
         self.q_fit = q_fit  # (N, 4)
         self.rod_p = rod_p  # (N, 4, 3) a point on each leg's rods (for the direction sign), NaN if none
-        self.has_leg = has_leg  # (N, 4)
+        self.cov_leg = cov_leg  # (N, 4, 3, 3) covariance (or relative covariance) of each leg direction
         self.nominal = nominal
+        self.set_legs(has_leg)
+        self.W: np.ndarray | None = None  # (N, 4, 4) whitening of each pose's equations, fixed once fitted
+
+    def set_legs(self, has_leg: np.ndarray) -> None:
+        """Legs used per pose (N, 4) and the equations they allow (N, 4)."""
+        self.has_leg = has_leg
+        self.mask = np.stack([has_leg[:, a] & has_leg[:, b] for a, b in _EQ_LEGS], axis=1)
+        self.W = None
 
     def frame(self, P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """x_B and A_i(q=0) in the camera frame from the 8 upper joint points (4, 2, 3)."""
@@ -102,65 +296,267 @@ class _LegsPipeline:
         V = A0[1:] - A0[0]
         x2 = _step2(V, np.array([nom.q02, nom.q03, nom.q04, nom.H]) if x2_init is None else x2_init, on_iteration)
         q02, q03, q04, H = x2
-        y = unit(V[1] - (V[1] @ x) * x)
-        L, S, D = self.steps34(x, y, A0, U, nom.L, on_iteration)
+        y = self.y_axis(x, A0)
+        L, S, D = self.steps34(x, y, A0, U, np.array([nom.L, nom.S, nom.D]), on_iteration)
         return np.array([H, q02, q03, q04, S, D, L])
 
-    def steps34(self, x: np.ndarray, y: np.ndarray, A0: np.ndarray, U: np.ndarray, L0: float,
-                on_iteration: IterationCallback | None = None):
-        Aq = A0[None, :, :] + self.q_fit[:, :, None] * x[None, None, :]  # (N, 4, 3)
-        # orient each leg direction from A to B (towards the rod's observed point)
+    @staticmethod
+    def y_axis(x: np.ndarray, A0: np.ndarray) -> np.ndarray:
+        V1 = A0[2] - A0[0]
+        return unit(V1 - (V1 @ x) * x)
+
+    def oriented(self, x: np.ndarray, A0: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A_i(q_i) per fit pose (N, 4, 3) and the leg directions oriented from A to B (N, 4, 3)."""
+        Aq = A0[None, :, :] + self.q_fit[:, :, None] * x[None, None, :]
         sgn = np.sign(np.einsum("nij,nij->ni", U, np.where(np.isnan(self.rod_p), 0.0, self.rod_p - Aq)))
         sgn[sgn == 0] = 1.0
-        Uo = U * sgn[..., None]
-        ok12 = self.has_leg[:, 0] & self.has_leg[:, 1]
-        ok34 = self.has_leg[:, 2] & self.has_leg[:, 3]
+        return Aq, U * sgn[..., None]
 
-        def dists(L: float) -> tuple[np.ndarray, np.ndarray]:
-            B = Aq + L * Uo
-            return np.sum((B[:, 0] - B[:, 1]) ** 2, axis=1), np.sum((B[:, 2] - B[:, 3]) ** 2, axis=1)
+    def residuals(self, theta: np.ndarray, Aq: np.ndarray, Uo: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """The four equations of every pose (N, 4), zero where not available."""
+        L, S, D = theta
+        B = Aq + L * Uo
+        R = np.stack([np.linalg.norm(B[:, 0] - B[:, 1], axis=1) - 2 * S,
+                      np.linalg.norm(B[:, 2] - B[:, 3], axis=1) - 2 * S,
+                      (B[:, 2] - B[:, 0]) @ y - 2 * D,
+                      (B[:, 3] - B[:, 1]) @ y - 2 * D], axis=1)
+        return np.where(self.mask, R, 0.0)
 
-        def res(Lv: np.ndarray) -> np.ndarray:
-            d12, d34 = dists(Lv[0])
-            a, b = d12[ok12], d34[ok34]
-            return np.concatenate([np.diff(a), np.diff(b)])  # eq. 11
+    def covariances(self, theta: np.ndarray, Aq: np.ndarray, Uo: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Covariance (N, 4, 4) of each pose's equations from its leg directions' (identity where unused)."""
+        L = theta[0]
+        B = Aq + L * Uo
+        n12 = unit(B[:, 0] - B[:, 1])
+        n34 = unit(B[:, 2] - B[:, 3])
+        N = Aq.shape[0]
+        G = np.zeros((N, 4, 4, 3))  # d equation / d leg direction
+        G[:, 0, 0], G[:, 0, 1] = L * n12, -L * n12
+        G[:, 1, 2], G[:, 1, 3] = L * n34, -L * n34
+        G[:, 2, 2], G[:, 2, 0] = L * y, -L * y
+        G[:, 3, 3], G[:, 3, 1] = L * y, -L * y
+        C = np.einsum("neli,nlij,nmlj->nem", G, np.nan_to_num(self.cov_leg), G)
+        m = self.mask[:, :, None] & self.mask[:, None, :]
+        C = np.where(m, C, 0.0)
+        idx = np.arange(4)
+        C[:, idx, idx] = np.where(self.mask, C[:, idx, idx], 1.0)
+        return C
 
-        if ok12.sum() + ok34.sum() < 3:
+    def whitened(self, theta: np.ndarray, Aq: np.ndarray, Uo: np.ndarray, y: np.ndarray) -> np.ndarray:
+        assert self.W is not None
+        return np.einsum("nij,nj->ni", self.W, self.residuals(theta, Aq, Uo, y))
+
+    def steps34(self, x: np.ndarray, y: np.ndarray, A0: np.ndarray, U: np.ndarray, theta0: np.ndarray,
+                on_iteration: IterationCallback | None = None) -> np.ndarray:
+        """(L, S, D) by GLS; the whitening is computed (iterated) on the first call and then kept fixed."""
+        if self.mask[:, :2].sum() < 3:
             raise IdentifiabilityError("legs step 3 needs both legs of a pair seen in at least 2 fit poses",
                                        parameter="L")
-        sol = least_squares(traced(res, on_iteration, "step 3"), [L0], method="lm", xtol=1e-15, ftol=1e-15,
-                            gtol=1e-15)
-        L = float(sol.x[0])
-        B = Aq + L * Uo
-        d12 = np.linalg.norm(B[ok12, 0] - B[ok12, 1], axis=1)
-        d34 = np.linalg.norm(B[ok34, 2] - B[ok34, 3], axis=1)
-        S = float(np.mean(np.concatenate([d12, d34]))) / 2.0
-        dy = np.concatenate([((B[:, 2] - B[:, 0]) @ y)[self.has_leg[:, 0] & self.has_leg[:, 2]],
-                             ((B[:, 3] - B[:, 1]) @ y)[self.has_leg[:, 1] & self.has_leg[:, 3]]])
-        if dy.size == 0:
+        if self.mask[:, 2:].sum() == 0:
             raise IdentifiabilityError("legs step 4 needs legs 1 and 3 (or 2 and 4) seen together", parameter="D")
-        D = float(np.mean(dy)) / 2.0
-        return L, S, D
+        Aq, Uo = self.oriented(x, A0, U)
+        theta = np.asarray(theta0, dtype=np.float64)
+        passes = 3 if self.W is None else 1
+        for _ in range(passes):
+            if passes > 1:
+                C = self.covariances(theta, Aq, Uo, y)
+                self.W = np.linalg.cholesky(np.linalg.inv(C)).transpose(0, 2, 1)
+            sol = least_squares(traced(lambda t: self.whitened(t, Aq, Uo, y).ravel(), on_iteration, "steps 3-4"),
+                                theta, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
+            if sol.status <= 0 or not np.all(np.isfinite(sol.x)):
+                raise ConvergenceError(f"legs steps 3-4 (eq. 11) did not converge: {sol.message}")
+            theta = sol.x
+        return theta
 
 
-def _leg_directions(data: PhaseArrays) -> tuple[np.ndarray, np.ndarray, np.ndarray, float | None]:
-    """Per pose and leg: mean rod direction (N,4,3), a rod point (N,4,3), a mask (N,4), rod-pair noise."""
+def _rod_field(obs: Observations, data: PhaseArrays, k: int, leg: int, rod: int, name: str) -> np.ndarray | None:
+    """An extra field of one rod (``h``, ``cov_u``, ``rms_px``, ``n_points``) as float64, or None."""
+    frame = obs.frames[int(data.index[k])]
+    rods = frame.legs.get(str(leg + 1)) if frame.legs else None
+    if not rods or rod >= len(rods) or rods[rod] is None:
+        return None
+    v = getattr(rods[rod], name, None)
+    if v is None:
+        return None
+    try:
+        a = np.asarray(v, dtype=np.float64)
+    except (TypeError, ValueError):
+        return None
+    return a if np.all(np.isfinite(a)) else None
+
+
+def _extraction_settings(obs: Observations) -> tuple[np.ndarray | None, float, float]:
+    """The extraction's camera matrix (or None), profile spacing and edge-bias allowance (px)."""
+    extra = obs.document.model_extra or {}
+    ex = extra.get("extraction") or {}
+    K = (ex.get("camera") or {}).get("K")
+    rs = ex.get("rod_settings") or {}
+    try:
+        Km = np.asarray(K, dtype=np.float64) if K is not None else None
+    except (TypeError, ValueError):
+        Km = None
+    if Km is not None and (Km.shape != (3, 3) or not np.all(np.isfinite(Km))):
+        Km = None
+    return Km, float(rs.get("step_px", 3.0)), float(rs.get("edge_bias_px", 0.05))
+
+
+def _plane_observations(obs: Observations, data: PhaseArrays, leg: int, rod: int) -> list[PlaneObservation] | None:
+    """The rod's frames as plane observations, None when a frame lacks ``h`` or ``point``."""
+    K, step, bias = _extraction_settings(obs)
+    out = []
+    for k in np.nonzero(data.has_rod[:, leg, rod])[0]:
+        h = _rod_field(obs, data, k, leg, rod, "h")
+        if h is None or h.shape != (2, 3) or not data.has_point[k, leg, rod]:
+            return None
+        h = h / np.linalg.norm(h, axis=1, keepdims=True)
+        point = data.rod_p[k, leg, rod]
+        r = float(h[0] @ point)
+        rms = _rod_field(obs, data, k, leg, rod, "rms_px")
+        npts = _rod_field(obs, data, k, leg, rod, "n_points")
+        if K is not None and rms is not None and npts is not None and rms.shape == (2,) and npts.shape == (2,):
+            cov = _rod_field(obs, data, k, leg, rod, "cov_u")
+            dh, var = limb_line_noise(K, h, point, rms, npts, cov if cov is not None and cov.shape == (3, 3)
+                                      else None, step, bias)
+            out.append(PlaneObservation(h, r, dh, var))
+        else:
+            out.append(PlaneObservation(h, r))
+    return out
+
+
+def _deleted_d2(obs: list[PlaneObservation], keep: np.ndarray) -> np.ndarray:
+    """Each kept frame's two residuals against the joint fitted without it, whitened (chi-square 2), (M,).
+
+    A frame whose rod was taken for another edge pulls a fit that includes it; against the fit of the
+    other frames it stands out. Frames not kept get NaN.
+    """
+    out = np.full(len(obs), np.nan)
+    idx = np.nonzero(keep)[0]
+    for m in idx:
+        others = [obs[k] for k in idx if k != m]
+        X, A, _ = joint_from_planes(others)
+        o = obs[m]
+        r = o.h @ X - o.r
+        C = np.diag(o.variances(X)) + o.h @ np.linalg.solve(A, o.h.T)
+        out[m] = float(r @ np.linalg.solve(C, r))
+    return out
+
+
+def _step1_planes(planes: list[list[list[PlaneObservation]]]
+                  ) -> tuple[np.ndarray, np.ndarray, float, list[dict[str, int]], float]:
+    """Step 1 with plane equations: joints (4, 2, 3), covariances (4, 2, 3, 3), chi-square per dof,
+    dropped frames (lock phase, rod, index among the rod's frames) and the residual RMS (m)."""
+    keep = [[np.ones(len(planes[i][j]), dtype=bool) for j in range(2)] for i in range(4)]
+    rejected: list[dict[str, int]] = []
+    for _ in range(4):
+        dd = [[_deleted_d2(planes[i][j], keep[i][j]) if keep[i][j].sum() > 3 else None for j in range(2)]
+              for i in range(4)]
+        pool = np.concatenate([v[np.isfinite(v)] for row in dd for v in row if v is not None] or [np.zeros(0)])
+        if pool.size < 8:
+            break
+        s_rob = float(np.median(pool)) / _CHI2_2_MEDIAN
+        changed = False
+        for i in range(4):
+            for j in range(2):
+                v = dd[i][j]
+                if v is None or s_rob <= 0 or not np.nanmax(v) > _CHI2_2_999 * s_rob:
+                    continue
+                worst = int(np.nanargmax(v))  # one frame at a time per rod
+                keep[i][j][worst] = False
+                rejected.append({"lock": i + 1, "rod": j, "frame_of_rod": worst})
+                changed = True
+        if not changed:
+            break
+    fits = [[joint_from_planes([o for o, kk in zip(planes[i][j], keep[i][j], strict=True) if kk])
+             for j in range(2)] for i in range(4)]
+    P = np.array([[fits[i][j][0] for j in range(2)] for i in range(4)])
+    A = np.array([[fits[i][j][1] for j in range(2)] for i in range(4)])
+    chi = sum(float(np.sum(fits[i][j][2])) for i in range(4) for j in range(2))
+    dof = sum(2 * int(keep[i][j].sum()) - 3 for i in range(4) for j in range(2))
+    s2 = chi / dof if dof > 0 else 1.0
+    sq, n_eq = 0.0, 0
+    for i in range(4):
+        for j in range(2):
+            used = [o for o, kk in zip(planes[i][j], keep[i][j], strict=True) if kk]
+            sq += float(sum(np.sum((o.h @ P[i, j] - o.r) ** 2) for o in used))
+            n_eq += 2 * len(used)
+    return P, s2 * np.linalg.inv(A), s2, rejected, float(np.sqrt(sq / max(n_eq, 1)))
+
+
+def _leg_directions(obs: Observations, data: PhaseArrays, direction_std_rad: float | None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool, list[dict[str, int]]]:
+    """Per pose and leg: direction (N,4,3), its covariance (N,4,3,3), a rod point (N,4,3), mask (N,4).
+
+    Also whether the covariances are the rods' measured ones (``cov_u``; else ``sigma^2 (I - u u^T)``
+    with sigma ``direction_std_rad`` or 1, relative) and the rod pairs rejected as disagreeing.
+    """
+    N = len(data)
     u = data.rod_u.copy()
-    has = data.has_rod
-    # align the second rod with the first
+    has = data.has_rod.copy()
     dot = np.einsum("nlk,nlk->nl", u[:, :, 0], u[:, :, 1])
     u[:, :, 1] *= np.where(np.isnan(dot), 1.0, np.sign(dot))[..., None]
-    both = has[:, :, 0] & has[:, :, 1]
-    U = np.where(has[:, :, 0, None], u[:, :, 0], 0.0) + np.where(has[:, :, 1, None], u[:, :, 1], 0.0)
+    C = np.full((N, 4, 2, 3, 3), np.nan)
+    measured = True
+    for k, leg, rod in zip(*np.nonzero(has), strict=True):
+        c = _rod_field(obs, data, k, leg, rod, "cov_u")
+        if c is None or c.shape != (3, 3):
+            measured = False
+            break
+        C[k, leg, rod] = c
+    if not measured:
+        s = 1.0 if direction_std_rad is None else direction_std_rad
+        uu = np.nan_to_num(u)
+        C = s ** 2 * (np.eye(3) - uu[..., :, None] * uu[..., None, :])
+    U = np.full((N, 4, 3), np.nan)
+    CU = np.full((N, 4, 3, 3), np.nan)
+    pair_d2 = np.full((N, 4), np.nan)
+    for k in range(N):
+        for leg in range(4):
+            if has[k, leg].all():
+                U[k, leg], CU[k, leg], pair_d2[k, leg] = _gls_pair(u[k, leg], C[k, leg])
+            elif has[k, leg].any():
+                j = int(np.argmax(has[k, leg]))
+                U[k, leg], CU[k, leg] = unit(u[k, leg, j]), C[k, leg, j]
     has_leg = has.any(axis=2)
-    U = np.where(has_leg[..., None], U, np.nan)
-    U = unit(U)
+    rejected: list[dict[str, int]] = []
+    ok = np.isfinite(pair_d2)
+    if ok.sum() >= 3:
+        s_rob = float(np.median(pair_d2[ok])) / _CHI2_2_MEDIAN
+        if s_rob > 0:
+            bad = ok & (pair_d2 > _CHI2_2_999 * s_rob)
+            rejected = [{"frame": int(data.index[k]), "leg": int(leg) + 1} for k, leg in zip(*np.nonzero(bad),
+                                                                                             strict=True)]
+            has_leg &= ~bad
     pts = np.where(data.has_point[:, :, 0, None], data.rod_p[:, :, 0], data.rod_p[:, :, 1])
-    sigma = None
-    if both.sum() >= 3:
-        d = (u[:, :, 0] - u[:, :, 1])[both]
-        sigma = float(np.sqrt(np.mean(np.sum(d ** 2, axis=1)) / 4.0))  # per tangent dof, per rod
-    return U, pts, has_leg, sigma
+    U = np.where(has_leg[..., None], U, np.nan)
+    return U, CU, pts, has_leg, measured, rejected
+
+
+def _gate_poses(pipe: _LegsPipeline, P: np.ndarray, U: np.ndarray, seven: np.ndarray) -> np.ndarray:
+    """Poses (bool, (N,)) whose whitened equations exceed their chi-square 99.9% quantile (robust scale)."""
+    x, A0, _ = pipe.frame(P)
+    Aq, Uo = pipe.oriented(x, A0, U)
+    theta = seven[[6, 4, 5]]
+    d2 = np.sum(pipe.whitened(theta, Aq, Uo, pipe.y_axis(x, A0)) ** 2, axis=1)
+    m = pipe.mask.sum(axis=1)
+    used = m > 0
+    if used.sum() < 4:
+        return np.zeros(len(m), dtype=bool)
+    s_rob = float(np.median(d2[used] / chi2.median(m[used])))
+    if s_rob <= 0:
+        return np.zeros(len(m), dtype=bool)
+    return used & (d2 > chi2.ppf(0.999, np.maximum(m, 1)) * s_rob)
+
+
+def _steps34_covariance(pipe: _LegsPipeline, P: np.ndarray, U: np.ndarray, seven: np.ndarray
+                        ) -> tuple[np.ndarray, float, int]:
+    """GLS covariance (3, 3) of (L, S, D) for unit-scaled weights, the chi-square and its dof."""
+    x, A0, _ = pipe.frame(P)
+    y = pipe.y_axis(x, A0)
+    Aq, Uo = pipe.oriented(x, A0, U)
+    theta = seven[[6, 4, 5]]
+    J = central_jacobian(lambda t: pipe.whitened(t, Aq, Uo, y).ravel(), theta, h=1e-7)
+    r = pipe.whitened(theta, Aq, Uo, y)
+    dof = int(pipe.mask.sum()) - 3
+    return np.linalg.inv(J.T @ J), float(np.sum(r ** 2)), dof
 
 
 def calibrate_legs(obs: Observations, *, fit_phases: tuple[str, ...] = ("poses",),
@@ -172,14 +568,16 @@ def calibrate_legs(obs: Observations, *, fit_phases: tuple[str, ...] = ("poses",
     ----------
     obs : Observations
         Needs rods with points (the rod radius known) in the ``lock-1`` .. ``lock-4`` phases and
-        rod directions in the fit phases.
+        rod directions in the fit phases; uses the rods' ``h``, ``cov_u``, ``rms_px`` and ``n_points``
+        (image extraction) when every rod has them (module docstring).
     fit_phases : tuple of str
         Phases used for steps 3 and 4 (the paper reuses the 20-pose set).
     direction_std_rad : float, optional
-        Rod direction noise per tangent axis; estimated from the two rods of each leg when not given.
+        Rod direction noise per tangent axis, rad, for rods without ``cov_u``: then taken as known
+        (not rescaled by the residuals). Not given: the fit's residual chi-square sets the scale.
     on_iteration : callable, optional
-        Receives ``{"stage", "iteration", "cost"}`` after each iteration of the fits of steps 2 and 3 (not of the
-        uncertainty propagation; :mod:`.iterations`).
+        Receives ``{"stage", "iteration", "cost"}`` after each iteration of the fits of steps 2 and 3-4 (not
+        of the uncertainty propagation; :mod:`.iterations`).
 
     Returns
     -------
@@ -187,11 +585,8 @@ def calibrate_legs(obs: Observations, *, fit_phases: tuple[str, ...] = ("poses",
         With ``parameters`` (seven) and ``parameters_std``.
     """
     nom = obs.nominal
-    P = np.zeros((4, 2, 3))
-    Acc = np.zeros((4, 2, 3, 3))
     q_lock = np.zeros(4)
-    ss, dof = 0.0, 0
-    n_lines = 0
+    lock_data = []
     for i in range(4):
         d = obs.arrays(f"lock-{i + 1}")
         if len(d) == 0:
@@ -210,62 +605,73 @@ def calibrate_legs(obs: Observations, *, fit_phases: tuple[str, ...] = ("poses",
                     f"phase lock-{i + 1}: rod {j} of leg {i + 1} has {int(ok.sum())} observation(s) with a point; "
                     "at least 2 (5 recommended) are needed to locate its joint (rod radius known)",
                     parameter=f"A{i + 1}")
-            Pij, Aij, res = intersect_lines(d.rod_p[ok, i, j], d.rod_u[ok, i, j])
-            P[i, j] = Pij
-            Acc[i, j] = Aij
-            ss += float(np.sum(res ** 2))
-            dof += 2 * int(ok.sum()) - 3
-            n_lines += int(ok.sum())
-    s2_line = ss / max(dof, 1) if dof > 0 else 0.0
+        lock_data.append(d)
 
+    # ---- step 1: the joints
+    planes = [[_plane_observations(obs, lock_data[i], i, j) for j in range(2)] for i in range(4)]
+    use_planes = all(p is not None for row in planes for p in row)
+    rejected_lock: list[dict[str, int]] = []
+    if use_planes:
+        P, covPij, s2_1, rejected_lock, res_rms = _step1_planes(planes)  # type: ignore[arg-type]
+        n_lines = sum(len(planes[i][j]) for i in range(4) for j in range(2))  # type: ignore[arg-type]
+    else:
+        P = np.zeros((4, 2, 3))
+        covPij = np.zeros((4, 2, 3, 3))
+        Acc = np.zeros((4, 2, 3, 3))
+        ss, dof1, n_lines = 0.0, 0, 0
+        for i in range(4):
+            d = lock_data[i]
+            for j in range(2):
+                ok = d.has_rod[:, i, j] & d.has_point[:, i, j]
+                P[i, j], Acc[i, j], res = intersect_lines(d.rod_p[ok, i, j], d.rod_u[ok, i, j])
+                ss += float(np.sum(res ** 2))
+                dof1 += 2 * int(ok.sum()) - 3
+                n_lines += int(ok.sum())
+        s2_1 = ss / dof1 if dof1 > 0 else 0.0
+        covPij = s2_1 * np.linalg.inv(Acc)
+        res_rms = float(np.sqrt(s2_1))
+
+    # ---- steps 2-4
     data = obs.arrays(*fit_phases)
-    U, pts, has_leg, sigma_pair = _leg_directions(data)
-    pipe = _LegsPipeline(q_lock, data.q, pts, has_leg, nom)
+    U, CU, pts, has_leg, measured, rejected_pairs = _leg_directions(obs, data, direction_std_rad)
+    pipe = _LegsPipeline(q_lock, data.q, pts, has_leg, CU, nom)
     U_filled = np.where(has_leg[..., None], U, 0.0)
-    x2 = None
     seven = pipe.run(P, U_filled, on_iteration=on_iteration)
-    x2 = [*seven[1:4].tolist(), seven[0]]
-    x2 = np.array(x2)
+    rejected_poses: list[int] = []
+    for _ in range(5):
+        bad = _gate_poses(pipe, P, U_filled, seven)
+        if not bad.any() or (pipe.mask.sum() - pipe.mask[bad].sum()) < 6:
+            break
+        rejected_poses += [int(data.index[k]) for k in np.nonzero(bad)[0]]
+        pipe.set_legs(pipe.has_leg & ~bad[:, None])
+        seven = pipe.run(P, U_filled, on_iteration=on_iteration)
+    x2 = np.array([*seven[1:4].tolist(), seven[0]])
 
-    # ---- uncertainty: linear propagation with numerical derivatives
-    def f(Pv: np.ndarray, Uv: np.ndarray) -> np.ndarray:
-        return pipe.run(Pv, Uv, x2)
+    # ---- uncertainty: (i) the joints, propagated through steps 2-4 (numerical derivatives, weights fixed)
+    def f(Pv: np.ndarray) -> np.ndarray:
+        return pipe.run(Pv, U_filled, x2)
 
     h = 1e-7
     GP = np.zeros((7, 24))
     for a in range(24):
         dP = np.zeros(24)
         dP[a] = h
-        GP[:, a] = (f(P + dP.reshape(4, 2, 3), U_filled) - f(P - dP.reshape(4, 2, 3), U_filled)) / (2 * h)
+        GP[:, a] = (f(P + dP.reshape(4, 2, 3)) - f(P - dP.reshape(4, 2, 3))) / (2 * h)
     covP = np.zeros((24, 24))
     for i in range(4):
         for j in range(2):
             k = (i * 2 + j) * 3
-            covP[k:k + 3, k:k + 3] = s2_line * np.linalg.inv(Acc[i, j])
-    cov = GP @ covP @ GP.T
-    sigma_u = direction_std_rad if direction_std_rad is not None else sigma_pair
-    cov_u = np.zeros((7, 7))
-    if sigma_u:
-        x, A0, _ = pipe.frame(P)
-        y = unit((A0[2] - A0[0]) - ((A0[2] - A0[0]) @ x) * x)
-        n_rods = data.has_rod.sum(axis=2)
-        for kk, ll in zip(*np.nonzero(has_leg), strict=True):
-            u = U[kk, ll]
-            T = np.linalg.svd(np.eye(3) - np.outer(u, u))[0][:, :2]  # tangent basis
-            for col in range(2):
-                Up = U_filled.copy()
-                Um = U_filled.copy()
-                Up[kk, ll] = unit(u + h * T[:, col])
-                Um[kk, ll] = unit(u - h * T[:, col])
-                g = np.zeros(7)
-                Lp = pipe.steps34(x, y, A0, Up, seven[6])
-                Lm = pipe.steps34(x, y, A0, Um, seven[6])
-                g[[6, 4, 5]] = (np.array(Lp) - np.array(Lm)) / (2 * h)
-                cov_u += np.outer(g, g) * sigma_u ** 2 / n_rods[kk, ll]
-    cov += cov_u
+            covP[k:k + 3, k:k + 3] = covPij[i, j]
+    cov_joints = GP @ covP @ GP.T
+    # (ii) the leg directions of the fit poses: GLS covariance of (L, S, D), scaled by the chi-square
+    c34, chi34, dof34 = _steps34_covariance(pipe, P, U_filled, seven)
+    s2_34 = 1.0 if (not measured and direction_std_rad is not None) else (chi34 / dof34 if dof34 > 0 else 1.0)
+    cov_dirs = np.zeros((7, 7))
+    idx = np.array([6, 4, 5])
+    cov_dirs[np.ix_(idx, idx)] = s2_34 * c34
+    cov = cov_joints + cov_dirs
     params = I4Parameters.from_mapping({**dict(zip(PARAMETER_NAMES, seven, strict=True)),
                                          "T_per_rad": nom.T_per_rad})
-    # combinations and their covariance (linear maps of the seven)
     M = np.array([
         [0, 0, 0, 0, 0, 0, 1],  # L
         [1, 0, 0, 0, 0, -1, 0],  # H - D
@@ -275,16 +681,24 @@ def calibrate_legs(obs: Observations, *, fit_phases: tuple[str, ...] = ("poses",
     cov4 = M @ cov @ M.T
     std7 = {k: float(np.sqrt(max(cov[i, i], 0.0))) for i, k in enumerate(PARAMETER_NAMES)}
     combos = params.combinations()
+    scale = float(np.sqrt(s2_34)) * (1.0 if measured else (direction_std_rad or 1.0))
     return MethodResult(
         method="legs", combinations=combos_dict(np.array([combos[k] for k in COMBINATION_NAMES])),
         combinations_std=std_dict(cov4), covariance=cov4,
-        residual_rms=float(np.sqrt(s2_line)), residual_unit="m (rod line to joint distance)",
-        n_observations=n_lines + int(has_leg.sum()), n_poses=len(data) + 20, iterations=1, converged=True,
+        residual_rms=res_rms, residual_unit="m (rod axis constraint to joint distance)",
+        n_observations=n_lines + int(pipe.has_leg.sum()), n_poses=len(data) + len(np.concatenate(
+            [d.index for d in lock_data])), iterations=1, converged=True,
         parameters={k: float(v) for k, v in zip(PARAMETER_NAMES, seven, strict=True)}, parameters_std=std7,
-        std_breakdown={"joint_centres": {k: float(np.sqrt(max((GP @ covP @ GP.T)[i, i], 0)))
+        std_breakdown={"joint_centres": {k: float(np.sqrt(max(cov_joints[i, i], 0)))
                                          for i, k in enumerate(PARAMETER_NAMES)},
-                       "leg_directions": {k: float(np.sqrt(max(cov_u[i, i], 0)))
+                       "leg_directions": {k: float(np.sqrt(max(cov_dirs[i, i], 0)))
                                           for i, k in enumerate(PARAMETER_NAMES)}},
-        diagnostics={"rod_direction_noise_rad": sigma_u, "line_residual_rms_mm": float(np.sqrt(s2_line)) * 1e3,
+        diagnostics={"step1": "weighted plane equations" if use_planes else "line intersection (unweighted)",
+                     "step1_chi2_per_dof": float(s2_1), "step1_frames_rejected": rejected_lock,
+                     "steps34_weighting": "measured rod covariances (GLS)" if measured else "isotropic",
+                     "steps34_chi2_per_dof": float(s2_34),
+                     "rod_direction_noise_rad": scale if not measured else None,
+                     "rod_pairs_rejected": rejected_pairs, "poses_rejected": rejected_poses,
+                     "line_residual_rms_mm": res_rms * 1e3,
                      "joint_centres_camera": P.mean(axis=1).tolist(), "locked_q": q_lock.tolist()},
         residuals=None)
