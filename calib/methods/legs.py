@@ -39,6 +39,7 @@ The two parts come from different frames (``lock-i`` and fit phases) and are ind
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -423,48 +424,59 @@ def _plane_observations(obs: Observations, data: PhaseArrays, leg: int, rod: int
 
 
 def _deleted_d2(obs: list[PlaneObservation], keep: np.ndarray) -> np.ndarray:
-    """Each kept frame's two residuals against the joint fitted without it, whitened (chi-square 2), (M,).
+    """For each kept frame, the drop of the rod's chi-square when the joint is fitted without it, (M,).
 
-    A frame whose rod was taken for another edge pulls a fit that includes it; against the fit of the
-    other frames it stands out. Frames not kept get NaN.
+    About chi-square(2) for a good frame; a frame whose rod was taken for another edge pulls the fit
+    that includes it, and removing it lowers the chi-square most. Frames not kept get NaN.
     """
     out = np.full(len(obs), np.nan)
     idx = np.nonzero(keep)[0]
+    total = float(np.sum(joint_from_planes([obs[k] for k in idx])[2]))
     for m in idx:
-        others = [obs[k] for k in idx if k != m]
-        X, A, _ = joint_from_planes(others)
-        o = obs[m]
-        r = o.h @ X - o.r
-        C = np.diag(o.variances(X)) + o.h @ np.linalg.solve(A, o.h.T)
-        out[m] = float(r @ np.linalg.solve(C, r))
+        out[m] = total - float(np.sum(joint_from_planes([obs[k] for k in idx if k != m])[2]))
     return out
+
+
+def _trim_rod(obs: list[PlaneObservation], s_rob: float, max_subsets: int = 200) -> np.ndarray:
+    """Frames kept (bool, (M,)) for one rod: the fewest dropped (at most M - 3) whose best remaining subset's
+    chi-square is within its 99.9% quantile (times ``s_rob``); subsets searched exhaustively while small,
+    else the frame whose removal lowers the chi-square most is dropped one at a time."""
+    n = len(obs)
+    keep = np.ones(n, dtype=bool)
+    for k in range(0, n - 2):
+        if k > 0:
+            subsets = list(itertools.combinations(range(n), n - k))
+            if len(subsets) > max_subsets:
+                v = _deleted_d2(obs, keep)
+                keep[int(np.nanargmax(v))] = False
+                cand = keep
+            else:
+                chis = [float(np.sum(joint_from_planes([obs[i] for i in sub])[2])) for sub in subsets]
+                cand = np.zeros(n, dtype=bool)
+                cand[list(subsets[int(np.argmin(chis))])] = True
+        else:
+            cand = keep
+        chi = float(np.sum(joint_from_planes([obs[i] for i in np.nonzero(cand)[0]])[2]))
+        dof = 2 * int(cand.sum()) - 3
+        if dof <= 0 or chi <= chi2.ppf(0.999, dof) * s_rob or cand.sum() <= 3:
+            return cand
+        keep = cand.copy()
+    return keep
 
 
 def _step1_planes(planes: list[list[list[PlaneObservation]]]
                   ) -> tuple[np.ndarray, np.ndarray, float, list[dict[str, int]], float]:
     """Step 1 with plane equations: joints (4, 2, 3), covariances (4, 2, 3, 3), chi-square per dof,
     dropped frames (lock phase, rod, index among the rod's frames) and the residual RMS (m)."""
-    keep = [[np.ones(len(planes[i][j]), dtype=bool) for j in range(2)] for i in range(4)]
-    rejected: list[dict[str, int]] = []
-    for _ in range(4):
-        dd = [[_deleted_d2(planes[i][j], keep[i][j]) if keep[i][j].sum() > 3 else None for j in range(2)]
-              for i in range(4)]
-        pool = np.concatenate([v[np.isfinite(v)] for row in dd for v in row if v is not None] or [np.zeros(0)])
-        if pool.size < 8:
-            break
-        s_rob = float(np.median(pool)) / _CHI2_2_MEDIAN
-        changed = False
-        for i in range(4):
-            for j in range(2):
-                v = dd[i][j]
-                if v is None or s_rob <= 0 or not np.nanmax(v) > _CHI2_2_999 * s_rob:
-                    continue
-                worst = int(np.nanargmax(v))  # one frame at a time per rod
-                keep[i][j][worst] = False
-                rejected.append({"lock": i + 1, "rod": j, "frame_of_rod": worst})
-                changed = True
-        if not changed:
-            break
+    absolute = all(o.var is not None for row in planes for rod in row for o in rod)
+    # robust noise scale from every frame's chi-square drop; absolute variances: at least 1; relative
+    # ones: residuals below a nanometre are never outliers
+    pool = np.concatenate([_deleted_d2(planes[i][j], np.ones(len(planes[i][j]), dtype=bool))
+                           for i in range(4) for j in range(2) if len(planes[i][j]) > 3] or [np.zeros(0)])
+    s_rob = max(float(np.median(pool)) / _CHI2_2_MEDIAN if pool.size else 0.0, 1.0 if absolute else 1e-18)
+    keep = [[_trim_rod(planes[i][j], s_rob) for j in range(2)] for i in range(4)]
+    rejected = [{"lock": i + 1, "rod": j, "frame_of_rod": int(m)} for i in range(4) for j in range(2)
+                for m in np.nonzero(~keep[i][j])[0]]
     fits = [[joint_from_planes([o for o, kk in zip(planes[i][j], keep[i][j], strict=True) if kk])
              for j in range(2)] for i in range(4)]
     P = np.array([[fits[i][j][0] for j in range(2)] for i in range(4)])
@@ -472,6 +484,10 @@ def _step1_planes(planes: list[list[list[PlaneObservation]]]
     chi = sum(float(np.sum(fits[i][j][2])) for i in range(4) for j in range(2))
     dof = sum(2 * int(keep[i][j].sum()) - 3 for i in range(4) for j in range(2))
     s2 = chi / dof if dof > 0 else 1.0
+    if all(o.var is not None for row in planes for rod in row for o in rod):
+        # absolute variances (from the extraction's edge scatter and its edge-bias allowance): a bias
+        # common to a rod's frames does not show in the residuals, so they may scale them up, never down
+        s2 = max(s2, 1.0)
     sq, n_eq = 0.0, 0
     for i in range(4):
         for j in range(2):
@@ -666,6 +682,8 @@ def calibrate_legs(obs: Observations, *, fit_phases: tuple[str, ...] = ("poses",
     # (ii) the leg directions of the fit poses: GLS covariance of (L, S, D), scaled by the chi-square
     c34, chi34, dof34 = _steps34_covariance(pipe, P, U_filled, seven)
     s2_34 = 1.0 if (not measured and direction_std_rad is not None) else (chi34 / dof34 if dof34 > 0 else 1.0)
+    if measured:  # cov_u is absolute (with the extraction's edge-bias allowance): scaled up, never down
+        s2_34 = max(s2_34, 1.0)
     cov_dirs = np.zeros((7, 7))
     idx = np.array([6, 4, 5])
     cov_dirs[np.ix_(idx, idx)] = s2_34 * c34
