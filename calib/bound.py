@@ -108,6 +108,24 @@ def combined_fisher(nominal: I4Parameters, q_fit: np.ndarray, q_rot: np.ndarray,
     return J.T @ J
 
 
+def _spd_inverse(F: np.ndarray) -> np.ndarray:
+    """Inverse of a Fisher information matrix whose unknowns have very different scales (rad, m, rotations).
+
+    Jacobi-scaled (unit diagonal) before an eigen-decomposition, so that the scale disparity does not
+    turn into negative variances; directions without information are left out when they do not involve
+    the first four unknowns (the combinations), else ValueError.
+    """
+    d = np.sqrt(np.maximum(np.diag(F), 1e-300))
+    Fs = F / np.outer(d, d)
+    w, V = np.linalg.eigh(0.5 * (Fs + Fs.T))
+    keep = w > 1e-12 * w[-1]
+    # directions the measurements leave free (e.g. a nuisance angle no phase excites) are harmless
+    # when they do not involve the four combinations
+    if np.any(np.abs(V[:4, ~keep]) > 1e-6):
+        raise ValueError("the measurements do not determine the four combinations (singular information matrix)")
+    return (V[:, keep] / w[keep]) @ V[:, keep].T / np.outer(d, d)
+
+
 def crlb_combined(nominal: I4Parameters, plan: Plan, noise: MeasurementNoise | None = None,
                   camera_from_base_R: np.ndarray | None = None, rod_cov: np.ndarray | None = None) -> dict:
     """Predicted standard deviations (the bound) of the four combinations for a plan, before any motion.
@@ -128,7 +146,7 @@ def crlb_combined(nominal: I4Parameters, plan: Plan, noise: MeasurementNoise | N
     if len(q_fit) < 2 or len(q_rot) < 2 or len(q_tra) < 2:
         raise ValueError("the bound needs a plan with rotation, translation and pose-set steps")
     F = combined_fisher(nominal, q_fit, q_rot, q_tra, noise, camera_from_base_R, rod_cov)
-    cov = np.linalg.inv(F)[:4, :4]
+    cov = _spd_inverse(F)[:4, :4]
     return {"std": {k: float(np.sqrt(cov[i, i])) for i, k in enumerate(COMBINATION_NAMES)},
             "covariance": cov.tolist(),
             "noise": {"rod_direction_rad": noise.rod_direction_rad, "board_rotation_rad": noise.board_rotation_rad,

@@ -277,14 +277,93 @@ def calibrate_intrinsics(views: dict[int, tuple[ArrayLike, ArrayLike, ArrayLike]
                            f"(median {med:.2f} px)")
         del keep[worst]
     std_int = np.asarray(std_int).reshape(-1)
+    new_obj = np.asarray(new_obj, dtype=np.float64).reshape(-1, 3) if new_obj is not None and np.size(new_obj) else obj
+    cov = intrinsics_covariance(K, np.asarray(dist).reshape(-1), new_obj, [keep[k] for k in keys], rvecs, tvecs,
+                                fixed_point=fixed)
     names = ["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4",
              "tau_x", "tau_y"]
     std = {n: float(s) for n, s in zip(names, std_int, strict=False)}
     cam = CameraModel(K, np.asarray(dist).reshape(-1), int(w), int(h),
                       {"calibration": {"rms_px": float(rms), "n_views": len(keys), "std": std,
-                                       "method": "cv2.calibrateCameraRO"}})
-    new_obj = np.asarray(new_obj, dtype=np.float64).reshape(-1, 3) if new_obj is not None and np.size(new_obj) else obj
+                                       "covariance_params": list(INTRINSICS_NAMES), "covariance": cov.tolist(),
+                                       "method": "cv2.calibrateCameraRO",
+                                       "board_points": {"ids": sort_ids.tolist(), "points_m": new_obj.tolist()}}})
     return IntrinsicsResult(cam, float(rms), {k: float(e) for k, e in zip(keys, per_view, strict=True)}, std,
                             rejected, new_obj, sort_ids,
                             {k: (np.asarray(r).reshape(3), np.asarray(t).reshape(3))
                              for k, r, t in zip(keys, rvecs, tvecs, strict=True)})
+
+
+#: Intrinsic parameters whose joint covariance :func:`intrinsics_covariance` gives, in this order.
+INTRINSICS_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2")
+
+
+def intrinsics_covariance(K: ArrayLike, dist: ArrayLike, board_points: ArrayLike, image_points: list[ArrayLike],
+                          rvecs: list[ArrayLike], tvecs: list[ArrayLike], fixed_point: int = -1) -> Array:
+    """Joint covariance (8, 8) of (fx, fy, cx, cy [px], k1, k2, p1, p2) after a calibration.
+
+    Gauss-Newton covariance ``s^2 (J^T J)^-1`` of the full bundle (intrinsics, every view's pose and,
+    with the releasing-object method, the board's points), marginalised to the intrinsics (Schur
+    complement), ``s^2`` the residual variance per coordinate. The board points' gauge is OpenCV's
+    (``calibrateCameraRO``): the first point, the ``fixed_point``-th one and the last one's z are fixed.
+    k3 and higher coefficients are taken as fixed (``CALIB_FIX_K3``). OpenCV returns only the
+    standard deviations; the correlations (fx with fy, the principal point with the tangential
+    coefficients, ...) matter when the uncertainty is propagated to a calibration.
+
+    Parameters
+    ----------
+    K : array_like, shape (3, 3)
+    dist : array_like, shape (n,)
+    board_points : array_like, shape (M, 3)
+        Board points (metres) as the calibration used them (refined when ``fixed_point >= 0``).
+    image_points : list of array_like, shape (M, 2)
+        Per view, the detected pixels in the order of ``board_points``.
+    rvecs, tvecs : list of array_like, shape (3,)
+        Per view, ``camera_from_board``.
+    fixed_point : int
+        ``iFixedPoint`` of the releasing-object method, or -1 when the board points were not refined.
+
+    Returns
+    -------
+    ndarray, shape (8, 8)
+        Pixels for fx, fy, cx, cy; dimensionless for the distortion coefficients.
+    """
+    K = np.asarray(K, dtype=np.float64)
+    d = np.asarray(dist, dtype=np.float64).reshape(-1)
+    obj = np.asarray(board_points, dtype=np.float64).reshape(-1, 3)
+    m = obj.shape[0]
+    nv = len(image_points)
+    ro = 0 <= fixed_point < m
+    free_obj = np.ones((m, 3), dtype=bool) if ro else np.zeros((m, 3), dtype=bool)
+    if ro:
+        free_obj[0] = free_obj[fixed_point] = False
+        free_obj[m - 1, 2] = False
+    obj_cols = np.flatnonzero(free_obj.ravel())
+    n_obj = obj_cols.size
+    n = 8 + 6 * nv + n_obj
+    JtJ = np.zeros((n, n))
+    sse = 0.0
+    for v in range(nv):
+        proj, jac = cv2.projectPoints(obj, np.asarray(rvecs[v], dtype=np.float64).reshape(3),
+                                      np.asarray(tvecs[v], dtype=np.float64).reshape(3), K, d)
+        res = proj.reshape(-1, 2) - np.asarray(image_points[v], dtype=np.float64).reshape(-1, 2)
+        sse += float(np.sum(res ** 2))
+        # projectPoints' Jacobian columns: rvec (3), tvec (3), f (2), c (2), dist (n)
+        J = np.zeros((2 * m, n))
+        J[:, 0:4] = jac[:, 6:10]
+        J[:, 4:8] = jac[:, 10:14]
+        J[:, 8 + 6 * v:14 + 6 * v] = jac[:, 0:6]
+        if n_obj:
+            R, _ = cv2.Rodrigues(np.asarray(rvecs[v], dtype=np.float64).reshape(3))
+            dp_dX = jac[:, 3:6].reshape(m, 2, 3) @ R  # d pixel / d board point: d/dt rotated
+            blocks = np.zeros((2 * m, 3 * m))
+            for i in range(m):
+                blocks[2 * i:2 * i + 2, 3 * i:3 * i + 3] = dp_dX[i]
+            J[:, 8 + 6 * nv:] = blocks[:, obj_cols]
+        JtJ += J.T @ J
+    dof = max(2 * m * nv - n, 1)
+    s2 = sse / dof
+    A, B, C = JtJ[:8, :8], JtJ[:8, 8:], JtJ[8:, 8:]
+    schur = A - B @ np.linalg.solve(C, B.T)
+    cov = s2 * np.linalg.inv(schur)
+    return 0.5 * (cov + cov.T)

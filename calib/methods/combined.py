@@ -21,13 +21,14 @@ from typing import Literal
 import numpy as np
 from scipy.optimize import least_squares
 
-from ..baseframe import BaseFrameResult, base_frame_from_observations
+from ..baseframe import BaseFrameResult, base_frame_from_observations, estimate_base_frame
 from ..errors import ConvergenceError, IdentifiabilityError
 from ..kinematics import pose_from_joints_reduced
 from ..numdiff import central_jacobian
 from ..observations import Observations, PhaseArrays
 from ..parameters import COMBINATION_NAMES
 from ..transforms import rotvec_to_matrix
+from . import intrinsics as intr
 from .iterations import IterationCallback, traced
 from .result import MethodResult, check_excitation, combos_dict, std_dict
 
@@ -273,7 +274,7 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
     # average out. First-order propagation when the rods carry their planes and the intrinsics their std
     gain = B if (joint and s2 > 0) else np.hstack(
         [np.linalg.solve(Jr[:, :4].T @ Wfull @ Jr[:, :4], Jr[:, :4].T @ Wfull).T, np.zeros((2 * m, 3))]).T
-    cov_intr = _intrinsics_covariance(obs, data, prob, rotvec_to_matrix(w) @ R0, gain[:4])
+    cov_intr = _intrinsics_covariance(obs, data, prob, bf, w, gain[:4])
     if cov_intr is not None:
         cov = cov + cov_intr
     return MethodResult(
@@ -292,49 +293,47 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
         residuals=r)
 
 
-def _intrinsics_covariance(obs: Observations, data: PhaseArrays, prob: _Problem, R_cb: np.ndarray,
-                           gain: np.ndarray) -> np.ndarray | None:
+def _intrinsics_covariance(obs: Observations, data: PhaseArrays, prob: _Problem, bf: BaseFrameResult,
+                           w: np.ndarray, gain: np.ndarray) -> np.ndarray | None:
     """Covariance (4, 4) of the combinations due to the camera intrinsics' uncertainty, or None.
 
-    Needs every used rod's interpretation planes (extra field ``h``, two unit normals) and the
-    intrinsics' standard deviations (``extraction.camera.calibration.std``). A change of K to K'
-    maps each plane normal to ``K'^T K^-T h`` (exact for the pinhole part); a principal-point shift
-    also turns the board poses, hence the base frame, by about ``(dcy/fy, -dcx/fx, 0)`` rad, which is
-    applied to the base frame's rotation. fx and fy are taken as fully correlated (one focal scale,
-    the conservative choice when only their standard deviations are known), cx and cy independent.
-    ``gain`` (4, 2M) maps a change of the raw residuals to a change of the estimate.
+    The intrinsics (fx, fy, cx, cy, k1, k2, p1, p2; :mod:`.intrinsics`) are moved by one standard
+    deviation along each principal direction of their covariance; each rod's planes are recomputed
+    from its limb samples (``limbs_px``) and the base frame from the board poses moved by their
+    ``d_intrinsics``; the change of the measured quantities (central difference) goes through
+    ``gain`` (4, 2M), which maps a change of the raw residuals to a change of the estimate. None when
+    the camera's uncertainty or a rod's limb samples are missing.
     """
-    extra = obs.document.model_extra or {}
-    cam = (extra.get("extraction") or {}).get("camera") or {}
-    std = (cam.get("calibration") or {}).get("std") or {}
-    if not cam.get("K") or not all(k in std for k in ("fx", "fy", "cx", "cy")):
+    prior = intr.intrinsics_prior(obs)
+    limbs = _rod_field(obs, data, prob, "limbs_px")
+    H = _rod_field(obs, data, prob, "h")
+    if prior is None or limbs is None or H is None:
         return None
-    H = _rod_field(obs, data, prob, "h")  # (M, 2, 3)
-    if H is None:
-        return None
-    K = np.asarray(cam["K"], dtype=np.float64)
-    Kinv_T = np.linalg.inv(K).T
+    camera, cov = prior
+    rot, tra = obs.arrays("rotation"), obs.arrays("translation")
+    s_rot, s_tra = intr.board_sensitivities(obs, rot), intr.board_sensitivities(obs, tra)
     u0 = prob.u_cam
+    Rw = rotvec_to_matrix(w)
 
-    def measured(dfx: float, dfy: float, dcx: float, dcy: float) -> np.ndarray:
-        K2 = K + np.array([[dfx, 0, dcx], [0, dfy, dcy], [0, 0, 0]])
-        M = K2.T @ Kinv_T
-        h = np.einsum("ij,mkj->mki", M, H)
+    def measured(step: np.ndarray) -> np.ndarray:
+        h = intr.limb_planes_for(intr.perturbed_camera(camera, step), limbs, H)
         u = np.cross(h[:, 0], h[:, 1])
         u /= np.linalg.norm(u, axis=1, keepdims=True)
         u *= np.sign(np.sum(u * u0, axis=1))[:, None]
-        R = rotvec_to_matrix(np.array([dcy / K[1, 1], -dcx / K[0, 0], 0.0])) @ R_cb
-        uB = u @ R
+        R0 = bf.camera_from_base_R
+        if s_rot is not None and s_tra is not None:
+            R0 = estimate_base_frame(intr.perturbed_boards(rot, s_rot, step),
+                                     intr.perturbed_boards(tra, s_tra, step)).camera_from_base_R
+        uB = u @ (Rw @ R0)
         return (uB[:, 1:] / uB[:, :1]).ravel()
 
-    sf = 0.5 * (float(std["fx"]) + float(std["fy"]))
     cols = []
-    for d, sd in (((1.0, 1.0, 0.0, 0.0), sf), ((0.0, 0.0, 1.0, 0.0), float(std["cx"])),
-                  ((0.0, 0.0, 0.0, 1.0), float(std["cy"]))):
-        e = np.asarray(d)
-        dm = (measured(*e) - measured(*(-e))) / 2.0  # per pixel
-        cols.append(gain @ dm * sd)  # raw = model - measured: the estimate moves by -gain @ (-dm)
-    S = np.column_stack(cols)  # (4, 3): effect of one std of each
+    for step in intr.principal_steps(cov):
+        dm = (measured(step) - measured(-step)) / 2.0  # per standard deviation
+        cols.append(gain @ dm)  # raw = model - measured: the estimate moves by -gain @ (-dm)
+    if not cols:
+        return None
+    S = np.column_stack(cols)  # (4, n): effect of one std along each principal direction
     return S @ S.T
 
 

@@ -65,6 +65,10 @@ class BoardPose:
     cov : ndarray, shape (6, 6)
         Covariance of (rotation vector [rad], t [m]), from the PnP Jacobian scaled by the residual
         variance (floored at 0.05 px so that a perfect fit does not claim infinite precision).
+    d_intrinsics : ndarray, shape (6, 8), optional
+        First-order change of the pose per unit change of the intrinsics (fx, fy, cx, cy [px], k1,
+        k2, p1, p2): rows are a small rotation applied on the left, ``R' = exp([w]) R`` (rad), then
+        the change of t (m). It carries the camera calibration's uncertainty to the methods.
     """
 
     R: Array
@@ -72,10 +76,14 @@ class BoardPose:
     rms_px: float
     n_corners: int
     cov: Array
+    d_intrinsics: Array | None = None
 
     def to_dict(self) -> dict:
-        return {"R": self.R.tolist(), "t": self.t.tolist(), "rms_px": self.rms_px, "n_corners": self.n_corners,
-                "cov": self.cov.tolist()}
+        d = {"R": self.R.tolist(), "t": self.t.tolist(), "rms_px": self.rms_px, "n_corners": self.n_corners,
+             "cov": self.cov.tolist()}
+        if self.d_intrinsics is not None:
+            d["d_intrinsics"] = self.d_intrinsics.tolist()
+        return d
 
 
 class BoardDetector:
@@ -144,7 +152,8 @@ class BoardDetector:
         R, _ = cv2.Rodrigues(rvec)
         if float(tvec.reshape(-1)[2]) <= 0:
             return "board pose failed: board behind the camera"
-        return BoardPose(R, tvec.reshape(3).astype(np.float64), rms, int(n), cov)
+        return BoardPose(R, tvec.reshape(3).astype(np.float64), rms, int(n), cov,
+                         _pose_sensitivity(jac, rvec.reshape(3), R))
 
     def measure(self, image: np.ndarray, camera: CameraModel) -> BoardPose | str:
         """Detect then pose (or the reason)."""
@@ -156,6 +165,28 @@ class BoardDetector:
         m = margin_m
         c = np.array([[-m, -m, 0.0], [w + m, -m, 0.0], [w + m, h + m, 0.0], [-m, h + m, 0.0]])
         return c @ np.asarray(R).T + np.asarray(t)
+
+
+def _pose_sensitivity(jac: Array, rvec: Array, R: Array) -> Array | None:
+    """d(left rotation, t)/d(fx, fy, cx, cy, k1, k2, p1, p2) of a PnP pose, (6, 8), from projectPoints' Jacobian.
+
+    The pose minimises the reprojection error: a change dI of the intrinsics moves it by
+    ``-(Jp^T Jp)^-1 Jp^T J_I dI`` (Jp: columns of the pose, J_I: of the intrinsics).
+    """
+    Jp = jac[:, :6]
+    JI = jac[:, 6:14]
+    try:
+        dpose = -np.linalg.solve(Jp.T @ Jp, Jp.T @ JI)  # (6, 8): d rvec, d t
+    except np.linalg.LinAlgError:
+        return None
+    eps = 1e-6
+    out = np.empty((6, 8))
+    out[3:] = dpose[3:]
+    for j in range(8):
+        R2, _ = cv2.Rodrigues(rvec + eps * dpose[:3, j])
+        A = R2 @ R.T  # ~ I + [w]x (cv2.Rodrigues returns 0 for so small an angle: read the skew part)
+        out[:3, j] = 0.5 * np.array([A[2, 1] - A[1, 2], A[0, 2] - A[2, 0], A[1, 0] - A[0, 1]]) / eps
+    return out
 
 
 def to_gray8(image: np.ndarray) -> np.ndarray:

@@ -302,7 +302,9 @@ def extract_dataset(dataset: str | Path | Dataset, *, camera: CameraModel | None
     ----------
     dataset : path or Dataset
     camera : CameraModel, optional
-        Known intrinsics; default: the dataset's, else calibrated from its ``camera`` phase.
+        Known intrinsics; default: the dataset's, else calibrated from its ``camera`` phase. A camera
+        calibrated by :func:`calib.camera.calibrate_intrinsics` carries the board corners it refined
+        (``calibration.board_points``): they are used for the board poses when the board has as many corners.
     workers : int, optional
         Processes (default: ``os.cpu_count()``); 1 runs in this process.
     progress : callable(done, total), optional
@@ -355,6 +357,10 @@ def extract_dataset(dataset: str | Path | Dataset, *, camera: CameraModel | None
         camera = intr.camera
         refined = (intr.board_ids.tolist(), intr.board_points.tolist())
     assert camera is not None
+    if refined is None:  # a camera calibrated before carries the board geometry it refined (calibrateCameraRO)
+        bp = (camera.extra.get("calibration") or {}).get("board_points") or {}
+        if bp.get("ids") is not None and len(bp["ids"]) == BoardDetector(doc.board).ids_all.size:
+            refined = (list(bp["ids"]), list(bp["points_m"]))
     init = (root, camera.to_dict(), refined, opts.min_corners, rs_dict)
     board_cb = None if on_frame is None else (lambda r: on_frame(frame_info(r[0], frames[r[0]].phase, r[1])))
     boards = dict(_run(_task_board, obs_idx, workers, init, progress, done, total, board_cb))

@@ -172,6 +172,10 @@ class RodMeasurement:
     reason: str | None = None
     lines_px: list[Array] = field(default_factory=list)  # per limb (a, b, c) in ideal pixels, a^2+b^2=1
     cov_u: Array | None = None  #: (3, 3) covariance of u (camera frame) from the limb edges' scatter
+    #: (2, 5, 2) per limb, five points of its fitted line spread over the measured edge points
+    #: (quantiles 0, 1/4, 1/2, 3/4, 1 along it), in distorted pixels: the raw measurement, from which
+    #: the limb planes can be recomputed for other intrinsics (uncertainty propagation)
+    limbs_px: Array | None = None
 
     @property
     def ok(self) -> bool:
@@ -188,6 +192,8 @@ class RodMeasurement:
             d["cov_u"] = self.cov_u.tolist()
         if self.h is not None:
             d["h"] = [self.h[0].tolist(), self.h[1].tolist()]  # interpretation-plane normals (camera frame)
+        if self.limbs_px is not None:
+            d["limbs_px"] = self.limbs_px.tolist()
         return d
 
 
@@ -669,7 +675,18 @@ def measure_rod(gray: np.ndarray, camera: CameraModel, pred: RodPrediction, radi
     out.u = u
     out.point = X
     out.cov_u = _direction_covariance(K, fits, inner, s.edge_bias_px)
+    out.limbs_px = _limb_samples(camera, fits)
     return out
+
+
+def _limb_samples(camera: CameraModel, fits: list[tuple[Array, Array, float, Array]]) -> Array:
+    """Five points per limb on its fitted line at the quantiles of its edge points, distorted pixels (2, 5, 2)."""
+    out = []
+    for c, td, _s2, pts in fits:
+        t = np.quantile((pts - c) @ td, [0.0, 0.25, 0.5, 0.75, 1.0])
+        ideal = c[None] + t[:, None] * td[None]
+        out.append(camera.distort_normalized(camera.from_ideal_pixels(ideal)))
+    return np.asarray(out)
 
 
 def image_ideal_bbox(camera: CameraModel, margin_px: float = 2.0) -> Array:

@@ -38,7 +38,9 @@ class TrialTask(BaseModel):
     truth: list[float] = Field(min_length=7, max_length=7, description="the seven true parameters, metres")
     noise_sigma: float = Field(ge=0)
     steps: list[dict[str, Any]]
-    camera: dict[str, Any] = Field(description="CameraModel.to_dict() of the study's calibrated camera")
+    camera: dict[str, Any] | None = Field(
+        description="CameraModel.to_dict() of the study's camera; None: calibrated from the trial's own camera phase")
+    camera_views: int = Field(0, ge=0, description="board views rendered with the trial (its own camera phase)")
 
 
 def init_worker() -> None:
@@ -88,15 +90,29 @@ def calibrate_camera(task: CameraTask) -> dict[str, Any]:
         t2 = time.perf_counter()
     if res.intrinsics is None:  # pragma: no cover - the dataset has no K: extraction calibrates or raises
         raise RuntimeError("the camera phase gave no intrinsics")
+    return {"noise_sigma": task.noise_sigma, "source": "calibrated", **_camera_record(res, rs),
+            "render_s": t1 - t0, "extract_s": t2 - t1, "cpu_s": time.process_time() - cpu0}
+
+
+def _camera_record(res: Any, rs: Any) -> dict[str, Any]:
+    """The calibrated camera of an extraction against the renderer's: ``camera``, ``true_camera``, ``intrinsics``
+    (reprojection RMS px, views, rejected, ``error_vs_true`` and ``std`` of fx, fy, cx, cy [px], k1, k2, p1, p2)."""
+    from calib.camera import INTRINSICS_NAMES
+
     s = res.intrinsics.summary()
-    K, Kt = res.camera.K, rs.camera().K
-    error = {"fx": K[0, 0] - Kt[0, 0], "fy": K[1, 1] - Kt[1, 1], "cx": K[0, 2] - Kt[0, 2], "cy": K[1, 2] - Kt[1, 2]}
-    return {"noise_sigma": task.noise_sigma, "source": "calibrated", "camera": res.camera.to_dict(),
-            "true_camera": rs.camera().to_dict(),
+    cam, true = res.camera, rs.camera()
+
+    def vec(c: Any) -> list[float]:
+        return [c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2], *c.dist[:4]]
+
+    cov = (cam.extra.get("calibration") or {}).get("covariance")
+    std = [math.sqrt(max(cov[i][i], 0.0)) for i in range(8)] if cov else [None] * 8
+    return {"camera": cam.to_dict(), "true_camera": true.to_dict(),
             "intrinsics": {"rms_px": _finite(s.get("rms_px")), "n_views": s.get("n_views"),
                            "rejected": {str(k): str(v) for k, v in (s.get("rejected") or {}).items()},
-                           "error_vs_true_px": {k: float(v) for k, v in error.items()}},
-            "render_s": t1 - t0, "extract_s": t2 - t1, "cpu_s": time.process_time() - cpu0}
+                           "error_vs_true": {k: float(a - b) for k, a, b in
+                                             zip(INTRINSICS_NAMES, vec(cam), vec(true), strict=True)},
+                           "std": dict(zip(INTRINSICS_NAMES, std, strict=True))}}
 
 
 def edge_noise_px(observations: dict[str, Any]) -> float | None:
@@ -198,11 +214,15 @@ def run_trial(task: TrialTask) -> dict[str, Any]:
             t0 = time.perf_counter()
             path = simulate_dataset(Path(tmp) / "ds", seed=task.seed, geometry=BenchGeometry(truth=truth),
                                     render=RenderSettings(noise_sigma=task.noise_sigma),
-                                    plan=_plan(task.steps, "trial"), n_camera_views=0)
+                                    plan=_plan(task.steps, "trial"),
+                                    n_camera_views=task.camera_views if task.camera is None else 0)
             out["render_s"] = time.perf_counter() - t0
             t0 = time.perf_counter()
-            res = extract_dataset(path, camera=CameraModel.from_dict(task.camera), workers=1)
+            cam = None if task.camera is None else CameraModel.from_dict(task.camera)
+            res = extract_dataset(path, camera=cam, workers=1)
             out["extract_s"] = time.perf_counter() - t0
+        if task.camera is None and res.intrinsics is not None:
+            out["camera"] = _camera_record(res, RenderSettings(noise_sigma=task.noise_sigma))
         t0 = time.perf_counter()
         doc = calibrate(Observations.from_dict(res.observations))
         out["calibrate_s"] = time.perf_counter() - t0
