@@ -89,16 +89,24 @@ class _Problem:
         for name in ("u_cam", "k", "leg", "rod"):
             setattr(self, name, getattr(self, name)[keep])
         self.n_poses = len(np.unique(self.k))
+        #: (M, 2, n) change of the measured entries per unit of the intrinsics' nuisance unknowns z
+        self.D: np.ndarray | None = None
 
     def select(self, keep: np.ndarray) -> None:
         """Keep only the rods where ``keep`` (bool, (M,)) is set."""
         for name in ("u_cam", "k", "leg", "rod"):
             setattr(self, name, getattr(self, name)[keep])
+        if self.D is not None:
+            self.D = self.D[keep]
         self.n_poses = len(np.unique(self.k))
 
-    def measured(self, R_cb: np.ndarray | None = None) -> np.ndarray:
+    def measured(self, R_cb: np.ndarray | None = None, z: np.ndarray | None = None) -> np.ndarray:
+        """The measured Jacobian entries (M, 2), for the intrinsics moved by ``z`` (first order) when given."""
         uB = self.u_cam @ (self.R_cb if R_cb is None else R_cb)
-        return uB[:, 1:] / uB[:, :1]
+        out = uB[:, 1:] / uB[:, :1]
+        if z is not None and z.size and self.D is not None:
+            out = out + self.D @ z
+        return out
 
     def model(self, combos: np.ndarray, q: np.ndarray | None = None) -> np.ndarray:
         r = model_ratios(combos, self.q if q is None else q)
@@ -172,10 +180,18 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
         weighting = "gls" if rod_cov is not None else "frobenius"
     if weighting not in ("gls", "frobenius"):
         raise ValueError(f"weighting must be 'auto', 'frobenius' or 'gls', got {weighting!r}")
+    # the camera's intrinsics as nuisance unknowns: z (n,) in units of one standard deviation along
+    # each principal direction of their covariance, prior N(0, I); the measured quantities move by
+    # D z to first order (:mod:`.intrinsics`). Their error is common to every rod, so it does not
+    # average out; the rods also carry information on it, which the joint fit uses.
+    steps, D = _intrinsics_directions(obs, data, prob, bf)
+    prob.D = D
+    nz = 0 if D is None else D.shape[2]
     # 0. outlier rods (a limb taken for another edge): a first fit, then every rod whose whitened
     #    residual is beyond the chi-square(2) 99.9% quantile of a robust noise scale is dropped and
     #    the fit repeated, until none is
     rejected: list[dict[str, int]] = []
+    x0 = np.concatenate([x0, np.zeros(nz)])
     for _ in range(5):
         shape = prob.noise_shape(rod_cov)
         d2 = _whitened_d2(prob, shape, x0, on_iteration)
@@ -197,37 +213,58 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
     R0 = bf.camera_from_base_R
     cov_w = bf.cov_rotvec
     joint = bool(np.all(np.linalg.eigvalsh(cov_w) > 1e-20))
-    Lw = np.linalg.cholesky(np.linalg.inv(cov_w)).T if joint else None
+    Lw = np.linalg.cholesky(np.linalg.inv(cov_w)).T if joint else np.zeros((3, 3))
+    # unknowns: the four combinations, the base frame's refinement w (3, when its covariance is
+    # known) and the intrinsics' z (nz)
+    nw = 3 if joint else 0
 
-    def eq8(xi: np.ndarray, w: np.ndarray) -> np.ndarray:
-        R = rotvec_to_matrix(w) @ R0
-        r = (prob.model(xi) - prob.measured(R)).reshape(m, 2)
-        return np.einsum("mij,mj->mi", Wh, r).ravel()
+    def split(v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return v[:4], (v[4:4 + nw] if joint else np.zeros(3)), v[4 + nw:]
 
-    # 1. the paper's fit: eq. 8 with the base frame of step 1
-    sol = least_squares(traced(lambda xi: eq8(xi, np.zeros(3)), on_iteration, "eq8"), x0, method="lm", xtol=1e-14,
+    def raw(v: np.ndarray) -> np.ndarray:
+        xi, w, z = split(v)
+        return (prob.model(xi) - prob.measured(rotvec_to_matrix(w) @ R0, z)).ravel()
+
+    def eq8(v: np.ndarray) -> np.ndarray:
+        return np.einsum("mij,mj->mi", Wh, raw(v).reshape(m, 2)).ravel()
+
+    def priors(v: np.ndarray) -> np.ndarray:
+        _xi, w, z = split(v)
+        return np.concatenate([Lw @ w if joint else np.zeros(0), z])
+
+    # 1. the paper's fit: eq. 8 with the base frame of step 1 (and the intrinsics' prior)
+    x = np.concatenate([x0[:4], np.zeros(nw), x0[4:]])
+    free = np.r_[np.ones(4, bool), np.zeros(nw, bool), np.ones(nz, bool)]
+
+    def stage1(vf: np.ndarray) -> np.ndarray:
+        v = x.copy()
+        v[free] = vf
+        return np.concatenate([eq8(v), v[4 + nw:]])
+
+    sol = least_squares(traced(stage1, on_iteration, "eq8"), x[free], method="lm", xtol=1e-14,
                         ftol=1e-14, gtol=1e-14, max_nfev=500)
     if sol.status <= 0 or not np.all(np.isfinite(sol.x)):
         raise ConvergenceError(f"combined fit did not converge: {sol.message}")
-    x = np.concatenate([sol.x, np.zeros(3)])
+    x[free] = sol.x
     nfev = sol.nfev
     # direction-noise scale from the whitened residuals: sigma^2 = chi2 / dof
     Cinv = np.linalg.inv(shape + 1e-300 * np.eye(2))
 
-    def noise_scale(xx: np.ndarray) -> float:
-        r = (prob.model(xx[:4]) - prob.measured(rotvec_to_matrix(xx[4:]) @ R0)).reshape(m, 2)
+    def noise_scale(v: np.ndarray) -> float:
+        r = raw(v).reshape(m, 2)
         return float(np.einsum("mi,mij,mj->", r, Cinv, r)) / max(2 * m - 4, 1)
 
     s2 = noise_scale(x)
     # 2. the base frame's rotation is common to every pose: its error does not average out and it
-    #    inflates the residuals. Re-estimate it jointly with the parameters, with the step-1 estimate
-    #    and its covariance as a prior, so that the fit and its covariance account for it.
-    if joint and s2 > 0:
+    #    inflates the residuals. Re-estimate it jointly with the parameters (and the intrinsics),
+    #    each with its prior, so that the fit and its covariance account for them; the data are
+    #    weighed by 1/s2 against the priors.
+    if (joint or nz) and s2 > 0:
         for npass in range(3):
             sc = 1.0 / np.sqrt(s2)
 
-            def full(xx: np.ndarray, sc: float = sc) -> np.ndarray:
-                return np.concatenate([sc * eq8(xx[:4], xx[4:]), Lw @ xx[4:]])
+            def full(v: np.ndarray, sc: float = sc) -> np.ndarray:
+                return np.concatenate([sc * eq8(v), priors(v)])
 
             sol = least_squares(traced(full, on_iteration, f"joint-{npass + 1}"), x, method="lm", xtol=1e-14,
                                 ftol=1e-14, gtol=1e-14, max_nfev=500)
@@ -240,80 +277,90 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
                 s2 = s2_new
                 break
             s2 = s2_new
-    xi, w = x[:4], x[4:]
-    J4 = central_jacobian(lambda v: eq8(v, w), xi)  # whitened-by-weights, (2m, 4)
+    xi, w, z = split(x)
+    J4 = central_jacobian(lambda v: eq8(np.concatenate([v, x[4:]])), xi)  # whitened-by-weights, (2m, 4)
     check_excitation(J4, COMBINATION_NAMES)
-    r = (prob.model(xi) - prob.measured(rotvec_to_matrix(w) @ R0)).reshape(m, 2)
-    # covariance: sandwich with the rods' noise model (scaled by the measured sigma^2) and the prior
+    r = raw(x).reshape(m, 2)
+    # covariance: sandwich with the rods' noise model (scaled by the measured sigma^2) and the priors
     Wfull = np.zeros((2 * m, 2 * m))
     Sig = np.zeros((2 * m, 2 * m))
     for a in range(m):
         Wa = Wh[a].T @ Wh[a]
         Wfull[2 * a:2 * a + 2, 2 * a:2 * a + 2] = Wa
         Sig[2 * a:2 * a + 2, 2 * a:2 * a + 2] = s2 * shape[a]
-    def raw(v: np.ndarray) -> np.ndarray:
-        return (prob.model(v[:4]) - prob.measured(rotvec_to_matrix(v[4:]) @ R0)).ravel()
-
-    Jr = central_jacobian(raw, x)  # unweighted, (2m, 7)
+    Jr = central_jacobian(raw, x)  # unweighted, (2m, 4 + nw + nz)
     cov_pose_fixed = _sandwich(Jr[:, :4], Wfull, Sig)
-    if joint and s2 > 0:
-        # joint normal equations: data term (weights W / s2 ... via sandwich) and the prior on w
-        Pw = np.zeros((7, 7))
-        Pw[4:, 4:] = np.linalg.inv(cov_w)
-        Wd = Wfull / s2  # the joint fit weighs the data by 1/s2 against the prior
-        H = Jr.T @ Wd @ Jr + Pw
-        Hinv = np.linalg.inv(H)
-        B = Hinv @ Jr.T @ Wd
-        cov_full = B @ Sig @ B.T + Hinv @ Pw @ Hinv
-        cov = cov_full[:4, :4]
-    else:
-        cov = cov_pose_fixed.copy()
-    cov_base = cov - cov_pose_fixed
-    base_std = {k: float(np.sqrt(max(cov_base[i, i], 0.0))) for i, k in enumerate(COMBINATION_NAMES)}
-    # the camera's intrinsics, calibrated once, are common to every rod: their error does not
-    # average out. First-order propagation when the rods carry their planes and the intrinsics their std
-    gain = B if (joint and s2 > 0) else np.hstack(
-        [np.linalg.solve(Jr[:, :4].T @ Wfull @ Jr[:, :4], Jr[:, :4].T @ Wfull).T, np.zeros((2 * m, 3))]).T
-    cov_intr = _intrinsics_covariance(obs, data, prob, bf, w, gain[:4])
-    if cov_intr is not None:
-        cov = cov + cov_intr
+    parts = {"legs_and_encoders": cov_pose_fixed}
+    cov = cov_pose_fixed.copy()
+    cov_intr = None
+    if (joint or nz) and s2 > 0:
+        Pw = np.zeros((x.size, x.size))
+        Pw[4:4 + nw, 4:4 + nw] = Lw.T @ Lw
+        Pz = np.zeros((x.size, x.size))
+        Pz[4 + nw:, 4 + nw:] = np.eye(nz)
+        cov, parts = _joint_covariance(Jr, Wfull / s2, Sig, Pw, Pz)
+        if nz:
+            keep = np.arange(4 + nw)  # the same fit with the intrinsics known: what they add
+            cov_known, _ = _joint_covariance(Jr[:, keep], Wfull / s2, Sig, Pw[np.ix_(keep, keep)],
+                                             Pz[np.ix_(keep, keep)])
+            cov_intr = cov - cov_known
+    breakdown = {"legs_and_encoders": std_dict(parts["legs_and_encoders"])}
+    if joint:
+        breakdown["base_frame"] = std_dict(parts.get("base_frame", np.zeros((4, 4))))
+    if nz:
+        breakdown["intrinsics"] = std_dict(parts.get("intrinsics", np.zeros((4, 4))))
+    refined = None if steps is None else dict(zip(intr.INTRINSICS_NAMES, (steps.T @ z).tolist(), strict=True))
     return MethodResult(
         method="combined", combinations=combos_dict(xi), combinations_std=std_dict(cov), covariance=cov,
         residual_rms=float(np.sqrt(np.mean(r ** 2))), residual_unit="Jacobian entry (dimensionless)",
         n_observations=2 * m, n_poses=prob.n_poses, iterations=int(nfev), converged=True,
         message=str(sol.message),
-        std_breakdown={"legs_and_encoders": std_dict(cov_pose_fixed), "base_frame": base_std,
-                       **({"intrinsics": std_dict(cov_intr)} if cov_intr is not None else {})},
+        std_breakdown=breakdown,
         diagnostics={"weighting": weighting, "direction_noise_scale": float(np.sqrt(s2)),
                      "rods_rejected": rejected, "rods_used": int(m),
                      "intrinsics_covariance": None if cov_intr is None else cov_intr.tolist(),
+                     "intrinsics_refinement": refined,
                      "rods_dropped_near_vertical": prob.dropped, "base_frame": bf.summary(),
                      "base_frame_refinement_deg": float(np.rad2deg(np.linalg.norm(w))),
                      "joint_base_frame": joint},
         residuals=r)
 
 
-def _intrinsics_covariance(obs: Observations, data: PhaseArrays, prob: _Problem, bf: BaseFrameResult,
-                           w: np.ndarray, gain: np.ndarray) -> np.ndarray | None:
-    """Covariance (4, 4) of the combinations due to the camera intrinsics' uncertainty, or None.
+def _joint_covariance(Jr: np.ndarray, Wd: np.ndarray, Sig: np.ndarray, Pw: np.ndarray,
+                      Pz: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Covariance (4, 4) of the combinations of a fit with priors, and its parts.
 
-    The intrinsics (fx, fy, cx, cy, k1, k2, p1, p2; :mod:`.intrinsics`) are moved by one standard
-    deviation along each principal direction of their covariance; each rod's planes are recomputed
-    from its limb samples (``limbs_px``) and the base frame from the board poses moved by their
-    ``d_intrinsics``; the change of the measured quantities (central difference) goes through
-    ``gain`` (4, 2M), which maps a change of the raw residuals to a change of the estimate. None when
-    the camera's uncertainty or a rod's limb samples are missing.
+    The fit minimises ``r^T Wd r + v^T (Pw + Pz) v`` (data and the priors on the base frame and the
+    intrinsics); the estimate's covariance is the data term's sandwich ``B Sig B^T`` plus each
+    prior's ``H^-1 P H^-1``.
+    """
+    H = Jr.T @ Wd @ Jr + Pw + Pz
+    Hinv = np.linalg.inv(H)
+    B = Hinv @ Jr.T @ Wd
+    parts = {"legs_and_encoders": (B @ Sig @ B.T)[:4, :4], "base_frame": (Hinv @ Pw @ Hinv)[:4, :4],
+             "intrinsics": (Hinv @ Pz @ Hinv)[:4, :4]}
+    return parts["legs_and_encoders"] + parts["base_frame"] + parts["intrinsics"], parts
+
+
+def _intrinsics_directions(obs: Observations, data: PhaseArrays, prob: _Problem,
+                           bf: BaseFrameResult) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The intrinsics' principal steps (n, 8) and the measured quantities' change per step, (M, 2, n).
+
+    Each step is one standard deviation along a principal direction of the intrinsics' covariance
+    (fx, fy, cx, cy, k1, k2, p1, p2; :mod:`.intrinsics`); each rod's planes are recomputed from its
+    limb samples (``limbs_px``) and the base frame from the board poses moved by their
+    ``d_intrinsics`` (central differences). (None, None) when the camera's uncertainty or a rod's
+    limb samples are missing.
     """
     prior = intr.intrinsics_prior(obs)
     limbs = _rod_field(obs, data, prob, "limbs_px")
     H = _rod_field(obs, data, prob, "h")
     if prior is None or limbs is None or H is None:
-        return None
+        return None, None
     camera, cov = prior
     rot, tra = obs.arrays("rotation"), obs.arrays("translation")
     s_rot, s_tra = intr.board_sensitivities(obs, rot), intr.board_sensitivities(obs, tra)
     u0 = prob.u_cam
-    Rw = rotvec_to_matrix(w)
 
     def measured(step: np.ndarray) -> np.ndarray:
         h = intr.limb_planes_for(intr.perturbed_camera(camera, step), limbs, H)
@@ -324,17 +371,14 @@ def _intrinsics_covariance(obs: Observations, data: PhaseArrays, prob: _Problem,
         if s_rot is not None and s_tra is not None:
             R0 = estimate_base_frame(intr.perturbed_boards(rot, s_rot, step),
                                      intr.perturbed_boards(tra, s_tra, step)).camera_from_base_R
-        uB = u @ (Rw @ R0)
-        return (uB[:, 1:] / uB[:, :1]).ravel()
+        uB = u @ R0
+        return uB[:, 1:] / uB[:, :1]
 
-    cols = []
-    for step in intr.principal_steps(cov):
-        dm = (measured(step) - measured(-step)) / 2.0  # per standard deviation
-        cols.append(gain @ dm)  # raw = model - measured: the estimate moves by -gain @ (-dm)
-    if not cols:
-        return None
-    S = np.column_stack(cols)  # (4, n): effect of one std along each principal direction
-    return S @ S.T
+    steps = intr.principal_steps(cov)
+    if steps.shape[0] == 0:
+        return None, None
+    D = np.stack([(measured(st) - measured(-st)) / 2.0 for st in steps], axis=2)
+    return steps, D
 
 
 _CHI2_2_999 = 13.8155  # chi-square, 2 dof, 99.9% quantile
@@ -347,13 +391,15 @@ def _whitened_d2(prob: _Problem, shape: np.ndarray, x0: np.ndarray,
     Cinv = np.linalg.inv(shape + 1e-300 * np.eye(2))
     Wh = np.linalg.cholesky(Cinv).transpose(0, 2, 1)
 
-    def res(xi: np.ndarray) -> np.ndarray:
-        r = (prob.model(xi) - prob.measured()).reshape(-1, 2)
-        return np.einsum("mij,mj->mi", Wh, r).ravel()
+    def raw(v: np.ndarray) -> np.ndarray:
+        return (prob.model(v[:4]) - prob.measured(None, v[4:])).reshape(-1, 2)
+
+    def res(v: np.ndarray) -> np.ndarray:  # x0: the combinations, then the intrinsics' z with prior N(0, I)
+        return np.concatenate([np.einsum("mij,mj->mi", Wh, raw(v)).ravel(), v[4:]])
 
     sol = least_squares(traced(res, on_iteration, "outliers"), x0, method="lm", xtol=1e-12, ftol=1e-12,
                         max_nfev=200)
-    r = (prob.model(sol.x) - prob.measured()).reshape(-1, 2)
+    r = raw(sol.x)
     return np.einsum("mi,mij,mj->m", r, Cinv, r)
 
 
