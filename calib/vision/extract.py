@@ -22,10 +22,14 @@ reported per frame (``missing`` in the frame, ``summary`` per phase) and the res
 
 from __future__ import annotations
 
+import contextlib
+import multiprocessing
 import os
+from collections import deque
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
+from multiprocessing.connection import Connection
+from multiprocessing.connection import wait as mp_wait
 from pathlib import Path
 from typing import Any
 
@@ -89,12 +93,16 @@ class ExtractionResult:
 # ---------------------------------------------------------------------------------------------
 # worker side
 _W: dict[str, Any] = {}
+#: decoded images a process keeps between the board and rods stages (bytes, per process): each frame's PNG
+#: is then decoded once, not twice (decoding a 1024x768 frame costs about a third of its board detection)
+IMAGE_CACHE_BYTES = 160 * 2**20
 
 
 def _init_worker(root: str, camera: dict | None, refined: tuple[list, list] | None, min_corners: int,
                  rod_settings: dict | None) -> None:
-    ds = Dataset.open(root)
-    _W["ds"] = ds
+    if _W.get("root") != root:  # a new dataset (the same one is kept from stage to stage, with its images)
+        _W.update(root=root, ds=Dataset.open(root), images={}, cached=0)
+    ds = _W["ds"]
     _W["det"] = BoardDetector(ds.document.board, min_corners)
     if refined is not None:
         _W["det"].use_refined_points(np.asarray(refined[0]), np.asarray(refined[1]))
@@ -103,8 +111,27 @@ def _init_worker(root: str, camera: dict | None, refined: tuple[list, list] | No
     _W["bbox"] = image_ideal_bbox(_W["cam"]) if _W["cam"] is not None else None
 
 
-def _read_gray(i: int) -> np.ndarray:
+def _clear_worker() -> None:
+    _W.clear()
+
+
+def _load(i: int, keep: bool) -> np.ndarray:
+    """Frame ``i``'s image (InputError when unreadable): from this process's cache (then dropped from it unless
+    ``keep``), else decoded and, when ``keep``, cached for a later stage (up to :data:`IMAGE_CACHE_BYTES`)."""
+    cache: dict[int, np.ndarray] = _W.setdefault("images", {})
+    img = cache.get(i) if keep else cache.pop(i, None)
+    if img is not None:
+        if not keep:
+            _W["cached"] -= img.nbytes
+        return img
     img = _W["ds"].load_image(i)
+    if keep and _W.get("cached", 0) + img.nbytes <= IMAGE_CACHE_BYTES:
+        cache[i] = img
+        _W["cached"] = _W.get("cached", 0) + img.nbytes
+    return img
+
+
+def _gray(img: np.ndarray) -> np.ndarray:
     if img.ndim == 3:
         img = to_gray8(img) if img.dtype == np.uint8 else img[..., :3].mean(axis=2)
     return img
@@ -113,7 +140,7 @@ def _read_gray(i: int) -> np.ndarray:
 def _task_detect(i: int) -> tuple[int, Any]:
     """Camera-phase frame: ChArUco corners (ids, pixels) or the reason."""
     try:
-        img = _W["ds"].load_image(i)
+        img = _load(i, keep=False)
     except InputError as exc:
         return i, exc.reason
     d = _W["det"].detect(img)
@@ -122,7 +149,7 @@ def _task_detect(i: int) -> tuple[int, Any]:
 
 def _task_board(i: int) -> tuple[int, Any]:
     try:
-        img = _W["ds"].load_image(i)
+        img = _load(i, keep=True)
     except InputError as exc:
         return i, {"image_error": exc.reason}
     res = _W["det"].measure(img, _W["cam"])
@@ -136,7 +163,7 @@ def _task_find_rods(args: tuple[int, dict | None, dict]) -> tuple[int, Any]:
     i, prior, settings = args
     doc = _W["ds"].document
     try:
-        img = _read_gray(i)
+        img = _gray(_load(i, keep=True))
     except InputError:
         return i, None
     return i, detect_rods(img, _W["cam"], doc.nominal.parameters(), _W["ds"].frames[i].q, doc.legs.rod_radius_m,
@@ -151,7 +178,7 @@ def _task_rods(args: tuple) -> tuple[int, Any]:
     cam: CameraModel = _W["cam"]
     fr = ds.frames[i]
     try:
-        img = _read_gray(i)
+        img = _gray(_load(i, keep=False))
     except InputError as exc:
         return i, {"image_error": exc.reason}
     doc = ds.document
@@ -178,26 +205,140 @@ def _task_rods(args: tuple) -> tuple[int, Any]:
     return i, {"rods": rods, "parallel_mrad": par}
 
 
-def _run(fn: Callable, items: list, workers: int, init_args: tuple, progress: Progress | None,
-         offset: int, total: int, each: Callable[[Any], None] | None = None) -> list:
-    out = []
-    if workers <= 1 or len(items) < 4:
-        _init_worker(*init_args)
-        for k, it in enumerate(items):
-            out.append(fn(it))
-            if each:
-                each(out[-1])
-            if progress:
-                progress(offset + k + 1, total)
-        return out
-    with ProcessPoolExecutor(max_workers=workers, initializer=_init_worker, initargs=init_args) as ex:
-        for k, r in enumerate(ex.map(fn, items, chunksize=max(1, len(items) // (8 * workers)))):
-            out.append(r)
+def _worker_main(conn: Connection, init_args: tuple) -> None:
+    """A pool worker: ``("init", args)`` re-initialises it, ``("task", fn, item)`` runs ``fn(item)``, None ends it;
+    every message is answered with ``("ok", result)`` or ``("error", exception)``."""
+    _init_worker(*init_args)
+    while True:
+        try:
+            msg = conn.recv()
+        except (EOFError, OSError):
+            return
+        if msg is None:
+            return
+        try:
+            r = _init_worker(*msg[1]) if msg[0] == "init" else msg[1](msg[2])
+            conn.send(("ok", r))
+        except BaseException as exc:  # sent back, raised in the parent
+            try:
+                conn.send(("error", exc))
+            except Exception:  # an exception that does not pickle
+                conn.send(("error", RuntimeError(f"{type(exc).__name__}: {exc}")))
+
+
+class _Pool:
+    """Runs the stages' tasks in ``workers`` processes (in this process when 1), one frame per task.
+
+    Plain processes, each with its own pipe, and no helper thread in this process (forking while threads run
+    can leave a lock held in the child), so that a frame can be sent to the worker that decoded its image in an
+    earlier stage (it keeps it, :func:`_load`); a worker whose own frames are done takes frames from the longest
+    other queue (work stealing: it decodes them again).
+    """
+
+    def __init__(self, workers: int) -> None:
+        self.workers = workers
+        self.procs: list[Any] = []
+        self.conns: list[Connection] = []
+        self.init: tuple | None = None
+        self.home: dict[int, int] = {}  # frame index -> worker holding its image
+
+    def __enter__(self) -> _Pool:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        for c in self.conns:
+            with contextlib.suppress(OSError):
+                c.send(None)
+        for p in self.procs:
+            p.join(timeout=5)
+            if p.is_alive():
+                p.terminate()
+                p.join()
+        for c in self.conns:
+            c.close()
+        self.procs, self.conns = [], []
+        _clear_worker()  # the in-process path's images and dataset
+
+    def _call(self, w: int, msg: tuple) -> None:
+        self.conns[w].send(msg)
+
+    def _answer(self, w: int) -> Any:
+        try:
+            kind, r = self.conns[w].recv()
+        except (EOFError, OSError):
+            raise I4calError(f"an extraction worker died (exit code {self.procs[w].exitcode})") from None
+        if kind == "error":
+            raise r
+        return r
+
+    def _configure(self, init_args: tuple) -> None:
+        if not self.procs:
+            ctx = multiprocessing.get_context()
+            for _ in range(self.workers):
+                parent, child = ctx.Pipe()
+                p = ctx.Process(target=_worker_main, args=(child, init_args), name="i4cal-extract")
+                p.start()
+                child.close()
+                self.procs.append(p)
+                self.conns.append(parent)
+        elif init_args != self.init:
+            for w in range(len(self.procs)):
+                self._call(w, ("init", init_args))
+            for w in range(len(self.procs)):
+                self._answer(w)
+        self.init = init_args
+
+    def run(self, fn: Callable, items: list, init_args: tuple, progress: Progress | None, offset: int, total: int,
+            each: Callable[[Any], None] | None = None) -> list:
+        """``[fn(item) for item in items]``; an item is a frame index or a tuple led by one.
+
+        ``each(result)`` and ``progress`` are called as results come (completion order); the list is in item order,
+        so that what follows does not depend on the scheduling.
+        """
+        out: list = [None] * len(items)
+        count = [0]
+
+        def done(k: int, r: Any) -> None:
+            out[k] = r
+            count[0] += 1
             if each:
                 each(r)
             if progress:
-                progress(offset + k + 1, total)
-    return out
+                progress(offset + count[0], total)
+
+        if self.workers <= 1 or len(items) < 4:
+            _init_worker(*init_args)
+            for k, it in enumerate(items):
+                done(k, fn(it))
+            return out
+        self._configure(init_args)
+        n = len(self.procs)
+        queues: list[deque] = [deque() for _ in range(n)]
+        for k, it in enumerate(items):
+            queues[self.home.get(_frame_of(it), k % n)].append(k)
+        busy: dict[int, int] = {}  # worker -> item position
+
+        def submit(w: int) -> None:
+            q = queues[w] if queues[w] else max(queues, key=len)
+            if q:
+                k = q.popleft() if q is queues[w] else q.pop()
+                self._call(w, ("task", fn, items[k]))
+                busy[w] = k
+
+        for w in range(n):
+            submit(w)
+        while busy:
+            for c in mp_wait([self.conns[w] for w in busy]):
+                w = self.conns.index(c)  # type: ignore[arg-type]
+                k = busy.pop(w)
+                done(k, self._answer(w))
+                self.home[_frame_of(items[k])] = w
+                submit(w)
+        return out
+
+
+def _frame_of(item: Any) -> int:
+    return int(item[0] if isinstance(item, tuple) else item)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -250,35 +391,36 @@ def fit_placement(q: np.ndarray, board_R: np.ndarray, board_t: np.ndarray, nomin
     else:
         candidates = [rotvec_to_matrix(v) for v in np.random.default_rng(0).normal(0, 2.0, (200, 3))]
     n = len(q)
+    hz = np.array([0.0, 0.0, board_height_m])
+    A = np.zeros((n, 3, 5))
+    A[:, :, 2:] = np.eye(3)
     for RC in candidates:
         # o_k - RC tB_k = RC RB_k e + tC
-        A = np.zeros((3 * n, 5))
-        rhs = np.zeros(3 * n)
-        for k in range(n):
-            A[3 * k:3 * k + 3, :2] = (RC @ RB[k])[:, :2]
-            A[3 * k:3 * k + 3, 2:] = np.eye(3)
-            rhs[3 * k:3 * k + 3] = board_t[k] - RC @ tB[k] - RC @ RB[k] @ np.array([0, 0, board_height_m])
-        sol, *_ = np.linalg.lstsq(A, rhs, rcond=None)
-        r = float(np.sum((A @ sol - rhs) ** 2))
+        M = np.einsum("ij,njk->nik", RC, RB)
+        A[:, :, :2] = M[:, :, :2]
+        rhs = (board_t - tB @ RC.T - M @ hz).reshape(-1)
+        Af = A.reshape(3 * n, 5)
+        sol, *_ = np.linalg.lstsq(Af, rhs, rcond=None)
+        r = float(np.sum((Af @ sol - rhs) ** 2))
         sol = np.array([sol[0], sol[1], board_height_m, *sol[2:]])
         if best is None or r < best[0]:
-            RE = np.mean([(RC @ RB[k]).T @ board_R[k] for k in range(n)], axis=0)
+            RE = np.einsum("nji,njk->ik", M, board_R) / n
             U, _, Vt = np.linalg.svd(RE)
             RE = U @ np.diag([1, 1, np.linalg.det(U @ Vt)]) @ Vt
             best = (r, RC, sol[3:], RE, sol[:3])
 
     _, RC, tC, RE, tE = best
+    bRT = np.transpose(board_R, (0, 2, 1))
 
     def resid(p: np.ndarray) -> np.ndarray:
         Rc = rotvec_to_matrix(p[:3])
         Re = rotvec_to_matrix(p[6:9])
-        out = []
-        for k in range(n):
-            Rp = Rc @ RB[k] @ Re
-            tp = Rc @ (RB[k] @ np.array([p[9], p[10], board_height_m]) + tB[k]) + p[3:6]
-            out.append(0.1 * matrix_to_rotvec(Rp @ board_R[k].T))
-            out.append(tp - board_t[k])
-        return np.concatenate(out)
+        Rp = np.einsum("ij,njk,kl->nil", Rc, RB, Re)
+        tp = (RB @ np.array([p[9], p[10], board_height_m]) + tB) @ Rc.T + p[3:6]
+        out = np.empty((n, 2, 3))
+        out[:, 0] = 0.1 * matrix_to_rotvec(Rp @ bRT)
+        out[:, 1] = tp - board_t
+        return out.reshape(-1)
 
     p0 = np.concatenate([matrix_to_rotvec(RC), tC, matrix_to_rotvec(RE), tE[:2]])
     sol = least_squares(resid, p0, method="lm")
@@ -319,8 +461,13 @@ def extract_dataset(dataset: str | Path | Dataset, *, camera: CameraModel | None
         No intrinsics can be had (none given, none in the dataset, the ``camera`` phase too poor).
     """
     ds = dataset if isinstance(dataset, Dataset) else Dataset.open(dataset)
-    opts = options or ExtractOptions()
     workers = max(1, int(workers or os.cpu_count() or 1))
+    with _Pool(workers) as pool:
+        return _extract(pool, ds, camera, progress, options or ExtractOptions(), on_frame)
+
+
+def _extract(pool: _Pool, ds: Dataset, camera: CameraModel | None, progress: Progress | None, opts: ExtractOptions,
+             on_frame: FrameCallback | None) -> ExtractionResult:
     doc = ds.document
     frames = ds.frames
     cam_idx = [i for i, f in enumerate(frames) if f.phase == "camera"]
@@ -341,7 +488,7 @@ def extract_dataset(dataset: str | Path | Dataset, *, camera: CameraModel | None
         if not cam_idx:
             raise InputError("no intrinsics: the dataset has neither camera.K/dist nor a 'camera' phase",
                              file=root, field="camera")
-        det = _run(_task_detect, cam_idx, workers, (root, None, None, opts.min_corners, rs_dict), progress,
+        det = pool.run(_task_detect, cam_idx, (root, None, None, opts.min_corners, rs_dict), progress,
                    done, total)
         done += len(cam_idx)
         views = {}
@@ -363,7 +510,7 @@ def extract_dataset(dataset: str | Path | Dataset, *, camera: CameraModel | None
             refined = (list(bp["ids"]), list(bp["points_m"]))
     init = (root, camera.to_dict(), refined, opts.min_corners, rs_dict)
     board_cb = None if on_frame is None else (lambda r: on_frame(frame_info(r[0], frames[r[0]].phase, r[1])))
-    boards = dict(_run(_task_board, obs_idx, workers, init, progress, done, total, board_cb))
+    boards = dict(pool.run(_task_board, obs_idx, init, progress, done, total, board_cb))
     done += len(obs_idx)
     good = [i for i in obs_idx if "pose" in boards[i]]
     C = E = None
@@ -393,7 +540,7 @@ def extract_dataset(dataset: str | Path | Dataset, *, camera: CameraModel | None
         prior = opts.camera_prior.to_dict() if opts.camera_prior is not None else None
         items = [(i, prior, dict(dset.__dict__)) for i in obs_idx if "image_error" not in boards[i]]
         total += len(items)
-        found = {i: d for i, d in _run(_task_find_rods, items, workers, init, progress, done, total)
+        found = {i: d for i, d in pool.run(_task_find_rods, items, init, progress, done, total)
                  if d is not None}
         done += len(items)
         found, placed, anchor = resolve_frames(found, camera, doc.nominal.parameters(),
@@ -423,7 +570,7 @@ def extract_dataset(dataset: str | Path | Dataset, *, camera: CameraModel | None
         rod_items.append((i, C.to_dict(), b))
     rods_cb = None if on_frame is None else (
         lambda r: on_frame(frame_info(r[0], frames[r[0]].phase, boards[r[0]], r[1])))
-    rods = dict(_run(_task_rods, rod_items, workers, init, progress, done, total, rods_cb))
+    rods = dict(pool.run(_task_rods, rod_items, init, progress, done, total, rods_cb))
     if on_frame is not None:  # frames whose rods could not be looked for
         for i in obs_idx:
             if i not in rods:
