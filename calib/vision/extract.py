@@ -93,9 +93,10 @@ class ExtractionResult:
 # ---------------------------------------------------------------------------------------------
 # worker side
 _W: dict[str, Any] = {}
-#: decoded images a process keeps between the board and rods stages (bytes, per process): each frame's PNG
-#: is then decoded once, not twice (decoding a 1024x768 frame costs about a third of its board detection)
-IMAGE_CACHE_BYTES = 160 * 2**20
+#: decoded images kept between the board and rods stages (bytes, shared among the workers): each frame's PNG is
+#: then decoded once, not twice (decoding a 1024x768 frame costs most of a board detection); 112 MB holds the
+#: paper-sized dataset's 121 frames (8-bit mono) and keeps its extract + calibrate under 500 MB
+IMAGE_CACHE_BYTES = 112 * 2**20
 
 
 def _init_worker(root: str, camera: dict | None, refined: tuple[list, list] | None, min_corners: int,
@@ -125,7 +126,7 @@ def _load(i: int, keep: bool) -> np.ndarray:
             _W["cached"] -= img.nbytes
         return img
     img = _W["ds"].load_image(i)
-    if keep and _W.get("cached", 0) + img.nbytes <= IMAGE_CACHE_BYTES:
+    if keep and _W.get("cached", 0) + img.nbytes <= _W.get("cache_bytes", IMAGE_CACHE_BYTES):
         cache[i] = img
         _W["cached"] = _W.get("cached", 0) + img.nbytes
     return img
@@ -205,9 +206,10 @@ def _task_rods(args: tuple) -> tuple[int, Any]:
     return i, {"rods": rods, "parallel_mrad": par}
 
 
-def _worker_main(conn: Connection, init_args: tuple) -> None:
+def _worker_main(conn: Connection, init_args: tuple, cache_bytes: int) -> None:
     """A pool worker: ``("init", args)`` re-initialises it, ``("task", fn, item)`` runs ``fn(item)``, None ends it;
     every message is answered with ``("ok", result)`` or ``("error", exception)``."""
+    _W["cache_bytes"] = cache_bytes
     _init_worker(*init_args)
     while True:
         try:
@@ -276,7 +278,8 @@ class _Pool:
             ctx = multiprocessing.get_context()
             for _ in range(self.workers):
                 parent, child = ctx.Pipe()
-                p = ctx.Process(target=_worker_main, args=(child, init_args), name="i4cal-extract")
+                p = ctx.Process(target=_worker_main, args=(child, init_args, IMAGE_CACHE_BYTES // self.workers),
+                                name="i4cal-extract")
                 p.start()
                 child.close()
                 self.procs.append(p)

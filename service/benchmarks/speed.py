@@ -255,10 +255,18 @@ def bench_extraction(opts: SpeedOptions, step: Step = _no_step) -> tuple[list[Fi
     return [fig], {"frame_ms": ms}
 
 
-def _extract_calibrate_job(queue: Any, dataset: str, workers: int | None) -> None:
+def _extract_calibrate_job(queue: Any, dataset: str, workers: int | None, start_method: str | None = None) -> None:
     """Body of the fresh process of :func:`extract_calibrate`: puts ("progress", done, total) messages, then
-    ("result", dict) or ("error", text)."""
+    ("result", dict) or ("error", text).
+
+    ``start_method``: how the extraction starts its worker processes, the caller's (what ``i4cal extract`` does on
+    this platform), not the "spawn" of this process, which would time interpreter start-ups instead of extraction.
+    """
     try:
+        if start_method:
+            import multiprocessing as mp
+
+            mp.set_start_method(start_method, force=True)
         from calib.observations import Observations
         from calib.pipeline import calibrate
         from calib.vision.extract import extract_dataset
@@ -301,7 +309,8 @@ def extract_calibrate(dataset: str | Path, workers: int | None = None, step: Ste
 
     ctx = mp.get_context("spawn")
     q = ctx.Queue()
-    proc = ctx.Process(target=_extract_calibrate_job, args=(q, str(dataset), workers), name="i4cal-bench-extract")
+    proc = ctx.Process(target=_extract_calibrate_job, args=(q, str(dataset), workers, mp.get_start_method()),
+                       name="i4cal-bench-extract")
     proc.start()
     try:
         while True:
