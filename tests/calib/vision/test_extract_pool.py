@@ -1,0 +1,35 @@
+"""extract_dataset's worker processes: same observations as in one process, whatever the image cache holds."""
+
+from __future__ import annotations
+
+import itertools
+
+import pytest
+
+import calib.vision.extract as extract
+from calib.vision.extract import extract_dataset
+from tests.calib.vision.test_extract import small_dataset  # noqa: F401  (the rendered, partly damaged dataset)
+
+
+@pytest.mark.parametrize("cache_bytes", [extract.IMAGE_CACHE_BYTES, 2 * 1024 * 768])
+def test_workers_give_the_observations_of_one_process(small_dataset, monkeypatch, cache_bytes):  # noqa: F811
+    # the dataset's intrinsics are given: nothing but the scheduling differs between the two runs
+    root, _, _ = small_dataset
+    one = extract_dataset(root, workers=1).observations
+    # a cache of 2 frames in all: most frames are decoded again in the rods stage (or by a worker that stole them)
+    monkeypatch.setattr(extract, "IMAGE_CACHE_BYTES", cache_bytes)
+    done: list[tuple[int, int]] = []
+    two = extract_dataset(root, workers=2, progress=lambda d, t: done.append((d, t))).observations
+    assert two["frames"] == one["frames"]
+    assert two["extraction"] == one["extraction"]
+    assert all(b[0] > a[0] for a, b in itertools.pairwise(done)) and done[-1][0] == done[-1][1]
+    # the damaged frames keep their reasons (missing file, truncated file)
+    by = {f["dataset_frame"]: f for f in two["frames"]}
+    assert "image" in by[8]["missing"] and "image" in by[9]["missing"]
+
+
+def test_a_worker_error_is_raised_and_the_workers_end(small_dataset):  # noqa: F811
+    root, _, _ = small_dataset
+    with pytest.raises(AttributeError), extract._Pool(2) as pool:  # no camera: the board stage cannot pose
+        pool.run(extract._task_board, [0, 1, 2, 3, 4], (str(root), None, None, 6, None), None, 0, 5)
+    assert pool.procs == [] and pool.conns == []
