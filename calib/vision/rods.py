@@ -232,6 +232,22 @@ def _median(x: Array) -> float:
     return float((p[h - 1] + p[h]) / 2)
 
 
+def _tls_q(Q: Array, w: Array | None = None) -> tuple[float, float, float]:
+    """:func:`_tls` from homogeneous points Q (N, 3) = [x, y, 1] (centred near 0) and optional weights (N,).
+
+    The weighted moments come from one matrix product; the points being centred, removing the mean from them
+    costs no precision.
+    """
+    M = Q.T @ Q if w is None else (Q * w[:, None]).T @ Q
+    s0 = M[2, 2]
+    mx, my = M[0, 2] / s0, M[1, 2] / s0
+    sxx = M[0, 0] - s0 * mx * mx
+    syy = M[1, 1] - s0 * my * my
+    sxy = M[0, 1] - s0 * mx * my
+    theta = 0.5 * math.atan2(2.0 * float(sxy), float(sxx - syy))
+    a, b = -math.sin(theta), math.cos(theta)
+    return a, b, -(a * float(mx) + b * float(my))
+
 def robust_line(pts: Array, rng: np.random.Generator, iters: int, inlier_px: float) -> tuple[Array, NDArray[np.bool_]]:
     """RANSAC then IRLS (Tukey) total-least-squares line with a final 3-sigma rejection.
 
@@ -259,24 +275,28 @@ def robust_line(pts: Array, rng: np.random.Generator, iters: int, inlier_px: flo
         return np.array([np.nan, np.nan, np.nan]), np.zeros(n, dtype=bool)
     # the fits in coordinates centred on the points (better conditioned, same lines)
     o = pts.sum(0) / n
-    q = pts - o
-    x, y = q[:, 0], q[:, 1]
+    Q = np.ones((n, 3))
+    Q[:, :2] = pts - o
     a, b, c0 = best
-    inl = np.abs(a * x + b * y + (c0 + a * float(o[0]) + b * float(o[1]))) < inlier_px
-    a, b, c0 = _tls(q[inl])
+    inl = np.abs(Q @ np.array([a, b, c0 + a * float(o[0]) + b * float(o[1])])) < inlier_px
+    a, b, c0 = _tls_q(Q[inl])
     for _ in range(4):
-        r = a * x + b * y + c0
+        r = Q @ np.array([a, b, c0])
         cut = 4.685 * max(1.4826 * _median(np.abs(r[inl])), 0.05)
         t = r / cut
         keep = np.abs(t) < 1.0
         if np.count_nonzero(keep) < 2:
             break
-        a, b, c0 = _tls(q, np.where(keep, (1 - t * t) ** 2, 0.0))
-    r = np.abs(a * x + b * y + c0)
+        t *= t
+        np.subtract(1.0, t, out=t)
+        t *= t  # Tukey's biweight (1 - (r / cut)^2)^2, 0 beyond the cut
+        t[~keep] = 0.0
+        a, b, c0 = _tls_q(Q, t)
+    r = np.abs(Q @ np.array([a, b, c0]))
     near = r < 3 * inlier_px
     inl = r < max(3.0 * 1.4826 * _median(r[near]) if near.any() else inlier_px, 0.3)
     if np.count_nonzero(inl) >= 2:
-        a, b, c0 = _tls(q[inl])
+        a, b, c0 = _tls_q(Q[inl])
     return np.array([a, b, c0 - (a * float(o[0]) + b * float(o[1]))]), inl
 
 
