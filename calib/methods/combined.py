@@ -22,12 +22,13 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from ..baseframe import BaseFrameResult, base_frame_from_observations, estimate_base_frame
+from ..camera import CameraModel
 from ..errors import ConvergenceError, IdentifiabilityError
 from ..kinematics import pose_from_joints_reduced
 from ..numdiff import central_jacobian
 from ..observations import Observations, PhaseArrays
 from ..parameters import COMBINATION_NAMES
-from ..transforms import rotvec_to_matrix
+from ..transforms import matrix_to_rotvec, rotvec_to_matrix
 from . import intrinsics as intr
 from .iterations import IterationCallback, traced
 from .result import MethodResult, check_excitation, combos_dict, std_dict
@@ -89,24 +90,24 @@ class _Problem:
         for name in ("u_cam", "k", "leg", "rod"):
             setattr(self, name, getattr(self, name)[keep])
         self.n_poses = len(np.unique(self.k))
-        #: (M, 2, n) change of the measured entries per unit of the intrinsics' nuisance unknowns z
-        self.D: np.ndarray | None = None
+        self.intrinsics: _IntrinsicsModel | None = None
 
     def select(self, keep: np.ndarray) -> None:
         """Keep only the rods where ``keep`` (bool, (M,)) is set."""
         for name in ("u_cam", "k", "leg", "rod"):
             setattr(self, name, getattr(self, name)[keep])
-        if self.D is not None:
-            self.D = self.D[keep]
+        if self.intrinsics is not None:
+            self.intrinsics.select(keep)
         self.n_poses = len(np.unique(self.k))
 
     def measured(self, R_cb: np.ndarray | None = None, z: np.ndarray | None = None) -> np.ndarray:
-        """The measured Jacobian entries (M, 2), for the intrinsics moved by ``z`` (first order) when given."""
-        uB = self.u_cam @ (self.R_cb if R_cb is None else R_cb)
-        out = uB[:, 1:] / uB[:, :1]
-        if z is not None and z.size and self.D is not None:
-            out = out + self.D @ z
-        return out
+        """The measured Jacobian entries (M, 2); with ``z``, for the intrinsics moved by ``z``."""
+        R = self.R_cb if R_cb is None else R_cb
+        u = self.u_cam
+        if z is not None and z.size and self.intrinsics is not None:
+            u, R = self.intrinsics.directions(z, u), self.intrinsics.rotation(z) @ R
+        uB = u @ R
+        return uB[:, 1:] / uB[:, :1]
 
     def model(self, combos: np.ndarray, q: np.ndarray | None = None) -> np.ndarray:
         r = model_ratios(combos, self.q if q is None else q)
@@ -184,9 +185,9 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
     # each principal direction of their covariance, prior N(0, I); the measured quantities move by
     # D z to first order (:mod:`.intrinsics`). Their error is common to every rod, so it does not
     # average out; the rods also carry information on it, which the joint fit uses.
-    steps, D = _intrinsics_directions(obs, data, prob, bf)
-    prob.D = D
-    nz = 0 if D is None else D.shape[2]
+    prob.intrinsics = _IntrinsicsModel.build(obs, data, prob, bf)
+    steps = None if prob.intrinsics is None else prob.intrinsics.steps
+    nz = 0 if steps is None else steps.shape[0]
     # 0. outlier rods (a limb taken for another edge): a first fit, then every rod whose whitened
     #    residual is beyond the chi-square(2) 99.9% quantile of a robust noise scale is dropped and
     #    the fit repeated, until none is
@@ -342,43 +343,59 @@ def _joint_covariance(Jr: np.ndarray, Wd: np.ndarray, Sig: np.ndarray, Pw: np.nd
     return parts["legs_and_encoders"] + parts["base_frame"] + parts["intrinsics"], parts
 
 
-def _intrinsics_directions(obs: Observations, data: PhaseArrays, prob: _Problem,
-                           bf: BaseFrameResult) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """The intrinsics' principal steps (n, 8) and the measured quantities' change per step, (M, 2, n).
+class _IntrinsicsModel:
+    """How the measured rods and the base frame move with the camera's intrinsics.
 
-    Each step is one standard deviation along a principal direction of the intrinsics' covariance
-    (fx, fy, cx, cy, k1, k2, p1, p2; :mod:`.intrinsics`); each rod's planes are recomputed from its
-    limb samples (``limbs_px``) and the base frame from the board poses moved by their
-    ``d_intrinsics`` (central differences). (None, None) when the camera's uncertainty or a rod's
-    limb samples are missing.
+    The intrinsics are ``camera + steps^T z`` (``steps`` (n, 8): one standard deviation along each
+    principal direction of their covariance, :mod:`.intrinsics`; z the nuisance unknowns, prior
+    N(0, I)). Each rod's direction is recomputed exactly from its limb samples (``limbs_px``) for
+    those intrinsics; the base frame's rotation moves to first order, ``exp([G z]) R``, G (3, n)
+    from re-estimating it with the board poses moved by their ``d_intrinsics`` (central
+    differences), or not at all when a board lacks them.
     """
-    prior = intr.intrinsics_prior(obs)
-    limbs = _rod_field(obs, data, prob, "limbs_px")
-    H = _rod_field(obs, data, prob, "h")
-    if prior is None or limbs is None or H is None:
-        return None, None
-    camera, cov = prior
-    rot, tra = obs.arrays("rotation"), obs.arrays("translation")
-    s_rot, s_tra = intr.board_sensitivities(obs, rot), intr.board_sensitivities(obs, tra)
-    u0 = prob.u_cam
 
-    def measured(step: np.ndarray) -> np.ndarray:
-        h = intr.limb_planes_for(intr.perturbed_camera(camera, step), limbs, H)
+    def __init__(self, camera: CameraModel, steps: np.ndarray, limbs: np.ndarray, H: np.ndarray,
+                 G: np.ndarray) -> None:
+        self.camera, self.steps, self.limbs, self.H, self.G = camera, steps, limbs, H, G
+
+    @classmethod
+    def build(cls, obs: Observations, data: PhaseArrays, prob: _Problem,
+              bf: BaseFrameResult) -> _IntrinsicsModel | None:
+        """None when the camera's uncertainty or a rod's limb samples are missing."""
+        prior = intr.intrinsics_prior(obs)
+        limbs = _rod_field(obs, data, prob, "limbs_px")
+        H = _rod_field(obs, data, prob, "h")
+        if prior is None or limbs is None or H is None:
+            return None
+        camera, cov = prior
+        steps = intr.principal_steps(cov)
+        if steps.shape[0] == 0:
+            return None
+        rot, tra = obs.arrays("rotation"), obs.arrays("translation")
+        s_rot, s_tra = intr.board_sensitivities(obs, rot), intr.board_sensitivities(obs, tra)
+        G = np.zeros((3, steps.shape[0]))
+        if s_rot is not None and s_tra is not None:
+            R0 = bf.camera_from_base_R
+            for j, st in enumerate(steps):
+                Rp, Rm = (estimate_base_frame(intr.perturbed_boards(rot, s_rot, sg * st),
+                                              intr.perturbed_boards(tra, s_tra, sg * st)).camera_from_base_R
+                          for sg in (1.0, -1.0))
+                G[:, j] = (matrix_to_rotvec(Rp @ R0.T) - matrix_to_rotvec(Rm @ R0.T)) / 2.0
+        return cls(camera, steps, limbs, H, G)
+
+    def select(self, keep: np.ndarray) -> None:
+        self.limbs, self.H = self.limbs[keep], self.H[keep]
+
+    def directions(self, z: np.ndarray, reference: np.ndarray) -> np.ndarray:
+        """Rod directions (M, 3), camera frame, for the intrinsics moved by ``z``; signed like ``reference``."""
+        h = intr.limb_planes_for(intr.perturbed_camera(self.camera, self.steps.T @ z), self.limbs, self.H)
         u = np.cross(h[:, 0], h[:, 1])
         u /= np.linalg.norm(u, axis=1, keepdims=True)
-        u *= np.sign(np.sum(u * u0, axis=1))[:, None]
-        R0 = bf.camera_from_base_R
-        if s_rot is not None and s_tra is not None:
-            R0 = estimate_base_frame(intr.perturbed_boards(rot, s_rot, step),
-                                     intr.perturbed_boards(tra, s_tra, step)).camera_from_base_R
-        uB = u @ R0
-        return uB[:, 1:] / uB[:, :1]
+        return u * np.sign(np.sum(u * reference, axis=1))[:, None]
 
-    steps = intr.principal_steps(cov)
-    if steps.shape[0] == 0:
-        return None, None
-    D = np.stack([(measured(st) - measured(-st)) / 2.0 for st in steps], axis=2)
-    return steps, D
+    def rotation(self, z: np.ndarray) -> np.ndarray:
+        """The base frame's rotation change (3, 3) for ``z``, applied on the left."""
+        return rotvec_to_matrix(self.G @ z)
 
 
 _CHI2_2_999 = 13.8155  # chi-square, 2 dof, 99.9% quantile

@@ -1,0 +1,99 @@
+"""The camera calibration's uncertainty and its first-order effect on what the methods use.
+
+* the 8x8 covariance of (fx, fy, cx, cy, k1, k2, p1, p2) from the calibrateCameraRO bundle: its
+  diagonal equals OpenCV's standard deviations, and over seeded rendered camera phases the errors'
+  Mahalanobis distance averages the number of parameters (the covariance is honest, correlations
+  included);
+* a board pose's ``d_intrinsics`` predicts how the pose moves when the intrinsics do;
+* a rod's planes recomputed from its limb samples for another camera are that camera's planes.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from calib.camera import calibrate_intrinsics
+from calib.methods import intrinsics as intr
+from calib.transforms import matrix_to_rotvec
+from calib.vision.board import BoardDetector
+from calib.vision.rods import limb_planes
+from drivers.sim.render import BenchRenderer, RenderSettings
+
+
+def _calibrate(seed: int, views: int):
+    s = RenderSettings()
+    r = BenchRenderer(settings=s, seed=seed)
+    rng = np.random.default_rng(seed + 100)
+    det = BoardDetector(s.board)
+    found = {}
+    for i, pose in enumerate(r.random_board_views(views, rng)):
+        d = det.detect(r.render_board_view(pose, rng))
+        found[i] = (d.ids, d.pixels, None)
+    res = calibrate_intrinsics(found, (s.width, s.height), det.ids_all, det.points_nominal)
+    true = np.array([s.fx, s.fy, s.cx, s.cy, *s.dist[:4]])
+    K, dist = res.camera.K, res.camera.dist
+    est = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2], *dist[:4]])
+    return res, est - true
+
+
+@pytest.mark.slow
+def test_intrinsics_covariance_is_opencvs_and_honest():
+    n = 12
+    d2 = []
+    for seed in range(n):
+        res, err = _calibrate(seed, 20)
+        cov = np.asarray(res.camera.extra["calibration"]["covariance"])
+        ocv = np.array([res.std[k] for k in intr.INTRINSICS_NAMES])
+        np.testing.assert_allclose(np.sqrt(np.diag(cov)), ocv, rtol=1e-3)
+        d2.append(float(err @ np.linalg.solve(cov, err)))
+    # chi-square(8): mean 8, std of the mean of n draws sqrt(16 / n); 3 of those either side
+    tol = 3 * np.sqrt(16 / n)
+    print(f"mean Mahalanobis distance {np.mean(d2):.2f} (chi-square(8): 8 +/- {tol:.2f})")
+    assert abs(np.mean(d2) - 8) < tol, d2
+
+
+def test_board_pose_sensitivity_predicts_the_change():
+    s = RenderSettings()
+    r = BenchRenderer(settings=s, seed=3)
+    rng = np.random.default_rng(3)
+    det = BoardDetector(s.board)
+    cam = s.camera()
+    img = r.render_board_view(r.random_board_views(1, rng)[0], rng)
+    detection = det.detect(img)
+    base = det.pose(detection, cam)
+    assert not isinstance(base, str) and base.d_intrinsics is not None
+    # a quarter of a calibration's typical std each: the first-order regime (at a whole std, fx alone
+    # -- a change of aspect ratio -- moves the depth 4% off the tangent: second order, cancelled by
+    # the methods' central differences)
+    typical = 0.25 * np.array([2.0, 2.0, 4.0, 4.0, 2e-3, 4e-3, 4e-4, 4e-4])
+    for j in range(8):
+        step = np.zeros(8)
+        step[j] = typical[j]
+        moved = det.pose(detection, intr.perturbed_camera(cam, step))
+        w = matrix_to_rotvec(moved.R @ base.R.T)
+        dt = moved.t - base.t
+        pred = base.d_intrinsics @ step
+        # first order: the prediction's error is second order in the step (a few % of the change)
+        assert np.linalg.norm(w - pred[:3]) < 0.05 * np.linalg.norm(w) + 2e-6, (j, w, pred[:3])
+        assert np.linalg.norm(dt - pred[3:]) < 0.05 * np.linalg.norm(dt) + 2e-6, (j, dt, pred[3:])
+
+
+def test_limb_planes_for_another_camera_are_its_planes():
+    rng = np.random.default_rng(7)
+    cam = RenderSettings().camera()
+    other = intr.perturbed_camera(cam, np.array([3.0, -2.0, 5.0, -4.0, 5e-3, -8e-3, 6e-4, -5e-4]))
+    for _ in range(20):
+        point = np.array([rng.uniform(-0.15, 0.15), rng.uniform(-0.1, 0.1), rng.uniform(0.5, 0.9)])
+        u = rng.normal(size=3)
+        u /= np.linalg.norm(u)
+        hs = np.array(limb_planes(point, u, 0.006))  # (2, 3): the true tangent planes
+        # samples of each limb: points of the cylinder's tangent lines, seen through ``other``
+        limbs = []
+        for h in hs:
+            # the limb: the axis moved by -radius along h (h . X = radius on the axis, 0 on the plane)
+            pts = (point - 0.006 * h)[None] + np.linspace(-0.05, 0.05, 5)[:, None] * u[None]
+            limbs.append(other.project(pts))
+        got = intr.limb_planes_for(other, np.asarray(limbs)[None], hs[None])[0]
+        for g, h in zip(got, hs, strict=True):
+            assert np.linalg.norm(np.cross(g, h)) < 1e-6, (g, h)
