@@ -375,9 +375,9 @@ class _IdealToImage:
 
     def __init__(self, camera: CameraModel) -> None:
         self.camera = camera
-        Kinv = np.linalg.inv(camera.K)
-        self.A = Kinv[:2, :2]
-        self.b = Kinv[:2, 2]
+        self.Kinv = np.linalg.inv(camera.K)
+        self.A = self.Kinv[:2, :2]
+        self.b = self.Kinv[:2, 2]
         d = np.zeros(14)
         d[: camera.dist.size] = camera.dist
         self.d = d
@@ -385,8 +385,21 @@ class _IdealToImage:
         self.prism = bool(np.any(d[8:12] != 0))
 
     def points(self, uv: Array) -> Array:
-        """Ideal pixels (N, 2) -> distorted pixels (N, 2), float64."""
-        return self.camera.distort_normalized(uv @ self.A.T + self.b)
+        """Ideal pixels (N, 2) -> distorted pixels (N, 2), float64 (the camera's own arithmetic)."""
+        xn = uv @ self.A.T + self.b
+        if self.rational or self.prism:
+            return self.camera.distort_normalized(xn)
+        k1, k2, p1, p2, k3 = self.d[:5]
+        x, y = xn[:, 0], xn[:, 1]
+        r2 = x * x + y * y
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        K = self.camera.K
+        out = np.empty_like(xn)
+        out[:, 0] = K[0, 0] * xd + K[0, 1] * yd + K[0, 2]
+        out[:, 1] = K[1, 1] * yd + K[1, 2]
+        return out
 
     def grid(self, centres: Array, n_dir: Array, offs: Array) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
         """Distorted pixels (x, y maps, each (P, S), float32) of the ideal points ``centres[p] + offs[s] n_dir``."""
@@ -652,7 +665,9 @@ def _direction_covariance(K: Array, fits: list[tuple[Array, Array, float, Array]
         h = lines @ K  # rows: (K^T l)^T
         h /= np.linalg.norm(h, axis=1, keepdims=True)
         hs.append(h * np.where(h @ inner > 0, 1.0, -1.0)[:, None])
-    u = np.cross(hs[0], hs[1])
+    a, b = hs
+    u = np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                  a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)  # h1 x h2, row by row
     u /= np.linalg.norm(u, axis=1, keepdims=True)
     u *= np.where(u @ u[0] > 0, 1.0, -1.0)[:, None]
     J = ((u[1::2] - u[2::2]) / (2.0 * step[:, None])).T  # (3, 4)
@@ -787,7 +802,7 @@ def measure_rod(gray: np.ndarray, camera: CameraModel, pred: RodPrediction, radi
     for line in lines:
         den = line[:2] @ n_dir
         xs.append(-(cmid @ line[:2] + line[2]) / den if abs(den) > 1e-9 else 0.0)
-    inner = np.linalg.inv(K) @ np.append(cmid + 0.5 * (xs[0] + xs[1]) * n_dir, 1.0)
+    inner = proj.Kinv @ np.append(cmid + 0.5 * (xs[0] + xs[1]) * n_dir, 1.0)
     hs = []
     for line in lines:
         h = K.T @ line
