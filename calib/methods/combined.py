@@ -350,13 +350,14 @@ class _IntrinsicsModel:
     principal direction of their covariance, :mod:`.intrinsics`; z the nuisance unknowns, prior
     N(0, I)). Each rod's direction is recomputed exactly from its limb samples (``limbs_px``) for
     those intrinsics; the base frame's rotation moves to first order, ``exp([G z]) R``, G (3, n)
-    from re-estimating it with the board poses moved by their ``d_intrinsics`` (central
-    differences), or not at all when a board lacks them.
+    from re-estimating it with the board poses moved by their ``d_intrinsics`` (one step per
+    direction), or not at all when a board lacks them.
     """
 
     def __init__(self, camera: CameraModel, steps: np.ndarray, limbs: np.ndarray, H: np.ndarray,
                  G: np.ndarray) -> None:
         self.camera, self.steps, self.limbs, self.H, self.G = camera, steps, limbs, H, G
+        self._last: tuple[bytes, np.ndarray] | None = None  # the numeric Jacobians move z in few columns
 
     @classmethod
     def build(cls, obs: Observations, data: PhaseArrays, prob: _Problem,
@@ -376,22 +377,27 @@ class _IntrinsicsModel:
         G = np.zeros((3, steps.shape[0]))
         if s_rot is not None and s_tra is not None:
             R0 = bf.camera_from_base_R
-            for j, st in enumerate(steps):
-                Rp, Rm = (estimate_base_frame(intr.perturbed_boards(rot, s_rot, sg * st),
-                                              intr.perturbed_boards(tra, s_tra, sg * st)).camera_from_base_R
-                          for sg in (1.0, -1.0))
-                G[:, j] = (matrix_to_rotvec(Rp @ R0.T) - matrix_to_rotvec(Rm @ R0.T)) / 2.0
+            for j, st in enumerate(steps):  # one-sided: R0 is the estimate from the same board poses
+                Rp = estimate_base_frame(intr.perturbed_boards(rot, s_rot, st),
+                                         intr.perturbed_boards(tra, s_tra, st)).camera_from_base_R
+                G[:, j] = matrix_to_rotvec(Rp @ R0.T)
         return cls(camera, steps, limbs, H, G)
 
     def select(self, keep: np.ndarray) -> None:
         self.limbs, self.H = self.limbs[keep], self.H[keep]
+        self._last = None
 
     def directions(self, z: np.ndarray, reference: np.ndarray) -> np.ndarray:
         """Rod directions (M, 3), camera frame, for the intrinsics moved by ``z``; signed like ``reference``."""
+        key = np.asarray(z, dtype=np.float64).tobytes()
+        if self._last is not None and self._last[0] == key and self._last[1].shape == reference.shape:
+            return self._last[1]
         h = intr.limb_planes_for(intr.perturbed_camera(self.camera, self.steps.T @ z), self.limbs, self.H)
         u = np.cross(h[:, 0], h[:, 1])
         u /= np.linalg.norm(u, axis=1, keepdims=True)
-        return u * np.sign(np.sum(u * reference, axis=1))[:, None]
+        u *= np.sign(np.sum(u * reference, axis=1))[:, None]
+        self._last = (key, u)
+        return u
 
     def rotation(self, z: np.ndarray) -> np.ndarray:
         """The base frame's rotation change (3, 3) for ``z``, applied on the left."""
