@@ -20,17 +20,20 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.optimize import least_squares
+from scipy.stats import chi2
 
 from ..baseframe import base_frame_from_observations
 from ..errors import ConvergenceError, I4calError, IdentifiabilityError
 from ..kinematics import dkm
 from ..numdiff import central_jacobian
-from ..observations import Observations
+from ..observations import Observations, PhaseArrays
 from ..parameters import COMBINATION_NAMES
-from ..transforms import orthonormalize, rot_z, rotvec_to_matrix
+from ..transforms import matrix_to_rotvec, orthonormalize, rot_z, rotvec_to_matrix, skew
 from .iterations import IterationCallback, trf_callback
 from .result import MethodResult, check_excitation, combos_dict, std_dict
 
+_CHI2_6_MEDIAN = float(chi2.median(6))
+_CHI2_6_GATE = float(chi2.ppf(0.999, 6))
 _NAMES = (*COMBINATION_NAMES, "o1", "o3", "w_x", "w_y", "w_z", "t_y", "t_z", "tilt_x", "tilt_y", "b_x", "b_y")
 
 
@@ -141,27 +144,37 @@ def calibrate_end_effector(obs: Observations, *, phases: tuple[str, ...] = ("pos
     x0[4] -= np.mean(r0[:, :2])
     x0[5] -= np.mean(r0[:, 2:4])
 
-    Wh = np.broadcast_to(np.diag([1.0, 1.0, 1.0, 1.0, 1.0, 1.0]), (n, 6, 6)).copy()
+    C_board = board_covariances(obs, data)  # (n, 6, 6) or None (numbers without the extraction's covariances)
+    Wh = np.broadcast_to(np.eye(6), (n, 6, 6)).copy()
+    keep = np.ones(n, dtype=bool)
 
     def wres(x: np.ndarray) -> np.ndarray:
-        return np.einsum("nij,nj->ni", Wh, model.residuals(x)).ravel()
+        return np.einsum("nij,nj->ni", Wh, model.residuals(x))[keep].ravel()
 
     check_excitation(central_jacobian(lambda x: model.residuals(x).ravel(), x0), _NAMES)
     p = x0.size
     x = x0
     nfev = 0
     Sigma_b = np.zeros((6, 6))
-    for npass in range(max(iterations, 1)):
+    scale2 = 1.0
+    chi2_pose = np.zeros(n)
+    n_passes = max(iterations, 1) + (2 if C_board is not None else 0)
+    for npass in range(n_passes):
         if npass > 0:
             r = model.residuals(x)
             if np.sqrt(np.mean(r ** 2)) < 1e-12:
                 break  # noise-free data: nothing to weight
-            # map residuals back to board-pose errors (rotation left-perturbation, translation), per pose;
-            # a diagonal noise covariance (6 variances) stays stable with 20 poses
             Ak = _pose_sensitivity(model, x)  # (n, 6, 6)
-            eps = np.linalg.solve(Ak, r[..., None])[..., 0]
-            Sigma_b = np.diag(np.diag(eps.T @ eps)) / max(n - p / 6.0, 1.0)
-            Cr = Ak @ Sigma_b @ Ak.transpose(0, 2, 1)
+            if C_board is not None:
+                # each pose's own covariance (PnP), times one common factor measured from the residuals
+                scale2, keep, chi2_pose = _board_noise_scale(Ak, C_board, r, encoder_std_m, p)
+                Cr = scale2 * Ak @ C_board @ Ak.transpose(0, 2, 1)
+            else:
+                # map residuals back to board-pose errors (rotation left-perturbation, translation), per pose;
+                # a diagonal noise covariance (6 variances) stays stable with 20 poses
+                eps = np.linalg.solve(Ak, r[..., None])[..., 0]
+                Sigma_b = np.diag(np.diag(eps.T @ eps)) / max(n - p / 6.0, 1.0)
+                Cr = Ak @ Sigma_b @ Ak.transpose(0, 2, 1)
             Cr[:, :4, :4] += encoder_std_m ** 2 * np.eye(4)
             Cr += 1e-30 * np.eye(6)
             Wh = np.linalg.cholesky(np.linalg.inv(Cr)).transpose(0, 2, 1)
@@ -176,9 +189,11 @@ def calibrate_end_effector(obs: Observations, *, phases: tuple[str, ...] = ("pos
     if np.sqrt(np.mean(r ** 2)) < 1e-12:
         cov_full = np.zeros((p, p))
     else:
-        chi2 = float(np.sum(wres(x) ** 2))
-        dof = max(6 * n - p, 1)
-        cov_full = np.linalg.inv(J.T @ J) * max(chi2 / dof, 1e-300)
+        chi2_total = float(np.sum(wres(x) ** 2))
+        dof = max(6 * int(keep.sum()) - p, 1)
+        cov_full = np.linalg.inv(J.T @ J) * max(chi2_total / dof, 1e-300)
+    if C_board is not None:
+        Sigma_b = scale2 * np.mean(C_board[keep], axis=0)
     cov = cov_full[:4, :4]
     return MethodResult(
         method="end-effector", combinations=combos_dict(x[:4]), combinations_std=std_dict(cov), covariance=cov,
@@ -188,6 +203,10 @@ def calibrate_end_effector(obs: Observations, *, phases: tuple[str, ...] = ("pos
             "tilt_residual_rms_deg": float(np.rad2deg(np.sqrt(np.mean(r[:, 4:] ** 2)))),
             "board_noise_std": {"rotation_deg": np.rad2deg(np.sqrt(np.diag(Sigma_b)[:3])).tolist(),
                                 "translation_mm": (np.sqrt(np.diag(Sigma_b)[3:]) * 1e3).tolist()},
+            "board_noise_model": "per-pose covariance x factor" if C_board is not None else "diagonal, from residuals",
+            "board_cov_factor": float(np.sqrt(scale2)) if C_board is not None else None,
+            "rejected_poses": [int(i) for i in data.index[~keep]],
+            "pose_chi2": chi2_pose.tolist(),
             "camera_tilt_deg": float(np.rad2deg(np.linalg.norm(x[6:9]))),
             "board_offset_on_ee_m": [float(x[13]), float(x[14])],
         },
@@ -227,6 +246,79 @@ def _solve(fun, x0: np.ndarray, on_iteration: IterationCallback | None = None, s
     sol.x = x
     sol.fun = r
     return sol
+
+
+def board_covariances(obs: Observations, arrays: PhaseArrays) -> np.ndarray | None:
+    """The extraction's covariance of each board pose, as (left rotation [rad], t [m]), shape (N, 6, 6).
+
+    The extraction gives ``board.cov`` for (rotation vector, t) from the PnP Jacobian; a change ``d`` of the
+    rotation vector ``r`` is the left rotation ``J_l(r) d``. None when any pose of ``arrays`` lacks it or it is
+    not a finite positive-definite 6x6 matrix (the geometric twin's numbers).
+    """
+    out = np.empty((len(arrays), 6, 6))
+    for k, i in enumerate(arrays.index):
+        board = obs.frames[int(i)].board
+        c = getattr(board, "cov", None) if board is not None else None
+        if c is None:
+            return None
+        C = np.asarray(c, dtype=np.float64)
+        if C.shape != (6, 6) or not np.all(np.isfinite(C)):
+            return None
+        T = np.eye(6)
+        T[:3, :3] = _left_jacobian(matrix_to_rotvec(arrays.board_R[k]))
+        C = T @ (0.5 * (C + C.T)) @ T.T
+        if np.linalg.eigvalsh(C)[0] <= 0:
+            return None
+        out[k] = C
+    return out
+
+
+def _left_jacobian(rv: np.ndarray) -> np.ndarray:
+    """Left Jacobian of SO(3) at rotation vector ``rv`` (3,): ``exp(rv + d) = exp(J_l d) exp(rv)``, shape (3, 3)."""
+    th = float(np.linalg.norm(rv))
+    K = skew(rv)
+    if th < 1e-8:
+        return np.eye(3) + 0.5 * K
+    return np.eye(3) + (1 - np.cos(th)) / th ** 2 * K + (th - np.sin(th)) / th ** 3 * K @ K
+
+
+def _board_noise_scale(Ak: np.ndarray, C_board: np.ndarray, r: np.ndarray, encoder_std_m: float,
+                       n_params: int) -> tuple[float, np.ndarray, np.ndarray]:
+    """Common factor of the board poses' covariances, measured from the residuals, with outlier poses gated.
+
+    Parameters
+    ----------
+    Ak : ndarray, shape (N, 6, 6)
+        d residuals / d board-pose error per pose.
+    C_board : ndarray, shape (N, 6, 6)
+        The extraction's board-pose covariances (left rotation, t).
+    r : ndarray, shape (N, 6)
+        Residuals at the current estimate.
+    encoder_std_m : float
+    n_params : int
+        Unknowns of the fit (the degrees of freedom the residuals lost).
+
+    Returns
+    -------
+    scale2 : float
+        Variance factor ``s^2``: the board poses' noise is ``s^2 C_board``.
+    keep : ndarray of bool, shape (N,)
+        Poses whose chi-square (6 dof, at the robust factor) is below its 99.9 % quantile.
+    chi2 : ndarray, shape (N,)
+        Each pose's chi-square at the returned factor.
+    """
+    Cr = Ak @ C_board @ Ak.transpose(0, 2, 1)
+    Cr[:, :4, :4] += 1e-30 * np.eye(4)
+    q = np.einsum("ni,ni->n", r, np.linalg.solve(Cr, r[..., None])[..., 0])  # chi-square at factor 1
+    enc = np.einsum("nii->n", np.linalg.inv(Cr)[:, :4, :4]) * encoder_std_m ** 2  # encoder part, expected
+    q_board = np.maximum(q - enc, 1e-300)
+    robust = float(np.median(q_board)) / _CHI2_6_MEDIAN
+    keep = q_board / robust < _CHI2_6_GATE
+    if keep.sum() < max(4, int(np.ceil(0.75 * len(q)))):  # no gating of more than a quarter of the poses
+        keep = q_board <= np.sort(q_board)[int(np.ceil(0.75 * len(q))) - 1]
+    dof = max(6 * int(keep.sum()) - n_params, 1)
+    scale2 = max(float(np.sum(q_board[keep])) / dof, 1e-300)
+    return scale2, keep, q / scale2
 
 
 def _pose_sensitivity(model: _Model, x: np.ndarray, h: float = 1e-7) -> np.ndarray:
