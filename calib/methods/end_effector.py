@@ -29,6 +29,7 @@ from ..numdiff import central_jacobian
 from ..observations import Observations, PhaseArrays
 from ..parameters import COMBINATION_NAMES
 from ..transforms import matrix_to_rotvec, orthonormalize, rot_z, rotvec_to_matrix, skew
+from . import intrinsics as intr
 from .iterations import IterationCallback, trf_callback
 from .result import MethodResult, check_excitation, combos_dict, std_dict
 
@@ -193,12 +194,18 @@ def calibrate_end_effector(obs: Observations, *, phases: tuple[str, ...] = ("pos
         dof = max(6 * int(keep.sum()) - p, 1)
         cov_full = np.linalg.inv(J.T @ J) * max(chi2_total / dof, 1e-300)
     if C_board is not None:
-        Sigma_b = scale2 * np.mean(C_board[keep], axis=0)
-    cov = cov_full[:4, :4]
+        Sigma_b = scale2 * np.median(C_board[keep], axis=0)
+    cov_poses = cov_full[:4, :4]
+    cov_intr = _intrinsics_covariance(obs, data, model, x, Wh, keep, J)
+    cov = cov_poses if cov_intr is None else cov_poses + cov_intr
+    breakdown = {"board_poses_and_encoders": std_dict(cov_poses)}
+    if cov_intr is not None:
+        breakdown["intrinsics"] = std_dict(cov_intr)
     return MethodResult(
         method="end-effector", combinations=combos_dict(x[:4]), combinations_std=std_dict(cov), covariance=cov,
         residual_rms=float(np.sqrt(np.mean(r[:, :4] ** 2))), residual_unit="m (IKM joint residual)",
         n_observations=6 * n, n_poses=n, iterations=int(nfev), converged=True, message=str(sol.message),
+        std_breakdown=breakdown,
         diagnostics={
             "tilt_residual_rms_deg": float(np.rad2deg(np.sqrt(np.mean(r[:, 4:] ** 2)))),
             "board_noise_std": {"rotation_deg": np.rad2deg(np.sqrt(np.diag(Sigma_b)[:3])).tolist(),
@@ -271,6 +278,30 @@ def board_covariances(obs: Observations, arrays: PhaseArrays) -> np.ndarray | No
             return None
         out[k] = C
     return out
+
+
+def _intrinsics_covariance(obs: Observations, data: PhaseArrays, model: _Model, x: np.ndarray, Wh: np.ndarray,
+                           keep: np.ndarray, J: np.ndarray) -> np.ndarray | None:
+    """Covariance (4, 4) of the combinations due to the camera intrinsics' error, common to every pose.
+
+    The board poses move by ``d_intrinsics @ step`` for one standard deviation ``step`` along each principal
+    direction of the intrinsics' covariance (:mod:`.intrinsics`); the estimate moves by the weighted fit's
+    gain times the whitened residuals' change. None when the camera's covariance or a pose's
+    ``d_intrinsics`` is unknown.
+    """
+    prior = intr.intrinsics_prior(obs)
+    sens = intr.board_sensitivities(obs, data)
+    if prior is None or sens is None:
+        return None
+    steps = intr.principal_steps(prior[1])
+    if steps.shape[0] == 0:
+        return None
+    Ak = _pose_sensitivity(model, x)[keep]  # (m, 6, 6)
+    WA = Wh[keep] @ Ak
+    gain = np.linalg.solve(J.T @ J, J.T)  # (p, 6 m)
+    dr = np.einsum("nij,njk,sk->sni", WA, sens[keep], steps).reshape(steps.shape[0], -1)  # (s, 6 m)
+    dx = dr @ gain.T  # (s, p): minus sign irrelevant for a covariance
+    return (dx.T @ dx)[:4, :4]
 
 
 def _left_jacobian(rv: np.ndarray) -> np.ndarray:
