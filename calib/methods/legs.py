@@ -40,17 +40,19 @@ The two parts come from different frames (``lock-i`` and fit phases) and are ind
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.stats import chi2
 
-from ..errors import ConvergenceError, IdentifiabilityError
+from ..camera import CameraModel
+from ..errors import ConvergenceError, IdentifiabilityError, InputError
 from ..numdiff import central_jacobian
 from ..observations import Observations, PhaseArrays
 from ..parameters import COMBINATION_NAMES, PARAMETER_NAMES, I4Parameters
 from ..transforms import unit
+from . import intrinsics as intr
 from .iterations import IterationCallback, traced
 from .result import MethodResult, combos_dict, std_dict
 
@@ -357,11 +359,12 @@ class _LegsPipeline:
         Aq, Uo = self.oriented(x, A0, U)
         theta = np.asarray(theta0, dtype=np.float64)
         passes = 3 if self.W is None else 1
-        for _ in range(passes):
+        for npass in range(passes):
             if passes > 1:
                 C = self.covariances(theta, Aq, Uo, y)
                 self.W = np.linalg.cholesky(np.linalg.inv(C)).transpose(0, 2, 1)
-            sol = least_squares(traced(lambda t: self.whitened(t, Aq, Uo, y).ravel(), on_iteration, "steps 3-4"),
+            stage = "steps 3-4" if npass == 0 else f"steps 3-4 pass {npass + 1}"  # each fit's cost falls
+            sol = least_squares(traced(lambda t: self.whitened(t, Aq, Uo, y).ravel(), on_iteration, stage),
                                 theta, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
             if sol.status <= 0 or not np.all(np.isfinite(sol.x)):
                 raise ConvergenceError(f"legs steps 3-4 (eq. 11) did not converge: {sol.message}")
@@ -465,9 +468,10 @@ def _trim_rod(obs: list[PlaneObservation], s_rob: float, max_subsets: int = 200)
 
 
 def _step1_planes(planes: list[list[list[PlaneObservation]]]
-                  ) -> tuple[np.ndarray, np.ndarray, float, list[dict[str, int]], float]:
+                  ) -> tuple[np.ndarray, np.ndarray, float, list[dict[str, int]], float, list[list[np.ndarray]]]:
     """Step 1 with plane equations: joints (4, 2, 3), covariances (4, 2, 3, 3), chi-square per dof,
-    dropped frames (lock phase, rod, index among the rod's frames) and the residual RMS (m)."""
+    dropped frames (lock phase, rod, index among the rod's frames), the residual RMS (m) and the
+    frames kept per rod (bool, [4][2])."""
     absolute = all(o.var is not None for row in planes for rod in row for o in rod)
     # robust noise scale from every frame's chi-square drop; absolute variances: at least 1; relative
     # ones: residuals below a nanometre are never outliers
@@ -494,21 +498,57 @@ def _step1_planes(planes: list[list[list[PlaneObservation]]]
             used = [o for o, kk in zip(planes[i][j], keep[i][j], strict=True) if kk]
             sq += float(sum(np.sum((o.h @ P[i, j] - o.r) ** 2) for o in used))
             n_eq += 2 * len(used)
-    return P, s2 * np.linalg.inv(A), s2, rejected, float(np.sqrt(sq / max(n_eq, 1)))
+    return P, s2 * np.linalg.inv(A), s2, rejected, float(np.sqrt(sq / max(n_eq, 1))), keep
+
+
+def _pair_means(u: np.ndarray, has: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per pose and leg, the covariance-weighted mean of its rods' directions.
+
+    Parameters
+    ----------
+    u : ndarray, shape (N, 4, 2, 3)
+        Rod directions (NaN where missing).
+    has : ndarray of bool, shape (N, 4, 2)
+    C : ndarray, shape (N, 4, 2, 3, 3)
+        Rod direction covariances.
+
+    Returns
+    -------
+    U : ndarray, shape (N, 4, 3)
+        Leg directions (NaN without a rod).
+    CU : ndarray, shape (N, 4, 3, 3)
+        Their covariances.
+    pair_d2 : ndarray, shape (N, 4)
+        The two rods' disagreement, chi-square with 2 dof (NaN without both rods).
+    """
+    u = u.copy()
+    dot = np.einsum("nlk,nlk->nl", u[:, :, 0], u[:, :, 1])
+    u[:, :, 1] *= np.where(np.isnan(dot), 1.0, np.sign(dot))[..., None]
+    N = u.shape[0]
+    U = np.full((N, 4, 3), np.nan)
+    CU = np.full((N, 4, 3, 3), np.nan)
+    pair_d2 = np.full((N, 4), np.nan)
+    for k in range(N):
+        for leg in range(4):
+            if has[k, leg].all():
+                U[k, leg], CU[k, leg], pair_d2[k, leg] = _gls_pair(u[k, leg], C[k, leg])
+            elif has[k, leg].any():
+                j = int(np.argmax(has[k, leg]))
+                U[k, leg], CU[k, leg] = unit(u[k, leg, j]), C[k, leg, j]
+    return U, CU, pair_d2
 
 
 def _leg_directions(obs: Observations, data: PhaseArrays, direction_std_rad: float | None
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool, list[dict[str, int]]]:
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool, list[dict[str, int]], np.ndarray]:
     """Per pose and leg: direction (N,4,3), its covariance (N,4,3,3), a rod point (N,4,3), mask (N,4).
 
     Also whether the covariances are the rods' measured ones (``cov_u``; else ``sigma^2 (I - u u^T)``
-    with sigma ``direction_std_rad`` or 1, relative) and the rod pairs rejected as disagreeing.
+    with sigma ``direction_std_rad`` or 1, relative), the rod pairs rejected as disagreeing and the
+    rods' covariances (N, 4, 2, 3, 3).
     """
     N = len(data)
-    u = data.rod_u.copy()
-    has = data.has_rod.copy()
-    dot = np.einsum("nlk,nlk->nl", u[:, :, 0], u[:, :, 1])
-    u[:, :, 1] *= np.where(np.isnan(dot), 1.0, np.sign(dot))[..., None]
+    u = data.rod_u
+    has = data.has_rod
     C = np.full((N, 4, 2, 3, 3), np.nan)
     measured = True
     for k, leg, rod in zip(*np.nonzero(has), strict=True):
@@ -521,16 +561,7 @@ def _leg_directions(obs: Observations, data: PhaseArrays, direction_std_rad: flo
         s = 1.0 if direction_std_rad is None else direction_std_rad
         uu = np.nan_to_num(u)
         C = s ** 2 * (np.eye(3) - uu[..., :, None] * uu[..., None, :])
-    U = np.full((N, 4, 3), np.nan)
-    CU = np.full((N, 4, 3, 3), np.nan)
-    pair_d2 = np.full((N, 4), np.nan)
-    for k in range(N):
-        for leg in range(4):
-            if has[k, leg].all():
-                U[k, leg], CU[k, leg], pair_d2[k, leg] = _gls_pair(u[k, leg], C[k, leg])
-            elif has[k, leg].any():
-                j = int(np.argmax(has[k, leg]))
-                U[k, leg], CU[k, leg] = unit(u[k, leg, j]), C[k, leg, j]
+    U, CU, pair_d2 = _pair_means(u, has, C)
     has_leg = has.any(axis=2)
     rejected: list[dict[str, int]] = []
     ok = np.isfinite(pair_d2)
@@ -543,7 +574,96 @@ def _leg_directions(obs: Observations, data: PhaseArrays, direction_std_rad: flo
             has_leg &= ~bad
     pts = np.where(data.has_point[:, :, 0, None], data.rod_p[:, :, 0], data.rod_p[:, :, 1])
     U = np.where(has_leg[..., None], U, np.nan)
-    return U, CU, pts, has_leg, measured, rejected
+    return U, CU, pts, has_leg, measured, rejected, C
+
+
+class _IntrinsicsEffect:
+    """The rods' planes and directions as measured through other intrinsics (the camera's error).
+
+    The intrinsics are ``camera + steps^T z`` (``steps`` (n, 8): one standard deviation along each
+    principal direction of their covariance, :func:`.intrinsics.principal_steps`); every used rod's
+    planes are recomputed from its limb samples (``limbs_px``) for those intrinsics
+    (:func:`.intrinsics.limb_planes_for`), its direction as their planes' intersection.
+    """
+
+    def __init__(self, camera: CameraModel, steps: np.ndarray, lock: list[list[tuple[np.ndarray, np.ndarray]]],
+                 fit_idx: tuple[np.ndarray, np.ndarray, np.ndarray], fit_limbs: np.ndarray,
+                 fit_h: np.ndarray) -> None:
+        self.camera, self.steps, self.lock = camera, steps, lock
+        self.fit_idx, self.fit_limbs, self.fit_h = fit_idx, fit_limbs, fit_h
+
+    @classmethod
+    def build(cls, obs: Observations, lock_data: list[PhaseArrays], data: PhaseArrays) -> _IntrinsicsEffect | None:
+        """None when the camera's covariance or any rod's ``limbs_px`` or ``h`` is missing."""
+        try:
+            prior = intr.intrinsics_prior(obs)
+        except InputError:  # an extraction camera without its size: no calibration to carry
+            return None
+        if prior is None:
+            return None
+        camera, cov = prior
+        steps = intr.principal_steps(cov)
+        if steps.shape[0] == 0:
+            return None
+
+        def fields(d: PhaseArrays, ks: np.ndarray, legs: np.ndarray, rods: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray] | None:
+            limbs, hs = [], []
+            for k, leg, rod in zip(ks, legs, rods, strict=True):
+                lm = _rod_field(obs, d, int(k), int(leg), int(rod), "limbs_px")
+                h = _rod_field(obs, d, int(k), int(leg), int(rod), "h")
+                if lm is None or h is None or lm.ndim != 3 or lm.shape[0] != 2 or h.shape != (2, 3):
+                    return None
+                limbs.append(lm)
+                hs.append(h / np.linalg.norm(h, axis=1, keepdims=True))
+            if len({lm.shape for lm in limbs}) > 1:
+                return None
+            return (np.asarray(limbs), np.asarray(hs)) if limbs else (np.zeros((0, 2, 1, 2)), np.zeros((0, 2, 3)))
+
+        lock = []
+        for i, d in enumerate(lock_data):
+            row = []
+            for j in range(2):
+                ks = np.nonzero(d.has_rod[:, i, j])[0]
+                f = fields(d, ks, np.full(len(ks), i), np.full(len(ks), j))
+                if f is None:
+                    return None
+                row.append(f)
+            lock.append(row)
+        idx = np.nonzero(data.has_rod)
+        f = fields(data, *idx)
+        if f is None:
+            return None
+        return cls(camera, steps, lock, idx, f[0], f[1])
+
+    def _planes(self, z: np.ndarray, limbs: np.ndarray, h: np.ndarray) -> np.ndarray:
+        if limbs.shape[0] == 0:
+            return h
+        return intr.limb_planes_for(intr.perturbed_camera(self.camera, self.steps.T @ z), limbs, h)
+
+    def lock_planes(self, z: np.ndarray, planes: list[list[list[PlaneObservation]]]
+                    ) -> list[list[list[PlaneObservation]]]:
+        """``planes`` (step 1, [4][2] lists) with every plane normal as measured for ``z``."""
+        out = []
+        for i in range(4):
+            row = []
+            for j in range(2):
+                limbs, h = self.lock[i][j]
+                hz = self._planes(z, limbs, h)
+                row.append([replace(o, h=hz[m]) for m, o in enumerate(planes[i][j])])
+            out.append(row)
+        return out
+
+    def rod_u(self, z: np.ndarray, rod_u: np.ndarray) -> np.ndarray:
+        """The fit phases' rod directions (N, 4, 2, 3) as measured for ``z``, signed like ``rod_u``."""
+        hz = self._planes(z, self.fit_limbs, self.fit_h)
+        u = np.cross(hz[:, 0], hz[:, 1])
+        u /= np.linalg.norm(u, axis=1, keepdims=True)
+        ref = rod_u[self.fit_idx]
+        u *= np.where(np.sum(u * ref, axis=1) < 0, -1.0, 1.0)[:, None]
+        out = rod_u.copy()
+        out[self.fit_idx] = u
+        return out
 
 
 def _gate_poses(pipe: _LegsPipeline, P: np.ndarray, U: np.ndarray, seven: np.ndarray) -> np.ndarray:
@@ -628,7 +748,7 @@ def calibrate_legs(obs: Observations, *, fit_phases: tuple[str, ...] = ("poses",
     use_planes = all(p is not None for row in planes for p in row)
     rejected_lock: list[dict[str, int]] = []
     if use_planes:
-        P, covPij, s2_1, rejected_lock, res_rms = _step1_planes(planes)  # type: ignore[arg-type]
+        P, covPij, s2_1, rejected_lock, res_rms, keep1 = _step1_planes(planes)  # type: ignore[arg-type]
         n_lines = sum(len(planes[i][j]) for i in range(4) for j in range(2))  # type: ignore[arg-type]
     else:
         P = np.zeros((4, 2, 3))
@@ -649,7 +769,7 @@ def calibrate_legs(obs: Observations, *, fit_phases: tuple[str, ...] = ("poses",
 
     # ---- steps 2-4
     data = obs.arrays(*fit_phases)
-    U, CU, pts, has_leg, measured, rejected_pairs = _leg_directions(obs, data, direction_std_rad)
+    U, CU, pts, has_leg, measured, rejected_pairs, C_rods = _leg_directions(obs, data, direction_std_rad)
     pipe = _LegsPipeline(q_lock, data.q, pts, has_leg, CU, nom)
     U_filled = np.where(has_leg[..., None], U, 0.0)
     seven = pipe.run(P, U_filled, on_iteration=on_iteration)
@@ -687,7 +807,23 @@ def calibrate_legs(obs: Observations, *, fit_phases: tuple[str, ...] = ("poses",
     cov_dirs = np.zeros((7, 7))
     idx = np.array([6, 4, 5])
     cov_dirs[np.ix_(idx, idx)] = s2_34 * c34
-    cov = cov_joints + cov_dirs
+    # (iii) the camera's intrinsics, common to every frame: the whole estimate redone (frames, gating and
+    #       weights fixed) with the rods measured through the intrinsics moved by one standard deviation
+    #       along each principal direction of their covariance
+    eff = _IntrinsicsEffect.build(obs, lock_data, data) if use_planes else None
+    cov_intr = np.zeros((7, 7))
+    if eff is not None:
+        def seven_for(z: np.ndarray) -> np.ndarray:
+            pz = eff.lock_planes(z, planes)  # type: ignore[arg-type]
+            Pz = np.array([[joint_from_planes([o for o, kk in zip(pz[i][j], keep1[i][j], strict=True) if kk])[0]
+                            for j in range(2)] for i in range(4)])
+            Uz = _pair_means(eff.rod_u(z, data.rod_u), data.has_rod, C_rods)[0]
+            return pipe.run(Pz, np.where(pipe.has_leg[..., None], Uz, 0.0), x2)
+
+        nz = eff.steps.shape[0]
+        Jz = np.stack([(seven_for(e) - seven_for(-e)) / 2.0 for e in np.eye(nz)], axis=1)
+        cov_intr = Jz @ Jz.T
+    cov = cov_joints + cov_dirs + cov_intr
     params = I4Parameters.from_mapping({**dict(zip(PARAMETER_NAMES, seven, strict=True)),
                                          "T_per_rad": nom.T_per_rad})
     M = np.array([
@@ -710,7 +846,9 @@ def calibrate_legs(obs: Observations, *, fit_phases: tuple[str, ...] = ("poses",
         std_breakdown={"joint_centres": {k: float(np.sqrt(max(cov_joints[i, i], 0)))
                                          for i, k in enumerate(PARAMETER_NAMES)},
                        "leg_directions": {k: float(np.sqrt(max(cov_dirs[i, i], 0)))
-                                          for i, k in enumerate(PARAMETER_NAMES)}},
+                                          for i, k in enumerate(PARAMETER_NAMES)},
+                       "intrinsics": {k: float(np.sqrt(max(cov_intr[i, i], 0)))
+                                      for i, k in enumerate(PARAMETER_NAMES)}},
         diagnostics={"step1": "weighted plane equations" if use_planes else "line intersection (unweighted)",
                      "step1_chi2_per_dof": float(s2_1), "step1_frames_rejected": rejected_lock,
                      "steps34_weighting": "measured rod covariances (GLS)" if measured else "isotropic",
