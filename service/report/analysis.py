@@ -270,10 +270,15 @@ def conditions(result: dict[str, Any], obs_doc: dict[str, Any] | None, dataset_d
     if "direction_noise_scale" in c:
         rows.append(("rod direction noise (combined fit)", f"{np.degrees(c['direction_noise_scale']):.4f} deg"))
     lg = (ms.get("legs") or {}).get("diagnostics") or {}
-    if "rod_direction_noise_rad" in lg:
+    if lg.get("rod_direction_noise_rad") is not None:
         rows.append(("rod direction noise (legs fit)",
                      f"{np.degrees(lg['rod_direction_noise_rad']):.4f} deg; "
                      f"line residual RMS {lg.get('line_residual_rms_mm', 0):.3f} mm"))
+    elif lg.get("steps34_chi2_per_dof") is not None:
+        rows.append(("rod noise (legs fit, measured rod covariances)",
+                     f"chi-square per degree of freedom: step 1 {lg.get('step1_chi2_per_dof', float('nan')):.2f}, "
+                     f"steps 3-4 {lg['steps34_chi2_per_dof']:.2f}; line residual RMS "
+                     f"{lg.get('line_residual_rms_mm', 0):.3f} mm"))
     ee = (ms.get("end-effector") or {}).get("diagnostics") or {}
     if isinstance(ee.get("board_noise_std"), dict):
         rows.append(("board pose noise (end-effector fit)",

@@ -58,7 +58,7 @@ def test_calibrate_reports_iterations_of_every_method_and_same_result(noisy_obs)
         assert len(mine) >= 2, m
         assert all(np.isfinite(r["cost"]) and r["cost"] >= 0 and isinstance(r["iteration"], int) for r in mine)
     stages = {(r["method"], r["stage"]) for r in reports}
-    assert ("combined", "eq8") in stages and ("legs", "step 2") in stages and ("legs", "step 3") in stages
+    assert ("combined", "eq8") in stages and ("legs", "step 2") in stages and ("legs", "steps 3-4") in stages
     assert any(m == "end-effector" and s.startswith("pass-1") for m, s in stages)
     # within a stage of an lm fit the cost never rises
     for m, s in stages:
