@@ -159,16 +159,18 @@ def calibrate_end_effector(obs: Observations, *, phases: tuple[str, ...] = ("pos
     Sigma_b = np.zeros((6, 6))
     scale2 = 1.0
     chi2_pose = np.zeros(n)
-    n_passes = max(iterations, 1) + (2 if C_board is not None else 0)
+    n_passes = max(iterations, 1) + (1 if C_board is not None else 0)
+    noise_free = False
     for npass in range(n_passes):
         if npass > 0:
             r = model.residuals(x)
             if np.sqrt(np.mean(r ** 2)) < 1e-12:
+                noise_free = True
                 break  # noise-free data: nothing to weight
             Ak = _pose_sensitivity(model, x)  # (n, 6, 6)
             if C_board is not None:
                 # each pose's own covariance (PnP), times one common factor measured from the residuals
-                scale2, keep, chi2_pose = _board_noise_scale(Ak, C_board, r, encoder_std_m, p)
+                scale2 = _board_noise_factor(Ak, C_board, r, keep, p)
                 Cr = scale2 * Ak @ C_board @ Ak.transpose(0, 2, 1)
             else:
                 # map residuals back to board-pose errors (rotation left-perturbation, translation), per pose;
@@ -176,14 +178,26 @@ def calibrate_end_effector(obs: Observations, *, phases: tuple[str, ...] = ("pos
                 eps = np.linalg.solve(Ak, r[..., None])[..., 0]
                 Sigma_b = np.diag(np.diag(eps.T @ eps)) / max(n - p / 6.0, 1.0)
                 Cr = Ak @ Sigma_b @ Ak.transpose(0, 2, 1)
-            Cr[:, :4, :4] += encoder_std_m ** 2 * np.eye(4)
-            Cr += 1e-30 * np.eye(6)
-            Wh = np.linalg.cholesky(np.linalg.inv(Cr)).transpose(0, 2, 1)
+            Wh = _whitener(Cr, encoder_std_m)
         sol = _solve(wres, x, on_iteration, f"pass-{npass + 1}")
         if sol.status <= 0 or not np.all(np.isfinite(sol.x)):
             raise ConvergenceError(f"end-effector fit did not converge: {sol.message}")
         x = sol.x
         nfev += sol.nfev
+    if C_board is not None and not noise_free:
+        # poses whose residual the model does not explain (a wrong board pose): studentized chi-square test,
+        # one round from the fit with every pose, then one refit without them and with the factor re-measured
+        chi2_pose = _studentized_chi2(central_jacobian(wres, x), wres(x), n)
+        keep = _gate(chi2_pose, p)
+        if not keep.all():
+            Ak = _pose_sensitivity(model, x)
+            scale2 = _board_noise_factor(Ak, C_board, model.residuals(x), keep, p)
+            Wh = _whitener(scale2 * Ak @ C_board @ Ak.transpose(0, 2, 1), encoder_std_m)
+            sol = _solve(wres, x, on_iteration, "without rejected poses")
+            if sol.status <= 0 or not np.all(np.isfinite(sol.x)):
+                raise ConvergenceError(f"end-effector fit did not converge: {sol.message}")
+            x = sol.x
+            nfev += sol.nfev
     r = model.residuals(x)
     J = central_jacobian(wres, x)
     check_excitation(J, _NAMES)
@@ -313,9 +327,9 @@ def _left_jacobian(rv: np.ndarray) -> np.ndarray:
     return np.eye(3) + (1 - np.cos(th)) / th ** 2 * K + (th - np.sin(th)) / th ** 3 * K @ K
 
 
-def _board_noise_scale(Ak: np.ndarray, C_board: np.ndarray, r: np.ndarray, encoder_std_m: float,
-                       n_params: int) -> tuple[float, np.ndarray, np.ndarray]:
-    """Common factor of the board poses' covariances, measured from the residuals, with outlier poses gated.
+def _board_noise_factor(Ak: np.ndarray, C_board: np.ndarray, r: np.ndarray, keep: np.ndarray,
+                        n_params: int) -> float:
+    """Common variance factor ``s^2`` of the board poses' covariances, measured from the residuals.
 
     Parameters
     ----------
@@ -325,31 +339,56 @@ def _board_noise_scale(Ak: np.ndarray, C_board: np.ndarray, r: np.ndarray, encod
         The extraction's board-pose covariances (left rotation, t).
     r : ndarray, shape (N, 6)
         Residuals at the current estimate.
-    encoder_std_m : float
+    keep : ndarray of bool, shape (N,)
+        Poses in the fit.
     n_params : int
         Unknowns of the fit (the degrees of freedom the residuals lost).
 
     Returns
     -------
-    scale2 : float
-        Variance factor ``s^2``: the board poses' noise is ``s^2 C_board``.
-    keep : ndarray of bool, shape (N,)
-        Poses whose chi-square (6 dof, at the robust factor) is below its 99.9 % quantile.
-    chi2 : ndarray, shape (N,)
-        Each pose's chi-square at the returned factor.
+    float
+        ``s^2``: the board poses' noise is ``s^2 C_board`` (the encoders' share is negligible against it).
     """
-    Cr = Ak @ C_board @ Ak.transpose(0, 2, 1)
-    Cr[:, :4, :4] += 1e-30 * np.eye(4)
-    q = np.einsum("ni,ni->n", r, np.linalg.solve(Cr, r[..., None])[..., 0])  # chi-square at factor 1
-    enc = np.einsum("nii->n", np.linalg.inv(Cr)[:, :4, :4]) * encoder_std_m ** 2  # encoder part, expected
-    q_board = np.maximum(q - enc, 1e-300)
-    robust = float(np.median(q_board)) / _CHI2_6_MEDIAN
-    keep = q_board / robust < _CHI2_6_GATE
-    if keep.sum() < max(4, int(np.ceil(0.75 * len(q)))):  # no gating of more than a quarter of the poses
-        keep = q_board <= np.sort(q_board)[int(np.ceil(0.75 * len(q))) - 1]
-    dof = max(6 * int(keep.sum()) - n_params, 1)
-    scale2 = max(float(np.sum(q_board[keep])) / dof, 1e-300)
-    return scale2, keep, q / scale2
+    Cr = Ak[keep] @ C_board[keep] @ Ak[keep].transpose(0, 2, 1)
+    q = np.einsum("ni,ni->", r[keep], np.linalg.solve(Cr, r[keep][..., None])[..., 0])
+    return max(float(q) / max(6 * int(keep.sum()) - n_params, 1), 1e-300)
+
+
+def _whitener(Cr: np.ndarray, encoder_std_m: float) -> np.ndarray:
+    """Per pose, the upper factor ``W`` (N, 6, 6) with ``W^T W = (Cr + encoder noise)^-1``."""
+    Cr = Cr.copy()
+    Cr[:, :4, :4] += encoder_std_m ** 2 * np.eye(4)
+    Cr += 1e-30 * np.eye(6)
+    return np.linalg.cholesky(np.linalg.inv(Cr)).transpose(0, 2, 1)
+
+
+def _studentized_chi2(J: np.ndarray, rw: np.ndarray, n: int) -> np.ndarray:
+    """Each pose's whitened residual chi-square corrected for its leverage, shape (N,).
+
+    ``r_k^T (I - H_kk)^-1 r_k`` with ``H = J (J^T J)^-1 J^T``: chi-square with 6 degrees of freedom times the
+    ratio of the true to the assumed noise factor, whatever the pose's weight in the fit.
+    """
+    G = np.linalg.solve(J.T @ J, J.T)  # (p, 6 n)
+    out = np.empty(n)
+    for k in range(n):
+        sl = slice(6 * k, 6 * k + 6)
+        M = np.eye(6) - J[sl] @ G[:, sl]
+        out[k] = float(rw[sl] @ np.linalg.solve(M, rw[sl]))
+    return out
+
+
+def _gate(chi2_pose: np.ndarray, n_params: int) -> np.ndarray:
+    """Poses kept: studentized chi-square below its 99.9 % quantile at the robust (median) noise factor.
+
+    At most a quarter of the poses are rejected, and never so many that fewer than ``n_params / 6 + 1`` remain.
+    """
+    robust = max(float(np.median(chi2_pose)) / _CHI2_6_MEDIAN, 1e-300)
+    keep = chi2_pose / robust < _CHI2_6_GATE
+    n = chi2_pose.size
+    min_keep = max(int(np.ceil(0.75 * n)), int(np.ceil(n_params / 6.0)) + 1)
+    if keep.sum() < min_keep:
+        keep = chi2_pose <= np.sort(chi2_pose)[min(min_keep, n) - 1]
+    return keep
 
 
 def _pose_sensitivity(model: _Model, x: np.ndarray, h: float = 1e-7) -> np.ndarray:
