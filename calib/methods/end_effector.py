@@ -210,7 +210,15 @@ def calibrate_end_effector(obs: Observations, *, phases: tuple[str, ...] = ("pos
     if C_board is not None:
         Sigma_b = scale2 * np.median(C_board[keep], axis=0)
     cov_poses = cov_full[:4, :4]
-    cov_intr = _intrinsics_covariance(obs, data, model, x, Wh, keep, J)
+    intr_part = None if noise_free else _intrinsics_part(obs, data, model, x, Wh, keep, J)
+    cov_intr = None
+    noise_factor = None
+    if intr_part is not None:
+        # the residuals also carry the intrinsics' pose-dependent effect, counted in cov_intr: measure the
+        # board poses' noise factor with it removed (intrinsics as nuisance unknowns with their prior)
+        D, cov_intr = intr_part
+        noise_factor = _noise_factor_without_intrinsics(J, wres(x), D)
+        cov_poses = np.linalg.inv(J.T @ J)[:4, :4] * noise_factor
     cov = cov_poses if cov_intr is None else cov_poses + cov_intr
     breakdown = {"board_poses_and_encoders": std_dict(cov_poses)}
     if cov_intr is not None:
@@ -226,6 +234,7 @@ def calibrate_end_effector(obs: Observations, *, phases: tuple[str, ...] = ("pos
                                 "translation_mm": (np.sqrt(np.diag(Sigma_b)[3:]) * 1e3).tolist()},
             "board_noise_model": "per-pose covariance x factor" if C_board is not None else "diagonal, from residuals",
             "board_cov_factor": float(np.sqrt(scale2)) if C_board is not None else None,
+            "noise_factor_without_intrinsics": noise_factor,
             "rejected_poses": [int(i) for i in data.index[~keep]],
             "pose_chi2": chi2_pose.tolist(),
             "camera_tilt_deg": float(np.rad2deg(np.linalg.norm(x[6:9]))),
@@ -294,14 +303,21 @@ def board_covariances(obs: Observations, arrays: PhaseArrays) -> np.ndarray | No
     return out
 
 
-def _intrinsics_covariance(obs: Observations, data: PhaseArrays, model: _Model, x: np.ndarray, Wh: np.ndarray,
-                           keep: np.ndarray, J: np.ndarray) -> np.ndarray | None:
-    """Covariance (4, 4) of the combinations due to the camera intrinsics' error, common to every pose.
+def _intrinsics_part(obs: Observations, data: PhaseArrays, model: _Model, x: np.ndarray, Wh: np.ndarray,
+                     keep: np.ndarray, J: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """How the camera intrinsics' error, common to every pose, moves the whitened residuals and the estimate.
 
     The board poses move by ``d_intrinsics @ step`` for one standard deviation ``step`` along each principal
     direction of the intrinsics' covariance (:mod:`.intrinsics`); the estimate moves by the weighted fit's
-    gain times the whitened residuals' change. None when the camera's covariance or a pose's
-    ``d_intrinsics`` is unknown.
+    gain times the whitened residuals' change.
+
+    Returns
+    -------
+    D : ndarray, shape (6 M, S)
+        Change of the whitened residuals of the M kept poses per principal step.
+    cov : ndarray, shape (4, 4)
+        Covariance of the combinations due to the intrinsics (m^2).
+    None when the camera's covariance or a pose's ``d_intrinsics`` is unknown.
     """
     prior = intr.intrinsics_prior(obs)
     sens = intr.board_sensitivities(obs, data)
@@ -310,12 +326,35 @@ def _intrinsics_covariance(obs: Observations, data: PhaseArrays, model: _Model, 
     steps = intr.principal_steps(prior[1])
     if steps.shape[0] == 0:
         return None
-    Ak = _pose_sensitivity(model, x)[keep]  # (m, 6, 6)
-    WA = Wh[keep] @ Ak
-    gain = np.linalg.solve(J.T @ J, J.T)  # (p, 6 m)
-    dr = np.einsum("nij,njk,sk->sni", WA, sens[keep], steps).reshape(steps.shape[0], -1)  # (s, 6 m)
-    dx = dr @ gain.T  # (s, p): minus sign irrelevant for a covariance
-    return (dx.T @ dx)[:4, :4]
+    WA = Wh[keep] @ _pose_sensitivity(model, x)[keep]  # (M, 6, 6)
+    D = np.einsum("nij,njk,sk->nis", WA, sens[keep], steps).reshape(-1, steps.shape[0])  # (6 M, S)
+    dx = np.linalg.solve(J.T @ J, J.T @ D)  # (p, S): minus sign irrelevant for a covariance
+    return D, (dx @ dx.T)[:4, :4]
+
+
+def _noise_factor_without_intrinsics(J: np.ndarray, rw: np.ndarray, D: np.ndarray, n_iter: int = 50) -> float:
+    """Variance factor of whitened residuals ``rw = J dx + D z + e`` with ``z ~ N(0, I)``, ``e ~ N(0, phi I)``.
+
+    ``phi`` solves ``phi = |rw - J dx - D z|^2 / (n - p - edf_z)`` at the regularised least-squares ``dx, z``
+    (``edf_z``: the effective number of degrees of freedom z takes from the residuals).
+    """
+    n, p = J.shape
+    s = D.shape[1]
+    phi = max(float(rw @ rw) / max(n - p, 1), 1e-300)
+    M = np.hstack([J, D])
+    for _ in range(n_iter):
+        P = np.zeros((p + s, p + s))
+        P[p:, p:] = phi * np.eye(s)
+        H = M.T @ M + P
+        sol = np.linalg.solve(H, M.T @ rw)
+        res = rw - M @ sol
+        edf = float(np.trace(np.linalg.solve(H, M.T @ M)))
+        new = max(float(res @ res) / max(n - edf, 1.0), 1e-300)
+        if abs(new - phi) < 1e-10 * phi:
+            phi = new
+            break
+        phi = new
+    return phi
 
 
 def _left_jacobian(rv: np.ndarray) -> np.ndarray:
