@@ -10,10 +10,16 @@ end-effector are gauge freedoms that the offsets absorb and are held fixed. Besi
 residuals per pose, the pose's tilt (the end-effector only turns about z_B) gives two more.
 
 Weighting and uncertainty: each pose's residuals are a linear function of its board-pose error
-(6 dof) plus encoder noise. The board-pose noise covariance is estimated from the residuals
-themselves (mapping them back to board-pose errors), the fit is re-weighted with it
-(generalised least squares, the maximum-likelihood estimate for Gaussian pose noise), and the
-standard deviations come from the weighted normal matrix.
+(6 dof) plus encoder noise. When the extraction reports each board pose's covariance (``board.cov``,
+rotation vector then t, from the PnP Jacobian), the fit is weighted by it (converted to a left rotation),
+times one common factor measured from the residuals (generalised least squares); poses whose
+studentized chi-square (leverage-corrected, from the fit with every pose) exceeds its 99.9 % quantile
+are rejected once and the fit redone. The camera intrinsics' error, common to every pose, moves the
+board poses through their ``d_intrinsics``: its share of the covariance goes through the fit's gain,
+and the noise factor is measured with that share removed from the residuals (intrinsics as nuisance
+unknowns with their prior), so it is not counted twice. Without per-pose covariances (numbers with
+known noise), the board-pose noise is a diagonal covariance estimated from the residuals themselves.
+The standard deviations come from the weighted normal matrix.
 """
 
 from __future__ import annotations
