@@ -467,7 +467,34 @@ def _trim_rod(obs: list[PlaneObservation], s_rob: float, max_subsets: int = 200)
     return keep
 
 
-def _step1_planes(planes: list[list[list[PlaneObservation]]]
+def _gross_single_rods(planes: list[list[PlaneObservation]], frames: list[np.ndarray], limit: float
+                       ) -> list[np.ndarray]:
+    """Frames (bool per observation, one array per rod) of one locked leg that are gross outliers.
+
+    When only one of a leg's rods is found in a frame, the two often overlap in the image and the one
+    found may be a mix of both (its width, hence its depth, wrong): such frames can outnumber the good
+    ones and agree among themselves. The frames where both rods are seen locate each joint; a
+    single rod whose equations miss it by a chi-square above ``limit`` is flagged. Without two frames
+    with both rods, nothing is flagged.
+    """
+    out = [np.zeros(len(planes[j]), dtype=bool) for j in range(2)]
+    both = np.intersect1d(frames[0], frames[1])
+    if both.size < 2:
+        return out
+    for j in range(2):
+        try:
+            X = joint_from_planes([o for o, f in zip(planes[j], frames[j], strict=True) if f in both])[0]
+        except IdentifiabilityError:
+            continue
+        for m, (o, f) in enumerate(zip(planes[j], frames[j], strict=True)):
+            if f not in both:
+                out[j][m] = float(np.sum((o.h @ X - o.r) ** 2 / o.variances(X))) > limit
+        if (~out[j]).sum() < 2:  # too few left for a joint: keep them all
+            out[j][:] = False
+    return out
+
+
+def _step1_planes(planes: list[list[list[PlaneObservation]]], frames: list[list[np.ndarray]] | None = None
                   ) -> tuple[np.ndarray, np.ndarray, float, list[dict[str, int]], float, list[list[np.ndarray]]]:
     """Step 1 with plane equations: joints (4, 2, 3), covariances (4, 2, 3, 3), chi-square per dof,
     dropped frames (lock phase, rod, index among the rod's frames), the residual RMS (m) and the
@@ -478,7 +505,18 @@ def _step1_planes(planes: list[list[list[PlaneObservation]]]
     pool = np.concatenate([_deleted_d2(planes[i][j], np.ones(len(planes[i][j]), dtype=bool))
                            for i in range(4) for j in range(2) if len(planes[i][j]) > 3] or [np.zeros(0)])
     s_rob = max(float(np.median(pool)) / _CHI2_2_MEDIAN if pool.size else 0.0, 1.0 if absolute else 1e-18)
-    keep = [[_trim_rod(planes[i][j], s_rob) for j in range(2)] for i in range(4)]
+    keep = []
+    for i in range(4):
+        # single rods far off the joint located from the frames with both rods: dropped before trimming
+        gross = (_gross_single_rods(planes[i], frames[i], 100.0 * _CHI2_2_999 * s_rob) if frames is not None
+                 else [np.zeros(len(planes[i][j]), dtype=bool) for j in range(2)])
+        row = []
+        for j in range(2):
+            k_ok = np.nonzero(~gross[j])[0]
+            kk = np.zeros(len(planes[i][j]), dtype=bool)
+            kk[k_ok[_trim_rod([planes[i][j][m] for m in k_ok], s_rob)]] = True
+            row.append(kk)
+        keep.append(row)
     rejected = [{"lock": i + 1, "rod": j, "frame_of_rod": int(m)} for i in range(4) for j in range(2)
                 for m in np.nonzero(~keep[i][j])[0]]
     fits = [[joint_from_planes([o for o, kk in zip(planes[i][j], keep[i][j], strict=True) if kk])
@@ -748,7 +786,8 @@ def calibrate_legs(obs: Observations, *, fit_phases: tuple[str, ...] = ("poses",
     use_planes = all(p is not None for row in planes for p in row)
     rejected_lock: list[dict[str, int]] = []
     if use_planes:
-        P, covPij, s2_1, rejected_lock, res_rms, keep1 = _step1_planes(planes)  # type: ignore[arg-type]
+        frames1 = [[np.nonzero(lock_data[i].has_rod[:, i, j])[0] for j in range(2)] for i in range(4)]
+        P, covPij, s2_1, rejected_lock, res_rms, keep1 = _step1_planes(planes, frames1)  # type: ignore[arg-type]
         n_lines = sum(len(planes[i][j]) for i in range(4) for j in range(2))  # type: ignore[arg-type]
     else:
         P = np.zeros((4, 2, 3))
