@@ -278,8 +278,8 @@ def calibrate_intrinsics(views: dict[int, tuple[ArrayLike, ArrayLike, ArrayLike]
         del keep[worst]
     std_int = np.asarray(std_int).reshape(-1)
     new_obj = np.asarray(new_obj, dtype=np.float64).reshape(-1, 3) if new_obj is not None and np.size(new_obj) else obj
-    cov = intrinsics_covariance(K, np.asarray(dist).reshape(-1), new_obj, [keep[k] for k in keys], rvecs, tvecs,
-                                fixed_point=fixed)
+    cov, d_board = _bundle_covariance(K, np.asarray(dist).reshape(-1), new_obj, [keep[k] for k in keys], rvecs,
+                                      tvecs, fixed_point=fixed)
     names = ["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4",
              "tau_x", "tau_y"]
     std = {n: float(s) for n, s in zip(names, std_int, strict=False)}
@@ -287,7 +287,8 @@ def calibrate_intrinsics(views: dict[int, tuple[ArrayLike, ArrayLike, ArrayLike]
                       {"calibration": {"rms_px": float(rms), "n_views": len(keys), "std": std,
                                        "covariance_params": list(INTRINSICS_NAMES), "covariance": cov.tolist(),
                                        "method": "cv2.calibrateCameraRO",
-                                       "board_points": {"ids": sort_ids.tolist(), "points_m": new_obj.tolist()}}})
+                                       "board_points": {"ids": sort_ids.tolist(), "points_m": new_obj.tolist(),
+                                                        "d_intrinsics": d_board.tolist()}}})
     return IntrinsicsResult(cam, float(rms), {k: float(e) for k, e in zip(keys, per_view, strict=True)}, std,
                             rejected, new_obj, sort_ids,
                             {k: (np.asarray(r).reshape(3), np.asarray(t).reshape(3))
@@ -328,6 +329,18 @@ def intrinsics_covariance(K: ArrayLike, dist: ArrayLike, board_points: ArrayLike
     ndarray, shape (8, 8)
         Pixels for fx, fy, cx, cy; dimensionless for the distortion coefficients.
     """
+    return _bundle_covariance(K, dist, board_points, image_points, rvecs, tvecs, fixed_point)[0]
+
+
+def _bundle_covariance(K: ArrayLike, dist: ArrayLike, board_points: ArrayLike, image_points: list[ArrayLike],
+                       rvecs: list[ArrayLike], tvecs: list[ArrayLike], fixed_point: int = -1) -> tuple[Array, Array]:
+    """:func:`intrinsics_covariance` and the board points' regression on the intrinsics, (M, 3, 8).
+
+    The regression ``Cov(X, I) Cov(I, I)^-1`` is how the refined board points move when the
+    intrinsics do, given the calibration's data (Gaussian conditioning): when other measurements
+    (the rods) correct the intrinsics, the board geometry estimated jointly with them follows.
+    Zero for the fixed coordinates and without the releasing-object method.
+    """
     K = np.asarray(K, dtype=np.float64)
     d = np.asarray(dist, dtype=np.float64).reshape(-1)
     obj = np.asarray(board_points, dtype=np.float64).reshape(-1, 3)
@@ -364,6 +377,11 @@ def intrinsics_covariance(K: ArrayLike, dist: ArrayLike, board_points: ArrayLike
     dof = max(2 * m * nv - n, 1)
     s2 = sse / dof
     A, B, C = JtJ[:8, :8], JtJ[:8, 8:], JtJ[8:, 8:]
-    schur = A - B @ np.linalg.solve(C, B.T)
+    CinvBt = np.linalg.solve(C, B.T)  # (n - 8, 8)
+    schur = A - B @ CinvBt
     cov = s2 * np.linalg.inv(schur)
-    return 0.5 * (cov + cov.T)
+    # Cov(others, I) = -C^-1 B^T Cov(I, I): the regression of the others on I is -C^-1 B^T
+    reg = np.zeros((m * 3, 8))
+    if n_obj:
+        reg[obj_cols] = -CinvBt[6 * nv:]
+    return 0.5 * (cov + cov.T), reg.reshape(m, 3, 8)

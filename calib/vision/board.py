@@ -107,12 +107,23 @@ class BoardDetector:
         self.detector = cv2.aruco.CharucoDetector(self.board, cp, dp)
         self.ids_all, self.points_nominal = board_corners(spec)
         self.points = self.points_nominal.copy()
+        #: (M, 3, 8) change of each corner per unit change of the intrinsics (the refined geometry's
+        #: correlation with them in the calibration); zero for a nominal board
+        self.points_d_intrinsics = np.zeros((self.points.shape[0], 3, 8))
 
-    def use_refined_points(self, ids: NDArray[np.int_], points: Array) -> None:
-        """Use corner coordinates refined by intrinsic calibration (calibrateCameraRO) for poses."""
+    def use_refined_points(self, ids: NDArray[np.int_], points: Array, d_intrinsics: Array | None = None) -> None:
+        """Use corner coordinates refined by intrinsic calibration (calibrateCameraRO) for poses.
+
+        ``d_intrinsics`` (M, 3, 8), optional: how the refined corners move with the intrinsics
+        (:func:`calib.camera.intrinsics_covariance`); the poses' ``d_intrinsics`` then include it.
+        """
+        idx = np.asarray(ids, dtype=int)
         pts = self.points_nominal.copy()
-        pts[np.asarray(ids, dtype=int)] = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        pts[idx] = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         self.points = pts
+        self.points_d_intrinsics = np.zeros((pts.shape[0], 3, 8))
+        if d_intrinsics is not None:
+            self.points_d_intrinsics[idx] = np.asarray(d_intrinsics, dtype=np.float64).reshape(-1, 3, 8)
 
     def detect(self, image: np.ndarray) -> BoardDetection:
         """Detect ChArUco corners (sub-pixel) in an 8/16-bit mono or colour image."""
@@ -152,8 +163,11 @@ class BoardDetector:
         R, _ = cv2.Rodrigues(rvec)
         if float(tvec.reshape(-1)[2]) <= 0:
             return "board pose failed: board behind the camera"
+        # intrinsics move the pose directly (projection) and through the refined corners they carry
+        dX = self.points_d_intrinsics[detection.ids]  # (n, 3, 8)
+        JI = jac[:, 6:14] + np.einsum("pij,pjk->pik", (jac[:, 3:6].reshape(n, 2, 3) @ R), dX).reshape(2 * n, 8)
         return BoardPose(R, tvec.reshape(3).astype(np.float64), rms, int(n), cov,
-                         _pose_sensitivity(jac, rvec.reshape(3), R))
+                         _pose_sensitivity(jac[:, :6], JI, rvec.reshape(3), R))
 
     def measure(self, image: np.ndarray, camera: CameraModel) -> BoardPose | str:
         """Detect then pose (or the reason)."""
@@ -167,14 +181,13 @@ class BoardDetector:
         return c @ np.asarray(R).T + np.asarray(t)
 
 
-def _pose_sensitivity(jac: Array, rvec: Array, R: Array) -> Array | None:
-    """d(left rotation, t)/d(fx, fy, cx, cy, k1, k2, p1, p2) of a PnP pose, (6, 8), from projectPoints' Jacobian.
+def _pose_sensitivity(Jp: Array, JI: Array, rvec: Array, R: Array) -> Array | None:
+    """d(left rotation, t)/d(fx, fy, cx, cy, k1, k2, p1, p2) of a PnP pose, (6, 8).
 
     The pose minimises the reprojection error: a change dI of the intrinsics moves it by
-    ``-(Jp^T Jp)^-1 Jp^T J_I dI`` (Jp: columns of the pose, J_I: of the intrinsics).
+    ``-(Jp^T Jp)^-1 Jp^T J_I dI`` (Jp (2n, 6): the pixels' derivatives by (rvec, t); J_I (2n, 8): by
+    the intrinsics, the corners' own motion with them included).
     """
-    Jp = jac[:, :6]
-    JI = jac[:, 6:14]
     try:
         dpose = -np.linalg.solve(Jp.T @ Jp, Jp.T @ JI)  # (6, 8): d rvec, d t
     except np.linalg.LinAlgError:
