@@ -311,6 +311,10 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
     if nz:
         breakdown["intrinsics"] = std_dict(parts.get("intrinsics", np.zeros((4, 4))))
     refined = None if steps is None else dict(zip(intr.INTRINSICS_NAMES, (steps.T @ z).tolist(), strict=True))
+    # the intrinsics after the rods: their posterior covariance (for methods that do not use the rods)
+    posterior = None
+    if nz and "full" in parts:
+        posterior = (steps.T @ parts["full"][4 + nw:, 4 + nw:] @ steps).tolist()
     return MethodResult(
         method="combined", combinations=combos_dict(xi), combinations_std=std_dict(cov), covariance=cov,
         residual_rms=float(np.sqrt(np.mean(r ** 2))), residual_unit="Jacobian entry (dimensionless)",
@@ -320,7 +324,7 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
         diagnostics={"weighting": weighting, "direction_noise_scale": float(np.sqrt(s2)),
                      "rods_rejected": rejected, "rods_used": int(m),
                      "intrinsics_covariance": None if cov_intr is None else cov_intr.tolist(),
-                     "intrinsics_refinement": refined,
+                     "intrinsics_refinement": refined, "intrinsics_posterior_covariance": posterior,
                      "rods_dropped_near_vertical": prob.dropped, "base_frame": bf.summary(),
                      "base_frame_refinement_deg": float(np.rad2deg(np.linalg.norm(w))),
                      "joint_base_frame": joint},
@@ -338,8 +342,9 @@ def _joint_covariance(Jr: np.ndarray, Wd: np.ndarray, Sig: np.ndarray, Pw: np.nd
     H = Jr.T @ Wd @ Jr + Pw + Pz
     Hinv = np.linalg.inv(H)
     B = Hinv @ Jr.T @ Wd
+    full = B @ Sig @ B.T + Hinv @ (Pw + Pz) @ Hinv
     parts = {"legs_and_encoders": (B @ Sig @ B.T)[:4, :4], "base_frame": (Hinv @ Pw @ Hinv)[:4, :4],
-             "intrinsics": (Hinv @ Pz @ Hinv)[:4, :4]}
+             "intrinsics": (Hinv @ Pz @ Hinv)[:4, :4], "full": full}
     return parts["legs_and_encoders"] + parts["base_frame"] + parts["intrinsics"], parts
 
 
@@ -363,7 +368,7 @@ class _IntrinsicsModel:
     def build(cls, obs: Observations, data: PhaseArrays, prob: _Problem,
               bf: BaseFrameResult) -> _IntrinsicsModel | None:
         """None when the camera's uncertainty or a rod's limb samples are missing."""
-        prior = intr.intrinsics_prior(obs)
+        prior = intr.intrinsics_prior(obs, refined=False)  # the rods are used again here
         limbs = _rod_field(obs, data, prob, "limbs_px")
         H = _rod_field(obs, data, prob, "h")
         if prior is None or limbs is None or H is None:

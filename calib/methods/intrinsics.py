@@ -31,10 +31,13 @@ from ..transforms import rotvec_to_matrix
 Array = NDArray[np.float64]
 
 
-def intrinsics_prior(obs: Observations) -> tuple[CameraModel, Array] | None:
+def intrinsics_prior(obs: Observations, refined: bool = True) -> tuple[CameraModel, Array] | None:
     """The extraction's camera and the covariance (8, 8) of its intrinsics, or None when unknown.
 
-    Order: :data:`calib.camera.INTRINSICS_NAMES` (px for fx, fy, cx, cy; dimensionless after).
+    Order: :data:`calib.camera.INTRINSICS_NAMES` (px for fx, fy, cx, cy; dimensionless after). When
+    the rods refined the camera (``calibration.covariance_refined``, the combined fit's posterior),
+    that covariance is returned with ``refined`` (methods that do not use the rods); the calibration's
+    own with ``refined=False`` (the combined method, which uses the rods again).
     """
     extra = obs.document.model_extra or {}
     cam = (extra.get("extraction") or {}).get("camera") or {}
@@ -42,7 +45,7 @@ def intrinsics_prior(obs: Observations) -> tuple[CameraModel, Array] | None:
     if not cam.get("K"):
         return None
     camera = CameraModel.from_dict(cam)
-    cov = calib.get("covariance")
+    cov = calib.get("covariance_refined") if refined and calib.get("covariance_refined") else calib.get("covariance")
     if cov is not None and list(calib.get("covariance_params") or INTRINSICS_NAMES) == list(INTRINSICS_NAMES):
         C = np.asarray(cov, dtype=np.float64)
         if C.shape == (8, 8) and np.all(np.isfinite(C)):

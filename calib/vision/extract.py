@@ -515,7 +515,9 @@ def refined_camera(res: ExtractionResult, min_shift: float = 0.5) -> tuple[Camer
     itself depends on the camera (which edge points are fitted), so the frames are worth measuring
     again with the refined camera: :func:`extract_dataset` does when the shift exceeds ``min_shift``
     standard deviations (Mahalanobis). The refined camera keeps the calibration's covariance (the
-    methods' prior: conservative) and records the shift under ``calibration.refined_by_rods``.
+    combined method's prior when it uses the rods again), adds the fit's posterior one
+    (``calibration.covariance_refined``, for the methods that do not use the rods) and records the
+    shift under ``calibration.refined_by_rods``.
 
     Returns
     -------
@@ -544,6 +546,8 @@ def refined_camera(res: ExtractionResult, min_shift: float = 0.5) -> tuple[Camer
         return None, {"applied": False, **info, "reason": f"shift {m:.2f} std < {min_shift}"}
     moved = perturbed_camera(res.camera, d)
     new_calib = {**calib, "refined_by_rods": info}
+    if fit.diagnostics.get("intrinsics_posterior_covariance") is not None:
+        new_calib["covariance_refined"] = fit.diagnostics["intrinsics_posterior_covariance"]
     bp = calib.get("board_points") or {}
     if bp.get("d_intrinsics") is not None:  # the board geometry moves with the intrinsics (their correlation)
         pts = np.asarray(bp["points_m"], dtype=np.float64) + np.asarray(bp["d_intrinsics"], dtype=np.float64) @ d

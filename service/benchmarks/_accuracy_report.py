@@ -246,7 +246,9 @@ def print_accuracy(doc: dict[str, Any], console: Any = None) -> None:
         cams = [t["camera"] for t in (doc.get("study") or {}).get("trials", []) if t.get("camera")]
         cam_text = (f"camera calibrated in every trial from its own {o['camera_views']} rendered board views; "
                     "intrinsics error RMS / mean reported std over the trials: "
-                    + ", ".join(f"{k} {_intr_rms(cams, k)}" for k in ("fx", "cx", "cy", "k1")))
+                    + ", ".join(f"{k} {_intr_rms(cams, k)}" for k in ("fx", "cx", "cy", "k1"))
+                    + "; after the rods' refinement, error RMS: "
+                    + ", ".join(f"{k} {_intr_rms(cams, k, 'refined_error_vs_true')}" for k in ("fx", "cx", "cy", "k1")))
     else:
         cam_text = (f"camera calibrated once per noise level from {o['camera_views']} rendered board views ("
                     + ", ".join(f"noise {n}: fx {_dpx(c, 'fx')}, cx {_dpx(c, 'cx')}, cy {_dpx(c, 'cy')} px"
@@ -268,14 +270,14 @@ def _dpx(cam: dict[str, Any], key: str) -> str:
     return "-" if v is None else f"{v:+.1f}"
 
 
-def _intr_rms(cams: list[dict[str, Any]], key: str) -> str:
-    """RMS error / mean std of one intrinsic over per-trial camera calibrations (px, or dimensionless for k1...)."""
-    errs = [e for c in cams if (e := ((c.get("intrinsics") or {}).get("error_vs_true") or {}).get(key)) is not None]
+def _intr_rms(cams: list[dict[str, Any]], key: str, field: str = "error_vs_true") -> str:
+    """RMS error (/ mean std for the calibration's) of one intrinsic over per-trial cameras (px, or dimensionless)."""
+    errs = [e for c in cams if (e := ((c.get("intrinsics") or {}).get(field) or {}).get(key)) is not None]
     stds = [e for c in cams if (e := ((c.get("intrinsics") or {}).get("std") or {}).get(key)) is not None]
     if not errs or not stds:
         return "-"
     fmt = ".2f" if key in ("fx", "fy", "cx", "cy") else ".4f"
-    return f"{_rms(errs):{fmt}}/{_mean(stds):{fmt}}"
+    return f"{_rms(errs):{fmt}}" + ("" if field != "error_vs_true" else f"/{_mean(stds):{fmt}}")
 
 
 def _px(v: float | None) -> str:

@@ -95,12 +95,14 @@ def calibrate_camera(task: CameraTask) -> dict[str, Any]:
 
 
 def _camera_record(res: Any, rs: Any) -> dict[str, Any]:
-    """The calibrated camera of an extraction against the renderer's: ``camera``, ``true_camera``, ``intrinsics``
-    (reprojection RMS px, views, rejected, ``error_vs_true`` and ``std`` of fx, fy, cx, cy [px], k1, k2, p1, p2)."""
+    """The calibrated camera of an extraction against the renderer's: ``camera`` (the extraction's, refined by the
+    rods when they moved it), ``true_camera``, ``intrinsics`` (reprojection RMS px, views, rejected, ``error_vs_true``
+    of the calibration, ``refined_error_vs_true`` of the extraction's camera, and the calibration's ``std`` of fx,
+    fy, cx, cy [px], k1, k2, p1, p2)."""
     from calib.camera import INTRINSICS_NAMES
 
     s = res.intrinsics.summary()
-    cam, true = res.camera, rs.camera()
+    cam, true = res.intrinsics.camera, rs.camera()  # the calibration's (the extraction's may be refined by the rods)
 
     def vec(c: Any) -> list[float]:
         return [c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2], *c.dist[:4]]
@@ -112,6 +114,8 @@ def _camera_record(res: Any, rs: Any) -> dict[str, Any]:
                            "rejected": {str(k): str(v) for k, v in (s.get("rejected") or {}).items()},
                            "error_vs_true": {k: float(a - b) for k, a, b in
                                              zip(INTRINSICS_NAMES, vec(cam), vec(true), strict=True)},
+                           "refined_error_vs_true": {k: float(a - b) for k, a, b in
+                                                     zip(INTRINSICS_NAMES, vec(res.camera), vec(true), strict=True)},
                            "std": dict(zip(INTRINSICS_NAMES, std, strict=True))}}
 
 
