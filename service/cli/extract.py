@@ -20,6 +20,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="known intrinsics (i4cal.camera/1 JSON); default: the dataset's, else calibrated")
     p.add_argument("--camera-out", metavar="JSON", default=None, help="also save the intrinsics used")
     p.add_argument("--min-corners", type=int, default=6, help="fewer ChArUco corners: board missing (default 6)")
+    p.add_argument("--no-refine-camera", dest="refine_camera", action="store_false",
+                   help="do not let the rods refine the camera and measure the frames again with it (faster: one "
+                        "pass; less accurate when the camera calibration is off)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=run)
 
@@ -35,7 +38,7 @@ def run(args: argparse.Namespace) -> int:
 
     console = Console(stderr=True)
     cam = CameraModel.load(args.camera) if args.camera else None
-    opts = ExtractOptions(min_corners=args.min_corners)
+    opts = ExtractOptions(min_corners=args.min_corners, refine_camera=args.refine_camera)
     if args.quiet:
         res = extract_dataset(args.dataset, camera=cam, workers=args.workers, options=opts)
     else:
@@ -60,6 +63,13 @@ def run(args: argparse.Namespace) -> int:
         console.print(f"intrinsics: calibrated from {len(i.per_view_rms_px)} views, RMS {i.rms_px:.3f} px, "
                       f"fx {res.camera.fx:.2f} +/- {i.std.get('fx', float('nan')):.2f} px, "
                       f"{len(i.rejected)} views rejected")
+    ref = (s.get("camera") or {}).get("refined_by_rods") or {}
+    if ref.get("applied"):
+        sh = ref["shift"]
+        console.print(f"camera refined by the rods ({ref['mahalanobis']:.1f} std: fx {sh['fx']:+.2f}, "
+                      f"cx {sh['cx']:+.2f}, cy {sh['cy']:+.2f} px, k1 {sh['k1']:+.4f}); frames measured again")
+    elif ref:
+        console.print(f"camera not refined: {ref.get('reason')}")
     pl = s["placement"]
     console.print("coarse camera placement: " + (f"ok (board residual RMS {pl['rms_m'] * 1e3:.2f} mm)"
                                                   if pl["ok"] else str(pl["reason"])))
