@@ -243,7 +243,8 @@ def print_accuracy(doc: dict[str, Any], console: Any = None) -> None:
     if o["camera"] == "true":
         cam_text = "extraction with the renderer's true intrinsics (--camera true)"
     elif o["camera"] == "per-trial":
-        cams = [t["camera"] for t in (doc.get("study") or {}).get("trials", []) if t.get("camera")]
+        points = [doc.get("study") or {}, *(pt for pts in (doc.get("sweeps") or {}).values() for pt in pts)]
+        cams = list({t["key"]: t["camera"] for pt in points for t in pt.get("trials", []) if t.get("camera")}.values())
         cam_text = (f"camera calibrated in every trial from its own {o['camera_views']} rendered board views; "
                     "intrinsics error RMS / mean reported std over the trials: "
                     + ", ".join(f"{k} {_intr_rms(cams, k)}" for k in ("fx", "cx", "cy", "k1"))
