@@ -279,8 +279,6 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
                 break
             s2 = s2_new
     xi, w, z = split(x)
-    J4 = central_jacobian(lambda v: eq8(np.concatenate([v, x[4:]])), xi)  # whitened-by-weights, (2m, 4)
-    check_excitation(J4, COMBINATION_NAMES)
     r = raw(x).reshape(m, 2)
     # covariance: sandwich with the rods' noise model (scaled by the measured sigma^2) and the priors
     Wfull = np.zeros((2 * m, 2 * m))
@@ -290,6 +288,7 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
         Wfull[2 * a:2 * a + 2, 2 * a:2 * a + 2] = Wa
         Sig[2 * a:2 * a + 2, 2 * a:2 * a + 2] = s2 * shape[a]
     Jr = central_jacobian(raw, x)  # unweighted, (2m, 4 + nw + nz)
+    check_excitation(np.einsum("mij,mjk->mik", Wh, Jr[:, :4].reshape(m, 2, 4)).reshape(2 * m, 4), COMBINATION_NAMES)
     cov_pose_fixed = _sandwich(Jr[:, :4], Wfull, Sig)
     parts = {"legs_and_encoders": cov_pose_fixed}
     cov = cov_pose_fixed.copy()

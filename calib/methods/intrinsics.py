@@ -19,7 +19,6 @@ change through its estimator's gain.
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -128,7 +127,3 @@ def perturbed_boards(arrays: PhaseArrays, sens: Array, step: Array) -> PhaseArra
     R = np.einsum("nij,njk->nik", rotvec_to_matrix(d[:, :3]), arrays.board_R)
     return replace(arrays, board_R=R, board_t=arrays.board_t + d[:, 3:])
 
-
-def summary(cov: Array) -> dict[str, Any]:
-    """Standard deviations of the intrinsics, for diagnostics."""
-    return {k: float(np.sqrt(max(cov[i, i], 0.0))) for i, k in enumerate(INTRINSICS_NAMES)}

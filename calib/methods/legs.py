@@ -117,6 +117,25 @@ class PlaneObservation:
         return np.sum(g ** 2 * self.var, axis=1) + 1e-30
 
 
+def planes_direction_covariance(h: np.ndarray, dh: np.ndarray, var: np.ndarray) -> np.ndarray:
+    """Covariance (3, 3) of ``u = normalize(h1 x h2)`` from independent perturbations of the two planes.
+
+    ``h`` (2, 3): the planes' unit normals; ``dh`` (2, 2, 3): per plane, its change per unit of its
+    two noise parameters (angle, offset); ``var`` (2, 2): their variances.
+    """
+    m = np.cross(h[0], h[1])
+    nm = float(np.linalg.norm(m))
+    u = m / nm
+    Pu = np.eye(3) - np.outer(u, u)
+    C = np.zeros((3, 3))
+    for q in range(2):
+        for p in range(2):
+            dm = np.cross(dh[0, p], h[1]) if q == 0 else np.cross(h[0], dh[1, p])
+            du = Pu @ dm / nm
+            C += var[q, p] * np.outer(du, du)
+    return C
+
+
 def limb_line_noise(K: np.ndarray, h: np.ndarray, point: np.ndarray, rms_px: np.ndarray, n_points: np.ndarray,
                     cov_u: np.ndarray | None = None, step_px: float = 3.0,
                     edge_bias_px: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
@@ -177,17 +196,7 @@ def limb_line_noise(K: np.ndarray, h: np.ndarray, point: np.ndarray, rms_px: np.
         st2 = step_px ** 2 * npts * (npts ** 2 - 1.0) / 12.0
         var[q] = [s2 / st2 + (edge_bias_px / span) ** 2, s2 / npts + (0.5 * edge_bias_px) ** 2]
     if cov_u is not None:
-        m = np.cross(h[0], h[1])
-        nm = float(np.linalg.norm(m))
-        u = m / nm
-        Pu = np.eye(3) - np.outer(u, u)
-        M = np.zeros((3, 3))
-        for q in range(2):
-            for p in range(2):
-                dm = np.cross(dh[0, p], h[1]) if q == 0 else np.cross(h[0], dh[1, p])
-                du = Pu @ dm / nm
-                M += var[q, p] * np.outer(du, du)
-        tm = float(np.trace(M))
+        tm = float(np.trace(planes_direction_covariance(h, dh, var)))
         if tm > 0 and np.all(np.isfinite(cov_u)):
             var = var * (float(np.trace(cov_u)) / tm)
     return dh, var

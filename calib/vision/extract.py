@@ -472,22 +472,25 @@ def extract_dataset(dataset: str | Path | Dataset, *, camera: CameraModel | None
     ds = dataset if isinstance(dataset, Dataset) else Dataset.open(dataset)
     workers = max(1, int(workers or os.cpu_count() or 1))
     opts = options or ExtractOptions()
+    total = [0]  # the first pass's count, which the second continues
+
+    def first_progress(done: int, tot: int) -> None:
+        total[0] = tot
+        if progress:
+            progress(done, tot)
+
+    def second_progress(done: int, tot: int) -> None:
+        if progress:
+            progress(total[0] + done, total[0] + tot)
+
     with _Pool(workers) as pool:
-        first = _extract(pool, ds, camera, progress, opts, on_frame)
+        first = _extract(pool, ds, camera, first_progress, opts, on_frame)
         if not opts.refine_camera:
             return first
         refined, info = refined_camera(first, opts.refine_min_shift)
         if refined is None:
             first.summary["camera"]["refined_by_rods"] = info
             return first
-        total = [0]
-
-        def second_progress(done: int, tot: int) -> None:  # the second pass continues the first's count
-            if progress:
-                progress(total[0] + done, total[0] + tot)
-
-        if progress:
-            total[0] = _progress_total(ds, camera is None and first.intrinsics is not None)
         second = _extract(pool, ds, refined, second_progress, opts, on_frame)
     # the camera's calibration (views, rejections) is the first pass's; the second only re-measured
     second.summary["camera"] = {**first.summary["camera"], "refined_by_rods": info}
@@ -497,12 +500,6 @@ def extract_dataset(dataset: str | Path | Dataset, *, camera: CameraModel | None
     second.observations["extraction"]["summary"] = second.summary
     second.intrinsics = first.intrinsics
     return second
-
-
-def _progress_total(ds: Dataset, calibrated: bool) -> int:
-    """What the first pass counted: the camera views when it calibrated, and the other frames twice."""
-    n_cam = sum(1 for f in ds.frames if f.phase == "camera")
-    return (n_cam if calibrated else 0) + 2 * (len(ds.frames) - n_cam)
 
 
 def refined_camera(res: ExtractionResult, min_shift: float = 0.5) -> tuple[CameraModel | None, dict[str, Any]]:

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from calib.methods import calibrate_legs
-from calib.methods.legs import limb_line_noise
+from calib.methods.legs import limb_line_noise, planes_direction_covariance
 from calib.observations import Observations
 from calib.parameters import COMBINATION_NAMES, PARAMETER_NAMES
 from calib.transforms import unit
@@ -20,20 +20,6 @@ from drivers.sim.twin import GeometricTwin, NoiseSpec
 K = np.array([[774.19354839, 0.0, 515.3], [0.0, 774.19354839, 380.6], [0.0, 0.0, 1.0]])
 RADIUS = 0.008
 RMS_PX, N_POINTS = 0.1, 150
-
-
-def _cov_u(h: np.ndarray, dh: np.ndarray, var: np.ndarray) -> np.ndarray:
-    m = np.cross(h[0], h[1])
-    nm = np.linalg.norm(m)
-    u = m / nm
-    Pu = np.eye(3) - np.outer(u, u)
-    C = np.zeros((3, 3))
-    for q in range(2):
-        for p in range(2):
-            dm = np.cross(dh[0, p], h[1]) if q == 0 else np.cross(h[0], dh[1, p])
-            du = Pu @ dm / nm
-            C += var[q, p] * np.outer(du, du)
-    return C
 
 
 def with_planes(doc: dict, rng: np.random.Generator | None = None) -> dict:
@@ -53,7 +39,8 @@ def with_planes(doc: dict, rng: np.random.Generator | None = None) -> dict:
                 u, X = axis_from_planes(h[0], h[1], RADIUS)
                 u = u * np.sign(u @ u0)
                 rod.update(u=u.tolist(), point=(X + ((p0 - X) @ u) * u).tolist(), h=h.tolist(),
-                           rms_px=rms.tolist(), n_points=npts.tolist(), cov_u=_cov_u(h, dh, var).tolist())
+                           rms_px=rms.tolist(), n_points=npts.tolist(),
+                           cov_u=planes_direction_covariance(h, dh, var).tolist())
     return doc
 
 
