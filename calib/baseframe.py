@@ -52,6 +52,8 @@ class BaseFrameResult:
     n_rotation: int
     n_translation: int
     rotation_angles_rad: Array = field(repr=False)
+    #: the rotation-axis fit's final state, to re-estimate from slightly moved board poses (``start``)
+    axis_state: dict | None = field(default=None, repr=False, compare=False)
 
     @property
     def x_B(self) -> Array:
@@ -79,7 +81,8 @@ class BaseFrameResult:
         }
 
 
-def fit_rotation_axis(R: Array, T: Array | None = None) -> tuple[Array, Array, Array, Array, float]:
+def fit_rotation_axis(R: Array, T: Array | None = None, start: dict | None = None,
+                      state: dict | None = None) -> tuple[Array, Array, Array, Array, float]:
     """Fit a fixed rotation axis to board orientations ``R_k = Rot(z, theta_k) R_ref``.
 
     Parameters
@@ -101,6 +104,16 @@ def fit_rotation_axis(R: Array, T: Array | None = None) -> tuple[Array, Array, A
         Rotation-vector residuals (rad).
     scale_ok : float
         Angle spread (rad), to detect degenerate sweeps.
+
+    Other parameters
+    ----------------
+    state : dict, optional
+        Filled with the fit's final state (parametrisation, solution, weights).
+    start : dict, optional
+        A ``state`` of a fit to nearly the same rotations (the same frames, slightly moved): the
+        weighted fit starts from it with its weights, skipping the initial estimate and the
+        unweighted fit (first-order propagation through the estimator, as in
+        :mod:`calib.methods.combined`).
     """
     R = np.asarray(R, dtype=np.float64)
     n = R.shape[0]
@@ -109,6 +122,8 @@ def fit_rotation_axis(R: Array, T: Array | None = None) -> tuple[Array, Array, A
     if n < 2:
         raise IdentifiabilityError("the rotation phase needs at least two board poses to find z_B",
                                    parameter="z_B")
+    if start is not None:
+        return _refit_rotation_axis(R, T, start, state)
     order = np.argsort(np.asarray(T)) if T is not None else np.arange(n)
     # increments between neighbouring frames are small: no wrap-around at +-180 deg
     inc = matrix_to_rotvec(R[order[1:]] @ np.transpose(R[order[:-1]], (0, 2, 1)))
@@ -127,22 +142,17 @@ def fit_rotation_axis(R: Array, T: Array | None = None) -> tuple[Array, Array, A
     # local parametrisation of z around z0
     e1 = unit(np.cross(z0, [1.0, 0.0, 0.0] if abs(z0[0]) < 0.9 else [0.0, 1.0, 0.0]))
     e2 = np.cross(z0, e1)
+    axes = (z0, e1, e2)
 
     def zfun(a: Array) -> Array:
-        return unit(z0 + a[0] * e1 + a[1] * e2)
+        return _axis(axes, a)
 
     def resid(x: Array, W: Array | None = None) -> Array:
-        z = zfun(x[:2])
-        Rref = rotvec_to_matrix(x[2:5]) @ R[0]
-        th = x[5:]
-        Q = rotvec_to_matrix(z[None, :] * th[:, None])
-        e = matrix_to_rotvec(Q @ Rref @ np.transpose(R, (0, 2, 1)))
-        if W is not None:
-            e = e @ W.T
-        return e.ravel()
+        return _axis_residuals(R, axes, x, W)
 
     x0 = np.concatenate([[0.0, 0.0], [0.0, 0.0, 0.0], th0])
     sol = least_squares(resid, x0, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=2000)
+    W = None
     res = sol.fun.reshape(n, 3)
     p = 5 + n
     dof = 2 * n - 5  # the component along the axis is absorbed by theta_k
@@ -158,17 +168,69 @@ def fit_rotation_axis(R: Array, T: Array | None = None) -> tuple[Array, Array, A
                             max_nfev=2000)
         J = sol.jac
         s2 = float(sol.fun @ sol.fun / dof)
+        if state is not None:
+            state["J"] = J
         cov_x = np.linalg.pinv(J.T @ J) * s2
     else:  # noise-free data
         cov_x = np.zeros((p, p))
-    z = zfun(sol.x[:2])
-    Jz = np.column_stack([e1, e2])
+    if state is not None:
+        state.update(axes=axes, x=sol.x, W=W, spread=spread, res=res, cov_x=cov_x)
+    return _axis_result(axes, sol.x, cov_x, T, res, spread)
+
+
+def _axis(axes: tuple[Array, Array, Array], a: Array) -> Array:
+    z0, e1, e2 = axes
+    return unit(z0 + a[0] * e1 + a[1] * e2)
+
+
+def _axis_residuals(R: Array, axes: tuple[Array, Array, Array], x: Array, W: Array | None) -> Array:
+    """Rotation-vector residuals (N*3,) of ``R_k = Rot(z, theta_k) R_ref`` for the unknowns x (fit_rotation_axis)."""
+    z = _axis(axes, x[:2])
+    Rref = rotvec_to_matrix(x[2:5]) @ R[0]
+    th = x[5:]
+    Q = rotvec_to_matrix(z[None, :] * th[:, None])
+    e = matrix_to_rotvec(Q @ Rref @ np.transpose(R, (0, 2, 1)))
+    if W is not None:
+        e = e @ W.T
+    return e.ravel()
+
+
+def _axis_result(axes: tuple[Array, Array, Array], x: Array, cov_x: Array, T: Array | None, res: Array,
+                 spread: float) -> tuple[Array, Array, Array, Array, float]:
+    z = _axis(axes, x[:2])
+    Jz = np.column_stack([axes[1], axes[2]])
     cov_z = Jz @ cov_x[:2, :2] @ Jz.T
-    theta = sol.x[5:]
+    theta = x[5:]
     if T is not None and np.corrcoef(theta, np.asarray(T))[0, 1] < 0:
         z = -z
         theta = -theta
     return z, cov_z, theta, res, spread
+
+
+def _refit_rotation_axis(R: Array, T: Array | None, start: dict, state: dict | None
+                         ) -> tuple[Array, Array, Array, Array, float]:
+    """The weighted fit of :func:`fit_rotation_axis` from a previous fit's state (slightly moved data)."""
+    axes, W = start["axes"], start["W"]
+    x_start = np.asarray(start["x"], dtype=np.float64).copy()
+    if x_start.size != 5 + R.shape[0]:
+        raise ValueError(f"the start state has {x_start.size - 5} rotations, the data {R.shape[0]}")
+    J = start.get("J")
+    if J is not None and J.shape == (3 * R.shape[0], x_start.size):
+        # Gauss-Newton steps with the converged fit's Jacobian: the data moved by far less than their noise,
+        # so the first step is already the first-order (linear propagation) answer; the second polishes it
+        x = x_start
+        for _ in range(2):
+            x = x - np.linalg.lstsq(J, _axis_residuals(R, axes, x, W), rcond=1e-8)[0]  # the gauge (Rref and
+            # every theta turned together about z) is a null direction
+    else:
+        x = least_squares(lambda v: _axis_residuals(R, axes, v, W), x_start, method="lm", xtol=1e-15, ftol=1e-15,
+                          gtol=1e-15, max_nfev=2000).x
+    res = _axis_residuals(R, axes, x, None).reshape(-1, 3)
+    out_state = {**start, "x": x, "res": res}
+    if state is not None:
+        state.update(out_state)
+    # the covariance is the previous fit's: the data moved by far less than their noise
+    return _axis_result(axes, x, start["cov_x"], T, res, start["spread"])
 
 
 def fit_translation_direction(t: Array, s: Array) -> tuple[Array, Array, Array, float]:
@@ -225,8 +287,12 @@ def frame_from_axes(z: Array, x: Array) -> Array:
     return np.column_stack([xo, y, z])
 
 
-def estimate_base_frame(rotation: PhaseArrays, translation: PhaseArrays) -> BaseFrameResult:
+def estimate_base_frame(rotation: PhaseArrays, translation: PhaseArrays,
+                        start: BaseFrameResult | None = None) -> BaseFrameResult:
     """Base frame axes in the camera frame from the rotation and translation phases.
+
+    ``start``: an estimate from the same frames with slightly different board poses (a propagation
+    step); the rotation axis's weighted fit then starts from it with its weights and covariance.
 
     Raises
     ------
@@ -244,7 +310,9 @@ def estimate_base_frame(rotation: PhaseArrays, translation: PhaseArrays) -> Base
             f"the translation phase has {len(tra)} frame(s) with a board pose; at least 2 are needed for x_B",
             parameter="x_B")
     Tq = (rot.q[:, 0] + rot.q[:, 1] - rot.q[:, 2] - rot.q[:, 3]) / 4.0
-    z, cov_z, theta, rres, _ = fit_rotation_axis(rot.board_R, Tq)
+    state: dict = {}
+    z, cov_z, theta, rres, _ = fit_rotation_axis(rot.board_R, Tq, start=start.axis_state if start else None,
+                                                 state=state)
     s = tra.q.mean(axis=1)
     x, cov_x, tres, scale = fit_translation_direction(tra.board_t, s)
     R = frame_from_axes(z, x)
@@ -269,7 +337,8 @@ def estimate_base_frame(rotation: PhaseArrays, translation: PhaseArrays) -> Base
         orthogonality_error_deg=ortho,
         rotation_residual_rms_rad=float(np.sqrt(np.mean(np.sum(rres ** 2, axis=1)))),
         translation_residual_rms_m=float(np.sqrt(np.mean(np.sum(tres ** 2, axis=1)))),
-        translation_scale=scale, n_rotation=len(rot), n_translation=len(tra), rotation_angles_rad=theta)
+        translation_scale=scale, n_rotation=len(rot), n_translation=len(tra), rotation_angles_rad=theta,
+        axis_state=state)
 
 
 def base_frame_from_observations(obs: Observations) -> BaseFrameResult:

@@ -360,7 +360,8 @@ class _IntrinsicsModel:
 
     def __init__(self, camera: CameraModel, steps: np.ndarray, limbs: np.ndarray, H: np.ndarray,
                  G: np.ndarray) -> None:
-        self.camera, self.steps, self.limbs, self.H, self.G = camera, steps, limbs, H, G
+        self.camera, self.steps, self.H, self.G = camera, steps, H, G
+        self.limbs = intr.LinearizedLimbs(camera, steps, limbs)
         self._last: tuple[bytes, np.ndarray] | None = None  # the numeric Jacobians move z in few columns
 
     @classmethod
@@ -382,13 +383,13 @@ class _IntrinsicsModel:
         if s_rot is not None and s_tra is not None:
             R0 = bf.camera_from_base_R
             for j, st in enumerate(steps):  # one-sided: R0 is the estimate from the same board poses
-                Rp = estimate_base_frame(intr.perturbed_boards(rot, s_rot, st),
-                                         intr.perturbed_boards(tra, s_tra, st)).camera_from_base_R
+                Rp = estimate_base_frame(intr.perturbed_boards(rot, s_rot, st), intr.perturbed_boards(tra, s_tra, st),
+                                         start=bf).camera_from_base_R
                 G[:, j] = matrix_to_rotvec(Rp @ R0.T)
         return cls(camera, steps, limbs, H, G)
 
     def select(self, keep: np.ndarray) -> None:
-        self.limbs, self.H = self.limbs[keep], self.H[keep]
+        self.limbs, self.H = self.limbs.subset(keep), self.H[keep]
         self._last = None
 
     def directions(self, z: np.ndarray, reference: np.ndarray) -> np.ndarray:
@@ -396,7 +397,7 @@ class _IntrinsicsModel:
         key = np.asarray(z, dtype=np.float64).tobytes()
         if self._last is not None and self._last[0] == key and self._last[1].shape == reference.shape:
             return self._last[1]
-        h = intr.limb_planes_for(intr.perturbed_camera(self.camera, self.steps.T @ z), self.limbs, self.H)
+        h = self.limbs.planes(z, self.H)
         u = np.cross(h[:, 0], h[:, 1])
         u /= np.linalg.norm(u, axis=1, keepdims=True)
         u *= np.sign(np.sum(u * reference, axis=1))[:, None]

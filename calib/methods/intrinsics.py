@@ -95,13 +95,26 @@ def limb_planes_for(camera: CameraModel, limbs_px: Array, reference_h: Array) ->
         line through the undistorted points, total least squares).
     """
     L = np.asarray(limbs_px, dtype=np.float64)
-    m, two, p, _ = L.shape
-    xn = camera.undistort_points(L.reshape(-1, 2)).reshape(m, two, p, 2)
+    xn = camera.undistort_points(L.reshape(-1, 2)).reshape(L.shape)
+    return planes_through(xn, reference_h)
+
+
+def planes_through(xn: Array, reference_h: Array) -> Array:
+    """Unit normals (M, 2, 3) of the planes through the camera centre and each limb's points ``xn``
+    (M, 2, P, 2) in normalized coordinates (total least squares line), signed like ``reference_h``."""
     c = xn.mean(axis=2)
     d = xn - c[:, :, None, :]
-    S = np.einsum("mlpi,mlpj->mlij", d, d)
-    _w, V = np.linalg.eigh(S)
-    n = V[..., :, 0]  # normal: the smallest-variance direction
+    # normal: the smallest-variance direction of the 2x2 scatter [[a, b], [b, e]] (closed form): the
+    # line's direction is the largest eigenvector (b, lam - a) ~ (lam - e, b), rotated by 90 degrees
+    a = np.einsum("mlp,mlp->ml", d[..., 0], d[..., 0])
+    b = np.einsum("mlp,mlp->ml", d[..., 0], d[..., 1])
+    e = np.einsum("mlp,mlp->ml", d[..., 1], d[..., 1])
+    lam = 0.5 * (a + e) + np.hypot(0.5 * (a - e), b)
+    t1 = np.stack([b, lam - a], axis=-1)
+    t2 = np.stack([lam - e, b], axis=-1)
+    t = np.where((np.abs(lam - a) > np.abs(lam - e))[..., None], t1, t2)
+    n = np.stack([-t[..., 1], t[..., 0]], axis=-1)
+    n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-300)
     h = np.concatenate([n, -np.sum(n * c, axis=-1, keepdims=True)], axis=-1)
     h /= np.linalg.norm(h, axis=-1, keepdims=True)
     return h * np.sign(np.sum(h * reference_h, axis=-1, keepdims=True))
@@ -127,3 +140,83 @@ def perturbed_boards(arrays: PhaseArrays, sens: Array, step: Array) -> PhaseArra
     R = np.einsum("nij,njk->nik", rotvec_to_matrix(d[:, :3]), arrays.board_R)
     return replace(arrays, board_R=R, board_t=arrays.board_t + d[:, 3:])
 
+
+
+class LinearizedLimbs:
+    """Limb samples' normalized coordinates as a linear function of the intrinsics' nuisance z.
+
+    ``xn(z) = xn0 + sum_j z_j dxn_j`` with ``dxn_j`` the central difference over one standard
+    deviation along principal direction j (``steps`` (n, 8), :func:`principal_steps`): undistortion
+    is smooth, so within a few standard deviations the neglected second-order term is far below
+    the edges' noise (tests/calib/test_intrinsics_propagation.py), and the interpretation planes
+    for any z cost a product instead of an iterative undistortion of every sample.
+
+    Parameters
+    ----------
+    camera : CameraModel
+    steps : ndarray, shape (n, 8)
+    limbs_px : ndarray, shape (M, 2, P, 2)
+        Per rod and limb, points of the limb in distorted pixels.
+    """
+
+    def __init__(self, camera: CameraModel, steps: Array, limbs_px: Array) -> None:
+        L = np.asarray(limbs_px, dtype=np.float64)
+        self.camera, self.steps, self.px, self.iterations = camera, np.asarray(steps, dtype=np.float64), L, 2
+        self.shape = L.shape
+        flat = L.reshape(-1, 2)
+        self.xn0 = camera.undistort_points(flat).reshape(L.shape)
+        d = [(camera_step(camera, st).undistort_points(flat) - camera_step(camera, -st).undistort_points(flat)) / 2.0
+             for st in np.asarray(steps, dtype=np.float64)]
+        self.dxn = np.asarray(d).reshape((len(d), *L.shape)) if d else np.zeros((0, *L.shape))
+
+    def subset(self, keep: Array) -> LinearizedLimbs:
+        """The same for the rods ``keep`` (boolean mask or indices over M)."""
+        out = object.__new__(LinearizedLimbs)
+        out.camera, out.steps, out.iterations = self.camera, self.steps, self.iterations
+        out.px, out.xn0, out.dxn = self.px[keep], self.xn0[keep], self.dxn[:, keep]
+        out.shape = out.px.shape
+        return out
+
+    def points(self, z: Array) -> Array:
+        """Normalized coordinates (M, 2, P, 2) of the limb samples for the nuisance ``z`` (n,)."""
+        zz = np.asarray(z, dtype=np.float64)
+        x = self.xn0 + np.tensordot(zz, self.dxn, axes=(0, 0))
+        if not np.any(zz):
+            return x
+        # the first-order guess, then Newton steps on the exact distortion (quadratic convergence)
+        cam = camera_step(self.camera, self.steps.T @ zz)
+        K, d = cam.K, np.zeros(5)
+        d[: min(5, cam.dist.size)] = cam.dist[:5]
+        k1, k2, p1, p2, k3 = d
+        xd = (self.px[..., 0] - K[0, 2] - K[0, 1] / K[1, 1] * (self.px[..., 1] - K[1, 2])) / K[0, 0]
+        yd = (self.px[..., 1] - K[1, 2]) / K[1, 1]
+        xx, yy = x[..., 0], x[..., 1]
+        for _ in range(self.iterations):
+            r2 = xx * xx + yy * yy
+            radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            dr = k1 + r2 * (2 * k2 + 3 * k3 * r2)
+            fx = xx * radial + 2 * p1 * xx * yy + p2 * (r2 + 2 * xx * xx) - xd
+            fy = yy * radial + p1 * (r2 + 2 * yy * yy) + 2 * p2 * xx * yy - yd
+            a = radial + 2 * xx * xx * dr + 2 * p1 * yy + 6 * p2 * xx
+            b = 2 * xx * yy * dr + 2 * p1 * xx + 2 * p2 * yy
+            c = radial + 2 * yy * yy * dr + 6 * p1 * yy + 2 * p2 * xx
+            det = a * c - b * b
+            xx, yy = xx - (c * fx - b * fy) / det, yy - (a * fy - b * fx) / det
+        out = np.stack([xx, yy], axis=-1)
+        # far from the first-order guess (a large z) Newton may not have converged: those points exactly
+        flat_px = self.px.reshape(-1, 2)
+        bad = ~np.all(np.abs(cam.distort_normalized(out.reshape(-1, 2)) - flat_px) < 1e-8, axis=1)
+        if np.any(bad):
+            flat = out.reshape(-1, 2)
+            flat[bad] = cam.undistort_points(flat_px[bad])
+            out = flat.reshape(out.shape)
+        return out
+
+    def planes(self, z: Array, reference_h: Array) -> Array:
+        """Interpretation planes (M, 2, 3) for ``z``, signed like ``reference_h``."""
+        if self.shape[0] == 0:
+            return np.asarray(reference_h, dtype=np.float64)
+        return planes_through(self.points(z), reference_h)
+
+
+camera_step = perturbed_camera

@@ -42,7 +42,7 @@ from ..errors import I4calError, InputError
 from ..kinematics import dkm
 from ..observations import FORMAT
 from ..transforms import Rigid, matrix_to_rotvec, rot_z, rotvec_to_matrix
-from .board import BoardDetector, to_gray8
+from .board import BoardDetection, BoardDetector, to_gray8
 from .detect import DetectSettings, detect_rods, measure_detected, resolve_frames
 from .rods import ROD_KEYS, RodSettings, image_ideal_bbox, leg_parallelism, measure_rods, predict_rods, rod_name
 
@@ -105,7 +105,7 @@ IMAGE_CACHE_BYTES = 112 * 2**20
 
 
 def _init_worker(root: str, camera: dict | None, refined: tuple[list, list, Any] | None, min_corners: int,
-                 rod_settings: dict | None) -> None:
+                 rod_settings: dict | None, keep_images: bool = False) -> None:
     if _W.get("root") != root:  # a new dataset (the same one is kept from stage to stage, with its images)
         _W.update(root=root, ds=Dataset.open(root), images={}, cached=0)
     ds = _W["ds"]
@@ -116,6 +116,7 @@ def _init_worker(root: str, camera: dict | None, refined: tuple[list, list, Any]
     _W["cam"] = CameraModel.from_dict(camera) if camera is not None else None
     _W["rs"] = RodSettings(**rod_settings) if rod_settings else RodSettings()
     _W["bbox"] = image_ideal_bbox(_W["cam"]) if _W["cam"] is not None else None
+    _W["keep"] = keep_images  # the rods stage keeps the images for a second pass
 
 
 def _clear_worker() -> None:
@@ -159,10 +160,23 @@ def _task_board(i: int) -> tuple[int, Any]:
         img = _load(i, keep=True)
     except InputError as exc:
         return i, {"image_error": exc.reason}
-    res = _W["det"].measure(img, _W["cam"])
+    det = _W["det"].detect(img)
+    return _board_result(i, det)
+
+
+def _task_board_pose(args: tuple[int, list, list, int]) -> tuple[int, Any]:
+    """The board pose from corners detected in an earlier pass (the detection does not depend on the camera)."""
+    i, ids, pixels, n_markers = args
+    det = BoardDetection(np.asarray(ids, dtype=int), np.asarray(pixels, dtype=np.float64).reshape(-1, 2), n_markers)
+    return _board_result(i, det)
+
+
+def _board_result(i: int, det: BoardDetection) -> tuple[int, Any]:
+    res = _W["det"].pose(det, _W["cam"])
+    corners = [det.ids.tolist(), det.pixels.tolist(), det.n_markers]
     if isinstance(res, str):
-        return i, {"reason": res}
-    return i, {"pose": res.to_dict()}
+        return i, {"reason": res, "corners": corners}
+    return i, {"pose": res.to_dict(), "corners": corners}
 
 
 def _task_find_rods(args: tuple[int, dict | None, dict]) -> tuple[int, Any]:
@@ -185,7 +199,7 @@ def _task_rods(args: tuple) -> tuple[int, Any]:
     cam: CameraModel = _W["cam"]
     fr = ds.frames[i]
     try:
-        img = _gray(_load(i, keep=False))
+        img = _gray(_load(i, keep=_W.get("keep", False)))
     except InputError as exc:
         return i, {"image_error": exc.reason}
     doc = ds.document
@@ -484,14 +498,16 @@ def extract_dataset(dataset: str | Path | Dataset, *, camera: CameraModel | None
             progress(total[0] + done, total[0] + tot)
 
     with _Pool(workers) as pool:
-        first = _extract(pool, ds, camera, first_progress, opts, on_frame)
+        corners: dict[int, list] = {}
+        first = _extract(pool, ds, camera, first_progress, opts, on_frame, keep_images=opts.refine_camera,
+                         corners=corners)
         if not opts.refine_camera:
             return first
         refined, info = refined_camera(first, opts.refine_min_shift)
         if refined is None:
             first.summary["camera"]["refined_by_rods"] = info
             return first
-        second = _extract(pool, ds, refined, second_progress, opts, on_frame)
+        second = _extract(pool, ds, refined, second_progress, opts, on_frame, corners=corners)
     # the camera's calibration (views, rejections) is the first pass's; the second only re-measured
     second.summary["camera"] = {**first.summary["camera"], "refined_by_rods": info}
     cam_frames = {str(i) for i, f in enumerate(ds.frames) if f.phase == "camera"}
@@ -554,7 +570,11 @@ def refined_camera(res: ExtractionResult, min_shift: float = 0.5) -> tuple[Camer
 
 
 def _extract(pool: _Pool, ds: Dataset, camera: CameraModel | None, progress: Progress | None, opts: ExtractOptions,
-             on_frame: FrameCallback | None) -> ExtractionResult:
+             on_frame: FrameCallback | None, keep_images: bool = False,
+             corners: dict[int, list] | None = None) -> ExtractionResult:
+    """One pass over the dataset. ``keep_images``: the workers keep the decoded images after the rods stage (a
+    second pass follows); ``corners``: filled with each frame's ChArUco corners when empty, reused (the pose
+    only) when not."""
     doc = ds.document
     frames = ds.frames
     cam_idx = [i for i, f in enumerate(frames) if f.phase == "camera"]
@@ -595,9 +615,18 @@ def _extract(pool: _Pool, ds: Dataset, camera: CameraModel | None, progress: Pro
     bp = (camera.extra.get("calibration") or {}).get("board_points") or {}
     if bp.get("ids") is not None and len(bp["ids"]) == BoardDetector(doc.board).ids_all.size:
         refined = (list(bp["ids"]), list(bp["points_m"]), bp.get("d_intrinsics"))
-    init = (root, camera.to_dict(), refined, opts.min_corners, rs_dict)
+    init = (root, camera.to_dict(), refined, opts.min_corners, rs_dict, keep_images)
     board_cb = None if on_frame is None else (lambda r: on_frame(frame_info(r[0], frames[r[0]].phase, r[1])))
-    boards = dict(pool.run(_task_board, obs_idx, init, progress, done, total, board_cb))
+    if corners:  # a second pass: the corners found in the first, posed with this camera
+        again = [i for i in obs_idx if i in corners]
+        boards = dict(pool.run(_task_board_pose, [(i, *corners[i]) for i in again], init, progress, done, total,
+                               board_cb))
+        rest = [i for i in obs_idx if i not in corners]
+        boards.update(pool.run(_task_board, rest, init, progress, done + len(again), total, board_cb))
+    else:
+        boards = dict(pool.run(_task_board, obs_idx, init, progress, done, total, board_cb))
+    if corners is not None:
+        corners.update({i: b["corners"] for i, b in boards.items() if "corners" in b})
     done += len(obs_idx)
     good = [i for i in obs_idx if "pose" in boards[i]]
     C = E = None

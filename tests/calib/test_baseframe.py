@@ -51,3 +51,27 @@ def test_no_rotation_is_an_identifiability_error(noise_free_obs):
     tr = obs.arrays("translation")
     with pytest.raises(IdentifiabilityError, match="x_B"):
         estimate_base_frame(rot, replace(tr, q=np.repeat(tr.q[:1], len(tr), axis=0)))
+
+
+def test_start_from_a_previous_estimate_follows_a_moved_rig(noise_free_obs):
+    """``estimate_base_frame(..., start=)`` (the combined fit's propagation of the intrinsics through the base
+    frame: one linear step from the converged fit) follows a small rotation of the whole rig exactly."""
+    from dataclasses import replace
+
+    from calib.transforms import rotvec_to_matrix
+
+    obs = noise_free_obs[0]
+    rot, tra = obs.arrays("rotation"), obs.arrays("translation")
+    rng = np.random.default_rng(3)
+    noisy = replace(rot, board_R=rotvec_to_matrix(rng.normal(scale=2e-4, size=(len(rot), 3))) @ rot.board_R)
+    bf = estimate_base_frame(noisy, tra)
+    assert bf.axis_state is not None and "J" in bf.axis_state
+    w = np.array([2e-4, -1e-4, 3e-4])
+    Q = rotvec_to_matrix(w)
+    moved = estimate_base_frame(replace(noisy, board_R=Q @ noisy.board_R, board_t=noisy.board_t @ Q.T),
+                                replace(tra, board_R=Q @ tra.board_R, board_t=tra.board_t @ Q.T), start=bf)
+    err = matrix_to_rotvec(moved.camera_from_base_R @ (Q @ bf.camera_from_base_R).T)
+    assert np.linalg.norm(err) < 1e-8, err
+    cold = estimate_base_frame(replace(noisy, board_R=Q @ noisy.board_R, board_t=noisy.board_t @ Q.T),
+                               replace(tra, board_R=Q @ tra.board_R, board_t=tra.board_t @ Q.T))
+    assert np.linalg.norm(matrix_to_rotvec(cold.camera_from_base_R @ moved.camera_from_base_R.T)) < 1e-6

@@ -33,3 +33,28 @@ def test_a_worker_error_is_raised_and_the_workers_end(small_dataset):  # noqa: F
     with pytest.raises(AttributeError), extract._Pool(2) as pool:  # no camera: the board stage cannot pose
         pool.run(extract._task_board, [0, 1, 2, 3, 4], (str(root), None, None, 6, None), None, 0, 5)
     assert pool.procs == [] and pool.conns == []
+
+
+def test_a_second_pass_reuses_the_first_pass_corners_and_images(small_dataset):  # noqa: F811
+    """The second pass (the camera refined by the rods) poses the corners the first found and measures the rods
+    in the images the workers kept: the same observations as a fresh extraction with that camera."""
+    import numpy as np
+
+    from calib.camera import CameraModel
+    from calib.dataset import Dataset
+    from calib.methods.intrinsics import perturbed_camera
+
+    root, _, _ = small_dataset
+    ds = Dataset.open(root)
+    c = ds.document.camera
+    cam = CameraModel(np.asarray(c.K), np.asarray(c.dist), c.width, c.height)
+    other = perturbed_camera(cam, np.array([2.0, 2.0, -3.0, 2.0, 1e-3, -2e-3, 1e-4, -1e-4]))
+    opts = extract.ExtractOptions(refine_camera=False)
+    fresh = extract_dataset(root, camera=other, workers=2, options=opts).observations
+    with extract._Pool(2) as pool:
+        corners: dict = {}
+        first = extract._extract(pool, ds, cam, None, opts, None, keep_images=True, corners=corners)
+        assert sum(len(v[0]) > 0 for v in corners.values()) > len(corners) // 2
+        again = extract._extract(pool, ds, other, None, opts, None, corners=corners)
+    assert again.observations["frames"] == fresh["frames"]
+    assert again.observations["frames"] != first.observations["frames"]
