@@ -38,6 +38,11 @@ Weighting = Literal["auto", "frobenius", "gls"]
 # sign of u_x in each leg's model direction: u1 = (f1, Y+c, Z), u2 = (-f1, Y+c, Z), ...
 _SX = np.array([1.0, -1.0, 1.0, -1.0])
 
+#: Prior std (px) of the limb-edge bias common to every rod: twice the extraction's per-rod allowance
+#: (``RodSettings.edge_bias_px``, 0.05 px end to end), since a bias shared by every rod (lighting, optics)
+#: is not bounded by what one rod's residuals show
+EDGE_BIAS_STD_PX = 0.1
+
 
 def model_ratios(combos: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Jacobian entries ``(u_iy/u_ix, u_iz/u_ix)`` predicted from encoder values.
@@ -128,7 +133,8 @@ class _Problem:
 
 def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None = None,
                        weighting: Weighting = "auto", phases: tuple[str, ...] = ("poses",),
-                       encoder_std_m: float = 1e-6, on_iteration: IterationCallback | None = None) -> MethodResult:
+                       encoder_std_m: float = 1e-6, on_iteration: IterationCallback | None = None,
+                       edge_bias_std_px: float = EDGE_BIAS_STD_PX) -> MethodResult:
     """Identify the four combinations from leg observations and the base frame (eq. 8).
 
     Parameters
@@ -151,6 +157,10 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
         Encoder noise, metres (propagated; negligible against direction noise in practice).
     on_iteration : callable, optional
         Receives ``{"stage", "iteration", "cost"}`` after each iteration of the fits (:mod:`.iterations`).
+    edge_bias_std_px : float
+        Prior standard deviation (px) of the limb-edge bias common to every rod (one outward offset per
+        limb, nuisance unknowns of the fit with the intrinsics'; 0: not modelled). Needs the rods' limb
+        samples (``limbs_px``).
 
     Returns
     -------
@@ -185,9 +195,11 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
     # each principal direction of their covariance, prior N(0, I); the measured quantities move by
     # D z to first order (:mod:`.intrinsics`). Their error is common to every rod, so it does not
     # average out; the rods also carry information on it, which the joint fit uses.
-    prob.intrinsics = _IntrinsicsModel.build(obs, data, prob, bf)
+    prob.intrinsics = _IntrinsicsModel.build(obs, data, prob, bf, edge_bias_std_px)
     steps = None if prob.intrinsics is None else prob.intrinsics.steps
-    nz = 0 if steps is None else steps.shape[0]
+    ni = 0 if steps is None else steps.shape[0]  # intrinsics' principal directions
+    nz = 0 if prob.intrinsics is None else ni + prob.intrinsics.n_edge  # and the limb-edge biases
+    z0 = np.zeros(nz) if prob.intrinsics is None else prob.intrinsics.z0  # the calibration's intrinsics
     # 0. outlier rods (a limb taken for another edge): a first fit, then every rod whose whitened
     #    residual is beyond the chi-square(2) 99.9% quantile of a robust noise scale is dropped and
     #    the fit repeated, until none is
@@ -231,7 +243,7 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
 
     def priors(v: np.ndarray) -> np.ndarray:
         _xi, w, z = split(v)
-        return np.concatenate([Lw @ w if joint else np.zeros(0), z])
+        return np.concatenate([Lw @ w if joint else np.zeros(0), z - z0])
 
     # 1. the paper's fit: eq. 8 with the base frame of step 1 (and the intrinsics' prior)
     x = np.concatenate([x0[:4], np.zeros(nw), x0[4:]])
@@ -240,7 +252,7 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
     def stage1(vf: np.ndarray) -> np.ndarray:
         v = x.copy()
         v[free] = vf
-        return np.concatenate([eq8(v), v[4 + nw:]])
+        return np.concatenate([eq8(v), v[4 + nw:] - z0])
 
     sol = least_squares(traced(stage1, on_iteration, "eq8"), x[free], method="lm", xtol=1e-14,
                         ftol=1e-14, gtol=1e-14, max_nfev=500)
@@ -297,10 +309,12 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
         Pw = np.zeros((x.size, x.size))
         Pw[4:4 + nw, 4:4 + nw] = Lw.T @ Lw
         Pz = np.zeros((x.size, x.size))
-        Pz[4 + nw:, 4 + nw:] = np.eye(nz)
-        cov, parts = _joint_covariance(Jr, Wfull / s2, Sig, Pw, Pz)
+        Pz[4 + nw:4 + nw + ni, 4 + nw:4 + nw + ni] = np.eye(ni)
+        Pe = np.zeros((x.size, x.size))
+        Pe[4 + nw + ni:, 4 + nw + ni:] = np.eye(nz - ni)
+        cov, parts = _joint_covariance(Jr, Wfull / s2, Sig, Pw, Pz, Pe)
         if nz:
-            keep = np.arange(4 + nw)  # the same fit with the intrinsics known: what they add
+            keep = np.arange(4 + nw)  # the same fit with the intrinsics and edges known: what they add
             cov_known, _ = _joint_covariance(Jr[:, keep], Wfull / s2, Sig, Pw[np.ix_(keep, keep)],
                                              Pz[np.ix_(keep, keep)])
             cov_intr = cov - cov_known
@@ -309,11 +323,18 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
         breakdown["base_frame"] = std_dict(parts.get("base_frame", np.zeros((4, 4))))
     if nz:
         breakdown["intrinsics"] = std_dict(parts.get("intrinsics", np.zeros((4, 4))))
-    refined = None if steps is None else dict(zip(intr.INTRINSICS_NAMES, (steps.T @ z).tolist(), strict=True))
+    if nz > ni:
+        breakdown["limb_edge_bias"] = std_dict(parts.get("edge_bias", np.zeros((4, 4))))
+    edge = None
+    if nz > ni and "full" in parts:
+        e_std = prob.intrinsics.edge_std_px
+        edge = {"estimate_px": (z[ni:] * e_std).tolist(),
+                "std_px": (np.sqrt(np.diag(parts["full"])[4 + nw + ni:]) * e_std).tolist(), "prior_std_px": e_std}
+    refined = None if steps is None else dict(zip(intr.INTRINSICS_NAMES, (steps.T @ z[:ni]).tolist(), strict=True))
     # the intrinsics after the rods: their posterior covariance (for methods that do not use the rods)
     posterior = None
     if nz and "full" in parts:
-        posterior = (steps.T @ parts["full"][4 + nw:, 4 + nw:] @ steps).tolist()
+        posterior = (steps.T @ parts["full"][4 + nw:4 + nw + ni, 4 + nw:4 + nw + ni] @ steps).tolist()
     return MethodResult(
         method="combined", combinations=combos_dict(xi), combinations_std=std_dict(cov), covariance=cov,
         residual_rms=float(np.sqrt(np.mean(r ** 2))), residual_unit="Jacobian entry (dimensionless)",
@@ -324,6 +345,7 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
                      "rods_rejected": rejected, "rods_used": int(m),
                      "intrinsics_covariance": None if cov_intr is None else cov_intr.tolist(),
                      "intrinsics_refinement": refined, "intrinsics_posterior_covariance": posterior,
+                     "limb_edge_bias": edge,
                      "rods_dropped_near_vertical": prob.dropped, "base_frame": bf.summary(),
                      "base_frame_refinement_deg": float(np.rad2deg(np.linalg.norm(w))),
                      "joint_base_frame": joint},
@@ -331,20 +353,22 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
 
 
 def _joint_covariance(Jr: np.ndarray, Wd: np.ndarray, Sig: np.ndarray, Pw: np.ndarray,
-                      Pz: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+                      Pz: np.ndarray, Pe: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """Covariance (4, 4) of the combinations of a fit with priors, and its parts.
 
-    The fit minimises ``r^T Wd r + v^T (Pw + Pz) v`` (data and the priors on the base frame and the
-    intrinsics); the estimate's covariance is the data term's sandwich ``B Sig B^T`` plus each
-    prior's ``H^-1 P H^-1``.
+    The fit minimises ``r^T Wd r + v^T (Pw + Pz + Pe) v`` (data and the priors on the base frame, the
+    intrinsics and the limb-edge biases); the estimate's covariance is the data term's sandwich
+    ``B Sig B^T`` plus each prior's ``H^-1 P H^-1``.
     """
-    H = Jr.T @ Wd @ Jr + Pw + Pz
+    Pe = np.zeros_like(Pz) if Pe is None else Pe
+    H = Jr.T @ Wd @ Jr + Pw + Pz + Pe
     Hinv = np.linalg.inv(H)
     B = Hinv @ Jr.T @ Wd
-    full = B @ Sig @ B.T + Hinv @ (Pw + Pz) @ Hinv
+    full = B @ Sig @ B.T + Hinv @ (Pw + Pz + Pe) @ Hinv
     parts = {"legs_and_encoders": (B @ Sig @ B.T)[:4, :4], "base_frame": (Hinv @ Pw @ Hinv)[:4, :4],
-             "intrinsics": (Hinv @ Pz @ Hinv)[:4, :4], "full": full}
-    return parts["legs_and_encoders"] + parts["base_frame"] + parts["intrinsics"], parts
+             "intrinsics": (Hinv @ Pz @ Hinv)[:4, :4], "edge_bias": (Hinv @ Pe @ Hinv)[:4, :4], "full": full}
+    total = parts["legs_and_encoders"] + parts["base_frame"] + parts["intrinsics"] + parts["edge_bias"]
+    return total, parts
 
 
 class _IntrinsicsModel:
@@ -359,14 +383,23 @@ class _IntrinsicsModel:
     """
 
     def __init__(self, camera: CameraModel, steps: np.ndarray, limbs: np.ndarray, H: np.ndarray,
-                 G: np.ndarray) -> None:
+                 G: np.ndarray, z0: np.ndarray | None = None, edge_std_px: float = 0.0) -> None:
         self.camera, self.steps, self.H, self.G = camera, steps, H, G
+        self.n_intr = steps.shape[0]
+        #: limb-edge bias common to every rod, per limb (outward, px; prior N(0, edge_std_px^2)): the last two
+        #: entries of z when ``edge_std_px`` > 0
+        self.edge_std_px = edge_std_px
+        self.n_edge = 2 if edge_std_px > 0 else 0
+        #: the prior's mean: the calibration's intrinsics in the units of z (zero unless the observations were
+        #: extracted with a camera the rods already refined, whose calibration then records the shift: the
+        #: prior stays the calibration's, so that the rods' information is not counted twice)
+        self.z0 = np.concatenate([np.zeros(self.n_intr) if z0 is None else z0, np.zeros(self.n_edge)])
         self.limbs = intr.LinearizedLimbs(camera, steps, limbs)
         self._last: tuple[bytes, np.ndarray] | None = None  # the numeric Jacobians move z in few columns
 
     @classmethod
     def build(cls, obs: Observations, data: PhaseArrays, prob: _Problem,
-              bf: BaseFrameResult) -> _IntrinsicsModel | None:
+              bf: BaseFrameResult, edge_bias_std_px: float = 0.0) -> _IntrinsicsModel | None:
         """None when the camera's uncertainty or a rod's limb samples are missing."""
         prior = intr.intrinsics_prior(obs, refined=False)  # the rods are used again here
         limbs = _rod_field(obs, data, prob, "limbs_px")
@@ -386,7 +419,9 @@ class _IntrinsicsModel:
                 Rp = estimate_base_frame(intr.perturbed_boards(rot, s_rot, st), intr.perturbed_boards(tra, s_tra, st),
                                          start=bf).camera_from_base_R
                 G[:, j] = matrix_to_rotvec(Rp @ R0.T)
-        return cls(camera, steps, limbs, H, G)
+        offset = intr.calibration_offset(obs)
+        z0 = None if offset is None else (steps @ offset) / np.sum(steps * steps, axis=1)
+        return cls(camera, steps, limbs, H, G, z0, edge_bias_std_px)
 
     def select(self, keep: np.ndarray) -> None:
         self.limbs, self.H = self.limbs.subset(keep), self.H[keep]
@@ -397,7 +432,9 @@ class _IntrinsicsModel:
         key = np.asarray(z, dtype=np.float64).tobytes()
         if self._last is not None and self._last[0] == key and self._last[1].shape == reference.shape:
             return self._last[1]
-        h = self.limbs.planes(z, self.H)
+        h = self.limbs.planes(z[:self.n_intr], self.H)
+        if self.n_edge:
+            h = intr.shift_limbs(h, z[self.n_intr:] * self.edge_std_px / self.camera.focal_px)
         u = np.cross(h[:, 0], h[:, 1])
         u /= np.linalg.norm(u, axis=1, keepdims=True)
         u *= np.sign(np.sum(u * reference, axis=1))[:, None]
@@ -406,7 +443,7 @@ class _IntrinsicsModel:
 
     def rotation(self, z: np.ndarray) -> np.ndarray:
         """The base frame's rotation change (3, 3) for ``z``, applied on the left."""
-        return rotvec_to_matrix(self.G @ z)
+        return rotvec_to_matrix(self.G @ z[:self.n_intr])
 
 
 _CHI2_2_999 = 13.8155  # chi-square, 2 dof, 99.9% quantile
@@ -422,8 +459,10 @@ def _whitened_d2(prob: _Problem, shape: np.ndarray, x0: np.ndarray,
     def raw(v: np.ndarray) -> np.ndarray:
         return (prob.model(v[:4]) - prob.measured(None, v[4:])).reshape(-1, 2)
 
-    def res(v: np.ndarray) -> np.ndarray:  # x0: the combinations, then the intrinsics' z with prior N(0, I)
-        return np.concatenate([np.einsum("mij,mj->mi", Wh, raw(v)).ravel(), v[4:]])
+    z0 = prob.intrinsics.z0 if prob.intrinsics is not None else np.zeros(0)
+
+    def res(v: np.ndarray) -> np.ndarray:  # x0: the combinations, then the intrinsics' z with prior N(z0, I)
+        return np.concatenate([np.einsum("mij,mj->mi", Wh, raw(v)).ravel(), v[4:] - z0])
 
     sol = least_squares(traced(res, on_iteration, "outliers"), x0, method="lm", xtol=1e-12, ftol=1e-12,
                         max_nfev=200)

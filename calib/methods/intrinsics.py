@@ -58,6 +58,22 @@ def intrinsics_prior(obs: Observations, refined: bool = True) -> tuple[CameraMod
     return camera, C
 
 
+def calibration_offset(obs: Observations) -> Array | None:
+    """The calibration's intrinsics minus the extraction camera's, shape (8,), when the rods refined that camera.
+
+    A camera refined by the rods (:func:`calib.vision.extract.refined_camera`) records the shift it was moved by
+    (``calibration.refined_by_rods.shift``); the calibration's own estimate is the camera minus that shift, and
+    it, with the calibration's covariance, is the prior of a fit that uses the rods again. None when the camera
+    was not refined.
+    """
+    extra = obs.document.model_extra or {}
+    calib = (((extra.get("extraction") or {}).get("camera") or {}).get("calibration")) or {}
+    shift = (calib.get("refined_by_rods") or {}).get("shift")
+    if not shift or not all(k in shift for k in INTRINSICS_NAMES):
+        return None
+    return -np.array([float(shift[k]) for k in INTRINSICS_NAMES])
+
+
 def principal_steps(cov: Array, rel_tol: float = 1e-12) -> Array:
     """One standard deviation along each principal direction of ``cov`` (8, 8), shape (n, 8)."""
     w, V = np.linalg.eigh(np.asarray(cov, dtype=np.float64))
@@ -220,3 +236,13 @@ class LinearizedLimbs:
 
 
 camera_step = perturbed_camera
+
+
+def shift_limbs(h: Array, eps: Array) -> Array:
+    """Interpretation planes (M, 2, 3) with each limb moved outward (away from its rod's axis) by ``eps[j]`` (2,),
+    in normalized image coordinates (pixels / focal length): a limb-edge bias common to every rod's limb j."""
+    h = np.asarray(h, dtype=np.float64)
+    nn = np.linalg.norm(h[..., :2], axis=-1, keepdims=True)
+    out = h / nn  # the line n.x + c = 0 with |n| = 1, the axis on its positive side
+    out[..., 2] += np.asarray(eps, dtype=np.float64)[None, :]
+    return out / np.linalg.norm(out, axis=-1, keepdims=True)

@@ -152,3 +152,22 @@ def test_unlocked_actuator_is_refused(noise_free_obs):
     lock[0]["q"][1] += 0.01
     with pytest.raises(IdentifiabilityError, match="not locked"):
         calibrate_legs(Observations.from_dict(d))
+
+
+def test_shift_limbs_moves_each_limb_outward():
+    from calib.methods.intrinsics import shift_limbs
+    from calib.vision.rods import limb_planes
+
+    point, u, r = np.array([0.05, -0.02, 0.7]), np.array([0.1, 0.9, 0.3]), 0.006
+    h = np.array(limb_planes(point, u / np.linalg.norm(u), r))[None]
+    eps = np.array([1e-4, -2e-4])
+    moved = shift_limbs(h, eps)[0]
+    # a point of each original limb line is at signed distance +eps from the moved line (on its axis side):
+    # the moved line lies eps further out; the axis stays on the positive side
+    for j in range(2):
+        n, c = h[0, j, :2], h[0, j, 2]
+        x = -c * n / (n @ n)  # on the original line
+        nm, cm = moved[j, :2], moved[j, 2]
+        assert (nm @ x + cm) / np.linalg.norm(nm) == pytest.approx(eps[j], abs=1e-12)
+        ax = point[:2] / point[2]
+        assert (nm @ ax + cm) > 0
