@@ -6,8 +6,12 @@ The IKM of that pose must reproduce the encoder values. The unknowns are the fou
 combinations, two joint offsets (what X and T offsets and S, q03 become once only the combinations
 are kept), the camera rotation (3) and its y, z position (2), the board tilt on the end-effector
 (2) and its horizontal offset (2): 15 in all. Its x position and the board's height and yaw on the
-end-effector are gauge freedoms that the offsets absorb and are held fixed. Besides the four IKM
-residuals per pose, the pose's tilt (the end-effector only turns about z_B) gives two more.
+end-effector are gauge freedoms that the offsets absorb and are held fixed. The board's scale is a 16th unknown:
+a printed board's scale is known to its print only (and the camera calibration, which fixes it by two of
+its points, cannot tell), and a scale error moves every board pose along its viewing ray by a different
+amount (on the twin up to 0.3%, which left the IKM residuals several times the PnP noise and the standard
+deviations 2-3x too large); the encoders fix it. Besides the four IKM residuals per pose, the pose's tilt
+(the end-effector only turns about z_B) gives two more.
 
 Weighting and uncertainty: each pose's residuals are a linear function of its board-pose error
 (6 dof) plus encoder noise. When the extraction reports each board pose's covariance (``board.cov``,
@@ -41,7 +45,8 @@ from .result import MethodResult, check_excitation, combos_dict, std_dict
 
 _CHI2_6_MEDIAN = float(chi2.median(6))
 _CHI2_6_GATE = float(chi2.ppf(0.999, 6))
-_NAMES = (*COMBINATION_NAMES, "o1", "o3", "w_x", "w_y", "w_z", "t_y", "t_z", "tilt_x", "tilt_y", "b_x", "b_y")
+_NAMES = (*COMBINATION_NAMES, "o1", "o3", "w_x", "w_y", "w_z", "t_y", "t_z", "tilt_x", "tilt_y", "b_x", "b_y",
+          "board_scale")
 
 
 def _kabsch(P: np.ndarray, Q: np.ndarray) -> np.ndarray:
@@ -69,6 +74,7 @@ class _Model:
         t_bc = np.array([self.t_bc_x, x[9], x[10]])
         R_eb = self.R_eb0 @ rotvec_to_matrix(np.array([x[11], x[12], 0.0]))
         t_eb = np.array([x[13], x[14], self.t_eb_z])
+        t = t * (1.0 + x[15])  # the board's scale: known to its print and to the calibration's fixed points only
         R_be = R_bc @ R @ R_eb.T  # base_from_ee rotations, (N, 3, 3)
         p = (R_bc @ (t - np.einsum("nij,j->ni", R @ R_eb.T, t_eb)).T).T + t_bc
         theta = np.arctan2(R_be[:, 1, 0], R_be[:, 0, 0])
@@ -145,7 +151,7 @@ def calibrate_end_effector(obs: Observations, *, phases: tuple[str, ...] = ("pos
     model = _Model(R, t, q, nominal.T_per_rad, R_bc0, t_bc0[0], R_eb0, t_eb0[2], theta_nom)
     combos0 = np.array([nominal.combinations()[k] for k in COMBINATION_NAMES])
     x0 = np.concatenate([combos0, [-nominal.S, -nominal.S - nominal.q03], np.zeros(3), t_bc0[1:], [0.0, 0.0],
-                         t_eb0[:2]])
+                         t_eb0[:2], [0.0]])
     # put the offsets where the nominal pose says they are
     r0 = model.residuals(x0)
     x0[4] -= np.mean(r0[:, :2])
@@ -245,6 +251,7 @@ def calibrate_end_effector(obs: Observations, *, phases: tuple[str, ...] = ("pos
             "pose_chi2": chi2_pose.tolist(),
             "camera_tilt_deg": float(np.rad2deg(np.linalg.norm(x[6:9]))),
             "board_offset_on_ee_m": [float(x[13]), float(x[14])],
+            "board_scale_ppm": float(x[15] * 1e6),
         },
         residuals=r)
 
