@@ -53,6 +53,7 @@ from ..observations import Observations, PhaseArrays
 from ..parameters import COMBINATION_NAMES, PARAMETER_NAMES, I4Parameters
 from ..transforms import unit
 from . import intrinsics as intr
+from .combined import EDGE_BIAS_STD_PX
 from .iterations import IterationCallback, traced
 from .result import MethodResult, combos_dict, std_dict
 
@@ -684,9 +685,15 @@ class _IntrinsicsEffect:
         return cls(camera, steps, lock, idx, f[0], f[1])
 
     def _planes(self, z: np.ndarray, limbs: np.ndarray, h: np.ndarray) -> np.ndarray:
+        """Planes for ``z``: the intrinsics' part (its first ``steps`` entries), then, when ``z`` is longer, a
+        limb-edge bias common to every rod (outward, per limb, px)."""
         if limbs.shape[0] == 0:
             return h
-        return intr.limb_planes_for(intr.perturbed_camera(self.camera, self.steps.T @ z), limbs, h)
+        n = self.steps.shape[0]
+        out = intr.limb_planes_for(intr.perturbed_camera(self.camera, self.steps.T @ z[:n]), limbs, h)
+        if z.size > n:
+            out = intr.shift_limbs(out, z[n:] / self.camera.focal_px)
+        return out
 
     def lock_planes(self, z: np.ndarray, planes: list[list[list[PlaneObservation]]]
                     ) -> list[list[list[PlaneObservation]]]:
@@ -744,7 +751,8 @@ def _steps34_covariance(pipe: _LegsPipeline, P: np.ndarray, U: np.ndarray, seven
 
 def calibrate_legs(obs: Observations, *, fit_phases: tuple[str, ...] = ("poses",),
                    direction_std_rad: float | None = None,
-                   on_iteration: IterationCallback | None = None) -> MethodResult:
+                   on_iteration: IterationCallback | None = None,
+                   edge_bias_std_px: float = EDGE_BIAS_STD_PX) -> MethodResult:
     """Identify all seven parameters from leg observations only (four steps).
 
     Parameters
@@ -761,6 +769,10 @@ def calibrate_legs(obs: Observations, *, fit_phases: tuple[str, ...] = ("poses",
     on_iteration : callable, optional
         Receives ``{"stage", "iteration", "cost"}`` after each iteration of the fits of steps 2 and 3-4 (not
         of the uncertainty propagation; :mod:`.iterations`).
+    edge_bias_std_px : float
+        Standard deviation (px) of a limb-edge bias common to every rod (per limb), propagated into the
+        standard deviations like the intrinsics (the combined method estimates it; here it is not
+        identifiable apart from the joints and the rod radius).
 
     Returns
     -------
@@ -860,6 +872,7 @@ def calibrate_legs(obs: Observations, *, fit_phases: tuple[str, ...] = ("poses",
     #       along each principal direction of their covariance
     eff = _IntrinsicsEffect.build(obs, lock_data, data) if use_planes else None
     cov_intr = np.zeros((7, 7))
+    cov_edge = np.zeros((7, 7))
     if eff is not None:
         def seven_for(z: np.ndarray) -> np.ndarray:
             pz = eff.lock_planes(z, planes)  # type: ignore[arg-type]
@@ -868,10 +881,17 @@ def calibrate_legs(obs: Observations, *, fit_phases: tuple[str, ...] = ("poses",
             Uz = _pair_means(eff.rod_u(z, data.rod_u), data.has_rod, C_rods)[0]
             return pipe.run(Pz, np.where(pipe.has_leg[..., None], Uz, 0.0), x2)
 
+        # one standard deviation along each principal direction, then the limb-edge bias common to every rod
+        # (per limb, the combined method's prior: shading and optics bias every rod's limb alike, so it does
+        # not average out over rods)
         nz = eff.steps.shape[0]
-        Jz = np.stack([(seven_for(e) - seven_for(-e)) / 2.0 for e in np.eye(nz)], axis=1)
-        cov_intr = Jz @ Jz.T
-    cov = cov_joints + cov_dirs + cov_intr
+        E = np.zeros((nz + 2, nz + 2))
+        E[:nz, :nz] = np.eye(nz)
+        E[nz:, nz:] = edge_bias_std_px * np.eye(2)
+        Jz = np.stack([(seven_for(e) - seven_for(-e)) / 2.0 for e in E], axis=1)
+        cov_intr = Jz[:, :nz] @ Jz[:, :nz].T
+        cov_edge = Jz[:, nz:] @ Jz[:, nz:].T
+    cov = cov_joints + cov_dirs + cov_intr + cov_edge
     params = I4Parameters.from_mapping({**dict(zip(PARAMETER_NAMES, seven, strict=True)),
                                          "T_per_rad": nom.T_per_rad})
     M = np.array([
@@ -896,7 +916,9 @@ def calibrate_legs(obs: Observations, *, fit_phases: tuple[str, ...] = ("poses",
                        "leg_directions": {k: float(np.sqrt(max(cov_dirs[i, i], 0)))
                                           for i, k in enumerate(PARAMETER_NAMES)},
                        "intrinsics": {k: float(np.sqrt(max(cov_intr[i, i], 0)))
-                                      for i, k in enumerate(PARAMETER_NAMES)}},
+                                      for i, k in enumerate(PARAMETER_NAMES)},
+                       "limb_edge_bias": {k: float(np.sqrt(max(cov_edge[i, i], 0)))
+                                          for i, k in enumerate(PARAMETER_NAMES)}},
         diagnostics={"step1": "weighted plane equations" if use_planes else "line intersection (unweighted)",
                      "step1_chi2_per_dof": float(s2_1), "step1_frames_rejected": rejected_lock,
                      "steps34_weighting": "measured rod covariances (GLS)" if measured else "isotropic",
