@@ -29,6 +29,22 @@ def test_noise_free_end_effector_recovers_truth(noise_free_obs):
         assert abs(r.combinations[k] - truth[k]) < 1e-8, k
 
 
+def test_end_effector_recovers_a_board_printed_at_the_wrong_scale(paper_plan):
+    """A board 0.3% too large in its print (every board pose's translation scaled by 1.003, which a camera
+    calibration on that board cannot tell): the end-effector method finds the scale and the truth."""
+    twin = GeometricTwin(noise=NoiseSpec.zero())
+    doc = twin.observations(plan=paper_plan, seed=0)
+    for f in doc["frames"]:
+        if f.get("board"):
+            f["board"]["t"] = [1.003 * v for v in f["board"]["t"]]
+    r = calibrate_end_effector(Observations.from_dict(doc))
+    truth = twin.geometry.truth.combinations()
+    for k in COMBINATION_NAMES:
+        assert abs(r.combinations[k] - truth[k]) < 1e-8, k
+    # t_measured = 1.003 t_true, and the model scales the measured t by (1 + s): s = 1/1.003 - 1
+    assert r.diagnostics["board_scale_ppm"] == pytest.approx((1 / 1.003 - 1) * 1e6, abs=1e-3)
+
+
 def test_noise_free_legs_recovers_all_seven(noise_free_obs):
     obs, twin = noise_free_obs
     r = calibrate_legs(obs)
