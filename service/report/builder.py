@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from calib.methods.combined import EDGE_BIAS_STD_PX
 from calib.parameters import COMBINATION_NAMES, PARAMETER_NAMES
 
 from . import plots
@@ -117,6 +118,7 @@ def build_report(inputs: ReportInputs, *, progress: Progress | None = None, max_
     body: list[str] = [_title_block(inputs, res, methods, ds_doc, ds_hash, n_files, __version__), _contents()]
     body.append(_parameters(res, methods, truth))
     step("parameters")
+    body.append(_budget(res, methods))
     body.append(_combinations(res, methods))
     body.append(_validation(res))
     step("validation")
@@ -172,7 +174,8 @@ def _title_block(inputs: ReportInputs, res: dict, methods: list[str], ds_doc: di
 
 
 def _contents() -> Raw:
-    items = [("parameters", "Identified parameters"), ("combinations", "The four identifiable combinations"),
+    items = [("parameters", "Identified parameters"), ("budget", "Uncertainty budget"),
+             ("combinations", "The four identifiable combinations"),
              ("validation", "Validation: displacement gaps and straightness"),
              ("residuals", "Residuals per pose and per leg"), ("identifiability", "Identifiability"),
              ("camera", "Camera calibration"), ("frames", "Frames of the worst poses"),
@@ -243,6 +246,41 @@ def _parameters(res: dict, methods: list[str], truth: dict[str, float] | None) -
                                                        if (res["methods"][m].get("bound") or {}).get("std")))
                          + ".</p>"))
     return section("parameters", "Identified parameters", *parts)
+
+
+#: what each contribution of a method's ``std_breakdown`` is, for the uncertainty budget
+BUDGET_SOURCES = {
+    "legs_and_encoders": "rod directions (edge noise, measured scatter) and encoders",
+    "board_poses_and_encoders": "board poses (PnP noise, factor from the residuals) and encoders",
+    "base_frame": "base frame (rotation and translation phases)",
+    "intrinsics": "camera intrinsics (calibration covariance, after the rods' refinement where used)",
+    "limb_edge_bias": f"limb-edge bias common to every rod (prior {EDGE_BIAS_STD_PX:g} px per limb)",
+    "joint_centres": "joint centres (lock phases)",
+    "leg_directions": "leg directions of the fit poses",
+}
+
+
+def _budget(res: dict, methods: list[str]) -> Raw:
+    """Per method, the standard deviation each source contributes (the combined u is their root sum of squares)."""
+    parts: list[Any] = ["Standard uncertainty contributed by each source, in mm; the sources are independent and the "
+                        "combined standard uncertainty u is their root sum of squares (the methods' propagation, "
+                        "docs/model.md). A source a method does not have is not listed."]
+    shown = 0
+    for m in methods:
+        e = res["methods"].get(m) or {}
+        bd = e.get("std_breakdown") or {}
+        if not bd or not e.get("std"):
+            continue
+        names = list(next(iter(bd.values())).keys())
+        rows = [[BUDGET_SOURCES.get(src, src)] + [mm(v.get(k), 4) for k in names] for src, v in bd.items()]
+        total = e.get("seven_std") if names != list(COMBINATION_NAMES) and e.get("seven_std") else e["std"]
+        rows.append(["combined u (root sum of squares)"] + [mm((total or {}).get(k), 4) for k in names])
+        parts += [Raw(f"<h3>Method: {esc(m)}</h3>"), table(["source"] + [f"{k} (mm)" for k in names], rows,
+                                                              cls="data wide")]
+        shown += 1
+    if not shown:
+        parts = ["Not available: the results carry no uncertainty breakdown."]
+    return section("budget", "Uncertainty budget", *parts)
 
 
 def _combinations(res: dict, methods: list[str]) -> Raw:

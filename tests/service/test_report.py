@@ -95,6 +95,13 @@ def test_report_holds_the_result_and_is_self_contained(built, dataset):
             assert f"{v * 1e3:.4f}" in html, (m, k)
     for k, v in res["methods"]["combined"]["bound"]["std"].items():
         assert f"{v * 1e3:.4f}" in html, k                                 # Cramer-Rao bound
+    budget = html[html.index('<section id="budget">'):]
+    budget = budget[:budget.index("</section>")]
+    for m in METHODS:                                                      # uncertainty budget: every contribution
+        for src, contrib in res["methods"][m]["std_breakdown"].items():
+            for k, v in contrib.items():
+                assert f"{v * 1e3:.4f}" in budget, (m, src, k)
+    assert "limb-edge bias common to every rod" in budget and "camera intrinsics" in budget
     for k, v in res["truth_errors"]["combined"].items():
         if k in COMBINATION_NAMES:
             assert f"{v * 1e3:+.4f}" in html, k                            # simulated: errors vs the truth
