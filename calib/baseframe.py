@@ -174,7 +174,7 @@ def fit_rotation_axis(R: Array, T: Array | None = None, start: dict | None = Non
     else:  # noise-free data
         cov_x = np.zeros((p, p))
     if state is not None:
-        state.update(axes=axes, x=sol.x, W=W, spread=spread, res=res, cov_x=cov_x)
+        state.update(axes=axes, x=sol.x, W=W, spread=spread, cov_x=cov_x)
     return _axis_result(axes, sol.x, cov_x, T, res, spread)
 
 
@@ -226,9 +226,8 @@ def _refit_rotation_axis(R: Array, T: Array | None, start: dict, state: dict | N
         x = least_squares(lambda v: _axis_residuals(R, axes, v, W), x_start, method="lm", xtol=1e-15, ftol=1e-15,
                           gtol=1e-15, max_nfev=2000).x
     res = _axis_residuals(R, axes, x, None).reshape(-1, 3)
-    out_state = {**start, "x": x, "res": res}
     if state is not None:
-        state.update(out_state)
+        state.update({**start, "x": x})
     # the covariance is the previous fit's: the data moved by far less than their noise
     return _axis_result(axes, x, start["cov_x"], T, res, start["spread"])
 

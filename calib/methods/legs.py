@@ -361,8 +361,8 @@ class _LegsPipeline:
         assert self.W is not None
         return np.einsum("nij,nj->ni", self.W, self.residuals(theta, Aq, Uo, y))
 
-    def robust34(self, x: np.ndarray, y: np.ndarray, A0: np.ndarray, U: np.ndarray, theta0: np.ndarray,
-                 passes: int = 1) -> np.ndarray:
+    def robust34(self, x: np.ndarray, y: np.ndarray, A0: np.ndarray, U: np.ndarray, theta0: np.ndarray
+                 ) -> np.ndarray:
         """(L, S, D) that a few wild poses cannot drag: a Cauchy loss on each pose's whitened equations (weights at
         ``theta0``), from ``theta0``, its scale the median pose's. For judging the poses: a leg taken for another
         edge in a few poses pulls the least-squares fit along the valley (L, S, D) ~ (1, u_x, u_y) that only the
@@ -372,22 +372,17 @@ class _LegsPipeline:
         Aq, Uo = self.oriented(x, A0, U)
         theta = np.asarray(theta0, dtype=np.float64)
         self.W = np.linalg.cholesky(np.linalg.inv(self.covariances(theta, Aq, Uo, y))).transpose(0, 2, 1)
-
         used = self.mask.any(axis=1)
 
         def per_pose(t: np.ndarray) -> np.ndarray:
             return np.sqrt(np.sum(self.whitened(t, Aq, Uo, y) ** 2, axis=1)[used] + 1e-300)
 
-        for _ in range(passes):  # the scale at the start, then at the robust solution
-            scale = float(np.median(per_pose(theta)))
-            if not scale > 0:
-                break
-            sol = least_squares(per_pose, theta, method="trf", loss="cauchy", f_scale=scale, xtol=1e-10, ftol=1e-10,
-                                gtol=1e-10, x_scale="jac")
-            if not (sol.success and np.all(np.isfinite(sol.x))):
-                break
-            theta = sol.x
-        return theta
+        scale = float(np.median(per_pose(theta)))
+        if not scale > 0:
+            return theta
+        sol = least_squares(per_pose, theta, method="trf", loss="cauchy", f_scale=scale, xtol=1e-10, ftol=1e-10,
+                            gtol=1e-10, x_scale="jac")
+        return sol.x if sol.success and np.all(np.isfinite(sol.x)) else theta
 
     def steps34(self, x: np.ndarray, y: np.ndarray, A0: np.ndarray, U: np.ndarray, theta0: np.ndarray,
                 on_iteration: IterationCallback | None = None) -> np.ndarray:
