@@ -33,8 +33,9 @@ def _angle(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.arccos(np.clip(a @ b, -1.0, 1.0)))
 
 
-def run_frame(g: BenchGeometry, renderer: BenchRenderer, q: np.ndarray, pose: np.ndarray, img: np.ndarray,
-              seed: int) -> dict:
+def run_frame(
+    g: BenchGeometry, renderer: BenchRenderer, q: np.ndarray, pose: np.ndarray, img: np.ndarray, seed: int
+) -> dict:
     """Both detections of one frame against the truth (angles in rad, distances in m, time in s)."""
     u_true, _ = g.rod_lines_camera(q, pose)
     out: dict = {"Y": float(pose[1])}
@@ -43,8 +44,11 @@ def run_frame(g: BenchGeometry, renderer: BenchRenderer, q: np.ndarray, pose: np
         det = detect_rods(img, renderer.camera, g.nominal, q, g.rod_radius_m, g.rod_spacing_m, prior=prior)
         res: dict = {"time": time.perf_counter() - t0, "ok": det.ok, "ambiguous": det.ambiguous}
         if det.ok:
-            res["dir_err"] = [_angle(d, u_true[p.leg, p.rod])
-                              for p, d in zip(det.predictions, det.directions, strict=True) if p is not None]
+            res["dir_err"] = [
+                _angle(d, u_true[p.leg, p.rod])
+                for p, d in zip(det.predictions, det.directions, strict=True)
+                if p is not None
+            ]
             res["legs"] = len(res["dir_err"]) // 2
             C = det.camera_from_base
             res["rot_err"] = float(np.linalg.norm(matrix_to_rotvec(C.R @ g.camera_from_base.R.T)))
@@ -61,9 +65,12 @@ def summary(rec: list[dict]) -> dict:
     for name in ("prior", "none"):
         rs = [r[name] for r in rec]
         ok = [x for x in rs if x["ok"]]
-        s: dict = {"associated": len(ok), "ambiguous": sum(x["ambiguous"] for x in rs),
-                   "wrong": sum(max(x["dir_err"]) > 0.3 for x in ok),
-                   "time_ms": np.percentile([x["time"] * 1e3 for x in rs], [50, 90]).round(0).tolist()}
+        s: dict = {
+            "associated": len(ok),
+            "ambiguous": sum(x["ambiguous"] for x in rs),
+            "wrong": sum(max(x["dir_err"]) > 0.3 for x in ok),
+            "time_ms": np.percentile([x["time"] * 1e3 for x in rs], [50, 90]).round(0).tolist(),
+        }
         if ok:
             e = np.concatenate([x["dir_err"] for x in ok]) * 1e3
             m = np.concatenate([x["meas_err"] for x in ok]) * 1e3
@@ -76,8 +83,13 @@ def summary(rec: list[dict]) -> dict:
             s["placement_t_mm_p50_p90"] = np.percentile([x["t_err"] * 1e3 for x in ok], [50, 90]).round(0).tolist()
         out[name] = s
     bands = ((0.0, 0.02), (0.02, 0.06), (0.06, 0.09), (0.09, 1.0))
-    out["none_associated_by_abs_Y_m"] = {f"{lo}-{hi}": [sum(r["none"]["ok"] for r in rec if lo <= abs(r["Y"]) < hi),
-                                                        sum(lo <= abs(r["Y"]) < hi for r in rec)] for lo, hi in bands}
+    out["none_associated_by_abs_Y_m"] = {
+        f"{lo}-{hi}": [
+            sum(r["none"]["ok"] for r in rec if lo <= abs(r["Y"]) < hi),
+            sum(lo <= abs(r["Y"]) < hi for r in rec),
+        ]
+        for lo, hi in bands
+    }
     return out
 
 

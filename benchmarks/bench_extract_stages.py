@@ -49,6 +49,7 @@ def stage_times(dataset: str, workers: int) -> tuple[list[tuple[str, int, float]
             out = f(*a, **k)
             stages.append((name, 0, time.perf_counter() - t0))
             return out
+
         return g
 
     ex._Pool.run = timed_run  # type: ignore[method-assign]
@@ -64,8 +65,13 @@ def stage_times(dataset: str, workers: int) -> tuple[list[tuple[str, int, float]
         t2 = time.perf_counter()
     finally:
         ex._Pool.run, ex.calibrate_intrinsics, ex.fit_placement = run, calib_intr, placement  # type: ignore[method-assign]
-    return stages, {"extract_s": t1 - t0, "cpu_main_s": s1 - s0, "cpu_workers_s": c1 - c0, "calibrate_s": t2 - t1,
-                    "frames": len(res.observations["frames"])}
+    return stages, {
+        "extract_s": t1 - t0,
+        "cpu_main_s": s1 - s0,
+        "cpu_workers_s": c1 - c0,
+        "calibrate_s": t2 - t1,
+        "frames": len(res.observations["frames"]),
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -75,8 +81,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--profile", type=int, default=0, metavar="N", help="top N functions by own time (1 process)")
     args = ap.parse_args(argv)
     stages, tot = stage_times(args.dataset, args.workers)
-    print(f"extract {tot['extract_s']:.2f} s ({tot['frames']} frames, {args.workers} processes; CPU main "
-          f"{tot['cpu_main_s']:.2f} s, workers {tot['cpu_workers_s']:.2f} s), calibrate {tot['calibrate_s']:.2f} s")
+    print(
+        f"extract {tot['extract_s']:.2f} s ({tot['frames']} frames, {args.workers} processes; CPU main "
+        f"{tot['cpu_main_s']:.2f} s, workers {tot['cpu_workers_s']:.2f} s), calibrate {tot['calibrate_s']:.2f} s"
+    )
     for name, n, s in stages:
         print(f"  {name:22s} {n:4d} items {s:7.3f} s")
     if args.profile:

@@ -41,8 +41,11 @@ def main() -> int:
     ap.add_argument("--workers", type=int, default=2, help="extraction processes")
     ap.add_argument("--hz", type=float, default=20.0)
     ap.add_argument("--worst", type=int, default=10, help="print this many of the slowest samples")
-    ap.add_argument("--sim-process", action="store_true",
-                    help="start the simulated bench separately (i4cal sim-bench) and give the service a bench file")
+    ap.add_argument(
+        "--sim-process",
+        action="store_true",
+        help="start the simulated bench separately (i4cal sim-bench) and give the service a bench file",
+    )
     args = ap.parse_args()
     samples: list[Sample] = []
     print_latencies(measure(args.paper_plan, args.workers, args.hz, samples=samples, sim_process=args.sim_process))
@@ -95,8 +98,12 @@ def start_sim_bench(tmp: Path) -> tuple[subprocess.Popen, Path, Path]:
     from drivers.sim.render import RenderSettings
 
     base = free_port(3)
-    sim = subprocess.Popen([sys.executable, "-m", "service", "sim-bench", "--port", str(base)],
-                           stdout=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    sim = subprocess.Popen(
+        [sys.executable, "-m", "service", "sim-bench", "--port", str(base)],
+        stdout=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
     assert sim.stdout is not None
     uris: dict[str, str] = {}
     while len(uris) < 3:
@@ -107,23 +114,34 @@ def start_sim_bench(tmp: Path) -> tuple[subprocess.Popen, Path, Path]:
             k, v = line.strip().split(" = ", 1)
             uris[k] = v
     bench = tmp / "bench.toml"
-    bench.write_text(f'name = "sim"\n[actuators]\nuri = "{uris["actuators"]}"\nspeed_m_s = 10.0\n'
-                     f'accel_m_s2 = 1000.0\ntimeout_s = 0.5\npoll_s = 0.001\n[camera]\nuri = "{uris["camera"]}"\n'
-                     f'timeout_s = 10.0\n[operator]\nuri = "{uris["operator"]}"\n[acquisition]\nline_rate_hz = 50.0\n')
+    bench.write_text(
+        f'name = "sim"\n[actuators]\nuri = "{uris["actuators"]}"\nspeed_m_s = 10.0\n'
+        f'accel_m_s2 = 1000.0\ntimeout_s = 0.5\npoll_s = 0.001\n[camera]\nuri = "{uris["camera"]}"\n'
+        f'timeout_s = 10.0\n[operator]\nuri = "{uris["operator"]}"\n[acquisition]\nline_rate_hz = 50.0\n'
+    )
     camera = tmp / "camera.json"
     RenderSettings().camera().save(camera)
     return sim, bench, camera
 
 
-def measure(paper_plan: bool = False, workers: int = 2, hz: float = 20.0, *,
-            samples: list[Sample] | None = None, sim_process: bool = False) -> dict[str, dict[str, list[float]]]:
+def measure(
+    paper_plan: bool = False,
+    workers: int = 2,
+    hz: float = 20.0,
+    *,
+    samples: list[Sample] | None = None,
+    sim_process: bool = False,
+) -> dict[str, dict[str, list[float]]]:
     """Latencies (ms) of ``{run state: {"status" | "health": [...]}}`` polled while a run goes (also used by
     ``i4cal bench speed``); ``samples``, when given, receives every poll in order. ``sim_process``: the simulated
     bench is started here (``i4cal sim-bench``) and the service gets a bench file, instead of ``sim_bench = true``."""
     port = free_port()
     tmp = Path(tempfile.mkdtemp(prefix="i4cal-bench-"))
-    sizes = "" if paper_plan else ("[plan_sizes]\nn_base = 6\nn_fit = 10\nn_lock = 4\nn_validation = 4\n"
-                                        "line_samples = 11\n")
+    sizes = (
+        ""
+        if paper_plan
+        else ("[plan_sizes]\nn_base = 6\nn_fit = 10\nn_lock = 4\nn_validation = 4\nline_samples = 11\n")
+    )
     sim = None
     if sim_process:
         sim, bench_file, camera_file = start_sim_bench(tmp)
@@ -131,10 +149,14 @@ def measure(paper_plan: bool = False, workers: int = 2, hz: float = 20.0, *,
     else:
         where = "sim_bench = true\n"
     cfg = tmp / "service.toml"
-    cfg.write_text(f'data_dir = "{tmp / "data"}"\nport = {port}\n{where}'
-                   f'extraction_workers = {workers}\ntoken_hashes = ["{hash_token(TOKEN)}"]\n{sizes}')
-    proc = subprocess.Popen([sys.executable, "-m", "service", "serve", "--config", str(cfg), "--log-level", "warning"],
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    cfg.write_text(
+        f'data_dir = "{tmp / "data"}"\nport = {port}\n{where}'
+        f'extraction_workers = {workers}\ntoken_hashes = ["{hash_token(TOKEN)}"]\n{sizes}'
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "service", "serve", "--config", str(cfg), "--log-level", "warning"],
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
     url = f"http://127.0.0.1:{port}"
     lat: dict[str, dict[str, list[float]]] = {}
     try:
@@ -145,8 +167,11 @@ def measure(paper_plan: bool = False, workers: int = 2, hz: float = 20.0, *,
                         break
                 except httpx.TransportError:
                     time.sleep(0.05)
-            r = c.post("/api/v1/runs", json={"plan": "full", "methods": ["combined", "end-effector", "legs"]},
-                       headers={"Authorization": f"Bearer {TOKEN}"})
+            r = c.post(
+                "/api/v1/runs",
+                json={"plan": "full", "methods": ["combined", "end-effector", "legs"]},
+                headers={"Authorization": f"Bearer {TOKEN}"},
+            )
             r.raise_for_status()
             rid = r.json()["id"]
             # this process's own garbage collections (~150 ms for a full one) would be counted as the service's
@@ -168,9 +193,16 @@ def measure(paper_plan: bool = False, workers: int = 2, hz: float = 20.0, *,
                 if samples is not None:
                     w1 = runqueue_wait_ms(proc.pid)
                     pr = run.get("progress") or {}
-                    samples.append(Sample(t0 - t_start, state, (t1 - t0) * 1e3, (t2 - t1) * 1e3,
-                                          None if w0 is None or w1 is None else w1 - w0,
-                                          f"{pr.get('phase', '')} {pr.get('done', '')}/{pr.get('total', '')}"))
+                    samples.append(
+                        Sample(
+                            t0 - t_start,
+                            state,
+                            (t1 - t0) * 1e3,
+                            (t2 - t1) * 1e3,
+                            None if w0 is None or w1 is None else w1 - w0,
+                            f"{pr.get('phase', '')} {pr.get('done', '')}/{pr.get('total', '')}",
+                        )
+                    )
                 if state in ("done", "failed", "aborted", "interrupted"):
                     break
                 time.sleep(max(0.0, 1.0 / hz - (time.perf_counter() - t0)))

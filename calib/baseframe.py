@@ -81,8 +81,9 @@ class BaseFrameResult:
         }
 
 
-def fit_rotation_axis(R: Array, T: Array | None = None, start: dict | None = None,
-                      state: dict | None = None) -> tuple[Array, Array, Array, Array, float]:
+def fit_rotation_axis(
+    R: Array, T: Array | None = None, start: dict | None = None, state: dict | None = None
+) -> tuple[Array, Array, Array, Array, float]:
     """Fit a fixed rotation axis to board orientations ``R_k = Rot(z, theta_k) R_ref``.
 
     Parameters
@@ -120,8 +121,7 @@ def fit_rotation_axis(R: Array, T: Array | None = None, start: dict | None = Non
     if R.ndim != 3 or R.shape[1:] != (3, 3):
         raise ValueError(f"R must have shape (N, 3, 3), got {R.shape}")
     if n < 2:
-        raise IdentifiabilityError("the rotation phase needs at least two board poses to find z_B",
-                                   parameter="z_B")
+        raise IdentifiabilityError("the rotation phase needs at least two board poses to find z_B", parameter="z_B")
     if start is not None:
         return _refit_rotation_axis(R, T, start, state)
     order = np.argsort(np.asarray(T)) if T is not None else np.arange(n)
@@ -138,7 +138,9 @@ def fit_rotation_axis(R: Array, T: Array | None = None, start: dict | None = Non
     if spread < np.deg2rad(2.0):
         raise IdentifiabilityError(
             f"the rotation phase turns the board by only {np.rad2deg(spread):.2f} deg: z_B is not excited "
-            "(need rotations of at least a few degrees)", parameter="z_B")
+            "(need rotations of at least a few degrees)",
+            parameter="z_B",
+        )
     # local parametrisation of z around z0
     e1 = unit(np.cross(z0, [1.0, 0.0, 0.0] if abs(z0[0]) < 0.9 else [0.0, 1.0, 0.0]))
     e2 = np.cross(z0, e1)
@@ -164,8 +166,9 @@ def fit_rotation_axis(R: Array, T: Array | None = None, start: dict | None = Non
         # whiten the two tangent components; the axial one is zero at the optimum (weight irrelevant)
         wt = np.where(np.abs(V.T @ zc) > 0.9, np.sqrt(w[-2] * w[-1]), w)
         W = (V / np.sqrt(wt)).T
-        sol = least_squares(lambda x: resid(x, W), sol.x, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15,
-                            max_nfev=2000)
+        sol = least_squares(
+            lambda x: resid(x, W), sol.x, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=2000
+        )
         J = sol.jac
         s2 = float(sol.fun @ sol.fun / dof)
         if state is not None:
@@ -195,8 +198,9 @@ def _axis_residuals(R: Array, axes: tuple[Array, Array, Array], x: Array, W: Arr
     return e.ravel()
 
 
-def _axis_result(axes: tuple[Array, Array, Array], x: Array, cov_x: Array, T: Array | None, res: Array,
-                 spread: float) -> tuple[Array, Array, Array, Array, float]:
+def _axis_result(
+    axes: tuple[Array, Array, Array], x: Array, cov_x: Array, T: Array | None, res: Array, spread: float
+) -> tuple[Array, Array, Array, Array, float]:
     z = _axis(axes, x[:2])
     Jz = np.column_stack([axes[1], axes[2]])
     cov_z = Jz @ cov_x[:2, :2] @ Jz.T
@@ -207,8 +211,9 @@ def _axis_result(axes: tuple[Array, Array, Array], x: Array, cov_x: Array, T: Ar
     return z, cov_z, theta, res, spread
 
 
-def _refit_rotation_axis(R: Array, T: Array | None, start: dict, state: dict | None
-                         ) -> tuple[Array, Array, Array, Array, float]:
+def _refit_rotation_axis(
+    R: Array, T: Array | None, start: dict, state: dict | None
+) -> tuple[Array, Array, Array, Array, float]:
     """The weighted fit of :func:`fit_rotation_axis` from a previous fit's state (slightly moved data)."""
     axes, W = start["axes"], start["W"]
     x_start = np.asarray(start["x"], dtype=np.float64).copy()
@@ -223,8 +228,15 @@ def _refit_rotation_axis(R: Array, T: Array | None, start: dict, state: dict | N
             x = x - np.linalg.lstsq(J, _axis_residuals(R, axes, x, W), rcond=1e-8)[0]  # the gauge (Rref and
             # every theta turned together about z) is a null direction
     else:
-        x = least_squares(lambda v: _axis_residuals(R, axes, v, W), x_start, method="lm", xtol=1e-15, ftol=1e-15,
-                          gtol=1e-15, max_nfev=2000).x
+        x = least_squares(
+            lambda v: _axis_residuals(R, axes, v, W),
+            x_start,
+            method="lm",
+            xtol=1e-15,
+            ftol=1e-15,
+            gtol=1e-15,
+            max_nfev=2000,
+        ).x
     res = _axis_residuals(R, axes, x, None).reshape(-1, 3)
     if state is not None:
         state.update({**start, "x": x})
@@ -258,13 +270,13 @@ def fit_translation_direction(t: Array, s: Array) -> tuple[Array, Array, Array, 
     if t.shape != (n, 3) or s.shape != (n,):
         raise ValueError(f"t must be (N, 3) and s (N,), got {t.shape} and {s.shape}")
     if n < 2:
-        raise IdentifiabilityError("the translation phase needs at least two board poses to find x_B",
-                                   parameter="x_B")
+        raise IdentifiabilityError("the translation phase needs at least two board poses to find x_B", parameter="x_B")
     sc = s - s.mean()
     Sss = float(sc @ sc)
     if Sss < (1e-3) ** 2:
-        raise IdentifiabilityError("the translation phase does not move the actuators: x_B is not excited",
-                                   parameter="x_B")
+        raise IdentifiabilityError(
+            "the translation phase does not move the actuators: x_B is not excited", parameter="x_B"
+        )
     d = (sc @ (t - t.mean(axis=0))) / Sss
     t0 = t.mean(axis=0) - d * s.mean()
     res = t - t0 - s[:, None] * d[None, :]
@@ -274,7 +286,7 @@ def fit_translation_direction(t: Array, s: Array) -> tuple[Array, Array, Array, 
     nd = float(np.linalg.norm(d))
     x = d / nd
     P = np.eye(3) - np.outer(x, x)
-    cov_x = P @ cov_d @ P / nd ** 2
+    cov_x = P @ cov_d @ P / nd**2
     return x, cov_x, res, nd
 
 
@@ -286,8 +298,9 @@ def frame_from_axes(z: Array, x: Array) -> Array:
     return np.column_stack([xo, y, z])
 
 
-def estimate_base_frame(rotation: PhaseArrays, translation: PhaseArrays,
-                        start: BaseFrameResult | None = None) -> BaseFrameResult:
+def estimate_base_frame(
+    rotation: PhaseArrays, translation: PhaseArrays, start: BaseFrameResult | None = None
+) -> BaseFrameResult:
     """Base frame axes in the camera frame from the rotation and translation phases.
 
     ``start``: an estimate from the same frames with slightly different board poses (a propagation
@@ -303,15 +316,18 @@ def estimate_base_frame(rotation: PhaseArrays, translation: PhaseArrays,
     if len(rot) < 2:
         raise IdentifiabilityError(
             f"the rotation phase has {len(rot)} frame(s) with a board pose; at least 2 are needed for z_B",
-            parameter="z_B")
+            parameter="z_B",
+        )
     if len(tra) < 2:
         raise IdentifiabilityError(
             f"the translation phase has {len(tra)} frame(s) with a board pose; at least 2 are needed for x_B",
-            parameter="x_B")
+            parameter="x_B",
+        )
     Tq = (rot.q[:, 0] + rot.q[:, 1] - rot.q[:, 2] - rot.q[:, 3]) / 4.0
     state: dict = {}
-    z, cov_z, theta, rres, _ = fit_rotation_axis(rot.board_R, Tq, start=start.axis_state if start else None,
-                                                 state=state)
+    z, cov_z, theta, rres, _ = fit_rotation_axis(
+        rot.board_R, Tq, start=start.axis_state if start else None, state=state
+    )
     s = tra.q.mean(axis=1)
     x, cov_x, tres, scale = fit_translation_direction(tra.board_t, s)
     R = frame_from_axes(z, x)
@@ -330,14 +346,21 @@ def estimate_base_frame(rotation: PhaseArrays, translation: PhaseArrays,
     cov = Jz @ cov_z @ Jz.T + Jx @ cov_x @ Jx.T
     ortho = float(np.rad2deg(np.arcsin(np.clip(abs(z @ x), 0, 1))))
     return BaseFrameResult(
-        camera_from_base_R=orthonormalize(R), cov_rotvec=cov, z_axis=z, x_axis_raw=x,
+        camera_from_base_R=orthonormalize(R),
+        cov_rotvec=cov,
+        z_axis=z,
+        x_axis_raw=x,
         z_std_rad=float(np.sqrt(max(np.trace(cov_z), 0.0) / 2)),
         x_std_rad=float(np.sqrt(max(np.trace(cov_x), 0.0) / 2)),
         orthogonality_error_deg=ortho,
-        rotation_residual_rms_rad=float(np.sqrt(np.mean(np.sum(rres ** 2, axis=1)))),
-        translation_residual_rms_m=float(np.sqrt(np.mean(np.sum(tres ** 2, axis=1)))),
-        translation_scale=scale, n_rotation=len(rot), n_translation=len(tra), rotation_angles_rad=theta,
-        axis_state=state)
+        rotation_residual_rms_rad=float(np.sqrt(np.mean(np.sum(rres**2, axis=1)))),
+        translation_residual_rms_m=float(np.sqrt(np.mean(np.sum(tres**2, axis=1)))),
+        translation_scale=scale,
+        n_rotation=len(rot),
+        n_translation=len(tra),
+        rotation_angles_rad=theta,
+        axis_state=state,
+    )
 
 
 def base_frame_from_observations(obs: Observations) -> BaseFrameResult:
@@ -358,8 +381,8 @@ def rotation_axis_point(R: Array, t: Array) -> Array:
     A = np.zeros((3 * n, 6))
     b = np.zeros(3 * n)
     for k in range(n):
-        A[3 * k:3 * k + 3, :3] = R[k]
-        A[3 * k:3 * k + 3, 3:] = -np.eye(3)
-        b[3 * k:3 * k + 3] = -t[k]
+        A[3 * k : 3 * k + 3, :3] = R[k]
+        A[3 * k : 3 * k + 3, 3:] = -np.eye(3)
+        b[3 * k : 3 * k + 3] = -t[k]
     sol = np.linalg.lstsq(A, b, rcond=1e-10)[0]
     return sol[:3]

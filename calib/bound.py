@@ -55,9 +55,15 @@ def _phase_q(plan: Plan, phase: str) -> np.ndarray:
     return np.asarray(qs, dtype=np.float64).reshape(-1, 4)
 
 
-def combined_fisher(nominal: I4Parameters, q_fit: np.ndarray, q_rot: np.ndarray, q_tra: np.ndarray,
-                    noise: MeasurementNoise, camera_from_base_R: np.ndarray | None = None,
-                    rod_cov: np.ndarray | None = None) -> np.ndarray:
+def combined_fisher(
+    nominal: I4Parameters,
+    q_fit: np.ndarray,
+    q_rot: np.ndarray,
+    q_tra: np.ndarray,
+    noise: MeasurementNoise,
+    camera_from_base_R: np.ndarray | None = None,
+    rod_cov: np.ndarray | None = None,
+) -> np.ndarray:
     """Fisher information of all unknowns (the four combinations first).
 
     Parameters
@@ -80,13 +86,13 @@ def combined_fisher(nominal: I4Parameters, q_fit: np.ndarray, q_rot: np.ndarray,
     for k in range(u0.shape[0]):
         for i in range(4):
             T = np.linalg.svd(np.eye(3) - np.outer(u0[k, i], u0[k, i]))[0][:, :2].T
-            C = (noise.rod_direction_rad ** 2 * np.eye(2) if rod_cov is None else T @ rod_cov[k, i] @ T.T)
+            C = noise.rod_direction_rad**2 * np.eye(2) if rod_cov is None else T @ rod_cov[k, i] @ T.T
             C = C / noise.rods_per_leg
             Wl[k, i] = np.linalg.cholesky(np.linalg.inv(C)).T @ T
     sig_t = np.asarray(noise.board_translation_m, dtype=np.float64)
 
     def model(x: np.ndarray) -> np.ndarray:
-        xi, w, rho, th, t0 = x[:4], x[4:7], x[7:10], x[10:10 + n_r], x[10 + n_r:]
+        xi, w, rho, th, t0 = x[:4], x[4:7], x[7:10], x[10 : 10 + n_r], x[10 + n_r :]
         R = rotvec_to_matrix(w) @ R_cb
         u = leg_directions_reduced(xi, q_fit) @ R.T
         rods = np.einsum("kiab,kib->kia", Wl, u).ravel()
@@ -126,8 +132,13 @@ def _spd_inverse(F: np.ndarray) -> np.ndarray:
     return (V[:, keep] / w[keep]) @ V[:, keep].T / np.outer(d, d)
 
 
-def crlb_combined(nominal: I4Parameters, plan: Plan, noise: MeasurementNoise | None = None,
-                  camera_from_base_R: np.ndarray | None = None, rod_cov: np.ndarray | None = None) -> dict:
+def crlb_combined(
+    nominal: I4Parameters,
+    plan: Plan,
+    noise: MeasurementNoise | None = None,
+    camera_from_base_R: np.ndarray | None = None,
+    rod_cov: np.ndarray | None = None,
+) -> dict:
     """Predicted standard deviations (the bound) of the four combinations for a plan, before any motion.
 
     ``rod_cov`` (N_fit, 4, 3, 3), optional: per fit pose and leg, the covariance (camera frame) of the
@@ -147,10 +158,15 @@ def crlb_combined(nominal: I4Parameters, plan: Plan, noise: MeasurementNoise | N
         raise ValueError("the bound needs a plan with rotation, translation and pose-set steps")
     F = combined_fisher(nominal, q_fit, q_rot, q_tra, noise, camera_from_base_R, rod_cov)
     cov = _spd_inverse(F)[:4, :4]
-    return {"std": {k: float(np.sqrt(cov[i, i])) for i, k in enumerate(COMBINATION_NAMES)},
-            "covariance": cov.tolist(),
-            "noise": {"rod_direction_rad": noise.rod_direction_rad, "board_rotation_rad": noise.board_rotation_rad,
-                      "board_translation_m": list(noise.board_translation_m)}}
+    return {
+        "std": {k: float(np.sqrt(cov[i, i])) for i, k in enumerate(COMBINATION_NAMES)},
+        "covariance": cov.tolist(),
+        "noise": {
+            "rod_direction_rad": noise.rod_direction_rad,
+            "board_rotation_rad": noise.board_rotation_rad,
+            "board_translation_m": list(noise.board_translation_m),
+        },
+    }
 
 
 def ml_combined(obs, noise: MeasurementNoise, *, start=None) -> np.ndarray:
@@ -187,7 +203,7 @@ def ml_combined(obs, noise: MeasurementNoise, *, start=None) -> np.ndarray:
     sig_t = np.asarray(noise.board_translation_m, dtype=np.float64)
 
     def resid(x: np.ndarray) -> np.ndarray:
-        xi, w, rho, th, t0 = x[:4], x[4:7], x[7:10], x[10:10 + n_r], x[10 + n_r:]
+        xi, w, rho, th, t0 = x[:4], x[4:7], x[7:10], x[10 : 10 + n_r], x[10 + n_r :]
         R = rotvec_to_matrix(w) @ R_cb0
         u = (leg_directions_reduced(xi, fit.q) @ R.T)[k_idx, l_idx]
         sgn = np.sign(np.sum(u * u_meas, axis=1))[:, None]

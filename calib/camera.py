@@ -113,8 +113,7 @@ class CameraModel:
         px = _points2(pixels, "pixels")
         if px.shape[0] == 0:
             return np.zeros((0, 2))
-        out = cv2.undistortPointsIter(px.reshape(-1, 1, 2), self.K, self.dist, None, None,
-                                      _UNDISTORT_CRITERIA)
+        out = cv2.undistortPointsIter(px.reshape(-1, 1, 2), self.K, self.dist, None, None, _UNDISTORT_CRITERIA)
         return out.reshape(-1, 2).astype(np.float64)
 
     def to_ideal_pixels(self, xn: ArrayLike) -> Array:
@@ -142,8 +141,14 @@ class CameraModel:
 
     # -- persistence ----------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
-        return {"format": CAMERA_FORMAT, "width": int(self.width), "height": int(self.height),
-                "K": self.K.tolist(), "dist": self.dist.tolist(), **self.extra}
+        return {
+            "format": CAMERA_FORMAT,
+            "width": int(self.width),
+            "height": int(self.height),
+            "K": self.K.tolist(),
+            "dist": self.dist.tolist(),
+            **self.extra,
+        }
 
     @classmethod
     def from_dict(cls, data: Any, source: str | None = None) -> CameraModel:
@@ -151,8 +156,13 @@ class CameraModel:
             raise InputError("camera must be a JSON object", file=source)
         try:
             extra = {k: v for k, v in data.items() if k not in ("format", "width", "height", "K", "dist")}
-            return cls(np.asarray(data["K"], dtype=np.float64), np.asarray(data.get("dist") or [], dtype=np.float64),
-                       int(data["width"]), int(data["height"]), extra)
+            return cls(
+                np.asarray(data["K"], dtype=np.float64),
+                np.asarray(data.get("dist") or [], dtype=np.float64),
+                int(data["width"]),
+                int(data["height"]),
+                extra,
+            )
         except KeyError as exc:
             raise InputError("missing field", file=source, field=str(exc.args[0])) from None
         except (TypeError, ValueError) as exc:
@@ -204,15 +214,27 @@ class IntrinsicsResult:
     view_poses: dict[int, tuple[Array, Array]]
 
     def summary(self) -> dict[str, Any]:
-        return {"rms_px": self.rms_px, "per_view_rms_px": {str(k): v for k, v in self.per_view_rms_px.items()},
-                "std": self.std, "rejected": {str(k): v for k, v in self.rejected.items()},
-                "n_views": len(self.per_view_rms_px)}
+        return {
+            "rms_px": self.rms_px,
+            "per_view_rms_px": {str(k): v for k, v in self.per_view_rms_px.items()},
+            "std": self.std,
+            "rejected": {str(k): v for k, v in self.rejected.items()},
+            "n_views": len(self.per_view_rms_px),
+        }
 
 
-def calibrate_intrinsics(views: dict[int, tuple[ArrayLike, ArrayLike, ArrayLike]], image_size: tuple[int, int],
-                         board_ids: ArrayLike, board_points: ArrayLike, *, min_views: int = 5,
-                         outlier_factor: float = 3.0, outlier_floor_px: float = 1.0,
-                         fix_k3: bool = True, refine_object: bool = True) -> IntrinsicsResult:
+def calibrate_intrinsics(
+    views: dict[int, tuple[ArrayLike, ArrayLike, ArrayLike]],
+    image_size: tuple[int, int],
+    board_ids: ArrayLike,
+    board_points: ArrayLike,
+    *,
+    min_views: int = 5,
+    outlier_factor: float = 3.0,
+    outlier_floor_px: float = 1.0,
+    fix_k3: bool = True,
+    refine_object: bool = True,
+) -> IntrinsicsResult:
     """Intrinsic calibration from ChArUco views, refining the board's geometry (``calibrateCameraRO``).
 
     ``calibrateCameraRO`` (Strobl & Hirzinger's "releasing object" method) needs the same object
@@ -245,8 +267,10 @@ def calibrate_intrinsics(views: dict[int, tuple[ArrayLike, ArrayLike, ArrayLike]
         ids = np.asarray(ids, dtype=int).reshape(-1)
         img = np.asarray(img, dtype=np.float64).reshape(-1, 2)
         if ids.size != ids_all.size or set(ids.tolist()) != set(ids_all.tolist()):
-            rejected[key] = (f"partial board ({ids.size} of {ids_all.size} corners); calibrateCameraRO needs "
-                             "every corner in every view")
+            rejected[key] = (
+                f"partial board ({ids.size} of {ids_all.size} corners); calibrateCameraRO needs "
+                "every corner in every view"
+            )
             continue
         order = np.argsort(ids)
         keep[key] = img[order]
@@ -258,13 +282,24 @@ def calibrate_intrinsics(views: dict[int, tuple[ArrayLike, ArrayLike, ArrayLike]
     flags = cv2.CALIB_FIX_K3 if fix_k3 else 0
     for _ in range(5):
         if len(keep) < min_views:
-            raise InputError(f"intrinsic calibration needs at least {min_views} full-board views, got {len(keep)}"
-                             + (f" ({len(rejected)} rejected)" if rejected else ""), field="camera")
+            raise InputError(
+                f"intrinsic calibration needs at least {min_views} full-board views, got {len(keep)}"
+                + (f" ({len(rejected)} rejected)" if rejected else ""),
+                field="camera",
+            )
         keys = list(keep)
         objp = [obj.astype(np.float32).reshape(-1, 1, 3) for _ in keys]
         imgp = [keep[k].astype(np.float32).reshape(-1, 1, 2) for k in keys]
-        ret = cv2.calibrateCameraROExtended(objp, imgp, (w, h), fixed, None, None, flags=flags,
-                                            criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12))
+        ret = cv2.calibrateCameraROExtended(
+            objp,
+            imgp,
+            (w, h),
+            fixed,
+            None,
+            None,
+            flags=flags,
+            criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12),
+        )
         rms, K, dist, rvecs, tvecs, new_obj, std_int, _std_ext, _std_obj, per_view = ret
         per_view = np.asarray(per_view).reshape(-1)
         med = float(np.median(per_view))
@@ -273,34 +308,83 @@ def calibrate_intrinsics(views: dict[int, tuple[ArrayLike, ArrayLike, ArrayLike]
         if not bad:
             break
         worst = keys[int(np.argmax(per_view))]
-        rejected[worst] = (f"outlier view: reprojection RMS {float(per_view.max()):.2f} px > limit {limit:.2f} px "
-                           f"(median {med:.2f} px)")
+        rejected[worst] = (
+            f"outlier view: reprojection RMS {float(per_view.max()):.2f} px > limit {limit:.2f} px "
+            f"(median {med:.2f} px)"
+        )
         del keep[worst]
     std_int = np.asarray(std_int).reshape(-1)
     new_obj = np.asarray(new_obj, dtype=np.float64).reshape(-1, 3) if new_obj is not None and np.size(new_obj) else obj
-    cov, d_board = _bundle_covariance(K, np.asarray(dist).reshape(-1), new_obj, [keep[k] for k in keys], rvecs,
-                                      tvecs, fixed_point=fixed)
-    names = ["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4",
-             "tau_x", "tau_y"]
+    cov, d_board = _bundle_covariance(
+        K, np.asarray(dist).reshape(-1), new_obj, [keep[k] for k in keys], rvecs, tvecs, fixed_point=fixed
+    )
+    names = [
+        "fx",
+        "fy",
+        "cx",
+        "cy",
+        "k1",
+        "k2",
+        "p1",
+        "p2",
+        "k3",
+        "k4",
+        "k5",
+        "k6",
+        "s1",
+        "s2",
+        "s3",
+        "s4",
+        "tau_x",
+        "tau_y",
+    ]
     std = {n: float(s) for n, s in zip(names, std_int, strict=False)}
-    cam = CameraModel(K, np.asarray(dist).reshape(-1), int(w), int(h),
-                      {"calibration": {"rms_px": float(rms), "n_views": len(keys), "std": std,
-                                       "covariance_params": list(INTRINSICS_NAMES), "covariance": cov.tolist(),
-                                       "method": "cv2.calibrateCameraRO",
-                                       "board_points": {"ids": sort_ids.tolist(), "points_m": new_obj.tolist(),
-                                                        "d_intrinsics": d_board.tolist()}}})
-    return IntrinsicsResult(cam, float(rms), {k: float(e) for k, e in zip(keys, per_view, strict=True)}, std,
-                            rejected, new_obj, sort_ids,
-                            {k: (np.asarray(r).reshape(3), np.asarray(t).reshape(3))
-                             for k, r, t in zip(keys, rvecs, tvecs, strict=True)})
+    cam = CameraModel(
+        K,
+        np.asarray(dist).reshape(-1),
+        int(w),
+        int(h),
+        {
+            "calibration": {
+                "rms_px": float(rms),
+                "n_views": len(keys),
+                "std": std,
+                "covariance_params": list(INTRINSICS_NAMES),
+                "covariance": cov.tolist(),
+                "method": "cv2.calibrateCameraRO",
+                "board_points": {
+                    "ids": sort_ids.tolist(),
+                    "points_m": new_obj.tolist(),
+                    "d_intrinsics": d_board.tolist(),
+                },
+            }
+        },
+    )
+    return IntrinsicsResult(
+        cam,
+        float(rms),
+        {k: float(e) for k, e in zip(keys, per_view, strict=True)},
+        std,
+        rejected,
+        new_obj,
+        sort_ids,
+        {k: (np.asarray(r).reshape(3), np.asarray(t).reshape(3)) for k, r, t in zip(keys, rvecs, tvecs, strict=True)},
+    )
 
 
 #: Intrinsic parameters whose joint covariance :func:`intrinsics_covariance` gives, in this order.
 INTRINSICS_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2")
 
 
-def intrinsics_covariance(K: ArrayLike, dist: ArrayLike, board_points: ArrayLike, image_points: list[ArrayLike],
-                          rvecs: list[ArrayLike], tvecs: list[ArrayLike], fixed_point: int = -1) -> Array:
+def intrinsics_covariance(
+    K: ArrayLike,
+    dist: ArrayLike,
+    board_points: ArrayLike,
+    image_points: list[ArrayLike],
+    rvecs: list[ArrayLike],
+    tvecs: list[ArrayLike],
+    fixed_point: int = -1,
+) -> Array:
     """Joint covariance (8, 8) of (fx, fy, cx, cy [px], k1, k2, p1, p2) after a calibration.
 
     Gauss-Newton covariance ``s^2 (J^T J)^-1`` of the full bundle (intrinsics, every view's pose and,
@@ -332,8 +416,15 @@ def intrinsics_covariance(K: ArrayLike, dist: ArrayLike, board_points: ArrayLike
     return _bundle_covariance(K, dist, board_points, image_points, rvecs, tvecs, fixed_point)[0]
 
 
-def _bundle_covariance(K: ArrayLike, dist: ArrayLike, board_points: ArrayLike, image_points: list[ArrayLike],
-                       rvecs: list[ArrayLike], tvecs: list[ArrayLike], fixed_point: int = -1) -> tuple[Array, Array]:
+def _bundle_covariance(
+    K: ArrayLike,
+    dist: ArrayLike,
+    board_points: ArrayLike,
+    image_points: list[ArrayLike],
+    rvecs: list[ArrayLike],
+    tvecs: list[ArrayLike],
+    fixed_point: int = -1,
+) -> tuple[Array, Array]:
     """:func:`intrinsics_covariance` and the board points' regression on the intrinsics, (M, 3, 8).
 
     The regression ``Cov(X, I) Cov(I, I)^-1`` is how the refined board points move when the
@@ -357,22 +448,27 @@ def _bundle_covariance(K: ArrayLike, dist: ArrayLike, board_points: ArrayLike, i
     JtJ = np.zeros((n, n))
     sse = 0.0
     for v in range(nv):
-        proj, jac = cv2.projectPoints(obj, np.asarray(rvecs[v], dtype=np.float64).reshape(3),
-                                      np.asarray(tvecs[v], dtype=np.float64).reshape(3), K, d)
+        proj, jac = cv2.projectPoints(
+            obj,
+            np.asarray(rvecs[v], dtype=np.float64).reshape(3),
+            np.asarray(tvecs[v], dtype=np.float64).reshape(3),
+            K,
+            d,
+        )
         res = proj.reshape(-1, 2) - np.asarray(image_points[v], dtype=np.float64).reshape(-1, 2)
-        sse += float(np.sum(res ** 2))
+        sse += float(np.sum(res**2))
         # projectPoints' Jacobian columns: rvec (3), tvec (3), f (2), c (2), dist (n)
         J = np.zeros((2 * m, n))
         J[:, 0:4] = jac[:, 6:10]
         J[:, 4:8] = jac[:, 10:14]
-        J[:, 8 + 6 * v:14 + 6 * v] = jac[:, 0:6]
+        J[:, 8 + 6 * v : 14 + 6 * v] = jac[:, 0:6]
         if n_obj:
             R, _ = cv2.Rodrigues(np.asarray(rvecs[v], dtype=np.float64).reshape(3))
             dp_dX = jac[:, 3:6].reshape(m, 2, 3) @ R  # d pixel / d board point: d/dt rotated
             blocks = np.zeros((2 * m, 3 * m))
             for i in range(m):
-                blocks[2 * i:2 * i + 2, 3 * i:3 * i + 3] = dp_dX[i]
-            J[:, 8 + 6 * nv:] = blocks[:, obj_cols]
+                blocks[2 * i : 2 * i + 2, 3 * i : 3 * i + 3] = dp_dX[i]
+            J[:, 8 + 6 * nv :] = blocks[:, obj_cols]
         JtJ += J.T @ J
     dof = max(2 * m * nv - n, 1)
     s2 = sse / dof
@@ -383,5 +479,5 @@ def _bundle_covariance(K: ArrayLike, dist: ArrayLike, board_points: ArrayLike, i
     # Cov(others, I) = -C^-1 B^T Cov(I, I): the regression of the others on I is -C^-1 B^T
     reg = np.zeros((m * 3, 8))
     if n_obj:
-        reg[obj_cols] = -CinvBt[6 * nv:]
+        reg[obj_cols] = -CinvBt[6 * nv :]
     return 0.5 * (cov + cov.T), reg.reshape(m, 3, 8)

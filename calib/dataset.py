@@ -23,8 +23,18 @@ from .errors import InputError
 from .observations import Nominal
 
 DATASET_FORMAT = "i4cal.dataset/1"
-DATASET_PHASES = ("camera", "rotation", "translation", "poses", "lock-1", "lock-2", "lock-3", "lock-4", "line",
-                  "validation")
+DATASET_PHASES = (
+    "camera",
+    "rotation",
+    "translation",
+    "poses",
+    "lock-1",
+    "lock-2",
+    "lock-3",
+    "lock-4",
+    "line",
+    "validation",
+)
 
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 
@@ -36,7 +46,8 @@ class CameraSpec(BaseModel):
     width: int = Field(gt=0)
     height: int = Field(gt=0)
     K: Annotated[list[Vec3], Field(min_length=3, max_length=3)] | None = Field(
-        None, description="camera matrix, pixels")
+        None, description="camera matrix, pixels"
+    )
     dist: list[float] | None = Field(None, description="OpenCV distortion coefficients (k1 k2 p1 p2 [k3 ...])")
     pixel_size_m: float | None = None
 
@@ -73,10 +84,12 @@ class LegsSpec(BaseModel):
 
 class DatasetFrame(BaseModel):
     model_config = ConfigDict(extra="allow")
-    phase: Literal["camera", "rotation", "translation", "poses", "lock-1", "lock-2", "lock-3", "lock-4", "line",
-                   "validation"]
+    phase: Literal[
+        "camera", "rotation", "translation", "poses", "lock-1", "lock-2", "lock-3", "lock-4", "line", "validation"
+    ]
     q: Annotated[list[float], Field(min_length=4, max_length=4)] = Field(
-        description="encoder values q1..q4 as read, metres")
+        description="encoder values q1..q4 as read, metres"
+    )
     image: str | None = Field(None, description="image path relative to the dataset directory")
     t: float = Field(0.0, description="seconds since the start of the run")
 
@@ -137,8 +150,12 @@ class Dataset:
         except json.JSONDecodeError as exc:
             raise InputError(f"not valid JSON: {exc.msg} at line {exc.lineno}", file=str(meta)) from None
         if not isinstance(data, dict) or data.get("format") != DATASET_FORMAT:
-            raise InputError(f"unsupported format {data.get('format') if isinstance(data, dict) else None!r}, "
-                             f"expected {DATASET_FORMAT!r}", file=str(meta), field="format")
+            raise InputError(
+                f"unsupported format {data.get('format') if isinstance(data, dict) else None!r}, "
+                f"expected {DATASET_FORMAT!r}",
+                file=str(meta),
+                field="format",
+            )
         try:
             doc = DatasetDocument.model_validate(data)
         except ValidationError as exc:
@@ -171,8 +188,7 @@ class Dataset:
             raise InputError(f"image file missing: {self.frames[index].image}", frame=index, field="image")
         img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if img is None:
-            raise InputError(f"image file corrupt or truncated: {self.frames[index].image}", frame=index,
-                             field="image")
+            raise InputError(f"image file corrupt or truncated: {self.frames[index].image}", frame=index, field="image")
         return img
 
 
@@ -186,8 +202,17 @@ class DatasetWriter:
     >>> w.add_frame("poses", q, image)          # doctest: +SKIP
     """
 
-    def __init__(self, path: str | Path, *, camera: CameraSpec, board: BoardSpec, legs: LegsSpec,
-                 nominal: dict[str, float], extra: dict[str, Any] | None = None, resume: bool = False) -> None:
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        camera: CameraSpec,
+        board: BoardSpec,
+        legs: LegsSpec,
+        nominal: dict[str, float],
+        extra: dict[str, Any] | None = None,
+        resume: bool = False,
+    ) -> None:
         self.root = Path(path)
         (self.root / "frames").mkdir(parents=True, exist_ok=True)
         self._t0 = time.monotonic()
@@ -197,8 +222,14 @@ class DatasetWriter:
             if ds.frames:
                 self._t0 -= ds.frames[-1].t
         else:
-            self._doc = DatasetDocument(format=DATASET_FORMAT, camera=camera, board=board, legs=legs,
-                                        nominal=Nominal.model_validate(nominal), frames=[]).model_dump(mode="json")
+            self._doc = DatasetDocument(
+                format=DATASET_FORMAT,
+                camera=camera,
+                board=board,
+                legs=legs,
+                nominal=Nominal.model_validate(nominal),
+                frames=[],
+            ).model_dump(mode="json")
             if extra:
                 self._doc.update(extra)
             self._flush()
@@ -210,8 +241,7 @@ class DatasetWriter:
         self._doc[key] = value
         self._flush()
 
-    def add_frame(self, phase: str, q: Any, image: np.ndarray | None, t: float | None = None,
-                  **extra: Any) -> int:
+    def add_frame(self, phase: str, q: Any, image: np.ndarray | None, t: float | None = None, **extra: Any) -> int:
         """Write the image (PNG, lossless) then append the frame to ``dataset.json``; returns its index."""
         import cv2
 
@@ -230,8 +260,13 @@ class DatasetWriter:
             if not ok:
                 raise InputError("PNG encoding failed", frame=index, field="image")
             _atomic_write_bytes(self.root / rel, buf.tobytes())
-        frame = {"phase": phase, "q": qv, "image": rel,
-                 "t": float(time.monotonic() - self._t0) if t is None else float(t), **extra}
+        frame = {
+            "phase": phase,
+            "q": qv,
+            "image": rel,
+            "t": float(time.monotonic() - self._t0) if t is None else float(t),
+            **extra,
+        }
         self._doc["frames"].append(frame)
         self._flush()
         return index

@@ -16,8 +16,9 @@ class I4calError(Exception):
 class InputError(I4calError, ValueError):
     """Bad input data: names the file, frame and field when they are known."""
 
-    def __init__(self, message: str, *, file: str | None = None, frame: int | None = None,
-                 field: str | None = None) -> None:
+    def __init__(
+        self, message: str, *, file: str | None = None, frame: int | None = None, field: str | None = None
+    ) -> None:
         self.file = file
         self.frame = frame
         self.field = field
@@ -36,8 +37,9 @@ class InputError(I4calError, ValueError):
 class UnreachableError(I4calError, ValueError):
     """A pose or joint vector outside the mechanism's reach (names the leg and by how much)."""
 
-    def __init__(self, message: str, *, leg: int | None = None, index: int | None = None,
-                 deficit_m: float | None = None) -> None:
+    def __init__(
+        self, message: str, *, leg: int | None = None, index: int | None = None, deficit_m: float | None = None
+    ) -> None:
         self.leg = leg
         self.index = index
         self.deficit_m = deficit_m

@@ -34,14 +34,17 @@ def _params(v: np.ndarray, ref: I4Parameters) -> I4Parameters:
 
 def combined_model(params: I4Parameters, q: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
     """Jacobian entries (eq. 4) predicted from encoder values, as a function of the seven parameters."""
+
     def f(v: np.ndarray) -> np.ndarray:
         p = _params(v, params)
         return jacobian_ratios(leg_directions(p, dkm(p, q))).ravel()
+
     return f
 
 
 def end_effector_model(params: I4Parameters, q: np.ndarray) -> tuple[Callable, int]:
     """Board poses predicted from encoders through the DKM, with 12 nuisance transform parameters."""
+
     def f(v: np.ndarray) -> np.ndarray:
         p = _params(v[:7], params)
         pose = dkm(p, q)
@@ -54,22 +57,26 @@ def end_effector_model(params: I4Parameters, q: np.ndarray) -> tuple[Callable, i
         Rk = Rc @ Re @ Rb
         tk = (Rc @ (np.einsum("nij,j->ni", Re, tb) + pe).T).T + tc
         return np.concatenate([(Rk.reshape(len(q), -1)) * 1.0, tk], axis=1).ravel()
+
     return f, 12
 
 
 def legs_model(params: I4Parameters, q: np.ndarray) -> tuple[Callable, int]:
     """Joint centres A_i, B_i in the camera frame (what the rods determine), with 6 camera nuisances."""
+
     def f(v: np.ndarray) -> np.ndarray:
         p = _params(v[:7], params)
         pose = dkm(p, q)
         A, B = joint_points(p, q, pose)
         R = rotvec_to_matrix(v[7:10])
         return (np.concatenate([A, B], axis=1) @ R.T + v[10:13]).ravel()
+
     return f, 6
 
 
-def analyse(fun: Callable[[np.ndarray], np.ndarray], params: I4Parameters, n_nuisance: int = 0,
-            rel_tol: float = 1e-7) -> dict:
+def analyse(
+    fun: Callable[[np.ndarray], np.ndarray], params: I4Parameters, n_nuisance: int = 0, rel_tol: float = 1e-7
+) -> dict:
     """Rank, singular values, condition number and identifiable combinations of a measurement model."""
     x0 = np.concatenate([np.asarray(params.vector()), np.zeros(n_nuisance)])
     J = central_jacobian(fun, x0, 1e-6)
@@ -100,11 +107,17 @@ def analyse(fun: Callable[[np.ndarray], np.ndarray], params: I4Parameters, n_nui
             v[PARAMETER_NAMES.index(n)] = c
         resid = np.linalg.norm(v - basis.T @ (basis @ v)) / np.linalg.norm(v)
         found[key] = bool(resid < 1e-5)
-    return {"rank": rank, "singular_values": s.tolist(), "condition_number": float(s[0] / s[rank - 1]),
-            "identifiable_combinations": combos, "paper_combinations_in_row_space": found,
-            "finds_paper_four": bool(rank == 4 and all(found.values())),
-            "non_identifiable_directions": [dict(zip(PARAMETER_NAMES, np.round(v, 6).tolist(), strict=True))
-                                            for v in Vt[rank:]]}
+    return {
+        "rank": rank,
+        "singular_values": s.tolist(),
+        "condition_number": float(s[0] / s[rank - 1]),
+        "identifiable_combinations": combos,
+        "paper_combinations_in_row_space": found,
+        "finds_paper_four": bool(rank == 4 and all(found.values())),
+        "non_identifiable_directions": [
+            dict(zip(PARAMETER_NAMES, np.round(v, 6).tolist(), strict=True)) for v in Vt[rank:]
+        ],
+    }
 
 
 def _rref(M: np.ndarray, tol: float = 1e-9) -> list[np.ndarray]:

@@ -53,7 +53,10 @@ def _unreachable(kind: str, legs: str, idx: Array, deficit: Array) -> Unreachabl
     more = f" (and {len(idx) - 1} more)" if len(idx) > 1 else ""
     return UnreachableError(
         f"{kind} #{i} is unreachable: legs {legs} are {d * 1e3:.3f} mm too short{more}",
-        leg=int(legs[0]), index=i, deficit_m=d)
+        leg=int(legs[0]),
+        index=i,
+        deficit_m=d,
+    )
 
 
 def ikm(params: I4Parameters, pose: ArrayLike) -> Array:
@@ -78,23 +81,26 @@ def ikm(params: I4Parameters, pose: ArrayLike) -> Array:
     P, single = _as_rows(pose, "pose")
     X, Y, Z, T = P.T
     c = params.H - params.D
-    L2 = params.L ** 2
-    f1sq = L2 - (Y + c) ** 2 - Z ** 2
-    f3sq = L2 - (Y - c) ** 2 - Z ** 2
+    L2 = params.L**2
+    f1sq = L2 - (Y + c) ** 2 - Z**2
+    f3sq = L2 - (Y - c) ** 2 - Z**2
     for fsq, legs, off in ((f1sq, "1 and 2", Y + c), (f3sq, "3 and 4", Y - c)):
         bad = np.flatnonzero(fsq < 0)
         if bad.size:
-            deficit = np.sqrt(off ** 2 + Z ** 2) - params.L
+            deficit = np.sqrt(off**2 + Z**2) - params.L
             raise _unreachable("pose", legs, bad, deficit)
     f1 = np.sqrt(f1sq)
     f3 = np.sqrt(f3sq)
     S = params.S
-    q = np.stack([
-        X + T - S - f1,
-        X + T + S + f1 - params.q02,
-        X - T - S - f3 - params.q03,
-        X - T + S + f3 - params.q04,
-    ], axis=1)
+    q = np.stack(
+        [
+            X + T - S - f1,
+            X + T + S + f1 - params.q02,
+            X - T - S - f3 - params.q03,
+            X - T + S + f3 - params.q04,
+        ],
+        axis=1,
+    )
     return q[0] if single else q
 
 
@@ -117,8 +123,8 @@ def pose_from_joints_reduced(combos: ArrayLike, q: ArrayLike) -> tuple[Array, Ar
     Q = np.asarray(q, dtype=np.float64).reshape(-1, 4)
     a = Q[:, 1] - Q[:, 0] - 2.0 * s1
     b = Q[:, 3] - Q[:, 2] - 2.0 * s3
-    Y = (b ** 2 - a ** 2) / (16.0 * c)
-    zsq = L ** 2 - c ** 2 - Y ** 2 - (a ** 2 + b ** 2) / 8.0
+    Y = (b**2 - a**2) / (16.0 * c)
+    zsq = L**2 - c**2 - Y**2 - (a**2 + b**2) / 8.0
     Z = -np.sqrt(np.maximum(zsq, 0.0))
     return Y, Z, a / 2.0, b / 2.0
 
@@ -156,11 +162,14 @@ def dkm(params: I4Parameters, q: ArrayLike) -> Array:
             raise UnreachableError(
                 f"joint vector #{i} is unreachable: legs {legs} would cross "
                 f"(their lower ends are {-v[i] * 1e3:.3f} mm past each other)",
-                leg=int(legs[0]), index=i, deficit_m=float(-v[i]))
+                leg=int(legs[0]),
+                index=i,
+                deficit_m=float(-v[i]),
+            )
     X = (q1 + q2 + q3 + q4 + p.q02 + p.q03 + p.q04) / 4.0
     T = (q1 + q2 - q3 - q4 + p.q02 - p.q03 - p.q04) / 4.0
-    Y = (b ** 2 - a ** 2) / (16.0 * c)
-    zsq = p.L ** 2 - c ** 2 - Y ** 2 - (a ** 2 + b ** 2) / 8.0
+    Y = (b**2 - a**2) / (16.0 * c)
+    zsq = p.L**2 - c**2 - Y**2 - (a**2 + b**2) / 8.0
     bad = np.flatnonzero(zsq < 0)
     if bad.size:
         i = int(bad[0])

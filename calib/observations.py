@@ -24,10 +24,18 @@ from .jsonio import read_json, write_json_atomic
 from .parameters import PARAMETER_NAMES, I4Parameters
 
 FORMAT = "i4cal.observations/1"
-PHASES: tuple[str, ...] = ("rotation", "translation", "poses", "lock-1", "lock-2", "lock-3", "lock-4",
-                           "line", "validation")
-Phase = Literal["rotation", "translation", "poses", "lock-1", "lock-2", "lock-3", "lock-4", "line",
-                "validation"]
+PHASES: tuple[str, ...] = (
+    "rotation",
+    "translation",
+    "poses",
+    "lock-1",
+    "lock-2",
+    "lock-3",
+    "lock-4",
+    "line",
+    "validation",
+)
+Phase = Literal["rotation", "translation", "poses", "lock-1", "lock-2", "lock-3", "lock-4", "line", "validation"]
 LEG_KEYS: tuple[str, ...] = ("1", "2", "3", "4")
 
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
@@ -71,7 +79,8 @@ class Board(BaseModel):
 
     model_config = ConfigDict(extra="allow")
     R: Annotated[list[Vec3], Field(min_length=3, max_length=3)] = Field(
-        description="rotation camera_from_board, 3x3, rows")
+        description="rotation camera_from_board, 3x3, rows"
+    )
     t: Vec3 = Field(description="translation camera_from_board, metres")
 
     @field_validator("R")
@@ -102,8 +111,8 @@ class Frame(BaseModel):
     q: Vec4 = Field(description="encoder values q1..q4, metres")
     board: Board | None = None
     legs: dict[Literal["1", "2", "3", "4"], Annotated[list[Rod | None], Field(max_length=2)]] | None = Field(
-        default=None,
-        description="per leg, its two rods [rod at -x_B side, rod at +x_B side]; null for a missing rod")
+        default=None, description="per leg, its two rods [rod at -x_B side, rod at +x_B side]; null for a missing rod"
+    )
 
     @field_validator("q")
     @classmethod
@@ -278,7 +287,7 @@ def _input_error(exc: ValidationError, source: str | None) -> InputError:
     field = ".".join(parts) if parts else None
     msg = err.get("msg", "invalid value")
     if msg.startswith("Value error, "):
-        msg = msg[len("Value error, "):]
+        msg = msg[len("Value error, ") :]
     return InputError(msg, file=source, frame=frame, field=field)
 
 

@@ -110,9 +110,16 @@ class I4Parameters:
         The result has exactly the given combinations and predicts the same displacements.
         """
         H, S, q03 = reference.H, reference.S, reference.q03
-        return cls(H=H, q02=2.0 * (S - combos["S-q02/2"]), q03=q03,
-                   q04=q03 + 2.0 * (S - combos["S-(q04-q03)/2"]), S=S, D=H - combos["H-D"],
-                   L=combos["L"], T_per_rad=reference.T_per_rad)
+        return cls(
+            H=H,
+            q02=2.0 * (S - combos["S-q02/2"]),
+            q03=q03,
+            q04=q03 + 2.0 * (S - combos["S-(q04-q03)/2"]),
+            S=S,
+            D=H - combos["H-D"],
+            L=combos["L"],
+            T_per_rad=reference.T_per_rad,
+        )
 
 
 def identifiable_parameters(params: I4Parameters) -> dict[str, float]:

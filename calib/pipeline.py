@@ -23,8 +23,13 @@ METHOD_NAMES = tuple(METHODS)
 RESULT_FORMAT = "i4cal.result/1"
 
 
-def run_method(name: str, obs: Observations, base_frame: BaseFrameResult | None = None, *,
-               on_iteration: IterationCallback | None = None) -> MethodResult:
+def run_method(
+    name: str,
+    obs: Observations,
+    base_frame: BaseFrameResult | None = None,
+    *,
+    on_iteration: IterationCallback | None = None,
+) -> MethodResult:
     if name not in METHODS:
         raise I4calError(f"unknown method {name!r}; methods are {', '.join(METHODS)} or all")
     if name == "combined":
@@ -32,9 +37,14 @@ def run_method(name: str, obs: Observations, base_frame: BaseFrameResult | None 
     return METHODS[name](obs, on_iteration=on_iteration)
 
 
-def calibrate(obs: Observations, methods: Iterable[str] = METHOD_NAMES, *, strict: bool = False,
-              progress: Callable[[str, str], None] | None = None,
-              on_iteration: IterationCallback | None = None) -> dict[str, Any]:
+def calibrate(
+    obs: Observations,
+    methods: Iterable[str] = METHOD_NAMES,
+    *,
+    strict: bool = False,
+    progress: Callable[[str, str], None] | None = None,
+    on_iteration: IterationCallback | None = None,
+) -> dict[str, Any]:
     """Run the methods, validate each result, and return the result document.
 
     Parameters
@@ -58,9 +68,14 @@ def calibrate(obs: Observations, methods: Iterable[str] = METHOD_NAMES, *, stric
     """
     methods = list(methods)
     nominal = obs.nominal
-    out: dict[str, Any] = {"format": RESULT_FORMAT, "nominal": nominal.as_dict(),
-                           "nominal_combinations": nominal.combinations(), "methods": {}, "validation": {},
-                           "phases": obs.phases()}
+    out: dict[str, Any] = {
+        "format": RESULT_FORMAT,
+        "nominal": nominal.as_dict(),
+        "nominal_combinations": nominal.combinations(),
+        "methods": {},
+        "validation": {},
+        "phases": obs.phases(),
+    }
     bf = None
     try:
         bf = base_frame_from_observations(obs)
@@ -136,9 +151,10 @@ def _bound_for(obs: Observations, params: I4Parameters, res: MethodResult, bf: B
     sig_t = bf.translation_residual_rms_m / np.sqrt(3.0)
     if min(scale, sig_r, sig_t) <= 0:
         return {"std": None, "note": "noise-free data: the bound is zero"}
-    rod_cov = _leg_covariances(obs, scale ** 2) if res.diagnostics.get("weighting") == "gls" else None
-    noise = MeasurementNoise(scale if rod_cov is None else 0.0, sig_r, (sig_t, sig_t, sig_t),
-                             rods_per_leg=2 if rod_cov is None else 1)
+    rod_cov = _leg_covariances(obs, scale**2) if res.diagnostics.get("weighting") == "gls" else None
+    noise = MeasurementNoise(
+        scale if rod_cov is None else 0.0, sig_r, (sig_t, sig_t, sig_t), rods_per_leg=2 if rod_cov is None else 1
+    )
     try:
         b = crlb_combined(params, Plan(name="observed", steps=steps), noise, bf.camera_from_base_R, rod_cov)
     except (ValueError, np.linalg.LinAlgError) as exc:
@@ -151,9 +167,15 @@ def _bound_for(obs: Observations, params: I4Parameters, res: MethodResult, bf: B
         b["std"] = {k: float(np.sqrt(cov[i, i])) for i, k in enumerate(COMBINATION_NAMES)}
         b["includes_intrinsics"] = True
     b["efficiency_std_ratio"] = {k: res.combinations_std[k] / v for k, v in b["std"].items()}
-    b["note"] = ("Cramer-Rao bound for these poses at the noise levels measured in this run ("
-                 + ("each rod's measured direction covariance, scaled by the fit's noise scale"
-                    if rod_cov is not None else "isotropic rod-direction noise") + "; isotropic board-pose noise)")
+    b["note"] = (
+        "Cramer-Rao bound for these poses at the noise levels measured in this run ("
+        + (
+            "each rod's measured direction covariance, scaled by the fit's noise scale"
+            if rod_cov is not None
+            else "isotropic rod-direction noise"
+        )
+        + "; isotropic board-pose noise)"
+    )
     return b
 
 

@@ -61,8 +61,9 @@ class Step(BaseModel):
     """One plan step: move to ``q`` and record a frame, or record a guided line."""
 
     model_config = ConfigDict(extra="allow")
-    phase: Literal["rotation", "translation", "poses", "lock-1", "lock-2", "lock-3", "lock-4", "line",
-                   "validation", "camera"]
+    phase: Literal[
+        "rotation", "translation", "poses", "lock-1", "lock-2", "lock-3", "lock-4", "line", "validation", "camera"
+    ]
     q: Vec4 | None = Field(None, description="joint targets q1..q4 in metres")
     line: LineSpec | None = None
 
@@ -97,8 +98,7 @@ class Plan(BaseModel):
             if len(loc) >= 2 and loc[0] == "steps" and isinstance(loc[1], int):
                 frame = loc[1]
                 loc = loc[2:]
-            raise InputError(err["msg"], file=source, frame=frame,
-                             field=".".join(map(str, loc)) or None) from None
+            raise InputError(err["msg"], file=source, frame=frame, field=".".join(map(str, loc)) or None) from None
 
 
 def validate_plan(plan: Plan, nominal: I4Parameters, limits: SoftLimits | None = None) -> None:
@@ -118,8 +118,9 @@ def validate_plan(plan: Plan, nominal: I4Parameters, limits: SoftLimits | None =
             try:
                 qs = ikm(nominal, _line_poses(step.line))
             except UnreachableError as exc:
-                raise InputError(f"guided line not reachable by the nominal model: {exc}", frame=i,
-                                 field="line") from None
+                raise InputError(
+                    f"guided line not reachable by the nominal model: {exc}", frame=i, field="line"
+                ) from None
         elif step.q is not None:
             qs = np.asarray(step.q, dtype=np.float64)[None, :]
         else:
@@ -131,7 +132,9 @@ def validate_plan(plan: Plan, nominal: I4Parameters, limits: SoftLimits | None =
                     raise InputError(
                         f"q{ax + 1} = {qv[ax] * 1e3:.3f} mm is outside the soft limits "
                         f"[{lo[ax] * 1e3:.1f}, {hi[ax] * 1e3:.1f}] mm by {abs(qv[ax] - bound) * 1e3:.3f} mm",
-                        frame=i, field=f"q[{ax}]")
+                        frame=i,
+                        field=f"q[{ax}]",
+                    )
             try:
                 dkm(nominal, qv)
             except UnreachableError as exc:
@@ -152,9 +155,9 @@ def line_poses(line: LineSpec) -> np.ndarray:
 def _good(params: I4Parameters, poses: np.ndarray, ws: Workspace, limits: SoftLimits) -> np.ndarray:
     c = params.H - params.D
     _X, Y, Z, _T = poses.T
-    f1sq = params.L ** 2 - (Y + c) ** 2 - Z ** 2
-    f3sq = params.L ** 2 - (Y - c) ** 2 - Z ** 2
-    ok = (f1sq > ws.min_leg_x_m ** 2) & (f3sq > ws.min_leg_x_m ** 2)
+    f1sq = params.L**2 - (Y + c) ** 2 - Z**2
+    f3sq = params.L**2 - (Y - c) ** 2 - Z**2
+    ok = (f1sq > ws.min_leg_x_m**2) & (f3sq > ws.min_leg_x_m**2)
     q = np.full((len(poses), 4), np.nan)
     q[ok] = ikm(params, poses[ok])
     lo, hi = np.asarray(limits.q_min), np.asarray(limits.q_max)
@@ -162,8 +165,13 @@ def _good(params: I4Parameters, poses: np.ndarray, ws: Workspace, limits: SoftLi
     return ok
 
 
-def random_poses(params: I4Parameters, n: int, rng: np.random.Generator, ws: Workspace | None = None,
-                 limits: SoftLimits | None = None) -> np.ndarray:
+def random_poses(
+    params: I4Parameters,
+    n: int,
+    rng: np.random.Generator,
+    ws: Workspace | None = None,
+    limits: SoftLimits | None = None,
+) -> np.ndarray:
     """``n`` poses drawn uniformly in the workspace box, reachable and within limits (nominal model)."""
     ws = ws or Workspace()
     limits = limits or SoftLimits()
@@ -176,8 +184,9 @@ def random_poses(params: I4Parameters, n: int, rng: np.random.Generator, ws: Wor
     raise InputError(f"could not draw {n} reachable poses in the workspace")
 
 
-def rotation_sweep(nominal: I4Parameters, n: int = 10, span_rad: float = np.deg2rad(300),
-                   ws: Workspace | None = None) -> list[Step]:
+def rotation_sweep(
+    nominal: I4Parameters, n: int = 10, span_rad: float = np.deg2rad(300), ws: Workspace | None = None
+) -> list[Step]:
     """T varies at fixed X, Y, Z: q1, q2 up and q3, q4 down by the same amount."""
     ws = ws or Workspace()
     c = ws.centre()
@@ -186,25 +195,36 @@ def rotation_sweep(nominal: I4Parameters, n: int = 10, span_rad: float = np.deg2
     return [Step(phase="rotation", q=(q0 + d * np.array([1, 1, -1, -1])).tolist()) for d in dT]
 
 
-def equal_translation(nominal: I4Parameters, n: int = 10, length_m: float = 0.35,
-                      ws: Workspace | None = None) -> list[Step]:
+def equal_translation(
+    nominal: I4Parameters, n: int = 10, length_m: float = 0.35, ws: Workspace | None = None
+) -> list[Step]:
     """All four actuators move equally: the end-effector translates along x_B."""
     ws = ws or Workspace()
     q0 = ikm(nominal, ws.centre())
-    return [Step(phase="translation", q=(q0 + d).tolist())
-            for d in np.linspace(-length_m / 2, length_m / 2, n)]
+    return [Step(phase="translation", q=(q0 + d).tolist()) for d in np.linspace(-length_m / 2, length_m / 2, n)]
 
 
-def pose_set(nominal: I4Parameters, n: int = 20, seed: int = 0, phase: str = "poses",
-             ws: Workspace | None = None, limits: SoftLimits | None = None) -> list[Step]:
+def pose_set(
+    nominal: I4Parameters,
+    n: int = 20,
+    seed: int = 0,
+    phase: str = "poses",
+    ws: Workspace | None = None,
+    limits: SoftLimits | None = None,
+) -> list[Step]:
     """``n`` poses spread over the workspace, reachable by the nominal model (seeded)."""
     rng = np.random.default_rng(seed)
     poses = random_poses(nominal, n, rng, ws, limits)
     return [Step(phase=phase, q=q.tolist()) for q in ikm(nominal, poses)]
 
 
-def lock_actuator(nominal: I4Parameters, n_per_axis: int = 5, seed: int = 1, ws: Workspace | None = None,
-                  limits: SoftLimits | None = None) -> list[Step]:
+def lock_actuator(
+    nominal: I4Parameters,
+    n_per_axis: int = 5,
+    seed: int = 1,
+    ws: Workspace | None = None,
+    limits: SoftLimits | None = None,
+) -> list[Step]:
     """For each actuator in turn, ``n_per_axis`` poses with that actuator fixed."""
     ws = ws or Workspace()
     limits = limits or SoftLimits()
@@ -232,8 +252,9 @@ def lock_actuator(nominal: I4Parameters, n_per_axis: int = 5, seed: int = 1, ws:
     return steps
 
 
-def guided_line(nominal: I4Parameters, length_m: float = 0.5, samples: int = 51,
-                ws: Workspace | None = None) -> list[Step]:
+def guided_line(
+    nominal: I4Parameters, length_m: float = 0.5, samples: int = 51, ws: Workspace | None = None
+) -> list[Step]:
     """The paper's straightness test: a 500 mm line mostly along x_B, through the workspace centre."""
     ws = ws or Workspace()
     c = ws.centre()
@@ -244,9 +265,18 @@ def guided_line(nominal: I4Parameters, length_m: float = 0.5, samples: int = 51,
     return [Step(phase="line", line=LineSpec(start_pose=a.tolist(), end_pose=b.tolist(), samples=samples))]
 
 
-def make_plan(name: str, nominal: I4Parameters, seed: int = 0, *, n_base: int = 10, n_fit: int = 20,
-              n_lock: int = 5, n_validation: int = 10, line_samples: int = 51,
-              ws: Workspace | None = None) -> Plan:
+def make_plan(
+    name: str,
+    nominal: I4Parameters,
+    seed: int = 0,
+    *,
+    n_base: int = 10,
+    n_fit: int = 20,
+    n_lock: int = 5,
+    n_validation: int = 10,
+    line_samples: int = 51,
+    ws: Workspace | None = None,
+) -> Plan:
     """Build one of the named plans (see :data:`PLAN_NAMES`)."""
     ws = ws or Workspace()
     parts = {
@@ -258,8 +288,11 @@ def make_plan(name: str, nominal: I4Parameters, seed: int = 0, *, n_base: int = 
         "validation": lambda: pose_set(nominal, n_validation, seed + 2, phase="validation", ws=ws),
     }
     if name == "full":
-        steps = [s for key in ("rotation-sweep", "equal-translation", "pose-set", "lock-actuator", "line",
-                               "validation") for s in parts[key]()]
+        steps = [
+            s
+            for key in ("rotation-sweep", "equal-translation", "pose-set", "lock-actuator", "line", "validation")
+            for s in parts[key]()
+        ]
     elif name in parts:
         steps = parts[name]()
     else:

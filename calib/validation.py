@@ -44,8 +44,13 @@ def displacement_gaps(obs: Observations, params: I4Parameters, phases: tuple[str
     dm = np.linalg.norm(np.diff(m, axis=0), axis=1)
     dp = np.linalg.norm(np.diff(P, axis=0), axis=1)
     g = (dm - dp) * 1e3
-    return {"mean_mm": float(g.mean()), "rms_mm": float(np.sqrt(np.mean(g ** 2))),
-            "max_abs_mm": float(np.abs(g).max()), "n_pairs": int(g.size), "gaps_mm": g.tolist()}
+    return {
+        "mean_mm": float(g.mean()),
+        "rms_mm": float(np.sqrt(np.mean(g**2))),
+        "max_abs_mm": float(np.abs(g).max()),
+        "n_pairs": int(g.size),
+        "gaps_mm": g.tolist(),
+    }
 
 
 def straightness(obs: Observations, params: I4Parameters) -> dict:
@@ -60,8 +65,11 @@ def straightness(obs: Observations, params: I4Parameters) -> dict:
     rel = P - c
     dist = np.linalg.norm(rel - np.outer(rel @ axis, axis), axis=1)
     s = rel @ axis
-    return {"rms_mm": float(np.sqrt(np.mean(dist ** 2)) * 1e3), "n": len(d),
-            "length_mm": float((s.max() - s.min()) * 1e3)}
+    return {
+        "rms_mm": float(np.sqrt(np.mean(dist**2)) * 1e3),
+        "n": len(d),
+        "length_mm": float((s.max() - s.min()) * 1e3),
+    }
 
 
 def validate(obs: Observations, params: I4Parameters) -> dict:

@@ -81,8 +81,9 @@ class RunResult:
 class AcquisitionError(DeviceError):
     """A run stopped on a fault: names the pose and why; the dataset keeps every frame written before."""
 
-    def __init__(self, message: str, *, pose: int, step: int, phase: str, cause: BaseException,
-                 frames_kept: int) -> None:
+    def __init__(
+        self, message: str, *, pose: int, step: int, phase: str, cause: BaseException, frames_kept: int
+    ) -> None:
         self.pose, self.step, self.phase, self.cause, self.frames_kept = pose, step, phase, cause, frames_kept
         super().__init__(message)
 
@@ -91,9 +92,12 @@ class ConsoleOperator:
     """A person guides the line; prompted on the terminal (stdin)."""
 
     async def begin_line(self, start_pose, end_pose, samples: int, rate_hz: float) -> None:
-        print(f"Drives are free. Guide the end-effector along the ruler from {np.round(start_pose, 4).tolist()} "
-              f"to {np.round(end_pose, 4).tolist()} in about {samples / rate_hz:.0f} s, starting when you press "
-              "Enter.", flush=True)
+        print(
+            f"Drives are free. Guide the end-effector along the ruler from {np.round(start_pose, 4).tolist()} "
+            f"to {np.round(end_pose, 4).tolist()} in about {samples / rate_hz:.0f} s, starting when you press "
+            "Enter.",
+            flush=True,
+        )
         await asyncio.to_thread(input)
 
     async def end_line(self) -> None:
@@ -103,13 +107,28 @@ class ConsoleOperator:
 class Acquisition:
     """Runs ``plan`` on ``actuators`` + ``camera`` into the dataset directory ``out``."""
 
-    def __init__(self, plan: Plan, actuators: Actuators, camera: Camera, out: str | Path, *,
-                 operator: Operator | None = None, nominal: I4Parameters = NOMINAL,
-                 limits: SoftLimits | None = None, resume: bool = False,
-                 progress: Callable[[Progress], None] | None = None, settle_s: float = 0.0,
-                 grab_timeout_s: float = 2.0, grab_retries: int = 1, line_rate_hz: float | None = None,
-                 home: bool = True, board: BoardSpec | None = None, legs: LegsSpec | None = None,
-                 camera_spec: dict[str, Any] | None = None, extra: dict[str, Any] | None = None) -> None:
+    def __init__(
+        self,
+        plan: Plan,
+        actuators: Actuators,
+        camera: Camera,
+        out: str | Path,
+        *,
+        operator: Operator | None = None,
+        nominal: I4Parameters = NOMINAL,
+        limits: SoftLimits | None = None,
+        resume: bool = False,
+        progress: Callable[[Progress], None] | None = None,
+        settle_s: float = 0.0,
+        grab_timeout_s: float = 2.0,
+        grab_retries: int = 1,
+        line_rate_hz: float | None = None,
+        home: bool = True,
+        board: BoardSpec | None = None,
+        legs: LegsSpec | None = None,
+        camera_spec: dict[str, Any] | None = None,
+        extra: dict[str, Any] | None = None,
+    ) -> None:
         self.plan = plan
         self.actuators = actuators
         self.camera = camera
@@ -204,8 +223,16 @@ class Acquisition:
     def _mark(self, state: str, pose: int | None, reason: str) -> None:
         if self._writer is not None:
             with contextlib.suppress(Exception):
-                self._writer.set_extra("acquisition", {"state": state, "failed_pose": pose, "reason": reason,
-                                                       "frames": len(self._writer), "total": len(self.units)})
+                self._writer.set_extra(
+                    "acquisition",
+                    {
+                        "state": state,
+                        "failed_pose": pose,
+                        "reason": reason,
+                        "frames": len(self._writer),
+                        "total": len(self.units),
+                    },
+                )
 
     async def _run(self) -> RunResult:
         validate_plan(self.plan, self.nominal, self.limits)  # nothing moves before the whole plan is checked
@@ -218,8 +245,10 @@ class Acquisition:
             from .modbus import alarm_message
 
             ax, code = next(iter(st.alarms.items()))
-            raise DeviceError(f"controller in alarm before the run: {alarm_message(ax, code)}; nothing moved; "
-                              "clear the cause and reset the alarm")
+            raise DeviceError(
+                f"controller in alarm before the run: {alarm_message(ax, code)}; nothing moved; "
+                "clear the cause and reset the alarm"
+            )
         if any(a.free for a in st.axes):
             await self.actuators.set_free(False)
         if self.home and not st.homed:
@@ -253,8 +282,14 @@ class Acquisition:
         self._mark("done", None, "")
         self._emit("done", f"{len(self._writer)} frames in {self.out}")
         self._writer.close()
-        return RunResult(self.out, len(self._writer), len(self.units), self._done_now,
-                         time.monotonic() - self._t0, list(self.overheads))
+        return RunResult(
+            self.out,
+            len(self._writer),
+            len(self.units),
+            self._done_now,
+            time.monotonic() - self._t0,
+            list(self.overheads),
+        )
 
     async def _fail(self, u: Unit, exc: BaseException) -> None:
         await self._safe_stop()
@@ -265,10 +300,15 @@ class Acquisition:
                 await self.actuators.set_free(False)
         n = len(self._writer) if self._writer else 0
         where = f"pose {u.index + 1}/{len(self.units)} (plan step {u.step}, phase '{u.phase}'"
-        where += f", line sample {u.line_sample})" if u.line_sample is not None else (
-            f", q = {np.round(np.asarray(u.q) * 1e3, 3).tolist()} mm)" if u.q else ")")
-        msg = (f"{where} failed: {exc}; motion stopped; {n} frames kept in {self.out}; "
-               "resume the run to continue from this pose")
+        where += (
+            f", line sample {u.line_sample})"
+            if u.line_sample is not None
+            else (f", q = {np.round(np.asarray(u.q) * 1e3, 3).tolist()} mm)" if u.q else ")")
+        )
+        msg = (
+            f"{where} failed: {exc}; motion stopped; {n} frames kept in {self.out}; "
+            "resume the run to continue from this pose"
+        )
         self._mark("failed", u.index, str(exc))
         self._emit("failed", msg, u.phase)
         raise AcquisitionError(msg, pose=u.index, step=u.step, phase=u.phase, cause=exc, frames_kept=n) from exc
@@ -286,23 +326,38 @@ class Acquisition:
             raise InputError(f"dataset has {n} frames, more than the plan's {len(self.units)}", file=str(self.out))
         for k in range(n):
             if ds.frames[k].phase != self.units[k].phase:
-                raise InputError(f"dataset does not match the plan: frame {k} is '{ds.frames[k].phase}', the "
-                                 f"plan's pose {k + 1} is '{self.units[k].phase}'", file=str(self.out), frame=k)
+                raise InputError(
+                    f"dataset does not match the plan: frame {k} is '{ds.frames[k].phase}', the "
+                    f"plan's pose {k + 1} is '{self.units[k].phase}'",
+                    file=str(self.out),
+                    frame=k,
+                )
         stored = ds.document.model_dump().get("plan")
         if isinstance(stored, dict) and stored.get("name") not in (None, self.plan.name):
-            raise InputError(f"dataset was recorded with plan {stored.get('name')!r}, not {self.plan.name!r}",
-                             file=str(self.out))
-        self._writer = DatasetWriter(self.out, camera=ds.document.camera, board=ds.document.board,
-                                     legs=ds.document.legs, nominal=self.nominal.as_dict(), resume=True)
+            raise InputError(
+                f"dataset was recorded with plan {stored.get('name')!r}, not {self.plan.name!r}", file=str(self.out)
+            )
+        self._writer = DatasetWriter(
+            self.out,
+            camera=ds.document.camera,
+            board=ds.document.board,
+            legs=ds.document.legs,
+            nominal=self.nominal.as_dict(),
+            resume=True,
+        )
         return n
 
     def _create_dataset(self, first: Frame) -> None:
         h, w = first.image.shape[:2]
         cam = CameraSpec(width=w, height=h, **self.camera_spec)
-        self._writer = DatasetWriter(self.out, camera=cam, board=self.board, legs=self.legs,
-                                     nominal=self.nominal.as_dict(),
-                                     extra={"plan": self.plan.model_dump(mode="json", exclude_none=True),
-                                            **self.extra})
+        self._writer = DatasetWriter(
+            self.out,
+            camera=cam,
+            board=self.board,
+            legs=self.legs,
+            nominal=self.nominal.as_dict(),
+            extra={"plan": self.plan.model_dump(mode="json", exclude_none=True), **self.extra},
+        )
 
     def _write(self, u: Unit, q: np.ndarray, frame: Frame, **extra: Any) -> None:
         img = frame.image
@@ -409,8 +464,9 @@ class Acquisition:
                             break
                     # in a worker thread like a pose's frame: PNG encoding and the fsync'd dataset.json must not
                     # stall the event loop (the service answers requests from it)
-                    await self._write_behind(u, st.positions, frame, line_sample=k, line_step=u.step,
-                                             q_spread_m=spread, line_rate_hz=rate)
+                    await self._write_behind(
+                        u, st.positions, frame, line_sample=k, line_step=u.step, q_spread_m=spread, line_rate_hz=rate
+                    )
                     self._note_record_time(time.perf_counter() - t_rec)
                     self._emit("running", "", u.phase)
                 except AcquisitionError:
@@ -427,19 +483,39 @@ class Acquisition:
         return i + (line.samples - k0)
 
 
-def acquisition_from_config(plan: Plan, bench_config, out: str | Path, *, resume: bool = False,
-                            progress: Callable[[Progress], None] | None = None, **kw: Any) -> Acquisition:
+def acquisition_from_config(
+    plan: Plan,
+    bench_config,
+    out: str | Path,
+    *,
+    resume: bool = False,
+    progress: Callable[[Progress], None] | None = None,
+    **kw: Any,
+) -> Acquisition:
     """An :class:`Acquisition` on the bench's devices (opened by URI) with the bench file's settings."""
     from .config import open_actuators, open_camera, open_operator
 
     cfg = bench_config
-    opts: dict[str, Any] = dict(nominal=cfg.nominal_parameters(), limits=cfg.calib_limits(),
-                                settle_s=cfg.acquisition.settle_s, grab_timeout_s=cfg.camera.timeout_s,
-                                grab_retries=cfg.camera.grab_retries, line_rate_hz=cfg.acquisition.line_rate_hz,
-                                home=cfg.actuators.home_on_connect)
+    opts: dict[str, Any] = dict(
+        nominal=cfg.nominal_parameters(),
+        limits=cfg.calib_limits(),
+        settle_s=cfg.acquisition.settle_s,
+        grab_timeout_s=cfg.camera.timeout_s,
+        grab_retries=cfg.camera.grab_retries,
+        line_rate_hz=cfg.acquisition.line_rate_hz,
+        home=cfg.actuators.home_on_connect,
+    )
     opts.update(kw)
-    return Acquisition(plan, open_actuators(cfg), open_camera(cfg), Path(out), operator=open_operator(cfg),
-                       resume=resume, progress=progress, **opts)
+    return Acquisition(
+        plan,
+        open_actuators(cfg),
+        open_camera(cfg),
+        Path(out),
+        operator=open_operator(cfg),
+        resume=resume,
+        progress=progress,
+        **opts,
+    )
 
 
 async def close_devices(acq: Acquisition) -> None:
@@ -451,8 +527,15 @@ async def close_devices(acq: Acquisition) -> None:
                 await close()
 
 
-async def acquire(plan: Plan, bench_config, out: str | Path, *, resume: bool = False,
-                  progress: Callable[[Progress], None] | None = None, **kw: Any) -> RunResult:
+async def acquire(
+    plan: Plan,
+    bench_config,
+    out: str | Path,
+    *,
+    resume: bool = False,
+    progress: Callable[[Progress], None] | None = None,
+    **kw: Any,
+) -> RunResult:
     """Open the bench's devices (by URI), run ``plan`` into ``out`` and close the devices."""
     acq = acquisition_from_config(plan, bench_config, out, resume=resume, progress=progress, **kw)
     try:

@@ -133,8 +133,9 @@ class BenchConfig(BaseModel):
             return RegisterMap.model_validate(self.actuators.register_map)
         except ValidationError as exc:
             err = exc.errors()[0]
-            raise InputError(err["msg"], file=self.source,
-                             field="actuators.register_map." + ".".join(map(str, err["loc"]))) from None
+            raise InputError(
+                err["msg"], file=self.source, field="actuators.register_map." + ".".join(map(str, err["loc"]))
+            ) from None
 
 
 def load_bench(path: str | Path) -> BenchConfig:
@@ -176,16 +177,24 @@ def open_actuators(cfg: BenchConfig) -> Actuators:
     if scheme in ("modbus+tcp", "modbus", "modbus+rtu+tcp", "modbus+rtu"):
         from .modbus import ModbusActuators
 
-        kw: dict[str, Any] = dict(regmap=cfg.register_map(), speed_m_s=a.speed_m_s, accel_m_s2=a.accel_m_s2,
-                                  timeout_s=float(query.get("timeout", a.timeout_s)), retries=a.retries,
-                                  poll_s=a.poll_s, settle_s=a.settle_s, in_position_m=a.in_position_m,
-                                  home_timeout_s=a.home_timeout_s, **common)
+        kw: dict[str, Any] = dict(
+            regmap=cfg.register_map(),
+            speed_m_s=a.speed_m_s,
+            accel_m_s2=a.accel_m_s2,
+            timeout_s=float(query.get("timeout", a.timeout_s)),
+            retries=a.retries,
+            poll_s=a.poll_s,
+            settle_s=a.settle_s,
+            in_position_m=a.in_position_m,
+            home_timeout_s=a.home_timeout_s,
+            **common,
+        )
         if scheme == "modbus+rtu":
             if not path:
-                raise InputError(f"{a.uri!r}: a serial device path is needed, e.g. modbus+rtu:///dev/ttyUSB0",
-                                 field="actuators.uri")
-            return ModbusActuators(transport="rtu", serial_port=path,
-                                   baudrate=int(query.get("baudrate", 115200)), **kw)
+                raise InputError(
+                    f"{a.uri!r}: a serial device path is needed, e.g. modbus+rtu:///dev/ttyUSB0", field="actuators.uri"
+                )
+            return ModbusActuators(transport="rtu", serial_port=path, baudrate=int(query.get("baudrate", 115200)), **kw)
         transport = "rtu-tcp" if scheme == "modbus+rtu+tcp" else "tcp"
         return ModbusActuators(transport=transport, host=host or "127.0.0.1", port=port or 502, **kw)
     if scheme in ("serial", "serial+tcp"):
@@ -193,27 +202,44 @@ def open_actuators(cfg: BenchConfig) -> Actuators:
 
         url = f"socket://{host}:{port}" if scheme == "serial+tcp" else path
         if not url:
-            raise InputError(f"{a.uri!r}: a serial device path is needed, e.g. serial:///dev/ttyACM0",
-                             field="actuators.uri")
-        return SerialAsciiActuators(url, baudrate=int(query.get("baudrate", 115200)),
-                                    timeout_s=float(query.get("timeout", a.timeout_s)), speed_m_s=a.speed_m_s,
-                                    accel_m_s2=a.accel_m_s2, poll_s=max(a.poll_s, 0.001), retries=a.retries,
-                                    in_position_m=a.in_position_m, home_timeout_s=a.home_timeout_s, **common)
-    raise InputError(f"unknown actuators URI scheme {scheme!r} in {a.uri!r} (modbus+tcp, modbus+rtu, "
-                     "modbus+rtu+tcp, serial, serial+tcp)", field="actuators.uri")
+            raise InputError(
+                f"{a.uri!r}: a serial device path is needed, e.g. serial:///dev/ttyACM0", field="actuators.uri"
+            )
+        return SerialAsciiActuators(
+            url,
+            baudrate=int(query.get("baudrate", 115200)),
+            timeout_s=float(query.get("timeout", a.timeout_s)),
+            speed_m_s=a.speed_m_s,
+            accel_m_s2=a.accel_m_s2,
+            poll_s=max(a.poll_s, 0.001),
+            retries=a.retries,
+            in_position_m=a.in_position_m,
+            home_timeout_s=a.home_timeout_s,
+            **common,
+        )
+    raise InputError(
+        f"unknown actuators URI scheme {scheme!r} in {a.uri!r} (modbus+tcp, modbus+rtu, "
+        "modbus+rtu+tcp, serial, serial+tcp)",
+        field="actuators.uri",
+    )
 
 
 def open_camera(cfg: BenchConfig | CameraConfig | str) -> Camera:
     """The camera backend named by a URI (not yet opened)."""
-    c = cfg.camera if isinstance(cfg, BenchConfig) else (cfg if isinstance(cfg, CameraConfig)
-                                                         else CameraConfig(uri=cfg))
+    c = (
+        cfg.camera
+        if isinstance(cfg, BenchConfig)
+        else (cfg if isinstance(cfg, CameraConfig) else CameraConfig(uri=cfg))
+    )
     scheme, host, port, path, query = parse_uri(c.uri)
     if scheme == "sim":
         from .cameras.sim import SimCamera
 
         if not host or not port:
-            raise InputError(f"{c.uri!r}: sim cameras are served by a simulated bench: sim://HOST:PORT "
-                             "(run `i4cal sim-bench`)", field="camera.uri")
+            raise InputError(
+                f"{c.uri!r}: sim cameras are served by a simulated bench: sim://HOST:PORT (run `i4cal sim-bench`)",
+                field="camera.uri",
+            )
         return SimCamera(host, port, timeout_s=c.timeout_s)
     if scheme == "genicam":
         from .cameras.genicam import GenICamCamera
@@ -230,8 +256,9 @@ def open_camera(cfg: BenchConfig | CameraConfig | str) -> Camera:
         from .cameras.replay import ReplayCamera
 
         return ReplayCamera(host + path if host else path, loop=query.get("loop", "0") in ("1", "true"))
-    raise InputError(f"unknown camera URI scheme {scheme!r} in {c.uri!r} (genicam, v4l2, replay, sim)",
-                     field="camera.uri")
+    raise InputError(
+        f"unknown camera URI scheme {scheme!r} in {c.uri!r} (genicam, v4l2, replay, sim)", field="camera.uri"
+    )
 
 
 def open_operator(cfg: BenchConfig) -> Operator:

@@ -105,9 +105,15 @@ class Frame:
 class Camera(Protocol):
     async def open(self) -> None: ...
 
-    async def configure(self, *, exposure_us: float | None = None, gain_db: float | None = None,
-                        pixel_format: str | None = None, width: int | None = None,
-                        height: int | None = None) -> None:
+    async def configure(
+        self,
+        *,
+        exposure_us: float | None = None,
+        gain_db: float | None = None,
+        pixel_format: str | None = None,
+        width: int | None = None,
+        height: int | None = None,
+    ) -> None:
         """Apply what the device supports; settings it lacks are ignored (listed in ``info``)."""
 
     async def grab(self, timeout_s: float = 2.0) -> Frame:
@@ -127,7 +133,8 @@ class Operator(Protocol):
     who moves the true mechanism along a truly straight segment.
     """
 
-    async def begin_line(self, start_pose: list[float], end_pose: list[float], samples: int,
-                         rate_hz: float) -> None: ...
+    async def begin_line(
+        self, start_pose: list[float], end_pose: list[float], samples: int, rate_hz: float
+    ) -> None: ...
 
     async def end_line(self) -> None: ...

@@ -45,9 +45,16 @@ log = logging.getLogger(__name__)
 
 #: Modbus exception codes worth retrying (acknowledge, device busy).
 RETRYABLE_EXCEPTIONS = {5, 6}
-EXCEPTION_TEXT = {1: "illegal function", 2: "illegal data address", 3: "illegal data value",
-                  4: "device failure", 5: "acknowledge", 6: "device busy", 10: "gateway path unavailable",
-                  11: "gateway target failed to respond"}
+EXCEPTION_TEXT = {
+    1: "illegal function",
+    2: "illegal data address",
+    3: "illegal data value",
+    4: "device failure",
+    5: "acknowledge",
+    6: "device busy",
+    10: "gateway path unavailable",
+    11: "gateway target failed to respond",
+}
 
 
 def alarm_message(axis: int, code: int) -> str:
@@ -64,14 +71,19 @@ def check_targets(q: Any, limits: SoftLimitsM, nominal: I4Parameters | None) -> 
         lo, hi = limits.q_min[i], limits.q_max[i]
         if not lo <= qv[i] <= hi:
             bound = lo if qv[i] < lo else hi
-            raise LimitError(f"q{i + 1} = {qv[i] * 1e3:.3f} mm is outside the soft limits [{lo * 1e3:.1f}, "
-                             f"{hi * 1e3:.1f}] mm by {abs(qv[i] - bound) * 1e3:.3f} mm; nothing moved", axis=i + 1)
+            raise LimitError(
+                f"q{i + 1} = {qv[i] * 1e3:.3f} mm is outside the soft limits [{lo * 1e3:.1f}, "
+                f"{hi * 1e3:.1f}] mm by {abs(qv[i] - bound) * 1e3:.3f} mm; nothing moved",
+                axis=i + 1,
+            )
     if nominal is not None:
         try:
             dkm(nominal, qv)
         except UnreachableError as exc:
-            raise LimitError(f"target {np.round(qv * 1e3, 3).tolist()} mm is outside the workspace of the "
-                             f"kinematic model ({exc}); nothing moved") from None
+            raise LimitError(
+                f"target {np.round(qv * 1e3, 3).tolist()} mm is outside the workspace of the "
+                f"kinematic model ({exc}); nothing moved"
+            ) from None
     return qv
 
 
@@ -92,14 +104,31 @@ class ModbusActuators:
         reopened and flushed, so that the late reply is discarded. ``None``: ``timeout_s``.
     """
 
-    def __init__(self, *, transport: str = "tcp", host: str = "127.0.0.1", port: int = 502,
-                 serial_port: str | None = None, baudrate: int = 115200, regmap: RegisterMap = DEFAULT_MAP,
-                 limits: SoftLimitsM | None = None, nominal: I4Parameters | None = None,
-                 speed_m_s: float = 0.05, accel_m_s2: float = 0.5, timeout_s: float = 0.5, retries: int = 3,
-                 backoff_s: float = 0.02, backoff_max_s: float = 1.0, poll_s: float = 0.002,
-                 settle_s: float = 0.0, in_position_m: float = 2e-5, move_timeout_factor: float = 2.0,
-                 move_timeout_margin_s: float = 1.0, home_timeout_s: float = 60.0,
-                 late_reply_guard_s: float | None = None) -> None:
+    def __init__(
+        self,
+        *,
+        transport: str = "tcp",
+        host: str = "127.0.0.1",
+        port: int = 502,
+        serial_port: str | None = None,
+        baudrate: int = 115200,
+        regmap: RegisterMap = DEFAULT_MAP,
+        limits: SoftLimitsM | None = None,
+        nominal: I4Parameters | None = None,
+        speed_m_s: float = 0.05,
+        accel_m_s2: float = 0.5,
+        timeout_s: float = 0.5,
+        retries: int = 3,
+        backoff_s: float = 0.02,
+        backoff_max_s: float = 1.0,
+        poll_s: float = 0.002,
+        settle_s: float = 0.0,
+        in_position_m: float = 2e-5,
+        move_timeout_factor: float = 2.0,
+        move_timeout_margin_s: float = 1.0,
+        home_timeout_s: float = 60.0,
+        late_reply_guard_s: float | None = None,
+    ) -> None:
         if transport not in ("tcp", "rtu", "rtu-tcp"):
             raise ValueError(f"unknown Modbus transport {transport!r}")
         self.transport = transport
@@ -135,11 +164,18 @@ class ModbusActuators:
     # -- connection ---------------------------------------------------------------------------
     def _new_client(self):
         if self.transport == "rtu":
-            return AsyncModbusSerialClient(self.serial_port, framer=FramerType.RTU, baudrate=self.baudrate,
-                                           timeout=self.timeout_s, retries=0, reconnect_delay=0)
+            return AsyncModbusSerialClient(
+                self.serial_port,
+                framer=FramerType.RTU,
+                baudrate=self.baudrate,
+                timeout=self.timeout_s,
+                retries=0,
+                reconnect_delay=0,
+            )
         framer = FramerType.SOCKET if self.transport == "tcp" else FramerType.RTU
-        return AsyncModbusTcpClient(self.host, port=self.port, framer=framer, timeout=self.timeout_s,
-                                    retries=0, reconnect_delay=0)
+        return AsyncModbusTcpClient(
+            self.host, port=self.port, framer=framer, timeout=self.timeout_s, retries=0, reconnect_delay=0
+        )
 
     async def _open(self) -> None:
         self._drop()
@@ -168,7 +204,7 @@ class ModbusActuators:
                 break
             except DeviceConnectionError as exc:
                 last = exc
-                await asyncio.sleep(min(self.backoff_s * 2 ** attempt, self.backoff_max_s))
+                await asyncio.sleep(min(self.backoff_s * 2**attempt, self.backoff_max_s))
         else:
             raise last  # type: ignore[misc]
         await self.status()  # every axis answers
@@ -199,8 +235,7 @@ class ModbusActuators:
                         await self._open()  # a serial port is flushed when it opens
                     self.stats["requests"] += 1
                     if kind == "read":
-                        rr = await self._client.read_holding_registers(address, count=count_or_values,
-                                                                       device_id=unit)
+                        rr = await self._client.read_holding_registers(address, count=count_or_values, device_id=unit)
                     else:
                         rr = await self._client.write_registers(address, list(count_or_values), device_id=unit)
                 except DeviceConnectionError as exc:
@@ -223,8 +258,9 @@ class ModbusActuators:
                     continue
                 if rr.isError():
                     code = int(getattr(rr, "exception_code", 0) or 0)
-                    msg = (f"unit {unit} register {address}: exception code {code} "
-                           f"({EXCEPTION_TEXT.get(code, 'unknown')})")
+                    msg = (
+                        f"unit {unit} register {address}: exception code {code} ({EXCEPTION_TEXT.get(code, 'unknown')})"
+                    )
                     if code in RETRYABLE_EXCEPTIONS:
                         last = msg
                         continue
@@ -247,10 +283,12 @@ class ModbusActuators:
                     continue
                 return []
             if "connect" in last or "connection" in last:
-                raise DeviceConnectionError(f"Modbus controller at {self.endpoint}: {last}, after "
-                                            f"{self.retries + 1} attempts")
-            raise DeviceTimeoutError(f"Modbus controller at {self.endpoint}, unit {unit}: {last}, after "
-                                     f"{self.retries + 1} attempts")
+                raise DeviceConnectionError(
+                    f"Modbus controller at {self.endpoint}: {last}, after {self.retries + 1} attempts"
+                )
+            raise DeviceTimeoutError(
+                f"Modbus controller at {self.endpoint}, unit {unit}: {last}, after {self.retries + 1} attempts"
+            )
 
     async def read(self, unit: int, address: int, count: int) -> list[int]:
         return await self._request("read", unit, address, count)
@@ -266,13 +304,19 @@ class ModbusActuators:
         base = base - m.status + lo
         regs = await self.read(unit, base, n)
         st = regs[m.status - lo]
-        enc = m.from_regs32(regs[m.actual - lo: m.actual - lo + 2])
+        enc = m.from_regs32(regs[m.actual - lo : m.actual - lo + 2])
         code = regs[m.alarm_code - lo]
         b = m.status_bits
-        return AxisStatus(ready=bool(st >> b.ready & 1), moving=bool(st >> b.moving & 1),
-                          in_position=bool(st >> b.in_position & 1), alarm=bool(st >> b.alarm & 1),
-                          homed=bool(st >> b.homed & 1), free=bool(self._free_bits[axis]), alarm_code=code,
-                          position_m=m.counts_to_m(enc))
+        return AxisStatus(
+            ready=bool(st >> b.ready & 1),
+            moving=bool(st >> b.moving & 1),
+            in_position=bool(st >> b.in_position & 1),
+            alarm=bool(st >> b.alarm & 1),
+            homed=bool(st >> b.homed & 1),
+            free=bool(self._free_bits[axis]),
+            alarm_code=code,
+            position_m=m.counts_to_m(enc),
+        )
 
     async def status(self) -> ActuatorStatus:
         return ActuatorStatus(tuple([await self.read_axis(i) for i in range(4)]))
@@ -387,6 +431,8 @@ class ModbusActuators:
             if done(st):
                 return st
             if time.monotonic() > t_end:
-                raise DeviceTimeoutError(f"{what} did not complete within {timeout_s:.2f} s; axes at "
-                                         f"{np.round(st.positions * 1e3, 3).tolist()} mm; stopped")
+                raise DeviceTimeoutError(
+                    f"{what} did not complete within {timeout_s:.2f} s; axes at "
+                    f"{np.round(st.positions * 1e3, 3).tolist()} mm; stopped"
+                )
             await asyncio.sleep(self.poll_s)

@@ -80,8 +80,9 @@ class RegisterMap(BaseModel):
     @property
     def span(self) -> int:
         """Number of registers an axis occupies (from its offset)."""
-        return max(self.target + 2, self.speed + 2, self.control + 1, self.status + 1, self.actual + 2,
-                   self.alarm_code + 1)
+        return max(
+            self.target + 2, self.speed + 2, self.control + 1, self.status + 1, self.actual + 2, self.alarm_code + 1
+        )
 
     def readback_window(self) -> tuple[int, int]:
         """Relative (start, count) of one read that covers status, actual position and alarm code."""
@@ -93,10 +94,10 @@ class RegisterMap(BaseModel):
     def to_regs32(self, value: int) -> list[int]:
         v = int(value)
         if self.signed:
-            if not -(2 ** 31) <= v < 2 ** 31:
+            if not -(2**31) <= v < 2**31:
                 raise ValueError(f"{v} does not fit in int32")
             v &= 0xFFFFFFFF
-        elif not 0 <= v < 2 ** 32:
+        elif not 0 <= v < 2**32:
             raise ValueError(f"{v} does not fit in uint32")
         hi, lo = (v >> 16) & 0xFFFF, v & 0xFFFF
         return [hi, lo] if self.word_order == "big" else [lo, hi]
@@ -105,8 +106,8 @@ class RegisterMap(BaseModel):
         a, b = int(regs[0]) & 0xFFFF, int(regs[1]) & 0xFFFF
         hi, lo = (a, b) if self.word_order == "big" else (b, a)
         v = (hi << 16) | lo
-        if self.signed and v >= 2 ** 31:
-            v -= 2 ** 32
+        if self.signed and v >= 2**31:
+            v -= 2**32
         return v
 
     def m_to_counts(self, m: float) -> int:

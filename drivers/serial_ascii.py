@@ -38,8 +38,9 @@ class SerialAsciiActuators(ModbusActuators):
     """:class:`drivers.interfaces.Actuators` over the ASCII protocol above (move/wait/stop logic shared with
     the Modbus driver)."""
 
-    def __init__(self, url: str, *, baudrate: int = 115200, timeout_s: float = 0.5, retries: int = 3,
-                 **kw: Any) -> None:
+    def __init__(
+        self, url: str, *, baudrate: int = 115200, timeout_s: float = 0.5, retries: int = 3, **kw: Any
+    ) -> None:
         super().__init__(transport="tcp", timeout_s=timeout_s, retries=retries, **kw)
         self.url = url
         self.baudrate = int(baudrate)
@@ -58,8 +59,9 @@ class SerialAsciiActuators(ModbusActuators):
         except ImportError:
             raise MissingExtraError("pyserial", "serial") from None
         try:
-            self._ser = serial.serial_for_url(self.url, baudrate=self.baudrate, timeout=self.timeout_s,
-                                              write_timeout=self.timeout_s)
+            self._ser = serial.serial_for_url(
+                self.url, baudrate=self.baudrate, timeout=self.timeout_s, write_timeout=self.timeout_s
+            )
         except (serial.SerialException, OSError, ValueError) as exc:
             raise DeviceConnectionError(f"cannot open serial port {self.url}: {exc}") from None
 
@@ -114,8 +116,9 @@ class SerialAsciiActuators(ModbusActuators):
                         return values
                     if status == "ERR":
                         code = int(values[0]) if values and values[0].isdigit() else None
-                        raise ProtocolError(f"controller refused {command.split()[0]}: {' '.join(values)}",
-                                            exception_code=code)
+                        raise ProtocolError(
+                            f"controller refused {command.split()[0]}: {' '.join(values)}", exception_code=code
+                        )
                     self.stats["framing"] += 1
                     last = f"framing error: {line[:40]!r}"
             except (serial.SerialException, OSError) as exc:
@@ -148,10 +151,18 @@ class SerialAsciiActuators(ModbusActuators):
         axes = []
         for i in range(4):
             st, pos, code = int(v[3 * i]), int(v[3 * i + 1]), int(v[3 * i + 2])
-            axes.append(AxisStatus(ready=bool(st >> b.ready & 1), moving=bool(st >> b.moving & 1),
-                                   in_position=bool(st >> b.in_position & 1), alarm=bool(st >> b.alarm & 1),
-                                   homed=bool(st >> b.homed & 1), free=bool(self._free_bits[i]), alarm_code=code,
-                                   position_m=pos / 1e6))
+            axes.append(
+                AxisStatus(
+                    ready=bool(st >> b.ready & 1),
+                    moving=bool(st >> b.moving & 1),
+                    in_position=bool(st >> b.in_position & 1),
+                    alarm=bool(st >> b.alarm & 1),
+                    homed=bool(st >> b.homed & 1),
+                    free=bool(self._free_bits[i]),
+                    alarm_code=code,
+                    position_m=pos / 1e6,
+                )
+            )
         return ActuatorStatus(tuple(axes))
 
     async def read_axis(self, axis: int) -> AxisStatus:

@@ -52,8 +52,7 @@ def _unauthorized(detail: str) -> HTTPException:
     return HTTPException(status.HTTP_401_UNAUTHORIZED, detail=detail, headers={"WWW-Authenticate": "Bearer"})
 
 
-def require_token(request: Request,
-                  creds: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)]) -> str:
+def require_token(request: Request, creds: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)]) -> str:
     if creds is None or creds.scheme.lower() != "bearer" or not creds.credentials:
         raise _unauthorized("a bearer token is required")
     if len(creds.credentials) > 512 or not token_valid(request, creds.credentials):
@@ -61,8 +60,7 @@ def require_token(request: Request,
     return creds.credentials
 
 
-def read_access(request: Request,
-                creds: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)]) -> None:
+def read_access(request: Request, creds: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)]) -> None:
     if request.app.state.settings.open_reads:
         return
     require_token(request, creds)

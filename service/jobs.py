@@ -126,8 +126,9 @@ def extract_job(*, emit: Emit, dataset: str, out: str, workers: int) -> dict[str
         last[0] = t
         emit("progress", {"done": done, "total": total})
 
-    res = extract_dataset(dataset, workers=workers, progress=progress,
-                          on_frame=lambda info: emit("frame", clean_json(info)))
+    res = extract_dataset(
+        dataset, workers=workers, progress=progress, on_frame=lambda info: emit("frame", clean_json(info))
+    )
     doc = clean_json(res.observations)
     Observations.from_dict(doc, dataset)  # a run fails here, naming the field, rather than in the fit
     write_json_atomic(out, doc, indent=None)
@@ -149,9 +150,18 @@ def fit_job(*, emit: Emit, observations: str, methods: list[str]) -> dict[str, A
         emit("fit", {"method": method, "state": "start", "index": k, "count": len(methods)})
         part = clean_json(to_jsonable(calibrate(obs, [method], on_iteration=lambda info: emit("iteration", info))))
         entry = part["methods"][method]
-        emit("fit", {"method": method, "state": "done" if entry.get("converged") else "failed", "index": k,
-                     "count": len(methods), "iterations": entry.get("iterations"),
-                     "residual_rms": entry.get("residual_rms"), "error": entry.get("error")})
+        emit(
+            "fit",
+            {
+                "method": method,
+                "state": "done" if entry.get("converged") else "failed",
+                "index": k,
+                "count": len(methods),
+                "iterations": entry.get("iterations"),
+                "residual_rms": entry.get("residual_rms"),
+                "error": entry.get("error"),
+            },
+        )
         if doc is None:
             doc = part
             continue
@@ -172,15 +182,15 @@ JOBS: dict[str, Callable[..., Any]] = {"extract": extract_job, "fit": fit_job}
 class Job:
     """One child process running ``JOBS[target]``; :meth:`run` blocks (call it in a thread), :meth:`kill` doesn't."""
 
-    def __init__(self, target: str, kwargs: dict[str, Any], on_event: Callable[[str, dict[str, Any]], None],
-                 nice: int = 5) -> None:
+    def __init__(
+        self, target: str, kwargs: dict[str, Any], on_event: Callable[[str, dict[str, Any]], None], nice: int = 5
+    ) -> None:
         if target not in JOBS:
             raise ValueError(f"unknown job {target!r}")
         self.target = target
         self.on_event = on_event
         self._recv, self._send = _CTX.Pipe(duplex=False)
-        self.process = _CTX.Process(target=_child_main, args=(self._send, target, kwargs, nice),
-                                    name=f"i4cal-{target}")
+        self.process = _CTX.Process(target=_child_main, args=(self._send, target, kwargs, nice), name=f"i4cal-{target}")
         self.killed = False
         self._ended = False
 
@@ -236,8 +246,13 @@ class Job:
                 os.kill(pid, signal.SIGKILL)
 
 
-async def run_job(target: str, kwargs: dict[str, Any], on_event: Callable[[str, dict[str, Any]], None],
-                  nice: int = 5, on_job: Callable[[Job], None] | None = None) -> Any:
+async def run_job(
+    target: str,
+    kwargs: dict[str, Any],
+    on_event: Callable[[str, dict[str, Any]], None],
+    nice: int = 5,
+    on_job: Callable[[Job], None] | None = None,
+) -> Any:
     """Run a job in a child process; ``on_event(kind, data)`` is called in the event loop for each event.
 
     Cancelling the awaiting task kills the child (and its process group). ``on_job`` receives the :class:`Job`

@@ -65,11 +65,17 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 await bench.close()
             db.dispose()
 
-    app = FastAPI(title="i4cal service", version=__version__, lifespan=lifespan,
-                  description="Acquisition and kinematic calibration of I4 parallel robots: runs on the bench, "
-                              "live progress, results, the current calibration. State-changing requests need a "
-                              "bearer token (`i4cal token create`).",
-                  openapi_url="/api/v1/openapi.json", docs_url="/api/v1/docs", redoc_url=None)
+    app = FastAPI(
+        title="i4cal service",
+        version=__version__,
+        lifespan=lifespan,
+        description="Acquisition and kinematic calibration of I4 parallel robots: runs on the bench, "
+        "live progress, results, the current calibration. State-changing requests need a "
+        "bearer token (`i4cal token create`).",
+        openapi_url="/api/v1/openapi.json",
+        docs_url="/api/v1/docs",
+        redoc_url=None,
+    )
     app.state.settings = settings
     app.include_router(api_router)
     app.include_router(health_router)

@@ -44,14 +44,20 @@ class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="I4CAL_", env_nested_delimiter="__", extra="forbid")
 
     data_dir: Path = Field(Path("i4cal-data"), description="database, datasets and results live here")
-    database_url: str | None = Field(None, description="SQLAlchemy URL: sqlite:///PATH or "
-                                     "postgresql+psycopg://USER:PASSWORD@HOST:PORT/DB (postgresql:// is taken as "
-                                     "psycopg; needs the 'postgres' extra); default SQLite in data_dir")
+    database_url: str | None = Field(
+        None,
+        description="SQLAlchemy URL: sqlite:///PATH or "
+        "postgresql+psycopg://USER:PASSWORD@HOST:PORT/DB (postgresql:// is taken as "
+        "psycopg; needs the 'postgres' extra); default SQLite in data_dir",
+    )
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=0, le=65535)
-    bench_name: str | None = Field(None, pattern=BENCH_NAME_PATTERN,
-                                   description="this bench's name (default: the bench file's name); services sharing "
-                                               "a database must have different names")
+    bench_name: str | None = Field(
+        None,
+        pattern=BENCH_NAME_PATTERN,
+        description="this bench's name (default: the bench file's name); services sharing "
+        "a database must have different names",
+    )
     bench_file: Path | None = Field(None, description="bench TOML (drivers.config)")
     bench: dict[str, Any] | None = Field(None, description="inline bench configuration (same fields as the TOML)")
     sim_bench: bool = Field(False, description="start a simulated bench (in its own process) and drive it")
@@ -64,14 +70,19 @@ class Settings(BaseSettings):
     max_unpacked_bytes: int = Field(4 * 1024 * 1024 * 1024, gt=0)
     max_archive_members: int = Field(100_000, gt=0)
     extraction_workers: int = Field(1, ge=1, le=64)
-    job_niceness: int = Field(5, ge=0, le=19, description="nice increment of the extraction and fit processes "
-                                                          "(the server keeps the CPU it needs to answer)")
+    job_niceness: int = Field(
+        5,
+        ge=0,
+        le=19,
+        description="nice increment of the extraction and fit processes (the server keeps the CPU it needs to answer)",
+    )
     plan_sizes: PlanSizes = PlanSizes()
     config_file: Path | None = Field(None, exclude=True)
 
     @classmethod
-    def settings_customise_sources(cls, settings_cls, init_settings, env_settings, dotenv_settings,
-                                   file_secret_settings) -> tuple[PydanticBaseSettingsSource, ...]:
+    def settings_customise_sources(
+        cls, settings_cls, init_settings, env_settings, dotenv_settings, file_secret_settings
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
         return (init_settings, env_settings, file_secret_settings)
 
     @field_validator("database_url")
@@ -108,11 +119,13 @@ def normalize_database_url(url: str | None) -> str | None:
     url = url.strip()
     for prefix in ("postgres://", "postgresql://"):
         if url.startswith(prefix):
-            url = "postgresql+psycopg://" + url[len(prefix):]
+            url = "postgresql+psycopg://" + url[len(prefix) :]
     scheme = url.split("://", 1)[0] if "://" in url else ""
     if scheme not in ("sqlite", "sqlite+pysqlite", "postgresql+psycopg"):
-        raise ValueError(f"unsupported database URL scheme {scheme or url!r}: use sqlite:///PATH or "
-                         "postgresql+psycopg://USER:PASSWORD@HOST:PORT/DATABASE")
+        raise ValueError(
+            f"unsupported database URL scheme {scheme or url!r}: use sqlite:///PATH or "
+            "postgresql+psycopg://USER:PASSWORD@HOST:PORT/DATABASE"
+        )
     return url
 
 
@@ -135,7 +148,7 @@ def load_settings(path: str | Path | None = None, **overrides: Any) -> Settings:
                 data[key] = str(base / data[key])
         data["config_file"] = str(p)
     # environment wins over the file: drop file keys that the environment sets
-    env_keys = {k[len("I4CAL_"):].split("__")[0].lower() for k in os.environ if k.startswith("I4CAL_")}
+    env_keys = {k[len("I4CAL_") :].split("__")[0].lower() for k in os.environ if k.startswith("I4CAL_")}
     data = {k: v for k, v in data.items() if k not in env_keys}
     data.update(overrides)
     from pydantic import ValidationError
@@ -144,5 +157,4 @@ def load_settings(path: str | Path | None = None, **overrides: Any) -> Settings:
         return Settings(**data)
     except ValidationError as exc:
         err = exc.errors()[0]
-        raise InputError(err["msg"], file=str(path) if path else None,
-                         field=".".join(map(str, err["loc"]))) from None
+        raise InputError(err["msg"], file=str(path) if path else None, field=".".join(map(str, err["loc"]))) from None

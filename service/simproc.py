@@ -61,8 +61,9 @@ class SimBenchProcess:
     def __init__(self, port: int = 0, fast_renderer: bool = False, **overrides: Any) -> None:
         self._conn, child = _CTX.Pipe()
         self._child = child
-        self.process = _CTX.Process(target=_sim_main, args=(child, port, fast_renderer, overrides),
-                                    name="i4cal-sim-bench", daemon=True)
+        self.process = _CTX.Process(
+            target=_sim_main, args=(child, port, fast_renderer, overrides), name="i4cal-sim-bench", daemon=True
+        )
         self.config: dict[str, Any] = {}
         self.camera: dict[str, Any] | None = None
         self.uris: dict[str, str] = {}

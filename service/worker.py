@@ -100,9 +100,13 @@ class Bench:
             from .simproc import SimBenchProcess
 
             # its own process, as hardware would be: its rendering does not compete with requests for the GIL
-            sim = await SimBenchProcess(settings.sim_port, settings.sim_fast_renderer,
-                                        name=settings.bench_name or "sim", acquisition={"line_rate_hz": 50.0},
-                                        camera={"timeout_s": 10.0}).start()
+            sim = await SimBenchProcess(
+                settings.sim_port,
+                settings.sim_fast_renderer,
+                name=settings.bench_name or "sim",
+                acquisition={"line_rate_hz": 50.0},
+                camera={"timeout_s": 10.0},
+            ).start()
             cfg = BenchConfig.model_validate(sim.config)
             if sim.camera is not None and not camera_spec:
                 camera_spec = sim.camera
@@ -169,8 +173,11 @@ def bench_name(settings: Settings, cfg: Any) -> str:
 
     name = settings.bench_name or str(getattr(cfg, "name", "") or "bench")
     if not re.fullmatch(BENCH_NAME_PATTERN, name):
-        raise InputError(f"bench name {name!r} must be 1-64 letters, digits, spaces, '.', '_' or '-' "
-                         "(set bench_name in the service configuration)", field="bench_name")
+        raise InputError(
+            f"bench name {name!r} must be 1-64 letters, digits, spaces, '.', '_' or '-' "
+            "(set bench_name in the service configuration)",
+            field="bench_name",
+        )
     return name
 
 
@@ -216,8 +223,7 @@ class RunManager:
     def recover(self) -> list[str]:
         """Runs left active by a crash become ``interrupted`` (their frames are kept)."""
         with self.db.session() as s:
-            mine = Run.service.is_(None) if self.name is None else or_(Run.service == self.name,
-                                                                         Run.service.is_(None))
+            mine = Run.service.is_(None) if self.name is None else or_(Run.service == self.name, Run.service.is_(None))
             ids = list(s.scalars(select(Run.id).where(Run.state.in_(ACTIVE_STATES), mine)))
         for rid in ids:
             self._set(rid, state="interrupted", error="the service stopped during the run; resume it to continue")
@@ -281,8 +287,7 @@ class RunManager:
                 raise RunNotFoundError(run_id)
             return run
 
-    def list(self, limit: int = 100, offset: int = 0, state: str | None = None,
-             bench: str | None = None) -> list[Run]:
+    def list(self, limit: int = 100, offset: int = 0, state: str | None = None, bench: str | None = None) -> list[Run]:
         with self.db.session() as s:
             q = select(Run).order_by(Run.created_at.desc()).limit(limit).offset(offset)
             if state:
@@ -305,8 +310,16 @@ class RunManager:
         return self.data_dir / run.dataset_dir
 
     # -- create / control --------------------------------------------------------------------------
-    def create(self, *, plan: Any, plan_name: str | None, methods: list[str], note: str, bench: str | None,
-               dataset_id: str | None) -> Run:
+    def create(
+        self,
+        *,
+        plan: Any,
+        plan_name: str | None,
+        methods: list[str],
+        note: str,
+        bench: str | None,
+        dataset_id: str | None,
+    ) -> Run:
         rid = new_id()
         if dataset_id is not None:
             with self.db.session() as s:
@@ -315,8 +328,11 @@ class RunManager:
                     raise InputError(f"no dataset {dataset_id!r}", field="dataset")
                 ds_dir = ds.path
             if not (self.data_dir / ds_dir / "dataset.json").is_file():
-                raise InputError(f"dataset {dataset_id!r} is not on this service's disk (uploaded to another "
-                                 "service sharing the database?)", field="dataset")
+                raise InputError(
+                    f"dataset {dataset_id!r} is not on this service's disk (uploaded to another "
+                    "service sharing the database?)",
+                    field="dataset",
+                )
             if not methods:
                 raise InputError("an offline run needs at least one method", field="methods")
         else:
@@ -328,11 +344,21 @@ class RunManager:
                 raise RunConflictError(f"run {self.bench_holder} holds the bench")
             ds_dir = f"runs/{rid}/dataset"
         run_bench = (bench or self.name) if dataset_id else self.bench.name
-        run = Run(id=rid, state="queued", created_at=now(), bench=run_bench, service=self.name,
-                  note=note, plan_name=plan_name,
-                  plan=plan.model_dump(mode="json", exclude_none=True) if plan else None,
-                  methods=methods, source_dataset=dataset_id, dataset_dir=ds_dir, timings={},
-                  total=len(plan_units(plan)) if plan else 0)
+        run = Run(
+            id=rid,
+            state="queued",
+            created_at=now(),
+            bench=run_bench,
+            service=self.name,
+            note=note,
+            plan_name=plan_name,
+            plan=plan.model_dump(mode="json", exclude_none=True) if plan else None,
+            methods=methods,
+            source_dataset=dataset_id,
+            dataset_dir=ds_dir,
+            timings={},
+            total=len(plan_units(plan)) if plan else 0,
+        )
         (self.data_dir / "runs" / rid).mkdir(parents=True, exist_ok=True)
         with self.db.session() as s:
             s.add(run)
@@ -463,8 +489,12 @@ class RunManager:
             if a.aborting:
                 self._set(run_id, state="aborted", finished_at=now(), timings=timings, error="aborted on request")
             else:  # service shutting down: the run can be resumed on the next start
-                self._set(run_id, state="interrupted", timings=timings,
-                          error="the service stopped during the run; resume it to continue")
+                self._set(
+                    run_id,
+                    state="interrupted",
+                    timings=timings,
+                    error="the service stopped during the run; resume it to continue",
+                )
                 raise
         except Exception as exc:
             from drivers.errors import AbortedError
@@ -476,8 +506,13 @@ class RunManager:
                 self._set(run_id, state="failed", finished_at=now(), timings=timings, error=str(exc))
             else:
                 log.exception("run %s failed", run_id)
-                self._set(run_id, state="failed", finished_at=now(), timings=timings,
-                          error=f"internal error: {type(exc).__name__}: {exc}")
+                self._set(
+                    run_id,
+                    state="failed",
+                    finished_at=now(),
+                    timings=timings,
+                    error=f"internal error: {type(exc).__name__}: {exc}",
+                )
         finally:
             self._release(a)
             self.active.pop(run_id, None)
@@ -509,20 +544,39 @@ class RunManager:
             nxt = units[p.done] if p.done < len(units) else None
             a.pose = list(nxt.q) if nxt is not None and nxt.q is not None else None
             with self.db.session() as s:
-                s.execute(update(Run).where(Run.id == run_id).values(done=p.done, total=p.total,
-                                                                      phase=p.phase or p.state))
+                s.execute(
+                    update(Run).where(Run.id == run_id).values(done=p.done, total=p.total, phase=p.phase or p.state)
+                )
             if p.state == "running":
                 for d in self.bench.devices.values():
                     d.ok()
             if p.state != last_state[0] or p.message:
                 last_state[0] = p.state
-            self.emit(run_id, "progress", {"stage": "acquisition", "state": p.state, "done": p.done,
-                                           "total": p.total, "phase": p.phase, "eta_s": p.eta_s,
-                                           "elapsed_s": p.elapsed_s, "message": p.message, "pose": a.pose})
+            self.emit(
+                run_id,
+                "progress",
+                {
+                    "stage": "acquisition",
+                    "state": p.state,
+                    "done": p.done,
+                    "total": p.total,
+                    "phase": p.phase,
+                    "eta_s": p.eta_s,
+                    "elapsed_s": p.elapsed_s,
+                    "message": p.message,
+                    "pose": a.pose,
+                },
+            )
 
-        a.acq = acquisition_from_config(plan, cfg, out, resume=resume or out.joinpath("dataset.json").exists(),
-                                        progress=on_progress, camera_spec=dict(self.bench.camera_spec),
-                                        extra={"service_run": run_id})
+        a.acq = acquisition_from_config(
+            plan,
+            cfg,
+            out,
+            resume=resume or out.joinpath("dataset.json").exists(),
+            progress=on_progress,
+            camera_spec=dict(self.bench.camera_spec),
+            extra={"service_run": run_id},
+        )
         if a.aborting:
             a.acq.abort()
         try:
@@ -594,17 +648,30 @@ class RunManager:
                 self._queue_live(run_id, "frames", data)
 
         try:
-            summary = await run_job("extract", {"dataset": str(path), "out": str(self.run_dir(run) /
-                                                                                  "observations.json"),
-                                                "workers": self.settings.extraction_workers}, on_event,
-                                    nice=self.settings.job_niceness, on_job=lambda j: setattr(a, "job", j))
+            summary = await run_job(
+                "extract",
+                {
+                    "dataset": str(path),
+                    "out": str(self.run_dir(run) / "observations.json"),
+                    "workers": self.settings.extraction_workers,
+                },
+                on_event,
+                nice=self.settings.job_niceness,
+                on_job=lambda j: setattr(a, "job", j),
+            )
         finally:
             self._end_live(run_id)
         with self.db.session() as s:
             s.execute(update(Run).where(Run.id == run_id).values(extraction=summary))
-        self.emit(run_id, "extraction", {"phases": summary.get("phases", {}),
-                                         "frames_with_missing": len(summary.get("frames", {})),
-                                         "placement": summary.get("placement")})
+        self.emit(
+            run_id,
+            "extraction",
+            {
+                "phases": summary.get("phases", {}),
+                "frames_with_missing": len(summary.get("frames", {})),
+                "placement": summary.get("placement"),
+            },
+        )
         return summary
 
     async def _calibrate(self, run_id: str, run: Run) -> dict[str, Any]:
@@ -624,9 +691,13 @@ class RunManager:
                     self._stage_progress(run_id, "calibration", data["index"] + 1, n)
 
         try:
-            return await run_job("fit", {"observations": str(self.run_dir(run) / "observations.json"),
-                                         "methods": list(run.methods)}, on_event, nice=self.settings.job_niceness,
-                                 on_job=lambda j: setattr(a, "job", j))
+            return await run_job(
+                "fit",
+                {"observations": str(self.run_dir(run) / "observations.json"), "methods": list(run.methods)},
+                on_event,
+                nice=self.settings.job_niceness,
+                on_job=lambda j: setattr(a, "job", j),
+            )
         finally:
             self._end_live(run_id)
 
@@ -647,8 +718,9 @@ class RunManager:
             raise RunConflictError(f"run is {run.state} without a result; nothing to apply")
         methods = run.result.get("methods", {})
         if method is None:
-            method = next((m for m in ("combined", "legs", "end-effector") if methods.get(m, {}).get("converged")),
-                          None)
+            method = next(
+                (m for m in ("combined", "legs", "end-effector") if methods.get(m, {}).get("converged")), None
+            )
             if method is None:
                 raise RunConflictError("no method of this run converged; nothing to apply")
         entry = methods.get(method)
@@ -658,13 +730,24 @@ class RunManager:
             raise RunConflictError(f"method {method!r} did not converge in this run; nothing to apply")
         bench = run.bench or self.name or "bench"
         payload = {
-            "bench": bench, "run_id": run.id, "method": method, "software_version": __version__,
-            "combinations": entry["parameters"], "combinations_std": entry.get("std"),
-            "parameters": entry.get("seven"), "parameters_std": entry.get("seven_std"),
+            "bench": bench,
+            "run_id": run.id,
+            "method": method,
+            "software_version": __version__,
+            "combinations": entry["parameters"],
+            "combinations_std": entry.get("std"),
+            "parameters": entry.get("seven"),
+            "parameters_std": entry.get("seven_std"),
             "nominal": run.result.get("nominal"),
         }
-        cal = Calibration(bench=bench, run_id=run.id, method=method, software_version=__version__,
-                          applied_at=now(), payload=clean_json(payload))
+        cal = Calibration(
+            bench=bench,
+            run_id=run.id,
+            method=method,
+            software_version=__version__,
+            applied_at=now(),
+            payload=clean_json(payload),
+        )
         with self.db.session() as s:
             s.add(cal)
         self.emit(run_id, "applied", {"method": method})

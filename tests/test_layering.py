@@ -21,14 +21,22 @@ def _imports(path: Path) -> list[tuple[str, bool]]:
 
 
 def test_calib_imports_neither_drivers_nor_service():
-    bad = [(str(p.relative_to(ROOT)), m) for p in (ROOT / "calib").rglob("*.py") for m, _ in _imports(p)
-           if m.split(".")[0] in ("drivers", "service")]
+    bad = [
+        (str(p.relative_to(ROOT)), m)
+        for p in (ROOT / "calib").rglob("*.py")
+        for m, _ in _imports(p)
+        if m.split(".")[0] in ("drivers", "service")
+    ]
     assert not bad, bad
 
 
 def test_drivers_do_not_import_service():
-    bad = [(str(p.relative_to(ROOT)), m) for p in (ROOT / "drivers").rglob("*.py") for m, _ in _imports(p)
-           if m.split(".")[0] == "service"]
+    bad = [
+        (str(p.relative_to(ROOT)), m)
+        for p in (ROOT / "drivers").rglob("*.py")
+        for m, _ in _imports(p)
+        if m.split(".")[0] == "service"
+    ]
     assert not bad, bad
 
 
@@ -49,6 +57,7 @@ def test_import_linter_contracts(tmp_path):
     exe = shutil.which("lint-imports", path=str(Path(sys.executable).parent)) or shutil.which("lint-imports")
     if exe is None:  # pragma: no cover - installed by the test extra
         import pytest
+
         pytest.skip("import-linter is not installed")
     res = subprocess.run([exe], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stdout + res.stderr

@@ -70,9 +70,9 @@ def _ratio_grad(u: np.ndarray) -> np.ndarray:
     """d(u_y/u_x, u_z/u_x)/du, shape (M, 2, 3)."""
     ux, uy, uz = u[:, 0], u[:, 1], u[:, 2]
     G = np.zeros((u.shape[0], 2, 3))
-    G[:, 0, 0] = -uy / ux ** 2
+    G[:, 0, 0] = -uy / ux**2
     G[:, 0, 1] = 1.0 / ux
-    G[:, 1, 0] = -uz / ux ** 2
+    G[:, 1, 0] = -uz / ux**2
     G[:, 1, 2] = 1.0 / ux
     return G
 
@@ -131,10 +131,16 @@ class _Problem:
         return np.einsum("mij,mjk,mlk->mil", G, P, G)
 
 
-def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None = None,
-                       weighting: Weighting = "auto", phases: tuple[str, ...] = ("poses",),
-                       encoder_std_m: float = 1e-6, on_iteration: IterationCallback | None = None,
-                       edge_bias_std_px: float = EDGE_BIAS_STD_PX) -> MethodResult:
+def calibrate_combined(
+    obs: Observations,
+    *,
+    base_frame: BaseFrameResult | None = None,
+    weighting: Weighting = "auto",
+    phases: tuple[str, ...] = ("poses",),
+    encoder_std_m: float = 1e-6,
+    on_iteration: IterationCallback | None = None,
+    edge_bias_std_px: float = EDGE_BIAS_STD_PX,
+) -> MethodResult:
     """Identify the four combinations from leg observations and the base frame (eq. 8).
 
     Parameters
@@ -182,7 +188,8 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
     if m * 2 < 8 or prob.n_poses < 2:
         raise IdentifiabilityError(
             f"the combined fit has {m} rod observations in {prob.n_poses} pose(s); it needs rods in at least "
-            "2 poses (20 recommended)")
+            "2 poses (20 recommended)"
+        )
     x0 = np.array([obs.nominal.combinations()[k] for k in COMBINATION_NAMES])
     check_excitation(central_jacobian(prob.residuals, x0), COMBINATION_NAMES)
 
@@ -212,8 +219,10 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
         bad = d2 > _CHI2_2_999 * s2_robust
         if not bad.any() or (~bad).sum() * 2 < 8:
             break
-        rejected += [{"frame": int(data.index[k]), "leg": int(leg) + 1, "rod": int(rod)}
-                     for k, leg, rod in zip(prob.k[bad], prob.leg[bad], prob.rod[bad], strict=True)]
+        rejected += [
+            {"frame": int(data.index[k]), "leg": int(leg) + 1, "rod": int(rod)}
+            for k, leg, rod in zip(prob.k[bad], prob.leg[bad], prob.rod[bad], strict=True)
+        ]
         prob.select(~bad)
         if rod_cov is not None:
             rod_cov = rod_cov[~bad]
@@ -232,7 +241,7 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
     nw = 3 if joint else 0
 
     def split(v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        return v[:4], (v[4:4 + nw] if joint else np.zeros(3)), v[4 + nw:]
+        return v[:4], (v[4 : 4 + nw] if joint else np.zeros(3)), v[4 + nw :]
 
     def raw(v: np.ndarray) -> np.ndarray:
         xi, w, z = split(v)
@@ -252,10 +261,11 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
     def stage1(vf: np.ndarray) -> np.ndarray:
         v = x.copy()
         v[free] = vf
-        return np.concatenate([eq8(v), v[4 + nw:] - z0])
+        return np.concatenate([eq8(v), v[4 + nw :] - z0])
 
-    sol = least_squares(traced(stage1, on_iteration, "eq8"), x[free], method="lm", xtol=1e-14,
-                        ftol=1e-14, gtol=1e-14, max_nfev=500)
+    sol = least_squares(
+        traced(stage1, on_iteration, "eq8"), x[free], method="lm", xtol=1e-14, ftol=1e-14, gtol=1e-14, max_nfev=500
+    )
     if sol.status <= 0 or not np.all(np.isfinite(sol.x)):
         raise ConvergenceError(f"combined fit did not converge: {sol.message}")
     x[free] = sol.x
@@ -279,8 +289,15 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
             def full(v: np.ndarray, sc: float = sc) -> np.ndarray:
                 return np.concatenate([sc * eq8(v), priors(v)])
 
-            sol = least_squares(traced(full, on_iteration, f"joint-{npass + 1}"), x, method="lm", xtol=1e-14,
-                                ftol=1e-14, gtol=1e-14, max_nfev=500)
+            sol = least_squares(
+                traced(full, on_iteration, f"joint-{npass + 1}"),
+                x,
+                method="lm",
+                xtol=1e-14,
+                ftol=1e-14,
+                gtol=1e-14,
+                max_nfev=500,
+            )
             if sol.status <= 0 or not np.all(np.isfinite(sol.x)):
                 raise ConvergenceError(f"combined joint fit did not converge: {sol.message}")
             x = sol.x
@@ -297,8 +314,8 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
     Sig = np.zeros((2 * m, 2 * m))
     for a in range(m):
         Wa = Wh[a].T @ Wh[a]
-        Wfull[2 * a:2 * a + 2, 2 * a:2 * a + 2] = Wa
-        Sig[2 * a:2 * a + 2, 2 * a:2 * a + 2] = s2 * shape[a]
+        Wfull[2 * a : 2 * a + 2, 2 * a : 2 * a + 2] = Wa
+        Sig[2 * a : 2 * a + 2, 2 * a : 2 * a + 2] = s2 * shape[a]
     Jr = central_jacobian(raw, x)  # unweighted, (2m, 4 + nw + nz)
     check_excitation(np.einsum("mij,mjk->mik", Wh, Jr[:, :4].reshape(m, 2, 4)).reshape(2 * m, 4), COMBINATION_NAMES)
     cov_pose_fixed = _sandwich(Jr[:, :4], Wfull, Sig)
@@ -307,16 +324,17 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
     cov_intr = None
     if (joint or nz) and s2 > 0:
         Pw = np.zeros((x.size, x.size))
-        Pw[4:4 + nw, 4:4 + nw] = Lw.T @ Lw
+        Pw[4 : 4 + nw, 4 : 4 + nw] = Lw.T @ Lw
         Pz = np.zeros((x.size, x.size))
-        Pz[4 + nw:4 + nw + ni, 4 + nw:4 + nw + ni] = np.eye(ni)
+        Pz[4 + nw : 4 + nw + ni, 4 + nw : 4 + nw + ni] = np.eye(ni)
         Pe = np.zeros((x.size, x.size))
-        Pe[4 + nw + ni:, 4 + nw + ni:] = np.eye(nz - ni)
+        Pe[4 + nw + ni :, 4 + nw + ni :] = np.eye(nz - ni)
         cov, parts = _joint_covariance(Jr, Wfull / s2, Sig, Pw, Pz, Pe)
         if nz:
             keep = np.arange(4 + nw)  # the same fit with the intrinsics and edges known: what they add
-            cov_known, _ = _joint_covariance(Jr[:, keep], Wfull / s2, Sig, Pw[np.ix_(keep, keep)],
-                                             Pz[np.ix_(keep, keep)])
+            cov_known, _ = _joint_covariance(
+                Jr[:, keep], Wfull / s2, Sig, Pw[np.ix_(keep, keep)], Pz[np.ix_(keep, keep)]
+            )
             cov_intr = cov - cov_known
     breakdown = {"legs_and_encoders": std_dict(parts["legs_and_encoders"])}
     if joint:
@@ -328,32 +346,50 @@ def calibrate_combined(obs: Observations, *, base_frame: BaseFrameResult | None 
     edge = None
     if nz > ni and "full" in parts:
         e_std = prob.intrinsics.edge_std_px
-        edge = {"estimate_px": (z[ni:] * e_std).tolist(),
-                "std_px": (np.sqrt(np.diag(parts["full"])[4 + nw + ni:]) * e_std).tolist(), "prior_std_px": e_std}
+        edge = {
+            "estimate_px": (z[ni:] * e_std).tolist(),
+            "std_px": (np.sqrt(np.diag(parts["full"])[4 + nw + ni :]) * e_std).tolist(),
+            "prior_std_px": e_std,
+        }
     refined = None if steps is None else dict(zip(intr.INTRINSICS_NAMES, (steps.T @ z[:ni]).tolist(), strict=True))
     # the intrinsics after the rods: their posterior covariance (for methods that do not use the rods)
     posterior = None
     if nz and "full" in parts:
-        posterior = (steps.T @ parts["full"][4 + nw:4 + nw + ni, 4 + nw:4 + nw + ni] @ steps).tolist()
+        posterior = (steps.T @ parts["full"][4 + nw : 4 + nw + ni, 4 + nw : 4 + nw + ni] @ steps).tolist()
     return MethodResult(
-        method="combined", combinations=combos_dict(xi), combinations_std=std_dict(cov), covariance=cov,
-        residual_rms=float(np.sqrt(np.mean(r ** 2))), residual_unit="Jacobian entry (dimensionless)",
-        n_observations=2 * m, n_poses=prob.n_poses, iterations=int(nfev), converged=True,
+        method="combined",
+        combinations=combos_dict(xi),
+        combinations_std=std_dict(cov),
+        covariance=cov,
+        residual_rms=float(np.sqrt(np.mean(r**2))),
+        residual_unit="Jacobian entry (dimensionless)",
+        n_observations=2 * m,
+        n_poses=prob.n_poses,
+        iterations=int(nfev),
+        converged=True,
         message=str(sol.message),
         std_breakdown=breakdown,
-        diagnostics={"weighting": weighting, "direction_noise_scale": float(np.sqrt(s2)),
-                     "rods_rejected": rejected, "rods_used": int(m),
-                     "intrinsics_covariance": None if cov_intr is None else cov_intr.tolist(),
-                     "intrinsics_refinement": refined, "intrinsics_posterior_covariance": posterior,
-                     "limb_edge_bias": edge,
-                     "rods_dropped_near_vertical": prob.dropped, "base_frame": bf.summary(),
-                     "base_frame_refinement_deg": float(np.rad2deg(np.linalg.norm(w))),
-                     "joint_base_frame": joint},
-        residuals=r)
+        diagnostics={
+            "weighting": weighting,
+            "direction_noise_scale": float(np.sqrt(s2)),
+            "rods_rejected": rejected,
+            "rods_used": int(m),
+            "intrinsics_covariance": None if cov_intr is None else cov_intr.tolist(),
+            "intrinsics_refinement": refined,
+            "intrinsics_posterior_covariance": posterior,
+            "limb_edge_bias": edge,
+            "rods_dropped_near_vertical": prob.dropped,
+            "base_frame": bf.summary(),
+            "base_frame_refinement_deg": float(np.rad2deg(np.linalg.norm(w))),
+            "joint_base_frame": joint,
+        },
+        residuals=r,
+    )
 
 
-def _joint_covariance(Jr: np.ndarray, Wd: np.ndarray, Sig: np.ndarray, Pw: np.ndarray,
-                      Pz: np.ndarray, Pe: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+def _joint_covariance(
+    Jr: np.ndarray, Wd: np.ndarray, Sig: np.ndarray, Pw: np.ndarray, Pz: np.ndarray, Pe: np.ndarray | None = None
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """Covariance (4, 4) of the combinations of a fit with priors, and its parts.
 
     The fit minimises ``r^T Wd r + v^T (Pw + Pz + Pe) v`` (data and the priors on the base frame, the
@@ -365,8 +401,13 @@ def _joint_covariance(Jr: np.ndarray, Wd: np.ndarray, Sig: np.ndarray, Pw: np.nd
     Hinv = np.linalg.inv(H)
     B = Hinv @ Jr.T @ Wd
     full = B @ Sig @ B.T + Hinv @ (Pw + Pz + Pe) @ Hinv
-    parts = {"legs_and_encoders": (B @ Sig @ B.T)[:4, :4], "base_frame": (Hinv @ Pw @ Hinv)[:4, :4],
-             "intrinsics": (Hinv @ Pz @ Hinv)[:4, :4], "edge_bias": (Hinv @ Pe @ Hinv)[:4, :4], "full": full}
+    parts = {
+        "legs_and_encoders": (B @ Sig @ B.T)[:4, :4],
+        "base_frame": (Hinv @ Pw @ Hinv)[:4, :4],
+        "intrinsics": (Hinv @ Pz @ Hinv)[:4, :4],
+        "edge_bias": (Hinv @ Pe @ Hinv)[:4, :4],
+        "full": full,
+    }
     total = parts["legs_and_encoders"] + parts["base_frame"] + parts["intrinsics"] + parts["edge_bias"]
     return total, parts
 
@@ -382,8 +423,16 @@ class _IntrinsicsModel:
     direction), or not at all when a board lacks them.
     """
 
-    def __init__(self, camera: CameraModel, steps: np.ndarray, limbs: np.ndarray, H: np.ndarray,
-                 G: np.ndarray, z0: np.ndarray | None = None, edge_std_px: float = 0.0) -> None:
+    def __init__(
+        self,
+        camera: CameraModel,
+        steps: np.ndarray,
+        limbs: np.ndarray,
+        H: np.ndarray,
+        G: np.ndarray,
+        z0: np.ndarray | None = None,
+        edge_std_px: float = 0.0,
+    ) -> None:
         self.camera, self.steps, self.H, self.G = camera, steps, H, G
         self.n_intr = steps.shape[0]
         #: limb-edge bias common to every rod, per limb (outward, px; prior N(0, edge_std_px^2)): the last two
@@ -398,8 +447,9 @@ class _IntrinsicsModel:
         self._last: tuple[bytes, np.ndarray] | None = None  # the numeric Jacobians move z in few columns
 
     @classmethod
-    def build(cls, obs: Observations, data: PhaseArrays, prob: _Problem,
-              bf: BaseFrameResult, edge_bias_std_px: float = 0.0) -> _IntrinsicsModel | None:
+    def build(
+        cls, obs: Observations, data: PhaseArrays, prob: _Problem, bf: BaseFrameResult, edge_bias_std_px: float = 0.0
+    ) -> _IntrinsicsModel | None:
         """None when the camera's uncertainty or a rod's limb samples are missing."""
         prior = intr.intrinsics_prior(obs, refined=False)  # the rods are used again here
         limbs = _rod_field(obs, data, prob, "limbs_px")
@@ -416,8 +466,9 @@ class _IntrinsicsModel:
         if s_rot is not None and s_tra is not None:
             R0 = bf.camera_from_base_R
             for j, st in enumerate(steps):  # one-sided: R0 is the estimate from the same board poses
-                Rp = estimate_base_frame(intr.perturbed_boards(rot, s_rot, st), intr.perturbed_boards(tra, s_tra, st),
-                                         start=bf).camera_from_base_R
+                Rp = estimate_base_frame(
+                    intr.perturbed_boards(rot, s_rot, st), intr.perturbed_boards(tra, s_tra, st), start=bf
+                ).camera_from_base_R
                 G[:, j] = matrix_to_rotvec(Rp @ R0.T)
         offset = intr.calibration_offset(obs)
         z0 = None if offset is None else (steps @ offset) / np.sum(steps * steps, axis=1)
@@ -432,9 +483,9 @@ class _IntrinsicsModel:
         key = np.asarray(z, dtype=np.float64).tobytes()
         if self._last is not None and self._last[0] == key and self._last[1].shape == reference.shape:
             return self._last[1]
-        h = self.limbs.planes(z[:self.n_intr], self.H)
+        h = self.limbs.planes(z[: self.n_intr], self.H)
         if self.n_edge:
-            h = intr.shift_limbs(h, z[self.n_intr:] * self.edge_std_px / self.camera.focal_px)
+            h = intr.shift_limbs(h, z[self.n_intr :] * self.edge_std_px / self.camera.focal_px)
         u = np.cross(h[:, 0], h[:, 1])
         u /= np.linalg.norm(u, axis=1, keepdims=True)
         u *= np.sign(np.sum(u * reference, axis=1))[:, None]
@@ -443,15 +494,16 @@ class _IntrinsicsModel:
 
     def rotation(self, z: np.ndarray) -> np.ndarray:
         """The base frame's rotation change (3, 3) for ``z``, applied on the left."""
-        return rotvec_to_matrix(self.G @ z[:self.n_intr])
+        return rotvec_to_matrix(self.G @ z[: self.n_intr])
 
 
 _CHI2_2_999 = 13.8155  # chi-square, 2 dof, 99.9% quantile
 _CHI2_2_MEDIAN = 1.3863  # chi-square, 2 dof, median
 
 
-def _whitened_d2(prob: _Problem, shape: np.ndarray, x0: np.ndarray,
-                 on_iteration: IterationCallback | None) -> np.ndarray:
+def _whitened_d2(
+    prob: _Problem, shape: np.ndarray, x0: np.ndarray, on_iteration: IterationCallback | None
+) -> np.ndarray:
     """Each rod's squared residual whitened by its noise shape after a GLS fit of eq. 8, (M,)."""
     Cinv = np.linalg.inv(shape + 1e-300 * np.eye(2))
     Wh = np.linalg.cholesky(Cinv).transpose(0, 2, 1)
@@ -464,8 +516,7 @@ def _whitened_d2(prob: _Problem, shape: np.ndarray, x0: np.ndarray,
     def res(v: np.ndarray) -> np.ndarray:  # x0: the combinations, then the intrinsics' z with prior N(z0, I)
         return np.concatenate([np.einsum("mij,mj->mi", Wh, raw(v)).ravel(), v[4:] - z0])
 
-    sol = least_squares(traced(res, on_iteration, "outliers"), x0, method="lm", xtol=1e-12, ftol=1e-12,
-                        max_nfev=200)
+    sol = least_squares(traced(res, on_iteration, "outliers"), x0, method="lm", xtol=1e-12, ftol=1e-12, max_nfev=200)
     r = raw(sol.x)
     return np.einsum("mi,mij,mj->m", r, Cinv, r)
 

@@ -45,8 +45,21 @@ from .result import MethodResult, check_excitation, combos_dict, std_dict
 
 _CHI2_6_MEDIAN = float(chi2.median(6))
 _CHI2_6_GATE = float(chi2.ppf(0.999, 6))
-_NAMES = (*COMBINATION_NAMES, "o1", "o3", "w_x", "w_y", "w_z", "t_y", "t_z", "tilt_x", "tilt_y", "b_x", "b_y",
-          "board_scale")
+_NAMES = (
+    *COMBINATION_NAMES,
+    "o1",
+    "o3",
+    "w_x",
+    "w_y",
+    "w_z",
+    "t_y",
+    "t_z",
+    "tilt_x",
+    "tilt_y",
+    "b_x",
+    "b_y",
+    "board_scale",
+)
 
 
 def _kabsch(P: np.ndarray, Q: np.ndarray) -> np.ndarray:
@@ -59,8 +72,18 @@ def _kabsch(P: np.ndarray, Q: np.ndarray) -> np.ndarray:
 
 
 class _Model:
-    def __init__(self, R: np.ndarray, t: np.ndarray, q: np.ndarray, T_per_rad: float, R_bc0: np.ndarray,
-                 t_bc_x: float, R_eb0: np.ndarray, t_eb_z: float, theta_ref: np.ndarray) -> None:
+    def __init__(
+        self,
+        R: np.ndarray,
+        t: np.ndarray,
+        q: np.ndarray,
+        T_per_rad: float,
+        R_bc0: np.ndarray,
+        t_bc_x: float,
+        R_eb0: np.ndarray,
+        t_eb_z: float,
+        theta_ref: np.ndarray,
+    ) -> None:
         self.R, self.t, self.q = R, t, q
         self.Tpr = T_per_rad
         self.R_bc0, self.t_bc_x = R_bc0, t_bc_x
@@ -88,16 +111,20 @@ class _Model:
         p, theta, tilt = self.ee_poses(x, R, t)
         X, Y, Z = p.T
         T = self.Tpr * theta
-        f1 = np.sqrt(np.maximum(L ** 2 - (Y + c) ** 2 - Z ** 2, 1e-12))
-        f3 = np.sqrt(np.maximum(L ** 2 - (Y - c) ** 2 - Z ** 2, 1e-12))
-        qm = np.column_stack([X + T - f1 + o1, X + T + f1 + 2 * s1 + o1, X - T - f3 + o3,
-                              X - T + f3 + 2 * s3 + o3])
+        f1 = np.sqrt(np.maximum(L**2 - (Y + c) ** 2 - Z**2, 1e-12))
+        f3 = np.sqrt(np.maximum(L**2 - (Y - c) ** 2 - Z**2, 1e-12))
+        qm = np.column_stack([X + T - f1 + o1, X + T + f1 + 2 * s1 + o1, X - T - f3 + o3, X - T + f3 + 2 * s3 + o3])
         return np.column_stack([qm - self.q, tilt])
 
 
-def calibrate_end_effector(obs: Observations, *, phases: tuple[str, ...] = ("poses",),
-                           encoder_std_m: float = 1e-6, iterations: int = 2,
-                           on_iteration: IterationCallback | None = None) -> MethodResult:
+def calibrate_end_effector(
+    obs: Observations,
+    *,
+    phases: tuple[str, ...] = ("poses",),
+    encoder_std_m: float = 1e-6,
+    iterations: int = 2,
+    on_iteration: IterationCallback | None = None,
+) -> MethodResult:
     """Identify the four combinations from board poses and encoders (IKM residuals).
 
     Parameters
@@ -125,7 +152,8 @@ def calibrate_end_effector(obs: Observations, *, phases: tuple[str, ...] = ("pos
     if n < 4:
         raise IdentifiabilityError(
             f"the end-effector method has {n} board pose(s) in phase(s) {', '.join(phases)}; it needs at least "
-            "4 (20 recommended)")
+            "4 (20 recommended)"
+        )
     R, t, q = data.board_R, data.board_t, data.q
     try:
         poses_nom = dkm(nominal, q)
@@ -143,15 +171,16 @@ def calibrate_end_effector(obs: Observations, *, phases: tuple[str, ...] = ("pos
     A = np.zeros((3 * n, 5))
     b = np.zeros(3 * n)
     for k in range(n):
-        A[3 * k:3 * k + 3, :2] = -(R_bc0 @ R[k] @ R_eb0.T)[:, :2]
-        A[3 * k:3 * k + 3, 2:] = np.eye(3)
-        b[3 * k:3 * k + 3] = poses_nom[k, :3] - R_bc0 @ t[k]
+        A[3 * k : 3 * k + 3, :2] = -(R_bc0 @ R[k] @ R_eb0.T)[:, :2]
+        A[3 * k : 3 * k + 3, 2:] = np.eye(3)
+        b[3 * k : 3 * k + 3] = poses_nom[k, :3] - R_bc0 @ t[k]
     sol0 = np.linalg.lstsq(A, b, rcond=None)[0]
     t_eb0, t_bc0 = np.array([sol0[0], sol0[1], 0.0]), sol0[2:]
     model = _Model(R, t, q, nominal.T_per_rad, R_bc0, t_bc0[0], R_eb0, t_eb0[2], theta_nom)
     combos0 = np.array([nominal.combinations()[k] for k in COMBINATION_NAMES])
-    x0 = np.concatenate([combos0, [-nominal.S, -nominal.S - nominal.q03], np.zeros(3), t_bc0[1:], [0.0, 0.0],
-                         t_eb0[:2], [0.0]])
+    x0 = np.concatenate(
+        [combos0, [-nominal.S, -nominal.S - nominal.q03], np.zeros(3), t_bc0[1:], [0.0, 0.0], t_eb0[:2], [0.0]]
+    )
     # put the offsets where the nominal pose says they are
     r0 = model.residuals(x0)
     x0[4] -= np.mean(r0[:, :2])
@@ -176,7 +205,7 @@ def calibrate_end_effector(obs: Observations, *, phases: tuple[str, ...] = ("pos
     for npass in range(n_passes):
         if npass > 0:
             r = model.residuals(x)
-            if np.sqrt(np.mean(r ** 2)) < 1e-12:
+            if np.sqrt(np.mean(r**2)) < 1e-12:
                 noise_free = True
                 break  # noise-free data: nothing to weight
             Ak = _pose_sensitivity(model, x)  # (n, 6, 6)
@@ -213,7 +242,7 @@ def calibrate_end_effector(obs: Observations, *, phases: tuple[str, ...] = ("pos
     r = model.residuals(x)
     J = central_jacobian(wres, x)
     check_excitation(J, _NAMES)
-    if np.sqrt(np.mean(r ** 2)) < 1e-12:
+    if np.sqrt(np.mean(r**2)) < 1e-12:
         cov_full = np.zeros((p, p))
     else:
         chi2_total = float(np.sum(wres(x) ** 2))
@@ -236,14 +265,24 @@ def calibrate_end_effector(obs: Observations, *, phases: tuple[str, ...] = ("pos
     if cov_intr is not None:
         breakdown["intrinsics"] = std_dict(cov_intr)
     return MethodResult(
-        method="end-effector", combinations=combos_dict(x[:4]), combinations_std=std_dict(cov), covariance=cov,
-        residual_rms=float(np.sqrt(np.mean(r[:, :4] ** 2))), residual_unit="m (IKM joint residual)",
-        n_observations=6 * n, n_poses=n, iterations=int(nfev), converged=True, message=str(sol.message),
+        method="end-effector",
+        combinations=combos_dict(x[:4]),
+        combinations_std=std_dict(cov),
+        covariance=cov,
+        residual_rms=float(np.sqrt(np.mean(r[:, :4] ** 2))),
+        residual_unit="m (IKM joint residual)",
+        n_observations=6 * n,
+        n_poses=n,
+        iterations=int(nfev),
+        converged=True,
+        message=str(sol.message),
         std_breakdown=breakdown,
         diagnostics={
             "tilt_residual_rms_deg": float(np.rad2deg(np.sqrt(np.mean(r[:, 4:] ** 2)))),
-            "board_noise_std": {"rotation_deg": np.rad2deg(np.sqrt(np.diag(Sigma_b)[:3])).tolist(),
-                                "translation_mm": (np.sqrt(np.diag(Sigma_b)[3:]) * 1e3).tolist()},
+            "board_noise_std": {
+                "rotation_deg": np.rad2deg(np.sqrt(np.diag(Sigma_b)[:3])).tolist(),
+                "translation_mm": (np.sqrt(np.diag(Sigma_b)[3:]) * 1e3).tolist(),
+            },
             "board_noise_model": "per-pose covariance x factor" if C_board is not None else "diagonal, from residuals",
             "board_cov_factor": float(np.sqrt(scale2)) if C_board is not None else None,
             "noise_factor_without_intrinsics": noise_factor,
@@ -253,13 +292,23 @@ def calibrate_end_effector(obs: Observations, *, phases: tuple[str, ...] = ("pos
             "board_offset_on_ee_m": [float(x[13]), float(x[14])],
             "board_scale_ppm": float(x[15] * 1e6),
         },
-        residuals=r)
+        residuals=r,
+    )
 
 
 def _solve(fun, x0: np.ndarray, on_iteration: IterationCallback | None = None, stage: str = ""):
     """Trust-region least squares, then Gauss-Newton polishing to full precision."""
-    sol = least_squares(fun, x0, method="trf", x_scale="jac", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=3000,
-                        callback=trf_callback(on_iteration, stage))
+    sol = least_squares(
+        fun,
+        x0,
+        method="trf",
+        x_scale="jac",
+        xtol=1e-15,
+        ftol=1e-15,
+        gtol=1e-15,
+        max_nfev=3000,
+        callback=trf_callback(on_iteration, stage),
+    )
     x = sol.x
     r = fun(x)
     cost = float(r @ r)
@@ -316,8 +365,9 @@ def board_covariances(obs: Observations, arrays: PhaseArrays) -> np.ndarray | No
     return out
 
 
-def _intrinsics_part(obs: Observations, data: PhaseArrays, model: _Model, x: np.ndarray, Wh: np.ndarray,
-                     keep: np.ndarray, J: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+def _intrinsics_part(
+    obs: Observations, data: PhaseArrays, model: _Model, x: np.ndarray, Wh: np.ndarray, keep: np.ndarray, J: np.ndarray
+) -> tuple[np.ndarray, np.ndarray] | None:
     """How the camera intrinsics' error, common to every pose, moves the whitened residuals and the estimate.
 
     The board poses move by ``d_intrinsics @ step`` for one standard deviation ``step`` along each principal
@@ -376,11 +426,10 @@ def _left_jacobian(rv: np.ndarray) -> np.ndarray:
     K = skew(rv)
     if th < 1e-8:
         return np.eye(3) + 0.5 * K
-    return np.eye(3) + (1 - np.cos(th)) / th ** 2 * K + (th - np.sin(th)) / th ** 3 * K @ K
+    return np.eye(3) + (1 - np.cos(th)) / th**2 * K + (th - np.sin(th)) / th**3 * K @ K
 
 
-def _board_noise_factor(Ak: np.ndarray, C_board: np.ndarray, r: np.ndarray, keep: np.ndarray,
-                        n_params: int) -> float:
+def _board_noise_factor(Ak: np.ndarray, C_board: np.ndarray, r: np.ndarray, keep: np.ndarray, n_params: int) -> float:
     """Common variance factor ``s^2`` of the board poses' covariances, measured from the residuals.
 
     Parameters
@@ -409,7 +458,7 @@ def _board_noise_factor(Ak: np.ndarray, C_board: np.ndarray, r: np.ndarray, keep
 def _whitener(Cr: np.ndarray, encoder_std_m: float) -> np.ndarray:
     """Per pose, the upper factor ``W`` (N, 6, 6) with ``W^T W = (Cr + encoder noise)^-1``."""
     Cr = Cr.copy()
-    Cr[:, :4, :4] += encoder_std_m ** 2 * np.eye(4)
+    Cr[:, :4, :4] += encoder_std_m**2 * np.eye(4)
     Cr += 1e-30 * np.eye(6)
     return np.linalg.cholesky(np.linalg.inv(Cr)).transpose(0, 2, 1)
 

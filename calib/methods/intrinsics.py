@@ -53,7 +53,7 @@ def intrinsics_prior(obs: Observations, refined: bool = True) -> tuple[CameraMod
     if not all(k in std for k in ("fx", "fy", "cx", "cy")):
         return None
     s = np.array([float(std.get(k, 0.0)) for k in INTRINSICS_NAMES])
-    C = np.diag(s ** 2)
+    C = np.diag(s**2)
     C[0, 1] = C[1, 0] = s[0] * s[1]  # one focal scale: the conservative choice without correlations
     return camera, C
 
@@ -180,8 +180,11 @@ class LinearizedLimbs:
         self.shape = L.shape
         flat = L.reshape(-1, 2)
         self.xn0 = camera.undistort_points(flat).reshape(L.shape)
-        d = [(perturbed_camera(camera, st).undistort_points(flat)
-              - perturbed_camera(camera, -st).undistort_points(flat)) / 2.0 for st in self.steps]
+        d = [
+            (perturbed_camera(camera, st).undistort_points(flat) - perturbed_camera(camera, -st).undistort_points(flat))
+            / 2.0
+            for st in self.steps
+        ]
         self.dxn = np.asarray(d).reshape((len(d), *L.shape)) if d else np.zeros((0, *L.shape))
 
     def subset(self, keep: Array) -> LinearizedLimbs:

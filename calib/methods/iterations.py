@@ -39,8 +39,9 @@ def trf_callback(on_iteration: IterationCallback | None, stage: str) -> Callable
         return None
 
     def callback(intermediate_result: Any) -> None:  # the name tells scipy to pass the OptimizeResult
-        on_iteration({"stage": stage, "iteration": int(intermediate_result.nit),
-                      "cost": float(intermediate_result.cost)})
+        on_iteration(
+            {"stage": stage, "iteration": int(intermediate_result.nit), "cost": float(intermediate_result.cost)}
+        )
 
     return callback
 
@@ -55,8 +56,9 @@ def _is_difference_step(prev: np.ndarray, x: np.ndarray) -> bool:
     return bool(abs(d[0]) <= _FD_REL_STEP * max(1.0, abs(float(prev[0]))))
 
 
-def traced(fun: Callable[[np.ndarray], np.ndarray], on_iteration: IterationCallback | None,
-           stage: str) -> Callable[[np.ndarray], np.ndarray]:
+def traced(
+    fun: Callable[[np.ndarray], np.ndarray], on_iteration: IterationCallback | None, stage: str
+) -> Callable[[np.ndarray], np.ndarray]:
     """Wrap the residual function of an ``lm`` fit so that each accepted point is reported.
 
     Parameters

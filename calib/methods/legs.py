@@ -117,7 +117,7 @@ class PlaneObservation:
         if self.dh is None or self.var is None:
             return np.ones(2)
         g = self.dh @ X  # (2, 2)
-        return np.sum(g ** 2 * self.var, axis=1) + 1e-30
+        return np.sum(g**2 * self.var, axis=1) + 1e-30
 
 
 def planes_direction_covariance(h: np.ndarray, dh: np.ndarray, var: np.ndarray) -> np.ndarray:
@@ -139,9 +139,16 @@ def planes_direction_covariance(h: np.ndarray, dh: np.ndarray, var: np.ndarray) 
     return C
 
 
-def limb_line_noise(K: np.ndarray, h: np.ndarray, point: np.ndarray, rms_px: np.ndarray, n_points: np.ndarray,
-                    cov_u: np.ndarray | None = None, step_px: float = 3.0,
-                    edge_bias_px: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+def limb_line_noise(
+    K: np.ndarray,
+    h: np.ndarray,
+    point: np.ndarray,
+    rms_px: np.ndarray,
+    n_points: np.ndarray,
+    cov_u: np.ndarray | None = None,
+    step_px: float = 3.0,
+    edge_bias_px: float = 0.05,
+) -> tuple[np.ndarray, np.ndarray]:
     """Noise model of a rod's two limb lines: plane-normal derivatives and line variances.
 
     Each limb line (image, ideal pixels: ``l ~ K^-T h``) is perturbed by a rotation about its
@@ -196,7 +203,7 @@ def limb_line_noise(K: np.ndarray, h: np.ndarray, point: np.ndarray, rms_px: np.
         npts = max(float(n_points[q]), 3.0)
         s2 = float(rms_px[q]) ** 2
         span = step_px * (npts - 1.0)
-        st2 = step_px ** 2 * npts * (npts ** 2 - 1.0) / 12.0
+        st2 = step_px**2 * npts * (npts**2 - 1.0) / 12.0
         var[q] = [s2 / st2 + (edge_bias_px / span) ** 2, s2 / npts + (0.5 * edge_bias_px) ** 2]
     if cov_u is not None:
         tm = float(np.trace(planes_direction_covariance(h, dh, var)))
@@ -236,7 +243,7 @@ def joint_from_planes(obs: list[PlaneObservation], iterations: int = 4) -> tuple
             raise IdentifiabilityError("the rod planes of a locked leg do not locate its joint (rod barely moved)")
         X = np.linalg.solve(A, np.einsum("mq,mqi,m->i", w, Hm, r))
     res = Hm @ X - r[:, None]
-    return X, A, np.sum(res ** 2 / v, axis=1)
+    return X, A, np.sum(res**2 / v, axis=1)
 
 
 def _step2(V: np.ndarray, x0: np.ndarray, on_iteration: IterationCallback | None = None) -> np.ndarray:
@@ -250,8 +257,9 @@ def _step2(V: np.ndarray, x0: np.ndarray, on_iteration: IterationCallback | None
         Gb = Vb @ Vb.T
         return np.array([Gb[a, b] for a, b in _PAIRS])
 
-    sol = least_squares(traced(lambda x: model(x) - meas, on_iteration, "step 2"), x0, method="lm", xtol=1e-15,
-                        ftol=1e-15, gtol=1e-15)
+    sol = least_squares(
+        traced(lambda x: model(x) - meas, on_iteration, "step 2"), x0, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15
+    )
     if sol.status <= 0:
         raise ConvergenceError(f"legs step 2 (eq. 9) did not converge: {sol.message}")
     return sol.x
@@ -277,8 +285,15 @@ def _gls_pair(u: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray, flo
 class _LegsPipeline:
     """Steps 2-4 as a function of the joint points (step 1 output) and the fit-pose leg directions."""
 
-    def __init__(self, q_lock: np.ndarray, q_fit: np.ndarray, rod_p: np.ndarray, has_leg: np.ndarray,
-                 cov_leg: np.ndarray, nominal: I4Parameters) -> None:
+    def __init__(
+        self,
+        q_lock: np.ndarray,
+        q_fit: np.ndarray,
+        rod_p: np.ndarray,
+        has_leg: np.ndarray,
+        cov_leg: np.ndarray,
+        nominal: I4Parameters,
+    ) -> None:
         self.q_lock = q_lock  # (4,) locked value of each actuator
         self.q_fit = q_fit  # (N, 4)
         self.rod_p = rod_p  # (N, 4, 3) a point on each leg's rods (for the direction sign), NaN if none
@@ -303,8 +318,14 @@ class _LegsPipeline:
         A0 = A - self.q_lock[:, None] * x[None, :]
         return x, A0, A
 
-    def run(self, P: np.ndarray, U: np.ndarray, x2_init: np.ndarray | None = None,
-            on_iteration: IterationCallback | None = None, robust: bool = False) -> np.ndarray:
+    def run(
+        self,
+        P: np.ndarray,
+        U: np.ndarray,
+        x2_init: np.ndarray | None = None,
+        on_iteration: IterationCallback | None = None,
+        robust: bool = False,
+    ) -> np.ndarray:
         """Seven parameters (PARAMETER_NAMES order) from joint points P (4,2,3) and leg directions U (N,4,3)."""
         nom = self.nominal
         x, A0, _ = self.frame(P)
@@ -332,10 +353,15 @@ class _LegsPipeline:
         """The four equations of every pose (N, 4), zero where not available."""
         L, S, D = theta
         B = Aq + L * Uo
-        R = np.stack([np.linalg.norm(B[:, 0] - B[:, 1], axis=1) - 2 * S,
-                      np.linalg.norm(B[:, 2] - B[:, 3], axis=1) - 2 * S,
-                      (B[:, 2] - B[:, 0]) @ y - 2 * D,
-                      (B[:, 3] - B[:, 1]) @ y - 2 * D], axis=1)
+        R = np.stack(
+            [
+                np.linalg.norm(B[:, 0] - B[:, 1], axis=1) - 2 * S,
+                np.linalg.norm(B[:, 2] - B[:, 3], axis=1) - 2 * S,
+                (B[:, 2] - B[:, 0]) @ y - 2 * D,
+                (B[:, 3] - B[:, 1]) @ y - 2 * D,
+            ],
+            axis=1,
+        )
         return np.where(self.mask, R, 0.0)
 
     def covariances(self, theta: np.ndarray, Aq: np.ndarray, Uo: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -361,8 +387,7 @@ class _LegsPipeline:
         assert self.W is not None
         return np.einsum("nij,nj->ni", self.W, self.residuals(theta, Aq, Uo, y))
 
-    def robust34(self, x: np.ndarray, y: np.ndarray, A0: np.ndarray, U: np.ndarray, theta0: np.ndarray
-                 ) -> np.ndarray:
+    def robust34(self, x: np.ndarray, y: np.ndarray, A0: np.ndarray, U: np.ndarray, theta0: np.ndarray) -> np.ndarray:
         """(L, S, D) that a few wild poses cannot drag: a Cauchy loss on each pose's whitened equations (weights at
         ``theta0``), from ``theta0``, its scale the median pose's. For judging the poses: a leg taken for another
         edge in a few poses pulls the least-squares fit along the valley (L, S, D) ~ (1, u_x, u_y) that only the
@@ -380,16 +405,33 @@ class _LegsPipeline:
         scale = float(np.median(per_pose(theta)))
         if not scale > 0:
             return theta
-        sol = least_squares(per_pose, theta, method="trf", loss="cauchy", f_scale=scale, xtol=1e-10, ftol=1e-10,
-                            gtol=1e-10, x_scale="jac")
+        sol = least_squares(
+            per_pose,
+            theta,
+            method="trf",
+            loss="cauchy",
+            f_scale=scale,
+            xtol=1e-10,
+            ftol=1e-10,
+            gtol=1e-10,
+            x_scale="jac",
+        )
         return sol.x if sol.success and np.all(np.isfinite(sol.x)) else theta
 
-    def steps34(self, x: np.ndarray, y: np.ndarray, A0: np.ndarray, U: np.ndarray, theta0: np.ndarray,
-                on_iteration: IterationCallback | None = None) -> np.ndarray:
+    def steps34(
+        self,
+        x: np.ndarray,
+        y: np.ndarray,
+        A0: np.ndarray,
+        U: np.ndarray,
+        theta0: np.ndarray,
+        on_iteration: IterationCallback | None = None,
+    ) -> np.ndarray:
         """(L, S, D) by GLS; the whitening is computed (iterated) on the first call and then kept fixed."""
         if self.mask[:, :2].sum() < 3:
-            raise IdentifiabilityError("legs step 3 needs both legs of a pair seen in at least 2 fit poses",
-                                       parameter="L")
+            raise IdentifiabilityError(
+                "legs step 3 needs both legs of a pair seen in at least 2 fit poses", parameter="L"
+            )
         if self.mask[:, 2:].sum() == 0:
             raise IdentifiabilityError("legs step 4 needs legs 1 and 3 (or 2 and 4) seen together", parameter="D")
         Aq, Uo = self.oriented(x, A0, U)
@@ -400,8 +442,14 @@ class _LegsPipeline:
                 C = self.covariances(theta, Aq, Uo, y)
                 self.W = np.linalg.cholesky(np.linalg.inv(C)).transpose(0, 2, 1)
             stage = "steps 3-4" if npass == 0 else f"steps 3-4 pass {npass + 1}"  # each fit's cost falls
-            sol = least_squares(traced(lambda t: self.whitened(t, Aq, Uo, y).ravel(), on_iteration, stage),
-                                theta, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
+            sol = least_squares(
+                traced(lambda t: self.whitened(t, Aq, Uo, y).ravel(), on_iteration, stage),
+                theta,
+                method="lm",
+                xtol=1e-15,
+                ftol=1e-15,
+                gtol=1e-15,
+            )
             if sol.status <= 0 or not np.all(np.isfinite(sol.x)):
                 raise ConvergenceError(f"legs steps 3-4 (eq. 11) did not converge: {sol.message}")
             theta = sol.x
@@ -454,8 +502,9 @@ def _plane_observations(obs: Observations, data: PhaseArrays, leg: int, rod: int
         npts = _rod_field(obs, data, k, leg, rod, "n_points")
         if K is not None and rms is not None and npts is not None and rms.shape == (2,) and npts.shape == (2,):
             cov = _rod_field(obs, data, k, leg, rod, "cov_u")
-            dh, var = limb_line_noise(K, h, point, rms, npts, cov if cov is not None and cov.shape == (3, 3)
-                                      else None, step, bias)
+            dh, var = limb_line_noise(
+                K, h, point, rms, npts, cov if cov is not None and cov.shape == (3, 3) else None, step, bias
+            )
             out.append(PlaneObservation(h, r, dh, var))
         else:
             out.append(PlaneObservation(h, r))
@@ -503,8 +552,9 @@ def _trim_rod(obs: list[PlaneObservation], s_rob: float, max_subsets: int = 200)
     return keep
 
 
-def _gross_single_rods(planes: list[list[PlaneObservation]], frames: list[np.ndarray], limit: float
-                       ) -> list[np.ndarray]:
+def _gross_single_rods(
+    planes: list[list[PlaneObservation]], frames: list[np.ndarray], limit: float
+) -> list[np.ndarray]:
     """Frames (bool per observation, one array per rod) of one locked leg that are gross outliers.
 
     When only one of a leg's rods is found in a frame, the two often overlap in the image and the one
@@ -530,22 +580,33 @@ def _gross_single_rods(planes: list[list[PlaneObservation]], frames: list[np.nda
     return out
 
 
-def _step1_planes(planes: list[list[list[PlaneObservation]]], frames: list[list[np.ndarray]] | None = None
-                  ) -> tuple[np.ndarray, np.ndarray, float, list[dict[str, int]], float, list[list[np.ndarray]]]:
+def _step1_planes(
+    planes: list[list[list[PlaneObservation]]], frames: list[list[np.ndarray]] | None = None
+) -> tuple[np.ndarray, np.ndarray, float, list[dict[str, int]], float, list[list[np.ndarray]]]:
     """Step 1 with plane equations: joints (4, 2, 3), covariances (4, 2, 3, 3), chi-square per dof,
     dropped frames (lock phase, rod, index among the rod's frames), the residual RMS (m) and the
     frames kept per rod (bool, [4][2])."""
     absolute = all(o.var is not None for row in planes for rod in row for o in rod)
     # robust noise scale from every frame's chi-square drop; absolute variances: at least 1; relative
     # ones: residuals below a nanometre are never outliers
-    pool = np.concatenate([_deleted_d2(planes[i][j], np.ones(len(planes[i][j]), dtype=bool))
-                           for i in range(4) for j in range(2) if len(planes[i][j]) > 3] or [np.zeros(0)])
+    pool = np.concatenate(
+        [
+            _deleted_d2(planes[i][j], np.ones(len(planes[i][j]), dtype=bool))
+            for i in range(4)
+            for j in range(2)
+            if len(planes[i][j]) > 3
+        ]
+        or [np.zeros(0)]
+    )
     s_rob = max(float(np.median(pool)) / _CHI2_2_MEDIAN if pool.size else 0.0, 1.0 if absolute else 1e-18)
     keep = []
     for i in range(4):
         # single rods far off the joint located from the frames with both rods: dropped before trimming
-        gross = (_gross_single_rods(planes[i], frames[i], 100.0 * _CHI2_2_999 * s_rob) if frames is not None
-                 else [np.zeros(len(planes[i][j]), dtype=bool) for j in range(2)])
+        gross = (
+            _gross_single_rods(planes[i], frames[i], 100.0 * _CHI2_2_999 * s_rob)
+            if frames is not None
+            else [np.zeros(len(planes[i][j]), dtype=bool) for j in range(2)]
+        )
         row = []
         for j in range(2):
             k_ok = np.nonzero(~gross[j])[0]
@@ -553,10 +614,16 @@ def _step1_planes(planes: list[list[list[PlaneObservation]]], frames: list[list[
             kk[k_ok[_trim_rod([planes[i][j][m] for m in k_ok], s_rob)]] = True
             row.append(kk)
         keep.append(row)
-    rejected = [{"lock": i + 1, "rod": j, "frame_of_rod": int(m)} for i in range(4) for j in range(2)
-                for m in np.nonzero(~keep[i][j])[0]]
-    fits = [[joint_from_planes([o for o, kk in zip(planes[i][j], keep[i][j], strict=True) if kk])
-             for j in range(2)] for i in range(4)]
+    rejected = [
+        {"lock": i + 1, "rod": j, "frame_of_rod": int(m)}
+        for i in range(4)
+        for j in range(2)
+        for m in np.nonzero(~keep[i][j])[0]
+    ]
+    fits = [
+        [joint_from_planes([o for o, kk in zip(planes[i][j], keep[i][j], strict=True) if kk]) for j in range(2)]
+        for i in range(4)
+    ]
     P = np.array([[fits[i][j][0] for j in range(2)] for i in range(4)])
     A = np.array([[fits[i][j][1] for j in range(2)] for i in range(4)])
     chi = sum(float(np.sum(fits[i][j][2])) for i in range(4) for j in range(2))
@@ -612,8 +679,9 @@ def _pair_means(u: np.ndarray, has: np.ndarray, C: np.ndarray) -> tuple[np.ndarr
     return U, CU, pair_d2
 
 
-def _leg_directions(obs: Observations, data: PhaseArrays, direction_std_rad: float | None
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool, list[dict[str, int]], np.ndarray]:
+def _leg_directions(
+    obs: Observations, data: PhaseArrays, direction_std_rad: float | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool, list[dict[str, int]], np.ndarray]:
     """Per pose and leg: direction (N,4,3), its covariance (N,4,3,3), a rod point (N,4,3), mask (N,4).
 
     Also whether the covariances are the rods' measured ones (``cov_u``; else ``sigma^2 (I - u u^T)``
@@ -634,7 +702,7 @@ def _leg_directions(obs: Observations, data: PhaseArrays, direction_std_rad: flo
     if not measured:
         s = 1.0 if direction_std_rad is None else direction_std_rad
         uu = np.nan_to_num(u)
-        C = s ** 2 * (np.eye(3) - uu[..., :, None] * uu[..., None, :])
+        C = s**2 * (np.eye(3) - uu[..., :, None] * uu[..., None, :])
     U, CU, pair_d2 = _pair_means(u, has, C)
     has_leg = has.any(axis=2)
     rejected: list[dict[str, int]] = []
@@ -643,8 +711,9 @@ def _leg_directions(obs: Observations, data: PhaseArrays, direction_std_rad: flo
         s_rob = float(np.median(pair_d2[ok])) / _CHI2_2_MEDIAN
         if s_rob > 0:
             bad = ok & (pair_d2 > _CHI2_2_999 * s_rob)
-            rejected = [{"frame": int(data.index[k]), "leg": int(leg) + 1} for k, leg in zip(*np.nonzero(bad),
-                                                                                             strict=True)]
+            rejected = [
+                {"frame": int(data.index[k]), "leg": int(leg) + 1} for k, leg in zip(*np.nonzero(bad), strict=True)
+            ]
             has_leg &= ~bad
     pts = np.where(data.has_point[:, :, 0, None], data.rod_p[:, :, 0], data.rod_p[:, :, 1])
     U = np.where(has_leg[..., None], U, np.nan)
@@ -660,9 +729,15 @@ class _IntrinsicsEffect:
     (:func:`.intrinsics.limb_planes_for`), its direction as their planes' intersection.
     """
 
-    def __init__(self, camera: CameraModel, steps: np.ndarray, lock: list[list[tuple[np.ndarray, np.ndarray]]],
-                 fit_idx: tuple[np.ndarray, np.ndarray, np.ndarray], fit_limbs: np.ndarray,
-                 fit_h: np.ndarray) -> None:
+    def __init__(
+        self,
+        camera: CameraModel,
+        steps: np.ndarray,
+        lock: list[list[tuple[np.ndarray, np.ndarray]]],
+        fit_idx: tuple[np.ndarray, np.ndarray, np.ndarray],
+        fit_limbs: np.ndarray,
+        fit_h: np.ndarray,
+    ) -> None:
         self.camera, self.steps, self.lock = camera, steps, lock
         self.fit_idx, self.fit_limbs, self.fit_h = fit_idx, fit_limbs, fit_h
 
@@ -680,8 +755,9 @@ class _IntrinsicsEffect:
         if steps.shape[0] == 0:
             return None
 
-        def fields(d: PhaseArrays, ks: np.ndarray, legs: np.ndarray, rods: np.ndarray
-                   ) -> tuple[np.ndarray, np.ndarray] | None:
+        def fields(
+            d: PhaseArrays, ks: np.ndarray, legs: np.ndarray, rods: np.ndarray
+        ) -> tuple[np.ndarray, np.ndarray] | None:
             limbs, hs = [], []
             for k, leg, rod in zip(ks, legs, rods, strict=True):
                 lm = _rod_field(obs, d, int(k), int(leg), int(rod), "limbs_px")
@@ -721,8 +797,9 @@ class _IntrinsicsEffect:
             out = intr.shift_limbs(out, z[n:] / self.camera.focal_px)
         return out
 
-    def lock_planes(self, z: np.ndarray, planes: list[list[list[PlaneObservation]]]
-                    ) -> list[list[list[PlaneObservation]]]:
+    def lock_planes(
+        self, z: np.ndarray, planes: list[list[list[PlaneObservation]]]
+    ) -> list[list[list[PlaneObservation]]]:
         """``planes`` (step 1, [4][2] lists) with every plane normal as measured for ``z``."""
         out = []
         for i in range(4):
@@ -762,8 +839,9 @@ def _gate_poses(pipe: _LegsPipeline, P: np.ndarray, U: np.ndarray, seven: np.nda
     return used & (d2 > chi2.ppf(0.999, np.maximum(m, 1)) * s_rob)
 
 
-def _steps34_covariance(pipe: _LegsPipeline, P: np.ndarray, U: np.ndarray, seven: np.ndarray
-                        ) -> tuple[np.ndarray, float, int]:
+def _steps34_covariance(
+    pipe: _LegsPipeline, P: np.ndarray, U: np.ndarray, seven: np.ndarray
+) -> tuple[np.ndarray, float, int]:
     """GLS covariance (3, 3) of (L, S, D) for unit-scaled weights, the chi-square and its dof."""
     x, A0, _ = pipe.frame(P)
     y = pipe.y_axis(x, A0)
@@ -772,13 +850,17 @@ def _steps34_covariance(pipe: _LegsPipeline, P: np.ndarray, U: np.ndarray, seven
     J = central_jacobian(lambda t: pipe.whitened(t, Aq, Uo, y).ravel(), theta, h=1e-7)
     r = pipe.whitened(theta, Aq, Uo, y)
     dof = int(pipe.mask.sum()) - 3
-    return np.linalg.inv(J.T @ J), float(np.sum(r ** 2)), dof
+    return np.linalg.inv(J.T @ J), float(np.sum(r**2)), dof
 
 
-def calibrate_legs(obs: Observations, *, fit_phases: tuple[str, ...] = ("poses",),
-                   direction_std_rad: float | None = None,
-                   on_iteration: IterationCallback | None = None,
-                   edge_bias_std_px: float = EDGE_BIAS_STD_PX) -> MethodResult:
+def calibrate_legs(
+    obs: Observations,
+    *,
+    fit_phases: tuple[str, ...] = ("poses",),
+    direction_std_rad: float | None = None,
+    on_iteration: IterationCallback | None = None,
+    edge_bias_std_px: float = EDGE_BIAS_STD_PX,
+) -> MethodResult:
     """Identify all seven parameters from leg observations only (four steps).
 
     Parameters
@@ -811,13 +893,15 @@ def calibrate_legs(obs: Observations, *, fit_phases: tuple[str, ...] = ("poses",
     for i in range(4):
         d = obs.arrays(f"lock-{i + 1}")
         if len(d) == 0:
-            raise IdentifiabilityError(f"the legs method needs the lock-{i + 1} phase (actuator {i + 1} locked)",
-                                       parameter=f"A{i + 1}")
+            raise IdentifiabilityError(
+                f"the legs method needs the lock-{i + 1} phase (actuator {i + 1} locked)", parameter=f"A{i + 1}"
+            )
         spread = float(np.ptp(d.q[:, i]))
         if spread > 1e-4:
             raise IdentifiabilityError(
                 f"in phase lock-{i + 1}, q{i + 1} moves by {spread * 1e3:.3f} mm: the actuator is not locked",
-                parameter=f"A{i + 1}")
+                parameter=f"A{i + 1}",
+            )
         q_lock[i] = float(np.mean(d.q[:, i]))
         for j in range(2):
             ok = d.has_rod[:, i, j] & d.has_point[:, i, j]
@@ -825,7 +909,8 @@ def calibrate_legs(obs: Observations, *, fit_phases: tuple[str, ...] = ("poses",
                 raise IdentifiabilityError(
                     f"phase lock-{i + 1}: rod {j} of leg {i + 1} has {int(ok.sum())} observation(s) with a point; "
                     "at least 2 (5 recommended) are needed to locate its joint (rod radius known)",
-                    parameter=f"A{i + 1}")
+                    parameter=f"A{i + 1}",
+                )
         lock_data.append(d)
 
     # ---- step 1: the joints
@@ -846,7 +931,7 @@ def calibrate_legs(obs: Observations, *, fit_phases: tuple[str, ...] = ("poses",
             for j in range(2):
                 ok = d.has_rod[:, i, j] & d.has_point[:, i, j]
                 P[i, j], Acc[i, j], res = intersect_lines(d.rod_p[ok, i, j], d.rod_u[ok, i, j])
-                ss += float(np.sum(res ** 2))
+                ss += float(np.sum(res**2))
                 dof1 += 2 * int(ok.sum()) - 3
                 n_lines += int(ok.sum())
         s2_1 = ss / dof1 if dof1 > 0 else 0.0
@@ -886,7 +971,7 @@ def calibrate_legs(obs: Observations, *, fit_phases: tuple[str, ...] = ("poses",
     for i in range(4):
         for j in range(2):
             k = (i * 2 + j) * 3
-            covP[k:k + 3, k:k + 3] = covPij[i, j]
+            covP[k : k + 3, k : k + 3] = covPij[i, j]
     cov_joints = GP @ covP @ GP.T
     # (ii) the leg directions of the fit poses: GLS covariance of (L, S, D), scaled by the chi-square
     c34, chi34, dof34 = _steps34_covariance(pipe, P, U_filled, seven)
@@ -903,10 +988,18 @@ def calibrate_legs(obs: Observations, *, fit_phases: tuple[str, ...] = ("poses",
     cov_intr = np.zeros((7, 7))
     cov_edge = np.zeros((7, 7))
     if eff is not None:
+
         def seven_for(z: np.ndarray) -> np.ndarray:
             pz = eff.lock_planes(z, planes)  # type: ignore[arg-type]
-            Pz = np.array([[joint_from_planes([o for o, kk in zip(pz[i][j], keep1[i][j], strict=True) if kk])[0]
-                            for j in range(2)] for i in range(4)])
+            Pz = np.array(
+                [
+                    [
+                        joint_from_planes([o for o, kk in zip(pz[i][j], keep1[i][j], strict=True) if kk])[0]
+                        for j in range(2)
+                    ]
+                    for i in range(4)
+                ]
+            )
             Uz = _pair_means(eff.rod_u(z, data.rod_u), data.has_rod, C_rods)[0]
             return pipe.run(Pz, np.where(pipe.has_leg[..., None], Uz, 0.0), x2)
 
@@ -921,39 +1014,51 @@ def calibrate_legs(obs: Observations, *, fit_phases: tuple[str, ...] = ("poses",
         cov_intr = Jz[:, :nz] @ Jz[:, :nz].T
         cov_edge = Jz[:, nz:] @ Jz[:, nz:].T
     cov = cov_joints + cov_dirs + cov_intr + cov_edge
-    params = I4Parameters.from_mapping({**dict(zip(PARAMETER_NAMES, seven, strict=True)),
-                                         "T_per_rad": nom.T_per_rad})
-    M = np.array([
-        [0, 0, 0, 0, 0, 0, 1],  # L
-        [1, 0, 0, 0, 0, -1, 0],  # H - D
-        [0, -0.5, 0, 0, 1, 0, 0],  # S - q02/2
-        [0, 0, 0.5, -0.5, 1, 0, 0],  # S - (q04 - q03)/2
-    ], dtype=float)
+    params = I4Parameters.from_mapping({**dict(zip(PARAMETER_NAMES, seven, strict=True)), "T_per_rad": nom.T_per_rad})
+    M = np.array(
+        [
+            [0, 0, 0, 0, 0, 0, 1],  # L
+            [1, 0, 0, 0, 0, -1, 0],  # H - D
+            [0, -0.5, 0, 0, 1, 0, 0],  # S - q02/2
+            [0, 0, 0.5, -0.5, 1, 0, 0],  # S - (q04 - q03)/2
+        ],
+        dtype=float,
+    )
     cov4 = M @ cov @ M.T
     std7 = {k: float(np.sqrt(max(cov[i, i], 0.0))) for i, k in enumerate(PARAMETER_NAMES)}
     combos = params.combinations()
     scale = float(np.sqrt(s2_34)) * (1.0 if measured else (direction_std_rad or 1.0))
     return MethodResult(
-        method="legs", combinations=combos_dict(np.array([combos[k] for k in COMBINATION_NAMES])),
-        combinations_std=std_dict(cov4), covariance=cov4,
-        residual_rms=res_rms, residual_unit="m (rod axis constraint to joint distance)",
-        n_observations=n_lines + int(pipe.has_leg.sum()), n_poses=len(data) + len(np.concatenate(
-            [d.index for d in lock_data])), iterations=1, converged=True,
-        parameters={k: float(v) for k, v in zip(PARAMETER_NAMES, seven, strict=True)}, parameters_std=std7,
-        std_breakdown={"joint_centres": {k: float(np.sqrt(max(cov_joints[i, i], 0)))
-                                         for i, k in enumerate(PARAMETER_NAMES)},
-                       "leg_directions": {k: float(np.sqrt(max(cov_dirs[i, i], 0)))
-                                          for i, k in enumerate(PARAMETER_NAMES)},
-                       "intrinsics": {k: float(np.sqrt(max(cov_intr[i, i], 0)))
-                                      for i, k in enumerate(PARAMETER_NAMES)},
-                       "limb_edge_bias": {k: float(np.sqrt(max(cov_edge[i, i], 0)))
-                                          for i, k in enumerate(PARAMETER_NAMES)}},
-        diagnostics={"step1": "weighted plane equations" if use_planes else "line intersection (unweighted)",
-                     "step1_chi2_per_dof": float(s2_1), "step1_frames_rejected": rejected_lock,
-                     "steps34_weighting": "measured rod covariances (GLS)" if measured else "isotropic",
-                     "steps34_chi2_per_dof": float(s2_34),
-                     "rod_direction_noise_rad": scale if not measured else None,
-                     "rod_pairs_rejected": rejected_pairs, "poses_rejected": rejected_poses,
-                     "line_residual_rms_mm": res_rms * 1e3,
-                     "joint_centres_camera": P.mean(axis=1).tolist(), "locked_q": q_lock.tolist()},
-        residuals=None)
+        method="legs",
+        combinations=combos_dict(np.array([combos[k] for k in COMBINATION_NAMES])),
+        combinations_std=std_dict(cov4),
+        covariance=cov4,
+        residual_rms=res_rms,
+        residual_unit="m (rod axis constraint to joint distance)",
+        n_observations=n_lines + int(pipe.has_leg.sum()),
+        n_poses=len(data) + len(np.concatenate([d.index for d in lock_data])),
+        iterations=1,
+        converged=True,
+        parameters={k: float(v) for k, v in zip(PARAMETER_NAMES, seven, strict=True)},
+        parameters_std=std7,
+        std_breakdown={
+            "joint_centres": {k: float(np.sqrt(max(cov_joints[i, i], 0))) for i, k in enumerate(PARAMETER_NAMES)},
+            "leg_directions": {k: float(np.sqrt(max(cov_dirs[i, i], 0))) for i, k in enumerate(PARAMETER_NAMES)},
+            "intrinsics": {k: float(np.sqrt(max(cov_intr[i, i], 0))) for i, k in enumerate(PARAMETER_NAMES)},
+            "limb_edge_bias": {k: float(np.sqrt(max(cov_edge[i, i], 0))) for i, k in enumerate(PARAMETER_NAMES)},
+        },
+        diagnostics={
+            "step1": "weighted plane equations" if use_planes else "line intersection (unweighted)",
+            "step1_chi2_per_dof": float(s2_1),
+            "step1_frames_rejected": rejected_lock,
+            "steps34_weighting": "measured rod covariances (GLS)" if measured else "isotropic",
+            "steps34_chi2_per_dof": float(s2_34),
+            "rod_direction_noise_rad": scale if not measured else None,
+            "rod_pairs_rejected": rejected_pairs,
+            "poses_rejected": rejected_poses,
+            "line_residual_rms_mm": res_rms * 1e3,
+            "joint_centres_camera": P.mean(axis=1).tolist(),
+            "locked_q": q_lock.tolist(),
+        },
+        residuals=None,
+    )

@@ -100,8 +100,10 @@ def check_excitation(J: np.ndarray, names: tuple[str, ...], rel_tol: float = 1e-
         raise IdentifiabilityError(f"the pose set does not excite parameter {names[k]}", parameter=names[k])
     Js = J / scale
     _, s, Vt = np.linalg.svd(Js, full_matrices=False)
-    if s[-1] < rel_tol ** 0.5 * s[0] * 1e-2 or s[-1] / s[0] < 1e-7:
+    if s[-1] < rel_tol**0.5 * s[0] * 1e-2 or s[-1] / s[0] < 1e-7:
         k = int(np.argmax(np.abs(Vt[-1])))
         raise IdentifiabilityError(
             f"the pose set does not excite parameter {names[k]} (condition number {s[0] / s[-1]:.3g}); "
-            "use poses spread over the workspace", parameter=names[k])
+            "use poses spread over the workspace",
+            parameter=names[k],
+        )

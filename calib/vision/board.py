@@ -29,8 +29,9 @@ def make_board(spec: BoardSpec) -> cv2.aruco.CharucoBoard:
     if not hasattr(cv2.aruco, name):
         raise ValueError(f"unknown ArUco dictionary {name!r}")
     dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
-    board = cv2.aruco.CharucoBoard((spec.squares_x, spec.squares_y), spec.square_length_m, spec.marker_length_m,
-                                   dictionary)
+    board = cv2.aruco.CharucoBoard(
+        (spec.squares_x, spec.squares_y), spec.square_length_m, spec.marker_length_m, dictionary
+    )
     board.setLegacyPattern(bool(spec.legacy_pattern))
     return board
 
@@ -79,8 +80,13 @@ class BoardPose:
     d_intrinsics: Array | None = None
 
     def to_dict(self) -> dict:
-        d = {"R": self.R.tolist(), "t": self.t.tolist(), "rms_px": self.rms_px, "n_corners": self.n_corners,
-             "cov": self.cov.tolist()}
+        d = {
+            "R": self.R.tolist(),
+            "t": self.t.tolist(),
+            "rms_px": self.rms_px,
+            "n_corners": self.n_corners,
+            "cov": self.cov.tolist(),
+        }
         if self.d_intrinsics is not None:
             d["d_intrinsics"] = self.d_intrinsics.tolist()
         return d
@@ -132,15 +138,20 @@ class BoardDetector:
         n_markers = 0 if mk_ids is None else len(mk_ids)
         if ch_ids is None or len(ch_ids) == 0:
             return BoardDetection(np.zeros(0, dtype=int), np.zeros((0, 2)), n_markers)
-        return BoardDetection(np.asarray(ch_ids, dtype=int).reshape(-1),
-                              np.asarray(ch_corners, dtype=np.float64).reshape(-1, 2), n_markers)
+        return BoardDetection(
+            np.asarray(ch_ids, dtype=int).reshape(-1),
+            np.asarray(ch_corners, dtype=np.float64).reshape(-1, 2),
+            n_markers,
+        )
 
     def pose(self, detection: BoardDetection, camera: CameraModel) -> BoardPose | str:
         """Pose from a detection, or the reason why there is none (a string)."""
         n = detection.ids.size
         if n < self.min_corners:
-            return (f"board not found: {n} ChArUco corners ({detection.n_markers} markers), "
-                    f"need at least {self.min_corners}")
+            return (
+                f"board not found: {n} ChArUco corners ({detection.n_markers} markers), "
+                f"need at least {self.min_corners}"
+            )
         obj = self.points[detection.ids]
         img = detection.pixels
         # planar board: IPPE gives the two-fold ambiguity resolved by reprojection, then LM refinement
@@ -152,10 +163,10 @@ class BoardDetector:
         rvec, tvec = cv2.solvePnPRefineLM(obj, img, camera.K, camera.dist, rvec, tvec)
         proj, jac = cv2.projectPoints(obj, rvec, tvec, camera.K, camera.dist)
         res = proj.reshape(-1, 2) - img
-        rms = float(np.sqrt(np.mean(np.sum(res ** 2, axis=1))))
+        rms = float(np.sqrt(np.mean(np.sum(res**2, axis=1))))
         J = jac[:, :6]
         dof = max(2 * n - 6, 1)
-        sigma2 = max(float(np.sum(res ** 2)) / dof, 0.05 ** 2)
+        sigma2 = max(float(np.sum(res**2)) / dof, 0.05**2)
         try:
             cov = sigma2 * np.linalg.inv(J.T @ J)
         except np.linalg.LinAlgError:
@@ -166,8 +177,14 @@ class BoardDetector:
         # intrinsics move the pose directly (projection) and through the refined corners they carry
         dX = self.points_d_intrinsics[detection.ids]  # (n, 3, 8)
         JI = jac[:, 6:14] + np.einsum("pij,pjk->pik", (jac[:, 3:6].reshape(n, 2, 3) @ R), dX).reshape(2 * n, 8)
-        return BoardPose(R, tvec.reshape(3).astype(np.float64), rms, int(n), cov,
-                         _pose_sensitivity(jac[:, :6], JI, rvec.reshape(3), R))
+        return BoardPose(
+            R,
+            tvec.reshape(3).astype(np.float64),
+            rms,
+            int(n),
+            cov,
+            _pose_sensitivity(jac[:, :6], JI, rvec.reshape(3), R),
+        )
 
     def measure(self, image: np.ndarray, camera: CameraModel) -> BoardPose | str:
         """Detect then pose (or the reason)."""

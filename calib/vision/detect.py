@@ -76,31 +76,31 @@ Array = NDArray[np.float64]
 class DetectSettings:
     """Tuning of :func:`detect_rods` (pixels are ideal, undistorted pixels of the camera model)."""
 
-    min_segment_px: float = 15.0            #: LSD segments shorter than this are dropped
-    min_contrast: float = 12.0              #: grey levels between the two sides of a segment
-    merge_angle_rad: float = 0.025          #: collinear merge: angle between segments
-    merge_dist_px: float = 2.0              #: collinear merge: end point distance to the other line
-    merge_gap_px: float = 450.0             #: collinear merge: largest gap along the line
-    refine_step_px: float = 6.0             #: edge refinement: profile spacing along a line
-    refine_band_px: float = 4.0             #: edge refinement: half-length of each profile
-    limb_angle_rad: float = 0.08            #: angle between the two limbs of a rod (perspective)
+    min_segment_px: float = 15.0  #: LSD segments shorter than this are dropped
+    min_contrast: float = 12.0  #: grey levels between the two sides of a segment
+    merge_angle_rad: float = 0.025  #: collinear merge: angle between segments
+    merge_dist_px: float = 2.0  #: collinear merge: end point distance to the other line
+    merge_gap_px: float = 450.0  #: collinear merge: largest gap along the line
+    refine_step_px: float = 6.0  #: edge refinement: profile spacing along a line
+    refine_band_px: float = 4.0  #: edge refinement: half-length of each profile
+    limb_angle_rad: float = 0.08  #: angle between the two limbs of a rod (perspective)
     depth_range_m: tuple[float, float] = (0.15, 3.0)  #: rods nearer / farther are not searched
-    min_rod_px: float = 60.0                #: overlap of the two limbs of a rod candidate
+    min_rod_px: float = 60.0  #: overlap of the two limbs of a rod candidate
     polarity: Literal["bright", "dark", "auto"] = "auto"  #: rods brighter/darker than their background
-    leg_angle_rad: float = 0.1              #: angle between the two rods of a leg in the image
-    leg_width_ratio: float = 1.6            #: largest width ratio of the two rods of a leg
+    leg_angle_rad: float = 0.1  #: angle between the two rods of a leg in the image
+    leg_width_ratio: float = 1.6  #: largest width ratio of the two rods of a leg
     spacing_ratio_range: tuple[float, float] = (0.15, 1.3)  #: image separation / nominal (spacing / width)
-    min_legs: int = 3                       #: legs needed to solve the placement
+    min_legs: int = 3  #: legs needed to solve the placement
     centre_plane_sigma_rad: float = 1.5e-3  #: error of a rod's axis plane (sets a leg direction's error)
-    model_direction_rad: float = 0.03       #: nominal-model error of a leg direction
-    pair_angle_tol_rad: float = 0.1         #: pairwise leg-angle mismatch (plus 3 sigma of both directions)
-    kabsch_tol: float = 3.0                 #: weighted RMS direction misfit (sigmas) of an assignment's rotation
-    max_hypotheses: int = 6                 #: per leg count, refined by Levenberg-Marquardt (best first)
-    max_rms_px: float = 12.0                #: placement fit RMS above this: hypothesis rejected
-    ambiguity_ratio: float = 1.5            #: a rival within ratio x RMS + ambiguity_px is a tie
+    model_direction_rad: float = 0.03  #: nominal-model error of a leg direction
+    pair_angle_tol_rad: float = 0.1  #: pairwise leg-angle mismatch (plus 3 sigma of both directions)
+    kabsch_tol: float = 3.0  #: weighted RMS direction misfit (sigmas) of an assignment's rotation
+    max_hypotheses: int = 6  #: per leg count, refined by Levenberg-Marquardt (best first)
+    max_rms_px: float = 12.0  #: placement fit RMS above this: hypothesis rejected
+    ambiguity_ratio: float = 1.5  #: a rival within ratio x RMS + ambiguity_px is a tie
     ambiguity_px: float = 1.0
-    prior_tol_rad: float = 0.5              #: hypotheses rotated farther from the prior are dropped
-    depth_tolerance: float = 0.12           #: a prior's depth / model's off the frame's median by more: moved
+    prior_tol_rad: float = 0.5  #: hypotheses rotated farther from the prior are dropped
+    depth_tolerance: float = 0.12  #: a prior's depth / model's off the frame's median by more: moved
 
 
 @dataclass
@@ -109,10 +109,10 @@ class Line2:
 
     n: Array
     c: float
-    t: Array              # unit direction, n rotated by -90 deg
-    s0: float             # extent along t (s = t . x)
+    t: Array  # unit direction, n rotated by -90 deg
+    s0: float  # extent along t (s = t . x)
     s1: float
-    contrast: float       # grey levels across it
+    contrast: float  # grey levels across it
 
     def point(self, s: float) -> Array:
         return -self.c * self.n + s * self.t
@@ -123,14 +123,14 @@ class RodCandidate:
     """Two limb lines facing each other: a rod seen in the image."""
 
     limbs: tuple[Line2, Line2]
-    s0: float             # overlap extent along ``t``
+    s0: float  # overlap extent along ``t``
     s1: float
     t: Array
-    width_px: tuple[float, float]   # at s0 and s1
-    centre: tuple[Array, Array]     # centre-line points at s0 and s1 (ideal px)
+    width_px: tuple[float, float]  # at s0 and s1
+    centre: tuple[Array, Array]  # centre-line points at s0 and s1 (ideal px)
     bright: bool
-    h: tuple[Array, Array]          # limb planes (camera), unit normals, the axis on their positive side
-    m: Array                        # the axis plane: through the camera centre and the axis (bisects h)
+    h: tuple[Array, Array]  # limb planes (camera), unit normals, the axis on their positive side
+    m: Array  # the axis plane: through the camera centre and the axis (bisects h)
 
     @property
     def length(self) -> float:
@@ -141,9 +141,9 @@ class RodCandidate:
 class LegCandidate:
     """Two rod candidates side by side at the rod spacing: a leg seen in the image."""
 
-    rods: tuple[int, int]         # indices into the rod candidates
-    d: Array                      # 3-D direction (camera), sign arbitrary
-    sigma: float                  # its expected error, rad (centre-plane error / angle between the planes)
+    rods: tuple[int, int]  # indices into the rod candidates
+    d: Array  # 3-D direction (camera), sign arbitrary
+    sigma: float  # its expected error, rad (centre-plane error / angle between the planes)
 
 
 @dataclass
@@ -210,8 +210,9 @@ class RodDetection:
 # ---------------------------------------------------------------------------------------------
 # 1. undistorted canvas and segments
 @functools.lru_cache(maxsize=4)
-def _canvas_maps(K: tuple, dist: tuple, width: int, height: int) -> tuple[np.ndarray, np.ndarray, float, Array,
-                                                                            np.ndarray]:
+def _canvas_maps(
+    K: tuple, dist: tuple, width: int, height: int
+) -> tuple[np.ndarray, np.ndarray, float, Array, np.ndarray]:
     cam = CameraModel(np.asarray(K).reshape(3, 3), np.asarray(dist), width, height)
     box = image_ideal_bbox(cam, 0.0)
     area = (box[2] - box[0]) * (box[3] - box[1])
@@ -241,8 +242,9 @@ def undistorted_canvas(gray: np.ndarray, camera: CameraModel) -> tuple[np.ndarra
     valid : ndarray of bool, shape (h, w)
         Canvas pixels that see the image.
     """
-    mx, my, scale, origin, valid = _canvas_maps(tuple(camera.K.ravel()), tuple(camera.dist), camera.width,
-                                                camera.height)
+    mx, my, scale, origin, valid = _canvas_maps(
+        tuple(camera.K.ravel()), tuple(camera.dist), camera.width, camera.height
+    )
     img = gray.astype(np.float32) if gray.dtype != np.float32 else gray
     canvas = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     return canvas, scale, origin, valid
@@ -256,13 +258,15 @@ def _sample(img: np.ndarray, pts: Array) -> Array:
     rows = max(1, -(-n // cols))
     m = np.zeros((rows * cols, 2), dtype=np.float32)
     m[:n] = p
-    out = cv2.remap(img, m[:, 0].reshape(rows, cols), m[:, 1].reshape(rows, cols), cv2.INTER_LINEAR,
-                    borderMode=cv2.BORDER_REPLICATE)
+    out = cv2.remap(
+        img, m[:, 0].reshape(rows, cols), m[:, 1].reshape(rows, cols), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+    )
     return out.ravel()[:n].reshape(pts.shape[:-1]).astype(np.float64)
 
 
-def detect_segments(canvas: np.ndarray, valid: np.ndarray, scale: float, origin: Array,
-                    settings: DetectSettings) -> tuple[Array, Array, Array]:
+def detect_segments(
+    canvas: np.ndarray, valid: np.ndarray, scale: float, origin: Array, settings: DetectSettings
+) -> tuple[Array, Array, Array]:
     """LSD segments in ideal pixels with their polarity.
 
     Returns
@@ -351,7 +355,7 @@ def merge_segments(seg: Array, contrast: Array, length: Array, settings: DetectS
     dmax = np.maximum(dist0, dist1)
     close = (dmax < settings.merge_dist_px) & (settings.merge_dist_px > dmax.T)
     # gap along the direction
-    s0 = np.einsum("ij,kj->ik", t, seg[:, 0])   # s0[i, k] = t_i . p0_k
+    s0 = np.einsum("ij,kj->ik", t, seg[:, 0])  # s0[i, k] = t_i . p0_k
     s1 = np.einsum("ij,kj->ik", t, seg[:, 1])
     lo = np.minimum(s0, s1)
     hi = np.maximum(s0, s1)
@@ -391,13 +395,20 @@ def merge_segments(seg: Array, contrast: Array, length: Array, settings: DetectS
             nn, cc = -nn, -cc
         tt = np.array([nn[1], -nn[0]])
         s = P @ tt
-        out.append(Line2(nn, cc, tt, float(s.min()), float(s.max()),
-                         float(np.average(contrast[idx], weights=length[idx]))))
+        out.append(
+            Line2(nn, cc, tt, float(s.min()), float(s.max()), float(np.average(contrast[idx], weights=length[idx])))
+        )
     return out
 
 
-def refine_lines(lines: list[Line2], canvas: np.ndarray, scale: float, origin: Array, settings: DetectSettings,
-                 rng: np.random.Generator) -> list[Line2]:
+def refine_lines(
+    lines: list[Line2],
+    canvas: np.ndarray,
+    scale: float,
+    origin: Array,
+    settings: DetectSettings,
+    rng: np.random.Generator,
+) -> list[Line2]:
     """Sub-pixel edge positions along each line, robust refit.
 
     LSD's line is the axis of its gradient-support rectangle: on a shaded rod it sits ~2 px inside the
@@ -437,7 +448,7 @@ def refine_lines(lines: list[Line2], canvas: np.ndarray, scale: float, origin: A
     out: list[Line2] = []
     start = 0
     for ln, k in zip(lines, per, strict=True):
-        P = pts[start:start + k][good[start:start + k]]
+        P = pts[start : start + k][good[start : start + k]]
         start += k
         if len(P) < max(4, 0.3 * k):
             continue
@@ -485,8 +496,9 @@ def _plane(K: Array, line: Array) -> Array:
     return h / np.linalg.norm(h)
 
 
-def _inside_fraction(canvas: np.ndarray, scale: float, origin: Array, pa: list[Array], pb: list[Array],
-                     bright: bool, need: float) -> float:
+def _inside_fraction(
+    canvas: np.ndarray, scale: float, origin: Array, pa: list[Array], pb: list[Array], bright: bool, need: float
+) -> float:
     """Fraction of 9 profiles across the span between two lines where the inside is brighter (darker)
     than both outsides by ``need`` grey levels: its darkest (brightest) of 5 samples against the
     brighter (darker) of the samples 3 px beyond each line (near enough to stay in a narrow gap
@@ -508,8 +520,15 @@ def _inside_fraction(canvas: np.ndarray, scale: float, origin: Array, pa: list[A
     return float(np.mean(margin > need))
 
 
-def find_rods(lines: list[Line2], canvas: np.ndarray, scale: float, origin: Array, camera: CameraModel,
-              radius: float, settings: DetectSettings) -> list[RodCandidate]:
+def find_rods(
+    lines: list[Line2],
+    canvas: np.ndarray,
+    scale: float,
+    origin: Array,
+    camera: CameraModel,
+    radius: float,
+    settings: DetectSettings,
+) -> list[RodCandidate]:
     """Pairs of lines that bound a rod (see the module docstring, step 3)."""
     f = camera.focal_px
     wmin = 2 * radius * f / settings.depth_range_m[1]
@@ -578,8 +597,7 @@ def find_rods(lines: list[Line2], canvas: np.ndarray, scale: float, origin: Arra
 
 # ---------------------------------------------------------------------------------------------
 # 4. legs
-def find_legs(rods: list[RodCandidate], radius: float, spacing: float, settings: DetectSettings
-              ) -> list[LegCandidate]:
+def find_legs(rods: list[RodCandidate], radius: float, spacing: float, settings: DetectSettings) -> list[LegCandidate]:
     """Pairs of parallel rod candidates at the rod spacing (see the module docstring, step 4)."""
     out = []
     nominal_ratio = spacing / (2 * radius)
@@ -632,11 +650,12 @@ def _kabsch(U: Array, D: Array, w: Array) -> tuple[Array, float]:
     S = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ Us.T))])
     R = Vt.T @ S @ Us.T
     r = np.linalg.norm(U @ R.T - D, axis=1)
-    return R, float(np.sqrt(np.mean(w * r ** 2)))
+    return R, float(np.sqrt(np.mean(w * r**2)))
 
 
-def _assignments(model_ang: Array, cand_ang: Array, n_cand: int, min_legs: int, tol: Array
-                 ) -> list[tuple[int | None, ...]]:
+def _assignments(
+    model_ang: Array, cand_ang: Array, n_cand: int, min_legs: int, tol: Array
+) -> list[tuple[int | None, ...]]:
     """Injective partial maps leg -> candidate whose pairwise angles agree within tol."""
     out: list[tuple[int | None, ...]] = []
 
@@ -679,8 +698,16 @@ class _Fitter:
         self.KiT = np.linalg.inv(K).T
         self.Ki = np.linalg.inv(K)
         # per rod candidate: limb end points (2 limbs, 2 ends, homogeneous) and limb planes
-        self.ends = np.array([[[np.append(_line_point(limb, s_, rc.t), 1.0) for s_ in (rc.s0, rc.s1)]
-                               for limb in rc.limbs] for rc in rods]) if rods else np.zeros((0, 2, 2, 3))
+        self.ends = (
+            np.array(
+                [
+                    [[np.append(_line_point(limb, s_, rc.t), 1.0) for s_ in (rc.s0, rc.s1)] for limb in rc.limbs]
+                    for rc in rods
+                ]
+            )
+            if rods
+            else np.zeros((0, 2, 2, 3))
+        )
         self.h = np.array([np.vstack(rc.h) for rc in rods]) if rods else np.zeros((0, 2, 3))
 
     def setup(self, legs: dict[int, tuple[int, int]]) -> tuple[Array, Array, Array]:
@@ -698,7 +725,7 @@ class _Fitter:
 
         ``X`` (P, 6): rotation vectors and translations of P placements.
         """
-        R = rotvec_to_matrix(X[:, :3])                          # (P, 3, 3)
+        R = rotvec_to_matrix(X[:, :3])  # (P, 3, 3)
         P = np.einsum("pij,mj->pmi", R, tops) + X[:, None, 3:]  # (P, M, 3)
         U = np.einsum("pij,mj->pmi", R, us)
         p = P - np.sum(P * U, axis=-1)[..., None] * U
@@ -716,18 +743,19 @@ class _Fitter:
         interpretation plane it is closest to.
         """
         h, _ = self.predicted_planes(X, tops, us)
-        lines = h @ self.KiT.T                      # (P, M, 2, 3): l = K^-T h
+        lines = h @ self.KiT.T  # (P, M, 2, 3): l = K^-T h
         lines = lines / np.linalg.norm(lines[..., :2], axis=-1)[..., None]
-        hd = self.h[idx][None]                      # measured planes (1, M, 2, 3)
+        hd = self.h[idx][None]  # measured planes (1, M, 2, 3)
         straight = np.sum(hd * h, axis=(-2, -1))
         crossed = np.sum(hd * h[..., ::-1, :], axis=(-2, -1))
         lines = np.where((crossed > straight)[..., None, None], lines[..., ::-1, :], lines)
-        ends = self.ends[idx]                       # (M, 2 limbs, 2 ends, 3)
+        ends = self.ends[idx]  # (M, 2 limbs, 2 ends, 3)
         return np.einsum("pmkj,mkej->pmke", lines, ends).reshape(len(X), -1)
 
 
-def _levenberg_marquardt(f: Callable[[Array], Array], x0: Array, steps: Array, iters: int = 40, tol: float = 1e-6
-                         ) -> tuple[Array, Array]:
+def _levenberg_marquardt(
+    f: Callable[[Array], Array], x0: Array, steps: Array, iters: int = 40, tol: float = 1e-6
+) -> tuple[Array, Array]:
     """Minimise |f(x)|^2, f batched ((P, n) -> (P, m)): each forward-difference Jacobian is one call.
 
     Returns the solution (n,) and its residuals (m,); stops when a step is below ``tol`` in every
@@ -741,7 +769,7 @@ def _levenberg_marquardt(f: Callable[[Array], Array], x0: Array, steps: Array, i
     for _ in range(iters):
         F = f(np.vstack([x[None], x[None] + eye]))
         r = F[0]
-        J = (F[1:] - r[None]) / steps[:, None]     # (n, m)
+        J = (F[1:] - r[None]) / steps[:, None]  # (n, m)
         A = J @ J.T
         g = J @ r
         improved = False
@@ -797,9 +825,17 @@ def _differences(best: Hypothesis, other: Hypothesis) -> tuple[bool, set[int]]:
     return swapped, orders
 
 
-def associate(rods: list[RodCandidate], legs_c: list[LegCandidate], nominal: I4Parameters, q: Array,
-              radius: float, spacing: float, K: Array, settings: DetectSettings,
-              prior: Rigid | None = None) -> tuple[list[Hypothesis], list[Hypothesis]]:
+def associate(
+    rods: list[RodCandidate],
+    legs_c: list[LegCandidate],
+    nominal: I4Parameters,
+    q: Array,
+    radius: float,
+    spacing: float,
+    K: Array,
+    settings: DetectSettings,
+    prior: Rigid | None = None,
+) -> tuple[list[Hypothesis], list[Hypothesis]]:
     """Accepted hypotheses (legs -> rod candidates, placement), best first, and the best's rivals.
 
     A rival labels the rods differently and explains them about as well (see :func:`_rivals`).
@@ -840,7 +876,7 @@ def associate(rods: list[RodCandidate], legs_c: list[LegCandidate], nominal: I4P
             seen.add(key)
             x0 = _initial(fitter, lv, R, radius)
             r0 = fitter.residuals(x0[None], *fitter.setup(lv))[0]
-            quick.append((len(lv), float(np.sqrt(np.mean(r0 ** 2))), res, lv, x0))
+            quick.append((len(lv), float(np.sqrt(np.mean(r0**2))), res, lv, x0))
     hyps: list[Hypothesis] = []
     for n in sorted({qk[0] for qk in quick}, reverse=True):
         group = sorted((qk for qk in quick if qk[0] == n), key=lambda qk: qk[1])
@@ -855,8 +891,7 @@ def associate(rods: list[RodCandidate], legs_c: list[LegCandidate], nominal: I4P
     hyps.sort(key=lambda h: (-len(h.legs), h.rms_px))
     uniq: list[Hypothesis] = []  # the same labels and about the same placement: one hypothesis
     for h in hyps:
-        if any(h.legs == g.legs and _rotation_angle(h.camera_from_base.R, g.camera_from_base.R) < 0.05
-               for g in uniq):
+        if any(h.legs == g.legs and _rotation_angle(h.camera_from_base.R, g.camera_from_base.R) < 0.05 for g in uniq):
             continue
         uniq.append(h)
     if not uniq:
@@ -864,8 +899,7 @@ def associate(rods: list[RodCandidate], legs_c: list[LegCandidate], nominal: I4P
     return uniq, _rivals(uniq, fitter, radius, settings)
 
 
-def _rivals(hyps: list[Hypothesis], fitter: _Fitter, radius: float, settings: DetectSettings
-            ) -> list[Hypothesis]:
+def _rivals(hyps: list[Hypothesis], fitter: _Fitter, radius: float, settings: DetectSettings) -> list[Hypothesis]:
     """Hypotheses that label the rods differently and fit about as well as the best.
 
     "About as well": RMS <= ``ambiguity_ratio`` x the best's + ``ambiguity_px``. A rival with one
@@ -890,8 +924,9 @@ def _rivals(hyps: list[Hypothesis], fitter: _Fitter, radius: float, settings: De
     return out
 
 
-def _rod_orders(mp: tuple[int | None, ...], legs_c: list[LegCandidate], rods: list[RodCandidate], xb: Array,
-                K_inv: Array) -> list[dict[int, tuple[int, int]]]:
+def _rod_orders(
+    mp: tuple[int | None, ...], legs_c: list[LegCandidate], rods: list[RodCandidate], xb: Array, K_inv: Array
+) -> list[dict[int, tuple[int, int]]]:
     """Leg -> (rod0, rod1) candidates, rod0 on the -x_B side (both orders when it cannot be told).
 
     Rod j is on the +x_B side of rod i when the ray to j's image and x_B (camera frame) lie on the
@@ -925,8 +960,7 @@ def _initial(fitter: _Fitter, legs: dict[int, tuple[int, int]], R: Array, radius
     return np.concatenate([matrix_to_rotvec(R), t])
 
 
-def _solve_placement(fitter: _Fitter, legs: dict[int, tuple[int, int]], x0: Array, radius: float
-                     ) -> Hypothesis | None:
+def _solve_placement(fitter: _Fitter, legs: dict[int, tuple[int, int]], x0: Array, radius: float) -> Hypothesis | None:
     """Refine a placement on the assigned rods' limb lines; None when it puts a rod behind the camera."""
     tops, us, idx = fitter.setup(legs)
     x, r = _levenberg_marquardt(lambda X: fitter.residuals(X, tops, us, idx), x0, np.full(6, 1e-6))
@@ -950,13 +984,20 @@ def _solve_placement(fitter: _Fitter, legs: dict[int, tuple[int, int]], x0: Arra
             return None
         if lam <= 0:
             return None
-    return Hypothesis(legs, C, float(np.sqrt(np.mean(r ** 2))), 0.0)
+    return Hypothesis(legs, C, float(np.sqrt(np.mean(r**2))), 0.0)
 
 
 # ---------------------------------------------------------------------------------------------
-def detect_rods(image: np.ndarray, camera: CameraModel, nominal: I4Parameters, q: ArrayLike, rod_radius_m: float,
-                rod_spacing_m: float | None, settings: DetectSettings | None = None,
-                prior: Rigid | None = None) -> RodDetection:
+def detect_rods(
+    image: np.ndarray,
+    camera: CameraModel,
+    nominal: I4Parameters,
+    q: ArrayLike,
+    rod_radius_m: float,
+    rod_spacing_m: float | None,
+    settings: DetectSettings | None = None,
+    prior: Rigid | None = None,
+) -> RodDetection:
     """Find the eight rods in one frame with no prior pose and associate them to the legs.
 
     Parameters
@@ -1006,18 +1047,31 @@ def _nothing(reason: str, **kw) -> RodDetection:
     return RodDetection([None] * 8, {rod_name(lg, r): reason for lg, r in ROD_KEYS}, reason=reason, **kw)
 
 
-def _decide(rods: list[RodCandidate], legs_c: list[LegCandidate], counts: dict[str, int], camera: CameraModel,
-            nominal: I4Parameters, q: Array, radius: float, spacing: float, s: DetectSettings,
-            prior: Rigid | None) -> RodDetection:
+def _decide(
+    rods: list[RodCandidate],
+    legs_c: list[LegCandidate],
+    counts: dict[str, int],
+    camera: CameraModel,
+    nominal: I4Parameters,
+    q: Array,
+    radius: float,
+    spacing: float,
+    s: DetectSettings,
+    prior: Rigid | None,
+) -> RodDetection:
     kw = {"rods": rods, "leg_candidates": legs_c, "counts": counts}
     if len(legs_c) < s.min_legs:
-        return _nothing(f"rods not detected: {len(legs_c)} rod pairs found ({len(rods)} rods), "
-                        f"need {s.min_legs} legs", **kw)
+        return _nothing(
+            f"rods not detected: {len(legs_c)} rod pairs found ({len(rods)} rods), need {s.min_legs} legs", **kw
+        )
     hyps, rivals = associate(rods, legs_c, nominal, q, radius, spacing, camera.K, s, prior)
     if not hyps:
         why = "within the placement prior and " if prior is not None else ""
-        return _nothing(f"rods not associated: no assignment of the {len(legs_c)} rod pairs to the legs fits "
-                        f"{why}the nominal model within {s.max_rms_px:.0f} px", **kw)
+        return _nothing(
+            f"rods not associated: no assignment of the {len(legs_c)} rod pairs to the legs fits "
+            f"{why}the nominal model within {s.max_rms_px:.0f} px",
+            **kw,
+        )
     best = hyps[0]
     unsure: dict[int, str] = {}
     for rival in rivals:
@@ -1025,20 +1079,34 @@ def _decide(rods: list[RodCandidate], legs_c: list[LegCandidate], counts: dict[s
         if swapped:
             lab = rival.labels()
             mine = "-".join(str(lg + 1) for lg in sorted(best.legs))
-            other = "-".join(str(lab[best.legs[lg][0]][0] + 1) if best.legs[lg][0] in lab else "?"
-                             for lg in sorted(best.legs))
-            reason = (f"ambiguous leg association: legs {mine} fit as well as {other} ({best.rms_px:.1f} px vs "
-                      f"{rival.rms_px:.1f} px); a near-symmetric pose needs a placement prior")
-            return RodDetection([None] * 8, {rod_name(lg, r): reason for lg, r in ROD_KEYS}, None, best.rms_px,
-                                True, hyps, reason=reason, **kw)
+            other = "-".join(
+                str(lab[best.legs[lg][0]][0] + 1) if best.legs[lg][0] in lab else "?" for lg in sorted(best.legs)
+            )
+            reason = (
+                f"ambiguous leg association: legs {mine} fit as well as {other} ({best.rms_px:.1f} px vs "
+                f"{rival.rms_px:.1f} px); a near-symmetric pose needs a placement prior"
+            )
+            return RodDetection(
+                [None] * 8,
+                {rod_name(lg, r): reason for lg, r in ROD_KEYS},
+                None,
+                best.rms_px,
+                True,
+                hyps,
+                reason=reason,
+                **kw,
+            )
         for lg in orders:
-            unsure[lg] = (f"leg {lg + 1}: which of its two rods is which is ambiguous (both orders fit, "
-                          f"{best.rms_px:.1f} px vs {rival.rms_px:.1f} px)")
+            unsure[lg] = (
+                f"leg {lg + 1}: which of its two rods is which is ambiguous (both orders fit, "
+                f"{best.rms_px:.1f} px vs {rival.rms_px:.1f} px)"
+            )
     reasons: dict[str, str] = {}
     for leg, rod in ROD_KEYS:
         if leg not in best.legs or leg in unsure:
             reasons[rod_name(leg, rod)] = unsure.get(leg) or (
-                f"leg {leg + 1} not detected: no rod pair in the image matches it (hidden or out of view)")
+                f"leg {leg + 1} not detected: no rod pair in the image matches it (hidden or out of view)"
+            )
     model = predict_rods(nominal, q, best.camera_from_base, spacing)
     dirs: list[Array | None] = [None] * 8
     for k, p in enumerate(model):
@@ -1049,8 +1117,12 @@ def _decide(rods: list[RodCandidate], legs_c: list[LegCandidate], counts: dict[s
     # a width read off a candidate with one wrong limb puts its prior at a wrong depth: each rod's
     # depth over the model's (the fitted placement's depth error is common to the frame) must agree
     # with the frame's median; the outliers are moved to the median ratio
-    ratio = np.array([_depth_ratio(p, m, rods[best.legs[m.leg][m.rod]], camera.K) if p is not None else np.nan
-                      for p, m in zip(preds, model, strict=True)])
+    ratio = np.array(
+        [
+            _depth_ratio(p, m, rods[best.legs[m.leg][m.rod]], camera.K) if p is not None else np.nan
+            for p, m in zip(preds, model, strict=True)
+        ]
+    )
     if np.sum(np.isfinite(ratio)) >= 4:
         med = float(np.nanmedian(ratio))
         off = np.isfinite(ratio) & (np.abs(ratio / med - 1.0) > s.depth_tolerance)
@@ -1059,8 +1131,14 @@ def _decide(rods: list[RodCandidate], legs_c: list[LegCandidate], counts: dict[s
     return RodDetection(preds, reasons, best.camera_from_base, best.rms_px, False, hyps, dirs, **kw)
 
 
-def _priors(rods: list[RodCandidate], best: Hypothesis, model: list[RodPrediction], dirs: list[Array | None],
-            radius: float, depth_scale: Array) -> list[RodPrediction | None]:
+def _priors(
+    rods: list[RodCandidate],
+    best: Hypothesis,
+    model: list[RodPrediction],
+    dirs: list[Array | None],
+    radius: float,
+    depth_scale: Array,
+) -> list[RodPrediction | None]:
     """The associated rods' priors (None where ``dirs`` is None), in ``ROD_KEYS`` order."""
     preds: list[RodPrediction | None] = []
     for k, p in enumerate(model):
@@ -1105,12 +1183,13 @@ def _leg_direction(lc: LegCandidate, u_model: Array, sigma_model: float) -> Arra
     d = lc.d if lc.d @ u_model >= 0 else -lc.d
     if np.arccos(np.clip(d @ u_model, -1.0, 1.0)) > 3.0 * np.hypot(lc.sigma, sigma_model):
         return u_model
-    v = d / lc.sigma ** 2 + u_model / sigma_model ** 2
+    v = d / lc.sigma**2 + u_model / sigma_model**2
     return v / np.linalg.norm(v)
 
 
-def _prior_from_candidate(rc: RodCandidate, d: Array, model: RodPrediction, radius: float,
-                          depth_scale: float = 1.0) -> RodPrediction:
+def _prior_from_candidate(
+    rc: RodCandidate, d: Array, model: RodPrediction, radius: float, depth_scale: float = 1.0
+) -> RodPrediction:
     """The rod's prior for measure_rod: its detected axis, over the model's extent.
 
     The axis lies in the candidate's axis plane (through the camera centre, bisecting its limb
@@ -1135,16 +1214,34 @@ def _prior_from_candidate(rc: RodCandidate, d: Array, model: RodPrediction, radi
     return RodPrediction(model.leg, model.rod, top, bottom)
 
 
-def resolve(detection: RodDetection, camera: CameraModel, nominal: I4Parameters, q: ArrayLike, rod_radius_m: float,
-            rod_spacing_m: float, prior: Rigid, settings: DetectSettings | None = None) -> RodDetection:
+def resolve(
+    detection: RodDetection,
+    camera: CameraModel,
+    nominal: I4Parameters,
+    q: ArrayLike,
+    rod_radius_m: float,
+    rod_spacing_m: float,
+    prior: Rigid,
+    settings: DetectSettings | None = None,
+) -> RodDetection:
     """Associate a detection's rod candidates again, keeping only placements near ``prior``.
 
     For a frame that was ambiguous alone, once other frames (or the bench's mounting) fix the
     placement; the image is not read again.
     """
     s = settings or DetectSettings()
-    return _decide(detection.rods, detection.leg_candidates, detection.counts, camera, nominal,
-                   np.asarray(q, dtype=np.float64).reshape(4), rod_radius_m, rod_spacing_m, s, prior)
+    return _decide(
+        detection.rods,
+        detection.leg_candidates,
+        detection.counts,
+        camera,
+        nominal,
+        np.asarray(q, dtype=np.float64).reshape(4),
+        rod_radius_m,
+        rod_spacing_m,
+        s,
+        prior,
+    )
 
 
 def consensus_placement(placements: Sequence[Rigid], tol_rad: float = 0.1) -> Rigid | None:
@@ -1165,10 +1262,16 @@ def consensus_placement(placements: Sequence[Rigid], tol_rad: float = 0.1) -> Ri
     return Rigid(R, np.median([placements[j].t for j in best], axis=0))
 
 
-def resolve_frames(detections: Mapping[int, RodDetection], camera: CameraModel, nominal: I4Parameters,
-                   q: Mapping[int, ArrayLike], rod_radius_m: float, rod_spacing_m: float,
-                   prior: Rigid | None = None, settings: DetectSettings | None = None
-                   ) -> tuple[dict[int, RodDetection], Rigid | None, str]:
+def resolve_frames(
+    detections: Mapping[int, RodDetection],
+    camera: CameraModel,
+    nominal: I4Parameters,
+    q: Mapping[int, ArrayLike],
+    rod_radius_m: float,
+    rod_spacing_m: float,
+    prior: Rigid | None = None,
+    settings: DetectSettings | None = None,
+) -> tuple[dict[int, RodDetection], Rigid | None, str]:
     """Frames of one camera: frames that were ambiguous alone are associated again near the placement
     that the unambiguous frames agree on (or near ``prior`` when given).
 
@@ -1197,21 +1300,32 @@ def resolve_frames(detections: Mapping[int, RodDetection], camera: CameraModel, 
         for i, d in detections.items():
             if d.ambiguous:
                 out[i] = resolve(d, camera, nominal, q[i], rod_radius_m, rod_spacing_m, anchor, s)
-    placed = consensus_placement([d.camera_from_base for d in out.values() if d.camera_from_base is not None],
-                                 s.prior_tol_rad / 2)
+    placed = consensus_placement(
+        [d.camera_from_base for d in out.values() if d.camera_from_base is not None], s.prior_tol_rad / 2
+    )
     return out, placed, source
 
 
-def measure_detected(gray: np.ndarray, camera: CameraModel, detection: RodDetection, radius: float,
-                     settings: RodSettings | None = None, occluders: list[Array] | None = None, seed: int = 0,
-                     ideal_bbox: Array | None = None) -> list[RodMeasurement]:
+def measure_detected(
+    gray: np.ndarray,
+    camera: CameraModel,
+    detection: RodDetection,
+    radius: float,
+    settings: RodSettings | None = None,
+    occluders: list[Array] | None = None,
+    seed: int = 0,
+    ideal_bbox: Array | None = None,
+) -> list[RodMeasurement]:
     """Measure the rods a detection found (:func:`calib.vision.rods.measure_rods`), the others missing.
 
     Returns eight measurements in ``ROD_KEYS`` order.
     """
     found = [p for p in detection.predictions if p is not None]
-    meas = {(m.leg, m.rod): m for m in measure_rods(gray, camera, found, radius, settings, occluders, seed,
-                                                     ideal_bbox)} if found else {}
+    meas = (
+        {(m.leg, m.rod): m for m in measure_rods(gray, camera, found, radius, settings, occluders, seed, ideal_bbox)}
+        if found
+        else {}
+    )
     out = []
     for leg, rod in ROD_KEYS:
         m = meas.get((leg, rod))

@@ -104,15 +104,22 @@ _W: dict[str, Any] = {}
 IMAGE_CACHE_BYTES = 112 * 2**20
 
 
-def _init_worker(root: str, camera: dict | None, refined: tuple[list, list, Any] | None, min_corners: int,
-                 rod_settings: dict | None, keep_images: bool = False) -> None:
+def _init_worker(
+    root: str,
+    camera: dict | None,
+    refined: tuple[list, list, Any] | None,
+    min_corners: int,
+    rod_settings: dict | None,
+    keep_images: bool = False,
+) -> None:
     if _W.get("root") != root:  # a new dataset (the same one is kept from stage to stage, with its images)
         _W.update(root=root, ds=Dataset.open(root), images={}, cached=0)
     ds = _W["ds"]
     _W["det"] = BoardDetector(ds.document.board, min_corners)
     if refined is not None:
-        _W["det"].use_refined_points(np.asarray(refined[0]), np.asarray(refined[1]),
-                                     None if refined[2] is None else np.asarray(refined[2]))
+        _W["det"].use_refined_points(
+            np.asarray(refined[0]), np.asarray(refined[1]), None if refined[2] is None else np.asarray(refined[2])
+        )
     _W["cam"] = CameraModel.from_dict(camera) if camera is not None else None
     _W["rs"] = RodSettings(**rod_settings) if rod_settings else RodSettings()
     _W["bbox"] = image_ideal_bbox(_W["cam"]) if _W["cam"] is not None else None
@@ -187,9 +194,16 @@ def _task_find_rods(args: tuple[int, dict | None, dict]) -> tuple[int, Any]:
         img = _gray(_load(i, keep=True))
     except InputError:
         return i, None
-    return i, detect_rods(img, _W["cam"], doc.nominal.parameters(), _W["ds"].frames[i].q, doc.legs.rod_radius_m,
-                          doc.legs.rod_spacing_m, DetectSettings(**settings),
-                          Rigid.from_dict(prior) if prior else None)
+    return i, detect_rods(
+        img,
+        _W["cam"],
+        doc.nominal.parameters(),
+        _W["ds"].frames[i].q,
+        doc.legs.rod_radius_m,
+        doc.legs.rod_spacing_m,
+        DetectSettings(**settings),
+        Rigid.from_dict(prior) if prior else None,
+    )
 
 
 def _task_rods(args: tuple) -> tuple[int, Any]:
@@ -216,11 +230,13 @@ def _task_rods(args: tuple) -> tuple[int, Any]:
         if np.all(oc[:, 2] > 0):
             occ.append(cam.to_ideal_pixels(oc[:, :2] / oc[:, 2:3]))
     if found is None:
-        ms = measure_rods(img.astype(np.float32), cam, preds, doc.legs.rod_radius_m, _W["rs"], occ, seed=i,
-                          ideal_bbox=_W["bbox"])
+        ms = measure_rods(
+            img.astype(np.float32), cam, preds, doc.legs.rod_radius_m, _W["rs"], occ, seed=i, ideal_bbox=_W["bbox"]
+        )
     else:
-        ms = measure_detected(img.astype(np.float32), cam, found, doc.legs.rod_radius_m, _W["rs"], occ, seed=i,
-                              ideal_bbox=_W["bbox"])
+        ms = measure_detected(
+            img.astype(np.float32), cam, found, doc.legs.rod_radius_m, _W["rs"], occ, seed=i, ideal_bbox=_W["bbox"]
+        )
     rods = {rod_name(m.leg, m.rod): (m.to_dict() if m.ok else m.reason) for m in ms}
     par = {k: v * 1e3 for k, v in leg_parallelism(ms).items()}
     return i, {"rods": rods, "parallel_mrad": par}
@@ -298,8 +314,11 @@ class _Pool:
             ctx = multiprocessing.get_context()
             for _ in range(self.workers):
                 parent, child = ctx.Pipe()
-                p = ctx.Process(target=_worker_main, args=(child, init_args, IMAGE_CACHE_BYTES // self.workers),
-                                name="i4cal-extract")
+                p = ctx.Process(
+                    target=_worker_main,
+                    args=(child, init_args, IMAGE_CACHE_BYTES // self.workers),
+                    name="i4cal-extract",
+                )
                 p.start()
                 child.close()
                 self.procs.append(p)
@@ -311,8 +330,16 @@ class _Pool:
                 self._answer(w)
         self.init = init_args
 
-    def run(self, fn: Callable, items: list, init_args: tuple, progress: Progress | None, offset: int, total: int,
-            each: Callable[[Any], None] | None = None) -> list:
+    def run(
+        self,
+        fn: Callable,
+        items: list,
+        init_args: tuple,
+        progress: Progress | None,
+        offset: int,
+        total: int,
+        each: Callable[[Any], None] | None = None,
+    ) -> list:
         """``[fn(item) for item in items]``; an item is a frame index or a tuple led by one.
 
         ``each(result)`` and ``progress`` are called as results come (completion order); the list is in item order,
@@ -365,8 +392,9 @@ def _frame_of(item: Any) -> int:
 
 
 # ---------------------------------------------------------------------------------------------
-def fit_placement(q: np.ndarray, board_R: np.ndarray, board_t: np.ndarray, nominal, board_height_m: float = 0.0
-                  ) -> tuple[Rigid, Rigid, float]:
+def fit_placement(
+    q: np.ndarray, board_R: np.ndarray, board_t: np.ndarray, nominal, board_height_m: float = 0.0
+) -> tuple[Rigid, Rigid, float]:
     """Coarse ``camera_from_base`` and ``ee_from_board`` from board poses and the nominal model.
 
     Solves ``camera_from_base * base_from_ee(dkm(nominal, q_k)) * ee_from_board = camera_from_board_k``
@@ -450,17 +478,22 @@ def fit_placement(q: np.ndarray, board_R: np.ndarray, board_t: np.ndarray, nomin
     C = Rigid(rotvec_to_matrix(sol.x[:3]), sol.x[3:6])
     E = Rigid(rotvec_to_matrix(sol.x[6:9]), np.array([sol.x[9], sol.x[10], board_height_m]))
     rt = sol.fun.reshape(-1, 2, 3)[:, 1]
-    return C, E, float(np.sqrt(np.mean(np.sum(rt ** 2, axis=1))))
+    return C, E, float(np.sqrt(np.mean(np.sum(rt**2, axis=1))))
 
 
 def _short(reason: str) -> str:
     return reason.split(":")[0].split("(")[0].strip()
 
 
-def extract_dataset(dataset: str | Path | Dataset, *, camera: CameraModel | None = None,
-                    workers: int | None = None, progress: Progress | None = None,
-                    options: ExtractOptions | None = None, on_frame: FrameCallback | None = None
-                    ) -> ExtractionResult:
+def extract_dataset(
+    dataset: str | Path | Dataset,
+    *,
+    camera: CameraModel | None = None,
+    workers: int | None = None,
+    progress: Progress | None = None,
+    options: ExtractOptions | None = None,
+    on_frame: FrameCallback | None = None,
+) -> ExtractionResult:
     """Extract observations v1 from a dataset v1 directory.
 
     Parameters
@@ -499,8 +532,9 @@ def extract_dataset(dataset: str | Path | Dataset, *, camera: CameraModel | None
 
     with _Pool(workers) as pool:
         corners: dict[int, list] = {}
-        first = _extract(pool, ds, camera, first_progress, opts, on_frame, keep_images=opts.refine_camera,
-                         corners=corners)
+        first = _extract(
+            pool, ds, camera, first_progress, opts, on_frame, keep_images=opts.refine_camera, corners=corners
+        )
         if not opts.refine_camera:
             return first
         refined, info = refined_camera(first, opts.refine_min_shift)
@@ -511,8 +545,15 @@ def extract_dataset(dataset: str | Path | Dataset, *, camera: CameraModel | None
     # the camera's calibration (views, rejections) is the first pass's; the second only re-measured
     second.summary["camera"] = {**first.summary["camera"], "refined_by_rods": info}
     cam_frames = {str(i) for i, f in enumerate(ds.frames) if f.phase == "camera"}
-    second.summary["frames"] = dict(sorted({**{k: v for k, v in first.summary["frames"].items() if k in cam_frames},
-                                            **second.summary["frames"]}.items(), key=lambda kv: int(kv[0])))
+    second.summary["frames"] = dict(
+        sorted(
+            {
+                **{k: v for k, v in first.summary["frames"].items() if k in cam_frames},
+                **second.summary["frames"],
+            }.items(),
+            key=lambda kv: int(kv[0]),
+        )
+    )
     second.observations["extraction"]["summary"] = second.summary
     second.intrinsics = first.intrinsics
     return second
@@ -569,9 +610,16 @@ def refined_camera(res: ExtractionResult, min_shift: float = 0.5) -> tuple[Camer
     return CameraModel(moved.K, moved.dist, moved.width, moved.height, extra), {"applied": True, **info}
 
 
-def _extract(pool: _Pool, ds: Dataset, camera: CameraModel | None, progress: Progress | None, opts: ExtractOptions,
-             on_frame: FrameCallback | None, keep_images: bool = False,
-             corners: dict[int, list] | None = None) -> ExtractionResult:
+def _extract(
+    pool: _Pool,
+    ds: Dataset,
+    camera: CameraModel | None,
+    progress: Progress | None,
+    opts: ExtractOptions,
+    on_frame: FrameCallback | None,
+    keep_images: bool = False,
+    corners: dict[int, list] | None = None,
+) -> ExtractionResult:
     """One pass over the dataset. ``keep_images``: the workers keep the decoded images after the rods stage (a
     second pass follows); ``corners``: filled with each frame's ChArUco corners when empty, reused (the pose
     only) when not."""
@@ -589,14 +637,13 @@ def _extract(pool: _Pool, ds: Dataset, camera: CameraModel | None, progress: Pro
     total = (len(cam_idx) if need_calib else 0) + 2 * len(obs_idx)
     done = 0
     if camera is None and not need_calib:
-        camera = CameraModel(np.asarray(doc.camera.K), np.asarray(doc.camera.dist), doc.camera.width,
-                             doc.camera.height)
+        camera = CameraModel(np.asarray(doc.camera.K), np.asarray(doc.camera.dist), doc.camera.width, doc.camera.height)
     if need_calib:
         if not cam_idx:
-            raise InputError("no intrinsics: the dataset has neither camera.K/dist nor a 'camera' phase",
-                             file=root, field="camera")
-        det = pool.run(_task_detect, cam_idx, (root, None, None, opts.min_corners, rs_dict), progress,
-                   done, total)
+            raise InputError(
+                "no intrinsics: the dataset has neither camera.K/dist nor a 'camera' phase", file=root, field="camera"
+            )
+        det = pool.run(_task_detect, cam_idx, (root, None, None, opts.min_corners, rs_dict), progress, done, total)
         done += len(cam_idx)
         views = {}
         for i, r in det:
@@ -619,8 +666,9 @@ def _extract(pool: _Pool, ds: Dataset, camera: CameraModel | None, progress: Pro
     board_cb = None if on_frame is None else (lambda r: on_frame(frame_info(r[0], frames[r[0]].phase, r[1])))
     if corners:  # a second pass: the corners found in the first, posed with this camera
         again = [i for i in obs_idx if i in corners]
-        boards = dict(pool.run(_task_board_pose, [(i, *corners[i]) for i in again], init, progress, done, total,
-                               board_cb))
+        boards = dict(
+            pool.run(_task_board_pose, [(i, *corners[i]) for i in again], init, progress, done, total, board_cb)
+        )
         rest = [i for i in obs_idx if i not in corners]
         boards.update(pool.run(_task_board, rest, init, progress, done + len(again), total, board_cb))
     else:
@@ -640,15 +688,18 @@ def _extract(pool: _Pool, ds: Dataset, camera: CameraModel | None, progress: Pro
             height = float((doc.board.model_extra or {}).get("height_above_ee_m", 0.0))
             C, E, placement_rms = fit_placement(qk, bR, bt, doc.nominal.parameters(), height)
             if placement_rms > opts.max_placement_rms_m:
-                placement_reason = (f"coarse camera placement inconsistent: board residual RMS "
-                                    f"{placement_rms * 1e3:.1f} mm > {opts.max_placement_rms_m * 1e3:.0f} mm "
-                                    "(too few board poses, or too little motion among them)")
+                placement_reason = (
+                    f"coarse camera placement inconsistent: board residual RMS "
+                    f"{placement_rms * 1e3:.1f} mm > {opts.max_placement_rms_m * 1e3:.0f} mm "
+                    "(too few board poses, or too little motion among them)"
+                )
                 C = E = None
         except (I4calError, np.linalg.LinAlgError, ValueError) as exc:
             placement_reason = f"coarse camera placement failed: {exc}"
     else:
-        placement_reason = (f"no coarse camera placement: board poses in {len(good)} frames, "
-                            f"need {opts.min_placement_frames}")
+        placement_reason = (
+            f"no coarse camera placement: board poses in {len(good)} frames, need {opts.min_placement_frames}"
+        )
     found: dict[int, Any] = {}
     fallback = None
     if C is None and opts.detect_fallback:  # no placement: the rods are found from scratch in each frame
@@ -656,15 +707,25 @@ def _extract(pool: _Pool, ds: Dataset, camera: CameraModel | None, progress: Pro
         prior = opts.camera_prior.to_dict() if opts.camera_prior is not None else None
         items = [(i, prior, dict(dset.__dict__)) for i in obs_idx if "image_error" not in boards[i]]
         total += len(items)
-        found = {i: d for i, d in pool.run(_task_find_rods, items, init, progress, done, total)
-                 if d is not None}
+        found = {i: d for i, d in pool.run(_task_find_rods, items, init, progress, done, total) if d is not None}
         done += len(items)
-        found, placed, anchor = resolve_frames(found, camera, doc.nominal.parameters(),
-                                               {i: frames[i].q for i in found}, doc.legs.rod_radius_m,
-                                               doc.legs.rod_spacing_m or 0.0, opts.camera_prior, dset)
-        fallback = {"frames": len(found), "associated": sum(d.ok for d in found.values()),
-                    "ambiguous": sum(d.ambiguous for d in found.values()), "anchor": anchor,
-                    "camera_from_base": placed.to_dict() if placed is not None else None}
+        found, placed, anchor = resolve_frames(
+            found,
+            camera,
+            doc.nominal.parameters(),
+            {i: frames[i].q for i in found},
+            doc.legs.rod_radius_m,
+            doc.legs.rod_spacing_m or 0.0,
+            opts.camera_prior,
+            dset,
+        )
+        fallback = {
+            "frames": len(found),
+            "associated": sum(d.ok for d in found.values()),
+            "ambiguous": sum(d.ambiguous for d in found.values()),
+            "anchor": anchor,
+            "camera_from_base": placed.to_dict() if placed is not None else None,
+        }
     rod_items: list[tuple] = []
     rods: dict[int, Any] = {}
     for i in obs_idx:
@@ -678,14 +739,20 @@ def _extract(pool: _Pool, ds: Dataset, camera: CameraModel | None, progress: Pro
         if b is None and E is not None:
             try:
                 pose = dkm(doc.nominal.parameters(), np.asarray(frames[i].q))
-                nb = C @ Rigid(rot_z(pose[3] / doc.nominal.T_per_rad),
-                               np.array([pose[0], doc.nominal.H + pose[1], pose[2]])) @ E
+                nb = (
+                    C
+                    @ Rigid(
+                        rot_z(pose[3] / doc.nominal.T_per_rad), np.array([pose[0], doc.nominal.H + pose[1], pose[2]])
+                    )
+                    @ E
+                )
                 b = {"R": nb.R.tolist(), "t": nb.t.tolist()}
             except I4calError:
                 b = None
         rod_items.append((i, C.to_dict(), b))
-    rods_cb = None if on_frame is None else (
-        lambda r: on_frame(frame_info(r[0], frames[r[0]].phase, boards[r[0]], r[1])))
+    rods_cb = (
+        None if on_frame is None else (lambda r: on_frame(frame_info(r[0], frames[r[0]].phase, boards[r[0]], r[1])))
+    )
     rods = dict(pool.run(_task_rods, rod_items, init, progress, done, total, rods_cb))
     if on_frame is not None:  # frames whose rods could not be looked for
         for i in obs_idx:
@@ -736,20 +803,34 @@ def _extract(pool: _Pool, ds: Dataset, camera: CameraModel | None, progress: Pro
             label = f"{kind}: {_short(v)}"
             ph["missing"][label] = ph["missing"].get(label, 0) + 1
             per_frame.setdefault(i, []).append(f"{k}: {v}")
-        fr: dict[str, Any] = {"phase": f.phase, "q": list(f.q), "board": board, "legs": legs, "missing": missing,
-                              "image": f.image, "dataset_frame": i, "leg_parallel_mrad": par}
+        fr: dict[str, Any] = {
+            "phase": f.phase,
+            "q": list(f.q),
+            "board": board,
+            "legs": legs,
+            "missing": missing,
+            "image": f.image,
+            "dataset_frame": i,
+            "leg_parallel_mrad": par,
+        }
         extra = f.model_extra or {}
         if "truth" in extra:
             fr["truth"] = extra["truth"]
         out_frames.append(fr)
-    summary = {"phases": phases, "frames": {str(k): v for k, v in sorted(per_frame.items())},
-               "camera": intr.summary() if intr else {"source": "given" if not need_calib else "dataset"},
-               "placement": {"ok": C is not None, "rms_m": placement_rms, "reason": placement_reason,
-                             "detected": fallback}}
-    extraction = {"camera": camera.to_dict(), "summary": summary,
-                  "camera_from_base_coarse": C.to_dict() if C else None,
-                  "ee_from_board_coarse": E.to_dict() if E else None,
-                  "rod_settings": rs_dict, "min_corners": opts.min_corners}
+    summary = {
+        "phases": phases,
+        "frames": {str(k): v for k, v in sorted(per_frame.items())},
+        "camera": intr.summary() if intr else {"source": "given" if not need_calib else "dataset"},
+        "placement": {"ok": C is not None, "rms_m": placement_rms, "reason": placement_reason, "detected": fallback},
+    }
+    extraction = {
+        "camera": camera.to_dict(),
+        "summary": summary,
+        "camera_from_base_coarse": C.to_dict() if C else None,
+        "ee_from_board_coarse": E.to_dict() if E else None,
+        "rod_settings": rs_dict,
+        "min_corners": opts.min_corners,
+    }
     obs = {"format": FORMAT, "nominal": doc.nominal.model_dump(), "frames": out_frames, "extraction": extraction}
     dextra = doc.model_extra or {}
     if "truth" in dextra:
@@ -799,8 +880,15 @@ def frame_info(i: int, phase: str, board: dict[str, Any], rods: dict[str, Any] |
             else:
                 legs[str(leg + 1)][rod] = rods["rods"][key]
                 found += 1
-    return {"frame": int(i), "phase": phase, "stage": "board" if rods is None else "rods", "board": pose is not None,
-            "corners": None if pose is None else pose.get("n_corners"),
-            "rms_px": None if pose is None else pose.get("rms_px"), "rods": found, "rods_total": len(ROD_KEYS),
-            "missing": missing,
-            "detections": {"board": None if pose is None else {"R": pose["R"], "t": pose["t"]}, "legs": legs}}
+    return {
+        "frame": int(i),
+        "phase": phase,
+        "stage": "board" if rods is None else "rods",
+        "board": pose is not None,
+        "corners": None if pose is None else pose.get("n_corners"),
+        "rms_px": None if pose is None else pose.get("rms_px"),
+        "rods": found,
+        "rods_total": len(ROD_KEYS),
+        "missing": missing,
+        "detections": {"board": None if pose is None else {"R": pose["R"], "t": pose["t"]}, "legs": legs},
+    }

@@ -118,8 +118,9 @@ class RodPrediction:
         return d / np.linalg.norm(d)
 
 
-def predict_rods(nominal: I4Parameters, q: ArrayLike, camera_from_base: Rigid, rod_spacing_m: float
-                 ) -> list[RodPrediction]:
+def predict_rods(
+    nominal: I4Parameters, q: ArrayLike, camera_from_base: Rigid, rod_spacing_m: float
+) -> list[RodPrediction]:
     """Predicted rod segments (8, in ``ROD_KEYS`` order) from the nominal model and encoder values.
 
     Raises :class:`~calib.errors.UnreachableError` when the nominal model cannot close at ``q``.
@@ -131,8 +132,11 @@ def predict_rods(nominal: I4Parameters, q: ArrayLike, camera_from_base: Rigid, r
     for leg in range(4):
         for rod in range(2):
             off = np.array([(rod - 0.5) * rod_spacing_m, 0.0, 0.0])
-            out.append(RodPrediction(leg, rod, camera_from_base.apply(A[0, leg] + off),
-                                     camera_from_base.apply(B[0, leg] + off)))
+            out.append(
+                RodPrediction(
+                    leg, rod, camera_from_base.apply(A[0, leg] + off), camera_from_base.apply(B[0, leg] + off)
+                )
+            )
     return out
 
 
@@ -140,22 +144,22 @@ def predict_rods(nominal: I4Parameters, q: ArrayLike, camera_from_base: Rigid, r
 class RodSettings:
     """Tuning of the rod extraction (pixels are ideal, undistorted pixels)."""
 
-    band_px: float = 18.0          #: search half-band around each predicted limb line
-    step_px: float = 3.0           #: spacing of the profiles along the axis
-    sigma_px: float = 1.0          #: derivative-of-Gaussian scale on the profiles
-    sample_px: float = 0.5         #: sample spacing along each profile
-    min_contrast: float = 6.0      #: minimum |gradient| (grey levels per px) of an edge
+    band_px: float = 18.0  #: search half-band around each predicted limb line
+    step_px: float = 3.0  #: spacing of the profiles along the axis
+    sigma_px: float = 1.0  #: derivative-of-Gaussian scale on the profiles
+    sample_px: float = 0.5  #: sample spacing along each profile
+    min_contrast: float = 6.0  #: minimum |gradient| (grey levels per px) of an edge
     width_tolerance: float = 0.15  #: accepted relative deviation of the limb spacing from the prediction
     ransac_iters: int = 150
-    inlier_px: float = 1.0         #: RANSAC inlier threshold
-    min_points: int = 20           #: per limb, after outlier rejection
-    min_length_px: float = 40.0    #: visible length needed
-    max_rms_px: float = 0.8        #: residual RMS above this: rod rejected
+    inlier_px: float = 1.0  #: RANSAC inlier threshold
+    min_points: int = 20  #: per limb, after outlier rejection
+    min_length_px: float = 40.0  #: visible length needed
+    max_rms_px: float = 0.8  #: residual RMS above this: rod rejected
     min_plane_angle_rad: float = 2e-3
-    border_px: float = 3.0         #: samples closer to the image border are dropped
-    near_m: float = 0.05           #: the segment is clipped to z >= near_m
-    edge_bias_px: float = 0.05     #: slowly varying edge bias allowed for in ``cov_u`` (end-to-end, px)
-    neighbour_px: float = 4.0      #: limb points closer than this to another rod's predicted silhouette: dropped
+    border_px: float = 3.0  #: samples closer to the image border are dropped
+    near_m: float = 0.05  #: the segment is clipped to z >= near_m
+    edge_bias_px: float = 0.05  #: slowly varying edge bias allowed for in ``cov_u`` (end-to-end, px)
+    neighbour_px: float = 4.0  #: limb points closer than this to another rod's predicted silhouette: dropped
 
 
 @dataclass
@@ -185,8 +189,12 @@ class RodMeasurement:
     def to_dict(self) -> dict | None:
         if self.u is None:
             return None
-        d = {"u": self.u.tolist(), "rms_px": [float(x) for x in self.rms_px],
-             "n_points": [int(x) for x in self.n_points], "plane_angle_rad": float(self.plane_angle_rad)}
+        d = {
+            "u": self.u.tolist(),
+            "rms_px": [float(x) for x in self.rms_px],
+            "n_points": [int(x) for x in self.n_points],
+            "plane_angle_rad": float(self.plane_angle_rad),
+        }
         if self.point is not None:
             d["point"] = self.point.tolist()
         if self.cov_u is not None:
@@ -248,6 +256,7 @@ def _tls_q(Q: Array, w: Array | None = None) -> tuple[float, float, float]:
     a, b = -math.sin(theta), math.cos(theta)
     return a, b, -(a * float(mx) + b * float(my))
 
+
 def robust_line(pts: Array, rng: np.random.Generator, iters: int, inlier_px: float) -> tuple[Array, NDArray[np.bool_]]:
     """RANSAC then IRLS (Tukey) total-least-squares line with a final 3-sigma rejection.
 
@@ -266,8 +275,7 @@ def robust_line(pts: Array, rng: np.random.Generator, iters: int, inlier_px: flo
         nx, ny = -d[good, 1] / ln[good], d[good, 0] / ln[good]
         c = -(nx * p[good, 0] + ny * p[good, 1])
         if c.size:
-            counts = np.count_nonzero(np.abs(np.outer(pts[:, 0], nx) + np.outer(pts[:, 1], ny) + c) < inlier_px,
-                                      axis=0)
+            counts = np.count_nonzero(np.abs(np.outer(pts[:, 0], nx) + np.outer(pts[:, 1], ny) + c) < inlier_px, axis=0)
             k = int(np.argmax(counts))
             best_count = int(counts[k])
             best = (float(nx[k]), float(ny[k]), float(c[k]))
@@ -316,7 +324,7 @@ def _edges_1d(g: Array, min_contrast: float, side: int = 3) -> tuple[Array, Arra
     mid = a[:, 1:-1]
     peak = (mid > a[:, :-2]) & (mid >= a[:, 2:]) & (mid > min_contrast)
     peak[:, : side - 1] = False
-    peak[:, mid.shape[1] - side + 1:] = False
+    peak[:, mid.shape[1] - side + 1 :] = False
     pi, si = np.nonzero(peak)
     si = si + 1
     f64 = np.float64
@@ -355,8 +363,9 @@ def _hidden(centres: Array, shift: Array, ks: tuple[float, ...], poly: Array) ->
     (they are affine in the shift).
     """
     d = np.roll(poly, -1, axis=0) - poly
-    base = d[None, :, 0] * (centres[:, None, 1] - poly[None, :, 1]) - d[None, :, 1] * (centres[:, None, 0]
-                                                                                        - poly[None, :, 0])
+    base = d[None, :, 0] * (centres[:, None, 1] - poly[None, :, 1]) - d[None, :, 1] * (
+        centres[:, None, 0] - poly[None, :, 0]
+    )
     dv = d[:, 0] * shift[1] - d[:, 1] * shift[0]
     out = np.zeros(len(centres), dtype=bool)
     for k in ks:
@@ -442,8 +451,15 @@ class _IdealToImage:
         return mx, yd
 
 
-def _near_segments(centres: Array, t_dir: Array, n_dir: Array, o_lo: float, o_hi: float,
-                   neighbours: list[tuple[Array, Array, float]], margin_px: float) -> list[tuple[Array, Array, float]]:
+def _near_segments(
+    centres: Array,
+    t_dir: Array,
+    n_dir: Array,
+    o_lo: float,
+    o_hi: float,
+    neighbours: list[tuple[Array, Array, float]],
+    margin_px: float,
+) -> list[tuple[Array, Array, float]]:
     """The neighbours (a, b, half-width) that may come closer than half-width + margin to the band.
 
     The band is the points ``centres[p] + o n_dir`` with o in [o_lo, o_hi]; a neighbour segment separated
@@ -466,12 +482,12 @@ def _near_segments(centres: Array, t_dir: Array, n_dir: Array, o_lo: float, o_hi
 class _Segment:
     """A predicted rod's visible axis segment in ideal pixels and its predicted limb offsets."""
 
-    a: Array            #: start (ideal px), shape (2,)
-    t_dir: Array        #: unit direction along the axis, shape (2,)
-    n_dir: Array        #: unit normal, shape (2,)
-    length: float       #: px
-    off1: Array         #: limb 1 offset along n at the start and the end (px), shape (2,)
-    off2: Array         #: limb 2 offset along n at the start and the end (px), shape (2,)
+    a: Array  #: start (ideal px), shape (2,)
+    t_dir: Array  #: unit direction along the axis, shape (2,)
+    n_dir: Array  #: unit normal, shape (2,)
+    length: float  #: px
+    off1: Array  #: limb 1 offset along n at the start and the end (px), shape (2,)
+    off2: Array  #: limb 2 offset along n at the start and the end (px), shape (2,)
 
     def limb_offsets(self, frac: Array) -> tuple[Array, Array]:
         o1 = self.off1[0] + frac * (self.off1[1] - self.off1[0])
@@ -479,8 +495,9 @@ class _Segment:
         return o1, o2
 
 
-def _predicted_segment(camera: CameraModel, pred: RodPrediction, radius: float, near_m: float,
-                       box: Array) -> _Segment | str:
+def _predicted_segment(
+    camera: CameraModel, pred: RodPrediction, radius: float, near_m: float, box: Array
+) -> _Segment | str:
     """The predicted rod in ideal pixels, clipped to z >= near and to the image; a reason if none."""
     K = camera.K
     top, bot = pred.top.copy(), pred.bottom.copy()
@@ -498,8 +515,12 @@ def _predicted_segment(camera: CameraModel, pred: RodPrediction, radius: float, 
     b2 = (K @ (bot / bot[2]))[:2]
     d2 = b2 - a2
     t0, t1 = 0.0, 1.0  # Liang-Barsky clip to the ideal-pixel bounding box of the image
-    for p_, q_ in ((-d2[0], a2[0] - box[0]), (d2[0], box[2] - a2[0]), (-d2[1], a2[1] - box[1]),
-                   (d2[1], box[3] - a2[1])):
+    for p_, q_ in (
+        (-d2[0], a2[0] - box[0]),
+        (d2[0], box[2] - a2[0]),
+        (-d2[1], a2[1] - box[1]),
+        (d2[1], box[3] - a2[1]),
+    ):
         if abs(p_) < 1e-12:
             if q_ < 0:
                 t0, t1 = 1.0, 0.0
@@ -540,8 +561,9 @@ def _seg_distance(pts: Array, a: Array, b: Array) -> Array:
     return np.linalg.norm(pts - (a[None] + t[:, None] * d[None]), axis=1)
 
 
-def _pair_edges(pi: NDArray[np.int_], xo: Array, gs: Array, pc: Array, pw: Array, band_px: float,
-                width_tol: float) -> tuple[NDArray[np.int_], Array, Array, NDArray[np.int_]]:
+def _pair_edges(
+    pi: NDArray[np.int_], xo: Array, gs: Array, pc: Array, pw: Array, band_px: float, width_tol: float
+) -> tuple[NDArray[np.int_], Array, Array, NDArray[np.int_]]:
     """Per profile, the pair of opposite-polarity edges that best matches the predicted rod (vectorised).
 
     Parameters
@@ -592,8 +614,11 @@ def _pair_edges(pi: NDArray[np.int_], xo: Array, gs: Array, pc: Array, pw: Array
     # than it scales it): a pair of the wrong width (a limb and the edge of a specular streak, say)
     # is penalised hard even when its edges are stronger than the true limb's
     sw = 0.5 + 0.04 * pw[k]
-    score = (np.minimum(np.abs(gs[ii]), np.abs(gs[jj])) * np.exp(-0.5 * ((wdt - pw[k]) / sw) ** 2)
-             / (1.0 + (np.abs(cen - pc[k]) / 4.0) ** 2))
+    score = (
+        np.minimum(np.abs(gs[ii]), np.abs(gs[jj]))
+        * np.exp(-0.5 * ((wdt - pw[k]) / sw) ** 2)
+        / (1.0 + (np.abs(cen - pc[k]) / 4.0) ** 2)
+    )
     # best pair per profile: sort by (profile, -score) and take the first of each profile
     order = np.lexsort((-score, k))
     first = np.ones(order.size, dtype=bool)
@@ -632,8 +657,9 @@ def _line_cov(pts: Array, line: Array, max_lag: int = 12) -> tuple[Array, Array,
     return c, t_dir, s2 * max(factor, 1.0)
 
 
-def _direction_covariance(K: Array, fits: list[tuple[Array, Array, float, Array]], inner: Array,
-                          edge_bias_px: float = 0.0) -> Array:
+def _direction_covariance(
+    K: Array, fits: list[tuple[Array, Array, float, Array]], inner: Array, edge_bias_px: float = 0.0
+) -> Array:
     """Covariance (3, 3) of the axis direction from the two limb fits' line uncertainties.
 
     Each fit is (centroid, unit direction, sigma^2, points); the line is perturbed by a rotation about
@@ -666,19 +692,33 @@ def _direction_covariance(K: Array, fits: list[tuple[Array, Array, float, Array]
         h /= np.linalg.norm(h, axis=1, keepdims=True)
         hs.append(h * np.where(h @ inner > 0, 1.0, -1.0)[:, None])
     a, b = hs
-    u = np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
-                  a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)  # h1 x h2, row by row
+    u = np.stack(
+        [
+            a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1],
+            a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+            a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0],
+        ],
+        axis=1,
+    )  # h1 x h2, row by row
     u /= np.linalg.norm(u, axis=1, keepdims=True)
     u *= np.where(u @ u[0] > 0, 1.0, -1.0)[:, None]
     J = ((u[1::2] - u[2::2]) / (2.0 * step[:, None])).T  # (3, 4)
     return J @ np.diag(var) @ J.T
 
 
-def measure_rod(gray: np.ndarray, camera: CameraModel, pred: RodPrediction, radius: float,
-                settings: RodSettings | None = None, occluders: list[Array] | None = None,
-                rng: np.random.Generator | None = None, ideal_bbox: Array | None = None,
-                neighbours: list[tuple[Array, Array, float]] | None = None,
-                segment: _Segment | str | None = None, projector: _IdealToImage | None = None) -> RodMeasurement:
+def measure_rod(
+    gray: np.ndarray,
+    camera: CameraModel,
+    pred: RodPrediction,
+    radius: float,
+    settings: RodSettings | None = None,
+    occluders: list[Array] | None = None,
+    rng: np.random.Generator | None = None,
+    ideal_bbox: Array | None = None,
+    neighbours: list[tuple[Array, Array, float]] | None = None,
+    segment: _Segment | str | None = None,
+    projector: _IdealToImage | None = None,
+) -> RodMeasurement:
     """Measure one rod in an image.
 
     Parameters
@@ -723,18 +763,26 @@ def measure_rod(gray: np.ndarray, camera: CameraModel, pred: RodPrediction, radi
     # keep centres inside the image (after distortion; the ideal-pixel box guards against the
     # distortion polynomial's fold-back far outside the field of view) and outside occluders
     dpx = proj.points(centres)
-    inside = ((dpx[:, 0] >= s.border_px) & (dpx[:, 0] <= camera.width - 1 - s.border_px)
-              & (dpx[:, 1] >= s.border_px) & (dpx[:, 1] <= camera.height - 1 - s.border_px)
-              & (centres[:, 0] >= box[0]) & (centres[:, 0] <= box[2])
-              & (centres[:, 1] >= box[1]) & (centres[:, 1] <= box[3]))
+    inside = (
+        (dpx[:, 0] >= s.border_px)
+        & (dpx[:, 0] <= camera.width - 1 - s.border_px)
+        & (dpx[:, 1] >= s.border_px)
+        & (dpx[:, 1] <= camera.height - 1 - s.border_px)
+        & (centres[:, 0] >= box[0])
+        & (centres[:, 0] <= box[2])
+        & (centres[:, 1] >= box[1])
+        & (centres[:, 1] <= box[3])
+    )
     half = 0.5 * float(np.max(np.abs(seg.off1 - seg.off2)))
     for poly in occluders or []:
         # a profile is hidden when any part of its span is inside the polygon
         inside &= ~_hidden(centres, (half + 4.0) * n_dir, (-1.0, 0.0, 1.0), poly)
     if inside.sum() * s.step_px < s.min_length_px:
         vis = inside.sum() * s.step_px
-        out.reason = (f"not enough of the rod visible ({vis:.0f} px of {seg.length:.0f} px predicted; "
-                      "outside the image or hidden by the board)")
+        out.reason = (
+            f"not enough of the rod visible ({vis:.0f} px of {seg.length:.0f} px predicted; "
+            "outside the image or hidden by the board)"
+        )
         return out
     ts, centres = ts[inside], centres[inside]
     o1, o2 = seg.limb_offsets(ts / seg.length)
@@ -749,11 +797,19 @@ def measure_rod(gray: np.ndarray, camera: CameraModel, pred: RodPrediction, radi
     g = cv2.filter2D(prof, cv2.CV_32F, ker[None, ::-1].astype(np.float32), borderType=cv2.BORDER_REPLICATE)
     g *= np.float32(1.0 / ds)  # grey levels per pixel
     pi, pos, sg = _edges_1d(g, s.min_contrast, max(2, round(3.0 / ds)))  # pi ascending (row-major scan)
-    k, x_lo, x_hi, pol = _pair_edges(pi, lo + pos * ds, sg, 0.5 * (o1 + o2), np.abs(o2 - o1), s.band_px,
-                                     s.width_tolerance)
+    k, x_lo, x_hi, pol = _pair_edges(
+        pi, lo + pos * ds, sg, 0.5 * (o1 + o2), np.abs(o2 - o1), s.band_px, s.width_tolerance
+    )
     if neighbours:
-        neighbours = _near_segments(centres, seg.t_dir, n_dir, float(min(o1.min(), o2.min())),
-                                    float(max(o1.max(), o2.max())), neighbours, s.neighbour_px)
+        neighbours = _near_segments(
+            centres,
+            seg.t_dir,
+            n_dir,
+            float(min(o1.min(), o2.min())),
+            float(max(o1.max(), o2.max())),
+            neighbours,
+            s.neighbour_px,
+        )
     # one polarity per rod (brighter or darker than its surroundings): pairs of the other polarity
     # are gaps between two bright things (e.g. the two rods of a leg), dropped
     if k.size:
@@ -776,8 +832,10 @@ def measure_rod(gray: np.ndarray, camera: CameraModel, pred: RodPrediction, radi
                 clear &= _seg_distance(limb_pred, a_n, b_n) > hw + s.neighbour_px
             pts = pts[clear]
         if len(pts) < s.min_points:
-            out.reason = (f"too few limb edge points ({len(pts)} < {s.min_points}): rod not found in its "
-                          "search band, or too close to another rod")
+            out.reason = (
+                f"too few limb edge points ({len(pts)} < {s.min_points}): rod not found in its "
+                "search band, or too close to another rod"
+            )
             return out
         line, inl = robust_line(pts, rng, s.ransac_iters, s.inlier_px)
         if not np.all(np.isfinite(line)) or inl.sum() < s.min_points:
@@ -787,7 +845,7 @@ def measure_rod(gray: np.ndarray, camera: CameraModel, pred: RodPrediction, radi
         lines.append(line)
         c, td, s2 = _line_cov(pts[inl], line)
         fits.append((c, td, s2, pts[inl]))
-        rms.append(float(np.sqrt(np.mean(r ** 2))))
+        rms.append(float(np.sqrt(np.mean(r**2))))
         npts.append(int(inl.sum()))
     out.lines_px = lines
     out.rms_px = (rms[0], rms[1])
@@ -835,12 +893,14 @@ def measure_rod(gray: np.ndarray, camera: CameraModel, pred: RodPrediction, radi
     return out
 
 
-def _limb_samples(camera: CameraModel, fits: list[tuple[Array, Array, float, Array]],
-                  projector: _IdealToImage | None = None) -> Array:
+def _limb_samples(
+    camera: CameraModel, fits: list[tuple[Array, Array, float, Array]], projector: _IdealToImage | None = None
+) -> Array:
     """Five points per limb on its fitted line at the quantiles of its edge points, distorted pixels (2, 5, 2)."""
     proj = projector if projector is not None else _IdealToImage(camera)
-    ideal = np.concatenate([c[None] + _quantiles5(np.sort((pts - c) @ td))[:, None] * td[None]
-                            for c, td, _s2, pts in fits])
+    ideal = np.concatenate(
+        [c[None] + _quantiles5(np.sort((pts - c) @ td))[:, None] * td[None] for c, td, _s2, pts in fits]
+    )
     return proj.points(ideal).reshape(len(fits), 5, 2)
 
 
@@ -858,13 +918,21 @@ def _quantiles5(x: Array) -> Array:
 def image_ideal_bbox(camera: CameraModel, margin_px: float = 2.0) -> Array:
     """Bounding box (xmin, ymin, xmax, ymax) in ideal pixels of the whole image, with a margin."""
     b = camera.to_ideal_pixels(camera.normalized_bounds())
-    return np.array([b[:, 0].min() - margin_px, b[:, 1].min() - margin_px, b[:, 0].max() + margin_px,
-                     b[:, 1].max() + margin_px])
+    return np.array(
+        [b[:, 0].min() - margin_px, b[:, 1].min() - margin_px, b[:, 0].max() + margin_px, b[:, 1].max() + margin_px]
+    )
 
 
-def measure_rods(gray: np.ndarray, camera: CameraModel, preds: list[RodPrediction], radius: float,
-                 settings: RodSettings | None = None, occluders: list[Array] | None = None,
-                 seed: int = 0, ideal_bbox: Array | None = None) -> list[RodMeasurement]:
+def measure_rods(
+    gray: np.ndarray,
+    camera: CameraModel,
+    preds: list[RodPrediction],
+    radius: float,
+    settings: RodSettings | None = None,
+    occluders: list[Array] | None = None,
+    seed: int = 0,
+    ideal_bbox: Array | None = None,
+) -> list[RodMeasurement]:
     """Measure every predicted rod of a frame (see :func:`measure_rod`).
 
     Each rod's limb points near another rod's predicted silhouette are dropped. When the two rods of a
@@ -878,13 +946,16 @@ def measure_rods(gray: np.ndarray, camera: CameraModel, preds: list[RodPredictio
     box = ideal_bbox if ideal_bbox is not None else image_ideal_bbox(camera)
     proj = _IdealToImage(camera)
     segs = [_predicted_segment(camera, p, radius, s.near_m, box) for p in preds]
-    sil = [None if isinstance(g, str) else
-           (g.a, g.a + g.length * g.t_dir, 0.5 * float(np.max(np.abs(g.off1 - g.off2)))) for g in segs]
+    sil = [
+        None if isinstance(g, str) else (g.a, g.a + g.length * g.t_dir, 0.5 * float(np.max(np.abs(g.off1 - g.off2))))
+        for g in segs
+    ]
 
     def measure(i: int, pred: RodPrediction, seg: _Segment | str | None = None) -> RodMeasurement:
         nb = [x for j, x in enumerate(sil) if j != i and x is not None]
-        return measure_rod(img, camera, pred, radius, s, occluders, rng, box, neighbours=nb, segment=seg,
-                           projector=proj)
+        return measure_rod(
+            img, camera, pred, radius, s, occluders, rng, box, neighbours=nb, segment=seg, projector=proj
+        )
 
     out = [measure(i, p, segs[i]) for i, p in enumerate(preds)]
     index = {(p.leg, p.rod): i for i, p in enumerate(preds)}
@@ -906,8 +977,11 @@ def measure_rods(gray: np.ndarray, camera: CameraModel, preds: list[RodPredictio
         if again.ok and _line_distance(out[keep], again) > 0.5 * spacing:
             out[redo] = again
         else:
-            out[redo] = RodMeasurement(preds[redo].leg, preds[redo].rod, reason=(
-                "both rods of the leg matched the same rod image and the other was not found beside it"))
+            out[redo] = RodMeasurement(
+                preds[redo].leg,
+                preds[redo].rod,
+                reason=("both rods of the leg matched the same rod image and the other was not found beside it"),
+            )
     return out
 
 

@@ -33,8 +33,7 @@ def find_producers(cti: str | None = None) -> list[str]:
         if d:
             out += sorted(glob.glob(os.path.join(d, "*.cti")))
     if not out:
-        raise DeviceConnectionError("no GenTL producer: give ?cti=PATH in the camera URI or set "
-                                    "GENICAM_GENTL64_PATH")
+        raise DeviceConnectionError("no GenTL producer: give ?cti=PATH in the camera URI or set GENICAM_GENTL64_PATH")
     return out
 
 
@@ -57,8 +56,9 @@ def _to_image(component) -> np.ndarray:
 class GenICamCamera:
     """:class:`drivers.interfaces.Camera` through harvesters."""
 
-    def __init__(self, cti: str | None = None, serial: str | None = None, timeout_s: float = 2.0,
-                 incomplete_retries: int = 3) -> None:
+    def __init__(
+        self, cti: str | None = None, serial: str | None = None, timeout_s: float = 2.0, incomplete_retries: int = 3
+    ) -> None:
         self.cti = cti
         self.serial = serial
         self.default_timeout_s = timeout_s
@@ -89,15 +89,20 @@ class GenICamCamera:
             serials = [str(d.serial_number) for d in devices]
             if self.serial not in serials:
                 h.reset()
-                raise DeviceConnectionError(f"no GenICam device with serial {self.serial!r}; found "
-                                            f"{', '.join(serials)}")
+                raise DeviceConnectionError(
+                    f"no GenICam device with serial {self.serial!r}; found {', '.join(serials)}"
+                )
             ia = h.create({"serial_number": self.serial})
         else:
             ia = h.create(0)
         self._h, self._ia = h, ia
         info = devices[[str(x.serial_number) for x in devices].index(self.serial)] if self.serial else devices[0]
-        self._info = {"vendor": str(info.vendor), "model": str(info.model), "serial": str(info.serial_number),
-                      "producer": producers[0]}
+        self._info = {
+            "vendor": str(info.vendor),
+            "model": str(info.model),
+            "serial": str(info.serial_number),
+            "producer": producers[0],
+        }
         nm = ia.remote_device.node_map
         self._trigger = self._setup_trigger(nm)
         self._info["software_trigger"] = self._trigger
@@ -145,8 +150,13 @@ class GenICamCamera:
 
     def _configure(self, settings: dict[str, Any]) -> None:
         nm = self._ia.remote_device.node_map
-        names = {"exposure_us": "ExposureTime", "gain_db": "Gain", "pixel_format": "PixelFormat",
-                 "width": "Width", "height": "Height"}
+        names = {
+            "exposure_us": "ExposureTime",
+            "gain_db": "Gain",
+            "pixel_format": "PixelFormat",
+            "width": "Width",
+            "height": "Height",
+        }
         ignored = []
         need_restart = any(settings.get(k) is not None for k in ("pixel_format", "width", "height"))
         if need_restart:
@@ -202,8 +212,9 @@ class GenICamCamera:
                 break
             self._index += 1
             return Frame(image=img, index=self._index, timestamp_s=ts, meta={})
-        raise DeviceTimeoutError(f"no complete frame from GenICam camera {self._info.get('serial', '?')} within "
-                                 f"{timeout_s:.3f} s")
+        raise DeviceTimeoutError(
+            f"no complete frame from GenICam camera {self._info.get('serial', '?')} within {timeout_s:.3f} s"
+        )
 
     def _close(self) -> None:
         if self._ia is not None:

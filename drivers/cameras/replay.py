@@ -37,15 +37,15 @@ class ReplayCamera:
             await self.open()
         if self._next >= len(self._indices):
             if not self.loop or not self._indices:
-                raise DeviceTimeoutError(f"replay of {self.path}: no more frames "
-                                         f"({len(self._indices)} replayed)")
+                raise DeviceTimeoutError(f"replay of {self.path}: no more frames ({len(self._indices)} replayed)")
             self._next = 0
         i = self._indices[self._next]
         self._next += 1
         f = self._ds.frames[i]
         img = self._ds.load_image(i)
-        return Frame(image=img, index=i, timestamp_s=time.monotonic(),
-                     meta={"phase": f.phase, "q": list(f.q), "t": f.t})
+        return Frame(
+            image=img, index=i, timestamp_s=time.monotonic(), meta={"phase": f.phase, "q": list(f.q), "t": f.t}
+        )
 
     async def close(self) -> None:
         self._ds = None

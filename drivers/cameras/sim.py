@@ -30,11 +30,13 @@ class _LineClient:
     async def _ensure(self) -> None:
         if self._w is None or self._w.is_closing():
             try:
-                self._r, self._w = await asyncio.wait_for(asyncio.open_connection(self.host, self.port),
-                                                          self.connect_timeout_s)
+                self._r, self._w = await asyncio.wait_for(
+                    asyncio.open_connection(self.host, self.port), self.connect_timeout_s
+                )
             except (OSError, TimeoutError) as exc:
-                raise DeviceConnectionError(f"cannot reach the simulated bench at {self.host}:{self.port} "
-                                            f"({exc or type(exc).__name__})") from None
+                raise DeviceConnectionError(
+                    f"cannot reach the simulated bench at {self.host}:{self.port} ({exc or type(exc).__name__})"
+                ) from None
 
     def _drop(self) -> None:
         if self._w is not None:
@@ -63,12 +65,14 @@ class _LineClient:
                 return hdr, payload
             except TimeoutError:
                 self._drop()  # a late reply must not answer the next request
-                raise DeviceTimeoutError(f"no reply from the simulated bench at {self.host}:{self.port} "
-                                         f"within {timeout_s:.3f} s") from None
+                raise DeviceTimeoutError(
+                    f"no reply from the simulated bench at {self.host}:{self.port} within {timeout_s:.3f} s"
+                ) from None
             except (ConnectionError, OSError, asyncio.IncompleteReadError) as exc:
                 self._drop()
-                raise DeviceConnectionError(f"link to the simulated bench at {self.host}:{self.port} lost "
-                                            f"({exc or type(exc).__name__})") from None
+                raise DeviceConnectionError(
+                    f"link to the simulated bench at {self.host}:{self.port} lost ({exc or type(exc).__name__})"
+                ) from None
             except json.JSONDecodeError as exc:
                 self._drop()
                 raise FrameError(f"simulated bench: malformed header ({exc})") from None
@@ -98,8 +102,7 @@ class SimCamera:
         hdr, payload = await self._client.request("GRAB", t)
         if payload is None or len(payload) != int(hdr["nbytes"]) or zlib.crc32(payload) != int(hdr["crc32"]):
             raise FrameError(f"corrupt frame from the simulated camera (seq {hdr.get('seq')}): checksum mismatch")
-        shape = (int(hdr["height"]), int(hdr["width"])) + (() if int(hdr["channels"]) == 1
-                                                           else (int(hdr["channels"]),))
+        shape = (int(hdr["height"]), int(hdr["width"])) + (() if int(hdr["channels"]) == 1 else (int(hdr["channels"]),))
         img = np.frombuffer(payload, dtype=np.dtype(hdr["dtype"])).reshape(shape)
         self._index += 1
         meta = {k: hdr[k] for k in ("seq", "q_true", "pose_true") if k in hdr}
@@ -121,8 +124,14 @@ class SimOperator:
         self.timeout_s = timeout_s
 
     async def begin_line(self, start_pose, end_pose, samples: int, rate_hz: float) -> None:
-        arg = json.dumps({"start_pose": list(map(float, start_pose)), "end_pose": list(map(float, end_pose)),
-                          "samples": int(samples), "rate_hz": float(rate_hz)})
+        arg = json.dumps(
+            {
+                "start_pose": list(map(float, start_pose)),
+                "end_pose": list(map(float, end_pose)),
+                "samples": int(samples),
+                "rate_hz": float(rate_hz),
+            }
+        )
         await self._client.request("LINE " + arg, self.timeout_s)
 
     async def end_line(self) -> None:

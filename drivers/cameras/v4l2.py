@@ -33,11 +33,12 @@ class V4L2Camera:
         if cap is None or not cap.isOpened():
             if cap is not None:
                 cap.release()
-            raise DeviceConnectionError(f"cannot open V4L2 camera {self.device!r} (no such device, busy, or no "
-                                        "permission: check `v4l2-ctl --list-devices` and the video group)")
+            raise DeviceConnectionError(
+                f"cannot open V4L2 camera {self.device!r} (no such device, busy, or no "
+                "permission: check `v4l2-ctl --list-devices` and the video group)"
+            )
         self._cap = cap
-        self._info.update(width=int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)),
-                          height=int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)))
+        self._info.update(width=int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), height=int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)))
 
     async def open(self) -> None:
         if self._cap is None:
@@ -53,8 +54,9 @@ class V4L2Camera:
             cap.set(cv2.CAP_PROP_FRAME_HEIGHT, int(settings["height"]))
             w, h = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
             if (w, h) != (int(settings["width"]), int(settings["height"])):
-                raise DeviceError(f"camera {self.device!r} refused {settings['width']}x{settings['height']}; "
-                                  f"it gives {w}x{h}")
+                raise DeviceError(
+                    f"camera {self.device!r} refused {settings['width']}x{settings['height']}; it gives {w}x{h}"
+                )
             self._info.update(width=w, height=h)
         if settings.get("exposure_us") is not None:
             cap.set(cv2.CAP_PROP_AUTO_EXPOSURE, 1)

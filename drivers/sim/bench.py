@@ -52,8 +52,7 @@ class FallbackRenderer:
 
         img = np.full((self.height, self.width), 64, np.uint8)
         for k, v in enumerate(q_true):
-            cv2.putText(img, f"q{k + 1}={v * 1e3:9.3f}", (40, 80 + 60 * k), cv2.FONT_HERSHEY_SIMPLEX, 1.5,
-                        255, 2)
+            cv2.putText(img, f"q{k + 1}={v * 1e3:9.3f}", (40, 80 + 60 * k), cv2.FONT_HERSHEY_SIMPLEX, 1.5, 255, 2)
         x = int(np.clip((pose_true[0] - 0.5) / 1.0 * self.width, 0, self.width - 1))
         cv2.circle(img, (x, self.height // 2 + 100), 20, 200, -1)
         return img
@@ -71,8 +70,8 @@ def default_renderer(geometry: BenchGeometry, seed: int = 0) -> Any:
 
 @dataclass
 class CameraFaults:
-    timeouts: int = 0   # ignore this many GRAB requests (the client times out)
-    corrupt: int = 0    # corrupt this many frames (payload no longer matches its CRC)
+    timeouts: int = 0  # ignore this many GRAB requests (the client times out)
+    corrupt: int = 0  # corrupt this many frames (payload no longer matches its CRC)
     render_errors: int = 0
 
 
@@ -122,20 +121,27 @@ class FrameServer:
                             raise RuntimeError("sensor readout error (injected)")
                         img, meta = await asyncio.to_thread(self.render_now)
                         payload = img.tobytes()
-                        hdr = {"height": img.shape[0], "width": img.shape[1],
-                               "channels": 1 if img.ndim == 2 else img.shape[2], "dtype": str(img.dtype),
-                               "nbytes": len(payload), "crc32": zlib.crc32(payload), **meta}
+                        hdr = {
+                            "height": img.shape[0],
+                            "width": img.shape[1],
+                            "channels": 1 if img.ndim == 2 else img.shape[2],
+                            "dtype": str(img.dtype),
+                            "nbytes": len(payload),
+                            "crc32": zlib.crc32(payload),
+                            **meta,
+                        }
                         if self.faults.corrupt > 0:
                             self.faults.corrupt -= 1
                             b = bytearray(payload)
-                            b[len(b) // 3: len(b) // 3 + 4096] = bytes(4096)[: len(b) - len(b) // 3]
+                            b[len(b) // 3 : len(b) // 3 + 4096] = bytes(4096)[: len(b) - len(b) // 3]
                             b[len(b) // 2] ^= 0xFF
                             payload = bytes(b)
                         writer.write(b"OK " + json.dumps(hdr).encode() + b"\n" + payload)
                     elif cmd == "LINE":
                         a = json.loads(arg)
-                        self.mechanism.begin_line(a["start_pose"], a["end_pose"], int(a["samples"]),
-                                                  float(a["rate_hz"]))
+                        self.mechanism.begin_line(
+                            a["start_pose"], a["end_pose"], int(a["samples"]), float(a["rate_hz"])
+                        )
                         writer.write(b"OK {}\n")
                     elif cmd == "ENDLINE":
                         self.mechanism.end_line()
@@ -163,10 +169,18 @@ class SimBench:
     frame endpoint on ``port + 2``.
     """
 
-    def __init__(self, *, port: int = 0, geometry: BenchGeometry | None = None,
-                 axis_config: AxisConfig | None = None, regmap: RegisterMap = DEFAULT_MAP,
-                 renderer: Any = None, seed: int = 0, rtu: bool = True,
-                 initial_q: Any = None) -> None:
+    def __init__(
+        self,
+        *,
+        port: int = 0,
+        geometry: BenchGeometry | None = None,
+        axis_config: AxisConfig | None = None,
+        regmap: RegisterMap = DEFAULT_MAP,
+        renderer: Any = None,
+        seed: int = 0,
+        rtu: bool = True,
+        initial_q: Any = None,
+    ) -> None:
         self.geometry = geometry or BenchGeometry()
         if initial_q is None:
             from calib.kinematics import ikm
@@ -232,10 +246,17 @@ class SimBench:
         """A :class:`drivers.config.BenchConfig` pointing at this bench, with fast sim speeds."""
         from ..config import BenchConfig
 
-        data: dict[str, Any] = {"actuators": {"uri": self.actuators_uri, "speed_m_s": 10.0, "accel_m_s2": 1000.0,
-                                              "timeout_s": 0.5, "poll_s": 0.001},
-                                "camera": {"uri": self.camera_uri},
-                                "operator": {"uri": self.operator_uri}}
+        data: dict[str, Any] = {
+            "actuators": {
+                "uri": self.actuators_uri,
+                "speed_m_s": 10.0,
+                "accel_m_s2": 1000.0,
+                "timeout_s": 0.5,
+                "poll_s": 0.001,
+            },
+            "camera": {"uri": self.camera_uri},
+            "operator": {"uri": self.operator_uri},
+        }
         for k, v in overrides.items():
             if isinstance(v, dict) and isinstance(data.get(k), dict):
                 data[k] = {**data[k], **v}

@@ -34,9 +34,9 @@ log = logging.getLogger(__name__)
 class Faults:
     """Counters of faults still to inject (each use decrements); set them from a test."""
 
-    exception_code: int = 0       # reply with this Modbus exception code ...
-    exception_count: int = 0      # ... to this many requests
-    drop_replies: int = 0         # swallow this many replies
+    exception_code: int = 0  # reply with this Modbus exception code ...
+    exception_count: int = 0  # ... to this many requests
+    drop_replies: int = 0  # swallow this many replies
 
 
 def apply_control(ax, bits: int, target_m: float, speed_m_s: float, now: float, cb) -> None:
@@ -103,8 +103,9 @@ class SimController:
                 if a is not None and a == prev + 1 and flags[a] == flags[start]:
                     prev = a
                     continue
-                blocks.append(SimData(start, count=prev - start + 1, values=0, datatype=DataType.REGISTERS,
-                                      readonly=flags[start]))
+                blocks.append(
+                    SimData(start, count=prev - start + 1, values=0, datatype=DataType.REGISTERS, readonly=flags[start])
+                )
                 if a is not None:
                     start = prev = a
             out.append(SimDevice(unit, simdata=blocks, action=self._action_for(unit)))
@@ -113,8 +114,9 @@ class SimController:
     def _action_for(self, unit: int):
         axes = self._units[unit]
 
-        async def action(fc: int, start_address: int, address: int, count: int, registers: list[int],
-                         set_values) -> ExcCodes | None:
+        async def action(
+            fc: int, start_address: int, address: int, count: int, registers: list[int], set_values
+        ) -> ExcCodes | None:
             return self._action(axes, fc, start_address, address, count, registers, set_values)
 
         return action
@@ -218,8 +220,9 @@ class SimController:
         if port is None:
             tcp_port = _free_port("127.0.0.1")
             port = f"socket://127.0.0.1:{tcp_port}"
-        srv = ModbusSerialServer(self.devices(), framer=FramerType.RTU, port=port, baudrate=baudrate,
-                                 trace_packet=self._trace_packet)
+        srv = ModbusSerialServer(
+            self.devices(), framer=FramerType.RTU, port=port, baudrate=baudrate, trace_packet=self._trace_packet
+        )
         await srv.serve_forever(background=True)
         self._servers.append(srv)
         self._start_watchdog()

@@ -14,9 +14,16 @@ from .render import BenchRenderer, RenderSettings
 from .twin import BenchGeometry, GeometricTwin
 
 
-def simulate_dataset(out_dir: str | Path, *, seed: int = 0, geometry: BenchGeometry | None = None,
-                     render: RenderSettings | None = None, plan: Plan | None = None, n_camera_views: int = 15,
-                     progress: Callable[[int, int], None] | None = None) -> Path:
+def simulate_dataset(
+    out_dir: str | Path,
+    *,
+    seed: int = 0,
+    geometry: BenchGeometry | None = None,
+    render: RenderSettings | None = None,
+    plan: Plan | None = None,
+    n_camera_views: int = 15,
+    progress: Callable[[int, int], None] | None = None,
+) -> Path:
     """Render a plan into a dataset v1 directory (``camera`` phase first), with the truth alongside.
 
     Parameters
@@ -53,20 +60,26 @@ def simulate_dataset(out_dir: str | Path, *, seed: int = 0, geometry: BenchGeome
     views = renderer.random_board_views(n_camera_views, rng) if n_camera_views else []
     cam = renderer.camera
     truth = twin.truth_dict()
-    truth.update({"K": cam.K.tolist(), "dist": cam.dist.tolist(),
-                  "board_points_true": renderer.board_points_true.tolist(),
-                  "board_points_nominal": renderer.board_points_nominal.tolist(),
-                  "render": {k: (v.model_dump() if hasattr(v, "model_dump") else v)
-                             for k, v in rs.__dict__.items()}})
+    truth.update(
+        {
+            "K": cam.K.tolist(),
+            "dist": cam.dist.tolist(),
+            "board_points_true": renderer.board_points_true.tolist(),
+            "board_points_nominal": renderer.board_points_nominal.tolist(),
+            "render": {k: (v.model_dump() if hasattr(v, "model_dump") else v) for k, v in rs.__dict__.items()},
+        }
+    )
     # what a ruler says: the board origin's height above the end-effector point, to 5 mm
     board_spec = rs.board.model_copy(update={"height_above_ee_m": round(float(g.ee_from_board.t[2]) / 0.005) * 0.005})
     out = Path(out_dir)
-    w = DatasetWriter(out, camera=CameraSpec(width=rs.width, height=rs.height, pixel_size_m=4.65e-6),
-                      board=board_spec, legs=LegsSpec(rod_radius_m=g.rod_radius_m, rods_per_leg=2,
-                                                    rod_spacing_m=g.rod_spacing_m),
-                      nominal=g.nominal.as_dict(), extra={"truth": truth,
-                                                          "generator": {"name": "i4cal image twin", "seed": seed,
-                                                                        "plan": plan.name}})
+    w = DatasetWriter(
+        out,
+        camera=CameraSpec(width=rs.width, height=rs.height, pixel_size_m=4.65e-6),
+        board=board_spec,
+        legs=LegsSpec(rod_radius_m=g.rod_radius_m, rods_per_leg=2, rod_spacing_m=g.rod_spacing_m),
+        nominal=g.nominal.as_dict(),
+        extra={"truth": truth, "generator": {"name": "i4cal image twin", "seed": seed, "plan": plan.name}},
+    )
     total = len(views) + len(steps)
     noise_rng = np.random.default_rng([seed, 11])
     t = 0.0

@@ -61,7 +61,7 @@ class _Profile:
         d = abs(self.p1 - self.p0)
         if d == 0:
             return
-        if d >= self.v ** 2 / self.a:
+        if d >= self.v**2 / self.a:
             self.t_acc = self.v / self.a
             self.v_peak = self.v
             self.t_total = d / self.v + self.t_acc
@@ -80,9 +80,9 @@ class _Profile:
         s = np.sign(self.p1 - self.p0)
         ta, T, a, vp = self.t_acc, self.t_total, self.a, self.v_peak
         if tau < ta:
-            x = 0.5 * a * tau ** 2
+            x = 0.5 * a * tau**2
         elif tau < T - ta:
-            x = 0.5 * a * ta ** 2 + vp * (tau - ta)
+            x = 0.5 * a * ta**2 + vp * (tau - ta)
         else:
             x = d - 0.5 * a * (T - tau) ** 2
         return self.p0 + s * x
@@ -199,9 +199,14 @@ class _Guide:
 class Mechanism:
     """Shared true state of the simulated bench (thread-safe)."""
 
-    def __init__(self, geometry: BenchGeometry | None = None, axis_config: AxisConfig | None = None,
-                 initial_q: np.ndarray | None = None, seed: int = 0,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self,
+        geometry: BenchGeometry | None = None,
+        axis_config: AxisConfig | None = None,
+        initial_q: np.ndarray | None = None,
+        seed: int = 0,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         self.geometry = geometry or BenchGeometry()
         cfg = axis_config or AxisConfig()
         q0 = np.asarray(initial_q if initial_q is not None else [0.3, 0.3, 0.3, 0.3], dtype=float)

@@ -46,13 +46,13 @@ class RenderSettings:
     cx: float = 515.3
     cy: float = 380.6
     dist: tuple[float, ...] = (-0.30, 0.10, 4e-4, -3e-4, 0.0)
-    noise_sigma: float = 2.0          #: sensor noise, grey levels (std)
-    blur_sigma_px: float = 0.8        #: Gaussian optical blur, pixels (0: none)
-    texture: float = 1.0              #: background texture amplitude (0: flat background)
-    clutter_lines: int = 12           #: straight background edges (0: none)
-    board_error_m: float = 2e-4       #: RMS deviation of the true board corners from the nominal ones
+    noise_sigma: float = 2.0  #: sensor noise, grey levels (std)
+    blur_sigma_px: float = 0.8  #: Gaussian optical blur, pixels (0: none)
+    texture: float = 1.0  #: background texture amplitude (0: flat background)
+    clutter_lines: int = 12  #: straight background edges (0: none)
+    board_error_m: float = 2e-4  #: RMS deviation of the true board corners from the nominal ones
     board: BoardSpec = field(default_factory=BoardSpec)
-    board_margin_m: float = 0.012     #: white margin around the printed pattern
+    board_margin_m: float = 0.012  #: white margin around the printed pattern
 
     def camera(self) -> CameraModel:
         K = np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
@@ -86,8 +86,9 @@ class BenchRenderer:
         Seeds the background, the board's manufacturing error and the per-image noise.
     """
 
-    def __init__(self, geometry: BenchGeometry | None = None, settings: RenderSettings | None = None,
-                 seed: int = 0) -> None:
+    def __init__(
+        self, geometry: BenchGeometry | None = None, settings: RenderSettings | None = None, seed: int = 0
+    ) -> None:
         self.geometry = geometry or BenchGeometry()
         self.settings = settings or RenderSettings()
         s = self.settings
@@ -106,7 +107,7 @@ class BenchRenderer:
             for scale, amp in ((64, 14.0), (16, 7.0), (4, 3.0)):
                 small = rng.normal(0.0, 1.0, (h // scale + 2, w // scale + 2)).astype(np.float32)
                 big = cv2.resize(small, (w + 2 * scale, h + 2 * scale), interpolation=cv2.INTER_CUBIC)
-                bg += s.texture * amp * big[scale:scale + h, scale:scale + w]
+                bg += s.texture * amp * big[scale : scale + h, scale : scale + w]
         if s.clutter_lines > 0:
             layer = np.zeros((h * 4, w * 4), dtype=np.float32)
             for _ in range(s.clutter_lines):
@@ -115,8 +116,14 @@ class BenchRenderer:
                 d = np.array([np.cos(ang), np.sin(ang)]) * rng.uniform(80, 600)
                 val = float(rng.choice([-1, 1]) * rng.uniform(20, 45))
                 th = int(rng.integers(2, 7))
-                cv2.line(layer, tuple(int(x) for x in (p0 * 4)), tuple(int(x) for x in ((p0 + d) * 4)), val,
-                         thickness=th * 4, lineType=cv2.LINE_AA)
+                cv2.line(
+                    layer,
+                    tuple(int(x) for x in (p0 * 4)),
+                    tuple(int(x) for x in ((p0 + d) * 4)),
+                    val,
+                    thickness=th * 4,
+                    lineType=cv2.LINE_AA,
+                )
             bg += cv2.resize(layer, (w, h), interpolation=cv2.INTER_AREA)
         return np.clip(bg, 5, 250)
 
@@ -131,7 +138,7 @@ class BenchRenderer:
         pattern = board.generateImage((wpx, hpx), marginSize=0, borderBits=1).astype(np.float32)
         mpx = round(s.board_margin_m * ppm)
         tex = np.full((hpx + 2 * mpx, wpx + 2 * mpx), 255.0, dtype=np.float32)
-        tex[mpx:mpx + hpx, mpx:mpx + wpx] = pattern
+        tex[mpx : mpx + hpx, mpx : mpx + wpx] = pattern
         tex = 22.0 + tex * (215.0 / 255.0)
         self._tex_levels = [tex]
         for _ in range(4):
@@ -148,7 +155,7 @@ class BenchRenderer:
             coef[:, 0] = 0.0  # no pure translation: it would only move the board frame
             self._err_coef = coef
             d = self._delta(ids_pts[:, 0], ids_pts[:, 1])
-            rms = float(np.sqrt(np.mean(np.sum(d ** 2, axis=0))))
+            rms = float(np.sqrt(np.mean(np.sum(d**2, axis=0))))
             self._err_coef = coef * (s.board_error_m / rms)
         self._W, self._H = W, H
         p = ids_pts[:, :2].copy()
@@ -220,7 +227,7 @@ class BenchRenderer:
         c = np.sqrt(np.maximum(1.0 - rho * rho, 0.0))  # cosine of the view angle on the surface
         # diffuse light from a broad source plus a specular streak; smooth up to the limbs
         # (matte paint: the shading flattens towards the limbs, where the surface turns away)
-        shade = 140.0 + 55.0 * c ** 4 + 20.0 * rho * c * c + 35.0 * np.exp(-((rho - 0.35) / 0.15) ** 2)
+        shade = 140.0 + 55.0 * c**4 + 20.0 * rho * c * c + 35.0 * np.exp(-(((rho - 0.35) / 0.15) ** 2))
         zb = zbuf[y0:y1, x0:x1]
         front = (depth < zb) & (cover > 0)
         sub = img[y0:y1, x0:x1]
@@ -261,8 +268,8 @@ class BenchRenderer:
         level = int(np.clip(np.floor(np.log2(max(texel_per_px, 1.0))), 0, len(self._tex_levels) - 1))
         tex = self._tex_levels[level]
         # level-0 texel-centre coordinates, then level L (pyrDown: texel j of level L sits at 2^L j)
-        mapx = (((nx + m) * self._ppm - 0.5) / 2 ** level).astype(np.float32)
-        mapy = (((ny + m) * self._ppm - 0.5) / 2 ** level).astype(np.float32)
+        mapx = (((nx + m) * self._ppm - 0.5) / 2**level).astype(np.float32)
+        mapy = (((ny + m) * self._ppm - 0.5) / 2**level).astype(np.float32)
         val = cv2.remap(tex, mapx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=237.0)
         zb = zbuf[y0:y1, x0:x1]
         front = (depth < zb) & (cover > 0)
@@ -279,8 +286,13 @@ class BenchRenderer:
             img = img + g.normal(0.0, s.noise_sigma, img.shape).astype(np.float32)
         return np.clip(np.rint(img), 0, 255).astype(np.uint8)
 
-    def render(self, q_true: np.ndarray, pose_true: np.ndarray, rng: np.random.Generator | None = None,
-               board_visible: bool = True) -> np.ndarray:
+    def render(
+        self,
+        q_true: np.ndarray,
+        pose_true: np.ndarray,
+        rng: np.random.Generator | None = None,
+        board_visible: bool = True,
+    ) -> np.ndarray:
         """The 8-bit mono image (height, width) for true joint values and the true pose."""
         g = self.geometry
         img = self.background.copy()
@@ -288,8 +300,10 @@ class BenchRenderer:
         top, bottom = g.rod_segments_base(np.asarray(q_true, dtype=np.float64), np.asarray(pose_true, dtype=np.float64))
         cb = g.camera_from_base
         tc, bc = cb.apply(top), cb.apply(bottom)
-        order = sorted(((leg, rod) for leg in range(4) for rod in range(2)),
-                       key=lambda k: -float(np.linalg.norm(0.5 * (tc[k] + bc[k]))))
+        order = sorted(
+            ((leg, rod) for leg in range(4) for rod in range(2)),
+            key=lambda k: -float(np.linalg.norm(0.5 * (tc[k] + bc[k]))),
+        )
         for k in order:
             self._draw_rod(img, zbuf, tc[k], bc[k])
         if board_visible:
@@ -303,8 +317,9 @@ class BenchRenderer:
         self._draw_board(img, zbuf, camera_from_board)
         return self._finish(img, rng)
 
-    def random_board_views(self, n: int, rng: np.random.Generator, full: bool = True,
-                           margin_px: float = 25.0) -> list[Rigid]:
+    def random_board_views(
+        self, n: int, rng: np.random.Generator, full: bool = True, margin_px: float = 25.0
+    ) -> list[Rigid]:
         """``n`` board poses for intrinsic calibration: tilted up to ~40 deg, spread over the image,
         every corner in view (``full``), drawn by rejection sampling."""
         from calib.transforms import rotvec_to_matrix
@@ -331,8 +346,11 @@ class BenchRenderer:
             if R[:, 2] @ centre <= 0.3 * np.linalg.norm(centre):
                 continue
             px = cam.project(pc)
-            if full and (np.any(px < margin_px) or np.any(px[:, 0] > cam.width - margin_px)
-                         or np.any(px[:, 1] > cam.height - margin_px)):
+            if full and (
+                np.any(px < margin_px)
+                or np.any(px[:, 0] > cam.width - margin_px)
+                or np.any(px[:, 1] > cam.height - margin_px)
+            ):
                 continue
             out.append(pose)
         return out

@@ -60,13 +60,22 @@ class NoiseSpec:
         return cls(0.0, 0.0, 0.0, (0.0, 0.0, 0.0), 0.0)
 
     def scaled(self, k: float) -> NoiseSpec:
-        return NoiseSpec(self.rod_direction_rad * k, self.rod_point_m * k, self.board_rotation_rad * k,
-                         tuple(x * k for x in self.board_translation_m), self.encoder_m * k)  # type: ignore[arg-type]
+        return NoiseSpec(
+            self.rod_direction_rad * k,
+            self.rod_point_m * k,
+            self.board_rotation_rad * k,
+            tuple(x * k for x in self.board_translation_m),
+            self.encoder_m * k,
+        )  # type: ignore[arg-type]
 
     def to_dict(self) -> dict[str, Any]:
-        return {"rod_direction_rad": self.rod_direction_rad, "rod_point_m": self.rod_point_m,
-                "board_rotation_rad": self.board_rotation_rad,
-                "board_translation_m": list(self.board_translation_m), "encoder_m": self.encoder_m}
+        return {
+            "rod_direction_rad": self.rod_direction_rad,
+            "rod_point_m": self.rod_point_m,
+            "board_rotation_rad": self.board_rotation_rad,
+            "board_translation_m": list(self.board_translation_m),
+            "encoder_m": self.encoder_m,
+        }
 
 
 @dataclass(frozen=True)
@@ -161,8 +170,9 @@ class GeometricTwin:
                 out.append((step.phase, q, dkm(g.truth, q)))
         return out
 
-    def frame(self, phase: str, q: np.ndarray, pose: np.ndarray, rng: np.random.Generator,
-              with_truth: bool = True) -> dict[str, Any]:
+    def frame(
+        self, phase: str, q: np.ndarray, pose: np.ndarray, rng: np.random.Generator, with_truth: bool = True
+    ) -> dict[str, Any]:
         g = self.geometry
         n = self.noise
         cb = g.camera_from_board(pose)
@@ -176,10 +186,15 @@ class GeometricTwin:
         u_m = _perturb_direction(u, n.rod_direction_rad, rng)
         p_m = _perturb_point(p, u, n.rod_point_m, rng)
         q_m = q + rng.normal(0.0, n.encoder_m, 4) if n.encoder_m else q
-        legs = {str(i + 1): [{"u": u_m[i, j].tolist(), "point": p_m[i, j].tolist()} for j in range(2)]
-                for i in range(4)}
-        fr: dict[str, Any] = {"phase": phase, "q": q_m.tolist(), "board": {"R": R.tolist(), "t": t.tolist()},
-                              "legs": legs}
+        legs = {
+            str(i + 1): [{"u": u_m[i, j].tolist(), "point": p_m[i, j].tolist()} for j in range(2)] for i in range(4)
+        }
+        fr: dict[str, Any] = {
+            "phase": phase,
+            "q": q_m.tolist(),
+            "board": {"R": R.tolist(), "t": t.tolist()},
+            "legs": legs,
+        }
         if with_truth:
             fr["truth"] = {"q": q.tolist(), "pose": pose.tolist()}
         return fr
@@ -190,11 +205,21 @@ class GeometricTwin:
         plan = plan or make_plan("full", g.nominal, seed=seed)
         rng = np.random.default_rng(seed)
         frames = [self.frame(ph, q, pose, rng) for ph, q, pose in self.true_poses(plan)]
-        return new_document(g.nominal, frames, truth=self.truth_dict(), noise=self.noise.to_dict(),
-                            generator={"name": "i4cal geometric twin", "seed": seed, "plan": plan.name})
+        return new_document(
+            g.nominal,
+            frames,
+            truth=self.truth_dict(),
+            noise=self.noise.to_dict(),
+            generator={"name": "i4cal geometric twin", "seed": seed, "plan": plan.name},
+        )
 
     def truth_dict(self) -> dict[str, Any]:
         g = self.geometry
-        return {"parameters": g.truth.as_dict(), "combinations": g.truth.combinations(),
-                "camera_from_base": g.camera_from_base.to_dict(), "ee_from_board": g.ee_from_board.to_dict(),
-                "rod_radius_m": g.rod_radius_m, "rod_spacing_m": g.rod_spacing_m}
+        return {
+            "parameters": g.truth.as_dict(),
+            "combinations": g.truth.combinations(),
+            "camera_from_base": g.camera_from_base.to_dict(),
+            "ee_from_board": g.ee_from_board.to_dict(),
+            "rod_radius_m": g.rod_radius_m,
+            "rod_spacing_m": g.rod_spacing_m,
+        }

@@ -25,8 +25,14 @@ from .deps import DatasetId, Manager, SettingsDep, not_found
 
 router = APIRouter(prefix="/datasets", tags=["datasets"])
 
-ARCHIVE_TYPES = ("application/zip", "application/x-zip-compressed", "application/x-tar", "application/gzip",
-                 "application/x-gzip", "application/octet-stream")
+ARCHIVE_TYPES = (
+    "application/zip",
+    "application/x-zip-compressed",
+    "application/x-tar",
+    "application/gzip",
+    "application/x-gzip",
+    "application/octet-stream",
+)
 
 
 class DatasetOut(BaseModel):
@@ -153,29 +159,48 @@ def _ingest(archive: Path, dest: Path, max_bytes: int, max_members: int) -> tupl
     return str(root.relative_to(dest.parent.parent)), len(ds.frames), size
 
 
-@router.post("", status_code=status.HTTP_201_CREATED, response_model=DatasetOut,
-             openapi_extra={"requestBody": {"required": True, "description": "a zip or tar(.gz) archive of a "
-                                            "dataset v1 directory (dataset.json + frames)",
-                                            "content": {"application/zip": {"schema": {"type": "string",
-                                                                                       "format": "binary"}},
-                                                        "application/gzip": {"schema": {"type": "string",
-                                                                                        "format": "binary"}}}}},
-             responses={401: {"description": "no or wrong token"}, 413: {"description": "archive too large"},
-                        415: {"description": "not an archive type"},
-                        422: {"description": "not a safe archive of a valid dataset"}})
-async def upload_dataset(request: Request, manager: Manager, settings: SettingsDep, _: Writer,
-                         name: Annotated[str, Query(max_length=255, pattern=r"^[\w .,()+-]*$")] = "") -> DatasetOut:
+@router.post(
+    "",
+    status_code=status.HTTP_201_CREATED,
+    response_model=DatasetOut,
+    openapi_extra={
+        "requestBody": {
+            "required": True,
+            "description": "a zip or tar(.gz) archive of a dataset v1 directory (dataset.json + frames)",
+            "content": {
+                "application/zip": {"schema": {"type": "string", "format": "binary"}},
+                "application/gzip": {"schema": {"type": "string", "format": "binary"}},
+            },
+        }
+    },
+    responses={
+        401: {"description": "no or wrong token"},
+        413: {"description": "archive too large"},
+        415: {"description": "not an archive type"},
+        422: {"description": "not a safe archive of a valid dataset"},
+    },
+)
+async def upload_dataset(
+    request: Request,
+    manager: Manager,
+    settings: SettingsDep,
+    _: Writer,
+    name: Annotated[str, Query(max_length=255, pattern=r"^[\w .,()+-]*$")] = "",
+) -> DatasetOut:
     """Upload a recorded dataset as an archive (request body); calibrate it with ``POST /api/v1/runs
     {"dataset": id}``."""
     ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
     if ctype not in ARCHIVE_TYPES:
-        raise HTTPException(status.HTTP_415_UNSUPPORTED_MEDIA_TYPE,
-                            detail=f"send the archive as one of {', '.join(ARCHIVE_TYPES[:4])}")
+        raise HTTPException(
+            status.HTTP_415_UNSUPPORTED_MEDIA_TYPE, detail=f"send the archive as one of {', '.join(ARCHIVE_TYPES[:4])}"
+        )
     limit = settings.max_upload_bytes
     clen = request.headers.get("content-length")
     if clen is not None and clen.isdigit() and int(clen) > limit:
-        raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE if hasattr(status, "HTTP_413_CONTENT_TOO_LARGE")
-                            else 413, detail=f"archive larger than {limit} bytes")
+        raise HTTPException(
+            status.HTTP_413_CONTENT_TOO_LARGE if hasattr(status, "HTTP_413_CONTENT_TOO_LARGE") else 413,
+            detail=f"archive larger than {limit} bytes",
+        )
     tmpdir = manager.data_dir / "tmp"
     tmpdir.mkdir(parents=True, exist_ok=True)
     fd, tmpname = tempfile.mkstemp(dir=tmpdir, suffix=".upload")
@@ -193,8 +218,9 @@ async def upload_dataset(request: Request, manager: Manager, settings: SettingsD
         if got == 0:
             raise HTTPException(422, detail=[{"loc": ["body"], "msg": "empty body", "type": "value_error"}])
         try:
-            rel, frames, size = await asyncio.to_thread(_ingest, tmp, dest, settings.max_unpacked_bytes,
-                                                         settings.max_archive_members)
+            rel, frames, size = await asyncio.to_thread(
+                _ingest, tmp, dest, settings.max_unpacked_bytes, settings.max_archive_members
+            )
         except ArchiveError as exc:
             shutil.rmtree(dest, ignore_errors=True)
             raise HTTPException(422, detail=[{"loc": ["body"], "msg": str(exc), "type": "value_error"}]) from None
@@ -210,8 +236,12 @@ async def upload_dataset(request: Request, manager: Manager, settings: SettingsD
 
 
 @router.get("", response_model=list[DatasetOut], responses={401: {"description": "reads closed, no token"}})
-async def list_datasets(manager: Manager, _: Reader, limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-                        offset: Annotated[int, Query(ge=0, le=1_000_000)] = 0) -> list[DatasetOut]:
+async def list_datasets(
+    manager: Manager,
+    _: Reader,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+    offset: Annotated[int, Query(ge=0, le=1_000_000)] = 0,
+) -> list[DatasetOut]:
     with manager.db.session() as s:
         rows = s.scalars(select(DatasetRecord).order_by(DatasetRecord.created_at.desc()).limit(limit).offset(offset))
         return [dataset_out(d) for d in rows]

@@ -48,8 +48,10 @@ def unprocessable(exc: InputError, prefix: tuple[Any, ...] = ("body",)) -> HTTPE
         loc += ["steps", exc.frame]
     if exc.field:
         loc += [p for p in exc.field.split(".") if p]
-    return HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT if hasattr(status, "HTTP_422_UNPROCESSABLE_CONTENT")
-                         else 422, detail=[{"loc": loc, "msg": exc.reason, "type": "value_error"}])
+    return HTTPException(
+        status.HTTP_422_UNPROCESSABLE_CONTENT if hasattr(status, "HTTP_422_UNPROCESSABLE_CONTENT") else 422,
+        detail=[{"loc": loc, "msg": exc.reason, "type": "value_error"}],
+    )
 
 
 def get_run(manager: RunManager, run_id: str):

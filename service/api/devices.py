@@ -37,6 +37,12 @@ async def list_devices(manager: Manager, _: Reader, probe: bool = False) -> Devi
         return DevicesOut(bench=None, simulated=False, held_by=None, devices=[])
     if probe and manager.bench_holder is None:
         await bench.probe()
-    return DevicesOut(bench=bench.name, simulated=bench.sim is not None, held_by=manager.bench_holder,
-                      devices=[DeviceOut(name=d.name, uri=d.uri, state=d.state, last_error=d.last_error,
-                                         last_seen=d.last_seen) for d in bench.devices.values()])
+    return DevicesOut(
+        bench=bench.name,
+        simulated=bench.sim is not None,
+        held_by=manager.bench_holder,
+        devices=[
+            DeviceOut(name=d.name, uri=d.uri, state=d.state, last_error=d.last_error, last_seen=d.last_seen)
+            for d in bench.devices.values()
+        ],
+    )

@@ -22,8 +22,9 @@ async def healthz(request: Request) -> Health:
     from service import __version__
 
     m = request.app.state.manager
-    return Health(status="ok", version=__version__, bench=m.name, active_runs=len(m.active),
-                  bench_held_by=m.bench_holder)
+    return Health(
+        status="ok", version=__version__, bench=m.name, active_runs=len(m.active), bench_held_by=m.bench_holder
+    )
 
 
 @router.get("/readyz", response_model=Health, responses={503: {"model": Health}})

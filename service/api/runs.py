@@ -33,16 +33,29 @@ PlanName = Literal["full", "rotation-sweep", "equal-translation", "pose-set", "l
 class RunCreate(BaseModel):
     """Start a run: a plan on the bench (named or inline), or an uploaded dataset calibrated offline."""
 
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
-        {"plan": "full", "methods": ["combined", "end-effector", "legs"], "note": "weekly check"},
-        {"dataset": "0123456789abcdef0123456789abcdef", "methods": ["combined"]}]})
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={
+            "examples": [
+                {"plan": "full", "methods": ["combined", "end-effector", "legs"], "note": "weekly check"},
+                {"dataset": "0123456789abcdef0123456789abcdef", "methods": ["combined"]},
+            ]
+        },
+    )
     plan: PlanName | dict[str, Any] | None = Field(
-        None, description="a plan name, or an inline plan (i4cal.plan/1); default 'full' unless a dataset is given")
-    methods: list[MethodName] = Field(["combined", "end-effector", "legs"], max_length=3,
-                                      description="methods to identify with; [] records the dataset only")
-    bench: str | None = Field(None, pattern=BENCH_NAME_PATTERN,
-                              description="the bench the run belongs to (default: this service's bench; a plan runs "
-                                          "only on this service's bench, an uploaded dataset can be of any bench)")
+        None, description="a plan name, or an inline plan (i4cal.plan/1); default 'full' unless a dataset is given"
+    )
+    methods: list[MethodName] = Field(
+        ["combined", "end-effector", "legs"],
+        max_length=3,
+        description="methods to identify with; [] records the dataset only",
+    )
+    bench: str | None = Field(
+        None,
+        pattern=BENCH_NAME_PATTERN,
+        description="the bench the run belongs to (default: this service's bench; a plan runs "
+        "only on this service's bench, an uploaded dataset can be of any bench)",
+    )
     note: str = Field("", max_length=2000)
     dataset: str | None = Field(None, pattern=ID_PATTERN, description="calibrate this uploaded dataset offline")
 
@@ -63,8 +76,11 @@ class RunOut(BaseModel):
     started_at: datetime | None
     finished_at: datetime | None
     bench: str | None = Field(description="the bench the run's data and results belong to")
-    service: str | None = Field(None, description="the service executing the run, named by its bench (a database "
-                                                  "can be shared by the services of several benches)")
+    service: str | None = Field(
+        None,
+        description="the service executing the run, named by its bench (a database "
+        "can be shared by the services of several benches)",
+    )
     note: str
     plan: str | None = Field(description="plan name")
     methods: list[str]
@@ -77,14 +93,30 @@ class RunOut(BaseModel):
 
 def run_out(manager: RunManager, run) -> RunOut:
     a = manager.active.get(run.id)
-    return RunOut(id=run.id, state=run.state, created_at=run.created_at, started_at=run.started_at,
-                  finished_at=run.finished_at, bench=run.bench, service=run.service, note=run.note or "",
-                  plan=run.plan_name,
-                  methods=list(run.methods or []), dataset=run.source_dataset,
-                  progress=Progress(done=run.done or 0, total=run.total or 0, phase=run.phase or "",
-                                    paused=bool(a and a.paused), pose=a.pose if a else None,
-                                    last_frame=a.last_frame if a else None),
-                  timings=run.timings or {}, error=run.error, has_result=run.result is not None)
+    return RunOut(
+        id=run.id,
+        state=run.state,
+        created_at=run.created_at,
+        started_at=run.started_at,
+        finished_at=run.finished_at,
+        bench=run.bench,
+        service=run.service,
+        note=run.note or "",
+        plan=run.plan_name,
+        methods=list(run.methods or []),
+        dataset=run.source_dataset,
+        progress=Progress(
+            done=run.done or 0,
+            total=run.total or 0,
+            phase=run.phase or "",
+            paused=bool(a and a.paused),
+            pose=a.pose if a else None,
+            last_frame=a.last_frame if a else None,
+        ),
+        timings=run.timings or {},
+        error=run.error,
+        has_result=run.result is not None,
+    )
 
 
 class ApplyBody(BaseModel):
@@ -92,8 +124,10 @@ class ApplyBody(BaseModel):
     method: MethodName | None = Field(None, description="default: combined, else legs, else end-effector")
 
 
-ERRORS: dict[int | str, dict[str, Any]] = {401: {"description": "no or wrong bearer token"},
-                                           404: {"description": "no such run"}}
+ERRORS: dict[int | str, dict[str, Any]] = {
+    401: {"description": "no or wrong bearer token"},
+    404: {"description": "no such run"},
+}
 
 
 def _resolve_plan(body: RunCreate, manager: RunManager):
@@ -101,15 +135,22 @@ def _resolve_plan(body: RunCreate, manager: RunManager):
 
     bench = manager.bench
     if bench is None:
-        raise unprocessable(InputError("this service has no bench configured; upload a dataset instead",
-                                       field="bench"))
+        raise unprocessable(InputError("this service has no bench configured; upload a dataset instead", field="bench"))
     nominal = bench.config.nominal_parameters()
     spec = body.plan if body.plan is not None else "full"
     try:
         if isinstance(spec, str):
             sz = manager.settings.plan_sizes
-            plan = make_plan(spec, nominal, seed=sz.seed, n_base=sz.n_base, n_fit=sz.n_fit, n_lock=sz.n_lock,
-                             n_validation=sz.n_validation, line_samples=sz.line_samples)
+            plan = make_plan(
+                spec,
+                nominal,
+                seed=sz.seed,
+                n_base=sz.n_base,
+                n_fit=sz.n_fit,
+                n_lock=sz.n_lock,
+                n_validation=sz.n_validation,
+                line_samples=sz.line_samples,
+            )
         else:
             plan = Plan.from_dict(spec)
             if len(plan.steps) == 0:
@@ -122,9 +163,16 @@ def _resolve_plan(body: RunCreate, manager: RunManager):
     return plan
 
 
-@router.post("", status_code=status.HTTP_202_ACCEPTED, response_model=RunOut,
-             responses={**ERRORS, 409: {"description": "another run holds the bench"},
-                        422: {"description": "invalid request: the field is named"}})
+@router.post(
+    "",
+    status_code=status.HTTP_202_ACCEPTED,
+    response_model=RunOut,
+    responses={
+        **ERRORS,
+        409: {"description": "another run holds the bench"},
+        422: {"description": "invalid request: the field is named"},
+    },
+)
 async def create_run(body: RunCreate, manager: Manager, _: Writer) -> RunOut:
     """Validate the request and the whole plan before anything moves, then start the run."""
     if body.dataset is not None and body.plan is not None:
@@ -137,8 +185,14 @@ async def create_run(body: RunCreate, manager: Manager, _: Writer) -> RunOut:
         plan = _resolve_plan(body, manager)
         plan_name = plan.name
     try:
-        run = manager.create(plan=plan, plan_name=plan_name, methods=list(dict.fromkeys(body.methods)),
-                             note=body.note, bench=body.bench, dataset_id=body.dataset)
+        run = manager.create(
+            plan=plan,
+            plan_name=plan_name,
+            methods=list(dict.fromkeys(body.methods)),
+            note=body.note,
+            bench=body.bench,
+            dataset_id=body.dataset,
+        )
     except RunConflictError as exc:
         raise conflict(str(exc)) from None
     except InputError as exc:
@@ -147,10 +201,14 @@ async def create_run(body: RunCreate, manager: Manager, _: Writer) -> RunOut:
 
 
 @router.get("", response_model=list[RunOut], responses={401: ERRORS[401]})
-async def list_runs(manager: Manager, _: Reader, limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-                    offset: Annotated[int, Query(ge=0, le=1_000_000)] = 0,
-                    state: Annotated[Literal[STATES] | None, Query()] = None,  # type: ignore[valid-type]
-                    bench: Annotated[str | None, Query(pattern=BENCH_NAME_PATTERN)] = None) -> list[RunOut]:
+async def list_runs(
+    manager: Manager,
+    _: Reader,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+    offset: Annotated[int, Query(ge=0, le=1_000_000)] = 0,
+    state: Annotated[Literal[STATES] | None, Query()] = None,  # type: ignore[valid-type]
+    bench: Annotated[str | None, Query(pattern=BENCH_NAME_PATTERN)] = None,
+) -> list[RunOut]:
     """Runs, newest first; ``bench``: only that bench's."""
     return [run_out(manager, r) for r in manager.list(limit, offset, state, bench)]
 
@@ -164,12 +222,19 @@ def _sse(ev: dict[str, Any]) -> str:
     return f"id: {ev['seq']}\nevent: {ev['type']}\ndata: {json.dumps(ev)}\n\n"
 
 
-@router.get("/{run_id}/events", responses={**ERRORS, 200: {"content": {"text/event-stream": {}},
-                                                           "description": "Server-Sent Events"}})
-async def run_events(run_id: RunId, manager: Manager, _: Reader, request: Request,
-                     last_event_id: Annotated[str | None, Header(max_length=20)] = None,
-                     after: Annotated[int, Query(ge=0, le=2**31)] = 0,
-                     follow: bool = True) -> StreamingResponse:
+@router.get(
+    "/{run_id}/events",
+    responses={**ERRORS, 200: {"content": {"text/event-stream": {}}, "description": "Server-Sent Events"}},
+)
+async def run_events(
+    run_id: RunId,
+    manager: Manager,
+    _: Reader,
+    request: Request,
+    last_event_id: Annotated[str | None, Header(max_length=20)] = None,
+    after: Annotated[int, Query(ge=0, le=2**31)] = 0,
+    follow: bool = True,
+) -> StreamingResponse:
     """State changes, acquisition progress (pose i/N), extraction progress, fits: past events, then live ones
     until the run ends. Resumes after ``Last-Event-ID`` (or ``after``)."""
     get_run(manager, run_id)
@@ -203,8 +268,9 @@ async def run_events(run_id: RunId, manager: Manager, _: Reader, request: Reques
         finally:
             manager.unsubscribe(run_id, q)
 
-    return StreamingResponse(gen(), media_type="text/event-stream",
-                             headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
+    return StreamingResponse(
+        gen(), media_type="text/event-stream", headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"}
+    )
 
 
 def _control(manager: RunManager, run_id: str, what: str) -> RunOut:
@@ -228,8 +294,12 @@ async def pause_run(run_id: RunId, manager: Manager, _: Writer) -> RunOut:
     return _control(manager, run_id, "pause")
 
 
-@router.post("/{run_id}/resume", response_model=RunOut, status_code=status.HTTP_202_ACCEPTED,
-             responses={**ERRORS, 409: {"description": "not paused or interrupted, or the bench is held"}})
+@router.post(
+    "/{run_id}/resume",
+    response_model=RunOut,
+    status_code=status.HTTP_202_ACCEPTED,
+    responses={**ERRORS, 409: {"description": "not paused or interrupted, or the bench is held"}},
+)
 async def resume_run(run_id: RunId, manager: Manager, _: Writer) -> RunOut:
     """Resume a paused acquisition, or an interrupted run from its partial dataset."""
     return _control(manager, run_id, "resume")
@@ -245,11 +315,18 @@ async def run_result(run_id: RunId, manager: Manager, _: Reader) -> dict[str, An
     return run.result
 
 
-@router.get("/{run_id}/report", response_class=HTMLResponse,
-            responses={**ERRORS, 409: {"description": "no result (yet)"},
-                       200: {"content": {"text/html": {}}, "description": "one self-contained HTML file"}})
-async def run_report(run_id: RunId, manager: Manager, _: Reader,
-                     methods: Annotated[list[MethodName] | None, Query()] = None) -> HTMLResponse:
+@router.get(
+    "/{run_id}/report",
+    response_class=HTMLResponse,
+    responses={
+        **ERRORS,
+        409: {"description": "no result (yet)"},
+        200: {"content": {"text/html": {}}, "description": "one self-contained HTML file"},
+    },
+)
+async def run_report(
+    run_id: RunId, manager: Manager, _: Reader, methods: Annotated[list[MethodName] | None, Query()] = None
+) -> HTMLResponse:
     """The calibration report (parameters, uncertainties, bound, validation, residuals, identifiability, camera
     calibration, worst frames, hashes) as one HTML file that opens offline (``i4cal report``)."""
     from ..report import build_report, inputs_from_run
@@ -261,8 +338,12 @@ async def run_report(run_id: RunId, manager: Manager, _: Reader,
     return HTMLResponse(html, headers={"Content-Disposition": f'inline; filename="i4cal-report-{run_id}.html"'})
 
 
-@router.post("/{run_id}/apply", response_model=CalibrationOut, status_code=status.HTTP_201_CREATED,
-             responses={**ERRORS, 409: {"description": "no converged result"}})
+@router.post(
+    "/{run_id}/apply",
+    response_model=CalibrationOut,
+    status_code=status.HTTP_201_CREATED,
+    responses={**ERRORS, 409: {"description": "no converged result"}},
+)
 async def apply_run(run_id: RunId, manager: Manager, _: Writer, body: ApplyBody | None = None) -> CalibrationOut:
     """Make this run's result (one method) the bench's current calibration."""
     get_run(manager, run_id)
@@ -295,14 +376,19 @@ def _zip_dir(src: Path) -> Path:
     return Path(name)
 
 
-@router.get("/{run_id}/dataset", responses={**ERRORS, 200: {"content": {"application/zip": {}}}},
-            response_class=FileResponse)
+@router.get(
+    "/{run_id}/dataset", responses={**ERRORS, 200: {"content": {"application/zip": {}}}}, response_class=FileResponse
+)
 async def download_dataset(run_id: RunId, manager: Manager, _: Reader) -> FileResponse:
     """The run's dataset (dataset v1: dataset.json + PNG frames) as a zip archive."""
     src = _dataset_dir(manager, get_run(manager, run_id))
     path = await asyncio.to_thread(_zip_dir, src)
-    return FileResponse(path, media_type="application/zip", filename=f"i4cal-{run_id}.zip",
-                        background=BackgroundTask(path.unlink, missing_ok=True))
+    return FileResponse(
+        path,
+        media_type="application/zip",
+        filename=f"i4cal-{run_id}.zip",
+        background=BackgroundTask(path.unlink, missing_ok=True),
+    )
 
 
 class FrameInfo(BaseModel):
@@ -339,18 +425,30 @@ async def list_frames(run_id: RunId, manager: Manager, _: Reader) -> list[FrameI
         rods = None
         if o is not None:
             rods = sum(1 for leg in (o.get("legs") or {}).values() for r in leg if r)
-        out.append(FrameInfo(index=i, phase=f.get("phase", ""), q=f.get("q", []),
-                             board=None if o is None else o.get("board") is not None, rods=rods,
-                             missing=None if o is None else o.get("missing")))
+        out.append(
+            FrameInfo(
+                index=i,
+                phase=f.get("phase", ""),
+                q=f.get("q", []),
+                board=None if o is None else o.get("board") is not None,
+                rods=rods,
+                missing=None if o is None else o.get("missing"),
+            )
+        )
     return out
 
 
-@router.get("/{run_id}/frames/{index}", responses={**ERRORS, 200: {"content": {"image/png": {}}}},
-            response_class=Response)
-async def frame_image(run_id: RunId, manager: Manager, _: Reader,
-                      index: Annotated[str, PathParam(pattern=r"^(latest|[0-9]{1,7})$")],
-                      annotate: bool = True,
-                      max_width: Annotated[int, Query(ge=64, le=8192)] = 1024) -> Response:
+@router.get(
+    "/{run_id}/frames/{index}", responses={**ERRORS, 200: {"content": {"image/png": {}}}}, response_class=Response
+)
+async def frame_image(
+    run_id: RunId,
+    manager: Manager,
+    _: Reader,
+    index: Annotated[str, PathParam(pattern=r"^(latest|[0-9]{1,7})$")],
+    annotate: bool = True,
+    max_width: Annotated[int, Query(ge=64, le=8192)] = 1024,
+) -> Response:
     """A frame as PNG with the detected board outline and rod lines drawn (``latest``: the last frame acquired, or,
     while the run extracts, the last frame extracted)."""
     run = get_run(manager, run_id)

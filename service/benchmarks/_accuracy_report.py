@@ -43,8 +43,11 @@ def method_summary(trials: list[dict[str, Any]], name: str) -> dict[str, Any]:
         ``gap_below_a_priori`` (trials whose gap is below their a priori gap).
     """
     ok = [t for t in trials if ((t.get("methods") or {}).get(name) or {}).get("ok")]
-    failures = Counter(_short(t["error"] if t.get("error") else ((t.get("methods") or {}).get(name) or {}).get(
-        "error") or "not run") for t in trials if not ((t.get("methods") or {}).get(name) or {}).get("ok"))
+    failures = Counter(
+        _short(t["error"] if t.get("error") else ((t.get("methods") or {}).get(name) or {}).get("error") or "not run")
+        for t in trials
+        if not ((t.get("methods") or {}).get(name) or {}).get("ok")
+    )
     out: dict[str, Any] = {"n_ok": len(ok), "n_failed": len(trials) - len(ok), "failures": dict(failures)}
     for field in ("rms_error_m", "mean_std_m", "std_over_error", "bound_rms_m", "efficiency"):
         out[field] = {}
@@ -73,18 +76,25 @@ def summarize(trials: list[dict[str, Any]]) -> dict[str, Any]:
     done = [t for t in trials if not t.get("error")]
     edge = [t["edge_noise_px"] for t in done if t.get("edge_noise_px") is not None]
     methods = {m: method_summary(trials, m) for m in METHODS}
-    timing = {k: _mean([t[k] for t in done if t.get(k) is not None])
-              for k in ("render_s", "extract_s", "calibrate_s", "cpu_s")}
+    timing = {
+        k: _mean([t[k] for t in done if t.get(k) is not None])
+        for k in ("render_s", "extract_s", "calibrate_s", "cpu_s")
+    }
     rods = sum(t.get("rods_found", 0) for t in done), sum(t.get("rods_total", 0) for t in done)
-    summary = {"trials": len(trials), "trials_failed": len(trials) - len(done),
-               "a_priori_rms_error_m": a_priori_errors(trials),
-               "trial_errors": dict(Counter(_short(t["error"]) for t in trials if t.get("error"))),
-               "edge_noise_px_median": statistics.median(edge) if edge else None,
-               "rods_found_fraction": rods[0] / rods[1] if rods[1] else None,
-               "gap_a_priori_rms_mm": _rms([t["gap_a_priori_rms_mm"] for t in done
-                                            if t.get("gap_a_priori_rms_mm") is not None]),
-               "gap_truth_rms_mm": _rms([t["gap_truth_rms_mm"] for t in done if t.get("gap_truth_rms_mm") is not None]),
-               "methods": methods, "timing_mean_s": timing}
+    summary = {
+        "trials": len(trials),
+        "trials_failed": len(trials) - len(done),
+        "a_priori_rms_error_m": a_priori_errors(trials),
+        "trial_errors": dict(Counter(_short(t["error"]) for t in trials if t.get("error"))),
+        "edge_noise_px_median": statistics.median(edge) if edge else None,
+        "rods_found_fraction": rods[0] / rods[1] if rods[1] else None,
+        "gap_a_priori_rms_mm": _rms(
+            [t["gap_a_priori_rms_mm"] for t in done if t.get("gap_a_priori_rms_mm") is not None]
+        ),
+        "gap_truth_rms_mm": _rms([t["gap_truth_rms_mm"] for t in done if t.get("gap_truth_rms_mm") is not None]),
+        "methods": methods,
+        "timing_mean_s": timing,
+    }
     summary["targets"] = targets(summary)
     return summary
 
@@ -107,15 +117,22 @@ def targets(summary: dict[str, Any]) -> dict[str, Any]:
     gaps = {m: s["gap_validation_rms_mm"] for m, s in summary["methods"].items()}
     worst = {m: max((abs(v - 1) for v in vs), default=None) for m, vs in hon.items()}
     return {
-        "efficiency_combined": {"target": f">= {EFFICIENCY_TARGET}", "min": min(eff, default=None),
-                                "met": bool(eff) and len(eff) == len(COMBINATIONS) and min(eff) >= EFFICIENCY_TARGET},
-        "std_honesty": {"target": f"mean std / RMS error within {HONESTY_TOLERANCE:.0%} of 1",
-                        "worst_deviation": worst,
-                        "met": {m: w is not None and w <= HONESTY_TOLERANCE for m, w in worst.items()}},
-        "gap_below_a_priori": {"target": "every method's validation gap below the a priori gap",
-                               "a_priori_mm": apriori, "gaps_mm": gaps,
-                               "met": {m: g is not None and apriori is not None and g < apriori
-                                       for m, g in gaps.items()}},
+        "efficiency_combined": {
+            "target": f">= {EFFICIENCY_TARGET}",
+            "min": min(eff, default=None),
+            "met": bool(eff) and len(eff) == len(COMBINATIONS) and min(eff) >= EFFICIENCY_TARGET,
+        },
+        "std_honesty": {
+            "target": f"mean std / RMS error within {HONESTY_TOLERANCE:.0%} of 1",
+            "worst_deviation": worst,
+            "met": {m: w is not None and w <= HONESTY_TOLERANCE for m, w in worst.items()},
+        },
+        "gap_below_a_priori": {
+            "target": "every method's validation gap below the a priori gap",
+            "a_priori_mm": apriori,
+            "gaps_mm": gaps,
+            "met": {m: g is not None and apriori is not None and g < apriori for m, g in gaps.items()},
+        },
     }
 
 
@@ -141,9 +158,17 @@ def study_tables(point: dict[str, Any], title: str) -> list[Any]:
     for col in ("method", "combination", "RMS error mm", "mean std mm", "std/error", "bound mm", "efficiency", "ok"):
         t.add_column(col, justify="left" if col in ("method", "combination") else "right")
     for i, c in enumerate(COMBINATIONS):
-        t.add_row("[dim]a priori (nominal)[/dim]" if i == 0 else "", f"[dim]{c}[/dim]",
-                  f"[dim]{_mm(s['a_priori_rms_error_m'][c])}[/dim]", "", "", "", "", "",
-                  end_section=i == len(COMBINATIONS) - 1)
+        t.add_row(
+            "[dim]a priori (nominal)[/dim]" if i == 0 else "",
+            f"[dim]{c}[/dim]",
+            f"[dim]{_mm(s['a_priori_rms_error_m'][c])}[/dim]",
+            "",
+            "",
+            "",
+            "",
+            "",
+            end_section=i == len(COMBINATIONS) - 1,
+        )
     for m in METHODS:
         ms = s["methods"][m]
         for i, c in enumerate(COMBINATIONS):
@@ -151,19 +176,33 @@ def study_tables(point: dict[str, Any], title: str) -> list[Any]:
             style = "" if ratio is None or abs(ratio - 1) <= HONESTY_TOLERANCE else "[yellow]"
             eff = ms["efficiency"][c]
             est = "" if m != "combined" or eff is None else ("[green]" if eff >= EFFICIENCY_TARGET else "[red]")
-            t.add_row(m if i == 0 else "", c, _mm(ms["rms_error_m"][c]), _mm(ms["mean_std_m"][c]),
-                      style + _x(ratio), _mm(ms["bound_rms_m"][c]), est + _x(eff),
-                      f"{ms['n_ok']}/{s['trials']}" if i == 0 else "", end_section=i == len(COMBINATIONS) - 1)
-    g = Table(title="displacement gap on the validation poses (RMS over trials of each trial's RMS, mm; Table II)",
-              title_justify="left")
+            t.add_row(
+                m if i == 0 else "",
+                c,
+                _mm(ms["rms_error_m"][c]),
+                _mm(ms["mean_std_m"][c]),
+                style + _x(ratio),
+                _mm(ms["bound_rms_m"][c]),
+                est + _x(eff),
+                f"{ms['n_ok']}/{s['trials']}" if i == 0 else "",
+                end_section=i == len(COMBINATIONS) - 1,
+            )
+    g = Table(
+        title="displacement gap on the validation poses (RMS over trials of each trial's RMS, mm; Table II)",
+        title_justify="left",
+    )
     for col in ("parameters", "gap mm", "below a priori", "failures"):
         g.add_column(col, justify="left" if col in ("parameters", "failures") else "right")
     g.add_row("a priori (nominal)", _x(s["gap_a_priori_rms_mm"], ".3f"), "", "")
     for m in METHODS:
         ms = s["methods"][m]
         fails = "; ".join(f"{n}x {msg}" for msg, n in ms["failures"].items())
-        g.add_row(m, _x(ms["gap_validation_rms_mm"], ".3f"), f"{ms['gap_below_a_priori']}/{ms['gap_trials']}",
-                  f"[red]{fails}[/red]" if fails else "")
+        g.add_row(
+            m,
+            _x(ms["gap_validation_rms_mm"], ".3f"),
+            f"{ms['gap_below_a_priori']}/{ms['gap_trials']}",
+            f"[red]{fails}[/red]" if fails else "",
+        )
     g.add_row("[dim]truth (vision's own error)[/dim]", f"[dim]{_x(s['gap_truth_rms_mm'], '.3f')}[/dim]", "", "")
     return [t, g]
 
@@ -174,12 +213,17 @@ def target_lines(summary: dict[str, Any]) -> list[str]:
     eff = tg["efficiency_combined"]
     hon = tg["std_honesty"]
     gap = tg["gap_below_a_priori"]
-    lines = [f"combined efficiency (bound RMS / error RMS) min {_x(eff['min'])}, target {eff['target']}: "
-             f"{_met(eff['met'])}"]
-    lines.append("std honesty (mean std / RMS error within 30%): " + ", ".join(
-        f"{m} worst {_x(hon['worst_deviation'][m], '.0%')} off {_met(hon['met'][m])}" for m in METHODS))
-    lines.append(f"validation gap below the a priori {_x(gap['a_priori_mm'], '.3f')} mm: " + ", ".join(
-        f"{m} {_x(gap['gaps_mm'][m], '.3f')} mm {_met(gap['met'][m])}" for m in METHODS))
+    lines = [
+        f"combined efficiency (bound RMS / error RMS) min {_x(eff['min'])}, target {eff['target']}: {_met(eff['met'])}"
+    ]
+    lines.append(
+        "std honesty (mean std / RMS error within 30%): "
+        + ", ".join(f"{m} worst {_x(hon['worst_deviation'][m], '.0%')} off {_met(hon['met'][m])}" for m in METHODS)
+    )
+    lines.append(
+        f"validation gap below the a priori {_x(gap['a_priori_mm'], '.3f')} mm: "
+        + ", ".join(f"{m} {_x(gap['gaps_mm'][m], '.3f')} mm {_met(gap['met'][m])}" for m in METHODS)
+    )
     return lines
 
 
@@ -189,9 +233,11 @@ def sweep_table(name: str, points: list[dict[str, Any]]) -> Any:
     from rich.table import Table
 
     label = {"noise": "sensor noise grey", "poses": "fit poses"}.get(name, name)
-    t = Table(title=f"sweep over {label.removesuffix(' grey')} - RMS errors mm: the combined method's per combination, "
-                    "its bound and efficiency; the other methods' over the four (e-e: end-effector); gaps mm",
-              title_justify="left")
+    t = Table(
+        title=f"sweep over {label.removesuffix(' grey')} - RMS errors mm: the combined method's per combination, "
+        "its bound and efficiency; the other methods' over the four (e-e: end-effector); gaps mm",
+        title_justify="left",
+    )
     cols = [label, "ok", "edge px", *COMBINATIONS, "bound", "eff. min", "e-e", "legs", "gap comb.", "gap a priori"]
     for col in cols:
         t.add_column(col, justify="right")
@@ -204,10 +250,17 @@ def sweep_table(name: str, points: list[dict[str, Any]]) -> Any:
         for m in METHODS[1:]:
             errs = [v for v in s["methods"][m]["rms_error_m"].values() if v is not None]
             others.append(_mm(_rms(errs)) if len(errs) == len(COMBINATIONS) else "-")
-        t.add_row(f"{p['value']:g}", f"{cm['n_ok']}/{s['trials']}", _x(s["edge_noise_px_median"], ".3f"),
-                  *[_mm(cm["rms_error_m"][c]) for c in COMBINATIONS],
-                  _mm(_rms(bound)) if len(bound) == len(COMBINATIONS) else "-", _x(min(eff, default=None)),
-                  *others, _x(cm["gap_validation_rms_mm"], ".3f"), _x(s["gap_a_priori_rms_mm"], ".3f"))
+        t.add_row(
+            f"{p['value']:g}",
+            f"{cm['n_ok']}/{s['trials']}",
+            _x(s["edge_noise_px_median"], ".3f"),
+            *[_mm(cm["rms_error_m"][c]) for c in COMBINATIONS],
+            _mm(_rms(bound)) if len(bound) == len(COMBINATIONS) else "-",
+            _x(min(eff, default=None)),
+            *others,
+            _x(cm["gap_validation_rms_mm"], ".3f"),
+            _x(s["gap_a_priori_rms_mm"], ".3f"),
+        )
     return t
 
 
@@ -223,43 +276,61 @@ def print_accuracy(doc: dict[str, Any], console: Any = None) -> None:
     study = doc.get("study")
     if study:
         s = study["summary"]
-        title = (f"i4cal bench accuracy - {s['trials']} trials, sensor noise {study['noise_sigma']:g} grey "
-                 f"(edge noise {_px(s['edge_noise_px_median'])} px), {study['n_fit']} fit poses, truth spread "
-                 f"{doc['spread_m'] * 1e3:.2f} mm, seed {o['seed']} - {where}")
+        title = (
+            f"i4cal bench accuracy - {s['trials']} trials, sensor noise {study['noise_sigma']:g} grey "
+            f"(edge noise {_px(s['edge_noise_px_median'])} px), {study['n_fit']} fit poses, truth spread "
+            f"{doc['spread_m'] * 1e3:.2f} mm, seed {o['seed']} - {where}"
+        )
         for table in study_tables(study, title):
             con.print(table)
         for line in target_lines(s):
             con.print(line)
         if s["trials_failed"]:
-            con.print(f"[red]{s['trials_failed']} trial(s) failed: " + "; ".join(
-                f"{n}x {e}" for e, n in s["trial_errors"].items()) + "[/red]")
+            con.print(
+                f"[red]{s['trials_failed']} trial(s) failed: "
+                + "; ".join(f"{n}x {e}" for e, n in s["trial_errors"].items())
+                + "[/red]"
+            )
     for name, points in doc["sweeps"].items():
         con.print(sweep_table(name, points))
     for cam_noise, cam in doc["cameras"].items():
         if cam.get("camera") is None:
             con.print(f"[red]camera phase at noise {cam_noise}: {cam.get('error')}[/red]")
-    counts = ", ".join(f"{k} {v}" for k, v in doc["plans"][str(o["n_fit"])].items()) if str(
-        o["n_fit"]) in doc["plans"] else ""
+    counts = (
+        ", ".join(f"{k} {v}" for k, v in doc["plans"][str(o["n_fit"])].items())
+        if str(o["n_fit"]) in doc["plans"]
+        else ""
+    )
     if o["camera"] == "true":
         cam_text = "extraction with the renderer's true intrinsics (--camera true)"
     elif o["camera"] == "per-trial":
         points = [doc.get("study") or {}, *(pt for pts in (doc.get("sweeps") or {}).values() for pt in pts)]
         cams = list({t["key"]: t["camera"] for pt in points for t in pt.get("trials", []) if t.get("camera")}.values())
-        cam_text = (f"camera calibrated in every trial from its own {o['camera_views']} rendered board views; "
-                    "intrinsics error RMS / mean reported std over the trials: "
-                    + ", ".join(f"{k} {_intr_rms(cams, k)}" for k in ("fx", "cx", "cy", "k1"))
-                    + "; after the rods' refinement, error RMS: "
-                    + ", ".join(f"{k} {_intr_rms(cams, k, 'refined_error_vs_true')}" for k in ("fx", "cx", "cy", "k1")))
+        cam_text = (
+            f"camera calibrated in every trial from its own {o['camera_views']} rendered board views; "
+            "intrinsics error RMS / mean reported std over the trials: "
+            + ", ".join(f"{k} {_intr_rms(cams, k)}" for k in ("fx", "cx", "cy", "k1"))
+            + "; after the rods' refinement, error RMS: "
+            + ", ".join(f"{k} {_intr_rms(cams, k, 'refined_error_vs_true')}" for k in ("fx", "cx", "cy", "k1"))
+        )
     else:
-        cam_text = (f"camera calibrated once per noise level from {o['camera_views']} rendered board views ("
-                    + ", ".join(f"noise {n}: fx {_dpx(c, 'fx')}, cx {_dpx(c, 'cx')}, cy {_dpx(c, 'cy')} px"
-                                for n, c in doc["cameras"].items() if c.get("camera")) + " off the truth)")
+        cam_text = (
+            f"camera calibrated once per noise level from {o['camera_views']} rendered board views ("
+            + ", ".join(
+                f"noise {n}: fx {_dpx(c, 'fx')}, cx {_dpx(c, 'cx')}, cy {_dpx(c, 'cy')} px"
+                for n, c in doc["cameras"].items()
+                if c.get("camera")
+            )
+            + " off the truth)"
+        )
     con.print(f"[dim]per trial: {counts}; {cam_text}[/dim]")
     for note in doc["notes"]:
         con.print(f"[dim]note: {note}[/dim]")
     load = doc.get("load_average") or {}
-    con.print(f"[dim]{doc['elapsed_s']:.0f} s in all ({doc['cpu_s']:.0f} CPU s in the workers; load average "
-              f"{_load_text(load.get('start'))} at the start, {_load_text(load.get('end'))} at the end)[/dim]")
+    con.print(
+        f"[dim]{doc['elapsed_s']:.0f} s in all ({doc['cpu_s']:.0f} CPU s in the workers; load average "
+        f"{_load_text(load.get('start'))} at the start, {_load_text(load.get('end'))} at the end)[/dim]"
+    )
 
 
 def _load_text(v: list[float] | None) -> str:

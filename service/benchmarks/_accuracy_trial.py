@@ -39,7 +39,8 @@ class TrialTask(BaseModel):
     noise_sigma: float = Field(ge=0)
     steps: list[dict[str, Any]]
     camera: dict[str, Any] | None = Field(
-        description="CameraModel.to_dict() of the study's camera; None: calibrated from the trial's own camera phase")
+        description="CameraModel.to_dict() of the study's camera; None: calibrated from the trial's own camera phase"
+    )
     camera_views: int = Field(0, ge=0, description="board views rendered with the trial (its own camera phase)")
 
 
@@ -83,15 +84,27 @@ def calibrate_camera(task: CameraTask) -> dict[str, Any]:
     cpu0 = time.process_time()
     with tempfile.TemporaryDirectory(prefix="i4cal-acc-camera-") as tmp:
         t0 = time.perf_counter()
-        path = simulate_dataset(Path(tmp) / "ds", seed=task.seed, geometry=BenchGeometry(), render=rs,
-                                plan=_plan(task.steps, "camera phase"), n_camera_views=task.views)
+        path = simulate_dataset(
+            Path(tmp) / "ds",
+            seed=task.seed,
+            geometry=BenchGeometry(),
+            render=rs,
+            plan=_plan(task.steps, "camera phase"),
+            n_camera_views=task.views,
+        )
         t1 = time.perf_counter()
         res = extract_dataset(path, workers=1)
         t2 = time.perf_counter()
     if res.intrinsics is None:  # pragma: no cover - the dataset has no K: extraction calibrates or raises
         raise RuntimeError("the camera phase gave no intrinsics")
-    return {"noise_sigma": task.noise_sigma, "source": "calibrated", **_camera_record(res, rs),
-            "render_s": t1 - t0, "extract_s": t2 - t1, "cpu_s": time.process_time() - cpu0}
+    return {
+        "noise_sigma": task.noise_sigma,
+        "source": "calibrated",
+        **_camera_record(res, rs),
+        "render_s": t1 - t0,
+        "extract_s": t2 - t1,
+        "cpu_s": time.process_time() - cpu0,
+    }
 
 
 def _camera_record(res: Any, rs: Any) -> dict[str, Any]:
@@ -109,14 +122,20 @@ def _camera_record(res: Any, rs: Any) -> dict[str, Any]:
 
     cov = (cam.extra.get("calibration") or {}).get("covariance")
     std = [math.sqrt(max(cov[i][i], 0.0)) for i in range(8)] if cov else [None] * 8
-    return {"camera": cam.to_dict(), "true_camera": true.to_dict(),
-            "intrinsics": {"rms_px": _finite(s.get("rms_px")), "n_views": s.get("n_views"),
-                           "rejected": {str(k): str(v) for k, v in (s.get("rejected") or {}).items()},
-                           "error_vs_true": {k: float(a - b) for k, a, b in
-                                             zip(INTRINSICS_NAMES, vec(cam), vec(true), strict=True)},
-                           "refined_error_vs_true": {k: float(a - b) for k, a, b in
-                                                     zip(INTRINSICS_NAMES, vec(res.camera), vec(true), strict=True)},
-                           "std": dict(zip(INTRINSICS_NAMES, std, strict=True))}}
+    return {
+        "camera": cam.to_dict(),
+        "true_camera": true.to_dict(),
+        "intrinsics": {
+            "rms_px": _finite(s.get("rms_px")),
+            "n_views": s.get("n_views"),
+            "rejected": {str(k): str(v) for k, v in (s.get("rejected") or {}).items()},
+            "error_vs_true": {k: float(a - b) for k, a, b in zip(INTRINSICS_NAMES, vec(cam), vec(true), strict=True)},
+            "refined_error_vs_true": {
+                k: float(a - b) for k, a, b in zip(INTRINSICS_NAMES, vec(res.camera), vec(true), strict=True)
+            },
+            "std": dict(zip(INTRINSICS_NAMES, std, strict=True)),
+        },
+    }
 
 
 def edge_noise_px(observations: dict[str, Any]) -> float | None:
@@ -168,9 +187,14 @@ def trial_record(doc: dict[str, Any], observations: dict[str, Any]) -> dict[str,
             problem = "no parameters"
         elif errors and None in errors.values():
             problem = "non-finite parameters"
-        rec: dict[str, Any] = {"ok": not problem, "error": problem or None,
-                               "converged": bool(entry.get("converged")), "errors": errors, "std": stds,
-                               "gap_validation_rms_mm": _gap(validation, name)}
+        rec: dict[str, Any] = {
+            "ok": not problem,
+            "error": problem or None,
+            "converged": bool(entry.get("converged")),
+            "errors": errors,
+            "std": stds,
+            "gap_validation_rms_mm": _gap(validation, name),
+        }
         if err and "seven" in err:
             rec["seven_errors"] = {k: _finite(v) for k, v in err["seven"].items()}
         methods[name] = rec
@@ -178,13 +202,18 @@ def trial_record(doc: dict[str, Any], observations: dict[str, Any]) -> dict[str,
     bstd = bound.get("std")
     frames = observations.get("frames", [])
     rods = sum(1 for fr in frames for rs in (fr.get("legs") or {}).values() for r in rs or [] if r)
-    return {"methods": methods,
-            "bound_std": {k: _finite(bstd.get(k)) for k in COMBINATION_NAMES} if isinstance(bstd, dict) else None,
-            "bound_note": bound.get("note"),
-            "gap_a_priori_rms_mm": _gap(validation, "a priori"), "gap_truth_rms_mm": _gap(validation, "truth"),
-            "edge_noise_px": edge_noise_px(observations), "frames": len(frames),
-            "boards_found": sum(1 for fr in frames if fr.get("board")), "rods_found": rods,
-            "rods_total": 8 * len(frames)}
+    return {
+        "methods": methods,
+        "bound_std": {k: _finite(bstd.get(k)) for k in COMBINATION_NAMES} if isinstance(bstd, dict) else None,
+        "bound_note": bound.get("note"),
+        "gap_a_priori_rms_mm": _gap(validation, "a priori"),
+        "gap_truth_rms_mm": _gap(validation, "truth"),
+        "edge_noise_px": edge_noise_px(observations),
+        "frames": len(frames),
+        "boards_found": sum(1 for fr in frames if fr.get("board")),
+        "rods_found": rods,
+        "rods_total": 8 * len(frames),
+    }
 
 
 def run_trial(task: TrialTask) -> dict[str, Any]:
@@ -209,17 +238,31 @@ def run_trial(task: TrialTask) -> dict[str, Any]:
     from drivers.sim.twin import BenchGeometry
 
     truth = I4Parameters.from_vector(task.truth, T_per_rad=NOMINAL.T_per_rad)
-    out: dict[str, Any] = {"key": task.key, "index": task.index, "seed": task.seed, "noise_sigma": task.noise_sigma,
-                           "truth": truth.seven(), "truth_combinations": truth.combinations(), "error": None,
-                           "render_s": None, "extract_s": None, "calibrate_s": None, "cpu_s": None}
+    out: dict[str, Any] = {
+        "key": task.key,
+        "index": task.index,
+        "seed": task.seed,
+        "noise_sigma": task.noise_sigma,
+        "truth": truth.seven(),
+        "truth_combinations": truth.combinations(),
+        "error": None,
+        "render_s": None,
+        "extract_s": None,
+        "calibrate_s": None,
+        "cpu_s": None,
+    }
     cpu0 = time.process_time()
     try:
         with tempfile.TemporaryDirectory(prefix="i4cal-acc-trial-") as tmp:
             t0 = time.perf_counter()
-            path = simulate_dataset(Path(tmp) / "ds", seed=task.seed, geometry=BenchGeometry(truth=truth),
-                                    render=RenderSettings(noise_sigma=task.noise_sigma),
-                                    plan=_plan(task.steps, "trial"),
-                                    n_camera_views=task.camera_views if task.camera is None else 0)
+            path = simulate_dataset(
+                Path(tmp) / "ds",
+                seed=task.seed,
+                geometry=BenchGeometry(truth=truth),
+                render=RenderSettings(noise_sigma=task.noise_sigma),
+                plan=_plan(task.steps, "trial"),
+                n_camera_views=task.camera_views if task.camera is None else 0,
+            )
             out["render_s"] = time.perf_counter() - t0
             t0 = time.perf_counter()
             cam = None if task.camera is None else CameraModel.from_dict(task.camera)

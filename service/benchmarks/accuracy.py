@@ -46,8 +46,16 @@ FORMAT = "i4cal.bench-accuracy/1"
 SWEEPS = ("noise", "poses")
 #: The paper-sized plan (``calib.plan.make_plan`` defaults): what a trial renders unless reduced.
 PAPER = {"n_base": 10, "n_fit": 20, "n_lock": 5, "n_validation": 10}
-QUICK = {"trials": 3, "n_base": 6, "n_fit": 10, "n_lock": 3, "n_validation": 8,
-         "sweep_trials": 2, "sweep_noise": [0.0, 4.0], "sweep_poses": [8, 12]}
+QUICK = {
+    "trials": 3,
+    "n_base": 6,
+    "n_fit": 10,
+    "n_lock": 3,
+    "n_validation": 8,
+    "sweep_trials": 2,
+    "sweep_noise": [0.0, 4.0],
+    "sweep_poses": [8, 12],
+}
 
 #: ``on_progress(description, done, total)`` over every task of the study (cameras and trials).
 OnProgress = Callable[[str, int, int], None]
@@ -68,9 +76,12 @@ class AccuracyOptions(BaseModel):
     with_line: bool = Field(False, description="also render the 51-frame guided line")
     camera_views: int = Field(30, ge=5, description="board views of the camera phase")
     camera_poses: int = Field(5, ge=3, description="bench poses rendered with the camera phase")
-    camera: str = Field("per-trial", pattern="^(per-trial|calibrated|true)$",
-                        description="intrinsics used for extraction: calibrated in every trial from its own camera "
-                                    "phase (its error is then sampled), once per noise level, or the true ones")
+    camera: str = Field(
+        "per-trial",
+        pattern="^(per-trial|calibrated|true)$",
+        description="intrinsics used for extraction: calibrated in every trial from its own camera "
+        "phase (its error is then sampled), once per noise level, or the true ones",
+    )
     sweeps: list[str] = Field(default_factory=list)
     sweep_trials: int = Field(10, ge=1)
     sweep_noise: list[float] = Field(default_factory=lambda: [0.0, 1.0, 2.0, 4.0, 8.0])
@@ -109,7 +120,7 @@ def default_spread_m() -> float:
     from drivers.sim.twin import DEFAULT_TRUTH
 
     d = np.asarray(DEFAULT_TRUTH.vector()) - np.asarray(NOMINAL.vector())
-    return float(np.sqrt(np.mean(d ** 2)))
+    return float(np.sqrt(np.mean(d**2)))
 
 
 def spread_m(opts: AccuracyOptions) -> float:
@@ -138,8 +149,15 @@ def plan_steps(opts: AccuracyOptions, n_fit: int) -> list[dict[str, Any]]:
     from calib.parameters import NOMINAL
     from calib.plan import make_plan
 
-    plan = make_plan("full", NOMINAL, seed=opts.seed, n_base=opts.n_base, n_fit=n_fit, n_lock=opts.n_lock,
-                     n_validation=opts.n_validation)
+    plan = make_plan(
+        "full",
+        NOMINAL,
+        seed=opts.seed,
+        n_base=opts.n_base,
+        n_fit=n_fit,
+        n_lock=opts.n_lock,
+        n_validation=opts.n_validation,
+    )
     return [s.model_dump(exclude_none=True) for s in plan.steps if opts.with_line or s.phase != "line"]
 
 
@@ -152,8 +170,9 @@ def plan_counts(steps: list[dict[str, Any]]) -> dict[str, int]:
 def plan_notes(opts: AccuracyOptions) -> list[str]:
     """How what each trial renders differs from the paper-sized plan (said in the output)."""
     out = []
-    changed = [f"{k.removeprefix('n_')} {getattr(opts, k)} (paper {v})" for k, v in PAPER.items()
-               if getattr(opts, k) != v]
+    changed = [
+        f"{k.removeprefix('n_')} {getattr(opts, k)} (paper {v})" for k, v in PAPER.items() if getattr(opts, k) != v
+    ]
     if changed:
         out.append("each trial renders a reduced plan: " + ", ".join(changed))
     if not opts.with_line:
@@ -181,11 +200,15 @@ def trial_key(noise_sigma: float, n_fit: int, index: int) -> str:
 def study_points(opts: AccuracyOptions) -> list[Point]:
     pts = [Point(sweep=None, value=None, noise_sigma=opts.noise_sigma, n_fit=opts.n_fit, n_trials=opts.trials)]
     if "noise" in opts.sweeps:
-        pts += [Point(sweep="noise", value=v, noise_sigma=v, n_fit=opts.n_fit, n_trials=opts.sweep_trials)
-                for v in opts.sweep_noise]
+        pts += [
+            Point(sweep="noise", value=v, noise_sigma=v, n_fit=opts.n_fit, n_trials=opts.sweep_trials)
+            for v in opts.sweep_noise
+        ]
     if "poses" in opts.sweeps:
-        pts += [Point(sweep="poses", value=v, noise_sigma=opts.noise_sigma, n_fit=v, n_trials=opts.sweep_trials)
-                for v in opts.sweep_poses]
+        pts += [
+            Point(sweep="poses", value=v, noise_sigma=opts.noise_sigma, n_fit=v, n_trials=opts.sweep_trials)
+            for v in opts.sweep_poses
+        ]
     return [p for p in pts if p.n_trials > 0]
 
 
@@ -224,18 +247,33 @@ def run_accuracy(opts: AccuracyOptions, on_progress: OnProgress | None = None) -
     for p in points:
         for k, key in enumerate(p.trial_keys()):
             if key not in trials:
-                trials[key] = TrialTask(key=key, index=k, seed=trial_seed(opts.seed, k),
-                                        truth=draw_truth(opts.seed, k, spread), noise_sigma=p.noise_sigma,
-                                        steps=steps[p.n_fit], camera=None,
-                                        camera_views=opts.camera_views if opts.camera == "per-trial" else 0)
+                trials[key] = TrialTask(
+                    key=key,
+                    index=k,
+                    seed=trial_seed(opts.seed, k),
+                    truth=draw_truth(opts.seed, k, spread),
+                    noise_sigma=p.noise_sigma,
+                    steps=steps[p.n_fit],
+                    camera=None,
+                    camera_views=opts.camera_views if opts.camera == "per-trial" else 0,
+                )
     noises = sorted({t.noise_sigma for t in trials.values()})
-    cam_steps = [s for s in steps[fits[-1]] if s["phase"] == "rotation"][:opts.camera_poses]
-    cam_tasks = [CameraTask(noise_sigma=n, seed=trial_seed(opts.seed, 10 ** 6), views=opts.camera_views,
-                            steps=cam_steps) for n in noises] if opts.camera == "calibrated" else []
+    cam_steps = [s for s in steps[fits[-1]] if s["phase"] == "rotation"][: opts.camera_poses]
+    cam_tasks = (
+        [
+            CameraTask(noise_sigma=n, seed=trial_seed(opts.seed, 10**6), views=opts.camera_views, steps=cam_steps)
+            for n in noises
+        ]
+        if opts.camera == "calibrated"
+        else []
+    )
     total = len(cam_tasks) + len(trials)
     workers = min(opts.workers or _cores(), max(total, 1))
-    pool: Any = _Inline() if workers == 1 else ProcessPoolExecutor(
-        max_workers=workers, mp_context=mp.get_context("spawn"), initializer=init_worker)
+    pool: Any = (
+        _Inline()
+        if workers == 1
+        else ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"), initializer=init_worker)
+    )
     cameras: dict[str, Any] = {}
     records: dict[str, dict[str, Any]] = {}
     running: dict[Future, tuple[str, Any]] = {}
@@ -254,8 +292,7 @@ def run_accuracy(opts: AccuracyOptions, on_progress: OnProgress | None = None) -
                 running[pool.submit(run_trial, t.model_copy(update={"camera": cam["camera"]}))] = ("trial", t)
 
     if on_progress:
-        on_progress(f"calibrating the camera ({len(cam_tasks)} camera phase(s))" if cam_tasks else "trials",
-                    0, total)
+        on_progress(f"calibrating the camera ({len(cam_tasks)} camera phase(s))" if cam_tasks else "trials", 0, total)
     try:
         if opts.camera == "true":
             for n in noises:
@@ -278,18 +315,35 @@ def run_accuracy(opts: AccuracyOptions, on_progress: OnProgress | None = None) -
                     on_progress(f"trials ({len(records)}/{len(trials)} done, {workers} worker(s))", done, total)
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
-    out_points = [{"sweep": p.sweep, "value": p.value, "noise_sigma": p.noise_sigma, "n_fit": p.n_fit,
-                   "trials": [records[k] for k in p.trial_keys()]} for p in points]
+    out_points = [
+        {
+            "sweep": p.sweep,
+            "value": p.value,
+            "noise_sigma": p.noise_sigma,
+            "n_fit": p.n_fit,
+            "trials": [records[k] for k in p.trial_keys()],
+        }
+        for p in points
+    ]
     for p in out_points:
         p["summary"] = summarize(p["trials"])
     study = next((p for p in out_points if p["sweep"] is None), None)
-    return {"format": FORMAT, "version": _version(), "machine": machine_info(), "options": opts.model_dump(),
-            "workers": workers, "spread_m": spread, "plans": {str(n): plan_counts(s) for n, s in steps.items()},
-            "notes": plan_notes(opts), "cameras": cameras, "study": study,
-            "sweeps": {s: [p for p in out_points if p["sweep"] == s] for s in opts.sweeps},
-            "elapsed_s": time.perf_counter() - t_start,
-            "cpu_s": sum(r.get("cpu_s") or 0.0 for r in [*records.values(), *cameras.values()]),
-            "load_average": {"start": load_start, "end": _load()}}
+    return {
+        "format": FORMAT,
+        "version": _version(),
+        "machine": machine_info(),
+        "options": opts.model_dump(),
+        "workers": workers,
+        "spread_m": spread,
+        "plans": {str(n): plan_counts(s) for n, s in steps.items()},
+        "notes": plan_notes(opts),
+        "cameras": cameras,
+        "study": study,
+        "sweeps": {s: [p for p in out_points if p["sweep"] == s] for s in opts.sweeps},
+        "elapsed_s": time.perf_counter() - t_start,
+        "cpu_s": sum(r.get("cpu_s") or 0.0 for r in [*records.values(), *cameras.values()]),
+        "load_average": {"start": load_start, "end": _load()},
+    }
 
 
 def true_camera(noise_sigma: float) -> dict[str, Any]:
@@ -322,13 +376,24 @@ def _camera_result(fut: Future, task: CameraTask) -> dict[str, Any]:
     try:
         return fut.result()
     except Exception as exc:
-        return {"noise_sigma": task.noise_sigma, "source": "calibrated", "camera": None,
-                "error": f"{type(exc).__name__}: {exc}"}
+        return {
+            "noise_sigma": task.noise_sigma,
+            "source": "calibrated",
+            "camera": None,
+            "error": f"{type(exc).__name__}: {exc}",
+        }
 
 
 def _failed(task: TrialTask, error: str) -> dict[str, Any]:
-    return {"key": task.key, "index": task.index, "seed": task.seed, "noise_sigma": task.noise_sigma,
-            "truth": None, "error": error, "methods": {}}
+    return {
+        "key": task.key,
+        "index": task.index,
+        "seed": task.seed,
+        "noise_sigma": task.noise_sigma,
+        "truth": None,
+        "error": error,
+        "methods": {},
+    }
 
 
 def _trial_result(fut: Future, task: TrialTask) -> dict[str, Any]:
@@ -349,8 +414,11 @@ def _ints(text: str) -> list[int]:
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
-        "accuracy", help="Monte-Carlo accuracy of the methods on the image-level twin (errors, bound, gaps)",
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+        "accuracy",
+        help="Monte-Carlo accuracy of the methods on the image-level twin (errors, bound, gaps)",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     a = p.add_argument
     a("--trials", type=int, default=None, metavar="N", help="trials of the main study (default 50; 0: sweeps only)")
     a("--seed", type=int, default=None, help="seed of the whole study (default 0)")
@@ -358,8 +426,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     a("--json", metavar="PATH", default=None, help="also write every trial and the summaries as JSON")
     a("--quick", action="store_true", help="3 trials of a small plan; 2 trials per sweep point, 2 points (for tests)")
     a("--with-line", action="store_true", help="also render the guided line (51 frames per trial)")
-    a("--spread-mm", type=float, default=None, metavar="MM",
-      help="std of each true parameter around nominal (default: the twin's default truth's offsets, RMS)")
+    a(
+        "--spread-mm",
+        type=float,
+        default=None,
+        metavar="MM",
+        help="std of each true parameter around nominal (default: the twin's default truth's offsets, RMS)",
+    )
     a("--noise", type=float, default=None, metavar="GREY", help="renderer sensor noise, grey levels (default 2)")
     a("--base-poses", type=int, default=None, metavar="N", help="rotation and translation frames (default 10 each)")
     a("--fit-poses", type=int, default=None, metavar="N", help="fit poses (default 20)")
@@ -370,18 +443,34 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     a("--sweep-trials", type=int, default=None, metavar="N", help="trials per sweep point (default 10)")
     a("--sweep-noise", type=_floats, default=None, metavar="LIST", help="grey levels (default 0,1,2,4,8)")
     a("--sweep-poses", type=_ints, default=None, metavar="LIST", help="fit pose counts (default 8,12,20,30)")
-    a("--camera", choices=("per-trial", "calibrated", "true"), default=None,
-      help="intrinsics for extraction: calibrated in every trial from its own rendered camera phase (default: the "
-           "camera calibration's error is sampled like the rest), calibrated once per noise level (one draw of "
-           "that error shared by every trial), or the renderer's true ones (isolates the camera's share)")
+    a(
+        "--camera",
+        choices=("per-trial", "calibrated", "true"),
+        default=None,
+        help="intrinsics for extraction: calibrated in every trial from its own rendered camera phase (default: the "
+        "camera calibration's error is sampled like the rest), calibrated once per noise level (one draw of "
+        "that error shared by every trial), or the renderer's true ones (isolates the camera's share)",
+    )
     a("--quiet", action="store_true", help="no progress display")
     p.set_defaults(handler=run)
 
 
-_ARGS = {"trials": "trials", "seed": "seed", "workers": "workers", "spread_mm": "spread_mm", "noise": "noise_sigma",
-         "base_poses": "n_base", "fit_poses": "n_fit", "lock_poses": "n_lock", "validation_poses": "n_validation",
-         "camera_views": "camera_views", "sweep_trials": "sweep_trials", "sweep_noise": "sweep_noise",
-         "sweep_poses": "sweep_poses", "camera": "camera"}
+_ARGS = {
+    "trials": "trials",
+    "seed": "seed",
+    "workers": "workers",
+    "spread_mm": "spread_mm",
+    "noise": "noise_sigma",
+    "base_poses": "n_base",
+    "fit_poses": "n_fit",
+    "lock_poses": "n_lock",
+    "validation_poses": "n_validation",
+    "camera_views": "camera_views",
+    "sweep_trials": "sweep_trials",
+    "sweep_noise": "sweep_noise",
+    "sweep_poses": "sweep_poses",
+    "camera": "camera",
+}
 
 
 def options_from_args(args: argparse.Namespace) -> AccuracyOptions:
@@ -421,11 +510,19 @@ def run(args: argparse.Namespace) -> int:
     if args.quiet:
         doc = run_accuracy(opts)
     else:
-        with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                      TimeRemainingColumn(), console=Console(stderr=True), transient=True) as bar:
+        with Progress(
+            TextColumn("{task.description}"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TimeElapsedColumn(),
+            TimeRemainingColumn(),
+            console=Console(stderr=True),
+            transient=True,
+        ) as bar:
             task = bar.add_task("starting", total=None)
-            doc = run_accuracy(opts, lambda d, done, total: bar.update(task, description=d, completed=done,
-                                                                       total=total))
+            doc = run_accuracy(
+                opts, lambda d, done, total: bar.update(task, description=d, completed=done, total=total)
+            )
     doc = {"command": command_line(opts), "argv": list(sys.argv), **doc}
     print_accuracy(doc)
     if args.json:

@@ -46,8 +46,13 @@ from calib.errors import I4calError, InputError
 
 FORMAT = "i4cal.bench-speed/1"
 SECTIONS = ("extraction", "extract-calibrate", "fit", "acquisition", "modbus", "service")
-ALIASES = {"extract_calibrate": "extract-calibrate", "calibrate": "extract-calibrate", "memory": "extract-calibrate",
-           "frame": "extraction", "acquire": "acquisition"}
+ALIASES = {
+    "extract_calibrate": "extract-calibrate",
+    "calibrate": "extract-calibrate",
+    "memory": "extract-calibrate",
+    "frame": "extraction",
+    "acquire": "acquisition",
+}
 FINAL_STATES = ("done", "failed", "aborted", "interrupted")
 
 #: ``step(description, done, total)``: what a section is doing (``total`` None: no known end).
@@ -123,8 +128,14 @@ def machine_info() -> dict[str, Any]:
     except OSError:
         pass
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    return {"cpu": cpu, "cores": cores, "platform": platform.platform(), "python": platform.python_version(),
-            "i4cal": __version__, "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds")}
+    return {
+        "cpu": cpu,
+        "cores": cores,
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "i4cal": __version__,
+        "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+    }
 
 
 def percentile(xs: list[float], q: float) -> float:
@@ -249,9 +260,15 @@ def frame_times(n: int, step: Step = _no_step, seed: int = 0) -> list[float]:
 def bench_extraction(opts: SpeedOptions, step: Step = _no_step) -> tuple[list[Figure], dict[str, Any]]:
     t = frame_times(opts.frames, step, seed=opts.seed)
     ms = [x * 1e3 for x in t]
-    fig = Figure(key="extraction_frame_median_ms", section="extraction", value=statistics.median(ms), unit="ms",
-                 label="board + 8 rods per 1024x768 frame, one process (median)", target=20.0,
-                 detail=f"{len(ms)} frames, min {min(ms):.1f}, max {max(ms):.1f} ms")
+    fig = Figure(
+        key="extraction_frame_median_ms",
+        section="extraction",
+        value=statistics.median(ms),
+        unit="ms",
+        label="board + 8 rods per 1024x768 frame, one process (median)",
+        target=20.0,
+        detail=f"{len(ms)} frames, min {min(ms):.1f}, max {max(ms):.1f} ms",
+    )
     return [fig], {"frame_ms": ms}
 
 
@@ -285,12 +302,23 @@ def _extract_calibrate_job(queue: Any, dataset: str, workers: int | None, start_
         n_workers = workers or os.cpu_count() or 1
         main_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
         worker_mb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
-        queue.put(("result", {
-            "extract_s": t1 - t0, "calibrate_s": t2 - t1, "frames": len(res.observations["frames"]),
-            "workers": n_workers, "peak_main_mb": main_mb, "peak_largest_worker_mb": worker_mb,
-            # without /proc: the upper bound (every worker at its largest peak at the main's peak)
-            "peak_tree_mb": rss.peak_mb or main_mb + (n_workers if n_workers > 1 else 0) * worker_mb,
-            "peak_sampled": rss.peak_mb > 0, "methods_failed": failed}))
+        queue.put(
+            (
+                "result",
+                {
+                    "extract_s": t1 - t0,
+                    "calibrate_s": t2 - t1,
+                    "frames": len(res.observations["frames"]),
+                    "workers": n_workers,
+                    "peak_main_mb": main_mb,
+                    "peak_largest_worker_mb": worker_mb,
+                    # without /proc: the upper bound (every worker at its largest peak at the main's peak)
+                    "peak_tree_mb": rss.peak_mb or main_mb + (n_workers if n_workers > 1 else 0) * worker_mb,
+                    "peak_sampled": rss.peak_mb > 0,
+                    "methods_failed": failed,
+                },
+            )
+        )
     except BaseException as exc:
         queue.put(("error", f"{type(exc).__name__}: {exc}"))
 
@@ -309,8 +337,11 @@ def extract_calibrate(dataset: str | Path, workers: int | None = None, step: Ste
 
     ctx = mp.get_context("spawn")
     q = ctx.Queue()
-    proc = ctx.Process(target=_extract_calibrate_job, args=(q, str(dataset), workers, mp.get_start_method()),
-                       name="i4cal-bench-extract")
+    proc = ctx.Process(
+        target=_extract_calibrate_job,
+        args=(q, str(dataset), workers, mp.get_start_method()),
+        name="i4cal-bench-extract",
+    )
     proc.start()
     try:
         while True:
@@ -345,19 +376,36 @@ def bench_extract_calibrate(opts: SpeedOptions, step: Step = _no_step) -> tuple[
             from drivers.sim.imaging import simulate_dataset
 
             t0 = time.perf_counter()
-            ds = simulate_dataset(Path(tmp) / "ds", seed=opts.seed,
-                                  progress=lambda d, n: step("extract-calibrate: rendering the dataset", d, n))
+            ds = simulate_dataset(
+                Path(tmp) / "ds",
+                seed=opts.seed,
+                progress=lambda d, n: step("extract-calibrate: rendering the dataset", d, n),
+            )
             details["dataset"] = "paper's plan, rendered"
             details["render_s"] = time.perf_counter() - t0
         r = extract_calibrate(ds, opts.workers, step)
     details.update(r)
     total = r["extract_s"] + r["calibrate_s"]
-    figs = [Figure(key="extract_calibrate_s", section="extract-calibrate", value=total, unit="s", target=5.0,
-                   label=f"extract ({r['workers']} processes) + calibrate all, paper-sized dataset",
-                   detail=f"{r['frames']} frames; extract {r['extract_s']:.2f} s, calibrate {r['calibrate_s']:.2f} s"),
-            Figure(key="peak_memory_mb", section="extract-calibrate", value=r["peak_tree_mb"], unit="MB", target=500.0,
-                   label="peak memory of extract + calibrate (process + workers)",
-                   detail=f"main {r['peak_main_mb']:.0f} MB, largest worker {r['peak_largest_worker_mb']:.0f} MB")]
+    figs = [
+        Figure(
+            key="extract_calibrate_s",
+            section="extract-calibrate",
+            value=total,
+            unit="s",
+            target=5.0,
+            label=f"extract ({r['workers']} processes) + calibrate all, paper-sized dataset",
+            detail=f"{r['frames']} frames; extract {r['extract_s']:.2f} s, calibrate {r['calibrate_s']:.2f} s",
+        ),
+        Figure(
+            key="peak_memory_mb",
+            section="extract-calibrate",
+            value=r["peak_tree_mb"],
+            unit="MB",
+            target=500.0,
+            label="peak memory of extract + calibrate (process + workers)",
+            detail=f"main {r['peak_main_mb']:.0f} MB, largest worker {r['peak_largest_worker_mb']:.0f} MB",
+        ),
+    ]
     if r["methods_failed"]:
         details["warning"] = f"methods failed: {r['methods_failed']}"
     return figs, details
@@ -389,10 +437,17 @@ def fit_times(repeats: int = 5, seed: int = 0, step: Step = _no_step) -> dict[st
 
 def bench_fit(opts: SpeedOptions, step: Step = _no_step) -> tuple[list[Figure], dict[str, Any]]:
     t = fit_times(opts.fit_repeats, opts.seed, step)
-    figs = [Figure(key=f"fit_{name.replace('-', '_')}_ms", section="fit", unit="ms",
-                   value=statistics.median(xs) * 1e3, label=f"fit, {name} method (median)",
-                   detail=f"{len(xs)} fits, paper-sized observations (geometric twin)")
-            for name, xs in t.items()]
+    figs = [
+        Figure(
+            key=f"fit_{name.replace('-', '_')}_ms",
+            section="fit",
+            unit="ms",
+            value=statistics.median(xs) * 1e3,
+            label=f"fit, {name} method (median)",
+            detail=f"{len(xs)} fits, paper-sized observations (geometric twin)",
+        )
+        for name, xs in t.items()
+    ]
     return figs, {"fit_ms": {k: [x * 1e3 for x in v] for k, v in t.items()}}
 
 
@@ -449,14 +504,27 @@ async def modbus_round_trips(reads: int = 1000, step: Step = _no_step) -> dict[s
 def bench_modbus(opts: SpeedOptions, step: Step = _no_step) -> tuple[list[Figure], dict[str, Any]]:
     r = asyncio.run(modbus_round_trips(opts.reads, step))
     ms = {k: [x * 1e3 for x in v] for k, v in r.items()}
-    figs = [Figure(key="modbus_round_trip_median_ms", section="modbus", unit="ms", value=statistics.median(ms["raw"]),
-                   label="Modbus TCP loopback round trip, read 4 registers (median)",
-                   detail=f"plain pymodbus client, {len(ms['raw'])} reads, p90 {percentile(ms['raw'], 90):.3f} ms"),
-            Figure(key="modbus_driver_round_trip_median_ms", section="modbus", unit="ms",
-                   value=statistics.median(ms["driver"]), label="the same through the checked driver (median)",
-                   detail=f"status of the 4 axes {statistics.median(ms['status']):.2f} ms")]
-    return figs, {k: {"median_ms": statistics.median(v), "p90_ms": percentile(v, 90), "n": len(v)}
-                  for k, v in ms.items()}
+    figs = [
+        Figure(
+            key="modbus_round_trip_median_ms",
+            section="modbus",
+            unit="ms",
+            value=statistics.median(ms["raw"]),
+            label="Modbus TCP loopback round trip, read 4 registers (median)",
+            detail=f"plain pymodbus client, {len(ms['raw'])} reads, p90 {percentile(ms['raw'], 90):.3f} ms",
+        ),
+        Figure(
+            key="modbus_driver_round_trip_median_ms",
+            section="modbus",
+            unit="ms",
+            value=statistics.median(ms["driver"]),
+            label="the same through the checked driver (median)",
+            detail=f"status of the 4 axes {statistics.median(ms['status']):.2f} ms",
+        ),
+    ]
+    return figs, {
+        k: {"median_ms": statistics.median(v), "p90_ms": percentile(v, 90), "n": len(v)} for k, v in ms.items()
+    }
 
 
 def motion_time(d: float, v: float, a: float) -> float:
@@ -466,8 +534,9 @@ def motion_time(d: float, v: float, a: float) -> float:
     return d / v + v / a if d >= v * v / a else 2 * math.sqrt(d / a)
 
 
-async def acquisition_overheads(n_poses: int = 40, real_renderer: bool = False, seed: int = 0,
-                                step: Step = _no_step) -> dict[str, Any]:
+async def acquisition_overheads(
+    n_poses: int = 40, real_renderer: bool = False, seed: int = 0, step: Step = _no_step
+) -> dict[str, Any]:
     """Run a ``pose-set`` plan on the simulated bench (Modbus TCP) and time each pose.
 
     Returns
@@ -489,8 +558,9 @@ async def acquisition_overheads(n_poses: int = 40, real_renderer: bool = False, 
         cfg = b.bench_config()
         plan = Plan(name="pose-set", steps=pose_set(NOMINAL, n_poses, seed=3 + seed))
         with tempfile.TemporaryDirectory(prefix="i4cal-bench-") as tmp:
-            acq = acquisition_from_config(plan, cfg, Path(tmp) / "ds",
-                                          progress=lambda p: step("acquisition: poses", p.done, p.total))
+            acq = acquisition_from_config(
+                plan, cfg, Path(tmp) / "ds", progress=lambda p: step("acquisition: poses", p.done, p.total)
+            )
             try:
                 t0 = time.perf_counter()
                 await acq.run()
@@ -513,10 +583,15 @@ def bench_acquisition(opts: SpeedOptions, step: Step = _no_step) -> tuple[list[F
     over = [x * 1e3 for x in r["overhead_s"]]
     rec = [x * 1e3 for x in r["record_s"]]
     image = "rendered frames" if opts.real_renderer else "constant 1024x768 image"
-    fig = Figure(key="acquisition_overhead_median_ms", section="acquisition", unit="ms", value=statistics.median(over),
-                 target=30.0, label="acquisition overhead per pose beyond the motion (median)",
-                 detail=f"{r['poses']} poses, {image}; p90 {percentile(over, 90):.1f} ms; grab "
-                        f"{statistics.median(rec):.1f} ms")
+    fig = Figure(
+        key="acquisition_overhead_median_ms",
+        section="acquisition",
+        unit="ms",
+        value=statistics.median(over),
+        target=30.0,
+        label="acquisition overhead per pose beyond the motion (median)",
+        detail=f"{r['poses']} poses, {image}; p90 {percentile(over, 90):.1f} ms; grab {statistics.median(rec):.1f} ms",
+    )
     return [fig], {"overhead_ms": over, "record_ms": rec, "total_s": r["total_s"], "camera": image}
 
 
@@ -525,8 +600,10 @@ def bench_service_module() -> Any:
     """``benchmarks/bench_service.py`` of the source checkout this package runs from (imported, not copied)."""
     path = Path(__file__).resolve().parents[2] / "benchmarks" / "bench_service.py"
     if not path.is_file():
-        raise I4calError(f"the service latency benchmark is benchmarks/bench_service.py of a source checkout "
-                         f"(not found at {path}); install i4cal from a checkout (pip install -e .)")
+        raise I4calError(
+            f"the service latency benchmark is benchmarks/bench_service.py of a source checkout "
+            f"(not found at {path}); install i4cal from a checkout (pip install -e .)"
+        )
     name = "i4cal_bench_service"
     if name in sys.modules:
         return sys.modules[name]
@@ -545,32 +622,59 @@ def bench_service_module() -> Any:
 def bench_service(opts: SpeedOptions, step: Step = _no_step) -> tuple[list[Figure], dict[str, Any]]:
     mod = bench_service_module()
     step(f"service: a run of the {opts.service_plan} plan in i4cal serve, status polled", 0, None)
-    lat: dict[str, dict[str, list[float]]] = mod.measure(paper_plan=opts.service_plan == "paper",
-                                                         workers=opts.workers or os.cpu_count() or 1,
-                                                         hz=opts.service_hz)
+    lat: dict[str, dict[str, list[float]]] = mod.measure(
+        paper_plan=opts.service_plan == "paper", workers=opts.workers or os.cpu_count() or 1, hz=opts.service_hz
+    )
     final = [s for s in lat if s in FINAL_STATES]
     if final != ["done"]:
-        raise I4calError(f"the service run ended {', '.join(final) or 'without a final state'} "
-                         f"(states seen: {', '.join(lat)})")
+        raise I4calError(
+            f"the service run ended {', '.join(final) or 'without a final state'} (states seen: {', '.join(lat)})"
+        )
     active = [x for s, d in lat.items() if s not in FINAL_STATES for x in d["status"]]
     if not active:
         raise I4calError("no status sample while the run was going")
-    per_state = {s: {ep: {"n": len(xs), "p50_ms": percentile(xs, 50), "p99_ms": percentile(xs, 99),
-                          "max_ms": max(xs)} for ep, xs in d.items()} for s, d in lat.items()}
+    per_state = {
+        s: {
+            ep: {"n": len(xs), "p50_ms": percentile(xs, 50), "p99_ms": percentile(xs, 99), "max_ms": max(xs)}
+            for ep, xs in d.items()
+        }
+        for s, d in lat.items()
+    }
     worst = max((s for s in per_state if s not in FINAL_STATES), key=lambda s: per_state[s]["status"]["p99_ms"])
-    detail = (f"{len(active)} polls at {opts.service_hz:g} Hz, {opts.service_plan} plan; worst p99 while "
-              f"{worst}: {per_state[worst]['status']['p99_ms']:.1f} ms")
-    figs = [Figure(key="service_status_p50_ms", section="service", unit="ms", value=percentile(active, 50),
-                   label="service status latency while a run goes (p50)", detail=detail),
-            Figure(key="service_status_p99_ms", section="service", unit="ms", value=percentile(active, 99),
-                   target=50.0, label="service status latency while a run goes (p99)",
-                   detail=f"max {max(active):.1f} ms")]
+    detail = (
+        f"{len(active)} polls at {opts.service_hz:g} Hz, {opts.service_plan} plan; worst p99 while "
+        f"{worst}: {per_state[worst]['status']['p99_ms']:.1f} ms"
+    )
+    figs = [
+        Figure(
+            key="service_status_p50_ms",
+            section="service",
+            unit="ms",
+            value=percentile(active, 50),
+            label="service status latency while a run goes (p50)",
+            detail=detail,
+        ),
+        Figure(
+            key="service_status_p99_ms",
+            section="service",
+            unit="ms",
+            value=percentile(active, 99),
+            target=50.0,
+            label="service status latency while a run goes (p99)",
+            detail=f"max {max(active):.1f} ms",
+        ),
+    ]
     return figs, {"per_state": per_state, "plan": opts.service_plan}
 
 
 BENCHES: dict[str, Callable[[SpeedOptions, Step], tuple[list[Figure], dict[str, Any]]]] = {
-    "extraction": bench_extraction, "extract-calibrate": bench_extract_calibrate, "fit": bench_fit,
-    "acquisition": bench_acquisition, "modbus": bench_modbus, "service": bench_service}
+    "extraction": bench_extraction,
+    "extract-calibrate": bench_extract_calibrate,
+    "fit": bench_fit,
+    "acquisition": bench_acquisition,
+    "modbus": bench_modbus,
+    "service": bench_service,
+}
 
 
 def parse_sections(text: str | None) -> list[str]:
@@ -583,14 +687,19 @@ def parse_sections(text: str | None) -> list[str]:
         if not name:
             continue
         if name not in SECTIONS:
-            raise InputError(f"unknown benchmark section {raw.strip()!r}; sections are {', '.join(SECTIONS)}",
-                             field="--only")
+            raise InputError(
+                f"unknown benchmark section {raw.strip()!r}; sections are {', '.join(SECTIONS)}", field="--only"
+            )
         names.add(name)
     return [s for s in SECTIONS if s in names]
 
 
-def run_speed(sections: list[str], opts: SpeedOptions | None = None, step: Step = _no_step,
-              on_section: Callable[[str, int], None] | None = None) -> SpeedReport:
+def run_speed(
+    sections: list[str],
+    opts: SpeedOptions | None = None,
+    step: Step = _no_step,
+    on_section: Callable[[str, int], None] | None = None,
+) -> SpeedReport:
     """Run the named sections in order; a failing section is recorded in ``errors`` and the others still run."""
     opts = opts or SpeedOptions()
     report = SpeedReport(machine=machine_info(), sections=sections, options=opts)
@@ -624,10 +733,18 @@ def print_report(report: SpeedReport, console: Any = None) -> None:
 
     con = console or make_console()
     m = report.machine
-    t = Table(title=f"i4cal bench speed - {m['cpu']}, {m['cores']} cores, Python {m['python']}, {m['date']}",
-              title_justify="left")
-    for col, just in (("section", "left"), ("figure", "left"), ("measured", "right"), ("target", "right"),
-                      ("vs target", "center"), ("notes", "left")):
+    t = Table(
+        title=f"i4cal bench speed - {m['cpu']}, {m['cores']} cores, Python {m['python']}, {m['date']}",
+        title_justify="left",
+    )
+    for col, just in (
+        ("section", "left"),
+        ("figure", "left"),
+        ("measured", "right"),
+        ("target", "right"),
+        ("vs target", "center"),
+        ("notes", "left"),
+    ):
         t.add_column(col, justify=just)  # type: ignore[arg-type]
     for f in report.figures:
         met = "" if f.met is None else ("[green]met[/green]" if f.met else "[red]not met[/red]")
@@ -642,22 +759,35 @@ def print_report(report: SpeedReport, console: Any = None) -> None:
 # -- command line --------------------------------------------------------------------------------------
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
-        "speed", help="speed figures of this machine (extraction, fits, acquisition, Modbus, service, memory)",
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--only", metavar="LIST", default=None,
-                   help=f"comma-separated sections to run (default all): {','.join(SECTIONS)}")
+        "speed",
+        help="speed figures of this machine (extraction, fits, acquisition, Modbus, service, memory)",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "--only",
+        metavar="LIST",
+        default=None,
+        help=f"comma-separated sections to run (default all): {','.join(SECTIONS)}",
+    )
     p.add_argument("--json", metavar="PATH", default=None, help="also write the figures as JSON")
     p.add_argument("--frames", type=int, default=30, metavar="N", help="frames timed for extraction (default 30)")
-    p.add_argument("--dataset", metavar="DIR", default=None,
-                   help="dataset v1 to extract and calibrate (default: render the paper's plan)")
+    p.add_argument(
+        "--dataset",
+        metavar="DIR",
+        default=None,
+        help="dataset v1 to extract and calibrate (default: render the paper's plan)",
+    )
     p.add_argument("--workers", type=int, default=None, metavar="N", help="extraction processes (default: all cores)")
     p.add_argument("--poses", type=int, default=40, metavar="N", help="poses of the acquisition run (default 40)")
-    p.add_argument("--real-renderer", action="store_true",
-                   help="acquisition: the bench renders frames (default: a constant image)")
+    p.add_argument(
+        "--real-renderer", action="store_true", help="acquisition: the bench renders frames (default: a constant image)"
+    )
     p.add_argument("--reads", type=int, default=1000, metavar="N", help="Modbus reads timed per client (default 1000)")
     p.add_argument("--fit-repeats", type=int, default=5, metavar="N", help="fits timed per method (default 5)")
-    p.add_argument("--service-plan", choices=("paper", "reduced"), default="paper",
-                   help="plan of the service run (default paper)")
+    p.add_argument(
+        "--service-plan", choices=("paper", "reduced"), default="paper", help="plan of the service run (default paper)"
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quiet", action="store_true", help="no progress display")
     p.set_defaults(handler=run)
@@ -672,9 +802,17 @@ def run(args: argparse.Namespace) -> int:
 
     sections = parse_sections(args.only)
     try:
-        opts = SpeedOptions(frames=args.frames, dataset=args.dataset, workers=args.workers, poses=args.poses,
-                            real_renderer=args.real_renderer, reads=args.reads, fit_repeats=args.fit_repeats,
-                            service_plan=args.service_plan, seed=args.seed)
+        opts = SpeedOptions(
+            frames=args.frames,
+            dataset=args.dataset,
+            workers=args.workers,
+            poses=args.poses,
+            real_renderer=args.real_renderer,
+            reads=args.reads,
+            fit_repeats=args.fit_repeats,
+            service_plan=args.service_plan,
+            seed=args.seed,
+        )
     except ValidationError as exc:
         err = exc.errors()[0]
         raise InputError(err["msg"], field="--" + str(err["loc"][0]).replace("_", "-")) from None
@@ -683,8 +821,15 @@ def run(args: argparse.Namespace) -> int:
     if args.quiet:
         report = run_speed(sections, opts)
     else:
-        with Progress(SpinnerColumn(), TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-                      TimeElapsedColumn(), console=Console(stderr=True), transient=True) as bar:
+        with Progress(
+            SpinnerColumn(),
+            TextColumn("{task.description}"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TimeElapsedColumn(),
+            console=Console(stderr=True),
+            transient=True,
+        ) as bar:
             overall = bar.add_task("sections", total=len(sections))
             current = bar.add_task("", total=None)
 

@@ -22,8 +22,12 @@ from calib.errors import I4calError
 def build_parser() -> argparse.ArgumentParser:
     from service import __version__
 
-    parser = argparse.ArgumentParser(prog="i4cal", description=(
-        "Acquisition and kinematic calibration of I4 parallel robots by leg and end-effector observation."))
+    parser = argparse.ArgumentParser(
+        prog="i4cal",
+        description=(
+            "Acquisition and kinematic calibration of I4 parallel robots by leg and end-effector observation."
+        ),
+    )
     parser.add_argument("--version", action="version", version=f"i4cal {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for info in sorted(pkgutil.iter_modules(__path__), key=lambda m: m.name):

@@ -36,8 +36,11 @@ def print_result(doc: dict[str, Any], console: Console | None = None) -> None:
         if not e.get("parameters"):
             t1.add_row(name, *(["-"] * 4), f"[red]no: {e.get('error', '')}[/red]")
             continue
-        t1.add_row(name, *[f"{e['parameters'][k] * 1e3:.2f} ± {e['std'][k] * 1e3:.2f}" for k in COMBINATION_NAMES],
-                   "yes" if e.get("converged") else "[red]no[/red]")
+        t1.add_row(
+            name,
+            *[f"{e['parameters'][k] * 1e3:.2f} ± {e['std'][k] * 1e3:.2f}" for k in COMBINATION_NAMES],
+            "yes" if e.get("converged") else "[red]no[/red]",
+        )
     truth = doc.get("truth_errors")
     if truth:
         for name, te in truth.items():
@@ -50,13 +53,22 @@ def print_result(doc: dict[str, Any], console: Console | None = None) -> None:
         for k in PARAMETER_NAMES:
             t7.add_column(k, justify="right")
         t7.add_row("a priori", *[_mm(doc["nominal"][k], 2) for k in PARAMETER_NAMES])
-        t7.add_row("legs", *[f"{legs['seven'][k] * 1e3:.2f} ± {legs['seven_std'][k] * 1e3:.2f}"
-                             for k in PARAMETER_NAMES])
+        t7.add_row(
+            "legs", *[f"{legs['seven'][k] * 1e3:.2f} ± {legs['seven_std'][k] * 1e3:.2f}" for k in PARAMETER_NAMES]
+        )
         con.print(t7)
-    t2 = Table(title="Table II - displacement gaps, vision vs model (mm)  /  Table III - straightness (mm)",
-               title_justify="left")
-    for c in ("parameter set", "fit poses mean", "fit poses RMS", "validation mean", "validation RMS",
-              "straightness RMS"):
+    t2 = Table(
+        title="Table II - displacement gaps, vision vs model (mm)  /  Table III - straightness (mm)",
+        title_justify="left",
+    )
+    for c in (
+        "parameter set",
+        "fit poses mean",
+        "fit poses RMS",
+        "validation mean",
+        "validation RMS",
+        "straightness RMS",
+    ):
         t2.add_column(c, justify="right" if c != "parameter set" else "left")
     for name, v in doc["validation"].items():
         gp, gv, st = v.get("gaps_poses", {}), v.get("gaps_validation", {}), v.get("straightness", {})
@@ -64,6 +76,12 @@ def print_result(doc: dict[str, Any], console: Console | None = None) -> None:
         def f(x: Any, fmt: str = ".3f") -> str:
             return "-" if x is None else format(x, fmt)
 
-        t2.add_row(name if name != "truth" else "[dim]true geometry[/dim]", f(gp.get("mean_mm"), "+.4f"),
-                   f(gp.get("rms_mm")), f(gv.get("mean_mm"), "+.4f"), f(gv.get("rms_mm")), f(st.get("rms_mm")))
+        t2.add_row(
+            name if name != "truth" else "[dim]true geometry[/dim]",
+            f(gp.get("mean_mm"), "+.4f"),
+            f(gp.get("rms_mm")),
+            f(gv.get("mean_mm"), "+.4f"),
+            f(gv.get("rms_mm")),
+            f(st.get("rms_mm")),
+        )
     con.print(t2)

@@ -10,14 +10,21 @@ from pathlib import Path
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
-        "acquire", help="run a motion plan on a bench and record a dataset",
-        description=("Validates the plan against the bench's soft limits and nominal model, then for every pose "
-                     "moves, waits in position, reads the encoders, grabs and writes a frame. A fault stops the "
-                     "motion, keeps the frames written and names the pose; --resume continues from there."))
+        "acquire",
+        help="run a motion plan on a bench and record a dataset",
+        description=(
+            "Validates the plan against the bench's soft limits and nominal model, then for every pose "
+            "moves, waits in position, reads the encoders, grabs and writes a frame. A fault stops the "
+            "motion, keeps the frames written and names the pose; --resume continues from there."
+        ),
+    )
     p.add_argument("--bench", required=True, help="bench configuration file (TOML), e.g. deploy/bench-sim.toml")
-    p.add_argument("--plan", default="full",
-                   help="a plan name (full, rotation-sweep, equal-translation, pose-set, lock-actuator, line, "
-                        "validation) or a plan JSON file")
+    p.add_argument(
+        "--plan",
+        default="full",
+        help="a plan name (full, rotation-sweep, equal-translation, pose-set, lock-actuator, line, "
+        "validation) or a plan JSON file",
+    )
     p.add_argument("--out", required=True, help="dataset directory to write")
     p.add_argument("--resume", action="store_true", help="continue a partial dataset from its first missing pose")
     p.add_argument("--seed", type=int, default=0, help="seed of a generated plan")
@@ -44,9 +51,15 @@ def _run(args: argparse.Namespace) -> int:
     nominal = cfg.nominal_parameters()
     plan = _load_plan(args.plan, nominal, args.seed)
     console = Console(stderr=True)
-    bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                   TextColumn("{task.fields[phase]}"), TimeRemainingColumn(), console=console,
-                   disable=args.no_progress)
+    bar = Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("{task.fields[phase]}"),
+        TimeRemainingColumn(),
+        console=console,
+        disable=args.no_progress,
+    )
     task = bar.add_task("acquire", total=None, phase="")
 
     def on_progress(p) -> None:

@@ -14,9 +14,11 @@ import pkgutil
 def register(subparsers: argparse._SubParsersAction) -> None:
     from service import benchmarks
 
-    p = subparsers.add_parser("bench", help="benchmarks of this machine and of the methods (never timed tests)",
-                              description="Benchmarks: " + ", ".join(
-                                  f"`i4cal bench {m.name}`" for m in _modules(benchmarks.__path__)) + ".")
+    p = subparsers.add_parser(
+        "bench",
+        help="benchmarks of this machine and of the methods (never timed tests)",
+        description="Benchmarks: " + ", ".join(f"`i4cal bench {m.name}`" for m in _modules(benchmarks.__path__)) + ".",
+    )
     sub = p.add_subparsers(dest="benchmark", metavar="BENCHMARK")
     for info in _modules(benchmarks.__path__):
         module = importlib.import_module(f"{benchmarks.__name__}.{info.name}")

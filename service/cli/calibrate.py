@@ -55,9 +55,12 @@ class _Null:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("calibrate", help="identify the kinematic parameters from observations or a dataset",
-                       description="Identify the I4 parameters with one or all methods and print the paper's "
-                                   "Tables I-III (a priori vs each method, displacement gaps, straightness).")
+    p = sub.add_parser(
+        "calibrate",
+        help="identify the kinematic parameters from observations or a dataset",
+        description="Identify the I4 parameters with one or all methods and print the paper's "
+        "Tables I-III (a priori vs each method, displacement gaps, straightness).",
+    )
     p.add_argument("observations", metavar="OBS", help="observations v1 JSON file, or a dataset v1 directory")
     p.add_argument("--method", "-m", default="all", choices=[*METHOD_NAMES, "all"])
     p.add_argument("--json", action="store_true", help="print one JSON object to stdout")

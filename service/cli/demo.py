@@ -20,8 +20,10 @@ def _quick(args: argparse.Namespace, con) -> dict:
     from calib.pipeline import calibrate, to_jsonable
     from drivers.sim.twin import GeometricTwin
 
-    con.print("1. acquisition on the geometric twin: the paper's plan (rotation sweep, equal translation, "
-              "20 fit poses, 4x5 locked-actuator poses, 500 mm line, validation poses)")
+    con.print(
+        "1. acquisition on the geometric twin: the paper's plan (rotation sweep, equal translation, "
+        "20 fit poses, 4x5 locked-actuator poses, 500 mm line, validation poses)"
+    )
     obs = Observations.from_dict(GeometricTwin().observations(seed=args.seed))
     con.print(f"   {len(obs.frames)} frames: " + ", ".join(f"{k} {v}" for k, v in obs.phases().items()))
     con.print("2. calibration with the three methods")
@@ -43,8 +45,14 @@ async def _acquire(out: Path, seed: int, con) -> Path:
         cam = bench.renderer.camera if hasattr(bench.renderer, "camera") else None
         spec = {"K": cam.K.tolist(), "dist": list(map(float, cam.dist))} if cam is not None else {}
         truth = GeometricTwin(bench.geometry).truth_dict()
-        with Progress(TextColumn("   acquiring"), BarColumn(), TextColumn("{task.completed}/{task.total} poses"),
-                      TimeRemainingColumn(), console=con, transient=True) as bar:
+        with Progress(
+            TextColumn("   acquiring"),
+            BarColumn(),
+            TextColumn("{task.completed}/{task.total} poses"),
+            TimeRemainingColumn(),
+            console=con,
+            transient=True,
+        ) as bar:
             task = bar.add_task("acq", total=len(plan.steps))
 
             def progress(p) -> None:
@@ -64,12 +72,19 @@ def _full(args: argparse.Namespace, con) -> dict:
 
     base = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="i4cal-demo-"))
     ds = base / "dataset"
-    con.print("1. acquisition on the simulated bench over Modbus TCP (loopback): the paper's full plan, "
-              "camera frames rendered by the image-level twin")
+    con.print(
+        "1. acquisition on the simulated bench over Modbus TCP (loopback): the paper's full plan, "
+        "camera frames rendered by the image-level twin"
+    )
     asyncio.run(_acquire(ds, args.seed, con))
     con.print("2. extraction: ChArUco board poses and the eight rods in every frame (both cores)")
-    with Progress(TextColumn("   extracting"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-                  console=con, transient=True) as bar:
+    with Progress(
+        TextColumn("   extracting"),
+        BarColumn(),
+        TextColumn("{task.completed}/{task.total}"),
+        console=con,
+        transient=True,
+    ) as bar:
         task = bar.add_task("ext", total=1)
         res = extract_dataset(ds, progress=lambda d, t: bar.update(task, completed=d, total=t))
     obs_doc = res.observations
@@ -94,10 +109,13 @@ def handler(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("demo", help="run the simulated bench end to end and calibrate it with all methods",
-                       description="The main job on the simulated bench: acquire the paper's plan over Modbus, "
-                                   "extract the images, calibrate with the three methods and print the "
-                                   "comparison (the paper's Tables I-III).")
+    p = sub.add_parser(
+        "demo",
+        help="run the simulated bench end to end and calibrate it with all methods",
+        description="The main job on the simulated bench: acquire the paper's plan over Modbus, "
+        "extract the images, calibrate with the three methods and print the "
+        "comparison (the paper's Tables I-III).",
+    )
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--quick", action="store_true", help="geometric twin only (no images, about a second)")
     p.add_argument("--out", help="keep the dataset and observations in this directory")

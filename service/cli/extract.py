@@ -9,20 +9,32 @@ from pathlib import Path
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
-        "extract", help="extract board poses and rod axes from a recorded dataset (images) into observations v1",
-        description=("Reads a dataset v1 directory, calibrates the intrinsics from its 'camera' phase (unless "
-                     "given), measures the ChArUco board pose and the eight rods in every frame, writes "
-                     "observations v1 and prints what was found and missing per phase."))
+        "extract",
+        help="extract board poses and rod axes from a recorded dataset (images) into observations v1",
+        description=(
+            "Reads a dataset v1 directory, calibrates the intrinsics from its 'camera' phase (unless "
+            "given), measures the ChArUco board pose and the eight rods in every frame, writes "
+            "observations v1 and prints what was found and missing per phase."
+        ),
+    )
     p.add_argument("dataset", metavar="DATASET", help="dataset directory (or its dataset.json)")
     p.add_argument("-o", "--output", required=True, metavar="OUT", help="observations v1 JSON to write")
     p.add_argument("--workers", type=int, default=None, metavar="N", help="processes (default: all cores)")
-    p.add_argument("--camera", metavar="JSON", default=None,
-                   help="known intrinsics (i4cal.camera/1 JSON); default: the dataset's, else calibrated")
+    p.add_argument(
+        "--camera",
+        metavar="JSON",
+        default=None,
+        help="known intrinsics (i4cal.camera/1 JSON); default: the dataset's, else calibrated",
+    )
     p.add_argument("--camera-out", metavar="JSON", default=None, help="also save the intrinsics used")
     p.add_argument("--min-corners", type=int, default=6, help="fewer ChArUco corners: board missing (default 6)")
-    p.add_argument("--no-refine-camera", dest="refine_camera", action="store_false",
-                   help="do not let the rods refine the camera and measure the frames again with it (faster: one "
-                        "pass; less accurate when the camera calibration is off)")
+    p.add_argument(
+        "--no-refine-camera",
+        dest="refine_camera",
+        action="store_false",
+        help="do not let the rods refine the camera and measure the frames again with it (faster: one "
+        "pass; less accurate when the camera calibration is off)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=run)
 
@@ -42,8 +54,14 @@ def run(args: argparse.Namespace) -> int:
     if args.quiet:
         res = extract_dataset(args.dataset, camera=cam, workers=args.workers, options=opts)
     else:
-        with Progress(TextColumn("extract"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
-                      console=console, transient=True) as bar:
+        with Progress(
+            TextColumn("extract"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TimeRemainingColumn(),
+            console=console,
+            transient=True,
+        ) as bar:
             task = bar.add_task("extract", total=None)
 
             def progress(done: int, total: int) -> None:
@@ -60,19 +78,25 @@ def run(args: argparse.Namespace) -> int:
     s = res.summary
     if res.intrinsics is not None:
         i = res.intrinsics
-        console.print(f"intrinsics: calibrated from {len(i.per_view_rms_px)} views, RMS {i.rms_px:.3f} px, "
-                      f"fx {res.camera.fx:.2f} +/- {i.std.get('fx', float('nan')):.2f} px, "
-                      f"{len(i.rejected)} views rejected")
+        console.print(
+            f"intrinsics: calibrated from {len(i.per_view_rms_px)} views, RMS {i.rms_px:.3f} px, "
+            f"fx {res.camera.fx:.2f} +/- {i.std.get('fx', float('nan')):.2f} px, "
+            f"{len(i.rejected)} views rejected"
+        )
     ref = (s.get("camera") or {}).get("refined_by_rods") or {}
     if ref.get("applied"):
         sh = ref["shift"]
-        console.print(f"camera refined by the rods ({ref['mahalanobis']:.1f} std: fx {sh['fx']:+.2f}, "
-                      f"cx {sh['cx']:+.2f}, cy {sh['cy']:+.2f} px, k1 {sh['k1']:+.4f}); frames measured again")
+        console.print(
+            f"camera refined by the rods ({ref['mahalanobis']:.1f} std: fx {sh['fx']:+.2f}, "
+            f"cx {sh['cx']:+.2f}, cy {sh['cy']:+.2f} px, k1 {sh['k1']:+.4f}); frames measured again"
+        )
     elif ref:
         console.print(f"camera not refined: {ref.get('reason')}")
     pl = s["placement"]
-    console.print("coarse camera placement: " + (f"ok (board residual RMS {pl['rms_m'] * 1e3:.2f} mm)"
-                                                  if pl["ok"] else str(pl["reason"])))
+    console.print(
+        "coarse camera placement: "
+        + (f"ok (board residual RMS {pl['rms_m'] * 1e3:.2f} mm)" if pl["ok"] else str(pl["reason"]))
+    )
     t = Table(title="found per phase")
     for col in ("phase", "frames", "board", "rods", "missing (count)"):
         t.add_column(col)

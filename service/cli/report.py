@@ -13,23 +13,35 @@ METHODS = ("combined", "end-effector", "legs")
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
-        "report", help="write the calibration report (HTML, opens offline) of a run or a dataset",
-        description=("Build one self-contained HTML report: parameters with standard and expanded uncertainties, "
-                     "the Cramer-Rao bound, validation (Tables II, III), residuals per pose and leg, "
-                     "identifiability, camera calibration, the frames of the worst poses, hashes. TARGET is a "
-                     "dataset directory (extracted and calibrated), an observations v1 file (calibrated), a result "
-                     "file (i4cal calibrate -o), or the id (or a unique prefix) of a run of the service."))
+        "report",
+        help="write the calibration report (HTML, opens offline) of a run or a dataset",
+        description=(
+            "Build one self-contained HTML report: parameters with standard and expanded uncertainties, "
+            "the Cramer-Rao bound, validation (Tables II, III), residuals per pose and leg, "
+            "identifiability, camera calibration, the frames of the worst poses, hashes. TARGET is a "
+            "dataset directory (extracted and calibrated), an observations v1 file (calibrated), a result "
+            "file (i4cal calibrate -o), or the id (or a unique prefix) of a run of the service."
+        ),
+    )
     p.add_argument("target", metavar="RUN|DATASET", help="run id, dataset directory, observations or result file")
     p.add_argument("-o", "--output", required=True, metavar="HTML", help="report file to write")
-    p.add_argument("--methods", nargs="+", default=["all"], choices=[*METHODS, "all"], metavar="METHOD",
-                   help="methods to calibrate with / to show: combined, end-effector, legs or all (default)")
+    p.add_argument(
+        "--methods",
+        nargs="+",
+        default=["all"],
+        choices=[*METHODS, "all"],
+        metavar="METHOD",
+        help="methods to calibrate with / to show: combined, end-effector, legs or all (default)",
+    )
     p.add_argument("--config", metavar="TOML", help="service configuration (for RUN: where the data directory is)")
     p.add_argument("--server", metavar="URL", help="fetch the report of RUN from a running service")
-    p.add_argument("--token", default=os.environ.get("I4CAL_TOKEN"), help="bearer token for --server "
-                                                                         "(default: $I4CAL_TOKEN)")
+    p.add_argument(
+        "--token", default=os.environ.get("I4CAL_TOKEN"), help="bearer token for --server (default: $I4CAL_TOKEN)"
+    )
     p.add_argument("--observations", metavar="OBS", help="observations v1 to show with a result file")
-    p.add_argument("--dataset", metavar="DIR", help="dataset directory whose frames to show with a result or "
-                                                     "observations file")
+    p.add_argument(
+        "--dataset", metavar="DIR", help="dataset directory whose frames to show with a result or observations file"
+    )
     p.add_argument("--workers", type=int, default=None, metavar="N", help="extraction processes (default: all cores)")
     p.add_argument("--frames", type=int, default=3, metavar="N", help="worst poses to show as frames (default 3)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -45,8 +57,15 @@ def handler(args: argparse.Namespace) -> int:
     if not out.parent.is_dir():
         raise InputError("output directory does not exist", file=str(out.parent))
     err = Console(stderr=True)
-    with Progress(TextColumn("{task.description:<10}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  console=err, transient=True, disable=args.quiet) as bar:
+    with Progress(
+        TextColumn("{task.description:<10}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=err,
+        transient=True,
+        disable=args.quiet,
+    ) as bar:
         tasks: dict[str, int] = {}
 
         def progress(stage: str, done: int, total: int) -> None:
@@ -61,8 +80,9 @@ def handler(args: argparse.Namespace) -> int:
             from service.report import build_report
 
             inputs = resolve_inputs(args, methods, progress)
-            html = build_report(inputs, progress=lambda d, t, _label: progress("report", d, t),
-                                max_frames=max(0, args.frames))
+            html = build_report(
+                inputs, progress=lambda d, t, _label: progress("report", d, t), max_frames=max(0, args.frames)
+            )
     tmp = out.with_name(out.name + ".tmp")
     tmp.write_text(html, encoding="utf-8")
     tmp.replace(out)
@@ -77,8 +97,9 @@ def resolve_inputs(args: argparse.Namespace, methods: list[str], progress):
 
     target = Path(args.target)
     if target.exists():
-        inputs = inputs_from_path(target.resolve(), methods, workers=args.workers,
-                                  progress=lambda s, d, t: progress(s, d, t))
+        inputs = inputs_from_path(
+            target.resolve(), methods, workers=args.workers, progress=lambda s, d, t: progress(s, d, t)
+        )
     elif RUN_ID.match(args.target):
         from service.settings import load_settings
 
@@ -112,11 +133,15 @@ def fetch_report(server: str, ident: str, token: str | None, methods: list[str] 
                 runs = _check(c.get(f"{base}/runs", params={"limit": 1000}), server, ident).json()
                 found = [r["id"] for r in runs if r["id"].startswith(ident)]
                 if len(found) != 1:
-                    raise RunNotFoundError(f"no run {ident} on {server}" if not found else
-                                      f"run id prefix {ident!r} is ambiguous on {server}; give more digits")
+                    raise RunNotFoundError(
+                        f"no run {ident} on {server}"
+                        if not found
+                        else f"run id prefix {ident!r} is ambiguous on {server}; give more digits"
+                    )
                 run_id = found[0]
-            r = _check(c.get(f"{base}/runs/{run_id}/report", params=[("methods", m) for m in methods or []]),
-                       server, ident)
+            r = _check(
+                c.get(f"{base}/runs/{run_id}/report", params=[("methods", m) for m in methods or []]), server, ident
+            )
     except httpx.HTTPError as exc:
         raise I4calError(f"cannot reach the service at {server}: {exc}") from None
     return r.text

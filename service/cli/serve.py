@@ -7,9 +7,13 @@ import argparse
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
-        "serve", help="run the REST service and its dashboard",
-        description=("Serves /api/v1 (OpenAPI at /api/v1/docs) and the dashboard at /dashboard. Settings come from "
-                     "--config (TOML) and I4CAL_* environment variables; binds to 127.0.0.1 unless told otherwise."))
+        "serve",
+        help="run the REST service and its dashboard",
+        description=(
+            "Serves /api/v1 (OpenAPI at /api/v1/docs) and the dashboard at /dashboard. Settings come from "
+            "--config (TOML) and I4CAL_* environment variables; binds to 127.0.0.1 unless told otherwise."
+        ),
+    )
     p.add_argument("--config", "-c", default=None, help="service configuration (TOML), e.g. deploy/service-sim.toml")
     p.add_argument("--host", default=None, help="bind address (default from the settings: 127.0.0.1)")
     p.add_argument("--port", type=int, default=None, help="port (default from the settings: 8000)")
@@ -36,6 +40,12 @@ def _run(args: argparse.Namespace) -> int:
         over["sim_bench"] = True
     settings = load_settings(args.config, **over)
     app = create_app(settings)
-    uvicorn.run(app, host=settings.host, port=settings.port, log_level=args.log_level, proxy_headers=False,
-                timeout_graceful_shutdown=15)
+    uvicorn.run(
+        app,
+        host=settings.host,
+        port=settings.port,
+        log_level=args.log_level,
+        proxy_headers=False,
+        timeout_graceful_shutdown=15,
+    )
     return 0

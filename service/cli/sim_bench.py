@@ -9,10 +9,14 @@ import contextlib
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
-        "sim-bench", help="run the simulated bench on 127.0.0.1 and print its device URIs",
-        description=("Starts a simulated four-axis Modbus controller (default register map, see docs/drivers.md) "
-                     "on 127.0.0.1: Modbus TCP on PORT, Modbus RTU framing over TCP on PORT+1, and the simulated "
-                     "camera/operator endpoint on PORT+2. Runs until interrupted."))
+        "sim-bench",
+        help="run the simulated bench on 127.0.0.1 and print its device URIs",
+        description=(
+            "Starts a simulated four-axis Modbus controller (default register map, see docs/drivers.md) "
+            "on 127.0.0.1: Modbus TCP on PORT, Modbus RTU framing over TCP on PORT+1, and the simulated "
+            "camera/operator endpoint on PORT+2. Runs until interrupted."
+        ),
+    )
     p.add_argument("--port", type=int, default=5020, help="Modbus TCP port (default 5020)")
     p.add_argument("--seed", type=int, default=0, help="seed of encoder and image noise")
     p.set_defaults(handler=_run)

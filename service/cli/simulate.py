@@ -12,12 +12,15 @@ def noise_from_args(args: argparse.Namespace):
 
     base = NoiseSpec().scaled(args.noise)
     kw = {
-        "rod_direction_rad": base.rod_direction_rad if args.rod_direction_mrad is None
+        "rod_direction_rad": base.rod_direction_rad
+        if args.rod_direction_mrad is None
         else args.rod_direction_mrad * 1e-3,
         "rod_point_m": base.rod_point_m if args.rod_point_mm is None else args.rod_point_mm * 1e-3,
-        "board_rotation_rad": base.board_rotation_rad if args.board_rotation_mrad is None
+        "board_rotation_rad": base.board_rotation_rad
+        if args.board_rotation_mrad is None
         else args.board_rotation_mrad * 1e-3,
-        "board_translation_m": base.board_translation_m if args.board_translation_mm is None
+        "board_translation_m": base.board_translation_m
+        if args.board_translation_mm is None
         else tuple(v * 1e-3 for v in args.board_translation_mm),
         "encoder_m": base.encoder_m if args.encoder_um is None else args.encoder_um * 1e-6,
     }
@@ -46,8 +49,10 @@ def handler(args: argparse.Namespace) -> int:
     counts = {}
     for f in doc["frames"]:
         counts[f["phase"]] = counts.get(f["phase"], 0) + 1
-    con.print(f"wrote [bold]{out}[/bold]: {len(doc['frames'])} frames "
-              f"({', '.join(f'{k} {v}' for k, v in counts.items())}), truth included")
+    con.print(
+        f"wrote [bold]{out}[/bold]: {len(doc['frames'])} frames "
+        f"({', '.join(f'{k} {v}' for k, v in counts.items())}), truth included"
+    )
     return 0
 
 
@@ -57,15 +62,23 @@ def add_noise_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--rod-direction-mrad", type=float, help="rod direction noise per axis, mrad (default 0.5)")
     g.add_argument("--rod-point-mm", type=float, help="rod axis point noise, mm (default 0.5)")
     g.add_argument("--board-rotation-mrad", type=float, help="board rotation noise, mrad (default 0.3)")
-    g.add_argument("--board-translation-mm", type=float, nargs=3, metavar=("X", "Y", "DEPTH"),
-                   help="board translation noise along camera x, y and depth, mm (default 0.1 0.1 0.3)")
+    g.add_argument(
+        "--board-translation-mm",
+        type=float,
+        nargs=3,
+        metavar=("X", "Y", "DEPTH"),
+        help="board translation noise along camera x, y and depth, mm (default 0.1 0.1 0.3)",
+    )
     g.add_argument("--encoder-um", type=float, help="encoder noise, um (default 1)")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("simulate", help="simulate the paper's acquisition on the digital twin",
-                       description="Run the paper's full plan on the twin's true geometry and write observations "
-                                   "v1 (or, with --images, a rendered dataset v1), with the truth alongside.")
+    p = sub.add_parser(
+        "simulate",
+        help="simulate the paper's acquisition on the digital twin",
+        description="Run the paper's full plan on the twin's true geometry and write observations "
+        "v1 (or, with --images, a rendered dataset v1), with the truth alongside.",
+    )
     p.add_argument("--out", "-o", required=True, help="output observations file (or dataset directory with --images)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--images", action="store_true", help="render camera images and write a dataset directory")

@@ -6,15 +6,21 @@ import argparse
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("token", help="manage the service's bearer tokens",
-                              description="Tokens authorise every request that moves hardware or changes state.")
+    p = subparsers.add_parser(
+        "token",
+        help="manage the service's bearer tokens",
+        description="Tokens authorise every request that moves hardware or changes state.",
+    )
     sub = p.add_subparsers(dest="token_command", metavar="ACTION", required=True)
     c = sub.add_parser("create", help="create a token: printed once, only its sha256 is stored")
     c.add_argument("--config", "-c", default=None, help="service configuration (TOML): where the database is")
     c.add_argument("--data-dir", default=None, help="data directory (overrides the configuration)")
     c.add_argument("--name", default="", help="who or what the token is for")
-    c.add_argument("--hash-only", action="store_true",
-                   help="store nothing; print the token and the sha256 line to put in token_hashes")
+    c.add_argument(
+        "--hash-only",
+        action="store_true",
+        help="store nothing; print the token and the sha256 line to put in token_hashes",
+    )
     c.set_defaults(handler=_create)
 
 

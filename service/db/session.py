@@ -35,8 +35,10 @@ class Database:
         try:
             self.engine: Engine = create_engine(url, future=True, pool_pre_ping=True, **kw)
         except ModuleNotFoundError as exc:  # the URL's driver is not installed
-            raise InputError(f"the database driver {exc.name!r} is not installed (PostgreSQL: "
-                             "pip install 'i4cal[postgres]')", field="database_url") from None
+            raise InputError(
+                f"the database driver {exc.name!r} is not installed (PostgreSQL: pip install 'i4cal[postgres]')",
+                field="database_url",
+            ) from None
         if url.startswith("sqlite"):
             event.listen(self.engine, "connect", _sqlite_pragmas)
         self.sessions = sessionmaker(self.engine, expire_on_commit=False)

@@ -101,14 +101,14 @@ class LegResiduals:
         """RMS over the seen legs of each pose, radians, shape (N,) (NaN when none was seen)."""
         a = self.angle_rad
         n = np.sum(np.isfinite(a), axis=1)
-        s = np.nansum(a ** 2, axis=1)
+        s = np.nansum(a**2, axis=1)
         return np.where(n > 0, np.sqrt(s / np.maximum(n, 1)), np.nan)
 
     def per_leg_rms(self, phase: str | None = None) -> np.ndarray:
         """RMS over the poses of each leg, radians, shape (4,)."""
         a = self.angle_rad if phase is None else self.angle_rad[np.array(self.phases) == phase]
         with np.errstate(invalid="ignore"):
-            return np.sqrt(np.nanmean(a ** 2, axis=0)) if len(a) else np.full(4, np.nan)
+            return np.sqrt(np.nanmean(a**2, axis=0)) if len(a) else np.full(4, np.nan)
 
 
 def leg_residuals(obs: Any, result: dict[str, Any], method: str) -> LegResiduals | None:
@@ -180,8 +180,13 @@ class Missing:
             self.items.append(text)
 
 
-def missing_items(result: dict[str, Any], obs_doc: dict[str, Any] | None, dataset_dir: Path | None,
-                  methods: list[str], missing_files: list[str]) -> Missing:
+def missing_items(
+    result: dict[str, Any],
+    obs_doc: dict[str, Any] | None,
+    dataset_dir: Path | None,
+    methods: list[str],
+    missing_files: list[str],
+) -> Missing:
     """Everything absent from the inputs that a reader of the report would expect."""
     m = Missing()
     if obs_doc is None:
@@ -189,17 +194,24 @@ def missing_items(result: dict[str, Any], obs_doc: dict[str, Any] | None, datase
     if dataset_dir is None:
         m.add("no dataset: no dataset hash and no frames")
     elif missing_files:
-        m.add(f"{len(missing_files)} frame image(s) named in dataset.json are missing: "
-              + ", ".join(missing_files[:5]) + (" ..." if len(missing_files) > 5 else ""))
+        m.add(
+            f"{len(missing_files)} frame image(s) named in dataset.json are missing: "
+            + ", ".join(missing_files[:5])
+            + (" ..." if len(missing_files) > 5 else "")
+        )
     ext = (obs_doc or {}).get("extraction")
     if obs_doc is not None and not ext:
-        m.add("no extraction record: the observations were not produced from images by i4cal extract "
-              "(camera calibration quality unknown)")
+        m.add(
+            "no extraction record: the observations were not produced from images by i4cal extract "
+            "(camera calibration quality unknown)"
+        )
     elif ext:
         src = ((ext.get("summary") or {}).get("camera") or {}).get("source")
         if src in ("given", "dataset"):
-            m.add(f"no camera phase: intrinsics {'given' if src == 'given' else 'taken from the dataset'} "
-                  "(no reprojection errors, no intrinsic standard deviations)")
+            m.add(
+                f"no camera phase: intrinsics {'given' if src == 'given' else 'taken from the dataset'} "
+                "(no reprojection errors, no intrinsic standard deviations)"
+            )
         miss = {}
         for c in ((ext.get("summary") or {}).get("phases") or {}).values():
             for k, v in (c.get("missing") or {}).items():
@@ -235,8 +247,9 @@ def missing_items(result: dict[str, Any], obs_doc: dict[str, Any] | None, datase
     return m
 
 
-def conditions(result: dict[str, Any], obs_doc: dict[str, Any] | None, dataset_doc: dict[str, Any] | None
-               ) -> list[tuple[str, str]]:
+def conditions(
+    result: dict[str, Any], obs_doc: dict[str, Any] | None, dataset_doc: dict[str, Any] | None
+) -> list[tuple[str, str]]:
     """Measurement conditions as (item, value) rows, for display (mm, deg, px)."""
     rows: list[tuple[str, str]] = []
     ph = result.get("phases") or {}
@@ -245,50 +258,82 @@ def conditions(result: dict[str, Any], obs_doc: dict[str, Any] | None, dataset_d
         cam = dataset_doc.get("camera") or {}
         rows.append(("image size", f"{cam.get('width')} x {cam.get('height')} px"))
         b = dataset_doc.get("board") or {}
-        rows.append(("ChArUco board", f"{b.get('squares_x')} x {b.get('squares_y')} squares of "
-                                      f"{b.get('square_length_m', 0) * 1e3:.1f} mm, {b.get('dictionary')}"))
+        rows.append(
+            (
+                "ChArUco board",
+                f"{b.get('squares_x')} x {b.get('squares_y')} squares of "
+                f"{b.get('square_length_m', 0) * 1e3:.1f} mm, {b.get('dictionary')}",
+            )
+        )
         legs = dataset_doc.get("legs") or {}
         if legs.get("rod_radius_m"):
             rows.append(("rods", f"{legs.get('rods_per_leg', 2)} per leg, radius {legs['rod_radius_m'] * 1e3:.2f} mm"))
         gen = dataset_doc.get("generator")
         if isinstance(gen, dict):
-            rows.append(("data source",
-                         f"simulated: {gen.get('name')} (seed {gen.get('seed')}, plan {gen.get('plan')})"))
+            rows.append(
+                ("data source", f"simulated: {gen.get('name')} (seed {gen.get('seed')}, plan {gen.get('plan')})")
+            )
         acq = dataset_doc.get("acquisition")
         if isinstance(acq, dict):
-            rows.append(("acquisition", f"{acq.get('state')}: {acq.get('frames')}/{acq.get('total')} frames "
-                                        f"{acq.get('reason') or ''}".strip()))
+            rows.append(
+                (
+                    "acquisition",
+                    f"{acq.get('state')}: {acq.get('frames')}/{acq.get('total')} frames "
+                    f"{acq.get('reason') or ''}".strip(),
+                )
+            )
     elif obs_doc is not None and isinstance(obs_doc.get("noise"), dict):
         rows.append(("data source", "simulated observations (geometric twin, no images)"))
     bf = result.get("base_frame") or {}
     if "z_std_deg" in bf:
-        rows.append(("base frame", f"z_B std {bf['z_std_deg']:.4f} deg, x_B std {bf['x_std_deg']:.4f} deg, board "
-                                   f"rotation residual RMS {bf['rotation_residual_rms_deg']:.4f} deg, translation "
-                                   f"residual RMS {bf['translation_residual_rms_mm']:.3f} mm"))
+        rows.append(
+            (
+                "base frame",
+                f"z_B std {bf['z_std_deg']:.4f} deg, x_B std {bf['x_std_deg']:.4f} deg, board "
+                f"rotation residual RMS {bf['rotation_residual_rms_deg']:.4f} deg, translation "
+                f"residual RMS {bf['translation_residual_rms_mm']:.3f} mm",
+            )
+        )
     ms = result.get("methods", {})
     c = (ms.get("combined") or {}).get("diagnostics") or {}
     if "direction_noise_scale" in c:
         rows.append(("rod direction noise (combined fit)", f"{np.degrees(c['direction_noise_scale']):.4f} deg"))
     lg = (ms.get("legs") or {}).get("diagnostics") or {}
     if lg.get("rod_direction_noise_rad") is not None:
-        rows.append(("rod direction noise (legs fit)",
-                     f"{np.degrees(lg['rod_direction_noise_rad']):.4f} deg; "
-                     f"line residual RMS {lg.get('line_residual_rms_mm', 0):.3f} mm"))
+        rows.append(
+            (
+                "rod direction noise (legs fit)",
+                f"{np.degrees(lg['rod_direction_noise_rad']):.4f} deg; "
+                f"line residual RMS {lg.get('line_residual_rms_mm', 0):.3f} mm",
+            )
+        )
     elif lg.get("steps34_chi2_per_dof") is not None:
-        rows.append(("rod noise (legs fit, measured rod covariances)",
-                     f"chi-square per degree of freedom: step 1 {lg.get('step1_chi2_per_dof', float('nan')):.2f}, "
-                     f"steps 3-4 {lg['steps34_chi2_per_dof']:.2f}; line residual RMS "
-                     f"{lg.get('line_residual_rms_mm', 0):.3f} mm"))
+        rows.append(
+            (
+                "rod noise (legs fit, measured rod covariances)",
+                f"chi-square per degree of freedom: step 1 {lg.get('step1_chi2_per_dof', float('nan')):.2f}, "
+                f"steps 3-4 {lg['steps34_chi2_per_dof']:.2f}; line residual RMS "
+                f"{lg.get('line_residual_rms_mm', 0):.3f} mm",
+            )
+        )
     ee = (ms.get("end-effector") or {}).get("diagnostics") or {}
     if isinstance(ee.get("board_noise_std"), dict):
-        rows.append(("board pose noise (end-effector fit)",
-                     ", ".join(_fmt_noise(k, v) for k, v in ee["board_noise_std"].items())))
+        rows.append(
+            (
+                "board pose noise (end-effector fit)",
+                ", ".join(_fmt_noise(k, v) for k, v in ee["board_noise_std"].items()),
+            )
+        )
     bound = ((ms.get("combined") or {}).get("bound") or {}).get("noise")
     if isinstance(bound, dict):
-        rows.append(("noise levels of the Cramer-Rao bound",
-                     f"rod direction {np.degrees(bound.get('rod_direction_rad', 0)):.4f} deg, board rotation "
-                     f"{np.degrees(bound.get('board_rotation_rad', 0)):.4f} deg, board translation "
-                     f"{np.mean(bound.get('board_translation_m', [0])) * 1e3:.3f} mm"))
+        rows.append(
+            (
+                "noise levels of the Cramer-Rao bound",
+                f"rod direction {np.degrees(bound.get('rod_direction_rad', 0)):.4f} deg, board rotation "
+                f"{np.degrees(bound.get('board_rotation_rad', 0)):.4f} deg, board translation "
+                f"{np.mean(bound.get('board_translation_m', [0])) * 1e3:.3f} mm",
+            )
+        )
     return rows
 
 
@@ -299,11 +344,24 @@ def _fmt_noise(key: str, v: Any) -> str:
     except (TypeError, ValueError):
         return str(v)
     name, _, unit = key.rpartition("_")
-    scale, shown = {"deg": (1.0, "deg"), "rad": (180.0 / np.pi, "deg"), "mm": (1.0, "mm"), "m": (1e3, "mm")
-                    }.get(unit, (1.0, unit))
+    scale, shown = {"deg": (1.0, "deg"), "rad": (180.0 / np.pi, "deg"), "mm": (1.0, "mm"), "m": (1e3, "mm")}.get(
+        unit, (1.0, unit)
+    )
     digits = 4 if shown == "deg" else 3
     return (name or key) + " " + " / ".join(f"{a * scale:.{digits}f}" for a in x) + f" {shown}"
 
 
-__all__ = ["PARAMETER_NAMES", "LegResiduals", "Missing", "conditions", "dataset_sha256", "json_sha256",
-           "leg_residuals", "method_parameters", "missing_items", "reference_method", "sha256_file", "worst_poses"]
+__all__ = [
+    "PARAMETER_NAMES",
+    "LegResiduals",
+    "Missing",
+    "conditions",
+    "dataset_sha256",
+    "json_sha256",
+    "leg_residuals",
+    "method_parameters",
+    "missing_items",
+    "reference_method",
+    "sha256_file",
+    "worst_poses",
+]

@@ -40,9 +40,9 @@ COMBINATION_MEANING = {
 }
 METHOD_TEXT = {
     "combined": "legs + end-effector (the paper's eq. 8): the Jacobian entries observed on the legs, in the base "
-                "frame found from the board's rotation and translation phases, fitted to the model's",
+    "frame found from the board's rotation and translation phases, fitted to the model's",
     "end-effector": "end-effector only: the board poses fitted through the direct kinematic model, camera and board "
-                    "placements as nuisance parameters",
+    "placements as nuisance parameters",
     "legs": "legs only: joint centres from the lock-actuator phases, then all seven parameters from the leg axes",
 }
 K_COVERAGE = 2.0
@@ -131,14 +131,30 @@ def build_report(inputs: ReportInputs, *, progress: Progress | None = None, max_
     ref = reference_method(res, methods)
     body.append(_frames(inputs.dataset_dir, ds_doc, obs_doc, residuals.get(ref) if ref else None, ref, max_frames))
     step("frames")
-    body.append(section("conditions", "Method and measurement conditions", _method_text(res, methods),
-                        kv_table(conditions(res, obs_doc, ds_doc) + inputs.extra_rows)))
-    body.append(section("missing", "What this report does not contain", Raw('<div class="missing">'),
-                        bullet_list(missing_items(res, obs_doc, inputs.dataset_dir, methods, missing_files).items),
-                        Raw("</div>")))
-    body.append(Raw(f"<footer>i4cal {esc(__version__)} - report generated {esc(_now())}. Lengths in mm, angles in "
-                    "degrees; values are computed in metres and radians. Uncertainties: u = one standard deviation, "
-                    f"U = k u with k = {K_COVERAGE:g}.</footer>"))
+    body.append(
+        section(
+            "conditions",
+            "Method and measurement conditions",
+            _method_text(res, methods),
+            kv_table(conditions(res, obs_doc, ds_doc) + inputs.extra_rows),
+        )
+    )
+    body.append(
+        section(
+            "missing",
+            "What this report does not contain",
+            Raw('<div class="missing">'),
+            bullet_list(missing_items(res, obs_doc, inputs.dataset_dir, methods, missing_files).items),
+            Raw("</div>"),
+        )
+    )
+    body.append(
+        Raw(
+            f"<footer>i4cal {esc(__version__)} - report generated {esc(_now())}. Lengths in mm, angles in "
+            "degrees; values are computed in metres and radians. Uncertainties: u = one standard deviation, "
+            f"U = k u with k = {K_COVERAGE:g}.</footer>"
+        )
+    )
     step("html")
     return page(f"i4cal calibration report - {inputs.source or 'result'}", body)
 
@@ -148,8 +164,15 @@ def _now() -> str:
     return datetime.now(UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
 
 
-def _title_block(inputs: ReportInputs, res: dict, methods: list[str], ds_doc: dict | None, ds_hash: str | None,
-                 n_files: int, version: str) -> Raw:
+def _title_block(
+    inputs: ReportInputs,
+    res: dict,
+    methods: list[str],
+    ds_doc: dict | None,
+    ds_hash: str | None,
+    n_files: int,
+    version: str,
+) -> Raw:
     run = inputs.run or {}
     rows: list[tuple[str, str]] = [("bench", run.get("bench") or "-")]
     if run.get("id"):
@@ -165,21 +188,33 @@ def _title_block(inputs: ReportInputs, res: dict, methods: list[str], ds_doc: di
     rows.append(("report date", _now()))
     rows.append(("software", f"i4cal {version} (result format {res.get('format', '-')})"))
     rows.append(("dataset SHA-256", f"{ds_hash} ({n_files} files: dataset.json and frames)" if ds_hash else "-"))
-    rows.append(("observations SHA-256", json_sha256(inputs.observations) + " (canonical JSON)"
-                 if inputs.observations is not None else "-"))
+    rows.append(
+        (
+            "observations SHA-256",
+            json_sha256(inputs.observations) + " (canonical JSON)" if inputs.observations is not None else "-",
+        )
+    )
     rows.append(("result SHA-256", json_sha256(res) + " (canonical JSON)"))
     rows.append(("methods", ", ".join(methods) or "-"))
-    return Raw('<header class="title"><h1>Kinematic calibration report</h1><p>I4 parallel robot observed by one '
-               "camera: identified geometry, uncertainties and validation</p></header>" + kv_table(rows))
+    return Raw(
+        '<header class="title"><h1>Kinematic calibration report</h1><p>I4 parallel robot observed by one '
+        "camera: identified geometry, uncertainties and validation</p></header>" + kv_table(rows)
+    )
 
 
 def _contents() -> Raw:
-    items = [("parameters", "Identified parameters"), ("budget", "Uncertainty budget"),
-             ("combinations", "The four identifiable combinations"),
-             ("validation", "Validation: displacement gaps and straightness"),
-             ("residuals", "Residuals per pose and per leg"), ("identifiability", "Identifiability"),
-             ("camera", "Camera calibration"), ("frames", "Frames of the worst poses"),
-             ("conditions", "Method and measurement conditions"), ("missing", "What this report does not contain")]
+    items = [
+        ("parameters", "Identified parameters"),
+        ("budget", "Uncertainty budget"),
+        ("combinations", "The four identifiable combinations"),
+        ("validation", "Validation: displacement gaps and straightness"),
+        ("residuals", "Residuals per pose and per leg"),
+        ("identifiability", "Identifiability"),
+        ("camera", "Camera calibration"),
+        ("frames", "Frames of the worst poses"),
+        ("conditions", "Method and measurement conditions"),
+        ("missing", "What this report does not contain"),
+    ]
     return Raw("<nav><ol>" + "".join(f'<li><a href="#{k}">{esc(t)}</a></li>' for k, t in items) + "</ol></nav>")
 
 
@@ -200,14 +235,20 @@ def _parameters(res: dict, methods: list[str], truth: dict[str, float] | None) -
     for m in methods:
         e = res["methods"][m]
         if e.get("parameters"):
-            t1_rows.append([m, *[f"{mm(e['parameters'][k])} ± {mm(K_COVERAGE * e['std'][k])}"
-                                 for k in COMBINATION_NAMES]])
+            t1_rows.append(
+                [m, *[f"{mm(e['parameters'][k])} ± {mm(K_COVERAGE * e['std'][k])}" for k in COMBINATION_NAMES]]
+            )
         else:
             t1_rows.append([m, *(["failed"] * 4)])
     if truth:
         t1_rows.append(["truth (simulation)", *[mm(truth[k]) for k in COMBINATION_NAMES]])
-    parts: list[Any] = [table(["parameter set", *[f"{k} (mm)" for k in COMBINATION_NAMES]], t1_rows,
-                              caption=f"Table I - identifiable parameters, value ± U (k = {K_COVERAGE:g})")]
+    parts: list[Any] = [
+        table(
+            ["parameter set", *[f"{k} (mm)" for k in COMBINATION_NAMES]],
+            t1_rows,
+            caption=f"Table I - identifiable parameters, value ± U (k = {K_COVERAGE:g})",
+        )
+    ]
     for m in methods:
         e = res["methods"][m]
         if not e.get("parameters"):
@@ -215,8 +256,14 @@ def _parameters(res: dict, methods: list[str], truth: dict[str, float] | None) -
             continue
         bound = (e.get("bound") or {}).get("std") or {}
         te = (res.get("truth_errors") or {}).get(m)
-        hdr = ["combination", "a priori (mm)", "identified (mm)", "identified - a priori (mm)", "u (mm)",
-               f"U, k = {K_COVERAGE:g} (mm)"]
+        hdr = [
+            "combination",
+            "a priori (mm)",
+            "identified (mm)",
+            "identified - a priori (mm)",
+            "u (mm)",
+            f"U, k = {K_COVERAGE:g} (mm)",
+        ]
         hdr += ["Cramer-Rao bound (mm)", "u / bound"] if bound else []
         hdr += ["error vs truth (mm)", "|error| / u"] if te else []
         rows = []
@@ -228,23 +275,53 @@ def _parameters(res: dict, methods: list[str], truth: dict[str, float] | None) -
             if te:
                 row += [mm(te[k], 4, True), num(abs(te[k]) / u, ".2f") if u > 0 else "-"]
             rows.append(row)
-        note = (f"converged: {'yes' if e.get('converged') else 'NO'}, {e.get('iterations')} iterations, "
-                f"{e.get('n_poses')} poses, {e.get('n_observations')} observations, residual RMS "
-                f"{num(e.get('residual_rms'), '.4g')} ({e.get('residual_unit', '')})")
+        note = (
+            f"converged: {'yes' if e.get('converged') else 'NO'}, {e.get('iterations')} iterations, "
+            f"{e.get('n_poses')} poses, {e.get('n_observations')} observations, residual RMS "
+            f"{num(e.get('residual_rms'), '.4g')} ({e.get('residual_unit', '')})"
+        )
         parts += [Raw(f"<h3>Method: {esc(m)}</h3>"), table(hdr, rows), Raw(f'<p class="note">{esc(note)}</p>')]
         if e.get("seven"):
-            srows = [[k, mm(res["nominal"][k]), mm(e["seven"][k], 4), mm((e.get("seven_std") or {}).get(k), 4),
-                      mm(K_COVERAGE * ((e.get("seven_std") or {}).get(k) or 0), 4)]
-                     + ([mm(te["seven"][k], 4, True)] if te and "seven" in te else []) for k in PARAMETER_NAMES]
-            parts.append(table(["parameter", "a priori (mm)", "identified (mm)", "u (mm)", "U, k = 2 (mm)"]
-                               + (["error vs truth (mm)"] if te and "seven" in te else []), srows,
-                               caption=f"{m}: all seven parameters"))
-    parts.append(figure(plots.parameter_plot(res, methods, truth), "parameter deviations",
-                        "Identified minus a priori value of each combination, error bars U (k = 2); dotted: truth"))
+            srows = [
+                [
+                    k,
+                    mm(res["nominal"][k]),
+                    mm(e["seven"][k], 4),
+                    mm((e.get("seven_std") or {}).get(k), 4),
+                    mm(K_COVERAGE * ((e.get("seven_std") or {}).get(k) or 0), 4),
+                ]
+                + ([mm(te["seven"][k], 4, True)] if te and "seven" in te else [])
+                for k in PARAMETER_NAMES
+            ]
+            parts.append(
+                table(
+                    ["parameter", "a priori (mm)", "identified (mm)", "u (mm)", "U, k = 2 (mm)"]
+                    + (["error vs truth (mm)"] if te and "seven" in te else []),
+                    srows,
+                    caption=f"{m}: all seven parameters",
+                )
+            )
+    parts.append(
+        figure(
+            plots.parameter_plot(res, methods, truth),
+            "parameter deviations",
+            "Identified minus a priori value of each combination, error bars U (k = 2); dotted: truth",
+        )
+    )
     if any((res["methods"][m].get("bound") or {}).get("std") for m in methods):
-        parts.append(Raw('<p class="note">' + esc(next((res["methods"][m]["bound"].get("note", "")) for m in methods
-                                                       if (res["methods"][m].get("bound") or {}).get("std")))
-                         + ".</p>"))
+        parts.append(
+            Raw(
+                '<p class="note">'
+                + esc(
+                    next(
+                        (res["methods"][m]["bound"].get("note", ""))
+                        for m in methods
+                        if (res["methods"][m].get("bound") or {}).get("std")
+                    )
+                )
+                + ".</p>"
+            )
+        )
     return section("parameters", "Identified parameters", *parts)
 
 
@@ -262,9 +339,11 @@ BUDGET_SOURCES = {
 
 def _budget(res: dict, methods: list[str]) -> Raw:
     """Per method, the standard deviation each source contributes (the combined u is their root sum of squares)."""
-    parts: list[Any] = ["Standard uncertainty contributed by each source, in mm; the sources are independent and the "
-                        "combined standard uncertainty u is their root sum of squares (the methods' propagation, "
-                        "docs/model.md). A source a method does not have is not listed."]
+    parts: list[Any] = [
+        "Standard uncertainty contributed by each source, in mm; the sources are independent and the "
+        "combined standard uncertainty u is their root sum of squares (the methods' propagation, "
+        "docs/model.md). A source a method does not have is not listed."
+    ]
     shown = 0
     for m in methods:
         e = res["methods"].get(m) or {}
@@ -275,8 +354,10 @@ def _budget(res: dict, methods: list[str]) -> Raw:
         rows = [[BUDGET_SOURCES.get(src, src)] + [mm(v.get(k), 4) for k in names] for src, v in bd.items()]
         total = e.get("seven_std") if names != list(COMBINATION_NAMES) and e.get("seven_std") else e["std"]
         rows.append(["combined u (root sum of squares)"] + [mm((total or {}).get(k), 4) for k in names])
-        parts += [Raw(f"<h3>Method: {esc(m)}</h3>"), table(["source"] + [f"{k} (mm)" for k in names], rows,
-                                                              cls="data wide")]
+        parts += [
+            Raw(f"<h3>Method: {esc(m)}</h3>"),
+            table(["source"] + [f"{k} (mm)" for k in names], rows, cls="data wide"),
+        ]
         shown += 1
     if not shown:
         parts = ["Not available: the results carry no uncertainty breakdown."]
@@ -291,14 +372,21 @@ def _combinations(res: dict, methods: list[str]) -> Raw:
         if "finds_paper_four" in ident:
             four = "yes" if ident["finds_paper_four"] else ("all seven" if ident.get("rank") == 7 else "no")
             found.append([m, str(ident.get("rank")), four, "; ".join(ident.get("identifiable_combinations") or [])])
-    return section("combinations", "The four identifiable combinations",
-                   "Methods that observe the mechanism through its Jacobian or its inverse kinematics identify only "
-                   "four combinations of the seven parameters (H, q02, q03, q04, S, D, L); the other three directions "
-                   "do not change any measurement. The legs method, which also sees the joint centres, identifies "
-                   "all seven.",
-                   table(["name", "combination", "meaning"], rows, cls="data wide"),
-                   table(["method", "rank", "the paper's four?", "identifiable combinations found (row-reduced)"],
-                         found, cls="data wide", caption="Found by the numerical identifiability analysis"))
+    return section(
+        "combinations",
+        "The four identifiable combinations",
+        "Methods that observe the mechanism through its Jacobian or its inverse kinematics identify only "
+        "four combinations of the seven parameters (H, q02, q03, q04, S, D, L); the other three directions "
+        "do not change any measurement. The legs method, which also sees the joint centres, identifies "
+        "all seven.",
+        table(["name", "combination", "meaning"], rows, cls="data wide"),
+        table(
+            ["method", "rank", "the paper's four?", "identifiable combinations found (row-reduced)"],
+            found,
+            cls="data wide",
+            caption="Found by the numerical identifiability analysis",
+        ),
+    )
 
 
 def _validation(res: dict) -> Raw:
@@ -310,22 +398,43 @@ def _validation(res: dict) -> Raw:
             g_rows.append([label, v["error"], "", "", "", "", ""])
             continue
         gp, gv = v.get("gaps_poses") or {}, v.get("gaps_validation") or {}
-        g_rows.append([label, num(gp.get("mean_mm"), "+.4f"), num(gp.get("rms_mm"), ".4f"),
-                       num(gp.get("max_abs_mm"), ".4f"), num(gv.get("mean_mm"), "+.4f"), num(gv.get("rms_mm"), ".4f"),
-                       num(gv.get("max_abs_mm"), ".4f")])
+        g_rows.append(
+            [
+                label,
+                num(gp.get("mean_mm"), "+.4f"),
+                num(gp.get("rms_mm"), ".4f"),
+                num(gp.get("max_abs_mm"), ".4f"),
+                num(gv.get("mean_mm"), "+.4f"),
+                num(gv.get("rms_mm"), ".4f"),
+                num(gv.get("max_abs_mm"), ".4f"),
+            ]
+        )
         st = v.get("straightness") or {}
         s_rows.append([label, num(st.get("rms_mm"), ".4f"), str(st.get("n", "-")), num(st.get("length_mm"), ".1f")])
-    hdr = ["parameter set", "fit: mean", "fit: RMS", "fit: max |gap|", "validation: mean", "validation: RMS",
-           "validation: max |gap|"]
-    return section("validation", "Validation: displacement gaps and straightness",
-                   "Displacement gap: length of the end-effector displacement between consecutive poses measured by "
-                   "the camera (the board point on the rotation axis) minus the one the geometry predicts from the "
-                   "encoder values. Straightness: RMS distance of the model positions along the guided line to their "
-                   "best-fit line.",
-                   table(hdr, g_rows, caption="Table II - displacement gaps (mm)"),
-                   table(["parameter set", "RMS (mm)", "points", "length (mm)"], s_rows,
-                         caption="Table III - straightness of the guided line"),
-                   figure(plots.gaps_plot(res), "displacement gaps", "Displacement gap of each pose pair"))
+    hdr = [
+        "parameter set",
+        "fit: mean",
+        "fit: RMS",
+        "fit: max |gap|",
+        "validation: mean",
+        "validation: RMS",
+        "validation: max |gap|",
+    ]
+    return section(
+        "validation",
+        "Validation: displacement gaps and straightness",
+        "Displacement gap: length of the end-effector displacement between consecutive poses measured by "
+        "the camera (the board point on the rotation axis) minus the one the geometry predicts from the "
+        "encoder values. Straightness: RMS distance of the model positions along the guided line to their "
+        "best-fit line.",
+        table(hdr, g_rows, caption="Table II - displacement gaps (mm)"),
+        table(
+            ["parameter set", "RMS (mm)", "points", "length (mm)"],
+            s_rows,
+            caption="Table III - straightness of the guided line",
+        ),
+        figure(plots.gaps_plot(res), "displacement gaps", "Displacement gap of each pose pair"),
+    )
 
 
 def _residuals(residuals: dict[str, LegResiduals | None]) -> Raw:
@@ -338,16 +447,25 @@ def _residuals(residuals: dict[str, LegResiduals | None]) -> Raw:
         for ph in ("poses", "validation"):
             if ph in r.phases:
                 rms = np.degrees(r.per_leg_rms(ph))
-                rows.append([f"{m}, {'fit' if ph == 'poses' else 'validation'} poses",
-                             *[num(x, ".4f") if np.isfinite(x) else "-" for x in rms]])
-    return section("residuals", "Residuals per pose and per leg",
-                   "Angle between each leg as observed (mean over its rods, in the base frame found from the board's "
-                   "rotation and translation phases) and the leg direction the identified geometry predicts from the "
-                   "encoder values.",
-                   figure(plots.leg_residual_plot({k: v for k, v in residuals.items() if v is not None}),
-                          "leg residuals", "Residual angle of each leg at each pose (deg)"),
-                   table(["method, poses", "leg 1", "leg 2", "leg 3", "leg 4"], rows,
-                         caption="RMS residual angle per leg (deg)"))
+                rows.append(
+                    [
+                        f"{m}, {'fit' if ph == 'poses' else 'validation'} poses",
+                        *[num(x, ".4f") if np.isfinite(x) else "-" for x in rms],
+                    ]
+                )
+    return section(
+        "residuals",
+        "Residuals per pose and per leg",
+        "Angle between each leg as observed (mean over its rods, in the base frame found from the board's "
+        "rotation and translation phases) and the leg direction the identified geometry predicts from the "
+        "encoder values.",
+        figure(
+            plots.leg_residual_plot({k: v for k, v in residuals.items() if v is not None}),
+            "leg residuals",
+            "Residual angle of each leg at each pose (deg)",
+        ),
+        table(["method, poses", "leg 1", "leg 2", "leg 3", "leg 4"], rows, caption="RMS residual angle per leg (deg)"),
+    )
 
 
 def _identifiability(res: dict, methods: list[str]) -> Raw:
@@ -356,16 +474,26 @@ def _identifiability(res: dict, methods: list[str]) -> Raw:
         ident = res["methods"][m].get("identifiability") or {}
         if "rank" in ident:
             sv = ident.get("singular_values") or []
-            rows.append([m, str(ident["rank"]), num(ident.get("condition_number"), ".3g"),
-                         " ".join(f"{s:.3g}" for s in sv), str(ident.get("n_poses", "-"))])
+            rows.append(
+                [
+                    m,
+                    str(ident["rank"]),
+                    num(ident.get("condition_number"), ".3g"),
+                    " ".join(f"{s:.3g}" for s in sv),
+                    str(ident.get("n_poses", "-")),
+                ]
+            )
         elif "error" in ident:
             rows.append([m, "-", "-", ident["error"], "-"])
-    return section("identifiability", "Identifiability",
-                   "Singular values of each method's identification Jacobian over the seven parameters at the "
-                   "identified geometry and the fit poses (nuisance parameters projected out). The rank is the number "
-                   "of singular values above 1e-7 of the largest; the condition number is over those.",
-                   figure(plots.singular_value_plot(res, methods), "singular values", "Relative singular values"),
-                   table(["method", "rank", "condition number", "singular values", "poses"], rows))
+    return section(
+        "identifiability",
+        "Identifiability",
+        "Singular values of each method's identification Jacobian over the seven parameters at the "
+        "identified geometry and the fit poses (nuisance parameters projected out). The rank is the number "
+        "of singular values above 1e-7 of the largest; the condition number is over those.",
+        figure(plots.singular_value_plot(res, methods), "singular values", "Relative singular values"),
+        table(["method", "rank", "condition number", "singular values", "poses"], rows),
+    )
 
 
 def _camera(obs_doc: dict | None) -> Raw:
@@ -377,54 +505,97 @@ def _camera(obs_doc: dict | None) -> Raw:
     cam = ext.get("camera") or {}
     K = np.asarray(cam.get("K") or np.eye(3), float)
     std = cs.get("std") or {}
-    intr = [[k, num(K[i, j], ".2f"), num(std.get(k), ".2f")]
-            for k, (i, j) in (("fx", (0, 0)), ("fy", (1, 1)), ("cx", (0, 2)), ("cy", (1, 2)))]
+    intr = [
+        [k, num(K[i, j], ".2f"), num(std.get(k), ".2f")]
+        for k, (i, j) in (("fx", (0, 0)), ("fy", (1, 1)), ("cx", (0, 2)), ("cy", (1, 2)))
+    ]
     for name, v in zip(("k1", "k2", "p1", "p2", "k3"), cam.get("dist") or [], strict=False):
         intr.append([name, num(v, ".5f"), num(std.get(name), ".5f")])
     src = cs.get("source") or f"calibrated from {cs.get('n_views', '?')} views of the camera phase"
-    parts: list[Any] = [f"Intrinsics: {src}; image {cam.get('width')} x {cam.get('height')} px."
-                        + (f" RMS reprojection error {cs['rms_px']:.3f} px." if "rms_px" in cs else "")]
+    parts: list[Any] = [
+        f"Intrinsics: {src}; image {cam.get('width')} x {cam.get('height')} px."
+        + (f" RMS reprojection error {cs['rms_px']:.3f} px." if "rms_px" in cs else "")
+    ]
     parts.append(table(["intrinsic", "value", "std"], intr, caption="Intrinsics (px; distortion dimensionless)"))
     if cs.get("per_view_rms_px"):
         parts.append(figure(plots.camera_view_plot(cs), "reprojection errors", "RMS reprojection error per view"))
     rej = cs.get("rejected") or {}
-    parts.append(table(["view (dataset frame)", "reason"], [[k, v] for k, v in rej.items()] or [["-", "none rejected"]],
-                       cls="data wide", caption="Rejected calibration views"))
+    parts.append(
+        table(
+            ["view (dataset frame)", "reason"],
+            [[k, v] for k, v in rej.items()] or [["-", "none rejected"]],
+            cls="data wide",
+            caption="Rejected calibration views",
+        )
+    )
     pl = summ.get("placement") or {}
-    parts.append("Coarse camera placement (predicts the rods): "
-                 + (f"board residual RMS {pl['rms_m'] * 1e3:.2f} mm." if pl.get("ok") else str(pl.get("reason"))))
+    parts.append(
+        "Coarse camera placement (predicts the rods): "
+        + (f"board residual RMS {pl['rms_m'] * 1e3:.2f} mm." if pl.get("ok") else str(pl.get("reason")))
+    )
     prow = []
     for ph, c in (summ.get("phases") or {}).items():
         miss = "; ".join(f"{k} x{v}" for k, v in (c.get("missing") or {}).items())
-        prow.append([ph, str(c.get("frames")), f"{c.get('board')}/{c.get('frames')}",
-                     f"{c.get('rods')}/{c.get('rods_total')}", miss or "-"])
-    parts.append(table(["phase", "frames", "board found", "rods found", "not measured"], prow, cls="data wide",
-                       caption="What extraction found per phase"))
+        prow.append(
+            [
+                ph,
+                str(c.get("frames")),
+                f"{c.get('board')}/{c.get('frames')}",
+                f"{c.get('rods')}/{c.get('rods_total')}",
+                miss or "-",
+            ]
+        )
+    parts.append(
+        table(
+            ["phase", "frames", "board found", "rods found", "not measured"],
+            prow,
+            cls="data wide",
+            caption="What extraction found per phase",
+        )
+    )
     return section("camera", "Camera calibration", *parts)
 
 
-def _frames(dataset_dir: Path | None, ds_doc: dict | None, obs_doc: dict | None, res: LegResiduals | None,
-            method: str | None, n: int) -> Raw:
+def _frames(
+    dataset_dir: Path | None,
+    ds_doc: dict | None,
+    obs_doc: dict | None,
+    res: LegResiduals | None,
+    method: str | None,
+    n: int,
+) -> Raw:
     if dataset_dir is None or ds_doc is None or obs_doc is None or res is None:
-        return section("frames", "Frames of the worst poses", "Not available: needs the dataset, the observations "
-                                                               "and a converged method.")
+        return section(
+            "frames",
+            "Frames of the worst poses",
+            "Not available: needs the dataset, the observations and a converged method.",
+        )
     import cv2
 
     from .draw import annotated_frame, frame_camera
 
     cam = frame_camera(ds_doc, obs_doc)
-    parts: list[Any] = [f"The {n} poses with the largest RMS leg residual of the {method} geometry, with the board "
-                        "outline (green, red/green axes) and the rod axes (blue) as extraction measured them."]
+    parts: list[Any] = [
+        f"The {n} poses with the largest RMS leg residual of the {method} geometry, with the board "
+        "outline (green, red/green axes) and the rod axes (blue) as extraction measured them."
+    ]
     rms_legs = {f: row for f, row in zip(res.frames, res.angle_rad, strict=True)}
     for rank, (fi, ph, rms) in enumerate(worst_poses(res, n), 1):
         fr = obs_doc["frames"][fi]
         di = fr.get("dataset_frame")
-        img = None if di is None else annotated_frame(dataset_dir, ds_doc, int(di), fr, cam, 800,
-                                                      label=f"#{rank}: frame {di} ({ph})")
-        legs = ", ".join(f"leg {i + 1} {np.degrees(a):.4f}" if np.isfinite(a) else f"leg {i + 1} -"
-                         for i, a in enumerate(rms_legs[fi]))
-        cap = (f"#{rank}: dataset frame {di}, {ph} pose; q = ({', '.join(f'{v * 1e3:.2f}' for v in fr['q'])}) mm; "
-               f"RMS residual {np.degrees(rms):.4f} deg ({legs} deg)")
+        img = (
+            None
+            if di is None
+            else annotated_frame(dataset_dir, ds_doc, int(di), fr, cam, 800, label=f"#{rank}: frame {di} ({ph})")
+        )
+        legs = ", ".join(
+            f"leg {i + 1} {np.degrees(a):.4f}" if np.isfinite(a) else f"leg {i + 1} -"
+            for i, a in enumerate(rms_legs[fi])
+        )
+        cap = (
+            f"#{rank}: dataset frame {di}, {ph} pose; q = ({', '.join(f'{v * 1e3:.2f}' for v in fr['q'])}) mm; "
+            f"RMS residual {np.degrees(rms):.4f} deg ({legs} deg)"
+        )
         if fr.get("missing"):
             cap += "; not measured: " + "; ".join(f"{k}: {v}" for k, v in fr["missing"].items())
         if img is None:
@@ -438,11 +609,15 @@ def _frames(dataset_dir: Path | None, ds_doc: dict | None, obs_doc: dict | None,
 
 def _method_text(res: dict, methods: list[str]) -> Raw:
     items = [f"{m}: {METHOD_TEXT.get(m, '')}." for m in methods]
-    items.append("Standard uncertainties u are one standard deviation from each fit's covariance, with the noise "
-                 "level estimated from its residuals and, for the combined method, the base frame's uncertainty "
-                 f"propagated; expanded uncertainties U = k u with k = {K_COVERAGE:g} (about 95 % coverage for a "
-                 "normal distribution). The Cramer-Rao bound is the smallest standard deviation any unbiased "
-                 "estimator could reach with these poses at the noise levels measured in this run.")
-    items.append("Validation uses the end-effector displacements between consecutive poses (fit poses and separate "
-                 "validation poses) and the straightness of a guided line, as in the paper's Tables II and III.")
+    items.append(
+        "Standard uncertainties u are one standard deviation from each fit's covariance, with the noise "
+        "level estimated from its residuals and, for the combined method, the base frame's uncertainty "
+        f"propagated; expanded uncertainties U = k u with k = {K_COVERAGE:g} (about 95 % coverage for a "
+        "normal distribution). The Cramer-Rao bound is the smallest standard deviation any unbiased "
+        "estimator could reach with these poses at the noise levels measured in this run."
+    )
+    items.append(
+        "Validation uses the end-effector displacements between consecutive poses (fit poses and separate "
+        "validation poses) and the straightness of a guided line, as in the paper's Tables II and III."
+    )
     return bullet_list(items)

@@ -16,8 +16,9 @@ ROD_COLOUR = (255, 120, 0)
 LABEL_COLOUR = (0, 220, 255)
 
 
-def frame_camera(dataset_doc: dict[str, Any] | None, observations_doc: dict[str, Any] | None = None
-                 ) -> CameraModel | None:
+def frame_camera(
+    dataset_doc: dict[str, Any] | None, observations_doc: dict[str, Any] | None = None
+) -> CameraModel | None:
     """The intrinsics that measured the frames: the extraction's (calibrated or given), else the dataset's.
 
     Parameters
@@ -37,8 +38,9 @@ def frame_camera(dataset_doc: dict[str, Any] | None, observations_doc: dict[str,
         if not isinstance(c, dict) or c.get("K") is None:
             continue
         try:
-            return CameraModel(np.asarray(c["K"], float), np.asarray(c.get("dist") or [], float),
-                               int(c["width"]), int(c["height"]))
+            return CameraModel(
+                np.asarray(c["K"], float), np.asarray(c.get("dist") or [], float), int(c["width"]), int(c["height"])
+            )
         except (KeyError, ValueError, TypeError):
             continue
     return None
@@ -51,8 +53,13 @@ def _project(cam: CameraModel, pts: np.ndarray) -> np.ndarray:
     return cam.project(pts) if len(pts) else np.zeros((0, 2))
 
 
-def draw_detections(img: np.ndarray, frame: dict[str, Any], cam: CameraModel | None,
-                    board: dict[str, Any] | None = None, label: str | None = None) -> None:
+def draw_detections(
+    img: np.ndarray,
+    frame: dict[str, Any],
+    cam: CameraModel | None,
+    board: dict[str, Any] | None = None,
+    label: str | None = None,
+) -> None:
     """Draw a frame's measured board (outline, x/y axes) and rod axes on a BGR image, in place.
 
     Parameters
@@ -127,8 +134,15 @@ def fit_width(img: np.ndarray, max_width: int) -> np.ndarray:
     return cv2.resize(img, (max_width, round(h * max_width / w)), interpolation=cv2.INTER_AREA)
 
 
-def annotated_frame(dataset_dir: Path, dataset_doc: dict[str, Any], index: int, frame: dict[str, Any] | None,
-                    cam: CameraModel | None, max_width: int = 1024, label: str | None = None) -> np.ndarray | None:
+def annotated_frame(
+    dataset_dir: Path,
+    dataset_doc: dict[str, Any],
+    index: int,
+    frame: dict[str, Any] | None,
+    cam: CameraModel | None,
+    max_width: int = 1024,
+    label: str | None = None,
+) -> np.ndarray | None:
     """Dataset frame ``index`` as BGR with its detections drawn, or None when its image is missing or unreadable.
 
     The image path must stay inside ``dataset_dir``.

@@ -26,8 +26,14 @@ def num(v: float | None, fmt: str = ".3f") -> str:
     return "-" if v is None else format(v, fmt)
 
 
-def table(headers: Sequence[Any], rows: Iterable[Sequence[Any]], *, caption: str | None = None,
-          cls: str = "data", first_col_header: bool = True) -> Raw:
+def table(
+    headers: Sequence[Any],
+    rows: Iterable[Sequence[Any]],
+    *,
+    caption: str | None = None,
+    cls: str = "data",
+    first_col_header: bool = True,
+) -> Raw:
     """An HTML table; every cell escaped unless it is :class:`Raw`."""
     out = [f'<table class="{esc(cls)}">']
     if caption:
@@ -45,8 +51,11 @@ def table(headers: Sequence[Any], rows: Iterable[Sequence[Any]], *, caption: str
 
 def kv_table(rows: Iterable[tuple[Any, Any]], cls: str = "kv") -> Raw:
     """A two-column item/value table."""
-    return Raw(f'<table class="{esc(cls)}"><tbody>' + "".join(
-        f"<tr><th>{esc(k)}</th><td>{esc(v)}</td></tr>" for k, v in rows) + "</tbody></table>")
+    return Raw(
+        f'<table class="{esc(cls)}"><tbody>'
+        + "".join(f"<tr><th>{esc(k)}</th><td>{esc(v)}</td></tr>" for k, v in rows)
+        + "</tbody></table>"
+    )
 
 
 def figure(uri: str | None, alt: str, caption: str) -> Raw:
@@ -98,6 +107,8 @@ footer { margin-top: 40px; font-size: 12px; color: #555; border-top: 1px solid v
 
 def page(title: str, body: Sequence[str]) -> str:
     """The whole document: inline CSS, no script, no external reference."""
-    return ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
-            f"<title>{esc(title)}</title><meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">"
-            f"<style>{CSS}</style></head><body><main>" + "".join(body) + "</main></body></html>\n")
+    return (
+        '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
+        f'<title>{esc(title)}</title><meta name="viewport" content="width=device-width, initial-scale=1">'
+        f"<style>{CSS}</style></head><body><main>" + "".join(body) + "</main></body></html>\n"
+    )

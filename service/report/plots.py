@@ -17,8 +17,14 @@ from calib.parameters import COMBINATION_NAMES
 
 from .analysis import LegResiduals
 
-COLOURS = {"a priori": "#7f7f7f", "combined": "#1f77b4", "end-effector": "#ff7f0e", "legs": "#2ca02c",
-           "truth": "#000000", "true geometry": "#000000"}
+COLOURS = {
+    "a priori": "#7f7f7f",
+    "combined": "#1f77b4",
+    "end-effector": "#ff7f0e",
+    "legs": "#2ca02c",
+    "truth": "#000000",
+    "true geometry": "#000000",
+}
 LEG_COLOURS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd")
 DPI = 100
 
@@ -47,8 +53,15 @@ def parameter_plot(result: dict[str, Any], methods: Sequence[str], truth: dict[s
     for ax, key in zip(axes[0], COMBINATION_NAMES, strict=True):
         for i, m in enumerate(names):
             e = result["methods"][m]
-            ax.errorbar([i], [(e["parameters"][key] - nom[key]) * 1e3], yerr=[2 * e["std"][key] * 1e3], fmt="o",
-                        color=COLOURS.get(m), capsize=4, label=m)
+            ax.errorbar(
+                [i],
+                [(e["parameters"][key] - nom[key]) * 1e3],
+                yerr=[2 * e["std"][key] * 1e3],
+                fmt="o",
+                color=COLOURS.get(m),
+                capsize=4,
+                label=m,
+            )
         ax.axhline(0.0, color=COLOURS["a priori"], lw=1, ls="--", label="a priori")
         if truth:
             ax.axhline((truth[key] - nom[key]) * 1e3, color="black", lw=1, ls=":", label="truth")
@@ -67,13 +80,23 @@ def gaps_plot(result: dict[str, Any]) -> str | None:
     val = result.get("validation") or {}
     fig, axes = _figure(10.0, 3.2, 1, 2)
     drawn = False
-    for ax, key, title in ((axes[0][0], "gaps_poses", "fit poses"), (axes[0][1], "gaps_validation",
-                                                                        "validation poses")):
+    for ax, key, title in (
+        (axes[0][0], "gaps_poses", "fit poses"),
+        (axes[0][1], "gaps_validation", "validation poses"),
+    ):
         for name, v in val.items():
             g = (v.get(key) or {}).get("gaps_mm") or []
             if g:
-                ax.plot(np.arange(1, len(g) + 1), g, marker="o", ms=3, lw=1, color=COLOURS.get(name), label=name,
-                        ls=":" if name == "truth" else "-")
+                ax.plot(
+                    np.arange(1, len(g) + 1),
+                    g,
+                    marker="o",
+                    ms=3,
+                    lw=1,
+                    color=COLOURS.get(name),
+                    label=name,
+                    ls=":" if name == "truth" else "-",
+                )
                 drawn = True
         ax.axhline(0.0, color="0.5", lw=0.8)
         ax.set_title(f"displacement gaps, {title}", fontsize=10)
@@ -98,8 +121,15 @@ def leg_residual_plot(residuals: dict[str, LegResiduals]) -> str | None:
         x = np.arange(len(r.frames))
         deg = np.degrees(r.angle_rad)
         for leg in range(4):
-            ax.plot(x + (leg - 1.5) * 0.12, deg[:, leg], ls="none", marker="o", ms=4, color=LEG_COLOURS[leg],
-                    label=f"leg {leg + 1}")
+            ax.plot(
+                x + (leg - 1.5) * 0.12,
+                deg[:, leg],
+                ls="none",
+                marker="o",
+                ms=4,
+                color=LEG_COLOURS[leg],
+                label=f"leg {leg + 1}",
+            )
         nfit = sum(p == "poses" for p in r.phases)
         if 0 < nfit < len(r.frames):
             ax.axvline(nfit - 0.5, color="0.4", ls="--", lw=1)
@@ -123,8 +153,13 @@ def singular_value_plot(result: dict[str, Any], methods: Sequence[str]) -> str |
         ident = (result["methods"].get(m) or {}).get("identifiability") or {}
         s = np.asarray(ident.get("singular_values") or [], float)
         if s.size and s[0] > 0:
-            ax.semilogy(np.arange(1, s.size + 1), np.maximum(s / s[0], 1e-18), marker="o", color=COLOURS.get(m),
-                        label=f"{m} (rank {ident.get('rank')})")
+            ax.semilogy(
+                np.arange(1, s.size + 1),
+                np.maximum(s / s[0], 1e-18),
+                marker="o",
+                color=COLOURS.get(m),
+                label=f"{m} (rank {ident.get('rank')})",
+            )
             drawn = True
     if not drawn:
         return None
@@ -147,8 +182,13 @@ def camera_view_plot(camera_summary: dict[str, Any]) -> str | None:
     fig, axes = _figure(8.0, 3.0)
     ax = axes[0][0]
     ax.bar(range(len(keys)), vals, color="#1f77b4")
-    ax.axhline(camera_summary.get("rms_px", float(np.sqrt(np.mean(np.square(vals))))), color="#d62728", ls="--",
-               lw=1, label=f"overall RMS {camera_summary.get('rms_px', 0):.3f} px")
+    ax.axhline(
+        camera_summary.get("rms_px", float(np.sqrt(np.mean(np.square(vals))))),
+        color="#d62728",
+        ls="--",
+        lw=1,
+        label=f"overall RMS {camera_summary.get('rms_px', 0):.3f} px",
+    )
     ax.set_xticks(range(len(keys)), [str(k) for k in keys], fontsize=8)
     ax.set_xlabel("dataset frame of the view")
     ax.set_ylabel("RMS reprojection error (px)")

@@ -31,12 +31,19 @@ def read_json(path: Path) -> Any:
 
 def run_metadata(run: Any) -> dict[str, Any]:
     """The title-block fields of a service run (``service.db.models.Run``)."""
+
     def iso(t: Any) -> str | None:
         return None if t is None else t.strftime("%Y-%m-%d %H:%M:%S %Z").strip()
 
-    return {"id": run.id, "bench": run.bench, "state": run.state, "plan": run.plan_name or (
-        f"dataset {run.source_dataset}" if run.source_dataset else None), "note": run.note,
-        "created_at": iso(run.created_at), "finished_at": iso(run.finished_at)}
+    return {
+        "id": run.id,
+        "bench": run.bench,
+        "state": run.state,
+        "plan": run.plan_name or (f"dataset {run.source_dataset}" if run.source_dataset else None),
+        "note": run.note,
+        "created_at": iso(run.created_at),
+        "finished_at": iso(run.finished_at),
+    }
 
 
 def inputs_from_run(data_dir: Path, run: Any, methods: list[str] | None = None) -> ReportInputs:
@@ -54,8 +61,14 @@ def inputs_from_run(data_dir: Path, run: Any, methods: list[str] | None = None) 
     obs = read_json(obs_path) if obs_path.is_file() else None
     ds = (data_dir / run.dataset_dir).resolve()
     ds_dir = ds if data_dir in ds.parents and (ds / "dataset.json").is_file() else None
-    return ReportInputs(result=run.result, observations=obs, dataset_dir=ds_dir, run=run_metadata(run),
-                        source=f"run {run.id}", methods=methods)
+    return ReportInputs(
+        result=run.result,
+        observations=obs,
+        dataset_dir=ds_dir,
+        run=run_metadata(run),
+        source=f"run {run.id}",
+        methods=methods,
+    )
 
 
 def find_run(settings: Any, ident: str) -> Any:
@@ -72,10 +85,11 @@ def find_run(settings: Any, ident: str) -> Any:
 
     url = settings.db_url
     if url.startswith("sqlite:///"):
-        db_file = Path(url[len("sqlite:///"):])
+        db_file = Path(url[len("sqlite:///") :])
         if not db_file.is_file():
-            raise RunNotFoundError(f"no run {ident}: no service database at {db_file} "
-                                   "(give --config or I4CAL_DATA_DIR)")
+            raise RunNotFoundError(
+                f"no run {ident}: no service database at {db_file} (give --config or I4CAL_DATA_DIR)"
+            )
     db = Database(url)
     try:
         with db.session() as s:
@@ -95,8 +109,9 @@ def find_run(settings: Any, ident: str) -> Any:
 Progress = Callable[[str, int, int], None]
 
 
-def inputs_from_path(path: Path, methods: list[str], *, workers: int | None = None,
-                     progress: Progress | None = None) -> ReportInputs:
+def inputs_from_path(
+    path: Path, methods: list[str], *, workers: int | None = None, progress: Progress | None = None
+) -> ReportInputs:
     """Inputs from a dataset directory (extracted, then calibrated), an observations v1 file (calibrated), or a
     result file (``i4cal calibrate -o``; shown as is).
 

@@ -32,6 +32,7 @@ def test_rotation_axis_sign_follows_T():
     z = np.array([0.1, -0.2, 0.97])
     z /= np.linalg.norm(z)
     from calib.transforms import rotvec_to_matrix
+
     T = np.linspace(-0.05, 0.05, 8)
     R = np.array([rotvec_to_matrix(z * t / 0.02) for t in T]) @ rot_z(0.3)
     zf, *_ = fit_rotation_axis(R, T)
@@ -46,6 +47,7 @@ def test_no_rotation_is_an_identifiability_error(noise_free_obs):
     still = rot.subset(np.zeros(len(rot), dtype=bool) | True)
     Rs = np.repeat(still.board_R[:1], len(still), axis=0)
     from dataclasses import replace
+
     with pytest.raises(IdentifiabilityError, match="z_B is not excited"):
         estimate_base_frame(replace(still, board_R=Rs), obs.arrays("translation"))
     tr = obs.arrays("translation")
@@ -68,10 +70,15 @@ def test_start_from_a_previous_estimate_follows_a_moved_rig(noise_free_obs):
     assert bf.axis_state is not None and "J" in bf.axis_state
     w = np.array([2e-4, -1e-4, 3e-4])
     Q = rotvec_to_matrix(w)
-    moved = estimate_base_frame(replace(noisy, board_R=Q @ noisy.board_R, board_t=noisy.board_t @ Q.T),
-                                replace(tra, board_R=Q @ tra.board_R, board_t=tra.board_t @ Q.T), start=bf)
+    moved = estimate_base_frame(
+        replace(noisy, board_R=Q @ noisy.board_R, board_t=noisy.board_t @ Q.T),
+        replace(tra, board_R=Q @ tra.board_R, board_t=tra.board_t @ Q.T),
+        start=bf,
+    )
     err = matrix_to_rotvec(moved.camera_from_base_R @ (Q @ bf.camera_from_base_R).T)
     assert np.linalg.norm(err) < 1e-8, err
-    cold = estimate_base_frame(replace(noisy, board_R=Q @ noisy.board_R, board_t=noisy.board_t @ Q.T),
-                               replace(tra, board_R=Q @ tra.board_R, board_t=tra.board_t @ Q.T))
+    cold = estimate_base_frame(
+        replace(noisy, board_R=Q @ noisy.board_R, board_t=noisy.board_t @ Q.T),
+        replace(tra, board_R=Q @ tra.board_R, board_t=tra.board_t @ Q.T),
+    )
     assert np.linalg.norm(matrix_to_rotvec(cold.camera_from_base_R @ moved.camera_from_base_R.T)) < 1e-6

@@ -39,7 +39,7 @@ def test_bound_matches_efficient_estimator_within_15_percent(trials):
 def test_combined_method_is_near_efficient(trials):
     """Issue target: RMS error within 1.5x the bound (efficiency >= 0.67 in std ratio terms)."""
     _, comb, bound = trials
-    ratio = np.sqrt(np.mean(comb ** 2, axis=0)) / bound
+    ratio = np.sqrt(np.mean(comb**2, axis=0)) / bound
     assert np.all(ratio < 1.5), np.round(ratio, 3)
 
 

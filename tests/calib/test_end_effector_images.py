@@ -23,7 +23,7 @@ OPTIMISM = 3.0  # true board-pose std / the std the written covariance claims
 def _pnp_like_cov(rng: np.random.Generator) -> np.ndarray:
     """A (left rotation [rad], t [m]) covariance (6, 6): tilt <-> lateral translation correlated, depth noisy."""
     s = np.array([1e-3, 1e-3, 2e-4, 1.5e-4, 1.5e-4, 8e-4]) * rng.lognormal(0.0, 0.4)
-    C = np.diag(s ** 2)
+    C = np.diag(s**2)
     for rot, tra, sign in ((0, 4, -1.0), (1, 3, 1.0)):  # a tilt about x moves the board along y, etc.
         C[rot, tra] = C[tra, rot] = sign * 0.8 * s[rot] * s[tra]
     return C
@@ -48,11 +48,19 @@ def _documents(seed: int, outliers: int = 0) -> tuple[dict, dict]:
         R = rotvec_to_matrix(e[:3]) @ np.asarray(fr["board"]["R"])
         T = np.eye(6)
         T[:3, :3] = np.linalg.inv(_left_jacobian(matrix_to_rotvec(R)))  # left rotation -> rotation vector
-        fr["board"] = {"R": R.tolist(), "t": (np.asarray(fr["board"]["t"]) + e[3:]).tolist(),
-                       "cov": (T @ C @ T.T / OPTIMISM ** 2).tolist()}
+        fr["board"] = {
+            "R": R.tolist(),
+            "t": (np.asarray(fr["board"]["t"]) + e[3:]).tolist(),
+            "cov": (T @ C @ T.T / OPTIMISM**2).tolist(),
+        }
         fr["q"] = (np.asarray(fr["q"]) + rng.normal(0.0, 1e-6, 4)).tolist()
-    plain = {**doc, "frames": [{**fr, "board": {k: v for k, v in fr["board"].items() if k != "cov"}}
-                               if fr.get("board") else fr for fr in doc["frames"]]}
+    plain = {
+        **doc,
+        "frames": [
+            {**fr, "board": {k: v for k, v in fr["board"].items() if k != "cov"}} if fr.get("board") else fr
+            for fr in doc["frames"]
+        ],
+    }
     return doc, plain
 
 

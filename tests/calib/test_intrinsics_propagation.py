@@ -113,13 +113,13 @@ def test_linearized_limbs_match_exact_undistortion():
         u = rng.normal(size=3)
         u /= np.linalg.norm(u)
         h = np.array(limb_planes(point, u, 0.006))
-        limbs.append([cam.project((point - 0.006 * hh)[None] + np.linspace(-0.05, 0.05, 5)[:, None] * u[None])
-                      for hh in h])
+        limbs.append(
+            [cam.project((point - 0.006 * hh)[None] + np.linspace(-0.05, 0.05, 5)[:, None] * u[None]) for hh in h]
+        )
         hs.append(h)
     limbs, hs = np.asarray(limbs), np.asarray(hs)
     lin = intr.LinearizedLimbs(cam, steps, limbs)
-    np.testing.assert_allclose(lin.planes(np.zeros(len(steps)), hs), intr.limb_planes_for(cam, limbs, hs),
-                               atol=1e-12)
+    np.testing.assert_allclose(lin.planes(np.zeros(len(steps)), hs), intr.limb_planes_for(cam, limbs, hs), atol=1e-12)
     for scale in (1.0, 3.0, 5.0):
         z = rng.normal(size=len(steps)) * scale
         exact = intr.limb_planes_for(intr.perturbed_camera(cam, steps.T @ z), limbs, hs)

@@ -31,8 +31,14 @@ def test_lm_reports_each_accepted_point_without_changing_the_fit():
 
 def test_lm_one_parameter_reports_are_monotone():
     reports: list[dict] = []
-    sol = least_squares(traced(lambda x: np.array([x[0] ** 2 - 2.0, x[0] - 1.4]), reports.append, "1d"), [1.0],
-                        method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
+    sol = least_squares(
+        traced(lambda x: np.array([x[0] ** 2 - 2.0, x[0] - 1.4]), reports.append, "1d"),
+        [1.0],
+        method="lm",
+        xtol=1e-15,
+        ftol=1e-15,
+        gtol=1e-15,
+    )
     costs = [r["cost"] for r in reports]
     assert len(costs) >= 3 and costs == sorted(costs, reverse=True)
     assert costs[-1] == pytest.approx(sol.cost, rel=1e-9)
@@ -41,7 +47,7 @@ def test_lm_one_parameter_reports_are_monotone():
 def test_trf_callback_reports_scipy_iterations():
     reports: list[dict] = []
     sol = least_squares(_rosenbrock, [-1.2, 1.0], method="trf", callback=trf_callback(reports.append, "t"))
-    assert [r["iteration"] for r in reports] == list(range(1, sol.nfev + 1))[:len(reports)]
+    assert [r["iteration"] for r in reports] == list(range(1, sol.nfev + 1))[: len(reports)]
     assert reports[-1]["cost"] == pytest.approx(sol.cost)
     assert trf_callback(None, "t") is None and traced(_rosenbrock, None, "r") is _rosenbrock
 

@@ -99,8 +99,9 @@ def test_identifiable_combinations_and_completion():
 def test_jacobian_depends_only_on_the_four_combinations():
     """Changing a non-identifiable direction (H, D together; S with q0i) leaves J(q) unchanged."""
     q = ikm(NOMINAL, _poses(20, seed=4))
-    other = NOMINAL.replace(H=NOMINAL.H + 0.01, D=NOMINAL.D + 0.01, S=NOMINAL.S + 0.02,
-                            q02=NOMINAL.q02 + 0.04, q04=NOMINAL.q04 + 0.04)
+    other = NOMINAL.replace(
+        H=NOMINAL.H + 0.01, D=NOMINAL.D + 0.01, S=NOMINAL.S + 0.02, q02=NOMINAL.q02 + 0.04, q04=NOMINAL.q04 + 0.04
+    )
     np.testing.assert_allclose(jacobian(other, dkm(other, q)), jacobian(NOMINAL, dkm(NOMINAL, q)), atol=1e-12)
 
 

@@ -38,9 +38,14 @@ def with_planes(doc: dict, rng: np.random.Generator | None = None) -> dict:
                     h = unit(h + np.einsum("qp,qpi->qi", e, dh))
                 u, X = axis_from_planes(h[0], h[1], RADIUS)
                 u = u * np.sign(u @ u0)
-                rod.update(u=u.tolist(), point=(X + ((p0 - X) @ u) * u).tolist(), h=h.tolist(),
-                           rms_px=rms.tolist(), n_points=npts.tolist(),
-                           cov_u=planes_direction_covariance(h, dh, var).tolist())
+                rod.update(
+                    u=u.tolist(),
+                    point=(X + ((p0 - X) @ u) * u).tolist(),
+                    h=h.tolist(),
+                    rms_px=rms.tolist(),
+                    n_points=npts.tolist(),
+                    cov_u=planes_direction_covariance(h, dh, var).tolist(),
+                )
     return doc
 
 
@@ -86,6 +91,6 @@ def test_std_matches_the_spread_with_anisotropic_rod_noise(twin, paper_plan):
         stds.append(r.std_vector())
     errs, stds = np.array(errs), np.array(stds)
     assert np.all(np.abs(errs) < 4 * stds), np.round(np.abs(errs / stds).max(axis=0), 2)
-    rms_err = np.sqrt(np.mean(errs ** 2, axis=0))
-    ratio = rms_err / np.sqrt(np.mean(stds ** 2, axis=0))
+    rms_err = np.sqrt(np.mean(errs**2, axis=0))
+    ratio = rms_err / np.sqrt(np.mean(stds**2, axis=0))
     assert np.all((ratio > 1 / 1.3) & (ratio < 1.3)), np.round(ratio, 3)

@@ -65,8 +65,11 @@ def monte_carlo(paper_plan):
     truth = np.array([t4[k] for k in COMBINATION_NAMES])
     for seed in range(100, 100 + N_TRIALS):
         obs = Observations.from_dict(twin.observations(plan=paper_plan, seed=seed))
-        for name, fn in (("combined", calibrate_combined), ("end-effector", calibrate_end_effector),
-                         ("legs", calibrate_legs)):
+        for name, fn in (
+            ("combined", calibrate_combined),
+            ("end-effector", calibrate_end_effector),
+            ("legs", calibrate_legs),
+        ):
             r = fn(obs)
             out[name]["err"].append(r.vector() - truth)
             out[name]["std"].append(r.std_vector())
@@ -100,8 +103,13 @@ def test_combined_refines_the_base_frame_jointly(noisy_obs):
 def test_std_stays_honest_when_board_poses_are_noisy(paper_plan):
     """Noisy board poses (a poor base frame) and precise rods: the base frame's error does not average
     over the poses; the reported std must still match the Monte-Carlo spread."""
-    noise = NoiseSpec(rod_direction_rad=5e-5, rod_point_m=5e-5, board_rotation_rad=2e-3,
-                      board_translation_m=(5e-4, 5e-4, 1.5e-3), encoder_m=1e-6)
+    noise = NoiseSpec(
+        rod_direction_rad=5e-5,
+        rod_point_m=5e-5,
+        board_rotation_rad=2e-3,
+        board_translation_m=(5e-4, 5e-4, 1.5e-3),
+        encoder_m=1e-6,
+    )
     twin = GeometricTwin(noise=noise)
     t4 = twin.geometry.truth.combinations()
     truth = np.array([t4[k] for k in COMBINATION_NAMES])

@@ -33,14 +33,17 @@ def _doc(noisy_obs):
     return json.loads(json.dumps(noisy_obs[0].to_dict()))
 
 
-@pytest.mark.parametrize(("mutate", "frame", "field", "text"), [
-    (lambda d: d["frames"][5].update(q=[0.1, 0.2, 0.3]), 5, "q", "at least 4"),
-    (lambda d: d["frames"][7].update(phase="spin"), 7, "phase", "rotation"),
-    (lambda d: d["frames"][2]["board"].update(R=[[1, 0, 0], [0, 1, 0], [0, 0, 2]]), 2, "board.R", "orthonormal"),
-    (lambda d: d["frames"][9]["legs"]["3"][1].update(u=[0, 0, 0]), 9, "legs.3.1.u", "non-zero"),
-    (lambda d: d["frames"][4]["legs"].update({"5": []}), 4, "legs.5", None),
-    (lambda d: d["frames"][1]["board"].update(t=[0, "x", 0]), 1, "board.t.1", None),
-])
+@pytest.mark.parametrize(
+    ("mutate", "frame", "field", "text"),
+    [
+        (lambda d: d["frames"][5].update(q=[0.1, 0.2, 0.3]), 5, "q", "at least 4"),
+        (lambda d: d["frames"][7].update(phase="spin"), 7, "phase", "rotation"),
+        (lambda d: d["frames"][2]["board"].update(R=[[1, 0, 0], [0, 1, 0], [0, 0, 2]]), 2, "board.R", "orthonormal"),
+        (lambda d: d["frames"][9]["legs"]["3"][1].update(u=[0, 0, 0]), 9, "legs.3.1.u", "non-zero"),
+        (lambda d: d["frames"][4]["legs"].update({"5": []}), 4, "legs.5", None),
+        (lambda d: d["frames"][1]["board"].update(t=[0, "x", 0]), 1, "board.t.1", None),
+    ],
+)
 def test_first_bad_field_is_reported_with_frame(noisy_obs, mutate, frame, field, text):
     d = _doc(noisy_obs)
     mutate(d)

@@ -26,7 +26,17 @@ def make_modbus(bench: SimBench, transport: str = "tcp", **kw) -> ModbusActuator
     host, port = bench.tcp_address
     if transport == "rtu-tcp":
         port = int(bench.rtu_url.rsplit(":", 1)[1])
-    opts = dict(transport=transport, host=host, port=port, speed_m_s=2.0, accel_m_s2=40.0, timeout_s=0.2,
-                retries=2, backoff_s=0.01, poll_s=0.001, move_timeout_margin_s=0.5)
+    opts = dict(
+        transport=transport,
+        host=host,
+        port=port,
+        speed_m_s=2.0,
+        accel_m_s2=40.0,
+        timeout_s=0.2,
+        retries=2,
+        backoff_s=0.01,
+        poll_s=0.001,
+        move_timeout_margin_s=0.5,
+    )
     opts.update(kw)
     return ModbusActuators(**opts)

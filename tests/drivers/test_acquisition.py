@@ -20,16 +20,21 @@ from drivers.sim.mechanism import ALARM_DRIVE_FAULT
 
 def small_plan() -> Plan:
     full = make_plan("full", NOMINAL)
-    steps = [s for s in full.steps if s.phase == "rotation"][:3] + \
-        [s for s in full.steps if s.phase == "poses"][:4]
+    steps = [s for s in full.steps if s.phase == "rotation"][:3] + [s for s in full.steps if s.phase == "poses"][:4]
     line = make_plan("line", NOMINAL, line_samples=9).steps
     return Plan(name="small", steps=steps + line + [s for s in full.steps if s.phase == "validation"][:2])
 
 
 def make_acq(bench, plan, out, **kw):
     cfg = bench.bench_config(acquisition={"line_rate_hz": 100.0})
-    opts = dict(operator=open_operator(cfg), nominal=NOMINAL, limits=cfg.calib_limits(), grab_timeout_s=0.3,
-                grab_retries=1, line_rate_hz=100.0)
+    opts = dict(
+        operator=open_operator(cfg),
+        nominal=NOMINAL,
+        limits=cfg.calib_limits(),
+        grab_timeout_s=0.3,
+        grab_retries=1,
+        line_rate_hz=100.0,
+    )
     opts.update(kw)
     return Acquisition(plan, open_actuators(cfg), open_camera(cfg), out, **opts)
 
@@ -85,8 +90,11 @@ async def test_alarm_mid_run_then_resume(bench, tmp_path):
         return await orig_move(q, *a, **k)
 
     acq.actuators.move = move
-    with pytest.raises(AcquisitionError, match=r"pose 5/18 \(plan step 4, phase 'poses'.*axis 2 in alarm, "
-                                               r"code 0x10.*motion stopped; 4 frames kept") as ei:
+    with pytest.raises(
+        AcquisitionError,
+        match=r"pose 5/18 \(plan step 4, phase 'poses'.*axis 2 in alarm, "
+        r"code 0x10.*motion stopped; 4 frames kept",
+    ) as ei:
         await acq.run()
     await close(acq)
     assert ei.value.pose == 4 and ei.value.frames_kept == 4
@@ -139,8 +147,9 @@ async def test_corrupt_frame_is_retried(bench, tmp_path):
 
 
 async def test_plan_outside_limits_moves_nothing(bench, tmp_path):
-    plan = Plan(name="bad", steps=[Step(phase="poses", q=[0.3, 0.3, 0.3, 0.3]),
-                                   Step(phase="poses", q=[0.3, 0.95, 0.3, 0.3])])
+    plan = Plan(
+        name="bad", steps=[Step(phase="poses", q=[0.3, 0.3, 0.3, 0.3]), Step(phase="poses", q=[0.3, 0.95, 0.3, 0.3])]
+    )
     acq = make_acq(bench, plan, tmp_path / "ds")
     q0 = bench.mechanism.q_true()
     with pytest.raises(InputError, match="q2 = 950.000 mm is outside the soft limits"):

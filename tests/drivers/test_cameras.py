@@ -82,8 +82,13 @@ async def test_v4l2_real_opencv_missing_device():
 
 # -- replay --------------------------------------------------------------------------------------
 async def test_replay_in_order(tmp_path):
-    w = DatasetWriter(tmp_path / "ds", camera=CameraSpec(width=8, height=6), board=BoardSpec(),
-                      legs=LegsSpec(rod_radius_m=0.008), nominal=NOMINAL.as_dict())
+    w = DatasetWriter(
+        tmp_path / "ds",
+        camera=CameraSpec(width=8, height=6),
+        board=BoardSpec(),
+        legs=LegsSpec(rod_radius_m=0.008),
+        nominal=NOMINAL.as_dict(),
+    )
     for k in range(3):
         w.add_frame("poses", [0.1 * k] * 4, np.full((6, 8), k, np.uint8))
     cam = open_camera(f"replay://{tmp_path / 'ds'}")

@@ -47,16 +47,35 @@ def fetch_tlsimu(cache: Path) -> Path:
         return cache / "TLSimu.cti"
     cache.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=cache.parent) as tmp:
-        cmd = [sys.executable, "-m", "pip", "download", "genicam==1.4.0", "--no-deps", "--only-binary=:all:",
-               "--python-version", "3.11", "--implementation", "cp", "--abi", "cp311",
-               "--platform", "manylinux2014_x86_64", "--quiet", "-d", tmp]
+        cmd = [
+            sys.executable,
+            "-m",
+            "pip",
+            "download",
+            "genicam==1.4.0",
+            "--no-deps",
+            "--only-binary=:all:",
+            "--python-version",
+            "3.11",
+            "--implementation",
+            "cp",
+            "--abi",
+            "cp311",
+            "--platform",
+            "manylinux2014_x86_64",
+            "--quiet",
+            "-d",
+            tmp,
+        ]
         r = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
         wheel = Path(tmp) / TLSIMU_WHEEL
         if r.returncode != 0 or not wheel.is_file():
-            pytest.fail(f"could not fetch the genicam 1.4.0 wheel (TLSimu.cti) with `{' '.join(cmd[2:])}` "
-                        f"(exit {r.returncode}): {(r.stderr or r.stdout).strip()[-600:]}\nNo network? Fetch it "
-                        "elsewhere and set I4CAL_TLSIMU_CTI=/path/TLSimu.cti (libVirtualFG.so next to it).",
-                        pytrace=False)
+            pytest.fail(
+                f"could not fetch the genicam 1.4.0 wheel (TLSimu.cti) with `{' '.join(cmd[2:])}` "
+                f"(exit {r.returncode}): {(r.stderr or r.stdout).strip()[-600:]}\nNo network? Fetch it "
+                "elsewhere and set I4CAL_TLSIMU_CTI=/path/TLSimu.cti (libVirtualFG.so next to it).",
+                pytrace=False,
+            )
         digest = hashlib.sha256(wheel.read_bytes()).hexdigest()
         if digest != TLSIMU_WHEEL_SHA256:
             pytest.fail(f"{TLSIMU_WHEEL} has SHA-256 {digest}, expected {TLSIMU_WHEEL_SHA256}", pytrace=False)
@@ -85,8 +104,10 @@ def tlsimu() -> str:
     if os.path.isfile(installed):
         return installed
     if sys.platform != "linux" or platform.machine() != "x86_64":
-        pytest.skip(f"TLSimu.cti is fetched for Linux x86_64 only (this is {sys.platform} {platform.machine()}); "
-                    "set I4CAL_TLSIMU_CTI to a producer built for this machine")
+        pytest.skip(
+            f"TLSimu.cti is fetched for Linux x86_64 only (this is {sys.platform} {platform.machine()}); "
+            "set I4CAL_TLSIMU_CTI to a producer built for this machine"
+        )
     root = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
     return str(fetch_tlsimu(root / "i4cal" / "genicam-1.4.0"))
 

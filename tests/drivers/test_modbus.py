@@ -86,8 +86,9 @@ async def test_late_reply_never_answers_another_request(bench):
     proxy = DelayProxy(bench.tcp_address)
     host, port = await proxy.start()
     try:
-        act = ModbusActuators(host=host, port=port, timeout_s=0.1, retries=2, backoff_s=0.01, poll_s=0.001,
-                              speed_m_s=2.0, accel_m_s2=40.0)
+        act = ModbusActuators(
+            host=host, port=port, timeout_s=0.1, retries=2, backoff_s=0.01, poll_s=0.001, speed_m_s=2.0, accel_m_s2=40.0
+        )
         async with act:
             await act.home(timeout_s=5)
             await act.move(Q_A)
@@ -199,12 +200,24 @@ async def test_free_drives_still_read_encoders(bench):
 
 async def test_other_register_map():
     """All axes on one unit id at offsets 0/10/20/30, low word first, 0.1 um counts, start by writing the target."""
-    m = RegisterMap(axes=[AxisAddress(unit=7, offset=10 * i) for i in range(4)], word_order="little",
-                    counts_per_m=1e7, start_mode="target_write")
+    m = RegisterMap(
+        axes=[AxisAddress(unit=7, offset=10 * i) for i in range(4)],
+        word_order="little",
+        counts_per_m=1e7,
+        start_mode="target_write",
+    )
     async with SimBench(port=0, axis_config=FAST, renderer=TinyRenderer(), regmap=m, rtu=False) as b:
         host, port = b.tcp_address
-        act = ModbusActuators(host=host, port=port, regmap=m, speed_m_s=2.0, accel_m_s2=40.0, timeout_s=0.2,
-                              poll_s=0.001, in_position_m=1e-6)
+        act = ModbusActuators(
+            host=host,
+            port=port,
+            regmap=m,
+            speed_m_s=2.0,
+            accel_m_s2=40.0,
+            timeout_s=0.2,
+            poll_s=0.001,
+            in_position_m=1e-6,
+        )
         async with act:
             await act.home(timeout_s=5)
             q = np.array([-0.05, 0.41, 0.42, 0.43])

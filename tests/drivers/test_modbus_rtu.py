@@ -116,8 +116,14 @@ def rtu(bench: SimBench, **kw) -> ModbusActuators:
 
 
 async def test_move_and_encoders_through_the_uri(rtu_bench):
-    cfg = rtu_bench.bench_config(actuators={"uri": f"modbus+rtu://{rtu_bench.link.client_path}?baudrate=115200",
-                                            "timeout_s": 0.2, "speed_m_s": 2.0, "accel_m_s2": 40.0})
+    cfg = rtu_bench.bench_config(
+        actuators={
+            "uri": f"modbus+rtu://{rtu_bench.link.client_path}?baudrate=115200",
+            "timeout_s": 0.2,
+            "speed_m_s": 2.0,
+            "accel_m_s2": 40.0,
+        }
+    )
     act = open_actuators(cfg)
     assert isinstance(act, ModbusActuators) and act.transport == "rtu" and act.baudrate == 115200
     assert act.serial_port == rtu_bench.link.client_path

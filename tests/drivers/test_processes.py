@@ -41,8 +41,9 @@ def _free_base() -> int:
 @pytest.fixture
 def sim_bench_process():
     port = _free_base()
-    proc = subprocess.Popen([*I4CAL, "sim-bench", "--port", str(port)], stdout=subprocess.PIPE,
-                            stderr=subprocess.DEVNULL, text=True)
+    proc = subprocess.Popen(
+        [*I4CAL, "sim-bench", "--port", str(port)], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
+    )
     uris = {}
     try:
         t_end = time.monotonic() + 20
@@ -96,13 +97,28 @@ def test_killed_acquisition(sim_bench_process, tmp_path):
 
     port, _ = sim_bench_process
     bench = Path(__file__).resolve().parents[2] / "deploy" / "bench-sim.toml"
-    text = bench.read_text().replace("127.0.0.1:5020", f"127.0.0.1:{port}").replace(
-        "127.0.0.1:5022", f"127.0.0.1:{port + 2}")
+    text = (
+        bench.read_text()
+        .replace("127.0.0.1:5020", f"127.0.0.1:{port}")
+        .replace("127.0.0.1:5022", f"127.0.0.1:{port + 2}")
+    )
     (tmp_path / "bench.toml").write_text(text)
     out = tmp_path / "ds"
-    proc = subprocess.Popen([*I4CAL, "acquire", "--bench", str(tmp_path / "bench.toml"), "--plan", "full",
-                             "--out", str(out), "--no-progress"], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        [
+            *I4CAL,
+            "acquire",
+            "--bench",
+            str(tmp_path / "bench.toml"),
+            "--plan",
+            "full",
+            "--out",
+            str(out),
+            "--no-progress",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     try:
         t_end = time.monotonic() + 60
         while time.monotonic() < t_end:

@@ -17,10 +17,18 @@ from drivers.sim.mechanism import ALARM_DRIVE_FAULT
 async def ascii_act(bench):
     srv = AsciiServer(bench.mechanism)
     host, port = await srv.start()
-    cfg = BenchConfig.model_validate({"actuators": {"uri": f"serial+tcp://{host}:{port}?timeout=0.2",
-                                                    "speed_m_s": 10.0, "accel_m_s2": 1000.0, "retries": 2,
-                                                    "poll_s": 0.001},
-                                      "camera": {"uri": bench.camera_uri}})
+    cfg = BenchConfig.model_validate(
+        {
+            "actuators": {
+                "uri": f"serial+tcp://{host}:{port}?timeout=0.2",
+                "speed_m_s": 10.0,
+                "accel_m_s2": 1000.0,
+                "retries": 2,
+                "poll_s": 0.001,
+            },
+            "camera": {"uri": bench.camera_uri},
+        }
+    )
     act = open_actuators(cfg)
     await act.connect()
     try:

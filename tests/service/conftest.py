@@ -71,16 +71,25 @@ def make_settings(tmp_path, sim: SimBench, **over: Any) -> Settings:
     bench = sim.bench_config(acquisition={"line_rate_hz": 50.0}).model_dump(mode="json", exclude={"source"})
     for k, v in over.pop("bench_overrides", {}).items():
         bench[k] = {**bench.get(k, {}), **v}
-    data = dict(data_dir=tmp_path / "data", bench=bench, token_hashes=[hash_token(TOKEN)],
-                plan_sizes=SMALL, extraction_workers=1)
+    data = dict(
+        data_dir=tmp_path / "data",
+        bench=bench,
+        token_hashes=[hash_token(TOKEN)],
+        plan_sizes=SMALL,
+        extraction_workers=1,
+    )
     data.update(over)
     return Settings(**data)
 
 
 @pytest.fixture
 async def sim() -> AsyncIterator[SimBench]:
-    b = SimBench(port=0, renderer=TinyRenderer(), seed=1,
-                 axis_config=AxisConfig(default_speed=10.0, accel=1000.0, home_speed=10.0))
+    b = SimBench(
+        port=0,
+        renderer=TinyRenderer(),
+        seed=1,
+        axis_config=AxisConfig(default_speed=10.0, accel=1000.0, home_speed=10.0),
+    )
     await b.start()
     try:
         yield b
@@ -98,8 +107,9 @@ async def service(tmp_path, sim) -> AsyncIterator[Service]:
         await svc.stop()
 
 
-async def wait_state(client: httpx.AsyncClient, run_id: str, states=("done", "failed", "aborted", "interrupted"),
-                     timeout: float = 120.0) -> dict:
+async def wait_state(
+    client: httpx.AsyncClient, run_id: str, states=("done", "failed", "aborted", "interrupted"), timeout: float = 120.0
+) -> dict:
     """Follow the run's Server-Sent Events until it ends; return the run."""
     async with asyncio.timeout(timeout):
         while True:
@@ -109,8 +119,11 @@ async def wait_state(client: httpx.AsyncClient, run_id: str, states=("done", "fa
                 return run
             async with client.stream("GET", f"/api/v1/runs/{run_id}/events") as resp:
                 async for line in resp.aiter_lines():
-                    if line.startswith("data: ") and json.loads(line[6:]).get("type") == "state" and \
-                            json.loads(line[6:])["data"]["state"] in states:
+                    if (
+                        line.startswith("data: ")
+                        and json.loads(line[6:]).get("type") == "state"
+                        and json.loads(line[6:])["data"]["state"] in states
+                    ):
                         break
             await asyncio.sleep(0.01)
 
@@ -136,8 +149,7 @@ def rendered_zip(tmp_path_factory) -> bytes:
 
     g = BenchGeometry()
     plan = make_plan("full", g.nominal, seed=2, n_base=6, n_fit=10, n_lock=4, n_validation=4, line_samples=11)
-    root = simulate_dataset(tmp_path_factory.mktemp("rendered") / "ds", seed=2, geometry=g, plan=plan,
-                            n_camera_views=0)
+    root = simulate_dataset(tmp_path_factory.mktemp("rendered") / "ds", seed=2, geometry=g, plan=plan, n_camera_views=0)
     doc = json.loads((root / "dataset.json").read_text())
     doc["camera"]["K"], doc["camera"]["dist"] = doc["truth"]["K"], doc["truth"]["dist"]
     (root / "dataset.json").write_text(json.dumps(doc))

@@ -23,16 +23,20 @@ class ClusterUnavailableError(Exception):
 
 def server_bindir() -> Path:
     """The directory of ``initdb``/``pg_ctl``/``postgres`` (newest installed major version)."""
-    cands = sorted(Path("/usr/lib/postgresql").glob("*/bin"), key=lambda p: int(p.parent.name)
-                   if p.parent.name.isdigit() else 0, reverse=True)
+    cands = sorted(
+        Path("/usr/lib/postgresql").glob("*/bin"),
+        key=lambda p: int(p.parent.name) if p.parent.name.isdigit() else 0,
+        reverse=True,
+    )
     for d in cands:
         if (d / "initdb").is_file() and (d / "pg_ctl").is_file():
             return d
     initdb = shutil.which("initdb")
     if initdb and shutil.which("pg_ctl"):
         return Path(initdb).resolve().parent
-    raise ClusterUnavailableError("no PostgreSQL server binaries (initdb, pg_ctl): "
-                                  "run deploy/install-test-system-deps.sh")
+    raise ClusterUnavailableError(
+        "no PostgreSQL server binaries (initdb, pg_ctl): run deploy/install-test-system-deps.sh"
+    )
 
 
 def _runner() -> tuple[list[str], str | None]:
@@ -42,8 +46,9 @@ def _runner() -> tuple[list[str], str | None]:
     try:
         pwd.getpwnam("postgres")
     except KeyError:
-        raise ClusterUnavailableError("running as root and there is no 'postgres' account to own the cluster "
-                                 "(initdb refuses root)") from None
+        raise ClusterUnavailableError(
+            "running as root and there is no 'postgres' account to own the cluster (initdb refuses root)"
+        ) from None
     runuser = shutil.which("runuser")
     if runuser is None:
         raise ClusterUnavailableError("running as root without runuser to start the cluster as 'postgres'")
@@ -70,13 +75,33 @@ def temporary_cluster(database: str = "i4cal") -> Iterator[str]:
             os.chown(p, pw.pw_uid, pw.pw_gid)
     started = False
     try:
-        r = subprocess.run([*prefix, str(bindir / "initdb"), "-D", str(data), "-U", "i4cal", "--auth=trust",
-                            "-E", "UTF8", "--locale=C", "--no-sync"], capture_output=True, text=True, timeout=120)
+        r = subprocess.run(
+            [
+                *prefix,
+                str(bindir / "initdb"),
+                "-D",
+                str(data),
+                "-U",
+                "i4cal",
+                "--auth=trust",
+                "-E",
+                "UTF8",
+                "--locale=C",
+                "--no-sync",
+            ],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
         if r.returncode != 0:
             raise ClusterUnavailableError(f"initdb failed: {r.stderr.strip()[-500:]}")
         opts = f"-k {sock} -c listen_addresses='' -p 5432 -c fsync=off -c synchronous_commit=off"
-        r = subprocess.run([*prefix, str(bindir / "pg_ctl"), "-D", str(data), "-l", str(log), "-w", "-t", "60",
-                            "-o", opts, "start"], capture_output=True, text=True, timeout=90)
+        r = subprocess.run(
+            [*prefix, str(bindir / "pg_ctl"), "-D", str(data), "-l", str(log), "-w", "-t", "60", "-o", opts, "start"],
+            capture_output=True,
+            text=True,
+            timeout=90,
+        )
         if r.returncode != 0:
             tail = log.read_text(errors="replace")[-800:] if log.exists() else r.stderr
             raise ClusterUnavailableError(f"pg_ctl start failed: {tail.strip()}")
@@ -88,6 +113,9 @@ def temporary_cluster(database: str = "i4cal") -> Iterator[str]:
         yield f"postgresql+psycopg://i4cal@/{database}?host={sock}&port=5432"
     finally:
         if started:
-            subprocess.run([*prefix, str(bindir / "pg_ctl"), "-D", str(data), "-m", "immediate", "-w", "stop"],
-                           capture_output=True, timeout=60)
+            subprocess.run(
+                [*prefix, str(bindir / "pg_ctl"), "-D", str(data), "-m", "immediate", "-w", "stop"],
+                capture_output=True,
+                timeout=60,
+            )
         shutil.rmtree(root, ignore_errors=True)

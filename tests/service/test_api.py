@@ -44,14 +44,17 @@ async def test_no_token_401_and_nothing_moves(service):
 
 async def test_validation_422_names_the_field(service):
     c = service.client
-    bad_q = {"name": "mine", "steps": [{"phase": "poses", "q": [0.3, 0.3, 0.3, 0.3]},
-                                      {"phase": "poses", "q": [0.3, 0.3, 0.3, 5.0]}]}
+    bad_q = {
+        "name": "mine",
+        "steps": [{"phase": "poses", "q": [0.3, 0.3, 0.3, 0.3]}, {"phase": "poses", "q": [0.3, 0.3, 0.3, 5.0]}],
+    }
     r = await c.post(f"{API}/runs", json={"plan": bad_q, "methods": []}, headers=AUTH)
     assert r.status_code == 422, r.text
     d = r.json()["detail"][0]
     assert d["loc"] == ["body", "plan", "steps", 1, "q[3]"] and "soft limits" in d["msg"]
-    r = await c.post(f"{API}/runs", json={"plan": {"name": "x", "steps": [{"phase": "nope", "q": [0] * 4}]}},
-                     headers=AUTH)
+    r = await c.post(
+        f"{API}/runs", json={"plan": {"name": "x", "steps": [{"phase": "nope", "q": [0] * 4}]}}, headers=AUTH
+    )
     assert r.status_code == 422 and r.json()["detail"][0]["loc"][:4] == ["body", "plan", "steps", 0]
     r = await c.post(f"{API}/runs", json={"plan": "rotation-sweep", "methods": ["magic"]}, headers=AUTH)
     assert r.status_code == 422 and r.json()["detail"][0]["loc"][:2] == ["body", "methods"]
@@ -100,9 +103,15 @@ async def test_acquisition_run_409_events_dataset(service):
 
 
 async def test_abort_mid_run_stops_actuators(tmp_path, sim):
-    svc = await start_service(make_settings(tmp_path, sim, plan_sizes={"n_fit": 40},
-                                            bench_overrides={"actuators": {"speed_m_s": 0.3, "accel_m_s2": 2.0}}),
-                              sim)
+    svc = await start_service(
+        make_settings(
+            tmp_path,
+            sim,
+            plan_sizes={"n_fit": 40},
+            bench_overrides={"actuators": {"speed_m_s": 0.3, "accel_m_s2": 2.0}},
+        ),
+        sim,
+    )
     c = svc.client
     try:
         r = await c.post(f"{API}/runs", json={"plan": "pose-set", "methods": []}, headers=AUTH)
@@ -133,9 +142,15 @@ async def test_abort_mid_run_stops_actuators(tmp_path, sim):
 
 
 async def test_pause_resume(tmp_path, sim):
-    svc = await start_service(make_settings(tmp_path, sim, plan_sizes={"n_fit": 12},
-                                            bench_overrides={"actuators": {"speed_m_s": 0.5, "accel_m_s2": 5.0}}),
-                              sim)
+    svc = await start_service(
+        make_settings(
+            tmp_path,
+            sim,
+            plan_sizes={"n_fit": 12},
+            bench_overrides={"actuators": {"speed_m_s": 0.5, "accel_m_s2": 5.0}},
+        ),
+        sim,
+    )
     c = svc.client
     try:
         rid = (await c.post(f"{API}/runs", json={"plan": "pose-set", "methods": []}, headers=AUTH)).json()["id"]
@@ -166,16 +181,16 @@ def _zip(members: dict[str, bytes]) -> bytes:
 
 
 async def test_uploads_refused_when_oversized_or_malicious(tmp_path, sim):
-    svc = await start_service(make_settings(tmp_path, sim, max_upload_bytes=200_000, max_unpacked_bytes=1_000_000),
-                              sim)
+    svc = await start_service(make_settings(tmp_path, sim, max_upload_bytes=200_000, max_unpacked_bytes=1_000_000), sim)
     c = svc.client
     data = tmp_path / "data"
     try:
         z = {"Content-Type": "application/zip", **AUTH}
         r = await c.post(f"{API}/datasets", content=b"x" * 300_000, headers=z)
         assert r.status_code == 413
-        r = await c.post(f"{API}/datasets", content=_zip({"../../evil.txt": b"pwned", "dataset.json": b"{}"}),
-                         headers=z)
+        r = await c.post(
+            f"{API}/datasets", content=_zip({"../../evil.txt": b"pwned", "dataset.json": b"{}"}), headers=z
+        )
         assert r.status_code == 422 and "escapes" in r.text
         assert not (tmp_path / "evil.txt").exists() and not (data / "evil.txt").exists()
         r = await c.post(f"{API}/datasets", content=_zip({"/etc/evil": b"x"}), headers=z)
@@ -190,15 +205,17 @@ async def test_uploads_refused_when_oversized_or_malicious(tmp_path, sim):
             ti = tarfile.TarInfo("frames")
             ti.type, ti.linkname = tarfile.SYMTYPE, "/etc"
             tf.addfile(ti)
-        r = await c.post(f"{API}/datasets", content=tbuf.getvalue(),
-                         headers={"Content-Type": "application/gzip", **AUTH})
+        r = await c.post(
+            f"{API}/datasets", content=tbuf.getvalue(), headers={"Content-Type": "application/gzip", **AUTH}
+        )
         assert r.status_code == 422 and "not a regular file" in r.text
         r = await c.post(f"{API}/datasets", content=_zip({"dataset.json": b"{}"}), headers=z)
         assert r.status_code == 422 and "dataset" in r.text
         r = await c.post(f"{API}/datasets", content=b"hello", headers={"Content-Type": "text/plain", **AUTH})
         assert r.status_code == 415
-        assert (await c.post(f"{API}/datasets", content=_zip({"a": b"b"}),
-                             headers={"Content-Type": "application/zip"})).status_code == 401
+        assert (
+            await c.post(f"{API}/datasets", content=_zip({"a": b"b"}), headers={"Content-Type": "application/zip"})
+        ).status_code == 401
         assert (await c.get(f"{API}/datasets")).json() == []
         assert list((data / "datasets").iterdir()) == []
         assert list((data / "tmp").iterdir()) == []
@@ -214,8 +231,9 @@ async def test_upload_dataset_and_offline_run(service):
     rid = (await c.post(f"{API}/runs", json={"plan": "rotation-sweep", "methods": []}, headers=AUTH)).json()["id"]
     assert (await wait_state(c, rid))["state"] == "done"
     z = (await c.get(f"{API}/runs/{rid}/dataset")).content
-    r = await c.post(f"{API}/datasets", content=z, params={"name": "sweep 1"},
-                     headers={"Content-Type": "application/zip", **AUTH})
+    r = await c.post(
+        f"{API}/datasets", content=z, params={"name": "sweep 1"}, headers={"Content-Type": "application/zip", **AUTH}
+    )
     assert r.status_code == 201, r.text
     ds = r.json()
     assert ds["frames"] == 6 and ds["name"] == "sweep 1"
@@ -239,8 +257,9 @@ async def test_full_run_real_images_results_apply(tmp_path):
         svc = await start_service(make_settings(tmp_path, sim, camera_file=cam, extraction_workers=2), sim)
         c = svc.client
         try:
-            r = await c.post(f"{API}/runs", json={"plan": "full", "methods": ["combined", "end-effector", "legs"]},
-                             headers=AUTH)
+            r = await c.post(
+                f"{API}/runs", json={"plan": "full", "methods": ["combined", "end-effector", "legs"]}, headers=AUTH
+            )
             assert r.status_code == 202, r.text
             rid = r.json()["id"]
             run = await wait_state(c, rid, timeout=300)
@@ -307,18 +326,26 @@ async def test_killed_service_restarts_interrupted_then_resumes(tmp_path, sim):
     bench = sim.bench_config(acquisition={"line_rate_hz": 50.0}).model_dump(mode="json", exclude={"source"})
     bench["actuators"].update(speed_m_s=0.3, accel_m_s2=3.0)
     cfg = tmp_path / "service.toml"
-    lines = [f'data_dir = "{tmp_path / "data"}"', f"port = {port}", f'token_hashes = ["{hash_token(TOKEN)}"]',
-             "[plan_sizes]", "n_fit = 16", "[bench]", f"name = {json.dumps(bench['name'])}"]
+    lines = [
+        f'data_dir = "{tmp_path / "data"}"',
+        f"port = {port}",
+        f'token_hashes = ["{hash_token(TOKEN)}"]',
+        "[plan_sizes]",
+        "n_fit = 16",
+        "[bench]",
+        f"name = {json.dumps(bench['name'])}",
+    ]
     for sec in ("actuators", "camera", "operator", "acquisition"):
         lines.append(f"[bench.{sec}]")
-        lines += [f"{k} = {json.dumps(v)}" for k, v in bench[sec].items()
-                  if v is not None and not isinstance(v, dict)]
+        lines += [f"{k} = {json.dumps(v)}" for k, v in bench[sec].items() if v is not None and not isinstance(v, dict)]
     cfg.write_text("\n".join(lines) + "\n")
     url = f"http://127.0.0.1:{port}"
 
     async def launch() -> subprocess.Popen:
-        p = subprocess.Popen([sys.executable, "-m", "service", "serve", "--config", str(cfg), "--log-level",
-                              "warning"], env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        p = subprocess.Popen(
+            [sys.executable, "-m", "service", "serve", "--config", str(cfg), "--log-level", "warning"],
+            env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        )
         async with httpx.AsyncClient(base_url=url) as c:
             for _ in range(300):
                 try:
@@ -364,8 +391,11 @@ async def test_killed_service_restarts_interrupted_then_resumes(tmp_path, sim):
             evs = await read_events(c, rid)
             states = [e["data"]["state"] for e in evs if e["type"] == "state"]
             assert states[-3:] == ["queued", "acquiring", "done"] and "interrupted" in states
-            starts = [e["data"]["message"] for e in evs if e["type"] == "progress" and "starting at" in
-                      (e["data"]["message"] or "")]
+            starts = [
+                e["data"]["message"]
+                for e in evs
+                if e["type"] == "progress" and "starting at" in (e["data"]["message"] or "")
+            ]
             assert starts[-1].startswith(f"starting at pose {kept + 1}/16")
     finally:
         if proc.poll() is None:

@@ -34,8 +34,14 @@ def live_url(tmp_path_factory):
     import uvicorn
 
     data = tmp_path_factory.mktemp("fuzz")
-    settings = Settings(data_dir=data, sim_bench=True, sim_fast_renderer=True, token_hashes=[hash_token(TOKEN)],
-                        plan_sizes=SMALL, max_upload_bytes=2_000_000)
+    settings = Settings(
+        data_dir=data,
+        sim_bench=True,
+        sim_fast_renderer=True,
+        token_hashes=[hash_token(TOKEN)],
+        plan_sizes=SMALL,
+        max_upload_bytes=2_000_000,
+    )
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
@@ -66,16 +72,18 @@ def test_openapi_fuzz_no_server_errors(live_url):
 
     modes = list(schemathesis.GenerationMode)
     for op, mode in [(op, mode) for mode in modes for op in ops]:
-        @settings(max_examples=MAX_EXAMPLES, deadline=None, database=None,
-                  suppress_health_check=list(HealthCheck))
+
+        @settings(max_examples=MAX_EXAMPLES, deadline=None, database=None, suppress_health_check=list(HealthCheck))
         @given(case=op.as_strategy(mode))
         def check(case):
             resp = case.call(base_url=live_url, headers=AUTH, timeout=15)
             key = (f"{case.method} {case.operation.path}", resp.status_code)
             seen[key] = seen.get(key, 0) + 1
             if resp.status_code >= 500:
-                failures.append(f"{resp.status_code} {case.method} {case.formatted_path} {resp.text[:300]}\n"
-                                f"{case.as_curl_command()}")
+                failures.append(
+                    f"{resp.status_code} {case.method} {case.formatted_path} {resp.text[:300]}\n"
+                    f"{case.as_curl_command()}"
+                )
 
         try:
             check()

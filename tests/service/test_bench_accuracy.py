@@ -26,21 +26,84 @@ from service.benchmarks.accuracy import (
 )
 from service.cli import main
 
-TOP_KEYS = {"format", "command", "argv", "version", "machine", "options", "workers", "spread_m", "plans", "notes",
-            "cameras", "study", "sweeps", "elapsed_s", "cpu_s", "load_average"}
-TRIAL_KEYS = {"key", "index", "seed", "noise_sigma", "truth", "truth_combinations", "error", "render_s", "extract_s",
-              "calibrate_s", "cpu_s", "methods", "bound_std", "gap_a_priori_rms_mm", "gap_truth_rms_mm",
-              "edge_noise_px", "frames", "boards_found", "rods_found", "rods_total"}
-METHOD_SUMMARY_KEYS = {"n_ok", "n_failed", "failures", "rms_error_m", "mean_std_m", "std_over_error", "bound_rms_m",
-                       "efficiency", "gap_validation_rms_mm", "gap_below_a_priori", "gap_trials"}
+TOP_KEYS = {
+    "format",
+    "command",
+    "argv",
+    "version",
+    "machine",
+    "options",
+    "workers",
+    "spread_m",
+    "plans",
+    "notes",
+    "cameras",
+    "study",
+    "sweeps",
+    "elapsed_s",
+    "cpu_s",
+    "load_average",
+}
+TRIAL_KEYS = {
+    "key",
+    "index",
+    "seed",
+    "noise_sigma",
+    "truth",
+    "truth_combinations",
+    "error",
+    "render_s",
+    "extract_s",
+    "calibrate_s",
+    "cpu_s",
+    "methods",
+    "bound_std",
+    "gap_a_priori_rms_mm",
+    "gap_truth_rms_mm",
+    "edge_noise_px",
+    "frames",
+    "boards_found",
+    "rods_found",
+    "rods_total",
+}
+METHOD_SUMMARY_KEYS = {
+    "n_ok",
+    "n_failed",
+    "failures",
+    "rms_error_m",
+    "mean_std_m",
+    "std_over_error",
+    "bound_rms_m",
+    "efficiency",
+    "gap_validation_rms_mm",
+    "gap_below_a_priori",
+    "gap_trials",
+}
 
 
 @pytest.fixture(scope="module")
 def quick(tmp_path_factory):
     """One quick study with a pose sweep whose 10-pose point repeats the study's first two trials."""
     out = tmp_path_factory.mktemp("acc") / "out.json"
-    r = subprocess.run([sys.executable, "-m", "service.cli", "bench", "accuracy", "--quick", "--sweep", "poses",
-                        "--sweep-poses", "8,10", "--json", str(out)], capture_output=True, text=True, timeout=1800)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "service.cli",
+            "bench",
+            "accuracy",
+            "--quick",
+            "--sweep",
+            "poses",
+            "--sweep-poses",
+            "8,10",
+            "--json",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=1800,
+    )
     assert r.returncode == 0, r.stderr
     return json.loads(out.read_text()), r.stdout
 
@@ -58,8 +121,16 @@ def test_quick_study_json_contract(quick):
     study = doc["study"]
     assert (study["sweep"], study["noise_sigma"], study["n_fit"]) == (None, 2.0, 10)
     assert len(study["trials"]) == 3 and [t["index"] for t in study["trials"]] == [0, 1, 2]
-    assert doc["plans"]["10"] == {"rotation": 6, "translation": 6, "poses": 10, "lock-1": 3, "lock-2": 3, "lock-3": 3,
-                                  "lock-4": 3, "validation": 8}
+    assert doc["plans"]["10"] == {
+        "rotation": 6,
+        "translation": 6,
+        "poses": 10,
+        "lock-1": 3,
+        "lock-2": 3,
+        "lock-3": 3,
+        "lock-4": 3,
+        "validation": 8,
+    }
     assert any("line" in n for n in doc["notes"]) and any("reduced plan" in n for n in doc["notes"])
     assert doc["options"]["camera"] == "per-trial" and doc["cameras"] == {}  # no study-wide camera by default
     for t in study["trials"]:
@@ -75,8 +146,10 @@ def test_quick_study_json_contract(quick):
         assert t["methods"]["combined"]["ok"], t["methods"]["combined"]["error"]
         for m, rec in t["methods"].items():
             if rec["ok"]:
-                assert all(math.isfinite(rec["errors"][c]) and math.isfinite(rec["std"][c]) and rec["std"][c] > 0
-                           for c in COMBINATION_NAMES), m
+                assert all(
+                    math.isfinite(rec["errors"][c]) and math.isfinite(rec["std"][c]) and rec["std"][c] > 0
+                    for c in COMBINATION_NAMES
+                ), m
                 assert rec["gap_validation_rms_mm"] > 0
             else:
                 assert rec["error"]
@@ -97,8 +170,10 @@ def test_quick_study_json_contract(quick):
 def test_sweep_points_share_their_trials(quick):
     doc, _ = quick
     pts = doc["sweeps"]["poses"]
-    assert [(p["sweep"], p["value"], p["n_fit"], len(p["trials"])) for p in pts] == [("poses", 8, 8, 2),
-                                                                                   ("poses", 10, 10, 2)]
+    assert [(p["sweep"], p["value"], p["n_fit"], len(p["trials"])) for p in pts] == [
+        ("poses", 8, 8, 2),
+        ("poses", 10, 10, 2),
+    ]
     # the 10-pose point is the study's set-up: the same two trials, run once
     assert pts[1]["trials"] == doc["study"]["trials"][:2]
     # trial k has the same truth and seed at every point (common random numbers), not the same plan
@@ -109,9 +184,17 @@ def test_sweep_points_share_their_trials(quick):
 
 def test_quick_study_prints_its_tables(quick):
     _, out = quick
-    for text in ("i4cal bench accuracy - 3 trials", "RMS error mm", "efficiency", "a priori (nominal)",
-                 "displacement gap on the validation poses", "combined efficiency", "sweep over fit poses",
-                 "camera calibrated in every trial", "intrinsics error RMS / mean reported std"):
+    for text in (
+        "i4cal bench accuracy - 3 trials",
+        "RMS error mm",
+        "efficiency",
+        "a priori (nominal)",
+        "displacement gap on the validation poses",
+        "combined efficiency",
+        "sweep over fit poses",
+        "camera calibrated in every trial",
+        "intrinsics error RMS / mean reported std",
+    ):
         assert text in out, text
 
 
@@ -143,16 +226,31 @@ def test_summary_statistics_from_records():
     trials = []
     for k in range(6):
         errs = dict(zip(COMBINATION_NAMES, rng.normal(0, 1e-3, 4), strict=True))
-        rec = {"ok": True, "error": None, "errors": errs, "std": dict.fromkeys(COMBINATION_NAMES, 1e-3),
-               "gap_validation_rms_mm": 0.5 + 0.1 * k}
-        trials.append({"error": None, "methods": {"combined": rec}, "bound_std": dict.fromkeys(COMBINATION_NAMES, 8e-4),
-                       "gap_a_priori_rms_mm": 0.8, "gap_truth_rms_mm": 0.4, "edge_noise_px": 0.1 + 0.01 * k,
-                       "truth_combinations": NOMINAL.combinations(), "rods_found": 8, "rods_total": 8})
+        rec = {
+            "ok": True,
+            "error": None,
+            "errors": errs,
+            "std": dict.fromkeys(COMBINATION_NAMES, 1e-3),
+            "gap_validation_rms_mm": 0.5 + 0.1 * k,
+        }
+        trials.append(
+            {
+                "error": None,
+                "methods": {"combined": rec},
+                "bound_std": dict.fromkeys(COMBINATION_NAMES, 8e-4),
+                "gap_a_priori_rms_mm": 0.8,
+                "gap_truth_rms_mm": 0.4,
+                "edge_noise_px": 0.1 + 0.01 * k,
+                "truth_combinations": NOMINAL.combinations(),
+                "rods_found": 8,
+                "rods_total": 8,
+            }
+        )
     s = summarize(trials)
     comb = s["methods"]["combined"]
     for c in COMBINATION_NAMES:
         e = np.array([t["methods"]["combined"]["errors"][c] for t in trials])
-        rms = float(np.sqrt(np.mean(e ** 2)))
+        rms = float(np.sqrt(np.mean(e**2)))
         assert math.isclose(comb["rms_error_m"][c], rms)
         assert math.isclose(comb["std_over_error"][c], 1e-3 / rms)
         assert math.isclose(comb["efficiency"][c], 8e-4 / rms)
@@ -174,8 +272,10 @@ def test_options_errors_and_command_line(capsys):
     assert "nothing to run" in capsys.readouterr().err
     assert main(["bench"]) == 1
     assert "i4cal bench accuracy" in capsys.readouterr().out
-    opts = AccuracyOptions(trials=20, seed=3, noise_sigma=4.0, sweeps=["poses", "noise"], sweep_noise=[0, 2.5],
-                           camera="true")
-    assert command_line(opts) == ("i4cal bench accuracy --trials 20 --seed 3 --noise 4 --sweep-noise 0,2.5 "
-                                  "--camera true --sweep noise,poses")
+    opts = AccuracyOptions(
+        trials=20, seed=3, noise_sigma=4.0, sweeps=["poses", "noise"], sweep_noise=[0, 2.5], camera="true"
+    )
+    assert command_line(opts) == (
+        "i4cal bench accuracy --trials 20 --seed 3 --noise 4 --sweep-noise 0,2.5 --camera true --sweep noise,poses"
+    )
     assert command_line(AccuracyOptions()) == "i4cal bench accuracy"

@@ -16,14 +16,37 @@ from service.cli import main
 
 def test_bench_speed_quick_subset_json(tmp_path):
     out = tmp_path / "speed.json"
-    r = subprocess.run([sys.executable, "-m", "service.cli", "bench", "speed", "--only", "modbus,fit", "--reads", "100",
-                        "--fit-repeats", "1", "--json", str(out)], capture_output=True, text=True, timeout=600)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "service.cli",
+            "bench",
+            "speed",
+            "--only",
+            "modbus,fit",
+            "--reads",
+            "100",
+            "--fit-repeats",
+            "1",
+            "--json",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert r.returncode == 0, r.stderr
     doc = json.loads(out.read_text())
     assert doc["format"] == "i4cal.bench-speed/1"
     assert doc["sections"] == ["fit", "modbus"] and doc["errors"] == {}
-    assert set(doc["figures"]) == {"fit_combined_ms", "fit_end_effector_ms", "fit_legs_ms",
-                                   "modbus_round_trip_median_ms", "modbus_driver_round_trip_median_ms"}
+    assert set(doc["figures"]) == {
+        "fit_combined_ms",
+        "fit_end_effector_ms",
+        "fit_legs_ms",
+        "modbus_round_trip_median_ms",
+        "modbus_driver_round_trip_median_ms",
+    }
     for key, f in doc["figures"].items():
         assert math.isfinite(f["value"]) and f["value"] > 0, key
         assert f["unit"] == "ms" and f["section"] in ("fit", "modbus") and f["label"]

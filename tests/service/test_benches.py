@@ -21,13 +21,24 @@ def shared_db(request, tmp_path) -> str:
 
 
 async def test_two_benches_share_a_database(tmp_path, sim, shared_db, rendered_zip):
-    other = SimBench(port=0, renderer=TinyRenderer(), seed=2,
-                     axis_config=AxisConfig(default_speed=10.0, accel=1000.0, home_speed=10.0))
+    other = SimBench(
+        port=0,
+        renderer=TinyRenderer(),
+        seed=2,
+        axis_config=AxisConfig(default_speed=10.0, accel=1000.0, home_speed=10.0),
+    )
     await other.start()
     slow = {"actuators": {"speed_m_s": 0.3, "accel_m_s2": 3.0}}
     sa = make_settings(tmp_path / "a", sim, database_url=shared_db, bench_name="bench-a", extraction_workers=1)
-    sb = make_settings(tmp_path / "b", other, database_url=shared_db, bench_name="bench-b", extraction_workers=1,
-                       plan_sizes={"n_fit": 30}, bench_overrides=slow)
+    sb = make_settings(
+        tmp_path / "b",
+        other,
+        database_url=shared_db,
+        bench_name="bench-b",
+        extraction_workers=1,
+        plan_sizes={"n_fit": 30},
+        bench_overrides=slow,
+    )
     a = await start_service(sa, sim)
     b = await start_service(sb, other)
     ca, cb = a.client, b.client
@@ -36,8 +47,11 @@ async def test_two_benches_share_a_database(tmp_path, sim, shared_db, rendered_z
         # each bench gets a calibration from an offline run (uploaded dataset, real images)
         cur, uploaded = {}, {}
         for svc, c in (("bench-a", ca), ("bench-b", cb)):
-            ds = uploaded[svc] = (await c.post(f"{API}/datasets", content=rendered_zip,
-                                               headers={"Content-Type": "application/zip", **AUTH})).json()["id"]
+            ds = uploaded[svc] = (
+                await c.post(
+                    f"{API}/datasets", content=rendered_zip, headers={"Content-Type": "application/zip", **AUTH}
+                )
+            ).json()["id"]
             r = await c.post(f"{API}/runs", json={"dataset": ds, "methods": ["combined"]}, headers=AUTH)
             assert r.status_code == 202, r.text
             run = await wait_state(c, r.json()["id"], timeout=300)
@@ -57,8 +71,9 @@ async def test_two_benches_share_a_database(tmp_path, sim, shared_db, rendered_z
         assert (await ca.get(f"{API}/calibration/current", params={"bench": "../x"})).status_code == 422
         hist = (await cb.get(f"{API}/calibration/history")).json()
         assert {h["bench"] for h in hist} == {"bench-a", "bench-b"}
-        assert [h["bench"] for h in (await cb.get(f"{API}/calibration/history",
-                                                  params={"bench": "bench-a"})).json()] == ["bench-a"]
+        assert [
+            h["bench"] for h in (await cb.get(f"{API}/calibration/history", params={"bench": "bench-a"})).json()
+        ] == ["bench-a"]
 
         # bench-b acquires; bench-a's service sees the run but cannot control it, and restarting it leaves it alone
         rid = (await cb.post(f"{API}/runs", json={"plan": "pose-set", "methods": []}, headers=AUTH)).json()["id"]

@@ -27,8 +27,11 @@ async def test_dashboard_starts_a_run_and_shows_results(tmp_path):
         svc = await start_service(make_settings(tmp_path, sim, camera_file=cam, extraction_workers=2), sim)
         try:
             async with playwright_api.async_playwright() as p:
-                browser = await p.chromium.launch(executable_path=CHROMIUM, headless=True,
-                                                  args=["--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage"])
+                browser = await p.chromium.launch(
+                    executable_path=CHROMIUM,
+                    headless=True,
+                    args=["--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage"],
+                )
                 try:
                     page = await browser.new_page()
                     errors: list[str] = []
@@ -50,9 +53,11 @@ async def test_dashboard_starts_a_run_and_shows_results(tmp_path):
                     await page.wait_for_function("document.querySelector('#frame').naturalWidth > 0", timeout=60_000)
                     # per-frame extraction results, then the fits' iterations, in the live view's detail line
                     await page.wait_for_function(
-                        "/^frame \\d+ \\(/.test(document.querySelector('#detail').textContent)", timeout=240_000)
+                        "/^frame \\d+ \\(/.test(document.querySelector('#detail').textContent)", timeout=240_000
+                    )
                     await page.wait_for_function(
-                        "document.querySelector('#live-panel').dataset.state === 'done'", timeout=240_000)
+                        "document.querySelector('#live-panel').dataset.state === 'done'", timeout=240_000
+                    )
                     assert "iteration" in await page.inner_text("#detail")
                     await page.wait_for_selector("#results-panel:not([hidden])", timeout=30_000)
                     t1 = await page.inner_text("#table1")

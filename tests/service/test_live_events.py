@@ -99,8 +99,13 @@ async def test_offline_run_streams_frames_and_fit_iterations(tmp_path, sim, rend
             gaps = [b - a for a, b in itertools.pairwise(ts)]
             early = sum(g < LIVE_INTERVAL_S - 0.02 for g in gaps)
             assert early <= (1 if kind == "frames" else 2 * len(METHODS)), (kind, gaps)
-        ext = [e for e in evs if e["type"] in ("frames", "progress") and e["data"].get("stage") != "acquisition"
-               and e["data"].get("stage") != "calibration"]
+        ext = [
+            e
+            for e in evs
+            if e["type"] in ("frames", "progress")
+            and e["data"].get("stage") != "acquisition"
+            and e["data"].get("stage") != "calibration"
+        ]
         span = _t(ext[-1]) - _t(ext[0])
         assert len(ext) <= 2 * (span / LIVE_INTERVAL_S + 2), (len(ext), span)
     finally:

@@ -46,10 +46,14 @@ def test_upgrade_from_the_first_revision_keeps_rows(empty_db, tmp_path):
     try:
         _upgrade(db, "0001")
         with db.engine.begin() as conn:
-            conn.execute(text(
-                "INSERT INTO runs (id, state, created_at, bench, note, methods, dataset_dir, phase, done, total, "
-                "timings) VALUES (:id, 'acquiring', CURRENT_TIMESTAMP, 'bench', '', '[]', 'runs/x/dataset', "
-                "'poses', 3, 10, '{}')"), {"id": "a" * 32})
+            conn.execute(
+                text(
+                    "INSERT INTO runs (id, state, created_at, bench, note, methods, dataset_dir, phase, done, total, "
+                    "timings) VALUES (:id, 'acquiring', CURRENT_TIMESTAMP, 'bench', '', '[]', 'runs/x/dataset', "
+                    "'poses', 3, 10, '{}')"
+                ),
+                {"id": "a" * 32},
+            )
         db.upgrade()
         with db.engine.connect() as conn:
             row = conn.execute(text("SELECT state, done, service FROM runs WHERE id = :id"), {"id": "a" * 32}).one()

@@ -108,8 +108,13 @@ async def test_offline_run_on_postgres_then_restart(tmp_path, sim, fresh_db, ren
 
 
 async def test_interrupted_acquisition_resumes_on_postgres(tmp_path, sim, fresh_db):
-    settings = make_settings(tmp_path, sim, database_url=fresh_db, plan_sizes={"n_fit": 30},
-                             bench_overrides={"actuators": {"speed_m_s": 0.3, "accel_m_s2": 3.0}})
+    settings = make_settings(
+        tmp_path,
+        sim,
+        database_url=fresh_db,
+        plan_sizes={"n_fit": 30},
+        bench_overrides={"actuators": {"speed_m_s": 0.3, "accel_m_s2": 3.0}},
+    )
     svc = await start_service(settings, sim)
     c = svc.client
     try:

@@ -88,26 +88,26 @@ def test_report_holds_the_result_and_is_self_contained(built, dataset):
         e = res["methods"][m]
         assert e["converged"], (m, e.get("error"))
         for k in COMBINATION_NAMES:
-            assert f"{e['parameters'][k] * 1e3:.4f}" in html, (m, k)       # identified, mm
-            assert f"{e['std'][k] * 1e3:.4f}" in html, (m, k)              # u, mm
-            assert f"{2 * e['std'][k] * 1e3:.4f}" in html, (m, k)          # U (k = 2), mm
+            assert f"{e['parameters'][k] * 1e3:.4f}" in html, (m, k)  # identified, mm
+            assert f"{e['std'][k] * 1e3:.4f}" in html, (m, k)  # u, mm
+            assert f"{2 * e['std'][k] * 1e3:.4f}" in html, (m, k)  # U (k = 2), mm
         for k, v in (e.get("seven") or {}).items():
             assert f"{v * 1e3:.4f}" in html, (m, k)
     for k, v in res["methods"]["combined"]["bound"]["std"].items():
-        assert f"{v * 1e3:.4f}" in html, k                                 # Cramer-Rao bound
-    budget = html[html.index('<section id="budget">'):]
-    budget = budget[:budget.index("</section>")]
-    for m in METHODS:                                                      # uncertainty budget: every contribution
+        assert f"{v * 1e3:.4f}" in html, k  # Cramer-Rao bound
+    budget = html[html.index('<section id="budget">') :]
+    budget = budget[: budget.index("</section>")]
+    for m in METHODS:  # uncertainty budget: every contribution
         for src, contrib in res["methods"][m]["std_breakdown"].items():
             for k, v in contrib.items():
                 assert f"{v * 1e3:.4f}" in budget, (m, src, k)
     assert "limb-edge bias common to every rod" in budget and "camera intrinsics" in budget
     for k, v in res["truth_errors"]["combined"].items():
         if k in COMBINATION_NAMES:
-            assert f"{v * 1e3:+.4f}" in html, k                            # simulated: errors vs the truth
+            assert f"{v * 1e3:+.4f}" in html, k  # simulated: errors vs the truth
     for name, v in res["validation"].items():
-        assert f"{v['gaps_validation']['rms_mm']:.4f}" in html, name       # Table II
-        assert f"{v['straightness']['rms_mm']:.4f}" in html, name          # Table III
+        assert f"{v['gaps_validation']['rms_mm']:.4f}" in html, name  # Table II
+        assert f"{v['straightness']['rms_mm']:.4f}" in html, name  # Table III
     digest, n_files, missing = dataset_sha256(dataset)
     assert digest in html and n_files == 1 + len(list((dataset / "frames").glob("*.png"))) and not missing
     from service import __version__
@@ -122,7 +122,7 @@ def test_report_holds_the_result_and_is_self_contained(built, dataset):
     srcs = [v for t, k, v in p.refs if k == "src"]
     assert len(srcs) >= 8 and all(v.startswith("data:image/") for v in srcs)
     assert all(v.startswith("#") for t, k, v in p.refs if k == "href")
-    text = re.sub(r'data:image/[a-z]+;base64,[A-Za-z0-9+/=]+', "", html)
+    text = re.sub(r"data:image/[a-z]+;base64,[A-Za-z0-9+/=]+", "", html)
     assert "http" not in text and 'src="/' not in text and "url(" not in text
     # the plots are real plots: not blank, data drawn in colour
     plots = _plot_images(html)
@@ -139,8 +139,11 @@ def test_report_opens_in_a_real_browser(built):
 
     async def check() -> None:
         async with playwright_api.async_playwright() as pw:
-            browser = await pw.chromium.launch(executable_path=CHROMIUM, headless=True,
-                                               args=["--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage"])
+            browser = await pw.chromium.launch(
+                executable_path=CHROMIUM,
+                headless=True,
+                args=["--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage"],
+            )
             try:
                 page = await browser.new_page(viewport={"width": 1280, "height": 900})
                 requests: list[str] = []
@@ -182,8 +185,9 @@ def test_cli_report_from_observations_with_frames(built, dataset, tmp_path):
     obs = tmp_path / "obs.json"
     obs.write_text(json.dumps(inputs.observations), encoding="utf-8")
     out = tmp_path / "r.html"
-    assert main(["report", str(obs), "--dataset", str(dataset), "-o", str(out), "--methods", "combined",
-                 "--quiet"]) == 0
+    assert (
+        main(["report", str(obs), "--dataset", str(dataset), "-o", str(out), "--methods", "combined", "--quiet"]) == 0
+    )
     text = out.read_text(encoding="utf-8")
     comb = inputs.result["methods"]["combined"]
     for k in COMBINATION_NAMES:  # the same observations calibrate to the same values

@@ -13,8 +13,14 @@ API = "/api/v1"
 async def test_sim_bench_in_its_own_process(tmp_path):
     import os
 
-    settings = Settings(data_dir=tmp_path / "data", sim_bench=True, sim_fast_renderer=True, bench_name="sim-1",
-                        token_hashes=[hash_token(TOKEN)], plan_sizes=SMALL)
+    settings = Settings(
+        data_dir=tmp_path / "data",
+        sim_bench=True,
+        sim_fast_renderer=True,
+        bench_name="sim-1",
+        token_hashes=[hash_token(TOKEN)],
+        plan_sizes=SMALL,
+    )
     svc = await start_service(settings, None)
     c = svc.client
     manager = svc.app.state.manager

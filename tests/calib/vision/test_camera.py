@@ -65,17 +65,21 @@ def test_calibrate_ro_recovers_intrinsics_and_rejects_views():
     true_pts = pts.copy()
     true_pts[:, :2] += rng.normal(0, 2e-4, (len(pts), 2))
     views = _views(15, rng, 0.05, true_pts)
-    views[100] = (ids[:7], views[0][1][:7], None)                      # partial board
+    views[100] = (ids[:7], views[0][1][:7], None)  # partial board
     bad = views[3][1].copy()
-    bad[5] += 6.0                                                    # one grossly wrong corner
+    bad[5] += 6.0  # one grossly wrong corner
     views[101] = (ids, bad, None)
     res = calibrate_intrinsics(views, (1024, 768), ids, pts)
     assert "partial board" in res.rejected[100]
     assert "outlier view" in res.rejected[101]
     # within 4 of the reported standard deviations
     Kc = res.camera.K
-    for name, est, true in (("fx", Kc[0, 0], K[0, 0]), ("fy", Kc[1, 1], K[1, 1]), ("cx", Kc[0, 2], K[0, 2]),
-                            ("cy", Kc[1, 2], K[1, 2])):
+    for name, est, true in (
+        ("fx", Kc[0, 0], K[0, 0]),
+        ("fy", Kc[1, 1], K[1, 1]),
+        ("cx", Kc[0, 2], K[0, 2]),
+        ("cy", Kc[1, 2], K[1, 2]),
+    ):
         assert abs(est - true) < 4 * res.std[name], (name, est, true, res.std[name])
         assert res.std[name] < 3.0
     assert np.abs(res.camera.dist[:2] - DIST[:2]).max() < 0.01

@@ -29,8 +29,8 @@ from drivers.sim.twin import BenchGeometry, GeometricTwin
 
 #: what the bench's mounting says: the camera looks down (-z_B), image x along +x_B (no tilt, no position)
 MOUNTING = Rigid(np.diag([1.0, -1.0, -1.0]), np.zeros(3))
-DIRECTION_BOUND_RAD = 0.1      # detected direction vs truth (measured: median 8 mrad, worst ~50 mrad)
-MEASURED_MEDIAN_RAD = 0.012    # measure_rod from the detector's priors (measured median 5.4 mrad)
+DIRECTION_BOUND_RAD = 0.1  # detected direction vs truth (measured: median 8 mrad, worst ~50 mrad)
+MEASURED_MEDIAN_RAD = 0.012  # measure_rod from the detector's priors (measured median 5.4 mrad)
 
 G = BenchGeometry()
 
@@ -48,8 +48,14 @@ def rendered():
     for seed, ks in ((40, picks[0::2]), (41, picks[1::2])):
         r = BenchRenderer(G, RenderSettings(), seed=seed)
         for k, (ph, q, pose) in zip(ks, _frames(seed, ks), strict=True):
-            out.append((f"seed {seed} frame {k} ({ph}, Y={pose[1] * 1e3:+.0f} mm)", q, pose,
-                        r.render(q, pose, np.random.default_rng([seed, k]))))
+            out.append(
+                (
+                    f"seed {seed} frame {k} ({ph}, Y={pose[1] * 1e3:+.0f} mm)",
+                    q,
+                    pose,
+                    r.render(q, pose, np.random.default_rng([seed, k])),
+                )
+            )
     return out, RenderSettings().camera()
 
 
@@ -79,9 +85,11 @@ def test_detector_associates_every_leg_with_the_mounting_prior(rendered):
                 measured += 1
                 meas_errs.append(float(np.arccos(np.clip(m.u @ u_true[m.leg, m.rod], -1.0, 1.0))))
     e = np.array(errs) * 1e3
-    print(f"\ndetected rod directions vs truth: median {np.median(e):.1f} mrad, max {e.max():.1f} mrad "
-          f"({len(e)} rods in {len(frames)} frames); measured from the priors: median "
-          f"{np.median(meas_errs) * 1e3:.1f} mrad, {measured} rods")
+    print(
+        f"\ndetected rod directions vs truth: median {np.median(e):.1f} mrad, max {e.max():.1f} mrad "
+        f"({len(e)} rods in {len(frames)} frames); measured from the priors: median "
+        f"{np.median(meas_errs) * 1e3:.1f} mrad, {measured} rods"
+    )
     assert np.median(e) < 15.0
     assert measured >= 0.9 * len(errs)
     assert np.median(meas_errs) < MEASURED_MEDIAN_RAD
@@ -137,8 +145,9 @@ def test_a_hidden_leg_is_reported_missing_and_the_others_found():
 
 def test_no_rod_spacing_no_detection():
     cam = RenderSettings().camera()
-    det = detect_rods(np.zeros((768, 1024), np.uint8), cam, G.nominal, ikm(G.nominal, [0.95, 0, -0.65, 0]),
-                      G.rod_radius_m, None)
+    det = detect_rods(
+        np.zeros((768, 1024), np.uint8), cam, G.nominal, ikm(G.nominal, [0.95, 0, -0.65, 0]), G.rod_radius_m, None
+    )
     assert not det.ok and "rod spacing" in det.reasons["leg3.rod1"]
 
 
@@ -148,16 +157,23 @@ def _dataset(root, poses: list[np.ndarray], seed: int) -> tuple[CameraModel, lis
     r = BenchRenderer(G, RenderSettings(), seed=seed)
     cam = r.camera
     rs = RenderSettings()
-    w = DatasetWriter(root, camera=CameraSpec(width=1024, height=768, K=cam.K.tolist(), dist=cam.dist.tolist()),
-                      board=rs.board.model_copy(update={"height_above_ee_m": 0.035}),
-                      legs=LegsSpec(rod_radius_m=G.rod_radius_m, rod_spacing_m=G.rod_spacing_m),
-                      nominal=G.nominal.as_dict())
+    w = DatasetWriter(
+        root,
+        camera=CameraSpec(width=1024, height=768, K=cam.K.tolist(), dist=cam.dist.tolist()),
+        board=rs.board.model_copy(update={"height_above_ee_m": 0.035}),
+        legs=LegsSpec(rod_radius_m=G.rod_radius_m, rod_spacing_m=G.rod_spacing_m),
+        nominal=G.nominal.as_dict(),
+    )
     truth = []
     for k, pose_nominal in enumerate(poses):
         q = ikm(G.nominal, pose_nominal)
         pose = dkm(G.truth, q)
-        w.add_frame("poses", q, r.render(q, pose, np.random.default_rng([seed, k])),
-                    truth={"q": q.tolist(), "pose": pose.tolist()})
+        w.add_frame(
+            "poses",
+            q,
+            r.render(q, pose, np.random.default_rng([seed, k])),
+            truth={"q": q.tolist(), "pose": pose.tolist()},
+        )
         truth.append((q, pose))
     w.close()
     return cam, truth
@@ -165,8 +181,12 @@ def _dataset(root, poses: list[np.ndarray], seed: int) -> tuple[CameraModel, lis
 
 def _rod_errors(frame: dict, q: np.ndarray, pose: np.ndarray) -> list[float]:
     u_true, _ = G.rod_lines_camera(q, pose)
-    return [float(np.arccos(np.clip(np.asarray(rod["u"]) @ u_true[int(leg) - 1, k], -1, 1)))
-            for leg, rods in frame["legs"].items() for k, rod in enumerate(rods) if rod is not None]
+    return [
+        float(np.arccos(np.clip(np.asarray(rod["u"]) @ u_true[int(leg) - 1, k], -1, 1)))
+        for leg, rods in frame["legs"].items()
+        for k, rod in enumerate(rods)
+        if rod is not None
+    ]
 
 
 def test_single_frame_dataset_gets_its_rods_through_the_fallback(tmp_path):
@@ -183,7 +203,7 @@ def test_single_frame_dataset_gets_its_rods_through_the_fallback(tmp_path):
 
 
 def test_a_symmetric_frame_alone_is_missing_and_resolved_by_an_asymmetric_one(tmp_path):
-    symmetric = np.array([0.95, 0.0, -0.66, -0.04])   # Y = 0: legs 1-2-3-4 look like 4-3-2-1
+    symmetric = np.array([0.95, 0.0, -0.66, -0.04])  # Y = 0: legs 1-2-3-4 look like 4-3-2-1
     off_centre = np.array([0.95, 0.12, -0.65, 0.03])  # Y = 120 mm: the labelling is unique
     alone, both = tmp_path / "alone", tmp_path / "both"
     _dataset(alone, [symmetric], seed=44)

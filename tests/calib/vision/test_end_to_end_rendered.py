@@ -31,8 +31,12 @@ def test_rendered_dataset_calibrates(tmp_path):
     K = np.asarray(truth["K"])
     it = res.intrinsics
     assert it is not None and it.rms_px < 0.3
-    for name, est, true in (("fx", it.camera.K[0, 0], K[0, 0]), ("fy", it.camera.K[1, 1], K[1, 1]),
-                            ("cx", it.camera.K[0, 2], K[0, 2]), ("cy", it.camera.K[1, 2], K[1, 2])):
+    for name, est, true in (
+        ("fx", it.camera.K[0, 0], K[0, 0]),
+        ("fy", it.camera.K[1, 1], K[1, 1]),
+        ("cx", it.camera.K[0, 2], K[0, 2]),
+        ("cy", it.camera.K[1, 2], K[1, 2]),
+    ):
         assert abs(est - true) < 4 * it.std[name] + 0.5, (name, est, true, it.std[name])
     # the rods refine the camera (combined fit, intrinsics as nuisance unknowns) and the frames are
     # measured again with it: the refined intrinsics are closer to the truth than the calibration's
@@ -71,9 +75,11 @@ def test_rendered_dataset_calibrates(tmp_path):
     # for an edge bias of its own), and the rods gated are the ones the extraction itself measured
     # worst (a limb with several times the usual edge scatter: the other rod of the leg next to it)
     diag = comb["diagnostics"]
-    print(f"combined: noise scale {diag['direction_noise_scale']:.2f}, {len(diag['rods_rejected'])} of "
-          f"{diag['rods_used'] + len(diag['rods_rejected'])} rods gated, intrinsics refined by "
-          f"{diag['intrinsics_refinement']}, limb-edge bias {diag['limb_edge_bias']}")
+    print(
+        f"combined: noise scale {diag['direction_noise_scale']:.2f}, {len(diag['rods_rejected'])} of "
+        f"{diag['rods_used'] + len(diag['rods_rejected'])} rods gated, intrinsics refined by "
+        f"{diag['intrinsics_refinement']}, limb-edge bias {diag['limb_edge_bias']}"
+    )
     assert 0.4 < diag["direction_noise_scale"] < 1.3
     n_rods = diag["rods_used"] + len(diag["rods_rejected"])
     assert len(diag["rods_rejected"]) < 0.1 * n_rods

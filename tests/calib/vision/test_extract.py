@@ -24,20 +24,26 @@ def small_dataset(tmp_path_factory):
     g = BenchGeometry()
     rs = RenderSettings()
     r = BenchRenderer(g, rs, seed=4)
-    steps = (make_plan("rotation-sweep", g.nominal, n_base=5).steps
-             + make_plan("equal-translation", g.nominal, n_base=3).steps
-             + make_plan("pose-set", g.nominal, n_fit=4).steps)
+    steps = (
+        make_plan("rotation-sweep", g.nominal, n_base=5).steps
+        + make_plan("equal-translation", g.nominal, n_base=3).steps
+        + make_plan("pose-set", g.nominal, n_fit=4).steps
+    )
     tp = GeometricTwin(g).true_poses(Plan(name="small", steps=steps))
     root = tmp_path_factory.mktemp("ds")
     cam = r.camera
     board = rs.board.model_copy(update={"height_above_ee_m": 0.035})
-    w = DatasetWriter(root, camera=CameraSpec(width=1024, height=768, K=cam.K.tolist(), dist=cam.dist.tolist()),
-                      board=board, legs=LegsSpec(rod_radius_m=g.rod_radius_m, rod_spacing_m=g.rod_spacing_m),
-                      nominal=g.nominal.as_dict())
+    w = DatasetWriter(
+        root,
+        camera=CameraSpec(width=1024, height=768, K=cam.K.tolist(), dist=cam.dist.tolist()),
+        board=board,
+        legs=LegsSpec(rod_radius_m=g.rod_radius_m, rod_spacing_m=g.rod_spacing_m),
+        nominal=g.nominal.as_dict(),
+    )
     rng = np.random.default_rng(0)
     for k, (ph, q, pose) in enumerate(tp):
-        img = r.render(q, pose, rng, board_visible=(k != 10))    # frame 10: board hidden
-        if k == 11:                                              # frame 11: leg 1's rods painted out
+        img = r.render(q, pose, rng, board_visible=(k != 10))  # frame 10: board hidden
+        if k == 11:  # frame 11: leg 1's rods painted out
             top, bot = g.rod_segments_base(q, pose)
             img = img.copy()
             for rod in range(2):
@@ -47,9 +53,9 @@ def small_dataset(tmp_path_factory):
                     cv2.line(img, (int(a[0]), int(a[1])), (int(b[0]), int(b[1])), 50, thickness=40)
         w.add_frame(ph, q, img, truth={"q": q.tolist(), "pose": pose.tolist()})
     w.close()
-    (root / "frames/000008.png").unlink()                                         # missing file
+    (root / "frames/000008.png").unlink()  # missing file
     data = (root / "frames/000009.png").read_bytes()
-    (root / "frames/000009.png").write_bytes(data[: len(data) // 3])               # truncated
+    (root / "frames/000009.png").write_bytes(data[: len(data) // 3])  # truncated
     return root, g, cam
 
 
@@ -58,7 +64,7 @@ def test_extract_reports_per_frame_reasons_and_processes_the_rest(small_dataset)
     calls = []
     res = extract_dataset(root, workers=1, progress=lambda d, t: calls.append((d, t)))
     assert calls and calls[-1][0] == calls[-1][1]
-    obs = Observations.from_dict(res.observations)       # valid observations v1
+    obs = Observations.from_dict(res.observations)  # valid observations v1
     fr = res.observations["frames"]
     assert len(fr) == 12
     assert res.summary["placement"]["ok"]
@@ -109,8 +115,13 @@ def test_cli_extract(small_dataset, tmp_path):
 def test_dataset_writer_is_crash_safe(tmp_path):
     """A run cut off leaves a valid dataset of the frames written so far; stray temporaries are harmless."""
     g = BenchGeometry()
-    w = DatasetWriter(tmp_path, camera=CameraSpec(width=8, height=6), board=RenderSettings().board,
-                      legs=LegsSpec(rod_radius_m=0.008), nominal=g.nominal.as_dict())
+    w = DatasetWriter(
+        tmp_path,
+        camera=CameraSpec(width=8, height=6),
+        board=RenderSettings().board,
+        legs=LegsSpec(rod_radius_m=0.008),
+        nominal=g.nominal.as_dict(),
+    )
     img = np.zeros((6, 8), np.uint8)
     w.add_frame("poses", [0.1, 0.2, 0.3, 0.4], img)
     w.add_frame("poses", [0.1, 0.2, 0.3, 0.5], img)
@@ -120,8 +131,14 @@ def test_dataset_writer_is_crash_safe(tmp_path):
     ds = Dataset.open(tmp_path)
     assert len(ds.frames) == 2 and ds.load_image(1).shape == (6, 8)
     # resuming appends after the last complete frame
-    w2 = DatasetWriter(tmp_path, camera=CameraSpec(width=8, height=6), board=RenderSettings().board,
-                       legs=LegsSpec(rod_radius_m=0.008), nominal=g.nominal.as_dict(), resume=True)
+    w2 = DatasetWriter(
+        tmp_path,
+        camera=CameraSpec(width=8, height=6),
+        board=RenderSettings().board,
+        legs=LegsSpec(rod_radius_m=0.008),
+        nominal=g.nominal.as_dict(),
+        resume=True,
+    )
     assert w2.add_frame("poses", [0, 0, 0, 0], img) == 2
     assert len(Dataset.open(tmp_path).frames) == 3
 
@@ -130,8 +147,13 @@ def test_dataset_validation_names_frame_and_field(tmp_path):
     from calib.errors import InputError
 
     g = BenchGeometry()
-    w = DatasetWriter(tmp_path, camera=CameraSpec(width=8, height=6), board=RenderSettings().board,
-                      legs=LegsSpec(rod_radius_m=0.008), nominal=g.nominal.as_dict())
+    w = DatasetWriter(
+        tmp_path,
+        camera=CameraSpec(width=8, height=6),
+        board=RenderSettings().board,
+        legs=LegsSpec(rod_radius_m=0.008),
+        nominal=g.nominal.as_dict(),
+    )
     w.add_frame("poses", [0.1, 0.2, 0.3, 0.4], None)
     doc = json.loads((tmp_path / "dataset.json").read_text())
     doc["frames"][0]["q"] = [1, 2]

@@ -54,8 +54,10 @@ def measured():
                 # the direction error in the eigenbasis of the reported covariance (rank 2: u is unit)
                 w, V = np.linalg.eigh(m.cov_u)
                 rod_z.extend((V[:, 1:].T @ (ut - m.u)) / np.sqrt(w[1:]))
-    return {k: np.array(v) for k, v in dict(board_rot=board_rot, board_t=board_t, rod_dir=rod_dir,
-                                            rod_pt=rod_pt, rod_z=rod_z).items()} | {"n_rods": n_rods}
+    return {
+        k: np.array(v)
+        for k, v in dict(board_rot=board_rot, board_t=board_t, rod_dir=rod_dir, rod_pt=rod_pt, rod_z=rod_z).items()
+    } | {"n_rods": n_rods}
 
 
 def test_board_pose_error(measured):

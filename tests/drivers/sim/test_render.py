@@ -34,7 +34,7 @@ def test_zero_levels_give_a_clean_image(frames):
     r = BenchRenderer(g, RenderSettings.clean(), seed=0)
     img = r.render(q, pose)
     bg = img[img == 50]
-    assert bg.size > 0.3 * img.size          # flat background where nothing is drawn
+    assert bg.size > 0.3 * img.size  # flat background where nothing is drawn
     assert np.array_equal(img, r.render(q, pose, np.random.default_rng(5)))  # no noise at all
     assert np.allclose(r.board_points_true, r.board_points_nominal)
 
@@ -85,7 +85,7 @@ def test_distortion_is_visible():
 def test_board_manufacturing_error_has_the_set_rms():
     r = BenchRenderer(BenchGeometry(), RenderSettings(board_error_m=3e-4), seed=1)
     d = r.board_points_true - r.board_points_nominal
-    rms = np.sqrt(np.mean(np.sum(d ** 2, axis=1)))
+    rms = np.sqrt(np.mean(np.sum(d**2, axis=1)))
     assert rms == pytest.approx(3e-4, rel=0.05)
     assert np.abs(d[:, 2]).max() == 0.0
 
