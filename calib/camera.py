@@ -8,6 +8,8 @@ frame (metres; z along the optical axis). "Ideal pixels" are undistorted pixel c
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -223,6 +225,22 @@ class IntrinsicsResult:
         }
 
 
+@contextlib.contextmanager
+def opencv_single_thread() -> Iterator[None]:
+    """Run OpenCV single-threaded inside the block (the process-wide thread count is restored after).
+
+    ``cv2.calibrateCameraRO`` gives results that differ in the last digits from one process to the next
+    when OpenCV runs several threads (measured: fx by ~2e-7 px, enough for a whole extraction to differ
+    after the rods' refinement and its second pass); single-threaded it is bit-reproducible.
+    """
+    n = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(n)
+
+
 def calibrate_intrinsics(
     views: dict[int, tuple[ArrayLike, ArrayLike, ArrayLike]],
     image_size: tuple[int, int],
@@ -290,16 +308,17 @@ def calibrate_intrinsics(
         keys = list(keep)
         objp = [obj.astype(np.float32).reshape(-1, 1, 3) for _ in keys]
         imgp = [keep[k].astype(np.float32).reshape(-1, 1, 2) for k in keys]
-        ret = cv2.calibrateCameraROExtended(
-            objp,
-            imgp,
-            (w, h),
-            fixed,
-            None,
-            None,
-            flags=flags,
-            criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12),
-        )
+        with opencv_single_thread():  # bit-reproducible: OpenCV's threads change the result in the last digits
+            ret = cv2.calibrateCameraROExtended(
+                objp,
+                imgp,
+                (w, h),
+                fixed,
+                None,
+                None,
+                flags=flags,
+                criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12),
+            )
         rms, K, dist, rvecs, tvecs, new_obj, std_int, _std_ext, _std_obj, per_view = ret
         per_view = np.asarray(per_view).reshape(-1)
         med = float(np.median(per_view))
