@@ -1,0 +1,86 @@
+"""Calibrations: a run's result (one method) made a bench's current calibration, and the history."""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+
+from sqlalchemy import select
+
+from calib.errors import InputError
+
+from ..db import Calibration, Database, Run
+from ..jobs import clean_json
+from .lifecycle import RunConflictError, RunState
+
+#: The method applied when the request names none: the first of these that converged.
+DEFAULT_APPLY_ORDER = ("combined", "legs", "end-effector")
+
+
+def calibration_from_run(run: Run, method: str | None, default_bench: str | None) -> Calibration:
+    """The calibration row that applies ``method`` of ``run`` (not yet stored).
+
+    Raises
+    ------
+    RunConflictError
+        The run has no result, or the method did not converge.
+    InputError
+        The run has no result for ``method``.
+    """
+    from service import __version__
+
+    if run.state != RunState.DONE or not run.result:
+        raise RunConflictError(f"run is {run.state} without a result; nothing to apply")
+    methods = run.result.get("methods", {})
+    if method is None:
+        method = next((m for m in DEFAULT_APPLY_ORDER if methods.get(m, {}).get("converged")), None)
+        if method is None:
+            raise RunConflictError("no method of this run converged; nothing to apply")
+    entry = methods.get(method)
+    if entry is None:
+        raise InputError(f"run has no result for method {method!r}", field="method")
+    if not entry.get("converged") or not entry.get("parameters"):
+        raise RunConflictError(f"method {method!r} did not converge in this run; nothing to apply")
+    bench = run.bench or default_bench or "bench"
+    payload = {
+        "bench": bench,
+        "run_id": run.id,
+        "method": method,
+        "software_version": __version__,
+        "combinations": entry["parameters"],
+        "combinations_std": entry.get("std"),
+        "parameters": entry.get("seven"),
+        "parameters_std": entry.get("seven_std"),
+        "nominal": run.result.get("nominal"),
+    }
+    return Calibration(
+        bench=bench,
+        run_id=run.id,
+        method=method,
+        software_version=__version__,
+        applied_at=datetime.now(UTC),
+        payload=clean_json(payload),
+    )
+
+
+def store(db: Database, cal: Calibration) -> Calibration:
+    with db.session() as s:
+        s.add(cal)
+    return cal
+
+
+def current(db: Database, bench: str | None) -> Calibration | None:
+    """The newest calibration applied to ``bench`` (None: of any bench)."""
+    with db.session() as s:
+        q = select(Calibration).order_by(Calibration.applied_at.desc(), Calibration.id.desc()).limit(1)
+        if bench:
+            q = q.where(Calibration.bench == bench)
+        return s.scalar(q)
+
+
+def history(db: Database, limit: int = 100, offset: int = 0, bench: str | None = None) -> list[Calibration]:
+    """Applied calibrations, newest first: of ``bench``, or of every bench."""
+    with db.session() as s:
+        q = select(Calibration).order_by(Calibration.applied_at.desc(), Calibration.id.desc())
+        if bench:
+            q = q.where(Calibration.bench == bench)
+        return list(s.scalars(q.limit(limit).offset(offset)))

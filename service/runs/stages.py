@@ -1,0 +1,242 @@
+"""The stages of a run: acquisition (async, in the event loop), extraction and fits (child processes,
+:mod:`service.jobs`), executed in the order :class:`service.runs.lifecycle.Remaining` gives; each stage starts with
+its lifecycle transition.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from datetime import UTC, datetime
+from typing import TYPE_CHECKING, Any
+
+from calib.errors import I4calError
+from calib.jsonio import write_json_atomic
+
+from .. import failpoints
+from ..db import Run
+from ..jobs import run_job
+from .lifecycle import IllegalTransitionError, RunEvent
+
+if TYPE_CHECKING:
+    from .manager import ActiveRun, RunManager
+
+log = logging.getLogger("i4cal.service")
+
+
+def _now() -> datetime:
+    return datetime.now(UTC)
+
+
+class Stages:
+    """Executes runs for a :class:`service.runs.manager.RunManager`."""
+
+    def __init__(self, manager: RunManager) -> None:
+        self.m = manager
+
+    async def execute(self, run_id: str, a: ActiveRun) -> None:
+        m, todo = self.m, a.remaining
+        t0 = time.monotonic()
+        run = m.get(run_id)
+        timings: dict[str, float] = dict(run.timings or {})
+        try:
+            if run.started_at is None:
+                m.update(run_id, started_at=_now())
+            if todo.acquire:
+                ts = time.monotonic()
+                await self.acquire(run_id, a)
+                timings["acquisition_s"] = timings.get("acquisition_s", 0.0) + time.monotonic() - ts
+                m.release(a)
+                failpoints.hit("stage:acquired")
+            run = m.get(run_id)
+            if todo.extract:
+                ts = time.monotonic()
+                m._transition(run_id, RunEvent.EXTRACT, phase="extraction", done=0, total=0)
+                await self.extract(run_id, run)
+                timings["extraction_s"] = time.monotonic() - ts
+            if todo.calibrate:
+                ts = time.monotonic()
+                m._transition(run_id, RunEvent.CALIBRATE, phase="calibration", done=0, total=len(run.methods))
+                doc = await self.calibrate(run_id, run)
+                timings["calibration_s"] = time.monotonic() - ts
+                await asyncio.to_thread(write_json_atomic, m.run_dir(run) / "result.json", doc)
+                m.update(run_id, result=doc)
+            timings["total_s"] = timings.get("total_s", 0.0) + time.monotonic() - t0
+            m._transition(run_id, RunEvent.FINISH, finished_at=_now(), timings=timings, phase="")
+        except asyncio.CancelledError:
+            timings["total_s"] = timings.get("total_s", 0.0) + time.monotonic() - t0
+            if a.aborting:
+                self._end(run_id, RunEvent.ABORT, finished_at=_now(), timings=timings, error="aborted on request")
+            else:  # service shutting down: the run can be resumed on the next start
+                self._end(
+                    run_id,
+                    RunEvent.INTERRUPT,
+                    timings=timings,
+                    error="the service stopped during the run; resume it to continue",
+                )
+                raise
+        except Exception as exc:
+            from drivers.errors import AbortedError
+
+            timings["total_s"] = timings.get("total_s", 0.0) + time.monotonic() - t0
+            if isinstance(exc, AbortedError) or a.aborting:
+                self._end(run_id, RunEvent.ABORT, finished_at=_now(), timings=timings, error="aborted on request")
+            elif isinstance(exc, I4calError):
+                self._end(run_id, RunEvent.FAIL, finished_at=_now(), timings=timings, error=str(exc))
+            else:
+                log.exception("run %s failed", run_id)
+                self._end(
+                    run_id,
+                    RunEvent.FAIL,
+                    finished_at=_now(),
+                    timings=timings,
+                    error=f"internal error: {type(exc).__name__}: {exc}",
+                )
+        finally:
+            m.release(a)
+            m.active.pop(run_id, None)
+            m.bus.close_subscribers(run_id)
+
+    def _end(self, run_id: str, event: RunEvent, **values: Any) -> None:
+        """The run's last transition; a run another request already ended stays as it is."""
+        try:
+            self.m._transition(run_id, event, **values)
+        except IllegalTransitionError as exc:
+            log.warning("run %s: %s", run_id, exc)
+
+    # -- acquisition ---------------------------------------------------------------------------------
+    async def acquire(self, run_id: str, a: ActiveRun) -> None:
+        from calib.plan import Plan
+        from drivers.acquisition import AcquisitionError, acquisition_from_config, close_devices, plan_units
+        from drivers.errors import FrameError
+
+        m = self.m
+        assert m.bench is not None
+        bench = m.bench
+        run = m.get(run_id)
+        plan = Plan.model_validate(run.plan)
+        out = m.dataset_path(run)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        units = plan_units(plan)
+        m._transition(run_id, RunEvent.ACQUIRE, phase="connecting", total=len(units))
+
+        def on_progress(p) -> None:
+            a.last_frame = p.done - 1 if p.done else None
+            nxt = units[p.done] if p.done < len(units) else None
+            a.pose = list(nxt.q) if nxt is not None and nxt.q is not None else None
+            m.update(run_id, done=p.done, total=p.total, phase=p.phase or p.state)
+            if p.state == "running":
+                for d in bench.devices.values():
+                    d.ok()
+            m.emit(
+                run_id,
+                "progress",
+                {
+                    "stage": "acquisition",
+                    "state": p.state,
+                    "done": p.done,
+                    "total": p.total,
+                    "phase": p.phase,
+                    "eta_s": p.eta_s,
+                    "elapsed_s": p.elapsed_s,
+                    "message": p.message,
+                    "pose": a.pose,
+                },
+            )
+
+        a.acq = acquisition_from_config(
+            plan,
+            bench.config,
+            out,
+            resume=out.joinpath("dataset.json").exists(),
+            progress=on_progress,
+            camera_spec=dict(bench.camera_spec),
+            extra={"service_run": run_id},
+        )
+        if a.aborting:
+            a.acq.abort()
+        try:
+            await a.acq.run()
+        except AcquisitionError as exc:
+            dev = "camera" if isinstance(exc.cause, FrameError) or "grab" in str(exc.cause).lower() else "actuators"
+            bench.devices[dev].fail(str(exc.cause))
+            raise
+        finally:
+            await close_devices(a.acq)
+
+    # -- extraction and fits: child processes ---------------------------------------------------------
+    async def extract(self, run_id: str, run: Run) -> dict[str, Any]:
+        """Extract the run's dataset in a child process into ``observations.json``; return the summary."""
+        m = self.m
+        path = m.dataset_path(run)
+        a = m.active[run_id]
+
+        def on_event(kind: str, data: dict[str, Any]) -> None:
+            if m.active.get(run_id) is not a:
+                return
+            if kind == "progress":
+                m.bus.queue_live(run_id, "progress", {"stage": "extraction", **data})
+            elif kind == "frame":
+                det = data.pop("detections", None)
+                if det is not None:
+                    a.detections[data["frame"]] = {"phase": data["phase"], **det}
+                    a.last_extracted = a.last_frame = data["frame"]
+                m.bus.queue_live(run_id, "frames", data)
+
+        try:
+            summary = await run_job(
+                "extract",
+                {
+                    "dataset": str(path),
+                    "out": str(m.run_dir(run) / "observations.json"),
+                    "workers": m.settings.extraction_workers,
+                },
+                on_event,
+                nice=m.settings.job_niceness,
+                on_job=lambda j: setattr(a, "job", j),
+            )
+        finally:
+            m.bus.end_live(run_id)
+        m.update(run_id, extraction=summary)
+        m.emit(
+            run_id,
+            "extraction",
+            {
+                "phases": summary.get("phases", {}),
+                "frames_with_missing": len(summary.get("frames", {})),
+                "placement": summary.get("placement"),
+            },
+        )
+        return summary
+
+    async def calibrate(self, run_id: str, run: Run) -> dict[str, Any]:
+        """The methods one after the other in a child process (the fits hold the GIL); return the result."""
+        m = self.m
+        a = m.active[run_id]
+        n = len(run.methods)
+
+        def on_event(kind: str, data: dict[str, Any]) -> None:
+            if m.active.get(run_id) is not a:
+                return
+            if kind == "iteration":
+                m.bus.queue_live(run_id, "iterations", data)
+            elif kind == "fit":
+                m.bus.flush_live(run_id)  # the iterations of a method come before its end
+                m.emit(run_id, "fit", data)
+                if data["state"] != "start":
+                    m.update(run_id, done=data["index"] + 1, total=n)
+                    m.emit(run_id, "progress", {"stage": "calibration", "done": data["index"] + 1, "total": n})
+
+        try:
+            return await run_job(
+                "fit",
+                {"observations": str(m.run_dir(run) / "observations.json"), "methods": list(run.methods)},
+                on_event,
+                nice=m.settings.job_niceness,
+                on_job=lambda j: setattr(a, "job", j),
+            )
+        finally:
+            with contextlib.suppress(Exception):
+                m.bus.end_live(run_id)
