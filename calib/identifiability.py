@@ -153,18 +153,25 @@ def _fmt(terms: list[tuple[float, str]]) -> str:
 
 
 def identifiability(method: str, params: I4Parameters, q: np.ndarray) -> dict:
-    """Identifiability report of ``method`` ("combined", "end-effector", "legs") at a pose set (encoders q)."""
+    """Identifiability report of a registered method (:mod:`calib.methods.registry`) at a pose set (encoders q).
+
+    Raises
+    ------
+    ValueError
+        The method is not registered, or has no identifiability model.
+    """
+    from .errors import InputError
+    from .methods.registry import get_method
+
     q = np.asarray(q, dtype=np.float64)
-    if method == "combined":
-        out = analyse(combined_model(params, q), params)
-    elif method == "end-effector":
-        f, k = end_effector_model(params, q)
-        out = analyse(f, params, k)
-    elif method == "legs":
-        f, k = legs_model(params, q)
-        out = analyse(f, params, k)
-    else:
-        raise ValueError(f"unknown method {method!r}")
+    try:
+        spec = get_method(method)
+    except InputError as exc:
+        raise ValueError(str(exc)) from None
+    if spec.identifiability is None:
+        raise ValueError(f"method {method!r} has no identifiability model")
+    f, k = spec.identifiability(params, q)
+    out = analyse(f, params, k)
     out["method"] = method
     out["n_poses"] = int(q.shape[0])
     out["combination_values"] = identifiable_parameters(params)

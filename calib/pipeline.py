@@ -12,15 +12,21 @@ import numpy as np
 from .baseframe import BaseFrameResult, base_frame_from_observations
 from .errors import I4calError
 from .identifiability import identifiability
-from .methods import METHODS
 from .methods.iterations import IterationCallback
+from .methods.registry import MethodContext, get_method, method_names
 from .methods.result import MethodResult
 from .observations import Observations
 from .parameters import COMBINATION_NAMES, PARAMETER_NAMES, I4Parameters
 from .validation import validate
 
-METHOD_NAMES = tuple(METHODS)
 RESULT_FORMAT = "i4cal.result/1"
+
+
+def __getattr__(name: str) -> Any:
+    # ``METHOD_NAMES``: the registered methods now (calib.methods.registry), not a snapshot taken at import
+    if name == "METHOD_NAMES":
+        return method_names()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def run_method(
@@ -30,16 +36,14 @@ def run_method(
     *,
     on_iteration: IterationCallback | None = None,
 ) -> MethodResult:
-    if name not in METHODS:
-        raise I4calError(f"unknown method {name!r}; methods are {', '.join(METHODS)} or all")
-    if name == "combined":
-        return METHODS[name](obs, base_frame=base_frame, on_iteration=on_iteration)
-    return METHODS[name](obs, on_iteration=on_iteration)
+    """Fit method ``name`` (:func:`calib.methods.registry.get_method`) to ``obs``."""
+    spec = get_method(name)
+    return spec.fit(obs, MethodContext(base_frame=base_frame, on_iteration=on_iteration))
 
 
 def calibrate(
     obs: Observations,
-    methods: Iterable[str] = METHOD_NAMES,
+    methods: Iterable[str] | None = None,
     *,
     strict: bool = False,
     progress: Callable[[str, str], None] | None = None,
@@ -50,8 +54,8 @@ def calibrate(
     Parameters
     ----------
     obs : Observations
-    methods : iterable of str
-        Method names (``combined``, ``end-effector``, ``legs``).
+    methods : iterable of str, optional
+        Method names (:func:`calib.methods.registry.method_names`; default: every registered method).
     strict : bool
         Raise the first method error instead of recording it in the document.
     progress : callable, optional
@@ -66,7 +70,8 @@ def calibrate(
         ``{"format", "methods": {name: {...}}, "validation": {"a priori": ..., name: ...}, "base_frame",
         "nominal", "truth_errors"?}``.
     """
-    methods = list(methods)
+    methods = list(method_names() if methods is None else methods)
+    specs = {name: get_method(name) for name in methods}  # an unknown name fails before any fit
     nominal = obs.nominal
     out: dict[str, Any] = {
         "format": RESULT_FORMAT,
@@ -102,10 +107,11 @@ def calibrate(
         full = res.full_parameters(nominal)
         entry["parameters_seven_completed"] = full.seven()
         try:
-            entry["identifiability"] = identifiability(name, full, fit.q) if len(fit) else None
+            has_model = specs[name].identifiability is not None
+            entry["identifiability"] = identifiability(name, full, fit.q) if len(fit) and has_model else None
         except I4calError as exc:
             entry["identifiability"] = {"error": str(exc)}
-        if name == "combined" and bf is not None:
+        if specs[name].bound and bf is not None:
             entry["bound"] = _bound_for(obs, full, res, bf)
         out["methods"][name] = entry
         try:

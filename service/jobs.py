@@ -79,8 +79,14 @@ def _noop() -> None:
 
 
 # -- the child side --------------------------------------------------------------------------------
-def _child_main(conn: Any, target: str, kwargs: dict[str, Any], nice: int) -> None:
-    """Entry point of a job child: run ``JOBS[target](emit=..., **kwargs)`` and send back the outcome."""
+def _child_main(
+    conn: Any, target: str, kwargs: dict[str, Any], nice: int, method_modules: tuple[str, ...] = ()
+) -> None:
+    """Entry point of a job child: run ``JOBS[target](emit=..., **kwargs)`` and send back the outcome.
+
+    ``method_modules``: the modules that registered methods in the server (:func:`calib.methods.registry.
+    plugin_modules`), imported first so that the child knows the same methods.
+    """
     with contextlib.suppress(OSError):
         os.setpgid(0, 0)  # its own process group: abort kills the extraction's pool with it
     # a forkserver's child would start the extraction's pool through a forkserver of its own (a fresh interpreter
@@ -94,6 +100,10 @@ def _child_main(conn: Any, target: str, kwargs: dict[str, Any], nice: int) -> No
         conn.send(("event", kind, data))
 
     try:
+        if method_modules:
+            from calib.methods.registry import load_modules
+
+            load_modules(method_modules)
         result = JOBS[target](emit=emit, **kwargs)
         conn.send(("result", result))
     except I4calError as exc:
@@ -190,7 +200,11 @@ class Job:
         self.target = target
         self.on_event = on_event
         self._recv, self._send = _CTX.Pipe(duplex=False)
-        self.process = _CTX.Process(target=_child_main, args=(self._send, target, kwargs, nice), name=f"i4cal-{target}")
+        from calib.methods.registry import plugin_modules
+
+        self.process = _CTX.Process(
+            target=_child_main, args=(self._send, target, kwargs, nice, plugin_modules()), name=f"i4cal-{target}"
+        )
         self.killed = False
         self._ended = False
 

@@ -2,12 +2,13 @@
 
 from fastapi import APIRouter
 
-from . import calibration, datasets, devices, runs
+from . import calibration, datasets, devices, methods, runs
 
 api_router = APIRouter(prefix="/api/v1")
 api_router.include_router(runs.router)
 api_router.include_router(datasets.router)
 api_router.include_router(calibration.router)
 api_router.include_router(devices.router)
+api_router.include_router(methods.router)
 
 __all__ = ["api_router"]

@@ -17,16 +17,17 @@ from pydantic import BaseModel, ConfigDict, Field
 from starlette.background import BackgroundTask
 
 from calib.errors import InputError
+from calib.methods.registry import method_names
 
 from ..auth import Reader, Writer
 from ..settings import BENCH_NAME_PATTERN
 from ..worker import STATES, RunConflictError, RunManager
 from .calibration import CalibrationOut, calibration_out
 from .deps import ID_PATTERN, Manager, RunId, conflict, get_run, not_found, unprocessable
+from .methods import MethodName
 
 router = APIRouter(prefix="/runs", tags=["runs"])
 
-MethodName = Literal["combined", "end-effector", "legs"]
 PlanName = Literal["full", "rotation-sweep", "equal-translation", "pose-set", "lock-actuator", "line", "validation"]
 
 
@@ -46,9 +47,9 @@ class RunCreate(BaseModel):
         None, description="a plan name, or an inline plan (i4cal.plan/1); default 'full' unless a dataset is given"
     )
     methods: list[MethodName] = Field(
-        ["combined", "end-effector", "legs"],
-        max_length=3,
-        description="methods to identify with; [] records the dataset only",
+        default_factory=lambda: list(method_names()),
+        max_length=32,
+        description="methods to identify with (GET /api/v1/methods; default: all); [] records the dataset only",
     )
     bench: str | None = Field(
         None,
@@ -121,7 +122,9 @@ def run_out(manager: RunManager, run) -> RunOut:
 
 class ApplyBody(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    method: MethodName | None = Field(None, description="default: combined, else legs, else end-effector")
+    method: MethodName | None = Field(
+        None, description="default: the first converged in GET /api/v1/methods' apply order (combined, legs, ...)"
+    )
 
 
 ERRORS: dict[int | str, dict[str, Any]] = {

@@ -16,8 +16,10 @@ from typing import Any
 
 from pydantic import BaseModel, Field
 
-#: Methods of :func:`calib.pipeline.calibrate`, in the order of its result document.
-METHODS: tuple[str, ...] = ("combined", "end-effector", "legs")
+from calib.methods.registry import method_names
+
+#: Methods of :func:`calib.pipeline.calibrate`, in the order of its result document (the registered methods).
+METHODS: tuple[str, ...] = method_names()
 
 
 class CameraTask(BaseModel):

@@ -3,14 +3,19 @@
 Each module of this package that defines ``register(subparsers)`` adds its sub-command(s);
 modules are discovered automatically, so a new command is a new module. A command's handler
 receives the parsed ``argparse.Namespace`` and returns an exit code. Errors derived from
-:class:`calib.errors.I4calError` print one clear line and exit with status 2; no traceback for
-user mistakes (``I4CAL_DEBUG=1`` shows it).
+:class:`calib.errors.I4calError`, usage errors (an option's value out of range: :mod:`._args`) and
+file-system errors print one clear line and exit with status 2; no traceback for user mistakes
+(``I4CAL_DEBUG=1`` shows it).
+
+Logging: ``-v`` (INFO), ``-vv`` (DEBUG) or ``--log-level LEVEL`` configure the root logger (stderr, one line
+per record); the default is WARNING.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import logging
 import os
 import pkgutil
 import sys
@@ -22,13 +27,16 @@ from calib.errors import I4calError
 def build_parser() -> argparse.ArgumentParser:
     from service import __version__
 
-    parser = argparse.ArgumentParser(
+    from ._args import OneLineParser, check_ranges
+
+    parser = OneLineParser(
         prog="i4cal",
         description=(
             "Acquisition and kinematic calibration of I4 parallel robots by leg and end-effector observation."
         ),
     )
     parser.add_argument("--version", action="version", version=f"i4cal {__version__}")
+    add_logging_options(parser, top=True)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for info in sorted(pkgutil.iter_modules(__path__), key=lambda m: m.name):
         if info.name.startswith("_"):
@@ -37,12 +45,56 @@ def build_parser() -> argparse.ArgumentParser:
         register = getattr(module, "register", None)
         if register is not None:
             register(sub)
+    check_ranges(parser)
+    for cmd in dict.fromkeys(sub.choices.values()):
+        add_logging_options(cmd, top=False)
     return parser
+
+
+LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
+
+
+def add_logging_options(p: argparse.ArgumentParser, top: bool) -> None:
+    """``-v/--verbose`` and ``--log-level`` (before or after the command; a command's own option of that name wins)."""
+    taken = set(p._option_string_actions)
+    kw = {} if top else {"default": argparse.SUPPRESS}
+    if not {"-v", "--verbose"} & taken:
+        p.add_argument(
+            "-v",
+            "--verbose",
+            dest="cli_verbose",
+            action="count",
+            help="more log output: -v informational, -vv debugging",
+            **({"default": 0} if top else kw),
+        )
+    if "--log-level" not in taken:
+        p.add_argument(
+            "--log-level",
+            dest="cli_log_level",
+            type=str.upper,
+            choices=LOG_LEVELS,
+            help="log level (overrides -v; default WARNING)",
+            **({"default": None} if top else kw),
+        )
+
+
+def configure_logging(verbose: int = 0, level: str | None = None) -> None:
+    """The root logger at ``level`` (else WARNING, INFO with ``verbose`` 1, DEBUG with 2+), to stderr.
+
+    Without ``-v`` or ``--log-level`` a root logger that already has handlers (an embedding program's) is left alone.
+    """
+    asked = bool(verbose) or level is not None
+    if level is None:
+        level = ("WARNING", "INFO", "DEBUG")[min(max(verbose or 0, 0), 2)]
+    logging.basicConfig(
+        level=getattr(logging, level), format="%(asctime)s %(levelname)s %(name)s: %(message)s", force=asked
+    )
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    configure_logging(args.cli_verbose, args.cli_log_level)
     if not getattr(args, "handler", None):
         parser.print_help()
         return 1
@@ -52,6 +104,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         if os.environ.get("I4CAL_DEBUG"):
             raise
         print(f"i4cal {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # a file or directory the user named (missing, a directory, not writable)
+        if os.environ.get("I4CAL_DEBUG"):
+            raise
+        what = f"{exc.strerror}: {exc.filename}" if exc.strerror and exc.filename else str(exc)
+        print(f"i4cal {args.command}: error: {what}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"i4cal {args.command}: interrupted", file=sys.stderr)

@@ -8,8 +8,9 @@ import sys
 from pathlib import Path
 
 from calib.errors import InputError
+from calib.methods.registry import method_names
 from calib.observations import Observations
-from calib.pipeline import METHOD_NAMES, calibrate, to_jsonable
+from calib.pipeline import calibrate, to_jsonable
 
 
 def load_observations(path: str, console=None) -> Observations:
@@ -24,12 +25,23 @@ def load_observations(path: str, console=None) -> Observations:
     return Observations.load(p)
 
 
+def check_output_file(path: str, option: str) -> None:
+    """Refuse, before any work, an output file whose directory is missing or that is a directory."""
+    p = Path(path)
+    if p.is_dir():
+        raise InputError(f"{option}: is a directory; give a file name", file=str(p))
+    if not p.parent.is_dir():
+        raise InputError(f"{option}: directory {p.parent} does not exist", file=str(p))
+
+
 def handler(args: argparse.Namespace) -> int:
     from rich.console import Console
 
     from ._output import make_console, print_result
 
-    methods = list(METHOD_NAMES) if args.method == "all" else [args.method]
+    methods = list(method_names()) if args.method == "all" else [args.method]
+    if args.output:
+        check_output_file(args.output, "-o/--output")
     err = Console(stderr=True)
     obs = load_observations(args.observations)
     with err.status("calibrating...", spinner="dots") if not args.json else _Null():
@@ -62,7 +74,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         "Tables I-III (a priori vs each method, displacement gaps, straightness).",
     )
     p.add_argument("observations", metavar="OBS", help="observations v1 JSON file, or a dataset v1 directory")
-    p.add_argument("--method", "-m", default="all", choices=[*METHOD_NAMES, "all"])
+    p.add_argument(
+        "--method",
+        "-m",
+        default="all",
+        choices=[*method_names(), "all"],
+        help="identification method (calib.methods.registry) or all (default)",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object to stdout")
     p.add_argument("-o", "--output", help="also write the result JSON to this file")
     p.set_defaults(handler=handler)

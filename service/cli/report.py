@@ -7,8 +7,7 @@ import os
 from pathlib import Path
 
 from calib.errors import I4calError, InputError
-
-METHODS = ("combined", "end-effector", "legs")
+from calib.methods.registry import method_names
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -29,9 +28,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--methods",
         nargs="+",
         default=["all"],
-        choices=[*METHODS, "all"],
+        choices=[*method_names(), "all"],
         metavar="METHOD",
-        help="methods to calibrate with / to show: combined, end-effector, legs or all (default)",
+        help=f"methods to calibrate with / to show: {', '.join(method_names())} or all (default)",
     )
     p.add_argument("--config", metavar="TOML", help="service configuration (for RUN: where the data directory is)")
     p.add_argument("--server", metavar="URL", help="fetch the report of RUN from a running service")
@@ -52,7 +51,7 @@ def handler(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    methods = list(METHODS) if "all" in args.methods else list(dict.fromkeys(args.methods))
+    methods = list(method_names()) if "all" in args.methods else list(dict.fromkeys(args.methods))
     out = Path(args.output)
     if not out.parent.is_dir():
         raise InputError("output directory does not exist", file=str(out.parent))

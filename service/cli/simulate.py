@@ -41,6 +41,10 @@ def handler(args: argparse.Namespace) -> int:
         path = simulate_dataset(out, seed=args.seed)
         con.print(f"wrote dataset [bold]{path}[/bold]")
         return 0
+    if out.is_dir():
+        from calib.errors import InputError
+
+        raise InputError("--out: is a directory; give an observations file (or --images for a dataset)", file=str(out))
     twin = GeometricTwin(noise=noise_from_args(args))
     doc = twin.observations(seed=args.seed)
     Observations.from_dict(doc)  # validate what we write

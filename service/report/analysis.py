@@ -13,11 +13,19 @@ import numpy as np
 
 from calib.errors import I4calError
 from calib.kinematics import dkm, leg_directions
+from calib.methods.registry import method_names
+from calib.methods.registry import methods as registered_methods
 from calib.parameters import PARAMETER_NAMES, I4Parameters
 
 #: Phases whose poses get per-pose residuals (the fit set, then the separate validation poses).
 RESIDUAL_PHASES = ("poses", "validation")
-METHOD_ORDER = ("combined", "end-effector", "legs")
+
+
+def method_order(present: Any = ()) -> list[str]:
+    """The registered methods (:mod:`calib.methods.registry`, in its order), then any other name in ``present`` (a
+    result document's methods made with a method this process does not know), in its order."""
+    names = list(method_names())
+    return names + [m for m in present if m not in names]
 
 
 def sha256_file(path: Path) -> str:
@@ -155,7 +163,8 @@ def leg_residuals(obs: Any, result: dict[str, Any], method: str) -> LegResiduals
 def reference_method(result: dict[str, Any], methods: list[str] | None = None) -> str | None:
     """The method whose residuals pick the worst poses: the paper's combined one when it converged, else the
     first converged one."""
-    names = [m for m in METHOD_ORDER if m in result.get("methods", {}) and (methods is None or m in methods)]
+    ms = result.get("methods", {})
+    names = [m for m in method_order(ms) if m in ms and (methods is None or m in methods)]
     for m in names:
         if result["methods"][m].get("converged") and result["methods"][m].get("parameters"):
             return m
@@ -218,7 +227,7 @@ def missing_items(
                 miss[k] = miss.get(k, 0) + v
         if miss:
             m.add("not measured in some frames: " + "; ".join(f"{k} x{v}" for k, v in sorted(miss.items())))
-    for name in METHOD_ORDER:
+    for name in method_order(methods):
         if name not in methods:
             continue
         e = result.get("methods", {}).get(name)
@@ -232,8 +241,9 @@ def missing_items(
     if comb.get("parameters") and not (comb.get("bound") or {}).get("std"):
         note = (comb.get("bound") or {}).get("note", "no base frame")
         m.add(f"no Cramer-Rao bound for the combined method ({note})")
-    if any(n in result.get("methods", {}) for n in ("end-effector", "legs")):
-        m.add("Cramer-Rao bound computed for the combined method only")
+    with_bound = [s.name for s in registered_methods() if s.bound]
+    if any(n not in with_bound for n in result.get("methods", {})):
+        m.add(f"Cramer-Rao bound computed for the {', '.join(with_bound)} method only")
     bf = result.get("base_frame") or {}
     if "error" in bf:
         m.add(f"no base frame: {bf['error']}")

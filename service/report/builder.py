@@ -18,12 +18,12 @@ from calib.parameters import COMBINATION_NAMES, PARAMETER_NAMES
 
 from . import plots
 from .analysis import (
-    METHOD_ORDER,
     LegResiduals,
     conditions,
     dataset_sha256,
     json_sha256,
     leg_residuals,
+    method_order,
     missing_items,
     reference_method,
     worst_poses,
@@ -37,13 +37,6 @@ COMBINATION_MEANING = {
     "H-D": ("H - D", "half-distance of the actuator axes minus the half-spacing of the plate joints along y_B"),
     "S-q02/2": ("S - q02/2", "plate half-spacing along x_B against the encoder offset of actuator 2"),
     "S-(q04-q03)/2": ("S - (q04 - q03)/2", "plate half-spacing along x_B against the offsets of actuators 3, 4"),
-}
-METHOD_TEXT = {
-    "combined": "legs + end-effector (the paper's eq. 8): the Jacobian entries observed on the legs, in the base "
-    "frame found from the board's rotation and translation phases, fitted to the model's",
-    "end-effector": "end-effector only: the board poses fitted through the direct kinematic model, camera and board "
-    "placements as nuisance parameters",
-    "legs": "legs only: joint centres from the lock-actuator phases, then all seven parameters from the leg axes",
 }
 K_COVERAGE = 2.0
 
@@ -90,7 +83,8 @@ def build_report(inputs: ReportInputs, *, progress: Progress | None = None, max_
     from service import __version__
 
     res = inputs.result
-    methods = [m for m in METHOD_ORDER if m in res.get("methods", {}) and (not inputs.methods or m in inputs.methods)]
+    ms = res.get("methods", {})
+    methods = [m for m in method_order(ms) if m in ms and (not inputs.methods or m in inputs.methods)]
     obs_doc = inputs.observations
     steps = 9
     done = [0]
@@ -607,8 +601,20 @@ def _frames(
     return section("frames", "Frames of the worst poses", Raw('<div class="frames">'), *parts, Raw("</div>"))
 
 
+def _method_line(name: str) -> str:
+    """``label: description.`` of a registered method (:mod:`calib.methods.registry`); the bare name otherwise."""
+    from calib.errors import InputError
+    from calib.methods.registry import get_method
+
+    try:
+        spec = get_method(name)
+    except InputError:
+        return f"{name}: a method this software does not know."
+    return f"{spec.label}: {spec.description}."
+
+
 def _method_text(res: dict, methods: list[str]) -> Raw:
-    items = [f"{m}: {METHOD_TEXT.get(m, '')}." for m in methods]
+    items = [_method_line(m) for m in methods]
     items.append(
         "Standard uncertainties u are one standard deviation from each fit's covariance, with the noise "
         "level estimated from its residuals and, for the combined method, the base frame's uncertainty "

@@ -17,14 +17,24 @@ from calib.parameters import COMBINATION_NAMES
 
 from .analysis import LegResiduals
 
+#: Colours of the rows that are not methods (a method's colour is its registry entry's).
 COLOURS = {
     "a priori": "#7f7f7f",
-    "combined": "#1f77b4",
-    "end-effector": "#ff7f0e",
-    "legs": "#2ca02c",
     "truth": "#000000",
     "true geometry": "#000000",
 }
+
+
+def colour(name: str) -> str | None:
+    """Plot colour of ``name``: a registered method's (:mod:`calib.methods.registry`), or of a reference row."""
+    from calib.methods.registry import methods
+
+    for spec in methods():
+        if spec.name == name:
+            return spec.colour
+    return COLOURS.get(name)
+
+
 LEG_COLOURS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd")
 DPI = 100
 
@@ -58,7 +68,7 @@ def parameter_plot(result: dict[str, Any], methods: Sequence[str], truth: dict[s
                 [(e["parameters"][key] - nom[key]) * 1e3],
                 yerr=[2 * e["std"][key] * 1e3],
                 fmt="o",
-                color=COLOURS.get(m),
+                color=colour(m),
                 capsize=4,
                 label=m,
             )
@@ -93,7 +103,7 @@ def gaps_plot(result: dict[str, Any]) -> str | None:
                     marker="o",
                     ms=3,
                     lw=1,
-                    color=COLOURS.get(name),
+                    color=colour(name),
                     label=name,
                     ls=":" if name == "truth" else "-",
                 )
@@ -157,7 +167,7 @@ def singular_value_plot(result: dict[str, Any], methods: Sequence[str]) -> str |
                 np.arange(1, s.size + 1),
                 np.maximum(s / s[0], 1e-18),
                 marker="o",
-                color=COLOURS.get(m),
+                color=colour(m),
                 label=f"{m} (rank {ident.get('rank')})",
             )
             drawn = True

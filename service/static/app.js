@@ -8,6 +8,7 @@ const ACTIVE = ["queued", "acquiring", "extracting", "calibrating"];
 let selected = null;
 let source = null;
 let frameTimer = null;
+let METHODS = [];  // GET /api/v1/methods: [{name, label, colour, description, required_phases, ...}]
 
 const tokenInput = $("#token");
 tokenInput.value = localStorage.getItem("i4cal-token") || "";
@@ -43,6 +44,25 @@ function say(text, isError) {
 const mm = (v) => (v === null || v === undefined ? "–" : (v * 1e3).toFixed(3));
 const pm = (v, s) => mm(v) + (s === null || s === undefined ? "" : " ± " + mm(s));
 const esc = (s) => String(s ?? "").replace(/[&<>"]/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;" }[c]));
+
+// -- methods (the registry, GET /api/v1/methods) ----------------------------------------------
+const methodLabel = (name) => (METHODS.find((m) => m.name === name) || {}).label || name;
+const methodColour = (name) => (METHODS.find((m) => m.name === name) || {}).colour;
+
+async function loadMethods() {
+  try { METHODS = await api("GET", "/methods"); } catch (e) { say("methods: " + e.message, true); return; }
+  const fs = $("#methods");
+  fs.querySelectorAll("label").forEach((l) => l.remove());
+  for (const m of METHODS) {
+    const l = document.createElement("label");
+    l.title = m.description + " (needs phases: " + m.required_phases.join(", ") + ")";
+    l.innerHTML = `<input type="checkbox" value="${esc(m.name)}" checked> ${esc(m.label)}`;
+    fs.appendChild(l);
+  }
+  fs.dataset.loaded = "true";
+}
+let methodsLoaded = loadMethods();
+tokenInput.addEventListener("change", () => { if (!METHODS.length) methodsLoaded = loadMethods(); });
 
 // -- runs list ---------------------------------------------------------------------------------
 async function refreshRuns() {
@@ -198,7 +218,7 @@ async function showResult(id) {
   if (id !== selected) return;
   const methods = Object.keys(res.methods);
   const nom = res.nominal_combinations || {};
-  let h = "<tr><th></th><th>a priori</th>" + methods.map((m) => `<th>${m}</th>`).join("") + "</tr>";
+  let h = "<tr><th></th><th>a priori</th>" + methods.map((m) => `<th>${esc(methodLabel(m))}</th>`).join("") + "</tr>";
   for (const k of COMBOS) {
     h += `<tr><th>${k}</th><td>${mm(nom[k])}</td>` + methods.map((m) => {
       const e = res.methods[m];
@@ -211,7 +231,7 @@ async function showResult(id) {
   }).join("") + "</tr>";
   $("#table1").innerHTML = h;
   const sevenMethods = methods.filter((m) => res.methods[m].seven);
-  let h2 = "<tr><th></th><th>a priori</th>" + sevenMethods.map((m) => `<th>${m}</th>`).join("") + "</tr>";
+  let h2 = "<tr><th></th><th>a priori</th>" + sevenMethods.map((m) => `<th>${esc(methodLabel(m))}</th>`).join("") + "</tr>";
   for (const k of SEVEN) {
     h2 += `<tr><th>${k}</th><td>${mm(res.nominal[k])}</td>` + sevenMethods.map((m) =>
       `<td>${pm(res.methods[m].seven[k], res.methods[m].seven_std && res.methods[m].seven_std[k])}</td>`).join("") + "</tr>";
@@ -220,7 +240,7 @@ async function showResult(id) {
   const cols = ["a priori", ...methods];
   const val = res.validation || {};
   const f = (x, key) => (x && x[key] != null ? Number(x[key]).toFixed(3) : "–");
-  let h3 = "<tr><th></th>" + cols.map((c) => `<th>${c}</th>`).join("") + "</tr>";
+  let h3 = "<tr><th></th>" + cols.map((c) => `<th>${esc(methodLabel(c))}</th>`).join("") + "</tr>";
   for (const [label, part, key] of [["gaps (fit poses) RMS mm", "gaps_poses", "rms_mm"],
     ["gaps (validation) RMS mm", "gaps_validation", "rms_mm"], ["gaps (validation) max mm", "gaps_validation", "max_abs_mm"],
     ["straightness RMS mm", "straightness", "rms_mm"]]) {
@@ -229,7 +249,8 @@ async function showResult(id) {
   $("#table3").innerHTML = h3;
   $("#plot").innerHTML = residualPlot(cols.map((c) => [c, ((val[c] || {}).gaps_validation || {}).gaps_mm || []]));
   const sel = $("#apply-method");
-  sel.innerHTML = methods.filter((m) => res.methods[m].converged).map((m) => `<option>${m}</option>`).join("");
+  sel.innerHTML = methods.filter((m) => res.methods[m].converged)
+    .map((m) => `<option value="${esc(m)}">${esc(methodLabel(m))}</option>`).join("");
   $("#results-panel").hidden = false;
   $("#results-panel").dataset.run = id;
 }
@@ -247,7 +268,7 @@ function residualPlot(series) {
     `<line x1="${pad}" x2="${W - pad}" y1="${H / 2}" y2="${H / 2}" stroke="#999"/>` +
     `<text x="2" y="14" font-size="11">+${ymax.toFixed(2)} mm</text><text x="2" y="${H - 4}" font-size="11">-${ymax.toFixed(2)} mm</text>`;
   series.forEach(([name, g], k) => {
-    const c = colors[k % colors.length];
+    const c = methodColour(name) || colors[k % colors.length];
     g.forEach((v, i) => { if (v != null) s += `<circle cx="${x(i) + (k - 1) * 3}" cy="${y(v)}" r="3" fill="${c}"><title>${name} #${i}: ${v.toFixed(3)} mm</title></circle>`; });
     s += `<text x="${W - pad - 110}" y="${14 + 13 * k}" font-size="11" fill="${c}">● ${name}</text>`;
   });
@@ -257,6 +278,7 @@ function residualPlot(series) {
 // -- actions -----------------------------------------------------------------------------------
 $("#start-form").addEventListener("submit", async (ev) => {
   ev.preventDefault();
+  await methodsLoaded;
   const methods = [...document.querySelectorAll("#methods input:checked")].map((i) => i.value);
   try {
     const run = await api("POST", "/runs", { plan: $("#plan").value, methods, note: $("#note").value });
