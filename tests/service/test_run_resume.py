@@ -1,0 +1,104 @@
+"""Resume under faults, against the real service (uvicorn, HTTP) and the simulated bench (real Modbus on loopback):
+a refused resume leaves the run as it was; a run failed on a device fault resumes from its last good pose."""
+
+from __future__ import annotations
+
+import asyncio
+
+from calib.dataset import Dataset
+from calib.plan import Plan
+from drivers.acquisition import plan_units
+from tests.service.conftest import AUTH, make_settings, read_events, start_service, wait_state
+
+API = "/api/v1"
+
+
+def _slow(tmp_path, sim, n_fit: int):
+    return make_settings(
+        tmp_path,
+        sim,
+        plan_sizes={"n_fit": n_fit},
+        bench_overrides={"actuators": {"speed_m_s": 0.3, "accel_m_s2": 3.0}},
+    )
+
+
+async def _until_done_at_least(c, rid: str, n: int) -> None:
+    async with asyncio.timeout(30):
+        while (await c.get(f"{API}/runs/{rid}")).json()["progress"]["done"] < n:
+            await asyncio.sleep(0.02)
+
+
+async def test_refused_resume_leaves_the_run_as_it_was(tmp_path, sim):
+    """Issue 12, finding 3: a resume answered 409 (the bench is held by another run) left the run 'queued' forever."""
+    settings = _slow(tmp_path, sim, 30)
+    svc = await start_service(settings, sim)
+    try:
+        rid = (await svc.client.post(f"{API}/runs", json={"plan": "pose-set", "methods": []}, headers=AUTH)).json()[
+            "id"
+        ]
+        await _until_done_at_least(svc.client, rid, 2)
+    finally:
+        await svc.client.aclose()
+        await svc.stop()  # the service stops mid-run: the run is interrupted
+    svc = await start_service(settings, sim)
+    c = svc.client
+    try:
+        assert (await c.get(f"{API}/runs/{rid}")).json()["state"] == "interrupted"
+        other = (await c.post(f"{API}/runs", json={"plan": "pose-set", "methods": []}, headers=AUTH)).json()["id"]
+        r = await c.post(f"{API}/runs/{rid}/resume", headers=AUTH)
+        assert r.status_code == 409 and "holds the bench" in r.text
+        run = (await c.get(f"{API}/runs/{rid}")).json()
+        assert run["state"] == "interrupted", run
+        states = [e["data"]["state"] for e in await read_events(c, rid) if e["type"] == "state"]
+        assert states[-1] == "interrupted" and "queued" not in states[1:]  # no state event from the refused resume
+        # a run that is done cannot be resumed either, and stays done
+        assert (await c.post(f"{API}/runs/{other}/abort", headers=AUTH)).status_code == 202
+        assert (await wait_state(c, other))["state"] == "aborted"
+        assert (await c.post(f"{API}/runs/{other}/resume", headers=AUTH)).status_code == 409
+        assert (await c.get(f"{API}/runs/{other}")).json()["state"] == "aborted"
+        # the bench free again: the resume is accepted and the run completes
+        assert (await c.post(f"{API}/runs/{rid}/resume", headers=AUTH)).status_code == 202
+        assert (await wait_state(c, rid, timeout=60))["state"] == "done"
+        assert len(Dataset.open(tmp_path / "data" / "runs" / rid / "dataset").frames) == 30
+    finally:
+        await c.aclose()
+        await svc.stop()
+
+
+async def test_failed_run_resumes_from_its_last_good_pose(tmp_path, sim):
+    """Issue 12, finding 7: a run failed on a device fault said "resume the run to continue from this pose" and could
+    not be resumed. Now it resumes at the failed pose: every pose recorded once, in the plan's order."""
+    settings = _slow(tmp_path, sim, 12)
+    svc = await start_service(settings, sim)
+    c = svc.client
+    try:
+        rid = (await c.post(f"{API}/runs", json={"plan": "pose-set", "methods": []}, headers=AUTH)).json()["id"]
+        await _until_done_at_least(c, rid, 3)
+        sim.frames.faults.timeouts = 1000  # the camera goes silent: the run fails, motion stopped
+        run = await wait_state(c, rid, timeout=60)
+        assert run["state"] == "failed", run
+        assert "resume the run to continue from this pose" in run["error"]
+        kept = len(Dataset.open(tmp_path / "data" / "runs" / rid / "dataset").frames)
+        assert 3 <= kept < 12
+        sim.mechanism.update()
+        assert not any(ax.moving for ax in sim.mechanism.axes)
+        sim.frames.faults.timeouts = 0  # the cause is cleared
+        r = await c.post(f"{API}/runs/{rid}/resume", headers=AUTH)
+        assert r.status_code == 202, r.text
+        run = await wait_state(c, rid, timeout=60)
+        assert run["state"] == "done" and run["error"] is None, run
+        ds = Dataset.open(tmp_path / "data" / "runs" / rid / "dataset")
+        units = plan_units(Plan.model_validate(ds.document.model_extra["plan"]))  # the plan the run executed
+        assert len(ds.frames) == len(units) == 12
+        for f, u in zip(ds.frames, units, strict=True):  # once each, in order: the failed pose was redone, not skipped
+            assert f.phase == u.phase
+            assert max(abs(a - b) for a, b in zip(f.model_extra["q_target"], u.q, strict=True)) < 1e-12
+        evs = await read_events(c, rid)
+        states = [e["data"]["state"] for e in evs if e["type"] == "state"]
+        assert states == ["queued", "acquiring", "failed", "queued", "acquiring", "done"]
+        starts = [e["data"]["message"] for e in evs if "starting at" in (e["data"].get("message") or "")]
+        assert starts[-1].startswith(f"starting at pose {kept + 1}/12")
+        assert [e["seq"] for e in evs] == list(range(1, len(evs) + 1))  # every event kept, none lost
+    finally:
+        await c.aclose()
+        await svc.stop()
