@@ -30,8 +30,9 @@ from calib.kinematics import ikm
 from calib.parameters import NOMINAL, I4Parameters
 from calib.plan import Plan, SoftLimits, line_poses, validate_plan
 
-from .errors import AbortedError, DeviceError, DeviceTimeoutError, FrameError
+from .errors import AbortedError, DeviceError, DeviceTimeoutError, FrameError, StopNotConfirmedError
 from .interfaces import Actuators, Camera, Frame, Operator
+from .registermap import ALARM_WATCHDOG
 
 log = logging.getLogger(__name__)
 
@@ -76,6 +77,12 @@ class RunResult:
     recorded_now: int
     elapsed_s: float
     per_pose_overhead_s: list[float] = field(default_factory=list)
+
+
+def _not_stopped(exc: BaseException) -> str:
+    if isinstance(exc, StopNotConfirmedError):
+        return "motion may NOT have stopped (stop not confirmed); use the emergency stop"
+    return f"motion may NOT have stopped (stop failed: {exc}); use the emergency stop"
 
 
 class AcquisitionError(DeviceError):
@@ -200,13 +207,13 @@ class Acquisition:
             return await self._run()
         except asyncio.CancelledError:
             if self._aborting:
-                await self._safe_stop()
+                stopped = await self._safe_stop()
                 with contextlib.suppress(Exception):
                     await self._flush_writes()
                 n = len(self._writer) if self._writer else 0
                 self._mark("aborted", None, "aborted on request")
-                self._emit("aborted", f"aborted; motion stopped; {n} frames kept in {self.out}")
-                raise AbortedError(f"acquisition aborted; motion stopped; {n} frames kept in {self.out}") from None
+                self._emit("aborted", f"aborted; {stopped}; {n} frames kept in {self.out}")
+                raise AbortedError(f"acquisition aborted; {stopped}; {n} frames kept in {self.out}") from None
             await self._safe_stop()
             with contextlib.suppress(Exception):
                 await self._flush_writes()
@@ -214,11 +221,14 @@ class Acquisition:
         finally:
             self._task = None
 
-    async def _safe_stop(self) -> None:
+    async def _safe_stop(self) -> str:
+        """Stop the actuators; returns what to tell: "motion stopped" only when the stop was confirmed."""
         try:
             await asyncio.shield(self.actuators.stop())
         except Exception as exc:
             log.error("could not stop the actuators: %s", exc)
+            return _not_stopped(exc)
+        return "motion stopped"
 
     def _mark(self, state: str, pose: int | None, reason: str) -> None:
         if self._writer is not None:
@@ -241,6 +251,12 @@ class Acquisition:
         await self.actuators.connect()
         start = self._open_dataset_prefix()
         st = await self.actuators.status()
+        if st.alarms and set(st.alarms.values()) == {ALARM_WATCHDOG}:
+            # a previous session lost contact mid-move and the drives' watchdog stopped them (and latched the
+            # alarm): this run is the explicit request to go on
+            self._emit("starting", "clearing the communication-watchdog alarm left by a lost session")
+            await self.actuators.reset_alarms()
+            st = await self.actuators.status()
         if st.alarms:
             from .modbus import alarm_message
 
@@ -292,7 +308,8 @@ class Acquisition:
         )
 
     async def _fail(self, u: Unit, exc: BaseException) -> None:
-        await self._safe_stop()
+        # the driver already tried to stop (one bounded deadline) when it says the stop is not confirmed
+        stopped = _not_stopped(exc) if isinstance(exc, StopNotConfirmedError) else await self._safe_stop()
         with contextlib.suppress(Exception):
             await self._flush_writes()
         with contextlib.suppress(Exception):
@@ -306,7 +323,7 @@ class Acquisition:
             else (f", q = {np.round(np.asarray(u.q) * 1e3, 3).tolist()} mm)" if u.q else ")")
         )
         msg = (
-            f"{where} failed: {exc}; motion stopped; {n} frames kept in {self.out}; "
+            f"{where} failed: {exc}; {stopped}; {n} frames kept in {self.out}; "
             "resume the run to continue from this pose"
         )
         self._mark("failed", u.index, str(exc))

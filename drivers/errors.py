@@ -4,6 +4,7 @@
 ``DeviceTimeoutError``: a reply, a move or a frame did not arrive in time.
 ``LimitError``: a target outside the soft limits or the workspace; refused before anything moves.
 ``AlarmError``: the device reports an alarm; carries the axis and the alarm code.
+``StopNotConfirmedError``: a stop could not be confirmed by reading the axes back: motion may NOT have stopped.
 ``FrameError``: a frame arrived corrupt or incomplete.
 ``MissingExtraError``: an optional vendor library is not installed; names the extra.
 """
@@ -39,6 +40,17 @@ class AlarmError(DeviceError):
     def __init__(self, message: str, *, code: int | None = None, axis: int | None = None) -> None:
         self.code = code
         self.axis = axis
+        super().__init__(message)
+
+
+class StopNotConfirmedError(DeviceError):
+    """A stop was requested but not confirmed by read-back before its deadline: motion may NOT have stopped.
+
+    ``axes``: the axes (1..4) not confirmed stopped.
+    """
+
+    def __init__(self, message: str, *, axes: tuple[int, ...] = ()) -> None:
+        self.axes = tuple(axes)
         super().__init__(message)
 
 

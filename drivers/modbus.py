@@ -1,16 +1,32 @@
 """Actuators over Modbus (pymodbus 3.16 async client; TCP, RTU on a serial line, RTU over TCP).
 
-Every reply is checked (exception code, register count, unit id, echoed address); a request that
-gets no reply in time is retried on a *fresh* connection (the old one is closed), so a late reply
-can never be taken for the answer to another request; reconnection uses a bounded exponential
-back-off. One request is in flight at a time. On a serial line (RTU) a fresh connection is the same
-wire, and an RTU reply carries neither a transaction id nor the register address: after a timeout the
-port stays closed for ``late_reply_guard_s`` and is flushed when it reopens, so a reply up to
-``timeout_s + late_reply_guard_s`` late is discarded rather than taken for the next request's answer.
+Stale replies. A reply is taken as the answer to a request only when it matches it: function code,
+unit id, register count or echoed address/count, and on Modbus TCP the transaction id. A request
+that gets no reply in time (or is cancelled, or whose link is cut) leaves its reply possibly still on
+the way, so its link is never reused: it is closed and a fresh one opened. On a link with RTU framing
+(``rtu``: a serial line; ``rtu-tcp``: a serial device server or gateway) a fresh link leads to the same
+wire and an RTU reply names neither a transaction nor an address, so after such a fault the link stays
+closed for ``late_reply_guard_s`` (default twice the reply timeout) and the next request waits until
+the link has been quiet for ``flush_s``; bytes that arrive while no request is outstanding (a late or
+duplicated reply, a reply to another master on a shared line) are counted (``stats["unrequested"]``)
+and discarded. Consecutive reads of one unit over RTU framing ask for windows of different lengths
+(the read-back window widened by adjacent registers of the same axis), so that a late or duplicated
+reply to the previous read of that unit has the wrong byte count and is refused
+(``stats["stale"]``) rather than taken for the current answer.
+
+Plausible readings. Every decoded position must lie within the soft limits widened by
+``plausibility_margin_m`` and within ``max_speed_m_s`` x the time since the axis' last accepted
+reading (+ ``plausibility_slack_m``); otherwise :class:`~drivers.errors.ProtocolError` names the axis,
+the value and why, and nothing moves on it (homing, which may re-zero an encoder, is exempt from the
+second test).
 
 A move follows one shape: check the targets (per-axis soft limits, then the nominal kinematic
 model), compute a timeout from the distances and speeds, write target + speed + start, poll until
-every axis is in position, and stop every axis on any error, timeout or cancellation.
+every axis is in position, and stop every axis on any error, timeout or cancellation. A stop is sent
+to every axis at once (``asyncio.gather``, one request in flight on the link) and is confirmed by
+reading every axis back not moving, all within one deadline (``stop_deadline_s``); otherwise
+:class:`~drivers.errors.StopNotConfirmedError` says motion may not have stopped. The stop runs in its
+own task, so a stop sent while its caller is being cancelled still goes out.
 """
 
 from __future__ import annotations
@@ -18,6 +34,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import time
 from typing import Any
 
@@ -37,6 +54,7 @@ from .errors import (
     DeviceTimeoutError,
     LimitError,
     ProtocolError,
+    StopNotConfirmedError,
 )
 from .interfaces import ActuatorStatus, AxisStatus, SoftLimitsM
 from .registermap import ALARM_TEXT, DEFAULT_MAP, RegisterMap
@@ -87,21 +105,55 @@ def check_targets(q: Any, limits: SoftLimitsM, nominal: I4Parameters | None) -> 
     return qv
 
 
+RTU_FRAMED = ("rtu", "rtu-tcp")
+_FC_READ, _FC_WRITE = 3, 16
+
+
+class _Link:
+    """What the trace hooks of one client connection saw (a dropped client's late callbacks touch only it)."""
+
+    def __init__(self) -> None:
+        self.pending = False  # a request is out and not yet answered
+        self.sent_tid = 0  # transaction id of the last request (Modbus TCP)
+        self.last_rx = 0.0  # monotonic time of the last bytes received
+        self.drain = False  # bytes came unrequested (or the link follows a fault): wait for quiet before a request
+        self.unrequested = 0  # receptions while no request was outstanding
+        self.opened = time.monotonic()
+
+
 class ModbusActuators:
     """:class:`drivers.interfaces.Actuators` over Modbus.
 
     Parameters
     ----------
     host, port:
-        TCP endpoint (``transport="tcp"`` Modbus TCP, ``"rtu-tcp"`` RTU framing over a TCP socket).
+        TCP endpoint (``transport="tcp"`` Modbus TCP, ``"rtu-tcp"`` RTU framing over a TCP socket: a serial
+        device server or an RTU gateway).
     serial_port, baudrate:
         Serial device for ``transport="rtu"`` (any pyserial URL works, e.g. ``socket://host:port``).
     speed_m_s, accel_m_s2:
         Move speed of the axis that travels furthest (the others are scaled to arrive together) and the
         drive's acceleration, used only for the move timeout.
     late_reply_guard_s:
-        RTU only: after a request timed out, the serial port stays closed this long (s) before it is
-        reopened and flushed, so that the late reply is discarded. ``None``: ``timeout_s``.
+        RTU framing (``rtu``, ``rtu-tcp``) only: after a request timed out, was cancelled or lost its link,
+        the link stays closed this long (s) before it is reopened, so that the late reply lands on no
+        link. ``None``: ``2 * timeout_s`` (a reply up to three timeouts late is discarded).
+    flush_s:
+        RTU framing only: a link reopened after a fault, or that received unrequested bytes, must have been
+        quiet this long (s) before the next request goes out; what arrived meanwhile is discarded.
+    vary_reads:
+        RTU framing only: alternate the length of consecutive reads of one unit (adjacent registers of the
+        same axis: target, speed, control in the default map) so that a stale reply has the wrong length.
+        ``False`` for a drive that refuses to read those registers.
+    max_speed_m_s:
+        Fastest an axis can move (homing, a person guiding a free drive included), for the plausibility of
+        readings. ``None``: ``5 * speed_m_s``.
+    plausibility_margin_m, plausibility_slack_m:
+        A reading must lie within the soft limits widened by the margin (m), and within
+        ``max_speed_m_s * dt + slack`` of the axis' previous accepted reading.
+    stop_deadline_s:
+        One deadline (s) for the whole stop sequence: stop sent to every axis and every axis read back not
+        moving.
     """
 
     def __init__(
@@ -128,6 +180,12 @@ class ModbusActuators:
         move_timeout_margin_s: float = 1.0,
         home_timeout_s: float = 60.0,
         late_reply_guard_s: float | None = None,
+        flush_s: float = 0.01,
+        vary_reads: bool = True,
+        max_speed_m_s: float | None = None,
+        plausibility_margin_m: float = 0.05,
+        plausibility_slack_m: float = 1e-3,
+        stop_deadline_s: float = 2.0,
     ) -> None:
         if transport not in ("tcp", "rtu", "rtu-tcp"):
             raise ValueError(f"unknown Modbus transport {transport!r}")
@@ -148,12 +206,24 @@ class ModbusActuators:
         self.move_timeout_factor = float(move_timeout_factor)
         self.move_timeout_margin_s = float(move_timeout_margin_s)
         self.home_timeout_s = float(home_timeout_s)
-        self.late_reply_guard_s = float(self.timeout_s if late_reply_guard_s is None else late_reply_guard_s)
-        self._quiet_until = 0.0  # RTU: no new link before this monotonic time (a late reply may be on the wire)
+        self.late_reply_guard_s = float(2 * self.timeout_s if late_reply_guard_s is None else late_reply_guard_s)
+        self.flush_s = float(flush_s)
+        self.vary_reads = bool(vary_reads) and transport in RTU_FRAMED
+        self.max_speed_m_s = float(5 * self.speed_m_s if max_speed_m_s is None else max_speed_m_s)
+        self.plausibility_margin_m = float(plausibility_margin_m)
+        self.plausibility_slack_m = float(plausibility_slack_m)
+        self.stop_deadline_s = float(stop_deadline_s)
+        self._quiet_until = 0.0  # RTU framing: no new link before this monotonic time (a late reply may be on the wire)
+        self._reopen_settle = False  # RTU framing: the next link follows a fault; let it be quiet first
         self._client: AsyncModbusTcpClient | AsyncModbusSerialClient | None = None
+        self._link = _Link()
         self._lock = asyncio.Lock()
         self._free_bits = [0, 0, 0, 0]
-        self.stats = {"requests": 0, "retries": 0, "reconnects": 0}
+        self._homing = False
+        self._last_reading: list[tuple[float, float] | None] = [None] * 4  # (position m, monotonic s) per axis
+        self._read_count: dict[int, int] = {}  # reads per unit (RTU framing: alternate the window length)
+        self._windows = [self._read_windows(i) for i in range(4)]
+        self.stats = {"requests": 0, "retries": 0, "reconnects": 0, "stale": 0, "unrequested": 0}
 
     @property
     def endpoint(self) -> str:
@@ -163,38 +233,104 @@ class ModbusActuators:
 
     # -- connection ---------------------------------------------------------------------------
     def _new_client(self):
+        link = _Link()
+
+        def trace_pdu(sending: bool, pdu):
+            if sending:
+                link.pending = True
+                link.sent_tid = int(getattr(pdu, "transaction_id", 0) or 0)
+            else:
+                link.pending = False
+            return pdu
+
+        def trace_packet(sending: bool, data: bytes) -> bytes:
+            if sending or not data:
+                return data
+            link.last_rx = time.monotonic()
+            if not link.pending:  # nobody asked: a late or duplicated reply, or another master's
+                link.unrequested += 1
+                link.drain = True
+                self.stats["unrequested"] += 1
+                return b""  # not decoded; the next request's send discards it
+            return data
+
+        hooks = dict(trace_packet=trace_packet, trace_pdu=trace_pdu)
         if self.transport == "rtu":
-            return AsyncModbusSerialClient(
+            client = AsyncModbusSerialClient(
                 self.serial_port,
                 framer=FramerType.RTU,
                 baudrate=self.baudrate,
                 timeout=self.timeout_s,
                 retries=0,
                 reconnect_delay=0,
+                **hooks,
             )
-        framer = FramerType.SOCKET if self.transport == "tcp" else FramerType.RTU
-        return AsyncModbusTcpClient(
-            self.host, port=self.port, framer=framer, timeout=self.timeout_s, retries=0, reconnect_delay=0
-        )
+        else:
+            framer = FramerType.SOCKET if self.transport == "tcp" else FramerType.RTU
+            client = AsyncModbusTcpClient(
+                self.host,
+                port=self.port,
+                framer=framer,
+                timeout=self.timeout_s,
+                retries=0,
+                reconnect_delay=0,
+                **hooks,
+            )
+        return client, link
 
     async def _open(self) -> None:
         self._drop()
-        client = self._new_client()
+        client, link = self._new_client()
         try:
             ok = await asyncio.wait_for(client.connect(), timeout=max(self.timeout_s, 0.5) * 2)
         except (TimeoutError, OSError, ModbusException):
             ok = False
+        except asyncio.CancelledError:
+            with contextlib.suppress(Exception):
+                client.close()
+            raise
         if not ok:
             with contextlib.suppress(Exception):
                 client.close()
             raise DeviceConnectionError(f"cannot connect to the Modbus controller at {self.endpoint}")
-        self._client = client
+        link.opened = time.monotonic()
+        self._client, self._link = client, link
 
     def _drop(self) -> None:
         if self._client is not None:
             with contextlib.suppress(Exception):
                 self._client.close()
             self._client = None
+
+    def _fault(self, reply_may_come: bool) -> None:
+        """Never reuse this link; on RTU framing keep the wire quiet while a late reply may still come."""
+        self._drop()
+        if reply_may_come and self.transport in RTU_FRAMED:
+            self._quiet_until = max(self._quiet_until, time.monotonic() + self.late_reply_guard_s)
+            self._reopen_settle = True
+
+    async def _ready_link(self, urgent: bool) -> None:
+        """A link fit for the next request. ``urgent`` (a stop): no waiting out the late-reply guard (the
+        replies' checks still apply); a link opened that way is replaced before the next non-urgent request."""
+        if self._client is not None and not urgent and self._link.opened < self._quiet_until:
+            self._drop()  # opened during a guard for a stop: a late reply may still arrive on it
+        if self._client is None or not self._client.connected:
+            self.stats["reconnects"] += 1
+            if not urgent and (quiet := self._quiet_until - time.monotonic()) > 0:
+                await asyncio.sleep(quiet)
+            await self._open()  # a serial port is flushed when it opens
+            if self._reopen_settle and not urgent:
+                self._link.last_rx = max(self._link.last_rx, time.monotonic())
+                self._link.drain = True
+                self._reopen_settle = False
+        link = self._link
+        if link.drain and self.transport in RTU_FRAMED and not urgent:
+            # drain: whatever arrives unrequested (a buffered late reply, a duplicate) must be over first;
+            # the request's send then discards it
+            deadline = time.monotonic() + max(self.timeout_s, self.flush_s) * 2
+            while (wait := link.last_rx + self.flush_s - time.monotonic()) > 0 and time.monotonic() < deadline:
+                await asyncio.sleep(wait)
+            link.drain = False
 
     async def connect(self) -> None:
         last: Exception | None = None
@@ -207,7 +343,8 @@ class ModbusActuators:
                 await asyncio.sleep(min(self.backoff_s * 2**attempt, self.backoff_max_s))
         else:
             raise last  # type: ignore[misc]
-        await self.status()  # every axis answers
+        self._last_reading = [None] * 4
+        await self.status()  # every axis answers, with plausible positions
 
     async def close(self) -> None:
         self._drop()
@@ -220,7 +357,33 @@ class ModbusActuators:
         await self.close()
 
     # -- one checked request ----------------------------------------------------------------------
-    async def _request(self, kind: str, unit: int, address: int, count_or_values: Any) -> list[int]:
+    def _mismatch(self, rr, kind: str, unit: int, address: int, count_or_values: Any) -> str | None:
+        """Why a reply is not the answer to this request, or None (an exception reply: header only)."""
+        fc = _FC_READ if kind == "read" else _FC_WRITE
+        got_fc = int(getattr(rr, "function_code", fc)) & 0x7F
+        if got_fc != fc:
+            return f"reply with function code {got_fc} to a request with function code {fc}"
+        if unit and getattr(rr, "dev_id", unit) != unit:
+            return f"reply from unit {rr.dev_id} to a request for unit {unit}"
+        if self.transport == "tcp":
+            tid = int(getattr(rr, "transaction_id", 0) or 0)
+            if tid != self._link.sent_tid:
+                return f"reply with transaction id {tid} to request {self._link.sent_tid}"
+        if rr.isError():
+            return None
+        if kind == "read":
+            n = len(rr.registers)
+            if n != count_or_values:
+                return f"reply with {n} registers to a request for {count_or_values}"
+            return None
+        n = len(count_or_values)
+        if getattr(rr, "address", address) != address or getattr(rr, "count", n) != n:
+            return f"write echo (address {rr.address}, count {rr.count}) does not match the request ({address}, {n})"
+        return None
+
+    async def _request(
+        self, kind: str, unit: int, address: int, count_or_values: Any, *, urgent: bool = False
+    ) -> list[int]:
         async with self._lock:
             last: str = ""
             for attempt in range(self.retries + 1):
@@ -228,33 +391,43 @@ class ModbusActuators:
                     self.stats["retries"] += 1
                     await asyncio.sleep(min(self.backoff_s * 2 ** (attempt - 1), self.backoff_max_s))
                 try:
-                    if self._client is None or not self._client.connected:
-                        self.stats["reconnects"] += 1
-                        if (quiet := self._quiet_until - time.monotonic()) > 0:
-                            await asyncio.sleep(quiet)
-                        await self._open()  # a serial port is flushed when it opens
-                    self.stats["requests"] += 1
+                    await self._ready_link(urgent)
+                except DeviceConnectionError as exc:
+                    last = str(exc)
+                    continue
+                self.stats["requests"] += 1
+                try:
                     if kind == "read":
                         rr = await self._client.read_holding_registers(address, count=count_or_values, device_id=unit)
                     else:
                         rr = await self._client.write_registers(address, list(count_or_values), device_id=unit)
-                except DeviceConnectionError as exc:
-                    last = str(exc)
-                    continue
+                except asyncio.CancelledError:
+                    self._fault(reply_may_come=True)  # the reply may still be on its way
+                    raise
                 except ConnectionException as exc:
                     last = f"connection lost ({exc})"
-                    self._drop()
+                    self._fault(reply_may_come=True)
                     continue
                 except (ModbusIOException, TimeoutError) as exc:
                     # no reply in time: never reuse this link, a late reply could pair with the next request
                     last = f"no reply within {self.timeout_s:.3f} s ({type(exc).__name__})"
-                    self._drop()
-                    if self.transport == "rtu":  # same wire: let the late reply land on a closed port
-                        self._quiet_until = time.monotonic() + self.late_reply_guard_s
+                    self._fault(reply_may_come=True)
                     continue
                 except ModbusException as exc:
                     last = f"Modbus error ({exc})"
-                    self._drop()
+                    self._fault(reply_may_come=True)
+                    continue
+                task = asyncio.current_task()
+                if task is not None and task.cancelling():
+                    # Python 3.11's wait_for (inside pymodbus) returns a reply that lands together with a
+                    # cancellation and drops the cancellation (CPython gh-86296): honour it here
+                    raise asyncio.CancelledError
+                if problem := self._mismatch(rr, kind, unit, address, count_or_values):
+                    # a late, duplicated or foreign reply: refuse it, and the link it came on
+                    last = f"stale or foreign reply: {problem}"
+                    self.stats["stale"] += 1
+                    log.warning("Modbus controller at %s, unit %d: %s; link replaced", self.endpoint, unit, last)
+                    self._fault(reply_may_come=True)
                     continue
                 if rr.isError():
                     code = int(getattr(rr, "exception_code", 0) or 0)
@@ -265,23 +438,7 @@ class ModbusActuators:
                         last = msg
                         continue
                     raise ProtocolError(msg, exception_code=code)
-                if getattr(rr, "dev_id", unit) not in (unit, 0):
-                    last = f"reply from unit {rr.dev_id} to a request for unit {unit}"
-                    self._drop()
-                    continue
-                if kind == "read":
-                    regs = list(rr.registers)
-                    if len(regs) != count_or_values:
-                        last = f"reply with {len(regs)} registers to a request for {count_or_values}"
-                        self._drop()
-                        continue
-                    return regs
-                n = len(count_or_values)
-                if getattr(rr, "address", address) != address or getattr(rr, "count", n) != n:
-                    last = f"write echo (address {rr.address}, count {rr.count}) does not match the request"
-                    self._drop()
-                    continue
-                return []
+                return list(rr.registers) if kind == "read" else []
             if "connect" in last or "connection" in last:
                 raise DeviceConnectionError(
                     f"Modbus controller at {self.endpoint}: {last}, after {self.retries + 1} attempts"
@@ -293,20 +450,76 @@ class ModbusActuators:
     async def read(self, unit: int, address: int, count: int) -> list[int]:
         return await self._request("read", unit, address, count)
 
-    async def write(self, unit: int, address: int, values: list[int]) -> None:
-        await self._request("write", unit, address, values)
+    async def write(self, unit: int, address: int, values: list[int], *, urgent: bool = False) -> None:
+        await self._request("write", unit, address, values, urgent=urgent)
 
     # -- status ------------------------------------------------------------------------------------
-    async def read_axis(self, axis: int) -> AxisStatus:
+    def _read_windows(self, axis: int) -> list[tuple[int, int]]:
+        """Contiguous relative windows (start, count) that cover the read-back window, shortest first,
+        within the axis' own registers (RTU framing: consecutive reads of a unit differ in length)."""
         m = self.map
         lo, n = m.readback_window()
+        own = {m.target, m.target + 1, m.speed, m.speed + 1, m.control, m.status, m.actual, m.actual + 1}
+        own.add(m.alarm_code)
+        out = [(lo, n)]
+        a, b = lo, lo + n  # [a, b)
+        while True:
+            if a - 1 in own:
+                a -= 1
+            elif b in own:
+                b += 1
+            else:
+                break
+            out.append((a, b - a))
+        return out
+
+    def check_reading(self, axis: int, position_m: float, t_request: float, *, homed: bool = True) -> None:
+        """Refuse an implausible position of axis 0..3 read by a request sent at ``t_request`` (monotonic s):
+        outside the soft limits widened by the margin, or further from the last accepted reading than the
+        axis can travel at ``max_speed_m_s`` since then. Accepted readings become the reference."""
+        now = time.monotonic()
+        lo = self.limits.q_min[axis] - self.plausibility_margin_m
+        hi = self.limits.q_max[axis] + self.plausibility_margin_m
+        if not (math.isfinite(position_m) and lo <= position_m <= hi):
+            self._last_reading[axis] = None
+            raise ProtocolError(
+                f"axis {axis + 1}: implausible position {position_m:.6g} m read from {self.endpoint}: outside the "
+                f"soft limits [{self.limits.q_min[axis]:.3f}, {self.limits.q_max[axis]:.3f}] m widened by "
+                f"{self.plausibility_margin_m:.3f} m (wrong register map, word order or scale, or a corrupt "
+                "reply); nothing moves on it"
+            )
+        prev = self._last_reading[axis]
+        if prev is not None and not self._homing:
+            p0, t0 = prev
+            reach = self.max_speed_m_s * max(now - t0, 0.0) + self.plausibility_slack_m
+            if abs(position_m - p0) > reach:
+                self._last_reading[axis] = None
+                raise ProtocolError(
+                    f"axis {axis + 1}: implausible position {position_m * 1e3:.3f} mm read from {self.endpoint}: "
+                    f"{abs(position_m - p0) * 1e3:.3f} mm from the reading {now - t0:.3f} s earlier "
+                    f"({p0 * 1e3:.3f} mm), more than the axis can travel at {self.max_speed_m_s:g} m/s "
+                    f"({reach * 1e3:.3f} mm); nothing moves on it"
+                )
+        self._last_reading[axis] = (position_m, t_request)
+
+    async def read_axis(self, axis: int) -> AxisStatus:
+        m = self.map
         unit, base = m.addr(axis, "status")
-        base = base - m.status + lo
-        regs = await self.read(unit, base, n)
+        base -= m.status
+        lo, n = self._windows[axis][0]
+        if self.vary_reads:
+            k = self._read_count.get(unit, 0)
+            self._read_count[unit] = k + 1
+            if k % 2:
+                lo, n = self._windows[axis][min(1, len(self._windows[axis]) - 1)]
+        t_request = time.monotonic()
+        regs = await self.read(unit, base + lo, n)
         st = regs[m.status - lo]
         enc = m.from_regs32(regs[m.actual - lo : m.actual - lo + 2])
         code = regs[m.alarm_code - lo]
         b = m.status_bits
+        position = m.counts_to_m(enc)
+        self.check_reading(axis, position, t_request)
         return AxisStatus(
             ready=bool(st >> b.ready & 1),
             moving=bool(st >> b.moving & 1),
@@ -315,7 +528,7 @@ class ModbusActuators:
             homed=bool(st >> b.homed & 1),
             free=bool(self._free_bits[axis]),
             alarm_code=code,
-            position_m=m.counts_to_m(enc),
+            position_m=position,
         )
 
     async def status(self) -> ActuatorStatus:
@@ -332,28 +545,71 @@ class ModbusActuators:
             raise AlarmError(alarm_message(axis, code) + more, code=code, axis=axis)
 
     # -- control -------------------------------------------------------------------------------------
-    async def _control(self, axis: int, bit: str | None) -> None:
+    async def _control(self, axis: int, bit: str | None, *, urgent: bool = False) -> None:
         m = self.map
         unit, addr = m.addr(axis, "control")
         value = (m.bit("control", bit) if bit else 0) | (m.bit("control", "free") if self._free_bits[axis] else 0)
-        await self.write(unit, addr, [value])
+        await self.write(unit, addr, [value], urgent=urgent)
 
     async def stop(self) -> None:
-        """Stop every axis; tries all of them even when one fails, then raises the first failure."""
-        first: Exception | None = None
-        for i in range(4):
-            try:
-                await self._control(i, "stop")
-            except DeviceError as exc:
-                first = first or exc
-        if first is not None:
-            raise first
+        """Stop every axis and confirm it by reading every axis back not moving, within ``stop_deadline_s``.
 
-    async def _stop_quietly(self) -> None:
+        The stop runs in a task of its own (shielded): it goes out even when the caller is being cancelled.
+        Raises :class:`~drivers.errors.StopNotConfirmedError` when it cannot be confirmed in time.
+        """
+        task = asyncio.ensure_future(self._stop_sequence())
         try:
-            await asyncio.shield(self.stop())
+            await asyncio.shield(task)
+        except asyncio.CancelledError:
+            task.add_done_callback(_log_unretrieved)  # it goes on; nobody will await its outcome
+            raise
+
+    async def _stop_sequence(self) -> None:
+        t0 = time.monotonic()
+        confirmed = [False] * 4
+        errors: dict[int, str] = {}
+
+        async def one(i: int) -> None:
+            while True:
+                try:
+                    await self._control(i, "stop", urgent=True)
+                    break
+                except DeviceError as exc:
+                    errors[i] = f"stop not sent ({exc})"
+                    await asyncio.sleep(self.backoff_s)
+            while True:
+                try:
+                    s = await self.read_axis(i)
+                    if not s.moving:
+                        confirmed[i] = True
+                        return
+                    errors[i] = "still reads moving"
+                except DeviceError as exc:
+                    errors[i] = f"not read back ({exc})"
+                await asyncio.sleep(max(self.poll_s, 0.001))
+
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(self.stop_deadline_s):
+                await asyncio.gather(*(one(i) for i in range(4)))
+        if not all(confirmed):
+            axes = tuple(i + 1 for i in range(4) if not confirmed[i])
+            why = "; ".join(f"axis {i + 1}: {errors.get(i, 'no answer')}" for i in range(4) if not confirmed[i])
+            raise StopNotConfirmedError(
+                f"stop NOT confirmed within {self.stop_deadline_s:.1f} s at {self.endpoint} (axes {list(axes)}): "
+                f"motion may NOT have stopped; use the emergency stop. {why}",
+                axes=axes,
+            )
+        log.debug("stop confirmed in %.3f s", time.monotonic() - t0)
+
+    async def _stop_quietly(self) -> StopNotConfirmedError | None:
+        try:
+            await self.stop()
+        except StopNotConfirmedError as exc:
+            log.error("stop after a failed move: %s", exc)
+            return exc
         except Exception as exc:  # the original error matters more
             log.error("stop after a failed move also failed: %s", exc)
+        return None
 
     async def reset_alarms(self) -> None:
         for i in range(4):
@@ -364,16 +620,25 @@ class ModbusActuators:
             self._free_bits[i] = int(bool(free))
             await self._control(i, None)
 
+    async def _cleanup_stop(self, exc: BaseException) -> None:
+        """After a failed or cancelled move or homing: stop; an unconfirmed stop is the error that matters."""
+        not_stopped = await self._stop_quietly()
+        if not_stopped is not None and not isinstance(exc, asyncio.CancelledError):
+            raise StopNotConfirmedError(f"{exc}; then {not_stopped}", axes=not_stopped.axes) from exc
+
     async def home(self, timeout_s: float | None = None) -> None:
         st = await self.status()
         self._raise_alarms(st)
+        self._homing = True
         try:
             for i in range(4):
                 await self._control(i, "home")
             await self._wait(lambda s: s.homed and not s.moving, timeout_s or self.home_timeout_s, "homing")
-        except BaseException:
-            await self._stop_quietly()
+        except BaseException as exc:
+            await self._cleanup_stop(exc)
             raise
+        finally:
+            self._homing = False
 
     def move_timeout(self, distance_m: np.ndarray, speeds_m_s: np.ndarray) -> float:
         t = [d / v + v / self.accel_m_s2 for d, v in zip(distance_m, speeds_m_s, strict=True) if d > 0]
@@ -381,7 +646,7 @@ class ModbusActuators:
 
     async def move(self, q: Any, timeout_s: float | None = None, speed_m_s: float | None = None) -> np.ndarray:
         target = check_targets(q, self.limits, self.nominal)
-        st = await self.status()
+        st = await self.status()  # every position checked plausible (ProtocolError otherwise): nothing sent yet
         self._raise_alarms(st)
         if any(a.free for a in st.axes):
             raise DeviceError("drives are free (de-energised); re-energise them before a move")
@@ -402,8 +667,8 @@ class ModbusActuators:
                 st = await self.status()
                 self._raise_alarms(st)
             return st.positions
-        except BaseException:
-            await self._stop_quietly()
+        except BaseException as exc:
+            await self._cleanup_stop(exc)
             raise
 
     async def _start_move(self, target: np.ndarray, speeds: np.ndarray) -> None:
@@ -436,3 +701,9 @@ class ModbusActuators:
                     f"{np.round(st.positions * 1e3, 3).tolist()} mm; stopped"
                 )
             await asyncio.sleep(self.poll_s)
+
+
+def _log_unretrieved(task: asyncio.Task) -> None:
+    """A stop whose caller was cancelled: log its outcome."""
+    if not task.cancelled() and (exc := task.exception()) is not None:
+        log.error("stop: %s", exc)

@@ -129,6 +129,9 @@ class RegisterMap(BaseModel):
 
 DEFAULT_MAP = RegisterMap()
 
+#: Alarm code of the simulated controller's communication watchdog (a move stopped for want of requests).
+ALARM_WATCHDOG = 0x50
+
 #: Alarm codes of the simulated controller (a real drive has its own; the driver reports them as given).
 ALARM_TEXT = {
     0x10: "following error / drive fault",
@@ -136,4 +139,5 @@ ALARM_TEXT = {
     0x30: "target outside the controller's soft limits",
     0x31: "hard limit reached",
     0x40: "overload",
+    0x50: "communication watchdog: no request from the master during a move; stopped",
 }

@@ -14,7 +14,8 @@ Protocol (7-bit ASCII, one request line, exactly one reply line; ``\\n`` or ``\\
     CTRL <axis 1..4> <bits>               -> OK   control bits as the Modbus map (1 start, 2 stop, 4 home,
                                                   8 alarm reset, 16 free while set)
 
-A reply whose sequence number is not the request's is a stale or stray line and is discarded; a line
+A reply whose sequence number is not the request's is a stale or stray line and is discarded; every
+position read must be plausible (:meth:`drivers.modbus.ModbusActuators.check_reading`); a line
 that does not parse is a framing error; both lead to a retry after the buffers are flushed. No reply
 within the timeout is retried, then raises :class:`~drivers.errors.DeviceTimeoutError`.
 """
@@ -144,6 +145,7 @@ class SerialAsciiActuators(ModbusActuators):
 
     # -- hooks used by the shared move/home/wait logic ---------------------------------------------------
     async def status(self) -> ActuatorStatus:
+        t_request = time.monotonic()
         v = await self.command("STAT?")
         if len(v) != 12:
             raise ProtocolError(f"STAT? gave {len(v)} values, expected 12")
@@ -151,6 +153,7 @@ class SerialAsciiActuators(ModbusActuators):
         axes = []
         for i in range(4):
             st, pos, code = int(v[3 * i]), int(v[3 * i + 1]), int(v[3 * i + 2])
+            self.check_reading(i, pos / 1e6, t_request)  # plausible, else ProtocolError (nothing moves on it)
             axes.append(
                 AxisStatus(
                     ready=bool(st >> b.ready & 1),
@@ -168,7 +171,7 @@ class SerialAsciiActuators(ModbusActuators):
     async def read_axis(self, axis: int) -> AxisStatus:
         return (await self.status()).axes[axis]
 
-    async def _control(self, axis: int, bit: str | None) -> None:
+    async def _control(self, axis: int, bit: str | None, *, urgent: bool = False) -> None:
         m = DEFAULT_MAP
         value = (m.bit("control", bit) if bit else 0) | (m.bit("control", "free") if self._free_bits[axis] else 0)
         await self.command(f"CTRL {axis + 1} {value}")

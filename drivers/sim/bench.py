@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import inspect
 import json
 import logging
 import time
@@ -76,11 +77,21 @@ class CameraFaults:
 
 
 class FrameServer:
-    """Serves rendered frames of the mechanism's TRUE state (actual axis positions -> truth DKM)."""
+    """Serves rendered frames of the mechanism's TRUE state (actual axis positions -> truth DKM).
 
-    def __init__(self, mechanism: Mechanism, renderer: Any) -> None:
+    A renderer whose ``render`` takes an ``rng`` (the image-level twin's) gets one seeded by ``seed`` and
+    the true joint values: a frame's sensor noise depends on what it shows, not on how many frames were
+    rendered before it (a grab retried after a timeout renders the same image; runs are reproducible).
+    """
+
+    def __init__(self, mechanism: Mechanism, renderer: Any, seed: int = 0) -> None:
         self.mechanism = mechanism
         self.renderer = renderer
+        self.seed = int(seed)
+        try:
+            self._takes_rng = "rng" in inspect.signature(renderer.render).parameters
+        except (TypeError, ValueError, AttributeError):
+            self._takes_rng = False
         self.faults = CameraFaults()
         self.seq = 0
         self._server: asyncio.base_events.Server | None = None
@@ -101,8 +112,14 @@ class FrameServer:
 
     def render_now(self) -> tuple[np.ndarray, dict[str, Any]]:
         q = self.mechanism.q_true()
+        self.mechanism.frame_taken()
         pose = self.mechanism.pose_true(q)
-        img = np.ascontiguousarray(self.renderer.render(q, pose))
+        if self._takes_rng:
+            key = np.asarray(q, dtype=np.float64).view(np.uint32).tolist()
+            img = self.renderer.render(q, pose, rng=np.random.default_rng([self.seed, 3, *key]))
+        else:
+            img = self.renderer.render(q, pose)
+        img = np.ascontiguousarray(img)
         self.seq += 1
         return img, {"seq": self.seq, "q_true": q.tolist(), "pose_true": pose.tolist(), "t": time.monotonic()}
 
@@ -180,6 +197,7 @@ class SimBench:
         seed: int = 0,
         rtu: bool = True,
         initial_q: Any = None,
+        watchdog_s: float = 0.5,
     ) -> None:
         self.geometry = geometry or BenchGeometry()
         if initial_q is None:
@@ -188,9 +206,9 @@ class SimBench:
 
             initial_q = ikm(self.geometry.truth, Workspace().centre())
         self.mechanism = Mechanism(self.geometry, axis_config or fast_axis_config(), initial_q=initial_q, seed=seed)
-        self.controller = SimController(self.mechanism, regmap)
+        self.controller = SimController(self.mechanism, regmap, watchdog_s=watchdog_s)
         self.renderer = renderer if renderer is not None else default_renderer(self.geometry, seed)
-        self.frames = FrameServer(self.mechanism, self.renderer)
+        self.frames = FrameServer(self.mechanism, self.renderer, seed)
         self.port = port
         self.rtu = rtu
         self.tcp_address: tuple[str, int] | None = None
@@ -270,9 +288,10 @@ def fast_axis_config() -> AxisConfig:
     return AxisConfig(default_speed=10.0, accel=1000.0, home_speed=10.0)
 
 
-async def serve_forever(port: int = 5020, *, seed: int = 0, print_fn=print) -> None:
-    """Run a :class:`SimBench` until cancelled (the body of ``i4cal sim-bench``)."""
-    bench = SimBench(port=port, axis_config=fast_axis_config(), seed=seed)
+async def serve_forever(port: int = 5020, *, seed: int = 0, watchdog_s: float = 0.5, print_fn=print) -> None:
+    """Run a :class:`SimBench` until cancelled (the body of ``i4cal sim-bench``); ``watchdog_s``: the
+    controller's communication watchdog (s, 0 = off)."""
+    bench = SimBench(port=port, axis_config=fast_axis_config(), seed=seed, watchdog_s=watchdog_s)
     await bench.start()
     try:
         for k, v in bench.uris().items():

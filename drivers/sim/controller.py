@@ -6,10 +6,19 @@ TCP on loopback (``ModbusTcpServer``) or with RTU framing over a socket (``Modbu
 shared :class:`~drivers.sim.mechanism.Mechanism` up to date, refreshes the read-only registers
 (status, actual position, alarm code) and applies the control bits of a write.
 
+As strict as a real drive: a write of one register (FC6) is answered with the exact echo of the
+request (pymodbus builds that reply by reading the register back after the write, and the control
+register clears itself, so it would echo 0); a request for a unit id the controller does not serve is
+answered with exception 0x0B (gateway target failed to respond) and an unsupported function with 0x01,
+without a traceback; the communication watchdog (``watchdog_s``, 0 = off) that stops a move when no
+request came for ``watchdog_s`` puts the stopped axes in alarm :data:`ALARM_WATCHDOG`, so that nobody
+reads "in position, no alarm" at a position that is not the target.
+
 Fault injection (:class:`Faults`, for tests): exception replies, dropped replies, a cut connection,
-and, through :class:`DelayProxy` (a small TCP proxy in front of the server), delayed replies.
-Delays are not injected by sleeping inside an action: the server keeps one pending PDU per
-connection and a reply delayed there can leave with the next request's transaction id.
+and, through :class:`DelayProxy` or :mod:`drivers.sim.faultproxy` (TCP proxies in front of the
+server), delayed, dropped, duplicated replies and a gateway sharing one serial line. Delays are not
+injected by sleeping inside an action: the server keeps one pending PDU per connection and a reply
+delayed there can leave with the next request's transaction id.
 """
 
 from __future__ import annotations
@@ -24,10 +33,56 @@ from pymodbus.constants import ExcCodes
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from ..registermap import DEFAULT_MAP, RegisterMap
+from ..registermap import ALARM_WATCHDOG, DEFAULT_MAP, RegisterMap
 from .mechanism import Mechanism
 
 log = logging.getLogger(__name__)
+
+__all__ = ["ALARM_WATCHDOG", "AsciiServer", "DelayProxy", "Faults", "SimController", "StrictContext"]
+
+
+class StrictContext:
+    """The server's datastore as a real drive answers: FC6 echoed exactly, unknown units refused with 0x0B
+    (gateway target failed to respond; pymodbus' own path for them logs an error with a frame dump, or a
+    traceback for SimDevice servers), unsupported functions with 0x01. Wraps pymodbus' ``SimCore``."""
+
+    def __init__(self, core) -> None:
+        self.core = core
+        self._echo: tuple[int, int, list[int]] | None = None
+
+    def device_ids(self) -> list[int]:
+        return self.core.device_ids()
+
+    def _unknown(self, device_id: int) -> bool:
+        if device_id in self.core.devices:
+            return False
+        log.debug("request for unit %d, which this controller does not serve: exception 0x0B", device_id)
+        return True
+
+    async def async_setValues(self, device_id: int, func_code: int, address: int, values):
+        self._echo = None
+        if self._unknown(device_id):
+            return ExcCodes.GATEWAY_NO_RESPONSE
+        request = [int(v) for v in (values if isinstance(values, list) else [values])]  # before the action edits it
+        try:
+            rc = await self.core.async_setValues(device_id, func_code, address, values)
+        except AttributeError:  # "Datastore, not supported function code"
+            return ExcCodes.ILLEGAL_FUNCTION
+        if func_code == 6 and rc is None:
+            # pymodbus answers FC6 with the register read back after the write; a drive echoes the request
+            self._echo = (device_id, address, request)
+        return rc
+
+    async def async_getValues(self, device_id: int, func_code: int, address: int, count: int = 1):
+        if self._unknown(device_id):
+            return ExcCodes.GATEWAY_NO_RESPONSE
+        echo, self._echo = self._echo, None
+        if func_code == 6 and echo is not None and echo[:2] == (device_id, address):
+            return echo[2]
+        try:
+            return await self.core.async_getValues(device_id, func_code, address, count)
+        except AttributeError:
+            return ExcCodes.ILLEGAL_FUNCTION
 
 
 @dataclass
@@ -37,6 +92,7 @@ class Faults:
     exception_code: int = 0  # reply with this Modbus exception code ...
     exception_count: int = 0  # ... to this many requests
     drop_replies: int = 0  # swallow this many replies
+    duplicate_replies: int = 0  # send this many replies twice
 
 
 def apply_control(ax, bits: int, target_m: float, speed_m_s: float, now: float, cb) -> None:
@@ -73,12 +129,15 @@ class SimController:
     """Modbus front end of a :class:`Mechanism` for one register map."""
 
     def __init__(self, mechanism: Mechanism, regmap: RegisterMap = DEFAULT_MAP, watchdog_s: float = 0.5) -> None:
+        if watchdog_s < 0:
+            raise ValueError(f"watchdog_s must be >= 0 (0 = off), got {watchdog_s}")
         self.mechanism = mechanism
-        self.watchdog_s = watchdog_s
+        self.watchdog_s = float(watchdog_s)
         self._watchdog_task: asyncio.Task | None = None
         self.map = regmap
         self.faults = Faults()
         self.requests = 0
+        self.writes = 0  # write requests that reached an axis (FC6/FC16)
         self._servers: list = []
         # unit -> list of (axis index, offset)
         self._units: dict[int, list[tuple[int, int]]] = {}
@@ -123,6 +182,8 @@ class SimController:
 
     def _action(self, axes, fc, start_address, address, count, registers, set_values) -> ExcCodes | None:
         self.requests += 1
+        if set_values is not None:
+            self.writes += 1
         self.mechanism.last_contact = self.mechanism.clock()
         f = self.faults
         if f.exception_count > 0:
@@ -174,6 +235,9 @@ class SimController:
         if sending and self.faults.drop_replies > 0:
             self.faults.drop_replies -= 1
             return b""
+        if sending and self.faults.duplicate_replies > 0:
+            self.faults.duplicate_replies -= 1
+            return data + data
         return data
 
     def cut_connections(self) -> int:
@@ -187,17 +251,24 @@ class SimController:
         return n
 
     async def _watchdog(self) -> None:
-        """Communication watchdog: a move with no request from the master for ``watchdog_s`` is stopped."""
+        """Communication watchdog: a move with no request from the master for ``watchdog_s`` is stopped, and
+        the axes it stopped go into alarm :data:`ALARM_WATCHDOG` (cleared by an alarm reset)."""
         mech = self.mechanism
         while True:
             await asyncio.sleep(min(0.05, self.watchdog_s / 4))
             now = mech.update()
             if now - mech.last_contact > self.watchdog_s:
                 with mech.lock:
-                    for ax in mech.axes:
+                    for i, ax in enumerate(mech.axes):
                         if ax.moving:
-                            log.warning("watchdog: no request for %.2f s during a move; stopping", self.watchdog_s)
+                            log.warning(
+                                "watchdog: no request for %.2f s during a move; axis %d stopped in alarm 0x%02X",
+                                self.watchdog_s,
+                                i + 1,
+                                ALARM_WATCHDOG,
+                            )
                             ax.stop(now)
+                            ax.alarm_code = ALARM_WATCHDOG
 
     def _start_watchdog(self) -> None:
         if self.watchdog_s and self._watchdog_task is None:
@@ -209,6 +280,7 @@ class SimController:
         if port == 0:
             port = _free_port(host)
         srv = ModbusTcpServer(self.devices(), address=(host, port), trace_packet=self._trace_packet)
+        srv.context = StrictContext(srv.context)
         await srv.serve_forever(background=True)
         self._servers.append(srv)
         self._start_watchdog()
@@ -223,6 +295,7 @@ class SimController:
         srv = ModbusSerialServer(
             self.devices(), framer=FramerType.RTU, port=port, baudrate=baudrate, trace_packet=self._trace_packet
         )
+        srv.context = StrictContext(srv.context)
         await srv.serve_forever(background=True)
         self._servers.append(srv)
         self._start_watchdog()

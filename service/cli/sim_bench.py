@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import sys
 
 
 def register(subparsers) -> None:
@@ -19,15 +20,28 @@ def register(subparsers) -> None:
     )
     p.add_argument("--port", type=int, default=5020, help="Modbus TCP port (default 5020)")
     p.add_argument("--seed", type=int, default=0, help="seed of encoder and image noise")
+    p.add_argument(
+        "--watchdog-s",
+        type=float,
+        default=0.5,
+        metavar="S",
+        help=(
+            "communication watchdog: a move with no Modbus request for S seconds is stopped and the axis goes "
+            "into alarm 0x50 (default 0.5; 0 = off)"
+        ),
+    )
     p.set_defaults(handler=_run)
 
 
 def _run(args: argparse.Namespace) -> int:
+    if args.watchdog_s < 0:
+        print("i4cal sim-bench: --watchdog-s must be >= 0 (0 = off)", file=sys.stderr)
+        return 2
     from drivers.sim.bench import serve_forever
 
     def out(line: str) -> None:
         print(line, flush=True)
 
     with contextlib.suppress(KeyboardInterrupt):
-        asyncio.run(serve_forever(args.port, seed=args.seed, print_fn=out))
+        asyncio.run(serve_forever(args.port, seed=args.seed, watchdog_s=args.watchdog_s, print_fn=out))
     return 0

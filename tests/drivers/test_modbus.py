@@ -190,7 +190,8 @@ async def test_free_drives_still_read_encoders(bench):
         await act.set_free(True)
         st = await act.status()
         assert all(a.free for a in st.axes) and not any(a.ready for a in st.axes)
-        bench.mechanism.axes[0].pos = 0.123  # someone pushes the free axis
+        bench.mechanism.axes[0].pos = 0.123  # someone pushes the free axis (0.18 m in 50 ms: 3.6 m/s, plausible)
+        await asyncio.sleep(0.05)
         assert (await act.read_encoders())[0] == pytest.approx(0.123, abs=3e-6)
         with pytest.raises(Exception, match="free"):
             await act.move(Q_A)
