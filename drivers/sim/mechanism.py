@@ -6,7 +6,12 @@ and reports their encoders, the camera renders the true mechanism at the axes' *
 
 Motion is evaluated lazily from a monotonic clock (no background task): a trapezoidal profile
 (speed and acceleration) from the position at the start command to the target. Encoders are
-quantised to the controller's counts with a little Gaussian noise (seeded).
+quantised to the controller's counts with a little Gaussian noise, a repeatable function of the seed,
+the axis and its true position (like a real encoder's interpolation error): what a frame records does
+not depend on how often, or when, the encoders were polled before it.
+
+The simulated operator's guided line is driven by the acquisition's own sampling, not by the wall
+clock (:meth:`Mechanism.begin_line`): the recorded line is the same whatever the scheduling.
 """
 
 from __future__ import annotations
@@ -194,6 +199,9 @@ class _Guide:
     t0: float
     q: np.ndarray  # (samples, 4) true joint values along the ruler
     rate_hz: float
+    k: int = 0  # the mark the operator holds the ruler at
+    grabbed: bool = False  # a frame was taken at mark k
+    read: set[int] = field(default_factory=set)  # axes whose encoders were read since that frame
 
 
 class Mechanism:
@@ -212,6 +220,7 @@ class Mechanism:
         q0 = np.asarray(initial_q if initial_q is not None else [0.3, 0.3, 0.3, 0.3], dtype=float)
         self.axes = [SimAxis(config=AxisConfig(**cfg.__dict__), pos=float(q), target=float(q)) for q in q0]
         self.clock = clock
+        self.seed = int(seed)
         self.rng = np.random.default_rng(seed)
         self.lock = threading.RLock()
         self._guide: _Guide | None = None
@@ -221,19 +230,23 @@ class Mechanism:
     def update(self) -> float:
         now = self.clock()
         with self.lock:
-            g = self._guide
-            if g is not None:
-                k = int(min(max((now - g.t0) * g.rate_hz, 0), len(g.q) - 1))
-                for i, ax in enumerate(self.axes):
-                    if ax.free:
-                        ax.pos = float(g.q[k, i])
-                        ax.target = ax.pos
-                        c = ax.config
-                        if not c.hard_min <= ax.pos <= c.hard_max:
-                            ax.alarm_code = ALARM_HARD_LIMIT
+            self._guide_axes()
             for ax in self.axes:
                 ax.update(now)
         return now
+
+    def _guide_axes(self) -> None:
+        """The free axes follow the operator's ruler at its current mark (with the lock held)."""
+        g = self._guide
+        if g is None:
+            return
+        for i, ax in enumerate(self.axes):
+            if ax.free:
+                ax.pos = float(g.q[g.k, i])
+                ax.target = ax.pos
+                c = ax.config
+                if not c.hard_min <= ax.pos <= c.hard_max:
+                    ax.alarm_code = ALARM_HARD_LIMIT
 
     def q_true(self) -> np.ndarray:
         self.update()
@@ -245,16 +258,56 @@ class Mechanism:
         return dkm(self.geometry.truth, self.q_true() if q is None else q)
 
     def encoder_m(self, axis: int) -> float:
-        """Encoder reading (metres, before quantisation to counts) of axis 0..3."""
-        ax = self.axes[axis]
-        return ax.pos + (self.rng.normal(0.0, ax.config.encoder_noise_m) if ax.config.encoder_noise_m else 0.0)
+        """Encoder reading (metres, before quantisation to counts) of axis 0..3.
+
+        The noise is a repeatable function of (seed, axis, true position): reading the same still axis
+        twice gives the same value, and the value does not depend on the number of reads before.
+        While the operator guides the line, a read of an axis already read since the last frame means
+        the acquisition has moved on to its next sample: the operator first moves the ruler to the next
+        mark (:meth:`begin_line`).
+        """
+        with self.lock:
+            g = self._guide
+            if g is not None and g.grabbed:
+                if axis in g.read and g.k < len(g.q) - 1:
+                    g.k += 1
+                    g.grabbed = False
+                    g.read = set()
+                    self._guide_axes()
+                elif g.grabbed:
+                    g.read.add(axis)
+            ax = self.axes[axis]
+            pos = ax.pos
+        sigma = ax.config.encoder_noise_m
+        if not sigma:
+            return pos
+        bits = int(np.float64(pos).view(np.uint64))
+        rng = np.random.default_rng([self.seed, axis, bits >> 32, bits & 0xFFFFFFFF])
+        return pos + float(rng.normal(0.0, sigma))
+
+    def frame_taken(self) -> None:
+        """The camera took a frame (the frame server calls this after rendering): during a guided line, the
+        operator holds the ruler at its mark until the encoders have been read back after this frame."""
+        with self.lock:
+            g = self._guide
+            if g is not None:
+                g.grabbed = True
+                g.read = set()
 
     # -- operator -------------------------------------------------------------------------------
     def begin_line(self, start_pose, end_pose, samples: int, rate_hz: float) -> None:
         """The simulated operator guides the free end-effector along a truly straight ruler.
 
-        Pose k of the line (true geometry IKM) is held during [k, k+1) / rate_hz from now: a sampler
-        at (k + 1/2) / rate_hz sees pose k.
+        The ruler has ``samples`` marks (poses of the line, true geometry IKM). The operator holds it at
+        mark k until the camera has taken a frame there (:meth:`frame_taken`) and the encoders have been
+        read back after it (every axis read once); the next encoder read of an axis already read is the
+        acquisition's next sample, and the operator has moved to mark k + 1 by then. The acquisition reads
+        the encoders, grabs, reads them again (stillness check) per sample, so sample k records mark k
+        whatever the scheduling (a wall-clock operator, pose k during [k, k+1) / rate_hz, made the
+        recorded line depend on how late each sample came: up to one mark, 10 mm, apart between runs).
+        ``rate_hz`` is the acquisition's pace, which the operator follows. Deterministic as long as the
+        acquisition is the only client polling the encoders during the line, and each of its encoder reads
+        reads every axis once (the Modbus driver with one unit per axis, the serial ASCII driver).
         """
         s = np.linspace(0.0, 1.0, int(samples))[:, None]
         poses = (1 - s) * np.asarray(start_pose, float) + s * np.asarray(end_pose, float)

@@ -30,7 +30,11 @@ def _quick(args: argparse.Namespace, con) -> dict:
     return to_jsonable(calibrate(obs))
 
 
-async def _acquire(out: Path, seed: int, con) -> Path:
+#: the hidden ``--small`` option's plan sizes (a reduced paper plan for the reproducibility test)
+SMALL_PLAN = {"n_base": 3, "n_fit": 5, "n_lock": 1, "n_validation": 3, "line_samples": 4}
+
+
+async def _acquire(out: Path, seed: int, con, small: bool = False) -> Path:
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
     from calib.plan import make_plan
@@ -41,7 +45,7 @@ async def _acquire(out: Path, seed: int, con) -> Path:
     async with SimBench(port=0, seed=seed) as bench:
         cfg = bench.bench_config()
         con.print(f"   simulated controller at [bold]{bench.actuators_uri}[/bold], camera at {bench.camera_uri}")
-        plan = make_plan("full", cfg.nominal_parameters(), seed=seed)
+        plan = make_plan("full", cfg.nominal_parameters(), seed=seed, **(SMALL_PLAN if small else {}))
         cam = bench.renderer.camera if hasattr(bench.renderer, "camera") else None
         spec = {"K": cam.K.tolist(), "dist": list(map(float, cam.dist))} if cam is not None else {}
         truth = GeometricTwin(bench.geometry).truth_dict()
@@ -76,7 +80,7 @@ def _full(args: argparse.Namespace, con) -> dict:
         "1. acquisition on the simulated bench over Modbus TCP (loopback): the paper's full plan, "
         "camera frames rendered by the image-level twin"
     )
-    asyncio.run(_acquire(ds, args.seed, con))
+    asyncio.run(_acquire(ds, args.seed, con, small=getattr(args, "small", False)))
     con.print("2. extraction: ChArUco board poses and the eight rods in every frame (both cores)")
     with Progress(
         TextColumn("   extracting"),
@@ -119,4 +123,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--quick", action="store_true", help="geometric twin only (no images, about a second)")
     p.add_argument("--out", help="keep the dataset and observations in this directory")
+    # a reduced plan (fewer poses, a 9-sample line): tests only
+    p.add_argument("--small", action="store_true", help=argparse.SUPPRESS)
     p.set_defaults(handler=handler)

@@ -31,14 +31,18 @@ def handler(args: argparse.Namespace) -> int:
     from rich.console import Console
 
     from calib.observations import Observations
+    from calib.plan import make_plan
     from drivers.sim.twin import GeometricTwin
 
     con = Console(stderr=True)
     out = Path(args.out)
+    plan_name = getattr(args, "plan", "full")
     if args.images:
         from drivers.sim.imaging import simulate_dataset
+        from drivers.sim.twin import BenchGeometry
 
-        path = simulate_dataset(out, seed=args.seed)
+        plan = make_plan(plan_name, BenchGeometry().nominal, seed=args.seed) if plan_name != "full" else None
+        path = simulate_dataset(out, seed=args.seed, plan=plan, n_camera_views=getattr(args, "camera_views", 15))
         con.print(f"wrote dataset [bold]{path}[/bold]")
         return 0
     if out.is_dir():
@@ -46,7 +50,8 @@ def handler(args: argparse.Namespace) -> int:
 
         raise InputError("--out: is a directory; give an observations file (or --images for a dataset)", file=str(out))
     twin = GeometricTwin(noise=noise_from_args(args))
-    doc = twin.observations(seed=args.seed)
+    plan = make_plan(plan_name, twin.geometry.nominal, seed=args.seed) if plan_name != "full" else None
+    doc = twin.observations(plan=plan, seed=args.seed)
     Observations.from_dict(doc)  # validate what we write
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(doc, indent=1), encoding="utf-8")
@@ -77,6 +82,10 @@ def add_noise_args(p: argparse.ArgumentParser) -> None:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from calib.plan import PLAN_NAMES
+
+    from ._args import non_negative_int
+
     p = sub.add_parser(
         "simulate",
         help="simulate the paper's acquisition on the digital twin",
@@ -86,5 +95,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", "-o", required=True, help="output observations file (or dataset directory with --images)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--images", action="store_true", help="render camera images and write a dataset directory")
+    p.add_argument(
+        "--plan",
+        choices=PLAN_NAMES,
+        default="full",
+        help="the plan to simulate (default: full, the paper's; the others are its phases)",
+    )
+    p.add_argument(
+        "--camera-views",
+        type=non_negative_int,
+        default=15,
+        metavar="N",
+        help="with --images: board views of the 'camera' phase, for the intrinsic calibration (default 15; 0: none)",
+    )
     add_noise_args(p)
     p.set_defaults(handler=handler)
