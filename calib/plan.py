@@ -23,13 +23,21 @@ from .parameters import I4Parameters
 PLAN_FORMAT = "i4cal.plan/1"
 PLAN_NAMES = ("full", "rotation-sweep", "equal-translation", "pose-set", "lock-actuator", "line", "validation")
 
+#: Size bounds of a plan, checked before any computation on its steps (a plan is user input: the service validates
+#: inline plans of requests). At most this many steps per plan,
+MAX_PLAN_STEPS = 10_000
+#: this many samples per guided line,
+MAX_LINE_SAMPLES = 10_000
+#: and this many frames in all (a ``q`` step is one frame, a line step ``samples`` frames).
+MAX_PLAN_FRAMES = 100_000
+
 Vec4 = Annotated[list[float], Field(min_length=4, max_length=4)]
 
 
 class Workspace(BaseModel):
     """Box of poses used to draw plans (metres; T in metres of the rack)."""
 
-    model_config = ConfigDict(frozen=True)
+    model_config = ConfigDict(frozen=True, allow_inf_nan=False)
     X: tuple[float, float] = (0.75, 1.15)
     Y: tuple[float, float] = (-0.12, 0.12)
     Z: tuple[float, float] = (-0.78, -0.55)
@@ -43,7 +51,7 @@ class Workspace(BaseModel):
 class SoftLimits(BaseModel):
     """Per-axis soft limits on encoder values, metres."""
 
-    model_config = ConfigDict(frozen=True)
+    model_config = ConfigDict(frozen=True, allow_inf_nan=False)
     q_min: Vec4 = [-0.10, -0.10, -0.10, -0.10]
     q_max: Vec4 = [0.80, 0.80, 0.80, 0.80]
 
@@ -51,16 +59,17 @@ class SoftLimits(BaseModel):
 class LineSpec(BaseModel):
     """A guided straight line: on a real bench the drives are free and an operator follows a ruler."""
 
+    model_config = ConfigDict(allow_inf_nan=False)
     start_pose: Vec4
     end_pose: Vec4
-    samples: int = Field(51, ge=3)
+    samples: int = Field(51, ge=3, le=MAX_LINE_SAMPLES)
     rate_hz: float = Field(10.0, gt=0)
 
 
 class Step(BaseModel):
     """One plan step: move to ``q`` and record a frame, or record a guided line."""
 
-    model_config = ConfigDict(extra="allow")
+    model_config = ConfigDict(extra="allow", allow_inf_nan=False)
     phase: Literal[
         "rotation", "translation", "poses", "lock-1", "lock-2", "lock-3", "lock-4", "line", "validation", "camera"
     ]
@@ -69,10 +78,10 @@ class Step(BaseModel):
 
 
 class Plan(BaseModel):
-    model_config = ConfigDict(extra="allow")
+    model_config = ConfigDict(extra="allow", allow_inf_nan=False)
     format: Literal["i4cal.plan/1"] = PLAN_FORMAT
     name: str
-    steps: list[Step]
+    steps: list[Step] = Field(max_length=MAX_PLAN_STEPS)
 
     def count(self) -> dict[str, int]:
         out: dict[str, int] = {}
@@ -89,8 +98,19 @@ class Plan(BaseModel):
 
     @classmethod
     def from_dict(cls, data: Any, source: str | None = None) -> Plan:
+        """Validate a plan document: its size first (:data:`MAX_PLAN_STEPS`, :data:`MAX_LINE_SAMPLES`,
+        :data:`MAX_PLAN_FRAMES`), then every field (finite numbers only).
+
+        Raises
+        ------
+        InputError
+            Names the step (as ``frame``) and the field, e.g. ``line.samples`` or ``q[2]``.
+        """
+        steps = data.get("steps") if isinstance(data, dict) else None
+        if isinstance(steps, list) and len(steps) > MAX_PLAN_STEPS:
+            raise InputError(f"{len(steps)} steps, at most {MAX_PLAN_STEPS} per plan", file=source, field="steps")
         try:
-            return cls.model_validate(data)
+            plan = cls.model_validate(data)
         except ValidationError as exc:
             err = exc.errors()[0]
             loc = list(err["loc"])
@@ -98,47 +118,152 @@ class Plan(BaseModel):
             if len(loc) >= 2 and loc[0] == "steps" and isinstance(loc[1], int):
                 frame = loc[1]
                 loc = loc[2:]
-            raise InputError(err["msg"], file=source, frame=frame, field=".".join(map(str, loc)) or None) from None
+            raise InputError(err["msg"], file=source, frame=frame, field=_field_name(loc)) from None
+        check_plan_size(plan, source)
+        return plan
 
 
-def validate_plan(plan: Plan, nominal: I4Parameters, limits: SoftLimits | None = None) -> None:
-    """Check every step against soft limits and the nominal model before anything moves.
+def _field_name(loc: list[Any]) -> str | None:
+    """``["line", "start_pose", 2]`` -> ``"line.start_pose[2]"`` (the form of the limit checks' ``q[3]``)."""
+    out = ""
+    for part in loc:
+        out += f"[{part}]" if isinstance(part, int) else (f".{part}" if out else str(part))
+    return out or None
+
+
+def check_plan_size(plan: Plan, source: str | None = None) -> int:
+    """The plan's number of frames, after checking its size bounds (cheap: no kinematics).
 
     Raises
     ------
     InputError
-        Names the step (as ``frame``), the axis and by how much a limit is exceeded, or why
-        the nominal model cannot reach it.
+        More than :data:`MAX_PLAN_STEPS` steps, a line of more than :data:`MAX_LINE_SAMPLES` samples, or more than
+        :data:`MAX_PLAN_FRAMES` frames in all (names the step at which the budget is exceeded).
     """
-    limits = limits or SoftLimits()
-    lo = np.asarray(limits.q_min)
-    hi = np.asarray(limits.q_max)
+    if len(plan.steps) > MAX_PLAN_STEPS:
+        raise InputError(f"{len(plan.steps)} steps, at most {MAX_PLAN_STEPS} per plan", file=source, field="steps")
+    total = 0
     for i, step in enumerate(plan.steps):
-        if step.line is not None:
-            try:
-                qs = ikm(nominal, _line_poses(step.line))
-            except UnreachableError as exc:
-                raise InputError(
-                    f"guided line not reachable by the nominal model: {exc}", frame=i, field="line"
-                ) from None
-        elif step.q is not None:
-            qs = np.asarray(step.q, dtype=np.float64)[None, :]
-        else:
-            raise InputError("a step needs 'q' or 'line'", frame=i, field="q")
-        for qv in qs:
-            for ax in range(4):
-                if qv[ax] < lo[ax] or qv[ax] > hi[ax]:
-                    bound = lo[ax] if qv[ax] < lo[ax] else hi[ax]
-                    raise InputError(
-                        f"q{ax + 1} = {qv[ax] * 1e3:.3f} mm is outside the soft limits "
-                        f"[{lo[ax] * 1e3:.1f}, {hi[ax] * 1e3:.1f}] mm by {abs(qv[ax] - bound) * 1e3:.3f} mm",
-                        frame=i,
-                        field=f"q[{ax}]",
-                    )
-            try:
-                dkm(nominal, qv)
-            except UnreachableError as exc:
-                raise InputError(f"not reachable by the nominal model: {exc}", frame=i, field="q") from None
+        n = step.line.samples if step.line is not None else 1
+        if n > MAX_LINE_SAMPLES:
+            raise InputError(
+                f"{n} samples, at most {MAX_LINE_SAMPLES} per line", file=source, frame=i, field="line.samples"
+            )
+        total += n
+        if total > MAX_PLAN_FRAMES:
+            raise InputError(
+                f"the plan reaches {total} frames at this step, at most {MAX_PLAN_FRAMES} per plan",
+                file=source,
+                frame=i,
+                field="line.samples" if step.line is not None else "steps",
+            )
+    return total
+
+
+def validate_plan(plan: Plan, nominal: I4Parameters, limits: SoftLimits | None = None) -> None:
+    """Check the plan's size (:func:`check_plan_size`), then every step against soft limits and the nominal model
+    before anything moves. The joint vectors of all steps are checked together (vectorised: a plan at its size
+    bounds validates in a fraction of a second); the first step found wrong is then checked alone for the message.
+
+    Raises
+    ------
+    InputError
+        Names the step (as ``frame``), the axis and by how much a limit is exceeded, a value that is not a finite
+        number, or why the nominal model cannot reach it.
+    """
+    check_plan_size(plan)
+    limits = limits or SoftLimits()
+    lo = np.asarray(limits.q_min, dtype=np.float64)
+    hi = np.asarray(limits.q_max, dtype=np.float64)
+    first = _first_bad_step(plan, nominal, lo, hi)
+    if first is not None:
+        _check_step(first, plan.steps[first], nominal, lo, hi)
+        # not reached when the batch and the single step agree (same functions); else: step by step
+        for i, step in enumerate(plan.steps):
+            _check_step(i, step, nominal, lo, hi)
+
+
+def _step_joints(step: Step, nominal: I4Parameters) -> np.ndarray:
+    """Joint targets of a step, shape (n, 4), metres (a line's samples through the nominal IKM)."""
+    if step.line is not None:
+        return ikm(nominal, _line_poses(step.line)).reshape(-1, 4)
+    if step.q is not None:
+        return np.asarray(step.q, dtype=np.float64).reshape(1, 4)
+    raise InputError("a step needs 'q' or 'line'", field="q")
+
+
+def _first_bad_step(plan: Plan, nominal: I4Parameters, lo: np.ndarray, hi: np.ndarray) -> int | None:
+    """Index of the first step that fails a check (None: all pass), all steps' joint vectors checked at once."""
+    rows: list[np.ndarray] = []
+    owner: list[np.ndarray] = []
+    cand: int | None = None
+    for i, step in enumerate(plan.steps):
+        try:
+            qs = _step_joints(step, nominal)
+        except (InputError, UnreachableError):
+            cand = i  # every later step comes after it: no need to look at them
+            break
+        rows.append(qs)
+        owner.append(np.full(len(qs), i))
+    if not rows:
+        return cand
+    qa = np.concatenate(rows)
+    own = np.concatenate(owner)
+    bad = ~np.all(np.isfinite(qa), axis=1) | np.any((qa < lo) | (qa > hi), axis=1)
+    n = int(np.argmax(bad)) if bad.any() else len(qa)  # rows before n pass the cheap checks
+    if n > 0 and not _reachable(nominal, qa[:n]):
+        lo_n, hi_n = 0, n  # the shortest unreachable prefix: qa[:hi_n] fails, qa[:lo_n] passes
+        while hi_n - lo_n > 1:
+            mid = (lo_n + hi_n) // 2
+            lo_n, hi_n = (mid, hi_n) if _reachable(nominal, qa[:mid]) else (lo_n, mid)
+        n = hi_n - 1
+    if n < len(qa):
+        return int(own[n]) if cand is None else min(int(own[n]), cand)
+    return cand
+
+
+def _reachable(nominal: I4Parameters, Q: np.ndarray) -> bool:
+    try:
+        dkm(nominal, Q)
+    except UnreachableError:
+        return False
+    return True
+
+
+def _check_step(i: int, step: Step, nominal: I4Parameters, lo: np.ndarray, hi: np.ndarray) -> None:
+    """Check one step; :class:`InputError` names the step ``i``, the field and what is wrong."""
+    if step.line is not None:
+        for key in ("start_pose", "end_pose"):
+            v = np.asarray(getattr(step.line, key), dtype=np.float64)
+            if not np.all(np.isfinite(v)):
+                ax = int(np.flatnonzero(~np.isfinite(v))[0])
+                raise InputError(f"{v[ax]} is not a finite number", frame=i, field=f"line.{key}[{ax}]")
+        try:
+            qs = ikm(nominal, _line_poses(step.line))
+        except UnreachableError as exc:
+            raise InputError(f"guided line not reachable by the nominal model: {exc}", frame=i, field="line") from None
+    elif step.q is not None:
+        qs = np.asarray(step.q, dtype=np.float64)[None, :]
+        if not np.all(np.isfinite(qs)):
+            ax = int(np.flatnonzero(~np.isfinite(qs[0]))[0])
+            raise InputError(f"{qs[0, ax]} is not a finite number", frame=i, field=f"q[{ax}]")
+    else:
+        raise InputError("a step needs 'q' or 'line'", frame=i, field="q")
+    out = (qs < lo) | (qs > hi)
+    if out.any():
+        k, ax = (int(v) for v in np.argwhere(out)[0])
+        qv = qs[k]
+        bound = lo[ax] if qv[ax] < lo[ax] else hi[ax]
+        raise InputError(
+            f"q{ax + 1} = {qv[ax] * 1e3:.3f} mm is outside the soft limits "
+            f"[{lo[ax] * 1e3:.1f}, {hi[ax] * 1e3:.1f}] mm by {abs(qv[ax] - bound) * 1e3:.3f} mm",
+            frame=i,
+            field=f"q[{ax}]",
+        )
+    try:
+        dkm(nominal, qs)
+    except UnreachableError as exc:
+        raise InputError(f"not reachable by the nominal model: {exc}", frame=i, field="q") from None
 
 
 def _line_poses(line: LineSpec) -> np.ndarray:

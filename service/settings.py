@@ -10,6 +10,7 @@
     sim_bench = false                    # start a simulated bench (its own process) on loopback
     open_reads = true                    # GET endpoints without a token
     token_hashes = []                    # sha256 hex of accepted bearer tokens (`i4cal token create` stores more)
+    allowed_hosts = ["127.0.0.1", "localhost", "[::1]"]  # Host header values answered (+ host if one address)
 
 Environment: ``I4CAL_DATA_DIR``, ``I4CAL_PORT``, ``I4CAL_OPEN_READS``, ... (nested: ``I4CAL_PLAN_SIZES__N_FIT``).
 """
@@ -69,6 +70,17 @@ class Settings(BaseSettings):
     max_upload_bytes: int = Field(512 * 1024 * 1024, gt=0)
     max_unpacked_bytes: int = Field(4 * 1024 * 1024 * 1024, gt=0)
     max_archive_members: int = Field(100_000, gt=0)
+    max_json_body_bytes: int = Field(
+        4 * 1024 * 1024,
+        gt=0,
+        description="largest JSON request body (413 beyond; a plan at its size bounds takes about 1.2 MB)",
+    )
+    allowed_hosts: list[str] = Field(
+        default_factory=lambda: ["127.0.0.1", "localhost", "[::1]"],
+        description="Host header values the service answers (400 otherwise; '*.example.org' patterns, '*' any); "
+        "'host' is added when it names one address. Behind a reverse proxy or on the lab network: list the names "
+        "clients use",
+    )
     extraction_workers: int = Field(1, ge=1, le=64)
     job_niceness: int = Field(
         5,

@@ -8,6 +8,7 @@ import shutil
 import tarfile
 import tempfile
 import zipfile
+import zlib
 from datetime import datetime
 from pathlib import Path, PurePosixPath
 from typing import Annotated
@@ -48,7 +49,11 @@ def dataset_out(d: DatasetRecord) -> DatasetOut:
 
 
 class ArchiveError(ValueError):
-    pass
+    """The archive is refused (422): the message names the member."""
+
+
+class ArchiveTooLargeError(ArchiveError):
+    """The archive unpacks (or declares it unpacks) to more than ``max_unpacked_bytes`` (422, as before)."""
 
 
 def _safe_member(name: str) -> PurePosixPath | None:
@@ -66,18 +71,45 @@ def _safe_member(name: str) -> PurePosixPath | None:
     return PurePosixPath(*parts)
 
 
-def _copy_limited(src, dst_path: Path, budget: list[int]) -> None:
+#: Bytes copied per read while unpacking: at most this much past the last check is ever in memory, none on disk.
+CHUNK_BYTES = 1 << 20
+
+
+def _copy_limited(src, dst_path: Path, budget: list[int], member: str) -> None:
+    """Copy ``src`` to ``dst_path`` in chunks, counting the bytes actually read: a chunk that would take the archive
+    past its budget is refused before it is written (declared sizes are not trusted)."""
     with open(dst_path, "wb") as dst:
-        while chunk := src.read(1 << 20):
+        while chunk := src.read(CHUNK_BYTES):
+            if len(chunk) > budget[0]:
+                raise ArchiveTooLargeError(
+                    f"archive member {member[:80]!r} unpacks to more than the configured limit (max_unpacked_bytes)"
+                )
             budget[0] -= len(chunk)
-            if budget[0] < 0:
-                raise ArchiveError("archive unpacks to more than the configured limit")
             dst.write(chunk)
+
+
+def _too_large(total: int, max_bytes: int, largest: str) -> ArchiveTooLargeError:
+    return ArchiveTooLargeError(
+        f"archive declares {total} bytes unpacked, more than the configured limit of {max_bytes} "
+        f"(max_unpacked_bytes; largest member {largest[:80]!r}); nothing was unpacked"
+    )
 
 
 def unpack_archive(archive: Path, dest: Path, *, max_bytes: int, max_members: int) -> None:
     """Unpack a zip or tar(.gz) into ``dest``: regular files and directories only, no member outside ``dest``,
-    at most ``max_members`` members and ``max_bytes`` unpacked (counted while writing)."""
+    at most ``max_members`` members and ``max_bytes`` unpacked.
+
+    Every member's name and type, and the archive's declared unpacked size, are checked before anything is
+    written; then the members are copied in chunks of :data:`CHUNK_BYTES`, counting the bytes actually
+    decompressed: a chunk that would exceed ``max_bytes`` is refused before it is written, so at most ``max_bytes``
+    ever reach the disk, whatever the archive declares.
+
+    Raises
+    ------
+    ArchiveError
+        Names the member: unsafe name or type, corrupt data (bad CRC, truncated, unsupported compression,
+        encrypted), or too large (:class:`ArchiveTooLargeError`).
+    """
     dest.mkdir(parents=True, exist_ok=False)
     root = dest.resolve()
     budget = [max_bytes]
@@ -90,31 +122,46 @@ def unpack_archive(archive: Path, dest: Path, *, max_bytes: int, max_members: in
         return t
 
     if zipfile.is_zipfile(archive):
-        with zipfile.ZipFile(archive) as zf:
+        try:
+            zf = zipfile.ZipFile(archive)
+        except (zipfile.BadZipFile, OSError, EOFError, ValueError) as exc:
+            raise ArchiveError(f"broken zip archive ({exc})") from None
+        with zf:
             infos = zf.infolist()
             if len(infos) > max_members:
                 raise ArchiveError(f"archive has {len(infos)} members, more than {max_members}")
+            files: list[tuple[zipfile.ZipInfo, PurePosixPath]] = []
             for info in infos:
                 mode = (info.external_attr >> 16) & 0o170000
                 if mode and mode not in (0o100000, 0o040000):
                     raise ArchiveError(f"archive member {info.filename[:80]!r} is not a regular file")
                 rel = _safe_member(info.filename)
-                if rel is None or info.is_dir():
-                    continue
-                if info.file_size > budget[0]:
-                    raise ArchiveError("archive unpacks to more than the configured limit")
-                with zf.open(info) as src:
-                    _copy_limited(src, target(rel), budget)
+                if rel is not None and not info.is_dir():
+                    files.append((info, rel))
+            total = sum(info.file_size for info, _ in files)
+            if total > max_bytes:
+                raise _too_large(total, max_bytes, max(files, key=lambda f: f[0].file_size)[0].filename)
+            for info, rel in files:
+                try:
+                    with zf.open(info) as src:
+                        _copy_limited(src, target(rel), budget, info.filename)
+                except ArchiveError:
+                    raise
+                except (zipfile.BadZipFile, zlib.error, EOFError, OSError, NotImplementedError, RuntimeError) as exc:
+                    raise ArchiveError(
+                        f"archive member {info.filename[:80]!r} is corrupt or unreadable ({exc})"
+                    ) from None
         return
     try:
         tf = tarfile.open(archive, mode="r:*")  # noqa: SIM115 (closed by the with below)
-    except (tarfile.TarError, OSError, EOFError) as exc:
+    except (tarfile.TarError, OSError, EOFError, zlib.error) as exc:
         raise ArchiveError(f"not a zip or tar archive ({exc})") from None
     with tf:
-        n = 0
+        members: list[tuple[tarfile.TarInfo, PurePosixPath]] = []
+        total = 0
         try:
-            for m in tf:
-                n += 1
+            # first pass, headers only: names, types, declared sizes (stops as soon as the limit is passed)
+            for n, m in enumerate(tf, start=1):
                 if n > max_members:
                     raise ArchiveError(f"archive has more than {max_members} members")
                 rel = _safe_member(m.name)
@@ -122,15 +169,23 @@ def unpack_archive(archive: Path, dest: Path, *, max_bytes: int, max_members: in
                     continue
                 if not m.isfile():
                     raise ArchiveError(f"archive member {m.name[:80]!r} is not a regular file (link or device)")
-                if m.size > budget[0]:
-                    raise ArchiveError("archive unpacks to more than the configured limit")
+                total += m.size
+                if total > max_bytes:
+                    raise _too_large(total, max_bytes, m.name)
+                members.append((m, rel))
+        except (tarfile.TarError, EOFError, OSError, zlib.error) as exc:
+            raise ArchiveError(f"broken archive ({exc})") from None
+        for m, rel in members:
+            try:
                 src = tf.extractfile(m)
                 if src is None:
                     continue
                 with src:
-                    _copy_limited(src, target(rel), budget)
-        except (tarfile.TarError, EOFError, OSError) as exc:
-            raise ArchiveError(f"broken archive ({exc})") from None
+                    _copy_limited(src, target(rel), budget, m.name)
+            except ArchiveError:
+                raise
+            except (tarfile.TarError, EOFError, OSError, zlib.error) as exc:
+                raise ArchiveError(f"archive member {m.name[:80]!r} is corrupt or unreadable ({exc})") from None
 
 
 def _find_root(dest: Path) -> Path:

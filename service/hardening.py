@@ -1,0 +1,223 @@
+"""Request and response hardening of the service: strict JSON bodies, JSON-safe validation errors, a Host allow-list
+and security headers on every response (installed by :func:`install` from ``service.main.create_app``).
+
+* JSON request bodies (``application/json``, ``*+json`` or no content type, as FastAPI parses them) larger than
+  ``max_json_body_bytes`` are answered 413, and bodies holding ``NaN``, ``Infinity``, ``-Infinity`` or a number
+  beyond the float range (which Python's ``json`` would read as infinite) 422 naming the field, before any route
+  sees them. Standard JSON has no such numbers; the service never computes with them.
+* Validation errors (422) are serialised with non-finite inputs written as strings: a non-finite value in a field
+  that fails validation can no longer turn the 422 into a 500.
+* ``allowed_hosts``: requests whose ``Host`` header is not listed get 400 (Starlette's ``TrustedHostMiddleware``;
+  against DNS rebinding: a web page cannot reach the service under a name of its own).
+* Every response carries ``Content-Security-Policy`` (the dashboard needs only its own origin; the interactive API
+  docs and the calibration report have their own policies, below), ``X-Content-Type-Options: nosniff``,
+  ``X-Frame-Options: DENY`` and ``Referrer-Policy: no-referrer``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.encoders import jsonable_encoder
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.datastructures import Headers
+from starlette.middleware.trustedhost import TrustedHostMiddleware
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from .settings import Settings
+
+#: The dashboard (``/dashboard``, ``/static``) and the API: scripts, styles, images, EventSource from this origin only.
+CSP_DEFAULT = (
+    "default-src 'self'; script-src 'self'; style-src 'self'; img-src 'self' data: blob:; connect-src 'self'; "
+    "font-src 'self'; object-src 'none'; base-uri 'none'; form-action 'self'; frame-ancestors 'none'"
+)
+#: The interactive API docs (Swagger UI): its page starts the UI with an inline script and inline styles; its
+#: assets come from this origin (or, while FastAPI's default page is served, from the jsDelivr CDN it names).
+CSP_DOCS = (
+    "default-src 'self'; script-src 'self' 'unsafe-inline' https://cdn.jsdelivr.net; "
+    "style-src 'self' 'unsafe-inline' https://cdn.jsdelivr.net; img-src 'self' data: https://fastapi.tiangolo.com; "
+    "connect-src 'self'; object-src 'none'; base-uri 'none'; frame-ancestors 'none'"
+)
+#: The calibration report: one self-contained HTML file (inline styles, images as data: URIs, no script).
+CSP_REPORT = (
+    "default-src 'none'; style-src 'unsafe-inline'; img-src data:; object-src 'none'; base-uri 'none'; "
+    "form-action 'none'; frame-ancestors 'none'"
+)
+DOCS_PREFIX = "/api/v1/docs"
+_REPORT_PATH = re.compile(r"^/api/v1/runs/[0-9a-f]{32}/report$")
+
+SECURITY_HEADERS = {
+    "x-content-type-options": "nosniff",
+    "x-frame-options": "DENY",
+    "referrer-policy": "no-referrer",
+}
+
+#: A JSON number that Python's ``json`` reads as a non-finite float: a NaN/Infinity literal, or a magnitude beyond
+#: ~1.8e308 (an exponent of three digits or more, or 200+ digits before it); bodies without one are not walked.
+_MAYBE_NON_FINITE = re.compile(rb"NaN|Infinity|[eE][+-]?0*[1-9][0-9]{2}|[0-9]{200}")
+
+
+def csp_for(path: str) -> str:
+    """The Content-Security-Policy of a response to ``path``."""
+    if path == DOCS_PREFIX or path.startswith(DOCS_PREFIX + "/"):
+        return CSP_DOCS
+    if _REPORT_PATH.match(path):
+        return CSP_REPORT
+    return CSP_DEFAULT
+
+
+class SecurityHeaders:
+    """Pure ASGI middleware (streams, Server-Sent Events included, pass through untouched): adds the security
+    headers to every HTTP response that does not set them itself."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        extra = {**SECURITY_HEADERS, "content-security-policy": csp_for(scope.get("path", ""))}
+
+        async def send_with_headers(message: Message) -> None:
+            if message["type"] == "http.response.start":
+                headers = list(message.get("headers", []))
+                have = {k.lower() for k, _ in headers}
+                headers += [(k.encode(), v.encode()) for k, v in extra.items() if k.encode() not in have]
+                message = {**message, "headers": headers}
+            await send(message)
+
+        await self.app(scope, receive, send_with_headers)
+
+
+def non_finite_path(doc: Any) -> tuple[list[str | int], float] | None:
+    """The path (keys and indices) of the first non-finite float in a parsed JSON document, and the value."""
+    stack: list[tuple[list[str | int], Any]] = [([], doc)]
+    while stack:
+        path, v = stack.pop()
+        if isinstance(v, float):
+            if not math.isfinite(v):
+                return path, v
+        elif isinstance(v, dict):
+            stack.extend(([*path, k], x) for k, x in reversed(list(v.items())))
+        elif isinstance(v, list):
+            stack.extend(([*path, i], x) for i, x in reversed(list(enumerate(v))))
+    return None
+
+
+def _json_safe(v: Any) -> Any:
+    """``v`` with every non-finite float written as a string ("nan", "inf", "-inf")."""
+    if isinstance(v, float) and not math.isfinite(v):
+        return str(v)
+    if isinstance(v, dict):
+        return {k: _json_safe(x) for k, x in v.items()}
+    if isinstance(v, list | tuple):
+        return [_json_safe(x) for x in v]
+    return v
+
+
+def _json_response(status: int, content: Any) -> JSONResponse:
+    return JSONResponse(status_code=status, content=content)
+
+
+class StrictJSONBodies:
+    """Pure ASGI middleware: JSON request bodies bounded in size (413) and free of non-finite numbers (422 naming the
+    field, FastAPI's error format); other bodies (archive uploads) pass through unread."""
+
+    METHODS = ("POST", "PUT", "PATCH", "DELETE")
+
+    def __init__(self, app: ASGIApp, max_bytes: int) -> None:
+        self.app = app
+        self.max_bytes = max_bytes
+
+    @staticmethod
+    def _is_json(scope: Scope) -> bool:
+        ctype = Headers(scope=scope).get("content-type")
+        if not ctype:
+            return True  # FastAPI parses a body without a content type as JSON
+        main = ctype.split(";")[0].strip().lower()
+        return main == "application/json" or (main.startswith("application/") and main.endswith("+json"))
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or scope["method"] not in self.METHODS or not self._is_json(scope):
+            await self.app(scope, receive, send)
+            return
+        too_large = _json_response(
+            413,
+            {"detail": f"JSON body larger than {self.max_bytes} bytes (max_json_body_bytes)"},
+        )
+        clen = Headers(scope=scope).get("content-length")
+        if clen is not None and clen.isdigit() and int(clen) > self.max_bytes:
+            await too_large(scope, receive, send)
+            return
+        chunks: list[bytes] = []
+        size = 0
+        while True:
+            message = await receive()
+            if message["type"] == "http.disconnect":
+                return
+            chunk = message.get("body", b"")
+            size += len(chunk)
+            if size > self.max_bytes:
+                await too_large(scope, receive, send)
+                return
+            chunks.append(chunk)
+            if not message.get("more_body", False):
+                break
+        body = b"".join(chunks)
+        if _MAYBE_NON_FINITE.search(body):
+            try:
+                doc = json.loads(body)
+            except (ValueError, RecursionError):
+                doc = None  # not JSON: FastAPI reports it
+            found = non_finite_path(doc)
+            if found is not None:
+                path, value = found
+                err = {
+                    "type": "finite_number",
+                    "loc": ["body", *path],
+                    "msg": "Input should be a finite number (NaN and Infinity are not JSON numbers)",
+                    "input": str(value),
+                }
+                await _json_response(422, {"detail": [err]})(scope, receive, send)
+                return
+        replayed = False
+
+        async def replay() -> Message:
+            nonlocal replayed
+            if not replayed:
+                replayed = True
+                return {"type": "http.request", "body": body, "more_body": False}
+            return await receive()
+
+        await self.app(scope, replay, send)
+
+
+async def validation_error_handler(request: Request, exc: RequestValidationError) -> JSONResponse:
+    """FastAPI's 422 (``{"detail": [{"loc", "msg", "type", "input", ...}]}``), non-finite inputs as strings."""
+    return _json_response(422, {"detail": _json_safe(jsonable_encoder(exc.errors()))})
+
+
+def allowed_hosts(settings: Settings) -> list[str]:
+    """The Host allow-list: ``allowed_hosts``, plus ``host`` when the service binds one specific address."""
+    hosts = list(settings.allowed_hosts)
+    h = settings.host.strip().lower()
+    if h and h not in ("0.0.0.0", "::", "[::]"):
+        h = f"[{h}]" if ":" in h and not h.startswith("[") else h
+        if h not in hosts:
+            hosts.append(h)
+    return hosts
+
+
+def install(app: FastAPI, settings: Settings) -> None:
+    """Add the hardening to ``app``: validation-error handler, strict JSON bodies, Host allow-list, headers (outermost:
+    every response, the allow-list's 400 included, carries them)."""
+    app.add_exception_handler(RequestValidationError, validation_error_handler)
+    app.add_middleware(StrictJSONBodies, max_bytes=settings.max_json_body_bytes)
+    app.add_middleware(TrustedHostMiddleware, allowed_hosts=allowed_hosts(settings), www_redirect=False)
+    app.add_middleware(SecurityHeaders)
