@@ -43,7 +43,9 @@ async def _acquire(out: Path, seed: int, con, small: bool = False) -> Path:
     from drivers.sim.twin import GeometricTwin
 
     async with SimBench(port=0, seed=seed) as bench:
-        cfg = bench.bench_config()
+        # the simulated camera renders each frame on request: 0.3 s on an idle core, several seconds on a busy
+        # machine; a real camera's 2 s timeout would make the demo fail there
+        cfg = bench.bench_config(camera={"timeout_s": 30.0})
         con.print(f"   simulated controller at [bold]{bench.actuators_uri}[/bold], camera at {bench.camera_uri}")
         plan = make_plan("full", cfg.nominal_parameters(), seed=seed, **(SMALL_PLAN if small else {}))
         cam = bench.renderer.camera if hasattr(bench.renderer, "camera") else None
