@@ -9,6 +9,7 @@ frame (metres; z along the optical axis). "Ideal pixels" are undistorted pixel c
 from __future__ import annotations
 
 import contextlib
+import itertools
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -214,15 +215,20 @@ class IntrinsicsResult:
     board_points: Array
     board_ids: NDArray[np.int_]
     view_poses: dict[int, tuple[Array, Array]]
+    #: the lens model chosen and its evidence (``calibration.lens_model`` of the camera file)
+    lens_model: dict[str, Any] | None = None
 
     def summary(self) -> dict[str, Any]:
-        return {
+        out = {
             "rms_px": self.rms_px,
             "per_view_rms_px": {str(k): v for k, v in self.per_view_rms_px.items()},
             "std": self.std,
             "rejected": {str(k): v for k, v in self.rejected.items()},
             "n_views": len(self.per_view_rms_px),
         }
+        if self.lens_model is not None:
+            out["lens_model"] = self.lens_model
+        return out
 
 
 @contextlib.contextmanager
@@ -241,6 +247,178 @@ def opencv_single_thread() -> Iterator[None]:
         cv2.setNumThreads(n)
 
 
+#: Intrinsic parameters whose joint covariance :func:`intrinsics_covariance` gives by default, in this order (the
+#: ``k1k2`` lens model's; a camera calibrated with another model lists its own, :func:`intrinsics_names`).
+INTRINSICS_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2")
+
+#: OpenCV's distortion coefficients by name: their index in ``dist`` (and, plus 10, in ``cv2.projectPoints``' Jacobian).
+DIST_INDEX = {"k1": 0, "k2": 1, "p1": 2, "p2": 3, "k3": 4, "k4": 5, "k5": 6, "k6": 7}
+
+#: Candidate lens models: the distortion coefficients each estimates (the others are zero). ``-radial``: no
+#: tangential terms (p1 = p2 = 0). ``rational`` is OpenCV's ``CALIB_RATIONAL_MODEL`` (k1..k6).
+LENS_MODELS: dict[str, tuple[str, ...]] = {
+    "k1k2": ("k1", "k2", "p1", "p2"),
+    "k1k2k3": ("k1", "k2", "p1", "p2", "k3"),
+    "rational": ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"),
+    "k1k2-radial": ("k1", "k2"),
+    "k1k2k3-radial": ("k1", "k2", "k3"),
+    "rational-radial": ("k1", "k2", "k3", "k4", "k5", "k6"),
+}
+#: What ``lens_model`` accepts (``auto``: chosen from the board views, :func:`calibrate_intrinsics`).
+LENS_MODEL_CHOICES = ("auto", *LENS_MODELS)
+#: Board views that reach less than this fraction of the image's corner radius leave the distortion beyond them
+#: extrapolated: said in the calibration's ``lens_model.warnings``.
+MIN_FIELD_COVERAGE = 0.85
+#: ``auto`` keeps the tangential terms unless the data bound their effect at the image's corner below this (px)
+TANGENTIAL_BOUND_PX = 0.1
+
+
+def lens_model_params(model: str) -> tuple[str, ...]:
+    """The intrinsic parameters a lens model estimates: ``(fx, fy, cx, cy, *distortion)``.
+
+    Raises
+    ------
+    InputError
+        An unknown model name.
+    """
+    if model not in LENS_MODELS:
+        raise InputError(
+            f"unknown lens model {model!r}; lens models are {', '.join(LENS_MODEL_CHOICES)}", field="lens_model"
+        )
+    return ("fx", "fy", "cx", "cy", *LENS_MODELS[model])
+
+
+def _lens_flags(model: str) -> int:
+    d = set(LENS_MODELS[model])
+    flags = 0
+    if "k3" not in d:
+        flags |= cv2.CALIB_FIX_K3
+    if "k4" in d:
+        flags |= cv2.CALIB_RATIONAL_MODEL
+    if "p1" not in d:
+        flags |= cv2.CALIB_ZERO_TANGENT_DIST
+    return flags
+
+
+def intrinsics_names(camera: CameraModel) -> tuple[str, ...]:
+    """The parameters of a camera's calibration covariance (``calibration.covariance_params``), in its order.
+
+    :data:`INTRINSICS_NAMES` (fx, fy, cx, cy, k1, k2, p1, p2) when the camera does not say (cameras calibrated
+    before lens models were chosen); the chosen lens model's (:func:`lens_model_params`) otherwise.
+    """
+    names = ((camera.extra or {}).get("calibration") or {}).get("covariance_params")
+    if not names or not all(n in ("fx", "fy", "cx", "cy") or n in DIST_INDEX for n in names):
+        return INTRINSICS_NAMES
+    return tuple(str(n) for n in names)
+
+
+def projection_columns(names: tuple[str, ...] | list[str]) -> list[int]:
+    """Columns of ``cv2.projectPoints``' Jacobian (rvec 3, tvec 3, fx, fy, cx, cy, dist...) for ``names``."""
+    base = {"fx": 6, "fy": 7, "cx": 8, "cy": 9}
+    return [base[n] if n in base else 10 + DIST_INDEX[n] for n in names]
+
+
+def moved_camera(
+    camera: CameraModel, step: ArrayLike, names: tuple[str, ...] | list[str] = INTRINSICS_NAMES
+) -> CameraModel:
+    """``camera`` with the intrinsics ``names`` moved by ``step`` (same length; px for fx, fy, cx, cy).
+
+    The distortion vector is lengthened (zeros) when a coefficient beyond it moves (k3: 5, k4..k6: 8).
+    """
+    st = np.asarray(step, dtype=np.float64).reshape(-1)
+    K = camera.K.copy()
+    d = camera.dist.copy()
+    need = max([DIST_INDEX[n] + 1 for n in names if n in DIST_INDEX] + [d.size])
+    if need > d.size:
+        d = np.concatenate([d, np.zeros((8 if need > 5 else 5) - d.size)])
+    where = {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}
+    for n, s in zip(names, st, strict=True):
+        if n in where:
+            K[where[n]] += s
+        else:
+            d[DIST_INDEX[n]] += s
+    return CameraModel(K, d, camera.width, camera.height, camera.extra)
+
+
+def _corner_radius_norm(K: Array, dist: Array, size: tuple[int, int], pixels: Array) -> tuple[float, float]:
+    """Largest undistorted radius (normalized) of ``pixels`` (N, 2) and of the image's corners."""
+    cam = CameraModel(K, dist, int(size[0]), int(size[1]))
+    w, h = size[0] - 1.0, size[1] - 1.0
+    corners = cam.undistort_points(np.array([[0.0, 0.0], [w, 0.0], [0.0, h], [w, h]]))
+    pts = cam.undistort_points(pixels)
+    return float(np.max(np.linalg.norm(pts, axis=1))), float(np.max(np.linalg.norm(corners, axis=1)))
+
+
+def radial_residual_profile(
+    K: Array,
+    dist: Array,
+    board_points: Array,
+    image_points: list[Array],
+    rvecs: list[Array],
+    tvecs: list[Array],
+    size: tuple[int, int],
+    n_bins: int = 6,
+) -> dict[str, Any]:
+    """The calibration's reprojection residuals along the radius, binned by distance from the principal point.
+
+    A lens model that cannot follow the lens leaves a residual that depends on the radius (the same in every
+    view); noise does not. Per bin (equal widths up to the image's corner radius, px): the mean radial residual
+    (observed minus predicted, px, outward positive), its standard error, and the systematic part
+    ``sign(mean) sqrt(max(mean^2 - se^2, 0))`` (the unbiased estimate of the squared mean; zero when the mean
+    is within its noise). ``chi2`` = sum (mean / se)^2 over the bins, about ``n_bins`` when nothing is left.
+
+    Returns
+    -------
+    dict
+        ``radius_px`` (bin centres), ``mean_px``, ``se_px``, ``systematic_px``, ``count`` (per bin), ``chi2``,
+        ``dof``, ``max_systematic_px``.
+    """
+    c = np.array([K[0, 2], K[1, 2]])
+    r_all, e_all = [], []
+    for v, img in enumerate(image_points):
+        proj, _ = cv2.projectPoints(
+            board_points, np.asarray(rvecs[v], dtype=np.float64).reshape(3), np.asarray(tvecs[v]).reshape(3), K, dist
+        )
+        proj = proj.reshape(-1, 2)
+        d = proj - c
+        r = np.linalg.norm(d, axis=1)
+        u = d / np.maximum(r, 1e-9)[:, None]
+        r_all.append(r)
+        e_all.append(np.sum((np.asarray(img, dtype=np.float64).reshape(-1, 2) - proj) * u, axis=1))
+    r = np.concatenate(r_all) if r_all else np.zeros(0)
+    e = np.concatenate(e_all) if e_all else np.zeros(0)
+    rmax = float(np.hypot(max(c[0], size[0] - 1 - c[0]), max(c[1], size[1] - 1 - c[1])))
+    edges = np.linspace(0.0, rmax, n_bins + 1)
+    centre, mean, se, sysv, count = [], [], [], [], []
+    for a, b in itertools.pairwise(edges):
+        sel = (r >= a) & (r < b)
+        n = int(sel.sum())
+        centre.append(0.5 * (a + b))
+        count.append(n)
+        if n < 3:
+            mean.append(0.0)
+            se.append(float("inf") if n == 0 else float(np.abs(e[sel]).max()))
+            sysv.append(0.0)
+            continue
+        m = float(np.mean(e[sel]))
+        s = float(np.std(e[sel], ddof=1) / np.sqrt(n))
+        mean.append(m)
+        se.append(s)
+        sysv.append(float(np.sign(m) * np.sqrt(max(m * m - s * s, 0.0))))
+    ok = [i for i in range(n_bins) if count[i] >= 3 and se[i] > 0]
+    chi = float(sum((mean[i] / se[i]) ** 2 for i in ok))
+    return {
+        "radius_px": centre,
+        "mean_px": mean,
+        "se_px": [s if np.isfinite(s) else None for s in se],
+        "systematic_px": sysv,
+        "count": count,
+        "chi2": chi,
+        "dof": len(ok),
+        "max_systematic_px": float(max([abs(s) for s in sysv] + [0.0])),
+    }
+
+
 def calibrate_intrinsics(
     views: dict[int, tuple[ArrayLike, ArrayLike, ArrayLike]],
     image_size: tuple[int, int],
@@ -252,6 +430,7 @@ def calibrate_intrinsics(
     outlier_floor_px: float = 1.0,
     fix_k3: bool = True,
     refine_object: bool = True,
+    lens_model: str | None = None,
 ) -> IntrinsicsResult:
     """Intrinsic calibration from ChArUco views, refining the board's geometry (``calibrateCameraRO``).
 
@@ -259,6 +438,26 @@ def calibrate_intrinsics(
     points in every view: only views where every corner of the board was detected are used, the
     others are rejected with the reason. Views whose RMS reprojection error exceeds
     ``max(outlier_factor * median, outlier_floor_px)`` are rejected and the calibration is redone.
+
+    Lens model (``lens_model``): one of :data:`LENS_MODELS` (k1k2 = k1, k2, p1, p2; k1k2k3; OpenCV's rational
+    k1..k6; each also without tangential terms, ``-radial``), or ``"auto"``: every candidate is fitted to the
+    same views (the outliers rejected first with k1k2k3) and the one with the lowest Bayesian information
+    criterion ``BIC = n ln(RSS / n) + k ln(n)`` is kept, except that a ``-radial`` model is allowed only when
+    the matching full fit bounds the tangential terms' effect at the image corner (``(|p| + 2 std) 3 r_c^2 f``)
+    below :data:`TANGENTIAL_BOUND_PX` (a lens's decentring barely shows over the board views, yet the rods that
+    refine the camera afterwards reach the corners) (n: residual coordinates, k: every unknown of the
+    bundle -- intrinsics, 6 per view, the released board points; only the distortion count differs between
+    candidates). Why BIC rather than cross-validation over views: the candidates are nested and fitted to the
+    same corners whose noise is close to independent Gaussian, for which BIC approximates the models' posterior
+    odds and is consistent (it picks the true model as views are added, where AIC keeps overfitting by a
+    fixed margin); held-out views would need one calibration per candidate and fold (some 30 instead of 6, seconds
+    against the extraction's few-second budget) and score mostly the held-out poses' own noise. Neither can
+    see beyond the board views: a coefficient whose effect lies outside the radius the views reach is not
+    determined by them, which ``lens_model.field_coverage`` and a warning say. The evidence per candidate (RMS,
+    RSS, BIC, parameter count) is in the camera's ``calibration.lens_model``, with the chosen model's radial
+    residual profile (:func:`radial_residual_profile`), the model error the methods carry into their
+    standard deviations (``std_breakdown.lens_model``). ``None``: ``k1k2`` (``fix_k3``) or ``k1k2k3`` (the
+    behaviour before lens models were chosen).
 
     Parameters
     ----------
@@ -269,12 +468,17 @@ def calibrate_intrinsics(
         All corner ids of the board.
     board_points : array_like, shape (M, 3)
         Nominal corner coordinates in the board frame, metres.
+    lens_model : str, optional
+        ``"auto"`` or a key of :data:`LENS_MODELS`.
 
     Raises
     ------
     InputError
-        Fewer than ``min_views`` usable views.
+        Fewer than ``min_views`` usable views; an unknown lens model.
     """
+    model = lens_model or ("k1k2" if fix_k3 else "k1k2k3")
+    if model != "auto":
+        lens_model_params(model)  # raises for an unknown name
     ids_all = np.asarray(board_ids, dtype=int).reshape(-1)
     obj_nom = np.asarray(board_points, dtype=np.float64).reshape(-1, 3)
     if obj_nom.shape[0] != ids_all.size:
@@ -297,19 +501,12 @@ def calibrate_intrinsics(
     w, h = image_size
     ncols = int(np.sum(np.isclose(obj[:, 1], obj[0, 1])))
     fixed = ncols - 1 if refine_object and ncols > 1 else -1
-    flags = cv2.CALIB_FIX_K3 if fix_k3 else 0
-    for _ in range(5):
-        if len(keep) < min_views:
-            raise InputError(
-                f"intrinsic calibration needs at least {min_views} full-board views, got {len(keep)}"
-                + (f" ({len(rejected)} rejected)" if rejected else ""),
-                field="camera",
-            )
-        keys = list(keep)
+
+    def run(keys: list[int], flags: int) -> tuple:
         objp = [obj.astype(np.float32).reshape(-1, 1, 3) for _ in keys]
         imgp = [keep[k].astype(np.float32).reshape(-1, 1, 2) for k in keys]
         with opencv_single_thread():  # bit-reproducible: OpenCV's threads change the result in the last digits
-            ret = cv2.calibrateCameraROExtended(
+            return cv2.calibrateCameraROExtended(
                 objp,
                 imgp,
                 (w, h),
@@ -319,8 +516,18 @@ def calibrate_intrinsics(
                 flags=flags,
                 criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12),
             )
-        rms, K, dist, rvecs, tvecs, new_obj, std_int, _std_ext, _std_obj, per_view = ret
-        per_view = np.asarray(per_view).reshape(-1)
+
+    first = "k1k2k3" if model == "auto" else model
+    for _ in range(5):
+        if len(keep) < min_views:
+            raise InputError(
+                f"intrinsic calibration needs at least {min_views} full-board views, got {len(keep)}"
+                + (f" ({len(rejected)} rejected)" if rejected else ""),
+                field="camera",
+            )
+        keys = list(keep)
+        ret = run(keys, _lens_flags(first))
+        per_view = np.asarray(ret[9]).reshape(-1)
         med = float(np.median(per_view))
         limit = max(outlier_factor * med, outlier_floor_px)
         bad = [k for k, e in zip(keys, per_view, strict=True) if e > limit]
@@ -332,11 +539,85 @@ def calibrate_intrinsics(
             f"(median {med:.2f} px)"
         )
         del keep[worst]
+    keys = list(keep)
+    m_pts = obj.shape[0]
+    n_res = 2 * m_pts * len(keys)
+    n_board = (3 * m_pts - 7) if fixed >= 0 else 0  # released points less OpenCV's gauge (two points and a z)
+    candidates = list(LENS_MODELS) if model == "auto" else [model]
+    fits: dict[str, tuple] = {first: ret} if first in candidates else {}
+    evidence = []
+    for name in candidates:
+        r = fits.get(name) or run(keys, _lens_flags(name))
+        fits[name] = r
+        Kc, dc = r[1], np.asarray(r[2], dtype=np.float64).reshape(-1)
+        oc = np.asarray(r[5], dtype=np.float64).reshape(-1, 3) if r[5] is not None and np.size(r[5]) else obj
+        rss = 0.0
+        for k, rv, tv in zip(keys, r[3], r[4], strict=True):
+            proj, _ = cv2.projectPoints(oc, np.asarray(rv).reshape(3), np.asarray(tv).reshape(3), Kc, dc)
+            rss += float(np.sum((proj.reshape(-1, 2) - keep[k]) ** 2))
+        n_int = len(lens_model_params(name))
+        k_all = n_int + 6 * len(keys) + n_board
+        bic = n_res * np.log(max(rss, 1e-300) / n_res) + k_all * np.log(n_res)
+        evidence.append(
+            {
+                "model": name,
+                "n_params": n_int,
+                "rms_px": float(r[0]),
+                "rss_px2": rss,
+                "bic": float(bic) if np.isfinite(bic) else None,
+                "finite": bool(np.all(np.isfinite(dc)) and np.all(np.isfinite(Kc))),
+            }
+        )
+    usable = [e for e in evidence if e["finite"] and e["bic"] is not None]
+    if model == "auto":
+        # tangential terms are dropped only when their effect at the image's corner is bounded below
+        # TANGENTIAL_BOUND_PX by the matching full fit (|p| + 2 std): a lens's decentring hardly shows over
+        # the board views, and the rods that refine the camera afterwards reach the corners
+        k0, d0 = fits["k1k2"][1], np.asarray(fits["k1k2"][2]).reshape(-1)
+        _, rc = _corner_radius_norm(k0, d0, (int(w), int(h)), np.zeros((1, 2)))
+        for e in usable:
+            if e["model"].endswith("-radial"):
+                full = fits[e["model"].removesuffix("-radial")]
+                dfull = np.asarray(full[2]).reshape(-1)
+                sfull = np.asarray(full[6]).reshape(-1)
+                bound = float(np.max(np.abs(dfull[2:4]) + 2 * sfull[6:8])) * 3 * rc**2 * float(full[1][0, 0])
+                e["tangential_bound_px"] = bound
+                e["allowed"] = bound < TANGENTIAL_BOUND_PX
+        allowed = [e for e in usable if e.get("allowed", True)]
+        chosen = min(allowed, key=lambda e: e["bic"])["model"] if allowed else "k1k2"
+    else:
+        chosen = candidates[0]
+    best_bic = min((e["bic"] for e in usable), default=0.0)
+    for e in evidence:
+        e["delta_bic"] = None if e["bic"] is None else float(e["bic"] - best_bic)
+    rms, K, dist, rvecs, tvecs, new_obj, std_int, _std_ext, _std_obj, per_view = fits[chosen]
+    per_view = np.asarray(per_view).reshape(-1)
     std_int = np.asarray(std_int).reshape(-1)
+    dist = np.asarray(dist, dtype=np.float64).reshape(-1)
     new_obj = np.asarray(new_obj, dtype=np.float64).reshape(-1, 3) if new_obj is not None and np.size(new_obj) else obj
+    pnames = lens_model_params(chosen)
     cov, d_board = _bundle_covariance(
-        K, np.asarray(dist).reshape(-1), new_obj, [keep[k] for k in keys], rvecs, tvecs, fixed_point=fixed
+        K, dist, new_obj, [keep[k] for k in keys], rvecs, tvecs, fixed_point=fixed, names=pnames
     )
+    profile = radial_residual_profile(K, dist, new_obj, [keep[k] for k in keys], rvecs, tvecs, (int(w), int(h)))
+    reach, corner = _corner_radius_norm(K, dist, (int(w), int(h)), np.vstack([keep[k] for k in keys]))
+    coverage = reach / corner if corner > 0 else 1.0
+    warnings = []
+    if coverage < MIN_FIELD_COVERAGE:
+        warnings.append(
+            f"the board views reach {100 * coverage:.0f}% of the image's corner radius: the distortion beyond "
+            "is extrapolated (higher-order terms there are not determined; present the board near the corners)"
+        )
+    lens_info = {
+        "chosen": chosen,
+        "requested": model,
+        "criterion": "BIC = n ln(RSS/n) + k ln(n) over the board views' corners" if model == "auto" else "given",
+        "candidates": evidence,
+        "n_residuals": n_res,
+        "field_coverage": float(coverage),
+        "residual_profile": profile,
+        "warnings": warnings,
+    }
     names = [
         "fx",
         "fy",
@@ -360,7 +641,7 @@ def calibrate_intrinsics(
     std = {n: float(s) for n, s in zip(names, std_int, strict=False)}
     cam = CameraModel(
         K,
-        np.asarray(dist).reshape(-1),
+        dist,
         int(w),
         int(h),
         {
@@ -368,9 +649,10 @@ def calibrate_intrinsics(
                 "rms_px": float(rms),
                 "n_views": len(keys),
                 "std": std,
-                "covariance_params": list(INTRINSICS_NAMES),
+                "covariance_params": list(pnames),
                 "covariance": cov.tolist(),
                 "method": "cv2.calibrateCameraRO",
+                "lens_model": lens_info,
                 "board_points": {
                     "ids": sort_ids.tolist(),
                     "points_m": new_obj.tolist(),
@@ -379,7 +661,7 @@ def calibrate_intrinsics(
             }
         },
     )
-    return IntrinsicsResult(
+    res = IntrinsicsResult(
         cam,
         float(rms),
         {k: float(e) for k, e in zip(keys, per_view, strict=True)},
@@ -389,10 +671,8 @@ def calibrate_intrinsics(
         sort_ids,
         {k: (np.asarray(r).reshape(3), np.asarray(t).reshape(3)) for k, r, t in zip(keys, rvecs, tvecs, strict=True)},
     )
-
-
-#: Intrinsic parameters whose joint covariance :func:`intrinsics_covariance` gives, in this order.
-INTRINSICS_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2")
+    res.lens_model = lens_info
+    return res
 
 
 def intrinsics_covariance(
@@ -403,14 +683,15 @@ def intrinsics_covariance(
     rvecs: list[ArrayLike],
     tvecs: list[ArrayLike],
     fixed_point: int = -1,
+    names: tuple[str, ...] | list[str] = INTRINSICS_NAMES,
 ) -> Array:
-    """Joint covariance (8, 8) of (fx, fy, cx, cy [px], k1, k2, p1, p2) after a calibration.
+    """Joint covariance (n, n) of the intrinsics ``names`` (default fx, fy, cx, cy [px], k1, k2, p1, p2).
 
     Gauss-Newton covariance ``s^2 (J^T J)^-1`` of the full bundle (intrinsics, every view's pose and,
     with the releasing-object method, the board's points), marginalised to the intrinsics (Schur
     complement), ``s^2`` the residual variance per coordinate. The board points' gauge is OpenCV's
     (``calibrateCameraRO``): the first point, the ``fixed_point``-th one and the last one's z are fixed.
-    k3 and higher coefficients are taken as fixed (``CALIB_FIX_K3``). OpenCV returns only the
+    The distortion coefficients not in ``names`` are taken as fixed (the lens model's). OpenCV returns only the
     standard deviations; the correlations (fx with fy, the principal point with the tangential
     coefficients, ...) matter when the uncertainty is propagated to a calibration.
 
@@ -426,13 +707,16 @@ def intrinsics_covariance(
         Per view, ``camera_from_board``.
     fixed_point : int
         ``iFixedPoint`` of the releasing-object method, or -1 when the board points were not refined.
+    names : sequence of str
+        The estimated intrinsics (:func:`lens_model_params`), in the covariance's order; ``dist`` must be long
+        enough to hold each (5 with k3, 8 with k4..k6).
 
     Returns
     -------
-    ndarray, shape (8, 8)
+    ndarray, shape (n, n)
         Pixels for fx, fy, cx, cy; dimensionless for the distortion coefficients.
     """
-    return _bundle_covariance(K, dist, board_points, image_points, rvecs, tvecs, fixed_point)[0]
+    return _bundle_covariance(K, dist, board_points, image_points, rvecs, tvecs, fixed_point, names)[0]
 
 
 def _bundle_covariance(
@@ -443,8 +727,9 @@ def _bundle_covariance(
     rvecs: list[ArrayLike],
     tvecs: list[ArrayLike],
     fixed_point: int = -1,
+    names: tuple[str, ...] | list[str] = INTRINSICS_NAMES,
 ) -> tuple[Array, Array]:
-    """:func:`intrinsics_covariance` and the board points' regression on the intrinsics, (M, 3, 8).
+    """:func:`intrinsics_covariance` and the board points' regression on the intrinsics, (M, 3, n).
 
     The regression ``Cov(X, I) Cov(I, I)^-1`` is how the refined board points move when the
     intrinsics do, given the calibration's data (Gaussian conditioning): when other measurements
@@ -453,6 +738,11 @@ def _bundle_covariance(
     """
     K = np.asarray(K, dtype=np.float64)
     d = np.asarray(dist, dtype=np.float64).reshape(-1)
+    cols = projection_columns(names)
+    ni = len(cols)
+    need = max([c - 9 for c in cols] + [d.size])
+    if need > d.size:
+        d = np.concatenate([d, np.zeros((8 if need > 5 else 5) - d.size)])
     obj = np.asarray(board_points, dtype=np.float64).reshape(-1, 3)
     m = obj.shape[0]
     nv = len(image_points)
@@ -463,7 +753,7 @@ def _bundle_covariance(
         free_obj[m - 1, 2] = False
     obj_cols = np.flatnonzero(free_obj.ravel())
     n_obj = obj_cols.size
-    n = 8 + 6 * nv + n_obj
+    n = ni + 6 * nv + n_obj
     JtJ = np.zeros((n, n))
     sse = 0.0
     for v in range(nv):
@@ -478,25 +768,24 @@ def _bundle_covariance(
         sse += float(np.sum(res**2))
         # projectPoints' Jacobian columns: rvec (3), tvec (3), f (2), c (2), dist (n)
         J = np.zeros((2 * m, n))
-        J[:, 0:4] = jac[:, 6:10]
-        J[:, 4:8] = jac[:, 10:14]
-        J[:, 8 + 6 * v : 14 + 6 * v] = jac[:, 0:6]
+        J[:, :ni] = jac[:, cols]
+        J[:, ni + 6 * v : ni + 6 + 6 * v] = jac[:, 0:6]
         if n_obj:
             R, _ = cv2.Rodrigues(np.asarray(rvecs[v], dtype=np.float64).reshape(3))
             dp_dX = jac[:, 3:6].reshape(m, 2, 3) @ R  # d pixel / d board point: d/dt rotated
             blocks = np.zeros((2 * m, 3 * m))
             for i in range(m):
                 blocks[2 * i : 2 * i + 2, 3 * i : 3 * i + 3] = dp_dX[i]
-            J[:, 8 + 6 * nv :] = blocks[:, obj_cols]
+            J[:, ni + 6 * nv :] = blocks[:, obj_cols]
         JtJ += J.T @ J
     dof = max(2 * m * nv - n, 1)
     s2 = sse / dof
-    A, B, C = JtJ[:8, :8], JtJ[:8, 8:], JtJ[8:, 8:]
-    CinvBt = np.linalg.solve(C, B.T)  # (n - 8, 8)
+    A, B, C = JtJ[:ni, :ni], JtJ[:ni, ni:], JtJ[ni:, ni:]
+    CinvBt = np.linalg.solve(C, B.T)  # (n - ni, ni)
     schur = A - B @ CinvBt
     cov = s2 * np.linalg.inv(schur)
     # Cov(others, I) = -C^-1 B^T Cov(I, I): the regression of the others on I is -C^-1 B^T
-    reg = np.zeros((m * 3, 8))
+    reg = np.zeros((m * 3, ni))
     if n_obj:
         reg[obj_cols] = -CinvBt[6 * nv :]
-    return 0.5 * (cov + cov.T), reg.reshape(m, 3, 8)
+    return 0.5 * (cov + cov.T), reg.reshape(m, 3, ni)

@@ -13,6 +13,7 @@ A bench file names its devices by URI; device code never asks whether it is simu
     word_order = "big"
     [camera]
     uri = "genicam://?cti=/opt/vendor/x.cti&serial=SN"   # v4l2:///dev/video0, replay://DATASET, sim://HOST:PORT
+    lens_model = "k1k2k3"                   # optional: fixes the calibration's lens model (default: auto)
     [operator]
     uri = "console"                         # or sim://HOST:PORT (the simulated operator)
     [nominal]
@@ -30,7 +31,7 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import parse_qs, unquote, urlsplit
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from calib.errors import InputError
 from calib.parameters import NOMINAL, I4Parameters
@@ -71,6 +72,20 @@ class CameraConfig(BaseModel):
     width: int | None = None
     height: int | None = None
     grab_retries: int = Field(1, ge=0, description="grabs retried after a timeout or a corrupt frame")
+    lens_model: str | None = Field(
+        None,
+        description="lens model of the camera calibration (calib.camera.LENS_MODEL_CHOICES: auto, k1k2, k1k2k3, "
+        "rational[-radial]); recorded in the dataset's camera section, which extraction follows",
+    )
+
+    @field_validator("lens_model")
+    @classmethod
+    def _lens_model(cls, v: str | None) -> str | None:
+        from calib.camera import LENS_MODEL_CHOICES
+
+        if v is not None and v not in LENS_MODEL_CHOICES:
+            raise ValueError(f"unknown lens model {v!r}; lens models are {', '.join(LENS_MODEL_CHOICES)}")
+        return v
 
 
 class OperatorConfig(BaseModel):

@@ -336,6 +336,19 @@ def calibrate_combined(
                 Jr[:, keep], Wfull / s2, Sig, Pw[np.ix_(keep, keep)], Pz[np.ix_(keep, keep)]
             )
             cov_intr = cov - cov_known
+    # the lens model's error (the board views' radial residual beyond their noise, calibration.lens_model): a
+    # systematic distortion the fit's model does not have, propagated at one standard deviation through the fit's
+    # gain (the rods' limb samples moved by it), a Type B component of the standard deviations
+    cov_lens = None
+    lens_err = None if prob.intrinsics is None else intr.lens_model_error(prob.intrinsics.camera)
+    if lens_err is not None and s2 > 0:
+        dx = prob.intrinsics.model_error_shift(w, z, lens_err, R0, joint)
+        Hm = Jr.T @ (Wfull / s2) @ Jr
+        if joint or nz:
+            Hm[4:, 4:] += (Pw + Pz + Pe)[4:, 4:]
+        dtheta = -np.linalg.solve(Hm, Jr.T @ (Wfull / s2) @ dx)[:4]
+        cov_lens = np.outer(dtheta, dtheta)
+        cov = cov + cov_lens
     breakdown = {"legs_and_encoders": std_dict(parts["legs_and_encoders"])}
     if joint:
         breakdown["base_frame"] = std_dict(parts.get("base_frame", np.zeros((4, 4))))
@@ -343,6 +356,8 @@ def calibrate_combined(
         breakdown["intrinsics"] = std_dict(parts.get("intrinsics", np.zeros((4, 4))))
     if nz > ni:
         breakdown["limb_edge_bias"] = std_dict(parts.get("edge_bias", np.zeros((4, 4))))
+    if prob.intrinsics is not None:
+        breakdown["lens_model"] = std_dict(np.zeros((4, 4)) if cov_lens is None else cov_lens)
     edge = None
     if nz > ni and "full" in parts:
         e_std = prob.intrinsics.edge_std_px
@@ -351,7 +366,8 @@ def calibrate_combined(
             "std_px": (np.sqrt(np.diag(parts["full"])[4 + nw + ni :]) * e_std).tolist(),
             "prior_std_px": e_std,
         }
-    refined = None if steps is None else dict(zip(intr.INTRINSICS_NAMES, (steps.T @ z[:ni]).tolist(), strict=True))
+    names = intr.intrinsics_names(prob.intrinsics.camera) if prob.intrinsics is not None else intr.INTRINSICS_NAMES
+    refined = None if steps is None else dict(zip(names, (steps.T @ z[:ni]).tolist(), strict=True))
     # the intrinsics after the rods: their posterior covariance (for methods that do not use the rods)
     posterior = None
     if nz and "full" in parts:
@@ -461,7 +477,8 @@ class _IntrinsicsModel:
         if steps.shape[0] == 0:
             return None
         rot, tra = obs.arrays("rotation"), obs.arrays("translation")
-        s_rot, s_tra = intr.board_sensitivities(obs, rot), intr.board_sensitivities(obs, tra)
+        n = steps.shape[1]
+        s_rot, s_tra = intr.board_sensitivities(obs, rot, n), intr.board_sensitivities(obs, tra, n)
         G = np.zeros((3, steps.shape[0]))
         if s_rot is not None and s_tra is not None:
             R0 = bf.camera_from_base_R
@@ -495,6 +512,32 @@ class _IntrinsicsModel:
     def rotation(self, z: np.ndarray) -> np.ndarray:
         """The base frame's rotation change (3, 3) for ``z``, applied on the left."""
         return rotvec_to_matrix(self.G @ z[: self.n_intr])
+
+    def model_error_shift(
+        self, w: np.ndarray, z: np.ndarray, profile: tuple[np.ndarray, np.ndarray], R0: np.ndarray, joint: bool
+    ) -> np.ndarray:
+        """Change (2M,) of the fit's raw residuals at the solution (base-frame refinement ``w``, nuisance ``z``)
+        when every rod's limb samples are corrected by the lens model's error ``profile``
+        (:func:`.intrinsics.lens_model_error`); the base frame is left as it is (the board poses move far less:
+        their corners lie within the views' radius, where the profile was measured)."""
+        zi = z[: self.n_intr]
+        cam = intr.perturbed_camera(self.camera, self.steps.T @ zi)
+        ref = self.H
+        moved = intr.correct_model_error(cam, self.limbs.px, profile)
+        h0 = intr.limb_planes_for(cam, self.limbs.px, ref)
+        h1 = intr.limb_planes_for(cam, moved, ref)
+        if self.n_edge:
+            eps = z[self.n_intr :] * self.edge_std_px / self.camera.focal_px
+            h0, h1 = intr.shift_limbs(h0, eps), intr.shift_limbs(h1, eps)
+        R = self.rotation(z) @ (rotvec_to_matrix(w) @ R0 if joint else R0)
+
+        def ratios(h: np.ndarray) -> np.ndarray:
+            u = np.cross(h[:, 0], h[:, 1])
+            uB = u @ R
+            return uB[:, 1:] / uB[:, :1]
+
+        # raw = model - measured: the measured entries move by ratios(h1) - ratios(h0)
+        return -(ratios(h1) - ratios(h0)).ravel()
 
 
 _CHI2_2_999 = 13.8155  # chi-square, 2 dof, 99.9% quantile

@@ -6,9 +6,10 @@ extraction keeps what is needed to redo its geometry for other intrinsics:
 
 * per rod, ``limbs_px`` (2, 5, 2): points of each fitted limb line in distorted pixels, from which
   the interpretation planes ``h`` (hence the direction ``u = h1 x h2``) are recomputed;
-* per board pose, ``d_intrinsics`` (6, 8): the pose's first-order change per unit change of the
+* per board pose, ``d_intrinsics`` (6, n): the pose's first-order change per unit change of the
   intrinsics (a left rotation in rad, then t in m);
-* the camera's 8x8 covariance of (fx, fy, cx, cy, k1, k2, p1, p2) (``calibration.covariance``; from
+* the camera's n x n covariance of its lens model's intrinsics, (fx, fy, cx, cy, k1, k2, p1, p2) for the
+  default ``k1k2`` model (``calibration.covariance`` over ``calibration.covariance_params``; from
   the standard deviations alone when only they are known, fx and fy then fully correlated).
 
 A method evaluates its measured quantities at the intrinsics moved by plus and minus one standard
@@ -23,7 +24,7 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import NDArray
 
-from ..camera import INTRINSICS_NAMES, CameraModel
+from ..camera import INTRINSICS_NAMES, CameraModel, intrinsics_names, moved_camera
 from ..observations import Observations, PhaseArrays
 from ..transforms import rotvec_to_matrix
 
@@ -31,12 +32,14 @@ Array = NDArray[np.float64]
 
 
 def intrinsics_prior(obs: Observations, refined: bool = True) -> tuple[CameraModel, Array] | None:
-    """The extraction's camera and the covariance (8, 8) of its intrinsics, or None when unknown.
+    """The extraction's camera and the covariance (n, n) of its intrinsics, or None when unknown.
 
-    Order: :data:`calib.camera.INTRINSICS_NAMES` (px for fx, fy, cx, cy; dimensionless after). When
-    the rods refined the camera (``calibration.covariance_refined``, the combined fit's posterior),
-    that covariance is returned with ``refined`` (methods that do not use the rods); the calibration's
-    own with ``refined=False`` (the combined method, which uses the rods again).
+    Order: the camera's ``calibration.covariance_params`` (:func:`calib.camera.intrinsics_names`: the chosen lens
+    model's parameters, :data:`calib.camera.INTRINSICS_NAMES` for a camera calibrated before lens models were
+    chosen; px for fx, fy, cx, cy; dimensionless after). When the rods refined the camera
+    (``calibration.covariance_refined``, the combined fit's posterior), that covariance is returned with
+    ``refined`` (methods that do not use the rods); the calibration's own with ``refined=False`` (the combined
+    method, which uses the rods again).
     """
     extra = obs.document.model_extra or {}
     cam = (extra.get("extraction") or {}).get("camera") or {}
@@ -44,22 +47,24 @@ def intrinsics_prior(obs: Observations, refined: bool = True) -> tuple[CameraMod
     if not cam.get("K"):
         return None
     camera = CameraModel.from_dict(cam)
+    names = intrinsics_names(camera)
+    n = len(names)
     cov = calib.get("covariance_refined") if refined and calib.get("covariance_refined") else calib.get("covariance")
-    if cov is not None and list(calib.get("covariance_params") or INTRINSICS_NAMES) == list(INTRINSICS_NAMES):
+    if cov is not None and list(calib.get("covariance_params") or INTRINSICS_NAMES) == list(names):
         C = np.asarray(cov, dtype=np.float64)
-        if C.shape == (8, 8) and np.all(np.isfinite(C)):
+        if C.shape == (n, n) and np.all(np.isfinite(C)):
             return camera, 0.5 * (C + C.T)
     std = calib.get("std") or {}
     if not all(k in std for k in ("fx", "fy", "cx", "cy")):
         return None
-    s = np.array([float(std.get(k, 0.0)) for k in INTRINSICS_NAMES])
+    s = np.array([float(std.get(k, 0.0)) for k in names])
     C = np.diag(s**2)
     C[0, 1] = C[1, 0] = s[0] * s[1]  # one focal scale: the conservative choice without correlations
     return camera, C
 
 
 def calibration_offset(obs: Observations) -> Array | None:
-    """The calibration's intrinsics minus the extraction camera's, shape (8,), when the rods refined that camera.
+    """The calibration's intrinsics minus the extraction camera's, shape (n,), when the rods refined that camera.
 
     A camera refined by the rods (:func:`calib.vision.extract.refined_camera`) records the shift it was moved by
     (``calibration.refined_by_rods.shift``); the calibration's own estimate is the camera minus that shift, and
@@ -69,28 +74,28 @@ def calibration_offset(obs: Observations) -> Array | None:
     extra = obs.document.model_extra or {}
     calib = (((extra.get("extraction") or {}).get("camera") or {}).get("calibration")) or {}
     shift = (calib.get("refined_by_rods") or {}).get("shift")
-    if not shift or not all(k in shift for k in INTRINSICS_NAMES):
+    names = calib.get("covariance_params") or INTRINSICS_NAMES
+    if not shift or not all(k in shift for k in names):
         return None
-    return -np.array([float(shift[k]) for k in INTRINSICS_NAMES])
+    return -np.array([float(shift[k]) for k in names])
 
 
 def principal_steps(cov: Array, rel_tol: float = 1e-12) -> Array:
-    """One standard deviation along each principal direction of ``cov`` (8, 8), shape (n, 8)."""
+    """One standard deviation along each principal direction of ``cov`` (p, p), shape (n, p)."""
     w, V = np.linalg.eigh(np.asarray(cov, dtype=np.float64))
     keep = w > rel_tol * max(float(w.max()), 1e-300)
     return (V[:, keep] * np.sqrt(w[keep])).T
 
 
 def perturbed_camera(camera: CameraModel, step: Array) -> CameraModel:
-    """``camera`` with (fx, fy, cx, cy, k1, k2, p1, p2) moved by ``step`` (8,)."""
-    K = camera.K.copy()
-    K[0, 0] += step[0]
-    K[1, 1] += step[1]
-    K[0, 2] += step[2]
-    K[1, 2] += step[3]
-    d = camera.dist.copy()
-    d[:4] += step[4:8]
-    return CameraModel(K, d, camera.width, camera.height)
+    """``camera`` with its intrinsics (:func:`calib.camera.intrinsics_names`: fx, fy, cx, cy, k1, k2, p1, p2 unless
+    its calibration chose another lens model) moved by ``step`` (n,)."""
+    st = np.asarray(step, dtype=np.float64).reshape(-1)
+    names = intrinsics_names(camera)
+    if st.size != len(names):  # a step over the historical eight on a camera that lists no parameters
+        names = INTRINSICS_NAMES[: st.size]
+    out = moved_camera(camera, st, names)
+    return CameraModel(out.K, out.dist, out.width, out.height, camera.extra)
 
 
 def limb_planes_for(camera: CameraModel, limbs_px: Array, reference_h: Array) -> Array:
@@ -136,9 +141,10 @@ def planes_through(xn: Array, reference_h: Array) -> Array:
     return h * np.sign(np.sum(h * reference_h, axis=-1, keepdims=True))
 
 
-def board_sensitivities(obs: Observations, arrays: PhaseArrays) -> Array | None:
-    """``d_intrinsics`` (N, 6, 8) of the board poses of ``arrays`` (zeros where no board), or None if any lacks it."""
-    out = np.zeros((len(arrays), 6, 8))
+def board_sensitivities(obs: Observations, arrays: PhaseArrays, n: int = 8) -> Array | None:
+    """``d_intrinsics`` (N, 6, n) of the board poses of ``arrays`` (zeros where no board), or None if any lacks it
+    (or has another parameter count than ``n``)."""
+    out = np.zeros((len(arrays), 6, n))
     for k, i in enumerate(arrays.index):
         if not arrays.has_board[k]:
             continue
@@ -146,12 +152,15 @@ def board_sensitivities(obs: Observations, arrays: PhaseArrays) -> Array | None:
         d = getattr(board, "d_intrinsics", None) if board is not None else None
         if d is None:
             return None
-        out[k] = np.asarray(d, dtype=np.float64)
+        a = np.asarray(d, dtype=np.float64)
+        if a.shape != (6, n):
+            return None
+        out[k] = a
     return out
 
 
 def perturbed_boards(arrays: PhaseArrays, sens: Array, step: Array) -> PhaseArrays:
-    """The board poses of ``arrays`` as they would be measured with the intrinsics moved by ``step`` (8,)."""
+    """The board poses of ``arrays`` as they would be measured with the intrinsics moved by ``step`` (n,)."""
     d = sens @ step  # (N, 6)
     R = np.einsum("nij,njk->nik", rotvec_to_matrix(d[:, :3]), arrays.board_R)
     return replace(arrays, board_R=R, board_t=arrays.board_t + d[:, 3:])
@@ -161,7 +170,8 @@ class LinearizedLimbs:
     """Limb samples' normalized coordinates for the intrinsics moved by the nuisance z, fast.
 
     The first-order guess ``xn0 + sum_j z_j dxn_j`` (``dxn_j`` the central difference over one
-    standard deviation along principal direction j, ``steps`` (n, 8), :func:`principal_steps`),
+    standard deviation along principal direction j, ``steps`` (n, p) over the camera's p intrinsics,
+    :func:`principal_steps`),
     then two Newton steps on the exact distortion model: equal to the iterative undistortion within
     1e-9 up to 5 standard deviations (tests/calib/test_intrinsics_propagation.py), points that do
     not converge are undistorted exactly.
@@ -169,7 +179,7 @@ class LinearizedLimbs:
     Parameters
     ----------
     camera : CameraModel
-    steps : ndarray, shape (n, 8)
+    steps : ndarray, shape (n, p)
     limbs_px : ndarray, shape (M, 2, P, 2)
         Per rod and limb, points of the limb in distorted pixels.
     """
@@ -203,16 +213,18 @@ class LinearizedLimbs:
             return x
         # the first-order guess, then Newton steps on the exact distortion (quadratic convergence)
         cam = perturbed_camera(self.camera, self.steps.T @ zz)
-        K, d = cam.K, np.zeros(5)
-        d[: min(5, cam.dist.size)] = cam.dist[:5]
-        k1, k2, p1, p2, k3 = d
+        K, d = cam.K, np.zeros(8)
+        d[: min(8, cam.dist.size)] = cam.dist[:8]
+        k1, k2, p1, p2, k3, k4, k5, k6 = d
         xd = (self.px[..., 0] - K[0, 2] - K[0, 1] / K[1, 1] * (self.px[..., 1] - K[1, 2])) / K[0, 0]
         yd = (self.px[..., 1] - K[1, 2]) / K[1, 1]
         xx, yy = x[..., 0], x[..., 1]
         for _ in range(2):
             r2 = xx * xx + yy * yy
-            radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            dr = k1 + r2 * (2 * k2 + 3 * k3 * r2)
+            num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+            radial = num / den  # OpenCV's rational model (k4 = k5 = k6 = 0: the polynomial one)
+            dr = ((k1 + r2 * (2 * k2 + 3 * k3 * r2)) * den - num * (k4 + r2 * (2 * k5 + 3 * k6 * r2))) / den**2
             fx = xx * radial + 2 * p1 * xx * yy + p2 * (r2 + 2 * xx * xx) - xd
             fy = yy * radial + p1 * (r2 + 2 * yy * yy) + 2 * p2 * xx * yy - yd
             a = radial + 2 * xx * xx * dr + 2 * p1 * yy + 6 * p2 * xx
@@ -245,3 +257,31 @@ def shift_limbs(h: Array, eps: Array) -> Array:
     out = h / nn  # the line n.x + c = 0 with |n| = 1, the axis on its positive side
     out[..., 2] += np.asarray(eps, dtype=np.float64)[None, :]
     return out / np.linalg.norm(out, axis=-1, keepdims=True)
+
+
+def lens_model_error(camera: CameraModel) -> tuple[Array, Array] | None:
+    """The radial model error the camera's calibration measured, or None (none measured, or all zero).
+
+    ``calibration.lens_model.residual_profile`` (:func:`calib.camera.radial_residual_profile`): bin radii (px from
+    the principal point) and the systematic radial residual there (px, outward), the part of the board views'
+    residuals the chosen lens model could not follow beyond their noise.
+    """
+    prof = (((camera.extra or {}).get("calibration") or {}).get("lens_model") or {}).get("residual_profile") or {}
+    r, e = prof.get("radius_px"), prof.get("systematic_px")
+    if not r or not e or len(r) != len(e):
+        return None
+    ra, ea = np.asarray(r, dtype=np.float64), np.asarray(e, dtype=np.float64)
+    if not np.all(np.isfinite(ea)) or not np.any(ea):
+        return None
+    return ra, ea
+
+
+def correct_model_error(camera: CameraModel, pixels: Array, profile: tuple[Array, Array]) -> Array:
+    """Distorted pixels (..., 2) moved by minus the radial model error at their radius (linear interpolation of
+    ``profile``, :func:`lens_model_error`): where they would be seen were the lens exactly the model."""
+    px = np.asarray(pixels, dtype=np.float64)
+    c = camera.K[:2, 2]
+    d = px - c
+    r = np.linalg.norm(d, axis=-1, keepdims=True)
+    de = np.interp(r[..., 0], profile[0], profile[1])[..., None]
+    return px - de * d / np.maximum(r, 1e-9)

@@ -60,6 +60,12 @@ from .iterations import IterationCallback, traced
 from .result import MethodResult, combos_dict, std_dict
 
 _PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+#: Default std (m) of each of the seven parameters around the nominal geometry (:func:`calibrate_legs`'s prior): a
+#: bench built to its drawings within about +/-10 mm per length (the twin's default truth is 5.3 mm RMS and at most
+#: 8.4 mm from nominal; the accuracy benchmark draws its truths with 5.3 mm std)
+PRIOR_STD_M = 0.01
+#: Floor (m) of the rod-pair check's separation std: below any measurement (noise-free data are never flagged)
+_PAIR_FLOOR_M = 1e-6
 _CHI2_2_999 = 13.8155  # chi-square, 2 dof, 99.9% quantile
 _CHI2_2_MEDIAN = 1.3863  # chi-square, 2 dof, median
 #: the four step-3/4 equations of a pose: (leg a, leg b) of |Ba Bb| - 2S, then of (Bb - Ba) . y - 2D
@@ -860,6 +866,7 @@ def calibrate_legs(
     direction_std_rad: float | None = None,
     on_iteration: IterationCallback | None = None,
     edge_bias_std_px: float = EDGE_BIAS_STD_PX,
+    prior_std_m: float | None = PRIOR_STD_M,
 ) -> MethodResult:
     """Identify all seven parameters from leg observations only (four steps).
 
@@ -881,6 +888,13 @@ def calibrate_legs(
         Standard deviation (px) of a limb-edge bias common to every rod (per limb), propagated into the
         standard deviations like the intrinsics (the combined method estimates it; here it is not
         identifiable apart from the joints and the rod radius).
+    prior_std_m : float or None
+        Standard deviation (m) of each of the seven parameters around the nominal (a priori) geometry: the
+        bench's manufacturing tolerance. Along the directions the legs' data know less well than it (their
+        variance above its square), the estimate is combined with it (linear-Gaussian posterior), so that such a
+        direction stays near the a priori value with about its tolerance as std instead of wherever the data
+        drift (``std_breakdown.a_priori``; ``diagnostics.identifiability``; a warning names the directions);
+        elsewhere the data's estimate is kept unchanged (:func:`_with_prior`). None or 0: no prior.
 
     Returns
     -------
@@ -937,6 +951,12 @@ def calibrate_legs(
         s2_1 = ss / dof1 if dof1 > 0 else 0.0
         covPij = s2_1 * np.linalg.inv(Acc)
         res_rms = float(np.sqrt(s2_1))
+
+    # ---- step 1b: the two rods of a leg are parallel and the same distance apart on every leg: their joints'
+    #      separations agree when the joints are right. A leg whose separation is off beyond its covariance has a
+    #      joint wrong beyond its std (a rod's frames taken for another edge, a weakly conditioned lock phase):
+    #      its joints' covariance is scaled to cover that disagreement
+    covPij, pair_check, warnings = _pair_consistency(P, covPij)
 
     # ---- steps 2-4
     data = obs.arrays(*fit_phases)
@@ -1014,6 +1034,23 @@ def calibrate_legs(
         cov_intr = Jz[:, :nz] @ Jz[:, :nz].T
         cov_edge = Jz[:, nz:] @ Jz[:, nz:].T
     cov = cov_joints + cov_dirs + cov_intr + cov_edge
+    parts7 = {
+        "joint_centres": cov_joints,
+        "leg_directions": cov_dirs,
+        "intrinsics": cov_intr,
+        "limb_edge_bias": cov_edge,
+    }
+    seven_data = seven.copy()
+    ident = _identifiability(cov, prior_std_m)
+    if prior_std_m:
+        seven, cov, parts7 = _with_prior(seven, cov, parts7, nom, prior_std_m)
+        if ident["unpinned"]:
+            worst = ident["unpinned"][0]
+            warnings.append(
+                f"the legs' data do not pin {len(ident['unpinned'])} direction(s) of the seven parameters (weakest: "
+                f"{worst['label']}, data std {worst['data_std_m'] * 1e3:.1f} mm against the a priori "
+                f"{prior_std_m * 1e3:.1f} mm): the result stays near the a priori values there, with their std"
+            )
     params = I4Parameters.from_mapping({**dict(zip(PARAMETER_NAMES, seven, strict=True)), "T_per_rad": nom.T_per_rad})
     M = np.array(
         [
@@ -1042,11 +1079,10 @@ def calibrate_legs(
         parameters={k: float(v) for k, v in zip(PARAMETER_NAMES, seven, strict=True)},
         parameters_std=std7,
         std_breakdown={
-            "joint_centres": {k: float(np.sqrt(max(cov_joints[i, i], 0))) for i, k in enumerate(PARAMETER_NAMES)},
-            "leg_directions": {k: float(np.sqrt(max(cov_dirs[i, i], 0))) for i, k in enumerate(PARAMETER_NAMES)},
-            "intrinsics": {k: float(np.sqrt(max(cov_intr[i, i], 0))) for i, k in enumerate(PARAMETER_NAMES)},
-            "limb_edge_bias": {k: float(np.sqrt(max(cov_edge[i, i], 0))) for i, k in enumerate(PARAMETER_NAMES)},
+            name: {k: float(np.sqrt(max(c[i, i], 0))) for i, k in enumerate(PARAMETER_NAMES)}
+            for name, c in parts7.items()
         },
+        warnings=warnings,
         diagnostics={
             "step1": "weighted plane equations" if use_planes else "line intersection (unweighted)",
             "step1_chi2_per_dof": float(s2_1),
@@ -1059,6 +1095,131 @@ def calibrate_legs(
             "line_residual_rms_mm": res_rms * 1e3,
             "joint_centres_camera": P.mean(axis=1).tolist(),
             "locked_q": q_lock.tolist(),
+            "rod_pair_check": pair_check,
+            "identifiability": {
+                **ident,
+                "prior_std_m": prior_std_m,
+                "data_estimate": {k: float(v) for k, v in zip(PARAMETER_NAMES, seven_data, strict=True)},
+            },
         },
         residuals=None,
     )
+
+
+def _pair_consistency(P: np.ndarray, covP: np.ndarray) -> tuple[np.ndarray, list[dict], list[str]]:
+    """The two upper joints of each leg against the other legs': their separations (4, 3) must agree.
+
+    Every leg's two rods are the same distance apart along x_B, so ``P[i, 1] - P[i, 0]`` is the same vector for
+    the four legs. Each leg's separation is compared with the component-wise median of the four (robust to one
+    wrong leg) by its chi-square with 3 dof under the joints' covariance (plus a 1 um floor); beyond the
+    chi-square 99.9% quantile times the legs' common scale (the median leg's chi-square over chi-square(3)'s
+    median, at least 1) the leg's two joint covariances are scaled by chi-square / 3, so that its std covers
+    the disagreement (the joints' error is then visible to the propagation, and the prior can act on it).
+
+    Returns
+    -------
+    covP : ndarray, shape (4, 2, 3, 3)
+        The joints' covariances, scaled where needed.
+    check : list of dict
+        Per leg: ``separation_mm``, ``deviation_mm`` (from the median), ``chi2``, ``scale``.
+    warnings : list of str
+    """
+    sep = P[:, 1] - P[:, 0]
+    ref = np.median(sep, axis=0)
+    out = covP.copy()
+    check, warnings = [], []
+    c2s = []
+    for i in range(4):
+        e = sep[i] - ref
+        C = covP[i, 0] + covP[i, 1] + _PAIR_FLOOR_M**2 * np.eye(3)
+        try:
+            c2s.append(float(e @ np.linalg.solve(C, e)))
+        except np.linalg.LinAlgError:
+            c2s.append(float("nan"))
+    # the legs' common scale (robust: the median leg's) sets the gate, so that only a leg far beyond the others
+    # is flagged; four chi-squares are too few to rescale every leg by
+    finite = [c for c in c2s if np.isfinite(c)]
+    common = max(1.0, float(np.median(finite)) / float(chi2.median(3))) if finite else 1.0
+    limit = float(chi2.ppf(0.999, 3)) * common
+    for i in range(4):
+        e = sep[i] - ref
+        c2 = c2s[i]
+        scale = c2 / 3.0 if np.isfinite(c2) and c2 > limit else 1.0
+        out[i] *= scale
+        check.append(
+            {
+                "leg": i + 1,
+                "separation_mm": float(np.linalg.norm(sep[i]) * 1e3),
+                "deviation_mm": float(np.linalg.norm(e) * 1e3),
+                "chi2": c2,
+                "scale": scale,
+            }
+        )
+        if scale > 1.0:
+            warnings.append(
+                f"lock-{i + 1}: the two rods' joints are {np.linalg.norm(sep[i]) * 1e3:.1f} mm apart, "
+                f"{np.linalg.norm(e) * 1e3:.1f} mm off the other legs' (chi-square {c2:.0f} for 3 dof): the joints' "
+                f"covariance is scaled by {scale:.0f}"
+            )
+    return out, check, warnings
+
+
+def _identifiability(cov: np.ndarray, prior_std_m: float | None) -> dict:
+    """How well the legs' data pin the seven parameters, per principal direction of their covariance.
+
+    ``information_ratio`` = prior variance / data variance along each direction (sorted, weakest first): below 1
+    the a priori tolerance knows that direction better than the data (``unpinned``, labelled by the parameters it
+    mostly involves). ``condition_number``: of the data covariance (largest / smallest variance).
+    """
+    C = 0.5 * (cov + cov.T)
+    w, V = np.linalg.eigh(C)
+    w = np.maximum(w, 1e-30)
+    order = np.argsort(-w)  # weakest (largest variance) first
+    ps2 = (prior_std_m or 0.0) ** 2
+    dirs = []
+    for k in order:
+        v = V[:, k] * np.sign(V[np.argmax(np.abs(V[:, k])), k])
+        big = np.argsort(-np.abs(v))[:3]
+        label = " ".join(f"{v[j]:+.2f} {PARAMETER_NAMES[j]}" for j in big if abs(v[j]) > 0.2)
+        dirs.append(
+            {
+                "direction": {n: float(x) for n, x in zip(PARAMETER_NAMES, v, strict=True)},
+                "label": label,
+                "data_std_m": float(np.sqrt(w[k])),
+                "information_ratio": float(ps2 / w[k]) if ps2 else None,
+            }
+        )
+    return {
+        "condition_number": float(w.max() / w.min()),
+        "directions": dirs,
+        "unpinned": [d for d in dirs if d["information_ratio"] is not None and d["information_ratio"] < 1.0],
+    }
+
+
+def _with_prior(
+    seven: np.ndarray, cov: np.ndarray, parts: dict[str, np.ndarray], nom: I4Parameters, prior_std_m: float
+) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """The legs' estimate with the prior N(nominal, prior_std_m^2 I) in the directions the data do not pin.
+
+    Along each principal direction k of the data covariance C (variance w_k): when the data know it better than
+    the prior (w_k < prior_std_m^2) the data's estimate is kept as it is (unbiased, and better than the a priori
+    value in expectation); otherwise the linear-Gaussian posterior of the two, the data weighed by the factor
+    ``a_k = s^2 / (w_k + s^2)``. With ``A = V diag(a) V^T``, ``posterior = A seven + (I - A) nominal``; its error is
+    ``A (data error) + (I - A) (nominal - truth)``, hence the covariance ``A C A^T + (I - A) P (I - A)^T``, each data
+    part mapped by A and the prior's part named ``a_priori``. In every direction the result is then no worse than
+    the a priori value in expectation, and noise-free data still give back the truth exactly.
+    """
+    nom7 = np.array([getattr(nom, k) for k in PARAMETER_NAMES])
+    s2 = prior_std_m**2
+    Pp = s2 * np.eye(7)
+    C = 0.5 * (cov + cov.T)
+    w, V = np.linalg.eigh(C)
+    w = np.maximum(w, 0.0)
+    a = np.where(w < s2, 1.0, s2 / (w + s2))
+    A = (V * a) @ V.T
+    post = A @ seven + (np.eye(7) - A) @ nom7
+    out = {k: A @ v @ A.T for k, v in parts.items()}
+    IA = np.eye(7) - A
+    out["a_priori"] = IA @ Pp @ IA.T
+    total = sum(out.values())
+    return post, 0.5 * (total + total.T), out

@@ -48,6 +48,8 @@ class MethodResult:
     std_breakdown: dict[str, dict[str, float]] = field(default_factory=dict)
     diagnostics: dict[str, Any] = field(default_factory=dict)
     residuals: np.ndarray | None = field(default=None, repr=False)
+    #: what the user must know about this result (a parameter the data cannot pin, a check that failed)
+    warnings: list[str] = field(default_factory=list)
 
     def vector(self) -> np.ndarray:
         return np.array([self.combinations[k] for k in COMBINATION_NAMES])
@@ -75,6 +77,7 @@ class MethodResult:
             "covariance": np.asarray(self.covariance).tolist(),
             "std_breakdown": self.std_breakdown,
             "diagnostics": self.diagnostics,
+            "warnings": list(self.warnings),
         }
         if self.parameters is not None:
             out["seven"] = {k: self.parameters[k] for k in PARAMETER_NAMES}

@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from ..camera import CameraModel
+from ..camera import CameraModel, intrinsics_names, projection_columns
 from ..dataset import BoardSpec
 
 Array = NDArray[np.float64]
@@ -129,7 +129,10 @@ class BoardDetector:
         self.points = pts
         self.points_d_intrinsics = np.zeros((pts.shape[0], 3, 8))
         if d_intrinsics is not None:
-            self.points_d_intrinsics[idx] = np.asarray(d_intrinsics, dtype=np.float64).reshape(-1, 3, 8)
+            dI = np.asarray(d_intrinsics, dtype=np.float64)
+            ni = dI.shape[-1] if dI.ndim == 3 else 8  # the lens model's parameter count
+            self.points_d_intrinsics = np.zeros((pts.shape[0], 3, ni))
+            self.points_d_intrinsics[idx] = dI.reshape(-1, 3, ni)
 
     def detect(self, image: np.ndarray) -> BoardDetection:
         """Detect ChArUco corners (sub-pixel) in an 8/16-bit mono or colour image."""
@@ -175,8 +178,14 @@ class BoardDetector:
         if float(tvec.reshape(-1)[2]) <= 0:
             return "board pose failed: board behind the camera"
         # intrinsics move the pose directly (projection) and through the refined corners they carry
-        dX = self.points_d_intrinsics[detection.ids]  # (n, 3, 8)
-        JI = jac[:, 6:14] + np.einsum("pij,pjk->pik", (jac[:, 3:6].reshape(n, 2, 3) @ R), dX).reshape(2 * n, 8)
+        cols = projection_columns(intrinsics_names(camera))  # the camera's lens model's intrinsics
+        ni = len(cols)
+        if max(cols) >= jac.shape[1]:  # a coefficient the camera's dist does not hold (zero): its derivative
+            _, jac = cv2.projectPoints(obj, rvec, tvec, camera.K, np.concatenate([camera.dist, np.zeros(8)])[:8])
+        dX = self.points_d_intrinsics[detection.ids]  # (n, 3, ni)
+        if dX.shape[2] != ni:
+            dX = np.zeros((n, 3, ni))
+        JI = jac[:, cols] + np.einsum("pij,pjk->pik", (jac[:, 3:6].reshape(n, 2, 3) @ R), dX).reshape(2 * n, ni)
         return BoardPose(
             R,
             tvec.reshape(3).astype(np.float64),
@@ -199,7 +208,8 @@ class BoardDetector:
 
 
 def _pose_sensitivity(Jp: Array, JI: Array, rvec: Array, R: Array) -> Array | None:
-    """d(left rotation, t)/d(fx, fy, cx, cy, k1, k2, p1, p2) of a PnP pose, (6, 8).
+    """d(left rotation, t)/d(intrinsics) of a PnP pose, (6, n) (fx, fy, cx, cy, k1, k2, p1, p2 or the camera's
+    lens model's parameters).
 
     The pose minimises the reprojection error: a change dI of the intrinsics moves it by
     ``-(Jp^T Jp)^-1 Jp^T J_I dI`` (Jp (2n, 6): the pixels' derivatives by (rvec, t); J_I (2n, 8): by
@@ -210,9 +220,10 @@ def _pose_sensitivity(Jp: Array, JI: Array, rvec: Array, R: Array) -> Array | No
     except np.linalg.LinAlgError:
         return None
     eps = 1e-6
-    out = np.empty((6, 8))
+    ni = JI.shape[1]
+    out = np.empty((6, ni))
     out[3:] = dpose[3:]
-    for j in range(8):
+    for j in range(ni):
         R2, _ = cv2.Rodrigues(rvec + eps * dpose[:3, j])
         A = R2 @ R.T  # ~ I + [w]x (cv2.Rodrigues returns 0 for so small an angle: read the skew part)
         out[:3, j] = 0.5 * np.array([A[2, 1] - A[1, 2], A[0, 2] - A[2, 0], A[1, 0] - A[0, 1]]) / eps

@@ -68,6 +68,10 @@ class ExtractOptions:
     #: standard deviations (Mahalanobis), measure the frames a second time with the refined camera
     refine_camera: bool = True
     refine_min_shift: float = 0.5
+    #: the camera calibration's lens model (:data:`calib.camera.LENS_MODEL_CHOICES`): ``"auto"`` chooses it from
+    #: the ``camera`` phase's board views (:func:`calib.camera.calibrate_intrinsics`); None: the dataset's
+    #: ``camera.lens_model`` (the bench file's), else ``"auto"``; a given camera keeps its own
+    lens_model: str | None = None
 
 
 @dataclass
@@ -578,7 +582,7 @@ def refined_camera(res: ExtractionResult, min_shift: float = 0.5) -> tuple[Camer
     (CameraModel or None, dict)
         The dict: ``applied``, ``shift`` (per intrinsic: px for fx, fy, cx, cy), ``mahalanobis`` or ``reason``.
     """
-    from ..camera import INTRINSICS_NAMES
+    from ..camera import intrinsics_names
     from ..methods.combined import calibrate_combined
     from ..methods.intrinsics import perturbed_camera
     from ..observations import Observations
@@ -593,7 +597,7 @@ def refined_camera(res: ExtractionResult, min_shift: float = 0.5) -> tuple[Camer
     shift = fit.diagnostics.get("intrinsics_refinement")
     if not shift:
         return None, {"applied": False, "reason": "the observations carry no limb samples (limbs_px)"}
-    d = np.array([shift[k] for k in INTRINSICS_NAMES])
+    d = np.array([shift[k] for k in intrinsics_names(res.camera)])
     m = float(np.sqrt(d @ np.linalg.solve(np.asarray(calib["covariance"], dtype=np.float64), d)))
     info: dict[str, Any] = {"shift": shift, "mahalanobis": m}
     if m < min_shift:
@@ -652,7 +656,13 @@ def _extract(
             else:
                 views[i] = (np.asarray(r[0], dtype=int), np.asarray(r[1]).reshape(-1, 2), None)
         ids_all, pts = BoardDetector(doc.board).ids_all, BoardDetector(doc.board).points_nominal
-        intr = calibrate_intrinsics(views, (doc.camera.width, doc.camera.height), ids_all, pts)
+        intr = calibrate_intrinsics(
+            views,
+            (doc.camera.width, doc.camera.height),
+            ids_all,
+            pts,
+            lens_model=opts.lens_model or (doc.camera.model_extra or {}).get("lens_model") or "auto",
+        )
         for i, reason in intr.rejected.items():
             per_frame.setdefault(i, []).append(f"camera view rejected: {reason}")
         camera = intr.camera

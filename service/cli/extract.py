@@ -35,6 +35,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="do not let the rods refine the camera and measure the frames again with it (faster: one "
         "pass; less accurate when the camera calibration is off)",
     )
+    p.add_argument(
+        "--lens-model",
+        default=None,
+        metavar="MODEL",
+        help="lens model of the camera calibration: auto (chosen from the camera phase's board views by BIC), "
+        "k1k2, k1k2k3, rational, or one of them with -radial (no tangential terms); default: the dataset's "
+        "(the bench file's camera.lens_model), else auto",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=run)
 
@@ -44,13 +52,19 @@ def run(args: argparse.Namespace) -> int:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
     from rich.table import Table
 
-    from calib.camera import CameraModel
+    from calib.camera import LENS_MODEL_CHOICES, CameraModel
+    from calib.errors import InputError
     from calib.observations import Observations
     from calib.vision.extract import ExtractOptions, extract_dataset
 
     console = Console(stderr=True)
+    if args.lens_model is not None and args.lens_model not in LENS_MODEL_CHOICES:
+        raise InputError(
+            f"unknown lens model {args.lens_model!r}; lens models are {', '.join(LENS_MODEL_CHOICES)}",
+            field="--lens-model",
+        )
     cam = CameraModel.load(args.camera) if args.camera else None
-    opts = ExtractOptions(min_corners=args.min_corners, refine_camera=args.refine_camera)
+    opts = ExtractOptions(min_corners=args.min_corners, refine_camera=args.refine_camera, lens_model=args.lens_model)
     if args.quiet:
         res = extract_dataset(args.dataset, camera=cam, workers=args.workers, options=opts)
     else:
@@ -83,6 +97,25 @@ def run(args: argparse.Namespace) -> int:
             f"fx {res.camera.fx:.2f} +/- {i.std.get('fx', float('nan')):.2f} px, "
             f"{len(i.rejected)} views rejected"
         )
+        lm = i.lens_model or {}
+        if lm:
+            cands = ", ".join(
+                f"{e['model']} {e['n_params']}p RMS {e['rms_px']:.3f} px"
+                + (
+                    f" dBIC {e['delta_bic']:+.1f}"
+                    if e.get("delta_bic") is not None and len(lm["candidates"]) > 1
+                    else ""
+                )
+                for e in lm.get("candidates", [])
+            )
+            prof = lm.get("residual_profile") or {}
+            console.print(
+                f"lens model: {lm['chosen']} ({'chosen by BIC' if lm.get('requested') == 'auto' else 'given'}; "
+                f"{cands}); views reach {100 * lm.get('field_coverage', 1.0):.0f}% of the corner radius; "
+                f"radial model error up to {prof.get('max_systematic_px', 0.0):.3f} px"
+            )
+            for w in lm.get("warnings") or []:
+                console.print(f"warning: {w}")
     ref = (s.get("camera") or {}).get("refined_by_rods") or {}
     if ref.get("applied"):
         sh = ref["shift"]

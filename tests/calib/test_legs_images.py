@@ -56,7 +56,9 @@ def twin() -> GeometricTwin:
 
 def test_planes_recover_all_seven_without_noise(twin, paper_plan):
     obs = Observations.from_dict(with_planes(twin.observations(plan=paper_plan, seed=0)))
-    r = calibrate_legs(obs)
+    # without the a priori tolerance: at the declared 0.1 px edge noise the data leave the (L, S, D) valley
+    # unpinned (26.8 mm std), where the prior would rightly pull the estimate toward nominal
+    r = calibrate_legs(obs, prior_std_m=None)
     assert r.diagnostics["step1"] == "weighted plane equations"
     assert r.diagnostics["steps34_weighting"].startswith("measured")
     truth = twin.geometry.truth.seven()
@@ -71,7 +73,7 @@ def test_a_rod_taken_for_another_edge_is_rejected(twin, paper_plan):
     wrong = lock[2]["legs"]["1"][1]  # another leg's rod measured in place of this one
     for key in ("u", "point", "h", "cov_u"):
         rod[key] = wrong[key]
-    r = calibrate_legs(Observations.from_dict(doc))
+    r = calibrate_legs(Observations.from_dict(doc), prior_std_m=None)  # exact recovery: the data alone
     assert r.diagnostics["step1_frames_rejected"] == [{"lock": 2, "rod": 0, "frame_of_rod": 2}]
     truth = twin.geometry.truth.seven()
     for k in PARAMETER_NAMES:
@@ -86,7 +88,9 @@ def test_std_matches_the_spread_with_anisotropic_rod_noise(twin, paper_plan):
     errs, stds = [], []
     for seed in range(40):
         doc = with_planes(twin.observations(plan=paper_plan, seed=seed), np.random.default_rng(1000 + seed))
-        r = calibrate_legs(Observations.from_dict(doc))
+        # the data's own std (a fixed truth cannot sample the a priori tolerance the prior adds where the data
+        # leave the (L, S, D) valley unpinned: tests/calib/test_legs_prior.py)
+        r = calibrate_legs(Observations.from_dict(doc), prior_std_m=None)
         errs.append(r.vector() - truth)
         stds.append(r.std_vector())
     errs, stds = np.array(errs), np.array(stds)
