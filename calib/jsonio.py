@@ -25,8 +25,22 @@ def read_json(path: str | Path, what: str = "file") -> Any:
         raise InputError(f"not valid JSON: {exc.msg} at line {exc.lineno} column {exc.colno}", file=str(p)) from None
 
 
+def fsync_dir(path: str | Path) -> None:
+    """Flush a directory's entries to disk (after a rename in it: without this, a power cut can lose the rename
+    although the file's data were synced). A no-op where directories cannot be opened (Windows)."""
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    except (PermissionError, IsADirectoryError):  # pragma: no cover (Windows)
+        return
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 def write_json_atomic(path: str | Path, data: Any, indent: int | None = 1) -> None:
-    """Write JSON to a temporary file, flush it and rename it over ``path``."""
+    """Write JSON to a temporary file, flush it, rename it over ``path`` and flush the directory: after a crash or a
+    power cut, ``path`` holds the old or the new document, whole."""
     p = Path(path)
     tmp = p.with_name(f".{p.name}.tmp")
     with open(tmp, "w", encoding="utf-8") as fh:
@@ -34,3 +48,4 @@ def write_json_atomic(path: str | Path, data: Any, indent: int | None = 1) -> No
         fh.flush()
         os.fsync(fh.fileno())
     os.replace(tmp, p)
+    fsync_dir(p.parent)

@@ -1,7 +1,9 @@
 """Bearer tokens: stored hashed (sha256), configured in the settings or created with ``i4cal token create``.
 
 Every request that moves hardware or changes state depends on :func:`require_token`; reads depend on
-:func:`read_access`, which asks for a token only when ``open_reads`` is false.
+:func:`read_access`, which asks for a token only when ``open_reads`` is false. A token created with an expiry
+(``--expires-in``, ``--expires-at``) or revoked (``i4cal token revoke ID``) is refused (401); ``token_hashes`` of the
+settings never expire (remove them from the configuration to revoke them).
 """
 
 from __future__ import annotations
@@ -9,11 +11,13 @@ from __future__ import annotations
 import hashlib
 import hmac
 import secrets
+from dataclasses import dataclass
+from datetime import UTC, datetime, timedelta
 from typing import Annotated
 
 from fastapi import Depends, HTTPException, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
-from sqlalchemy import select
+from sqlalchemy import select, update
 
 from .db import Database, Token
 
@@ -28,24 +32,67 @@ def new_token() -> str:
     return "i4c_" + secrets.token_urlsafe(32)
 
 
-def create_token(db: Database, name: str = "") -> str:
-    """Store a new token's hash and return the token (shown once)."""
+#: characters of a token kept in clear to recognise it ("i4c_" and 4 of the 43 random ones: 24 bits of 256)
+PREFIX_CHARS = 8
+#: the last use of a token is written at most this often (one write per token and minute, not per request)
+LAST_USED_EVERY = timedelta(seconds=60)
+
+
+def create_token(db: Database, name: str = "", expires_at: datetime | None = None) -> str:
+    """Store a new token's hash (and its first characters) and return the token (shown once).
+
+    Parameters
+    ----------
+    expires_at : datetime, optional
+        Refused from then on (aware, or naive UTC); None: no expiry.
+    """
+    return create_token_record(db, name, expires_at)[0]
+
+
+def create_token_record(db: Database, name: str = "", expires_at: datetime | None = None) -> tuple[str, int]:
+    """:func:`create_token`, with the stored row's id."""
     token = new_token()
+    row = Token(name=name, sha256=hash_token(token), prefix=token[:PREFIX_CHARS], expires_at=expires_at)
     with db.session() as s:
-        s.add(Token(name=name, sha256=hash_token(token)))
-    return token
+        s.add(row)
+        s.flush()
+        rid = row.id
+    return token, rid
 
 
-def token_valid(request: Request, token: str) -> bool:
+@dataclass(frozen=True)
+class TokenCheck:
+    ok: bool
+    reason: str = "invalid token"
+
+
+def check_token(request: Request, token: str) -> TokenCheck:
+    """Whether ``token`` is accepted: one of ``token_hashes``, or a stored token neither expired nor revoked."""
     digest = hash_token(token)
     ok = False
     for h in request.app.state.settings.token_hashes:
         ok |= hmac.compare_digest(h.lower(), digest)
     if ok:
-        return True
+        return TokenCheck(True)
     db: Database = request.app.state.db
+    now = datetime.now(UTC)
     with db.session() as s:
-        return s.scalar(select(Token.id).where(Token.sha256 == digest)) is not None
+        row = s.execute(
+            select(Token.id, Token.expires_at, Token.revoked_at, Token.last_used_at).where(Token.sha256 == digest)
+        ).one_or_none()
+        if row is None:
+            return TokenCheck(False)
+        if row.revoked_at is not None and row.revoked_at <= now:
+            return TokenCheck(False, "token revoked")
+        if row.expires_at is not None and row.expires_at <= now:
+            return TokenCheck(False, "token expired")
+        if row.last_used_at is None or now - row.last_used_at >= LAST_USED_EVERY:
+            s.execute(update(Token).where(Token.id == row.id).values(last_used_at=now))
+    return TokenCheck(True)
+
+
+def token_valid(request: Request, token: str) -> bool:
+    return check_token(request, token).ok
 
 
 def _unauthorized(detail: str) -> HTTPException:
@@ -55,8 +102,11 @@ def _unauthorized(detail: str) -> HTTPException:
 def require_token(request: Request, creds: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)]) -> str:
     if creds is None or creds.scheme.lower() != "bearer" or not creds.credentials:
         raise _unauthorized("a bearer token is required")
-    if len(creds.credentials) > 512 or not token_valid(request, creds.credentials):
+    if len(creds.credentials) > 512:
         raise _unauthorized("invalid token")
+    check = check_token(request, creds.credentials)
+    if not check.ok:
+        raise _unauthorized(check.reason)
     return creds.credentials
 
 

@@ -36,12 +36,11 @@ CSP_DEFAULT = (
     "default-src 'self'; script-src 'self'; style-src 'self'; img-src 'self' data: blob:; connect-src 'self'; "
     "font-src 'self'; object-src 'none'; base-uri 'none'; form-action 'self'; frame-ancestors 'none'"
 )
-#: The interactive API docs (Swagger UI): its page starts the UI with an inline script and inline styles; its
-#: assets come from this origin (or, while FastAPI's default page is served, from the jsDelivr CDN it names).
+#: The interactive API docs (Swagger UI, its assets served from ``/static/docs``): the page starts the UI with an
+#: inline script, and the UI sets inline styles; nothing comes from elsewhere.
 CSP_DOCS = (
-    "default-src 'self'; script-src 'self' 'unsafe-inline' https://cdn.jsdelivr.net; "
-    "style-src 'self' 'unsafe-inline' https://cdn.jsdelivr.net; img-src 'self' data: https://fastapi.tiangolo.com; "
-    "connect-src 'self'; object-src 'none'; base-uri 'none'; frame-ancestors 'none'"
+    "default-src 'self'; script-src 'self' 'unsafe-inline'; style-src 'self' 'unsafe-inline'; "
+    "img-src 'self' data:; connect-src 'self'; object-src 'none'; base-uri 'none'; frame-ancestors 'none'"
 )
 #: The calibration report: one self-contained HTML file (inline styles, images as data: URIs, no script).
 CSP_REPORT = (

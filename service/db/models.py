@@ -7,10 +7,34 @@ from typing import Any
 
 from sqlalchemy import JSON, DateTime, ForeignKey, Index, Integer, String, Text
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
+from sqlalchemy.types import TypeDecorator
+
+from ..timefmt import as_utc
 
 
 def utcnow() -> datetime:
     return datetime.now(UTC)
+
+
+class UTCDateTime(TypeDecorator):
+    """``DateTime(timezone=True)`` that stores UTC and always gives back aware UTC datetimes.
+
+    SQLite has no time zones: SQLAlchemy writes the wall-clock digits and reads naive datetimes back; PostgreSQL's
+    ``timestamptz`` comes back in the session's time zone. Bound values are converted to UTC first (naive ones are
+    taken as UTC), results are made aware UTC: the API and the events write them with ``Z``.
+    """
+
+    impl = DateTime(timezone=True)
+    cache_ok = True
+
+    def process_bind_param(self, value: datetime | None, dialect) -> datetime | None:
+        if value is None:
+            return None
+        value = as_utc(value)
+        return value.replace(tzinfo=None) if dialect.name == "sqlite" else value
+
+    def process_result_value(self, value: datetime | None, dialect) -> datetime | None:
+        return None if value is None else as_utc(value)
 
 
 class Base(DeclarativeBase):
@@ -22,9 +46,9 @@ class Run(Base):
 
     id: Mapped[str] = mapped_column(String(32), primary_key=True)
     state: Mapped[str] = mapped_column(String(16), index=True)
-    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
-    started_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True))
-    finished_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True))
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    started_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+    finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
     #: the bench the run's data and results belong to (acquisition: the service's bench; offline: as requested)
     bench: Mapped[str | None] = mapped_column(String(64), index=True)
     #: the service that executes the run, named by its bench (several services can share one database)
@@ -51,7 +75,7 @@ class Event(Base):
     id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
     run_id: Mapped[str] = mapped_column(ForeignKey("runs.id", ondelete="CASCADE"))
     seq: Mapped[int] = mapped_column(Integer)
-    t: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    t: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
     type: Mapped[str] = mapped_column(String(32))
     data: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
 
@@ -60,7 +84,7 @@ class DatasetRecord(Base):
     __tablename__ = "datasets"
 
     id: Mapped[str] = mapped_column(String(32), primary_key=True)
-    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
     name: Mapped[str] = mapped_column(String(255), default="")
     path: Mapped[str] = mapped_column(Text)  # relative to the data directory
     frames: Mapped[int] = mapped_column(Integer, default=0)
@@ -71,7 +95,7 @@ class Calibration(Base):
     __tablename__ = "calibrations"
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
-    applied_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow, index=True)
+    applied_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow, index=True)
     bench: Mapped[str] = mapped_column(String(64), index=True)
     run_id: Mapped[str] = mapped_column(ForeignKey("runs.id"))
     method: Mapped[str] = mapped_column(String(32))
@@ -80,9 +104,19 @@ class Calibration(Base):
 
 
 class Token(Base):
+    """A bearer token: only its sha256 is stored, with the first characters of the token to recognise it."""
+
     __tablename__ = "tokens"
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
     name: Mapped[str] = mapped_column(String(128), default="")
     sha256: Mapped[str] = mapped_column(String(64), unique=True)
-    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    #: the token's first characters ("i4c_" and 4 of its 43 random ones), shown by ``i4cal token list``
+    prefix: Mapped[str | None] = mapped_column(String(16))
+    #: refused from this time on (None: never expires)
+    expires_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+    #: refused from this time on (``i4cal token revoke``)
+    revoked_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+    #: last accepted request (updated at most once a minute)
+    last_used_at: Mapped[datetime | None] = mapped_column(UTCDateTime())

@@ -10,6 +10,15 @@ let source = null;
 let frameTimer = null;
 let METHODS = [];  // GET /api/v1/methods: [{name, label, colour, description, required_phases, ...}]
 
+// The API's times are UTC (ISO 8601 with Z); one without a zone is UTC too (never the browser's local time).
+// Shown in the browser's time zone, named: "23/11/2026, 16:20:41 CET".
+function fmtTime(iso) {
+  if (!iso) return "";
+  const s = /(Z|[+-]\d\d:?\d\d)$/.test(iso) ? iso : iso + "Z";
+  const d = new Date(s);
+  return esc(isNaN(d) ? String(iso) : d.toLocaleString(undefined, { timeZoneName: "short" }));
+}
+
 const tokenInput = $("#token");
 tokenInput.value = localStorage.getItem("i4cal-token") || "";
 tokenInput.addEventListener("change", () => localStorage.setItem("i4cal-token", tokenInput.value.trim()));
@@ -77,7 +86,7 @@ async function refreshRuns() {
     if (r.id === selected) tr.className = "selected";
     tr.innerHTML = `<td><code>${r.id.slice(0, 8)}</code></td><td><span class="state ${r.state}">${r.state}</span></td>` +
       `<td>${esc(r.bench)}</td><td>${esc(r.plan || (r.dataset ? "dataset " + r.dataset.slice(0, 8) : ""))}</td>` +
-      `<td>${r.progress.done}/${r.progress.total}</td><td>${new Date(r.created_at).toLocaleString()}</td><td>${esc(r.note)}</td>` +
+      `<td>${r.progress.done}/${r.progress.total}</td><td>${fmtTime(r.created_at)}</td><td>${esc(r.note)}</td>` +
       `<td>${r.has_result ? `<a class="report" href="${API}/runs/${r.id}/report" target="_blank" rel="noopener">report</a>` : ""}</td>`;
     tr.addEventListener("click", () => select(r.id));
     tb.appendChild(tr);
@@ -98,7 +107,7 @@ async function refreshCurrent() {
   try {
     const c = await api("GET", "/calibration/current");
     $("#current").innerHTML = `<p>bench <b>${esc(c.bench)}</b>: ${esc(c.method)} from run <code>${c.run_id.slice(0, 8)}</code>, applied ` +
-      `${new Date(c.applied_at).toLocaleString()} (i4cal ${esc(c.software_version)})</p><table><tr>` +
+      `${fmtTime(c.applied_at)} (i4cal ${esc(c.software_version)})</p><table><tr>` +
       COMBOS.map((k) => `<th>${k}</th>`).join("") + "</tr><tr>" +
       COMBOS.map((k) => `<td>${pm(c.combinations[k], c.combinations_std && c.combinations_std[k])}</td>`).join("") +
       "</tr></table>";

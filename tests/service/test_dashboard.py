@@ -33,7 +33,9 @@ async def test_dashboard_starts_a_run_and_shows_results(tmp_path):
                     args=["--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage"],
                 )
                 try:
-                    page = await browser.new_page()
+                    # the wait_for_function strings below are evaluated by the page: its CSP (no 'unsafe-eval') would
+                    # refuse them; the page under its own CSP is checked by test_browser_security.py
+                    page = await browser.new_page(bypass_csp=True)
                     errors: list[str] = []
                     page.on("pageerror", lambda e: errors.append(str(e)))
                     await page.goto(svc.url + "/")
