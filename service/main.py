@@ -21,6 +21,7 @@ from . import __version__
 from .api import api_router
 from .api.health import router as health_router
 from .db import Database
+from .hardening import install as install_hardening
 from .settings import Settings
 from .worker import Bench, RunManager
 
@@ -77,6 +78,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         redoc_url=None,
     )
     app.state.settings = settings
+    install_hardening(app, settings)
     app.include_router(api_router)
     app.include_router(health_router)
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
