@@ -14,14 +14,17 @@ from contextlib import asynccontextmanager
 from pathlib import Path
 
 from fastapi import FastAPI
-from fastapi.responses import FileResponse, RedirectResponse
+from fastapi.openapi.docs import get_swagger_ui_html
+from fastapi.responses import FileResponse, HTMLResponse, RedirectResponse, Response
 from fastapi.staticfiles import StaticFiles
 
 from . import __version__
 from .api import api_router
 from .api.health import router as health_router
+from .auth import Reader
 from .db import Database
 from .hardening import install as install_hardening
+from .metrics import CONTENT_TYPE, make_registry, render
 from .settings import Settings
 from .worker import Bench, RunManager
 
@@ -74,7 +77,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         "live progress, results, the current calibration. State-changing requests need a "
         "bearer token (`i4cal token create`).",
         openapi_url="/api/v1/openapi.json",
-        docs_url="/api/v1/docs",
+        docs_url=None,  # served below with the Swagger UI assets of service/static/docs (no CDN: works offline)
         redoc_url=None,
     )
     app.state.settings = settings
@@ -82,6 +85,28 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(api_router)
     app.include_router(health_router)
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
+
+    @app.get("/api/v1/docs", include_in_schema=False)
+    async def api_docs() -> HTMLResponse:
+        return get_swagger_ui_html(
+            openapi_url="/api/v1/openapi.json",
+            title=f"{app.title} - API docs",
+            swagger_js_url="/static/docs/swagger-ui-bundle.js",
+            swagger_css_url="/static/docs/swagger-ui.css",
+            swagger_favicon_url="/static/docs/favicon-32x32.png",
+            swagger_ui_parameters={"validatorUrl": None},  # no badge fetched from the validator's site
+        )
+
+    metrics_registry = make_registry(lambda: getattr(app.state, "manager", None))
+
+    @app.get("/metrics", include_in_schema=False)
+    async def metrics(_: Reader) -> Response:
+        """Prometheus text format (service/metrics.py): runs by state, run and stage durations, frames extracted,
+        the drivers' Modbus counters."""
+        import asyncio
+
+        body = await asyncio.to_thread(render, metrics_registry)
+        return Response(body, media_type=CONTENT_TYPE)
 
     @app.get("/", include_in_schema=False)
     async def index() -> RedirectResponse:
