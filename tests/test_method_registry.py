@@ -20,7 +20,7 @@ from calib.methods import registry
 from calib.methods.registry import MethodContext, MethodSpec, get_method, method_names, register_method
 from calib.observations import Observations
 from calib.pipeline import calibrate
-from tests.service.conftest import AUTH, service, sim  # noqa: F401  (fixtures)
+from tests.service.conftest import AUTH, rendered_zip, service, sim, wait_state  # noqa: F401  (fixtures)
 
 ROOT = Path(__file__).resolve().parents[1]
 API = "/api/v1"
@@ -135,7 +135,7 @@ def test_toy_method_in_the_report(toy, obs_path, tmp_path):
     assert "legs only: joint centres from the lock-actuator phases" in html
 
 
-async def test_toy_method_in_the_api_and_the_fit_process(toy, service, obs_path, tmp_path):  # noqa: F811
+async def test_toy_method_in_the_api_and_the_fit_process(toy, service, obs_path, tmp_path, rendered_zip):  # noqa: F811
     c = service.client
     ms = (await c.get(f"{API}/methods")).json()
     assert [m["name"] for m in ms] == ["combined", "end-effector", "legs", "a-priori"]
@@ -153,6 +153,20 @@ async def test_toy_method_in_the_api_and_the_fit_process(toy, service, obs_path,
     r = await c.post(f"{API}/runs", json={"plan": "rotation-sweep", "methods": ["a-priori"]}, headers=AUTH)
     assert r.status_code == 202, r.text
     assert r.json()["methods"] == ["a-priori"]
+    # an offline run with it on an uploaded rendered dataset: its result, then applied as the bench's calibration
+    ds = await c.post(f"{API}/datasets", content=rendered_zip, headers={"Content-Type": "application/zip", **AUTH})
+    assert ds.status_code == 201, ds.text
+    r = await c.post(f"{API}/runs", json={"dataset": ds.json()["id"], "methods": ["a-priori"]}, headers=AUTH)
+    run = await wait_state(c, r.json()["id"])
+    assert run["state"] == "done", run
+    res = (await c.get(f"{API}/runs/{run['id']}/result")).json()
+    assert list(res["methods"]) == ["a-priori"]
+    assert res["methods"]["a-priori"]["parameters"] == pytest.approx(res["nominal_combinations"])
+    cal = await c.post(f"{API}/runs/{run['id']}/apply", json={"method": "a-priori"}, headers=AUTH)
+    assert cal.status_code == 201, cal.text
+    assert (await c.get(f"{API}/calibration/current")).json()["method"] == "a-priori"
+    report = await c.get(f"{API}/runs/{run['id']}/report", params={"methods": "a-priori"})
+    assert report.status_code == 200 and "A priori (toy, no fit)" in report.text
     # the service's fit process (a forkserver child: a fresh interpreter) fits with it
     from service.jobs import Job
 
