@@ -21,6 +21,7 @@ from fastapi.staticfiles import StaticFiles
 from . import __version__
 from .api import api_router
 from .api.health import router as health_router
+from .api.plans import router as plans_router
 from .auth import Reader
 from .db import Database
 from .hardening import install as install_hardening
@@ -84,6 +85,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     install_hardening(app, settings)
     app.include_router(api_router)
     app.include_router(health_router)
+    app.include_router(plans_router)
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
 
     @app.get("/api/v1/docs", include_in_schema=False)

@@ -262,6 +262,7 @@ async function showResult(id) {
     .map((m) => `<option value="${esc(m)}">${esc(methodLabel(m))}</option>`).join("");
   $("#results-panel").hidden = false;
   $("#results-panel").dataset.run = id;
+  showPredicted(id, res);
 }
 
 function residualPlot(series) {
@@ -313,6 +314,69 @@ $("#apply").addEventListener("click", async () => {
     refreshCurrent();
   } catch (e) { say(e.message, true); }
 });
+
+// -- experiment design (POST /api/v1/plans/design): the prediction before a run, predicted vs obtained after ----
+let designed = null;  // the last design: {plan, predicted_std_m, ...}
+
+function designRows(pred, obtained) {
+  let h = "<tr><th>method</th>" + COMBOS.map((k) => `<th>${k}</th>`).join("") + "</tr>";
+  for (const m of Object.keys(pred)) {
+    h += `<tr><th>${esc(methodLabel(m))}</th>` + COMBOS.map((k) => {
+      const p = pred[m][k];
+      const o = obtained && obtained[m] && obtained[m].std ? obtained[m].std[k] : undefined;
+      if (obtained === undefined) return `<td>${mm(p)}</td>`;
+      const ratio = o && p ? ` (${(o / p).toFixed(2)}×)` : "";
+      return `<td>${mm(p)} / ${mm(o)}${ratio}</td>`;
+    }).join("") + "</tr>";
+  }
+  return h;
+}
+
+$("#design-form").addEventListener("submit", async (ev) => {
+  ev.preventDefault();
+  const body = {};
+  const t = parseFloat($("#design-target").value);
+  if (t > 0) body.target_std_m = t * 1e-3;
+  const minutes = parseFloat($("#design-minutes").value);
+  if (minutes > 0) body.max_minutes = minutes;
+  const n = parseInt($("#design-nfit").value, 10);
+  if (n > 0) body.n_fit = n;
+  if ($("#design-criterion").value) body.criterion = $("#design-criterion").value;
+  $("#design-summary").textContent = "designing…";
+  $("#design-start").disabled = true;
+  try {
+    designed = await api("POST", "/plans/design", body);
+  } catch (e) { $("#design-summary").textContent = ""; say("design: " + e.message, true); return; }
+  const d = designed;
+  $("#design-summary").textContent = `${d.n_fit} fit poses · ` +
+    Object.entries(d.counts).map(([k, v]) => `${k} ${v}`).join(", ") +
+    ` · motion ${(d.motion_time_s / 60).toFixed(1)} min` +
+    (d.target_met === null ? "" : d.target_met ? " · target met" : " · target NOT met") +
+    (d.time_met === null ? "" : d.time_met ? " · time met" : " · time NOT met");
+  $("#design-table").innerHTML = designRows(d.predicted_std_m);
+  $("#design-start").disabled = false;
+});
+
+$("#design-start").addEventListener("click", async () => {
+  if (!designed) return;
+  const methods = [...document.querySelectorAll("#methods input:checked")].map((i) => i.value);
+  try {
+    const run = await api("POST", "/runs", { plan: designed.plan, methods, note: "designed plan" });
+    localStorage.setItem("i4cal-prediction-" + run.id, JSON.stringify(designed.predicted_std_m));
+    say(`started designed run ${run.id.slice(0, 8)}`);
+    await refreshRuns();
+    select(run.id);
+  } catch (e) { say(e.message, true); }
+});
+
+function showPredicted(id, res) {
+  let pred = null;
+  try { pred = JSON.parse(localStorage.getItem("i4cal-prediction-" + id) || "null"); } catch (e) { pred = null; }
+  $("#design-compare").hidden = !pred;
+  if (!pred) return;
+  $("#design-compare-table").innerHTML = designRows(pred, res.methods) +
+    `<tr><td colspan="${COMBOS.length + 1}" class="muted">predicted / obtained (reported std; obtained ÷ predicted)</td></tr>`;
+}
 
 refreshRuns();
 refreshDevices();

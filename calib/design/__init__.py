@@ -1,0 +1,46 @@
+"""Experiment design before motion: predicted accuracy of every method for a plan, optimal pose sets, motion time.
+
+* :mod:`.scene`: the camera, its mounting, the board and rods, and what is in view;
+* :mod:`.predict`: the predicted covariance of each method's estimate (combined, end-effector, legs);
+* :mod:`.motion`: trapezoidal motion time and a tour of the poses;
+* :mod:`.optimize`: greedy + exchange selection of the fit poses and the sweeps' extents; :func:`design_plan`.
+
+See docs/design.md.
+"""
+
+from .motion import MotionSpec, move_time, order_tour, plan_motion_time
+from .optimize import DesignRequest, DesignResult, design_plan, log_det_information, select_poses
+from .predict import (
+    METHODS,
+    DesignNoise,
+    Prediction,
+    phase_q,
+    predict_combined,
+    predict_end_effector,
+    predict_legs,
+    predict_plan,
+)
+from .scene import Scene, VisibilityLimits, visibility
+
+__all__ = [
+    "METHODS",
+    "DesignNoise",
+    "DesignRequest",
+    "DesignResult",
+    "MotionSpec",
+    "Prediction",
+    "Scene",
+    "VisibilityLimits",
+    "design_plan",
+    "log_det_information",
+    "move_time",
+    "order_tour",
+    "phase_q",
+    "plan_motion_time",
+    "predict_combined",
+    "predict_end_effector",
+    "predict_legs",
+    "predict_plan",
+    "select_poses",
+    "visibility",
+]

@@ -1,0 +1,488 @@
+"""Pose-set optimisation: choose the fit poses (and the base-frame sweeps' extents) before any motion.
+
+Candidates are poses drawn uniformly in the workspace box (:class:`calib.plan.Workspace`), reachable by the
+nominal model, within the soft limits, and visible (:func:`.scene.visibility`: board and eight rods in view);
+the paper's own pose set for the same count is added as candidates too, so a designed set is never worse
+than it. Every fit pose's information on a method's unknowns is additive (:mod:`.predict`), so a pose set's
+criterion is cheap to evaluate for hundreds of swaps at once.
+
+Criteria, on the four combinations' information of each selected method (the Schur complement of the
+nuisance unknowns; the combined method with its base-frame prior):
+
+* ``"d"``: D-optimal, maximise ``sum_m log det F_m`` (the volume of the confidence ellipsoids);
+* ``"a"``: A-optimal, minimise ``sum_m trace(C_m / t^2)`` (the sum of the variances, relative to the target
+  ``t`` per combination when given, else per mm^2);
+* ``"target"``: minimise the worst ratio ``std / target`` over methods and combinations (A as tie-break).
+
+Selection: greedy (one pose at a time, a tiny ridge while the set is too small to determine everything),
+then Fedorov exchange (the best swap of a selected pose for a candidate, until no swap improves); the start
+is the better of the greedy set and the paper's set. Sweeps: the rotation span and translation length are
+the valid extents (in limits, board in view in every frame) of largest base-frame information. Count:
+fixed (``n_fit``), or the smallest that meets the target within ``max_time_s`` (the motion time of the whole
+plan, trapezoidal profiles, fit poses ordered by a nearest-neighbour tour with 2-opt).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+
+from ..errors import InputError
+from ..kinematics import ikm
+from ..parameters import COMBINATION_NAMES, I4Parameters
+from ..plan import (
+    Plan,
+    SoftLimits,
+    Step,
+    Workspace,
+    equal_translation,
+    guided_line,
+    lock_actuator,
+    pose_set,
+    random_poses,
+    rotation_sweep,
+)
+from .motion import MotionSpec, order_tour, plan_motion_time
+from .predict import (
+    DesignNoise,
+    Prediction,
+    base_frame_information,
+    combined_pose_information,
+    end_effector_pose_information,
+    phase_q,
+    predict_plan,
+)
+from .scene import Scene, visibility
+
+__all__ = ["DesignRequest", "DesignResult", "design_plan", "log_det_information", "select_poses"]
+
+Criterion = Literal["d", "a", "target"]
+OPTIMISED_METHODS = ("combined", "end-effector")
+SPANS_DEG = (120.0, 180.0, 240.0, 300.0, 330.0)
+LENGTHS_M = (0.15, 0.25, 0.35, 0.45)
+
+
+@dataclass(frozen=True)
+class DesignRequest:
+    """What to design (lengths in metres, times in seconds).
+
+    Attributes
+    ----------
+    n_fit : int or None
+        Fit poses; None: the smallest count that meets ``target_std_m`` within ``max_time_s`` (20 without a
+        target).
+    target_std_m : float, tuple of 4 floats, or None
+        Wanted standard deviation of each combination (one value for all four, or per combination).
+    max_time_s : float or None
+        Longest motion time of the whole plan.
+    criterion : {"d", "a", "target"}
+    methods : tuple of str
+        Methods whose predicted accuracy the selection optimises (combined, end-effector).
+    """
+
+    n_fit: int | None = None
+    target_std_m: float | tuple[float, float, float, float] | None = None
+    max_time_s: float | None = None
+    criterion: Criterion = "d"
+    methods: tuple[str, ...] = ("combined",)
+    seed: int = 0
+    n_candidates: int = 300
+    n_base: int = 10
+    n_lock: int = 5
+    n_validation: int = 10
+    with_line: bool = True
+    n_min: int = 4
+    n_max: int = 60
+    weighting: str = "gls"
+
+    def __post_init__(self) -> None:
+        if self.n_fit is not None and not (2 <= self.n_fit <= 200):
+            raise InputError(f"n_fit must be in 2..200, got {self.n_fit}", field="n_fit")
+        if self.criterion not in ("d", "a", "target"):
+            raise InputError(f"criterion must be d, a or target, got {self.criterion!r}", field="criterion")
+        if self.criterion == "target" and self.target_std_m is None:
+            raise InputError("criterion 'target' needs a target std", field="target_std")
+        t = self.targets()
+        if t is not None and not np.all(np.isfinite(t) & (t > 0)):
+            raise InputError("target std must be finite and > 0", field="target_std")
+        if self.max_time_s is not None and not (np.isfinite(self.max_time_s) and self.max_time_s > 0):
+            raise InputError("max time must be finite and > 0", field="max_time")
+        bad = [m for m in self.methods if m not in OPTIMISED_METHODS]
+        if bad or not self.methods:
+            raise InputError(
+                f"methods to optimise: {', '.join(OPTIMISED_METHODS)} (got {', '.join(self.methods) or 'none'})",
+                field="methods",
+            )
+        if not (20 <= self.n_candidates <= 5000):
+            raise InputError("n_candidates must be in 20..5000", field="n_candidates")
+        if not (3 <= self.n_base <= 100 and 2 <= self.n_lock <= 50 and 0 <= self.n_validation <= 200):
+            raise InputError("n_base 3..100, n_lock 2..50, n_validation 0..200", field="n_base")
+        if not (2 <= self.n_min <= self.n_max <= 200):
+            raise InputError("need 2 <= n_min <= n_max <= 200", field="n_max")
+
+    def targets(self) -> np.ndarray | None:
+        if self.target_std_m is None:
+            return None
+        t = np.atleast_1d(np.asarray(self.target_std_m, dtype=np.float64))
+        return np.repeat(t, 4) if t.size == 1 else t
+
+
+@dataclass
+class DesignResult:
+    """The designed plan, its prediction and what the design found."""
+
+    plan: Plan
+    prediction: Prediction
+    motion: dict[str, Any]
+    n_fit: int
+    sweeps: dict[str, float]
+    target_met: bool | None
+    time_met: bool | None
+    criterion: dict[str, float]
+    candidates: dict[str, int]
+    notes: list[str] = field(default_factory=list)
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "n_fit": self.n_fit,
+            "counts": self.plan.count(),
+            "sweeps": self.sweeps,
+            "prediction": self.prediction.to_dict(),
+            "motion": self.motion,
+            "target_met": self.target_met,
+            "time_met": self.time_met,
+            "criterion": self.criterion,
+            "candidates": self.candidates,
+            "notes": self.notes,
+        }
+
+
+# -- criteria ---------------------------------------------------------------------------------------------------
+class _Infos:
+    """Per-candidate information of each optimised method, with the priors (base frame, tiny ridge)."""
+
+    def __init__(self, per: dict[str, np.ndarray], prior: dict[str, np.ndarray]) -> None:
+        self.per = per
+        self.prior = prior
+
+    def total(self, idx: np.ndarray) -> dict[str, np.ndarray]:
+        return {m: self.prior[m] + F[idx].sum(axis=0) for m, F in self.per.items()}
+
+
+def _cov4(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Batched: (..., p, p) information -> (..., 4, 4) covariance of the first four and log det of their
+    information (-inf where singular)."""
+    d = np.sqrt(np.maximum(np.einsum("...ii->...i", F), 1e-300))
+    Fs = F / (d[..., :, None] * d[..., None, :])
+    w, V = np.linalg.eigh(0.5 * (Fs + np.swapaxes(Fs, -1, -2)))
+    ok = w[..., 0] > 1e-13 * w[..., -1]
+    w = np.maximum(w, 1e-300)
+    Ci = np.einsum("...ik,...k,...jk->...ij", V, 1.0 / w, V) / (d[..., :, None] * d[..., None, :])
+    C4 = Ci[..., :4, :4]
+    sign, logdet = np.linalg.slogdet(C4)
+    ld = np.where(ok & (sign > 0), -logdet, -np.inf)
+    return C4, ld
+
+
+def _score(F: dict[str, np.ndarray], criterion: Criterion, t: np.ndarray | None) -> np.ndarray:
+    """Lower is better; batched over the leading axes."""
+    ref = t if t is not None else np.full(4, 1e-3)
+    d = a = worst = 0.0
+    for Fm in F.values():
+        C4, ld = _cov4(Fm)
+        var = np.einsum("...ii->...i", C4)
+        d = d - ld
+        a = a + np.sum(var / ref**2, axis=-1)
+        worst = np.maximum(worst, np.max(np.sqrt(np.maximum(var, 0)) / ref, axis=-1))
+        a = np.where(np.isfinite(ld), a, np.inf)
+        worst = np.where(np.isfinite(ld), worst, np.inf)
+    if criterion == "d":
+        return d
+    if criterion == "a":
+        return a
+    return worst + 1e-6 * a
+
+
+def select_poses(
+    infos: _Infos,
+    n: int,
+    criterion: Criterion,
+    targets: np.ndarray | None,
+    start: np.ndarray | None = None,
+    max_passes: int = 50,
+) -> np.ndarray:
+    """Indices of ``n`` candidates: greedy, then Fedorov exchange (the start is the better of the greedy set
+    and ``start``)."""
+    M = next(iter(infos.per.values())).shape[0]
+    if n > M:
+        raise InputError(f"only {M} visible candidate poses for {n} fit poses (more candidates or fewer poses)")
+    ridge = {m: 1e-9 * np.mean(np.einsum("kii->ki", F), axis=0) for m, F in infos.per.items()}
+    chosen: list[int] = []
+    for _ in range(n):
+        base = infos.total(np.array(chosen, dtype=int))
+        cand = np.setdiff1d(np.arange(M), chosen)
+        F = {m: base[m][None] + infos.per[m][cand] + np.diag(ridge[m])[None] for m in base}
+        s = _score(F, criterion, targets)
+        chosen.append(int(cand[int(np.argmin(s))]))
+    sel = np.array(chosen, dtype=int)
+    best = float(_score(infos.total(sel), criterion, targets))
+    if start is not None and len(start) == n:
+        s0 = float(_score(infos.total(np.asarray(start)), criterion, targets))
+        if s0 < best:
+            sel, best = np.asarray(start, dtype=int).copy(), s0
+    for _ in range(max_passes):
+        base = infos.total(sel)
+        out = np.setdiff1d(np.arange(M), sel)
+        if out.size == 0:
+            break
+        # every (remove i, add c) swap at once: base - F_i + F_c
+        F = {m: base[m][None, None] - infos.per[m][sel][:, None] + infos.per[m][out][None, :] for m in base}
+        s = _score(F, criterion, targets)
+        i, c = np.unravel_index(int(np.argmin(s)), s.shape)
+        if not s[i, c] < best - 1e-10 * max(abs(best), 1.0):
+            break
+        sel = sel.copy()
+        sel[i] = out[c]
+        best = float(s[i, c])
+    return sel
+
+
+def log_det_information(
+    plan: Plan,
+    nominal: I4Parameters,
+    scene: Scene,
+    noise: DesignNoise | None = None,
+    methods: tuple[str, ...] = ("combined",),
+) -> dict[str, float]:
+    """D-criterion of a plan: per method, log det of the four combinations' information (m^-2; higher better)."""
+    noise = noise or DesignNoise()
+    q_fit = phase_q(plan, "poses")
+    out = {}
+    for m in methods:
+        F = _method_information(m, nominal, q_fit, scene, noise).sum(axis=0) + _method_prior(
+            m, nominal, phase_q(plan, "rotation"), phase_q(plan, "translation"), scene, noise
+        )
+        out[m] = float(_cov4(F)[1])
+    return out
+
+
+def _method_information(m: str, nominal, q, scene: Scene, noise: DesignNoise) -> np.ndarray:
+    if m == "combined":
+        return combined_pose_information(nominal, q, scene.camera_from_base.R, noise)
+    return end_effector_pose_information(nominal, q, scene, noise)
+
+
+def _method_prior(m: str, nominal, q_rot, q_tra, scene: Scene, noise: DesignNoise) -> np.ndarray:
+    if m == "combined":
+        P = np.zeros((7, 7))
+        P[4:, 4:] = base_frame_information(nominal, q_rot, q_tra, scene.camera_from_base.R, noise)
+        return P
+    return np.zeros((16, 16))
+
+
+# -- the plan ---------------------------------------------------------------------------------------------------
+def _in_limits(q: np.ndarray, limits: SoftLimits) -> np.ndarray:
+    return np.all((q >= np.asarray(limits.q_min)) & (q <= np.asarray(limits.q_max)), axis=-1)
+
+
+def _sweeps(nominal, scene, limits, ws, noise, n_base) -> tuple[float, float, list[Step], list[Step], float]:
+    best = None
+    for span in SPANS_DEG:
+        rot = rotation_sweep(nominal, n_base, np.deg2rad(span), ws=ws)
+        qr = np.array([s.q for s in rot])
+        if not (_in_limits(qr, limits).all() and visibility(scene, nominal, qr)["board"].all()):
+            continue
+        for length in LENGTHS_M:
+            tra = equal_translation(nominal, n_base, length, ws=ws)
+            qt = np.array([s.q for s in tra])
+            if not (_in_limits(qt, limits).all() and visibility(scene, nominal, qt)["board"].all()):
+                continue
+            Fw = base_frame_information(nominal, qr, qt, scene.camera_from_base.R, noise)
+            ld = float(np.linalg.slogdet(Fw)[1])
+            if best is None or ld > best[4] + 1e-9:
+                best = (span, length, rot, tra, ld)
+    if best is None:
+        raise InputError("no rotation and translation sweep keeps the board in view within the soft limits")
+    return best
+
+
+def _visible_steps(steps: list[Step], scene, nominal, need: str, n: int) -> list[Step]:
+    q = np.array([s.q for s in steps])
+    v = visibility(scene, nominal, q)
+    keep = v["ok"] if need == "all" else v["board"]
+    return [s for s, k in zip(steps, keep, strict=True) if k][:n]
+
+
+def _lock_steps(nominal, scene, limits, ws, n_lock: int, seed: int) -> list[Step]:
+    out: list[Step] = []
+    steps = lock_actuator(nominal, 4 * n_lock, seed + 1, ws=ws, limits=limits)
+    for i in range(4):
+        ph = [s for s in steps if s.phase == f"lock-{i + 1}"]
+        q = np.array([s.q for s in ph])
+        v = visibility(scene, nominal, q)
+        ok = v["board"] & np.all(v["rod_px"][:, i] >= scene.limits.min_rod_px, axis=1)
+        got = [s for s, k in zip(ph, ok, strict=True) if k][:n_lock]
+        if len(got) < n_lock:
+            raise InputError(f"could not draw {n_lock} visible poses with actuator {i + 1} locked")
+        out += got
+    return out
+
+
+def design_plan(
+    nominal: I4Parameters,
+    scene: Scene,
+    request: DesignRequest | None = None,
+    *,
+    limits: SoftLimits | None = None,
+    motion: MotionSpec | None = None,
+    noise: DesignNoise | None = None,
+    ws: Workspace | None = None,
+) -> DesignResult:
+    """Design a plan: sweeps, fit poses (count, choice, order), lock and validation poses; predict it.
+
+    Returns
+    -------
+    DesignResult
+        ``plan`` (a :class:`calib.plan.Plan` named ``designed``, its ``design`` field holding the summary)
+        that :func:`calib.plan.validate_plan` accepts for ``limits``.
+    """
+    req = request or DesignRequest()
+    limits = limits or SoftLimits()
+    motion = motion or MotionSpec()
+    noise = noise or DesignNoise()
+    ws = ws or Workspace()
+    t = req.targets()
+    notes: list[str] = []
+    span, length, rot, tra, _ = _sweeps(nominal, scene, limits, ws, noise, req.n_base)
+    rng = np.random.default_rng(req.seed)
+    cand_q = ikm(nominal, random_poses(nominal, req.n_candidates, rng, ws, limits))
+    refs: dict[int, np.ndarray] = {}
+
+    def reference(n: int) -> np.ndarray:
+        if n not in refs:
+            refs[n] = np.array([s.q for s in pose_set(nominal, n, req.seed, ws=ws, limits=limits)])
+        return refs[n]
+
+    fixed = [req.n_fit] if req.n_fit else []
+    ref_q = np.concatenate([reference(n) for n in (fixed or [20])])
+    all_q = np.concatenate([cand_q, ref_q])
+    vis = visibility(scene, nominal, all_q)["ok"]
+    cq = all_q[vis]
+    n_vis_ref = int(vis[len(cand_q) :].sum())
+    qr = np.array([s.q for s in rot])
+    qt = np.array([s.q for s in tra])
+    infos = _Infos(
+        {m: _method_information(m, nominal, cq, scene, noise) for m in req.methods},
+        {m: _method_prior(m, nominal, qr, qt, scene, noise) for m in req.methods},
+    )
+    lock = _lock_steps(nominal, scene, limits, ws, req.n_lock, req.seed)
+    val = (
+        _visible_steps(
+            pose_set(nominal, 3 * req.n_validation, req.seed + 2, phase="validation", ws=ws, limits=limits),
+            scene,
+            nominal,
+            "board",
+            req.n_validation,
+        )
+        if req.n_validation
+        else []
+    )
+    line = guided_line(nominal, ws=ws) if req.with_line else []
+
+    def start_index(n: int) -> np.ndarray | None:
+        r = reference(n) if n in refs else None
+        if r is None:
+            return None
+        idx = [int(np.argmin(np.abs(cq - q).sum(axis=1))) for q in r]
+        ok = [np.abs(cq[i] - q).sum() < 1e-12 for i, q in zip(idx, r, strict=True)]
+        return np.array(idx) if all(ok) and len(set(idx)) == n else None
+
+    def build(sel: np.ndarray) -> tuple[Plan, dict[str, Any]]:
+        q = cq[sel]
+        order = order_tour(q, motion, start=np.asarray(tra[-1].q))
+        fit = [Step(phase="poses", q=q[i].tolist()) for i in order]
+        plan = Plan(name="designed", steps=[*rot, *tra, *fit, *lock, *line, *val])
+        return plan, plan_motion_time(plan, motion, nominal)
+
+    def meets(sel: np.ndarray) -> bool:
+        if t is None:
+            return True
+        for C in (_cov4(F)[0] for F in infos.total(sel).values()):
+            if np.any(np.sqrt(np.maximum(np.diag(C), 0)) > t):
+                return False
+        return True
+
+    crit: Criterion = req.criterion
+    if req.n_fit:
+        n = req.n_fit
+        sel = select_poses(infos, n, crit, t, start_index(n))
+    elif t is None:
+        n = 20
+        reference(n)
+        sel = select_poses(infos, n, crit, t, None)
+        notes.append("no target and no count: 20 fit poses (the paper's count)")
+    else:
+        n_hi = min(req.n_max, len(cq))
+        greedy = select_poses(infos, n_hi, crit, t, None, max_passes=0)
+        n = next((k for k in range(req.n_min, n_hi + 1) if meets(greedy[:k])), None)
+        if n is None:
+            n = n_hi
+            sel = select_poses(infos, n, crit, t, None)
+        else:
+            sel = select_poses(infos, n, crit, t, greedy[:n])
+            while n > req.n_min:  # the exchange may meet the target with fewer poses
+                s2 = select_poses(infos, n - 1, crit, t, greedy[: n - 1])
+                if not meets(s2):
+                    break
+                n, sel = n - 1, s2
+    plan, mt = build(sel)
+    if req.max_time_s is not None and mt["total_s"] > req.max_time_s and not req.n_fit:
+        # the smallest plan meeting the target is too long: the largest that fits the time
+        fixed_part = mt["total_s"] - mt["per_phase_s"].get("poses", 0.0)
+        while n > req.n_min and mt["total_s"] > req.max_time_s:
+            n -= 1
+            sel = select_poses(infos, n, crit, t, sel[:n])
+            plan, mt = build(sel)
+        if mt["total_s"] > req.max_time_s:
+            notes.append(f"the plan without fit poses already takes {fixed_part / 60:.1f} min")
+    target_met = None if t is None else meets(sel)
+    time_met = None if req.max_time_s is None else mt["total_s"] <= req.max_time_s
+    if target_met is False:
+        notes.append("the target is not met" + (" within the time allowed" if req.max_time_s else f" with {n} poses"))
+    pred = predict_plan(plan, nominal, scene, noise, weighting=req.weighting)
+    F = infos.total(sel)
+    crit_vals = {f"logdet_{m}": float(_cov4(F[m])[1]) for m in F}
+    result = DesignResult(
+        plan=plan,
+        prediction=pred,
+        motion=mt,
+        n_fit=int(n),
+        sweeps={"rotation_span_deg": float(span), "translation_length_m": float(length)},
+        target_met=target_met,
+        time_met=time_met,
+        criterion=crit_vals,
+        candidates={
+            "drawn": len(cand_q),
+            "visible": int(vis[: len(cand_q)].sum()),
+            "reference_visible": n_vis_ref,
+        },
+        notes=notes,
+    )
+    design = result.summary()
+    design["request"] = {
+        "n_fit": req.n_fit,
+        "target_std_m": None if t is None else t.tolist(),
+        "max_time_s": req.max_time_s,
+        "criterion": req.criterion,
+        "methods": list(req.methods),
+        "seed": req.seed,
+    }
+    result.plan = Plan.model_validate({**plan.model_dump(exclude_none=True), "design": design})
+    return result
+
+
+def combination_table(pred: Prediction) -> list[tuple[str, list[float]]]:
+    """Rows (method, four std in mm) of a prediction, in COMBINATION_NAMES order."""
+    return [(m, [pred.std[m][k] * 1e3 for k in COMBINATION_NAMES]) for m in pred.std]

@@ -1,0 +1,482 @@
+"""Predicted covariance of each method's estimate for a plan, before any motion (linearised at nominal).
+
+Every prediction is the covariance of the method's own estimator, linearised at the nominal geometry and
+the plan's joint values, for measurement noise of known level (:class:`DesignNoise`; the geometric twin's
+default, or the noise measured in a run). Units: metres and radians.
+
+* **combined** (:func:`predict_combined`): the base frame's rotation from the rotation and translation
+  phases (the board-only part of :func:`calib.bound.combined_fisher`: its information on the camera
+  rotation ``w``, the other board unknowns marginalised) is the prior of a fit of the rods' Jacobian entries
+  ``(u_y/u_x, u_z/u_x)`` (eq. 8) over the four combinations and ``w``. ``weighting="gls"`` (each rod whitened
+  by its direction noise, what the method does when rods carry their covariance, as extracted from images):
+  the covariance is the inverse of the information, i.e. the Cramer-Rao bound of the combined model.
+  ``"frobenius"`` (the paper's eq. 8, what the method does on rods without a covariance): the sandwich
+  ``H^-1 (J^T S J / s^2 + P) H^-1`` with ``H = J^T J / s^2 + P``, S the rods' relative noise covariance.
+* **end-effector** (:func:`predict_end_effector`): the method's IKM residuals
+  (:class:`calib.methods.end_effector._Model`: four joint residuals and two tilt residuals per fit pose, 16
+  unknowns with the camera and board transforms and the board's scale), weighted by their covariance from
+  the board-pose noise (rotation ``board_rotation_rad`` per axis, translation ``board_translation_m`` along
+  the camera axes) and the encoders: the GLS covariance ``(sum_k J_k^T C_k^-1 J_k)^-1``.
+* **legs** (:func:`predict_legs`): step 1 locates each rod's upper joint as the least-squares intersection
+  of its axis lines in the ``lock-i`` frames; each line's offset at the joint has the variance
+  ``rod_point_m^2 + s^2 rod_direction_rad^2`` (s the distance along the axis from the measured point, the
+  foot of the camera centre's perpendicular, to the joint), so the joint's covariance is
+  ``A^-1 (sum (sigma_p^2 + s_k^2 sigma_u^2) M_k) A^-1``. It goes through steps 2-4 (the method's own
+  pipeline, numerical derivatives) and adds the GLS covariance of (L, S, D) from the fit poses' leg
+  directions (two rods averaged): the method's own error propagation, with the true noise instead of the
+  residuals' estimate. All seven parameters and the four combinations.
+
+The per-pose information matrices (:func:`combined_pose_information`, :func:`end_effector_pose_information`)
+are additive over fit poses: the pose-set optimiser (:mod:`.optimize`) works on them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..errors import IdentifiabilityError, InputError
+from ..kinematics import dkm
+from ..numdiff import central_jacobian
+from ..parameters import COMBINATION_NAMES, PARAMETER_NAMES, I4Parameters
+from ..plan import Plan
+from ..transforms import matrix_to_rotvec, rotvec_to_matrix, unit
+from .scene import Scene, rod_segments
+
+__all__ = [
+    "METHODS",
+    "SEVEN_TO_FOUR",
+    "DesignNoise",
+    "base_frame_information",
+    "combined_pose_information",
+    "end_effector_pose_information",
+    "phase_q",
+    "predict_combined",
+    "predict_end_effector",
+    "predict_legs",
+    "predict_plan",
+    "schur",
+]
+
+METHODS = ("combined", "end-effector", "legs")
+
+#: the four combinations as linear functions of the seven parameters (PARAMETER_NAMES order)
+SEVEN_TO_FOUR = np.array(
+    [
+        [0, 0, 0, 0, 0, 0, 1],  # L
+        [1, 0, 0, 0, 0, -1, 0],  # H - D
+        [0, -0.5, 0, 0, 1, 0, 0],  # S - q02/2
+        [0, 0, 0.5, -0.5, 1, 0, 0],  # S - (q04 - q03)/2
+    ],
+    dtype=float,
+)
+
+
+@dataclass(frozen=True)
+class DesignNoise:
+    """Measurement noise the prediction assumes (standard deviations; defaults: the geometric twin's).
+
+    Attributes
+    ----------
+    rod_direction_rad : float
+        Rod axis direction, per tangent axis (rad).
+    rod_point_m : float
+        Rod axis point (the foot of the camera centre's perpendicular), per perpendicular axis (m).
+    board_rotation_rad : float
+        Board orientation, per axis, left perturbation in the camera frame (rad).
+    board_translation_m : tuple of float
+        Board position along the camera's x, y and depth axes (m).
+    encoder_m : float
+        Encoders (m).
+    """
+
+    rod_direction_rad: float = 5e-4
+    rod_point_m: float = 5e-4
+    board_rotation_rad: float = 3e-4
+    board_translation_m: tuple[float, float, float] = (1e-4, 1e-4, 3e-4)
+    encoder_m: float = 1e-6
+
+    def __post_init__(self) -> None:
+        vals = [self.rod_direction_rad, self.rod_point_m, self.board_rotation_rad, *self.board_translation_m]
+        if len(self.board_translation_m) != 3 or not all(np.isfinite(v) and v > 0 for v in vals):
+            raise InputError("design noise levels must be finite and > 0 (board_translation_m: 3 values)")
+        if not (np.isfinite(self.encoder_m) and self.encoder_m >= 0):
+            raise InputError("design noise: encoder_m must be finite and >= 0")
+
+    @classmethod
+    def from_mapping(cls, data: dict[str, Any] | None) -> DesignNoise:
+        """From a dict with the same keys (e.g. an observations document's ``noise``); missing keys: default."""
+        if not data:
+            return cls()
+        base = cls()
+        kw: dict[str, Any] = {}
+        for k in ("rod_direction_rad", "rod_point_m", "board_rotation_rad", "encoder_m"):
+            if data.get(k) is not None:
+                kw[k] = float(data[k])
+        if data.get("board_translation_m") is not None:
+            t = data["board_translation_m"]
+            kw["board_translation_m"] = tuple(float(v) for v in (t if isinstance(t, list | tuple) else [t] * 3))
+        return cls(**{**base.to_dict(), **kw})
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "rod_direction_rad": self.rod_direction_rad,
+            "rod_point_m": self.rod_point_m,
+            "board_rotation_rad": self.board_rotation_rad,
+            "board_translation_m": tuple(self.board_translation_m),
+            "encoder_m": self.encoder_m,
+        }
+
+
+def phase_q(plan: Plan, *phases: str) -> np.ndarray:
+    """Joint values (N, 4) of a plan's steps in ``phases`` (metres; guided lines are left out)."""
+    qs = [s.q for s in plan.steps if s.phase in phases and s.q is not None]
+    return np.asarray(qs, dtype=np.float64).reshape(-1, 4)
+
+
+def schur(F: np.ndarray, k: int = 4) -> np.ndarray:
+    """Information on the first ``k`` unknowns with the others marginalised, ``F_aa - F_ab F_bb^+ F_ba``."""
+    if F.shape[0] == k:
+        return F
+    Fbb = F[k:, k:]
+    return F[:k, :k] - F[:k, k:] @ np.linalg.pinv(Fbb, rcond=1e-13, hermitian=True) @ F[k:, :k]
+
+
+def _inv(F: np.ndarray, what: str) -> np.ndarray:
+    d = np.sqrt(np.maximum(np.diag(F), 1e-300))
+    Fs = F / np.outer(d, d)
+    w, V = np.linalg.eigh(0.5 * (Fs + Fs.T))
+    if w[0] <= 1e-12 * w[-1]:
+        raise IdentifiabilityError(f"{what}: the plan does not determine the four combinations")
+    return (V / w) @ V.T / np.outer(d, d)
+
+
+# -- combined ------------------------------------------------------------------------------------------------
+def base_frame_information(
+    nominal: I4Parameters, q_rot: np.ndarray, q_tra: np.ndarray, camera_from_base_R: np.ndarray, noise: DesignNoise
+) -> np.ndarray:
+    """Information (3, 3) on the camera rotation ``w`` (left, camera frame) from the base-frame phases.
+
+    The board orientations of the rotation phase (the rotation axis z_B) and the board positions of the
+    translation phase (the direction x_B); their reference orientation, angles and start position are
+    marginalised. Units: rad^-2.
+    """
+    q_rot = np.asarray(q_rot, dtype=np.float64).reshape(-1, 4)
+    q_tra = np.asarray(q_tra, dtype=np.float64).reshape(-1, 4)
+    if len(q_rot) < 2 or len(q_tra) < 2:
+        raise IdentifiabilityError("the base frame needs at least 2 rotation and 2 translation frames")
+    R_cb = np.asarray(camera_from_base_R, dtype=np.float64)
+    n_r = len(q_rot)
+    T_rot = (q_rot[:, 0] + q_rot[:, 1] - q_rot[:, 2] - q_rot[:, 3]) / 4.0
+    th0 = (T_rot - T_rot[0]) / nominal.T_per_rad
+    s = q_tra.mean(axis=1)
+    sig_t = np.asarray(noise.board_translation_m, dtype=np.float64)
+
+    def model(x: np.ndarray) -> np.ndarray:
+        w, rho, th, t0 = x[:3], x[3:6], x[6 : 6 + n_r], x[6 + n_r :]
+        R = rotvec_to_matrix(w) @ R_cb
+        Rk = rotvec_to_matrix(R[:, 2][None, :] * th[:, None]) @ rotvec_to_matrix(rho)
+        rot = matrix_to_rotvec(Rk).ravel() / noise.board_rotation_rad
+        tra = ((t0[None, :] + s[:, None] * R[:, 0][None, :]) / sig_t).ravel()
+        return np.concatenate([rot, tra])
+
+    x0 = np.concatenate([np.zeros(6), th0, np.zeros(3)])
+    J = central_jacobian(model, x0, 1e-7)
+    return schur(J.T @ J, 3)
+
+
+def _combined_rods(
+    nominal: I4Parameters, q_fit: np.ndarray, camera_from_base_R: np.ndarray, min_ux: float = 0.05
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per rod observation (2 per leg and pose): Jacobian (M, 2, 7) of eq. 8's raw residuals over
+    (combinations, w), their relative noise covariance (M, 2, 2) for unit direction noise, pose index (M,)."""
+    from ..methods.combined import _ratio_grad, model_ratios
+
+    q_fit = np.asarray(q_fit, dtype=np.float64).reshape(-1, 4)
+    R0 = np.asarray(camera_from_base_R, dtype=np.float64)
+    xi0 = np.array([nominal.combinations()[k] for k in COMBINATION_NAMES])
+    from ..bound import leg_directions_reduced
+
+    uB = leg_directions_reduced(xi0, q_fit)  # (N, 4, 3)
+    u_cam = np.repeat((uB @ R0.T)[:, :, None, :], 2, axis=2).reshape(-1, 3)  # two rods per leg
+    k_idx = np.repeat(np.arange(len(q_fit)), 8)
+    leg = np.tile(np.repeat(np.arange(4), 2), len(q_fit))
+    keep = np.abs((u_cam @ R0)[:, 0]) >= min_ux
+    u_cam, k_idx, leg = u_cam[keep], k_idx[keep], leg[keep]
+
+    def raw(v: np.ndarray) -> np.ndarray:
+        R = rotvec_to_matrix(v[4:7]) @ R0
+        ub = u_cam @ R
+        return (model_ratios(v[:4], q_fit)[k_idx, leg] - ub[:, 1:] / ub[:, :1]).ravel()
+
+    x0 = np.concatenate([xi0, np.zeros(3)])
+    J = central_jacobian(raw, x0, 1e-7).reshape(-1, 2, 7)
+    ub = u_cam @ R0
+    G = _ratio_grad(ub)
+    P = np.eye(3)[None] - ub[:, :, None] * ub[:, None, :]
+    S = np.einsum("mij,mjk,mlk->mil", G, P, G)
+    return J, S, k_idx
+
+
+def combined_pose_information(
+    nominal: I4Parameters, q_fit: np.ndarray, camera_from_base_R: np.ndarray, noise: DesignNoise
+) -> np.ndarray:
+    """GLS information (N, 7, 7) of each fit pose's rods on (four combinations, w), per m^2 and rad^2."""
+    q_fit = np.asarray(q_fit, dtype=np.float64).reshape(-1, 4)
+    J, S, k = _combined_rods(nominal, q_fit, camera_from_base_R)
+    Si = np.linalg.inv(S + 1e-30 * np.eye(2)) / noise.rod_direction_rad**2
+    Fm = np.einsum("mai,mab,mbj->mij", J, Si, J)
+    out = np.zeros((len(q_fit), 7, 7))
+    np.add.at(out, k, Fm)
+    return out
+
+
+def predict_combined(
+    nominal: I4Parameters,
+    q_fit: np.ndarray,
+    q_rot: np.ndarray,
+    q_tra: np.ndarray,
+    camera_from_base_R: np.ndarray,
+    noise: DesignNoise | None = None,
+    weighting: str = "gls",
+) -> np.ndarray:
+    """Predicted covariance (4, 4) of the combined method's four combinations (m^2).
+
+    Parameters
+    ----------
+    q_fit, q_rot, q_tra : ndarray, shape (N, 4)
+        Joint values of the fit poses, the rotation and the translation phases (m).
+    camera_from_base_R : ndarray, shape (3, 3)
+        The camera's orientation (base axes in the camera frame).
+    weighting : {"gls", "frobenius"}
+        The method's weighting (module docstring).
+    """
+    noise = noise or DesignNoise()
+    Pw = np.zeros((7, 7))
+    Pw[4:, 4:] = base_frame_information(nominal, q_rot, q_tra, camera_from_base_R, noise)
+    if weighting == "gls":
+        F = combined_pose_information(nominal, q_fit, camera_from_base_R, noise).sum(axis=0) + Pw
+        return _inv(F, "combined")[:4, :4]
+    if weighting != "frobenius":
+        raise InputError(f"weighting must be 'gls' or 'frobenius', got {weighting!r}", field="weighting")
+    J, S, _ = _combined_rods(nominal, q_fit, camera_from_base_R)
+    s2 = noise.rod_direction_rad**2
+    Jf = J.reshape(-1, 7)
+    H = Jf.T @ Jf / s2 + Pw
+    Hi = _inv(H, "combined")
+    mid = np.einsum("mai,mab,mbj->ij", J, S, J) / s2 + Pw
+    return (Hi @ mid @ Hi)[:4, :4]
+
+
+# -- end-effector ---------------------------------------------------------------------------------------------
+def _ee_problem(nominal: I4Parameters, q_fit: np.ndarray, scene: Scene):
+    from ..methods.end_effector import _Model
+
+    q_fit = np.asarray(q_fit, dtype=np.float64).reshape(-1, 4)
+    pose = dkm(nominal, q_fit)
+    cbs = scene.camera_from_board(nominal, pose)
+    R = np.stack([c.R for c in cbs])
+    t = np.stack([c.t for c in cbs])
+    bc = scene.camera_from_base.inverse()
+    eb = scene.ee_from_board
+    model = _Model(R, t, q_fit, nominal.T_per_rad, bc.R, bc.t[0], eb.R, eb.t[2], pose[:, 3] / nominal.T_per_rad)
+    combos = [nominal.combinations()[k] for k in COMBINATION_NAMES]
+    x0 = np.array(
+        [
+            *combos,
+            -nominal.S,
+            -nominal.S - nominal.q03,
+            0,
+            0,
+            0,
+            bc.t[1] - nominal.H,
+            bc.t[2],
+            0,
+            0,
+            eb.t[0],
+            eb.t[1],
+            0,
+        ]
+    )
+    return model, x0, R, t
+
+
+def end_effector_pose_information(
+    nominal: I4Parameters, q_fit: np.ndarray, scene: Scene, noise: DesignNoise | None = None
+) -> np.ndarray:
+    """GLS information (N, 16, 16) of each fit pose's board pose and encoders on the end-effector method's
+    unknowns (four combinations first; then the offsets, camera and board transforms and the board's scale)."""
+    noise = noise or DesignNoise()
+    model, x0, R, t = _ee_problem(nominal, q_fit, scene)
+    n = len(R)
+    r0 = model.residuals(x0)
+    if np.max(np.abs(r0)) > 1e-9:
+        raise RuntimeError(f"end-effector design model does not close at nominal ({np.max(np.abs(r0)):.2e})")
+    J = central_jacobian(lambda x: model.residuals(x).ravel(), x0, 1e-7).reshape(n, 6, -1)
+    G = np.zeros((n, 6, 6))
+    h = 1e-7
+    for a in range(6):
+        d = np.zeros(3)
+        d[a % 3] = h
+        if a < 3:
+            rp = model.residuals(x0, rotvec_to_matrix(d) @ R, t)
+            rm = model.residuals(x0, rotvec_to_matrix(-d) @ R, t)
+        else:
+            rp = model.residuals(x0, R, t + d)
+            rm = model.residuals(x0, R, t - d)
+        G[:, :, a] = (rp - rm) / (2 * h)
+    Sb = np.diag([noise.board_rotation_rad**2] * 3 + [v**2 for v in noise.board_translation_m])
+    C = np.einsum("nij,jk,nlk->nil", G, Sb, G)
+    C[:, :4, :4] += noise.encoder_m**2 * np.eye(4)
+    C += 1e-24 * np.eye(6)
+    Ci = np.linalg.inv(C)
+    return np.einsum("nai,nab,nbj->nij", J, Ci, J)
+
+
+def predict_end_effector(
+    nominal: I4Parameters, q_fit: np.ndarray, scene: Scene, noise: DesignNoise | None = None
+) -> np.ndarray:
+    """Predicted covariance (4, 4) of the end-effector method's four combinations (m^2)."""
+    F = end_effector_pose_information(nominal, q_fit, scene, noise).sum(axis=0)
+    return _inv(F, "end-effector")[:4, :4]
+
+
+# -- legs -----------------------------------------------------------------------------------------------------
+def _rod_lines(scene: Scene, nominal: I4Parameters, q: np.ndarray):
+    pose = dkm(nominal, q)
+    top, bot = rod_segments(scene, nominal, q, pose)  # (N, 4, 2, 3) camera frame
+    u = unit(bot - top)
+    s = -np.einsum("...k,...k->...", top, u)  # foot of the camera centre's perpendicular: top + s u
+    p = top + s[..., None] * u
+    return top, bot, u, p
+
+
+def predict_legs(
+    nominal: I4Parameters,
+    q_fit: np.ndarray,
+    q_lock: list[np.ndarray],
+    scene: Scene,
+    noise: DesignNoise | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Predicted covariances of the legs method: the seven parameters (7, 7) and the four combinations (4, 4).
+
+    Parameters
+    ----------
+    q_fit : ndarray, shape (N, 4)
+        Fit poses (steps 3-4), metres.
+    q_lock : list of 4 ndarrays, shape (N_i, 4)
+        Frames of the ``lock-1`` .. ``lock-4`` phases (actuator i fixed), metres.
+    """
+    from ..methods.legs import _LegsPipeline, _steps34_covariance
+
+    noise = noise or DesignNoise()
+    if len(q_lock) != 4 or any(len(np.atleast_2d(q)) < 2 for q in q_lock):
+        raise IdentifiabilityError("the legs method needs at least 2 frames in each of lock-1 .. lock-4")
+    su2, sp2 = noise.rod_direction_rad**2, noise.rod_point_m**2
+    P = np.zeros((4, 2, 3))
+    covP = np.zeros((24, 24))
+    q_locked = np.zeros(4)
+    for i in range(4):
+        q = np.atleast_2d(np.asarray(q_lock[i], dtype=np.float64))
+        q_locked[i] = float(np.mean(q[:, i]))
+        top, _bot, u, p = _rod_lines(scene, nominal, q)
+        for j in range(2):
+            uu = u[:, i, j]
+            M = np.eye(3)[None] - uu[:, :, None] * uu[:, None, :]
+            A = M.sum(axis=0)
+            s = np.einsum("nk,nk->n", top[:, i, j] - p[:, i, j], uu)
+            Ai = np.linalg.inv(A)
+            k = (2 * i + j) * 3
+            covP[k : k + 3, k : k + 3] = Ai @ np.einsum("n,nij->ij", sp2 + s**2 * su2, M) @ Ai
+            P[i, j] = top[:, i, j].mean(axis=0)
+    q_fit = np.asarray(q_fit, dtype=np.float64).reshape(-1, 4)
+    top, bot, u, _p = _rod_lines(scene, nominal, q_fit)
+    U = unit(u.mean(axis=2))  # (N, 4, 3)
+    CU = (su2 / 2.0) * (np.eye(3)[None, None] - U[..., :, None] * U[..., None, :])
+    pts = 0.5 * (top + bot).mean(axis=2)
+    pipe = _LegsPipeline(q_locked, q_fit, pts, np.ones((len(q_fit), 4), dtype=bool), CU, nominal)
+    seven = pipe.run(P, U)
+    x2 = np.array([*seven[1:4].tolist(), seven[0]])
+    h = 1e-7
+    GP = np.zeros((7, 24))
+    for a in range(24):
+        dP = np.zeros(24)
+        dP[a] = h
+        GP[:, a] = (pipe.run(P + dP.reshape(4, 2, 3), U, x2) - pipe.run(P - dP.reshape(4, 2, 3), U, x2)) / (2 * h)
+    c34, _chi, _dof = _steps34_covariance(pipe, P, U, seven)
+    cov7 = GP @ covP @ GP.T
+    idx = np.array([6, 4, 5])
+    cov7[np.ix_(idx, idx)] += c34
+    return cov7, SEVEN_TO_FOUR @ cov7 @ SEVEN_TO_FOUR.T
+
+
+# -- a whole plan ---------------------------------------------------------------------------------------------
+@dataclass
+class Prediction:
+    """Predicted standard deviations per method (metres), with the covariances they come from."""
+
+    std: dict[str, dict[str, float]] = field(default_factory=dict)
+    covariance: dict[str, list[list[float]]] = field(default_factory=dict)
+    legs_seven_std: dict[str, float] | None = None
+    errors: dict[str, str] = field(default_factory=dict)
+    noise: dict[str, Any] = field(default_factory=dict)
+    weighting: str = "gls"
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "std_m": self.std,
+            "covariance_m2": self.covariance,
+            "legs_seven_std_m": self.legs_seven_std,
+            "errors": self.errors,
+            "noise": self.noise,
+            "combined_weighting": self.weighting,
+        }
+
+
+def predict_plan(
+    plan: Plan,
+    nominal: I4Parameters,
+    scene: Scene,
+    noise: DesignNoise | None = None,
+    methods: tuple[str, ...] = METHODS,
+    weighting: str = "gls",
+) -> Prediction:
+    """Predicted standard deviations of ``methods`` for a plan (fit poses: the ``poses`` phase).
+
+    A method the plan cannot feed (e.g. no ``lock-i`` phase for the legs method) is reported in ``errors``
+    with the reason, not raised.
+    """
+    noise = noise or DesignNoise()
+    out = Prediction(noise=noise.to_dict(), weighting=weighting)
+    q_fit = phase_q(plan, "poses")
+    for m in methods:
+        try:
+            if len(q_fit) < 2:
+                raise IdentifiabilityError("the plan has fewer than 2 fit poses")
+            if m == "combined":
+                cov = predict_combined(
+                    nominal,
+                    q_fit,
+                    phase_q(plan, "rotation"),
+                    phase_q(plan, "translation"),
+                    scene.camera_from_base.R,
+                    noise,
+                    weighting,
+                )
+            elif m == "end-effector":
+                cov = predict_end_effector(nominal, q_fit, scene, noise)
+            elif m == "legs":
+                cov7, cov = predict_legs(
+                    nominal, q_fit, [phase_q(plan, f"lock-{i}") for i in range(1, 5)], scene, noise
+                )
+                out.legs_seven_std = {k: float(np.sqrt(max(cov7[i, i], 0.0))) for i, k in enumerate(PARAMETER_NAMES)}
+            else:
+                raise InputError(f"unknown method {m!r}; methods are {', '.join(METHODS)}", field="methods")
+        except IdentifiabilityError as exc:
+            out.errors[m] = str(exc)
+            continue
+        out.std[m] = {k: float(np.sqrt(max(cov[i, i], 0.0))) for i, k in enumerate(COMBINATION_NAMES)}
+        out.covariance[m] = np.asarray(cov).tolist()
+    return out

@@ -1,0 +1,114 @@
+"""Plans: experiment design before motion (``POST /api/v1/plans/design``; calib.design, docs/design.md)."""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Any, Literal
+
+from fastapi import APIRouter, HTTPException, Request, status
+from pydantic import BaseModel, ConfigDict, Field
+
+from calib.errors import I4calError, InputError
+
+from ..auth import Writer
+from .deps import Manager, unprocessable
+
+router = APIRouter(prefix="/api/v1/plans", tags=["plans"])
+
+
+class DesignBody(BaseModel):
+    """What to design; every input bounded (a design takes seconds of CPU)."""
+
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={"examples": [{"target_std_m": 5e-5, "max_minutes": 10}, {"n_fit": 12, "criterion": "d"}]},
+    )
+    target_std_m: float | None = Field(None, gt=0, lt=0.1, description="wanted std of every combination, m")
+    max_minutes: float | None = Field(None, gt=0, le=24 * 60, description="longest motion time of the plan")
+    n_fit: int | None = Field(None, ge=2, le=100, description="fit poses (default: the smallest meeting the target)")
+    criterion: Literal["d", "a", "target"] | None = Field(None, description="default: target with a target, else d")
+    methods: list[Literal["combined", "end-effector"]] = Field(["combined"], min_length=1, max_length=2)
+    seed: int = Field(0, ge=0, le=2**31 - 1)
+    candidates: int = Field(300, ge=20, le=1000, description="candidate poses drawn")
+    with_line: bool = Field(True, description="include the guided line (straightness)")
+
+
+class DesignOut(BaseModel):
+    plan: dict[str, Any] = Field(
+        description="the plan (i4cal.plan/1, its 'design' field the summary): POST it to /api/v1/runs as an inline plan"
+    )
+    counts: dict[str, int] = Field(description="frames per phase")
+    n_fit: int
+    predicted_std_m: dict[str, dict[str, float]] = Field(description="per method and combination, metres")
+    legs_seven_std_m: dict[str, float] | None
+    prediction_errors: dict[str, str]
+    motion_time_s: float
+    motion_per_phase_s: dict[str, float]
+    sweeps: dict[str, float]
+    target_met: bool | None
+    time_met: bool | None
+    notes: list[str]
+
+
+def _lock(request: Request) -> asyncio.Lock:
+    lock = getattr(request.app.state, "design_lock", None)
+    if lock is None:
+        lock = request.app.state.design_lock = asyncio.Lock()
+    return lock
+
+
+@router.post(
+    "/design",
+    response_model=DesignOut,
+    responses={
+        401: {"description": "no or wrong bearer token"},
+        422: {"description": "invalid request, or no bench configured: the field is named"},
+        429: {"description": "another design is being computed"},
+    },
+)
+async def design(body: DesignBody, request: Request, manager: Manager, _: Writer) -> DesignOut:
+    """Design a plan for this service's bench: fit poses, sweeps, order; predicted std and motion time.
+
+    Computed in a worker thread, one design at a time (the run's processes keep their cores)."""
+    from calib.design import DesignRequest
+
+    from ..design import design_for_bench
+
+    bench = manager.bench
+    if bench is None:
+        raise unprocessable(InputError("this service has no bench configured", field="bench"))
+    lock = _lock(request)
+    if lock.locked():
+        raise HTTPException(status.HTTP_429_TOO_MANY_REQUESTS, detail="another design is being computed")
+    async with lock:
+        try:
+            req = DesignRequest(
+                n_fit=body.n_fit,
+                target_std_m=body.target_std_m,
+                max_time_s=None if body.max_minutes is None else body.max_minutes * 60.0,
+                criterion=body.criterion or ("target" if body.target_std_m is not None and body.n_fit is None else "d"),
+                methods=tuple(dict.fromkeys(body.methods)),
+                seed=body.seed,
+                n_candidates=body.candidates,
+                with_line=body.with_line,
+            )
+            res = await asyncio.to_thread(design_for_bench, bench.config, req)
+        except InputError as exc:
+            raise unprocessable(exc) from None
+        except I4calError as exc:
+            raise unprocessable(InputError(str(exc), field="plan")) from None
+    pred = res.prediction
+    return DesignOut(
+        plan=res.plan.model_dump(mode="json", exclude_none=True),
+        counts=res.plan.count(),
+        n_fit=res.n_fit,
+        predicted_std_m=pred.std,
+        legs_seven_std_m=pred.legs_seven_std,
+        prediction_errors=pred.errors,
+        motion_time_s=res.motion["total_s"],
+        motion_per_phase_s=res.motion["per_phase_s"],
+        sweeps=res.sweeps,
+        target_met=res.target_met,
+        time_met=res.time_met,
+        notes=res.notes,
+    )

@@ -1,0 +1,78 @@
+"""``i4cal plan design``: experiment design before motion (calib.design; docs/design.md)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("plan", help="plans: design one before motion (predicted accuracy, motion time)")
+    sub = p.add_subparsers(dest="plan_command", metavar="SUBCOMMAND")
+    d = sub.add_parser(
+        "design",
+        help="choose the fit poses and sweeps for a target accuracy and time; predict every method's std",
+        description="Draws reachable, visible candidate poses, selects the fit poses (greedy + exchange) for the "
+        "criterion, picks the sweeps' extents, orders the poses, and prints the plan's pose counts, the "
+        "predicted std per method and combination (mm) and the motion time. Lengths: 0.05mm, 50um or metres.",
+    )
+    a = d.add_argument
+    a("--bench", required=True, help="bench configuration (TOML): nominal geometry, soft limits, speeds")
+    a("--target-std", default=None, help="wanted std of every combination (0.05mm, 50um, or metres)")
+    a("--max-minutes", type=float, default=None, help="longest motion time of the whole plan, minutes")
+    a("--n-fit", type=int, default=None, help="fit poses (default: the smallest count meeting the target)")
+    a("--criterion", choices=("d", "a", "target"), default=None, help="d (default), a, or target (worst std/target)")
+    a("--methods", default="combined", help="methods the selection optimises: combined,end-effector")
+    a("--seed", type=int, default=0, help="seed of the candidate poses")
+    a("--candidates", type=int, default=300, help="candidate poses drawn (default 300)")
+    a("--no-line", action="store_true", help="leave out the guided line (straightness)")
+    a(
+        "--noise-from",
+        default=None,
+        help="JSON with the noise levels (an observations file's 'noise', or the keys "
+        "of calib.design.DesignNoise); default: the geometric twin's",
+    )
+    a("--json", action="store_true", help="print the design summary as JSON")
+    a("-o", "--out", default=None, help="write the plan (i4cal.plan/1) for i4cal acquire --plan / POST /api/v1/runs")
+    d.set_defaults(handler=_design)
+    p.set_defaults(handler=lambda args: (p.print_help(), 1)[1])
+
+
+def _design(args: argparse.Namespace) -> int:
+    from calib.design import DesignNoise, DesignRequest
+    from calib.errors import InputError
+    from calib.jsonio import read_json
+    from calib.pipeline import to_jsonable
+    from calib.plan import validate_plan
+    from drivers.config import load_bench
+    from service.design import design_for_bench, parse_length, summary_lines
+
+    cfg = load_bench(args.bench)
+    target = None if args.target_std is None else parse_length(args.target_std, "--target-std")
+    if args.max_minutes is not None and not (0 < args.max_minutes < 1e5):
+        raise InputError("must be > 0", field="--max-minutes")
+    noise = None
+    if args.noise_from:
+        doc = read_json(args.noise_from, "noise file")
+        noise = DesignNoise.from_mapping(doc.get("noise", doc) if isinstance(doc, dict) else None)
+    req = DesignRequest(
+        n_fit=args.n_fit,
+        target_std_m=target,
+        max_time_s=None if args.max_minutes is None else args.max_minutes * 60.0,
+        criterion=args.criterion or ("target" if target is not None and args.n_fit is None else "d"),
+        methods=tuple(m.strip() for m in args.methods.split(",") if m.strip()),
+        seed=args.seed,
+        n_candidates=args.candidates,
+        with_line=not args.no_line,
+    )
+    res = design_for_bench(cfg, req, noise)
+    validate_plan(res.plan, cfg.nominal_parameters(), cfg.calib_limits())
+    if args.json:
+        print(json.dumps(to_jsonable(res.summary()), indent=1))
+    else:
+        print("\n".join(summary_lines(res)))
+    if args.out:
+        res.plan.save(args.out)
+        if not args.json:
+            print(f"wrote {args.out}")
+    return 0

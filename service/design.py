@@ -1,0 +1,101 @@
+"""Experiment design for a bench: the scene and motion figures of a bench file, length units, one entry point.
+
+The camera's placement is not in a bench file: the design uses the mounting the simulated bench and the
+image-level twin use (:class:`drivers.sim.twin.BenchGeometry`, :class:`drivers.sim.render.RenderSettings`),
+with the bench's nominal geometry, soft limits, speeds, accelerations and settle times. Shared by
+``i4cal plan design`` and ``POST /api/v1/plans/design``.
+"""
+
+from __future__ import annotations
+
+import re
+from typing import Any
+
+from calib.errors import InputError
+
+_UNITS = {"m": 1.0, "mm": 1e-3, "um": 1e-6, "µm": 1e-6, "μm": 1e-6}
+
+
+def parse_length(text: str | float, field: str = "target-std") -> float:
+    """Metres from ``0.05mm``, ``50um``, ``5e-5`` (plain metres) or ``5e-5m``."""
+    if isinstance(text, int | float):
+        value = float(text)
+    else:
+        m = re.fullmatch(r"\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*([a-zµμ]*)\s*", str(text))
+        if not m or m.group(2) not in ("", *_UNITS):
+            raise InputError(f"{text!r} is not a length (e.g. 0.05mm, 50um, or metres: 5e-5)", field=field)
+        value = float(m.group(1)) * _UNITS.get(m.group(2) or "m", 1.0)
+    if not (value > 0 and value < 1.0):
+        raise InputError(f"{text!r}: a length in (0, 1) m is expected", field=field)
+    return value
+
+
+def twin_scene():
+    """The camera, its mounting, the board and the rods of the simulated bench (calib.design.Scene)."""
+    from calib.design import Scene
+    from drivers.sim.render import RenderSettings
+    from drivers.sim.twin import BenchGeometry
+
+    g = BenchGeometry()
+    rs = RenderSettings()
+    return Scene(
+        camera=rs.camera(),
+        camera_from_base=g.camera_from_base,
+        ee_from_board=g.ee_from_board,
+        board_size_m=rs.board.size_m,
+        board_margin_m=rs.board_margin_m,
+        rod_radius_m=g.rod_radius_m,
+        rod_spacing_m=g.rod_spacing_m,
+    )
+
+
+def motion_spec(cfg) -> Any:
+    """Speeds, acceleration and settle times of a bench configuration (``drivers.config.BenchConfig``)."""
+    from calib.design import MotionSpec
+
+    a = cfg.actuators
+    return MotionSpec(speed_m_s=a.speed_m_s, accel_m_s2=a.accel_m_s2, settle_s=a.settle_s + cfg.acquisition.settle_s)
+
+
+def design_for_bench(cfg, request, noise=None):
+    """Design a plan for a bench configuration; returns ``calib.design.DesignResult``."""
+    from calib.design import design_plan
+
+    return design_plan(
+        cfg.nominal_parameters(),
+        twin_scene(),
+        request,
+        limits=cfg.calib_limits(),
+        motion=motion_spec(cfg),
+        noise=noise,
+    )
+
+
+def summary_lines(result) -> list[str]:
+    """Human-readable lines: counts per phase, predicted std per method (mm), motion time."""
+    from calib.parameters import COMBINATION_NAMES
+
+    counts = result.plan.count()
+    out = ["plan: " + ", ".join(f"{k} {v}" for k, v in counts.items())]
+    sw = result.sweeps
+    out.append(
+        f"fit poses {result.n_fit}; rotation sweep {sw['rotation_span_deg']:.0f} deg, "
+        f"translation {sw['translation_length_m'] * 1e3:.0f} mm"
+    )
+    out.append("predicted std (mm): " + " | ".join(f"{k:>13}" for k in COMBINATION_NAMES))
+    for m, std in result.prediction.std.items():
+        out.append(f"  {m:<16} " + " | ".join(f"{std[k] * 1e3:13.4f}" for k in COMBINATION_NAMES))
+    for m, why in result.prediction.errors.items():
+        out.append(f"  {m:<16} not predicted: {why}")
+    mt = result.motion
+    out.append(
+        f"motion time {mt['total_s'] / 60:.2f} min ("
+        + ", ".join(f"{k} {v:.0f} s" for k, v in mt["per_phase_s"].items())
+        + ")"
+    )
+    if result.target_met is not None:
+        out.append(f"target {'met' if result.target_met else 'NOT met'}")
+    if result.time_met is not None:
+        out.append(f"time limit {'met' if result.time_met else 'NOT met'}")
+    out += [f"note: {n}" for n in result.notes]
+    return out
