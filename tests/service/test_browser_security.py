@@ -1,0 +1,74 @@
+"""The dashboard and the API docs under their Content-Security-Policy in a real headless chromium (no CSP bypass):
+nothing is refused, the pages work; the dashboard shows a run's UTC creation time in the browser's time zone
+(Europe/Paris here), named (issue 12, finding 11: it was shown one hour off).
+
+Needs ``chromium`` and the ``playwright`` package (as test_dashboard.py); skipped without them."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import shutil
+from datetime import datetime
+from zoneinfo import ZoneInfo
+
+import pytest
+
+from tests.service.conftest import TOKEN
+
+playwright_api = pytest.importorskip("playwright.async_api")
+CHROMIUM = os.environ.get("I4CAL_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
+pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="no chromium: run deploy/install-test-system-deps.sh")
+
+API = "/api/v1"
+#: collects every CSP violation the page reports (an init script: injected by the browser, not by the page)
+WATCH = (
+    "window.__csp = []; document.addEventListener('securitypolicyviolation', (e) => window.__csp.push("
+    "e.violatedDirective + ' ' + e.blockedURI));"
+)
+
+
+async def _until(page, expr: str, timeout: float = 30.0):
+    """Poll ``expr`` (run through the DevTools protocol, which the page's CSP does not govern) until truthy."""
+    async with asyncio.timeout(timeout):
+        while not (v := await page.evaluate(expr)):
+            await asyncio.sleep(0.1)
+    return v
+
+
+async def test_dashboard_and_docs_under_their_csp(service):
+    async with playwright_api.async_playwright() as p:
+        browser = await p.chromium.launch(
+            executable_path=CHROMIUM, headless=True, args=["--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage"]
+        )
+        try:
+            ctx = await browser.new_context(timezone_id="Europe/Paris", locale="en-GB")
+            await ctx.add_init_script(WATCH)
+            page = await ctx.new_page()
+            errors: list[str] = []
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            await page.goto(service.url + "/dashboard")
+            await _until(page, "document.querySelector('#methods').dataset.loaded === 'true'")
+            await page.fill("#token", TOKEN)
+            await page.dispatch_event("#token", "change")
+            await page.select_option("#plan", "rotation-sweep")
+            await page.evaluate("document.querySelectorAll('#methods input').forEach((i) => { i.checked = false; })")
+            await page.click("#start")
+            await _until(page, "document.querySelector('#message').textContent.includes('started')")
+            await _until(page, "document.querySelector('#live-panel').dataset.state === 'done'", 60)
+            await _until(page, "document.querySelector('#frame').naturalWidth > 0")  # img-src 'self'
+            run = (await service.client.get(f"{API}/runs")).json()[0]
+            created = datetime.fromisoformat(run["created_at"]).astimezone(ZoneInfo("Europe/Paris"))
+            await page.evaluate("refreshRuns()")
+            cell = await page.inner_text("#runs tbody tr td:nth-child(6)")
+            assert created.strftime("%H:%M:%S") in cell and "CET" in cell, (cell, run["created_at"])
+            assert await page.evaluate("window.__csp") == []
+            assert not errors, errors
+
+            docs = await ctx.new_page()
+            await docs.goto(service.url + f"{API}/docs")
+            await docs.wait_for_selector(".swagger-ui .info .title", timeout=30_000)
+            await docs.wait_for_selector(".opblock-summary-path", timeout=30_000)  # the spec loaded and rendered
+            assert await docs.evaluate("window.__csp") == []
+        finally:
+            await browser.close()
