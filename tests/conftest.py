@@ -31,3 +31,16 @@ def noisy_obs(paper_plan) -> tuple[Observations, GeometricTwin]:
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(12345)
+
+
+#: Session fixtures that are costly to build (a rendered dataset, a PostgreSQL cluster): with pytest-xdist
+#: (``--dist loadgroup``) every test using one of them runs on the same worker, so each is built once per run.
+XDIST_GROUPS = {"rendered_zip": "rendered", "postgres_url": "postgres"}
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        for fixture, group in XDIST_GROUPS.items():
+            if fixture in getattr(item, "fixturenames", ()):
+                item.add_marker(pytest.mark.xdist_group(group))
+                break
