@@ -54,7 +54,12 @@ def motion_spec(cfg) -> Any:
     from calib.design import MotionSpec
 
     a = cfg.actuators
-    return MotionSpec(speed_m_s=a.speed_m_s, accel_m_s2=a.accel_m_s2, settle_s=a.settle_s + cfg.acquisition.settle_s)
+    return MotionSpec(
+        speed_m_s=a.speed_m_s,
+        accel_m_s2=a.accel_m_s2,
+        settle_s=a.settle_s + cfg.acquisition.settle_s,
+        line_rate_hz=cfg.acquisition.line_rate_hz,
+    )
 
 
 def design_for_bench(cfg, request, noise=None):
@@ -90,7 +95,7 @@ def summary_lines(result) -> list[str]:
     mt = result.motion
     out.append(
         f"motion time {mt['total_s'] / 60:.2f} min ("
-        + ", ".join(f"{k} {v:.0f} s" for k, v in mt["per_phase_s"].items())
+        + ", ".join(f"{k} {v:.1f} s" for k, v in mt["per_phase_s"].items())
         + ")"
     )
     if result.target_met is not None:

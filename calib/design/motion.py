@@ -28,6 +28,7 @@ class MotionSpec:
     settle_s: float = 0.0  #: after every move (actuators' and acquisition's settle times)
     frame_s: float = 0.0  #: grab and write per frame
     start_q: tuple[float, float, float, float] | None = None  #: where the bench starts (default: the first step)
+    line_rate_hz: float | None = None  #: overrides a guided line's sampling rate (a bench's acquisition setting)
 
     def __post_init__(self) -> None:
         if not (self.speed_m_s > 0 and self.accel_m_s2 > 0 and np.isfinite(self.speed_m_s + self.accel_m_s2)):
@@ -101,7 +102,9 @@ def plan_motion_time(plan: Plan, spec: MotionSpec, nominal: I4Parameters | None 
             if nominal is None:
                 raise InputError("the motion time of a guided line needs the nominal geometry", field="line")
             qs = ikm(nominal, line_poses(step.line))
-            t = (0.0 if cur is None else float(move_time(cur, qs[0], spec))) + step.line.samples / step.line.rate_hz
+            t = (0.0 if cur is None else float(move_time(cur, qs[0], spec))) + step.line.samples / (
+                spec.line_rate_hz or step.line.rate_hz
+            )
             cur = qs[-1]
         elif step.q is not None:
             q = np.asarray(step.q, dtype=np.float64)

@@ -438,11 +438,13 @@ def design_plan(
                     break
                 n, sel = n - 1, s2
     plan, mt = build(sel)
+    reduced = False
     if req.max_time_s is not None and mt["total_s"] > req.max_time_s and not req.n_fit:
         # the smallest plan meeting the target is too long: the largest that fits the time
         fixed_part = mt["total_s"] - mt["per_phase_s"].get("poses", 0.0)
         while n > req.n_min and mt["total_s"] > req.max_time_s:
             n -= 1
+            reduced = True
             sel = select_poses(infos, n, crit, t, sel[:n])
             plan, mt = build(sel)
         if mt["total_s"] > req.max_time_s:
@@ -450,7 +452,10 @@ def design_plan(
     target_met = None if t is None else meets(sel)
     time_met = None if req.max_time_s is None else mt["total_s"] <= req.max_time_s
     if target_met is False:
-        notes.append("the target is not met" + (" within the time allowed" if req.max_time_s else f" with {n} poses"))
+        notes.append(
+            "the target is not met "
+            + ("within the time allowed" if reduced else f"with {n} fit poses (the most tried)")
+        )
     pred = predict_plan(plan, nominal, scene, noise, weighting=req.weighting)
     F = infos.total(sel)
     crit_vals = {f"logdet_{m}": float(_cov4(F[m])[1]) for m in F}
