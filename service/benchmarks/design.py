@@ -1,0 +1,206 @@
+"""``i4cal bench design``: designed plans against the paper's plan at equal fit-pose counts, on the image-level twin.
+
+For every fit-pose count (``--counts``, default 8,12,20,30) two plans: the paper's (``calib.plan.make_plan("full")``)
+and a designed one (``calib.design.design_plan``, D-optimal for the combined method, the twin's camera and
+mounting); both without the guided line. Each trial renders the plan for a true geometry drawn around nominal
+(the accuracy benchmark's trials: ``service.benchmarks.accuracy``, per-trial camera calibration, extraction,
+the three methods); trial k of every plan shares its truth and seed (common random numbers).
+
+Per plan and method: RMS error per combination, mean reported std, the std predicted before motion at the
+geometric twin's default noise (``predicted``) and at the noise measured in a run (``predicted_run``: the
+prediction scaled per method and combination by the paper's 20-pose plan's measured RMS error over its
+prediction, i.e. noise levels calibrated by one reference run), and the motion time (trapezoidal profiles,
+``--speed``/``--accel``). The issue's check: the designed 12-pose plan's combined RMS error no larger than the
+paper's 20-pose plan's for every combination, and each method's prediction within 30% of its RMS error.
+``--json PATH`` writes everything (format ``i4cal.bench-design/1``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from typing import Any
+
+FORMAT = "i4cal.bench-design/1"
+
+
+def _plans(counts: list[int], seed: int, speed: float, accel: float) -> dict[str, dict[str, Any]]:
+    from calib.design import DesignRequest, MotionSpec, design_plan, plan_motion_time, predict_plan
+    from calib.parameters import NOMINAL
+    from calib.plan import Plan, make_plan
+    from service.design import twin_scene
+
+    scene = twin_scene()
+    motion = MotionSpec(speed_m_s=speed, accel_m_s2=accel)
+    out: dict[str, dict[str, Any]] = {}
+    for n in counts:
+        paper = make_plan("full", NOMINAL, seed=seed, n_fit=n)
+        paper = Plan(name=f"paper-{n}", steps=[s for s in paper.steps if s.phase != "line"])
+        designed = design_plan(NOMINAL, scene, DesignRequest(n_fit=n, with_line=False, seed=seed), motion=motion).plan
+        for kind, plan in (("paper", paper), ("designed", designed)):
+            pred = predict_plan(plan, NOMINAL, scene)
+            out[f"{kind}-{n}"] = {
+                "kind": kind,
+                "n_fit": n,
+                "steps": [s.model_dump(exclude_none=True) for s in plan.steps],
+                "counts": plan.count(),
+                "motion_s": plan_motion_time(plan, motion, NOMINAL)["total_s"],
+                "predicted_std_m": pred.std,
+            }
+    return out
+
+
+def run_design_bench(opts: argparse.Namespace, progress=None) -> dict[str, Any]:
+    import multiprocessing as mp
+
+    from ._accuracy_report import COMBINATIONS, METHODS, summarize
+    from ._accuracy_trial import TrialTask, init_worker, run_trial
+    from .accuracy import _cores, default_spread_m, draw_truth, trial_seed
+
+    t0 = time.perf_counter()
+    plans = _plans(opts.counts, opts.seed, opts.speed, opts.accel)
+    spread = default_spread_m()
+    tasks = [
+        TrialTask(
+            key=f"{name},k={k}",
+            index=k,
+            seed=trial_seed(opts.seed, k),
+            truth=draw_truth(opts.seed, k, spread),
+            noise_sigma=2.0,
+            steps=p["steps"],
+            camera=None,
+            camera_views=30,
+        )
+        for name, p in plans.items()
+        for k in range(opts.trials)
+    ]
+    workers = min(opts.workers or _cores(), len(tasks))
+    records: dict[str, dict[str, Any]] = {}
+    with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"), initializer=init_worker) as pool:
+        futs = {pool.submit(run_trial, t): t for t in tasks}
+        for i, f in enumerate(as_completed(futs), 1):
+            t = futs[f]
+            try:
+                records[t.key] = f.result()
+            except Exception as exc:  # a dead worker: counted, not fatal
+                records[t.key] = {
+                    "key": t.key,
+                    "index": t.index,
+                    "error": f"{type(exc).__name__}: {exc}",
+                    "methods": {},
+                }
+            if progress:
+                progress(i, len(tasks))
+    for name, p in plans.items():
+        p["summary"] = summarize([records[f"{name},k={k}"] for k in range(opts.trials)])
+        p.pop("steps")
+    ref = plans.get("paper-20")
+    for p in plans.values():
+        p["predicted_run_std_m"] = {}
+        for m in METHODS:
+            pr = p["predicted_std_m"].get(m)
+            if not pr or not ref or m not in ref["predicted_std_m"]:
+                continue
+            rms = ref["summary"]["methods"][m]["rms_error_m"]
+            p["predicted_run_std_m"][m] = {
+                c: (pr[c] * rms[c] / ref["predicted_std_m"][m][c]) if rms.get(c) else None for c in COMBINATIONS
+            }
+    from service.benchmarks.speed import machine_info
+
+    return {
+        "format": FORMAT,
+        "argv": list(sys.argv),
+        "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+        "machine": machine_info(),
+        "options": {k: v for k, v in vars(opts).items() if k != "handler"},
+        "plans": plans,
+        "checks": _checks(plans),
+        "elapsed_s": time.perf_counter() - t0,
+    }
+
+
+def _checks(plans: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    from ._accuracy_report import COMBINATIONS, METHODS
+
+    out: dict[str, Any] = {}
+    d12, p20 = plans.get("designed-12"), plans.get("paper-20")
+    if d12 and p20:
+        a = d12["summary"]["methods"]["combined"]["rms_error_m"]
+        b = p20["summary"]["methods"]["combined"]["rms_error_m"]
+        out["designed12_combined_not_worse_than_paper20"] = {
+            c: (a[c] <= b[c]) if a.get(c) is not None and b.get(c) is not None else None for c in COMBINATIONS
+        }
+    ratios: dict[str, dict[str, dict[str, float | None]]] = {}
+    for name, p in plans.items():
+        ratios[name] = {}
+        for m in METHODS:
+            pr = p["predicted_std_m"].get(m) or {}
+            rms = p["summary"]["methods"][m]["rms_error_m"]
+            ratios[name][m] = {c: (pr[c] / rms[c]) if pr.get(c) and rms.get(c) else None for c in COMBINATIONS}
+    out["predicted_over_rms"] = ratios
+    return out
+
+
+def print_table(doc: dict[str, Any]) -> None:
+    from ._accuracy_report import COMBINATIONS, METHODS
+
+    def mm(v):
+        return "-" if v is None else f"{v * 1e3:.3f}"
+
+    print(f"{'plan':<12} {'motion':>7} {'method':<13} " + " ".join(f"{c:>27}" for c in COMBINATIONS))
+    print(f"{'':<12} {'min':>7} {'':<13} " + " ".join(f"{'rms / std / pred / pred_run':>27}" for _ in COMBINATIONS))
+    for name, p in doc["plans"].items():
+        for m in METHODS:
+            s = p["summary"]["methods"][m]
+            pr = p["predicted_std_m"].get(m, {})
+            prr = p.get("predicted_run_std_m", {}).get(m, {})
+            cells = [
+                f"{mm(s['rms_error_m'][c])}/{mm(s['mean_std_m'][c])}/{mm(pr.get(c))}/{mm(prr.get(c))}"
+                for c in COMBINATIONS
+            ]
+            print(
+                f"{name:<12} {p['motion_s'] / 60:7.2f} {m:<13} "
+                + " ".join(f"{x:>27}" for x in cells)
+                + f"  ({s['n_ok']} ok)"
+            )
+    print("checks:", doc["checks"].get("designed12_combined_not_worse_than_paper20"))
+    print(f"elapsed {doc['elapsed_s']:.0f} s, {doc['date']}")
+
+
+def _ints(text: str) -> list[int]:
+    return [int(x) for x in text.split(",") if x.strip()]
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "design",
+        help="designed plans vs the paper's plan at equal fit-pose counts (image-level twin)",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    a = p.add_argument
+    a("--trials", type=int, default=5, help="trials per plan (default 5)")
+    a("--counts", type=_ints, default=[8, 12, 20, 30], help="fit-pose counts (default 8,12,20,30)")
+    a("--seed", type=int, default=0)
+    a("--workers", type=int, default=None)
+    a("--speed", type=float, default=0.05, help="actuator speed for the motion time, m/s (a bench file's default)")
+    a("--accel", type=float, default=0.5, help="acceleration, m/s^2")
+    a("--json", default=None, metavar="PATH")
+    p.set_defaults(handler=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from calib.errors import InputError
+    from calib.jsonio import write_json_atomic
+    from calib.pipeline import to_jsonable
+
+    if args.trials < 1 or not args.counts or min(args.counts) < 4:
+        raise InputError("--trials >= 1 and fit-pose counts >= 4", field="--trials")
+    doc = run_design_bench(args, lambda i, n: print(f"\r{i}/{n} trials", end="", file=sys.stderr))
+    print(file=sys.stderr)
+    print_table(doc)
+    if args.json:
+        write_json_atomic(args.json, to_jsonable(doc), indent=1)
+    return 0
