@@ -312,6 +312,13 @@ def intrinsics_names(camera: CameraModel) -> tuple[str, ...]:
     return tuple(str(n) for n in names)
 
 
+def intrinsics_vector(camera: CameraModel, names: tuple[str, ...] | list[str] = INTRINSICS_NAMES) -> Array:
+    """The camera's intrinsics ``names`` as a vector (px for fx, fy, cx, cy; zero for a coefficient ``dist`` lacks)."""
+    d = np.concatenate([camera.dist, np.zeros(8)])
+    where = {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}
+    return np.array([camera.K[where[n]] if n in where else d[DIST_INDEX[n]] for n in names])
+
+
 def projection_columns(names: tuple[str, ...] | list[str]) -> list[int]:
     """Columns of ``cv2.projectPoints``' Jacobian (rvec 3, tvec 3, fx, fy, cx, cy, dist...) for ``names``."""
     base = {"fx": 6, "fy": 7, "cx": 8, "cy": 9}
@@ -442,22 +449,28 @@ def calibrate_intrinsics(
     Lens model (``lens_model``): one of :data:`LENS_MODELS` (k1k2 = k1, k2, p1, p2; k1k2k3; OpenCV's rational
     k1..k6; each also without tangential terms, ``-radial``), or ``"auto"``: every candidate is fitted to the
     same views (the outliers rejected first with k1k2k3) and the one with the lowest Bayesian information
-    criterion ``BIC = n ln(RSS / n) + k ln(n)`` is kept, except that a ``-radial`` model is allowed only when
-    the matching full fit bounds the tangential terms' effect at the image corner (``(|p| + 2 std) 3 r_c^2 f``)
-    below :data:`TANGENTIAL_BOUND_PX` (a lens's decentring barely shows over the board views, yet the rods that
-    refine the camera afterwards reach the corners) (n: residual coordinates, k: every unknown of the
+    criterion ``BIC = n ln(RSS / n) + k ln(n)`` is kept (n: residual coordinates, k: every unknown of the
     bundle -- intrinsics, 6 per view, the released board points; only the distortion count differs between
     candidates). Why BIC rather than cross-validation over views: the candidates are nested and fitted to the
     same corners whose noise is close to independent Gaussian, for which BIC approximates the models' posterior
     odds and is consistent (it picks the true model as views are added, where AIC keeps overfitting by a
-    fixed margin); held-out views would need one calibration per candidate and fold (some 30 instead of 6, seconds
-    against the extraction's few-second budget) and score mostly the held-out poses' own noise. Neither can
-    see beyond the board views: a coefficient whose effect lies outside the radius the views reach is not
-    determined by them, which ``lens_model.field_coverage`` and a warning say. The evidence per candidate (RMS,
-    RSS, BIC, parameter count) is in the camera's ``calibration.lens_model``, with the chosen model's radial
-    residual profile (:func:`radial_residual_profile`), the model error the methods carry into their
-    standard deviations (``std_breakdown.lens_model``). ``None``: ``k1k2`` (``fix_k3``) or ``k1k2k3`` (the
-    behaviour before lens models were chosen).
+    fixed margin); held-out views would need one calibration per candidate and fold (some 30 instead of 6,
+    seconds against the extraction's few-second budget) and score mostly the held-out poses' own noise.
+
+    Two exceptions, because neither criterion sees beyond the board views while the rods that refine the camera
+    afterwards reach the image's corners: a ``-radial`` model is allowed only when the matching full fit bounds
+    the tangential terms' effect at the corner (``(|p| + 2 std) 3 r_c^2 f``) below :data:`TANGENTIAL_BOUND_PX`;
+    and when the views reach less than :data:`MIN_FIELD_COVERAGE` of the corner radius, a chosen ``k1k2``
+    becomes ``k1k2k3`` (over a smaller radius k1, k2 absorb a sixth-order term, which shows only beyond it:
+    on the image twin's 30-view camera phase, whose full-board views reach ~60-70% of the corner radius, k3's
+    std is 0.01-0.035, so k3 = -0.012 is invisible to BIC, yet left out it biased the rods' refinement; kept as a
+    parameter with its wide uncertainty, the rods pin it). ``lens_model.lowest_bic`` keeps BIC's own choice,
+    ``lens_model.warnings`` says why it was overruled or that the views do not cover the field.
+
+    The evidence per candidate (RMS, RSS, BIC, parameter count) is in the camera's ``calibration.lens_model``,
+    with the field coverage and the chosen model's radial residual profile (:func:`radial_residual_profile`),
+    the model error the methods carry into their standard deviations (``std_breakdown.lens_model``).
+    ``None``: ``k1k2`` (``fix_k3``) or ``k1k2k3`` (the behaviour before lens models were chosen).
 
     Parameters
     ----------
@@ -587,6 +600,16 @@ def calibrate_intrinsics(
         chosen = min(allowed, key=lambda e: e["bic"])["model"] if allowed else "k1k2"
     else:
         chosen = candidates[0]
+    promoted = None
+    if model == "auto" and chosen.startswith("k1k2") and not chosen.startswith("k1k2k3"):
+        # views that do not reach the image's corners cannot tell whether the lens has a sixth-order term
+        # (k1, k2 absorb it over their radius): it stays a parameter with its (wide) uncertainty, which the rods,
+        # seen up to the corners, then pin (the combined method's nuisance unknowns)
+        kr, cr = _corner_radius_norm(
+            fits[chosen][1], np.asarray(fits[chosen][2]).reshape(-1), (int(w), int(h)), np.vstack(list(keep.values()))
+        )
+        if cr > 0 and kr / cr < MIN_FIELD_COVERAGE:
+            promoted, chosen = chosen, chosen.replace("k1k2", "k1k2k3", 1)
     best_bic = min((e["bic"] for e in usable), default=0.0)
     for e in evidence:
         e["delta_bic"] = None if e["bic"] is None else float(e["bic"] - best_bic)
@@ -603,7 +626,13 @@ def calibrate_intrinsics(
     reach, corner = _corner_radius_norm(K, dist, (int(w), int(h)), np.vstack([keep[k] for k in keys]))
     coverage = reach / corner if corner > 0 else 1.0
     warnings = []
-    if coverage < MIN_FIELD_COVERAGE:
+    if promoted is not None:
+        warnings.append(
+            f"lens model {chosen} instead of {promoted} (lowest BIC): the board views reach {100 * coverage:.0f}% "
+            "of the image's corner radius, too little to exclude a sixth-order term; it is kept with its "
+            "calibration uncertainty for the rods to pin"
+        )
+    elif coverage < MIN_FIELD_COVERAGE:
         warnings.append(
             f"the board views reach {100 * coverage:.0f}% of the image's corner radius: the distortion beyond "
             "is extrapolated (higher-order terms there are not determined; present the board near the corners)"
@@ -611,6 +640,7 @@ def calibrate_intrinsics(
     lens_info = {
         "chosen": chosen,
         "requested": model,
+        "lowest_bic": promoted or chosen,
         "criterion": "BIC = n ln(RSS/n) + k ln(n) over the board views' corners" if model == "auto" else "given",
         "candidates": evidence,
         "n_residuals": n_res,

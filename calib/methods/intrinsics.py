@@ -141,9 +141,19 @@ def planes_through(xn: Array, reference_h: Array) -> Array:
     return h * np.sign(np.sum(h * reference_h, axis=-1, keepdims=True))
 
 
-def board_sensitivities(obs: Observations, arrays: PhaseArrays, n: int = 8) -> Array | None:
+def board_sensitivities(obs: Observations, arrays: PhaseArrays, n: int | None = None) -> Array | None:
     """``d_intrinsics`` (N, 6, n) of the board poses of ``arrays`` (zeros where no board), or None if any lacks it
-    (or has another parameter count than ``n``)."""
+    (or has another parameter count than ``n``; default: the first board's, i.e. the camera's lens model's)."""
+    if n is None:
+        first = next(
+            (
+                b.d_intrinsics
+                for i in arrays.index
+                if (b := obs.frames[int(i)].board) is not None and getattr(b, "d_intrinsics", None) is not None
+            ),
+            None,
+        )
+        n = np.asarray(first).shape[-1] if first is not None else 8
     out = np.zeros((len(arrays), 6, n))
     for k, i in enumerate(arrays.index):
         if not arrays.has_board[k]:

@@ -53,6 +53,10 @@ class RenderSettings:
     board_error_m: float = 2e-4  #: RMS deviation of the true board corners from the nominal ones
     board: BoardSpec = field(default_factory=BoardSpec)
     board_margin_m: float = 0.012  #: white margin around the printed pattern
+    #: the camera phase's board centres lie within +/- this in normalized x (0.75 of it in y): the default keeps
+    #: the views' corners within ~70% of the image's corner radius; ~0.7 presents the board near the corners, as a
+    #: calibration of a lens with higher-order distortion needs (``i4cal bench accuracy --sweep lens``)
+    camera_view_spread: float = 0.45
 
     def camera(self) -> CameraModel:
         K = np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
@@ -320,8 +324,8 @@ class BenchRenderer:
     def random_board_views(
         self, n: int, rng: np.random.Generator, full: bool = True, margin_px: float = 25.0
     ) -> list[Rigid]:
-        """``n`` board poses for intrinsic calibration: tilted up to ~40 deg, spread over the image,
-        every corner in view (``full``), drawn by rejection sampling."""
+        """``n`` board poses for intrinsic calibration: tilted up to ~40 deg, spread over the image
+        (``RenderSettings.camera_view_spread``), every corner in view (``full``), drawn by rejection sampling."""
         from calib.transforms import rotvec_to_matrix
 
         W, H = self.settings.board.size_m
@@ -335,7 +339,8 @@ class BenchRenderer:
             z = rng.uniform(0.28, 0.6)
             rv = rng.normal(0.0, 0.35, 3) * np.array([1.0, 1.0, 0.6])
             R = rotvec_to_matrix(rv)
-            xn = rng.uniform(-0.45, 0.45, 2) * np.array([1.0, 0.75])
+            sp = self.settings.camera_view_spread
+            xn = rng.uniform(-sp, sp, 2) * np.array([1.0, 0.75])
             centre = np.array([xn[0] * z, xn[1] * z, z])
             t = centre - R @ np.array([W / 2, H / 2, 0.0])
             pose = Rigid(R, t)

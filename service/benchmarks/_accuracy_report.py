@@ -39,6 +39,7 @@ def method_summary(trials: list[dict[str, Any]], name: str) -> dict[str, Any]:
         ``n_ok``, ``n_failed``, ``failures`` (message -> count), and per combination ``rms_error_m``,
         ``mean_std_m``, ``std_over_error`` (honesty: 1 is perfect), ``bound_rms_m`` (RMS over the same trials
         of the combined method's Cramer-Rao bound) and ``efficiency`` (bound RMS / error RMS); then
+        ``within_2_std`` (fraction of the trials whose error is within 2 reported std),
         ``gap_validation_rms_mm`` (RMS over trials of each trial's validation gap RMS) and
         ``gap_below_a_priori`` (trials whose gap is below their a priori gap).
     """
@@ -49,7 +50,7 @@ def method_summary(trials: list[dict[str, Any]], name: str) -> dict[str, Any]:
         if not ((t.get("methods") or {}).get(name) or {}).get("ok")
     )
     out: dict[str, Any] = {"n_ok": len(ok), "n_failed": len(trials) - len(ok), "failures": dict(failures)}
-    for field in ("rms_error_m", "mean_std_m", "std_over_error", "bound_rms_m", "efficiency"):
+    for field in ("rms_error_m", "mean_std_m", "std_over_error", "bound_rms_m", "efficiency", "within_2_std"):
         out[field] = {}
     for c in COMBINATIONS:
         errs = [t["methods"][name]["errors"][c] for t in ok]
@@ -63,6 +64,12 @@ def method_summary(trials: list[dict[str, Any]], name: str) -> dict[str, Any]:
         out["std_over_error"][c] = _ratio(std_mean, err_rms)
         out["bound_rms_m"][c] = b_rms
         out["efficiency"][c] = _ratio(b_rms, e_rms_b)
+        z = [
+            abs(t["methods"][name]["errors"][c]) / sd
+            for t in ok
+            if (sd := (t["methods"][name]["std"] or {}).get(c)) and t["methods"][name]["errors"][c] is not None
+        ]
+        out["within_2_std"][c] = sum(1 for v in z if v <= 2.0) / len(z) if z else None
     gaps = [(t["methods"][name]["gap_validation_rms_mm"], t.get("gap_a_priori_rms_mm")) for t in ok]
     gaps = [(g, a) for g, a in gaps if g is not None]
     out["gap_validation_rms_mm"] = _rms([g for g, _ in gaps])
@@ -264,6 +271,42 @@ def sweep_table(name: str, points: list[dict[str, Any]]) -> Any:
     return t
 
 
+def lens_table(points: list[dict[str, Any]]) -> Any:
+    """Rich table of the lens sweep: per lens and method, per combination the RMS error, the mean reported std and
+    their ratio (std / error: 1 is honest), the validation gap against the a priori one, and the lens models the
+    trials' calibrations chose."""
+    from rich.table import Table
+
+    t = Table(
+        title="sweep over the lens - per combination: RMS error / mean std mm (std/error; trials within 2 std); "
+        "validation gap RMS mm (trials below their a priori gap)",
+        title_justify="left",
+    )
+    for col in ("lens", "method", "ok", *COMBINATIONS, "gap", "gap a priori", "lens models chosen"):
+        t.add_column(col, justify="right")
+    for p in points:
+        s = p["summary"]
+        chosen = Counter(
+            ((t.get("camera") or {}).get("lens_model") or {}).get("chosen") or "given" for t in p["trials"] if t
+        )
+        for i, m in enumerate(METHODS):
+            ms = s["methods"][m]
+            t.add_row(
+                str(p.get("lens") or p.get("value")) if i == 0 else "",
+                m,
+                f"{ms['n_ok']}/{s['trials']}",
+                *[
+                    f"{_mm(ms['rms_error_m'][c])} / {_mm(ms['mean_std_m'][c])} ({_x(ms['std_over_error'][c])}; "
+                    f"{_x(ms['within_2_std'][c], '.0%')} in 2 std)"
+                    for c in COMBINATIONS
+                ],
+                f"{_x(ms['gap_validation_rms_mm'], '.3f')} ({ms['gap_below_a_priori']}/{ms['gap_trials']} below)",
+                _x(s["gap_a_priori_rms_mm"], ".3f") if i == 0 else "",
+                ", ".join(f"{k} x{n}" for k, n in sorted(chosen.items())) if i == 0 else "",
+            )
+    return t
+
+
 # -- the whole study on the terminal ------------------------------------------------------------------------
 def print_accuracy(doc: dict[str, Any], console: Any = None) -> None:
     """The study's tables, the targets, the sweeps and the notes."""
@@ -292,7 +335,7 @@ def print_accuracy(doc: dict[str, Any], console: Any = None) -> None:
                 + "[/red]"
             )
     for name, points in doc["sweeps"].items():
-        con.print(sweep_table(name, points))
+        con.print(lens_table(points) if name == "lens" else sweep_table(name, points))
     for cam_noise, cam in doc["cameras"].items():
         if cam.get("camera") is None:
             con.print(f"[red]camera phase at noise {cam_noise}: {cam.get('error')}[/red]")

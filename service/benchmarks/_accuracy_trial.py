@@ -44,6 +44,8 @@ class TrialTask(BaseModel):
         description="CameraModel.to_dict() of the study's camera; None: calibrated from the trial's own camera phase"
     )
     camera_views: int = Field(0, ge=0, description="board views rendered with the trial (its own camera phase)")
+    dist: list[float] | None = Field(None, description="the rendered lens's distortion (None: the renderer's default)")
+    lens: str | None = Field(None, description="the lens's name in the lens sweep")
 
 
 def init_worker() -> None:
@@ -113,7 +115,7 @@ def _camera_record(res: Any, rs: Any) -> dict[str, Any]:
     """The calibrated camera of an extraction against the renderer's: ``camera`` (the extraction's, refined by the
     rods when they moved it), ``true_camera``, ``intrinsics`` (reprojection RMS px, views, rejected, ``error_vs_true``
     of the calibration, ``refined_error_vs_true`` of the extraction's camera, and the calibration's ``std`` of fx,
-    fy, cx, cy [px], k1, k2, p1, p2)."""
+    fy, cx, cy [px], k1, k2, p1, p2), ``lens_model`` (the lens model the calibration chose and its evidence)."""
     from calib.camera import INTRINSICS_NAMES
 
     s = res.intrinsics.summary()
@@ -122,8 +124,12 @@ def _camera_record(res: Any, rs: Any) -> dict[str, Any]:
     def vec(c: Any) -> list[float]:
         return [c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2], *c.dist[:4]]
 
-    cov = (cam.extra.get("calibration") or {}).get("covariance")
-    std = [math.sqrt(max(cov[i][i], 0.0)) for i in range(8)] if cov else [None] * 8
+    calib = cam.extra.get("calibration") or {}
+    cov, names = calib.get("covariance"), list(calib.get("covariance_params") or INTRINSICS_NAMES)
+    std = [
+        math.sqrt(max(cov[names.index(k)][names.index(k)], 0.0)) if cov and k in names else None
+        for k in INTRINSICS_NAMES
+    ]
     return {
         "camera": cam.to_dict(),
         "true_camera": true.to_dict(),
@@ -137,7 +143,17 @@ def _camera_record(res: Any, rs: Any) -> dict[str, Any]:
             },
             "std": dict(zip(INTRINSICS_NAMES, std, strict=True)),
         },
+        "lens_model": (cam.extra.get("calibration") or {}).get("lens_model"),
     }
+
+
+def _render_settings(task: TrialTask) -> Any:
+    """The renderer's settings of a trial: its sensor noise and, in the lens sweep, its lens."""
+    from drivers.sim.render import RenderSettings
+
+    if task.dist is None:
+        return RenderSettings(noise_sigma=task.noise_sigma)
+    return RenderSettings(noise_sigma=task.noise_sigma, dist=tuple(task.dist))
 
 
 def edge_noise_px(observations: dict[str, Any]) -> float | None:
@@ -236,7 +252,6 @@ def run_trial(task: TrialTask) -> dict[str, Any]:
     from calib.pipeline import calibrate
     from calib.vision.extract import extract_dataset
     from drivers.sim.imaging import simulate_dataset
-    from drivers.sim.render import RenderSettings
     from drivers.sim.twin import BenchGeometry
 
     truth = I4Parameters.from_vector(task.truth, T_per_rad=NOMINAL.T_per_rad)
@@ -261,7 +276,7 @@ def run_trial(task: TrialTask) -> dict[str, Any]:
                 Path(tmp) / "ds",
                 seed=task.seed,
                 geometry=BenchGeometry(truth=truth),
-                render=RenderSettings(noise_sigma=task.noise_sigma),
+                render=_render_settings(task),
                 plan=_plan(task.steps, "trial"),
                 n_camera_views=task.camera_views if task.camera is None else 0,
             )
@@ -271,7 +286,7 @@ def run_trial(task: TrialTask) -> dict[str, Any]:
             res = extract_dataset(path, camera=cam, workers=1)
             out["extract_s"] = time.perf_counter() - t0
         if task.camera is None and res.intrinsics is not None:
-            out["camera"] = _camera_record(res, RenderSettings(noise_sigma=task.noise_sigma))
+            out["camera"] = _camera_record(res, _render_settings(task))
         t0 = time.perf_counter()
         doc = calibrate(Observations.from_dict(res.observations))
         out["calibrate_s"] = time.perf_counter() - t0

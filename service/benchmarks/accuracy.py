@@ -13,13 +13,17 @@ Per method and combination: RMS error against the truth, mean reported standard 
 efficiency = bound RMS / error RMS (target >= 0.67 for the combined method); the RMS displacement gap on the
 validation poses (the paper's Table II metric) against the a priori one. ``--sweep noise,poses`` adds sweeps
 over the renderer's sensor noise (grey levels; the measured edge noise in px is reported) and over the number
-of fit poses, with ``--sweep-trials`` trials per point; trials with the same index share their truth and
+of fit poses, ``--sweep lens`` over the rendered camera's lens (:data:`LENSES`, ``--sweep-lenses``: the
+trials' images and camera phases rendered through it, the lens model chosen per trial as ``i4cal extract``
+does), with ``--sweep-trials`` trials per point; trials with the same index share their truth and
 seed across points (common random numbers), and identical trials are run once.
 
 JSON (``--json PATH``, format ``i4cal.bench-accuracy/1``): ``command``, ``argv``, ``version``, ``machine``,
 ``options``, ``spread_m``, ``plans`` (frames per phase for each fit size), ``notes``, ``cameras`` (per noise
-level: the calibrated camera, its reprojection RMS), ``study`` and ``sweeps.noise`` / ``sweeps.poses`` (lists)
-as points ``{"sweep", "value", "noise_sigma", "n_fit", "trials": [per-trial records], "summary"}``,
+level: the calibrated camera, its reprojection RMS), ``study`` and ``sweeps.noise`` / ``sweeps.poses`` /
+``sweeps.lens`` (lists) as points ``{"sweep", "value", "noise_sigma", "n_fit", "lens", "dist", "trials": [per-trial
+records], "summary"}`` (``lens``/``dist``: None outside the lens sweep; a trial record's ``camera.lens_model`` is
+the lens model its calibration chose),
 ``elapsed_s`` (wall), ``cpu_s`` (CPU time of the cameras and trials: divided by the cores, about the wall time
 on an idle machine) and ``load_average`` at the start and end. Lengths in metres (``*_m``), gaps in mm
 (``*_mm``), edge noise in px.
@@ -43,7 +47,32 @@ from ._accuracy_report import print_accuracy, summarize
 from ._accuracy_trial import CameraTask, TrialTask, calibrate_camera, init_worker, run_trial
 
 FORMAT = "i4cal.bench-accuracy/1"
-SWEEPS = ("noise", "poses")
+SWEEPS = ("noise", "poses", "lens")
+#: Lenses of ``--sweep lens`` (OpenCV distortion vectors; the renderer's K): the twin's default lens with a
+#: sixth-order term of each sign, OpenCV's rational model (about the default lens to fourth order, different
+#: beyond) and a near-pinhole lens. ``k3=X`` names any k3 on the default lens.
+LENSES: dict[str, tuple[float, ...]] = {
+    "k3=0": (-0.30, 0.10, 4e-4, -3e-4, 0.0),
+    "k3=-0.012": (-0.30, 0.10, 4e-4, -3e-4, -0.012),
+    "k3=-0.01": (-0.30, 0.10, 4e-4, -3e-4, -0.01),
+    "k3=+0.01": (-0.30, 0.10, 4e-4, -3e-4, 0.01),
+    "rational": (-0.05, 0.02, 4e-4, -3e-4, 0.0, 0.25, 0.0, 0.0),
+    "pinhole": (-0.01, 0.002, 1e-4, -1e-4, 0.0),
+}
+
+
+def lens_dist(name: str) -> tuple[float, ...]:
+    """The distortion vector of a ``--sweep-lenses`` name (a key of :data:`LENSES` or ``k3=X``)."""
+    if name in LENSES:
+        return LENSES[name]
+    if name.startswith("k3="):
+        try:
+            return (*LENSES["k3=0"][:4], float(name[3:]))
+        except ValueError:
+            pass
+    raise ValueError(f"unknown lens {name!r}; lenses are {', '.join(LENSES)} or k3=VALUE")
+
+
 #: The paper-sized plan (``calib.plan.make_plan`` defaults): what a trial renders unless reduced.
 PAPER = {"n_base": 10, "n_fit": 20, "n_lock": 5, "n_validation": 10}
 QUICK = {
@@ -86,6 +115,7 @@ class AccuracyOptions(BaseModel):
     sweep_trials: int = Field(10, ge=1)
     sweep_noise: list[float] = Field(default_factory=lambda: [0.0, 1.0, 2.0, 4.0, 8.0])
     sweep_poses: list[int] = Field(default_factory=lambda: [8, 12, 20, 30])
+    sweep_lenses: list[str] = Field(default_factory=lambda: ["k3=0", "k3=-0.012", "k3=+0.01", "rational", "pinhole"])
     quick: bool = False
 
     @field_validator("sweeps")
@@ -101,6 +131,15 @@ class AccuracyOptions(BaseModel):
     def _noise(cls, v: list[float]) -> list[float]:
         if not v or min(v) < 0:
             raise ValueError("sweep noise levels must be >= 0 grey levels")
+        return v
+
+    @field_validator("sweep_lenses")
+    @classmethod
+    def _lenses(cls, v: list[str]) -> list[str]:
+        if not v:
+            raise ValueError("the lens sweep needs at least one lens")
+        for name in v:
+            lens_dist(name)
         return v
 
     @field_validator("sweep_poses")
@@ -188,13 +227,16 @@ class Point(BaseModel):
     noise_sigma: float
     n_fit: int
     n_trials: int
+    lens: str | None = None
 
     def trial_keys(self) -> list[str]:
-        return [trial_key(self.noise_sigma, self.n_fit, k) for k in range(self.n_trials)]
+        return [trial_key(self.noise_sigma, self.n_fit, k, self.lens) for k in range(self.n_trials)]
 
 
-def trial_key(noise_sigma: float, n_fit: int, index: int) -> str:
-    return f"noise={noise_sigma:g},fit={n_fit},k={index}"
+def trial_key(noise_sigma: float, n_fit: int, index: int, lens: str | None = None) -> str:
+    if lens is None:
+        return f"noise={noise_sigma:g},fit={n_fit},k={index}"
+    return f"noise={noise_sigma:g},fit={n_fit},lens={lens},k={index}"
 
 
 def study_points(opts: AccuracyOptions) -> list[Point]:
@@ -208,6 +250,18 @@ def study_points(opts: AccuracyOptions) -> list[Point]:
         pts += [
             Point(sweep="poses", value=v, noise_sigma=opts.noise_sigma, n_fit=v, n_trials=opts.sweep_trials)
             for v in opts.sweep_poses
+        ]
+    if "lens" in opts.sweeps:
+        pts += [
+            Point(
+                sweep="lens",
+                value=float(i),
+                noise_sigma=opts.noise_sigma,
+                n_fit=opts.n_fit,
+                n_trials=opts.sweep_trials,
+                lens=name,
+            )
+            for i, name in enumerate(opts.sweep_lenses)
         ]
     return [p for p in pts if p.n_trials > 0]
 
@@ -256,6 +310,8 @@ def run_accuracy(opts: AccuracyOptions, on_progress: OnProgress | None = None) -
                     steps=steps[p.n_fit],
                     camera=None,
                     camera_views=opts.camera_views if opts.camera == "per-trial" else 0,
+                    dist=list(lens_dist(p.lens)) if p.lens is not None else None,
+                    lens=p.lens,
                 )
     noises = sorted({t.noise_sigma for t in trials.values()})
     cam_steps = [s for s in steps[fits[-1]] if s["phase"] == "rotation"][: opts.camera_poses]
@@ -321,6 +377,8 @@ def run_accuracy(opts: AccuracyOptions, on_progress: OnProgress | None = None) -
             "value": p.value,
             "noise_sigma": p.noise_sigma,
             "n_fit": p.n_fit,
+            "lens": p.lens,
+            "dist": list(lens_dist(p.lens)) if p.lens is not None else None,
             "trials": [records[k] for k in p.trial_keys()],
         }
         for p in points
@@ -408,6 +466,10 @@ def _floats(text: str) -> list[float]:
     return [float(x) for x in text.split(",") if x.strip()]
 
 
+def _names(text: str) -> list[str]:
+    return [x.strip() for x in text.split(",") if x.strip()]
+
+
 def _ints(text: str) -> list[int]:
     return [int(x) for x in text.split(",") if x.strip()]
 
@@ -444,6 +506,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     a("--sweep-noise", type=_floats, default=None, metavar="LIST", help="grey levels (default 0,1,2,4,8)")
     a("--sweep-poses", type=_ints, default=None, metavar="LIST", help="fit pose counts (default 8,12,20,30)")
     a(
+        "--sweep-lenses",
+        type=_names,
+        default=None,
+        metavar="LIST",
+        help=f"lenses of --sweep lens: {','.join(LENSES)} or k3=VALUE "
+        "(default k3=0,k3=-0.012,k3=+0.01,rational,pinhole)",
+    )
+    a(
         "--camera",
         choices=("per-trial", "calibrated", "true"),
         default=None,
@@ -469,6 +539,7 @@ _ARGS = {
     "sweep_trials": "sweep_trials",
     "sweep_noise": "sweep_noise",
     "sweep_poses": "sweep_poses",
+    "sweep_lenses": "sweep_lenses",
     "camera": "camera",
 }
 
@@ -539,7 +610,13 @@ def command_line(opts: AccuracyOptions) -> str:
     for arg, field in _ARGS.items():
         v = getattr(opts, field)
         if v != getattr(default, field) and v is not None:
-            text = ",".join(f"{x:g}" for x in v) if isinstance(v, list) else v if isinstance(v, str) else f"{v:g}"
+            text = (
+                ",".join(x if isinstance(x, str) else f"{x:g}" for x in v)
+                if isinstance(v, list)
+                else v
+                if isinstance(v, str)
+                else f"{v:g}"
+            )
             parts += [f"--{arg.replace('_', '-')}", text]
     if opts.with_line:
         parts.append("--with-line")

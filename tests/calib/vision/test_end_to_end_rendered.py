@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from calib.baseframe import base_frame_from_observations
+from calib.camera import CameraModel, intrinsics_names, intrinsics_vector
 from calib.observations import Observations
 from calib.parameters import COMBINATION_NAMES
 from calib.pipeline import calibrate
@@ -44,11 +45,12 @@ def test_rendered_dataset_calibrates(tmp_path):
     ref = res.summary["camera"]["refined_by_rods"]
     assert ref["applied"], ref
     cov = np.asarray(it.camera.extra["calibration"]["covariance"])
+    names = intrinsics_names(it.camera)  # the lens model's parameters (k1k2k3 for this camera phase's coverage)
 
     def vec(c):
-        return np.array([c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2], *c.dist[:4]])
+        return intrinsics_vector(c, names)
 
-    true_vec = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2], *np.asarray(truth["dist"])[:4]])
+    true_vec = intrinsics_vector(CameraModel(K, np.asarray(truth["dist"]), it.camera.width, it.camera.height), names)
     d_cal, d_ref = vec(it.camera) - true_vec, vec(res.camera) - true_vec
     m_cal, m_ref = (float(np.sqrt(d @ np.linalg.solve(cov, d))) for d in (d_cal, d_ref))
     print(f"intrinsics off the truth: calibrated {m_cal:.2f} std, refined by the rods {m_ref:.2f} std")
