@@ -14,7 +14,7 @@ import json
 import os
 import time
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Final, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
@@ -23,7 +23,7 @@ from .errors import InputError
 from .jsonio import fsync_dir
 from .observations import Nominal
 
-DATASET_FORMAT = "i4cal.dataset/1"
+DATASET_FORMAT: Final = "i4cal.dataset/1"
 DATASET_PHASES = (
     "camera",
     "rotation",

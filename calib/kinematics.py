@@ -47,7 +47,7 @@ def _as_rows(x: ArrayLike, name: str) -> tuple[Array, bool]:
     return arr, single
 
 
-def _unreachable(kind: str, legs: str, idx: Array, deficit: Array) -> UnreachableError:
+def _unreachable(kind: str, legs: str, idx: NDArray[np.intp], deficit: Array) -> UnreachableError:
     i = int(idx[0])
     d = float(deficit[i])
     more = f" (and {len(idx) - 1} more)" if len(idx) > 1 else ""

@@ -88,7 +88,7 @@ class I4Parameters:
         vals = [float(v) for v in values]
         if len(vals) != 7:
             raise ValueError(f"I4Parameters.from_vector needs 7 values, got {len(vals)}")
-        return cls(*vals, T_per_rad=T_per_rad)
+        return cls(*vals, T_per_rad=T_per_rad)  # type: ignore[misc]  # mypy cannot count the starred values
 
     @classmethod
     def from_mapping(cls, data: dict[str, Any]) -> I4Parameters:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import contextlib
 import time
 from collections.abc import Callable, Iterable
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -15,7 +15,7 @@ from .identifiability import identifiability
 from .methods.iterations import IterationCallback
 from .methods.registry import MethodContext, get_method, method_names
 from .methods.result import MethodResult
-from .observations import Observations
+from .observations import LEG_KEYS, Observations
 from .parameters import COMBINATION_NAMES, PARAMETER_NAMES, I4Parameters
 from .validation import validate
 
@@ -197,7 +197,7 @@ def _leg_covariances(obs: Observations, s2: float) -> np.ndarray | None:
             continue
         legs = []
         for leg in range(4):
-            rods = (f.legs or {}).get(str(leg + 1)) or []
+            rods = cast(dict[str, Any], f.legs or {}).get(LEG_KEYS[leg]) or []
             info = np.zeros((3, 3))
             for rod in rods:
                 if rod is None:

@@ -90,7 +90,7 @@ class Rigid:
 
     @classmethod
     def from_rotvec(cls, rotvec: ArrayLike, t: ArrayLike) -> Rigid:
-        return cls(rotvec_to_matrix(as_vec3(rotvec, "rotvec")), t)
+        return cls(rotvec_to_matrix(as_vec3(rotvec, "rotvec")), as_vec3(t, "t"))
 
     def inverse(self) -> Rigid:
         return Rigid(self.R.T, -self.R.T @ self.t)

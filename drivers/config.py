@@ -286,5 +286,7 @@ def open_operator(cfg: BenchConfig) -> Operator:
     if scheme == "sim":
         from .cameras.sim import SimOperator
 
+        if port is None:
+            raise InputError(f"operator URI {uri!r} needs a port (sim://HOST:PORT)", field="operator.uri")
         return SimOperator(host, port)
     raise InputError(f"unknown operator URI {uri!r} (console, sim://HOST:PORT)", field="operator.uri")

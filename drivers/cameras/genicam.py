@@ -63,8 +63,8 @@ class GenICamCamera:
         self.serial = serial
         self.default_timeout_s = timeout_s
         self.incomplete_retries = incomplete_retries
-        self._h = None
-        self._ia = None
+        self._h: Any = None  # harvesters.core.Harvester (no type information)
+        self._ia: Any = None  # its ImageAcquirer
         self._trigger = False
         self._index = 0
         self._info: dict[str, Any] = {}

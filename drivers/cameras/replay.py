@@ -41,6 +41,7 @@ class ReplayCamera:
             self._next = 0
         i = self._indices[self._next]
         self._next += 1
+        assert self._ds is not None  # opened above
         f = self._ds.frames[i]
         img = self._ds.load_image(i)
         return Frame(

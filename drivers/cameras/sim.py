@@ -47,6 +47,7 @@ class _LineClient:
     async def request(self, line: str, timeout_s: float) -> tuple[dict[str, Any], bytes | None]:
         async with self._lock:
             await self._ensure()
+            assert self._r is not None and self._w is not None  # connected by _ensure
             try:
                 self._w.write(line.encode() + b"\n")
                 await self._w.drain()
@@ -105,7 +106,7 @@ class SimCamera:
         shape = (int(hdr["height"]), int(hdr["width"])) + (() if int(hdr["channels"]) == 1 else (int(hdr["channels"]),))
         img = np.frombuffer(payload, dtype=np.dtype(hdr["dtype"])).reshape(shape)
         self._index += 1
-        meta = {k: hdr[k] for k in ("seq", "q_true", "pose_true") if k in hdr}
+        meta: dict[str, Any] = {k: hdr[k] for k in ("seq", "q_true", "pose_true") if k in hdr}
         return Frame(image=img, index=self._index, timestamp_s=time.monotonic(), meta=meta)
 
     async def close(self) -> None:

@@ -22,7 +22,7 @@ class V4L2Camera:
     def __init__(self, device: str | int, timeout_s: float = 2.0) -> None:
         self.device = device
         self.default_timeout_s = timeout_s
-        self._cap = None
+        self._cap: Any = None  # cv2.VideoCapture once open
         self._index = 0
         self._info: dict[str, Any] = {"device": device}
 
