@@ -111,3 +111,48 @@ async def test_api_bounds_its_inputs(service):
     ):
         r = await c.post(f"{API}/plans/design", json=bad, headers=AUTH)
         assert r.status_code == 422, (bad, r.text)
+
+
+async def test_dashboard_designs_and_starts_a_plan(service):
+    """The dashboard's design panel in headless chromium: design, see the predicted std, start the designed plan."""
+    import os
+    import shutil
+
+    pw = pytest.importorskip("playwright.async_api")
+    chromium = os.environ.get("I4CAL_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
+    if chromium is None:
+        pytest.skip("no chromium: run deploy/install-test-system-deps.sh")
+    from tests.service.conftest import TOKEN
+
+    async with pw.async_playwright() as p:
+        browser = await p.chromium.launch(
+            executable_path=chromium, headless=True, args=["--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage"]
+        )
+        try:
+            page = await browser.new_page(bypass_csp=True)
+            errors: list[str] = []
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            await page.goto(service.url + "/dashboard")
+            await page.fill("#token", TOKEN)
+            await page.dispatch_event("#token", "change")
+            await page.fill("#design-nfit", "4")
+            await page.click("#design")
+            await page.wait_for_function(
+                "document.querySelector('#design-table').textContent.includes('S-(q04-q03)/2')", timeout=120_000
+            )
+            table = await page.text_content("#design-table")
+            summary = await page.text_content("#design-summary")
+            assert "4 fit poses" in summary and "motion" in summary
+            assert table.count("\u00b1") == 0 and len(await page.query_selector_all("#design-table tr")) >= 4
+            await page.click("#design-start")
+            await page.wait_for_function(
+                "document.querySelector('#message').textContent.includes('started designed run')", timeout=30_000
+            )
+            run_id = await page.evaluate(
+                "Object.keys(localStorage).find((k) => k.startsWith('i4cal-prediction-')).slice(17)"
+            )
+            r = await service.client.get(f"{API}/runs/{run_id}", headers=AUTH)
+            assert r.status_code == 200 and r.json()["plan"] == "designed"
+            assert not errors, errors
+        finally:
+            await browser.close()
