@@ -9,10 +9,11 @@ wire and an RTU reply names neither a transaction nor an address, so after such 
 closed for ``late_reply_guard_s`` (default twice the reply timeout) and the next request waits until
 the link has been quiet for ``flush_s``; bytes that arrive while no request is outstanding (a late or
 duplicated reply, a reply to another master on a shared line) are counted (``stats["unrequested"]``)
-and discarded. Consecutive reads of one unit over RTU framing ask for windows of different lengths
-(the read-back window widened by adjacent registers of the same axis), so that a late or duplicated
-reply to the previous read of that unit has the wrong byte count and is refused
-(``stats["stale"]``) rather than taken for the current answer.
+and discarded. Consecutive reads of one unit (a retry included) ask for windows of different lengths
+(the read-back window, then widened by an adjacent register of the same axis), so that a late or
+duplicated reply to the previous read of that unit has the wrong byte count and is refused
+(``stats["stale"]``) rather than taken for the current answer, on RTU framing and behind a Modbus
+TCP/RTU gateway alike.
 
 Plausible readings. Every decoded position must lie within the soft limits widened by
 ``plausibility_margin_m`` and within ``max_speed_m_s`` x the time since the axis' last accepted
@@ -142,9 +143,10 @@ class ModbusActuators:
         RTU framing only: a link reopened after a fault, or that received unrequested bytes, must have been
         quiet this long (s) before the next request goes out; what arrived meanwhile is discarded.
     vary_reads:
-        RTU framing only: alternate the length of consecutive reads of one unit (adjacent registers of the
-        same axis: target, speed, control in the default map) so that a stale reply has the wrong length.
-        ``False`` for a drive that refuses to read those registers.
+        Alternate the length of consecutive reads of one unit, retries included (an adjacent register of the
+        same axis: the control register in the default map) so that a stale reply (RTU framing, or a Modbus
+        TCP/RTU gateway that hands a late serial reply to the next request) has the wrong length.
+        ``False`` for a drive that refuses to read that register.
     max_speed_m_s:
         Fastest an axis can move (homing, a person guiding a free drive included), for the plausibility of
         readings. ``None``: ``5 * speed_m_s``.
@@ -208,7 +210,7 @@ class ModbusActuators:
         self.home_timeout_s = float(home_timeout_s)
         self.late_reply_guard_s = float(2 * self.timeout_s if late_reply_guard_s is None else late_reply_guard_s)
         self.flush_s = float(flush_s)
-        self.vary_reads = bool(vary_reads) and transport in RTU_FRAMED
+        self.vary_reads = bool(vary_reads)
         self.max_speed_m_s = float(5 * self.speed_m_s if max_speed_m_s is None else max_speed_m_s)
         self.plausibility_margin_m = float(plausibility_margin_m)
         self.plausibility_slack_m = float(plausibility_slack_m)
@@ -382,11 +384,25 @@ class ModbusActuators:
         return None
 
     async def _request(
-        self, kind: str, unit: int, address: int, count_or_values: Any, *, urgent: bool = False
-    ) -> list[int]:
+        self,
+        kind: str,
+        unit: int,
+        address: int,
+        count_or_values: Any,
+        *,
+        urgent: bool = False,
+        windows: list[tuple[int, int]] | None = None,
+    ) -> Any:
+        """One checked request, retried. ``windows``: a read of any of these (start, count), alternated per unit
+        and per attempt (a retry never asks the same as the attempt whose reply may still come); then the
+        result is ``(start, registers)``."""
         async with self._lock:
             last: str = ""
             for attempt in range(self.retries + 1):
+                if windows:
+                    k = self._read_count.get(unit, 0)
+                    self._read_count[unit] = k + 1
+                    address, count_or_values = windows[k % len(windows)]
                 if attempt:
                     self.stats["retries"] += 1
                     await asyncio.sleep(min(self.backoff_s * 2 ** (attempt - 1), self.backoff_max_s))
@@ -438,6 +454,8 @@ class ModbusActuators:
                         last = msg
                         continue
                     raise ProtocolError(msg, exception_code=code)
+                if windows:
+                    return address, list(rr.registers)
                 return list(rr.registers) if kind == "read" else []
             if "connect" in last or "connection" in last:
                 raise DeviceConnectionError(
@@ -506,14 +524,10 @@ class ModbusActuators:
         m = self.map
         unit, base = m.addr(axis, "status")
         base -= m.status
-        lo, n = self._windows[axis][0]
-        if self.vary_reads:
-            k = self._read_count.get(unit, 0)
-            self._read_count[unit] = k + 1
-            if k % 2:
-                lo, n = self._windows[axis][min(1, len(self._windows[axis]) - 1)]
+        windows = [(base + lo, n) for lo, n in self._windows[axis][: 2 if self.vary_reads else 1]]
         t_request = time.monotonic()
-        regs = await self.read(unit, base + lo, n)
+        start, regs = await self._request("read", unit, windows[0][0], windows[0][1], windows=windows)
+        lo = start - base
         st = regs[m.status - lo]
         enc = m.from_regs32(regs[m.actual - lo : m.actual - lo + 2])
         code = regs[m.alarm_code - lo]

@@ -267,7 +267,9 @@ class SimController:
                                 i + 1,
                                 ALARM_WATCHDOG,
                             )
+                            target = ax.target
                             ax.stop(now)
+                            ax.target = target  # not where it was sent: never "in position" there
                             ax.alarm_code = ALARM_WATCHDOG
 
     def _start_watchdog(self) -> None:

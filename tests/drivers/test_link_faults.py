@@ -1,0 +1,213 @@
+"""Link faults between the Modbus driver and the simulated controller, on every transport: 0 stale readings.
+
+Real sockets all the way: the simulated controller (pymodbus server), a fault proxy or a gateway from
+``drivers.sim.faultproxy`` in between, the driver over Modbus TCP, RTU over TCP, or RTU on a serial port:
+a pty whose other end is relayed to the gateway's TCP port (the virtual COM port of a serial device
+server; pyserial's ``socket://`` handler sleeps 0.3 s in ``close()``, blocking the event loop).
+Scenarios: replies delayed past the timeout, dropped, duplicated a little later, connections cut, and a
+gateway sharing one serial line with a second master.
+
+A reading is *stale* when the position it reports is not one the axis had while the reading was being
+made: every ``read_axis`` is bracketed by the true position of the simulated mechanism just before the
+request and just after the reply; during a monotonic move (homing, moves between two poses) the reading
+must lie between the two (within the encoder's quantisation and noise, 3 um). The proxies' faults are
+seeded; each scenario asserts that faults were really injected and that the driver still got its moves done.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import time
+import tty
+
+import numpy as np
+import pytest
+from drv_helpers import make_modbus
+
+from drivers.errors import DeviceError
+from drivers.modbus import ModbusActuators
+from drivers.sim.faultproxy import FaultProxy, SerialGateway
+
+Q_A = np.array([0.40, 0.41, 0.42, 0.43])
+Q_B = np.array([0.30, 0.31, 0.35, 0.36])
+TOL_M = 3e-6  # 1 um counts + 0.3 um encoder noise, 10 sigma: a stale reading is mm away at these speeds
+TIMEOUT_S = 0.08  # reply timeout; injected delays are 1.2-2.2 timeouts (as 250-450 ms with 200 ms)
+DELAYS = (0.1, 0.18)
+
+SCENARIOS = {
+    "delay": dict(delay_prob=0.03, delay_s=DELAYS),
+    "drop": dict(drop_prob=0.03),
+    "cut": dict(cut_prob=0.02),
+    "duplicate": dict(duplicate_prob=0.2, duplicate_after_s=(0.0003, 0.006)),
+    "gateway": dict(delay_prob=0.03, delay_s=DELAYS),
+}
+FAULTS = ("delayed", "dropped", "duplicated", "cuts")
+
+
+class StaleCounter:
+    """Wraps ``act.read_axis``: every reading checked against the true positions around it."""
+
+    def __init__(self, act: ModbusActuators, mechanism) -> None:
+        self.readings = 0
+        self.stale: list[tuple[int, float, float, float]] = []
+        orig = act.read_axis
+
+        async def read_axis(axis: int):
+            before = mechanism.q_true()[axis]
+            s = await orig(axis)
+            after = mechanism.q_true()[axis]
+            self.readings += 1
+            lo, hi = min(before, after) - TOL_M, max(before, after) + TOL_M
+            if not lo <= s.position_m <= hi:
+                self.stale.append((axis, s.position_m, before, after))
+            return s
+
+        act.read_axis = read_axis  # type: ignore[method-assign]
+
+
+class PtyToTcp:
+    """A serial port (pty) whose bytes are relayed to and from a TCP connection, reconnected when cut: the
+    virtual COM port of a serial device server."""
+
+    def __init__(self, address: tuple[str, int]) -> None:
+        self.address = address
+        self.master, self._slave = os.openpty()
+        tty.setraw(self._slave)  # no echo, no line editing
+        os.set_blocking(self.master, False)
+        self.path = os.ttyname(self._slave)  # the slave stays open: no EIO while the driver reopens the port
+        self._task: asyncio.Task | None = None
+
+    async def start(self) -> str:
+        reader, self._writer = await asyncio.open_connection(*self.address)
+        loop = asyncio.get_running_loop()
+
+        def from_pty() -> None:
+            with contextlib.suppress(BlockingIOError, OSError):
+                data = os.read(self.master, 4096)
+                if not self._writer.is_closing():
+                    self._writer.write(data)  # bytes sent while the link is down are lost, as on a cut line
+
+        loop.add_reader(self.master, from_pty)
+
+        async def to_pty(reader: asyncio.StreamReader) -> None:
+            while True:
+                with contextlib.suppress(ConnectionError, OSError):
+                    while data := await reader.read(4096):
+                        with contextlib.suppress(BlockingIOError, OSError):
+                            os.write(self.master, data)
+                await asyncio.sleep(0.01)
+                with contextlib.suppress(OSError):
+                    reader, self._writer = await asyncio.open_connection(*self.address)
+
+        self._task = asyncio.create_task(to_pty(reader))
+        return self.path
+
+    async def close(self) -> None:
+        asyncio.get_running_loop().remove_reader(self.master)
+        if self._task is not None:
+            self._task.cancel()
+            with contextlib.suppress(BaseException):
+                await self._task
+        self._writer.close()
+        for fd in (self.master, self._slave):
+            with contextlib.suppress(OSError):
+                os.close(fd)
+
+
+async def open_link(bench, transport: str, scenario: str, seed: int):
+    """The proxy or gateway for a scenario, and the driver's connection keywords through it."""
+    rtu_line = ("127.0.0.1", int(bench.rtu_url.rsplit(":", 1)[1]))
+    if transport == "tcp" and scenario != "gateway":
+        proxy = FaultProxy(bench.tcp_address, seed=seed)  # a Modbus TCP device
+    else:  # one serial line: a serial device server (RTU clients) or a Modbus TCP/RTU gateway (TCP clients)
+        framing = "tcp" if transport == "tcp" else "rtu"
+        if scenario == "gateway":  # two masters: a gateway whose response timeout outlasts the late replies
+            proxy = SerialGateway(rtu_line, client_framing=framing, line_timeout_s=0.25, route="requester", seed=seed)
+        else:  # one master behind a serial device server that gives up on the line before the late replies
+            proxy = SerialGateway(rtu_line, client_framing=framing, line_timeout_s=TIMEOUT_S / 2, seed=seed)
+    host, port = await proxy.start()
+    ptys = []
+    if transport == "rtu":
+        ptys = [PtyToTcp((host, port)) for _ in range(2 if scenario == "gateway" else 1)]
+        kws = [dict(serial_port=await p.start()) for p in ptys]
+    else:
+        kws = [dict(host=host, port=port)] * 2
+    return proxy, kws, ptys
+
+
+def driver(bench, transport: str, kw: dict) -> ModbusActuators:
+    act = make_modbus(bench, transport, timeout_s=TIMEOUT_S, retries=4, poll_s=0.002, **kw)
+    return act
+
+
+async def run_scenario(bench, transport: str, scenario: str, seed: int = 1) -> dict:
+    proxy, kws, ptys = await open_link(bench, transport, scenario, seed)
+    other_task = None
+    try:
+        act = driver(bench, transport, kws[0])
+        counter = StaleCounter(act, bench.mechanism)
+        await act.connect()
+        for k, v in SCENARIOS[scenario].items():
+            setattr(proxy.faults, k, v)
+        if scenario == "gateway":  # a second master polls the same units through the same serial line
+            other = driver(bench, transport, kws[1])
+
+            async def poll() -> None:
+                with contextlib.suppress(Exception):
+                    await other.connect()
+                while True:
+                    with contextlib.suppress(DeviceError):
+                        await other.status()
+                    await asyncio.sleep(0.001)
+
+            other_task = asyncio.create_task(poll())
+        moves = failures = 0
+        t_end = time.monotonic() + 8.0
+        with contextlib.suppress(DeviceError):
+            await act.home(timeout_s=3)
+        k = 0
+
+        def enough() -> bool:
+            injected = sum(proxy.stats.get(f, 0) for f in FAULTS)
+            return counter.readings >= 120 and moves >= 3 and injected >= 3
+
+        while time.monotonic() < t_end and not enough():
+            try:
+                if not (await act.status()).homed:
+                    await act.home(timeout_s=3)
+                await act.move(Q_A if k % 2 == 0 else Q_B)
+                moves += 1
+            except DeviceError:
+                failures += 1
+                with contextlib.suppress(DeviceError):
+                    await act.reset_alarms()
+            k += 1
+        await act.close()
+        return dict(
+            readings=counter.readings,
+            stale=counter.stale,
+            moves=moves,
+            failures=failures,
+            driver=dict(act.stats),
+            proxy=dict(proxy.stats),
+        )
+    finally:
+        if other_task is not None:
+            other_task.cancel()
+            with contextlib.suppress(BaseException):
+                await other_task
+        for p in ptys:
+            await p.close()
+        await proxy.close()
+
+
+@pytest.mark.parametrize("transport", ["tcp", "rtu", "rtu-tcp"])
+@pytest.mark.parametrize("scenario", list(SCENARIOS))
+async def test_no_stale_reading(bench, transport, scenario):
+    r = await run_scenario(bench, transport, scenario)
+    print(transport, scenario, {k: v for k, v in r.items() if k != "stale"}, "stale:", len(r["stale"]))
+    assert r["stale"] == [], f"{len(r['stale'])} stale readings of {r['readings']}: {r['stale'][:5]}"
+    assert sum(r["proxy"].get(f, 0) for f in FAULTS) >= 3, r["proxy"]  # the scenario really happened
+    assert r["readings"] >= 120 and r["moves"] >= 3, r
