@@ -4,7 +4,8 @@ and security headers on every response (installed by :func:`install` from ``serv
 * JSON request bodies (``application/json``, ``*+json`` or no content type, as FastAPI parses them) larger than
   ``max_json_body_bytes`` are answered 413, and bodies holding ``NaN``, ``Infinity``, ``-Infinity`` or a number
   beyond the float range (which Python's ``json`` would read as infinite) 422 naming the field, before any route
-  sees them. Standard JSON has no such numbers; the service never computes with them.
+  sees them. Standard JSON has no such numbers; the service never computes with them. Large bodies are parsed in
+  a worker thread, once (:class:`ParsedJSONRoute`).
 * Validation errors (422) are serialised with non-finite inputs written as strings: a non-finite value in a field
   that fails validation can no longer turn the 422 into a 500.
 * ``allowed_hosts``: requests whose ``Host`` header is not listed get 400 (Starlette's ``TrustedHostMiddleware``;
@@ -16,15 +17,18 @@ and security headers on every response (installed by :func:`install` from ``serv
 
 from __future__ import annotations
 
+import asyncio
 import json
 import math
 import re
+from collections.abc import Callable, Coroutine
 from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
+from fastapi.routing import APIRoute
 from starlette.datastructures import Headers
 from starlette.middleware.trustedhost import TrustedHostMiddleware
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
@@ -56,9 +60,11 @@ SECURITY_HEADERS = {
     "referrer-policy": "no-referrer",
 }
 
-#: A JSON number that Python's ``json`` reads as a non-finite float: a NaN/Infinity literal, or a magnitude beyond
-#: ~1.8e308 (an exponent of three digits or more, or 200+ digits before it); bodies without one are not walked.
-_MAYBE_NON_FINITE = re.compile(rb"NaN|Infinity|[eE][+-]?0*[1-9][0-9]{2}|[0-9]{200}")
+#: JSON bodies up to this size are parsed in the event loop; larger ones in a worker thread.
+INLINE_PARSE_BYTES = 64 * 1024
+#: where the body parsed by :class:`StrictJSONBodies` is left for the route (:class:`ParsedJSONRoute`)
+JSON_SCOPE_KEY = "i4cal.json_body"
+_MISSING = object()
 
 
 def csp_for(path: str) -> str:
@@ -124,9 +130,37 @@ def _json_response(status: int, content: Any) -> JSONResponse:
     return JSONResponse(status_code=status, content=content)
 
 
+class _NonFiniteError(ValueError):
+    pass
+
+
+def _reject_constant(name: str) -> float:
+    raise _NonFiniteError(name)
+
+
+def _finite_float(text: str) -> float:
+    v = float(text)
+    if math.isinf(v):  # a literal beyond the float range
+        raise _NonFiniteError(text)
+    return v
+
+
+def strict_json(body: bytes) -> tuple[str, Any]:
+    """Parse a JSON body: ``("ok", document)``, ``("non_finite", (path, value))`` naming the first NaN, Infinity or
+    out-of-range number, or ``("invalid", None)`` (not JSON: left to FastAPI's own error)."""
+    try:
+        return "ok", json.loads(body, parse_constant=_reject_constant, parse_float=_finite_float)
+    except _NonFiniteError:
+        return "non_finite", non_finite_path(json.loads(body))
+    except (ValueError, RecursionError):
+        return "invalid", None
+
+
 class StrictJSONBodies:
     """Pure ASGI middleware: JSON request bodies bounded in size (413) and free of non-finite numbers (422 naming the
-    field, FastAPI's error format); other bodies (archive uploads) pass through unread."""
+    field, FastAPI's error format); other bodies (archive uploads) pass through unread. The body is parsed once,
+    in a worker thread when larger than :data:`INLINE_PARSE_BYTES`, and the document is left in the request's scope
+    for :class:`ParsedJSONRoute` routes (which then do not parse it again in the event loop)."""
 
     METHODS = ("POST", "PUT", "PATCH", "DELETE")
 
@@ -169,22 +203,23 @@ class StrictJSONBodies:
             if not message.get("more_body", False):
                 break
         body = b"".join(chunks)
-        if _MAYBE_NON_FINITE.search(body):
-            try:
-                doc = json.loads(body)
-            except (ValueError, RecursionError):
-                doc = None  # not JSON: FastAPI reports it
-            found = non_finite_path(doc)
-            if found is not None:
-                path, value = found
+        if body:
+            if len(body) > INLINE_PARSE_BYTES:
+                kind, value = await asyncio.to_thread(strict_json, body)
+            else:
+                kind, value = strict_json(body)
+            if kind == "non_finite" and value is not None:
+                path, bad = value
                 err = {
                     "type": "finite_number",
                     "loc": ["body", *path],
                     "msg": "Input should be a finite number (NaN and Infinity are not JSON numbers)",
-                    "input": str(value),
+                    "input": str(bad),
                 }
                 await _json_response(422, {"detail": [err]})(scope, receive, send)
                 return
+            if kind == "ok":
+                scope[JSON_SCOPE_KEY] = value
         replayed = False
 
         async def replay() -> Message:
@@ -195,6 +230,22 @@ class StrictJSONBodies:
             return await receive()
 
         await self.app(scope, replay, send)
+
+
+class ParsedJSONRoute(APIRoute):
+    """An API route that takes the JSON body :class:`StrictJSONBodies` already parsed (off the event loop when large)
+    instead of parsing it again (Starlette's ``Request.json()`` caches the document in ``_json``)."""
+
+    def get_route_handler(self) -> Callable[[Request], Coroutine[Any, Any, Response]]:
+        handler = super().get_route_handler()
+
+        async def route_handler(request: Request) -> Response:
+            doc = request.scope.get(JSON_SCOPE_KEY, _MISSING)
+            if doc is not _MISSING:
+                request._json = doc
+            return await handler(request)
+
+        return route_handler
 
 
 async def validation_error_handler(request: Request, exc: RequestValidationError) -> JSONResponse:

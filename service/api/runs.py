@@ -18,15 +18,19 @@ from starlette.background import BackgroundTask
 
 from calib.errors import InputError
 from calib.methods.registry import method_names
+from calib.resultdoc import ResultDocument
 
 from ..auth import Reader, Writer
+from ..hardening import ParsedJSONRoute
 from ..settings import BENCH_NAME_PATTERN
 from ..worker import STATES, RunConflictError, RunManager
 from .calibration import CalibrationOut, calibration_out
 from .deps import ID_PATTERN, Manager, RunId, conflict, get_run, not_found, unprocessable
 from .methods import MethodName
 
-router = APIRouter(prefix="/runs", tags=["runs"])
+#: ParsedJSONRoute: a request's JSON (an inline plan: up to ~1 MB at the plan's size bounds) is parsed once, in a
+#: worker thread, by the strict-JSON middleware (service/hardening.py), not again in the event loop
+router = APIRouter(prefix="/runs", tags=["runs"], route_class=ParsedJSONRoute)
 
 PlanName = Literal["full", "rotation-sweep", "equal-translation", "pose-set", "lock-actuator", "line", "validation"]
 
@@ -314,10 +318,16 @@ async def resume_run(run_id: RunId, manager: Manager, _: Writer) -> RunOut:
     return _control(manager, run_id, "resume")
 
 
-@router.get("/{run_id}/result", responses={**ERRORS, 409: {"description": "no result (yet)"}})
+@router.get(
+    "/{run_id}/result",
+    response_model=ResultDocument,
+    response_model_exclude_unset=True,  # the stored document as it is (keys a document lacks are not added)
+    responses={**ERRORS, 409: {"description": "no result (yet)"}},
+)
 async def run_result(run_id: RunId, manager: Manager, _: Reader) -> dict[str, Any]:
-    """Per method: parameters with standard deviations, residuals, identifiability, validation (the JSON of
-    ``i4cal calibrate --json``)."""
+    """Per method: the four combinations with standard deviations (``combinations``, ``combinations_std``; also as
+    ``parameters``, ``std``), the seven parameters when identified (``seven``), residuals, identifiability,
+    validation (the JSON of ``i4cal calibrate --json``; :mod:`calib.resultdoc`)."""
     run = get_run(manager, run_id)
     if run.result is None:
         raise conflict(f"run is {run.state}; no result")
