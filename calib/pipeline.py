@@ -98,7 +98,14 @@ def calibrate(
         except I4calError as exc:
             if strict:
                 raise
-            out["methods"][name] = {"converged": False, "error": str(exc), "parameters": None, "std": None}
+            out["methods"][name] = {
+                "converged": False,
+                "error": str(exc),
+                "parameters": None,
+                "std": None,
+                "combinations": None,
+                "combinations_std": None,
+            }
             if progress:
                 progress(name, "failed")
             continue

@@ -65,8 +65,12 @@ class MethodResult:
 
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {
+            # "parameters"/"std" (the four combinations, the first names of the format) and "combinations"/
+            # "combinations_std" (the same values under clear names) are both kept: the format only grows
             "parameters": dict(self.combinations),
             "std": dict(self.combinations_std),
+            "combinations": dict(self.combinations),
+            "combinations_std": dict(self.combinations_std),
             "converged": self.converged,
             "residual_rms": self.residual_rms,
             "residual_unit": self.residual_unit,
