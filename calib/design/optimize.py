@@ -330,6 +330,25 @@ def _lock_steps(nominal, scene, limits, ws, n_lock: int, seed: int) -> list[Step
     return out
 
 
+def _line_steps(nominal, limits: SoftLimits, ws: Workspace, notes: list[str]) -> list[Step]:
+    """The paper's 500 mm guided line, shortened in 50 mm steps until every sample is within the soft limits."""
+    from ..errors import UnreachableError
+    from ..plan import line_poses
+
+    for length in np.arange(0.5, 0.149, -0.05):
+        steps = guided_line(nominal, length_m=float(length), ws=ws)
+        try:
+            q = ikm(nominal, line_poses(steps[0].line))
+        except UnreachableError:
+            continue
+        if _in_limits(q, limits).all():
+            if length < 0.5 - 1e-9:
+                notes.append(f"guided line shortened to {length * 1e3:.0f} mm to stay within the soft limits")
+            return steps
+    notes.append("no guided line (straightness) fits within the soft limits: left out")
+    return []
+
+
 def design_plan(
     nominal: I4Parameters,
     scene: Scene,
@@ -389,7 +408,7 @@ def design_plan(
         if req.n_validation
         else []
     )
-    line = guided_line(nominal, ws=ws) if req.with_line else []
+    line = _line_steps(nominal, limits, ws, notes) if req.with_line else []
 
     def start_index(n: int) -> np.ndarray | None:
         r = reference(n) if n in refs else None

@@ -214,3 +214,16 @@ def test_plan_motion_time_counts_every_move():
     frames = sum(1 for s in plan.steps if s.q is not None)
     slower = plan_motion_time(plan, MotionSpec(speed_m_s=0.025, accel_m_s2=0.5, settle_s=0.1), NOMINAL)
     assert slower["total_s"] > mt["total_s"] > frames * 0.1
+
+
+def test_tighter_soft_limits_shorten_the_line_and_the_plan_validates(scene):
+    """With a real bench's limits (0-750 mm) the paper's 500 mm line leaves them: the design shortens it, and every
+    step of the plan (line samples included) passes validate_plan for those limits."""
+    from calib.plan import SoftLimits
+
+    limits = SoftLimits(q_min=[0.0] * 4, q_max=[0.75] * 4)
+    with pytest.raises(Exception, match="outside the soft limits"):
+        validate_plan(make_plan("line", NOMINAL), NOMINAL, limits)
+    res = design_plan(NOMINAL, scene, DesignRequest(n_fit=6, n_lock=2, n_validation=2, n_candidates=80), limits=limits)
+    validate_plan(res.plan, NOMINAL, limits)
+    assert res.plan.count().get("line", 0) > 0 and any("shortened" in n for n in res.notes)
