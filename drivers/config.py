@@ -58,6 +58,15 @@ class ActuatorsConfig(BaseModel):
     in_position_m: float = Field(2e-5, gt=0)
     home_timeout_s: float = Field(60.0, gt=0)
     home_on_connect: bool = Field(True, description="home the axes before a run when they are not homed")
+    stop_deadline_s: float = Field(2.0, gt=0, description="one deadline for a stop: sent and read back stopped")
+    late_reply_guard_s: float | None = Field(
+        None, ge=0, description="RTU framing: link kept closed after a fault (s); default 2 x timeout_s"
+    )
+    max_speed_m_s: float | None = Field(
+        None, gt=0, description="fastest an axis can move, for plausible readings; default 5 x speed_m_s"
+    )
+    plausibility_margin_m: float = Field(0.05, ge=0, description="readings beyond the soft limits by more: refused")
+    vary_reads: bool = Field(True, description="alternate read lengths so a stale reply has the wrong length")
     limits: LimitsConfig = LimitsConfig()
     register_map: dict[str, Any] = Field(default_factory=dict)
 
@@ -202,6 +211,11 @@ def open_actuators(cfg: BenchConfig) -> Actuators:
             settle_s=a.settle_s,
             in_position_m=a.in_position_m,
             home_timeout_s=a.home_timeout_s,
+            stop_deadline_s=a.stop_deadline_s,
+            late_reply_guard_s=a.late_reply_guard_s,
+            max_speed_m_s=a.max_speed_m_s,
+            plausibility_margin_m=a.plausibility_margin_m,
+            vary_reads=a.vary_reads,
             **common,
         )
         if scheme == "modbus+rtu":
@@ -230,6 +244,9 @@ def open_actuators(cfg: BenchConfig) -> Actuators:
             retries=a.retries,
             in_position_m=a.in_position_m,
             home_timeout_s=a.home_timeout_s,
+            stop_deadline_s=a.stop_deadline_s,
+            max_speed_m_s=a.max_speed_m_s,
+            plausibility_margin_m=a.plausibility_margin_m,
             **common,
         )
     raise InputError(

@@ -260,3 +260,29 @@ async def test_cancel_landing_with_a_reply_still_stops(bench, k):
         await asyncio.sleep(0.05)
         assert np.array_equal(bench.mechanism.q_true(), q1)  # stopped
         assert np.all(np.abs(q1 - Q_FAR) > 0.05)  # far from the target
+
+
+async def test_a_run_clears_the_watchdog_alarm_of_a_lost_session(bench, tmp_path):
+    """A previous host died mid-move; the drives' watchdog stopped them in alarm 0x50. Starting (or resuming) a
+    run is the explicit request to go on: it resets that alarm, and only that one."""
+    from test_acquisition import close, make_acq, small_plan
+
+    from drivers.sim.mechanism import ALARM_DRIVE_FAULT
+
+    for ax in bench.mechanism.axes[:2]:
+        ax.alarm_code = ALARM_WATCHDOG
+    messages = []
+    acq = make_acq(bench, small_plan(), tmp_path / "ds", progress=lambda p: messages.append(p.message))
+    try:
+        res = await acq.run()
+    finally:
+        await close(acq)
+    assert res.frames == res.total
+    assert any("communication-watchdog alarm" in m for m in messages)
+    bench.mechanism.axes[0].alarm_code = ALARM_DRIVE_FAULT  # any other alarm still stops the run before it moves
+    acq = make_acq(bench, small_plan(), tmp_path / "ds2")
+    try:
+        with pytest.raises(Exception, match="in alarm before the run"):
+            await acq.run()
+    finally:
+        await close(acq)
