@@ -328,6 +328,8 @@ BUDGET_SOURCES = {
     "limb_edge_bias": f"limb-edge bias common to every rod (prior {EDGE_BIAS_STD_PX:g} px per limb)",
     "joint_centres": "joint centres (lock phases)",
     "leg_directions": "leg directions of the fit poses",
+    "lens_model": "lens model error (the camera calibration's radial residual beyond its noise)",
+    "a_priori": "a priori geometry (manufacturing tolerance) where the data do not pin the parameters",
 }
 
 
@@ -503,7 +505,7 @@ def _camera(obs_doc: dict | None) -> Raw:
         [k, num(K[i, j], ".2f"), num(std.get(k), ".2f")]
         for k, (i, j) in (("fx", (0, 0)), ("fy", (1, 1)), ("cx", (0, 2)), ("cy", (1, 2)))
     ]
-    for name, v in zip(("k1", "k2", "p1", "p2", "k3"), cam.get("dist") or [], strict=False):
+    for name, v in zip(("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"), cam.get("dist") or [], strict=False):
         intr.append([name, num(v, ".5f"), num(std.get(name), ".5f")])
     src = cs.get("source") or f"calibrated from {cs.get('n_views', '?')} views of the camera phase"
     parts: list[Any] = [
@@ -511,6 +513,20 @@ def _camera(obs_doc: dict | None) -> Raw:
         + (f" RMS reprojection error {cs['rms_px']:.3f} px." if "rms_px" in cs else "")
     ]
     parts.append(table(["intrinsic", "value", "std"], intr, caption="Intrinsics (px; distortion dimensionless)"))
+    lm = cs.get("lens_model") or (cam.get("calibration") or {}).get("lens_model")
+    if lm:
+        how = "chosen from the board views" if lm.get("requested") == "auto" else "given"
+        err_px = float((lm.get("residual_profile") or {}).get("max_systematic_px", 0.0))
+        parts.append(
+            f"Lens model {lm.get('chosen')} ({how}; lowest BIC {lm.get('lowest_bic', lm.get('chosen'))}): "
+            + ", ".join(
+                f"{e['model']} {e['n_params']} parameters, RMS {e['rms_px']:.3f} px"
+                + (f", BIC {e['delta_bic']:+.1f}" if e.get("delta_bic") is not None else "")
+                for e in lm.get("candidates") or []
+            )
+            + f". The views reach {100 * float(lm.get('field_coverage', 1.0)):.0f}% of the image's corner radius; "
+            f"radial model error up to {err_px:.3f} px." + "".join(f" {w}." for w in lm.get("warnings") or [])
+        )
     if cs.get("per_view_rms_px"):
         parts.append(figure(plots.camera_view_plot(cs), "reprojection errors", "RMS reprojection error per view"))
     rej = cs.get("rejected") or {}
