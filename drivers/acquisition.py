@@ -206,20 +206,33 @@ class Acquisition:
         try:
             return await self._run()
         except asyncio.CancelledError:
+            stopped = await self._uninterruptible(self._stop_and_flush())
             if self._aborting:
-                stopped = await self._safe_stop()
-                with contextlib.suppress(Exception):
-                    await self._flush_writes()
                 n = len(self._writer) if self._writer else 0
                 self._mark("aborted", None, "aborted on request")
                 self._emit("aborted", f"aborted; {stopped}; {n} frames kept in {self.out}")
                 raise AbortedError(f"acquisition aborted; {stopped}; {n} frames kept in {self.out}") from None
-            await self._safe_stop()
-            with contextlib.suppress(Exception):
-                await self._flush_writes()
             raise
         finally:
             self._task = None
+
+    async def _stop_and_flush(self) -> str:
+        stopped = await self._safe_stop()
+        with contextlib.suppress(Exception):
+            await self._flush_writes()
+        return stopped
+
+    @staticmethod
+    async def _uninterruptible(coro) -> Any:
+        """Run ``coro`` to its end even if this task is cancelled again meanwhile (an abort repeated while the stop
+        is being confirmed, a shutdown): the stop's read-back and the last frame's write are never cut short."""
+        fut = asyncio.ensure_future(coro)
+        while True:
+            try:
+                return await asyncio.shield(fut)
+            except asyncio.CancelledError:
+                if fut.done():
+                    return fut.result()
 
     async def _safe_stop(self) -> str:
         """Stop the actuators; returns what to tell: "motion stopped" only when the stop was confirmed."""

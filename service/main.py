@@ -26,8 +26,8 @@ from .auth import Reader
 from .db import Database
 from .hardening import install as install_hardening
 from .metrics import CONTENT_TYPE, make_registry, render
+from .runs import Bench, RunManager
 from .settings import Settings
-from .worker import Bench, RunManager
 
 STATIC = Path(__file__).resolve().parent / "static"
 log = logging.getLogger("i4cal.service")

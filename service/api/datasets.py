@@ -21,7 +21,7 @@ from calib.errors import I4calError
 
 from ..auth import Reader, Writer
 from ..db import DatasetRecord
-from ..worker import new_id, now
+from ..runs import new_id, now
 from .deps import DatasetId, Manager, SettingsDep, not_found
 
 router = APIRouter(prefix="/datasets", tags=["datasets"])

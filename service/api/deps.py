@@ -8,8 +8,8 @@ from fastapi import Depends, HTTPException, Path, Request, status
 
 from calib.errors import InputError
 
+from ..runs import Bench, RunManager, RunNotFoundError
 from ..settings import Settings
-from ..worker import Bench, RunManager, RunNotFoundError
 
 ID_PATTERN = r"^[0-9a-f]{32}$"
 

@@ -22,8 +22,8 @@ from calib.resultdoc import ResultDocument
 
 from ..auth import Reader, Writer
 from ..hardening import ParsedJSONRoute
+from ..runs import STATES, RunConflictError, RunManager
 from ..settings import BENCH_NAME_PATTERN
-from ..worker import STATES, RunConflictError, RunManager
 from .calibration import CalibrationOut, calibration_out
 from .deps import ID_PATTERN, Manager, RunId, conflict, get_run, not_found, unprocessable
 from .methods import MethodName

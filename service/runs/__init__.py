@@ -3,7 +3,7 @@ manager (:mod:`.manager`), the stages acquire -> extract -> calibrate (:mod:`.st
 (:mod:`.calibrations`)."""
 
 from .bench import Bench, DeviceState, bench_name
-from .events import LIVE_INTERVAL_S, EventBus, iso_utc
+from .events import LIVE_INTERVAL_S, EventBus
 from .lifecycle import IllegalTransitionError, RunConflictError, RunEvent, RunNotFoundError, RunState
 from .manager import ACTIVE_STATES, STATES, TERMINAL_STATES, ActiveRun, RunManager, new_id, now, plan_units
 
@@ -23,7 +23,6 @@ __all__ = [
     "RunNotFoundError",
     "RunState",
     "bench_name",
-    "iso_utc",
     "new_id",
     "now",
     "plan_units",

@@ -12,9 +12,6 @@ from ..db import Calibration, Database, Run
 from ..jobs import clean_json
 from .lifecycle import RunConflictError, RunState
 
-#: The method applied when the request names none: the first of these that converged.
-DEFAULT_APPLY_ORDER = ("combined", "legs", "end-effector")
-
 
 def calibration_from_run(run: Run, method: str | None, default_bench: str | None) -> Calibration:
     """The calibration row that applies ``method`` of ``run`` (not yet stored).
@@ -32,7 +29,9 @@ def calibration_from_run(run: Run, method: str | None, default_bench: str | None
         raise RunConflictError(f"run is {run.state} without a result; nothing to apply")
     methods = run.result.get("methods", {})
     if method is None:
-        method = next((m for m in DEFAULT_APPLY_ORDER if methods.get(m, {}).get("converged")), None)
+        from calib.methods.registry import apply_order
+
+        method = next((m for m in apply_order() if methods.get(m, {}).get("converged")), None)
         if method is None:
             raise RunConflictError("no method of this run converged; nothing to apply")
     entry = methods.get(method)

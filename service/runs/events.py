@@ -17,17 +17,11 @@ from sqlalchemy import func, select, update
 
 from ..db import Database, Event, Run
 from ..jobs import clean_json
+from ..timefmt import iso_utc
 
 #: Seconds between two batches of high-rate events of a run (progress, frames, iterations): with at most two kinds
 #: at a time (progress + frames, or iterations), a run writes at most ~10 such events per second.
 LIVE_INTERVAL_S = 0.2
-
-
-def iso_utc(t: datetime) -> str:
-    """``t`` as ISO 8601 in UTC with a ``Z`` (a naive ``t`` is taken as UTC, as the database stores it)."""
-    if t.tzinfo is None:
-        t = t.replace(tzinfo=UTC)
-    return t.astimezone(UTC).isoformat().replace("+00:00", "Z")
 
 
 class EventBus:
@@ -49,10 +43,11 @@ class EventBus:
         self._seq[run_id] += 1
         return self._seq[run_id]
 
-    def emit(self, run_id: str, type_: str, data: dict[str, Any]) -> None:
+    def emit(self, run_id: str, type_: str, data: dict[str, Any], t: datetime | None = None) -> None:
+        """Store and push an event (``t``: its time, default now)."""
         data = clean_json(data)
         seq = self._next_seq(run_id)
-        t = self.clock()
+        t = self.clock() if t is None else t
         with self.db.session() as s:
             s.add(Event(run_id=run_id, seq=seq, t=t, type=type_, data=data))
         ev = {"seq": seq, "t": iso_utc(t), "type": type_, "data": data}
@@ -107,13 +102,14 @@ class EventBus:
         if not pending:
             return
         self._live_last[run_id] = time.monotonic()
+        t = self.clock()  # one time for the batch: the database writes before an event do not shift its time
         p = pending.pop("progress", None)
         if p is not None:
             with self.db.session() as s:
                 s.execute(update(Run).where(Run.id == run_id).values(done=p["done"], total=p["total"]))
-            self.emit(run_id, "progress", p)
+            self.emit(run_id, "progress", p, t)
         for kind, items in pending.items():
-            self.emit(run_id, kind, {"count": len(items), "items": items})
+            self.emit(run_id, kind, {"count": len(items), "items": items}, t)
 
     def end_live(self, run_id: str) -> None:
         self.flush_live(run_id)

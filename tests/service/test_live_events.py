@@ -12,7 +12,7 @@ import itertools
 import os
 from datetime import datetime
 
-from service.worker import LIVE_INTERVAL_S
+from service.runs import LIVE_INTERVAL_S
 from tests.service.conftest import AUTH, make_settings, read_events, start_service, wait_state
 
 API = "/api/v1"

@@ -12,8 +12,8 @@ from sqlalchemy import text
 
 from service.db import Base, Database
 from service.db.session import MIGRATIONS
+from service.runs import RunManager
 from service.settings import Settings
-from service.worker import RunManager
 from tests.service.conftest import empty_database_url
 
 
