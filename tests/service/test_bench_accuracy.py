@@ -78,6 +78,7 @@ METHOD_SUMMARY_KEYS = {
     "gap_validation_rms_mm",
     "gap_below_a_priori",
     "gap_trials",
+    "within_2_std",
 }
 
 
@@ -279,3 +280,19 @@ def test_options_errors_and_command_line(capsys):
         "i4cal bench accuracy --trials 20 --seed 3 --noise 4 --sweep-noise 0,2.5 --camera true --sweep noise,poses"
     )
     assert command_line(AccuracyOptions()) == "i4cal bench accuracy"
+
+
+def test_lens_sweep_points_and_options(capsys):
+    """``--sweep lens``: one point per lens, each trial rendered through its distortion, keyed apart from the others."""
+    from service.benchmarks.accuracy import LENSES, lens_dist, study_points
+
+    opts = AccuracyOptions(trials=0, sweeps=["lens"], sweep_trials=2, sweep_lenses=["k3=-0.012", "rational", "k3=0.02"])
+    pts = study_points(opts)
+    assert [(p.sweep, p.lens) for p in pts] == [("lens", "k3=-0.012"), ("lens", "rational"), ("lens", "k3=0.02")]
+    keys = [k for p in pts for k in p.trial_keys()]
+    assert len(set(keys)) == 6 and all("lens=" in k for k in keys)
+    assert lens_dist("rational") == LENSES["rational"] and len(LENSES["rational"]) == 8
+    assert lens_dist("k3=0.02")[4] == 0.02 and lens_dist("k3=0.02")[:4] == LENSES["k3=0"][:4]
+    assert command_line(opts).endswith("--sweep-lenses k3=-0.012,rational,k3=0.02 --sweep lens")
+    assert main(["bench", "accuracy", "--sweep", "lens", "--sweep-lenses", "fisheye"]) == 2
+    assert "unknown lens 'fisheye'" in capsys.readouterr().err
