@@ -7,6 +7,7 @@ import io
 import tarfile
 import zipfile
 
+import httpx
 import numpy as np
 
 from tests.service.conftest import AUTH, make_settings, read_events, start_service, wait_state
@@ -307,57 +308,21 @@ async def test_full_run_real_images_results_apply(tmp_path):
 async def test_killed_service_restarts_interrupted_then_resumes(tmp_path, sim):
     """SIGKILL the service (a real process) mid-run: on restart the run is interrupted with its frames intact, and
     resuming it continues the acquisition to done."""
-    import json
-    import os
-    import signal
-    import socket
-    import subprocess
-    import sys
-
-    import httpx
-
     from calib.dataset import Dataset
-    from service.auth import hash_token
-    from tests.service.conftest import TOKEN
+    from tests.service.procs import ServiceProcess, free_port, write_config
 
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    bench = sim.bench_config(acquisition={"line_rate_hz": 50.0}).model_dump(mode="json", exclude={"source"})
-    bench["actuators"].update(speed_m_s=0.3, accel_m_s2=3.0)
-    cfg = tmp_path / "service.toml"
-    lines = [
-        f'data_dir = "{tmp_path / "data"}"',
-        f"port = {port}",
-        f'token_hashes = ["{hash_token(TOKEN)}"]',
-        "[plan_sizes]",
-        "n_fit = 16",
-        "[bench]",
-        f"name = {json.dumps(bench['name'])}",
-    ]
-    for sec in ("actuators", "camera", "operator", "acquisition"):
-        lines.append(f"[bench.{sec}]")
-        lines += [f"{k} = {json.dumps(v)}" for k, v in bench[sec].items() if v is not None and not isinstance(v, dict)]
-    cfg.write_text("\n".join(lines) + "\n")
-    url = f"http://127.0.0.1:{port}"
-
-    async def launch() -> subprocess.Popen:
-        p = subprocess.Popen(
-            [sys.executable, "-m", "service", "serve", "--config", str(cfg), "--log-level", "warning"],
-            env={**os.environ, "PYTHONUNBUFFERED": "1"},
-        )
-        async with httpx.AsyncClient(base_url=url) as c:
-            for _ in range(300):
-                try:
-                    if (await c.get("/readyz")).status_code == 200:
-                        return p
-                except httpx.TransportError:
-                    pass
-                assert p.poll() is None, "service exited"
-                await asyncio.sleep(0.05)
-        raise AssertionError("service did not start")
-
-    proc = await launch()
+    port = free_port()
+    cfg = write_config(
+        tmp_path / "service.toml",
+        sim,
+        tmp_path / "data",
+        port,
+        plan_sizes={"n_fit": 16},
+        actuators={"speed_m_s": 0.3, "accel_m_s2": 3.0},
+    )
+    svc = ServiceProcess(cfg, port)
+    url = svc.url
+    await svc.start()
     try:
         async with httpx.AsyncClient(base_url=url, timeout=30) as c:
             r = await c.post(f"{API}/runs", json={"plan": "pose-set", "methods": []}, headers=AUTH)
@@ -366,15 +331,14 @@ async def test_killed_service_restarts_interrupted_then_resumes(tmp_path, sim):
             async with asyncio.timeout(30):
                 while (await c.get(f"{API}/runs/{rid}")).json()["progress"]["done"] < 4:
                     await asyncio.sleep(0.02)
-        proc.send_signal(signal.SIGKILL)
-        proc.wait(10)
+        svc.kill()
         ds_dir = tmp_path / "data" / "runs" / rid / "dataset"
         kept = len(Dataset.open(ds_dir).frames)
         assert 4 <= kept < 16
         await asyncio.sleep(1.0)  # the controller's watchdog stops the axes of a dead host
         sim.mechanism.update()
         assert not any(ax.moving for ax in sim.mechanism.axes)
-        proc = await launch()
+        await svc.start()
         async with httpx.AsyncClient(base_url=url, timeout=30) as c:
             run = (await c.get(f"{API}/runs/{rid}")).json()
             assert run["state"] == "interrupted" and "resume" in run["error"]
@@ -398,9 +362,4 @@ async def test_killed_service_restarts_interrupted_then_resumes(tmp_path, sim):
             ]
             assert starts[-1].startswith(f"starting at pose {kept + 1}/16")
     finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-            try:
-                proc.wait(20)
-            except subprocess.TimeoutExpired:
-                proc.kill()
+        svc.stop()
