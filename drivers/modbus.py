@@ -58,6 +58,7 @@ from .errors import (
     StopNotConfirmedError,
 )
 from .interfaces import ActuatorStatus, AxisStatus, SoftLimitsM
+from .metrics import CountingStats
 from .registermap import ALARM_TEXT, DEFAULT_MAP, RegisterMap
 
 log = logging.getLogger(__name__)
@@ -225,7 +226,10 @@ class ModbusActuators:
         self._last_reading: list[tuple[float, float] | None] = [None] * 4  # (position m, monotonic s) per axis
         self._read_count: dict[int, int] = {}  # reads per unit (RTU framing: alternate the window length)
         self._windows = [self._read_windows(i) for i in range(4)]
-        self.stats = {"requests": 0, "retries": 0, "reconnects": 0, "stale": 0, "unrequested": 0}
+        #: counters of this driver, also summed process-wide for ``GET /metrics`` (drivers.metrics)
+        self.stats = CountingStats(
+            "modbus", {"requests": 0, "retries": 0, "timeouts": 0, "reconnects": 0, "stale": 0, "unrequested": 0}
+        )
 
     @property
     def endpoint(self) -> str:
@@ -427,6 +431,7 @@ class ModbusActuators:
                 except (ModbusIOException, TimeoutError) as exc:
                     # no reply in time: never reuse this link, a late reply could pair with the next request
                     last = f"no reply within {self.timeout_s:.3f} s ({type(exc).__name__})"
+                    self.stats["timeouts"] += 1
                     self._fault(reply_may_come=True)
                     continue
                 except ModbusException as exc:

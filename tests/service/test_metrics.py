@@ -82,7 +82,6 @@ async def test_driver_counters_exported(service):
         drivers.metrics.inc("modbus_retries", -1)
 
 
-@pytest.mark.xfail(strict=True, reason="drivers/modbus.py does not count through drivers.metrics yet (see report)")
 async def test_modbus_requests_of_a_run_are_counted(service):
     c = service.client
     before = (await scrape(c))[("i4cal_modbus_requests_total", ())]
