@@ -15,7 +15,7 @@ request came for ``watchdog_s`` puts the stopped axes in alarm :data:`ALARM_WATC
 reads "in position, no alarm" at a position that is not the target.
 
 Fault injection (:class:`Faults`, for tests): exception replies, dropped replies, a cut connection,
-and, through :class:`DelayProxy` or :mod:`drivers.sim.faultproxy` (TCP proxies in front of the
+and, through :mod:`drivers.sim.faultproxy` (TCP proxies in front of the
 server), delayed, dropped, duplicated replies and a gateway sharing one serial line. Delays are not
 injected by sleeping inside an action: the server keeps one pending PDU per connection and a reply
 delayed there can leave with the next request's transaction id.
@@ -38,7 +38,7 @@ from .mechanism import Mechanism
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ALARM_WATCHDOG", "AsciiServer", "DelayProxy", "Faults", "SimController", "StrictContext"]
+__all__ = ["ALARM_WATCHDOG", "AsciiServer", "Faults", "SimController", "StrictContext"]
 
 
 class StrictContext:
@@ -321,76 +321,6 @@ def _free_port(host: str = "127.0.0.1") -> int:
     with socket.socket() as s:
         s.bind((host, 0))
         return s.getsockname()[1]
-
-
-class DelayProxy:
-    """A TCP proxy on loopback in front of a server: delays or drops server->client data on demand.
-
-    ``delay_s`` applies to each chunk from the server while ``delay_count`` > 0 (then decremented);
-    ``cut()`` closes every proxied connection.
-    """
-
-    def __init__(self, target: tuple[str, int]) -> None:
-        self.target = target
-        self.delay_s = 0.0
-        self.delay_count = 0
-        self._server: asyncio.base_events.Server | None = None
-        self._writers: set[asyncio.StreamWriter] = set()
-        self._tasks: set[asyncio.Task] = set()
-
-    async def start(self, host: str = "127.0.0.1", port: int = 0) -> tuple[str, int]:
-        self._server = await asyncio.start_server(self._handle, host, port)
-        return self._server.sockets[0].getsockname()[:2]
-
-    async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        try:
-            ur, uw = await asyncio.open_connection(*self.target)
-        except OSError:
-            writer.close()
-            return
-        self._writers |= {writer, uw}
-
-        async def pump(src: asyncio.StreamReader, dst: asyncio.StreamWriter, delayed: bool) -> None:
-            try:
-                while data := await src.read(65536):
-                    if delayed and self.delay_count > 0:
-                        self.delay_count -= 1
-                        d = self.delay_s
-                        t = asyncio.get_running_loop().time() + d
-
-                        async def later(data=data, t=t):
-                            await asyncio.sleep(max(0.0, t - asyncio.get_running_loop().time()))
-                            if not dst.is_closing():
-                                dst.write(data)
-
-                        task = asyncio.create_task(later())
-                        self._tasks.add(task)
-                        task.add_done_callback(self._tasks.discard)
-                        continue
-                    dst.write(data)
-                    await dst.drain()
-            except (ConnectionError, OSError):
-                pass
-            finally:
-                with contextlib.suppress(Exception):
-                    dst.close()
-
-        await asyncio.gather(pump(reader, uw, False), pump(ur, writer, True))
-
-    def cut(self) -> None:
-        for w in list(self._writers):
-            with contextlib.suppress(Exception):
-                w.transport.abort()
-        self._writers.clear()
-
-    async def close(self) -> None:
-        self.cut()
-        for t in list(self._tasks):
-            t.cancel()
-        if self._server is not None:
-            self._server.close()
-            with contextlib.suppress(Exception):
-                await self._server.wait_closed()
 
 
 class AsciiServer:

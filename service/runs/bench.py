@@ -6,16 +6,13 @@ from __future__ import annotations
 import asyncio
 import contextlib
 from dataclasses import dataclass
-from datetime import UTC, datetime
+from datetime import datetime
 from typing import Any
 
 from calib.errors import I4calError, InputError
 
 from ..settings import Settings
-
-
-def now() -> datetime:
-    return datetime.now(UTC)
+from ..timefmt import now_utc as now
 
 
 @dataclass

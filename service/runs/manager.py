@@ -19,7 +19,6 @@ import shutil
 import time
 import uuid
 from dataclasses import dataclass, field
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +29,7 @@ from calib.errors import InputError
 from .. import failpoints
 from ..db import Calibration, Database, DatasetRecord, Run
 from ..settings import Settings
+from ..timefmt import now_utc as now
 from . import calibrations
 from .bench import Bench
 from .events import EventBus
@@ -56,10 +56,6 @@ STATES = tuple(s.value for s in RunState)
 
 def new_id() -> str:
     return uuid.uuid4().hex
-
-
-def now() -> datetime:
-    return datetime.now(UTC)
 
 
 @dataclass

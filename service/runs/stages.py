@@ -9,7 +9,6 @@ import asyncio
 import contextlib
 import logging
 import time
-from datetime import UTC, datetime
 from typing import TYPE_CHECKING, Any
 
 from calib.errors import I4calError
@@ -18,16 +17,13 @@ from calib.jsonio import write_json_atomic
 from .. import failpoints
 from ..db import Run
 from ..jobs import run_job
+from ..timefmt import now_utc as _now
 from .lifecycle import IllegalTransitionError, RunEvent
 
 if TYPE_CHECKING:
     from .manager import ActiveRun, RunManager
 
 log = logging.getLogger("i4cal.service")
-
-
-def _now() -> datetime:
-    return datetime.now(UTC)
 
 
 class Stages:

@@ -14,7 +14,7 @@ from drivers.errors import AlarmError, DeviceConnectionError, DeviceTimeoutError
 from drivers.modbus import ModbusActuators
 from drivers.registermap import AxisAddress, RegisterMap
 from drivers.sim.bench import SimBench
-from drivers.sim.controller import DelayProxy
+from drivers.sim.faultproxy import FaultProxy
 from drivers.sim.mechanism import ALARM_DRIVE_FAULT
 
 Q_A = np.array([0.40, 0.41, 0.42, 0.43])
@@ -83,7 +83,7 @@ async def test_dropped_reply_is_retried_on_a_fresh_link(bench):
 
 
 async def test_late_reply_never_answers_another_request(bench):
-    proxy = DelayProxy(bench.tcp_address)
+    proxy = FaultProxy(bench.tcp_address)
     host, port = await proxy.start()
     try:
         act = ModbusActuators(
@@ -93,7 +93,7 @@ async def test_late_reply_never_answers_another_request(bench):
             await act.home(timeout_s=5)
             await act.move(Q_A)
             # the next reply (axis 1's status/encoder) comes 0.25 s late: after the timeout
-            proxy.delay_s, proxy.delay_count = 0.25, 1
+            proxy.faults.delay_s, proxy.faults.delay_count = (0.25, 0.25), 1
             unit, addr = act.map.addr(1, "target")
             t0 = time.monotonic()
             regs = await act.read(unit, addr, 2)  # axis 2 target: must be axis 2's answer
