@@ -356,6 +356,25 @@ def _corner_radius_norm(K: Array, dist: Array, size: tuple[int, int], pixels: Ar
     return float(np.max(np.linalg.norm(pts, axis=1))), float(np.max(np.linalg.norm(corners, axis=1)))
 
 
+def _radial_monotonic(K: Array, dist: Array, size: tuple[int, int]) -> bool:
+    """Whether the radial distortion r -> r radial(r) rises (no fold, no pole) out to 1.1 x the image's corner radius
+    (the candidate's own undistorted corner radius, from the pinhole alone when its undistortion fails)."""
+    d = np.concatenate([dist, np.zeros(8)])[:8]
+    k1, k2, _, _, k3, k4, k5, k6 = d
+    w, h = size[0] - 1.0, size[1] - 1.0
+    corner = np.array([[0.0, 0.0], [w, 0.0], [0.0, h], [w, h]])
+    rc = float(np.max(np.linalg.norm((corner - K[:2, 2]) / np.diag(K)[:2], axis=1)))
+    r = np.linspace(0.0, 2.0 * rc, 400)  # the undistorted radius reaches beyond the distorted one for barrel lenses
+    r2 = r * r
+    den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    if np.any(den <= 1e-3):
+        return False
+    rd = r * (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / den
+    reach = np.nonzero(rd >= 1.1 * rc)[0]  # up to where the distorted radius covers the image
+    stop = int(reach[0]) + 1 if reach.size else r.size
+    return bool(np.all(np.diff(rd[:stop]) > 0)) and bool(reach.size)
+
+
 def radial_residual_profile(
     K: Array,
     dist: Array,
@@ -581,7 +600,10 @@ def calibrate_intrinsics(
                 "finite": bool(np.all(np.isfinite(dc)) and np.all(np.isfinite(Kc))),
             }
         )
-    usable = [e for e in evidence if e["finite"] and e["bic"] is not None]
+    for e in evidence:  # a model whose radial map folds or has a pole inside the image is no lens
+        r = fits[e["model"]]
+        e["monotonic"] = _radial_monotonic(r[1], np.asarray(r[2], dtype=np.float64).reshape(-1), (int(w), int(h)))
+    usable = [e for e in evidence if e["finite"] and e["bic"] is not None and (model != "auto" or e["monotonic"])]
     if model == "auto":
         # tangential terms are dropped only when their effect at the image's corner is bounded below
         # TANGENTIAL_BOUND_PX by the matching full fit (|p| + 2 std): a lens's decentring hardly shows over
