@@ -30,7 +30,10 @@ from calib.transforms import Rigid
 from calib.vision.board import make_board
 from calib.vision.rods import limb_planes
 
+from ._memory import keep_freed_memory
 from .twin import BenchGeometry
+
+keep_freed_memory()  # a frame's temporaries are reused, not page-faulted in again (drivers/sim/_memory.py)
 
 _F = 3.6e-3 / 4.65e-6
 
