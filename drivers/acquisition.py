@@ -536,6 +536,10 @@ def acquisition_from_config(
         home=cfg.actuators.home_on_connect,
     )
     opts.update(kw)
+    if getattr(
+        cfg.camera, "lens_model", None
+    ):  # the bench file fixes the calibration's lens model: the dataset says so
+        opts["camera_spec"] = {**(opts.get("camera_spec") or {}), "lens_model": cfg.camera.lens_model}
     return Acquisition(
         plan,
         open_actuators(cfg),

@@ -202,3 +202,17 @@ async def test_existing_dataset_needs_resume(bench, tmp_path):
     with pytest.raises(InputError, match="already exists"):
         await acq.run()
     await close(acq)
+
+
+async def test_bench_file_lens_model_reaches_the_dataset(bench, tmp_path):
+    """A bench file's ``[camera] lens_model`` is written into the dataset's camera, which extraction follows."""
+    from drivers.acquisition import acquisition_from_config, close_devices
+
+    cfg = bench.bench_config(acquisition={"line_rate_hz": 100.0}, camera={"lens_model": "rational"})
+    plan = Plan(name="one", steps=[s for s in make_plan("full", NOMINAL).steps if s.phase == "poses"][:1])
+    acq = acquisition_from_config(plan, cfg, tmp_path / "ds")
+    try:
+        await acq.run()
+    finally:
+        await close_devices(acq)
+    assert Dataset.open(tmp_path / "ds").document.camera.model_extra["lens_model"] == "rational"
