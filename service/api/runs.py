@@ -311,10 +311,15 @@ async def pause_run(run_id: RunId, manager: Manager, _: Writer) -> RunOut:
     "/{run_id}/resume",
     response_model=RunOut,
     status_code=status.HTTP_202_ACCEPTED,
-    responses={**ERRORS, 409: {"description": "not paused or interrupted, or the bench is held"}},
+    responses={
+        **ERRORS,
+        409: {"description": "not paused, failed or interrupted, or the bench is held (the run is left as it was)"},
+    },
 )
 async def resume_run(run_id: RunId, manager: Manager, _: Writer) -> RunOut:
-    """Resume a paused acquisition, or an interrupted run from its partial dataset."""
+    """Resume a paused acquisition in place, or a failed or interrupted run from what is on disk: the acquisition
+    from its first missing frame (nothing moves when every frame is written), then extraction and fits if their
+    output is missing."""
     return _control(manager, run_id, "resume")
 
 
