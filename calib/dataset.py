@@ -21,21 +21,10 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from .errors import InputError
 from .jsonio import fsync_dir
-from .observations import Nominal
+from .observations import PHASES, Nominal
 
 DATASET_FORMAT: Final = "i4cal.dataset/1"
-DATASET_PHASES = (
-    "camera",
-    "rotation",
-    "translation",
-    "poses",
-    "lock-1",
-    "lock-2",
-    "lock-3",
-    "lock-4",
-    "line",
-    "validation",
-)
+DATASET_PHASES = ("camera", *PHASES)  # the observations' phases, and the camera calibration's views
 
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 
