@@ -50,7 +50,8 @@ from .stages import Stages
 log = logging.getLogger("i4cal.service")
 
 ACTIVE_STATES = tuple(s.value for s in RunState if s in ACTIVE)
-TERMINAL_STATES = ("done", "failed", "aborted")
+#: runs that ended (a failed run can still be resumed, but it ended)
+TERMINAL_STATES = tuple(s.value for s in RunState if s in FINAL or s is RunState.FAILED)
 STATES = tuple(s.value for s in RunState)
 
 
