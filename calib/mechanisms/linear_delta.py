@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -71,10 +72,10 @@ MIN_LEG_HEIGHT_M = 0.02
 
 
 def _triple(name: str, v: Any) -> tuple[float, float, float]:
-    vals = tuple(float(x) for x in np.asarray(v, dtype=np.float64).reshape(-1))
-    if len(vals) != 3 or not all(math.isfinite(x) for x in vals):
+    a = np.asarray(v, dtype=np.float64).reshape(-1)
+    if a.size != 3 or not np.isfinite(a).all():
         raise ValueError(f"LinearDeltaParameters.{name} needs three finite values, got {v!r}")
-    return vals[0], vals[1], vals[2]
+    return float(a[0]), float(a[1]), float(a[2])
 
 
 @dataclass(frozen=True)
@@ -126,10 +127,16 @@ class LinearDeltaParameters:
             raise ValueError(f"LinearDeltaParameters.from_vector needs {len(PARAMETER_NAMES)} values, got {v.size}")
         return cls(R=v[0:3], theta=v[3:6], L=v[6:9], z0=v[9:12], r=v[12], phi=phi)  # type: ignore[arg-type]
 
-    def columns(self) -> Array:
-        """Effective column positions ``c_i = R_i u(theta_i) - r u(phi_i)``, shape (3, 2), metres."""
+    @cached_property
+    def _columns(self) -> Array:
         R, th, ph = np.asarray(self.R), np.asarray(self.theta), np.asarray(self.phi)
-        return np.stack([R * np.cos(th) - self.r * np.cos(ph), R * np.sin(th) - self.r * np.sin(ph)], axis=1)
+        c = np.stack([R * np.cos(th) - self.r * np.cos(ph), R * np.sin(th) - self.r * np.sin(ph)], axis=1)
+        c.flags.writeable = False
+        return c
+
+    def columns(self) -> Array:
+        """Effective column positions ``c_i = R_i u(theta_i) - r u(phi_i)``, shape (3, 2), metres (read-only)."""
+        return self._columns
 
     def replace(self, **changes: Any) -> LinearDeltaParameters:
         """A copy with some fields changed."""
@@ -143,7 +150,7 @@ NOMINAL = LinearDeltaParameters()
 class DeltaWorkspace:
     """Poses used to draw plans: a vertical cylinder (metres)."""
 
-    radius: float = 0.08
+    radius: float = 0.12
     z: tuple[float, float] = (-0.45, -0.25)
 
     def grid(self, n_radial: int = 3, n_angle: int = 6, n_z: int = 3) -> Array:
@@ -257,27 +264,40 @@ class LinearDelta:
         """
         Q, single = as_rows(q, 3, "q")
         c = params.columns()
-        L = np.asarray(params.L)
-        S = np.concatenate([np.broadcast_to(c, (len(Q), 3, 2)), (Q + np.asarray(params.z0))[:, :, None]], axis=2)
-        a1 = S[:, 1] - S[:, 0]
-        a2 = S[:, 2] - S[:, 0]
-        # u = P - S0: a_k . u = (|a_k|^2 - L_k^2 + L_0^2) / 2, |u| = L_0
-        e1 = 0.5 * (np.einsum("ij,ij->i", a1, a1) - L[1] ** 2 + L[0] ** 2)
-        e2 = 0.5 * (np.einsum("ij,ij->i", a2, a2) - L[2] ** 2 + L[0] ** 2)
-        g11 = np.einsum("ij,ij->i", a1, a1)
-        g12 = np.einsum("ij,ij->i", a1, a2)
-        g22 = np.einsum("ij,ij->i", a2, a2)
+        L2 = np.square(params.L)
+        Zc = Q + np.asarray(params.z0)  # carriage heights (N, 3); sphere centres (c_i, Zc_i), radii L_i
+        n_rows = len(Q)
+        a1 = np.empty((n_rows, 3))
+        a2 = np.empty((n_rows, 3))
+        a1[:, :2] = c[1] - c[0]
+        a2[:, :2] = c[2] - c[0]
+        a1[:, 2] = Zc[:, 1] - Zc[:, 0]
+        a2[:, 2] = Zc[:, 2] - Zc[:, 0]
+        # u = P - S0: a_k . u = (|a_k|^2 - L_k^2 + L_0^2) / 2, |u| = L_0; u = mu1 a1 + mu2 a2 + t n
+        g11 = (a1 * a1).sum(axis=1)
+        g12 = (a1 * a2).sum(axis=1)
+        g22 = (a2 * a2).sum(axis=1)
+        e1 = 0.5 * (g11 - L2[1] + L2[0])
+        e2 = 0.5 * (g22 - L2[2] + L2[0])
         det = g11 * g22 - g12**2
         mu1 = (g22 * e1 - g12 * e2) / det
         mu2 = (g11 * e2 - g12 * e1) / det
         u0 = mu1[:, None] * a1 + mu2[:, None] * a2
-        n = np.cross(a1, a2)
-        n /= np.linalg.norm(n, axis=1, keepdims=True)
-        t2 = L[0] ** 2 - np.einsum("ij,ij->i", u0, u0)
+        n = np.stack(
+            [
+                a1[:, 1] * a2[:, 2] - a1[:, 2] * a2[:, 1],
+                a1[:, 2] * a2[:, 0] - a1[:, 0] * a2[:, 2],
+                a1[:, 0] * a2[:, 1] - a1[:, 1] * a2[:, 0],
+            ],
+            axis=1,
+        )
+        n /= np.sqrt((n * n).sum(axis=1))[:, None]
+        t2 = L2[0] - (u0 * u0).sum(axis=1)
         bad = np.flatnonzero(t2 < 0)
         if bad.size:
             i = int(bad[0])
-            gap = float(np.sqrt(-t2[i] + L[0] ** 2) - L[0])
+            L0 = float(params.L[0])
+            gap = float(np.sqrt(-t2[i] + L0**2) - L0)
             more = f" (and {len(bad) - 1} more)" if len(bad) > 1 else ""
             raise UnreachableError(
                 f"joint vector #{i} {np.round(Q[i] * 1e3, 3).tolist()} mm is unreachable: the three legs cannot meet "
@@ -287,7 +307,9 @@ class LinearDelta:
                 deficit_m=gap,
             )
         t = -np.sign(n[:, 2]) * np.sqrt(t2)  # the lower of the two points
-        P = S[:, 0] + u0 + t[:, None] * n
+        P = u0 + t[:, None] * n
+        P[:, :2] += c[0]
+        P[:, 2] += Zc[:, 0]
         self._heights(params, P)  # a leg nearly flat: refused as by the IKM
         return P[0] if single else P
 
@@ -307,6 +329,44 @@ class LinearDelta:
         J[:, :, 1] = -(P[:, None, 1] - c[None, :, 1]) / h
         J[:, :, 2] = 1.0
         return J[0] if single else J
+
+    def ee_parameter_jacobian(self, params: LinearDeltaParameters, q: ArrayLike) -> Array:
+        """Identification Jacobian, analytic: ``d ee_point(dkm(params, q)) / d params`` at fixed joint values.
+
+        By implicit differentiation of the leg closures ``f_i = |P_xy - c_i|^2 + (P_z - q_i - z0_i)^2 - L_i^2 = 0``:
+        ``dP/dv = -(df/dP)^-1 df/dv``. Optional member of the seam (the generic fit differentiates numerically
+        when a mechanism lacks it).
+
+        Parameters
+        ----------
+        params : LinearDeltaParameters
+        q : array_like, shape (N, 3)
+            Joint values, metres.
+
+        Returns
+        -------
+        ndarray, shape (N, 3, 13)
+            Columns in :data:`PARAMETER_NAMES` order: m/m for lengths, m/rad for the angles.
+        """
+        Q, _ = as_rows(q, 3, "q")
+        P = self.dkm(params, Q)
+        c = params.columns()
+        n = len(Q)
+        w = P[:, None, :2] - c[None]  # (N, 3, 2)
+        h = P[:, 2:3] - Q - np.asarray(params.z0)  # (N, 3)
+        A = np.concatenate([w, h[:, :, None]], axis=2)  # df/dP / 2, (N, 3, 3)
+        th, ph, R = np.asarray(params.theta), np.asarray(params.phi), np.asarray(params.R)
+        u = np.stack([np.cos(th), np.sin(th)], axis=1)  # (3, 2)
+        du = np.stack([-np.sin(th), np.cos(th)], axis=1)
+        uphi = np.stack([np.cos(ph), np.sin(ph)], axis=1)
+        F = np.zeros((n, 3, 13))  # df/dv / 2
+        idx = np.arange(3)
+        F[:, idx, idx] = -(w * u[None]).sum(axis=2)
+        F[:, idx, 3 + idx] = -R[None] * (w * du[None]).sum(axis=2)
+        F[:, idx, 6 + idx] = -np.asarray(params.L)[None]
+        F[:, idx, 9 + idx] = -h
+        F[:, :, 12] = (w * uphi[None]).sum(axis=2)
+        return -np.linalg.solve(A, F)
 
     def ee_point(self, params: LinearDeltaParameters, pose: ArrayLike) -> Array:
         """The observed target: the plate's centre, the pose itself, shape (3,) or (N, 3), metres."""

@@ -94,3 +94,11 @@ def test_at_a_perturbed_geometry_the_rank_is_still_twelve() -> None:
     J = _identification_jacobian(_perturbed(3), DeltaWorkspace().grid())
     s = np.linalg.svd(J / np.linalg.norm(J, axis=0), compute_uv=False)
     assert int(np.sum(s > 1e-7 * s[0])) == 12
+
+
+def test_analytic_identification_jacobian_matches_numerical_differences() -> None:
+    params = _perturbed(4)
+    q = DELTA.ikm(params, DeltaWorkspace().grid())
+    Ja = DELTA.ee_parameter_jacobian(params, q)
+    Jn = central_jacobian(lambda v: DELTA.dkm(DELTA.from_vector(v), q).ravel(), DELTA.to_vector(params), h=1e-6)
+    np.testing.assert_allclose(Ja.reshape(-1, 13), Jn, atol=1e-7)
