@@ -218,8 +218,11 @@ class BenchRenderer:
         da = (hp[0] * mx + hp[1] * my + hp[2]) / np.hypot(hp[0], hp[1]) * f
         db = (hm[0] * mx + hm[1] * my + hm[2]) / np.hypot(hm[0], hm[1]) * f
         cover = np.clip(0.5 + np.minimum(da, db), 0.0, 1.0)
-        if not np.any(cover > 0):
+        # only the pixels inside the rod's wedge (a thin band of its box) can change: the rest is computed on them
+        inside = np.nonzero(cover > 0)
+        if inside[0].size == 0:
             return
+        mx, my, da, db, cover = mx[inside], my[inside], da[inside], db[inside], cover[inside]
         nrm = np.sqrt(mx * mx + my * my + 1.0)
         beta = (u[0] * mx + u[1] * my + u[2]) / nrm
         mP = (top[0] * mx + top[1] * my + top[2]) / nrm
@@ -236,10 +239,11 @@ class BenchRenderer:
         # (matte paint: the shading flattens towards the limbs, where the surface turns away)
         shade = 140.0 + 55.0 * c**4 + 20.0 * rho * c * c + 35.0 * np.exp(-(((rho - 0.35) / 0.15) ** 2))
         zb = zbuf[y0:y1, x0:x1]
-        front = (depth < zb) & (cover > 0)
         sub = img[y0:y1, x0:x1]
-        sub[front] = (cover * shade + (1.0 - cover) * sub)[front]
-        zb[front & (cover > 0.5)] = depth[front & (cover > 0.5)]
+        zin, sin = zb[inside], sub[inside]
+        front = (depth < zin) & (cover > 0)
+        sub[inside] = np.where(front, cover * shade + (1.0 - cover) * sin, sin)
+        zb[inside] = np.where(front & (cover > 0.5), depth, zin)
 
     def _draw_board(self, img: np.ndarray, zbuf: np.ndarray, camera_from_board: Rigid) -> None:
         R, t = camera_from_board.R, camera_from_board.t
