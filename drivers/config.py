@@ -5,6 +5,7 @@ A bench file names its devices by URI; device code never asks whether it is simu
     [actuators]
     uri = "modbus+tcp://127.0.0.1:5020"     # modbus+rtu:///dev/ttyUSB0?baudrate=115200,
                                             # modbus+rtu+tcp://HOST:PORT, serial:///dev/ttyACM0
+    axes = 4                                # optional: number of axes (4, the I4's, by default; Modbus only)
     speed_m_s = 0.05
     [actuators.limits]
     q_min = [-0.1, -0.1, -0.1, -0.1]
@@ -27,11 +28,13 @@ from __future__ import annotations
 
 import json
 import tomllib
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 from urllib.parse import parse_qs, unquote, urlsplit
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from calib.errors import InputError
 from calib.parameters import NOMINAL, I4Parameters
@@ -42,13 +45,20 @@ from .registermap import RegisterMap
 
 class LimitsConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    q_min: list[float] = Field(default_factory=lambda: [-0.10] * 4, min_length=4, max_length=4)
-    q_max: list[float] = Field(default_factory=lambda: [0.80] * 4, min_length=4, max_length=4)
+    q_min: list[float] = Field(default_factory=lambda: [-0.10] * 4, min_length=1, max_length=16)
+    q_max: list[float] = Field(default_factory=lambda: [0.80] * 4, min_length=1, max_length=16)
 
 
 class ActuatorsConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
     uri: str
+    axes: int = Field(
+        4,
+        ge=1,
+        le=16,
+        description="number of linear axes (4: the I4); the register map's default axes are units 1..axes, the "
+        "default soft limits one value per axis; explicit ones must have as many",
+    )
     speed_m_s: float = Field(0.05, gt=0)
     accel_m_s2: float = Field(0.5, gt=0)
     timeout_s: float = Field(0.5, gt=0, description="reply timeout of one request")
@@ -69,6 +79,25 @@ class ActuatorsConfig(BaseModel):
     vary_reads: bool = Field(True, description="alternate read lengths so a stale reply has the wrong length")
     limits: LimitsConfig = LimitsConfig()
     register_map: dict[str, Any] = Field(default_factory=dict)
+
+    @model_validator(mode="after")
+    def _axis_count(self) -> ActuatorsConfig:
+        n = self.axes
+        lim = self.limits
+        values = {}
+        for key in ("q_min", "q_max"):
+            v = list(getattr(lim, key))
+            if key not in lim.model_fields_set and len(v) != n:
+                v = [v[0]] * n  # the default value on every axis
+            elif len(v) != n:
+                raise ValueError(f"limits.{key} has {len(v)} values for {n} axes (actuators.axes)")
+            values[key] = v
+        if n != 4:
+            self.limits = LimitsConfig(**values)
+        axes = self.register_map.get("axes")
+        if isinstance(axes, list) and len(axes) != n:
+            raise ValueError(f"register_map.axes lists {len(axes)} axes for {n} (actuators.axes)")
+        return self
 
 
 class CameraConfig(BaseModel):
@@ -125,7 +154,7 @@ class BenchConfig(BaseModel):
 
     def soft_limits(self) -> SoftLimitsM:
         lim = self.actuators.limits
-        return SoftLimitsM(tuple(lim.q_min), tuple(lim.q_max))  # type: ignore[arg-type]
+        return SoftLimitsM(tuple(lim.q_min), tuple(lim.q_max))
 
     def calib_limits(self):
         from calib.plan import SoftLimits
@@ -153,8 +182,10 @@ class BenchConfig(BaseModel):
             raise InputError(str(exc), file=str(path)) from None
 
     def register_map(self) -> RegisterMap:
+        data = dict(self.actuators.register_map)
+        data.setdefault("axes", [{"unit": i + 1, "offset": 0} for i in range(self.actuators.axes)])
         try:
-            return RegisterMap.model_validate(self.actuators.register_map)
+            return RegisterMap.model_validate(data)
         except ValidationError as exc:
             err = exc.errors()[0]
             raise InputError(
@@ -193,11 +224,17 @@ def parse_uri(uri: str) -> tuple[str, str, int | None, str, dict[str, str]]:
     return parts.scheme.lower(), parts.hostname or "", port, unquote(parts.path), query
 
 
-def open_actuators(cfg: BenchConfig) -> Actuators:
-    """The actuators backend named by ``cfg.actuators.uri`` (not yet connected)."""
+def open_actuators(cfg: BenchConfig, *, workspace_check: Callable[[np.ndarray], Any] | None = None) -> Actuators:
+    """The actuators backend named by ``cfg.actuators.uri`` (not yet connected).
+
+    ``workspace_check``: refuses joint targets another mechanism cannot reach (raises
+    :class:`calib.errors.UnreachableError`; e.g. ``lambda q: delta.dkm(nominal, q)``); default: the nominal I4's
+    DKM, used with four axes only.
+    """
     a = cfg.actuators
     scheme, host, port, path, query = parse_uri(a.uri)
-    common = dict(limits=cfg.soft_limits(), nominal=cfg.nominal_parameters())
+    # the nominal I4 checks the targets of four axes; another mechanism's check is ``workspace_check``
+    common = dict(limits=cfg.soft_limits(), nominal=cfg.nominal_parameters() if a.axes == 4 else None)
     if scheme in ("modbus+tcp", "modbus", "modbus+rtu+tcp", "modbus+rtu"):
         from .modbus import ModbusActuators
 
@@ -216,6 +253,7 @@ def open_actuators(cfg: BenchConfig) -> Actuators:
             max_speed_m_s=a.max_speed_m_s,
             plausibility_margin_m=a.plausibility_margin_m,
             vary_reads=a.vary_reads,
+            workspace_check=workspace_check,
             **common,
         )
         if scheme == "modbus+rtu":
@@ -229,6 +267,12 @@ def open_actuators(cfg: BenchConfig) -> Actuators:
     if scheme in ("serial", "serial+tcp"):
         from .serial_ascii import SerialAsciiActuators
 
+        if a.axes != 4 or workspace_check is not None:
+            raise InputError(
+                f"{a.uri!r}: the serial ASCII protocol drives four axes with the I4's nominal check "
+                f"(actuators.axes = {a.axes}); use a Modbus URI",
+                field="actuators.axes",
+            )
         url = f"socket://{host}:{port}" if scheme == "serial+tcp" else path
         if not url:
             raise InputError(

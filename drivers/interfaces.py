@@ -33,7 +33,7 @@ class ActuatorStatus:
 
     @property
     def alarms(self) -> dict[int, int]:
-        """``{axis (1..4): alarm code}`` of the axes in alarm."""
+        """``{axis (1..n): alarm code}`` of the axes in alarm."""
         return {i + 1: a.alarm_code for i, a in enumerate(self.axes) if a.alarm}
 
     @property
@@ -55,15 +55,16 @@ class ActuatorStatus:
 
 @dataclass(frozen=True)
 class SoftLimitsM:
-    """Per-axis soft limits in metres (driver side)."""
+    """Per-axis soft limits in metres (driver side): one value per axis (four for the I4, the default)."""
 
-    q_min: tuple[float, float, float, float] = (-0.10, -0.10, -0.10, -0.10)
-    q_max: tuple[float, float, float, float] = (0.80, 0.80, 0.80, 0.80)
+    q_min: tuple[float, ...] = (-0.10, -0.10, -0.10, -0.10)
+    q_max: tuple[float, ...] = (0.80, 0.80, 0.80, 0.80)
 
 
 @runtime_checkable
 class Actuators(Protocol):
-    """Four linear axes q1..q4 (metres)."""
+    """Linear axes q1..qn (metres): four for the I4 (the default), as many as the bench file's
+    ``[actuators] axes`` otherwise (docs/mechanisms.md)."""
 
     limits: SoftLimitsM
 
@@ -75,7 +76,7 @@ class Actuators(Protocol):
         """Home every axis and wait until homed."""
 
     async def move(self, q: Any, timeout_s: float | None = None) -> np.ndarray:
-        """Check limits, move the four axes to ``q`` (metres), wait until in position; return encoders."""
+        """Check limits, move every axis to ``q`` (metres), wait until in position; return encoders."""
 
     async def stop(self) -> None:
         """Stop every axis now (never raises for a device already stopped)."""

@@ -37,6 +37,8 @@ import contextlib
 import logging
 import math
 import time
+from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -82,12 +84,23 @@ def alarm_message(axis: int, code: int) -> str:
     return f"axis {axis} in alarm, code 0x{code:02X}" + (f" ({text})" if text else "")
 
 
-def check_targets(q: Any, limits: SoftLimitsM, nominal: I4Parameters | None) -> np.ndarray:
-    """Refuse targets outside the per-axis soft limits, or that the kinematic model cannot reach."""
+def check_targets(
+    q: Any,
+    limits: SoftLimitsM,
+    nominal: I4Parameters | None,
+    workspace_check: Callable[[np.ndarray], Any] | None = None,
+) -> np.ndarray:
+    """Refuse targets outside the per-axis soft limits, or that the kinematic model cannot reach.
+
+    The axis count is that of the soft limits (four for the I4). The model is ``workspace_check`` (a function of
+    the joint targets, metres, that raises :class:`calib.errors.UnreachableError`, e.g. another mechanism's DKM at
+    its nominal geometry) when given, else the nominal I4's DKM when ``nominal`` is given.
+    """
+    n = len(limits.q_min)
     qv = np.asarray(q, dtype=np.float64).reshape(-1)
-    if qv.shape != (4,) or not np.all(np.isfinite(qv)):
-        raise LimitError(f"a target needs four finite values in metres, got {q!r}")
-    for i in range(4):
+    if qv.shape != (n,) or not np.all(np.isfinite(qv)):
+        raise LimitError(f"a target needs {n} finite values in metres, got {q!r}")
+    for i in range(n):
         lo, hi = limits.q_min[i], limits.q_max[i]
         if not lo <= qv[i] <= hi:
             bound = lo if qv[i] < lo else hi
@@ -96,9 +109,11 @@ def check_targets(q: Any, limits: SoftLimitsM, nominal: I4Parameters | None) -> 
                 f"{hi * 1e3:.1f}] mm by {abs(qv[i] - bound) * 1e3:.3f} mm; nothing moved",
                 axis=i + 1,
             )
-    if nominal is not None:
+    if workspace_check is None and nominal is not None:
+        workspace_check = partial(dkm, nominal)
+    if workspace_check is not None:
         try:
-            dkm(nominal, qv)
+            workspace_check(qv)
         except UnreachableError as exc:
             raise LimitError(
                 f"target {np.round(qv * 1e3, 3).tolist()} mm is outside the workspace of the "
@@ -157,6 +172,13 @@ class ModbusActuators:
     stop_deadline_s:
         One deadline (s) for the whole stop sequence: stop sent to every axis and every axis read back not
         moving.
+    workspace_check:
+        Refuses joint targets the kinematic model cannot reach by raising :class:`calib.errors.UnreachableError`
+        (e.g. another mechanism's DKM at its nominal geometry); default: the nominal I4's DKM when ``nominal``
+        is given.
+
+    The number of axes is the register map's (``len(regmap.axes)``, four by default); ``limits`` must have as many
+    values (default: -0.10 to 0.80 m on every axis).
     """
 
     def __init__(
@@ -189,6 +211,7 @@ class ModbusActuators:
         plausibility_margin_m: float = 0.05,
         plausibility_slack_m: float = 1e-3,
         stop_deadline_s: float = 2.0,
+        workspace_check: Callable[[np.ndarray], Any] | None = None,
     ) -> None:
         if transport not in ("tcp", "rtu", "rtu-tcp"):
             raise ValueError(f"unknown Modbus transport {transport!r}")
@@ -196,8 +219,18 @@ class ModbusActuators:
         self.host, self.port = host, int(port)
         self.serial_port, self.baudrate = serial_port, int(baudrate)
         self.map = regmap
-        self.limits = limits or SoftLimitsM()
+        self.n_axes = n = len(regmap.axes)
+        if limits is None:
+            d = SoftLimitsM()
+            limits = d if n == 4 else SoftLimitsM((d.q_min[0],) * n, (d.q_max[0],) * n)
+        if len(limits.q_min) != n or len(limits.q_max) != n:
+            raise ValueError(
+                f"the register map has {n} axes but the soft limits have {len(limits.q_min)} and "
+                f"{len(limits.q_max)} values"
+            )
+        self.limits = limits
         self.nominal = nominal
+        self.workspace_check = workspace_check
         self.speed_m_s = float(speed_m_s)
         self.accel_m_s2 = float(accel_m_s2)
         self.timeout_s = float(timeout_s)
@@ -221,11 +254,11 @@ class ModbusActuators:
         self._client: AsyncModbusTcpClient | AsyncModbusSerialClient | None = None
         self._link = _Link()
         self._lock = asyncio.Lock()
-        self._free_bits = [0, 0, 0, 0]
+        self._free_bits = [0] * n
         self._homing = False
-        self._last_reading: list[tuple[float, float] | None] = [None] * 4  # (position m, monotonic s) per axis
+        self._last_reading: list[tuple[float, float] | None] = [None] * n  # (position m, monotonic s) per axis
         self._read_count: dict[int, int] = {}  # reads per unit (RTU framing: alternate the window length)
-        self._windows = [self._read_windows(i) for i in range(4)]
+        self._windows = [self._read_windows(i) for i in range(n)]
         #: counters of this driver, also summed process-wide for ``GET /metrics`` (drivers.metrics)
         self.stats = CountingStats(
             "modbus", {"requests": 0, "retries": 0, "timeouts": 0, "reconnects": 0, "stale": 0, "unrequested": 0}
@@ -349,7 +382,7 @@ class ModbusActuators:
                 await asyncio.sleep(min(self.backoff_s * 2**attempt, self.backoff_max_s))
         else:
             raise last  # type: ignore[misc]
-        self._last_reading = [None] * 4
+        self._last_reading = [None] * self.n_axes
         await self.status()  # every axis answers, with plausible positions
 
     async def close(self) -> None:
@@ -497,7 +530,7 @@ class ModbusActuators:
         return out
 
     def check_reading(self, axis: int, position_m: float, t_request: float, *, homed: bool = True) -> None:
-        """Refuse an implausible position of axis 0..3 read by a request sent at ``t_request`` (monotonic s):
+        """Refuse an implausible position of axis 0..n-1 read by a request sent at ``t_request`` (monotonic s):
         outside the soft limits widened by the margin, or further from the last accepted reading than the
         axis can travel at ``max_speed_m_s`` since then. Accepted readings become the reference."""
         now = time.monotonic()
@@ -551,7 +584,7 @@ class ModbusActuators:
         )
 
     async def status(self) -> ActuatorStatus:
-        return ActuatorStatus(tuple([await self.read_axis(i) for i in range(4)]))
+        return ActuatorStatus(tuple([await self.read_axis(i) for i in range(self.n_axes)]))
 
     async def read_encoders(self) -> np.ndarray:
         return (await self.status()).positions
@@ -585,7 +618,8 @@ class ModbusActuators:
 
     async def _stop_sequence(self) -> None:
         t0 = time.monotonic()
-        confirmed = [False] * 4
+        n = self.n_axes
+        confirmed = [False] * n
         errors: dict[int, str] = {}
 
         async def one(i: int) -> None:
@@ -609,10 +643,10 @@ class ModbusActuators:
 
         with contextlib.suppress(TimeoutError):
             async with asyncio.timeout(self.stop_deadline_s):
-                await asyncio.gather(*(one(i) for i in range(4)))
+                await asyncio.gather(*(one(i) for i in range(n)))
         if not all(confirmed):
-            axes = tuple(i + 1 for i in range(4) if not confirmed[i])
-            why = "; ".join(f"axis {i + 1}: {errors.get(i, 'no answer')}" for i in range(4) if not confirmed[i])
+            axes = tuple(i + 1 for i in range(n) if not confirmed[i])
+            why = "; ".join(f"axis {i + 1}: {errors.get(i, 'no answer')}" for i in range(n) if not confirmed[i])
             raise StopNotConfirmedError(
                 f"stop NOT confirmed within {self.stop_deadline_s:.1f} s at {self.endpoint} (axes {list(axes)}): "
                 f"motion may NOT have stopped; use the emergency stop. {why}",
@@ -631,11 +665,11 @@ class ModbusActuators:
         return None
 
     async def reset_alarms(self) -> None:
-        for i in range(4):
+        for i in range(self.n_axes):
             await self._control(i, "reset")
 
     async def set_free(self, free: bool) -> None:
-        for i in range(4):
+        for i in range(self.n_axes):
             self._free_bits[i] = int(bool(free))
             await self._control(i, None)
 
@@ -650,7 +684,7 @@ class ModbusActuators:
         self._raise_alarms(st)
         self._homing = True
         try:
-            for i in range(4):
+            for i in range(self.n_axes):
                 await self._control(i, "home")
             await self._wait(lambda s: s.homed and not s.moving, timeout_s or self.home_timeout_s, "homing")
         except BaseException as exc:
@@ -664,7 +698,7 @@ class ModbusActuators:
         return max(t, default=0.0) * self.move_timeout_factor + self.move_timeout_margin_s
 
     async def move(self, q: Any, timeout_s: float | None = None, speed_m_s: float | None = None) -> np.ndarray:
-        target = check_targets(q, self.limits, self.nominal)
+        target = check_targets(q, self.limits, self.nominal, self.workspace_check)
         st = await self.status()  # every position checked plausible (ProtocolError otherwise): nothing sent yet
         self._raise_alarms(st)
         if any(a.free for a in st.axes):
@@ -672,7 +706,7 @@ class ModbusActuators:
         dist = np.abs(target - st.positions)
         v = float(speed_m_s or self.speed_m_s)
         dmax = float(dist.max())
-        speeds = np.full(4, v) if dmax == 0 else np.maximum(v * dist / dmax, v * 1e-3)
+        speeds = np.full(self.n_axes, v) if dmax == 0 else np.maximum(v * dist / dmax, v * 1e-3)
         timeout = timeout_s if timeout_s is not None else self.move_timeout(dist, speeds)
         try:
             await self._start_move(target, speeds)
@@ -692,7 +726,7 @@ class ModbusActuators:
 
     async def _start_move(self, target: np.ndarray, speeds: np.ndarray) -> None:
         m = self.map
-        for i in range(4):
+        for i in range(self.n_axes):
             unit, _ = m.addr(i, "target")
             off = m.axes[i].offset
             tregs = m.to_regs32(m.m_to_counts(target[i]))

@@ -1,4 +1,4 @@
-"""A configurable Modbus register map for four linear axes, and the default one.
+"""A configurable Modbus register map for linear axes (four by default, the I4's), and the default one.
 
 Default map (``RegisterMap()``), per axis, unit id 1..4, holding registers:
 
@@ -56,7 +56,7 @@ class RegisterMap(BaseModel):
     """Where each quantity of an axis lives (register addresses relative to the axis' offset)."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
-    axes: list[AxisAddress] = Field(default_factory=_default_axes, min_length=4, max_length=4)
+    axes: list[AxisAddress] = Field(default_factory=_default_axes, min_length=1, max_length=16)
     target: int = 0
     speed: int = 2
     control: int = 4
@@ -73,7 +73,7 @@ class RegisterMap(BaseModel):
 
     # -- addresses ------------------------------------------------------------------------
     def addr(self, axis: int, field: str) -> tuple[int, int]:
-        """``(unit id, absolute register address)`` of a field of axis 0..3."""
+        """``(unit id, absolute register address)`` of a field of axis 0..n-1."""
         a = self.axes[axis]
         return a.unit, a.offset + getattr(self, field)
 

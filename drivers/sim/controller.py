@@ -1,4 +1,5 @@
-"""A simulated four-axis controller that is a real Modbus server (pymodbus 3.16 SimDevice actions).
+"""A simulated multi-axis controller (four axes for the I4) that is a real Modbus server (pymodbus 3.16 SimDevice
+actions): one axis per register-map axis, each driving the mechanism's axis of the same index.
 
 It serves a :class:`drivers.registermap.RegisterMap` (the default map unless told otherwise) over
 TCP on loopback (``ModbusTcpServer``) or with RTU framing over a socket (``ModbusSerialServer`` with
@@ -131,6 +132,10 @@ class SimController:
     def __init__(self, mechanism: Mechanism, regmap: RegisterMap = DEFAULT_MAP, watchdog_s: float = 0.5) -> None:
         if watchdog_s < 0:
             raise ValueError(f"watchdog_s must be >= 0 (0 = off), got {watchdog_s}")
+        if len(regmap.axes) != len(mechanism.axes):
+            raise ValueError(
+                f"the register map has {len(regmap.axes)} axes but the simulated mechanism {len(mechanism.axes)}"
+            )
         self.mechanism = mechanism
         self.watchdog_s = float(watchdog_s)
         self._watchdog_task: asyncio.Task | None = None
