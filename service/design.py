@@ -49,6 +49,32 @@ def twin_scene():
     )
 
 
+#: corner noise (px) of the camera phase's board views in :func:`twin_image_noise`: the image-level twin's calibration
+#: RMS (0.13 px on its 30 rendered views, ``i4cal bench accuracy``'s per-trial calibrations)
+CALIBRATION_CORNER_PX = 0.13
+
+
+def twin_image_noise(views: int = 30, seed: int = 0, **levels: Any):
+    """The image-level prediction's noise for the simulated bench (``calib.design.ImageNoise``).
+
+    Its levels are :class:`calib.design.ImageNoise`'s defaults (measured on the image-level twin, docs/design.md)
+    unless given in ``levels``; the camera's calibration covariance is that of ``views`` board views of the twin's
+    camera phase (``BenchRenderer.random_board_views``, the views ``simulate_dataset`` renders for ``seed``) at
+    :data:`CALIBRATION_CORNER_PX`, the lens model being the twin's (k1, k2, p1, p2, k3).
+    """
+    import numpy as np
+
+    from calib.design import ImageNoise, calibration_covariance
+    from drivers.sim.render import BenchRenderer, RenderSettings
+    from drivers.sim.twin import BenchGeometry
+
+    noise = ImageNoise(**levels)
+    renderer = BenchRenderer(BenchGeometry(), RenderSettings(), seed=seed)
+    v = renderer.random_board_views(views, np.random.default_rng([seed, 7]))
+    cov = calibration_covariance(twin_scene(), v, CALIBRATION_CORNER_PX, noise.intrinsics_names)
+    return noise.with_intrinsics(cov)
+
+
 def motion_spec(cfg) -> Any:
     """Speeds, acceleration and settle times of a bench configuration (``drivers.config.BenchConfig``)."""
     from calib.design import MotionSpec

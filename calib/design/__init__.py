@@ -1,13 +1,16 @@
 """Experiment design before motion: predicted accuracy of every method for a plan, optimal pose sets, motion time.
 
 * :mod:`.scene`: the camera, its mounting, the board and rods, and what is in view;
-* :mod:`.predict`: the predicted covariance of each method's estimate (combined, end-effector, legs);
+* :mod:`.predict`: the predicted covariance of each method's estimate (combined, end-effector, legs), for
+  measurements of known noise (:class:`DesignNoise`) or, through :mod:`.predict_images` and :mod:`.imaging`, on
+  images (:class:`ImageNoise`: what the extraction measures and the methods' image-level uncertainty);
 * :mod:`.motion`: trapezoidal motion time and a tour of the poses;
 * :mod:`.optimize`: greedy + exchange selection of the fit poses and the sweeps' extents; :func:`design_plan`.
 
 See docs/design.md.
 """
 
+from .imaging import calibration_covariance, synthetic_rods
 from .motion import MotionSpec, move_time, order_tour, plan_motion_time
 from .optimize import DesignRequest, DesignResult, design_plan, log_det_information, select_poses
 from .predict import (
@@ -20,6 +23,7 @@ from .predict import (
     predict_legs,
     predict_plan,
 )
+from .predict_images import ImageNoise
 from .scene import Scene, VisibilityLimits, visibility
 
 __all__ = [
@@ -27,10 +31,12 @@ __all__ = [
     "DesignNoise",
     "DesignRequest",
     "DesignResult",
+    "ImageNoise",
     "MotionSpec",
     "Prediction",
     "Scene",
     "VisibilityLimits",
+    "calibration_covariance",
     "design_plan",
     "log_det_information",
     "move_time",
@@ -42,5 +48,6 @@ __all__ = [
     "predict_legs",
     "predict_plan",
     "select_poses",
+    "synthetic_rods",
     "visibility",
 ]

@@ -33,7 +33,7 @@ are additive over fit poses: the pose-set optimiser (:mod:`.optimize`) works on 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -44,6 +44,9 @@ from ..parameters import COMBINATION_NAMES, PARAMETER_NAMES, I4Parameters
 from ..plan import Plan
 from ..transforms import matrix_to_rotvec, rotvec_to_matrix, unit
 from .scene import Scene, rod_segments
+
+if TYPE_CHECKING:
+    from .predict_images import ImageNoise
 
 __all__ = [
     "METHODS",
@@ -439,16 +442,23 @@ def predict_plan(
     plan: Plan,
     nominal: I4Parameters,
     scene: Scene,
-    noise: DesignNoise | None = None,
+    noise: DesignNoise | ImageNoise | None = None,
     methods: tuple[str, ...] = METHODS,
     weighting: str = "gls",
 ) -> Prediction:
     """Predicted standard deviations of ``methods`` for a plan (fit poses: the ``poses`` phase).
 
+    ``noise``: a :class:`DesignNoise` (measurements with known noise, the geometric twin's models) or a
+    :class:`.predict_images.ImageNoise` (what the image extraction measures and the methods' image-level
+    uncertainty: :mod:`.predict_images`; ``weighting`` is then the method's own, GLS on the rods' ``cov_u``).
     A method the plan cannot feed (e.g. no ``lock-i`` phase for the legs method) is reported in ``errors``
     with the reason, not raised.
     """
+    from .predict_images import ImageNoise
+
     noise = noise or DesignNoise()
+    if isinstance(noise, ImageNoise):
+        return _predict_plan_images(plan, nominal, scene, noise, methods)
     out = Prediction(noise=noise.to_dict(), weighting=weighting)
     q_fit = phase_q(plan, "poses")
     for m in methods:
@@ -474,6 +484,48 @@ def predict_plan(
                 out.legs_seven_std = {k: float(np.sqrt(max(cov7[i, i], 0.0))) for i, k in enumerate(PARAMETER_NAMES)}
             else:
                 raise InputError(f"unknown method {m!r}; methods are {', '.join(METHODS)}", field="methods")
+        except IdentifiabilityError as exc:
+            out.errors[m] = str(exc)
+            continue
+        out.std[m] = {k: float(np.sqrt(max(cov[i, i], 0.0))) for i, k in enumerate(COMBINATION_NAMES)}
+        out.covariance[m] = np.asarray(cov).tolist()
+    return out
+
+
+def _predict_plan_images(
+    plan: Plan, nominal: I4Parameters, scene: Scene, noise: ImageNoise, methods: tuple[str, ...]
+) -> Prediction:
+    """:func:`predict_plan` with the image-level models (:mod:`.predict_images`)."""
+    from .predict_images import predict_combined_images, predict_end_effector_images, predict_legs_images
+
+    out = Prediction(noise=noise.to_dict(), weighting="gls")
+    q_fit = phase_q(plan, "poses")
+    posterior = None  # the intrinsics after the rods (the combined fit's), which the other methods use
+    for m in methods:
+        if m not in METHODS:
+            raise InputError(f"unknown method {m!r}; methods are {', '.join(METHODS)}", field="methods")
+    try:
+        if len(q_fit) < 2:
+            raise IdentifiabilityError("the plan has fewer than 2 fit poses")
+        cov_c, posterior = predict_combined_images(
+            nominal, q_fit, phase_q(plan, "rotation"), phase_q(plan, "translation"), scene, noise
+        )
+    except IdentifiabilityError as exc:
+        cov_c, why = None, str(exc)
+    for m in methods:
+        try:
+            if m == "combined":
+                if cov_c is None:
+                    raise IdentifiabilityError(why)
+                cov = cov_c
+            elif len(q_fit) < 2:
+                raise IdentifiabilityError("the plan has fewer than 2 fit poses")
+            elif m == "end-effector":
+                cov, _parts = predict_end_effector_images(nominal, q_fit, scene, noise, posterior)
+            else:
+                q_lock = [phase_q(plan, f"lock-{i}") for i in range(1, 5)]
+                cov7, cov, _parts7 = predict_legs_images(nominal, q_fit, q_lock, scene, noise, posterior)
+                out.legs_seven_std = {k: float(np.sqrt(max(cov7[i, i], 0.0))) for i, k in enumerate(PARAMETER_NAMES)}
         except IdentifiabilityError as exc:
             out.errors[m] = str(exc)
             continue

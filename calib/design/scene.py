@@ -54,6 +54,8 @@ class Scene:
         Printed pattern's width and height.
     board_margin_m : float
         White margin around the pattern (part of the outline that must be in view).
+    board_square_m : float
+        The chessboard's square: its inner corners are what the board poses are measured from.
     rod_radius_m, rod_spacing_m : float
         Radius of a rod; the two rods of a leg sit at -/+ half the spacing along x_B from the leg.
     limits : VisibilityLimits
@@ -67,6 +69,7 @@ class Scene:
     rod_radius_m: float = 0.008
     rod_spacing_m: float = 0.06
     limits: VisibilityLimits = field(default_factory=VisibilityLimits)
+    board_square_m: float = 0.04
 
     def camera_from_board(self, params: I4Parameters, pose: np.ndarray) -> list[Rigid]:
         """Board poses in the camera frame for poses (N, 4)."""
@@ -114,7 +117,7 @@ def _point_in_polygon(p: np.ndarray, poly: np.ndarray) -> np.ndarray:
     return (np.sum(cross, axis=1) % 2) == 1
 
 
-def visibility(scene: Scene, params: I4Parameters, q: np.ndarray) -> dict[str, np.ndarray]:
+def visibility(scene: Scene, params: I4Parameters, q: np.ndarray, samples: bool = False) -> dict[str, np.ndarray]:
     """Visibility of the board and of every rod at joint values ``q``.
 
     Parameters
@@ -124,6 +127,9 @@ def visibility(scene: Scene, params: I4Parameters, q: np.ndarray) -> dict[str, n
         Geometry used to place the parts (the nominal one before motion).
     q : ndarray, shape (N, 4)
         Joint values, metres.
+    samples : bool
+        Also return ``rod_visible`` (N, 4, 2, S): which of the ``samples_per_rod`` samples along each rod's axis
+        (at ``(i + 0.5) / S`` from its top) are visible.
 
     Returns
     -------
@@ -187,4 +193,7 @@ def visibility(scene: Scene, params: I4Parameters, q: np.ndarray) -> dict[str, n
     seglen = np.concatenate([step[:, :, :1], step], axis=2)
     rod_px = np.sum(np.where(vis, seglen, 0.0), axis=2).reshape(n, 4, 2)
     rods_ok = np.all(rod_px >= lim.min_rod_px, axis=(1, 2))
-    return {"board": board_ok, "rod_px": rod_px, "rods": rods_ok, "ok": board_ok & rods_ok}
+    out = {"board": board_ok, "rod_px": rod_px, "rods": rods_ok, "ok": board_ok & rods_ok}
+    if samples:
+        out["rod_visible"] = vis.reshape(n, 4, 2, -1)
+    return out

@@ -6,13 +6,15 @@ mounting); both without the guided line. Each trial renders the plan for a true 
 (the accuracy benchmark's trials: ``service.benchmarks.accuracy``, per-trial camera calibration, extraction,
 the three methods); trial k of every plan shares its truth and seed (common random numbers).
 
-Per plan and method: RMS error per combination, mean reported std, the std predicted before motion at the
+Per plan and method: RMS error per combination, mean reported std, the std predicted before motion on images
+(``predicted_images``: :mod:`calib.design.predict_images` with :func:`service.design.twin_image_noise`), at the
 geometric twin's default noise (``predicted``) and at the noise measured in a run (``predicted_run``: the
 prediction scaled per method and combination by the paper's 20-pose plan's measured RMS error over its
 prediction, i.e. noise levels calibrated by one reference run), and the motion time (trapezoidal profiles,
 ``--speed``/``--accel``). The issue's check: the designed 12-pose plan's combined RMS error no larger than the
 paper's 20-pose plan's for every combination, and each method's prediction within 30% of its RMS error.
-``--json PATH`` writes everything (format ``i4cal.bench-design/1``).
+``--plans designed-12,paper-20`` runs only those plans. ``--json PATH`` writes everything (format
+``i4cal.bench-design/1``).
 """
 
 from __future__ import annotations
@@ -26,13 +28,16 @@ from typing import Any
 FORMAT = "i4cal.bench-design/1"
 
 
-def _plans(counts: list[int], seed: int, speed: float, accel: float) -> dict[str, dict[str, Any]]:
+def _plans(
+    counts: list[int], seed: int, speed: float, accel: float, only: list[str] | None = None
+) -> dict[str, dict[str, Any]]:
     from calib.design import DesignRequest, MotionSpec, design_plan, plan_motion_time, predict_plan
     from calib.parameters import NOMINAL
     from calib.plan import Plan, make_plan
-    from service.design import twin_scene
+    from service.design import twin_image_noise, twin_scene
 
     scene = twin_scene()
+    image_noise = twin_image_noise(seed=seed)
     motion = MotionSpec(speed_m_s=speed, accel_m_s2=accel)
     out: dict[str, dict[str, Any]] = {}
     for n in counts:
@@ -40,7 +45,10 @@ def _plans(counts: list[int], seed: int, speed: float, accel: float) -> dict[str
         paper = Plan(name=f"paper-{n}", steps=[s for s in paper.steps if s.phase != "line"])
         designed = design_plan(NOMINAL, scene, DesignRequest(n_fit=n, with_line=False, seed=seed), motion=motion).plan
         for kind, plan in (("paper", paper), ("designed", designed)):
+            if only and f"{kind}-{n}" not in only:
+                continue
             pred = predict_plan(plan, NOMINAL, scene)
+            pred_img = predict_plan(plan, NOMINAL, scene, image_noise)
             out[f"{kind}-{n}"] = {
                 "kind": kind,
                 "n_fit": n,
@@ -48,6 +56,7 @@ def _plans(counts: list[int], seed: int, speed: float, accel: float) -> dict[str
                 "counts": plan.count(),
                 "motion_s": plan_motion_time(plan, motion, NOMINAL)["total_s"],
                 "predicted_std_m": pred.std,
+                "predicted_images_std_m": pred_img.std,
             }
     return out
 
@@ -60,7 +69,7 @@ def run_design_bench(opts: argparse.Namespace, progress=None) -> dict[str, Any]:
     from .accuracy import _cores, default_spread_m, draw_truth, trial_seed
 
     t0 = time.perf_counter()
-    plans = _plans(opts.counts, opts.seed, opts.speed, opts.accel)
+    plans = _plans(opts.counts, opts.seed, opts.speed, opts.accel, getattr(opts, "plans", None))
     spread = default_spread_m()
     tasks = [
         TrialTask(
@@ -132,14 +141,19 @@ def _checks(plans: dict[str, dict[str, Any]]) -> dict[str, Any]:
         out["designed12_combined_not_worse_than_paper20"] = {
             c: (a[c] <= b[c]) if a.get(c) is not None and b.get(c) is not None else None for c in COMBINATIONS
         }
-    ratios: dict[str, dict[str, dict[str, float | None]]] = {}
-    for name, p in plans.items():
-        ratios[name] = {}
-        for m in METHODS:
-            pr = p["predicted_std_m"].get(m) or {}
-            rms = p["summary"]["methods"][m]["rms_error_m"]
-            ratios[name][m] = {c: (pr[c] / rms[c]) if pr.get(c) and rms.get(c) else None for c in COMBINATIONS}
-    out["predicted_over_rms"] = ratios
+    for key, field, ref in (
+        ("predicted_over_rms", "predicted_std_m", "rms_error_m"),
+        ("predicted_images_over_rms", "predicted_images_std_m", "rms_error_m"),
+        ("predicted_images_over_mean_std", "predicted_images_std_m", "mean_std_m"),
+    ):
+        ratios: dict[str, dict[str, dict[str, float | None]]] = {}
+        for name, p in plans.items():
+            ratios[name] = {}
+            for m in METHODS:
+                pr = p.get(field, {}).get(m) or {}
+                rms = p["summary"]["methods"][m][ref]
+                ratios[name][m] = {c: (pr[c] / rms[c]) if pr.get(c) and rms.get(c) else None for c in COMBINATIONS}
+        out[key] = ratios
     return out
 
 
@@ -150,14 +164,14 @@ def print_table(doc: dict[str, Any]) -> None:
         return "-" if v is None else f"{v * 1e3:.3f}"
 
     print(f"{'plan':<12} {'motion':>7} {'method':<13} " + " ".join(f"{c:>27}" for c in COMBINATIONS))
-    print(f"{'':<12} {'min':>7} {'':<13} " + " ".join(f"{'rms / std / pred / pred_run':>27}" for _ in COMBINATIONS))
+    print(f"{'':<12} {'min':>7} {'':<13} " + " ".join(f"{'rms / std / pred_img / pred':>27}" for _ in COMBINATIONS))
     for name, p in doc["plans"].items():
         for m in METHODS:
             s = p["summary"]["methods"][m]
             pr = p["predicted_std_m"].get(m, {})
-            prr = p.get("predicted_run_std_m", {}).get(m, {})
+            pri = p.get("predicted_images_std_m", {}).get(m, {})
             cells = [
-                f"{mm(s['rms_error_m'][c])}/{mm(s['mean_std_m'][c])}/{mm(pr.get(c))}/{mm(prr.get(c))}"
+                f"{mm(s['rms_error_m'][c])}/{mm(s['mean_std_m'][c])}/{mm(pri.get(c))}/{mm(pr.get(c))}"
                 for c in COMBINATIONS
             ]
             print(
@@ -187,6 +201,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     a("--workers", type=int, default=None)
     a("--speed", type=float, default=0.05, help="actuator speed for the motion time, m/s (a bench file's default)")
     a("--accel", type=float, default=0.5, help="acceleration, m/s^2")
+    a(
+        "--plans",
+        type=lambda t: [x.strip() for x in t.split(",") if x.strip()],
+        default=None,
+        help="only these plans, e.g. designed-12,paper-20 (default: paper and designed at every count)",
+    )
     a("--json", default=None, metavar="PATH")
     p.set_defaults(handler=run)
 

@@ -1,0 +1,272 @@
+"""What the image extraction would measure for a plan, before any image: rods, board poses, the camera's uncertainty.
+
+The image-level predictions (:mod:`.predict`, ``ImageNoise``) need, per frame, what the extraction reports and the
+methods weigh by:
+
+* per rod (:func:`synthetic_rods`): the two limb lines of its visible part in ideal pixels, as TLS lines through
+  edge points ``step_px`` apart with the residual ``edge_px`` (the extraction's ``_line_cov``), hence its
+  interpretation planes ``h``, its direction ``u`` and the direction's covariance ``cov_u`` computed by the
+  extraction's own function (:func:`calib.vision.rods._direction_covariance`, with its edge-bias allowance), and
+  the five limb samples per limb in distorted pixels (``limbs_px``) from which the methods recompute the planes for
+  other intrinsics;
+* per board pose (:func:`board_poses`): the PnP covariance of its pose (left rotation, t) for corner noise
+  ``corner_px`` and its first-order change with the intrinsics (``d_intrinsics``);
+* the camera's calibration covariance when none is given (:func:`calibration_covariance`): the inverse
+  information of the board views of the camera phase (corner noise ``corner_px``, each view's pose marginalised).
+
+Everything at the nominal geometry, metres and radians; pixels where named ``_px``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..camera import CameraModel, moved_camera
+from ..errors import InputError
+from ..kinematics import dkm
+from ..parameters import I4Parameters
+from ..transforms import Rigid, rotvec_to_matrix
+from .scene import Scene, rod_segments, visibility
+
+__all__ = [
+    "BoardPoses",
+    "RodSet",
+    "board_corners",
+    "board_poses",
+    "calibration_covariance",
+    "design_camera",
+    "synthetic_rods",
+]
+
+#: the five quantiles of a limb's edge points at which the extraction reports its line (``limbs_px``)
+_QUANTILES = np.array([0.0, 0.25, 0.5, 0.75, 1.0])
+
+
+def design_camera(camera: CameraModel, names: tuple[str, ...]) -> CameraModel:
+    """``camera`` carrying the lens model's parameter names (what :func:`calib.camera.intrinsics_names` reads)."""
+    extra = dict(camera.extra or {})
+    extra["calibration"] = {**(extra.get("calibration") or {}), "covariance_params": list(names)}
+    need = max([5 if "k3" in names else 4, camera.dist.size])
+    dist = np.concatenate([camera.dist, np.zeros(max(need - camera.dist.size, 0))])
+    return CameraModel(camera.K, dist, camera.width, camera.height, extra)
+
+
+@dataclass
+class RodSet:
+    """The rods the extraction would measure in a set of frames (M of them), camera frame.
+
+    Attributes
+    ----------
+    k, leg, rod : ndarray of int, shape (M,)
+        Frame index, leg (0-3), rod of the leg (0-1).
+    u : ndarray, shape (M, 3)
+        Axis direction (top to bottom).
+    point : ndarray, shape (M, 3)
+        Axis point at the middle of the visible part, metres.
+    h : ndarray, shape (M, 2, 3)
+        Interpretation-plane normals, ``h . X = radius`` on the axis.
+    cov_u : ndarray, shape (M, 3, 3)
+        The extraction's direction covariance (edge scatter plus its edge-bias allowance).
+    limbs_px : ndarray, shape (M, 2, 5, 2)
+        Five points per limb line, distorted pixels.
+    n_points : ndarray of int, shape (M, 2)
+        Edge points per limb.
+    visible_px : ndarray, shape (M,)
+        Visible length, pixels.
+    """
+
+    k: np.ndarray
+    leg: np.ndarray
+    rod: np.ndarray
+    u: np.ndarray
+    point: np.ndarray
+    h: np.ndarray
+    cov_u: np.ndarray
+    limbs_px: np.ndarray
+    n_points: np.ndarray
+    visible_px: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.k)
+
+    def subset(self, keep: np.ndarray) -> RodSet:
+        return RodSet(**{f: getattr(self, f)[keep] for f in self.__dataclass_fields__})
+
+
+def synthetic_rods(
+    scene: Scene,
+    params: I4Parameters,
+    q: np.ndarray,
+    edge_px: float,
+    *,
+    step_px: float = 3.0,
+    edge_bias_px: float = 0.05,
+    min_length_px: float = 40.0,
+) -> RodSet:
+    """The rods of frames ``q`` (N, 4) as the extraction would measure them (see :class:`RodSet`).
+
+    A rod is measured when its visible part (:func:`.scene.visibility`'s samples) spans ``min_length_px`` (the
+    extraction's ``min_length_px``). Its limb lines are those of the cylinder's silhouette over that part; each is
+    a TLS line through edge points ``step_px`` apart with residual std ``edge_px`` (the extraction's effective
+    residual, including the correlation of neighbouring edges).
+    """
+    from ..vision.rods import _direction_covariance, limb_planes
+
+    q = np.atleast_2d(np.asarray(q, dtype=np.float64))
+    if not (np.isfinite(edge_px) and edge_px > 0):
+        raise InputError(f"edge_px must be finite and > 0, got {edge_px}", field="edge_px")
+    cam = scene.camera
+    K = cam.K
+    Kinv = np.linalg.inv(K)
+    v = visibility(scene, params, q, samples=True)
+    pose = dkm(params, q)
+    top, bot = rod_segments(scene, params, q, pose)
+    S = scene.limits.samples_per_rod
+    s = (np.arange(S) + 0.5) / S
+    fields: dict[str, list] = {
+        f: [] for f in ("k", "leg", "rod", "u", "point", "h", "cov_u", "limbs_px", "n_points", "visible_px")
+    }
+    for k, i, j in zip(*np.nonzero(v["rod_px"] >= min_length_px), strict=True):
+        vis = v["rod_visible"][k, i, j]
+        X = top[k, i, j] + s[vis, None] * (bot[k, i, j] - top[k, i, j])
+        u = bot[k, i, j] - top[k, i, j]
+        u /= np.linalg.norm(u)
+        P = X[len(X) // 2]
+        try:
+            h = np.array(limb_planes(P, u, scene.rod_radius_m))
+        except ValueError:
+            continue
+        xi = X @ K.T
+        xi = xi[:, :2] / xi[:, 2:]
+        fits = []
+        limbs = []
+        npts = []
+        for hq in h:
+            line = Kinv.T @ hq
+            line = line / np.linalg.norm(line[:2])
+            n = line[:2]
+            td = np.array([n[1], -n[0]])
+            foot = xi - (xi @ n + line[2])[:, None] * n
+            t = foot @ td
+            t0, t1 = float(t.min()), float(t.max())
+            m = max(int(np.floor((t1 - t0) / step_px)) + 1, 3)
+            tt = np.linspace(t0, t1, m)
+            base = foot[0] - (foot[0] @ td) * td
+            pts = base + tt[:, None] * td
+            fits.append((pts.mean(axis=0), td, edge_px**2, pts))
+            q5 = base + (t0 + _QUANTILES * (t1 - t0))[:, None] * td
+            limbs.append(cam.distort_normalized(np.c_[q5, np.ones(5)] @ Kinv.T[:, :2]))
+            npts.append(m)
+        cmid = 0.5 * (fits[0][0] + fits[1][0])
+        inner = Kinv @ np.append(cmid, 1.0)
+        fields["k"].append(k)
+        fields["leg"].append(i)
+        fields["rod"].append(j)
+        fields["u"].append(u)
+        fields["point"].append(P)
+        fields["h"].append(h)
+        fields["cov_u"].append(_direction_covariance(K, fits, inner, edge_bias_px))
+        fields["limbs_px"].append(np.stack(limbs))
+        fields["n_points"].append(npts)
+        fields["visible_px"].append(v["rod_px"][k, i, j])
+    shapes = {"u": (0, 3), "point": (0, 3), "h": (0, 2, 3), "cov_u": (0, 3, 3), "limbs_px": (0, 2, 5, 2)}
+    out = {
+        f: (np.asarray(val) if val else np.zeros(shapes.get(f, (0,)) if f != "n_points" else (0, 2)))
+        for f, val in fields.items()
+    }
+    for f in ("k", "leg", "rod", "n_points"):
+        out[f] = out[f].astype(int)
+    return RodSet(**out)
+
+
+def board_corners(scene: Scene) -> np.ndarray:
+    """The board's inner chessboard corners (board frame, z = 0), shape (C, 3), metres."""
+    W, H = scene.board_size_m
+    a = scene.board_square_m
+    nx, ny = round(W / a), round(H / a)
+    gx, gy = np.meshgrid(np.arange(1, nx) * a, np.arange(1, ny) * a)
+    return np.column_stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)])
+
+
+def _corner_jacobians(
+    camera: CameraModel, names: tuple[str, ...], R: np.ndarray, t: np.ndarray, pts: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """d(projected corners, 2C) / d(left rotation, t) (2C, 6) and / d(intrinsics ``names``) (2C, n)."""
+
+    def proj(cam: CameraModel, Rm: np.ndarray, tm: np.ndarray) -> np.ndarray:
+        return cam.project(pts @ Rm.T + tm).ravel()
+
+    Jp = np.zeros((2 * len(pts), 6))
+    for a in range(6):
+        d = np.zeros(6)
+        d[a] = 1e-7
+        Jp[:, a] = (
+            proj(camera, rotvec_to_matrix(d[:3]) @ R, t + d[3:]) - proj(camera, rotvec_to_matrix(-d[:3]) @ R, t - d[3:])
+        ) / 2e-7
+    Ji = np.zeros((2 * len(pts), len(names)))
+    for a, name in enumerate(names):
+        hstep = 1e-4 if name in ("fx", "fy", "cx", "cy") else 1e-7
+        e = np.zeros(len(names))
+        e[a] = hstep
+        Ji[:, a] = (proj(moved_camera(camera, e, names), R, t) - proj(moved_camera(camera, -e, names), R, t)) / (
+            2 * hstep
+        )
+    return Jp, Ji
+
+
+@dataclass
+class BoardPoses:
+    """Board poses of N frames as PnP would give them: pose (camera frame), covariance, intrinsics' effect.
+
+    Attributes
+    ----------
+    R : ndarray, shape (N, 3, 3)
+    t : ndarray, shape (N, 3)
+    cov : ndarray, shape (N, 6, 6)
+        Covariance of (left rotation [rad], t [m]) for the corner noise.
+    d_intrinsics : ndarray, shape (N, 6, n)
+        The pose's change per unit change of the intrinsics (fixed corner pixels).
+    """
+
+    R: np.ndarray
+    t: np.ndarray
+    cov: np.ndarray
+    d_intrinsics: np.ndarray
+
+
+def board_poses(
+    scene: Scene, params: I4Parameters, q: np.ndarray, corner_px: float, names: tuple[str, ...]
+) -> BoardPoses:
+    """Board poses of frames ``q`` (N, 4) with their PnP covariance (corner noise ``corner_px``) and
+    ``d_intrinsics`` (intrinsics ``names``)."""
+    q = np.atleast_2d(np.asarray(q, dtype=np.float64))
+    pts = board_corners(scene)
+    cbs = scene.camera_from_board(params, dkm(params, q))
+    R = np.stack([c.R for c in cbs]) if cbs else np.zeros((0, 3, 3))
+    t = np.stack([c.t for c in cbs]) if cbs else np.zeros((0, 3))
+    cov = np.zeros((len(q), 6, 6))
+    dint = np.zeros((len(q), 6, len(names)))
+    for k in range(len(q)):
+        Jp, Ji = _corner_jacobians(scene.camera, names, R[k], t[k], pts)
+        Hi = np.linalg.inv(Jp.T @ Jp)
+        cov[k] = corner_px**2 * Hi
+        dint[k] = -Hi @ Jp.T @ Ji
+    return BoardPoses(R, t, cov, dint)
+
+
+def calibration_covariance(scene: Scene, views: list[Rigid], corner_px: float, names: tuple[str, ...]) -> np.ndarray:
+    """Covariance (n, n) of the intrinsics ``names`` calibrated from board ``views`` (camera_from_board poses) with
+    corner noise ``corner_px``: the inverse of their information, every view's pose marginalised."""
+    if len(views) < 3:
+        raise InputError("a camera calibration needs at least 3 board views", field="views")
+    pts = board_corners(scene)
+    n = len(names)
+    F = np.zeros((n, n))
+    for v in views:
+        Jp, Ji = _corner_jacobians(scene.camera, names, v.R, v.t, pts)
+        # the view's pose marginalised: Ji^T (I - Jp (Jp^T Jp)^-1 Jp^T) Ji
+        A = np.linalg.solve(Jp.T @ Jp, Jp.T @ Ji)
+        F += Ji.T @ Ji - (Jp.T @ Ji).T @ A
+    return corner_px**2 * np.linalg.inv(F)

@@ -1,0 +1,498 @@
+"""Predicted covariance of each method on rendered (or real) images: the methods' own uncertainty models.
+
+On images the methods weigh what the extraction measures by what it reports (rods: ``cov_u`` from the limb edges'
+scatter; boards: the PnP covariance) and carry the camera's intrinsics and a limb-edge bias common to every rod as
+nuisances (:mod:`calib.methods.combined`, :mod:`calib.methods.end_effector`, :mod:`calib.methods.legs`). The
+prediction rebuilds those measurements for the plan at the nominal geometry (:mod:`.imaging`) and computes the
+covariance each method reports, with the noise levels of :class:`ImageNoise` (measured on the image-level twin, or
+taken from a run):
+
+* **combined**: GLS information of every rod's two Jacobian entries over (four combinations, base-frame rotation w,
+  the intrinsics' principal directions z, the two limb-edge biases), each rod weighted by ``rod_scale^2`` times its
+  ``cov_u`` mapped to the entries (the method's noise shape times its measured scale), the base frame's rotation
+  from the rotation and translation phases' board poses (PnP covariances; its change with the intrinsics, G, from
+  their ``d_intrinsics``) as w's prior, N(0, I) priors on z and the edge biases (``edge_bias_prior_px``): the
+  inverse of the information, which is the method's covariance (its sandwich collapses when the weights are the
+  noise's). Also the intrinsics' posterior (what the rods teach about the camera), which the two other methods use.
+* **end-effector**: the method's IKM residual model (:func:`.predict._ee_problem`) weighted by each pose's PnP
+  covariance (corner noise ``corner_px``) and the encoders: ``(sum J^T C^-1 J)^-1``, plus the intrinsics'
+  posterior propagated through the fit's gain (the method's ``_intrinsics_part``).
+* **legs**: step 1's joints from the lock phases' plane equations weighted by their limb lines' variances
+  (:func:`calib.methods.legs.limb_line_noise`, the method's own weighting), propagated through steps 2-4; the GLS
+  covariance of (L, S, D) from the fit poses' leg directions (two rods' ``cov_u`` combined); the intrinsics'
+  posterior and the edge biases redone through the whole estimate (the method's ``_IntrinsicsEffect``); then the
+  a priori tolerance (``legs_prior_std_m``, the method's ``_with_prior``). The method scales its parts by their
+  residual chi-square per degree of freedom, never below 1: the prediction uses 1.
+
+Units: metres, radians; ``_px`` pixels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ..camera import INTRINSICS_NAMES
+from ..errors import IdentifiabilityError, InputError
+from ..numdiff import central_jacobian
+from ..parameters import COMBINATION_NAMES, I4Parameters
+from ..transforms import matrix_to_rotvec, rotvec_to_matrix
+from .imaging import BoardPoses, RodSet, board_poses, design_camera, synthetic_rods
+from .scene import Scene
+
+__all__ = [
+    "DEFAULT_INTRINSICS_NAMES",
+    "ImageNoise",
+    "base_frame_images",
+    "combined_images_pose_information",
+    "predict_combined_images",
+    "predict_end_effector_images",
+    "predict_legs_images",
+]
+
+#: the image-level twin's lens model (chosen by BIC on its board views: k1, k2, p1, p2 and k3)
+DEFAULT_INTRINSICS_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+
+
+@dataclass(frozen=True)
+class ImageNoise:
+    """Noise levels of an image extraction and the camera's calibration (defaults: the image-level twin's).
+
+    Attributes
+    ----------
+    edge_px : float
+        Effective std of a limb edge point (px; the extraction's residual times its correlation factor).
+    rod_scale : float
+        The combined method's measured direction-noise scale (``diagnostics.direction_noise_scale``): the rods'
+        true scatter over their ``cov_u``.
+    corner_px : float
+        Effective std of a board corner (px) for the board poses' PnP covariance (times the end-effector
+        method's measured factor).
+    edge_bias_px, step_px : float
+        The extraction's edge-bias allowance in ``cov_u`` and its profile spacing (``RodSettings``).
+    edge_bias_prior_px : float
+        Prior std of the limb-edge bias common to every rod (``calib.methods.combined.EDGE_BIAS_STD_PX``).
+    legs_prior_std_m : float or None
+        The legs method's a priori tolerance per parameter (``calib.methods.legs.PRIOR_STD_M``).
+    intrinsics_names : tuple of str
+        The lens model's parameters.
+    intrinsics_cov : tuple of tuples, or None
+        The camera calibration's covariance over ``intrinsics_names`` (px for fx, fy, cx, cy); None: the camera
+        is taken as known.
+    encoder_m : float
+        Encoders (m).
+    """
+
+    edge_px: float = 0.11
+    rod_scale: float = 0.70
+    corner_px: float = 0.08
+    edge_bias_px: float = 0.05
+    step_px: float = 3.0
+    edge_bias_prior_px: float = 0.1
+    legs_prior_std_m: float | None = 0.01
+    intrinsics_names: tuple[str, ...] = DEFAULT_INTRINSICS_NAMES
+    intrinsics_cov: tuple[tuple[float, ...], ...] | None = None
+    encoder_m: float = 1e-6
+
+    def __post_init__(self) -> None:
+        for k in ("edge_px", "rod_scale", "corner_px", "step_px"):
+            v = getattr(self, k)
+            if not (np.isfinite(v) and v > 0):
+                raise InputError(f"image noise: {k} must be finite and > 0, got {v}", field=k)
+        for k in ("edge_bias_px", "edge_bias_prior_px", "encoder_m"):
+            v = getattr(self, k)
+            if not (np.isfinite(v) and v >= 0):
+                raise InputError(f"image noise: {k} must be finite and >= 0, got {v}", field=k)
+        bad = [n for n in self.intrinsics_names if n not in (*INTRINSICS_NAMES, "k3", "k4", "k5", "k6")]
+        if bad:
+            raise InputError(f"image noise: unknown intrinsics {', '.join(bad)}", field="intrinsics_names")
+        if self.intrinsics_cov is not None:
+            C = np.asarray(self.intrinsics_cov, dtype=np.float64)
+            n = len(self.intrinsics_names)
+            if C.shape != (n, n) or not np.all(np.isfinite(C)) or np.linalg.eigvalsh(0.5 * (C + C.T))[0] < -1e-12:
+                raise InputError(
+                    f"image noise: intrinsics_cov must be a finite positive semi-definite {n}x{n} matrix",
+                    field="intrinsics_cov",
+                )
+
+    def covariance(self) -> np.ndarray | None:
+        return None if self.intrinsics_cov is None else np.asarray(self.intrinsics_cov, dtype=np.float64)
+
+    def with_intrinsics(self, cov: np.ndarray, names: tuple[str, ...] | None = None) -> ImageNoise:
+        """The same levels with the camera's covariance ``cov`` (over ``names``, default the current ones)."""
+        from dataclasses import replace
+
+        c = np.asarray(cov, dtype=np.float64)
+        c = 0.5 * (c + c.T)
+        return replace(
+            self,
+            intrinsics_names=tuple(names or self.intrinsics_names),
+            intrinsics_cov=tuple(tuple(float(x) for x in row) for row in c),
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        cov = self.covariance()
+        return {
+            "model": "images",
+            "edge_px": self.edge_px,
+            "rod_scale": self.rod_scale,
+            "corner_px": self.corner_px,
+            "edge_bias_px": self.edge_bias_px,
+            "step_px": self.step_px,
+            "edge_bias_prior_px": self.edge_bias_prior_px,
+            "legs_prior_std_m": self.legs_prior_std_m,
+            "intrinsics_names": list(self.intrinsics_names),
+            "intrinsics_std": None
+            if cov is None
+            else dict(zip(self.intrinsics_names, np.sqrt(np.maximum(np.diag(cov), 0)).tolist(), strict=True)),
+            "encoder_m": self.encoder_m,
+        }
+
+
+def _steps(cov: np.ndarray | None, n: int) -> np.ndarray:
+    from ..methods.intrinsics import principal_steps
+
+    return np.zeros((0, n)) if cov is None else principal_steps(cov)
+
+
+def _rods(scene: Scene, nominal: I4Parameters, q: np.ndarray, noise: ImageNoise) -> RodSet:
+    return synthetic_rods(scene, nominal, q, noise.edge_px, step_px=noise.step_px, edge_bias_px=noise.edge_bias_px)
+
+
+# -- base frame ------------------------------------------------------------------------------------------------
+def base_frame_images(
+    nominal: I4Parameters,
+    q_rot: np.ndarray,
+    q_tra: np.ndarray,
+    scene: Scene,
+    noise: ImageNoise,
+    steps: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Information (3, 3) on the base frame's rotation ``w`` from the board poses of the rotation and translation
+    phases (their PnP covariances), and its change G (3, n_steps) per intrinsics step (rows of ``steps``).
+
+    The rotation phase's board orientations turn about z_B (reference orientation and angles unknown), the
+    translation phase's positions move along x_B (start unknown); the estimate's gain maps the board poses'
+    change with the intrinsics (``d_intrinsics``) to w.
+    """
+    q_rot = np.asarray(q_rot, dtype=np.float64).reshape(-1, 4)
+    q_tra = np.asarray(q_tra, dtype=np.float64).reshape(-1, 4)
+    if len(q_rot) < 2 or len(q_tra) < 2:
+        raise IdentifiabilityError("the base frame needs at least 2 rotation and 2 translation frames")
+    names = noise.intrinsics_names
+    br = board_poses(scene, nominal, q_rot, noise.corner_px, names)
+    bt = board_poses(scene, nominal, q_tra, noise.corner_px, names)
+    R_cb = scene.camera_from_base.R
+    n_r = len(q_rot)
+    T_rot = (q_rot[:, 0] + q_rot[:, 1] - q_rot[:, 2] - q_rot[:, 3]) / 4.0
+    th0 = (T_rot - T_rot[0]) / nominal.T_per_rad
+    s = q_tra.mean(axis=1)
+    zB = R_cb[:, 2]
+    Rref = rotvec_to_matrix(-zB * th0[0]) @ br.R[0]
+    Rm, tm = br.R, bt.t
+
+    def model(x: np.ndarray, Rmeas: np.ndarray = Rm, tmeas: np.ndarray = tm) -> np.ndarray:
+        w, rho, th, t0 = x[:3], x[3:6], x[6 : 6 + n_r], x[6 + n_r :]
+        R = rotvec_to_matrix(w) @ R_cb
+        Rk = rotvec_to_matrix(R[:, 2][None, :] * (th + th0[0])[:, None]) @ rotvec_to_matrix(rho) @ Rref
+        rot = matrix_to_rotvec(Rk @ np.swapaxes(Rmeas, 1, 2))
+        tra = t0[None, :] + (s - s[0])[:, None] * R[:, 0][None, :] - tmeas
+        return np.concatenate([rot.ravel(), tra.ravel()])
+
+    x0 = np.concatenate([np.zeros(6), th0 - th0[0], bt.t[0]])
+    r0 = model(x0)
+    if np.max(np.abs(r0)) > 1e-9:
+        raise RuntimeError(f"base-frame design model does not close at nominal ({np.max(np.abs(r0)):.2e})")
+    J = central_jacobian(model, x0, 1e-7)
+    # whitening: per frame, the rotation (rotation phase) or the position (translation phase) covariance
+    W = np.zeros((3 * (n_r + len(q_tra)),) * 2)
+    for k in range(n_r):
+        W[3 * k : 3 * k + 3, 3 * k : 3 * k + 3] = np.linalg.inv(br.cov[k, :3, :3])
+    for k in range(len(q_tra)):
+        a = 3 * (n_r + k)
+        W[a : a + 3, a : a + 3] = np.linalg.inv(bt.cov[k, 3:, 3:])
+    H = J.T @ W @ J
+    Hi = np.linalg.pinv(H, rcond=1e-13, hermitian=True)
+    F = np.linalg.inv(Hi[:3, :3])
+    n_st = 0 if steps is None else steps.shape[0]
+    G = np.zeros((3, n_st))
+    for j in range(n_st):
+        dr = np.einsum("nij,j->ni", br.d_intrinsics, steps[j])
+        dt = np.einsum("nij,j->ni", bt.d_intrinsics, steps[j])
+        # the measured poses moved: rotation exp(d[:3]) R, position t + d[3:]
+        Rp = np.einsum("nij,njk->nik", rotvec_to_matrix(dr[:, :3]), Rm)
+        dm = model(x0, Rp, tm + dt[:, 3:]) - r0
+        G[:, j] = -(Hi @ J.T @ W @ dm)[:3]
+    return F, G
+
+
+# -- combined --------------------------------------------------------------------------------------------------
+def _combined_terms(
+    nominal: I4Parameters,
+    q_fit: np.ndarray,
+    scene: Scene,
+    noise: ImageNoise,
+    steps: np.ndarray,
+    G: np.ndarray,
+    drop: set[tuple[int, int, int]] | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per rod: Jacobian (M, 2, p) of the raw residuals over (combinations, w, z, edge biases), their noise
+    covariance (M, 2, 2) and the pose index (M,). ``drop``: rods left out, (fit pose index, leg 0-3, rod 0-1)."""
+    from ..methods.combined import _IntrinsicsModel, _ratio_grad, model_ratios
+
+    q_fit = np.asarray(q_fit, dtype=np.float64).reshape(-1, 4)
+    R0 = scene.camera_from_base.R
+    rods = _rods(scene, nominal, q_fit, noise)
+    keep = np.abs((rods.u @ R0)[:, 0]) >= 0.05  # the method's own cut (near-vertical rods in the base frame)
+    if drop:
+        keep &= np.array(
+            [(int(k), int(i), int(j)) not in drop for k, i, j in zip(rods.k, rods.leg, rods.rod, strict=True)]
+        )
+    rods = rods.subset(keep)
+    if len(rods) == 0:
+        return np.zeros((0, 2, 9 + steps.shape[0])), np.zeros((0, 2, 2)), np.zeros(0, dtype=int)
+    cam = design_camera(scene.camera, noise.intrinsics_names)
+    im = _IntrinsicsModel(cam, steps, rods.limbs_px, rods.h, G, None, noise.edge_bias_prior_px)
+    nz = steps.shape[0] + im.n_edge
+    xi0 = np.array([nominal.combinations()[k] for k in COMBINATION_NAMES])
+
+    def raw(v: np.ndarray) -> np.ndarray:
+        z = v[7:]
+        u = im.directions(z, rods.u)
+        R = im.rotation(z) @ rotvec_to_matrix(v[4:7]) @ R0
+        uB = u @ R
+        return (model_ratios(v[:4], q_fit)[rods.k, rods.leg] - uB[:, 1:] / uB[:, :1]).ravel()
+
+    x0 = np.concatenate([xi0, np.zeros(3 + nz)])
+    J = central_jacobian(raw, x0, 1e-7).reshape(len(rods), 2, -1)
+    uB = rods.u @ R0
+    Gr = _ratio_grad(uB)
+    P = np.einsum("ji,mjk,kl->mil", R0, rods.cov_u, R0)
+    S = noise.rod_scale**2 * np.einsum("mij,mjk,mlk->mil", Gr, P, Gr)
+    return J, S, rods.k
+
+
+def combined_images_pose_information(
+    nominal: I4Parameters,
+    q_fit: np.ndarray,
+    scene: Scene,
+    noise: ImageNoise,
+    steps: np.ndarray,
+    G: np.ndarray,
+    drop: set[tuple[int, int, int]] | None = None,
+) -> np.ndarray:
+    """GLS information (N, p, p) of each fit pose's rods over (combinations, w, z, edge biases)."""
+    q_fit = np.asarray(q_fit, dtype=np.float64).reshape(-1, 4)
+    J, S, k = _combined_terms(nominal, q_fit, scene, noise, steps, G, drop)
+    Si = np.linalg.inv(S + 1e-30 * np.eye(2))
+    Fm = np.einsum("mai,mab,mbj->mij", J, Si, J)
+    out = np.zeros((len(q_fit), J.shape[2], J.shape[2]))
+    np.add.at(out, k, Fm)
+    return out
+
+
+def combined_images_prior(
+    nominal: I4Parameters, q_rot: np.ndarray, q_tra: np.ndarray, scene: Scene, noise: ImageNoise
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The combined method's prior information (p, p) over (combinations, w, z, edge biases), the intrinsics'
+    principal steps (n_z, n) and the base frame's change with them G (3, n_z)."""
+    steps = _steps(noise.covariance(), len(noise.intrinsics_names))
+    Fw, G = base_frame_images(nominal, q_rot, q_tra, scene, noise, steps)
+    n_edge = 2 if noise.edge_bias_prior_px > 0 else 0
+    p = 7 + steps.shape[0] + n_edge
+    P = np.zeros((p, p))
+    P[4:7, 4:7] = Fw
+    P[7:, 7:] = np.eye(p - 7)
+    return P, steps, G
+
+
+def predict_combined_images(
+    nominal: I4Parameters,
+    q_fit: np.ndarray,
+    q_rot: np.ndarray,
+    q_tra: np.ndarray,
+    scene: Scene,
+    noise: ImageNoise,
+    drop: set[tuple[int, int, int]] | None = None,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Predicted covariance (4, 4) of the combined method's combinations on images (m^2), and the intrinsics'
+    posterior covariance (n, n) after the rods (None without a camera covariance). ``drop``: rods left out (fit
+    pose index, leg 0-3, rod 0-1), e.g. those a run's fit rejected."""
+    P, steps, G = combined_images_prior(nominal, q_rot, q_tra, scene, noise)
+    F = combined_images_pose_information(nominal, q_fit, scene, noise, steps, G, drop).sum(axis=0) + P
+    from .predict import _inv
+
+    C = _inv(F, "combined")
+    post = None
+    if steps.shape[0]:
+        ni = steps.shape[0]
+        post = steps.T @ C[7 : 7 + ni, 7 : 7 + ni] @ steps
+    return C[:4, :4], post
+
+
+# -- end-effector ----------------------------------------------------------------------------------------------
+def predict_end_effector_images(
+    nominal: I4Parameters,
+    q_fit: np.ndarray,
+    scene: Scene,
+    noise: ImageNoise,
+    intrinsics_cov: np.ndarray | None = None,
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Predicted covariance (4, 4) of the end-effector method on images (m^2) and its parts
+    (``board_poses_and_encoders``, ``intrinsics``). ``intrinsics_cov``: the camera's covariance the method uses
+    (the rods' posterior, as the extraction records it; default: the calibration's)."""
+    from .predict import _ee_problem, _inv
+
+    model, x0, R, t = _ee_problem(nominal, q_fit, scene)
+    n = len(R)
+    J = central_jacobian(lambda x: model.residuals(x).ravel(), x0, 1e-7).reshape(n, 6, -1)
+    A = np.zeros((n, 6, 6))
+    h = 1e-7
+    for a in range(6):
+        d = np.zeros(3)
+        d[a % 3] = h
+        if a < 3:
+            rp = model.residuals(x0, rotvec_to_matrix(d) @ R, t)
+            rm = model.residuals(x0, rotvec_to_matrix(-d) @ R, t)
+        else:
+            rp = model.residuals(x0, R, t + d)
+            rm = model.residuals(x0, R, t - d)
+        A[:, :, a] = (rp - rm) / (2 * h)
+    bp: BoardPoses = board_poses(scene, nominal, q_fit, noise.corner_px, noise.intrinsics_names)
+    C = np.einsum("nij,njk,nlk->nil", A, bp.cov, A)
+    C[:, :4, :4] += noise.encoder_m**2 * np.eye(4)
+    Ci = np.linalg.inv(C + 1e-30 * np.eye(6))
+    F = np.einsum("nai,nab,nbj->ij", J, Ci, J)
+    Fi = _inv(F, "end-effector")
+    parts = {"board_poses_and_encoders": Fi[:4, :4], "intrinsics": np.zeros((4, 4))}
+    cov_i = noise.covariance() if intrinsics_cov is None else intrinsics_cov
+    if cov_i is not None:
+        steps = _steps(cov_i, len(noise.intrinsics_names))
+        D = np.einsum("nij,njk,sk->nis", A, bp.d_intrinsics, steps)  # (n, 6, S) residual change per step
+        dx = Fi @ np.einsum("nai,nab,nbs->is", J, Ci, D)
+        parts["intrinsics"] = (dx @ dx.T)[:4, :4]
+    return parts["board_poses_and_encoders"] + parts["intrinsics"], parts
+
+
+# -- legs ------------------------------------------------------------------------------------------------------
+def predict_legs_images(
+    nominal: I4Parameters,
+    q_fit: np.ndarray,
+    q_lock: list[np.ndarray],
+    scene: Scene,
+    noise: ImageNoise,
+    intrinsics_cov: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """Predicted covariances of the legs method on images: seven parameters (7, 7), four combinations (4, 4), and
+    the seven's parts (``joint_centres``, ``leg_directions``, ``intrinsics``, ``limb_edge_bias``, ``a_priori``)."""
+    from ..methods.legs import (
+        PlaneObservation,
+        _IntrinsicsEffect,
+        _LegsPipeline,
+        _pair_means,
+        _steps34_covariance,
+        _with_prior,
+        joint_from_planes,
+        limb_line_noise,
+    )
+    from .predict import SEVEN_TO_FOUR
+
+    if len(q_lock) != 4 or any(len(np.atleast_2d(q)) < 2 for q in q_lock):
+        raise IdentifiabilityError("the legs method needs at least 2 frames in each of lock-1 .. lock-4")
+    K = scene.camera.K
+    q_locked = np.zeros(4)
+    planes: list[list[list[PlaneObservation]]] = []
+    lock_fields = []
+    for i in range(4):
+        q = np.atleast_2d(np.asarray(q_lock[i], dtype=np.float64))
+        q_locked[i] = float(np.mean(q[:, i]))
+        rods = _rods(scene, nominal, q, noise)
+        row, frow = [], []
+        for j in range(2):
+            sel = (rods.leg == i) & (rods.rod == j)
+            if sel.sum() < 2:
+                raise IdentifiabilityError(
+                    f"lock-{i + 1}: rod {j} of leg {i + 1} is in view in {int(sel.sum())} frame(s); at least 2 needed"
+                )
+            obs = []
+            for m in np.nonzero(sel)[0]:
+                dh, var = limb_line_noise(
+                    K,
+                    rods.h[m],
+                    rods.point[m],
+                    np.array([noise.edge_px] * 2),
+                    rods.n_points[m],
+                    rods.cov_u[m],
+                    noise.step_px,
+                    noise.edge_bias_px,
+                )
+                obs.append(PlaneObservation(rods.h[m], scene.rod_radius_m, dh, var))
+            row.append(obs)
+            frow.append((rods.limbs_px[sel], rods.h[sel]))
+        planes.append(row)
+        lock_fields.append(frow)
+    P = np.array([[joint_from_planes(planes[i][j])[0] for j in range(2)] for i in range(4)])
+    covP = np.zeros((24, 24))
+    for i in range(4):
+        for j in range(2):
+            k = (2 * i + j) * 3
+            covP[k : k + 3, k : k + 3] = np.linalg.inv(joint_from_planes(planes[i][j])[1])
+    # fit poses: leg directions from the two rods (covariance-weighted), as the method combines them
+    q_fit = np.asarray(q_fit, dtype=np.float64).reshape(-1, 4)
+    N = len(q_fit)
+    fr = _rods(scene, nominal, q_fit, noise)
+    u = np.full((N, 4, 2, 3), np.nan)
+    Cr = np.full((N, 4, 2, 3, 3), np.nan)
+    has = np.zeros((N, 4, 2), dtype=bool)
+    pts = np.full((N, 4, 3), np.nan)
+    u[fr.k, fr.leg, fr.rod] = fr.u
+    Cr[fr.k, fr.leg, fr.rod] = fr.cov_u
+    has[fr.k, fr.leg, fr.rod] = True
+    U, CU, _ = _pair_means(u, has, Cr)
+    has_leg = has.any(axis=2)
+    for k, i, j in zip(fr.k, fr.leg, fr.rod, strict=True):
+        if np.isnan(pts[k, i, 0]):
+            pts[k, i] = fr.point[(fr.k == k) & (fr.leg == i) & (fr.rod == j)][0]
+    pipe = _LegsPipeline(q_locked, q_fit, pts, has_leg, CU, nominal)
+    Uf = np.where(has_leg[..., None], U, 0.0)
+    seven = pipe.run(P, Uf)
+    x2 = np.array([*seven[1:4].tolist(), seven[0]])
+    h = 1e-7
+    GP = np.zeros((7, 24))
+    for a in range(24):
+        dP = np.zeros(24)
+        dP[a] = h
+        GP[:, a] = (pipe.run(P + dP.reshape(4, 2, 3), Uf, x2) - pipe.run(P - dP.reshape(4, 2, 3), Uf, x2)) / (2 * h)
+    c34, _chi, _dof = _steps34_covariance(pipe, P, Uf, seven)
+    parts = {"joint_centres": GP @ covP @ GP.T, "leg_directions": np.zeros((7, 7))}
+    idx = np.array([6, 4, 5])
+    parts["leg_directions"][np.ix_(idx, idx)] = c34
+    parts["intrinsics"] = np.zeros((7, 7))
+    parts["limb_edge_bias"] = np.zeros((7, 7))
+    cov_i = noise.covariance() if intrinsics_cov is None else intrinsics_cov
+    steps = _steps(cov_i, len(noise.intrinsics_names))
+    if steps.shape[0] or noise.edge_bias_prior_px > 0:
+        cam = design_camera(scene.camera, noise.intrinsics_names)
+        idx_fit = (fr.k, fr.leg, fr.rod)
+        eff = _IntrinsicsEffect(cam, steps, lock_fields, idx_fit, fr.limbs_px, fr.h)
+        rod_u = np.where(has[..., None], u, 0.0)
+
+        def seven_for(z: np.ndarray) -> np.ndarray:
+            pz = eff.lock_planes(z, planes)
+            Pz = np.array([[joint_from_planes(pz[i][j])[0] for j in range(2)] for i in range(4)])
+            Uz = _pair_means(eff.rod_u(z, rod_u), has, Cr)[0]
+            return pipe.run(Pz, np.where(pipe.has_leg[..., None], Uz, 0.0), x2)
+
+        nz = steps.shape[0]
+        E = np.zeros((nz + 2, nz + 2))
+        E[:nz, :nz] = np.eye(nz)
+        E[nz:, nz:] = noise.edge_bias_prior_px * np.eye(2)
+        Jz = np.stack([(seven_for(e) - seven_for(-e)) / 2.0 for e in E], axis=1)
+        parts["intrinsics"] = Jz[:, :nz] @ Jz[:, :nz].T
+        parts["limb_edge_bias"] = Jz[:, nz:] @ Jz[:, nz:].T
+    cov7 = sum(parts.values())
+    if noise.legs_prior_std_m:
+        _s, cov7, parts = _with_prior(seven, cov7, parts, nominal, noise.legs_prior_std_m)
+    return cov7, SEVEN_TO_FOUR @ cov7 @ SEVEN_TO_FOUR.T, parts
