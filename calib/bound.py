@@ -169,13 +169,14 @@ def crlb_combined(
     }
 
 
-def ml_combined(obs, noise: MeasurementNoise, *, start=None) -> np.ndarray:
+def ml_combined(obs, noise: MeasurementNoise, *, start=None, base_frame=None) -> np.ndarray:
     """Maximum-likelihood estimate of the four combinations under the bound's measurement model.
 
     Fits every unknown of :func:`combined_fisher` jointly to all the rods of the fit poses and the
     board poses of the rotation and translation phases, with the noise known. At small noise it is
     efficient: its spread is the bound (tests compare them). ``start`` is a MethodResult of the
-    combined method used to initialise (computed when not given).
+    combined method used to initialise (computed when not given); ``base_frame`` the
+    :class:`calib.baseframe.BaseFrameResult` of ``obs`` it was computed with (estimated when not given).
 
     Returns
     -------
@@ -186,7 +187,7 @@ def ml_combined(obs, noise: MeasurementNoise, *, start=None) -> np.ndarray:
     from .baseframe import base_frame_from_observations
     from .methods.combined import calibrate_combined
 
-    bf = base_frame_from_observations(obs)
+    bf = base_frame or base_frame_from_observations(obs)
     start = start or calibrate_combined(obs, base_frame=bf, weighting="gls")
     fit = obs.arrays("poses")
     rot = obs.arrays("rotation")

@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from calib.baseframe import base_frame_from_observations
 from calib.bound import MeasurementNoise, crlb_combined, ml_combined
 from calib.methods import calibrate_combined
 from calib.observations import Observations
@@ -23,9 +24,10 @@ def trials(paper_plan):
     ml, comb = [], []
     for seed in range(N_TRIALS):
         obs = Observations.from_dict(twin.observations(plan=paper_plan, seed=1000 + seed))
-        start = calibrate_combined(obs, weighting="gls")
+        bf = base_frame_from_observations(obs)  # estimated once per data set, for both estimators
+        start = calibrate_combined(obs, base_frame=bf, weighting="gls")
         comb.append(start.vector() - truth)
-        ml.append(ml_combined(obs, NOISE, start=start) - truth)
+        ml.append(ml_combined(obs, NOISE, start=start, base_frame=bf) - truth)
     bound = crlb_combined(twin.geometry.truth, paper_plan, NOISE, twin.geometry.camera_from_base.R)
     return np.asarray(ml), np.asarray(comb), np.array([bound["std"][k] for k in COMBINATION_NAMES])
 
