@@ -14,10 +14,12 @@ Protocol (7-bit ASCII, one request line, exactly one reply line; ``\\n`` or ``\\
     CTRL <axis 1..4> <bits>               -> OK   control bits as the Modbus map (1 start, 2 stop, 4 home,
                                                   8 alarm reset, 16 free while set)
 
-A reply whose sequence number is not the request's is a stale or stray line and is discarded; every
-position read must be plausible (:meth:`drivers.modbus.ModbusActuators.check_reading`); a line
-that does not parse is a framing error; both lead to a retry after the buffers are flushed. No reply
-within the timeout is retried, then raises :class:`~drivers.errors.DeviceTimeoutError`.
+:class:`SerialAsciiLink` is the :class:`drivers.links.AxisLink` that speaks it; :class:`SerialAsciiActuators` is the
+axis controller (:class:`drivers.axes.AxisController`) over it. A reply whose sequence number is not the request's
+is a stale or stray line and is discarded; every position read must be plausible
+(:meth:`drivers.axes.AxisController.check_reading`); a line that does not parse is a framing error; both lead to a
+retry after the buffers are flushed. No reply within the timeout is retried, then raises
+:class:`~drivers.errors.DeviceTimeoutError`.
 """
 
 from __future__ import annotations
@@ -25,35 +27,65 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
+from .axes import AxisController
 from .errors import DeviceConnectionError, DeviceTimeoutError, MissingExtraError, ProtocolError
-from .interfaces import ActuatorStatus, AxisStatus
-from .modbus import ModbusActuators
+from .interfaces import AxisStatus
+from .links import Command, decode_status
+from .metrics import CountingStats
 from .registermap import DEFAULT_MAP
 
+#: the protocol's axis count (STAT? reports four axes, MOVE takes four targets)
+ASCII_AXES = 4
 
-class SerialAsciiActuators(ModbusActuators):
-    """:class:`drivers.interfaces.Actuators` over the ASCII protocol above (move/wait/stop logic shared with
-    the Modbus driver)."""
+
+class SerialAsciiLink:
+    """:class:`drivers.links.AxisLink` over the ASCII protocol above: one request line, one reply line, retried.
+
+    Parameters
+    ----------
+    url:
+        pyserial port or URL (``/dev/ttyACM0``, ``socket://HOST:PORT``).
+    baudrate, timeout_s, retries, backoff_s, backoff_max_s:
+        Line speed; reply timeout of one request (s); attempts after the first, with exponential back-off (s)
+        bounded by ``backoff_max_s``.
+    """
+
+    n_axes = ASCII_AXES
+    reads_every_axis = True  # STAT? reports every axis
 
     def __init__(
-        self, url: str, *, baudrate: int = 115200, timeout_s: float = 0.5, retries: int = 3, **kw: Any
+        self,
+        url: str,
+        *,
+        baudrate: int = 115200,
+        timeout_s: float = 0.5,
+        retries: int = 3,
+        backoff_s: float = 0.02,
+        backoff_max_s: float = 1.0,
     ) -> None:
-        super().__init__(transport="tcp", timeout_s=timeout_s, retries=retries, **kw)
         self.url = url
         self.baudrate = int(baudrate)
-        self._ser = None
+        self.timeout_s = float(timeout_s)
+        self.retries = int(retries)
+        self.backoff_s, self.backoff_max_s = float(backoff_s), float(backoff_max_s)
+        self._ser: Any = None
         self._seq = 0
-        self.stats.update(stale=0, framing=0)
+        self._lock = asyncio.Lock()
+        #: counters (summed with the Modbus driver's under ``modbus_*`` in ``GET /metrics``, as before the split)
+        self.stats = CountingStats(
+            "modbus",
+            {"requests": 0, "retries": 0, "timeouts": 0, "reconnects": 0, "stale": 0, "unrequested": 0, "framing": 0},
+        )
 
     @property
     def endpoint(self) -> str:
         return f"{self.url} (ASCII)"
 
-    # -- link ----------------------------------------------------------------------------------------
     def _open_serial(self) -> None:
         try:
             import serial
@@ -132,51 +164,74 @@ class SerialAsciiActuators(ModbusActuators):
         raise DeviceTimeoutError(f"serial controller at {self.url}: {last}, after {self.retries + 1} attempts")
 
     async def command(self, command: str) -> list[str]:
+        """Send one command line, return the reply's values (one request at a time, retried)."""
         async with self._lock:
             return await asyncio.to_thread(self._transact, command)
 
-    async def connect(self) -> None:
+    async def open(self) -> None:
         await asyncio.to_thread(self._open_serial)
         await self.command("ID?")
-        await self.status()
 
     async def close(self) -> None:
         self._close_serial()
 
-    # -- hooks used by the shared move/home/wait logic ---------------------------------------------------
-    async def status(self) -> ActuatorStatus:
-        t_request = time.monotonic()
+    async def read_axes(self, axes: Sequence[int]) -> dict[int, AxisStatus]:
+        """Every axis, by one ``STAT?``."""
         v = await self.command("STAT?")
-        if len(v) != 12:
-            raise ProtocolError(f"STAT? gave {len(v)} values, expected 12")
-        b = DEFAULT_MAP.status_bits
-        axes = []
-        for i in range(4):
+        if len(v) != 3 * ASCII_AXES:
+            raise ProtocolError(f"STAT? gave {len(v)} values, expected {3 * ASCII_AXES}")
+        out = {}
+        for i in range(ASCII_AXES):
             st, pos, code = int(v[3 * i]), int(v[3 * i + 1]), int(v[3 * i + 2])
-            self.check_reading(i, pos / 1e6, t_request)  # plausible, else ProtocolError (nothing moves on it)
-            axes.append(
-                AxisStatus(
-                    ready=bool(st >> b.ready & 1),
-                    moving=bool(st >> b.moving & 1),
-                    in_position=bool(st >> b.in_position & 1),
-                    alarm=bool(st >> b.alarm & 1),
-                    homed=bool(st >> b.homed & 1),
-                    free=bool(self._free_bits[i]),
-                    alarm_code=code,
-                    position_m=pos / 1e6,
-                )
-            )
-        return ActuatorStatus(tuple(axes))
+            out[i] = decode_status(st, DEFAULT_MAP.status_bits, pos / 1e6, code)
+        return out
 
-    async def read_axis(self, axis: int) -> AxisStatus:
-        return (await self.status()).axes[axis]
-
-    async def _control(self, axis: int, bit: str | None, *, urgent: bool = False) -> None:
+    async def control(self, axis: int, command: Command | None, *, free: bool, urgent: bool = False) -> None:
         m = DEFAULT_MAP
-        value = (m.bit("control", bit) if bit else 0) | (m.bit("control", "free") if self._free_bits[axis] else 0)
+        value = (m.bit("control", command) if command else 0) | (m.bit("control", "free") if free else 0)
         await self.command(f"CTRL {axis + 1} {value}")
 
-    async def _start_move(self, target: np.ndarray, speeds: np.ndarray) -> None:
-        t = [round(x * 1e6) for x in target]
-        v = [max(1, round(x * 1e6)) for x in speeds]
+    async def start_move(self, targets_m: np.ndarray, speeds_m_s: np.ndarray) -> None:
+        t = [round(x * 1e6) for x in targets_m]
+        v = [max(1, round(x * 1e6)) for x in speeds_m_s]
         await self.command("MOVE " + " ".join(map(str, t + v)))
+
+
+class SerialAsciiActuators(AxisController):
+    """:class:`drivers.interfaces.Actuators` over the ASCII protocol above: the axis controller
+    (:class:`drivers.axes.AxisController`, its keywords in ``kw``) over a :class:`SerialAsciiLink`.
+
+    ``backoff_s`` and ``backoff_max_s`` in ``kw`` go to the link too (``backoff_s`` is also the pause before a stop
+    is sent again).
+    """
+
+    def __init__(
+        self, url: str, *, baudrate: int = 115200, timeout_s: float = 0.5, retries: int = 3, **kw: Any
+    ) -> None:
+        backoff = {k: kw[k] for k in ("backoff_s", "backoff_max_s") if k in kw}
+        kw.pop("backoff_max_s", None)
+        self.ascii = SerialAsciiLink(url, baudrate=baudrate, timeout_s=timeout_s, retries=retries, **backoff)
+        super().__init__(self.ascii, **kw)
+
+    @property
+    def url(self) -> str:
+        return self.ascii.url
+
+    @property
+    def baudrate(self) -> int:
+        return self.ascii.baudrate
+
+    @property
+    def timeout_s(self) -> float:
+        return self.ascii.timeout_s
+
+    @property
+    def retries(self) -> int:
+        return self.ascii.retries
+
+    async def command(self, command: str) -> list[str]:
+        """Send one command line, return the reply's values (:meth:`SerialAsciiLink.command`)."""
+        return await self.ascii.command(command)
+
+
+__all__ = ["ASCII_AXES", "SerialAsciiActuators", "SerialAsciiLink"]

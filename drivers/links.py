@@ -1,0 +1,87 @@
+"""What the axis controller needs of a motion controller's protocol: the :class:`AxisLink`, and nothing more.
+
+A link speaks one protocol to the motion controller (Modbus: :class:`drivers.modbus.ModbusLink`; the serial ASCII
+protocol: :class:`drivers.serial_ascii.SerialAsciiLink`). It reads the axes (status bits, encoder position in metres,
+alarm code), writes the targets and speeds of every axis at once, and writes one axis' control word (start, stop,
+home, alarm reset, free). It owns its transport's reliability (retries, reply matching, stale-reply guards) and its
+request counters. The motion logic over any link (soft limits, move timeouts, waiting, plausible readings, confirmed
+stop, cancellation) is :class:`drivers.axes.AxisController`'s.
+
+Positions are metres and speeds metres per second here; counts exist only inside a link.
+"""
+
+from __future__ import annotations
+
+from collections.abc import MutableMapping, Sequence
+from typing import Any, Literal, Protocol
+
+import numpy as np
+
+from .interfaces import AxisStatus
+from .registermap import StatusBits
+
+#: A control command for one axis (the bits of the control word: :class:`drivers.registermap.ControlBits`).
+Command = Literal["start", "stop", "home", "reset"]
+
+
+class AxisLink(Protocol):
+    """The link from the axis controller to a motion controller of ``n_axes`` axes (numbered 0..n-1 here).
+
+    Errors are :class:`~drivers.errors.DeviceError` subclasses: :class:`~drivers.errors.DeviceConnectionError`
+    (no link), :class:`~drivers.errors.DeviceTimeoutError` (no reply after the link's retries),
+    :class:`~drivers.errors.ProtocolError` (the controller refused, or a reply makes no sense).
+    """
+
+    @property
+    def n_axes(self) -> int:
+        """Number of axes."""
+
+    @property
+    def reads_every_axis(self) -> bool:
+        """``True`` when one read reports every axis (then :meth:`read_axes` always returns them all)."""
+
+    @property
+    def endpoint(self) -> str:
+        """Where the controller is, for messages (e.g. ``127.0.0.1:502 (RTU over TCP)``)."""
+
+    @property
+    def stats(self) -> MutableMapping[str, Any]:
+        """The link's counters (requests, retries, timeouts, ...)."""
+
+    async def open(self) -> None:
+        """Connect (retried as the link's settings say)."""
+
+    async def close(self) -> None:
+        """Disconnect; never raises."""
+
+    async def read_axes(self, axes: Sequence[int]) -> dict[int, AxisStatus]:
+        """Read axes ``axes`` (0-based) by requests sent after this call.
+
+        Returns ``{axis: status}`` for at least ``axes`` (every axis when :attr:`reads_every_axis`); ``free`` is
+        left ``False`` (the controller knows whether it set the drives free), ``position_m`` is the encoder (m).
+        """
+
+    async def start_move(self, targets_m: np.ndarray, speeds_m_s: np.ndarray) -> None:
+        """Write every axis' target (m) and speed (m/s), shape ``(n_axes,)`` each, and start the move."""
+
+    async def control(self, axis: int, command: Command | None, *, free: bool, urgent: bool = False) -> None:
+        """Write axis ``axis``'s control word: ``command``'s bit (``None``: none), with the free bit when ``free``.
+
+        ``urgent`` (a stop): send it now, without waiting out a guard of the link (its replies are still checked).
+        """
+
+
+def decode_status(word: int, bits: StatusBits, position_m: float, alarm_code: int) -> AxisStatus:
+    """An axis' status from its status word (bit numbers ``bits``), its position (m) and its alarm code."""
+    return AxisStatus(
+        ready=bool(word >> bits.ready & 1),
+        moving=bool(word >> bits.moving & 1),
+        in_position=bool(word >> bits.in_position & 1),
+        alarm=bool(word >> bits.alarm & 1),
+        homed=bool(word >> bits.homed & 1),
+        alarm_code=alarm_code,
+        position_m=position_m,
+    )
+
+
+__all__ = ["AxisLink", "Command", "decode_status"]
