@@ -20,7 +20,7 @@ from calib.methods import registry
 from calib.methods.registry import MethodContext, MethodSpec, get_method, method_names, register_method
 from calib.observations import Observations
 from calib.pipeline import calibrate
-from tests.service.conftest import AUTH, rendered_zip, service, sim, wait_state  # noqa: F401  (fixtures)
+from tests.service.conftest import AUTH, service, sim, wait_state  # noqa: F401  (fixtures; rendered_zip: tests/conftest.py)
 
 ROOT = Path(__file__).resolve().parents[1]
 API = "/api/v1"

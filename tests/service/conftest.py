@@ -138,30 +138,6 @@ async def read_events(client: httpx.AsyncClient, run_id: str) -> list[dict]:
 
 
 @pytest.fixture(scope="session")
-def rendered_zip(tmp_path_factory) -> bytes:
-    """A reduced 'full' plan rendered by the image-level twin, its true intrinsics written in, as a zip."""
-    import io
-    import zipfile
-
-    from calib.plan import make_plan
-    from drivers.sim.imaging import simulate_dataset
-    from drivers.sim.twin import BenchGeometry
-
-    g = BenchGeometry()
-    plan = make_plan("full", g.nominal, seed=2, n_base=6, n_fit=10, n_lock=4, n_validation=4, line_samples=11)
-    root = simulate_dataset(tmp_path_factory.mktemp("rendered") / "ds", seed=2, geometry=g, plan=plan, n_camera_views=0)
-    doc = json.loads((root / "dataset.json").read_text())
-    doc["camera"]["K"], doc["camera"]["dist"] = doc["truth"]["K"], doc["truth"]["dist"]
-    (root / "dataset.json").write_text(json.dumps(doc))
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w") as zf:
-        for f in sorted(root.rglob("*")):
-            if f.is_file():
-                zf.write(f, f"dataset/{f.relative_to(root).as_posix()}")
-    return buf.getvalue()
-
-
-@pytest.fixture(scope="session")
 def postgres_url():
     """A throwaway PostgreSQL cluster's URL (tests/service/pgcluster.py); skips, saying why, when none can start."""
     from tests.service.pgcluster import ClusterUnavailableError, temporary_cluster
