@@ -89,9 +89,15 @@ def motion_spec(cfg) -> Any:
 
 
 def design_for_bench(cfg, request, noise=None):
-    """Design a plan for a bench configuration; returns ``calib.design.DesignResult``."""
+    """Design a plan for a bench configuration; returns ``calib.design.DesignResult``.
+
+    ``noise``: ``calib.design.DesignNoise`` or ``ImageNoise``; default: the image-level model of the twin's camera
+    (:func:`twin_image_noise`), what the methods' uncertainty is on images.
+    """
     from calib.design import design_plan
 
+    if noise is None:
+        noise = twin_image_noise()
     return design_plan(
         cfg.nominal_parameters(),
         twin_scene(),

@@ -193,25 +193,30 @@ def board_corners(scene: Scene) -> np.ndarray:
 def _corner_jacobians(
     camera: CameraModel, names: tuple[str, ...], R: np.ndarray, t: np.ndarray, pts: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """d(projected corners, 2C) / d(left rotation, t) (2C, 6) and / d(intrinsics ``names``) (2C, n)."""
+    """For poses R (N, 3, 3), t (N, 3): d(projected corners, 2C) / d(left rotation, t), (N, 2C, 6), and
+    / d(intrinsics ``names``), (N, 2C, n); central differences, every pose at once."""
+    R = np.asarray(R, dtype=np.float64).reshape(-1, 3, 3)
+    t = np.asarray(t, dtype=np.float64).reshape(-1, 3)
+    n, c = len(R), len(pts)
 
     def proj(cam: CameraModel, Rm: np.ndarray, tm: np.ndarray) -> np.ndarray:
-        return cam.project(pts @ Rm.T + tm).ravel()
+        # Rm (..., 3, 3), tm (..., 3) -> (..., 2C)
+        X = np.einsum("...ij,cj->...ci", Rm, pts) + tm[..., None, :]
+        return cam.project(X.reshape(-1, 3)).reshape(*X.shape[:-2], 2 * c)
 
-    Jp = np.zeros((2 * len(pts), 6))
-    for a in range(6):
-        d = np.zeros(6)
-        d[a] = 1e-7
-        Jp[:, a] = (
-            proj(camera, rotvec_to_matrix(d[:3]) @ R, t + d[3:]) - proj(camera, rotvec_to_matrix(-d[:3]) @ R, t - d[3:])
-        ) / 2e-7
-    Ji = np.zeros((2 * len(pts), len(names)))
+    h = 1e-7
+    E = np.concatenate([np.eye(6), -np.eye(6)]) * h  # (12, 6)
+    Rp = np.einsum("kij,njl->knil", rotvec_to_matrix(E[:, :3]), R)  # (12, N, 3, 3)
+    tp = t[None] + E[:, None, 3:]
+    P = proj(camera, Rp, tp)  # (12, N, 2C)
+    Jp = np.moveaxis((P[:6] - P[6:]) / (2 * h), 0, -1)  # (N, 2C, 6)
+    Ji = np.zeros((n, 2 * c, len(names)))
     for a, name in enumerate(names):
-        hstep = 1e-4 if name in ("fx", "fy", "cx", "cy") else 1e-7
+        hs = 1e-4 if name in ("fx", "fy", "cx", "cy") else 1e-7
         e = np.zeros(len(names))
-        e[a] = hstep
-        Ji[:, a] = (proj(moved_camera(camera, e, names), R, t) - proj(moved_camera(camera, -e, names), R, t)) / (
-            2 * hstep
+        e[a] = hs
+        Ji[:, :, a] = (proj(moved_camera(camera, e, names), R, t) - proj(moved_camera(camera, -e, names), R, t)) / (
+            2 * hs
         )
     return Jp, Ji
 
@@ -246,13 +251,10 @@ def board_poses(
     cbs = scene.camera_from_board(params, dkm(params, q))
     R = np.stack([c.R for c in cbs]) if cbs else np.zeros((0, 3, 3))
     t = np.stack([c.t for c in cbs]) if cbs else np.zeros((0, 3))
-    cov = np.zeros((len(q), 6, 6))
-    dint = np.zeros((len(q), 6, len(names)))
-    for k in range(len(q)):
-        Jp, Ji = _corner_jacobians(scene.camera, names, R[k], t[k], pts)
-        Hi = np.linalg.inv(Jp.T @ Jp)
-        cov[k] = corner_px**2 * Hi
-        dint[k] = -Hi @ Jp.T @ Ji
+    Jp, Ji = _corner_jacobians(scene.camera, names, R, t, pts)
+    Hi = np.linalg.inv(np.einsum("nai,naj->nij", Jp, Jp))
+    cov = corner_px**2 * Hi
+    dint = -np.einsum("nij,naj,nak->nik", Hi, Jp, Ji)
     return BoardPoses(R, t, cov, dint)
 
 
@@ -262,11 +264,9 @@ def calibration_covariance(scene: Scene, views: list[Rigid], corner_px: float, n
     if len(views) < 3:
         raise InputError("a camera calibration needs at least 3 board views", field="views")
     pts = board_corners(scene)
-    n = len(names)
-    F = np.zeros((n, n))
-    for v in views:
-        Jp, Ji = _corner_jacobians(scene.camera, names, v.R, v.t, pts)
-        # the view's pose marginalised: Ji^T (I - Jp (Jp^T Jp)^-1 Jp^T) Ji
-        A = np.linalg.solve(Jp.T @ Jp, Jp.T @ Ji)
-        F += Ji.T @ Ji - (Jp.T @ Ji).T @ A
+    Jp, Ji = _corner_jacobians(scene.camera, names, np.stack([v.R for v in views]), np.stack([v.t for v in views]), pts)
+    # every view's pose marginalised: sum Ji^T (I - Jp (Jp^T Jp)^-1 Jp^T) Ji
+    JpJi = np.einsum("nai,naj->nij", Jp, Ji)
+    A = np.linalg.solve(np.einsum("nai,naj->nij", Jp, Jp), JpJi)
+    F = np.einsum("nai,naj->ij", Ji, Ji) - np.einsum("nki,nkj->ij", JpJi, A)
     return corner_px**2 * np.linalg.inv(F)

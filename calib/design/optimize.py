@@ -54,6 +54,13 @@ from .predict import (
     phase_q,
     predict_plan,
 )
+from .predict_images import (
+    ImageNoise,
+    base_frame_images,
+    combined_images_pose_information,
+    combined_images_prior,
+    end_effector_images_pose_information,
+)
 from .scene import Scene, visibility
 
 __all__ = ["DesignRequest", "DesignResult", "design_plan", "log_det_information", "select_poses"]
@@ -253,7 +260,7 @@ def log_det_information(
     plan: Plan,
     nominal: I4Parameters,
     scene: Scene,
-    noise: DesignNoise | None = None,
+    noise: DesignNoise | ImageNoise | None = None,
     methods: tuple[str, ...] = ("combined",),
 ) -> dict[str, float]:
     """D-criterion of a plan: per method, log det of the four combinations' information (m^-2; higher better)."""
@@ -261,20 +268,32 @@ def log_det_information(
     q_fit = phase_q(plan, "poses")
     out = {}
     for m in methods:
-        F = _method_information(m, nominal, q_fit, scene, noise).sum(axis=0) + _method_prior(
-            m, nominal, phase_q(plan, "rotation"), phase_q(plan, "translation"), scene, noise
+        q_rot, q_tra = phase_q(plan, "rotation"), phase_q(plan, "translation")
+        F = _method_information(m, nominal, q_fit, scene, noise, q_rot, q_tra).sum(axis=0) + _method_prior(
+            m, nominal, q_rot, q_tra, scene, noise
         )
         out[m] = float(_cov4(F)[1])
     return out
 
 
-def _method_information(m: str, nominal, q, scene: Scene, noise: DesignNoise) -> np.ndarray:
+def _method_information(
+    m: str, nominal, q, scene: Scene, noise: DesignNoise | ImageNoise, q_rot=None, q_tra=None
+) -> np.ndarray:
+    """Per fit pose (N, p, p) information of method ``m`` (on images the combined method's nuisances, whose
+    base-frame coupling needs the sweeps ``q_rot``, ``q_tra``)."""
+    if isinstance(noise, ImageNoise):
+        if m == "combined":
+            _P, steps, G = combined_images_prior(nominal, q_rot, q_tra, scene, noise)
+            return combined_images_pose_information(nominal, q, scene, noise, steps, G)
+        return end_effector_images_pose_information(nominal, q, scene, noise)
     if m == "combined":
         return combined_pose_information(nominal, q, scene.camera_from_base.R, noise)
     return end_effector_pose_information(nominal, q, scene, noise)
 
 
-def _method_prior(m: str, nominal, q_rot, q_tra, scene: Scene, noise: DesignNoise) -> np.ndarray:
+def _method_prior(m: str, nominal, q_rot, q_tra, scene: Scene, noise: DesignNoise | ImageNoise) -> np.ndarray:
+    if isinstance(noise, ImageNoise):
+        return combined_images_prior(nominal, q_rot, q_tra, scene, noise)[0] if m == "combined" else np.zeros((16, 16))
     if m == "combined":
         P = np.zeros((7, 7))
         P[4:, 4:] = base_frame_information(nominal, q_rot, q_tra, scene.camera_from_base.R, noise)
@@ -299,7 +318,11 @@ def _sweeps(nominal, scene, limits, ws, noise, n_base) -> tuple[float, float, li
             qt = np.array([s.q for s in tra])
             if not (_in_limits(qt, limits).all() and visibility(scene, nominal, qt)["board"].all()):
                 continue
-            Fw = base_frame_information(nominal, qr, qt, scene.camera_from_base.R, noise)
+            Fw = (
+                base_frame_images(nominal, qr, qt, scene, noise)[0]
+                if isinstance(noise, ImageNoise)
+                else base_frame_information(nominal, qr, qt, scene.camera_from_base.R, noise)
+            )
             ld = float(np.linalg.slogdet(Fw)[1])
             if best is None or ld > best[4] + 1e-9:
                 best = (span, length, rot, tra, ld)
@@ -356,7 +379,7 @@ def design_plan(
     *,
     limits: SoftLimits | None = None,
     motion: MotionSpec | None = None,
-    noise: DesignNoise | None = None,
+    noise: DesignNoise | ImageNoise | None = None,
     ws: Workspace | None = None,
 ) -> DesignResult:
     """Design a plan: sweeps, fit poses (count, choice, order), lock and validation poses; predict it.
@@ -393,7 +416,7 @@ def design_plan(
     qr = np.array([s.q for s in rot])
     qt = np.array([s.q for s in tra])
     infos = _Infos(
-        {m: _method_information(m, nominal, cq, scene, noise) for m in req.methods},
+        {m: _method_information(m, nominal, cq, scene, noise, qr, qt) for m in req.methods},
         {m: _method_prior(m, nominal, qr, qt, scene, noise) for m in req.methods},
     )
     lock = _lock_steps(nominal, scene, limits, ws, req.n_lock, req.seed)

@@ -39,7 +39,7 @@ from ..errors import IdentifiabilityError, InputError
 from ..numdiff import central_jacobian
 from ..parameters import COMBINATION_NAMES, I4Parameters
 from ..transforms import matrix_to_rotvec, rotvec_to_matrix
-from .imaging import BoardPoses, RodSet, board_poses, design_camera, synthetic_rods
+from .imaging import RodSet, board_poses, design_camera, synthetic_rods
 from .scene import Scene
 
 __all__ = [
@@ -47,6 +47,8 @@ __all__ = [
     "ImageNoise",
     "base_frame_images",
     "combined_images_pose_information",
+    "combined_images_prior",
+    "end_effector_images_pose_information",
     "predict_combined_images",
     "predict_end_effector_images",
     "predict_legs_images",
@@ -333,17 +335,10 @@ def predict_combined_images(
 
 
 # -- end-effector ----------------------------------------------------------------------------------------------
-def predict_end_effector_images(
-    nominal: I4Parameters,
-    q_fit: np.ndarray,
-    scene: Scene,
-    noise: ImageNoise,
-    intrinsics_cov: np.ndarray | None = None,
-) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """Predicted covariance (4, 4) of the end-effector method on images (m^2) and its parts
-    (``board_poses_and_encoders``, ``intrinsics``). ``intrinsics_cov``: the camera's covariance the method uses
-    (the rods' posterior, as the extraction records it; default: the calibration's)."""
-    from .predict import _ee_problem, _inv
+def _ee_terms(nominal: I4Parameters, q_fit: np.ndarray, scene: Scene, noise: ImageNoise):
+    """The end-effector problem's residual Jacobian (N, 6, p), their sensitivity to the board pose (N, 6, 6), the
+    board poses (PnP covariance, d_intrinsics) and the residuals' covariance (N, 6, 6)."""
+    from .predict import _ee_problem
 
     model, x0, R, t = _ee_problem(nominal, q_fit, scene)
     n = len(R)
@@ -360,10 +355,35 @@ def predict_end_effector_images(
             rp = model.residuals(x0, R, t + d)
             rm = model.residuals(x0, R, t - d)
         A[:, :, a] = (rp - rm) / (2 * h)
-    bp: BoardPoses = board_poses(scene, nominal, q_fit, noise.corner_px, noise.intrinsics_names)
+    bp = board_poses(scene, nominal, q_fit, noise.corner_px, noise.intrinsics_names)
     C = np.einsum("nij,njk,nlk->nil", A, bp.cov, A)
     C[:, :4, :4] += noise.encoder_m**2 * np.eye(4)
-    Ci = np.linalg.inv(C + 1e-30 * np.eye(6))
+    return J, A, bp, C + 1e-30 * np.eye(6)
+
+
+def end_effector_images_pose_information(
+    nominal: I4Parameters, q_fit: np.ndarray, scene: Scene, noise: ImageNoise
+) -> np.ndarray:
+    """GLS information (N, 16, 16) of each fit pose's board pose (PnP covariance) and encoders on the end-effector
+    method's unknowns (the combinations first)."""
+    J, _A, _bp, C = _ee_terms(nominal, np.asarray(q_fit, dtype=np.float64).reshape(-1, 4), scene, noise)
+    return np.einsum("nai,nab,nbj->nij", J, np.linalg.inv(C), J)
+
+
+def predict_end_effector_images(
+    nominal: I4Parameters,
+    q_fit: np.ndarray,
+    scene: Scene,
+    noise: ImageNoise,
+    intrinsics_cov: np.ndarray | None = None,
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Predicted covariance (4, 4) of the end-effector method on images (m^2) and its parts
+    (``board_poses_and_encoders``, ``intrinsics``). ``intrinsics_cov``: the camera's covariance the method uses
+    (the rods' posterior, as the extraction records it; default: the calibration's)."""
+    from .predict import _inv
+
+    J, A, bp, C = _ee_terms(nominal, np.asarray(q_fit, dtype=np.float64).reshape(-1, 4), scene, noise)
+    Ci = np.linalg.inv(C)
     F = np.einsum("nai,nab,nbj->ij", J, Ci, J)
     Fi = _inv(F, "end-effector")
     parts = {"board_poses_and_encoders": Fi[:4, :4], "intrinsics": np.zeros((4, 4))}

@@ -1,10 +1,11 @@
 """``i4cal bench design``: designed plans against the paper's plan at equal fit-pose counts, on the image-level twin.
 
 For every fit-pose count (``--counts``, default 8,12,20,30) two plans: the paper's (``calib.plan.make_plan("full")``)
-and a designed one (``calib.design.design_plan``, D-optimal for the combined method, the twin's camera and
-mounting); both without the guided line. Each trial renders the plan for a true geometry drawn around nominal
-(the accuracy benchmark's trials: ``service.benchmarks.accuracy``, per-trial camera calibration, extraction,
-the three methods); trial k of every plan shares its truth and seed (common random numbers).
+and a designed one (``calib.design.design_plan``, D-optimal for the combined method on images: the image-level
+prediction with :func:`service.design.twin_image_noise`, the twin's camera and mounting); both without the guided
+line. Each trial renders the plan for a true geometry drawn around nominal (the accuracy benchmark's trials:
+``service.benchmarks.accuracy``, per-trial camera calibration, extraction, the three methods); trial k of every plan
+shares its truth and seed (common random numbers).
 
 Per plan and method: RMS error per combination, mean reported std, the std predicted before motion on images
 (``predicted_images``: :mod:`calib.design.predict_images` with :func:`service.design.twin_image_noise`), at the
@@ -43,7 +44,9 @@ def _plans(
     for n in counts:
         paper = make_plan("full", NOMINAL, seed=seed, n_fit=n)
         paper = Plan(name=f"paper-{n}", steps=[s for s in paper.steps if s.phase != "line"])
-        designed = design_plan(NOMINAL, scene, DesignRequest(n_fit=n, with_line=False, seed=seed), motion=motion).plan
+        designed = design_plan(
+            NOMINAL, scene, DesignRequest(n_fit=n, with_line=False, seed=seed), motion=motion, noise=image_noise
+        ).plan
         for kind, plan in (("paper", paper), ("designed", designed)):
             if only and f"{kind}-{n}" not in only:
                 continue
