@@ -20,17 +20,24 @@ A bench file names its devices by URI; device code never asks whether it is simu
     [nominal]
     file = "nominal.json"                   # optional: the a priori geometry; default calib.parameters.NOMINAL
 
+Each URI scheme has a factory in a registry (:func:`register_actuators_scheme`, :func:`register_camera_scheme`,
+:func:`register_operator_scheme`) that :func:`open_actuators`, :func:`open_camera` and :func:`open_operator` use; a
+factory imports its backend only when a URI of its scheme is opened, so the simulated devices' clients
+(``sim://``, :mod:`drivers.cameras.sim`) and vendor libraries are loaded only when a bench file names them. An
+unknown scheme raises :class:`calib.errors.InputError` naming the URI and the known schemes.
+
 Vendor libraries are optional: a missing one raises :class:`drivers.errors.MissingExtraError` naming the
 extra to install.
 """
 
 from __future__ import annotations
 
+import importlib
 import json
 import tomllib
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 from urllib.parse import parse_qs, unquote, urlsplit
 
 import numpy as np
@@ -210,7 +217,7 @@ def load_bench(path: str | Path) -> BenchConfig:
     return cfg
 
 
-# -- URIs -----------------------------------------------------------------------------------------
+# -- URIs and the scheme registry ----------------------------------------------------------------------------------
 def parse_uri(uri: str) -> tuple[str, str, int | None, str, dict[str, str]]:
     """``(scheme, host, port, path, query)`` of a device URI."""
     parts = urlsplit(uri)
@@ -224,130 +231,282 @@ def parse_uri(uri: str) -> tuple[str, str, int | None, str, dict[str, str]]:
     return parts.scheme.lower(), parts.hostname or "", port, unquote(parts.path), query
 
 
-def open_actuators(cfg: BenchConfig, *, workspace_check: Callable[[np.ndarray], Any] | None = None) -> Actuators:
-    """The actuators backend named by ``cfg.actuators.uri`` (not yet connected).
+class DeviceURI(NamedTuple):
+    """A device URI as the backend factories get it (:func:`parse_uri`'s parts and the text)."""
+
+    text: str
+    scheme: str
+    host: str
+    port: int | None
+    path: str
+    query: dict[str, str]
+
+    @classmethod
+    def parse(cls, uri: str) -> DeviceURI:
+        return cls(uri, *parse_uri(uri))
+
+
+WorkspaceCheck = Callable[[np.ndarray], Any]
+#: ``factory(bench, uri, workspace_check) -> Actuators`` (not yet connected)
+ActuatorsFactory = Callable[[BenchConfig, DeviceURI, WorkspaceCheck | None], Actuators]
+#: ``factory(camera_section, uri) -> Camera`` (not yet opened)
+CameraFactory = Callable[[CameraConfig, DeviceURI], Camera]
+#: ``factory(bench, uri) -> Operator``
+OperatorFactory = Callable[[BenchConfig, DeviceURI], Operator]
+
+
+class _Registry:
+    """URI scheme -> backend factory, for one kind of device. A factory is a callable, or ``"module:attribute"``
+    naming one, imported when a URI of its scheme is first opened (the backend's module, and what it imports, only
+    then: e.g. a simulated device's)."""
+
+    def __init__(self, kind: str) -> None:
+        self.kind = kind
+        self._factories: dict[str, Any] = {}
+
+    def register(self, scheme: str, factory: Any, *, replace: bool = False) -> None:
+        key = scheme.lower()
+        if not key or "://" in key or ":" in key:
+            raise ValueError(f"{self.kind} URI scheme {scheme!r}: a scheme is the part before '://', e.g. 'modbus+tcp'")
+        if not (callable(factory) or (isinstance(factory, str) and ":" in factory)):
+            raise TypeError(f"{self.kind} scheme {scheme!r}: the factory must be callable or 'module:attribute'")
+        if key in self._factories and not replace and self._factories[key] is not factory:
+            raise ValueError(f"{self.kind} URI scheme {key!r} is already registered (pass replace=True to replace it)")
+        self._factories[key] = factory
+
+    def schemes(self) -> tuple[str, ...]:
+        return tuple(self._factories)
+
+    def get(self, scheme: str) -> Any | None:
+        factory = self._factories.get(scheme)
+        if isinstance(factory, str):
+            module, _, attr = factory.partition(":")
+            try:
+                factory = getattr(importlib.import_module(module), attr)
+            except (ImportError, AttributeError) as exc:
+                raise InputError(
+                    f"{self.kind} URI scheme {scheme!r}: cannot load its backend {self._factories[scheme]!r} ({exc})",
+                    field=f"{self.kind}.uri",
+                ) from None
+            self._factories[scheme] = factory
+        return factory
+
+
+_ACTUATORS = _Registry("actuators")
+_CAMERAS = _Registry("camera")
+_OPERATORS = _Registry("operator")
+
+
+def register_actuators_scheme(scheme: str, factory: ActuatorsFactory | str, *, replace: bool = False) -> None:
+    """Open actuators URIs ``scheme://...`` with ``factory(bench, uri, workspace_check)``.
+
+    ``factory``: a callable (:data:`ActuatorsFactory`) or ``"module:attribute"`` naming one, imported when such a URI
+    is first opened. A scheme already registered raises :class:`ValueError` unless ``replace``.
+    """
+    _ACTUATORS.register(scheme, factory, replace=replace)
+
+
+def register_camera_scheme(scheme: str, factory: CameraFactory | str, *, replace: bool = False) -> None:
+    """Open camera URIs ``scheme://...`` with ``factory(camera_config, uri)`` (as :func:`register_actuators_scheme`)."""
+    _CAMERAS.register(scheme, factory, replace=replace)
+
+
+def register_operator_scheme(scheme: str, factory: OperatorFactory | str, *, replace: bool = False) -> None:
+    """Open operator URIs ``scheme://...`` with ``factory(bench, uri)`` (as :func:`register_actuators_scheme`)."""
+    _OPERATORS.register(scheme, factory, replace=replace)
+
+
+def actuators_schemes() -> tuple[str, ...]:
+    """The registered actuators URI schemes, in registration order."""
+    return _ACTUATORS.schemes()
+
+
+def camera_schemes() -> tuple[str, ...]:
+    """The registered camera URI schemes, in registration order."""
+    return _CAMERAS.schemes()
+
+
+def operator_schemes() -> tuple[str, ...]:
+    """The registered operator URI schemes, in registration order (``console`` is also written without ``://``)."""
+    return _OPERATORS.schemes()
+
+
+def open_actuators(cfg: BenchConfig, *, workspace_check: WorkspaceCheck | None = None) -> Actuators:
+    """The actuators backend named by ``cfg.actuators.uri`` (not yet connected), by its scheme's factory.
 
     ``workspace_check``: refuses joint targets another mechanism cannot reach (raises
     :class:`calib.errors.UnreachableError`; e.g. ``lambda q: delta.dkm(nominal, q)``); default: the nominal I4's
     DKM, used with four axes only.
     """
-    a = cfg.actuators
-    scheme, host, port, path, query = parse_uri(a.uri)
-    # the nominal I4 checks the targets of four axes; another mechanism's check is ``workspace_check``
-    common = dict(limits=cfg.soft_limits(), nominal=cfg.nominal_parameters() if a.axes == 4 else None)
-    if scheme in ("modbus+tcp", "modbus", "modbus+rtu+tcp", "modbus+rtu"):
-        from .modbus import ModbusActuators
-
-        kw: dict[str, Any] = dict(
-            regmap=cfg.register_map(),
-            speed_m_s=a.speed_m_s,
-            accel_m_s2=a.accel_m_s2,
-            timeout_s=float(query.get("timeout", a.timeout_s)),
-            retries=a.retries,
-            poll_s=a.poll_s,
-            settle_s=a.settle_s,
-            in_position_m=a.in_position_m,
-            home_timeout_s=a.home_timeout_s,
-            stop_deadline_s=a.stop_deadline_s,
-            late_reply_guard_s=a.late_reply_guard_s,
-            max_speed_m_s=a.max_speed_m_s,
-            plausibility_margin_m=a.plausibility_margin_m,
-            vary_reads=a.vary_reads,
-            workspace_check=workspace_check,
-            **common,
+    uri = DeviceURI.parse(cfg.actuators.uri)
+    factory = _ACTUATORS.get(uri.scheme)
+    if factory is None:
+        raise InputError(
+            f"unknown actuators URI scheme {uri.scheme!r} in {uri.text!r} ({', '.join(actuators_schemes())})",
+            field="actuators.uri",
         )
-        if scheme == "modbus+rtu":
-            if not path:
-                raise InputError(
-                    f"{a.uri!r}: a serial device path is needed, e.g. modbus+rtu:///dev/ttyUSB0", field="actuators.uri"
-                )
-            return ModbusActuators(transport="rtu", serial_port=path, baudrate=int(query.get("baudrate", 115200)), **kw)
-        transport = "rtu-tcp" if scheme == "modbus+rtu+tcp" else "tcp"
-        return ModbusActuators(transport=transport, host=host or "127.0.0.1", port=port or 502, **kw)
-    if scheme in ("serial", "serial+tcp"):
-        from .serial_ascii import SerialAsciiActuators
-
-        if a.axes != 4 or workspace_check is not None:
-            raise InputError(
-                f"{a.uri!r}: the serial ASCII protocol drives four axes with the I4's nominal check "
-                f"(actuators.axes = {a.axes}); use a Modbus URI",
-                field="actuators.axes",
-            )
-        url = f"socket://{host}:{port}" if scheme == "serial+tcp" else path
-        if not url:
-            raise InputError(
-                f"{a.uri!r}: a serial device path is needed, e.g. serial:///dev/ttyACM0", field="actuators.uri"
-            )
-        return SerialAsciiActuators(
-            url,
-            baudrate=int(query.get("baudrate", 115200)),
-            timeout_s=float(query.get("timeout", a.timeout_s)),
-            speed_m_s=a.speed_m_s,
-            accel_m_s2=a.accel_m_s2,
-            poll_s=max(a.poll_s, 0.001),
-            retries=a.retries,
-            in_position_m=a.in_position_m,
-            home_timeout_s=a.home_timeout_s,
-            stop_deadline_s=a.stop_deadline_s,
-            max_speed_m_s=a.max_speed_m_s,
-            plausibility_margin_m=a.plausibility_margin_m,
-            **common,
-        )
-    raise InputError(
-        f"unknown actuators URI scheme {scheme!r} in {a.uri!r} (modbus+tcp, modbus+rtu, "
-        "modbus+rtu+tcp, serial, serial+tcp)",
-        field="actuators.uri",
-    )
+    actuators: Actuators = factory(cfg, uri, workspace_check)
+    return actuators
 
 
 def open_camera(cfg: BenchConfig | CameraConfig | str) -> Camera:
-    """The camera backend named by a URI (not yet opened)."""
+    """The camera backend named by a URI (not yet opened), by its scheme's factory."""
     c = (
         cfg.camera
         if isinstance(cfg, BenchConfig)
         else (cfg if isinstance(cfg, CameraConfig) else CameraConfig(uri=cfg))
     )
-    scheme, host, port, path, query = parse_uri(c.uri)
-    if scheme == "sim":
-        from .cameras.sim import SimCamera
-
-        if not host or not port:
-            raise InputError(
-                f"{c.uri!r}: sim cameras are served by a simulated bench: sim://HOST:PORT (run `i4cal sim-bench`)",
-                field="camera.uri",
-            )
-        return SimCamera(host, port, timeout_s=c.timeout_s)
-    if scheme == "genicam":
-        from .cameras.genicam import GenICamCamera
-
-        return GenICamCamera(cti=query.get("cti"), serial=query.get("serial"), timeout_s=c.timeout_s)
-    if scheme == "v4l2":
-        from .cameras.v4l2 import V4L2Camera
-
-        dev: str | int = (host + path) if host else path
-        if isinstance(dev, str) and dev.isdigit():
-            dev = int(dev)
-        return V4L2Camera(dev, timeout_s=c.timeout_s)
-    if scheme == "replay":
-        from .cameras.replay import ReplayCamera
-
-        return ReplayCamera(host + path if host else path, loop=query.get("loop", "0") in ("1", "true"))
-    raise InputError(
-        f"unknown camera URI scheme {scheme!r} in {c.uri!r} (genicam, v4l2, replay, sim)", field="camera.uri"
-    )
+    uri = DeviceURI.parse(c.uri)
+    factory = _CAMERAS.get(uri.scheme)
+    if factory is None:
+        raise InputError(
+            f"unknown camera URI scheme {uri.scheme!r} in {uri.text!r} ({', '.join(camera_schemes())})",
+            field="camera.uri",
+        )
+    camera: Camera = factory(c, uri)
+    return camera
 
 
 def open_operator(cfg: BenchConfig) -> Operator:
-    uri = cfg.operator.uri
-    if uri in ("console", "console://"):
-        from .acquisition import ConsoleOperator
+    """Who guides the end-effector during a line step, named by ``cfg.operator.uri``, by its scheme's factory."""
+    text = cfg.operator.uri
+    uri = DeviceURI(text, "console", "", None, "", {}) if text == "console" else DeviceURI.parse(text)
+    factory = _OPERATORS.get(uri.scheme)
+    if factory is None:
+        raise InputError(f"unknown operator URI {text!r} ({', '.join(operator_schemes())})", field="operator.uri")
+    operator: Operator = factory(cfg, uri)
+    return operator
 
-        return ConsoleOperator()
-    scheme, host, port, _, _ = parse_uri(uri)
-    if scheme == "sim":
-        from .cameras.sim import SimOperator
 
-        if port is None:
-            raise InputError(f"operator URI {uri!r} needs a port (sim://HOST:PORT)", field="operator.uri")
-        return SimOperator(host, port)
-    raise InputError(f"unknown operator URI {uri!r} (console, sim://HOST:PORT)", field="operator.uri")
+# -- the built-in backends: each imports its module only when a URI of its scheme is opened -----------------------
+def _modbus_actuators(cfg: BenchConfig, uri: DeviceURI, workspace_check: WorkspaceCheck | None) -> Actuators:
+    from .modbus import ModbusActuators
+
+    a = cfg.actuators
+    common = _common_actuators(cfg)
+    kw: dict[str, Any] = dict(
+        regmap=cfg.register_map(),
+        speed_m_s=a.speed_m_s,
+        accel_m_s2=a.accel_m_s2,
+        timeout_s=float(uri.query.get("timeout", a.timeout_s)),
+        retries=a.retries,
+        poll_s=a.poll_s,
+        settle_s=a.settle_s,
+        in_position_m=a.in_position_m,
+        home_timeout_s=a.home_timeout_s,
+        stop_deadline_s=a.stop_deadline_s,
+        late_reply_guard_s=a.late_reply_guard_s,
+        max_speed_m_s=a.max_speed_m_s,
+        plausibility_margin_m=a.plausibility_margin_m,
+        vary_reads=a.vary_reads,
+        workspace_check=workspace_check,
+        **common,
+    )
+    if uri.scheme == "modbus+rtu":
+        if not uri.path:
+            raise InputError(
+                f"{uri.text!r}: a serial device path is needed, e.g. modbus+rtu:///dev/ttyUSB0", field="actuators.uri"
+            )
+        return ModbusActuators(
+            transport="rtu", serial_port=uri.path, baudrate=int(uri.query.get("baudrate", 115200)), **kw
+        )
+    transport = "rtu-tcp" if uri.scheme == "modbus+rtu+tcp" else "tcp"
+    return ModbusActuators(transport=transport, host=uri.host or "127.0.0.1", port=uri.port or 502, **kw)
+
+
+def _common_actuators(cfg: BenchConfig) -> dict[str, Any]:
+    # the nominal I4 checks the targets of four axes; another mechanism's check is ``workspace_check``
+    a = cfg.actuators
+    return dict(limits=cfg.soft_limits(), nominal=cfg.nominal_parameters() if a.axes == 4 else None)
+
+
+def _serial_ascii_actuators(cfg: BenchConfig, uri: DeviceURI, workspace_check: WorkspaceCheck | None) -> Actuators:
+    from .serial_ascii import SerialAsciiActuators
+
+    a = cfg.actuators
+    common = _common_actuators(cfg)
+    if a.axes != 4 or workspace_check is not None:
+        raise InputError(
+            f"{uri.text!r}: the serial ASCII protocol drives four axes with the I4's nominal check "
+            f"(actuators.axes = {a.axes}); use a Modbus URI",
+            field="actuators.axes",
+        )
+    url = f"socket://{uri.host}:{uri.port}" if uri.scheme == "serial+tcp" else uri.path
+    if not url:
+        raise InputError(
+            f"{uri.text!r}: a serial device path is needed, e.g. serial:///dev/ttyACM0", field="actuators.uri"
+        )
+    return SerialAsciiActuators(
+        url,
+        baudrate=int(uri.query.get("baudrate", 115200)),
+        timeout_s=float(uri.query.get("timeout", a.timeout_s)),
+        speed_m_s=a.speed_m_s,
+        accel_m_s2=a.accel_m_s2,
+        poll_s=max(a.poll_s, 0.001),
+        retries=a.retries,
+        in_position_m=a.in_position_m,
+        home_timeout_s=a.home_timeout_s,
+        stop_deadline_s=a.stop_deadline_s,
+        max_speed_m_s=a.max_speed_m_s,
+        plausibility_margin_m=a.plausibility_margin_m,
+        **common,
+    )
+
+
+def _sim_camera(c: CameraConfig, uri: DeviceURI) -> Camera:
+    from .cameras.sim import SimCamera  # the client of the simulated bench's endpoint: it never imports drivers.sim
+
+    if not uri.host or not uri.port:
+        raise InputError(
+            f"{uri.text!r}: sim cameras are served by a simulated bench: sim://HOST:PORT (run `i4cal sim-bench`)",
+            field="camera.uri",
+        )
+    return SimCamera(uri.host, uri.port, timeout_s=c.timeout_s)
+
+
+def _genicam_camera(c: CameraConfig, uri: DeviceURI) -> Camera:
+    from .cameras.genicam import GenICamCamera
+
+    return GenICamCamera(cti=uri.query.get("cti"), serial=uri.query.get("serial"), timeout_s=c.timeout_s)
+
+
+def _v4l2_camera(c: CameraConfig, uri: DeviceURI) -> Camera:
+    from .cameras.v4l2 import V4L2Camera
+
+    dev: str | int = (uri.host + uri.path) if uri.host else uri.path
+    if isinstance(dev, str) and dev.isdigit():
+        dev = int(dev)
+    return V4L2Camera(dev, timeout_s=c.timeout_s)
+
+
+def _replay_camera(c: CameraConfig, uri: DeviceURI) -> Camera:
+    from .cameras.replay import ReplayCamera
+
+    return ReplayCamera(uri.host + uri.path if uri.host else uri.path, loop=uri.query.get("loop", "0") in ("1", "true"))
+
+
+def _console_operator(cfg: BenchConfig, uri: DeviceURI) -> Operator:
+    from .acquisition import ConsoleOperator
+
+    return ConsoleOperator()
+
+
+def _sim_operator(cfg: BenchConfig, uri: DeviceURI) -> Operator:
+    from .cameras.sim import SimOperator
+
+    if uri.port is None:
+        raise InputError(f"operator URI {uri.text!r} needs a port (sim://HOST:PORT)", field="operator.uri")
+    return SimOperator(uri.host, uri.port)
+
+
+for _scheme in ("modbus+tcp", "modbus+rtu", "modbus+rtu+tcp"):
+    register_actuators_scheme(_scheme, _modbus_actuators)
+for _scheme in ("serial", "serial+tcp"):
+    register_actuators_scheme(_scheme, _serial_ascii_actuators)
+register_actuators_scheme("modbus", _modbus_actuators)  # Modbus TCP
+register_camera_scheme("genicam", _genicam_camera)
+register_camera_scheme("v4l2", _v4l2_camera)
+register_camera_scheme("replay", _replay_camera)
+register_camera_scheme("sim", _sim_camera)
+register_operator_scheme("console", _console_operator)
+register_operator_scheme("sim", _sim_operator)
