@@ -25,7 +25,7 @@ import numpy as np
 from .kinematics import pose_from_joints_reduced
 from .parameters import COMBINATION_NAMES, I4Parameters
 from .plan import Plan
-from .transforms import matrix_to_rotvec, rotvec_to_matrix, unit
+from .transforms import matrix_to_rotvec, rotvec_to_matrix, tangent_basis, unit
 
 _SX = np.array([1.0, -1.0, 1.0, -1.0])
 
@@ -85,7 +85,7 @@ def combined_fisher(
     Wl = np.empty((*u0.shape[:2], 2, 3))
     for k in range(u0.shape[0]):
         for i in range(4):
-            T = np.linalg.svd(np.eye(3) - np.outer(u0[k, i], u0[k, i]))[0][:, :2].T
+            T = tangent_basis(u0[k, i]).T
             C = noise.rod_direction_rad**2 * np.eye(2) if rod_cov is None else T @ rod_cov[k, i] @ T.T
             C = C / noise.rods_per_leg
             Wl[k, i] = np.linalg.cholesky(np.linalg.inv(C)).T @ T

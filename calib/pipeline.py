@@ -17,6 +17,7 @@ from .methods.registry import MethodContext, get_method, method_names
 from .methods.result import MethodResult
 from .observations import LEG_KEYS, Observations
 from .parameters import COMBINATION_NAMES, PARAMETER_NAMES, I4Parameters
+from .transforms import tangent_basis
 from .validation import validate
 
 RESULT_FORMAT = "i4cal.result/1"
@@ -213,7 +214,7 @@ def _leg_covariances(obs: Observations, s2: float) -> np.ndarray | None:
                 if c is None:
                     return None
                 u = np.asarray(rod.u, dtype=np.float64)
-                T = np.linalg.svd(np.eye(3) - np.outer(u, u))[0][:, :2]
+                T = tangent_basis(u)
                 C2 = T.T @ (s2 * np.asarray(c, dtype=np.float64)) @ T
                 info += T @ np.linalg.inv(C2) @ T.T
             if not info.any():

@@ -73,6 +73,61 @@ def orthonormalize(R: ArrayLike) -> Array:
     return M
 
 
+def kabsch(to_vectors: ArrayLike, from_vectors: ArrayLike, weights: ArrayLike | None = None) -> Array:
+    """Rotation ``R`` minimising ``sum_k w_k |R from_k - to_k|^2`` (Wahba's problem), via SciPy.
+
+    Parameters
+    ----------
+    to_vectors, from_vectors : array_like, shape (N, 3)
+        Corresponding vectors (directions, or points already centred on their centroids).
+    weights : array_like, shape (N,), optional
+        Non-negative weights (e.g. ``1 / sigma_k^2``); equal by default.
+
+    Returns
+    -------
+    ndarray, shape (3, 3)
+        The proper rotation matrix ``to_from_from``.
+    """
+    a = np.asarray(to_vectors, dtype=np.float64)
+    b = np.asarray(from_vectors, dtype=np.float64)
+    if a.ndim != 2 or a.shape[1] != 3 or a.shape != b.shape:
+        raise ValueError(f"kabsch needs two (N, 3) arrays of the same shape, got {a.shape} and {b.shape}")
+    w = None if weights is None else np.asarray(weights, dtype=np.float64)
+    if len(a) == 1:  # one pair: SciPy's minimal rotation (the fit is not unique anyway)
+        return Rotation.align_vectors(a, b)[0].as_matrix()
+    return Rotation.align_vectors(a, b, weights=w)[0].as_matrix()
+
+
+def kabsch_points(to_points: ArrayLike, from_points: ArrayLike) -> Array:
+    """Rotation ``R`` of the rigid map ``to = R from + t`` fitting two (N, 3) point sets in least squares."""
+    P = np.asarray(from_points, dtype=np.float64)
+    Q = np.asarray(to_points, dtype=np.float64)
+    return kabsch(Q - Q.mean(axis=0), P - P.mean(axis=0))
+
+
+def tangent_basis(u: ArrayLike) -> Array:
+    """Orthonormal basis of the plane normal to the direction ``u``.
+
+    Parameters
+    ----------
+    u : array_like, shape (3,) or (..., 3)
+        Direction(s), normalised here.
+
+    Returns
+    -------
+    ndarray, shape (3, 2) or (..., 3, 2)
+        Columns ``e1, e2`` with ``e1 x e2 = u / |u|``: tangent coordinates of a small direction change are
+        ``T.T @ du``.
+    """
+    n = unit(np.asarray(u, dtype=np.float64))
+    # a helper axis far from n: the coordinate axis of n's smallest component
+    helper = np.zeros_like(n)
+    np.put_along_axis(helper, np.argmin(np.abs(n), axis=-1)[..., None], 1.0, axis=-1)
+    e1 = unit(np.cross(helper, n))
+    e2 = np.cross(n, e1)
+    return np.stack([e1, e2], axis=-1)
+
+
 @dataclass(frozen=True)
 class Rigid:
     """A rigid transform ``a_from_b``: ``p_a = R p_b + t`` (metres)."""

@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.stats import chi2
 
 from ..baseframe import base_frame_from_observations
 from ..errors import ConvergenceError, I4calError, IdentifiabilityError
@@ -38,13 +37,12 @@ from ..kinematics import dkm
 from ..numdiff import central_jacobian
 from ..observations import Observations, PhaseArrays
 from ..parameters import COMBINATION_NAMES
-from ..transforms import matrix_to_rotvec, orthonormalize, rot_z, rotvec_to_matrix, skew
+from ..robust import chi2_outliers, robust_chi2_scale
+from ..transforms import kabsch_points, matrix_to_rotvec, orthonormalize, rot_z, rotvec_to_matrix, skew
 from . import intrinsics as intr
 from .iterations import IterationCallback, trf_callback
 from .result import MethodResult, check_excitation, combos_dict, std_dict
 
-_CHI2_6_MEDIAN = float(chi2.median(6))
-_CHI2_6_GATE = float(chi2.ppf(0.999, 6))
 _NAMES = (
     *COMBINATION_NAMES,
     "o1",
@@ -60,15 +58,6 @@ _NAMES = (
     "b_y",
     "board_scale",
 )
-
-
-def _kabsch(P: np.ndarray, Q: np.ndarray) -> np.ndarray:
-    """Rotation R minimising |R P_i + t - Q_i|, P and Q of shape (N, 3)."""
-    Pc = P - P.mean(axis=0)
-    Qc = Q - Q.mean(axis=0)
-    U, _, Vt = np.linalg.svd(Pc.T @ Qc)
-    d = np.sign(np.linalg.det(Vt.T @ U.T))
-    return Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
 
 
 class _Model:
@@ -164,7 +153,7 @@ def calibrate_end_effector(
     try:
         R_bc0 = base_frame_from_observations(obs).camera_from_base_R.T
     except I4calError:
-        R_bc0 = _kabsch(t, poses_nom[:, :3])
+        R_bc0 = kabsch_points(poses_nom[:, :3], t)
     R_eb0 = orthonormalize(np.sum(rot_z(-theta_nom) @ R_bc0 @ R, axis=0))
     # initial translations: p_k = R_bc R_k (-R_eb^T t_eb) + R_bc t_k + t_bc (linear)
     # the board's height on the end-effector is a gauge freedom (a z offset of the camera): hold it at 0
@@ -483,8 +472,8 @@ def _gate(chi2_pose: np.ndarray, n_params: int) -> np.ndarray:
 
     At most a quarter of the poses are rejected, and never so many that fewer than ``n_params / 6 + 1`` remain.
     """
-    robust = max(float(np.median(chi2_pose)) / _CHI2_6_MEDIAN, 1e-300)
-    keep = chi2_pose / robust < _CHI2_6_GATE
+    robust = max(robust_chi2_scale(chi2_pose, 6), 1e-300)
+    keep = ~chi2_outliers(chi2_pose, 6, robust)
     n = chi2_pose.size
     min_keep = max(int(np.ceil(0.75 * n)), int(np.ceil(n_params / 6.0)) + 1)
     if keep.sum() < min_keep:

@@ -46,14 +46,14 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.stats import chi2
 
 from ..camera import CameraModel
 from ..errors import ConvergenceError, IdentifiabilityError, InputError
 from ..numdiff import central_jacobian
 from ..observations import Observations, PhaseArrays
 from ..parameters import COMBINATION_NAMES, PARAMETER_NAMES, I4Parameters
-from ..transforms import unit
+from ..robust import chi2_gate, chi2_outliers, robust_chi2_scale
+from ..transforms import tangent_basis, unit
 from . import intrinsics as intr
 from .combined import EDGE_BIAS_STD_PX
 from .iterations import IterationCallback, traced
@@ -66,8 +66,6 @@ _PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 PRIOR_STD_M = 0.01
 #: Floor (m) of the rod-pair check's separation std: below any measurement (noise-free data are never flagged)
 _PAIR_FLOOR_M = 1e-6
-_CHI2_2_999 = 13.8155  # chi-square, 2 dof, 99.9% quantile
-_CHI2_2_MEDIAN = 1.3863  # chi-square, 2 dof, median
 #: the four step-3/4 equations of a pose: (leg a, leg b) of |Ba Bb| - 2S, then of (Bb - Ba) . y - 2D
 _EQ_LEGS = ((0, 1), (2, 3), (0, 2), (1, 3))
 
@@ -277,7 +275,7 @@ def _gls_pair(u: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray, flo
     Returns the mean (3,), its covariance (3, 3) and the pair's disagreement, chi-square with 2 dof.
     """
     m = unit(u[0] + u[1])
-    T = np.linalg.svd(np.eye(3) - np.outer(m, m))[0][:, :2]  # tangent basis at the mean
+    T = tangent_basis(m)  # (3, 2) tangent basis at the mean
     e = u @ T  # (2, 2) tangent coordinates
     Ct = np.einsum("ai,kab,bj->kij", T, C, T) + 1e-18 * np.eye(2)
     Wi = np.linalg.inv(Ct)
@@ -552,7 +550,7 @@ def _trim_rod(obs: list[PlaneObservation], s_rob: float, max_subsets: int = 200)
             cand = keep
         chi = float(np.sum(joint_from_planes([obs[i] for i in np.nonzero(cand)[0]])[2]))
         dof = 2 * int(cand.sum()) - 3
-        if dof <= 0 or chi <= chi2.ppf(0.999, dof) * s_rob or cand.sum() <= 3:
+        if dof <= 0 or chi <= chi2_gate(dof) * s_rob or cand.sum() <= 3:
             return cand
         keep = cand.copy()
     return keep
@@ -604,12 +602,12 @@ def _step1_planes(
         ]
         or [np.zeros(0)]
     )
-    s_rob = max(float(np.median(pool)) / _CHI2_2_MEDIAN if pool.size else 0.0, 1.0 if absolute else 1e-18)
+    s_rob = max(robust_chi2_scale(pool, 2) if pool.size else 0.0, 1.0 if absolute else 1e-18)
     keep = []
     for i in range(4):
         # single rods far off the joint located from the frames with both rods: dropped before trimming
         gross = (
-            _gross_single_rods(planes[i], frames[i], 100.0 * _CHI2_2_999 * s_rob)
+            _gross_single_rods(planes[i], frames[i], 100.0 * float(chi2_gate(2)) * s_rob)
             if frames is not None
             else [np.zeros(len(planes[i][j]), dtype=bool) for j in range(2)]
         )
@@ -714,9 +712,9 @@ def _leg_directions(
     rejected: list[dict[str, int]] = []
     ok = np.isfinite(pair_d2)
     if ok.sum() >= 3:
-        s_rob = float(np.median(pair_d2[ok])) / _CHI2_2_MEDIAN
+        s_rob = robust_chi2_scale(pair_d2[ok], 2)
         if s_rob > 0:
-            bad = ok & (pair_d2 > _CHI2_2_999 * s_rob)
+            bad = ok & chi2_outliers(np.where(ok, pair_d2, 0.0), 2, s_rob)
             rejected = [
                 {"frame": int(data.index[k]), "leg": int(leg) + 1} for k, leg in zip(*np.nonzero(bad), strict=True)
             ]
@@ -839,10 +837,10 @@ def _gate_poses(pipe: _LegsPipeline, P: np.ndarray, U: np.ndarray, seven: np.nda
     used = m > 0
     if used.sum() < 4:
         return np.zeros(len(m), dtype=bool)
-    s_rob = float(np.median(d2[used] / chi2.median(m[used])))
+    s_rob = robust_chi2_scale(d2[used], m[used])
     if s_rob <= 0:
         return np.zeros(len(m), dtype=bool)
-    return used & (d2 > chi2.ppf(0.999, np.maximum(m, 1)) * s_rob)
+    return used & chi2_outliers(d2, np.maximum(m, 1), s_rob)
 
 
 def _steps34_covariance(
@@ -1139,8 +1137,8 @@ def _pair_consistency(P: np.ndarray, covP: np.ndarray) -> tuple[np.ndarray, list
     # the legs' common scale (robust: the median leg's) sets the gate, so that only a leg far beyond the others
     # is flagged; four chi-squares are too few to rescale every leg by
     finite = [c for c in c2s if np.isfinite(c)]
-    common = max(1.0, float(np.median(finite)) / float(chi2.median(3))) if finite else 1.0
-    limit = float(chi2.ppf(0.999, 3)) * common
+    common = max(1.0, robust_chi2_scale(finite, 3)) if finite else 1.0
+    limit = float(chi2_gate(3)) * common
     for i in range(4):
         e = sep[i] - ref
         c2 = c2s[i]

@@ -7,17 +7,18 @@ import itertools
 import pytest
 
 import calib.vision.extract as extract
+import calib.vision.pool as pool_module
 from calib.vision.extract import extract_dataset
 from tests.calib.vision.test_extract import small_dataset  # noqa: F401  (the rendered, partly damaged dataset)
 
 
-@pytest.mark.parametrize("cache_bytes", [extract.IMAGE_CACHE_BYTES, 2 * 1024 * 768])
+@pytest.mark.parametrize("cache_bytes", [pool_module.IMAGE_CACHE_BYTES, 2 * 1024 * 768])
 def test_workers_give_the_observations_of_one_process(small_dataset, monkeypatch, cache_bytes):  # noqa: F811
     # the dataset's intrinsics are given: nothing but the scheduling differs between the two runs
     root, _, _ = small_dataset
     one = extract_dataset(root, workers=1).observations
     # a cache of 2 frames in all: most frames are decoded again in the rods stage (or by a worker that stole them)
-    monkeypatch.setattr(extract, "IMAGE_CACHE_BYTES", cache_bytes)
+    monkeypatch.setattr(pool_module, "IMAGE_CACHE_BYTES", cache_bytes)
     done: list[tuple[int, int]] = []
     two = extract_dataset(root, workers=2, progress=lambda d, t: done.append((d, t))).observations
     assert two["frames"] == one["frames"]

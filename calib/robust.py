@@ -1,0 +1,43 @@
+"""Robust chi-square gating shared by the identification methods.
+
+A residual block ``k`` with ``dof_k`` degrees of freedom and squared whitened norm ``d2_k`` is an outlier when
+``d2_k > chi2.ppf(GATE_QUANTILE, dof_k) * s``, where ``s`` is the robust noise factor: the median of
+``d2_k / chi2.median(dof_k)`` over the blocks (1 when the assumed noise is right, whatever a few outliers do).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.stats import chi2
+
+#: Quantile of the chi-square gate: 1 good block in 1000 is rejected.
+GATE_QUANTILE = 0.999
+
+
+def chi2_gate(dof: ArrayLike, quantile: float = GATE_QUANTILE) -> NDArray[np.float64]:
+    """The gate ``chi2.ppf(quantile, dof)``, shape of ``dof`` (an unscaled threshold on a squared norm)."""
+    return np.asarray(chi2.ppf(quantile, dof), dtype=np.float64)
+
+
+def robust_chi2_scale(d2: ArrayLike, dof: ArrayLike) -> float:
+    """Median of ``d2 / chi2.median(dof)``: the noise factor (squared) the blocks show, robust to outliers.
+
+    Parameters
+    ----------
+    d2 : array_like, shape (N,)
+        Squared whitened residual norms (dimensionless).
+    dof : array_like, shape (N,) or scalar
+        Their degrees of freedom.
+    """
+    d2a = np.asarray(d2, dtype=np.float64)
+    if d2a.size == 0:
+        raise ValueError("robust_chi2_scale needs at least one residual block, got none")
+    return float(np.median(d2a / chi2.median(dof)))
+
+
+def chi2_outliers(d2: ArrayLike, dof: ArrayLike, scale: float | None = None) -> NDArray[np.bool_]:
+    """Blocks (bool, shape of ``d2``) beyond the gate at the noise factor ``scale`` (default: the robust one)."""
+    d2a = np.asarray(d2, dtype=np.float64)
+    s = robust_chi2_scale(d2a, dof) if scale is None else scale
+    return np.asarray(d2a > chi2_gate(dof) * s)

@@ -1,0 +1,53 @@
+"""Shared rotation numerics: ``kabsch`` (weighted Wahba fit), ``kabsch_points`` and ``tangent_basis``."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from calib.transforms import kabsch, kabsch_points, rotvec_to_matrix, tangent_basis
+
+
+def test_kabsch_points_recovers_a_rigid_map() -> None:
+    rng = np.random.default_rng(0)
+    R = rotvec_to_matrix(rng.normal(size=3))
+    P = rng.normal(size=(12, 3))
+    np.testing.assert_allclose(kabsch_points(P @ R.T + [0.1, -0.2, 0.3], P), R, atol=1e-12)
+
+
+def test_weighted_kabsch_follows_the_weights() -> None:
+    """A vector with a large weight is matched almost exactly, one with a tiny weight is ignored."""
+    rng = np.random.default_rng(1)
+    R = rotvec_to_matrix([0.2, -0.1, 0.3])
+    U = rng.normal(size=(4, 3))
+    U /= np.linalg.norm(U, axis=1, keepdims=True)
+    D = U @ R.T
+    D[3] = rotvec_to_matrix([0.0, 0.0, 0.5]) @ D[3]  # one vector disagrees
+    R_heavy = kabsch(D, U, [1.0, 1.0, 1.0, 1e6])
+    R_light = kabsch(D, U, [1.0, 1.0, 1.0, 1e-9])
+    assert np.linalg.norm(R_heavy @ U[3] - D[3]) < 1e-3
+    np.testing.assert_allclose(R_light, R, atol=1e-6)
+    assert np.isclose(np.linalg.det(R_heavy), 1.0)
+
+
+def test_kabsch_names_a_bad_shape() -> None:
+    with pytest.raises(ValueError, match=r"\(N, 3\).*\(4, 3\) and \(4, 2\)"):
+        kabsch(np.zeros((4, 3)), np.zeros((4, 2)))
+
+
+@pytest.mark.parametrize("u", [[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.3, -0.4, 0.87], [1e-9, 1.0, 0.0]])
+def test_tangent_basis_is_orthonormal_and_right_handed(u: list[float]) -> None:
+    T = tangent_basis(u)
+    n = np.asarray(u) / np.linalg.norm(u)
+    assert T.shape == (3, 2)
+    np.testing.assert_allclose(T.T @ T, np.eye(2), atol=1e-12)
+    np.testing.assert_allclose(T.T @ n, 0.0, atol=1e-12)
+    np.testing.assert_allclose(np.cross(T[:, 0], T[:, 1]), n, atol=1e-12)
+
+
+def test_tangent_basis_batches() -> None:
+    rng = np.random.default_rng(2)
+    U = rng.normal(size=(5, 4, 3))
+    T = tangent_basis(U)
+    assert T.shape == (5, 4, 3, 2)
+    np.testing.assert_allclose(T[2, 3], tangent_basis(U[2, 3]), atol=0)
