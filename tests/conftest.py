@@ -41,7 +41,11 @@ def rng() -> np.random.Generator:
 @pytest.fixture(scope="session")
 def rendered_zip(tmp_path_factory) -> bytes:
     """A reduced 'full' plan rendered by the image-level twin, its true intrinsics written in, as a zip (one
-    fixture for every package's tests: rendered once per run)."""
+    fixture for every package's tests: rendered once per run, whatever the workers)."""
+    return shared_between_workers(tmp_path_factory, "rendered_zip.zip", lambda: _render_zip(tmp_path_factory))
+
+
+def _render_zip(tmp_path_factory) -> bytes:
     import io
     import zipfile
 
@@ -63,48 +67,48 @@ def rendered_zip(tmp_path_factory) -> bytes:
     return buf.getvalue()
 
 
-#: Session fixtures that are costly to build (a rendered dataset, a PostgreSQL cluster): with pytest-xdist
-#: (``--dist loadgroup``) every test using one of them runs on the same worker, so each is built once per run.
-XDIST_GROUPS = {"rendered_zip": "rendered", "postgres_url": "postgres"}
-#: The project's module-scoped fixtures (Monte-Carlo studies, rendered datasets) are grouped the same way, named by
-#: fixture and module: one built in a module fixture ran once per worker that got one of its tests (2 x 115 s).
-SHARED_SCOPES = ("module",)
-
-
-def _shared_fixture_group(item) -> str | None:
-    info = getattr(item, "_fixtureinfo", None)
-    if info is None:
-        return None
-    for name in info.names_closure:
-        defs = info.name2fixturedefs.get(name)
-        if not defs:
-            continue
-        fd = defs[-1]
-        if fd.scope in SHARED_SCOPES and str(fd.baseid).startswith("tests"):
-            return f"{name}@{fd.baseid}"
-    return None
-
-
-#: CPU seconds of the costliest tests (``tests/cpu_costs.json``, written from a CPU report, below): the work units
-#: (a group, or a test alone) go to the xdist workers costliest first, so no long one starts last while the other
-#: worker idles (``--no-loadscope-reorder`` keeps this order). A test missing from the file counts as cheap; a stale
-#: file costs speed only, never a result.
+#: How the suite runs on several cores (pyproject.toml's addopts): ``-n auto --dist loadscope``, every test module on
+#: one pytest-xdist worker, so a module-scoped fixture (a Monte-Carlo study, a rendered dataset) is built once per run.
+#: (``--dist loadgroup`` with ``xdist_group`` marks no longer groups anything under pytest 9.2: xdist writes the group
+#: into a node id field pytest no longer reads, pytest-xdist issue 1386; nothing fails, the fixtures are built once per
+#: worker.) Session fixtures shared by several modules and costly to build are shared between the workers through a
+#: file and a lock (:func:`shared_between_workers`).
+#:
+#: The modules go to the workers costliest first (longest-processing-time order, which ``--no-loadscope-reorder``
+#: keeps), so that no long one starts last while the other worker idles: the CPU seconds per test are in
+#: ``tests/cpu_costs.json``, written from a CPU report (below). A test missing from it counts as cheap; a stale file
+#: costs speed only, never a result.
 COSTS_FILE = Path(__file__).with_name("cpu_costs.json")
 
 
+def _scope(nodeid: str) -> str:
+    """xdist's loadscope unit of a test: its module (or class)."""
+    return nodeid.rsplit("::", 1)[0]
+
+
 def pytest_collection_modifyitems(config, items):
-    scope_of = {}
-    for item in items:
-        group = next((g for f, g in XDIST_GROUPS.items() if f in getattr(item, "fixturenames", ())), None)
-        group = group or _shared_fixture_group(item)
-        if group is not None:
-            item.add_marker(pytest.mark.xdist_group(group))
-        scope_of[item.nodeid] = group or item.nodeid
     costs = json.loads(COSTS_FILE.read_text()) if COSTS_FILE.exists() else {}
     scope_cost: dict[str, float] = {}
-    for nodeid, scope in scope_of.items():
-        scope_cost[scope] = scope_cost.get(scope, 0.0) + costs.get(nodeid, 0.0)
-    items.sort(key=lambda it: -scope_cost[scope_of[it.nodeid]])
+    for item in items:
+        scope_cost[_scope(item.nodeid)] = scope_cost.get(_scope(item.nodeid), 0.0) + costs.get(item.nodeid, 0.0)
+    items.sort(key=lambda it: -scope_cost[_scope(it.nodeid)])
+
+
+def shared_between_workers(tmp_path_factory, name: str, make) -> bytes:
+    """The bytes ``make()`` returns, computed once per run whatever the number of xdist workers: the first worker to
+    ask computes them under a file lock in the run's temporary directory (shared by its workers), the others wait for
+    them and read them."""
+    from filelock import FileLock
+
+    base = tmp_path_factory.getbasetemp()
+    shared = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base  # pytest-N/, this run's
+    target = shared / name
+    with FileLock(str(target) + ".lock"):
+        if not target.exists():
+            part = target.with_name(name + ".part")
+            part.write_bytes(make())
+            part.replace(target)
+    return target.read_bytes()
 
 
 # --- CPU time per test (opt-in) -----------------------------------------------------------------------------------
@@ -113,7 +117,7 @@ def pytest_collection_modifyitems(config, items):
 #: and teardown, and the worker (pytest-xdist) that ran it, to PATH as JSON, and prints the costliest tests and each
 #: worker's sum. On a loaded machine wall times say little; the CPU sums do: the run's wall time on an idle machine is
 #: about the largest worker's CPU (or the total over the cores, if larger). Each worker also appends its records as
-#: they come to ``PATH.<worker>.jsonl``. ``python tests/conftest.py PATH`` writes ``tests/cpu_costs.json`` (the
+#: they come to ``PATH.<worker>.jsonl``. ``python -m tests.conftest PATH`` writes ``tests/cpu_costs.json`` (the
 #: scheduling order above) from a report.
 CPU_REPORT_ENV = "I4CAL_TEST_CPU_REPORT"
 _cpu_records: dict[str, dict] = {}
@@ -132,7 +136,8 @@ def _cpu_phase(item, phase: str):
     try:
         yield
     finally:
-        rec = _cpu_records.setdefault(item.nodeid, {"nodeid": item.nodeid, "cpu": 0.0, "wall": 0.0})
+        nodeid = item.nodeid
+        rec = _cpu_records.setdefault(nodeid, {"nodeid": nodeid, "cpu": 0.0, "wall": 0.0})
         rec[phase] = round(_cpu_now() - c0, 3)
         rec["cpu"] = round(rec["cpu"] + rec[phase], 3)
         rec["wall"] = round(rec["wall"] + time.perf_counter() - w0, 3)
@@ -221,10 +226,12 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config):
     )
 
 
-if __name__ == "__main__":  # python tests/conftest.py REPORT.json: the costs file from a CPU report
+if __name__ == "__main__":  # python -m tests.conftest REPORT.json [MORE.json ...]: the costs file from CPU reports
     import sys
 
-    report = json.loads(Path(sys.argv[1]).read_text())
-    costs = {t["nodeid"]: round(t["cpu"], 1) for t in report["tests"] if t["cpu"] >= 1.0}
-    COSTS_FILE.write_text(json.dumps(dict(sorted(costs.items(), key=lambda kv: -kv[1])), indent=0) + "\n")
+    costs: dict[str, float] = {}
+    for path in sys.argv[1:]:  # a later report's figure replaces an earlier one's
+        costs.update({t["nodeid"]: round(t["cpu"], 1) for t in json.loads(Path(path).read_text())["tests"]})
+    costs = {k: v for k, v in sorted(costs.items(), key=lambda kv: -kv[1]) if v >= 1.0}
+    COSTS_FILE.write_text(json.dumps(costs, indent=0) + "\n")
     print(f"{COSTS_FILE}: {len(costs)} tests, {sum(costs.values()):.0f} s CPU")
