@@ -1,0 +1,74 @@
+"""Rod geometry (the paper's eqs. 6-7): the limb planes of a cylinder seen from the camera centre, the axis from two
+planes, the rods' names.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+Array = NDArray[np.float64]
+
+
+_CORR = 1.0
+ROD_KEYS = [(leg, rod) for leg in range(4) for rod in range(2)]
+
+
+def rod_name(leg: int, rod: int) -> str:
+    """``leg{1..4}.rod{0,1}`` for 0-based leg index and rod index."""
+    return f"leg{leg + 1}.rod{rod}"
+
+
+# ---------------------------------------------------------------------------------------------
+# geometry
+def limb_planes(point: ArrayLike, u: ArrayLike, radius: float) -> tuple[Array, Array]:
+    """Unit normals of the two tangent planes through the camera centre (eq. 6), each shape (3,).
+
+    Signs: ``h . X = +radius`` for every axis point X. Raises ValueError when the camera centre is
+    inside the cylinder.
+    """
+    P = np.asarray(point, dtype=np.float64).reshape(3)
+    uu = np.asarray(u, dtype=np.float64).reshape(3)
+    uu = uu / np.linalg.norm(uu)
+    p = P - (P @ uu) * uu
+    d = float(np.linalg.norm(p))
+    if d <= radius:
+        raise ValueError(f"camera centre inside the cylinder (distance {d:.4g} m <= radius {radius:.4g} m)")
+    e1 = p / d
+    e2 = np.cross(uu, e1)
+    c = radius / d
+    s = np.sqrt(1.0 - c * c)
+    return c * e1 + s * e2, c * e1 - s * e2
+
+
+def axis_from_planes(h1: ArrayLike, h2: ArrayLike, radius: float | None) -> tuple[Array, Array | None]:
+    """Axis direction (eq. 7) and, with the radius, the axis point closest to the camera centre.
+
+    Parameters
+    ----------
+    h1, h2 : array_like, shape (3,)
+        Interpretation-plane normals, signed so that the axis is on their positive side.
+    radius : float or None
+        Rod radius, metres.
+
+    Returns
+    -------
+    u : ndarray, shape (3,)
+        Unit direction (sign: h1 x h2).
+    point : ndarray, shape (3,) or None
+        Metres, camera frame.
+    """
+    a = np.asarray(h1, dtype=np.float64).reshape(3)
+    b = np.asarray(h2, dtype=np.float64).reshape(3)
+    a = a / np.linalg.norm(a)
+    b = b / np.linalg.norm(b)
+    u = np.cross(a, b)
+    n = np.linalg.norm(u)
+    if n < 1e-12:
+        raise ValueError("interpretation planes are parallel: no axis")
+    u = u / n
+    if radius is None:
+        return u, None
+    M = np.vstack([a, b, u])
+    X = np.linalg.solve(M, np.array([radius, radius, 0.0]))
+    return u, X

@@ -1,0 +1,120 @@
+"""A rod's prediction (nominal model at the encoder values, coarse camera placement), the measurement's settings and
+its result.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ...kinematics import dkm, joint_points
+from ...parameters import I4Parameters
+from ...transforms import Rigid
+
+Array = NDArray[np.float64]
+
+
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class RodPrediction:
+    """A rod's predicted axis segment in the camera frame (metres): from ``top`` (actuator) to ``bottom``."""
+
+    leg: int
+    rod: int
+    top: Array
+    bottom: Array
+
+    @property
+    def u(self) -> Array:
+        d = self.bottom - self.top
+        return d / np.linalg.norm(d)
+
+
+def predict_rods(
+    nominal: I4Parameters, q: ArrayLike, camera_from_base: Rigid, rod_spacing_m: float
+) -> list[RodPrediction]:
+    """Predicted rod segments (8, in ``ROD_KEYS`` order) from the nominal model and encoder values.
+
+    Raises :class:`~calib.errors.UnreachableError` when the nominal model cannot close at ``q``.
+    """
+    qv = np.asarray(q, dtype=np.float64).reshape(4)
+    pose = dkm(nominal, qv)
+    A, B = joint_points(nominal, qv[None], pose[None])
+    out = []
+    for leg in range(4):
+        for rod in range(2):
+            off = np.array([(rod - 0.5) * rod_spacing_m, 0.0, 0.0])
+            out.append(
+                RodPrediction(
+                    leg, rod, camera_from_base.apply(A[0, leg] + off), camera_from_base.apply(B[0, leg] + off)
+                )
+            )
+    return out
+
+
+@dataclass
+class RodSettings:
+    """Tuning of the rod extraction (pixels are ideal, undistorted pixels)."""
+
+    band_px: float = 18.0  #: search half-band around each predicted limb line
+    step_px: float = 3.0  #: spacing of the profiles along the axis
+    sigma_px: float = 1.0  #: derivative-of-Gaussian scale on the profiles
+    sample_px: float = 0.5  #: sample spacing along each profile
+    min_contrast: float = 6.0  #: minimum |gradient| (grey levels per px) of an edge
+    width_tolerance: float = 0.15  #: accepted relative deviation of the limb spacing from the prediction
+    ransac_iters: int = 150
+    inlier_px: float = 1.0  #: RANSAC inlier threshold
+    min_points: int = 20  #: per limb, after outlier rejection
+    min_length_px: float = 40.0  #: visible length needed
+    max_rms_px: float = 0.8  #: residual RMS above this: rod rejected
+    min_plane_angle_rad: float = 2e-3
+    border_px: float = 3.0  #: samples closer to the image border are dropped
+    near_m: float = 0.05  #: the segment is clipped to z >= near_m
+    edge_bias_px: float = 0.05  #: slowly varying edge bias allowed for in ``cov_u`` (end-to-end, px)
+    neighbour_px: float = 4.0  #: limb points closer than this to another rod's predicted silhouette: dropped
+
+
+@dataclass
+class RodMeasurement:
+    """One rod measured in one image (or the reason why not: ``reason`` set, ``u`` None)."""
+
+    leg: int
+    rod: int
+    u: Array | None = None
+    point: Array | None = None
+    h: tuple[Array, Array] | None = None
+    rms_px: tuple[float, float] = (np.nan, np.nan)
+    n_points: tuple[int, int] = (0, 0)
+    plane_angle_rad: float = np.nan
+    reason: str | None = None
+    lines_px: list[Array] = field(default_factory=list)  # per limb (a, b, c) in ideal pixels, a^2+b^2=1
+    cov_u: Array | None = None  #: (3, 3) covariance of u (camera frame) from the limb edges' scatter
+    #: (2, 5, 2) per limb, five points of its fitted line spread over the measured edge points
+    #: (quantiles 0, 1/4, 1/2, 3/4, 1 along it), in distorted pixels: the raw measurement, from which
+    #: the limb planes can be recomputed for other intrinsics (uncertainty propagation)
+    limbs_px: Array | None = None
+
+    @property
+    def ok(self) -> bool:
+        return self.u is not None
+
+    def to_dict(self) -> dict | None:
+        if self.u is None:
+            return None
+        d = {
+            "u": self.u.tolist(),
+            "rms_px": [float(x) for x in self.rms_px],
+            "n_points": [int(x) for x in self.n_points],
+            "plane_angle_rad": float(self.plane_angle_rad),
+        }
+        if self.point is not None:
+            d["point"] = self.point.tolist()
+        if self.cov_u is not None:
+            d["cov_u"] = self.cov_u.tolist()
+        if self.h is not None:
+            d["h"] = [self.h[0].tolist(), self.h[1].tolist()]  # interpretation-plane normals (camera frame)
+        if self.limbs_px is not None:
+            d["limbs_px"] = self.limbs_px.tolist()
+        return d
