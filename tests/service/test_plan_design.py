@@ -168,5 +168,6 @@ def test_bench_design_compares_plans_of_equal_fit_counts():
     for p in plans.values():
         assert p["counts"]["poses"] == 8 and "line" not in p["counts"]
         assert set(p["predicted_std_m"]) == {"combined", "end-effector", "legs"}
+        assert set(p["predicted_images_std_m"]) == {"combined", "end-effector", "legs"}
     assert plans["designed-8"]["motion_s"] <= plans["paper-8"]["motion_s"] * 1.05
     assert main(["bench", "design", "--trials", "0"]) == 2
