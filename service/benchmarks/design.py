@@ -14,7 +14,8 @@ prediction scaled per method and combination by the paper's 20-pose plan's measu
 prediction, i.e. noise levels calibrated by one reference run), and the motion time (trapezoidal profiles,
 ``--speed``/``--accel``). The issue's check: the designed 12-pose plan's combined RMS error no larger than the
 paper's 20-pose plan's for every combination, and each method's prediction within 30% of its RMS error.
-``--plans designed-12,paper-20`` runs only those plans. ``--json PATH`` writes everything (format
+``--plans designed-12,paper-20`` runs only those plans; each plan's ``trials`` lists every trial's errors and
+reported std per method. ``--json PATH`` writes everything (format
 ``i4cal.bench-design/1``).
 """
 
@@ -107,6 +108,18 @@ def run_design_bench(opts: argparse.Namespace, progress=None) -> dict[str, Any]:
                 progress(i, len(tasks))
     for name, p in plans.items():
         p["summary"] = summarize([records[f"{name},k={k}"] for k in range(opts.trials)])
+        # per trial, each method's errors and reported std (metres), to look at the tails
+        p["trials"] = [
+            {
+                "index": k,
+                "error": records[f"{name},k={k}"].get("error"),
+                "methods": {
+                    m: {f: r.get(f) for f in ("ok", "errors", "std")}
+                    for m, r in (records[f"{name},k={k}"].get("methods") or {}).items()
+                },
+            }
+            for k in range(opts.trials)
+        ]
         p.pop("steps")
     ref = plans.get("paper-20")
     for p in plans.values():
