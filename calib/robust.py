@@ -9,15 +9,25 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.stats import chi2
+from scipy.special import gammaincinv
 
 #: Quantile of the chi-square gate: 1 good block in 1000 is rejected.
 GATE_QUANTILE = 0.999
 
 
+def _chi2_ppf(q: ArrayLike, dof: ArrayLike) -> NDArray[np.float64]:
+    """``scipy.stats.chi2.ppf(q, dof)``, the same numbers (its formula, ``2 gammaincinv(dof / 2, q)``, with its
+    NaN outside ``dof > 0``, ``0 <= q <= 1``), without importing ``scipy.stats``: ~1 s of CPU in every process that
+    imports the methods (the CLI, the service's fit and extraction processes, the benchmarks' workers)."""
+    qa, da = np.asarray(q, dtype=np.float64), np.asarray(dof, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        x = 2 * gammaincinv(da / 2, qa)
+    return np.asarray(np.where((da > 0) & (qa >= 0) & (qa <= 1), x, np.nan), dtype=np.float64)
+
+
 def chi2_gate(dof: ArrayLike, quantile: float = GATE_QUANTILE) -> NDArray[np.float64]:
     """The gate ``chi2.ppf(quantile, dof)``, shape of ``dof`` (an unscaled threshold on a squared norm)."""
-    return np.asarray(chi2.ppf(quantile, dof), dtype=np.float64)
+    return _chi2_ppf(quantile, dof)
 
 
 def robust_chi2_scale(d2: ArrayLike, dof: ArrayLike) -> float:
@@ -33,7 +43,7 @@ def robust_chi2_scale(d2: ArrayLike, dof: ArrayLike) -> float:
     d2a = np.asarray(d2, dtype=np.float64)
     if d2a.size == 0:
         raise ValueError("robust_chi2_scale needs at least one residual block, got none")
-    return float(np.median(d2a / chi2.median(dof)))
+    return float(np.median(d2a / _chi2_ppf(0.5, dof)))
 
 
 def chi2_outliers(d2: ArrayLike, dof: ArrayLike, scale: float | None = None) -> NDArray[np.bool_]:
