@@ -221,6 +221,7 @@ def base_frame_images(
     n_st = 0 if steps is None else steps.shape[0]
     G = np.zeros((3, n_st))
     for j in range(n_st):
+        assert steps is not None
         dr = np.einsum("nij,j->ni", br.d_intrinsics, steps[j])
         dt = np.einsum("nij,j->ni", bt.d_intrinsics, steps[j])
         # the measured poses moved: rotation exp(d[:3]) R, position t + d[3:]
@@ -471,7 +472,7 @@ def predict_legs_images(
     Cr[fr.k, fr.leg, fr.rod] = fr.cov_u
     has[fr.k, fr.leg, fr.rod] = True
     U, CU, _ = _pair_means(u, has, Cr)
-    has_leg = has.any(axis=2)
+    has_leg = np.asarray(has.any(axis=2))
     for k, i, j in zip(fr.k, fr.leg, fr.rod, strict=True):
         if np.isnan(pts[k, i, 0]):
             pts[k, i] = fr.point[(fr.k == k) & (fr.leg == i) & (fr.rod == j)][0]
@@ -512,7 +513,7 @@ def predict_legs_images(
         Jz = np.stack([(seven_for(e) - seven_for(-e)) / 2.0 for e in E], axis=1)
         parts["intrinsics"] = Jz[:, :nz] @ Jz[:, :nz].T
         parts["limb_edge_bias"] = Jz[:, nz:] @ Jz[:, nz:].T
-    cov7 = sum(parts.values())
+    cov7 = np.sum(np.stack(list(parts.values())), axis=0)
     if noise.legs_prior_std_m:
         _s, cov7, parts = _with_prior(seven, cov7, parts, nominal, noise.legs_prior_std_m)
     return cov7, SEVEN_TO_FOUR @ cov7 @ SEVEN_TO_FOUR.T, parts

@@ -28,6 +28,7 @@ from ..kinematics import pose_from_joints_reduced
 from ..numdiff import central_jacobian
 from ..observations import Observations, PhaseArrays
 from ..parameters import COMBINATION_NAMES
+from ..robust import chi2_outliers
 from ..transforms import matrix_to_rotvec, rotvec_to_matrix
 from . import intrinsics as intr
 from .iterations import IterationCallback, traced
@@ -215,8 +216,7 @@ def calibrate_combined(
     for _ in range(5):
         shape = prob.noise_shape(rod_cov)
         d2 = _whitened_d2(prob, shape, x0, on_iteration)
-        s2_robust = float(np.median(d2)) / _CHI2_2_MEDIAN
-        bad = d2 > _CHI2_2_999 * s2_robust
+        bad = chi2_outliers(d2, 2)
         if not bad.any() or (~bad).sum() * 2 < 8:
             break
         rejected += [
@@ -538,10 +538,6 @@ class _IntrinsicsModel:
 
         # raw = model - measured: the measured entries move by ratios(h1) - ratios(h0)
         return -(ratios(h1) - ratios(h0)).ravel()
-
-
-_CHI2_2_999 = 13.8155  # chi-square, 2 dof, 99.9% quantile
-_CHI2_2_MEDIAN = 1.3863  # chi-square, 2 dof, median
 
 
 def _whitened_d2(

@@ -1,0 +1,13 @@
+"""The legs method's constants: the a priori tolerance, the rod-pair floor, the step-3/4 equations' leg pairs."""
+
+from __future__ import annotations
+
+_PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+#: Default std (m) of each of the seven parameters around the nominal geometry (:func:`calibrate_legs`'s prior): a
+#: bench built to its drawings within about +/-10 mm per length (the twin's default truth is 5.3 mm RMS and at most
+#: 8.4 mm from nominal; the accuracy benchmark draws its truths with 5.3 mm std)
+PRIOR_STD_M = 0.01
+#: Floor (m) of the rod-pair check's separation std: below any measurement (noise-free data are never flagged)
+_PAIR_FLOOR_M = 1e-6
+#: the four step-3/4 equations of a pose: (leg a, leg b) of |Ba Bb| - 2S, then of (Bb - Ba) . y - 2D
+_EQ_LEGS = ((0, 1), (2, 3), (0, 2), (1, 3))

@@ -1,0 +1,263 @@
+"""``calibrate_legs``: the legs method end to end (steps 1-4, uncertainty, diagnostics)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ...errors import IdentifiabilityError
+from ...observations import Observations
+from ...parameters import COMBINATION_NAMES, PARAMETER_NAMES, I4Parameters
+from ..combined import EDGE_BIAS_STD_PX
+from ..iterations import IterationCallback
+from ..result import MethodResult, combos_dict, std_dict
+from .constants import PRIOR_STD_M
+from .joints import _plane_observations, _step1_planes, intersect_lines, joint_from_planes
+from .pipeline import _gate_poses, _leg_directions, _LegsPipeline, _pair_means, _steps34_covariance
+from .uncertainty import _identifiability, _IntrinsicsEffect, _pair_consistency, _with_prior
+
+
+def calibrate_legs(
+    obs: Observations,
+    *,
+    fit_phases: tuple[str, ...] = ("poses",),
+    direction_std_rad: float | None = None,
+    on_iteration: IterationCallback | None = None,
+    edge_bias_std_px: float = EDGE_BIAS_STD_PX,
+    prior_std_m: float | None = PRIOR_STD_M,
+) -> MethodResult:
+    """Identify all seven parameters from leg observations only (four steps).
+
+    Parameters
+    ----------
+    obs : Observations
+        Needs rods with points (the rod radius known) in the ``lock-1`` .. ``lock-4`` phases and
+        rod directions in the fit phases; uses the rods' ``h``, ``cov_u``, ``rms_px`` and ``n_points``
+        (image extraction) when every rod has them (module docstring).
+    fit_phases : tuple of str
+        Phases used for steps 3 and 4 (the paper reuses the 20-pose set).
+    direction_std_rad : float, optional
+        Rod direction noise per tangent axis, rad, for rods without ``cov_u``: then taken as known
+        (not rescaled by the residuals). Not given: the fit's residual chi-square sets the scale.
+    on_iteration : callable, optional
+        Receives ``{"stage", "iteration", "cost"}`` after each iteration of the fits of steps 2 and 3-4 (not
+        of the uncertainty propagation; :mod:`.iterations`).
+    edge_bias_std_px : float
+        Standard deviation (px) of a limb-edge bias common to every rod (per limb), propagated into the
+        standard deviations like the intrinsics (the combined method estimates it; here it is not
+        identifiable apart from the joints and the rod radius).
+    prior_std_m : float or None
+        Standard deviation (m) of each of the seven parameters around the nominal (a priori) geometry: the
+        bench's manufacturing tolerance. Along the directions the legs' data know less well than it (their
+        variance above its square), the estimate is combined with it (linear-Gaussian posterior), so that such a
+        direction stays near the a priori value with about its tolerance as std instead of wherever the data
+        drift (``std_breakdown.a_priori``; ``diagnostics.identifiability``; a warning names the directions);
+        elsewhere the data's estimate is kept unchanged (:func:`_with_prior`). None or 0: no prior.
+
+    Returns
+    -------
+    MethodResult
+        With ``parameters`` (seven) and ``parameters_std``.
+    """
+    nom = obs.nominal
+    q_lock = np.zeros(4)
+    lock_data = []
+    for i in range(4):
+        d = obs.arrays(f"lock-{i + 1}")
+        if len(d) == 0:
+            raise IdentifiabilityError(
+                f"the legs method needs the lock-{i + 1} phase (actuator {i + 1} locked)", parameter=f"A{i + 1}"
+            )
+        spread = float(np.ptp(d.q[:, i]))
+        if spread > 1e-4:
+            raise IdentifiabilityError(
+                f"in phase lock-{i + 1}, q{i + 1} moves by {spread * 1e3:.3f} mm: the actuator is not locked",
+                parameter=f"A{i + 1}",
+            )
+        q_lock[i] = float(np.mean(d.q[:, i]))
+        for j in range(2):
+            ok = d.has_rod[:, i, j] & d.has_point[:, i, j]
+            if ok.sum() < 2:
+                raise IdentifiabilityError(
+                    f"phase lock-{i + 1}: rod {j} of leg {i + 1} has {int(ok.sum())} observation(s) with a point; "
+                    "at least 2 (5 recommended) are needed to locate its joint (rod radius known)",
+                    parameter=f"A{i + 1}",
+                )
+        lock_data.append(d)
+
+    # ---- step 1: the joints
+    planes = [[_plane_observations(obs, lock_data[i], i, j) for j in range(2)] for i in range(4)]
+    use_planes = all(p is not None for row in planes for p in row)
+    rejected_lock: list[dict[str, int]] = []
+    if use_planes:
+        frames1 = [[np.nonzero(lock_data[i].has_rod[:, i, j])[0] for j in range(2)] for i in range(4)]
+        P, covPij, s2_1, rejected_lock, res_rms, keep1 = _step1_planes(planes, frames1)  # type: ignore[arg-type]
+        n_lines = sum(len(planes[i][j]) for i in range(4) for j in range(2))  # type: ignore[arg-type]
+    else:
+        P = np.zeros((4, 2, 3))
+        covPij = np.zeros((4, 2, 3, 3))
+        Acc = np.zeros((4, 2, 3, 3))
+        ss, dof1, n_lines = 0.0, 0, 0
+        for i in range(4):
+            d = lock_data[i]
+            for j in range(2):
+                ok = d.has_rod[:, i, j] & d.has_point[:, i, j]
+                P[i, j], Acc[i, j], res = intersect_lines(d.rod_p[ok, i, j], d.rod_u[ok, i, j])
+                ss += float(np.sum(res**2))
+                dof1 += 2 * int(ok.sum()) - 3
+                n_lines += int(ok.sum())
+        s2_1 = ss / dof1 if dof1 > 0 else 0.0
+        covPij = s2_1 * np.linalg.inv(Acc)
+        res_rms = float(np.sqrt(s2_1))
+
+    # ---- step 1b: the two rods of a leg are parallel and the same distance apart on every leg: their joints'
+    #      separations agree when the joints are right. A leg whose separation is off beyond its covariance has a
+    #      joint wrong beyond its std (a rod's frames taken for another edge, a weakly conditioned lock phase):
+    #      its joints' covariance is scaled to cover that disagreement
+    covPij, pair_check, warnings = _pair_consistency(P, covPij)
+
+    # ---- steps 2-4
+    data = obs.arrays(*fit_phases)
+    U, CU, pts, has_leg, measured, rejected_pairs, C_rods = _leg_directions(obs, data, direction_std_rad)
+    pipe = _LegsPipeline(q_lock, data.q, pts, has_leg, CU, nom)
+    U_filled = np.where(has_leg[..., None], U, 0.0)
+    # poses judged by a robust fit (each round), then the least-squares fit of the poses kept
+    seven = pipe.run(P, U_filled, robust=True)
+    rejected_poses: list[int] = []
+    for _ in range(5):
+        bad = _gate_poses(pipe, P, U_filled, seven)
+        if not bad.any() or (pipe.mask.sum() - pipe.mask[bad].sum()) < 6:
+            break
+        rejected_poses += [int(data.index[k]) for k in np.nonzero(bad)[0]]
+        pipe.set_legs(pipe.has_leg & ~bad[:, None])
+        seven = pipe.run(P, U_filled, robust=True)
+    pipe.W = None
+    seven = pipe.run(P, U_filled, on_iteration=on_iteration)
+    x2 = np.array([*seven[1:4].tolist(), seven[0]])
+
+    # ---- uncertainty: (i) the joints, propagated through steps 2-4 (numerical derivatives, weights fixed)
+    def f(Pv: np.ndarray) -> np.ndarray:
+        return pipe.run(Pv, U_filled, x2)
+
+    h = 1e-7
+    GP = np.zeros((7, 24))
+    for a in range(24):
+        dP = np.zeros(24)
+        dP[a] = h
+        GP[:, a] = (f(P + dP.reshape(4, 2, 3)) - f(P - dP.reshape(4, 2, 3))) / (2 * h)
+    covP = np.zeros((24, 24))
+    for i in range(4):
+        for j in range(2):
+            k = (i * 2 + j) * 3
+            covP[k : k + 3, k : k + 3] = covPij[i, j]
+    cov_joints = GP @ covP @ GP.T
+    # (ii) the leg directions of the fit poses: GLS covariance of (L, S, D), scaled by the chi-square
+    c34, chi34, dof34 = _steps34_covariance(pipe, P, U_filled, seven)
+    s2_34 = 1.0 if (not measured and direction_std_rad is not None) else (chi34 / dof34 if dof34 > 0 else 1.0)
+    if measured:  # cov_u is absolute (with the extraction's edge-bias allowance): scaled up, never down
+        s2_34 = max(s2_34, 1.0)
+    cov_dirs = np.zeros((7, 7))
+    idx = np.array([6, 4, 5])
+    cov_dirs[np.ix_(idx, idx)] = s2_34 * c34
+    # (iii) the camera's intrinsics, common to every frame: the whole estimate redone (frames, gating and
+    #       weights fixed) with the rods measured through the intrinsics moved by one standard deviation
+    #       along each principal direction of their covariance
+    eff = _IntrinsicsEffect.build(obs, lock_data, data) if use_planes else None
+    cov_intr = np.zeros((7, 7))
+    cov_edge = np.zeros((7, 7))
+    if eff is not None:
+
+        def seven_for(z: np.ndarray) -> np.ndarray:
+            pz = eff.lock_planes(z, planes)  # type: ignore[arg-type]
+            Pz = np.array(
+                [
+                    [
+                        joint_from_planes([o for o, kk in zip(pz[i][j], keep1[i][j], strict=True) if kk])[0]
+                        for j in range(2)
+                    ]
+                    for i in range(4)
+                ]
+            )
+            Uz = _pair_means(eff.rod_u(z, data.rod_u), data.has_rod, C_rods)[0]
+            return pipe.run(Pz, np.where(pipe.has_leg[..., None], Uz, 0.0), x2)
+
+        # one standard deviation along each principal direction, then the limb-edge bias common to every rod
+        # (per limb, the combined method's prior: shading and optics bias every rod's limb alike, so it does
+        # not average out over rods)
+        nz = eff.steps.shape[0]
+        E = np.zeros((nz + 2, nz + 2))
+        E[:nz, :nz] = np.eye(nz)
+        E[nz:, nz:] = edge_bias_std_px * np.eye(2)
+        Jz = np.stack([(seven_for(e) - seven_for(-e)) / 2.0 for e in E], axis=1)
+        cov_intr = Jz[:, :nz] @ Jz[:, :nz].T
+        cov_edge = Jz[:, nz:] @ Jz[:, nz:].T
+    cov = cov_joints + cov_dirs + cov_intr + cov_edge
+    parts7 = {
+        "joint_centres": cov_joints,
+        "leg_directions": cov_dirs,
+        "intrinsics": cov_intr,
+        "limb_edge_bias": cov_edge,
+    }
+    seven_data = seven.copy()
+    ident = _identifiability(cov, prior_std_m)
+    if prior_std_m:
+        seven, cov, parts7 = _with_prior(seven, cov, parts7, nom, prior_std_m)
+        if ident["unpinned"]:
+            worst = ident["unpinned"][0]
+            warnings.append(
+                f"the legs' data do not pin {len(ident['unpinned'])} direction(s) of the seven parameters (weakest: "
+                f"{worst['label']}, data std {worst['data_std_m'] * 1e3:.1f} mm against the a priori "
+                f"{prior_std_m * 1e3:.1f} mm): the result stays near the a priori values there, with their std"
+            )
+    params = I4Parameters.from_mapping({**dict(zip(PARAMETER_NAMES, seven, strict=True)), "T_per_rad": nom.T_per_rad})
+    M = np.array(
+        [
+            [0, 0, 0, 0, 0, 0, 1],  # L
+            [1, 0, 0, 0, 0, -1, 0],  # H - D
+            [0, -0.5, 0, 0, 1, 0, 0],  # S - q02/2
+            [0, 0, 0.5, -0.5, 1, 0, 0],  # S - (q04 - q03)/2
+        ],
+        dtype=float,
+    )
+    cov4 = M @ cov @ M.T
+    std7 = {k: float(np.sqrt(max(cov[i, i], 0.0))) for i, k in enumerate(PARAMETER_NAMES)}
+    combos = params.combinations()
+    scale = float(np.sqrt(s2_34)) * (1.0 if measured else (direction_std_rad or 1.0))
+    return MethodResult(
+        method="legs",
+        combinations=combos_dict(np.array([combos[k] for k in COMBINATION_NAMES])),
+        combinations_std=std_dict(cov4),
+        covariance=cov4,
+        residual_rms=res_rms,
+        residual_unit="m (rod axis constraint to joint distance)",
+        n_observations=n_lines + int(pipe.has_leg.sum()),
+        n_poses=len(data) + len(np.concatenate([d.index for d in lock_data])),
+        iterations=1,
+        converged=True,
+        parameters={k: float(v) for k, v in zip(PARAMETER_NAMES, seven, strict=True)},
+        parameters_std=std7,
+        std_breakdown={
+            name: {k: float(np.sqrt(max(c[i, i], 0))) for i, k in enumerate(PARAMETER_NAMES)}
+            for name, c in parts7.items()
+        },
+        warnings=warnings,
+        diagnostics={
+            "step1": "weighted plane equations" if use_planes else "line intersection (unweighted)",
+            "step1_chi2_per_dof": float(s2_1),
+            "step1_frames_rejected": rejected_lock,
+            "steps34_weighting": "measured rod covariances (GLS)" if measured else "isotropic",
+            "steps34_chi2_per_dof": float(s2_34),
+            "rod_direction_noise_rad": scale if not measured else None,
+            "rod_pairs_rejected": rejected_pairs,
+            "poses_rejected": rejected_poses,
+            "line_residual_rms_mm": res_rms * 1e3,
+            "joint_centres_camera": P.mean(axis=1).tolist(),
+            "locked_q": q_lock.tolist(),
+            "rod_pair_check": pair_check,
+            "identifiability": {
+                **ident,
+                "prior_std_m": prior_std_m,
+                "data_estimate": {k: float(v) for k, v in zip(PARAMETER_NAMES, seven_data, strict=True)},
+            },
+        },
+        residuals=None,
+    )

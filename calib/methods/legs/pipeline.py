@@ -1,0 +1,336 @@
+"""Steps 2-4 of the legs method: the legs' geometry from the joint centres and the leg directions, the rods' pair
+means, the gating of poses and the steps' covariance.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from ...errors import ConvergenceError, IdentifiabilityError
+from ...numdiff import central_jacobian
+from ...observations import Observations, PhaseArrays
+from ...parameters import I4Parameters
+from ...robust import chi2_outliers, robust_chi2_scale
+from ...transforms import tangent_basis, unit
+from ..iterations import IterationCallback, traced
+from .constants import _EQ_LEGS, _PAIRS
+from .joints import _rod_field
+
+
+def _step2(V: np.ndarray, x0: np.ndarray, on_iteration: IterationCallback | None = None) -> np.ndarray:
+    """(q02, q03, q04, H) from V (3, 3) rows OA2, OA3, OA4 at zero encoder (eq. 9)."""
+    G = V @ V.T
+    meas = np.array([G[a, b] for a, b in _PAIRS])
+
+    def model(x: np.ndarray) -> np.ndarray:
+        q02, q03, q04, H = x
+        Vb = np.array([[q02, 0.0], [q03, 2 * H], [q04, 2 * H]])
+        Gb = Vb @ Vb.T
+        return np.array([Gb[a, b] for a, b in _PAIRS])
+
+    sol = least_squares(
+        traced(lambda x: model(x) - meas, on_iteration, "step 2"), x0, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15
+    )
+    if sol.status <= 0:
+        raise ConvergenceError(f"legs step 2 (eq. 9) did not converge: {sol.message}")
+    return sol.x
+
+
+def _gls_pair(u: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Covariance-weighted mean of two aligned unit directions (2, 3) with covariances (2, 3, 3).
+
+    Returns the mean (3,), its covariance (3, 3) and the pair's disagreement, chi-square with 2 dof.
+    """
+    m = unit(u[0] + u[1])
+    T = tangent_basis(m)  # (3, 2) tangent basis at the mean
+    e = u @ T  # (2, 2) tangent coordinates
+    Ct = np.einsum("ai,kab,bj->kij", T, C, T) + 1e-18 * np.eye(2)
+    Wi = np.linalg.inv(Ct)
+    Cm = np.linalg.inv(Wi.sum(axis=0))
+    em = Cm @ np.einsum("kij,kj->i", Wi, e)
+    de = e[0] - e[1]
+    d2 = float(de @ np.linalg.solve(Ct[0] + Ct[1], de))
+    return unit(m + T @ em), T @ Cm @ T.T, d2
+
+
+class _LegsPipeline:
+    """Steps 2-4 as a function of the joint points (step 1 output) and the fit-pose leg directions."""
+
+    def __init__(
+        self,
+        q_lock: np.ndarray,
+        q_fit: np.ndarray,
+        rod_p: np.ndarray,
+        has_leg: np.ndarray,
+        cov_leg: np.ndarray,
+        nominal: I4Parameters,
+    ) -> None:
+        self.q_lock = q_lock  # (4,) locked value of each actuator
+        self.q_fit = q_fit  # (N, 4)
+        self.rod_p = rod_p  # (N, 4, 3) a point on each leg's rods (for the direction sign), NaN if none
+        self.cov_leg = cov_leg  # (N, 4, 3, 3) covariance (or relative covariance) of each leg direction
+        self.nominal = nominal
+        self.set_legs(has_leg)
+        self.W: np.ndarray | None = None  # (N, 4, 4) whitening of each pose's equations, fixed once fitted
+
+    def set_legs(self, has_leg: np.ndarray) -> None:
+        """Legs used per pose (N, 4) and the equations they allow (N, 4)."""
+        self.has_leg = has_leg
+        self.mask = np.stack([has_leg[:, a] & has_leg[:, b] for a, b in _EQ_LEGS], axis=1)
+        self.W = None
+
+    def frame(self, P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """x_B and A_i(q=0) in the camera frame from the 8 upper joint points (4, 2, 3)."""
+        A = P.mean(axis=1)
+        nom = self.nominal
+        s12 = np.sign(self.q_lock[1] + nom.q02 - self.q_lock[0])
+        s34 = np.sign(self.q_lock[3] + nom.q04 - self.q_lock[2] - nom.q03)
+        x = unit(unit(s12 * (A[1] - A[0])) + unit(s34 * (A[3] - A[2])))
+        A0 = A - self.q_lock[:, None] * x[None, :]
+        return x, A0, A
+
+    def run(
+        self,
+        P: np.ndarray,
+        U: np.ndarray,
+        x2_init: np.ndarray | None = None,
+        on_iteration: IterationCallback | None = None,
+        robust: bool = False,
+    ) -> np.ndarray:
+        """Seven parameters (PARAMETER_NAMES order) from joint points P (4,2,3) and leg directions U (N,4,3)."""
+        nom = self.nominal
+        x, A0, _ = self.frame(P)
+        V = A0[1:] - A0[0]
+        x2 = _step2(V, np.array([nom.q02, nom.q03, nom.q04, nom.H]) if x2_init is None else x2_init, on_iteration)
+        q02, q03, q04, H = x2
+        y = self.y_axis(x, A0)
+        theta0 = np.array([nom.L, nom.S, nom.D])
+        L, S, D = self.robust34(x, y, A0, U, theta0) if robust else self.steps34(x, y, A0, U, theta0, on_iteration)
+        return np.array([H, q02, q03, q04, S, D, L])
+
+    @staticmethod
+    def y_axis(x: np.ndarray, A0: np.ndarray) -> np.ndarray:
+        V1 = A0[2] - A0[0]
+        return unit(V1 - (V1 @ x) * x)
+
+    def oriented(self, x: np.ndarray, A0: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A_i(q_i) per fit pose (N, 4, 3) and the leg directions oriented from A to B (N, 4, 3)."""
+        Aq = A0[None, :, :] + self.q_fit[:, :, None] * x[None, None, :]
+        sgn = np.sign(np.einsum("nij,nij->ni", U, np.where(np.isnan(self.rod_p), 0.0, self.rod_p - Aq)))
+        sgn[sgn == 0] = 1.0
+        return Aq, U * sgn[..., None]
+
+    def residuals(self, theta: np.ndarray, Aq: np.ndarray, Uo: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """The four equations of every pose (N, 4), zero where not available."""
+        L, S, D = theta
+        B = Aq + L * Uo
+        R = np.stack(
+            [
+                np.linalg.norm(B[:, 0] - B[:, 1], axis=1) - 2 * S,
+                np.linalg.norm(B[:, 2] - B[:, 3], axis=1) - 2 * S,
+                (B[:, 2] - B[:, 0]) @ y - 2 * D,
+                (B[:, 3] - B[:, 1]) @ y - 2 * D,
+            ],
+            axis=1,
+        )
+        return np.where(self.mask, R, 0.0)
+
+    def covariances(self, theta: np.ndarray, Aq: np.ndarray, Uo: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Covariance (N, 4, 4) of each pose's equations from its leg directions' (identity where unused)."""
+        L = theta[0]
+        B = Aq + L * Uo
+        n12 = unit(B[:, 0] - B[:, 1])
+        n34 = unit(B[:, 2] - B[:, 3])
+        N = Aq.shape[0]
+        G = np.zeros((N, 4, 4, 3))  # d equation / d leg direction
+        G[:, 0, 0], G[:, 0, 1] = L * n12, -L * n12
+        G[:, 1, 2], G[:, 1, 3] = L * n34, -L * n34
+        G[:, 2, 2], G[:, 2, 0] = L * y, -L * y
+        G[:, 3, 3], G[:, 3, 1] = L * y, -L * y
+        C = np.einsum("neli,nlij,nmlj->nem", G, np.nan_to_num(self.cov_leg), G)
+        m = self.mask[:, :, None] & self.mask[:, None, :]
+        C = np.where(m, C, 0.0)
+        idx = np.arange(4)
+        C[:, idx, idx] = np.where(self.mask, C[:, idx, idx], 1.0)
+        return C
+
+    def whitened(self, theta: np.ndarray, Aq: np.ndarray, Uo: np.ndarray, y: np.ndarray) -> np.ndarray:
+        assert self.W is not None
+        return np.einsum("nij,nj->ni", self.W, self.residuals(theta, Aq, Uo, y))
+
+    def robust34(self, x: np.ndarray, y: np.ndarray, A0: np.ndarray, U: np.ndarray, theta0: np.ndarray) -> np.ndarray:
+        """(L, S, D) that a few wild poses cannot drag: a Cauchy loss on each pose's whitened equations (weights at
+        ``theta0``), from ``theta0``, its scale the median pose's. For judging the poses: a leg taken for another
+        edge in a few poses pulls the least-squares fit along the valley (L, S, D) ~ (1, u_x, u_y) that only the
+        leg directions' variation pins (on a rendered trial to L 104 mm off with a 9.6 mm std, which the gating,
+        judging the poses by that fit, could not undo); the robust fit from the a priori values stays in the
+        right valley."""
+        Aq, Uo = self.oriented(x, A0, U)
+        theta = np.asarray(theta0, dtype=np.float64)
+        self.W = np.linalg.cholesky(np.linalg.inv(self.covariances(theta, Aq, Uo, y))).transpose(0, 2, 1)
+        used = self.mask.any(axis=1)
+
+        def per_pose(t: np.ndarray) -> np.ndarray:
+            return np.sqrt(np.sum(self.whitened(t, Aq, Uo, y) ** 2, axis=1)[used] + 1e-300)
+
+        scale = float(np.median(per_pose(theta)))
+        if not scale > 0:
+            return theta
+        sol = least_squares(
+            per_pose,
+            theta,
+            method="trf",
+            loss="cauchy",
+            f_scale=scale,
+            xtol=1e-10,
+            ftol=1e-10,
+            gtol=1e-10,
+            x_scale="jac",
+        )
+        return sol.x if sol.success and np.all(np.isfinite(sol.x)) else theta
+
+    def steps34(
+        self,
+        x: np.ndarray,
+        y: np.ndarray,
+        A0: np.ndarray,
+        U: np.ndarray,
+        theta0: np.ndarray,
+        on_iteration: IterationCallback | None = None,
+    ) -> np.ndarray:
+        """(L, S, D) by GLS; the whitening is computed (iterated) on the first call and then kept fixed."""
+        if self.mask[:, :2].sum() < 3:
+            raise IdentifiabilityError(
+                "legs step 3 needs both legs of a pair seen in at least 2 fit poses", parameter="L"
+            )
+        if self.mask[:, 2:].sum() == 0:
+            raise IdentifiabilityError("legs step 4 needs legs 1 and 3 (or 2 and 4) seen together", parameter="D")
+        Aq, Uo = self.oriented(x, A0, U)
+        theta = np.asarray(theta0, dtype=np.float64)
+        passes = 3 if self.W is None else 1
+        for npass in range(passes):
+            if passes > 1:
+                C = self.covariances(theta, Aq, Uo, y)
+                self.W = np.linalg.cholesky(np.linalg.inv(C)).transpose(0, 2, 1)
+            stage = "steps 3-4" if npass == 0 else f"steps 3-4 pass {npass + 1}"  # each fit's cost falls
+            sol = least_squares(
+                traced(lambda t: self.whitened(t, Aq, Uo, y).ravel(), on_iteration, stage),
+                theta,
+                method="lm",
+                xtol=1e-15,
+                ftol=1e-15,
+                gtol=1e-15,
+            )
+            if sol.status <= 0 or not np.all(np.isfinite(sol.x)):
+                raise ConvergenceError(f"legs steps 3-4 (eq. 11) did not converge: {sol.message}")
+            theta = sol.x
+        return theta
+
+
+def _pair_means(u: np.ndarray, has: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per pose and leg, the covariance-weighted mean of its rods' directions.
+
+    Parameters
+    ----------
+    u : ndarray, shape (N, 4, 2, 3)
+        Rod directions (NaN where missing).
+    has : ndarray of bool, shape (N, 4, 2)
+    C : ndarray, shape (N, 4, 2, 3, 3)
+        Rod direction covariances.
+
+    Returns
+    -------
+    U : ndarray, shape (N, 4, 3)
+        Leg directions (NaN without a rod).
+    CU : ndarray, shape (N, 4, 3, 3)
+        Their covariances.
+    pair_d2 : ndarray, shape (N, 4)
+        The two rods' disagreement, chi-square with 2 dof (NaN without both rods).
+    """
+    u = u.copy()
+    dot = np.einsum("nlk,nlk->nl", u[:, :, 0], u[:, :, 1])
+    u[:, :, 1] *= np.where(np.isnan(dot), 1.0, np.sign(dot))[..., None]
+    N = u.shape[0]
+    U = np.full((N, 4, 3), np.nan)
+    CU = np.full((N, 4, 3, 3), np.nan)
+    pair_d2 = np.full((N, 4), np.nan)
+    for k in range(N):
+        for leg in range(4):
+            if has[k, leg].all():
+                U[k, leg], CU[k, leg], pair_d2[k, leg] = _gls_pair(u[k, leg], C[k, leg])
+            elif has[k, leg].any():
+                j = int(np.argmax(has[k, leg]))
+                U[k, leg], CU[k, leg] = unit(u[k, leg, j]), C[k, leg, j]
+    return U, CU, pair_d2
+
+
+def _leg_directions(
+    obs: Observations, data: PhaseArrays, direction_std_rad: float | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool, list[dict[str, int]], np.ndarray]:
+    """Per pose and leg: direction (N,4,3), its covariance (N,4,3,3), a rod point (N,4,3), mask (N,4).
+
+    Also whether the covariances are the rods' measured ones (``cov_u``; else ``sigma^2 (I - u u^T)``
+    with sigma ``direction_std_rad`` or 1, relative), the rod pairs rejected as disagreeing and the
+    rods' covariances (N, 4, 2, 3, 3).
+    """
+    N = len(data)
+    u = data.rod_u
+    has = data.has_rod
+    C = np.full((N, 4, 2, 3, 3), np.nan)
+    measured = True
+    for k, leg, rod in zip(*np.nonzero(has), strict=True):
+        c = _rod_field(obs, data, k, leg, rod, "cov_u")
+        if c is None or c.shape != (3, 3):
+            measured = False
+            break
+        C[k, leg, rod] = c
+    if not measured:
+        s = 1.0 if direction_std_rad is None else direction_std_rad
+        uu = np.nan_to_num(u)
+        C = s**2 * (np.eye(3) - uu[..., :, None] * uu[..., None, :])
+    U, CU, pair_d2 = _pair_means(u, has, C)
+    has_leg = has.any(axis=2)
+    rejected: list[dict[str, int]] = []
+    ok = np.isfinite(pair_d2)
+    if ok.sum() >= 3:
+        s_rob = robust_chi2_scale(pair_d2[ok], 2)
+        if s_rob > 0:
+            bad = ok & chi2_outliers(np.where(ok, pair_d2, 0.0), 2, s_rob)
+            rejected = [
+                {"frame": int(data.index[k]), "leg": int(leg) + 1} for k, leg in zip(*np.nonzero(bad), strict=True)
+            ]
+            has_leg &= ~bad
+    pts = np.where(data.has_point[:, :, 0, None], data.rod_p[:, :, 0], data.rod_p[:, :, 1])
+    U = np.where(has_leg[..., None], U, np.nan)
+    return U, CU, pts, has_leg, measured, rejected, C
+
+
+def _gate_poses(pipe: _LegsPipeline, P: np.ndarray, U: np.ndarray, seven: np.ndarray) -> np.ndarray:
+    """Poses (bool, (N,)) whose whitened equations exceed their chi-square 99.9% quantile (robust scale)."""
+    x, A0, _ = pipe.frame(P)
+    Aq, Uo = pipe.oriented(x, A0, U)
+    theta = seven[[6, 4, 5]]
+    d2 = np.sum(pipe.whitened(theta, Aq, Uo, pipe.y_axis(x, A0)) ** 2, axis=1)
+    m = pipe.mask.sum(axis=1)
+    used = m > 0
+    if used.sum() < 4:
+        return np.zeros(len(m), dtype=bool)
+    s_rob = robust_chi2_scale(d2[used], m[used])
+    if s_rob <= 0:
+        return np.zeros(len(m), dtype=bool)
+    return used & chi2_outliers(d2, np.maximum(m, 1), s_rob)
+
+
+def _steps34_covariance(
+    pipe: _LegsPipeline, P: np.ndarray, U: np.ndarray, seven: np.ndarray
+) -> tuple[np.ndarray, float, int]:
+    """GLS covariance (3, 3) of (L, S, D) for unit-scaled weights, the chi-square and its dof."""
+    x, A0, _ = pipe.frame(P)
+    y = pipe.y_axis(x, A0)
+    Aq, Uo = pipe.oriented(x, A0, U)
+    theta = seven[[6, 4, 5]]
+    J = central_jacobian(lambda t: pipe.whitened(t, Aq, Uo, y).ravel(), theta, h=1e-7)
+    r = pipe.whitened(theta, Aq, Uo, y)
+    dof = int(pipe.mask.sum()) - 3
+    return np.linalg.inv(J.T @ J), float(np.sum(r**2)), dof

@@ -1,0 +1,240 @@
+"""The legs method's uncertainty beyond the measurement noise: the camera intrinsics' effect, the rod-pair consistency
+check, identifiability per direction and the a priori tolerance.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from ...camera import CameraModel
+from ...errors import InputError
+from ...observations import Observations, PhaseArrays
+from ...parameters import PARAMETER_NAMES, I4Parameters
+from ...robust import chi2_gate, robust_chi2_scale
+from .. import intrinsics as intr
+from .constants import _PAIR_FLOOR_M
+from .joints import PlaneObservation, _rod_field
+
+
+class _IntrinsicsEffect:
+    """The rods' planes and directions as measured through other intrinsics (the camera's error).
+
+    The intrinsics are ``camera + steps^T z`` (``steps`` (n, 8): one standard deviation along each
+    principal direction of their covariance, :func:`.intrinsics.principal_steps`); every used rod's
+    planes are recomputed from its limb samples (``limbs_px``) for those intrinsics
+    (:func:`.intrinsics.limb_planes_for`), its direction as their planes' intersection.
+    """
+
+    def __init__(
+        self,
+        camera: CameraModel,
+        steps: np.ndarray,
+        lock: list[list[tuple[np.ndarray, np.ndarray]]],
+        fit_idx: tuple[np.ndarray, np.ndarray, np.ndarray],
+        fit_limbs: np.ndarray,
+        fit_h: np.ndarray,
+    ) -> None:
+        self.camera, self.steps, self.lock = camera, steps, lock
+        self.fit_idx, self.fit_limbs, self.fit_h = fit_idx, fit_limbs, fit_h
+
+    @classmethod
+    def build(cls, obs: Observations, lock_data: list[PhaseArrays], data: PhaseArrays) -> _IntrinsicsEffect | None:
+        """None when the camera's covariance or any rod's ``limbs_px`` or ``h`` is missing."""
+        try:
+            prior = intr.intrinsics_prior(obs)
+        except InputError:  # an extraction camera without its size: no calibration to carry
+            return None
+        if prior is None:
+            return None
+        camera, cov = prior
+        steps = intr.principal_steps(cov)
+        if steps.shape[0] == 0:
+            return None
+
+        def fields(
+            d: PhaseArrays, ks: np.ndarray, legs: np.ndarray, rods: np.ndarray
+        ) -> tuple[np.ndarray, np.ndarray] | None:
+            limbs, hs = [], []
+            for k, leg, rod in zip(ks, legs, rods, strict=True):
+                lm = _rod_field(obs, d, int(k), int(leg), int(rod), "limbs_px")
+                h = _rod_field(obs, d, int(k), int(leg), int(rod), "h")
+                if lm is None or h is None or lm.ndim != 3 or lm.shape[0] != 2 or h.shape != (2, 3):
+                    return None
+                limbs.append(lm)
+                hs.append(h / np.linalg.norm(h, axis=1, keepdims=True))
+            if len({lm.shape for lm in limbs}) > 1:
+                return None
+            return (np.asarray(limbs), np.asarray(hs)) if limbs else (np.zeros((0, 2, 1, 2)), np.zeros((0, 2, 3)))
+
+        lock = []
+        for i, d in enumerate(lock_data):
+            row = []
+            for j in range(2):
+                ks = np.nonzero(d.has_rod[:, i, j])[0]
+                f = fields(d, ks, np.full(len(ks), i), np.full(len(ks), j))
+                if f is None:
+                    return None
+                row.append(f)
+            lock.append(row)
+        idx = np.nonzero(data.has_rod)
+        f = fields(data, *idx)
+        if f is None:
+            return None
+        return cls(camera, steps, lock, idx, f[0], f[1])
+
+    def _planes(self, z: np.ndarray, limbs: np.ndarray, h: np.ndarray) -> np.ndarray:
+        """Planes for ``z``: the intrinsics' part (its first ``steps`` entries), then, when ``z`` is longer, a
+        limb-edge bias common to every rod (outward, per limb, px)."""
+        if limbs.shape[0] == 0:
+            return h
+        n = self.steps.shape[0]
+        out = intr.limb_planes_for(intr.perturbed_camera(self.camera, self.steps.T @ z[:n]), limbs, h)
+        if z.size > n:
+            out = intr.shift_limbs(out, z[n:] / self.camera.focal_px)
+        return out
+
+    def lock_planes(
+        self, z: np.ndarray, planes: list[list[list[PlaneObservation]]]
+    ) -> list[list[list[PlaneObservation]]]:
+        """``planes`` (step 1, [4][2] lists) with every plane normal as measured for ``z``."""
+        out = []
+        for i in range(4):
+            row = []
+            for j in range(2):
+                limbs, h = self.lock[i][j]
+                hz = self._planes(z, limbs, h)
+                row.append([replace(o, h=hz[m]) for m, o in enumerate(planes[i][j])])
+            out.append(row)
+        return out
+
+    def rod_u(self, z: np.ndarray, rod_u: np.ndarray) -> np.ndarray:
+        """The fit phases' rod directions (N, 4, 2, 3) as measured for ``z``, signed like ``rod_u``."""
+        hz = self._planes(z, self.fit_limbs, self.fit_h)
+        u = np.cross(hz[:, 0], hz[:, 1])
+        u /= np.linalg.norm(u, axis=1, keepdims=True)
+        ref = rod_u[self.fit_idx]
+        u *= np.where(np.sum(u * ref, axis=1) < 0, -1.0, 1.0)[:, None]
+        out = rod_u.copy()
+        out[self.fit_idx] = u
+        return out
+
+
+def _pair_consistency(P: np.ndarray, covP: np.ndarray) -> tuple[np.ndarray, list[dict], list[str]]:
+    """The two upper joints of each leg against the other legs': their separations (4, 3) must agree.
+
+    Every leg's two rods are the same distance apart along x_B, so ``P[i, 1] - P[i, 0]`` is the same vector for
+    the four legs. Each leg's separation is compared with the component-wise median of the four (robust to one
+    wrong leg) by its chi-square with 3 dof under the joints' covariance (plus a 1 um floor); beyond the
+    chi-square 99.9% quantile times the legs' common scale (the median leg's chi-square over chi-square(3)'s
+    median, at least 1) the leg's two joint covariances are scaled by chi-square / 3, so that its std covers
+    the disagreement (the joints' error is then visible to the propagation, and the prior can act on it).
+
+    Returns
+    -------
+    covP : ndarray, shape (4, 2, 3, 3)
+        The joints' covariances, scaled where needed.
+    check : list of dict
+        Per leg: ``separation_mm``, ``deviation_mm`` (from the median), ``chi2``, ``scale``.
+    warnings : list of str
+    """
+    sep = P[:, 1] - P[:, 0]
+    ref = np.median(sep, axis=0)
+    out = covP.copy()
+    check, warnings = [], []
+    c2s = []
+    for i in range(4):
+        e = sep[i] - ref
+        C = covP[i, 0] + covP[i, 1] + _PAIR_FLOOR_M**2 * np.eye(3)
+        try:
+            c2s.append(float(e @ np.linalg.solve(C, e)))
+        except np.linalg.LinAlgError:
+            c2s.append(float("nan"))
+    # the legs' common scale (robust: the median leg's) sets the gate, so that only a leg far beyond the others
+    # is flagged; four chi-squares are too few to rescale every leg by
+    finite = [c for c in c2s if np.isfinite(c)]
+    common = max(1.0, robust_chi2_scale(finite, 3)) if finite else 1.0
+    limit = float(chi2_gate(3)) * common
+    for i in range(4):
+        e = sep[i] - ref
+        c2 = c2s[i]
+        scale = c2 / 3.0 if np.isfinite(c2) and c2 > limit else 1.0
+        out[i] *= scale
+        check.append(
+            {
+                "leg": i + 1,
+                "separation_mm": float(np.linalg.norm(sep[i]) * 1e3),
+                "deviation_mm": float(np.linalg.norm(e) * 1e3),
+                "chi2": c2,
+                "scale": scale,
+            }
+        )
+        if scale > 1.0:
+            warnings.append(
+                f"lock-{i + 1}: the two rods' joints are {np.linalg.norm(sep[i]) * 1e3:.1f} mm apart, "
+                f"{np.linalg.norm(e) * 1e3:.1f} mm off the other legs' (chi-square {c2:.0f} for 3 dof): the joints' "
+                f"covariance is scaled by {scale:.0f}"
+            )
+    return out, check, warnings
+
+
+def _identifiability(cov: np.ndarray, prior_std_m: float | None) -> dict:
+    """How well the legs' data pin the seven parameters, per principal direction of their covariance.
+
+    ``information_ratio`` = prior variance / data variance along each direction (sorted, weakest first): below 1
+    the a priori tolerance knows that direction better than the data (``unpinned``, labelled by the parameters it
+    mostly involves). ``condition_number``: of the data covariance (largest / smallest variance).
+    """
+    C = 0.5 * (cov + cov.T)
+    w, V = np.linalg.eigh(C)
+    w = np.maximum(w, 1e-30)
+    order = np.argsort(-w)  # weakest (largest variance) first
+    ps2 = (prior_std_m or 0.0) ** 2
+    dirs = []
+    for k in order:
+        v = V[:, k] * np.sign(V[np.argmax(np.abs(V[:, k])), k])
+        big = np.argsort(-np.abs(v))[:3]
+        label = " ".join(f"{v[j]:+.2f} {PARAMETER_NAMES[j]}" for j in big if abs(v[j]) > 0.2)
+        dirs.append(
+            {
+                "direction": {n: float(x) for n, x in zip(PARAMETER_NAMES, v, strict=True)},
+                "label": label,
+                "data_std_m": float(np.sqrt(w[k])),
+                "information_ratio": float(ps2 / w[k]) if ps2 else None,
+            }
+        )
+    return {
+        "condition_number": float(w.max() / w.min()),
+        "directions": dirs,
+        "unpinned": [d for d in dirs if d["information_ratio"] is not None and d["information_ratio"] < 1.0],
+    }
+
+
+def _with_prior(
+    seven: np.ndarray, cov: np.ndarray, parts: dict[str, np.ndarray], nom: I4Parameters, prior_std_m: float
+) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """The legs' estimate with the prior N(nominal, prior_std_m^2 I) in the directions the data do not pin.
+
+    Along each principal direction k of the data covariance C (variance w_k): when the data know it better than
+    the prior (w_k < prior_std_m^2) the data's estimate is kept as it is (unbiased, and better than the a priori
+    value in expectation); otherwise the linear-Gaussian posterior of the two, the data weighed by the factor
+    ``a_k = s^2 / (w_k + s^2)``. With ``A = V diag(a) V^T``, ``posterior = A seven + (I - A) nominal``; its error is
+    ``A (data error) + (I - A) (nominal - truth)``, hence the covariance ``A C A^T + (I - A) P (I - A)^T``, each data
+    part mapped by A and the prior's part named ``a_priori``. In every direction the result is then no worse than
+    the a priori value in expectation, and noise-free data still give back the truth exactly.
+    """
+    nom7 = np.array([getattr(nom, k) for k in PARAMETER_NAMES])
+    s2 = prior_std_m**2
+    Pp = s2 * np.eye(7)
+    C = 0.5 * (cov + cov.T)
+    w, V = np.linalg.eigh(C)
+    w = np.maximum(w, 0.0)
+    a = np.where(w < s2, 1.0, s2 / (w + s2))
+    A = (V * a) @ V.T
+    post = A @ seven + (np.eye(7) - A) @ nom7
+    out = {k: A @ v @ A.T for k, v in parts.items()}
+    IA = np.eye(7) - A
+    out["a_priori"] = IA @ Pp @ IA.T
+    total = sum(out.values())
+    return post, 0.5 * (total + total.T), out
