@@ -274,6 +274,23 @@ def predict_combined(
 
 
 # -- end-effector ---------------------------------------------------------------------------------------------
+def _board_pose_sensitivity(model: Any, x0: np.ndarray, R: np.ndarray, t: np.ndarray, h: float = 1e-7) -> np.ndarray:
+    """The end-effector residuals' sensitivity to each board pose (N, 6, 6): rotation (left rotation vector, rad),
+    then position (m), by central differences of step ``h``."""
+    G = np.zeros((len(R), 6, 6))
+    for a in range(6):
+        d = np.zeros(3)
+        d[a % 3] = h
+        if a < 3:
+            rp = model.residuals(x0, rotvec_to_matrix(d) @ R, t)
+            rm = model.residuals(x0, rotvec_to_matrix(-d) @ R, t)
+        else:
+            rp = model.residuals(x0, R, t + d)
+            rm = model.residuals(x0, R, t - d)
+        G[:, :, a] = (rp - rm) / (2 * h)
+    return G
+
+
 def _ee_problem(nominal: I4Parameters, q_fit: np.ndarray, scene: Scene):
     from ..methods.end_effector import _Model
 
@@ -318,18 +335,7 @@ def end_effector_pose_information(
     if np.max(np.abs(r0)) > 1e-9:
         raise RuntimeError(f"end-effector design model does not close at nominal ({np.max(np.abs(r0)):.2e})")
     J = central_jacobian(lambda x: model.residuals(x).ravel(), x0, 1e-7).reshape(n, 6, -1)
-    G = np.zeros((n, 6, 6))
-    h = 1e-7
-    for a in range(6):
-        d = np.zeros(3)
-        d[a % 3] = h
-        if a < 3:
-            rp = model.residuals(x0, rotvec_to_matrix(d) @ R, t)
-            rm = model.residuals(x0, rotvec_to_matrix(-d) @ R, t)
-        else:
-            rp = model.residuals(x0, R, t + d)
-            rm = model.residuals(x0, R, t - d)
-        G[:, :, a] = (rp - rm) / (2 * h)
+    G = _board_pose_sensitivity(model, x0, R, t)
     Sb = np.diag([noise.board_rotation_rad**2] * 3 + [v**2 for v in noise.board_translation_m])
     C = np.einsum("nij,jk,nlk->nil", G, Sb, G)
     C[:, :4, :4] += noise.encoder_m**2 * np.eye(4)

@@ -339,23 +339,12 @@ def predict_combined_images(
 def _ee_terms(nominal: I4Parameters, q_fit: np.ndarray, scene: Scene, noise: ImageNoise):
     """The end-effector problem's residual Jacobian (N, 6, p), their sensitivity to the board pose (N, 6, 6), the
     board poses (PnP covariance, d_intrinsics) and the residuals' covariance (N, 6, 6)."""
-    from .predict import _ee_problem
+    from .predict import _board_pose_sensitivity, _ee_problem
 
     model, x0, R, t = _ee_problem(nominal, q_fit, scene)
     n = len(R)
     J = central_jacobian(lambda x: model.residuals(x).ravel(), x0, 1e-7).reshape(n, 6, -1)
-    A = np.zeros((n, 6, 6))
-    h = 1e-7
-    for a in range(6):
-        d = np.zeros(3)
-        d[a % 3] = h
-        if a < 3:
-            rp = model.residuals(x0, rotvec_to_matrix(d) @ R, t)
-            rm = model.residuals(x0, rotvec_to_matrix(-d) @ R, t)
-        else:
-            rp = model.residuals(x0, R, t + d)
-            rm = model.residuals(x0, R, t - d)
-        A[:, :, a] = (rp - rm) / (2 * h)
+    A = _board_pose_sensitivity(model, x0, R, t)
     bp = board_poses(scene, nominal, q_fit, noise.corner_px, noise.intrinsics_names)
     C = np.einsum("nij,njk,nlk->nil", A, bp.cov, A)
     C[:, :4, :4] += noise.encoder_m**2 * np.eye(4)
