@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 from typing import Any, Literal
 
 from fastapi import APIRouter, HTTPException, Request, status
@@ -57,6 +58,18 @@ def _lock(request: Request) -> asyncio.Lock:
     return lock
 
 
+async def _finish_even_if_abandoned(work: asyncio.Future[Any]) -> Any:
+    """The result of ``work`` (a design in a worker thread); if the request is cancelled (the client went away), wait
+    for the thread to end before giving up, so that the design lock stays held while the computation runs: a thread
+    cannot be stopped, and releasing the lock early let abandoned designs pile up on the cores."""
+    try:
+        return await asyncio.shield(work)
+    except asyncio.CancelledError:
+        with contextlib.suppress(BaseException):
+            await asyncio.wait([work])
+        raise
+
+
 @router.post(
     "/design",
     response_model=DesignOut,
@@ -92,7 +105,9 @@ async def design(body: DesignBody, request: Request, manager: Manager, _: Writer
                 n_candidates=body.candidates,
                 with_line=body.with_line,
             )
-            res = await asyncio.to_thread(design_for_bench, bench.config, req)
+            res = await _finish_even_if_abandoned(
+                asyncio.ensure_future(asyncio.to_thread(design_for_bench, bench.config, req))
+            )
         except InputError as exc:
             raise unprocessable(exc) from None
         except I4calError as exc:

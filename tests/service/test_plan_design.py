@@ -171,3 +171,35 @@ def test_bench_design_compares_plans_of_equal_fit_counts():
         assert set(p["predicted_images_std_m"]) == {"combined", "end-effector", "legs"}
     assert plans["designed-8"]["motion_s"] <= plans["paper-8"]["motion_s"] * 1.05
     assert main(["bench", "design", "--trials", "0"]) == 2
+
+
+async def test_an_abandoned_design_keeps_the_lock_until_its_thread_ends():
+    """A client that goes away (the request cancelled) must not free the one-design-at-a-time lock while its design
+    still computes in a thread (a thread cannot be stopped): released early, abandoned designs piled up on the cores
+    and every later request timed out (found by the API fuzz test)."""
+    import asyncio
+    import threading
+
+    from service.api.plans import _finish_even_if_abandoned
+
+    lock = asyncio.Lock()
+    started, release = threading.Event(), threading.Event()
+
+    def work() -> int:
+        started.set()
+        release.wait(10)
+        return 1
+
+    async def handler() -> int:
+        async with lock:
+            return await _finish_even_if_abandoned(asyncio.ensure_future(asyncio.to_thread(work)))
+
+    task = asyncio.create_task(handler())
+    assert await asyncio.to_thread(started.wait, 10)
+    task.cancel()
+    await asyncio.sleep(0.1)
+    assert lock.locked() and not task.done()  # the thread still runs: the lock is still held
+    release.set()
+    with pytest.raises(asyncio.CancelledError):
+        await task
+    assert not lock.locked()
