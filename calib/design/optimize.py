@@ -201,8 +201,9 @@ def _score(F: dict[str, np.ndarray], criterion: Criterion, t: np.ndarray | None)
         C4, ld = _cov4(Fm)
         var = np.einsum("...ii->...i", C4)
         d = d - ld
-        a = a + np.sum(var / ref**2, axis=-1)
-        worst = np.maximum(worst, np.max(np.sqrt(np.maximum(var, 0)) / ref, axis=-1))
+        with np.errstate(divide="ignore", over="ignore"):  # a target of 1e-300 m: an infinite score, as intended
+            a = a + np.sum(var / ref**2, axis=-1)
+            worst = np.maximum(worst, np.max(np.sqrt(np.maximum(var, 0)) / ref, axis=-1))
         a = np.where(np.isfinite(ld), a, np.inf)
         worst = np.where(np.isfinite(ld), worst, np.inf)
     if criterion == "d":

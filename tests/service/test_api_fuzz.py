@@ -72,8 +72,12 @@ def test_openapi_fuzz_no_server_errors(live_url):
 
     modes = list(schemathesis.GenerationMode)
     for op, mode in [(op, mode) for mode in modes for op in ops]:
+        # a valid plan design computes for 7-14 s of CPU: a few of them show it answers; its refusals (422, negative
+        # mode) are fuzzed as fully as every other route's
+        design = op.path.endswith("/plans/design") and mode == schemathesis.GenerationMode.POSITIVE
+        n_examples = min(MAX_EXAMPLES, 5) if design else MAX_EXAMPLES
 
-        @settings(max_examples=MAX_EXAMPLES, deadline=None, database=None, suppress_health_check=list(HealthCheck))
+        @settings(max_examples=n_examples, deadline=None, database=None, suppress_health_check=list(HealthCheck))
         @given(case=op.as_strategy(mode))
         def check(case):
             # a plan design computes for seconds (7-14 s CPU on this 2-core machine, more under load): its own
