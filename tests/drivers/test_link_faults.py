@@ -145,6 +145,7 @@ def driver(bench, transport: str, kw: dict) -> ModbusActuators:
 async def run_scenario(bench, transport: str, scenario: str, seed: int = 1) -> dict:
     proxy, kws, ptys = await open_link(bench, transport, scenario, seed)
     other_task = None
+    done = asyncio.Event()
     try:
         act = driver(bench, transport, kws[0])
         counter = StaleCounter(act, bench.mechanism)
@@ -157,7 +158,7 @@ async def run_scenario(bench, transport: str, scenario: str, seed: int = 1) -> d
             async def poll() -> None:
                 with contextlib.suppress(Exception):
                     await other.connect()
-                while True:
+                while not done.is_set():  # a flag too: a dropped cancellation must not keep the poller alive
                     with contextlib.suppress(DeviceError):
                         await other.status()
                     await asyncio.sleep(0.001)
@@ -195,9 +196,10 @@ async def run_scenario(bench, transport: str, scenario: str, seed: int = 1) -> d
         )
     finally:
         if other_task is not None:
+            done.set()
             other_task.cancel()
             with contextlib.suppress(BaseException):
-                await other_task
+                await asyncio.wait_for(other_task, 10)
         for p in ptys:
             await p.close()
         await proxy.close()
