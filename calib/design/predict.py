@@ -408,12 +408,7 @@ def predict_legs(
     pipe = _LegsPipeline(q_locked, q_fit, pts, np.ones((len(q_fit), 4), dtype=bool), CU, nominal)
     seven = pipe.run(P, U)
     x2 = np.array([*seven[1:4].tolist(), seven[0]])
-    h = 1e-7
-    GP = np.zeros((7, 24))
-    for a in range(24):
-        dP = np.zeros(24)
-        dP[a] = h
-        GP[:, a] = (pipe.run(P + dP.reshape(4, 2, 3), U, x2) - pipe.run(P - dP.reshape(4, 2, 3), U, x2)) / (2 * h)
+    GP = central_jacobian(lambda p: pipe.run(p.reshape(4, 2, 3), U, x2), P.ravel(), 1e-7)  # (7, 24)
     c34, _chi, _dof = _steps34_covariance(pipe, P, U, seven)
     cov7 = GP @ covP @ GP.T
     idx = np.array([6, 4, 5])

@@ -469,12 +469,7 @@ def predict_legs_images(
     Uf = np.where(has_leg[..., None], U, 0.0)
     seven = pipe.run(P, Uf)
     x2 = np.array([*seven[1:4].tolist(), seven[0]])
-    h = 1e-7
-    GP = np.zeros((7, 24))
-    for a in range(24):
-        dP = np.zeros(24)
-        dP[a] = h
-        GP[:, a] = (pipe.run(P + dP.reshape(4, 2, 3), Uf, x2) - pipe.run(P - dP.reshape(4, 2, 3), Uf, x2)) / (2 * h)
+    GP = central_jacobian(lambda p: pipe.run(p.reshape(4, 2, 3), Uf, x2), P.ravel(), 1e-7)  # (7, 24)
     c34, _chi, _dof = _steps34_covariance(pipe, P, Uf, seven)
     parts = {"joint_centres": GP @ covP @ GP.T, "leg_directions": np.zeros((7, 7))}
     idx = np.array([6, 4, 5])
