@@ -1,8 +1,12 @@
 """The ``i4cal`` command line.
 
 Each module of this package that defines ``register(subparsers)`` adds its sub-command(s);
-modules are discovered automatically, so a new command is a new module. A command's handler
-receives the parsed ``argparse.Namespace`` and returns an exit code. Errors derived from
+modules are discovered automatically, so a new command is a new module. A layer above the service adds its own
+commands through ``extra_registrars`` (:func:`build_parser`, :func:`main`): the ``i4cal`` script
+(:func:`i4cal.cli.main`) adds ``bench`` that way, so ``python -m service.cli`` has every command except ``bench``
+and the service never imports :mod:`i4cal`.
+
+A command's handler receives the parsed ``argparse.Namespace`` and returns an exit code. Errors derived from
 :class:`calib.errors.I4calError`, usage errors (an option's value out of range: :mod:`._args`) and
 file-system errors print one clear line and exit with status 2; no traceback for user mistakes
 (``I4CAL_DEBUG=1`` shows it).
@@ -19,12 +23,24 @@ import logging
 import os
 import pkgutil
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Iterable, Sequence
 
 from calib.errors import I4calError
 
+#: A function that adds sub-commands: ``register(subparsers)`` (``subparsers``: the command line's
+#: ``argparse._SubParsersAction``), as each command module of this package defines one.
+Registrar = Callable[[argparse._SubParsersAction], None]
 
-def build_parser() -> argparse.ArgumentParser:
+
+def build_parser(extra_registrars: Iterable[Registrar] = ()) -> argparse.ArgumentParser:
+    """The ``i4cal`` parser: the commands of this package, then those ``extra_registrars`` add (in their order).
+
+    Parameters
+    ----------
+    extra_registrars : iterable of callables ``register(subparsers)``
+        Commands of a layer above the service (``i4cal bench``: :mod:`i4cal.cli`); the range checks and the logging
+        options apply to them as to the service's own commands.
+    """
     from service import __version__
 
     from ._args import OneLineParser, check_ranges
@@ -45,6 +61,8 @@ def build_parser() -> argparse.ArgumentParser:
         register = getattr(module, "register", None)
         if register is not None:
             register(sub)
+    for register in extra_registrars:
+        register(sub)
     check_ranges(parser)
     for cmd in dict.fromkeys(sub.choices.values()):
         add_logging_options(cmd, top=False)
@@ -91,8 +109,10 @@ def configure_logging(verbose: int = 0, level: str | None = None) -> None:
     )
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
+def main(argv: Sequence[str] | None = None, extra_registrars: Iterable[Registrar] = ()) -> int:
+    """Run the command line on ``argv`` (default ``sys.argv[1:]``) with the commands ``extra_registrars`` add
+    (:func:`build_parser`); the exit code."""
+    parser = build_parser(extra_registrars)
     args = parser.parse_args(argv)
     configure_logging(args.cli_verbose, args.cli_log_level)
     if not getattr(args, "handler", None):

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from service.cli import main
+from i4cal.cli import main  # the whole command line (the service's commands and bench)
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -161,7 +161,8 @@ async def test_dashboard_designs_and_starts_a_plan(service):
 def test_bench_design_compares_plans_of_equal_fit_counts():
     """`i4cal bench design`'s plans: the paper's and a designed one per count, same fit-pose count, no guided line,
     each with its prediction and motion time; a designed plan is not slower to run than the paper's."""
-    from service.benchmarks.design import _plans
+    from i4cal.benchmarks.design import _plans
+    from i4cal.cli import main as i4cal_main
 
     plans = _plans([8], seed=0, speed=0.05, accel=0.5)
     assert set(plans) == {"paper-8", "designed-8"}
@@ -170,7 +171,7 @@ def test_bench_design_compares_plans_of_equal_fit_counts():
         assert set(p["predicted_std_m"]) == {"combined", "end-effector", "legs"}
         assert set(p["predicted_images_std_m"]) == {"combined", "end-effector", "legs"}
     assert plans["designed-8"]["motion_s"] <= plans["paper-8"]["motion_s"] * 1.05
-    assert main(["bench", "design", "--trials", "0"]) == 2
+    assert i4cal_main(["bench", "design", "--trials", "0"]) == 2
 
 
 async def test_an_abandoned_design_keeps_the_lock_until_its_thread_ends():

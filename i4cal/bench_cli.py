@@ -1,7 +1,8 @@
-"""``i4cal bench BENCHMARK``: the benchmarks of :mod:`service.benchmarks` (``speed``; more as they come).
+"""``i4cal bench BENCHMARK``: the benchmarks of :mod:`i4cal.benchmarks` (``accuracy``, ``design``, ``speed``).
 
-Each module of :mod:`service.benchmarks` that defines ``register(subparsers)`` adds its sub-command
-(the same discovery as :mod:`service.cli`), so a new benchmark is a new module there.
+Each module of :mod:`i4cal.benchmarks` that defines ``register(subparsers)`` adds its sub-command
+(the same discovery as :mod:`service.cli`), so a new benchmark is a new module there. :mod:`i4cal.cli` adds
+``bench`` to the service's command line (the service never imports :mod:`i4cal`).
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import pkgutil
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    from service import benchmarks
+    from i4cal import benchmarks
 
     p = subparsers.add_parser(
         "bench",

@@ -287,7 +287,7 @@ def run_accuracy(opts: AccuracyOptions, on_progress: OnProgress | None = None) -
     without ``command``/``argv`` (see the module docstring)."""
     import multiprocessing as mp
 
-    from service.benchmarks.speed import machine_info
+    from .speed import machine_info
 
     t_start = time.perf_counter()
     load_start = _load()

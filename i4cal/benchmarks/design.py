@@ -4,7 +4,7 @@ For every fit-pose count (``--counts``, default 8,12,20,30) two plans: the paper
 and a designed one (``calib.design.design_plan``, D-optimal for the combined method on images: the image-level
 prediction with :func:`service.design.twin_image_noise`, the twin's camera and mounting); both without the guided
 line. Each trial renders the plan for a true geometry drawn around nominal (the accuracy benchmark's trials:
-``service.benchmarks.accuracy``, per-trial camera calibration, extraction, the three methods); trial k of every plan
+``i4cal.benchmarks.accuracy``, per-trial camera calibration, extraction, the three methods); trial k of every plan
 shares its truth and seed (common random numbers).
 
 Per plan and method: RMS error per combination, mean reported std, the std predicted before motion on images
@@ -132,7 +132,7 @@ def run_design_bench(opts: argparse.Namespace, progress=None) -> dict[str, Any]:
             p["predicted_run_std_m"][m] = {
                 c: (pr[c] * rms[c] / ref["predicted_std_m"][m][c]) if rms.get(c) else None for c in COMBINATIONS
             }
-    from service.benchmarks.speed import machine_info
+    from .speed import machine_info
 
     return {
         "format": FORMAT,

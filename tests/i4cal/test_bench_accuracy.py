@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 from calib.parameters import COMBINATION_NAMES, NOMINAL
-from service.benchmarks._accuracy_report import summarize
-from service.benchmarks._accuracy_trial import METHODS, TrialTask, run_trial
-from service.benchmarks.accuracy import (
+from i4cal.benchmarks._accuracy_report import summarize
+from i4cal.benchmarks._accuracy_trial import METHODS, TrialTask, run_trial
+from i4cal.benchmarks.accuracy import (
     AccuracyOptions,
     command_line,
     default_spread_m,
@@ -24,7 +24,7 @@ from service.benchmarks.accuracy import (
     plan_steps,
     trial_seed,
 )
-from service.cli import main
+from i4cal.cli import main
 
 TOP_KEYS = {
     "format",
@@ -90,7 +90,7 @@ def quick(tmp_path_factory):
         [
             sys.executable,
             "-m",
-            "service.cli",
+            "i4cal",
             "bench",
             "accuracy",
             "--quick",
@@ -284,7 +284,7 @@ def test_options_errors_and_command_line(capsys):
 
 def test_lens_sweep_points_and_options(capsys):
     """``--sweep lens``: one point per lens, each trial rendered through its distortion, keyed apart from the others."""
-    from service.benchmarks.accuracy import LENSES, lens_dist, study_points
+    from i4cal.benchmarks.accuracy import LENSES, lens_dist, study_points
 
     opts = AccuracyOptions(trials=0, sweeps=["lens"], sweep_trials=2, sweep_lenses=["k3=-0.012", "rational", "k3=0.02"])
     pts = study_points(opts)

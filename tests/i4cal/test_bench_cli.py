@@ -1,4 +1,4 @@
-"""``i4cal bench``: sub-commands discovered from service.benchmarks; ``bench speed`` on a quick subset (real Modbus
+"""``i4cal bench``: sub-commands discovered from i4cal.benchmarks; ``bench speed`` on a quick subset (real Modbus
 server on loopback, real fits) through the command line, and its JSON contract. The figures themselves are
 benchmarks, not asserted against targets here."""
 
@@ -10,8 +10,8 @@ import math
 import subprocess
 import sys
 
-from service.benchmarks.speed import SECTIONS, bench_service_module, parse_sections
-from service.cli import main
+from i4cal.benchmarks.speed import SECTIONS, bench_service_module, parse_sections
+from i4cal.cli import main
 
 
 def test_bench_speed_quick_subset_json(tmp_path):
@@ -20,7 +20,7 @@ def test_bench_speed_quick_subset_json(tmp_path):
         [
             sys.executable,
             "-m",
-            "service.cli",
+            "i4cal",
             "bench",
             "speed",
             "--only",

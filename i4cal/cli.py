@@ -1,0 +1,33 @@
+"""The ``i4cal`` command line, assembled above the service: the service's commands (:mod:`service.cli`) and the
+benchmarks (``i4cal bench``: :mod:`i4cal.bench_cli`, :mod:`i4cal.benchmarks`).
+
+The ``i4cal`` script and ``python -m i4cal`` run :func:`main`. ``python -m service.cli`` has every command except
+``bench``: the service never imports :mod:`i4cal` (``lint-imports``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+
+from service import cli as service_cli
+
+from . import bench_cli
+
+#: The ``register(subparsers)`` functions of the commands this layer adds to the service's.
+REGISTRARS: tuple[service_cli.Registrar, ...] = (bench_cli.register,)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The whole ``i4cal`` parser: :func:`service.cli.build_parser` with this layer's commands."""
+    return service_cli.build_parser(extra_registrars=REGISTRARS)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run ``i4cal`` on ``argv`` (default ``sys.argv[1:]``); the exit code (:func:`service.cli.main`)."""
+    return service_cli.main(argv, extra_registrars=REGISTRARS)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
