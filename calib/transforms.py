@@ -34,10 +34,27 @@ def rotvec_to_matrix(rv: ArrayLike) -> Array:
     return Rotation.from_rotvec(r.reshape(-1, 3)).as_matrix().reshape(*r.shape[:-1], 3, 3)
 
 
+#: Largest ``|R R^T - I|`` entry of a matrix :func:`matrix_to_rotvec` takes as a rotation without projecting it.
+ROTATION_TOLERANCE = 1e-10
+
+
 def matrix_to_rotvec(R: ArrayLike) -> Array:
-    """Rotation vectors from rotation matrices, shape (..., 3, 3) -> (..., 3)."""
-    m = np.asarray(R, dtype=np.float64)
-    return Rotation.from_matrix(m.reshape(-1, 3, 3)).as_rotvec().reshape(*m.shape[:-2], 3)
+    """Rotation vectors from rotation matrices, shape (..., 3, 3) -> (..., 3).
+
+    A matrix that is not a rotation to :data:`ROTATION_TOLERANCE` is first replaced by the nearest rotation
+    (SciPy's projection). SciPy tests every matrix for that itself, at several times the cost of the conversion;
+    the test is made here once, vectorised, and the conversion then skips it (``assume_valid``: the same
+    algorithm, bit for bit the same rotation vectors): fits evaluate this thousands of times per calibration.
+    """
+    m = np.asarray(R, dtype=np.float64).reshape(-1, 3, 3)
+    off = m @ np.swapaxes(m, -1, -2)
+    off -= _EYE3
+    valid = bool(np.abs(off).max(initial=0.0) <= ROTATION_TOLERANCE) and bool(np.all(np.linalg.det(m) > 0))
+    rv = Rotation.from_matrix(m, assume_valid=valid).as_rotvec()
+    return rv.reshape(*np.shape(R)[:-2], 3)
+
+
+_EYE3 = np.eye(3)
 
 
 def rot_z(theta: ArrayLike) -> Array:

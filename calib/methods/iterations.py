@@ -97,3 +97,49 @@ def traced(
         return r
 
     return wrapped
+
+
+def traced_jac(
+    fun: Callable[[np.ndarray], np.ndarray],
+    jac: Callable[[np.ndarray], np.ndarray],
+    on_iteration: IterationCallback | None,
+    stage: str,
+) -> tuple[Callable[[np.ndarray], np.ndarray], Callable[[np.ndarray], np.ndarray]]:
+    """:func:`traced` for an ``lm`` fit given its Jacobian: each Jacobian call is an accepted point.
+
+    Parameters
+    ----------
+    fun : callable
+        Residuals, shape (n,) -> (m,).
+    jac : callable
+        Their Jacobian, shape (n,) -> (m, n).
+    on_iteration : callable or None
+        Receives ``{"stage", "iteration", "cost"}``; None returns ``fun`` and ``jac`` themselves.
+    stage : str
+        Name of this fit within the method.
+
+    Returns
+    -------
+    (callable, callable)
+        The residual function and the Jacobian to give ``least_squares``.
+    """
+    if on_iteration is None:
+        return fun, jac
+    last: dict[str, Any] = {"x": None, "cost": 0.0}
+    iteration = 0
+
+    def wrapped_fun(x: np.ndarray) -> np.ndarray:
+        r = fun(x)
+        rr = np.asarray(r, dtype=np.float64).ravel()
+        last["x"], last["cost"] = np.array(x, dtype=np.float64, copy=True), 0.5 * float(rr @ rr)
+        return r
+
+    def wrapped_jac(x: np.ndarray) -> np.ndarray:
+        nonlocal iteration
+        if last["x"] is None or not np.array_equal(last["x"], x):
+            wrapped_fun(x)
+        on_iteration({"stage": stage, "iteration": iteration, "cost": last["cost"]})
+        iteration += 1
+        return jac(x)
+
+    return wrapped_fun, wrapped_jac

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calib.transforms import kabsch, kabsch_points, rotvec_to_matrix, tangent_basis
+from calib.transforms import kabsch, kabsch_points, matrix_to_rotvec, rotvec_to_matrix, tangent_basis
 
 
 def test_kabsch_points_recovers_a_rigid_map() -> None:
@@ -51,3 +51,21 @@ def test_tangent_basis_batches() -> None:
     T = tangent_basis(U)
     assert T.shape == (5, 4, 3, 2)
     np.testing.assert_allclose(T[2, 3], tangent_basis(U[2, 3]), atol=0)
+
+
+def test_matrix_to_rotvec_is_scipys_conversion_bit_for_bit() -> None:
+    """The fast path (SciPy's ``assume_valid`` after one vectorised check) gives SciPy's own answer, for exact
+    rotations (products included, angles up to pi) and for matrices SciPy must first project to a rotation."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(11)
+    rv = rng.normal(size=(200, 3))
+    rv[:5] *= np.pi / np.linalg.norm(rv[:5], axis=1, keepdims=True)  # half-turns
+    R = rotvec_to_matrix(rv)
+    R = R @ R[::-1]
+    assert np.array_equal(matrix_to_rotvec(R), Rotation.from_matrix(R).as_rotvec())
+    assert matrix_to_rotvec(R.reshape(20, 10, 3, 3)).shape == (20, 10, 3) and matrix_to_rotvec(R[0]).shape == (3,)
+    scaled = R[:4] * 1.001  # not a rotation: projected as SciPy does
+    assert np.array_equal(matrix_to_rotvec(scaled), Rotation.from_matrix(scaled).as_rotvec())
+    with pytest.raises(ValueError):
+        matrix_to_rotvec(-R[:2])  # a reflection is refused, as by SciPy

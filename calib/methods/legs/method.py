@@ -133,10 +133,11 @@ def calibrate_legs(
     pipe.W = None
     seven = pipe.run(P, U_filled, on_iteration=on_iteration)
     x2 = np.array([*seven[1:4].tolist(), seven[0]])
+    lsd = seven[[6, 4, 5]]  # (L, S, D): the re-runs below start at the estimate
 
     # ---- uncertainty: (i) the joints, propagated through steps 2-4 (numerical derivatives, weights fixed)
     def f(Pv: np.ndarray) -> np.ndarray:
-        return pipe.run(Pv, U_filled, x2)
+        return pipe.run(Pv, U_filled, x2, theta_init=lsd)
 
     h = 1e-7
     GP = np.zeros((7, 24))
@@ -178,7 +179,7 @@ def calibrate_legs(
                 ]
             )
             Uz = _pair_means(eff.rod_u(z, data.rod_u), data.has_rod, C_rods)[0]
-            return pipe.run(Pz, np.where(pipe.has_leg[..., None], Uz, 0.0), x2)
+            return pipe.run(Pz, np.where(pipe.has_leg[..., None], Uz, 0.0), x2, theta_init=lsd)
 
         # one standard deviation along each principal direction, then the limb-edge bias common to every rod
         # (per limb, the combined method's prior: shading and optics bias every rod's limb alike, so it does

@@ -13,25 +13,36 @@ from ...observations import Observations, PhaseArrays
 from ...parameters import I4Parameters
 from ...robust import chi2_outliers, robust_chi2_scale
 from ...transforms import tangent_basis, unit
-from ..iterations import IterationCallback, traced
+from ..iterations import IterationCallback, traced_jac
 from .constants import _EQ_LEGS, _PAIRS
 from .joints import _rod_field
+
+
+def _step2_gram(x: np.ndarray) -> np.ndarray:
+    """The Gram entries (6,) (``_PAIRS`` order) of OA2, OA3, OA4 at zero encoder for x = (q02, q03, q04, H), m^2."""
+    q02, q03, q04, H = x
+    Vb = np.array([[q02, 0.0], [q03, 2 * H], [q04, 2 * H]])
+    Gb = Vb @ Vb.T
+    return np.array([Gb[a, b] for a, b in _PAIRS])
+
+
+def _step2_gram_jacobian(x: np.ndarray) -> np.ndarray:
+    """Derivatives (6, 4) of :func:`_step2_gram` with respect to (q02, q03, q04, H), m."""
+    q02, q03, q04, H = x
+    Vb = np.array([[q02, 0.0], [q03, 2 * H], [q04, 2 * H]])
+    dV = np.zeros((4, 3, 2))  # d Vb / d (q02, q03, q04, H)
+    dV[0, 0, 0] = dV[1, 1, 0] = dV[2, 2, 0] = 1.0
+    dV[3, 1, 1] = dV[3, 2, 1] = 2.0
+    dG = dV @ Vb.T + Vb @ np.swapaxes(dV, 1, 2)  # (4, 3, 3)
+    return np.stack([dG[:, a, b] for a, b in _PAIRS])
 
 
 def _step2(V: np.ndarray, x0: np.ndarray, on_iteration: IterationCallback | None = None) -> np.ndarray:
     """(q02, q03, q04, H) from V (3, 3) rows OA2, OA3, OA4 at zero encoder (eq. 9)."""
     G = V @ V.T
     meas = np.array([G[a, b] for a, b in _PAIRS])
-
-    def model(x: np.ndarray) -> np.ndarray:
-        q02, q03, q04, H = x
-        Vb = np.array([[q02, 0.0], [q03, 2 * H], [q04, 2 * H]])
-        Gb = Vb @ Vb.T
-        return np.array([Gb[a, b] for a, b in _PAIRS])
-
-    sol = least_squares(
-        traced(lambda x: model(x) - meas, on_iteration, "step 2"), x0, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15
-    )
+    fun, jac = traced_jac(lambda x: _step2_gram(x) - meas, _step2_gram_jacobian, on_iteration, "step 2")
+    sol = least_squares(fun, x0, jac=jac, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
     if sol.status <= 0:
         raise ConvergenceError(f"legs step 2 (eq. 9) did not converge: {sol.message}")
     return sol.x
@@ -97,15 +108,20 @@ class _LegsPipeline:
         x2_init: np.ndarray | None = None,
         on_iteration: IterationCallback | None = None,
         robust: bool = False,
+        theta_init: np.ndarray | None = None,
     ) -> np.ndarray:
-        """Seven parameters (PARAMETER_NAMES order) from joint points P (4,2,3) and leg directions U (N,4,3)."""
+        """Seven parameters (PARAMETER_NAMES order) from joint points P (4,2,3) and leg directions U (N,4,3).
+
+        ``x2_init`` (q02, q03, q04, H) and ``theta_init`` (L, S, D) start steps 2 and 3-4 (default: nominal); the
+        uncertainty's re-runs with slightly moved data start at the estimate.
+        """
         nom = self.nominal
         x, A0, _ = self.frame(P)
         V = A0[1:] - A0[0]
         x2 = _step2(V, np.array([nom.q02, nom.q03, nom.q04, nom.H]) if x2_init is None else x2_init, on_iteration)
         q02, q03, q04, H = x2
         y = self.y_axis(x, A0)
-        theta0 = np.array([nom.L, nom.S, nom.D])
+        theta0 = np.array([nom.L, nom.S, nom.D]) if theta_init is None else np.asarray(theta_init, dtype=np.float64)
         L, S, D = self.robust34(x, y, A0, U, theta0) if robust else self.steps34(x, y, A0, U, theta0, on_iteration)
         return np.array([H, q02, q03, q04, S, D, L])
 
@@ -135,6 +151,26 @@ class _LegsPipeline:
             axis=1,
         )
         return np.where(self.mask, R, 0.0)
+
+    def jacobian(self, theta: np.ndarray, Aq: np.ndarray, Uo: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Derivatives (N, 4, 3) of :meth:`residuals` with respect to (L, S, D), zero where not available."""
+        L = theta[0]
+        B = Aq + L * Uo
+        n12 = unit(B[:, 0] - B[:, 1])
+        n34 = unit(B[:, 2] - B[:, 3])
+        J = np.zeros((Aq.shape[0], 4, 3))
+        J[:, 0, 0] = np.sum(n12 * (Uo[:, 0] - Uo[:, 1]), axis=1)
+        J[:, 1, 0] = np.sum(n34 * (Uo[:, 2] - Uo[:, 3]), axis=1)
+        J[:, 2, 0] = (Uo[:, 2] - Uo[:, 0]) @ y
+        J[:, 3, 0] = (Uo[:, 3] - Uo[:, 1]) @ y
+        J[:, :2, 1] = -2.0
+        J[:, 2:, 2] = -2.0
+        return np.where(self.mask[:, :, None], J, 0.0)
+
+    def whitened_jacobian(self, theta: np.ndarray, Aq: np.ndarray, Uo: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Derivatives (N, 4, 3) of :meth:`whitened`."""
+        assert self.W is not None
+        return np.einsum("nij,njp->nip", self.W, self.jacobian(theta, Aq, Uo, y))
 
     def covariances(self, theta: np.ndarray, Aq: np.ndarray, Uo: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Covariance (N, 4, 4) of each pose's equations from its leg directions' (identity where unused)."""
@@ -174,12 +210,17 @@ class _LegsPipeline:
         def per_pose(t: np.ndarray) -> np.ndarray:
             return np.sqrt(np.sum(self.whitened(t, Aq, Uo, y) ** 2, axis=1)[used] + 1e-300)
 
+        def per_pose_jac(t: np.ndarray) -> np.ndarray:
+            w = self.whitened(t, Aq, Uo, y)[used]
+            return np.einsum("ni,nip->np", w, self.whitened_jacobian(t, Aq, Uo, y)[used]) / per_pose(t)[:, None]
+
         scale = float(np.median(per_pose(theta)))
         if not scale > 0:
             return theta
         sol = least_squares(
             per_pose,
             theta,
+            jac=per_pose_jac,
             method="trf",
             loss="cauchy",
             f_scale=scale,
@@ -214,9 +255,16 @@ class _LegsPipeline:
                 C = self.covariances(theta, Aq, Uo, y)
                 self.W = np.linalg.cholesky(np.linalg.inv(C)).transpose(0, 2, 1)
             stage = "steps 3-4" if npass == 0 else f"steps 3-4 pass {npass + 1}"  # each fit's cost falls
+            fun, jac = traced_jac(
+                lambda t: self.whitened(t, Aq, Uo, y).ravel(),
+                lambda t: self.whitened_jacobian(t, Aq, Uo, y).reshape(-1, 3),
+                on_iteration,
+                stage,
+            )
             sol = least_squares(
-                traced(lambda t: self.whitened(t, Aq, Uo, y).ravel(), on_iteration, stage),
+                fun,
                 theta,
+                jac=jac,
                 method="lm",
                 xtol=1e-15,
                 ftol=1e-15,
