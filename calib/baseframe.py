@@ -21,7 +21,14 @@ from scipy.optimize import least_squares
 
 from .errors import IdentifiabilityError
 from .observations import Observations, PhaseArrays
-from .transforms import matrix_to_rotvec, orthonormalize, rotvec_to_matrix, unit
+from .transforms import (
+    matrix_to_rotvec,
+    orthonormalize,
+    rotvec_to_matrix,
+    so3_left_jacobian,
+    so3_left_jacobian_inverse,
+    unit,
+)
 
 Array = np.ndarray
 
@@ -153,7 +160,11 @@ def fit_rotation_axis(
         return _axis_residuals(R, axes, x, W)
 
     x0 = np.concatenate([[0.0, 0.0], [0.0, 0.0, 0.0], th0])
-    sol = least_squares(resid, x0, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=2000)
+
+    def jac(x: Array, W: Array | None = None) -> Array:
+        return _axis_jacobian(R, axes, x, W)
+
+    sol = least_squares(resid, x0, jac=jac, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=2000)
     W = None
     res = sol.fun.reshape(n, 3)
     p = 5 + n
@@ -167,7 +178,14 @@ def fit_rotation_axis(
         wt = np.where(np.abs(V.T @ zc) > 0.9, np.sqrt(w[-2] * w[-1]), w)
         W = (V / np.sqrt(wt)).T
         sol = least_squares(
-            lambda x: resid(x, W), sol.x, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=2000
+            lambda x: resid(x, W),
+            sol.x,
+            jac=lambda x: jac(x, W),
+            method="lm",
+            xtol=1e-15,
+            ftol=1e-15,
+            gtol=1e-15,
+            max_nfev=2000,
         )
         J = sol.jac
         s2 = float(sol.fun @ sol.fun / dof)
@@ -196,6 +214,33 @@ def _axis_residuals(R: Array, axes: tuple[Array, Array, Array], x: Array, W: Arr
     if W is not None:
         e = e @ W.T
     return e.ravel()
+
+
+def _axis_jacobian(R: Array, axes: tuple[Array, Array, Array], x: Array, W: Array | None) -> Array:
+    """Derivatives (N*3, 5+N) of :func:`_axis_residuals` with respect to x (SO(3) left Jacobians, no differences).
+
+    With ``E_k = exp(z theta_k) exp(rho) R_0 R_k^T`` and ``e_k = log E_k``, a left perturbation ``d`` of ``E_k``
+    moves ``e_k`` by ``J_l^-1(e_k) d``; theta_k perturbs by ``z dtheta``, rho by ``exp(z theta_k) J_l(rho) drho``
+    and the axis by ``J_l(z theta_k) theta_k dz``.
+    """
+    z0, e1, e2 = axes
+    v = z0 + x[0] * e1 + x[1] * e2
+    nv = float(np.linalg.norm(v))
+    z = v / nv
+    dz = (np.eye(3) - np.outer(z, z)) @ np.column_stack([e1, e2]) / nv  # (3, 2)
+    rho, th = x[2:5], x[5:]
+    n = len(th)
+    w = z[None, :] * th[:, None]
+    Q = rotvec_to_matrix(w)
+    e = matrix_to_rotvec(Q @ rotvec_to_matrix(rho) @ R[0] @ np.transpose(R, (0, 2, 1)))
+    Ji = so3_left_jacobian_inverse(e)  # (n, 3, 3)
+    J = np.zeros((n, 3, 5 + n))
+    J[:, :, :2] = Ji @ so3_left_jacobian(w) @ dz * th[:, None, None]
+    J[:, :, 2:5] = Ji @ Q @ so3_left_jacobian(rho)
+    J[np.arange(n), :, 5 + np.arange(n)] = Ji @ z
+    if W is not None:
+        J = np.einsum("ij,njp->nip", W, J)
+    return J.reshape(3 * n, 5 + n)
 
 
 def _axis_result(
@@ -231,6 +276,7 @@ def _refit_rotation_axis(
         x = least_squares(
             lambda v: _axis_residuals(R, axes, v, W),
             x_start,
+            jac=lambda v: _axis_jacobian(R, axes, v, W),
             method="lm",
             xtol=1e-15,
             ftol=1e-15,

@@ -57,6 +57,46 @@ def matrix_to_rotvec(R: ArrayLike) -> Array:
 _EYE3 = np.eye(3)
 
 
+def so3_left_jacobian(rv: ArrayLike) -> Array:
+    """Left Jacobian of SO(3), shape (..., 3) -> (..., 3, 3): ``exp(rv + d) = exp(J_l(rv) d) exp(rv)`` to first order.
+
+    ``J_l(phi) = I + (1 - cos a) / a^2 [phi]x + (a - sin a) / a^3 [phi]x^2`` with ``a = |phi|`` (series below 1e-4 rad).
+    """
+    phi = np.asarray(rv, dtype=np.float64)
+    a2 = np.sum(phi * phi, axis=-1)[..., None, None]
+    a = np.sqrt(a2)
+    small = a < 1e-4
+    safe = np.where(small, 1.0, a)
+    c1 = np.where(small, 0.5 - a2 / 24.0, (1.0 - np.cos(safe)) / safe**2)
+    c2 = np.where(small, 1.0 / 6.0 - a2 / 120.0, (safe - np.sin(safe)) / safe**3)
+    K = _skew_batch(phi)
+    return np.eye(3) + c1 * K + c2 * (K @ K)
+
+
+def so3_left_jacobian_inverse(rv: ArrayLike) -> Array:
+    """Inverse of :func:`so3_left_jacobian`, shape (..., 3) -> (..., 3, 3): ``d log(exp(d) exp(phi)) / d d``.
+
+    ``J_l^-1(phi) = I - [phi]x / 2 + (1 / a^2 - (1 + cos a) / (2 a sin a)) [phi]x^2`` (series below 1e-4 rad;
+    valid for ``a < pi``).
+    """
+    phi = np.asarray(rv, dtype=np.float64)
+    a2 = np.sum(phi * phi, axis=-1)[..., None, None]
+    a = np.sqrt(a2)
+    small = a < 1e-4
+    safe = np.where(small, 1.0, a)
+    c2 = np.where(small, 1.0 / 12.0 + a2 / 720.0, 1.0 / safe**2 - (1.0 + np.cos(safe)) / (2.0 * safe * np.sin(safe)))
+    K = _skew_batch(phi)
+    return np.eye(3) - 0.5 * K + c2 * (K @ K)
+
+
+def _skew_batch(v: Array) -> Array:
+    K = np.zeros((*v.shape[:-1], 3, 3))
+    K[..., 0, 1], K[..., 0, 2] = -v[..., 2], v[..., 1]
+    K[..., 1, 0], K[..., 1, 2] = v[..., 2], -v[..., 0]
+    K[..., 2, 0], K[..., 2, 1] = -v[..., 1], v[..., 0]
+    return K
+
+
 def rot_z(theta: ArrayLike) -> Array:
     """Rotation about z by ``theta`` radians, shape (...,) -> (..., 3, 3)."""
     th = np.asarray(theta, dtype=np.float64)

@@ -82,3 +82,23 @@ def test_start_from_a_previous_estimate_follows_a_moved_rig(noise_free_obs):
         replace(tra, board_R=Q @ tra.board_R, board_t=tra.board_t @ Q.T),
     )
     assert np.linalg.norm(matrix_to_rotvec(cold.camera_from_base_R @ moved.camera_from_base_R.T)) < 1e-6
+
+
+@pytest.mark.parametrize("weighted", [False, True])
+def test_axis_fit_jacobian_is_the_derivative_of_its_residuals(weighted):
+    """The rotation-axis fit is given its analytic Jacobian (SO(3) left Jacobians): it must be the residuals'
+    derivative, whitened or not, away from the solution (large residuals) as well as near it."""
+    from calib.baseframe import _axis_jacobian, _axis_residuals
+    from calib.numdiff import central_jacobian
+    from calib.transforms import rotvec_to_matrix, unit
+
+    rng = np.random.default_rng(2)
+    n = 8
+    z0 = unit(rng.normal(size=3))
+    e1 = unit(np.cross(z0, [1.0, 0.0, 0.0]))
+    axes = (z0, e1, np.cross(z0, e1))
+    R = rotvec_to_matrix(rng.normal(size=(n, 3)))
+    x = np.concatenate([[0.01, -0.02], 0.05 * rng.normal(size=3), rng.uniform(-0.5, 0.5, n)])
+    W = rng.normal(size=(3, 3)) if weighted else None
+    num = central_jacobian(lambda v: _axis_residuals(R, axes, v, W), x, 1e-7)
+    np.testing.assert_allclose(_axis_jacobian(R, axes, x, W), num, rtol=0, atol=1e-7 * np.abs(num).max())

@@ -69,3 +69,34 @@ def test_matrix_to_rotvec_is_scipys_conversion_bit_for_bit() -> None:
     assert np.array_equal(matrix_to_rotvec(scaled), Rotation.from_matrix(scaled).as_rotvec())
     with pytest.raises(ValueError):
         matrix_to_rotvec(-R[:2])  # a reflection is refused, as by SciPy
+
+
+@pytest.mark.parametrize("scale", [0.0, 1e-7, 0.3, 2.8])
+def test_so3_left_jacobians_are_the_derivatives_of_exp_and_log(scale: float) -> None:
+    """``exp(phi + d) = exp(J_l d) exp(phi)`` and ``log(exp(d) exp(phi)) = phi + J_l^-1 d`` to first order, from
+    zero (the series) to near a half-turn."""
+    from calib.transforms import so3_left_jacobian, so3_left_jacobian_inverse
+
+    phi = scale * np.array([0.36, -0.48, 0.8])
+    E = rotvec_to_matrix(phi)
+    h = 1e-7
+    num = np.column_stack(
+        [
+            (
+                matrix_to_rotvec(rotvec_to_matrix(phi + h * e) @ E.T)
+                - matrix_to_rotvec(rotvec_to_matrix(phi - h * e) @ E.T)
+            )
+            / (2 * h)
+            for e in np.eye(3)
+        ]
+    )
+    num_inv = np.column_stack(
+        [
+            (matrix_to_rotvec(rotvec_to_matrix(h * e) @ E) - matrix_to_rotvec(rotvec_to_matrix(-h * e) @ E)) / (2 * h)
+            for e in np.eye(3)
+        ]
+    )
+    np.testing.assert_allclose(so3_left_jacobian(phi), num, atol=1e-8)
+    np.testing.assert_allclose(so3_left_jacobian_inverse(phi), num_inv, atol=1e-8)
+    np.testing.assert_allclose(so3_left_jacobian(phi) @ so3_left_jacobian_inverse(phi), np.eye(3), atol=1e-12)
+    assert so3_left_jacobian(np.tile(phi, (4, 2, 1))).shape == (4, 2, 3, 3)
