@@ -578,7 +578,9 @@ def _whitened_d2(
     Wh = np.linalg.cholesky(Cinv).transpose(0, 2, 1)
     joint = cov_rotvec is not None and bool(np.all(np.linalg.eigvalsh(cov_rotvec) > 1e-20))
     nw = 3 if joint else 0
-    Lw = np.linalg.cholesky(np.linalg.inv(cov_rotvec)).T if joint else np.zeros((0, 0))  # Lw^T Lw = cov^-1
+    Lw = np.zeros((0, 0))
+    if joint and cov_rotvec is not None:
+        Lw = np.linalg.cholesky(np.linalg.inv(cov_rotvec)).T  # Lw^T Lw = cov^-1
     R0 = prob.R_cb
     z0 = prob.intrinsics.z0 if prob.intrinsics is not None else np.zeros(0)
 
