@@ -6,7 +6,8 @@ methods weigh by:
 * per rod (:func:`synthetic_rods`): the two limb lines of its visible part in ideal pixels, as TLS lines through
   edge points ``step_px`` apart with the residual ``edge_px`` (the extraction's ``_line_cov``), hence its
   interpretation planes ``h``, its direction ``u`` and the direction's covariance ``cov_u`` computed by the
-  extraction's own function (:func:`calib.vision.rods._direction_covariance`, with its edge-bias allowance), and
+  extraction's own model (:func:`calib.vision.rods.covariance._direction_covariances`, the batched form of its
+  ``_direction_covariance``, with its edge-bias allowance), and
   the five limb samples per limb in distorted pixels (``limbs_px``) from which the methods recompute the planes for
   other intrinsics;
 * per board pose (:func:`board_poses`): the PnP covariance of its pose (left rotation, t) for corner noise
@@ -110,9 +111,10 @@ def synthetic_rods(
     A rod is measured when its visible part (:func:`.scene.visibility`'s samples) spans ``min_length_px`` (the
     extraction's ``min_length_px``). Its limb lines are those of the cylinder's silhouette over that part; each is
     a TLS line through edge points ``step_px`` apart with residual std ``edge_px`` (the extraction's effective
-    residual, including the correlation of neighbouring edges).
+    residual, including the correlation of neighbouring edges). A rod around the camera centre (no limb planes) is
+    left out. Every rod of every frame is computed at once (array operations, no loop over rods).
     """
-    from ..vision.rods import _direction_covariance, limb_planes
+    from ..vision.rods.covariance import _direction_covariances
 
     q = np.atleast_2d(np.asarray(q, dtype=np.float64))
     if not (np.isfinite(edge_px) and edge_px > 0):
@@ -125,60 +127,78 @@ def synthetic_rods(
     top, bot = rod_segments(scene, params, q, pose)
     S = scene.limits.samples_per_rod
     s = (np.arange(S) + 0.5) / S
-    fields: dict[str, list] = {
-        f: [] for f in ("k", "leg", "rod", "u", "point", "h", "cov_u", "limbs_px", "n_points", "visible_px")
-    }
-    for k, i, j in zip(*np.nonzero(v["rod_px"] >= min_length_px), strict=True):
-        vis = v["rod_visible"][k, i, j]
-        X = top[k, i, j] + s[vis, None] * (bot[k, i, j] - top[k, i, j])
-        u = bot[k, i, j] - top[k, i, j]
-        u /= np.linalg.norm(u)
-        P = X[len(X) // 2]
-        try:
-            h = np.array(limb_planes(P, u, scene.rod_radius_m))
-        except ValueError:
-            continue
+    # every measured rod of every frame at once, in (frame, leg, rod) order: M rods, their S axis samples
+    kk, ii, jj = np.nonzero(v["rod_px"] >= min_length_px)
+    vis = v["rod_visible"][kk, ii, jj]  # (M, S)
+    nv = vis.sum(axis=1)
+    keep = nv > 0
+    kk, ii, jj, vis, nv = kk[keep], ii[keep], jj[keep], vis[keep], nv[keep]
+    t0p, b0p = top[kk, ii, jj], bot[kk, ii, jj]  # (M, 3)
+    d = b0p - t0p
+    X = t0p[:, None] + s[None, :, None] * d[:, None]  # (M, S, 3), the visible ones where vis
+    u = d / np.linalg.norm(d, axis=1, keepdims=True)
+    mid = np.argmax(np.cumsum(vis, axis=1) > (nv // 2)[:, None], axis=1)  # the middle visible sample
+    P = X[np.arange(len(X)), mid]
+    # the interpretation planes (limb_planes, every rod at once); the camera centre inside a cylinder: not measured
+    uu = u / np.linalg.norm(u, axis=1, keepdims=True)
+    p = P - np.einsum("mi,mi->m", P, uu)[:, None] * uu
+    dist = np.linalg.norm(p, axis=1)
+    ok = dist > scene.rod_radius_m
+    kk, ii, jj, vis, X, u, P, uu, p, dist = (a[ok] for a in (kk, ii, jj, vis, X, u, P, uu, p, dist))
+    M = len(kk)
+    e1 = p / dist[:, None]
+    e2 = np.stack(
+        [
+            uu[:, 1] * e1[:, 2] - uu[:, 2] * e1[:, 1],
+            uu[:, 2] * e1[:, 0] - uu[:, 0] * e1[:, 2],
+            uu[:, 0] * e1[:, 1] - uu[:, 1] * e1[:, 0],
+        ],
+        axis=1,
+    )
+    c = scene.rod_radius_m / dist
+    sn = np.sqrt(1.0 - c * c)
+    h = np.stack([c[:, None] * e1 + sn[:, None] * e2, c[:, None] * e1 - sn[:, None] * e2], axis=1)  # (M, 2, 3)
+    # the limb lines in ideal pixels, unit normal n (M, 2, 2), direction td, offset
+    line = h @ Kinv  # rows: (Kinv^T h)^T
+    line = line / np.linalg.norm(line[..., :2], axis=-1, keepdims=True)
+    n = line[..., :2]
+    td = np.stack([n[..., 1], -n[..., 0]], axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
         xi = X @ K.T
-        xi = xi[:, :2] / xi[:, 2:]
-        fits = []
-        limbs = []
-        npts = []
-        for hq in h:
-            line = Kinv.T @ hq
-            line = line / np.linalg.norm(line[:2])
-            n = line[:2]
-            td = np.array([n[1], -n[0]])
-            foot = xi - (xi @ n + line[2])[:, None] * n
-            t = foot @ td
-            t0, t1 = float(t.min()), float(t.max())
-            m = max(int(np.floor((t1 - t0) / step_px)) + 1, 3)
-            tt = np.linspace(t0, t1, m)
-            base = foot[0] - (foot[0] @ td) * td
-            pts = base + tt[:, None] * td
-            fits.append((pts.mean(axis=0), td, edge_px**2, pts))
-            q5 = base + (t0 + _QUANTILES * (t1 - t0))[:, None] * td
-            limbs.append(cam.distort_normalized(np.c_[q5, np.ones(5)] @ Kinv.T[:, :2]))
-            npts.append(m)
-        cmid = 0.5 * (fits[0][0] + fits[1][0])
-        inner = Kinv @ np.append(cmid, 1.0)
-        fields["k"].append(k)
-        fields["leg"].append(i)
-        fields["rod"].append(j)
-        fields["u"].append(u)
-        fields["point"].append(P)
-        fields["h"].append(h)
-        fields["cov_u"].append(_direction_covariance(K, fits, inner, edge_bias_px))
-        fields["limbs_px"].append(np.stack(limbs))
-        fields["n_points"].append(npts)
-        fields["visible_px"].append(v["rod_px"][k, i, j])
-    shapes = {"u": (0, 3), "point": (0, 3), "h": (0, 2, 3), "cov_u": (0, 3, 3), "limbs_px": (0, 2, 5, 2)}
-    out = {
-        f: (np.asarray(val) if val else np.zeros(shapes.get(f, (0,)) if f != "n_points" else (0, 2)))
-        for f, val in fields.items()
-    }
-    for f in ("k", "leg", "rod", "n_points"):
-        out[f] = out[f].astype(int)
-    return RodSet(**out)
+        xi = xi[..., :2] / xi[..., 2:]  # (M, S, 2), meaningful where vis
+    xi = np.where(vis[..., None], xi, 0.0)
+    # the samples' feet on each limb line and their positions t along it (M, 2, S)
+    foot = xi[:, None] - (np.einsum("msi,mqi->mqs", xi, n) + line[..., 2, None])[..., None] * n[:, :, None]
+    t = np.einsum("mqsi,mqi->mqs", foot, td)
+    t0 = np.where(vis[:, None], t, np.inf).min(axis=-1)
+    t1 = np.where(vis[:, None], t, -np.inf).max(axis=-1)
+    length = t1 - t0
+    m = np.maximum(np.floor(length / step_px).astype(int) + 1, 3)  # edge points per limb, ``step_px`` apart
+    f0 = foot[np.arange(M), :, np.argmax(vis, axis=1)]  # (M, 2, 2), the first visible sample's foot
+    base = f0 - np.einsum("mqi,mqi->mq", f0, td)[..., None] * td
+    # edge points at linspace(t0, t1, m): centroid at the mid-span, spread sum(t^2) = span^2 m (m + 1) / (12 (m - 1))
+    centroid = base + (0.5 * (t0 + t1))[..., None] * td
+    t_sumsq = length**2 * m * (m + 1) / (12.0 * (m - 1))
+    q5 = base[..., None, :] + (t0[..., None] + _QUANTILES * length[..., None])[..., None] * td[..., None, :]
+    xn = q5.reshape(-1, 2) @ Kinv[:2, :2].T + Kinv[:2, 2]
+    limbs_px = cam.distort_normalized(xn).reshape(M, 2, 5, 2)
+    cmid = 0.5 * (centroid[:, 0] + centroid[:, 1])
+    inner = np.c_[cmid, np.ones(M)] @ Kinv.T
+    cov_u = _direction_covariances(
+        K, centroid, td, np.full((M, 2), edge_px**2), m, t_sumsq, length, inner, edge_bias_px
+    )
+    return RodSet(
+        k=kk.astype(int),
+        leg=ii.astype(int),
+        rod=jj.astype(int),
+        u=u,
+        point=P,
+        h=h,
+        cov_u=cov_u,
+        limbs_px=limbs_px,
+        n_points=m.astype(int),
+        visible_px=v["rod_px"][kk, ii, jj],
+    )
 
 
 def board_corners(scene: Scene) -> np.ndarray:

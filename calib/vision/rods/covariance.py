@@ -82,3 +82,80 @@ def _direction_covariance(
     u *= np.where(u @ u[0] > 0, 1.0, -1.0)[:, None]
     J = ((u[1::2] - u[2::2]) / (2.0 * step[:, None])).T  # (3, 4)
     return J @ np.diag(var) @ J.T
+
+
+def _direction_covariances(
+    K: Array,
+    centroids: Array,
+    directions: Array,
+    s2: Array,
+    n_points: Array,
+    t_sumsq: Array,
+    t_span: Array,
+    inner: Array,
+    edge_bias_px: float = 0.0,
+) -> Array:
+    """:func:`_direction_covariance` of M rods at once, each limb fit given by its centroid, direction and spread.
+
+    The same model and central-difference scheme (same steps, same sign conventions) as the per-rod function, whose
+    fit ``(c, td, s2, pts)`` maps to ``centroids = c``, ``directions = td``, ``n_points = len(pts)``,
+    ``t_sumsq = sum(((pts - c) @ td) ** 2)`` and ``t_span = ptp((pts - c) @ td)``; the results agree to rounding.
+
+    Parameters
+    ----------
+    K : ndarray, shape (3, 3)
+        Camera matrix, pixels.
+    centroids, directions : ndarray, shape (M, 2, 2)
+        Per rod and limb: the line's centroid (ideal pixels) and unit direction.
+    s2 : ndarray, shape (M, 2)
+        Per rod and limb: the effective residual variance of its edge points, px^2.
+    n_points : ndarray, shape (M, 2)
+        Edge points per limb.
+    t_sumsq, t_span : ndarray, shape (M, 2)
+        Sum of the squared positions of the edge points along the line about the centroid (px^2), and their span
+        (px).
+    inner : ndarray, shape (M, 3)
+        A direction on the axis' side of both interpretation planes (their sign).
+    edge_bias_px : float
+        End-to-end standard deviation of the slowly varying edge bias along a limb, pixels.
+
+    Returns
+    -------
+    ndarray, shape (M, 3, 3)
+        Covariance of each rod's unit axis direction.
+    """
+    c = np.asarray(centroids, dtype=np.float64)
+    td = np.asarray(directions, dtype=np.float64)
+    s2 = np.asarray(s2, dtype=np.float64)
+    span = np.maximum(np.asarray(t_span, dtype=np.float64), 1.0)
+    var_ang = s2 / np.maximum(np.asarray(t_sumsq, dtype=np.float64), 1e-9) + (edge_bias_px / span) ** 2
+    var_sh = s2 / np.asarray(n_points, dtype=np.float64) + (0.5 * edge_bias_px) ** 2
+    var = np.stack([var_ang[:, 0], var_sh[:, 0], var_ang[:, 1], var_sh[:, 1]], axis=1)  # (M, 4)
+    step = np.array([1e-6, 1e-3, 1e-6, 1e-3])
+    P = np.zeros((9, 4))
+    for k in range(4):
+        P[1 + 2 * k, k] = step[k]
+        P[2 + 2 * k, k] = -step[k]
+    hs = []
+    for j in range(2):
+        ang, sh = P[:, 2 * j], P[:, 2 * j + 1]  # (9,)
+        cs, sn = np.cos(ang), np.sin(ang)
+        tx, ty = td[:, j, 0, None], td[:, j, 1, None]  # (M, 1)
+        dx, dy = cs * tx - sn * ty, sn * tx + cs * ty  # (M, 9)
+        lines = np.stack([-dy, dx, dy * c[:, j, 0, None] - dx * c[:, j, 1, None] - sh], axis=-1)  # (M, 9, 3)
+        h = lines @ K
+        h /= np.linalg.norm(h, axis=-1, keepdims=True)
+        hs.append(h * np.where(np.einsum("mpi,mi->mp", h, inner) > 0, 1.0, -1.0)[..., None])
+    a, b = hs
+    u = np.stack(
+        [
+            a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
+            a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+            a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0],
+        ],
+        axis=-1,
+    )  # (M, 9, 3)
+    u /= np.linalg.norm(u, axis=-1, keepdims=True)
+    u *= np.where(np.einsum("mpi,mi->mp", u, u[:, 0]) > 0, 1.0, -1.0)[..., None]
+    J = (u[:, 1::2] - u[:, 2::2]) / (2.0 * step[:, None])  # (M, 4, 3)
+    return np.einsum("mki,mk,mkj->mij", J, var, J)
