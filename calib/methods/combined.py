@@ -213,9 +213,10 @@ def calibrate_combined(
     #    the fit repeated, until none is
     rejected: list[dict[str, int]] = []
     x0 = np.concatenate([x0, np.zeros(nz)])
-    for _ in range(5):
+    gate: tuple[np.ndarray, float] | None = None  # the previous round's solution and noise level: the next starts there
+    for gate_round in range(5):
         shape = prob.noise_shape(rod_cov)
-        d2 = _whitened_d2(prob, shape, x0, bf.cov_rotvec, on_iteration)
+        d2, gate = _whitened_d2(prob, shape, x0, bf.cov_rotvec, on_iteration, start=gate, round_index=gate_round)
         bad = chi2_outliers(d2, 2)
         if not bad.any() or (~bad).sum() * 2 < 8:
             break
@@ -546,7 +547,9 @@ def _whitened_d2(
     x0: np.ndarray,
     cov_rotvec: np.ndarray | None,
     on_iteration: IterationCallback | None,
-) -> np.ndarray:
+    start: tuple[np.ndarray, float] | None = None,
+    round_index: int = 0,
+) -> tuple[np.ndarray, tuple[np.ndarray, float]]:
     """Each rod's squared whitened residual after a GLS fit of eq. 8, for the outlier gate.
 
     The base frame's rotation is a nuisance unknown of this fit with its prior, as in the joint fit (step 2): held
@@ -568,11 +571,19 @@ def _whitened_d2(
         Covariance (rad^2) of the base frame's rotation vector; None or singular: the rotation is held.
     on_iteration : callable, optional
         Iteration reports (stage ``"outliers"``).
+    start : (ndarray, float), optional
+        The previous gating round's solution and noise level (its rods minus the rejected ones): one pass from there
+        (the unknowns and the level barely move when a few outliers leave) instead of three from ``x0``.
+    round_index : int
+        The gating round (0 first): names the iteration reports' stage, ``"outliers"``, ``"outliers pass 2"``, ...,
+        ``"outliers round 2"`` (each pass weighs the data by another noise level: its own cost scale).
 
     Returns
     -------
-    ndarray, shape (M,)
+    d2 : ndarray, shape (M,)
         ``r^T C^-1 r`` per rod (not divided by the noise level): chi-square(2) times the noise factor for good rods.
+    state : (ndarray, float)
+        The solution and noise level, the next round's ``start``.
     """
     Cinv = np.linalg.inv(shape + 1e-300 * np.eye(2))
     Wh = np.linalg.cholesky(Cinv).transpose(0, 2, 1)
@@ -590,14 +601,20 @@ def _whitened_d2(
 
     v = np.concatenate([x0[:4], np.zeros(nw), x0[4:]])
     level = 1.0  # the data's noise level (std factor), re-estimated after each pass
+    passes = 3 if joint else 1
+    if start is not None and start[0].shape == v.shape:
+        v, level, passes = start[0].copy(), start[1], 1
     d2 = np.zeros(0)
-    for _ in range(3 if joint else 1):
+    for npass in range(passes):
+        stage = (
+            "outliers" + (f" round {round_index + 1}" if round_index else "") + (f" pass {npass + 1}" if npass else "")
+        )
 
         def res(v: np.ndarray, level: float = level) -> np.ndarray:
             eq8 = np.einsum("mij,mj->mi", Wh, raw(v)).ravel() / level
             return np.concatenate([eq8, Lw @ v[4 : 4 + nw], v[4 + nw :] - z0])
 
-        sol = least_squares(traced(res, on_iteration, "outliers"), v, method="lm", xtol=1e-12, ftol=1e-12, max_nfev=200)
+        sol = least_squares(traced(res, on_iteration, stage), v, method="lm", xtol=1e-12, ftol=1e-12, max_nfev=200)
         v = sol.x
         r = raw(v)
         d2 = np.einsum("mi,mij,mj->m", r, Cinv, r)
@@ -605,7 +622,7 @@ def _whitened_d2(
         if not s2 > 0:  # noise-free data: nothing to weigh against the priors
             break
         level = float(np.sqrt(s2))
-    return d2
+    return d2, (v, level)
 
 
 def _sandwich(J: np.ndarray, W: np.ndarray, Sig: np.ndarray) -> np.ndarray:
