@@ -82,6 +82,13 @@ class Settings(BaseSettings):
         "clients use",
     )
     extraction_workers: int = Field(1, ge=1, le=64)
+    design_max_candidates: int = Field(
+        1000,
+        ge=20,
+        le=1000,
+        description="most candidate poses a plan design (POST /api/v1/plans/design) draws: its CPU time grows with "
+        "them (~7 s at the default 300 on one core); a request asking for more is drawn with this many and says so",
+    )
     job_niceness: int = Field(
         5,
         ge=0,

@@ -12,7 +12,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from calib.errors import I4calError, InputError
 
 from ..auth import Writer
-from .deps import Manager, unprocessable
+from .deps import Manager, SettingsDep, unprocessable
 
 router = APIRouter(prefix="/api/v1/plans", tags=["plans"])
 
@@ -79,7 +79,7 @@ async def _finish_even_if_abandoned(work: asyncio.Future[Any]) -> Any:
         429: {"description": "another design is being computed"},
     },
 )
-async def design(body: DesignBody, request: Request, manager: Manager, _: Writer) -> DesignOut:
+async def design(body: DesignBody, request: Request, manager: Manager, settings: SettingsDep, _: Writer) -> DesignOut:
     """Design a plan for this service's bench: fit poses, sweeps, order; predicted std and motion time.
 
     Computed in a worker thread, one design at a time (the run's processes keep their cores)."""
@@ -102,7 +102,7 @@ async def design(body: DesignBody, request: Request, manager: Manager, _: Writer
                 criterion=body.criterion or ("target" if body.target_std_m is not None and body.n_fit is None else "d"),
                 methods=tuple(dict.fromkeys(body.methods)),
                 seed=body.seed,
-                n_candidates=body.candidates,
+                n_candidates=min(body.candidates, settings.design_max_candidates),
                 with_line=body.with_line,
             )
             res = await _finish_even_if_abandoned(
@@ -125,5 +125,10 @@ async def design(body: DesignBody, request: Request, manager: Manager, _: Writer
         sweeps=res.sweeps,
         target_met=res.target_met,
         time_met=res.time_met,
-        notes=res.notes,
+        notes=res.notes
+        + (
+            [f"candidates: {settings.design_max_candidates} drawn, the service's limit (asked {body.candidates})"]
+            if body.candidates > settings.design_max_candidates
+            else []
+        ),
     )

@@ -41,6 +41,9 @@ def live_url(tmp_path_factory):
         token_hashes=[hash_token(TOKEN)],
         plan_sizes=SMALL,
         max_upload_bytes=2_000_000,
+        # the operator's cap on a design's cost (a design of 300 candidates computes for ~7 s): the fuzz is about the
+        # routes' answers to any input, the designs' size is tests/service/test_plan_design.py's
+        design_max_candidates=40,
     )
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -99,6 +99,25 @@ async def test_api_designs_a_plan_that_runs_inline(service):
     assert run["progress"]["done"] == sum(d["counts"].values())
 
 
+async def test_api_design_draws_at_most_the_services_candidates(tmp_path, sim):
+    """An operator caps the CPU a design request may take (``design_max_candidates``): a request asking for more
+    candidates is drawn with the cap and says so; one within it is drawn as asked, without the note."""
+    from tests.service.conftest import make_settings, start_service
+
+    svc = await start_service(make_settings(tmp_path, sim, design_max_candidates=40), sim)
+    try:
+        body = {"n_fit": 4, "with_line": False, "candidates": 500}
+        r = await svc.client.post(f"{API}/plans/design", json=body, headers=AUTH)
+        assert r.status_code == 200, r.text
+        assert "candidates: 40 drawn, the service's limit (asked 500)" in r.json()["notes"]
+        assert r.json()["n_fit"] == 4
+        r = await svc.client.post(f"{API}/plans/design", json={**body, "candidates": 30}, headers=AUTH)
+        assert r.status_code == 200 and not any("service's limit" in n for n in r.json()["notes"])
+    finally:
+        await svc.client.aclose()
+        await svc.stop()
+
+
 async def test_api_bounds_its_inputs(service):
     c = service.client
     for bad in (
