@@ -6,6 +6,13 @@ See docs/observations.md; the JSON Schema ships as ``calib/schemas/observations-
 
 Reading validates every frame and reports the first bad field with its frame index
 (:class:`~calib.errors.InputError`); extra fields are allowed and kept on a round trip.
+
+Besides ``u``/``point`` and ``R``/``t``, :class:`Rod` and :class:`Board` declare the optional fields the image
+extraction writes and the methods read (the vision -> methods contract: limb planes ``h``, the direction's
+covariance ``cov_u``, limb samples ``limbs_px``, the board pose's ``cov`` and ``d_intrinsics``, quality figures).
+Each is validated (shape, finite values) when present; a field a document does not carry stays absent when it
+is written back (no ``null`` is added), so documents written before these fields were declared round-trip as
+they were.
 """
 
 from __future__ import annotations
@@ -17,7 +24,16 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    SerializerFunctionWrapHandler,
+    ValidationError,
+    field_validator,
+    model_serializer,
+    model_validator,
+)
 
 from .errors import InputError
 from .jsonio import read_json, write_json_atomic
@@ -42,18 +58,102 @@ Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 Vec4 = Annotated[list[float], Field(min_length=4, max_length=4)]
 
 
+Pair = Annotated[list[float], Field(min_length=2, max_length=2)]
+Mat33 = Annotated[list[Vec3], Field(min_length=3, max_length=3)]
+Mat66 = Annotated[list[Annotated[list[float], Field(min_length=6, max_length=6)]], Field(min_length=6, max_length=6)]
+NormalPair = Annotated[list[Vec3], Field(min_length=2, max_length=2)]
+LimbSamples = Annotated[
+    list[Annotated[list[Annotated[list[float], Field(min_length=2, max_length=2)]], Field(min_length=2)]],
+    Field(min_length=2, max_length=2),
+]
+PoseSensitivity = Annotated[list[Annotated[list[float], Field(min_length=1)]], Field(min_length=6, max_length=6)]
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+
+
 def _finite(values: Iterable[float], what: str) -> None:
     for v in values:
         if not math.isfinite(v):
             raise ValueError(f"{what} contains a non-finite value")
 
 
+def _plain(v: Any) -> Any:
+    """A numpy array or scalar as Python lists and numbers (the extraction's arrays validate as they are)."""
+    return v.tolist() if isinstance(v, np.ndarray | np.generic) else v
+
+
+def _shape_text(shape: tuple[int | None, ...]) -> str:
+    return "(" + ", ".join("n" if d is None else str(d) for d in shape) + ("," if len(shape) == 1 else "") + ")"
+
+
+def _shaped(v: Any, name: str, shape: tuple[int | None, ...], what: str) -> Any:
+    """Check that ``v`` (None, a nested list or an array) is a finite array of ``shape`` (None: any length >= 1).
+
+    Raises ValueError naming the field, the expected and the actual shape (pydantic adds the frame and the path).
+    """
+    if v is None:
+        return None
+    try:
+        a = np.asarray(_plain(v), dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be an array of numbers of shape {_shape_text(shape)} ({what})") from None
+    if a.ndim != len(shape) or any(d != e if e is not None else d < 1 for d, e in zip(a.shape, shape, strict=True)):
+        raise ValueError(f"{name} must have shape {_shape_text(shape)} ({what}), got {tuple(a.shape)}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} contains a non-finite value")
+    return _plain(v)
+
+
+def _drop_unset(model: BaseModel, data: dict[str, Any], optional: tuple[str, ...]) -> dict[str, Any]:
+    """``data`` without the declared optional fields the document did not carry (they are written as before:
+    absent, never ``null``)."""
+    for name in optional:
+        if name not in model.model_fields_set:
+            data.pop(name, None)
+    return data
+
+
+#: the optional, typed rod fields written by the image extraction (:class:`calib.vision.rods.RodMeasurement`)
+ROD_FIELDS: tuple[str, ...] = ("rms_px", "n_points", "plane_angle_rad", "cov_u", "h", "limbs_px")
+RodArrayField = Literal["rms_px", "n_points", "cov_u", "h", "limbs_px"]
+#: the optional, typed board fields written by the image extraction (:class:`calib.vision.board.BoardPose`)
+BOARD_FIELDS: tuple[str, ...] = ("rms_px", "n_corners", "cov", "d_intrinsics")
+
+
 class Rod(BaseModel):
-    """One rod's axis in the camera frame: unit direction (sign arbitrary) and optionally a point."""
+    """One rod's axis in the camera frame: unit direction (sign arbitrary) and optionally a point.
+
+    The other declared fields are optional: the image extraction writes them, a geometric twin or a foreign tool
+    may not (they stay absent on a round trip).
+    """
 
     model_config = ConfigDict(extra="allow")
     u: Vec3 = Field(description="axis direction in the camera frame (unit vector, sign arbitrary)")
     point: Vec3 | None = Field(default=None, description="a point of the axis in the camera frame, metres")
+    rms_px: Pair | None = Field(
+        default=None, description="shape (2,), px: RMS residual of the edge points about each fitted limb line"
+    )
+    n_points: Annotated[list[Annotated[int, Field(ge=0)]], Field(min_length=2, max_length=2)] | None = Field(
+        default=None, description="shape (2,), count: edge points kept on each limb line"
+    )
+    plane_angle_rad: FiniteFloat | None = Field(
+        default=None, description="rad: angle between the rod's two interpretation planes (small: ill-conditioned)"
+    )
+    cov_u: Mat33 | None = Field(
+        default=None,
+        description="shape (3, 3), dimensionless (rad^2 across u): covariance of u in the camera frame, "
+        "from the limb edges' scatter and the edge-bias allowance",
+    )
+    h: NormalPair | None = Field(
+        default=None,
+        description="shape (2, 3), unit normals: the two limb lines' interpretation planes (through the camera "
+        "centre), camera frame, in limb order (as rms_px, n_points, limbs_px)",
+    )
+    limbs_px: LimbSamples | None = Field(
+        default=None,
+        description="shape (2, P, 2), distorted px (x, y): per limb, P points of its fitted line (the extraction "
+        "writes P = 5, the quantiles 0, 1/4, 1/2, 3/4, 1 of its edge points): the raw measurement the planes are "
+        "recomputed from for other intrinsics",
+    )
 
     @field_validator("u")
     @classmethod
@@ -73,15 +173,69 @@ class Rod(BaseModel):
             _finite(v, "point")
         return v
 
+    @field_validator("rms_px", mode="before")
+    @classmethod
+    def _rms(cls, v: Any) -> Any:
+        return _shaped(v, "rms_px", (2,), "RMS per limb, px")
+
+    @field_validator("n_points", mode="before")
+    @classmethod
+    def _npts(cls, v: Any) -> Any:
+        return _shaped(v, "n_points", (2,), "edge points per limb")
+
+    @field_validator("plane_angle_rad", mode="before")
+    @classmethod
+    def _angle(cls, v: Any) -> Any:
+        return _plain(v)
+
+    @field_validator("cov_u", mode="before")
+    @classmethod
+    def _cov_u(cls, v: Any) -> Any:
+        return _shaped(v, "cov_u", (3, 3), "covariance of u")
+
+    @field_validator("h", mode="before")
+    @classmethod
+    def _h(cls, v: Any) -> Any:
+        v = _shaped(v, "h", (2, 3), "two plane normals")
+        if v is not None and float(np.linalg.norm(np.asarray(v, dtype=np.float64), axis=1).min()) < 1e-12:
+            raise ValueError("h must hold two non-zero plane normals")
+        return v
+
+    @field_validator("limbs_px", mode="before")
+    @classmethod
+    def _limbs(cls, v: Any) -> Any:
+        v = _shaped(v, "limbs_px", (2, None, 2), "P points of each of the two limb lines, px")
+        if v is not None and len(v[0]) < 2:
+            raise ValueError("limbs_px must hold at least 2 points per limb line")
+        return v
+
+    @model_serializer(mode="wrap")
+    def _serialize(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
+        return _drop_unset(self, handler(self), ROD_FIELDS)
+
 
 class Board(BaseModel):
-    """``camera_from_board``: ``p_cam = R p_board + t`` (metres)."""
+    """``camera_from_board``: ``p_cam = R p_board + t`` (metres); optionally the extraction's quality and covariance."""
 
     model_config = ConfigDict(extra="allow")
     R: Annotated[list[Vec3], Field(min_length=3, max_length=3)] = Field(
         description="rotation camera_from_board, 3x3, rows"
     )
     t: Vec3 = Field(description="translation camera_from_board, metres")
+    rms_px: Annotated[float, Field(ge=0, allow_inf_nan=False)] | None = Field(
+        default=None, description="px: RMS reprojection error of the corners used for the pose"
+    )
+    n_corners: Annotated[int, Field(ge=0)] | None = Field(default=None, description="count: ChArUco corners used")
+    cov: Mat66 | None = Field(
+        default=None,
+        description="shape (6, 6): covariance of (rotation vector [rad], t [m]) of the pose, from the PnP Jacobian",
+    )
+    d_intrinsics: PoseSensitivity | None = Field(
+        default=None,
+        description="shape (6, n): the pose's first-order change per unit change of the camera's n intrinsics "
+        "(fx, fy, cx, cy [px], then the lens model's distortion terms; n = 8 for k1, k2, p1, p2): rows are a left "
+        "rotation R' = exp([w]) R (rad), then the change of t (m)",
+    )
 
     @field_validator("R")
     @classmethod
@@ -101,6 +255,25 @@ class Board(BaseModel):
     def _t(cls, v: list[float]) -> list[float]:
         _finite(v, "t")
         return v
+
+    @field_validator("rms_px", "n_corners", mode="before")
+    @classmethod
+    def _scalar(cls, v: Any) -> Any:
+        return _plain(v)
+
+    @field_validator("cov", mode="before")
+    @classmethod
+    def _cov(cls, v: Any) -> Any:
+        return _shaped(v, "cov", (6, 6), "covariance of (rotation vector, t)")
+
+    @field_validator("d_intrinsics", mode="before")
+    @classmethod
+    def _d_intrinsics(cls, v: Any) -> Any:
+        return _shaped(v, "d_intrinsics", (6, None), "pose change per unit change of each intrinsic")
+
+    @model_serializer(mode="wrap")
+    def _serialize(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
+        return _drop_unset(self, handler(self), BOARD_FIELDS)
 
 
 class Frame(BaseModel):

@@ -15,7 +15,7 @@ from .identifiability import identifiability
 from .methods.iterations import IterationCallback
 from .methods.registry import MethodContext, get_method, method_names
 from .methods.result import MethodResult
-from .observations import LEG_KEYS, Observations
+from .observations import LEG_KEYS, Observations, Rod
 from .parameters import COMBINATION_NAMES, PARAMETER_NAMES, I4Parameters
 from .transforms import tangent_basis
 from .validation import validate
@@ -205,12 +205,12 @@ def _leg_covariances(obs: Observations, s2: float) -> np.ndarray | None:
             continue
         legs = []
         for leg in range(4):
-            rods = cast(dict[str, Any], f.legs or {}).get(LEG_KEYS[leg]) or []
+            rods = cast(dict[str, list[Rod | None]], f.legs or {}).get(LEG_KEYS[leg]) or []
             info = np.zeros((3, 3))
             for rod in rods:
                 if rod is None:
                     continue
-                c = getattr(rod, "cov_u", None)
+                c = rod.cov_u
                 if c is None:
                     return None
                 u = np.asarray(rod.u, dtype=np.float64)

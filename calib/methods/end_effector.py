@@ -339,7 +339,7 @@ def board_covariances(obs: Observations, arrays: PhaseArrays) -> np.ndarray | No
     out = np.empty((len(arrays), 6, 6))
     for k, i in enumerate(arrays.index):
         board = obs.frames[int(i)].board
-        c = getattr(board, "cov", None) if board is not None else None
+        c = board.cov if board is not None else None
         if c is None:
             return None
         C = np.asarray(c, dtype=np.float64)

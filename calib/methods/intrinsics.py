@@ -149,7 +149,7 @@ def board_sensitivities(obs: Observations, arrays: PhaseArrays, n: int | None = 
             (
                 b.d_intrinsics
                 for i in arrays.index
-                if (b := obs.frames[int(i)].board) is not None and getattr(b, "d_intrinsics", None) is not None
+                if (b := obs.frames[int(i)].board) is not None and b.d_intrinsics is not None
             ),
             None,
         )
@@ -159,7 +159,7 @@ def board_sensitivities(obs: Observations, arrays: PhaseArrays, n: int | None = 
         if not arrays.has_board[k]:
             continue
         board = obs.frames[int(i)].board
-        d = getattr(board, "d_intrinsics", None) if board is not None else None
+        d = board.d_intrinsics if board is not None else None
         if d is None:
             return None
         a = np.asarray(d, dtype=np.float64)

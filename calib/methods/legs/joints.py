@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...errors import IdentifiabilityError
-from ...observations import Observations, PhaseArrays
+from ...observations import LEG_KEYS, Observations, PhaseArrays, RodArrayField
 from ...robust import chi2_gate, robust_chi2_scale
 from ...transforms import unit
 
@@ -195,20 +195,21 @@ def joint_from_planes(obs: list[PlaneObservation], iterations: int = 4) -> tuple
     return X, A, np.sum(res**2 / v, axis=1)
 
 
-def _rod_field(obs: Observations, data: PhaseArrays, k: int, leg: int, rod: int, name: str) -> np.ndarray | None:
-    """An extra field of one rod (``h``, ``cov_u``, ``rms_px``, ``n_points``) as float64, or None."""
+def _rod_field(
+    obs: Observations, data: PhaseArrays, k: int, leg: int, rod: int, name: RodArrayField
+) -> np.ndarray | None:
+    """A declared array field of one rod (``h``, ``cov_u``, ``rms_px``, ``n_points``, ``limbs_px``; see
+    :class:`calib.observations.Rod`: shape and finite values checked on reading) as float64, or None when the rod
+    or the field is absent."""
     frame = obs.frames[int(data.index[k])]
-    rods = frame.legs.get(str(leg + 1)) if frame.legs else None
-    if not rods or rod >= len(rods) or rods[rod] is None:
+    rods = frame.legs.get(LEG_KEYS[leg]) if frame.legs else None
+    if not rods or rod >= len(rods):
         return None
-    v = getattr(rods[rod], name, None)
-    if v is None:
+    r = rods[rod]
+    if r is None:
         return None
-    try:
-        a = np.asarray(v, dtype=np.float64)
-    except (TypeError, ValueError):
-        return None
-    return a if np.all(np.isfinite(a)) else None
+    v = {"h": r.h, "cov_u": r.cov_u, "rms_px": r.rms_px, "n_points": r.n_points, "limbs_px": r.limbs_px}[name]
+    return None if v is None else np.asarray(v, dtype=np.float64)
 
 
 def _extraction_settings(obs: Observations) -> tuple[np.ndarray | None, float, float]:
