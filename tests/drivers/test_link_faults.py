@@ -28,7 +28,7 @@ from drv_helpers import make_modbus
 
 from drivers.errors import DeviceError
 from drivers.modbus import ModbusActuators
-from drivers.sim.faultproxy import FaultProxy, SerialGateway
+from drivers.sim.faultproxy import FaultProxy, SerialGateway, cancel_and_wait
 
 Q_A = np.array([0.40, 0.41, 0.42, 0.43])
 Q_B = np.array([0.30, 0.31, 0.35, 0.36])
@@ -107,9 +107,7 @@ class PtyToTcp:
     async def close(self) -> None:
         asyncio.get_running_loop().remove_reader(self.master)
         if self._task is not None:
-            self._task.cancel()
-            with contextlib.suppress(BaseException):
-                await self._task
+            await cancel_and_wait([self._task])
         self._writer.close()
         for fd in (self.master, self._slave):
             with contextlib.suppress(OSError):
