@@ -614,7 +614,7 @@ def _whitened_d2(
             eq8 = np.einsum("mij,mj->mi", Wh, raw(v)).ravel() / level
             return np.concatenate([eq8, Lw @ v[4 : 4 + nw], v[4 + nw :] - z0])
 
-        sol = least_squares(traced(res, on_iteration, stage), v, method="lm", xtol=1e-12, ftol=1e-12, max_nfev=200)
+        sol = least_squares(traced(res, on_iteration, stage), v, method="lm", xtol=1e-8, ftol=1e-8, max_nfev=200)
         v = sol.x
         r = raw(v)
         d2 = np.einsum("mi,mij,mj->m", r, Cinv, r)
