@@ -86,13 +86,6 @@ def _scope(nodeid: str) -> str:
     return nodeid.rsplit("::", 1)[0]
 
 
-def pytest_xdist_auto_num_workers(config):
-    """``-n auto``: one worker more than half again the cores (3 on 2 cores). About a fifth of the suite's wall time
-    is spent waiting (services and bench processes starting, runs followed over HTTP, browsers): with one worker
-    per core that time left a core idle (CI, 2 cores: 661 s of pytest for 541 s of CPU per core)."""
-    return max(2, (os.cpu_count() or 1) * 3 // 2)
-
-
 def pytest_collection_modifyitems(config, items):
     costs = json.loads(COSTS_FILE.read_text()) if COSTS_FILE.exists() else {}
     scope_cost: dict[str, float] = {}
