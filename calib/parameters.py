@@ -6,10 +6,25 @@ import math
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
 
+import numpy as np
+
 #: Names of the seven geometric parameters, in the paper's order.
 PARAMETER_NAMES: tuple[str, ...] = ("H", "q02", "q03", "q04", "S", "D", "L")
 #: Names of the four combinations that Jacobian-based and IKM-based methods identify.
 COMBINATION_NAMES: tuple[str, ...] = ("L", "H-D", "S-q02/2", "S-(q04-q03)/2")
+
+#: The four combinations as linear functions of the seven parameters, (4, 7): rows COMBINATION_NAMES, columns
+#: PARAMETER_NAMES (a covariance of the seven maps to the four's as ``SEVEN_TO_FOUR @ cov7 @ SEVEN_TO_FOUR.T``).
+SEVEN_TO_FOUR = np.array(
+    [
+        [0, 0, 0, 0, 0, 0, 1],  # L
+        [1, 0, 0, 0, 0, -1, 0],  # H - D
+        [0, -0.5, 0, 0, 1, 0, 0],  # S - q02/2
+        [0, 0, 0.5, -0.5, 1, 0, 0],  # S - (q04 - q03)/2
+    ],
+    dtype=float,
+)
+SEVEN_TO_FOUR.flags.writeable = False
 
 #: Default rack-and-pinion constant: metres of T per radian of end-effector rotation.
 DEFAULT_T_PER_RAD = 0.02

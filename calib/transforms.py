@@ -69,7 +69,7 @@ def so3_left_jacobian(rv: ArrayLike) -> Array:
     safe = np.where(small, 1.0, a)
     c1 = np.where(small, 0.5 - a2 / 24.0, (1.0 - np.cos(safe)) / safe**2)
     c2 = np.where(small, 1.0 / 6.0 - a2 / 120.0, (safe - np.sin(safe)) / safe**3)
-    K = _skew_batch(phi)
+    K = skew(phi)
     return np.eye(3) + c1 * K + c2 * (K @ K)
 
 
@@ -85,16 +85,8 @@ def so3_left_jacobian_inverse(rv: ArrayLike) -> Array:
     small = a < 1e-4
     safe = np.where(small, 1.0, a)
     c2 = np.where(small, 1.0 / 12.0 + a2 / 720.0, 1.0 / safe**2 - (1.0 + np.cos(safe)) / (2.0 * safe * np.sin(safe)))
-    K = _skew_batch(phi)
+    K = skew(phi)
     return np.eye(3) - 0.5 * K + c2 * (K @ K)
-
-
-def _skew_batch(v: Array) -> Array:
-    K = np.zeros((*v.shape[:-1], 3, 3))
-    K[..., 0, 1], K[..., 0, 2] = -v[..., 2], v[..., 1]
-    K[..., 1, 0], K[..., 1, 2] = v[..., 2], -v[..., 0]
-    K[..., 2, 0], K[..., 2, 1] = -v[..., 1], v[..., 0]
-    return K
 
 
 def rot_z(theta: ArrayLike) -> Array:
@@ -111,8 +103,15 @@ def rot_z(theta: ArrayLike) -> Array:
 
 
 def skew(v: ArrayLike) -> Array:
-    x, y, z = np.asarray(v, dtype=np.float64)
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    """Cross-product matrices ``[v]x`` (``[v]x w = v x w``), shape (..., 3) -> (..., 3, 3)."""
+    v = np.asarray(v, dtype=np.float64)
+    if v.shape[-1:] != (3,):
+        raise ValueError(f"v must have shape (..., 3), got {v.shape}")
+    K = np.zeros((*v.shape[:-1], 3, 3))
+    K[..., 0, 1], K[..., 0, 2] = -v[..., 2], v[..., 1]
+    K[..., 1, 0], K[..., 1, 2] = v[..., 2], -v[..., 0]
+    K[..., 2, 0], K[..., 2, 1] = -v[..., 1], v[..., 0]
+    return K
 
 
 def unit(v: ArrayLike, axis: int = -1) -> Array:

@@ -40,7 +40,7 @@ import numpy as np
 from ..errors import IdentifiabilityError, InputError
 from ..kinematics import dkm
 from ..numdiff import central_jacobian
-from ..parameters import COMBINATION_NAMES, PARAMETER_NAMES, I4Parameters
+from ..parameters import COMBINATION_NAMES, PARAMETER_NAMES, SEVEN_TO_FOUR, I4Parameters
 from ..plan import Plan
 from ..transforms import matrix_to_rotvec, rotvec_to_matrix, unit
 from .scene import Scene, rod_segments
@@ -64,17 +64,6 @@ __all__ = [
 ]
 
 METHODS = ("combined", "end-effector", "legs")
-
-#: the four combinations as linear functions of the seven parameters (PARAMETER_NAMES order)
-SEVEN_TO_FOUR = np.array(
-    [
-        [0, 0, 0, 0, 0, 0, 1],  # L
-        [1, 0, 0, 0, 0, -1, 0],  # H - D
-        [0, -0.5, 0, 0, 1, 0, 0],  # S - q02/2
-        [0, 0, 0.5, -0.5, 1, 0, 0],  # S - (q04 - q03)/2
-    ],
-    dtype=float,
-)
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,7 @@ import numpy as np
 
 from ...errors import IdentifiabilityError
 from ...observations import Observations
-from ...parameters import COMBINATION_NAMES, PARAMETER_NAMES, I4Parameters
+from ...parameters import COMBINATION_NAMES, PARAMETER_NAMES, SEVEN_TO_FOUR, I4Parameters
 from ..combined import EDGE_BIAS_STD_PX
 from ..iterations import IterationCallback
 from ..result import MethodResult, combos_dict, std_dict
@@ -210,16 +210,7 @@ def calibrate_legs(
                 f"{prior_std_m * 1e3:.1f} mm): the result stays near the a priori values there, with their std"
             )
     params = I4Parameters.from_mapping({**dict(zip(PARAMETER_NAMES, seven, strict=True)), "T_per_rad": nom.T_per_rad})
-    M = np.array(
-        [
-            [0, 0, 0, 0, 0, 0, 1],  # L
-            [1, 0, 0, 0, 0, -1, 0],  # H - D
-            [0, -0.5, 0, 0, 1, 0, 0],  # S - q02/2
-            [0, 0, 0.5, -0.5, 1, 0, 0],  # S - (q04 - q03)/2
-        ],
-        dtype=float,
-    )
-    cov4 = M @ cov @ M.T
+    cov4 = SEVEN_TO_FOUR @ cov @ SEVEN_TO_FOUR.T
     std7 = {k: float(np.sqrt(max(cov[i, i], 0.0))) for i, k in enumerate(PARAMETER_NAMES)}
     combos = params.combinations()
     scale = float(np.sqrt(s2_34)) * (1.0 if measured else (direction_std_rad or 1.0))
