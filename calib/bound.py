@@ -216,8 +216,30 @@ def ml_combined(obs, noise: MeasurementNoise, *, start=None, base_frame=None) ->
         e_tra = (tra.board_t - (t0[None, :] + s[:, None] * R[:, 0][None, :])) / sig_t
         return np.concatenate([e_rods.ravel(), e_rot.ravel(), e_tra.ravel()])
 
+    # Forward differences (SciPy's own step, sqrt(eps) max(1, |x|)), one column per evaluation except the angles:
+    # each rotation-phase angle moves only its own frame's three rows, so all of them are stepped in one
+    # evaluation (the same columns, 4x fewer evaluations of ``resid``).
+    n_rods = 2 * k_idx.size
+    rot_rows = n_rods + 3 * np.arange(n_r)[:, None] + np.arange(3)[None, :]  # (n_r, 3)
+
+    def jac(x: np.ndarray) -> np.ndarray:
+        f0 = resid(x)
+        h = np.sqrt(np.finfo(np.float64).eps) * np.maximum(1.0, np.abs(x))
+        J = np.zeros((f0.size, x.size))
+        for j in (*range(10), *range(10 + n_r, x.size)):
+            xj = x.copy()
+            xj[j] += h[j]
+            J[:, j] = (resid(xj) - f0) / (xj[j] - x[j])
+        xt = x.copy()
+        xt[10 : 10 + n_r] += h[10 : 10 + n_r]
+        dth = xt[10 : 10 + n_r] - x[10 : 10 + n_r]
+        d = resid(xt) - f0
+        J[rot_rows, (10 + np.arange(n_r))[:, None]] = d[rot_rows] / dth[:, None]
+        return J
+
     w0 = np.zeros(3)  # the camera rotation starts at the base-frame estimate
     t00 = (tra.board_t - s[:, None] * R_cb0[:, 0][None, :]).mean(axis=0)
     x0 = np.concatenate([start.vector(), w0, np.zeros(3), th0, t00])
-    sol = least_squares(resid, x0, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=2000)
+    # tolerances 1e-10: the estimate moves by < 0.01 nm beyond them (micrometres of spread at the smallest noise)
+    sol = least_squares(resid, x0, jac=jac, method="lm", xtol=1e-10, ftol=1e-10, gtol=1e-10, max_nfev=2000)
     return sol.x[:4]
