@@ -5,6 +5,7 @@ only its own after a restart, and gives each bench its own current calibration."
 from __future__ import annotations
 
 import asyncio
+import threading
 
 import pytest
 
@@ -15,20 +16,38 @@ from tests.service.conftest import AUTH, TinyRenderer, empty_database_url, make_
 API = "/api/v1"
 
 
+class HeldRenderer(TinyRenderer):
+    """:class:`TinyRenderer` whose camera can be held: from its frame number ``hold_from`` on, each frame waits until
+    ``release`` is set (``held`` tells that one waits). The run waiting on that frame is certainly still acquiring for
+    as long as the test needs, whatever the machine's load (no real-time motion sized to outlast it)."""
+
+    def __init__(self) -> None:
+        self.frames, self.hold_from = 0, None
+        self.held, self.release = threading.Event(), threading.Event()
+
+    def render(self, q_true, pose_true):
+        self.frames += 1
+        if self.hold_from is not None and self.frames >= self.hold_from and not self.release.is_set():
+            self.held.set()
+            self.release.wait(60.0)
+        return super().render(q_true, pose_true)
+
+
 @pytest.fixture(params=["sqlite", "postgres"])
 def shared_db(request, tmp_path) -> str:
     return empty_database_url(request, tmp_path, "lab.db")
 
 
 async def test_two_benches_share_a_database(tmp_path, sim, shared_db, rendered_zip):
+    camera = HeldRenderer()
     other = SimBench(
         port=0,
-        renderer=TinyRenderer(),
+        renderer=camera,
         seed=2,
         axis_config=AxisConfig(default_speed=10.0, accel=1000.0, home_speed=10.0),
     )
     await other.start()
-    slow = {"actuators": {"speed_m_s": 0.3, "accel_m_s2": 3.0}}
+    held_grab = {"camera": {"timeout_s": 60.0}}  # a held frame is late, not lost
     sa = make_settings(tmp_path / "a", sim, database_url=shared_db, bench_name="bench-a", extraction_workers=1)
     sb = make_settings(
         tmp_path / "b",
@@ -37,7 +56,7 @@ async def test_two_benches_share_a_database(tmp_path, sim, shared_db, rendered_z
         bench_name="bench-b",
         extraction_workers=1,
         plan_sizes={"n_fit": 30},
-        bench_overrides=slow,
+        bench_overrides=held_grab,
     )
     a = await start_service(sa, sim)
     b = await start_service(sb, other)
@@ -76,7 +95,11 @@ async def test_two_benches_share_a_database(tmp_path, sim, shared_db, rendered_z
         ] == ["bench-a"]
 
         # bench-b acquires; bench-a's service sees the run but cannot control it, and restarting it leaves it alone
+        # the run's first frame and its first three poses' pass; the fourth pose's frame waits until bench-a's
+        # service has restarted
+        camera.hold_from = camera.frames + 5
         rid = (await cb.post(f"{API}/runs", json={"plan": "pose-set", "methods": []}, headers=AUTH)).json()["id"]
+        assert await asyncio.to_thread(camera.held.wait, 60.0), "bench-b's run never reached its fourth pose"
         async with asyncio.timeout(30):
             while (await cb.get(f"{API}/runs/{rid}")).json()["progress"]["done"] < 2:
                 await asyncio.sleep(0.02)
@@ -90,9 +113,11 @@ async def test_two_benches_share_a_database(tmp_path, sim, shared_db, rendered_z
         a = await start_service(sa, sim)  # its start-up recovery must not touch bench-b's running run
         ca = a.client
         assert (await ca.get(f"{API}/runs/{rid}")).json()["state"] == "acquiring"
+        camera.release.set()
         run = await wait_state(cb, rid, timeout=120)
         assert run["state"] == "done" and run["progress"]["done"] == 30
     finally:
+        camera.release.set()
         await ca.aclose()
         await cb.aclose()
         await a.stop()
