@@ -22,6 +22,7 @@ from scipy.optimize import least_squares
 from .errors import IdentifiabilityError
 from .observations import Observations, PhaseArrays
 from .transforms import (
+    cross,
     matrix_to_rotvec,
     orthonormalize,
     rotvec_to_matrix,
@@ -149,8 +150,8 @@ def fit_rotation_axis(
             parameter="z_B",
         )
     # local parametrisation of z around z0
-    e1 = unit(np.cross(z0, [1.0, 0.0, 0.0] if abs(z0[0]) < 0.9 else [0.0, 1.0, 0.0]))
-    e2 = np.cross(z0, e1)
+    e1 = unit(cross(z0, [1.0, 0.0, 0.0] if abs(z0[0]) < 0.9 else [0.0, 1.0, 0.0]))
+    e2 = cross(z0, e1)
     axes = (z0, e1, e2)
 
     def zfun(a: Array) -> Array:
@@ -339,8 +340,8 @@ def fit_translation_direction(t: Array, s: Array) -> tuple[Array, Array, Array, 
 def frame_from_axes(z: Array, x: Array) -> Array:
     """Right-handed rotation with columns x_B, y_B, z_B (camera frame): z kept, x re-orthogonalised."""
     z = unit(z)
-    y = unit(np.cross(z, x))
-    xo = np.cross(y, z)
+    y = unit(cross(z, x))
+    xo = cross(y, z)
     return np.column_stack([xo, y, z])
 
 

@@ -114,6 +114,25 @@ def skew(v: ArrayLike) -> Array:
     return K
 
 
+def cross(a: ArrayLike, b: ArrayLike) -> Array:
+    """Cross product over the last axis, shapes (..., 3) broadcast -> (..., 3): ``np.cross``'s numbers.
+
+    The same products and differences as ``np.cross`` (bit for bit), without its axis bookkeeping: ~10x faster on
+    single 3-vectors, which the per-rod and per-candidate geometry computes by the thousand.
+    """
+    x = np.asarray(a, dtype=np.float64)
+    y = np.asarray(b, dtype=np.float64)
+    if x.shape[-1:] != (3,) or y.shape[-1:] != (3,):
+        raise ValueError(f"cross needs (..., 3) arrays, got {x.shape} and {y.shape}")
+    if x.ndim == 1 and y.ndim == 1:
+        x0, x1, x2 = x
+        y0, y1, y2 = y
+        return np.array([x1 * y2 - x2 * y1, x2 * y0 - x0 * y2, x0 * y1 - x1 * y0])
+    x0, x1, x2 = x[..., 0], x[..., 1], x[..., 2]
+    y0, y1, y2 = y[..., 0], y[..., 1], y[..., 2]
+    return np.stack([x1 * y2 - x2 * y1, x2 * y0 - x0 * y2, x0 * y1 - x1 * y0], axis=-1)
+
+
 def unit(v: ArrayLike, axis: int = -1) -> Array:
     a = np.asarray(v, dtype=np.float64)
     return a / np.linalg.norm(a, axis=axis, keepdims=True)
@@ -179,8 +198,8 @@ def tangent_basis(u: ArrayLike) -> Array:
     # a helper axis far from n: the coordinate axis of n's smallest component
     helper = np.zeros_like(n)
     np.put_along_axis(helper, np.argmin(np.abs(n), axis=-1)[..., None], 1.0, axis=-1)
-    e1 = unit(np.cross(helper, n))
-    e2 = np.cross(n, e1)
+    e1 = unit(cross(helper, n))
+    e2 = cross(n, e1)
     return np.stack([e1, e2], axis=-1)
 
 

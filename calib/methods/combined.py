@@ -29,7 +29,7 @@ from ..numdiff import central_jacobian
 from ..observations import Observations, PhaseArrays
 from ..parameters import COMBINATION_NAMES
 from ..robust import chi2_outliers, robust_chi2_scale
-from ..transforms import matrix_to_rotvec, rotvec_to_matrix
+from ..transforms import cross, matrix_to_rotvec, rotvec_to_matrix
 from . import intrinsics as intr
 from .iterations import IterationCallback, traced
 from .result import MethodResult, check_excitation, combos_dict, std_dict
@@ -504,7 +504,7 @@ class _IntrinsicsModel:
         h = self.limbs.planes(z[: self.n_intr], self.H)
         if self.n_edge:
             h = intr.shift_limbs(h, z[self.n_intr :] * self.edge_std_px / self.camera.focal_px)
-        u = np.cross(h[:, 0], h[:, 1])
+        u = cross(h[:, 0], h[:, 1])
         u /= np.linalg.norm(u, axis=1, keepdims=True)
         u *= np.sign(np.sum(u * reference, axis=1))[:, None]
         self._last = (key, u)
@@ -533,7 +533,7 @@ class _IntrinsicsModel:
         R = self.rotation(z) @ (rotvec_to_matrix(w) @ R0 if joint else R0)
 
         def ratios(h: np.ndarray) -> np.ndarray:
-            u = np.cross(h[:, 0], h[:, 1])
+            u = cross(h[:, 0], h[:, 1])
             uB = u @ R
             return uB[:, 1:] / uB[:, :1]
 

@@ -6,7 +6,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from ..kinematics import dkm
-from ..transforms import Rigid, matrix_to_rotvec, rot_z, rotvec_to_matrix
+from ..transforms import Rigid, cross, matrix_to_rotvec, rot_z, rotvec_to_matrix
 
 
 # ---------------------------------------------------------------------------------------------
@@ -49,14 +49,14 @@ def fit_placement(
     candidates = []
     if z is not None:
         for zz in (z, -z):
-            a = np.cross(zz, [1.0, 0, 0])
+            a = cross(zz, [1.0, 0, 0])
             if np.linalg.norm(a) < 0.1:
-                a = np.cross(zz, [0, 1.0, 0])
+                a = cross(zz, [0, 1.0, 0])
             a /= np.linalg.norm(a)
-            b = np.cross(zz, a)
+            b = cross(zz, a)
             for phi in np.deg2rad(np.arange(0, 360, 5)):
                 x = np.cos(phi) * a + np.sin(phi) * b
-                candidates.append(np.column_stack([x, np.cross(zz, x), zz]))
+                candidates.append(np.column_stack([x, cross(zz, x), zz]))
     else:
         candidates = [rotvec_to_matrix(v) for v in np.random.default_rng(0).normal(0, 2.0, (200, 3))]
     n = len(q)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calib.transforms import kabsch, kabsch_points, matrix_to_rotvec, rotvec_to_matrix, tangent_basis
+from calib.transforms import cross, kabsch, kabsch_points, matrix_to_rotvec, rotvec_to_matrix, tangent_basis
 
 
 def test_kabsch_points_recovers_a_rigid_map() -> None:
@@ -100,3 +100,13 @@ def test_so3_left_jacobians_are_the_derivatives_of_exp_and_log(scale: float) -> 
     np.testing.assert_allclose(so3_left_jacobian_inverse(phi), num_inv, atol=1e-8)
     np.testing.assert_allclose(so3_left_jacobian(phi) @ so3_left_jacobian_inverse(phi), np.eye(3), atol=1e-12)
     assert so3_left_jacobian(np.tile(phi, (4, 2, 1))).shape == (4, 2, 3, 3)
+
+
+def test_cross_is_numpys_cross_bit_for_bit() -> None:
+    rng = np.random.default_rng(3)
+    for sa, sb in [((3,), (3,)), ((7, 3), (7, 3)), ((4, 2, 3), (2, 3)), ((5, 3), (3,)), ((3,), (5, 3))]:
+        a, b = rng.normal(size=sa), rng.normal(size=sb)
+        assert np.array_equal(cross(a, b), np.cross(a, b)), (sa, sb)
+    assert np.array_equal(cross([1.0, 0, 0], [0, 1.0, 0]), [0.0, 0.0, 1.0])  # lists too
+    with pytest.raises(ValueError, match=r"\(2,\)"):
+        cross(np.ones(2), np.ones(3))

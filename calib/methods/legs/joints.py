@@ -12,7 +12,7 @@ import numpy as np
 from ...errors import IdentifiabilityError
 from ...observations import LEG_KEYS, Observations, PhaseArrays, RodArrayField
 from ...robust import chi2_gate, robust_chi2_scale
-from ...transforms import unit
+from ...transforms import cross, unit
 
 
 def intersect_lines(p: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -75,14 +75,14 @@ def planes_direction_covariance(h: np.ndarray, dh: np.ndarray, var: np.ndarray) 
     ``h`` (2, 3): the planes' unit normals; ``dh`` (2, 2, 3): per plane, its change per unit of its
     two noise parameters (angle, offset); ``var`` (2, 2): their variances.
     """
-    m = np.cross(h[0], h[1])
+    m = cross(h[0], h[1])
     nm = float(np.linalg.norm(m))
     u = m / nm
     Pu = np.eye(3) - np.outer(u, u)
     C = np.zeros((3, 3))
     for q in range(2):
         for p in range(2):
-            dm = np.cross(dh[0, p], h[1]) if q == 0 else np.cross(h[0], dh[1, p])
+            dm = cross(dh[0, p], h[1]) if q == 0 else cross(h[0], dh[1, p])
             du = Pu @ dm / nm
             C += var[q, p] * np.outer(du, du)
     return C

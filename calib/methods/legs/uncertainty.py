@@ -13,6 +13,7 @@ from ...errors import InputError
 from ...observations import Observations, PhaseArrays
 from ...parameters import PARAMETER_NAMES, I4Parameters
 from ...robust import chi2_gate, robust_chi2_scale
+from ...transforms import cross
 from .. import intrinsics as intr
 from .constants import _PAIR_FLOOR_M
 from .joints import PlaneObservation, _rod_field
@@ -112,7 +113,7 @@ class _IntrinsicsEffect:
     def rod_u(self, z: np.ndarray, rod_u: np.ndarray) -> np.ndarray:
         """The fit phases' rod directions (N, 4, 2, 3) as measured for ``z``, signed like ``rod_u``."""
         hz = self._planes(z, self.fit_limbs, self.fit_h)
-        u = np.cross(hz[:, 0], hz[:, 1])
+        u = cross(hz[:, 0], hz[:, 1])
         u /= np.linalg.norm(u, axis=1, keepdims=True)
         ref = rod_u[self.fit_idx]
         u *= np.where(np.sum(u * ref, axis=1) < 0, -1.0, 1.0)[:, None]

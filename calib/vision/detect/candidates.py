@@ -8,6 +8,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ...camera import CameraModel
+from ...transforms import cross
 from .geometry import _line_point, _plane, _ray, _sample, _to_canvas
 from .types import DetectSettings, LegCandidate, Line2, RodCandidate
 
@@ -152,7 +153,7 @@ def find_legs(rods: list[RodCandidate], radius: float, spacing: float, settings:
         ratio = abs(ka - kb) / (0.5 * (wa + wb))
         if not lo * nominal_ratio <= ratio <= hi * nominal_ratio:
             continue
-        d = np.cross(a.m, b.m)
+        d = cross(a.m, b.m)
         sn = float(np.linalg.norm(d))
         if sn < 1e-4:
             continue

@@ -12,7 +12,7 @@ from numpy.typing import NDArray
 
 from ...kinematics import dkm, joint_points
 from ...parameters import I4Parameters
-from ...transforms import Rigid, kabsch, matrix_to_rotvec, rotvec_to_matrix
+from ...transforms import Rigid, cross, kabsch, matrix_to_rotvec, rotvec_to_matrix
 from .geometry import _line_point, _rotation_angle
 from .types import DetectSettings, Hypothesis, LegCandidate, RodCandidate
 
@@ -109,7 +109,7 @@ class _Fitter:
         p = P - np.sum(P * U, axis=-1)[..., None] * U
         d = np.linalg.norm(p, axis=-1)
         e1 = p / d[..., None]
-        e2 = np.cross(U, e1)
+        e2 = cross(U, e1)
         c = np.clip(self.r / d, 0.0, 0.999)[..., None]
         sn = np.sqrt(1.0 - c * c)
         return np.stack([c * e1 + sn * e2, c * e1 - sn * e2], axis=-2), d

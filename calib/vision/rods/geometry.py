@@ -7,6 +7,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ...transforms import cross
+
 Array = NDArray[np.float64]
 
 
@@ -35,7 +37,7 @@ def limb_planes(point: ArrayLike, u: ArrayLike, radius: float) -> tuple[Array, A
     if d <= radius:
         raise ValueError(f"camera centre inside the cylinder (distance {d:.4g} m <= radius {radius:.4g} m)")
     e1 = p / d
-    e2 = np.cross(uu, e1)
+    e2 = cross(uu, e1)
     c = radius / d
     s = np.sqrt(1.0 - c * c)
     return c * e1 + s * e2, c * e1 - s * e2
@@ -62,7 +64,7 @@ def axis_from_planes(h1: ArrayLike, h2: ArrayLike, radius: float | None) -> tupl
     b = np.asarray(h2, dtype=np.float64).reshape(3)
     a = a / np.linalg.norm(a)
     b = b / np.linalg.norm(b)
-    u = np.cross(a, b)
+    u = cross(a, b)
     n = np.linalg.norm(u)
     if n < 1e-12:
         raise ValueError("interpretation planes are parallel: no axis")
