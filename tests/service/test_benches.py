@@ -5,32 +5,15 @@ only its own after a restart, and gives each bench its own current calibration."
 from __future__ import annotations
 
 import asyncio
-import threading
 
 import pytest
 
 from drivers.sim.bench import SimBench
 from drivers.sim.mechanism import AxisConfig
-from tests.service.conftest import AUTH, TinyRenderer, empty_database_url, make_settings, start_service, wait_state
+from tests.service.conftest import AUTH, empty_database_url, make_settings, start_service, wait_state
+from tests.service.held import HELD_GRAB, HeldRenderer
 
 API = "/api/v1"
-
-
-class HeldRenderer(TinyRenderer):
-    """:class:`TinyRenderer` whose camera can be held: from its frame number ``hold_from`` on, each frame waits until
-    ``release`` is set (``held`` tells that one waits). The run waiting on that frame is certainly still acquiring for
-    as long as the test needs, whatever the machine's load (no real-time motion sized to outlast it)."""
-
-    def __init__(self) -> None:
-        self.frames, self.hold_from = 0, None
-        self.held, self.release = threading.Event(), threading.Event()
-
-    def render(self, q_true, pose_true):
-        self.frames += 1
-        if self.hold_from is not None and self.frames >= self.hold_from and not self.release.is_set():
-            self.held.set()
-            self.release.wait(60.0)
-        return super().render(q_true, pose_true)
 
 
 @pytest.fixture(params=["sqlite", "postgres"])
@@ -47,7 +30,6 @@ async def test_two_benches_share_a_database(tmp_path, sim, shared_db, rendered_z
         axis_config=AxisConfig(default_speed=10.0, accel=1000.0, home_speed=10.0),
     )
     await other.start()
-    held_grab = {"camera": {"timeout_s": 60.0}}  # a held frame is late, not lost
     sa = make_settings(tmp_path / "a", sim, database_url=shared_db, bench_name="bench-a", extraction_workers=1)
     sb = make_settings(
         tmp_path / "b",
@@ -56,7 +38,7 @@ async def test_two_benches_share_a_database(tmp_path, sim, shared_db, rendered_z
         bench_name="bench-b",
         extraction_workers=1,
         plan_sizes={"n_fit": 30},
-        bench_overrides=held_grab,
+        bench_overrides=HELD_GRAB,
     )
     a = await start_service(sa, sim)
     b = await start_service(sb, other)
@@ -95,11 +77,9 @@ async def test_two_benches_share_a_database(tmp_path, sim, shared_db, rendered_z
         ] == ["bench-a"]
 
         # bench-b acquires; bench-a's service sees the run but cannot control it, and restarting it leaves it alone
-        # the run's first frame and its first three poses' pass; the fourth pose's frame waits until bench-a's
-        # service has restarted
-        camera.hold_from = camera.frames + 5
+        camera.hold_at_pose(4)  # bench-b's fourth pose waits for its frame until bench-a's service has restarted
         rid = (await cb.post(f"{API}/runs", json={"plan": "pose-set", "methods": []}, headers=AUTH)).json()["id"]
-        assert await asyncio.to_thread(camera.held.wait, 60.0), "bench-b's run never reached its fourth pose"
+        await camera.wait_held()
         async with asyncio.timeout(30):
             while (await cb.get(f"{API}/runs/{rid}")).json()["progress"]["done"] < 2:
                 await asyncio.sleep(0.02)
