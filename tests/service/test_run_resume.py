@@ -9,17 +9,9 @@ from calib.dataset import Dataset
 from calib.plan import Plan
 from drivers.acquisition import plan_units
 from tests.service.conftest import AUTH, make_settings, read_events, start_service, wait_state
+from tests.service.held import HELD_GRAB, hold_camera
 
 API = "/api/v1"
-
-
-def _slow(tmp_path, sim, n_fit: int):
-    return make_settings(
-        tmp_path,
-        sim,
-        plan_sizes={"n_fit": n_fit},
-        bench_overrides={"actuators": {"speed_m_s": 0.3, "accel_m_s2": 3.0}},
-    )
 
 
 async def _until_done_at_least(c, rid: str, n: int) -> None:
@@ -30,21 +22,27 @@ async def _until_done_at_least(c, rid: str, n: int) -> None:
 
 async def test_refused_resume_leaves_the_run_as_it_was(tmp_path, sim):
     """Issue 12, finding 3: a resume answered 409 (the bench is held by another run) left the run 'queued' forever."""
-    settings = _slow(tmp_path, sim, 30)
+    settings = make_settings(tmp_path, sim, plan_sizes={"n_fit": 30}, bench_overrides=HELD_GRAB)
+    camera = hold_camera(sim)
+    camera.hold_at_pose(4)  # the run waits on its fourth pose's frame while the service stops
     svc = await start_service(settings, sim)
     try:
         rid = (await svc.client.post(f"{API}/runs", json={"plan": "pose-set", "methods": []}, headers=AUTH)).json()[
             "id"
         ]
+        await camera.wait_held()
         await _until_done_at_least(svc.client, rid, 2)
     finally:
         await svc.client.aclose()
         await svc.stop()  # the service stops mid-run: the run is interrupted
+        camera.release.set()
     svc = await start_service(settings, sim)
     c = svc.client
     try:
         assert (await c.get(f"{API}/runs/{rid}")).json()["state"] == "interrupted"
+        camera.hold_at_pose(1)  # the other run holds the bench, waiting on its first pose's frame
         other = (await c.post(f"{API}/runs", json={"plan": "pose-set", "methods": []}, headers=AUTH)).json()["id"]
+        await camera.wait_held()
         r = await c.post(f"{API}/runs/{rid}/resume", headers=AUTH)
         assert r.status_code == 409 and "holds the bench" in r.text
         run = (await c.get(f"{API}/runs/{rid}")).json()
@@ -54,6 +52,7 @@ async def test_refused_resume_leaves_the_run_as_it_was(tmp_path, sim):
         # a run that is done cannot be resumed either, and stays done
         assert (await c.post(f"{API}/runs/{other}/abort", headers=AUTH)).status_code == 202
         assert (await wait_state(c, other))["state"] == "aborted"
+        camera.release.set()
         assert (await c.post(f"{API}/runs/{other}/resume", headers=AUTH)).status_code == 409
         assert (await c.get(f"{API}/runs/{other}")).json()["state"] == "aborted"
         # the bench free again: the resume is accepted and the run completes
@@ -61,6 +60,7 @@ async def test_refused_resume_leaves_the_run_as_it_was(tmp_path, sim):
         assert (await wait_state(c, rid, timeout=60))["state"] == "done"
         assert len(Dataset.open(tmp_path / "data" / "runs" / rid / "dataset").frames) == 30
     finally:
+        camera.release.set()
         await c.aclose()
         await svc.stop()
 
@@ -68,13 +68,19 @@ async def test_refused_resume_leaves_the_run_as_it_was(tmp_path, sim):
 async def test_failed_run_resumes_from_its_last_good_pose(tmp_path, sim):
     """Issue 12, finding 7: a run failed on a device fault said "resume the run to continue from this pose" and could
     not be resumed. Now it resumes at the failed pose: every pose recorded once, in the plan's order."""
-    settings = _slow(tmp_path, sim, 12)
+    # a short grab timeout: the silent camera fails the run after two of them (the grab and its retry)
+    settings = make_settings(tmp_path, sim, plan_sizes={"n_fit": 12}, bench_overrides={"camera": {"timeout_s": 1.0}})
+    camera = hold_camera(sim)
+
+    def silent_after(frame: int) -> None:  # the camera goes silent after pose 4's frame: the run fails
+        if frame == 1 + 4:
+            sim.frames.faults.timeouts = 1000
+
+    camera.on_frame = silent_after
     svc = await start_service(settings, sim)
     c = svc.client
     try:
         rid = (await c.post(f"{API}/runs", json={"plan": "pose-set", "methods": []}, headers=AUTH)).json()["id"]
-        await _until_done_at_least(c, rid, 3)
-        sim.frames.faults.timeouts = 1000  # the camera goes silent: the run fails, motion stopped
         run = await wait_state(c, rid, timeout=60)
         assert run["state"] == "failed", run
         assert "resume the run to continue from this pose" in run["error"]
