@@ -16,6 +16,7 @@ from sqlalchemy import inspect, text
 from service.db import Database
 from service.settings import Settings, normalize_database_url
 from tests.service.conftest import AUTH, make_settings, read_events, start_service, wait_state
+from tests.service.held import HELD_GRAB, hold_camera
 
 API = "/api/v1"
 METHODS = ["combined", "end-effector", "legs"]
@@ -113,18 +114,22 @@ async def test_interrupted_acquisition_resumes_on_postgres(tmp_path, sim, fresh_
         sim,
         database_url=fresh_db,
         plan_sizes={"n_fit": 30},
-        bench_overrides={"actuators": {"speed_m_s": 0.3, "accel_m_s2": 3.0}},
+        bench_overrides=HELD_GRAB,
     )
+    camera = hold_camera(sim)
+    camera.hold_at_pose(5)  # the run waits on its fifth pose's frame while the service stops
     svc = await start_service(settings, sim)
     c = svc.client
     try:
         rid = (await c.post(f"{API}/runs", json={"plan": "pose-set", "methods": []}, headers=AUTH)).json()["id"]
+        await camera.wait_held()
         async with asyncio.timeout(30):
             while (await c.get(f"{API}/runs/{rid}")).json()["progress"]["done"] < 3:
                 await asyncio.sleep(0.02)
     finally:
         await c.aclose()
         await svc.stop()  # a stop mid-run: the run is interrupted, resumable
+        camera.release.set()
     svc = await start_service(settings, sim)
     c = svc.client
     try:
