@@ -5,12 +5,14 @@ from __future__ import annotations
 import asyncio
 import io
 import tarfile
+import time
 import zipfile
 
 import httpx
 import numpy as np
 
 from tests.service.conftest import AUTH, make_settings, read_events, start_service, wait_state
+from tests.service.held import HELD_GRAB, hold_camera
 
 API = "/api/v1"
 
@@ -143,28 +145,27 @@ async def test_abort_mid_run_stops_actuators(tmp_path, sim):
 
 
 async def test_pause_resume(tmp_path, sim):
-    svc = await start_service(
-        make_settings(
-            tmp_path,
-            sim,
-            plan_sizes={"n_fit": 12},
-            bench_overrides={"actuators": {"speed_m_s": 0.5, "accel_m_s2": 5.0}},
-        ),
-        sim,
-    )
+    svc = await start_service(make_settings(tmp_path, sim, plan_sizes={"n_fit": 12}, bench_overrides=HELD_GRAB), sim)
+    camera = hold_camera(sim)
+    camera.hold_at_pose(3)  # paused while pose 3 waits for its frame: the run pauses after pose 3
     c = svc.client
     try:
         rid = (await c.post(f"{API}/runs", json={"plan": "pose-set", "methods": []}, headers=AUTH)).json()["id"]
+        await camera.wait_held()
         async with asyncio.timeout(30):
             while (await c.get(f"{API}/runs/{rid}")).json()["progress"]["done"] < 1:
                 await asyncio.sleep(0.02)
         r = await c.post(f"{API}/runs/{rid}/pause", headers=AUTH)
         assert r.status_code == 200 and r.json()["progress"]["paused"]
-        await asyncio.sleep(1.0)
+        camera.release.set()
+        async with asyncio.timeout(30):  # pose 3 ends: its frame is on disk, the run at the pause
+            while len((await c.get(f"{API}/runs/{rid}/frames")).json()) < 3:
+                await asyncio.sleep(0.02)
         n1 = (await c.get(f"{API}/runs/{rid}")).json()["progress"]["done"]
         await asyncio.sleep(0.5)
         run = (await c.get(f"{API}/runs/{rid}")).json()
         assert run["progress"]["done"] == n1 < 12 and run["state"] == "acquiring"
+        assert len((await c.get(f"{API}/runs/{rid}/frames")).json()) == 3  # nothing recorded while paused
         assert (await c.post(f"{API}/runs/{rid}/resume", headers=AUTH)).status_code == 202
         assert (await wait_state(c, rid))["state"] == "done"
         assert (await c.post(f"{API}/runs/{rid}/pause", headers=AUTH)).status_code == 409
@@ -311,6 +312,10 @@ async def test_killed_service_restarts_interrupted_then_resumes(tmp_path, sim):
     from calib.dataset import Dataset
     from tests.service.procs import ServiceProcess, free_port, write_config
 
+    def moving() -> bool:
+        sim.mechanism.update()
+        return any(ax.moving for ax in sim.mechanism.axes)
+
     port = free_port()
     cfg = write_config(
         tmp_path / "service.toml",
@@ -331,13 +336,19 @@ async def test_killed_service_restarts_interrupted_then_resumes(tmp_path, sim):
             async with asyncio.timeout(30):
                 while (await c.get(f"{API}/runs/{rid}")).json()["progress"]["done"] < 4:
                     await asyncio.sleep(0.02)
+            async with asyncio.timeout(30):  # killed mid-move
+                while not moving():
+                    await asyncio.sleep(0.005)
         svc.kill()
         ds_dir = tmp_path / "data" / "runs" / rid / "dataset"
         kept = len(Dataset.open(ds_dir).frames)
         assert 4 <= kept < 16
-        await asyncio.sleep(1.0)  # the controller's watchdog stops the axes of a dead host
-        sim.mechanism.update()
-        assert not any(ax.moving for ax in sim.mechanism.axes)
+        stop_by = time.monotonic() + 1.0  # the controller's watchdog stops the axes of a dead host
+        while moving() and time.monotonic() < stop_by:
+            await asyncio.sleep(0.01)
+        assert not moving()
+        # the resume at the simulator's speed (the moves after the kill need no slow motion)
+        write_config(tmp_path / "service.toml", sim, tmp_path / "data", port, plan_sizes={"n_fit": 16})
         await svc.start()
         async with httpx.AsyncClient(base_url=url, timeout=30) as c:
             run = (await c.get(f"{API}/runs/{rid}")).json()
