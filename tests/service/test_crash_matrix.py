@@ -12,6 +12,7 @@ loopback, image-level twin) lives in the test's process and counts every motion 
 from __future__ import annotations
 
 import asyncio
+import time
 
 import httpx
 import pytest
@@ -45,6 +46,11 @@ def count_motions(sim: SimBench, monkeypatch) -> dict[str, int]:
 
         monkeypatch.setattr(cls, name, counted)
     return n
+
+
+def moving(sim: SimBench) -> bool:
+    sim.mechanism.update()
+    return any(ax.moving for ax in sim.mechanism.axes)
 
 
 async def _post(c: httpx.AsyncClient, path: str, **kw) -> httpx.Response | None:
@@ -105,7 +111,10 @@ async def test_kill_in_every_state_then_resume(tmp_path, twin, monkeypatch):
         ds_dir = tmp_path / "data" / "runs" / rid / "dataset"
         kept = len(Dataset.open(ds_dir).frames)
         assert 8 <= kept < TOTAL
-        await asyncio.sleep(1.0)  # the controller's watchdog stops the axes of a dead host
+        stop_by = time.monotonic() + 1.0  # the controller's watchdog stops the axes of a dead host: within 1 s
+        while moving(twin) and time.monotonic() < stop_by:
+            await asyncio.sleep(0.01)
+        assert not moving(twin)
 
         # 4. killed right after the last frame is written, before extraction starts
         await svc.start(crash_at="stage:acquired")
