@@ -323,7 +323,7 @@ async def test_killed_service_restarts_interrupted_then_resumes(tmp_path, sim):
         tmp_path / "data",
         port,
         plan_sizes={"n_fit": 16},
-        actuators={"speed_m_s": 0.3, "accel_m_s2": 3.0},
+        actuators={"speed_m_s": 1.0, "accel_m_s2": 10.0},  # moves of 0.2-0.6 s: the kill lands in one
     )
     svc = ServiceProcess(cfg, port)
     url = svc.url
