@@ -20,6 +20,7 @@ import numpy as np
 from ..camera import CameraModel
 from ..dataset import Dataset
 from ..errors import I4calError, InputError
+from ..threads import single_threaded_worker
 from ..transforms import Rigid
 from .board import BoardDetection, BoardDetector, to_gray8
 from .detect import DetectSettings, detect_rods, measure_detected
@@ -178,6 +179,7 @@ def _task_rods(args: tuple) -> tuple[int, Any]:
 def _worker_main(conn: Connection, init_args: tuple, cache_bytes: int) -> None:
     """A pool worker: ``("init", args)`` re-initialises it, ``("task", fn, item)`` runs ``fn(item)``, None ends it;
     every message is answered with ``("ok", result)`` or ``("error", exception)``."""
+    single_threaded_worker()  # the pool already uses the cores
     _W["cache_bytes"] = cache_bytes
     _init_worker(*init_args)
     while True:

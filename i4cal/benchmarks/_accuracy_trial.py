@@ -17,6 +17,7 @@ from typing import Any
 from pydantic import BaseModel, Field
 
 from calib.methods.registry import method_names
+from calib.threads import single_threaded_worker
 
 #: Methods of :func:`calib.pipeline.calibrate`, in the order of its result document (the registered methods).
 METHODS: tuple[str, ...] = method_names()
@@ -49,10 +50,8 @@ class TrialTask(BaseModel):
 
 
 def init_worker() -> None:
-    """One OpenCV thread per process: the pool already uses every core."""
-    import cv2
-
-    cv2.setNumThreads(1)
+    """One BLAS and one OpenCV thread per process: the pool already uses every core."""
+    single_threaded_worker()
 
 
 def _finite(x: Any) -> float | None:

@@ -59,3 +59,29 @@ def test_a_second_pass_reuses_the_first_pass_corners_and_images(small_dataset): 
         again = extract._extract(pool, ds, other, None, opts, None, corners=corners)
     assert again.observations["frames"] == fresh["frames"]
     assert again.observations["frames"] != first.observations["frames"]
+
+
+def _thread_counts(_item: int) -> tuple[list[int], int]:
+    """In a pool worker: the BLAS/OpenMP libraries' thread counts and OpenCV's."""
+    import cv2
+    from threadpoolctl import threadpool_info
+
+    return [lib["num_threads"] for lib in threadpool_info()], cv2.getNumThreads()
+
+
+def test_pool_workers_run_one_numerics_thread_each(small_dataset):  # noqa: F811
+    """Two workers on two cores: each with one BLAS and one OpenCV thread, whatever the parent process uses (its
+    own limits are raised here to two, which forked workers would otherwise inherit)."""
+    import cv2
+    from threadpoolctl import threadpool_limits
+
+    root, _, _ = small_dataset
+    n_cv = cv2.getNumThreads()
+    try:
+        cv2.setNumThreads(2)
+        with threadpool_limits(limits=2), extract._Pool(2) as pool:
+            out = pool.run(_thread_counts, [0, 1, 2, 3], (str(root), None, None, 6, None), None, 0, 4)
+    finally:
+        cv2.setNumThreads(n_cv)
+    for blas, cv in out:
+        assert blas and all(n == 1 for n in blas) and cv == 1, (blas, cv)
