@@ -170,6 +170,7 @@ async def test_pause_resume(tmp_path, sim):
         assert (await wait_state(c, rid))["state"] == "done"
         assert (await c.post(f"{API}/runs/{rid}/pause", headers=AUTH)).status_code == 409
     finally:
+        camera.release.set()
         await c.aclose()
         await svc.stop()
 
