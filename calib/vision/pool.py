@@ -20,7 +20,7 @@ import numpy as np
 from ..camera import CameraModel
 from ..dataset import Dataset
 from ..errors import I4calError, InputError
-from ..threads import single_threaded_worker
+from ..threads import forking_single_threaded, single_threaded_worker
 from ..transforms import Rigid
 from .board import BoardDetection, BoardDetector, to_gray8
 from .detect import DetectSettings, detect_rods, measure_detected
@@ -176,10 +176,12 @@ def _task_rods(args: tuple) -> tuple[int, Any]:
     return i, {"rods": rods, "parallel_mrad": par}
 
 
-def _worker_main(conn: Connection, init_args: tuple, cache_bytes: int) -> None:
+def _worker_main(conn: Connection, init_args: tuple, cache_bytes: int, fresh: bool = False) -> None:
     """A pool worker: ``("init", args)`` re-initialises it, ``("task", fn, item)`` runs ``fn(item)``, None ends it;
-    every message is answered with ``("ok", result)`` or ``("error", exception)``."""
-    single_threaded_worker()  # the pool already uses the cores
+    every message is answered with ``("ok", result)`` or ``("error", exception)``. ``fresh``: started as a new
+    interpreter (spawn, forkserver), which limits its own threads; a forked one inherited the limits."""
+    if fresh:
+        single_threaded_worker()
     _W["cache_bytes"] = cache_bytes
     _init_worker(*init_args)
     while True:
@@ -251,17 +253,20 @@ class _Pool:
     def _configure(self, init_args: tuple) -> None:
         if not self.procs:
             ctx = multiprocessing.get_context()
-            for _ in range(self.workers):
-                parent, child = ctx.Pipe()
-                p = ctx.Process(
-                    target=_worker_main,
-                    args=(child, init_args, IMAGE_CACHE_BYTES // self.workers),
-                    name="i4cal-extract",
-                )
-                p.start()
-                child.close()
-                self.procs.append(p)
-                self.conns.append(parent)
+            # the workers run one BLAS and one OpenCV thread each (the pool already uses the cores), set around
+            # the fork, never in the child (calib.threads)
+            with forking_single_threaded():
+                for _ in range(self.workers):
+                    parent, child = ctx.Pipe()
+                    p = ctx.Process(
+                        target=_worker_main,
+                        args=(child, init_args, IMAGE_CACHE_BYTES // self.workers, ctx.get_start_method() != "fork"),
+                        name="i4cal-extract",
+                    )
+                    p.start()
+                    child.close()
+                    self.procs.append(p)
+                    self.conns.append(parent)
         elif init_args != self.init:
             for w in range(len(self.procs)):
                 self._call(w, ("init", init_args))

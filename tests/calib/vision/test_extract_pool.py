@@ -69,19 +69,56 @@ def _thread_counts(_item: int) -> tuple[list[int], int]:
     return [lib["num_threads"] for lib in threadpool_info()], cv2.getNumThreads()
 
 
+#: A process that has used OpenCV's and OpenBLAS's own threads (as ``i4cal demo`` has, rendering, when it extracts)
+#: forks a pool of two workers and asks each for its thread counts; prints them and its own OpenCV count after.
+_FORK_AFTER_THREADS = """
+import json, sys
+import cv2
+import numpy as np
+from threadpoolctl import threadpool_limits
+from calib.vision import extract
+from tests.calib.vision.test_extract_pool import _thread_counts
+
+cv2.setNumThreads(2)
+img = np.random.default_rng(0).integers(0, 255, (1500, 1500), dtype=np.uint8)
+for _ in range(10):
+    cv2.GaussianBlur(img, (31, 31), 5)
+with threadpool_limits(limits=2):
+    np.linalg.svd(np.random.default_rng(0).normal(size=(300, 300)))
+    with extract._Pool(2) as pool:
+        out = pool.run(_thread_counts, [0, 1, 2, 3], (sys.argv[1], None, None, 6, None), None, 0, 4)
+print(json.dumps({"workers": out, "parent_cv_threads": cv2.getNumThreads()}))
+"""
+
+
 def test_pool_workers_run_one_numerics_thread_each(small_dataset):  # noqa: F811
-    """Two workers on two cores: each with one BLAS and one OpenCV thread, whatever the parent process uses (its
-    own limits are raised here to two, which forked workers would otherwise inherit)."""
-    import cv2
-    from threadpoolctl import threadpool_limits
+    """Two workers forked by a process that used two OpenCV and two BLAS threads: each worker runs one of each, and
+    the parent keeps its own. (In a separate process with a timeout: a forked worker that reconfigures OpenCV's
+    thread pool hangs for ever; ``i4cal demo`` did.)"""
+    import json
+    import os
+    import signal
+    import subprocess
+    import sys
+    from pathlib import Path
 
     root, _, _ = small_dataset
-    n_cv = cv2.getNumThreads()
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _FORK_AFTER_THREADS, str(root)],
+        cwd=Path(__file__).resolve().parents[3],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,  # its workers too are killed if it hangs
+    )
     try:
-        cv2.setNumThreads(2)
-        with threadpool_limits(limits=2), extract._Pool(2) as pool:
-            out = pool.run(_thread_counts, [0, 1, 2, 3], (str(root), None, None, 6, None), None, 0, 4)
-    finally:
-        cv2.setNumThreads(n_cv)
-    for blas, cv in out:
+        out, err = proc.communicate(timeout=120)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.communicate()
+        raise AssertionError("the pool's workers hung (120 s)") from None
+    assert proc.returncode == 0, err[-2000:]
+    got = json.loads(out.strip().splitlines()[-1])
+    for blas, cv in got["workers"]:
         assert blas and all(n == 1 for n in blas) and cv == 1, (blas, cv)
+    assert got["parent_cv_threads"] == 2
