@@ -11,7 +11,10 @@ from pathlib import Path
 # and the browser inherit the environment): pytest-xdist already runs one worker per core, and OpenBLAS's or
 # OpenCV's own thread pools on top of it only contend for the same cores (OpenBLAS's threads spin while they wait:
 # ~30% more CPU for the same tests). Set before numpy and cv2 are first imported; a value already set is kept.
-for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENCV_FOR_THREADS_NUM"):
+# A test of what a user runs as they run it (the demo) removes them again from its subprocess's environment: the
+# workers' own limits must hold without them (calib/threads.py).
+NUMERICS_THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENCV_FOR_THREADS_NUM")
+for _var in NUMERICS_THREAD_VARS:
     os.environ.setdefault(_var, "1")
 
 import numpy as np

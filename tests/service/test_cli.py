@@ -1,6 +1,7 @@
 """The command line: contracts (--json keys), clear one-line errors, the demo."""
 
 import json
+import os
 import subprocess
 import sys
 
@@ -8,10 +9,13 @@ import pytest
 
 from calib.parameters import COMBINATION_NAMES
 from service.cli import main
+from tests.conftest import NUMERICS_THREAD_VARS
 
 
-def run(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "service.cli", *args], capture_output=True, text=True, timeout=300)
+def run(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "service.cli", *args], capture_output=True, text=True, timeout=300, env=env
+    )
 
 
 @pytest.fixture(scope="module")
@@ -93,7 +97,10 @@ def test_quick_demo_prints_the_comparison():
 
 @pytest.mark.slow
 def test_full_demo_runs_the_bench_over_modbus_and_extracts_images(tmp_path):
-    res = run("demo", "--out", str(tmp_path))
+    # as a user runs it: the numerics libraries with their own thread counts, not the suite's one thread (a forked
+    # extraction worker that reconfigured OpenCV's threads hung here, and only here)
+    env = {k: v for k, v in os.environ.items() if k not in NUMERICS_THREAD_VARS}
+    res = run("demo", "--out", str(tmp_path), env=env)
     assert res.returncode == 0, res.stderr[-2000:]
     assert "modbus+tcp://127.0.0.1:" in res.stdout
     assert (tmp_path / "dataset" / "dataset.json").exists()
