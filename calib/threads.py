@@ -2,8 +2,8 @@
 
 A process pool already runs one worker per core. OpenBLAS (behind numpy and SciPy) and OpenCV each start their own
 thread per core on top of that, in every worker: the threads only contend for the same cores, and OpenBLAS's spin
-while they wait (measured: an extraction with two workers on 2 cores 12% more CPU; the test suite's numerical tests
-about 25%).
+while they wait (measured: an extraction with two workers on 2 cores 14% more CPU; the test suite's numerical tests
+about 30% more).
 
 How the limit is set depends on how the worker starts:
 

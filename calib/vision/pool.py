@@ -253,6 +253,7 @@ class _Pool:
     def _configure(self, init_args: tuple) -> None:
         if not self.procs:
             ctx = multiprocessing.get_context()
+            fresh = ctx.get_start_method() != "fork"  # a new interpreter limits its own threads
             # the workers run one BLAS and one OpenCV thread each (the pool already uses the cores), set around
             # the fork, never in the child (calib.threads)
             with forking_single_threaded():
@@ -260,7 +261,7 @@ class _Pool:
                     parent, child = ctx.Pipe()
                     p = ctx.Process(
                         target=_worker_main,
-                        args=(child, init_args, IMAGE_CACHE_BYTES // self.workers, ctx.get_start_method() != "fork"),
+                        args=(child, init_args, IMAGE_CACHE_BYTES // self.workers, fresh),
                         name="i4cal-extract",
                     )
                     p.start()

@@ -208,7 +208,7 @@ def _rod_field(
     r = rods[rod]
     if r is None:
         return None
-    v = {"h": r.h, "cov_u": r.cov_u, "rms_px": r.rms_px, "n_points": r.n_points, "limbs_px": r.limbs_px}[name]
+    v = getattr(r, name)
     return None if v is None else np.asarray(v, dtype=np.float64)
 
 
