@@ -19,6 +19,8 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .bundle import DIST_INDEX, MIN_VIEW_DOF, Bundle, bundle_covariance, refine_weighted, view_dof
+from .bundle import projection_columns as projection_columns
 from .errors import InputError
 
 Array = NDArray[np.float64]
@@ -251,9 +253,6 @@ def opencv_single_thread() -> Iterator[None]:
 #: ``k1k2`` lens model's; a camera calibrated with another model lists its own, :func:`intrinsics_names`).
 INTRINSICS_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2")
 
-#: OpenCV's distortion coefficients by name: their index in ``dist`` (and, plus 10, in ``cv2.projectPoints``' Jacobian).
-DIST_INDEX = {"k1": 0, "k2": 1, "p1": 2, "p2": 3, "k3": 4, "k4": 5, "k5": 6, "k6": 7}
-
 #: Candidate lens models: the distortion coefficients each estimates (the others are zero). ``-radial``: no
 #: tangential terms (p1 = p2 = 0). ``rational`` is OpenCV's ``CALIB_RATIONAL_MODEL`` (k1..k6).
 LENS_MODELS: dict[str, tuple[str, ...]] = {
@@ -317,12 +316,6 @@ def intrinsics_vector(camera: CameraModel, names: tuple[str, ...] | list[str] = 
     d = np.concatenate([camera.dist, np.zeros(8)])
     where = {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}
     return np.array([camera.K[where[n]] if n in where else d[DIST_INDEX[n]] for n in names])
-
-
-def projection_columns(names: tuple[str, ...] | list[str]) -> list[int]:
-    """Columns of ``cv2.projectPoints``' Jacobian (rvec 3, tvec 3, fx, fy, cx, cy, dist...) for ``names``."""
-    base = {"fx": 6, "fy": 7, "cx": 8, "cy": 9}
-    return [base[n] if n in base else 10 + DIST_INDEX[n] for n in names]
 
 
 def moved_camera(
@@ -457,6 +450,7 @@ def calibrate_intrinsics(
     fix_k3: bool = True,
     refine_object: bool = True,
     lens_model: str | None = None,
+    weight_views: bool = True,
 ) -> IntrinsicsResult:
     """Intrinsic calibration from ChArUco views, refining the board's geometry (``calibrateCameraRO``).
 
@@ -502,6 +496,11 @@ def calibrate_intrinsics(
         Nominal corner coordinates in the board frame, metres.
     lens_model : str, optional
         ``"auto"`` or a key of :data:`LENS_MODELS`.
+    weight_views : bool
+        After OpenCV's fit (plain least squares, which the lens model's choice and the outlier test use), weight
+        each view by its corners' noise variance, estimated from its residuals, and refine the whole bundle
+        (:func:`calib.bundle.refine_weighted`); the covariance is then the weighted fit's. False: OpenCV's estimate
+        and ``s^2 (J^T J)^-1``. The per-view noise is in ``calibration.view_sigma_px``.
 
     Raises
     ------
@@ -635,15 +634,21 @@ def calibrate_intrinsics(
     best_bic = min((e["bic"] for e in usable), default=0.0)
     for e in evidence:
         e["delta_bic"] = None if e["bic"] is None else float(e["bic"] - best_bic)
-    rms, K, dist, rvecs, tvecs, new_obj, std_int, _std_ext, _std_obj, per_view = fits[chosen]
-    per_view = np.asarray(per_view).reshape(-1)
-    std_int = np.asarray(std_int).reshape(-1)
-    dist = np.asarray(dist, dtype=np.float64).reshape(-1)
+    _rms, K, dist, rvecs, tvecs, new_obj, _std_int, _std_ext, _std_obj, _per_view = fits[chosen]
     new_obj = np.asarray(new_obj, dtype=np.float64).reshape(-1, 3) if new_obj is not None and np.size(new_obj) else obj
     pnames = lens_model_params(chosen)
-    cov, d_board = _bundle_covariance(
-        K, dist, new_obj, [keep[k] for k in keys], rvecs, tvecs, fixed_point=fixed, names=pnames
-    )
+    bundle = Bundle.of(K, dist, new_obj, [keep[k] for k in keys], rvecs, tvecs, fixed, pnames)
+    view_sigma = None
+    if weight_views and view_dof(bundle.residuals(), bundle.n_params) > MIN_VIEW_DOF:
+        # each view weighted by its own corner noise (calib.bundle: the plain fit's premise fails)
+        bundle, view_var = refine_weighted(bundle)
+        view_sigma = np.sqrt(view_var)
+    cov, d_board = bundle_covariance(bundle, None if view_sigma is None else view_sigma**2)
+    K, new_obj, rvecs, tvecs = bundle.K, bundle.board_points, bundle.rvecs, bundle.tvecs
+    dist = bundle.dist[: max(np.asarray(dist).size, 5)]
+    res_v = bundle.residuals()
+    per_view = np.array([float(np.sqrt(np.mean(r**2))) for r in res_v])
+    rms = float(np.sqrt(np.mean(np.concatenate(res_v) ** 2)))
     profile = radial_residual_profile(K, dist, new_obj, [keep[k] for k in keys], rvecs, tvecs, (int(w), int(h)))
     reach, corner = _corner_radius_norm(K, dist, (int(w), int(h)), np.vstack([keep[k] for k in keys]))
     coverage = reach / corner if corner > 0 else 1.0
@@ -690,7 +695,8 @@ def calibrate_intrinsics(
         "tau_x",
         "tau_y",
     ]
-    std = {n: float(s) for n, s in zip(names, std_int, strict=False)}
+    std = {n: 0.0 for n in names}  # the fixed coefficients: 0, as OpenCV reports them
+    std.update({n: float(np.sqrt(cov[i, i])) for i, n in enumerate(pnames)})
     cam = CameraModel(
         K,
         dist,
@@ -703,7 +709,9 @@ def calibrate_intrinsics(
                 "std": std,
                 "covariance_params": list(pnames),
                 "covariance": cov.tolist(),
-                "method": "cv2.calibrateCameraRO",
+                "method": "cv2.calibrateCameraRO"
+                + (", views weighted by their noise" if view_sigma is not None else ""),
+                "view_sigma_px": None if view_sigma is None else [float(x) for x in view_sigma],
                 "lens_model": lens_info,
                 "board_points": {
                     "ids": sort_ids.tolist(),
@@ -788,56 +796,5 @@ def _bundle_covariance(
     (the rods) correct the intrinsics, the board geometry estimated jointly with them follows.
     Zero for the fixed coordinates and without the releasing-object method.
     """
-    K = np.asarray(K, dtype=np.float64)
-    d = np.asarray(dist, dtype=np.float64).reshape(-1)
-    cols = projection_columns(names)
-    ni = len(cols)
-    need = max([c - 9 for c in cols] + [d.size])
-    if need > d.size:
-        d = np.concatenate([d, np.zeros((8 if need > 5 else 5) - d.size)])
-    obj = np.asarray(board_points, dtype=np.float64).reshape(-1, 3)
-    m = obj.shape[0]
-    nv = len(image_points)
-    ro = 0 <= fixed_point < m
-    free_obj = np.ones((m, 3), dtype=bool) if ro else np.zeros((m, 3), dtype=bool)
-    if ro:
-        free_obj[0] = free_obj[fixed_point] = False
-        free_obj[m - 1, 2] = False
-    obj_cols = np.flatnonzero(free_obj.ravel())
-    n_obj = obj_cols.size
-    n = ni + 6 * nv + n_obj
-    JtJ = np.zeros((n, n))
-    sse = 0.0
-    for v in range(nv):
-        proj, jac = cv2.projectPoints(
-            obj,
-            np.asarray(rvecs[v], dtype=np.float64).reshape(3),
-            np.asarray(tvecs[v], dtype=np.float64).reshape(3),
-            K,
-            d,
-        )
-        res = proj.reshape(-1, 2) - np.asarray(image_points[v], dtype=np.float64).reshape(-1, 2)
-        sse += float(np.sum(res**2))
-        # projectPoints' Jacobian columns: rvec (3), tvec (3), f (2), c (2), dist (n)
-        J = np.zeros((2 * m, n))
-        J[:, :ni] = jac[:, cols]
-        J[:, ni + 6 * v : ni + 6 + 6 * v] = jac[:, 0:6]
-        if n_obj:
-            R, _ = cv2.Rodrigues(np.asarray(rvecs[v], dtype=np.float64).reshape(3))
-            dp_dX = jac[:, 3:6].reshape(m, 2, 3) @ R  # d pixel / d board point: d/dt rotated
-            blocks = np.zeros((2 * m, 3 * m))
-            for i in range(m):
-                blocks[2 * i : 2 * i + 2, 3 * i : 3 * i + 3] = dp_dX[i]
-            J[:, ni + 6 * nv :] = blocks[:, obj_cols]
-        JtJ += J.T @ J
-    dof = max(2 * m * nv - n, 1)
-    s2 = sse / dof
-    A, B, C = JtJ[:ni, :ni], JtJ[:ni, ni:], JtJ[ni:, ni:]
-    CinvBt = np.linalg.solve(C, B.T)  # (n - ni, ni)
-    schur = A - B @ CinvBt
-    cov = s2 * np.linalg.inv(schur)
-    # Cov(others, I) = -C^-1 B^T Cov(I, I): the regression of the others on I is -C^-1 B^T
-    reg = np.zeros((m * 3, ni))
-    if n_obj:
-        reg[obj_cols] = -CinvBt[6 * nv :]
-    return 0.5 * (cov + cov.T), reg.reshape(m, 3, ni)
+    bundle = Bundle.of(K, dist, board_points, image_points, rvecs, tvecs, fixed_point, names)
+    return bundle_covariance(bundle)
