@@ -268,11 +268,12 @@ def estimated_weights_factor(residuals: list[Array], n_params: int) -> float:
     return nu / (nu - 4.0)
 
 
-def bundle_covariance(bundle: Bundle, view_var: ArrayLike | None = None) -> tuple[Array, Array]:
+def bundle_covariance(bundle: Bundle, view_var: ArrayLike | None = None, estimated: bool = True) -> tuple[Array, Array]:
     """Covariance of the intrinsics (marginalised, Schur complement) and the board points' regression on them.
 
     ``view_var`` (V,) px^2: each view's noise variance estimated from its residuals, the weights of the fit:
-    ``(sum J_v^T J_v / var_v)^-1`` times :func:`estimated_weights_factor`.
+    ``(sum J_v^T J_v / var_v)^-1``, times :func:`estimated_weights_factor` when the variances were ``estimated`` from
+    the views' residuals (:func:`refine_weighted`; False: known variances).
     None: one variance for every corner, the residuals' ``s^2``: ``s^2 (J^T J)^-1`` (the unweighted fit's, OpenCV's).
 
     Returns
@@ -299,7 +300,7 @@ def bundle_covariance(bundle: Bundle, view_var: ArrayLike | None = None) -> tupl
     A, B, C = info[:ni, :ni], info[:ni, ni:], info[ni:, ni:]
     CinvBt = np.linalg.solve(C, B.T)  # (n - ni, ni)
     cov = np.linalg.inv(A - B @ CinvBt)
-    if view_var is not None:
+    if view_var is not None and estimated:
         cov *= estimated_weights_factor(rs, n)
     m = bundle.board_points.shape[0]
     free = bundle.free_board

@@ -13,7 +13,8 @@ methods weigh by:
 * per board pose (:func:`board_poses`): the PnP covariance of its pose (left rotation, t) for corner noise
   ``corner_px`` and its first-order change with the intrinsics (``d_intrinsics``);
 * the camera's calibration covariance when none is given (:func:`calibration_covariance`): the inverse
-  information of the board views of the camera phase (corner noise ``corner_px``, each view's pose marginalised).
+  information of the board views of the camera phase (corner noise ``corner_px``, each view's pose and the released
+  board points marginalised: what :func:`calib.camera.calibrate_intrinsics` reports).
 
 Everything at the nominal geometry, metres and radians; pixels where named ``_px``.
 """
@@ -24,11 +25,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..bundle import MIN_VIEW_DOF, Bundle, bundle_covariance, view_dof
 from ..camera import CameraModel, moved_camera
 from ..errors import InputError
 from ..kinematics import dkm
 from ..parameters import I4Parameters
-from ..transforms import Rigid, rotvec_to_matrix
+from ..transforms import Rigid, matrix_to_rotvec, rotvec_to_matrix
 from .scene import Scene, rod_segments, visibility
 
 __all__ = [
@@ -279,14 +281,29 @@ def board_poses(
 
 
 def calibration_covariance(scene: Scene, views: list[Rigid], corner_px: float, names: tuple[str, ...]) -> np.ndarray:
-    """Covariance (n, n) of the intrinsics ``names`` calibrated from board ``views`` (camera_from_board poses) with
-    corner noise ``corner_px``: the inverse of their information, every view's pose marginalised."""
+    """Covariance (n, n) of the intrinsics ``names`` calibrated from board ``views`` (camera_from_board poses).
+
+    What :func:`calib.camera.calibrate_intrinsics` reports for these views: the bundle's information (every view's
+    pose and the released board points marginalised, OpenCV's gauge) with corner noise ``corner_px`` in every view,
+    times the factor for weights estimated from the views' residuals when it weights them (:mod:`calib.bundle`).
+    With views of unequal noise the weighted fit's information is that of ``corner_px`` = the views' variances'
+    harmonic mean, square-rooted.
+    """
     if len(views) < 3:
         raise InputError("a camera calibration needs at least 3 board views", field="views")
     pts = board_corners(scene)
-    Jp, Ji = _corner_jacobians(scene.camera, names, np.stack([v.R for v in views]), np.stack([v.t for v in views]), pts)
-    # every view's pose marginalised: sum Ji^T (I - Jp (Jp^T Jp)^-1 Jp^T) Ji
-    JpJi = np.einsum("nai,naj->nij", Jp, Ji)
-    A = np.linalg.solve(np.einsum("nai,naj->nij", Jp, Jp), JpJi)
-    F = np.einsum("nai,naj->ij", Ji, Ji) - np.einsum("nki,nkj->ij", JpJi, A)
-    return corner_px**2 * np.linalg.inv(F)
+    cam = scene.camera
+    ncols = int(np.sum(np.isclose(pts[:, 1], pts[0, 1])))
+    bundle = Bundle.of(
+        cam.K,
+        cam.dist,
+        pts,
+        [cam.project(v.apply(pts)) for v in views],
+        [matrix_to_rotvec(v.R) for v in views],
+        [v.t for v in views],
+        ncols - 1,
+        names,
+    )
+    weighted = view_dof(bundle.residuals(), bundle.n_params) > MIN_VIEW_DOF
+    cov, _ = bundle_covariance(bundle, np.full(len(views), float(corner_px) ** 2), estimated=weighted)
+    return cov
