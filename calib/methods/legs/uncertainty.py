@@ -239,3 +239,17 @@ def _with_prior(
     out["a_priori"] = IA @ Pp @ IA.T
     total = sum(out.values())
     return post, 0.5 * (total + total.T), out
+
+
+def _prior_conflict(seven: np.ndarray, cov: np.ndarray, nom: I4Parameters, prior_std_m: float) -> float:
+    """Chi-square (7 dof) of the data's estimate against the a priori tolerance: ``d^T (C + P)^-1 d``.
+
+    ``d`` = data estimate - nominal, ``C`` its covariance, ``P = prior_std_m^2 I``. When both are right, ``d``'s
+    covariance is ``C + P`` (the truth within the tolerance of nominal, the estimate within C of the truth) and this
+    is chi-square(7); far beyond it, the data or the tolerance is wrong, and the data, which have been (a wrong joint
+    the rod-pair check could not see), are not to be blended as if they were right.
+    """
+    nom7 = np.array([getattr(nom, k) for k in PARAMETER_NAMES])
+    d = np.asarray(seven, dtype=np.float64) - nom7
+    C = 0.5 * (cov + cov.T) + prior_std_m**2 * np.eye(7)
+    return float(d @ np.linalg.solve(C, d))
