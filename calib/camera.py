@@ -776,25 +776,4 @@ def intrinsics_covariance(
     ndarray, shape (n, n)
         Pixels for fx, fy, cx, cy; dimensionless for the distortion coefficients.
     """
-    return _bundle_covariance(K, dist, board_points, image_points, rvecs, tvecs, fixed_point, names)[0]
-
-
-def _bundle_covariance(
-    K: ArrayLike,
-    dist: ArrayLike,
-    board_points: ArrayLike,
-    image_points: list[ArrayLike],
-    rvecs: list[ArrayLike],
-    tvecs: list[ArrayLike],
-    fixed_point: int = -1,
-    names: tuple[str, ...] | list[str] = INTRINSICS_NAMES,
-) -> tuple[Array, Array]:
-    """:func:`intrinsics_covariance` and the board points' regression on the intrinsics, (M, 3, n).
-
-    The regression ``Cov(X, I) Cov(I, I)^-1`` is how the refined board points move when the
-    intrinsics do, given the calibration's data (Gaussian conditioning): when other measurements
-    (the rods) correct the intrinsics, the board geometry estimated jointly with them follows.
-    Zero for the fixed coordinates and without the releasing-object method.
-    """
-    bundle = Bundle.of(K, dist, board_points, image_points, rvecs, tvecs, fixed_point, names)
-    return bundle_covariance(bundle)
+    return bundle_covariance(Bundle.of(K, dist, board_points, image_points, rvecs, tvecs, fixed_point, names))[0]
