@@ -92,10 +92,12 @@ def run(args: argparse.Namespace) -> int:
     s = res.summary
     if res.intrinsics is not None:
         i = res.intrinsics
+        sig = (i.camera.extra.get("calibration") or {}).get("view_sigma_px")
         console.print(
             f"intrinsics: calibrated from {len(i.per_view_rms_px)} views, RMS {i.rms_px:.3f} px, "
             f"fx {res.camera.fx:.2f} +/- {i.std.get('fx', float('nan')):.2f} px, "
             f"{len(i.rejected)} views rejected"
+            + (f"; views weighted by their corner noise ({min(sig):.3f}-{max(sig):.3f} px)" if sig else "")
         )
         lm = i.lens_model or {}
         if lm:

@@ -176,3 +176,19 @@ def test_shipped_dataset_schema_matches_the_models():
 
     shipped = Path(__file__).resolve().parents[3] / "calib/schemas/dataset-v1.schema.json"
     assert json.loads(shipped.read_text()) == dataset_json_schema()
+
+
+def test_cli_extract_says_the_camera_views_were_weighted(tmp_path, capsys):
+    """A dataset with a camera phase: the printout gives the views' corner-noise range the calibration weighted by."""
+    from calib.plan import make_plan
+    from drivers.sim.imaging import simulate_dataset
+    from service.cli import main
+
+    plan = make_plan("rotation-sweep", BenchGeometry().nominal, n_base=2)
+    root = simulate_dataset(tmp_path / "ds", seed=5, plan=plan, n_camera_views=10)
+    assert main(["extract", str(root), "-o", str(tmp_path / "obs.json"), "--workers", "1"]) == 0
+    cap = capsys.readouterr()
+    out = cap.out + cap.err
+    assert "views weighted by their corner noise (" in out, out
+    cam = json.loads((tmp_path / "obs.json").read_text())["extraction"]["camera"]["calibration"]
+    assert "weighted" in cam["method"] and len(cam["view_sigma_px"]) == cam["n_views"]
