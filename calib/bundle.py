@@ -246,13 +246,13 @@ def refine_weighted(bundle: Bundle, iterations: int = WEIGHTING_ITERATIONS) -> t
     return cur, view_variances(cur.residuals(), cur.n_params)
 
 
-def view_dof(residuals: list[Array], n_params: int) -> float:
+def view_dof(bundle: Bundle) -> float:
     """Degrees of freedom of one view's noise variance (:func:`view_variances`): its mean share of the bundle's."""
-    n = sum(r.size for r in residuals)
-    return float(n - n_params) / len(residuals)
+    n = sum(p.size for p in bundle.image_points)
+    return float(n - bundle.n_params) / len(bundle.image_points)
 
 
-def estimated_weights_factor(residuals: list[Array], n_params: int) -> float:
+def estimated_weights_factor(bundle: Bundle) -> float:
     """``nu / (nu - 4)``: the weighted fit's covariance inflated for weights estimated from ``nu`` dof per view.
 
     ``(sum J_v^T J_v / var_v)^-1`` holds for known variances. Estimated from each view's own residuals
@@ -262,7 +262,7 @@ def estimated_weights_factor(residuals: list[Array], n_params: int) -> float:
     intrinsics' mean Mahalanobis distance (chi-square(8): 8) goes from 10.3 to 8.4 with 20 views (nu 21.7) and from
     9.7 to 8.0 with 30 views (nu 22.5).
     """
-    nu = view_dof(residuals, n_params)
+    nu = view_dof(bundle)
     if nu <= MIN_VIEW_DOF:
         raise ValueError(f"{nu:.1f} degrees of freedom per view: too few to weight views (at least {MIN_VIEW_DOF})")
     return nu / (nu - 4.0)
@@ -301,7 +301,7 @@ def bundle_covariance(bundle: Bundle, view_var: ArrayLike | None = None, estimat
     CinvBt = np.linalg.solve(C, B.T)  # (n - ni, ni)
     cov = np.linalg.inv(A - B @ CinvBt)
     if view_var is not None and estimated:
-        cov *= estimated_weights_factor(rs, n)
+        cov *= estimated_weights_factor(bundle)
     m = bundle.board_points.shape[0]
     free = bundle.free_board
     reg = np.zeros((m * 3, ni))

@@ -639,7 +639,7 @@ def calibrate_intrinsics(
     pnames = lens_model_params(chosen)
     bundle = Bundle.of(K, dist, new_obj, [keep[k] for k in keys], rvecs, tvecs, fixed, pnames)
     view_sigma = None
-    if weight_views and view_dof(bundle.residuals(), bundle.n_params) > MIN_VIEW_DOF:
+    if weight_views and view_dof(bundle) > MIN_VIEW_DOF:
         # each view weighted by its own corner noise (calib.bundle: the plain fit's premise fails)
         bundle, view_var = refine_weighted(bundle)
         view_sigma = np.sqrt(view_var)

@@ -304,6 +304,6 @@ def calibration_covariance(scene: Scene, views: list[Rigid], corner_px: float, n
         ncols - 1,
         names,
     )
-    weighted = view_dof(bundle.residuals(), bundle.n_params) > MIN_VIEW_DOF
+    weighted = view_dof(bundle) > MIN_VIEW_DOF
     cov, _ = bundle_covariance(bundle, np.full(len(views), float(corner_px) ** 2), estimated=weighted)
     return cov

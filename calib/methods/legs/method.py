@@ -212,7 +212,7 @@ def calibrate_legs(
             f"{float(chi2_gate(7)):.0f}; their estimate is in diagnostics.identifiability.data_estimate): the "
             f"result is the a priori values with their {prior_std_m * 1e3:.1f} mm tolerance"
         )
-        seven = np.array([getattr(nom, k) for k in PARAMETER_NAMES])
+        seven = np.asarray(nom.vector())
         cov = prior_std_m**2 * np.eye(7)
         parts7 = {k: np.zeros((7, 7)) for k in parts7} | {"a_priori": cov.copy()}
     elif prior_std_m:

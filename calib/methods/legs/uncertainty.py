@@ -225,7 +225,7 @@ def _with_prior(
     part mapped by A and the prior's part named ``a_priori``. In every direction the result is then no worse than
     the a priori value in expectation, and noise-free data still give back the truth exactly.
     """
-    nom7 = np.array([getattr(nom, k) for k in PARAMETER_NAMES])
+    nom7 = np.asarray(nom.vector())
     s2 = prior_std_m**2
     Pp = s2 * np.eye(7)
     C = 0.5 * (cov + cov.T)
@@ -249,7 +249,7 @@ def _prior_conflict(seven: np.ndarray, cov: np.ndarray, nom: I4Parameters, prior
     is chi-square(7); far beyond it, the data or the tolerance is wrong, and the data, which have been (a wrong joint
     the rod-pair check could not see), are not to be blended as if they were right.
     """
-    nom7 = np.array([getattr(nom, k) for k in PARAMETER_NAMES])
+    nom7 = np.asarray(nom.vector())
     d = np.asarray(seven, dtype=np.float64) - nom7
     C = 0.5 * (cov + cov.T) + prior_std_m**2 * np.eye(7)
     return float(d @ np.linalg.solve(C, d))
