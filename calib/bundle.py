@@ -8,7 +8,8 @@ point, the ``fixed_point``-th one and the last one's z are fixed).
 Why a weighted refinement after ``cv2.calibrateCameraRO``: OpenCV minimises the plain sum of squared reprojection
 errors, the right estimator only when every corner is equally precise. Corner precision varies from view to view
 (distance, tilt, blur, the pattern's sampling by the pixel grid): on the image-level twin's camera phases a view's
-RMS ranges from 0.02 to 0.2 px (5-95%; 100 phases of 30 views, errors against the rendered truth). Weighting each
+RMS ranges from 0.02 to 0.2 px (5-95%; 100 phases of 30 views, errors against the rendered truth; a one-off
+study, docs/vision.md). Weighting each
 view by its own residual variance (iteratively reweighted, :data:`WEIGHTING_ITERATIONS` passes) halves the
 intrinsics' error there (fx RMS 1.52 -> 0.70 px, cx 3.6 -> 1.7 px, k2 0.017 -> 0.0094; lens model chosen by BIC)
 and its reported standard deviations match it (RMS / mean std 0.85-1.08 over fx, fy, cx, cy, k1, k2), where the
