@@ -226,6 +226,11 @@ class Board(BaseModel):
         default=None, description="px: RMS reprojection error of the corners used for the pose"
     )
     n_corners: Annotated[int, Field(ge=0)] | None = Field(default=None, description="count: ChArUco corners used")
+    corners_rejected: Annotated[int, Field(ge=0)] | None = Field(
+        default=None,
+        description="count: corners detected but left out of the pose, their residual beyond the others' scatter "
+        "(a corner next to an occluding rod, a glint)",
+    )
     cov: Mat66 | None = Field(
         default=None,
         description="shape (6, 6): covariance of (rotation vector [rad], t [m]) of the pose, from the PnP Jacobian",
