@@ -263,7 +263,8 @@ def reject_corners(
         if d2[worst] <= gate * s2:
             break
         keep[np.nonzero(keep)[0][worst]] = False
-        rvec, tvec = cv2.solvePnPRefineLM(obj[keep], img[keep], camera.K, camera.dist, rvec, tvec)
+        rv, tv = cv2.solvePnPRefineLM(obj[keep], img[keep], camera.K, camera.dist, rvec, tvec)
+        rvec, tvec = np.asarray(rv, dtype=np.float64), np.asarray(tv, dtype=np.float64)
     return keep, rvec, tvec
 
 
