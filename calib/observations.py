@@ -116,7 +116,7 @@ def _drop_unset(model: BaseModel, data: dict[str, Any], optional: tuple[str, ...
 ROD_FIELDS: tuple[str, ...] = ("rms_px", "n_points", "plane_angle_rad", "cov_u", "h", "limbs_px")
 RodArrayField = Literal["rms_px", "n_points", "cov_u", "h", "limbs_px"]
 #: the optional, typed board fields written by the image extraction (:class:`calib.vision.board.BoardPose`)
-BOARD_FIELDS: tuple[str, ...] = ("rms_px", "n_corners", "cov", "d_intrinsics")
+BOARD_FIELDS: tuple[str, ...] = ("rms_px", "n_corners", "corners_rejected", "cov", "d_intrinsics")
 
 
 class Rod(BaseModel):
@@ -261,7 +261,7 @@ class Board(BaseModel):
         _finite(v, "t")
         return v
 
-    @field_validator("rms_px", "n_corners", mode="before")
+    @field_validator("rms_px", "n_corners", "corners_rejected", mode="before")
     @classmethod
     def _scalar(cls, v: Any) -> Any:
         return _plain(v)
