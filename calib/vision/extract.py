@@ -392,7 +392,9 @@ def _extract(
     phases: dict[str, dict[str, Any]] = {}
     for i in obs_idx:
         f = frames[i]
-        ph = phases.setdefault(f.phase, {"frames": 0, "board": 0, "rods": 0, "rods_total": 0, "missing": {}})
+        ph = phases.setdefault(
+            f.phase, {"frames": 0, "board": 0, "rods": 0, "rods_total": 0, "corners_rejected": 0, "missing": {}}
+        )
         ph["frames"] += 1
         ph["rods_total"] += 8
         missing: dict[str, str] = {}
@@ -403,6 +405,7 @@ def _extract(
         elif "pose" in b:
             board = b["pose"]
             ph["board"] += 1
+            ph["corners_rejected"] += int(board.get("corners_rejected") or 0)
         else:
             missing["board"] = b["reason"]
         legs: dict[str, list] = {str(k): [None, None] for k in range(1, 5)}

@@ -139,5 +139,13 @@ def run(args: argparse.Namespace) -> int:
         miss = "; ".join(f"{k} x{v}" for k, v in sorted(c["missing"].items(), key=lambda kv: -kv[1]))
         t.add_row(ph, str(c["frames"]), f"{c['board']}/{c['frames']}", f"{c['rods']}/{c['rods_total']}", miss or "-")
     Console().print(t)
+    out_corners = {ph: c["corners_rejected"] for ph, c in s["phases"].items() if c.get("corners_rejected")}
+    if out_corners:
+        console.print(
+            f"board corners left out of the poses, their residual beyond the others' scatter (next to an occluding "
+            f"rod, a glint): {sum(out_corners.values())} ("
+            + ", ".join(f"{ph} {n}" for ph, n in out_corners.items())
+            + ")"
+        )
     console.print(f"wrote {out} ({len(obs.frames)} frames)")
     return 0
