@@ -363,7 +363,9 @@ def calibrate_combined(
     if nz > ni and "full" in parts:
         e_std = prob.intrinsics.edge_std_px
         edge = {
-            "estimate_px": (z[ni:] * e_std).tolist(),
+            # z moves the measured limbs (the correction); the limbs' bias is the opposite: outward positive, the rods
+            # seen wider than they are (checked on images rendered with a known offset: tests/calib/test_edge_bias.py)
+            "estimate_px": (-z[ni:] * e_std).tolist(),
             "std_px": (np.sqrt(np.diag(parts["full"])[4 + nw + ni :]) * e_std).tolist(),
             "prior_std_px": e_std,
         }

@@ -60,6 +60,9 @@ class RenderSettings:
     #: in view its inner corners reach ~60% of the image's corner radius at the default, ~70% at 0.75 (measured on
     #: 30-view phases): not enough to determine k3 either way (its std 0.01-0.035)
     camera_view_spread: float = 0.45
+    #: every rod's silhouette widened by this much on each side (px; negative: narrowed), on top of what blur and
+    #: shading do: a known limb-edge bias, to check the methods' models of it (0: the rod as it is)
+    rod_edge_offset_px: float = 0.0
 
     def camera(self) -> CameraModel:
         K = np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
@@ -217,7 +220,7 @@ class BenchRenderer:
         mx, my = ray[..., 0].astype(np.float64), ray[..., 1].astype(np.float64)
         da = (hp[0] * mx + hp[1] * my + hp[2]) / np.hypot(hp[0], hp[1]) * f
         db = (hm[0] * mx + hm[1] * my + hm[2]) / np.hypot(hm[0], hm[1]) * f
-        cover = np.clip(0.5 + np.minimum(da, db), 0.0, 1.0)
+        cover = np.clip(0.5 + self.settings.rod_edge_offset_px + np.minimum(da, db), 0.0, 1.0)
         # only the pixels inside the rod's wedge (a thin band of its box) can change: the rest is computed on them
         inside = np.nonzero(cover > 0)
         if inside[0].size == 0:
