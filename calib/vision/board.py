@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 
 from ..camera import CameraModel, intrinsics_names, projection_columns
 from ..dataset import BoardSpec
+from ..robust import chi2_gate
 
 Array = NDArray[np.float64]
 
@@ -240,8 +241,6 @@ def reject_corners(
     rvec, tvec : ndarray
         The pose refined on the corners kept.
     """
-    from ..robust import chi2_gate
-
     keep = np.ones(len(obj), dtype=bool)
     gate = float(chi2_gate(2))
     while keep.sum() > min_corners:
@@ -254,10 +253,11 @@ def reject_corners(
         except np.linalg.LinAlgError:
             break
         k = len(o)
-        d2 = np.empty(k)
-        for c in range(k):
-            B = np.eye(2) - Hm[2 * c : 2 * c + 2, 2 * c : 2 * c + 2]
-            d2[c] = float(r[c] @ np.linalg.solve(B, r[c])) if np.linalg.det(B) > 1e-9 else 0.0
+        idx = np.arange(k)
+        B = np.eye(2) - Hm.reshape(k, 2, k, 2)[idx, :, idx, :]  # (k, 2, 2): each corner's block of I - H
+        ok = np.linalg.det(B) > 1e-9  # a corner the pose fits exactly (full leverage) cannot be judged
+        d2 = np.zeros(k)
+        d2[ok] = np.einsum("ki,ki->k", r[ok], np.linalg.solve(B[ok], r[ok][..., None])[..., 0])
         s2 = max(float(np.median(d2)) / (2.0 * np.log(2.0)), CORNER_FLOOR_PX**2)
         worst = int(np.argmax(d2))
         if d2[worst] <= gate * s2:
