@@ -56,12 +56,15 @@ class BaseFrameResult:
     orthogonality_error_deg: float
     rotation_residual_rms_rad: float
     translation_residual_rms_m: float
+    #: board displacement measured by vision per encoder metre on the translation phase (the board's print scale
+    #: and the camera's, which no camera calibration can tell; 1 for a consistent set-up), and its std
     translation_scale: float
     n_rotation: int
     n_translation: int
     rotation_angles_rad: Array = field(repr=False)
     #: the rotation-axis fit's final state, to re-estimate from slightly moved board poses (``start``)
     axis_state: dict | None = field(default=None, repr=False, compare=False)
+    translation_scale_std: float = 0.0
 
     @property
     def x_B(self) -> Array:
@@ -84,6 +87,7 @@ class BaseFrameResult:
             "rotation_residual_rms_deg": float(np.rad2deg(self.rotation_residual_rms_rad)),
             "translation_residual_rms_mm": self.translation_residual_rms_m * 1e3,
             "translation_scale": self.translation_scale,
+            "translation_scale_std": self.translation_scale_std,
             "n_rotation": self.n_rotation,
             "n_translation": self.n_translation,
         }
@@ -309,7 +313,8 @@ def fit_translation_direction(t: Array, s: Array) -> tuple[Array, Array, Array, 
         Its covariance (tangent).
     residuals : ndarray, shape (N, 3)
     scale : float
-        ``|d|``: the measured displacement per encoder metre (1 for a consistent set-up).
+        ``|d|``: the measured displacement per encoder metre (1 for a consistent set-up; see
+        :func:`translation_scale_std` for its uncertainty).
     """
     t = np.asarray(t, dtype=np.float64)
     s = np.asarray(s, dtype=np.float64)
@@ -335,6 +340,24 @@ def fit_translation_direction(t: Array, s: Array) -> tuple[Array, Array, Array, 
     P = np.eye(3) - np.outer(x, x)
     cov_x = P @ cov_d @ P / nd**2
     return x, cov_x, res, nd
+
+
+def translation_scale_std(residuals: Array, s: Array, x: Array) -> float:
+    """Standard deviation of :func:`fit_translation_direction`'s ``scale`` (``|d|`` along ``x``), dimensionless.
+
+    Parameters
+    ----------
+    residuals : ndarray, shape (N, 3)
+        The fit's residuals, metres.
+    s : ndarray, shape (N,)
+        The encoder increments, metres.
+    x : ndarray, shape (3,)
+        The fitted unit direction.
+    """
+    n = residuals.shape[0]
+    sc = np.asarray(s, dtype=np.float64) - float(np.mean(s))
+    Sigma = residuals.T @ residuals / max(n - 2, 1)
+    return float(np.sqrt(max(float(x @ Sigma @ x), 0.0) / float(sc @ sc)))
 
 
 def frame_from_axes(z: Array, x: Array) -> Array:
@@ -407,6 +430,7 @@ def estimate_base_frame(
         n_translation=len(tra),
         rotation_angles_rad=theta,
         axis_state=state,
+        translation_scale_std=translation_scale_std(tres, s, x),
     )
 
 

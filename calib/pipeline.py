@@ -18,7 +18,7 @@ from .methods.result import MethodResult
 from .observations import LEG_KEYS, Observations, Rod
 from .parameters import COMBINATION_NAMES, PARAMETER_NAMES, I4Parameters
 from .transforms import tangent_basis
-from .validation import validate
+from .validation import validate, vision_scale
 
 RESULT_FORMAT = "i4cal.result/1"
 
@@ -88,7 +88,8 @@ def calibrate(
         out["base_frame"] = bf.summary()
     except I4calError as exc:
         out["base_frame"] = {"error": str(exc)}
-    out["validation"]["a priori"] = validate(obs, nominal)
+    scale = vision_scale(obs, bf)  # the validation's measuring instrument, calibrated once against the encoders
+    out["validation"]["a priori"] = validate(obs, nominal, scale)
     fit = obs.arrays("poses")
     for name in methods:
         if progress:
@@ -123,7 +124,7 @@ def calibrate(
             entry["bound"] = _bound_for(obs, full, res, bf)
         out["methods"][name] = entry
         try:
-            out["validation"][name] = validate(obs, full)
+            out["validation"][name] = validate(obs, full, scale)
         except I4calError as exc:
             out["validation"][name] = {"error": str(exc)}
         if progress:
@@ -138,7 +139,7 @@ def calibrate(
                     te[name]["seven"] = {k: entry["seven"][k] - truth["parameters"][k] for k in PARAMETER_NAMES}
         out["truth_errors"] = te
         with contextlib.suppress(I4calError, KeyError, ValueError):
-            out["validation"]["truth"] = validate(obs, I4Parameters.from_mapping(truth["parameters"]))
+            out["validation"]["truth"] = validate(obs, I4Parameters.from_mapping(truth["parameters"]), scale)
     return out
 
 

@@ -4,6 +4,12 @@
   length minus the model-predicted one (DKM of the encoder values), in mm: mean and RMS.
   The end-effector point measured by vision is a board point on the rotation axis (found from the
   rotation phase), so that displacements do not depend on where the board sits on the end-effector.
+  Vision's displacements are divided by the translation phase's measured displacement per encoder metre
+  (``vision_scale``, :attr:`calib.baseframe.BaseFrameResult.translation_scale`): a board printed 0.2% large, or a
+  camera whose calibration fixes the board's scale by two of its points, measures every displacement 0.2% long,
+  about 0.6 mm on a 300 mm move, which no parameter set should be judged by. The equal-actuator translation moves
+  the end-effector by exactly the encoder increment whatever the geometry, so it calibrates vision's scale against
+  the encoders.
 * Straightness: RMS distance (mm) of the DKM positions of the ``line`` phase to their
   least-squares line.
 """
@@ -12,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .baseframe import rotation_axis_point
+from .baseframe import BaseFrameResult, base_frame_from_observations, rotation_axis_point
 from .errors import I4calError
 from .kinematics import dkm
 from .observations import Observations
@@ -27,19 +33,39 @@ def ee_points_from_board(obs: Observations, R: np.ndarray, t: np.ndarray) -> np.
     return np.einsum("nij,j->ni", R, p) + t
 
 
-def displacement_gaps(obs: Observations, params: I4Parameters, phases: tuple[str, ...] = ("poses",)) -> dict:
+def displacement_gaps(
+    obs: Observations, params: I4Parameters, phases: tuple[str, ...] = ("poses",), vision_scale: float = 1.0
+) -> dict:
     """Gaps between vision-measured and model-predicted end-effector displacements.
+
+    Parameters
+    ----------
+    obs : Observations
+    params : I4Parameters
+    phases : tuple of str
+        The consecutive poses compared.
+    vision_scale : float
+        Vision's measured displacement per true metre (dimensionless, > 0): its displacements are divided by it.
 
     Returns
     -------
     dict
-        ``{"mean_mm", "rms_mm", "max_abs_mm", "n_pairs", "gaps_mm"}``.
+        ``{"mean_mm", "rms_mm", "max_abs_mm", "n_pairs", "gaps_mm", "vision_scale"}``.
     """
+    if not (np.isfinite(vision_scale) and vision_scale > 0):
+        raise ValueError(f"vision_scale must be finite and > 0, got {vision_scale}")
     d = obs.arrays(*phases)
     d = d.subset(d.has_board)
     if len(d) < 2:
-        return {"mean_mm": None, "rms_mm": None, "max_abs_mm": None, "n_pairs": 0, "gaps_mm": []}
-    m = ee_points_from_board(obs, d.board_R, d.board_t)
+        return {
+            "mean_mm": None,
+            "rms_mm": None,
+            "max_abs_mm": None,
+            "n_pairs": 0,
+            "gaps_mm": [],
+            "vision_scale": vision_scale,
+        }
+    m = ee_points_from_board(obs, d.board_R, d.board_t) / vision_scale
     P = dkm(params, d.q)[:, :3]
     dm = np.linalg.norm(np.diff(m, axis=0), axis=1)
     dp = np.linalg.norm(np.diff(P, axis=0), axis=1)
@@ -50,6 +76,7 @@ def displacement_gaps(obs: Observations, params: I4Parameters, phases: tuple[str
         "max_abs_mm": float(np.abs(g).max()),
         "n_pairs": int(g.size),
         "gaps_mm": g.tolist(),
+        "vision_scale": vision_scale,
     }
 
 
@@ -72,12 +99,41 @@ def straightness(obs: Observations, params: I4Parameters) -> dict:
     }
 
 
-def validate(obs: Observations, params: I4Parameters) -> dict:
-    """Both validation figures, on the fit poses and (when present) on separate validation poses."""
-    out: dict = {}
+def vision_scale(obs: Observations, base_frame: BaseFrameResult | None = None) -> dict:
+    """Vision's displacement per encoder metre from the translation phase (:mod:`calib.baseframe`).
+
+    ``base_frame``: the base frame already fitted from ``obs`` (fitted here when not given).
+
+    Returns
+    -------
+    dict
+        ``{"scale", "std", "n_poses", "source"}``; scale 1 (std None) with the reason in ``source`` when the
+        translation phase cannot tell (fewer than 3 board poses, or a base frame that cannot be fitted).
+    """
+    try:
+        bf = base_frame if base_frame is not None else base_frame_from_observations(obs)
+    except I4calError as exc:
+        return {"scale": 1.0, "std": None, "n_poses": 0, "source": f"none ({exc})"}
+    if bf.n_translation < 3 or not np.isfinite(bf.translation_scale) or bf.translation_scale <= 0:
+        return {"scale": 1.0, "std": None, "n_poses": bf.n_translation, "source": "none (fewer than 3 poses)"}
+    return {
+        "scale": float(bf.translation_scale),
+        "std": float(bf.translation_scale_std),
+        "n_poses": bf.n_translation,
+        "source": "translation phase",
+    }
+
+
+def validate(obs: Observations, params: I4Parameters, scale: dict | None = None) -> dict:
+    """Both validation figures, on the fit poses and (when present) on separate validation poses.
+
+    ``scale``: :func:`vision_scale`'s answer (computed when not given), recorded as ``vision_scale``.
+    """
+    scale = vision_scale(obs) if scale is None else scale
+    out: dict = {"vision_scale": scale}
     for name, phases in (("poses", ("poses",)), ("validation", ("validation",))):
         try:
-            out[f"gaps_{name}"] = displacement_gaps(obs, params, phases)
+            out[f"gaps_{name}"] = displacement_gaps(obs, params, phases, vision_scale=scale["scale"])
         except I4calError as exc:
             out[f"gaps_{name}"] = {"error": str(exc)}
     try:

@@ -85,3 +85,9 @@ def print_result(doc: dict[str, Any], console: Console | None = None) -> None:
             f(st.get("rms_mm")),
         )
     con.print(t2)
+    sc = next((v.get("vision_scale") for v in doc["validation"].values() if v.get("vision_scale")), None)
+    if sc and sc.get("std") is not None:
+        con.print(
+            f"vision's displacements divided by its scale on the translation phase: "
+            f"{(sc['scale'] - 1.0) * 1e6:+.0f} +/- {sc['std'] * 1e6:.0f} ppm ({sc['n_poses']} poses)"
+        )

@@ -421,8 +421,9 @@ def _validation(res: dict) -> Raw:
         "Validation: displacement gaps and straightness",
         "Displacement gap: length of the end-effector displacement between consecutive poses measured by "
         "the camera (the board point on the rotation axis) minus the one the geometry predicts from the "
-        "encoder values. Straightness: RMS distance of the model positions along the guided line to their "
-        "best-fit line.",
+        "encoder values, vision's displacements divided by its scale measured on the translation phase "
+        f"({_vision_scale_text(val)}). Straightness: RMS distance of the model positions along the guided line "
+        "to their best-fit line.",
         table(hdr, g_rows, caption="Table II - displacement gaps (mm)"),
         table(
             ["parameter set", "RMS (mm)", "points", "length (mm)"],
@@ -431,6 +432,16 @@ def _validation(res: dict) -> Raw:
         ),
         figure(plots.gaps_plot(res), "displacement gaps", "Displacement gap of each pose pair"),
     )
+
+
+def _vision_scale_text(val: dict) -> str:
+    """The validation's vision scale (displacement per encoder metre) as a sentence fragment."""
+    sc = next((v.get("vision_scale") for v in val.values() if isinstance(v, dict) and v.get("vision_scale")), None)
+    if not sc:
+        return "not recorded"
+    if sc.get("std") is None:
+        return f"taken as 1: {sc.get('source')}"
+    return f"{(sc['scale'] - 1.0) * 1e6:+.0f} +/- {sc['std'] * 1e6:.0f} ppm from {sc.get('n_poses')} poses"
 
 
 def _residuals(residuals: dict[str, LegResiduals | None]) -> Raw:
