@@ -533,12 +533,25 @@ def measure_rod(
 def _limb_samples(
     camera: CameraModel, fits: list[tuple[Array, Array, float, Array]], projector: _IdealToImage | None = None
 ) -> Array:
-    """Five points per limb on its fitted line at the quantiles of its edge points, distorted pixels (2, 5, 2)."""
+    """Five points per limb, distorted pixels (2, 5, 2): the means of its edge points in five bins of equal count
+    along it, taken in ideal pixels (where the limb is straight, so that a mean lies on it) and then to the image.
+
+    They follow the edge points, not the line this camera fitted: a method that redoes the limb's plane through
+    other intrinsics (:func:`calib.methods.intrinsics.limb_planes_for`) then gets the line those intrinsics would
+    have fitted to the edge points, to first order. Points of the fitted line carried the extraction camera's
+    distortion: undistorted by other intrinsics they bend by the two distortions' difference over the whole limb,
+    which tilts a rod's recomputed direction in depth the same way on every rod in that part of the image.
+    """
     proj = projector if projector is not None else _IdealToImage(camera)
-    ideal = np.concatenate(
-        [c[None] + _quantiles5(np.sort((pts - c) @ td))[:, None] * td[None] for c, td, _s2, pts in fits]
-    )
-    return proj.points(ideal).reshape(len(fits), 5, 2)
+    out = np.empty((len(fits), 5, 2))
+    for i, (c, td, _s2, pts) in enumerate(fits):
+        if len(pts) >= 5:
+            order = np.argsort((pts - c) @ td, kind="stable")
+            means = np.array([b.mean(axis=0) for b in np.array_split(pts[order], 5)])
+        else:  # fewer points than bins (never with RodSettings.min_points >= 5): points of the fitted line
+            means = c[None] + _quantiles5(np.sort((pts - c) @ td))[:, None] * td[None]
+        out[i] = proj.points(means)
+    return out
 
 
 def _quantiles5(x: Array) -> Array:

@@ -5,7 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from calib.camera import CameraModel
+from calib.methods import intrinsics as intr
 from calib.vision.rods import axis_from_planes, limb_planes, robust_line
+from calib.vision.rods.measure import _limb_samples
+from drivers.sim.render import RenderSettings
 
 
 def test_planes_then_axis_round_trip():
@@ -39,3 +43,38 @@ def test_robust_line_rejects_outliers():
     assert inl.sum() >= 100 and not inl[::7].any()
     n = np.array([-0.2, 1.0]) / np.hypot(0.2, 1.0)
     assert abs(abs(line[:2] @ n) - 1) < 1e-5
+
+
+def test_limb_samples_follow_the_edge_points_not_the_extraction_camera():
+    """A limb extracted through intrinsics a few standard deviations off (profiles and line fit in that camera's
+    ideal pixels): its five samples, undistorted by the true camera, give the true interpretation plane within
+    2e-5 rad on a strongly distorted lens (k3 = -0.012, limbs anywhere in the image). Samples on the line the
+    extraction camera fitted carried that camera's distortion: up to 5e-5 rad off (the rods' recomputed
+    directions then tilted together)."""
+    true = RenderSettings(dist=(-0.3, 0.1, 0.0004, -0.0003, -0.012)).camera()
+    ext = CameraModel(
+        true.K + np.array([[1.0, 0.0, 1.5], [0.0, 1.0, -1.5], [0.0, 0.0, 0.0]]),
+        np.asarray(true.dist) + np.array([0.002, -0.01, 2e-4, -2e-4, 0.015]),
+        true.width,
+        true.height,
+    )
+    rng = np.random.default_rng(3)
+    worst = 0.0
+    for _ in range(20):
+        point = np.array([rng.uniform(-0.35, 0.35), rng.uniform(-0.25, 0.25), rng.uniform(0.6, 0.9)])
+        u = rng.normal(size=3)
+        u[2] *= 0.3
+        u /= np.linalg.norm(u)
+        hs = np.array(limb_planes(point, u, 0.008))
+        fits = []
+        for h in hs:
+            X = (point - 0.008 * h)[None] + np.linspace(-0.15, 0.15, 200)[:, None] * u[None]
+            px = true.project(X)  # the limb's edge points where the image shows them
+            ok = (px[:, 0] > 0) & (px[:, 0] < true.width - 1) & (px[:, 1] > 0) & (px[:, 1] < true.height - 1)
+            ideal = ext.to_ideal_pixels(ext.undistort_points(px[ok]))  # where the extraction camera puts them
+            c = ideal.mean(axis=0)
+            td = np.linalg.eigh(np.cov((ideal - c).T))[1][:, 1]
+            fits.append((c, td, 0.0, ideal))
+        got = intr.limb_planes_for(true, _limb_samples(ext, fits)[None], hs[None])[0]
+        worst = max(worst, *(float(np.linalg.norm(np.cross(g, h))) for g, h in zip(got, hs, strict=True)))
+    assert worst < 2e-5, worst
