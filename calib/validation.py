@@ -99,6 +99,11 @@ def straightness(obs: Observations, params: I4Parameters) -> dict:
     }
 
 
+#: a vision scale further than this from 1 is reported with a warning (a board printed or configured wrong, encoders
+#: in other units): the twin's boards measure within 0.3%
+VISION_SCALE_WARN = 0.005
+
+
 def vision_scale(obs: Observations, base_frame: BaseFrameResult | None = None) -> dict:
     """Vision's displacement per encoder metre from the translation phase (:mod:`calib.baseframe`).
 
@@ -107,8 +112,9 @@ def vision_scale(obs: Observations, base_frame: BaseFrameResult | None = None) -
     Returns
     -------
     dict
-        ``{"scale", "std", "n_poses", "source"}``; scale 1 (std None) with the reason in ``source`` when the
-        translation phase cannot tell (fewer than 3 board poses, or a base frame that cannot be fitted).
+        ``{"scale", "std", "n_poses", "source"}`` and ``"warning"`` when the scale is more than
+        :data:`VISION_SCALE_WARN` from 1; scale 1 (std None) with the reason in ``source`` when the translation
+        phase cannot tell (fewer than 3 board poses, or a base frame that cannot be fitted).
     """
     try:
         bf = base_frame if base_frame is not None else base_frame_from_observations(obs)
@@ -116,12 +122,18 @@ def vision_scale(obs: Observations, base_frame: BaseFrameResult | None = None) -
         return {"scale": 1.0, "std": None, "n_poses": 0, "source": f"none ({exc})"}
     if bf.n_translation < 3 or not np.isfinite(bf.translation_scale) or bf.translation_scale <= 0:
         return {"scale": 1.0, "std": None, "n_poses": bf.n_translation, "source": "none (fewer than 3 poses)"}
-    return {
+    out: dict = {
         "scale": float(bf.translation_scale),
         "std": float(bf.translation_scale_std),
         "n_poses": bf.n_translation,
         "source": "translation phase",
     }
+    if abs(bf.translation_scale - 1.0) > VISION_SCALE_WARN:
+        out["warning"] = (
+            f"vision measures the translation phase {(bf.translation_scale - 1.0) * 100:+.2f}% against the encoders "
+            f"(beyond {VISION_SCALE_WARN * 100:.1f}%): check the board's square length and the encoders' scale"
+        )
+    return out
 
 
 def validate(obs: Observations, params: I4Parameters, scale: dict | None = None) -> dict:

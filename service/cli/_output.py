@@ -91,3 +91,5 @@ def print_result(doc: dict[str, Any], console: Console | None = None) -> None:
             f"vision's displacements divided by its scale on the translation phase: "
             f"{(sc['scale'] - 1.0) * 1e6:+.0f} +/- {sc['std'] * 1e6:.0f} ppm ({sc['n_poses']} poses)"
         )
+        if sc.get("warning"):
+            con.print(f"[yellow]warning:[/yellow] {sc['warning']}")

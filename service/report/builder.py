@@ -441,7 +441,8 @@ def _vision_scale_text(val: dict) -> str:
         return "not recorded"
     if sc.get("std") is None:
         return f"taken as 1: {sc.get('source')}"
-    return f"{(sc['scale'] - 1.0) * 1e6:+.0f} +/- {sc['std'] * 1e6:.0f} ppm from {sc.get('n_poses')} poses"
+    text = f"{(sc['scale'] - 1.0) * 1e6:+.0f} +/- {sc['std'] * 1e6:.0f} ppm from {sc.get('n_poses')} poses"
+    return f"{text}; {sc['warning']}" if sc.get("warning") else text
 
 
 def _residuals(residuals: dict[str, LegResiduals | None]) -> Raw:

@@ -62,6 +62,10 @@ def test_vision_scale_is_taken_out_of_the_gaps(paper_plan):
     assert v["gaps_poses"]["vision_scale"] == sc["scale"]
     # a wrong geometry is still seen: the a priori gap stays (the scale is not fitted to the poses)
     assert validate(obs, obs.nominal)["gaps_poses"]["rms_mm"] > 0.5
+    assert "warning" not in sc
+    # a board configured 1% off is divided out too, and said
+    far = vision_scale(_scaled_board(twin.observations(plan=paper_plan, seed=0), 1.01))
+    assert "+1.00%" in far["warning"] and "square length" in far["warning"]
 
 
 def test_vision_scale_std_matches_its_spread(paper_plan):
