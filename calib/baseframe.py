@@ -332,9 +332,7 @@ def fit_translation_direction(t: Array, s: Array) -> tuple[Array, Array, Array, 
     d = (sc @ (t - t.mean(axis=0))) / Sss
     t0 = t.mean(axis=0) - d * s.mean()
     res = t - t0 - s[:, None] * d[None, :]
-    dof = max(n - 2, 1)
-    Sigma = res.T @ res / dof
-    cov_d = Sigma / Sss
+    cov_d = _displacement_covariance(res, s)
     nd = float(np.linalg.norm(d))
     x = d / nd
     P = np.eye(3) - np.outer(x, x)
@@ -354,10 +352,15 @@ def translation_scale_std(residuals: Array, s: Array, x: Array) -> float:
     x : ndarray, shape (3,)
         The fitted unit direction.
     """
-    n = residuals.shape[0]
+    return float(np.sqrt(max(float(x @ _displacement_covariance(residuals, s) @ x), 0.0)))
+
+
+def _displacement_covariance(residuals: Array, s: Array) -> Array:
+    """Covariance (3, 3) of the displacement per encoder metre ``d`` of :func:`fit_translation_direction`, from its
+    residuals (N, 3) (their scatter over N - 2 dof) and the encoder increments s (N,)."""
     sc = np.asarray(s, dtype=np.float64) - float(np.mean(s))
-    Sigma = residuals.T @ residuals / max(n - 2, 1)
-    return float(np.sqrt(max(float(x @ Sigma @ x), 0.0) / float(sc @ sc)))
+    Sigma = residuals.T @ residuals / max(residuals.shape[0] - 2, 1)
+    return Sigma / float(sc @ sc)
 
 
 def frame_from_axes(z: Array, x: Array) -> Array:

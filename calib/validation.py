@@ -153,3 +153,13 @@ def validate(obs: Observations, params: I4Parameters, scale: dict | None = None)
     except I4calError as exc:
         out["straightness"] = {"error": str(exc)}
     return out
+
+
+def recorded_vision_scale(validation: dict) -> dict | None:
+    """The :func:`vision_scale` a result's ``validation`` section recorded (every entry holds the same), or None."""
+    return next((v["vision_scale"] for v in validation.values() if isinstance(v, dict) and v.get("vision_scale")), None)
+
+
+def vision_scale_ppm(scale: dict) -> str:
+    """A measured :func:`vision_scale` as "+1234 +/- 56 ppm" (its departure from 1 and its std)."""
+    return f"{(scale['scale'] - 1.0) * 1e6:+.0f} +/- {scale['std'] * 1e6:.0f} ppm"

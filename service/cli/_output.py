@@ -8,6 +8,7 @@ from rich.console import Console
 from rich.table import Table
 
 from calib.parameters import COMBINATION_NAMES, PARAMETER_NAMES
+from calib.validation import recorded_vision_scale, vision_scale_ppm
 
 
 def _mm(v: float | None, digits: int = 3) -> str:
@@ -85,11 +86,11 @@ def print_result(doc: dict[str, Any], console: Console | None = None) -> None:
             f(st.get("rms_mm")),
         )
     con.print(t2)
-    sc = next((v.get("vision_scale") for v in doc["validation"].values() if v.get("vision_scale")), None)
+    sc = recorded_vision_scale(doc["validation"])
     if sc and sc.get("std") is not None:
         con.print(
             f"vision's displacements divided by its scale on the translation phase: "
-            f"{(sc['scale'] - 1.0) * 1e6:+.0f} +/- {sc['std'] * 1e6:.0f} ppm ({sc['n_poses']} poses)"
+            f"{vision_scale_ppm(sc)} ({sc['n_poses']} poses)"
         )
         if sc.get("warning"):
             con.print(f"[yellow]warning:[/yellow] {sc['warning']}")

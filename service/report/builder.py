@@ -15,6 +15,7 @@ import numpy as np
 
 from calib.methods.combined import EDGE_BIAS_STD_PX
 from calib.parameters import COMBINATION_NAMES, PARAMETER_NAMES
+from calib.validation import recorded_vision_scale, vision_scale_ppm
 
 from . import plots
 from .analysis import (
@@ -436,12 +437,12 @@ def _validation(res: dict) -> Raw:
 
 def _vision_scale_text(val: dict) -> str:
     """The validation's vision scale (displacement per encoder metre) as a sentence fragment."""
-    sc = next((v.get("vision_scale") for v in val.values() if isinstance(v, dict) and v.get("vision_scale")), None)
+    sc = recorded_vision_scale(val)
     if not sc:
         return "not recorded"
     if sc.get("std") is None:
         return f"taken as 1: {sc.get('source')}"
-    text = f"{(sc['scale'] - 1.0) * 1e6:+.0f} +/- {sc['std'] * 1e6:.0f} ppm from {sc.get('n_poses')} poses"
+    text = f"{vision_scale_ppm(sc)} from {sc.get('n_poses')} poses"
     return f"{text}; {sc['warning']}" if sc.get("warning") else text
 
 
