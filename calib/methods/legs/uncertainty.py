@@ -213,7 +213,12 @@ def _identifiability(cov: np.ndarray, prior_std_m: float | None) -> dict:
 
 
 def _with_prior(
-    seven: np.ndarray, cov: np.ndarray, parts: dict[str, np.ndarray], nom: I4Parameters, prior_std_m: float
+    seven: np.ndarray,
+    cov: np.ndarray,
+    parts: dict[str, np.ndarray],
+    nom: I4Parameters,
+    prior_std_m: float,
+    idx: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
     """The legs' estimate with the prior N(nominal, prior_std_m^2 I) in the directions the data do not pin.
 
@@ -224,32 +229,42 @@ def _with_prior(
     ``A (data error) + (I - A) (nominal - truth)``, hence the covariance ``A C A^T + (I - A) P (I - A)^T``, each data
     part mapped by A and the prior's part named ``a_priori``. In every direction the result is then no worse than
     the a priori value in expectation, and noise-free data still give back the truth exactly.
+
+    ``idx``: the parameters (indices into the seven) the data estimate; the others are the a priori values already
+    (with ``prior_std_m``, in ``parts["a_priori"]``) and are left as they are. Default: all seven.
     """
-    nom7 = np.asarray(nom.vector())
+    idx = np.arange(7) if idx is None else np.asarray(idx)
+    ix = np.ix_(idx, idx)
+    n = idx.size
     s2 = prior_std_m**2
-    Pp = s2 * np.eye(7)
-    C = 0.5 * (cov + cov.T)
+    C = 0.5 * (cov[ix] + cov[ix].T)
     w, V = np.linalg.eigh(C)
     w = np.maximum(w, 0.0)
     a = np.where(w < s2, 1.0, s2 / (w + s2))
-    A = (V * a) @ V.T
-    post = A @ seven + (np.eye(7) - A) @ nom7
+    A = np.eye(7)
+    A[ix] = (V * a) @ V.T
+    post = np.asarray(seven, dtype=np.float64).copy()
+    post[idx] = A[ix] @ post[idx] + (np.eye(n) - A[ix]) @ np.asarray(nom.vector())[idx]
     out = {k: A @ v @ A.T for k, v in parts.items()}
-    IA = np.eye(7) - A
-    out["a_priori"] = IA @ Pp @ IA.T
+    IA = np.zeros((7, 7))
+    IA[ix] = np.eye(n) - A[ix]
+    out["a_priori"] = out.get("a_priori", np.zeros((7, 7))) + IA @ (s2 * np.eye(7)) @ IA.T
     total = sum(out.values())
     return post, 0.5 * (total + total.T), out
 
 
-def _prior_conflict(seven: np.ndarray, cov: np.ndarray, nom: I4Parameters, prior_std_m: float) -> float:
-    """Chi-square (7 dof) of the data's estimate against the a priori tolerance: ``d^T (C + P)^-1 d``.
+def _prior_conflict(
+    seven: np.ndarray, cov: np.ndarray, nom: I4Parameters, prior_std_m: float, idx: np.ndarray | None = None
+) -> float:
+    """Chi-square of the data's estimate against the a priori tolerance: ``d^T (C + P)^-1 d`` (7 dof, or len(idx)).
 
     ``d`` = data estimate - nominal, ``C`` its covariance, ``P = prior_std_m^2 I``. When both are right, ``d``'s
     covariance is ``C + P`` (the truth within the tolerance of nominal, the estimate within C of the truth) and this
     is chi-square(7); far beyond it, the data or the tolerance is wrong, and the data, which have been (a wrong joint
-    the rod-pair check could not see), are not to be blended as if they were right.
+    the rod-pair check could not see), are not to be blended as if they were right. ``idx``: only those parameters
+    (their marginal).
     """
-    nom7 = np.asarray(nom.vector())
-    d = np.asarray(seven, dtype=np.float64) - nom7
-    C = 0.5 * (cov + cov.T) + prior_std_m**2 * np.eye(7)
+    idx = np.arange(7) if idx is None else np.asarray(idx)
+    d = (np.asarray(seven, dtype=np.float64) - np.asarray(nom.vector()))[idx]
+    C = 0.5 * (cov + cov.T)[np.ix_(idx, idx)] + prior_std_m**2 * np.eye(idx.size)
     return float(d @ np.linalg.solve(C, d))
