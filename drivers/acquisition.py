@@ -171,7 +171,8 @@ class Acquisition:
 
     # -- control ----------------------------------------------------------------------------------
     def pause(self) -> None:
-        """Stop after the current pose (the mechanism stays where it is)."""
+        """Stop after the current pose (the mechanism stays where it is); once that pose is written to disk, the
+        progress says ``paused`` with the message ``held before pose k/n``."""
         self._go.clear()
         self._emit("paused", "paused")
 
@@ -293,7 +294,10 @@ class Acquisition:
         i = start
         while i < len(self.units):
             u = self.units[i]
-            await self._go.wait()
+            if not self._go.is_set():  # paused: the pose in progress is finished and written, nothing moves
+                await self._flush_writes()
+                self._emit("paused", f"held before pose {i + 1}/{len(self.units)}")
+                await self._go.wait()
             if self._aborting:  # a cancellation swallowed inside a device client must not lose the abort
                 raise asyncio.CancelledError
             step = self.plan.steps[u.step]

@@ -170,18 +170,24 @@ async def test_controller_in_alarm_at_start(bench, tmp_path):
 async def test_pause_resume_abort(bench, tmp_path):
     plan = small_plan()
     states = []
-    acq = make_acq(bench, plan, tmp_path / "ds", progress=lambda p: states.append((p.state, p.done)))
+    acq = make_acq(bench, plan, tmp_path / "ds", progress=lambda p: states.append((p.state, p.done, p.message)))
     task = asyncio.create_task(acq.run())
-    while not any(s == "running" and d >= 2 for s, d in states):
+    while not any(s == "running" and d >= 2 for s, d, _ in states):
         await asyncio.sleep(0.002)
     acq.pause()
-    await asyncio.sleep(0.1)
+
+    # the pose in progress is finished first (however long a loaded machine takes), then the run holds
+    async def held() -> None:
+        while not any(m.startswith("held before pose") for _, _, m in states):
+            await asyncio.sleep(0.002)
+
+    await asyncio.wait_for(held(), timeout=30.0)  # generous: only a run that never holds reaches it
     n_paused = len(Dataset.open(tmp_path / "ds").frames)
     await asyncio.sleep(0.1)
     assert len(Dataset.open(tmp_path / "ds").frames) == n_paused  # nothing happens while paused
     assert not any(a.moving for a in bench.mechanism.axes)
     acq.resume()
-    while not any(s == "running" and d >= n_paused + 2 for s, d in states):
+    while not any(s == "running" and d >= n_paused + 2 for s, d, _ in states):
         await asyncio.sleep(0.001)
     acq.abort()
     with pytest.raises(AbortedError, match="motion stopped"):
