@@ -89,7 +89,7 @@ class ImageNoise:
 
     edge_px: float = 0.11
     rod_scale: float = 0.70
-    corner_px: float = 0.04
+    corner_px: float = 0.034
     edge_bias_px: float = 0.05
     step_px: float = 3.0
     edge_bias_prior_px: float = 0.1
