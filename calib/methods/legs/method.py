@@ -18,6 +18,8 @@ from .uncertainty import _identifiability, _IntrinsicsEffect, _pair_consistency,
 
 #: step 2's parameters (H, q02, q03, q04; indices into PARAMETER_NAMES): from the lock phases' joints alone
 _STEP2 = np.array([PARAMETER_NAMES.index(n) for n in ("H", "q02", "q03", "q04")])
+#: the others (S, D, L): also from the fit poses' leg directions
+_STEPS34 = np.setdiff1d(np.arange(len(PARAMETER_NAMES)), _STEP2)
 
 
 def calibrate_legs(
@@ -232,9 +234,8 @@ def calibrate_legs(
         nom7 = np.asarray(nom.vector())
         prior_cov = prior_std_m**2 * np.eye(7)
         if kept:
-            lsd = np.setdiff1d(np.arange(7), _STEP2)
             seven = seven.copy()
-            seven[lsd] = nom7[lsd]
+            seven[_STEPS34] = nom7[_STEPS34]
             keep2 = np.zeros((7, 7))
             keep2[np.ix_(_STEP2, _STEP2)] = 1.0
             parts7 = {k: v * keep2 for k, v in parts7.items()}
