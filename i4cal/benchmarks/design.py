@@ -28,10 +28,19 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from typing import Any
 
 FORMAT = "i4cal.bench-design/1"
+#: candidate poses for the designed plans: the exchange finds the workspace's informative extremes (L above all)
+#: only among enough of them (designed-12, predicted combined L std: 0.109 mm from 300, 0.099 from 1000, 0.094 from
+#: 3000; 30 s of design)
+DEFAULT_CANDIDATES = 3000
 
 
 def _plans(
-    counts: list[int], seed: int, speed: float, accel: float, only: list[str] | None = None
+    counts: list[int],
+    seed: int,
+    speed: float,
+    accel: float,
+    only: list[str] | None = None,
+    candidates: int = 300,
 ) -> dict[str, dict[str, Any]]:
     from calib.design import DesignRequest, MotionSpec, design_plan, plan_motion_time, predict_plan
     from calib.parameters import NOMINAL
@@ -43,14 +52,16 @@ def _plans(
     motion = MotionSpec(speed_m_s=speed, accel_m_s2=accel)
     out: dict[str, dict[str, Any]] = {}
     for n in counts:
-        paper = make_plan("full", NOMINAL, seed=seed, n_fit=n)
-        paper = Plan(name=f"paper-{n}", steps=[s for s in paper.steps if s.phase != "line"])
-        designed = design_plan(
-            NOMINAL, scene, DesignRequest(n_fit=n, with_line=False, seed=seed), motion=motion, noise=image_noise
-        ).plan
-        for kind, plan in (("paper", paper), ("designed", designed)):
-            if only and f"{kind}-{n}" not in only:
-                continue
+        wanted = [k for k in ("paper", "designed") if not only or f"{k}-{n}" in only]
+        for kind in wanted:
+            drawn = None
+            if kind == "paper":
+                plan = make_plan("full", NOMINAL, seed=seed, n_fit=n)
+                plan = Plan(name=f"paper-{n}", steps=[s for s in plan.steps if s.phase != "line"])
+            else:
+                request = DesignRequest(n_fit=n, with_line=False, seed=seed, n_candidates=candidates)
+                res = design_plan(NOMINAL, scene, request, motion=motion, noise=image_noise)
+                plan, drawn = res.plan, res.candidates
             pred = predict_plan(plan, NOMINAL, scene)
             pred_img = predict_plan(plan, NOMINAL, scene, image_noise)
             out[f"{kind}-{n}"] = {
@@ -61,6 +72,7 @@ def _plans(
                 "motion_s": plan_motion_time(plan, motion, NOMINAL)["total_s"],
                 "predicted_std_m": pred.std,
                 "predicted_images_std_m": pred_img.std,
+                "candidates": drawn,
             }
     return out
 
@@ -73,7 +85,9 @@ def run_design_bench(opts: argparse.Namespace, progress=None) -> dict[str, Any]:
     from .accuracy import _cores, default_spread_m, draw_truth, trial_seed
 
     t0 = time.perf_counter()
-    plans = _plans(opts.counts, opts.seed, opts.speed, opts.accel, getattr(opts, "plans", None))
+    plans = _plans(
+        opts.counts, opts.seed, opts.speed, opts.accel, getattr(opts, "plans", None), getattr(opts, "candidates", 300)
+    )
     spread = default_spread_m()
     tasks = [
         TrialTask(
@@ -222,6 +236,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         type=lambda t: [x.strip() for x in t.split(",") if x.strip()],
         default=None,
         help="only these plans, e.g. designed-12,paper-20 (default: paper and designed at every count)",
+    )
+    a(
+        "--candidates",
+        type=int,
+        default=DEFAULT_CANDIDATES,
+        help=f"candidate poses the designed plans are chosen from (default {DEFAULT_CANDIDATES}; "
+        "`i4cal plan design --candidates`)",
     )
     a("--json", default=None, metavar="PATH")
     p.set_defaults(handler=run)

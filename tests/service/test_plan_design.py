@@ -183,8 +183,10 @@ def test_bench_design_compares_plans_of_equal_fit_counts():
     from i4cal.benchmarks.design import _plans
     from i4cal.cli import main as i4cal_main
 
-    plans = _plans([8], seed=0, speed=0.05, accel=0.5)
+    plans = _plans([8], seed=0, speed=0.05, accel=0.5, candidates=200)
     assert set(plans) == {"paper-8", "designed-8"}
+    assert plans["designed-8"]["candidates"]["drawn"] == 200 and plans["paper-8"]["candidates"] is None
+    assert set(_plans([8], seed=0, speed=0.05, accel=0.5, only=["paper-8"])) == {"paper-8"}
     for p in plans.values():
         assert p["counts"]["poses"] == 8 and "line" not in p["counts"]
         assert set(p["predicted_std_m"]) == {"combined", "end-effector", "legs"}
