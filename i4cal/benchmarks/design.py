@@ -40,7 +40,7 @@ def _plans(
     speed: float,
     accel: float,
     only: list[str] | None = None,
-    candidates: int = 300,
+    candidates: int = DEFAULT_CANDIDATES,
 ) -> dict[str, dict[str, Any]]:
     from calib.design import DesignRequest, MotionSpec, design_plan, plan_motion_time, predict_plan
     from calib.parameters import NOMINAL
@@ -85,9 +85,7 @@ def run_design_bench(opts: argparse.Namespace, progress=None) -> dict[str, Any]:
     from .accuracy import _cores, default_spread_m, draw_truth, trial_seed
 
     t0 = time.perf_counter()
-    plans = _plans(
-        opts.counts, opts.seed, opts.speed, opts.accel, getattr(opts, "plans", None), getattr(opts, "candidates", 300)
-    )
+    plans = _plans(opts.counts, opts.seed, opts.speed, opts.accel, opts.plans, opts.candidates)
     spread = default_spread_m()
     tasks = [
         TrialTask(
