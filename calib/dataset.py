@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import threading
 import time
 from pathlib import Path
 from typing import Annotated, Any, Final, Literal
@@ -206,6 +207,9 @@ class DatasetWriter:
     ) -> None:
         self.root = Path(path)
         (self.root / "frames").mkdir(parents=True, exist_ok=True)
+        #: one writer of the document at a time: frames are written from a worker thread while the run's own thread
+        #: records its state (set_extra); both rewrite dataset.json through the same temporary file
+        self._lock = threading.RLock()
         self._t0 = time.monotonic()
         if resume and (self.root / "dataset.json").exists():
             ds = Dataset.open(self.root)
@@ -229,18 +233,25 @@ class DatasetWriter:
         return len(self._doc["frames"])
 
     def set_extra(self, key: str, value: Any) -> None:
-        self._doc[key] = value
-        self._flush()
+        with self._lock:
+            self._doc[key] = value
+            self._flush()
 
     def add_frame(self, phase: str, q: Any, image: np.ndarray | None, t: float | None = None, **extra: Any) -> int:
         """Write the image (PNG, lossless) then append the frame to ``dataset.json``; returns its index."""
-        import cv2
-
         if phase not in DATASET_PHASES:
             raise InputError(f"unknown phase {phase!r}", field="phase")
         qv = [float(v) for v in np.asarray(q, dtype=np.float64).reshape(-1)]
         if len(qv) != 4:
             raise InputError(f"q must have 4 values, got {len(qv)}", field="q")
+        with self._lock:
+            return self._add_frame(phase, qv, image, t, extra)
+
+    def _add_frame(
+        self, phase: str, qv: list[float], image: np.ndarray | None, t: float | None, extra: dict[str, Any]
+    ) -> int:
+        import cv2
+
         index = len(self._doc["frames"])
         rel = None
         if image is not None:
@@ -266,4 +277,5 @@ class DatasetWriter:
         _atomic_write_bytes(self.root / "dataset.json", json.dumps(self._doc, indent=1).encode())
 
     def close(self) -> None:
-        self._flush()
+        with self._lock:
+            self._flush()

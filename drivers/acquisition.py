@@ -245,8 +245,10 @@ class Acquisition:
         return "motion stopped"
 
     def _mark(self, state: str, pose: int | None, reason: str) -> None:
+        """Record the run's state in ``dataset.json`` (``acquisition``); a failure to record it is logged, and the
+        run's own outcome (the exception being raised) stands."""
         if self._writer is not None:
-            with contextlib.suppress(Exception):
+            try:
                 self._writer.set_extra(
                     "acquisition",
                     {
@@ -257,6 +259,8 @@ class Acquisition:
                         "total": len(self.units),
                     },
                 )
+            except Exception:
+                log.exception("could not record the run's state %r in %s", state, self.out)
 
     async def _run(self) -> RunResult:
         validate_plan(self.plan, self.nominal, self.limits)  # nothing moves before the whole plan is checked
@@ -406,13 +410,34 @@ class Acquisition:
     async def _write_behind(self, u: Unit, q: np.ndarray, frame: Frame, **extra: Any) -> None:
         """Write a frame in a worker thread while the next pose's move starts (frames stay in order: one
         write at a time; :meth:`_flush_writes` waits for the last one)."""
-        await self._flush_writes()
+        try:
+            await self._flush_writes()
+        except asyncio.CancelledError:
+            # aborted while the previous frame was being written: this frame was grabbed too, it is written after
+            # that one (the abort's flush waits for both)
+            self._pending = asyncio.ensure_future(self._write_after(self._pending, u, q, frame, extra))
+            raise
         self._pending = asyncio.ensure_future(asyncio.to_thread(self._write, u, q, frame, **extra))
 
+    async def _write_after(
+        self, previous: asyncio.Future | None, u: Unit, q: np.ndarray, frame: Frame, extra: dict[str, Any]
+    ) -> None:
+        if previous is not None:
+            await previous
+        await asyncio.to_thread(self._write, u, q, frame, **extra)
+
     async def _flush_writes(self) -> None:
-        p, self._pending = self._pending, None
-        if p is not None:
+        """Wait for the frame being written. The write stays pending until it has finished: a cancellation (an
+        abort) that arrives while waiting here leaves it to the abort's own flush, which waits for it before the run
+        records its state and returns (a run that has ended never writes again)."""
+        p = self._pending
+        if p is None:
+            return
+        try:
             await asyncio.shield(p)
+        finally:
+            if p.done() and self._pending is p:
+                self._pending = None
 
     # -- steps ------------------------------------------------------------------------------------
     async def _grab(self) -> Frame:

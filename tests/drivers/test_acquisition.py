@@ -199,6 +199,54 @@ async def test_pause_resume_abort(bench, tmp_path):
     assert ds.document.model_extra["acquisition"]["state"] == "aborted"
 
 
+async def test_abort_waits_for_the_frame_being_written(bench, tmp_path, monkeypatch):
+    """An abort that arrives while the run waits for a frame's write (frames are written behind the next move) ends
+    the run only after that write, and keeps the frame grabbed meanwhile: the state record counts every frame kept and
+    nothing is written once the run has ended. Before, the abort lost the write in flight: the run ended with it still
+    running, its record a frame short, the grabbed frame dropped, and the two writers of dataset.json shared one
+    temporary file (the state record could be lost)."""
+    import threading
+
+    from calib.dataset import DatasetWriter
+
+    release, in_flight = threading.Event(), threading.Event()
+    original = DatasetWriter.add_frame
+
+    def add_frame(self, *args, **kwargs):
+        if len(self) >= 2:  # the third frame's write (and any after) waits until the test releases it
+            in_flight.set()
+            release.wait(10.0)
+        try:
+            return original(self, *args, **kwargs)
+        finally:
+            in_flight.clear()
+
+    monkeypatch.setattr(DatasetWriter, "add_frame", add_frame)
+    acq = make_acq(bench, small_plan(), tmp_path / "ds")
+    task = asyncio.create_task(acq.run())
+    while not in_flight.is_set():
+        await asyncio.sleep(0.002)
+    # the next pose's move runs while the frame is written; once it is over and its frame grabbed, the run waits
+    # for the write (a loaded machine only makes the wait start later: the write is held until released)
+    while not any(a.moving for a in bench.mechanism.axes):
+        await asyncio.sleep(0.002)
+    while any(a.moving for a in bench.mechanism.axes):
+        await asyncio.sleep(0.002)
+    await asyncio.sleep(0.2)
+    acq.abort()
+    asyncio.get_running_loop().call_later(0.3, release.set)
+    with pytest.raises(AbortedError, match="motion stopped"):
+        await task
+    assert not in_flight.is_set(), "the run ended while a frame was still being written"
+    await close(acq)
+    ds = Dataset.open(tmp_path / "ds")
+    record = ds.document.model_extra["acquisition"]
+    assert record["state"] == "aborted"
+    assert record["frames"] == len(ds.frames) == 4  # the three before the abort and the one grabbed while waiting
+    await asyncio.sleep(0.2)
+    assert len(Dataset.open(tmp_path / "ds").frames) == 4
+
+
 async def test_existing_dataset_needs_resume(bench, tmp_path):
     out = tmp_path / "ds"
     acq = make_acq(bench, small_plan(), out)
