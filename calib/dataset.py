@@ -209,7 +209,7 @@ class DatasetWriter:
         (self.root / "frames").mkdir(parents=True, exist_ok=True)
         #: one writer of the document at a time: frames are written from a worker thread while the run's own thread
         #: records its state (set_extra); both rewrite dataset.json through the same temporary file
-        self._lock = threading.RLock()
+        self._lock = threading.Lock()
         self._t0 = time.monotonic()
         if resume and (self.root / "dataset.json").exists():
             ds = Dataset.open(self.root)
@@ -239,39 +239,34 @@ class DatasetWriter:
 
     def add_frame(self, phase: str, q: Any, image: np.ndarray | None, t: float | None = None, **extra: Any) -> int:
         """Write the image (PNG, lossless) then append the frame to ``dataset.json``; returns its index."""
+        import cv2
+
         if phase not in DATASET_PHASES:
             raise InputError(f"unknown phase {phase!r}", field="phase")
         qv = [float(v) for v in np.asarray(q, dtype=np.float64).reshape(-1)]
         if len(qv) != 4:
             raise InputError(f"q must have 4 values, got {len(qv)}", field="q")
         with self._lock:
-            return self._add_frame(phase, qv, image, t, extra)
-
-    def _add_frame(
-        self, phase: str, qv: list[float], image: np.ndarray | None, t: float | None, extra: dict[str, Any]
-    ) -> int:
-        import cv2
-
-        index = len(self._doc["frames"])
-        rel = None
-        if image is not None:
-            if image.dtype not in (np.uint8, np.uint16):
-                raise InputError(f"image must be 8 or 16 bit, got {image.dtype}", frame=index, field="image")
-            rel = f"frames/{index:06d}.png"
-            ok, buf = cv2.imencode(".png", image)
-            if not ok:
-                raise InputError("PNG encoding failed", frame=index, field="image")
-            _atomic_write_bytes(self.root / rel, buf.tobytes())
-        frame = {
-            "phase": phase,
-            "q": qv,
-            "image": rel,
-            "t": float(time.monotonic() - self._t0) if t is None else float(t),
-            **extra,
-        }
-        self._doc["frames"].append(frame)
-        self._flush()
-        return index
+            index = len(self._doc["frames"])
+            rel = None
+            if image is not None:
+                if image.dtype not in (np.uint8, np.uint16):
+                    raise InputError(f"image must be 8 or 16 bit, got {image.dtype}", frame=index, field="image")
+                rel = f"frames/{index:06d}.png"
+                ok, buf = cv2.imencode(".png", image)
+                if not ok:
+                    raise InputError("PNG encoding failed", frame=index, field="image")
+                _atomic_write_bytes(self.root / rel, buf.tobytes())
+            frame = {
+                "phase": phase,
+                "q": qv,
+                "image": rel,
+                "t": float(time.monotonic() - self._t0) if t is None else float(t),
+                **extra,
+            }
+            self._doc["frames"].append(frame)
+            self._flush()
+            return index
 
     def _flush(self) -> None:
         _atomic_write_bytes(self.root / "dataset.json", json.dumps(self._doc, indent=1).encode())
