@@ -36,9 +36,11 @@ from .scene import Scene, rod_segments, visibility
 __all__ = [
     "BoardPoses",
     "RodSet",
+    "board_axis_angle_deg",
     "board_corners",
     "board_poses",
     "calibration_covariance",
+    "corner_noise_factor",
     "design_camera",
     "synthetic_rods",
 ]
@@ -263,11 +265,53 @@ class BoardPoses:
     d_intrinsics: np.ndarray
 
 
+def board_axis_angle_deg(scene: Scene, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """How far the board's squares' edges lie from the pixel axes in the image, per pose, degrees in [0, 45].
+
+    The angle of the board's x axis at its centre as the camera sees it, folded onto the nearest pixel axis
+    (the squares' other edges are at 90 degrees to it). ``R`` (N, 3, 3), ``t`` (N, 3): camera_from_board.
+    """
+    R = np.asarray(R, dtype=np.float64).reshape(-1, 3, 3)
+    t = np.asarray(t, dtype=np.float64).reshape(-1, 3)
+    if len(R) == 0:
+        return np.zeros(0)
+    W, H = scene.board_size_m
+    c = np.einsum("nij,j->ni", R, np.array([W / 2, H / 2, 0.0])) + t
+    step = 0.25 * scene.board_square_m * R[:, :, 0]
+    d = scene.camera.project(c + step) - scene.camera.project(c)
+    a = np.degrees(np.arctan2(d[:, 1], d[:, 0])) % 90.0
+    return np.minimum(a, 90.0 - a)
+
+
+def corner_noise_factor(angle_deg: np.ndarray, axis_ratio: float, axis_width_deg: float) -> np.ndarray:
+    """Corner noise of a view over that of a view whose edges are oblique to the pixel axes (>= 1).
+
+    ``sqrt(1 + (axis_ratio^2 - 1) / (1 + (angle / axis_width)^2))``: squares whose edges run along the pixel rows
+    and columns give sub-pixel corners ``axis_ratio`` times noisier (the edge's pixel phase is the same along it:
+    pixel locking). Measured on the image-level twin (docs/design.md): 0.045-0.065 px within 4 degrees of the
+    axes, 0.016-0.022 px beyond 20 degrees, at 0.55-0.75 m.
+    """
+    a = np.asarray(angle_deg, dtype=np.float64)
+    if axis_ratio == 1.0:
+        return np.ones_like(a)
+    return np.sqrt(1.0 + (axis_ratio**2 - 1.0) / (1.0 + (a / axis_width_deg) ** 2))
+
+
 def board_poses(
-    scene: Scene, params: I4Parameters, q: np.ndarray, corner_px: float, names: tuple[str, ...]
+    scene: Scene,
+    params: I4Parameters,
+    q: np.ndarray,
+    corner_px: float,
+    names: tuple[str, ...],
+    axis_ratio: float = 1.0,
+    axis_width_deg: float = 4.5,
 ) -> BoardPoses:
-    """Board poses of frames ``q`` (N, 4) with their PnP covariance (corner noise ``corner_px``) and
-    ``d_intrinsics`` (intrinsics ``names``)."""
+    """Board poses of frames ``q`` (N, 4) with their PnP covariance and ``d_intrinsics`` (intrinsics ``names``).
+
+    Corner noise ``corner_px`` (px) for a view whose squares are oblique in the image, times
+    :func:`corner_noise_factor` (``axis_ratio``, ``axis_width_deg``) by how close their edges run to the pixel
+    axes; ``axis_ratio`` 1: the same noise in every view.
+    """
     q = np.atleast_2d(np.asarray(q, dtype=np.float64))
     pts = board_corners(scene)
     cbs = scene.camera_from_board(params, dkm(params, q))
@@ -275,7 +319,8 @@ def board_poses(
     t = np.stack([c.t for c in cbs]) if cbs else np.zeros((0, 3))
     Jp, Ji = _corner_jacobians(scene.camera, names, R, t, pts)
     Hi = np.linalg.inv(np.einsum("nai,naj->nij", Jp, Jp))
-    cov = corner_px**2 * Hi
+    f = corner_noise_factor(board_axis_angle_deg(scene, R, t), axis_ratio, axis_width_deg)
+    cov = (corner_px * f)[:, None, None] ** 2 * Hi
     dint = -np.einsum("nij,naj,nak->nik", Hi, Jp, Ji)
     return BoardPoses(R, t, cov, dint)
 

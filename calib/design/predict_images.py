@@ -39,7 +39,7 @@ from ..errors import IdentifiabilityError, InputError
 from ..numdiff import central_jacobian
 from ..parameters import COMBINATION_NAMES, I4Parameters
 from ..transforms import matrix_to_rotvec, rotvec_to_matrix
-from .imaging import RodSet, board_poses, design_camera, synthetic_rods
+from .imaging import BoardPoses, RodSet, board_poses, design_camera, synthetic_rods
 from .scene import Scene
 
 __all__ = [
@@ -73,7 +73,10 @@ class ImageNoise:
         out.
     corner_px : float
         Effective std of a board corner (px) for the board poses' PnP covariance (times the end-effector
-        method's measured factor).
+        method's measured factor), in a view whose squares are oblique to the pixel axes.
+    corner_axis_ratio, corner_axis_width_deg : float
+        How much noisier the corners of a view whose squares' edges run along the pixel axes are, and how fast that
+        fades with the angle (:func:`calib.design.imaging.corner_noise_factor`; ratio 1: every view alike).
     edge_bias_px, step_px : float
         The extraction's edge-bias allowance in ``cov_u`` and its profile spacing (``RodSettings``).
     edge_bias_prior_px : float
@@ -91,7 +94,9 @@ class ImageNoise:
 
     edge_px: float = 0.11
     rod_scale: float = 0.62
-    corner_px: float = 0.034
+    corner_px: float = 0.025
+    corner_axis_ratio: float = 3.3
+    corner_axis_width_deg: float = 5.5
     edge_bias_px: float = 0.05
     step_px: float = 3.0
     edge_bias_prior_px: float = 0.1
@@ -101,7 +106,7 @@ class ImageNoise:
     encoder_m: float = 1e-6
 
     def __post_init__(self) -> None:
-        for k in ("edge_px", "rod_scale", "corner_px", "step_px"):
+        for k in ("edge_px", "rod_scale", "corner_px", "step_px", "corner_axis_width_deg"):
             v = getattr(self, k)
             if not (np.isfinite(v) and v > 0):
                 raise InputError(f"image noise: {k} must be finite and > 0, got {v}", field=k)
@@ -109,6 +114,11 @@ class ImageNoise:
             v = getattr(self, k)
             if not (np.isfinite(v) and v >= 0):
                 raise InputError(f"image noise: {k} must be finite and >= 0, got {v}", field=k)
+        if not (np.isfinite(self.corner_axis_ratio) and self.corner_axis_ratio >= 1):
+            raise InputError(
+                f"image noise: corner_axis_ratio must be finite and >= 1, got {self.corner_axis_ratio}",
+                field="corner_axis_ratio",
+            )
         bad = [n for n in self.intrinsics_names if n not in (*INTRINSICS_NAMES, "k3", "k4", "k5", "k6")]
         if bad:
             raise InputError(f"image noise: unknown intrinsics {', '.join(bad)}", field="intrinsics_names")
@@ -120,6 +130,18 @@ class ImageNoise:
                     f"image noise: intrinsics_cov must be a finite positive semi-definite {n}x{n} matrix",
                     field="intrinsics_cov",
                 )
+
+    def board_poses(self, scene: Scene, nominal: I4Parameters, q: np.ndarray) -> BoardPoses:
+        """:func:`calib.design.imaging.board_poses` of frames ``q`` (N, 4) at these corner noise levels."""
+        return board_poses(
+            scene,
+            nominal,
+            q,
+            self.corner_px,
+            self.intrinsics_names,
+            self.corner_axis_ratio,
+            self.corner_axis_width_deg,
+        )
 
     def covariance(self) -> np.ndarray | None:
         return None if self.intrinsics_cov is None else np.asarray(self.intrinsics_cov, dtype=np.float64)
@@ -143,6 +165,8 @@ class ImageNoise:
             "edge_px": self.edge_px,
             "rod_scale": self.rod_scale,
             "corner_px": self.corner_px,
+            "corner_axis_ratio": self.corner_axis_ratio,
+            "corner_axis_width_deg": self.corner_axis_width_deg,
             "edge_bias_px": self.edge_bias_px,
             "step_px": self.step_px,
             "edge_bias_prior_px": self.edge_bias_prior_px,
@@ -185,9 +209,8 @@ def base_frame_images(
     q_tra = np.asarray(q_tra, dtype=np.float64).reshape(-1, 4)
     if len(q_rot) < 2 or len(q_tra) < 2:
         raise IdentifiabilityError("the base frame needs at least 2 rotation and 2 translation frames")
-    names = noise.intrinsics_names
-    br = board_poses(scene, nominal, q_rot, noise.corner_px, names)
-    bt = board_poses(scene, nominal, q_tra, noise.corner_px, names)
+    br = noise.board_poses(scene, nominal, q_rot)
+    bt = noise.board_poses(scene, nominal, q_tra)
     R_cb = scene.camera_from_base.R
     n_r = len(q_rot)
     T_rot = (q_rot[:, 0] + q_rot[:, 1] - q_rot[:, 2] - q_rot[:, 3]) / 4.0
@@ -347,7 +370,7 @@ def _ee_terms(nominal: I4Parameters, q_fit: np.ndarray, scene: Scene, noise: Ima
     n = len(R)
     J = central_jacobian(lambda x: model.residuals(x).ravel(), x0, 1e-7).reshape(n, 6, -1)
     A = _board_pose_sensitivity(model, x0, R, t)
-    bp = board_poses(scene, nominal, q_fit, noise.corner_px, noise.intrinsics_names)
+    bp = noise.board_poses(scene, nominal, q_fit)
     C = np.einsum("nij,njk,nlk->nil", A, bp.cov, A)
     C[:, :4, :4] += noise.encoder_m**2 * np.eye(4)
     return J, A, bp, C + 1e-30 * np.eye(6)
