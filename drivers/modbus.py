@@ -18,7 +18,11 @@ and discarded. Consecutive reads of one unit (a retry included) ask for windows 
 (the read-back window, then widened by an adjacent register of the same axis), so that a late or
 duplicated reply to the previous read of that unit has the wrong byte count and is refused
 (``stats["stale"]``) rather than taken for the current answer, on RTU framing and behind a Modbus
-TCP/RTU gateway alike.
+TCP/RTU gateway alike. The read before that has the same length: a request waits until ``flush_s``
+after the last reply to a request of its shape (unit, function, a read's register count, a write's
+address and count), so that a copy of that reply made on the way (a gateway or serial device server
+that duplicates it) has come, while nothing was asked, before a request it would answer goes out.
+A stop (``urgent``) does not wait; the controller reads it back.
 """
 
 from __future__ import annotations
@@ -146,6 +150,9 @@ class ModbusLink:
         self._link = _Connection()
         self._lock = asyncio.Lock()
         self._read_count: dict[int, int] = {}  # reads per unit (RTU framing: alternate the window length)
+        #: when the last reply came to each request shape (unit, function, what the reply shows of the request): a
+        #: request of the same shape waits until ``flush_s`` after it (a duplicate of that reply would pass for its)
+        self._replied: dict[tuple, float] = {}
         self._windows = [self._read_windows(i) for i in range(self.n_axes)]
         #: counters of this link, also summed process-wide for ``GET /metrics`` (drivers.metrics)
         self.stats = CountingStats(
@@ -328,6 +335,12 @@ class ModbusLink:
                 if attempt:
                     self.stats["retries"] += 1
                     await asyncio.sleep(min(self.backoff_s * 2 ** (attempt - 1), self.backoff_max_s))
+                shape = _reply_shape(kind, unit, address, count_or_values)
+                if not urgent and (wait := self._replied.get(shape, -np.inf) + self.flush_s - time.monotonic()) > 0:
+                    # a reply duplicated on its way (a gateway, a serial device server) comes within flush_s of the
+                    # original: it must be over before a request it would match goes out (RTU replies name neither
+                    # the register nor a transaction; a gateway may give a late serial reply the next request's id)
+                    await asyncio.sleep(wait)
                 try:
                     client = await self._ready_link(urgent)
                 except DeviceConnectionError as exc:
@@ -356,6 +369,7 @@ class ModbusLink:
                     last = f"Modbus error ({exc})"
                     self._fault(reply_may_come=True)
                     continue
+                self._replied[shape] = time.monotonic()
                 task = asyncio.current_task()
                 if task is not None and task.cancelling():
                     # Python 3.11's wait_for (inside pymodbus) returns a reply that lands together with a
@@ -453,6 +467,15 @@ class ModbusLink:
                 await self.write(unit, off + m.speed, sregs)
                 await self.write(unit, off + m.target, tregs)
                 await self.control(i, "start", free=False)  # never free here: a move refuses free drives
+
+
+def _reply_shape(kind: str, unit: int, address: int, count_or_values: Any) -> tuple:
+    """What a reply shows of its request: unit and function, and the register count of a read (its byte count)
+    or the address and count of a write (its echo). Two requests of one shape cannot tell their replies apart
+    (on RTU framing, and behind a gateway that hands a late serial reply to the next request)."""
+    if kind == "read":
+        return unit, kind, int(count_or_values)
+    return unit, kind, int(address), len(count_or_values)
 
 
 class ModbusActuators(AxisController):

@@ -27,7 +27,7 @@ import pytest
 from drv_helpers import make_modbus
 
 from drivers.errors import DeviceError
-from drivers.modbus import ModbusActuators
+from drivers.modbus import ModbusActuators, ModbusLink
 from drivers.sim.faultproxy import FaultProxy, SerialGateway, cancel_and_wait
 
 Q_A = np.array([0.40, 0.41, 0.42, 0.43])
@@ -211,3 +211,63 @@ async def test_no_stale_reading(bench, transport, scenario):
     assert r["stale"] == [], f"{len(r['stale'])} stale readings of {r['readings']}: {r['stale'][:5]}"
     assert sum(r["proxy"].get(f, 0) for f in FAULTS) >= 3, r["proxy"]  # the scenario really happened
     assert r["readings"] >= 120 and r["moves"] >= 3, r
+
+
+class ScriptedRtuDevice:
+    """A Modbus RTU device behind a serial device server (RTU framing over a real TCP socket) whose replies follow a
+    script: reply k (1-based) is sent ``reply_after_s[k]`` after its request, and a copy of reply k goes out again
+    ``duplicate_after_s[k]`` after the original. Each reply's registers all hold the request's number k, so a
+    reading names the request it answers."""
+
+    def __init__(self, reply_after_s: dict[int, float], duplicate_after_s: dict[int, float]) -> None:
+        self.reply_after_s, self.duplicate_after_s = reply_after_s, duplicate_after_s
+        self.requests = 0
+        self._server: asyncio.Server | None = None
+
+    async def start(self) -> tuple[str, int]:
+        self._server = await asyncio.start_server(self._handle, "127.0.0.1", 0)
+        return self._server.sockets[0].getsockname()[:2]
+
+    async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        from pymodbus.framer import FramerRTU
+
+        loop = asyncio.get_running_loop()
+        with contextlib.suppress(asyncio.IncompleteReadError, ConnectionError):
+            while True:
+                req = await reader.readexactly(8)  # unit, 3, address (2), count (2), CRC (2)
+                assert req[1] == 3, f"only reads are scripted, got function {req[1]}"
+                self.requests += 1
+                k, count = self.requests, int.from_bytes(req[4:6], "big")
+                body = bytes([req[0], 3, 2 * count]) + b"".join(k.to_bytes(2, "big") for _ in range(count))
+                frame = body + FramerRTU.compute_CRC(body).to_bytes(2, "big")
+                delay = self.reply_after_s.get(k, 0.0)
+                loop.call_later(delay, writer.write, frame)
+                if k in self.duplicate_after_s:
+                    loop.call_later(delay + self.duplicate_after_s[k], writer.write, frame)
+
+    async def close(self) -> None:
+        if self._server is not None:
+            self._server.close()
+            await self._server.wait_closed()
+
+
+async def test_a_duplicate_never_answers_a_later_request_of_the_same_shape():
+    """A reply duplicated on its way lands while a later request of the same shape (unit, register count) waits.
+
+    RTU replies name neither register nor transaction; the driver alternates two read lengths per unit so that a
+    duplicate of the previous read has the wrong length, but the read before that has the same. Script: read 1
+    (4 registers) is answered at once and duplicated 6 ms later; read 2 (5 registers) at once; read 3 (4 registers,
+    out ~1 ms after read 1's reply) 15 ms after it arrives, so read 1's duplicate lands while read 3 waits. The
+    driver took it for read 3's answer (CI: test_no_stale_reading[duplicate-rtu-tcp], an axis read 11 mm from where
+    it was). Now a request waits until ``flush_s`` after the last reply to a request of its shape: the duplicate
+    comes while nothing is asked, and is discarded."""
+    device = ScriptedRtuDevice(reply_after_s={3: 0.015}, duplicate_after_s={1: 0.006})
+    host, port = await device.start()
+    link = ModbusLink(transport="rtu-tcp", host=host, port=port, timeout_s=0.5, retries=0, flush_s=0.05)
+    try:
+        got = [await link.read(1, 5, 4), await link.read(1, 4, 5), await link.read(1, 5, 4)]
+    finally:
+        await link.close()
+        await device.close()
+    assert [g[0] for g in got] == [1, 2, 3], f"read 3 answered by reply {got[2][0]}: {got}"
+    assert link.stats["unrequested"] == 1, dict(link.stats)  # the duplicate came, and was discarded
