@@ -125,6 +125,10 @@ class AxisController:
         moving.
     backoff_s:
         Pause (s) before a stop that could not be sent is sent again.
+
+    A stop that was acknowledged but still reads moving once the drive could have braked from full speed
+    (``speed_m_s / accel_m_s2`` plus two polls) is sent again, until the deadline: an acknowledgement proves that a
+    reply came, not that the drive acted (a lost frame answered by a copy of an earlier stop's echo, a drive busy).
     """
 
     def __init__(
@@ -174,6 +178,8 @@ class AxisController:
         self.plausibility_slack_m = float(plausibility_slack_m)
         self.stop_deadline_s = float(stop_deadline_s)
         self.backoff_s = float(backoff_s)
+        #: a stop still read moving this long (s) after it was sent is sent again: the braking time from full speed
+        self.stop_resend_s = self.speed_m_s / max(self.accel_m_s2, 1e-9) + 2 * self.poll_s
         self._free_bits = [False] * n
         self._homing = False
         self._last_reading: list[tuple[float, float] | None] = [None] * n  # (position m, monotonic s) per axis
@@ -286,21 +292,32 @@ class AxisController:
         confirmed = [False] * n
         errors: dict[int, str] = {}
 
-        async def one(i: int) -> None:
+        async def send(i: int) -> float:
             while True:
                 try:
                     await self._control(i, "stop", urgent=True)
-                    break
+                    return time.monotonic()
                 except DeviceError as exc:
                     errors[i] = f"stop not sent ({exc})"
                     await asyncio.sleep(self.backoff_s)
+
+        async def one(i: int) -> None:
+            sent = await send(i)
+            n_sent = 1
             while True:
                 try:
                     s = await self.read_axis(i)
                     if not s.moving:
                         confirmed[i] = True
                         return
-                    errors[i] = "still reads moving"
+                    errors[i] = f"still reads moving (stop sent {n_sent} times)"
+                    if time.monotonic() - sent >= self.stop_resend_s:
+                        # acknowledged is not obeyed: send it again while the deadline lasts
+                        log.warning(
+                            "axis %d still moving %.3f s after its stop: stop sent again", i + 1, self.stop_resend_s
+                        )
+                        sent = await send(i)
+                        n_sent += 1
                 except DeviceError as exc:
                     errors[i] = f"not read back ({exc})"
                 await asyncio.sleep(max(self.poll_s, 0.001))

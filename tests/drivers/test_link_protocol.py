@@ -163,6 +163,38 @@ async def test_a_stop_not_read_back_is_not_confirmed():
         assert time.monotonic() - t0 < 0.05 + act.stop_deadline_s + 0.5
 
 
+class DeafOnceLink(MemoryLink):
+    """Acknowledges every axis' first stop without acting on it (a lost frame answered by a copy of an earlier
+    stop's echo, a drive busy): the reply proves that something answered, not that the drive stopped."""
+
+    def __init__(self, n: int = 3) -> None:
+        super().__init__(n)
+        self.ignored: set[int] = set()
+
+    async def control(self, axis: int, command: Command | None, *, free: bool, urgent: bool = False) -> None:
+        if command == "stop" and axis not in self.ignored:
+            self.ignored.add(axis)
+            self.stats["requests"] += 1
+            self.sent.append((command, axis, free, urgent))
+            return
+        await super().control(axis, command, free=free, urgent=urgent)
+
+
+async def test_a_stop_acknowledged_but_not_obeyed_is_sent_again():
+    link = DeafOnceLink()
+    async with controller(link, stop_deadline_s=1.0) as act:
+        task = asyncio.create_task(act.move([0.5, 0.5, 0.5]))
+        await asyncio.sleep(0.05)
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task  # the stop is confirmed: no StopNotConfirmedError replaces the cancellation
+        q1 = link.q()
+        await asyncio.sleep(0.02)
+        np.testing.assert_array_equal(link.q(), q1)  # stopped, short of the target
+        assert np.all(q1 < 0.4)
+        assert stops(link) == [0, 0, 1, 1, 2, 2]  # each axis: the ignored stop, then the one obeyed
+
+
 async def test_an_implausible_reading_moves_nothing():
     link = MemoryLink()
     async with controller(link, max_speed_m_s=1.0) as act:
