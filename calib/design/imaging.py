@@ -292,8 +292,6 @@ def corner_noise_factor(angle_deg: np.ndarray, axis_ratio: float, axis_width_deg
     axes, 0.016-0.022 px beyond 20 degrees, at 0.55-0.75 m.
     """
     a = np.asarray(angle_deg, dtype=np.float64)
-    if axis_ratio == 1.0:
-        return np.ones_like(a)
     return np.sqrt(1.0 + (axis_ratio**2 - 1.0) / (1.0 + (a / axis_width_deg) ** 2))
 
 
@@ -304,7 +302,7 @@ def board_poses(
     corner_px: float,
     names: tuple[str, ...],
     axis_ratio: float = 1.0,
-    axis_width_deg: float = 4.5,
+    axis_width_deg: float = 5.5,
 ) -> BoardPoses:
     """Board poses of frames ``q`` (N, 4) with their PnP covariance and ``d_intrinsics`` (intrinsics ``names``).
 
