@@ -33,6 +33,9 @@ precise, its depth (from its apparent width) tens of times less so.
   chi-square(2) 99.9% quantile, or a pose whose whitened residuals are beyond their chi-square
   99.9% quantile, is dropped.
 
+One wrong joint (the rod-pair check, :func:`.uncertainty._pair_consistency`, flags exactly one leg): repaired from
+its partner and the other legs' rod spacing when the fit poses single it out (:mod:`.repair`).
+
 Standard deviations: the joints' covariance (from the weighted fit, scaled by its residual
 chi-square per degree of freedom) propagated linearly through steps 2-4 (numerical derivatives),
 plus the GLS covariance of (L, S, D), scaled by its residual chi-square per degree of freedom.

@@ -14,6 +14,7 @@ from ..result import MethodResult, combos_dict, std_dict
 from .constants import PRIOR_STD_M
 from .joints import _plane_observations, _step1_planes, intersect_lines, joint_from_planes
 from .pipeline import _gate_poses, _leg_directions, _LegsPipeline, _pair_means, _steps34_covariance
+from .repair import repair_joint
 from .uncertainty import _identifiability, _IntrinsicsEffect, _pair_consistency, _prior_conflict, _with_prior
 
 #: step 2's parameters (H, q02, q03, q04; indices into PARAMETER_NAMES): from the lock phases' joints alone
@@ -119,6 +120,7 @@ def calibrate_legs(
     #      separations agree when the joints are right. A leg whose separation is off beyond its covariance has a
     #      joint wrong beyond its std (a rod's frames taken for another edge, a weakly conditioned lock phase):
     #      its joints' covariance is scaled to cover that disagreement
+    covPij_measured = covPij
     covPij, pair_check, warnings = _pair_consistency(P, covPij)
 
     # ---- steps 2-4
@@ -126,6 +128,32 @@ def calibrate_legs(
     U, CU, pts, has_leg, measured, rejected_pairs, C_rods = _leg_directions(obs, data, direction_std_rad)
     pipe = _LegsPipeline(q_lock, data.q, pts, has_leg, CU, nom)
     U_filled = np.where(has_leg[..., None], U, 0.0)
+    # ---- step 1c: one flagged leg whose wrong joint the fit poses single out is repaired from its partner and the
+    #      other legs' separation (:mod:`.repair`); the joints' covariance follows the linear map exactly
+    covP = np.zeros((24, 24))
+    for i in range(4):
+        for j in range(2):
+            k = (i * 2 + j) * 3
+            covP[k : k + 3, k : k + 3] = covPij[i, j]
+    repair = repair_joint(pipe, P, U_filled, [c["leg"] - 1 for c in pair_check if c["scale"] > 1.0])
+    if repair is not None:
+        P_measured = P
+        P = repair.apply(P_measured)
+        covP_measured = np.zeros((24, 24))
+        for i in range(4):
+            for j in range(2):
+                k = (i * 2 + j) * 3
+                covP_measured[k : k + 3, k : k + 3] = covPij_measured[i, j]
+        covP = repair.T @ covP_measured @ repair.T.T
+        pair_check[repair.leg]["repaired_rod"] = repair.rod
+        warnings = [w for w in warnings if not w.startswith(f"lock-{repair.leg + 1}:")]
+        warnings.append(
+            f"lock-{repair.leg + 1}: the joint of rod {repair.rod} disagrees with the other legs' rod spacing "
+            f"({pair_check[repair.leg]['deviation_mm']:.1f} mm); it is taken as its partner's plus that spacing "
+            f"(moved {repair.moved_m * 1e3:.1f} mm): the fit poses' chi-square per dof falls from "
+            f"{repair.chi2_before:.1f} to {repair.chi2_after:.1f} ({repair.chi2_other:.1f} with the other rod's "
+            "joint replaced instead)"
+        )
     # poses judged by a robust fit (each round), then the least-squares fit of the poses kept
     seven = pipe.run(P, U_filled, robust=True)
     rejected_poses: list[int] = []
@@ -151,11 +179,6 @@ def calibrate_legs(
         dP = np.zeros(24)
         dP[a] = h
         GP[:, a] = (f(P + dP.reshape(4, 2, 3)) - f(P - dP.reshape(4, 2, 3))) / (2 * h)
-    covP = np.zeros((24, 24))
-    for i in range(4):
-        for j in range(2):
-            k = (i * 2 + j) * 3
-            covP[k : k + 3, k : k + 3] = covPij[i, j]
     cov_joints = GP @ covP @ GP.T
     # (ii) the leg directions of the fit poses: GLS covariance of (L, S, D), scaled by the chi-square
     c34, chi34, dof34 = _steps34_covariance(pipe, P, U_filled, seven)
@@ -184,6 +207,8 @@ def calibrate_legs(
                     for i in range(4)
                 ]
             )
+            if repair is not None:
+                Pz = repair.apply(Pz)
             Uz = _pair_means(eff.rod_u(z, data.rod_u), data.has_rod, C_rods)[0]
             return pipe.run(Pz, np.where(pipe.has_leg[..., None], Uz, 0.0), x2, theta_init=lsd)
 
@@ -290,6 +315,7 @@ def calibrate_legs(
             "joint_centres_camera": P.mean(axis=1).tolist(),
             "locked_q": q_lock.tolist(),
             "rod_pair_check": pair_check,
+            "joint_repaired": None if repair is None else repair.to_dict(),
             "identifiability": {
                 **ident,
                 "prior_std_m": prior_std_m,
