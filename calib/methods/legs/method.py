@@ -135,7 +135,23 @@ def calibrate_legs(
         for j in range(2):
             k = (i * 2 + j) * 3
             covP[k : k + 3, k : k + 3] = covPij[i, j]
-    repair = repair_joint(pipe, P, U_filled, [c["leg"] - 1 for c in pair_check if c["scale"] > 1.0])
+    has_rod = data.has_rod
+
+    def fit_data(leg: int, rod: int | None) -> tuple[_LegsPipeline, np.ndarray]:
+        if rod is None:
+            return pipe, U_filled
+        hr = has_rod.copy()
+        hr[:, leg, rod] = False
+        hl = has_leg & hr.any(axis=2)
+        U_r, CU_r, _ = _pair_means(data.rod_u, hr, C_rods)
+        return _LegsPipeline(q_lock, data.q, pts, hl, CU_r, nom), np.where(hl[..., None], U_r, 0.0)
+
+    flagged = [c["leg"] - 1 for c in pair_check if c["scale"] > 1.0]
+    repair = repair_joint(P, flagged, fit_data) if measured else repair_joint(P, flagged, fit_data, chi2_max=None)
+    if repair is not None and repair.left_out_of_fit_poses:
+        pipe, U_filled = fit_data(repair.leg, repair.rod)
+        has_rod = has_rod.copy()
+        has_rod[:, repair.leg, repair.rod] = False
     if repair is not None:
         P_measured = P
         P = repair.apply(P_measured)
@@ -153,6 +169,11 @@ def calibrate_legs(
             f"(moved {repair.moved_m * 1e3:.1f} mm): the fit poses' chi-square per dof falls from "
             f"{repair.chi2_before:.1f} to {repair.chi2_after:.1f} ({repair.chi2_other:.1f} with the other rod's "
             "joint replaced instead)"
+            + (
+                f"; the rod is left out of the fit poses too (leg {repair.leg + 1}'s direction is its partner's)"
+                if repair.left_out_of_fit_poses
+                else ""
+            )
         )
     # poses judged by a robust fit (each round), then the least-squares fit of the poses kept
     seven = pipe.run(P, U_filled, robust=True)
@@ -209,7 +230,7 @@ def calibrate_legs(
             )
             if repair is not None:
                 Pz = repair.apply(Pz)
-            Uz = _pair_means(eff.rod_u(z, data.rod_u), data.has_rod, C_rods)[0]
+            Uz = _pair_means(eff.rod_u(z, data.rod_u), has_rod, C_rods)[0]
             return pipe.run(Pz, np.where(pipe.has_leg[..., None], Uz, 0.0), x2, theta_init=lsd)
 
         # one standard deviation along each principal direction, then the limb-edge bias common to every rod

@@ -10,13 +10,15 @@ with the wrong one, at tens to hundreds of times it.
 
 So for a single flagged leg each of its joints in turn is replaced by its partner's plus (or minus) the mean
 separation of the other three legs, a linear function of the other joints (:func:`joint_repair_map`, so the joints'
-covariance follows exactly), and the replacement kept if the fit poses' robust chi-square per degree of freedom
-falls to a small fraction of the unrepaired one (:data:`REPAIR_GAIN`); otherwise nothing changes (the check's
-covariance scaling stands).
+covariance follows exactly), with that rod's fit-pose directions kept or left out (a rod measured wrong in its lock
+phase is often wrong in the fit poses too), and the best of the four kept if the fit poses' robust chi-square per
+degree of freedom falls to a small fraction of the unrepaired one (:data:`REPAIR_GAIN`) and near the noise
+(:data:`REPAIR_CHI2_MAX`); otherwise nothing changes (the check's covariance scaling stands).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,6 +30,10 @@ from .pipeline import _LegsPipeline
 #: a repair is kept when it divides the fit poses' robust chi-square per degree of freedom by at least this (clean
 #: trials of the twin: 1-2; with one joint 35-71 mm off: 26-380)
 REPAIR_GAIN = 4.0
+#: ... and when that chi-square per dof, with measured rod covariances (absolute weights), is at most this: a fit still
+#: far above its noise is no repair (clean image-twin trials: 0.4-4.5; a wrong rod's joint replaced by a still wrong
+#: one, on the geometric twin: 17.8)
+REPAIR_CHI2_MAX = 6.0
 
 
 @dataclass(frozen=True)
@@ -40,7 +46,8 @@ class JointRepair:
     moved_m: float  #: how far the joint moved
     chi2_before: float  #: fit poses' robust chi-square per dof with the measured joints
     chi2_after: float  #: with the repaired joint
-    chi2_other: float  #: with the other joint of the leg replaced instead
+    chi2_other: float  #: with the other joint of the leg replaced instead (its best variant)
+    left_out_of_fit_poses: bool = False  #: the rod's fit-pose directions are left out too (its leg's is its partner's)
 
     def apply(self, P: np.ndarray) -> np.ndarray:
         """The used joints (4, 2, 3) from measured ones (4, 2, 3)."""
@@ -54,6 +61,7 @@ class JointRepair:
             "chi2_per_dof_before": self.chi2_before,
             "chi2_per_dof_after": self.chi2_after,
             "chi2_per_dof_other_rod": self.chi2_other,
+            "left_out_of_fit_poses": self.left_out_of_fit_poses,
         }
 
 
@@ -93,34 +101,57 @@ def _fit_chi2(pipe: _LegsPipeline, P: np.ndarray, U: np.ndarray) -> float:
     return float(robust_chi2_scale(d2[used], m[used])) if used.sum() >= 4 else float("nan")
 
 
-def repair_joint(pipe: _LegsPipeline, P: np.ndarray, U: np.ndarray, flagged: list[int]) -> JointRepair | None:
+#: the fit poses' data, a rod left out of its leg's direction: (leg, rod or None) -> (pipeline, directions (N, 4, 3))
+FitData = Callable[[int, "int | None"], tuple[_LegsPipeline, np.ndarray]]
+
+
+def repair_joint(
+    P: np.ndarray, flagged: list[int], fit_data: FitData, chi2_max: float | None = REPAIR_CHI2_MAX
+) -> JointRepair | None:
     """The repair of the one flagged leg's wrong joint, when the fit poses confirm it (module docstring); else None.
+
+    Four hypotheses for the flagged leg: either joint wrong, with that rod's fit-pose directions kept or left out
+    (a rod measured wrong the same way in every frame is often wrong in the fit poses too: its leg's direction is
+    then its partner's alone). The one with the smallest robust chi-square per dof is kept when it is at least
+    :data:`REPAIR_GAIN` times below the measured joints'.
 
     Parameters
     ----------
-    pipe : _LegsPipeline
-        Steps 2-4 over the fit poses (its weights are recomputed by every robust run).
     P : ndarray, shape (4, 2, 3)
         Measured upper joints, camera frame, m.
-    U : ndarray, shape (N, 4, 3)
-        Leg directions of the fit poses (zero where missing).
     flagged : list of int
         Legs (0-based) whose two joints disagree with the other legs' separation.
+    fit_data : callable
+        ``fit_data(leg, rod)``: steps 2-4's pipeline over the fit poses and their leg directions (zero where
+        missing), with ``rod`` of ``leg`` left out of the leg directions (None: every rod).
+    chi2_max : float or None
+        The largest chi-square per dof a repair may leave (None: no bound, for relative weights whose scale is
+        unknown).
     """
     if len(flagged) != 1:
         return None
     leg = flagged[0]
     try:
-        before = _fit_chi2(pipe, P, U)
-        maps = [joint_repair_map(leg, j) for j in (0, 1)]
-        after = [_fit_chi2(pipe, (T @ P.reshape(24)).reshape(4, 2, 3), U) for T in maps]
+        before = _fit_chi2(*_with(fit_data(leg, None), P))
+        cands = []
+        for rod in (0, 1):
+            T = joint_repair_map(leg, rod)
+            Pc = (T @ P.reshape(24)).reshape(4, 2, 3)
+            for left_out in (False, True):
+                cands.append((_fit_chi2(*_with(fit_data(leg, rod if left_out else None), Pc)), rod, left_out, T))
     except (ConvergenceError, IdentifiabilityError, np.linalg.LinAlgError):  # no repair; the check's scaling stands
         return None
-    if not all(np.isfinite([before, *after])):
+    chi2 = np.array([c[0] for c in cands])
+    if not (np.isfinite(before) and np.all(np.isfinite(chi2))):
         return None
-    rod = int(np.argmin(after))
-    if after[rod] * REPAIR_GAIN > before:
+    best = int(np.argmin(chi2))
+    after, rod, left_out, T = cands[best]
+    if after * REPAIR_GAIN > before or (chi2_max is not None and after > chi2_max):
         return None
-    T = maps[rod]
+    other = float(min(c[0] for c in cands if c[1] != rod))
     moved = float(np.linalg.norm((T @ P.reshape(24)).reshape(4, 2, 3)[leg, rod] - P[leg, rod]))
-    return JointRepair(leg, rod, T, moved, before, after[rod], after[1 - rod])
+    return JointRepair(leg, rod, T, moved, before, after, other, left_out)
+
+
+def _with(fit: tuple[_LegsPipeline, np.ndarray], P: np.ndarray) -> tuple[_LegsPipeline, np.ndarray, np.ndarray]:
+    return fit[0], P, fit[1]
