@@ -111,7 +111,8 @@ def test_a_rod_wrong_in_the_fit_poses_too_is_left_out_of_them(twin, paper_plan, 
 
 def test_no_repair_that_leaves_the_fit_far_above_its_noise(twin, paper_plan):
     """Rod 1 tilted 2 mrad in the image in every fit pose as well: the best replacement (rod 0's joint, rod 0 left out:
-    the tilted rod alone) divides the chi-square per dof by 50 but leaves it at 18; that is no repair, the check's widening stands."""
+    the tilted rod alone) divides the chi-square per dof by 50 but leaves it at 18; that is no repair, the check's
+    widening stands."""
     doc = _tilted_fit_rod(
         _moved_rod(twin.observations(plan=paper_plan, seed=0), np.array([0.04, 0.0, 0.0])), 0.002, True
     )
