@@ -462,6 +462,7 @@ def predict_legs_images(
                     rods.cov_u[m],
                     noise.step_px,
                     noise.edge_bias_px,
+                    frame_bias=False,  # as the method weighs its lock phases
                 )
                 obs.append(PlaneObservation(rods.h[m], scene.rod_radius_m, dh, var))
             row.append(obs)

@@ -93,20 +93,28 @@ def test_a_consistently_wrong_rod_is_repaired_and_the_result_is_as_good_as_clean
         assert r.combinations_std[k] < 1.25 * clean.combinations_std[k], (k, r.combinations_std[k])
 
 
-def test_a_rod_wrong_in_the_fit_poses_too_is_left_out_of_them(twin, paper_plan, clean):
-    """The rendered trials' wrong rods were wrong in the fit poses as well (4 of the 6): there the replaced joint alone
-    does not fit them; with the rod left out (its leg's direction its partner's) it does."""
+def test_a_rod_wrong_in_the_fit_poses_too_is_left_out_of_them(twin, paper_plan, monkeypatch):
+    """The rendered trials' wrong rods were wrong in the fit poses as well (3 of the 4 repaired): there the replaced
+    joint alone does not fit them; with the rod left out (its leg's direction its partner's) it does."""
+    # the rod turned by 1 mrad in the image in every fit pose: kept, the replaced joint's fit has chi-square per dof
+    # about 3000; left out, 1.5
     doc = _tilted_fit_rod(
-        _moved_rod(twin.observations(plan=paper_plan, seed=0), np.array([0.04, 0.0, 0.0])), 0.02, False
+        _moved_rod(twin.observations(plan=paper_plan, seed=0), np.array([0.04, 0.0, 0.0])), 1e-3, True
     )
-    r = calibrate_legs(Observations.from_dict(with_planes(doc, np.random.default_rng(0))))
+    obs = Observations.from_dict(with_planes(doc, np.random.default_rng(0)))
+    r = calibrate_legs(obs)
     rep = r.diagnostics["joint_repaired"]
     assert rep is not None and (rep["leg"], rep["rod"], rep["left_out_of_fit_poses"]) == (2, 1, True), rep
     assert any("left out of the fit poses" in w for w in r.warnings), r.warnings
+    monkeypatch.setattr("calib.methods.legs.method.repair_joint", lambda *a, **k: None)
+    unrepaired = calibrate_legs(obs)
     truth = twin.geometry.truth.combinations()
     for k in COMBINATION_NAMES:
         assert abs(r.combinations[k] - truth[k]) < 3.0 * r.combinations_std[k], k
-        assert r.combinations_std[k] < 1.25 * clean.combinations_std[k], (k, r.combinations_std[k])
+        # one rod fewer in leg 2's fit poses costs some precision; the widened unrepaired result costs twice as much
+        # (std 2.0-6.0 mm, errors 2.3-8.9 mm against 0.8-3.1 and 0.4-1.9 mm)
+        assert r.combinations_std[k] < 0.6 * unrepaired.combinations_std[k], (k, r.combinations_std[k])
+        assert abs(r.combinations[k] - truth[k]) < abs(unrepaired.combinations[k] - truth[k]), k
 
 
 def test_no_repair_that_leaves_the_fit_far_above_its_noise(twin, paper_plan):

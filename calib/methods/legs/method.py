@@ -97,7 +97,7 @@ def calibrate_legs(
     rejected_lock: list[dict[str, int]] = []
     if use_planes:
         frames1 = [[np.nonzero(lock_data[i].has_rod[:, i, j])[0] for j in range(2)] for i in range(4)]
-        P, covPij, s2_1, rejected_lock, res_rms, keep1 = _step1_planes(planes, frames1)  # type: ignore[arg-type]
+        P, covPij, s2_1, rejected_lock, res_rms, keep1, s2_1_raw = _step1_planes(planes, frames1)  # type: ignore[arg-type]
         n_lines = sum(len(planes[i][j]) for i in range(4) for j in range(2))  # type: ignore[arg-type]
     else:
         P = np.zeros((4, 2, 3))
@@ -112,7 +112,7 @@ def calibrate_legs(
                 ss += float(np.sum(res**2))
                 dof1 += 2 * int(ok.sum()) - 3
                 n_lines += int(ok.sum())
-        s2_1 = ss / dof1 if dof1 > 0 else 0.0
+        s2_1 = s2_1_raw = ss / dof1 if dof1 > 0 else 0.0
         covPij = s2_1 * np.linalg.inv(Acc)
         res_rms = float(np.sqrt(s2_1))
 
@@ -326,6 +326,7 @@ def calibrate_legs(
         diagnostics={
             "step1": "weighted plane equations" if use_planes else "line intersection (unweighted)",
             "step1_chi2_per_dof": float(s2_1),
+            "step1_residual_chi2_per_dof": float(s2_1_raw),
             "step1_frames_rejected": rejected_lock,
             "steps34_weighting": "measured rod covariances (GLS)" if measured else "isotropic",
             "steps34_chi2_per_dof": float(s2_34),
