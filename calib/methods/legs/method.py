@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from scipy.linalg import block_diag
 
 from ...errors import IdentifiabilityError
 from ...observations import Observations
@@ -14,7 +15,7 @@ from ..result import MethodResult, combos_dict, std_dict
 from .constants import PRIOR_STD_M
 from .joints import _plane_observations, _step1_planes, intersect_lines, joint_from_planes
 from .pipeline import _gate_poses, _leg_directions, _LegsPipeline, _pair_means, _steps34_covariance
-from .repair import repair_joint
+from .repair import REPAIR_CHI2_MAX, repair_joint
 from .uncertainty import _identifiability, _IntrinsicsEffect, _pair_consistency, _prior_conflict, _with_prior
 
 #: step 2's parameters (H, q02, q03, q04; indices into PARAMETER_NAMES): from the lock phases' joints alone
@@ -130,11 +131,7 @@ def calibrate_legs(
     U_filled = np.where(has_leg[..., None], U, 0.0)
     # ---- step 1c: one flagged leg whose wrong joint the fit poses single out is repaired from its partner and the
     #      other legs' separation (:mod:`.repair`); the joints' covariance follows the linear map exactly
-    covP = np.zeros((24, 24))
-    for i in range(4):
-        for j in range(2):
-            k = (i * 2 + j) * 3
-            covP[k : k + 3, k : k + 3] = covPij[i, j]
+    covP = block_diag(*covPij.reshape(8, 3, 3))  # the joints' (24, 24), (leg, rod, xyz) order
     has_rod = data.has_rod
 
     def fit_data(leg: int, rod: int | None) -> tuple[_LegsPipeline, np.ndarray]:
@@ -147,7 +144,7 @@ def calibrate_legs(
         return _LegsPipeline(q_lock, data.q, pts, hl, CU_r, nom), np.where(hl[..., None], U_r, 0.0)
 
     flagged = [c["leg"] - 1 for c in pair_check if c["scale"] > 1.0]
-    repair = repair_joint(P, flagged, fit_data) if measured else repair_joint(P, flagged, fit_data, chi2_max=None)
+    repair = repair_joint(P, flagged, fit_data, chi2_max=REPAIR_CHI2_MAX if measured else None)
     if repair is not None and repair.left_out_of_fit_poses:
         pipe, U_filled = fit_data(repair.leg, repair.rod)
         has_rod = has_rod.copy()
@@ -155,26 +152,10 @@ def calibrate_legs(
     if repair is not None:
         P_measured = P
         P = repair.apply(P_measured)
-        covP_measured = np.zeros((24, 24))
-        for i in range(4):
-            for j in range(2):
-                k = (i * 2 + j) * 3
-                covP_measured[k : k + 3, k : k + 3] = covPij_measured[i, j]
-        covP = repair.T @ covP_measured @ repair.T.T
+        covP = repair.T @ block_diag(*covPij_measured.reshape(8, 3, 3)) @ repair.T.T
         pair_check[repair.leg]["repaired_rod"] = repair.rod
         warnings = [w for w in warnings if not w.startswith(f"lock-{repair.leg + 1}:")]
-        warnings.append(
-            f"lock-{repair.leg + 1}: the joint of rod {repair.rod} disagrees with the other legs' rod spacing "
-            f"({pair_check[repair.leg]['deviation_mm']:.1f} mm); it is taken as its partner's plus that spacing "
-            f"(moved {repair.moved_m * 1e3:.1f} mm): the fit poses' chi-square per dof falls from "
-            f"{repair.chi2_before:.1f} to {repair.chi2_after:.1f} ({repair.chi2_other:.1f} with the other rod's "
-            "joint replaced instead)"
-            + (
-                f"; the rod is left out of the fit poses too (leg {repair.leg + 1}'s direction is its partner's)"
-                if repair.left_out_of_fit_poses
-                else ""
-            )
-        )
+        warnings.append(repair.warning(pair_check[repair.leg]["deviation_mm"]))
     # poses judged by a robust fit (each round), then the least-squares fit of the poses kept
     seven = pipe.run(P, U_filled, robust=True)
     rejected_poses: list[int] = []

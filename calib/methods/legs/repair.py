@@ -53,6 +53,18 @@ class JointRepair:
         """The used joints (4, 2, 3) from measured ones (4, 2, 3)."""
         return (self.T @ np.asarray(P).reshape(24)).reshape(4, 2, 3)
 
+    def warning(self, deviation_mm: float) -> str:
+        """The result's warning, ``deviation_mm`` the leg's separation off the other legs' (the rod-pair check)."""
+        text = (
+            f"lock-{self.leg + 1}: the joint of rod {self.rod} disagrees with the other legs' rod spacing "
+            f"({deviation_mm:.1f} mm); it is taken as its partner's plus that spacing (moved {self.moved_m * 1e3:.1f} "
+            f"mm): the fit poses' chi-square per dof falls from {self.chi2_before:.1f} to {self.chi2_after:.1f} "
+            f"({self.chi2_other:.1f} with the other rod's joint replaced instead)"
+        )
+        if self.left_out_of_fit_poses:
+            text += f"; the rod is left out of the fit poses too (leg {self.leg + 1}'s direction is its partner's)"
+        return text
+
     def to_dict(self) -> dict[str, float | int]:
         return {
             "leg": self.leg + 1,
