@@ -355,6 +355,7 @@ def measure_rod(
     neighbours: list[tuple[Array, Array, float]] | None = None,
     segment: _Segment | str | None = None,
     projector: _IdealToImage | None = None,
+    polarity: int | None = None,
 ) -> RodMeasurement:
     """Measure one rod in an image.
 
@@ -375,6 +376,9 @@ def measure_rod(
         The other rods' predicted axis segments in ideal pixels (a, b shape (2,)) and half-widths:
         a limb point closer to one of them than its half-width plus ``settings.neighbour_px`` is
         dropped (its edge is merged with or hidden by the other rod's).
+    polarity : {1, -1}, optional
+        Keep only the edge pairs of this polarity (+1: a rod brighter than its surroundings); by default
+        ``settings.polarity``, or when that is 0 the polarity of most of the rod's pairs.
 
     Returns
     -------
@@ -449,8 +453,12 @@ def measure_rod(
         )
     # one polarity per rod (brighter or darker than its surroundings): pairs of the other polarity
     # are gaps between two bright things (e.g. the two rods of a leg), dropped
+    out.pairs_by_polarity = (int(np.count_nonzero(pol > 0)), int(np.count_nonzero(pol < 0)))
+    if polarity is None and s.polarity:
+        polarity = 1 if s.polarity > 0 else -1
+    out.polarity = polarity if polarity is not None else (1 if pol.sum() >= 0 else -1)
     if k.size:
-        keep = pol == (1 if pol.sum() >= 0 else -1)
+        keep = pol == out.polarity
         k, x_lo, x_hi = k[keep], x_lo[keep], x_hi[keep]
     one_low = o1[k] < o2[k]
     edges = (np.where(one_low, x_lo, x_hi), np.where(one_low, x_hi, x_lo))
@@ -585,10 +593,14 @@ def measure_rods(
 ) -> list[RodMeasurement]:
     """Measure every predicted rod of a frame (see :func:`measure_rod`).
 
-    Each rod's limb points near another rod's predicted silhouette are dropped. When the two rods of a
+    Each rod's limb points near another rod's predicted silhouette are dropped. The rods are measured with
+    one polarity, that of most of the frame's edge pairs (:func:`_frame_polarity`). When the two rods of a
     leg latch onto the same physical rod (a prediction off by about the rods' image spacing; their
-    measured axes then nearly coincide), the rod measured nearer its prediction is kept and the other
-    is measured again, predicted from it shifted by the rods' spacing.
+    measured axes then nearly coincide), or one of them onto the gap between them (measured with the other
+    polarity), the rod measured nearer its prediction (resp. with the frame's polarity) is kept and the
+    other is measured again, predicted from it shifted by the rods' spacing. A rod left with the other
+    polarity than the frame's is dropped (reason given): a rod against a background of the other
+    brightness than the rest of the frame's is lost, never a gap measured as a rod.
     """
     s = settings or RodSettings()
     img = gray.astype(np.float32) if gray.dtype != np.float32 else gray
@@ -596,43 +608,131 @@ def measure_rods(
     box = ideal_bbox if ideal_bbox is not None else image_ideal_bbox(camera)
     proj = _IdealToImage(camera)
     segs = [_predicted_segment(camera, p, radius, s.near_m, box) for p in preds]
-    sil = [
-        None if isinstance(g, str) else (g.a, g.a + g.length * g.t_dir, 0.5 * float(np.max(np.abs(g.off1 - g.off2))))
-        for g in segs
-    ]
+    sil = [None if isinstance(g, str) else _silhouette(g) for g in segs]
 
-    def measure(i: int, pred: RodPrediction, seg: _Segment | str | None = None) -> RodMeasurement:
+    def measure(
+        i: int, pred: RodPrediction, seg: _Segment | str | None = None, polarity: int | None = None
+    ) -> RodMeasurement:
         nb = [x for j, x in enumerate(sil) if j != i and x is not None]
         return measure_rod(
-            img, camera, pred, radius, s, occluders, rng, box, neighbours=nb, segment=seg, projector=proj
+            img,
+            camera,
+            pred,
+            radius,
+            s,
+            occluders,
+            rng,
+            box,
+            neighbours=nb,
+            segment=seg,
+            projector=proj,
+            polarity=polarity,
         )
 
     out = [measure(i, p, segs[i]) for i, p in enumerate(preds)]
     index = {(p.leg, p.rod): i for i, p in enumerate(preds)}
+    # one polarity per frame (the rods share their material; see _frame_polarity): a rod measured with the
+    # other one is measured again with the frame's
+    frame_pol = _frame_polarity(out, s.polarity)
+    for i, m in enumerate(out):
+        if frame_pol and m.polarity == -frame_pol and m.pairs_by_polarity[0 if frame_pol > 0 else 1] > 0:
+            again = measure(i, preds[i], segs[i], frame_pol)
+            if again.ok:
+                out[i] = again
     for leg in range(4):
         i0, i1 = index.get((leg, 0)), index.get((leg, 1))
         if i0 is None or i1 is None or not (out[i0].ok and out[i1].ok):
             continue
         spacing = float(np.linalg.norm(preds[i1].top - preds[i0].top))
-        if _line_distance(out[i0], out[i1]) > 0.5 * spacing:
+        if out[i0].polarity != out[i1].polarity:
+            # the two rods of a leg see the same background: one of them was measured on the gap between them
+            ref = frame_pol or (1 if sum(out[i0].pairs_by_polarity) >= sum(out[i1].pairs_by_polarity) else -1)
+            keep, redo = (i0, i1) if out[i0].polarity == ref else (i1, i0)
+            why = "measured on the gap between its leg's two rods (the other polarity)"
+        elif _line_distance(out[i0], out[i1]) <= 0.5 * spacing:
+            # the same rod twice: keep the one nearer its prediction
+            d0, d1 = (_line_distance_to_point(out[i], preds[i].top) for i in (i0, i1))
+            keep, redo = (i0, i1) if d0 <= d1 else (i1, i0)
+            why = "both rods of the leg matched the same rod image"
+        else:
             continue
-        # the same rod twice: keep the one nearer its prediction, re-predict the other from it
-        d0, d1 = (_line_distance_to_point(out[i], preds[i].top) for i in (i0, i1))
-        keep, redo = (i0, i1) if d0 <= d1 else (i1, i0)
+        # measured again, predicted from the rod kept shifted by the rods' predicted spacing
         shift = preds[redo].top - preds[keep].top
         m = out[keep]
         top = _foot(m, preds[keep].top) + shift
         bottom = _foot(m, preds[keep].bottom) + shift
-        again = measure(redo, RodPrediction(preds[redo].leg, preds[redo].rod, top, bottom))
+        again = measure(redo, RodPrediction(preds[redo].leg, preds[redo].rod, top, bottom), polarity=m.polarity)
         if again.ok and _line_distance(out[keep], again) > 0.5 * spacing:
             out[redo] = again
         else:
             out[redo] = RodMeasurement(
-                preds[redo].leg,
-                preds[redo].rod,
-                reason=("both rods of the leg matched the same rod image and the other was not found beside it"),
+                preds[redo].leg, preds[redo].rod, reason=f"{why} and the other was not found beside it"
+            )
+    # still of the other polarity, its leg's other rod not measured: most likely the gap, the other rod's limb
+    # hidden by this rod's prediction. Both rods measured again, predicted on either side of the gap.
+    for leg in range(4):
+        i0, i1 = index.get((leg, 0)), index.get((leg, 1))
+        if frame_pol == 0 or i0 is None or i1 is None:
+            continue
+        gap = [i for i in (i0, i1) if out[i].ok and out[i].polarity == -frame_pol]
+        if len(gap) != 1 or out[i0 if gap[0] == i1 else i1].ok:
+            continue
+        g_m = out[gap[0]]
+        spacing = float(np.linalg.norm(preds[i1].top - preds[i0].top))
+        mid_top, mid_bottom = 0.5 * (preds[i0].top + preds[i1].top), 0.5 * (preds[i0].bottom + preds[i1].bottom)
+        moved = {
+            i: RodPrediction(
+                leg,
+                preds[i].rod,
+                _foot(g_m, mid_top) + preds[i].top - mid_top,
+                _foot(g_m, mid_bottom) + preds[i].bottom - mid_bottom,
+            )
+            for i in (i0, i1)
+        }
+        for i, p in moved.items():
+            seg = _predicted_segment(camera, p, radius, s.near_m, box)
+            segs[i] = seg
+            sil[i] = None if isinstance(seg, str) else _silhouette(seg)
+        for i, p in moved.items():
+            again = measure(i, p, segs[i], frame_pol)
+            if again.ok and _line_distance(g_m, again) > 0.25 * spacing:
+                out[i] = again
+    # still of the other polarity: a wrong rod costs a calibration more than a missing one
+    for i, m in enumerate(out):
+        if m.ok and frame_pol and m.polarity == -frame_pol:
+            out[i] = RodMeasurement(
+                m.leg,
+                m.rod,
+                reason=(
+                    f"{'darker' if frame_pol > 0 else 'brighter'} than its surroundings, unlike most rods of the "
+                    "frame: probably the gap between its leg's two rods"
+                ),
             )
     return out
+
+
+def _silhouette(seg: _Segment) -> tuple[Array, Array, float]:
+    """A predicted rod's axis segment ends and half-width in ideal pixels (the neighbours of :func:`measure_rod`)."""
+    return seg.a, seg.a + seg.length * seg.t_dir, 0.5 * float(np.max(np.abs(seg.off1 - seg.off2)))
+
+
+def _frame_polarity(out: list[RodMeasurement], fixed: int = 0) -> int:
+    """The rods' polarity in a frame: +1 brighter than their surroundings, -1 darker, 0 undecided.
+
+    ``fixed`` (:attr:`RodSettings.polarity`) when not 0; otherwise the polarity most of the frame's rods were
+    measured with (each rod with edge pairs one vote), a tie decided by the pairs' count. A rod whose
+    prediction falls between the two rods of its leg finds two kinds of pairs: its own limbs, and the gap
+    between the two rods (about a rod wide, of the other polarity). Measured on the gap, a rod comes out
+    parallel to the true ones in the image but tens of mrad off in depth (its limbs are the rods' inner
+    limbs), in every frame of the pose. The rods share their material: most of a frame's rods have the
+    rods' polarity.
+    """
+    if fixed:
+        return 1 if fixed > 0 else -1
+    votes = sum(m.polarity for m in out if sum(m.pairs_by_polarity) > 0)
+    if votes == 0:
+        votes = sum(m.pairs_by_polarity[0] - m.pairs_by_polarity[1] for m in out)
+    return 0 if votes == 0 else (1 if votes > 0 else -1)
 
 
 def _foot(m: RodMeasurement, x: Array) -> Array:

@@ -74,6 +74,8 @@ class RodSettings:
     near_m: float = 0.05  #: the segment is clipped to z >= near_m
     edge_bias_px: float = 0.05  #: slowly varying edge bias allowed for in ``cov_u`` (end-to-end, px)
     neighbour_px: float = 4.0  #: limb points closer than this to another rod's predicted silhouette: dropped
+    #: the rods' brightness against their surroundings: +1 brighter, -1 darker, 0 decided per frame by most rods
+    polarity: int = 0
 
 
 @dataclass
@@ -95,6 +97,10 @@ class RodMeasurement:
     #: (quantiles 0, 1/4, 1/2, 3/4, 1 along it), in distorted pixels: the raw measurement, from which
     #: the limb planes can be recomputed for other intrinsics (uncertainty propagation)
     limbs_px: Array | None = None
+    #: +1 when the rod was measured as brighter than its surroundings, -1 darker, 0 not decided
+    polarity: int = 0
+    #: edge pairs found across the profiles (bright rod, dark rod), before one polarity is kept
+    pairs_by_polarity: tuple[int, int] = (0, 0)
 
     @property
     def ok(self) -> bool:
