@@ -463,6 +463,10 @@ class _IntrinsicsModel:
         #: prior stays the calibration's, so that the rods' information is not counted twice)
         self.z0 = np.concatenate([np.zeros(self.n_intr) if z0 is None else z0, np.zeros(self.n_edge)])
         self.limbs = intr.LinearizedLimbs(camera, steps, limbs)
+        #: the limb samples' normalized move per px of outward edge bias (M, 2, P, 2): the bias is modelled in the
+        #: image's pixels, where the edge detector makes it (a constant in normalized coordinates is not: the
+        #: undistortion magnifies a pixel with the radius)
+        self.edge_dxn = intr.outward_shift_normalized(camera, limbs) if self.n_edge else None
         self._last: tuple[bytes, np.ndarray] | None = None  # the numeric Jacobians move z in few columns
 
     @classmethod
@@ -496,16 +500,23 @@ class _IntrinsicsModel:
 
     def select(self, keep: np.ndarray) -> None:
         self.limbs, self.H = self.limbs.subset(keep), self.H[keep]
+        if self.edge_dxn is not None:
+            self.edge_dxn = self.edge_dxn[keep]
         self._last = None
+
+    def _edge_moved(self, xn: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """Limb samples' normalized coordinates (M, 2, P, 2) moved by the edge-bias nuisance (px, outward)."""
+        if not self.n_edge or self.edge_dxn is None:
+            return xn
+        eps_px = z[self.n_intr :] * self.edge_std_px
+        return xn + eps_px[None, :, None, None] * self.edge_dxn
 
     def directions(self, z: np.ndarray, reference: np.ndarray) -> np.ndarray:
         """Rod directions (M, 3), camera frame, for the intrinsics moved by ``z``; signed like ``reference``."""
         key = np.asarray(z, dtype=np.float64).tobytes()
         if self._last is not None and self._last[0] == key and self._last[1].shape == reference.shape:
             return self._last[1]
-        h = self.limbs.planes(z[: self.n_intr], self.H)
-        if self.n_edge:
-            h = intr.shift_limbs(h, z[self.n_intr :] * self.edge_std_px / self.camera.focal_px)
+        h = intr.planes_through(self._edge_moved(self.limbs.points(z[: self.n_intr]), z), self.H)
         u = cross(h[:, 0], h[:, 1])
         u /= np.linalg.norm(u, axis=1, keepdims=True)
         u *= np.sign(np.sum(u * reference, axis=1))[:, None]
@@ -527,11 +538,11 @@ class _IntrinsicsModel:
         cam = intr.perturbed_camera(self.camera, self.steps.T @ zi)
         ref = self.H
         moved = intr.correct_model_error(cam, self.limbs.px, profile)
-        h0 = intr.limb_planes_for(cam, self.limbs.px, ref)
-        h1 = intr.limb_planes_for(cam, moved, ref)
-        if self.n_edge:
-            eps = z[self.n_intr :] * self.edge_std_px / self.camera.focal_px
-            h0, h1 = intr.shift_limbs(h0, eps), intr.shift_limbs(h1, eps)
+        shape = self.limbs.px.shape
+        h0, h1 = (
+            intr.planes_through(self._edge_moved(cam.undistort_points(px.reshape(-1, 2)).reshape(shape), z), ref)
+            for px in (self.limbs.px, moved)
+        )
         R = self.rotation(z) @ (rotvec_to_matrix(w) @ R0 if joint else R0)
 
         def ratios(h: np.ndarray) -> np.ndarray:

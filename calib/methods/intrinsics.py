@@ -259,6 +259,33 @@ class LinearizedLimbs:
         return planes_through(self.points(z), reference_h)
 
 
+def outward_shift_normalized(camera: CameraModel, limbs_px: Array, step_px: float = 0.5) -> Array:
+    """Per limb sample, its move in normalized coordinates (M, 2, P, 2) when the limb's edge moves 1 px outward in
+    the (distorted) image, where the extraction measured it.
+
+    ``limbs_px`` (M, 2, P, 2): per rod, its two limbs' samples in distorted pixels. Outward: along the normal of the
+    limb's line through its samples, away from the rod's other limb. An edge bias that is the same number of image
+    pixels everywhere (what an edge detector's response to a rod's profile gives) is not the same in normalized
+    coordinates: the undistortion magnifies it with the radius (central difference of the camera's own
+    undistortion over +/- ``step_px``).
+    """
+    L = np.asarray(limbs_px, dtype=np.float64)
+    c = L.mean(axis=2)  # (M, 2, 2)
+    d = L - c[:, :, None, :]
+    a = np.einsum("mlp,mlp->ml", d[..., 0], d[..., 0])
+    b = np.einsum("mlp,mlp->ml", d[..., 0], d[..., 1])
+    e = np.einsum("mlp,mlp->ml", d[..., 1], d[..., 1])
+    ang = 0.5 * np.arctan2(2 * b, a - e)  # the line's direction angle
+    n = np.stack([-np.sin(ang), np.cos(ang)], axis=-1)  # (M, 2, 2) unit normals
+    other = c[:, ::-1] - c  # towards the rod's other limb
+    n *= np.where(np.sum(n * other, axis=-1, keepdims=True) > 0, -1.0, 1.0)
+    step = step_px * n[:, :, None, :]
+    flat = lambda x: x.reshape(-1, 2)  # noqa: E731
+    plus = camera.undistort_points(flat(L + step)).reshape(L.shape)
+    minus = camera.undistort_points(flat(L - step)).reshape(L.shape)
+    return (plus - minus) / (2.0 * step_px)
+
+
 def shift_limbs(h: Array, eps: Array) -> Array:
     """Interpretation planes (M, 2, 3) with each limb moved outward (away from its rod's axis) by ``eps[j]`` (2,),
     in normalized image coordinates (pixels / focal length): a limb-edge bias common to every rod's limb j."""
