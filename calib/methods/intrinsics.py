@@ -286,16 +286,6 @@ def outward_shift_normalized(camera: CameraModel, limbs_px: Array, step_px: floa
     return (plus - minus) / (2.0 * step_px)
 
 
-def shift_limbs(h: Array, eps: Array) -> Array:
-    """Interpretation planes (M, 2, 3) with each limb moved outward (away from its rod's axis) by ``eps[j]`` (2,),
-    in normalized image coordinates (pixels / focal length): a limb-edge bias common to every rod's limb j."""
-    h = np.asarray(h, dtype=np.float64)
-    nn = np.linalg.norm(h[..., :2], axis=-1, keepdims=True)
-    out = h / nn  # the line n.x + c = 0 with |n| = 1, the axis on its positive side
-    out[..., 2] += np.asarray(eps, dtype=np.float64)[None, :]
-    return out / np.linalg.norm(out, axis=-1, keepdims=True)
-
-
 def lens_model_error(camera: CameraModel) -> tuple[Array, Array] | None:
     """The radial model error the camera's calibration measured, or None (none measured, or all zero).
 

@@ -180,20 +180,21 @@ def test_unlocked_actuator_is_refused(noise_free_obs):
         calibrate_legs(Observations.from_dict(d))
 
 
-def test_shift_limbs_moves_each_limb_outward():
-    from calib.methods.intrinsics import shift_limbs
-    from calib.vision.rods import limb_planes
+def test_outward_shift_moves_each_limb_away_from_the_other_in_the_image():
+    from calib.camera import CameraModel
+    from calib.methods.intrinsics import outward_shift_normalized
 
-    point, u, r = np.array([0.05, -0.02, 0.7]), np.array([0.1, 0.9, 0.3]), 0.006
-    h = np.array(limb_planes(point, u / np.linalg.norm(u), r))[None]
-    eps = np.array([1e-4, -2e-4])
-    moved = shift_limbs(h, eps)[0]
-    # a point of each original limb line is at signed distance +eps from the moved line (on its axis side):
-    # the moved line lies eps further out; the axis stays on the positive side
-    for j in range(2):
-        n, c = h[0, j, :2], h[0, j, 2]
-        x = -c * n / (n @ n)  # on the original line
-        nm, cm = moved[j, :2], moved[j, 2]
-        assert (nm @ x + cm) / np.linalg.norm(nm) == pytest.approx(eps[j], abs=1e-12)
-        ax = point[:2] / point[2]
-        assert (nm @ ax + cm) > 0
+    cam = CameraModel(
+        np.array([[800.0, 0, 512], [0, 800.0, 384], [0, 0, 1]]), np.array([-0.3, 0.1, 0, 0, 0]), 1024, 768
+    )
+    t = np.linspace(0.0, 1.0, 5)[:, None]
+    limbs = np.stack([np.array([100.0, 80.0]) + t * [300.0, 120.0], np.array([90.0, 104.0]) + t * [300.0, 120.0]])[None]
+    dxn = outward_shift_normalized(cam, limbs)
+    n = np.array([-120.0, 300.0]) / np.hypot(120.0, 300.0)  # the limbs' normal, from limb 0 towards limb 1
+    for j, sign in ((0, -1.0), (1, 1.0)):
+        moved = limbs[0, j] + 0.2 * sign * n  # 0.2 px outward in the image
+        exact = cam.undistort_points(moved) - cam.undistort_points(limbs[0, j])
+        assert np.allclose(0.2 * dxn[0, j], exact, rtol=2e-3, atol=0)  # linear to 0.1% over 0.2 px
+    # near the corner the undistortion magnifies a pixel: a constant in normalized coordinates is not one in pixels
+    mag = np.linalg.norm(dxn[0, 0], axis=1) * cam.focal_px
+    assert mag.max() > 1.2 * mag.min() and mag.min() > 1.0

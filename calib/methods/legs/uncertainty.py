@@ -91,10 +91,13 @@ class _IntrinsicsEffect:
         if limbs.shape[0] == 0:
             return h
         n = self.steps.shape[0]
-        out = intr.limb_planes_for(intr.perturbed_camera(self.camera, self.steps.T @ z[:n]), limbs, h)
-        if z.size > n:
-            out = intr.shift_limbs(out, z[n:] / self.camera.focal_px)
-        return out
+        cam = intr.perturbed_camera(self.camera, self.steps.T @ z[:n])
+        if z.size <= n:
+            return intr.limb_planes_for(cam, limbs, h)
+        # the edge bias in image pixels (where the detector makes it), as the combined method models it
+        xn = cam.undistort_points(limbs.reshape(-1, 2)).reshape(limbs.shape)
+        xn = xn + z[n:][None, :, None, None] * intr.outward_shift_normalized(cam, limbs)
+        return intr.planes_through(xn, h)
 
     def lock_planes(
         self, z: np.ndarray, planes: list[list[list[PlaneObservation]]]
