@@ -92,7 +92,7 @@ class _IntrinsicsEffect:
             return h
         n = self.steps.shape[0]
         cam = intr.perturbed_camera(self.camera, self.steps.T @ z[:n])
-        if z.size <= n:
+        if z.size <= n or not np.any(z[n:]):
             return intr.limb_planes_for(cam, limbs, h)
         # the edge bias in image pixels (where the detector makes it), as the combined method models it
         xn = cam.undistort_points(limbs.reshape(-1, 2)).reshape(limbs.shape)
