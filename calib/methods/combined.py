@@ -317,6 +317,15 @@ def calibrate_combined(
         Wa = Wh[a].T @ Wh[a]
         Wfull[2 * a : 2 * a + 2, 2 * a : 2 * a + 2] = Wa
         Sig[2 * a : 2 * a + 2, 2 * a : 2 * a + 2] = s2 * shape[a]
+    # the two rods of a leg in one frame share a frame and the gap between them: their errors correlate. The
+    # correlation of their whitened residuals (pooled over the run's pairs) enters the sandwich's meat
+    pair_rho, n_pairs = _pair_correlation(prob, Wh, raw(x).reshape(m, 2))
+    if pair_rho > 0:
+        Lc = np.linalg.inv(Wh)  # r = Lc w: each rod's whitening undone
+        for a, b in _rod_pairs(prob):
+            blk = pair_rho * s2 * Lc[a] @ Lc[b].T
+            Sig[2 * a : 2 * a + 2, 2 * b : 2 * b + 2] = blk
+            Sig[2 * b : 2 * b + 2, 2 * a : 2 * a + 2] = blk.T
     Jr = central_jacobian(raw, x)  # unweighted, (2m, 4 + nw + nz)
     check_excitation(np.einsum("mij,mjk->mik", Wh, Jr[:, :4].reshape(m, 2, 4)).reshape(2 * m, 4), COMBINATION_NAMES)
     cov_pose_fixed = _sandwich(Jr[:, :4], Wfull, Sig)
@@ -401,6 +410,8 @@ def calibrate_combined(
             "base_frame": bf.summary(),
             "base_frame_refinement_deg": float(np.rad2deg(np.linalg.norm(w))),
             "joint_base_frame": joint,
+            "rod_pair_correlation": pair_rho,
+            "rod_pairs": n_pairs,
         },
         residuals=r,
     )
@@ -636,6 +647,31 @@ def _whitened_d2(
             break
         level = float(np.sqrt(s2))
     return d2, (v, level)
+
+
+def _rod_pairs(prob: _Problem) -> list[tuple[int, int]]:
+    """Index pairs (a, b) of the two rods of one leg seen in the same frame."""
+    first: dict[tuple[int, int], int] = {}
+    pairs = []
+    for a, (k, leg) in enumerate(zip(prob.k.tolist(), prob.leg.tolist(), strict=True)):
+        b = first.setdefault((k, leg), a)
+        if b != a:
+            pairs.append((b, a))
+    return pairs
+
+
+def _pair_correlation(prob: _Problem, Wh: np.ndarray, r: np.ndarray) -> tuple[float, int]:
+    """Correlation of the whitened residuals (M, 2) of a leg's two rods in one frame, pooled over both entries and
+    every pair (moments about zero, as the residuals' model has it), clipped to [0, 0.9]; and the number of pairs.
+    0 below 10 pairs (too few to tell)."""
+    pairs = _rod_pairs(prob)
+    if len(pairs) < 10:
+        return 0.0, len(pairs)
+    w = np.einsum("mij,mj->mi", Wh, r)
+    a, b = (np.array(v) for v in zip(*pairs, strict=True))
+    num = float(np.sum(w[a] * w[b]))
+    den = float(np.sqrt(np.sum(w[a] ** 2) * np.sum(w[b] ** 2)))
+    return (float(np.clip(num / den, 0.0, 0.9)) if den > 0 else 0.0), len(pairs)
 
 
 def _sandwich(J: np.ndarray, W: np.ndarray, Sig: np.ndarray) -> np.ndarray:
