@@ -182,9 +182,10 @@ def trial_record(doc: dict[str, Any], observations: dict[str, Any]) -> dict[str,
     -------
     dict
         ``methods``: per method ``ok``, ``error``, ``converged``, ``errors`` and ``std`` (metres, per
-        combination), ``gap_validation_rms_mm``; ``bound_std`` (the combined method's Cramer-Rao bound,
-        metres, None when the result has none); ``gap_a_priori_rms_mm``, ``gap_truth_rms_mm``;
-        ``edge_noise_px``; ``rods_found`` and ``rods_total``, ``boards_found`` and ``frames``.
+        combination), ``gap_validation_rms_mm``, ``a_priori_fallback`` (None, or which parameters the method
+        returned as their a priori values because its data contradicted them); ``bound_std`` (the combined
+        method's Cramer-Rao bound, metres, None when the result has none); ``gap_a_priori_rms_mm``,
+        ``gap_truth_rms_mm``; ``edge_noise_px``; ``rods_found`` and ``rods_total``, ``boards_found`` and ``frames``.
     """
     from calib.parameters import COMBINATION_NAMES
 
@@ -211,6 +212,11 @@ def trial_record(doc: dict[str, Any], observations: dict[str, Any]) -> dict[str,
             "errors": errors,
             "std": stds,
             "gap_validation_rms_mm": _gap(validation, name),
+            # what the method returned when its data could not pin the estimate (the legs method's a priori values,
+            # with their tolerance as std and a warning): None when the estimate is the data's
+            "a_priori_fallback": ((entry.get("diagnostics") or {}).get("identifiability") or {}).get(
+                "a_priori_fallback"
+            ),
         }
         if err and "seven" in err:
             rec["seven_errors"] = {k: _finite(v) for k, v in err["seven"].items()}
