@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import time
 from collections.abc import Callable, Iterable
 from typing import Any, cast
@@ -12,6 +13,7 @@ import numpy as np
 from .baseframe import BaseFrameResult, base_frame_from_observations
 from .errors import I4calError
 from .identifiability import identifiability
+from .methods.edge_bias import MeasuredEdgeBias
 from .methods.iterations import IterationCallback
 from .methods.registry import MethodContext, get_method, method_names
 from .methods.result import MethodResult
@@ -36,10 +38,13 @@ def run_method(
     base_frame: BaseFrameResult | None = None,
     *,
     on_iteration: IterationCallback | None = None,
+    context: MethodContext | None = None,
 ) -> MethodResult:
-    """Fit method ``name`` (:func:`calib.methods.registry.get_method`) to ``obs``."""
+    """Fit method ``name`` (:func:`calib.methods.registry.get_method`) to ``obs``; ``context``: what earlier methods
+    of the same run measured (its base frame and callback are replaced by these arguments)."""
     spec = get_method(name)
-    return spec.fit(obs, MethodContext(base_frame=base_frame, on_iteration=on_iteration))
+    ctx = MethodContext() if context is None else context
+    return spec.fit(obs, dataclasses.replace(ctx, base_frame=base_frame, on_iteration=on_iteration))
 
 
 def calibrate(
@@ -91,13 +96,16 @@ def calibrate(
     scale = vision_scale(obs, bf)  # the validation's measuring instrument, calibrated once against the encoders
     out["validation"]["a priori"] = validate(obs, nominal, scale)
     fit = obs.arrays("poses")
+    shared = MethodContext()  # what one method measures that a later one uses (the combined fit's edge bias)
     for name in methods:
         if progress:
             progress(name, "start")
         t0 = time.perf_counter()
         try:
-            res = run_method(name, obs, bf, on_iteration=_tag(on_iteration, name))
+            res = run_method(name, obs, bf, on_iteration=_tag(on_iteration, name), context=shared)
         except I4calError as exc:
+            if name == "combined":
+                shared = dataclasses.replace(shared, limb_edge_bias_tried=True)
             if strict:
                 raise
             out["methods"][name] = {
@@ -111,6 +119,10 @@ def calibrate(
             if progress:
                 progress(name, "failed")
             continue
+        if name == "combined":
+            shared = dataclasses.replace(
+                shared, limb_edge_bias=MeasuredEdgeBias.from_result(res), limb_edge_bias_tried=True
+            )
         entry = res.to_dict()
         entry["time_s"] = time.perf_counter() - t0
         full = res.full_parameters(nominal)

@@ -486,22 +486,23 @@ def _predict_plan_images(
     plan: Plan, nominal: I4Parameters, scene: Scene, noise: ImageNoise, methods: tuple[str, ...]
 ) -> Prediction:
     """:func:`predict_plan` with the image-level models (:mod:`.predict_images`)."""
-    from .predict_images import predict_combined_images, predict_end_effector_images, predict_legs_images
+    from .predict_images import predict_combined_images_posteriors, predict_end_effector_images, predict_legs_images
 
     out = Prediction(noise=noise.to_dict(), weighting="gls")
     q_fit = phase_q(plan, "poses")
     posterior = None  # the intrinsics after the rods (the combined fit's), which the other methods use
+    edge_post = None  # the limb-edge bias after the rods (the combined fit's), which the legs method uses
     for m in methods:
         if m not in METHODS:
             raise InputError(f"unknown method {m!r}; methods are {', '.join(METHODS)}", field="methods")
     try:
         if len(q_fit) < 2:
             raise IdentifiabilityError("the plan has fewer than 2 fit poses")
-        cov_c, posterior = predict_combined_images(
+        cov_c, posterior, edge_post = predict_combined_images_posteriors(
             nominal, q_fit, phase_q(plan, "rotation"), phase_q(plan, "translation"), scene, noise
         )
     except IdentifiabilityError as exc:
-        cov_c, why = None, str(exc)
+        cov_c, edge_post, why = None, None, str(exc)
     for m in methods:
         try:
             if m == "combined":
@@ -514,7 +515,7 @@ def _predict_plan_images(
                 cov, _parts = predict_end_effector_images(nominal, q_fit, scene, noise, posterior)
             else:
                 q_lock = [phase_q(plan, f"lock-{i}") for i in range(1, 5)]
-                cov7, cov, _parts7 = predict_legs_images(nominal, q_fit, q_lock, scene, noise, posterior)
+                cov7, cov, _parts7 = predict_legs_images(nominal, q_fit, q_lock, scene, noise, posterior, edge_post)
                 out.legs_seven_std = {k: float(np.sqrt(max(cov7[i, i], 0.0))) for i, k in enumerate(PARAMETER_NAMES)}
         except IdentifiabilityError as exc:
             out.errors[m] = str(exc)

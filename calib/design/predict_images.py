@@ -348,16 +348,34 @@ def predict_combined_images(
     """Predicted covariance (4, 4) of the combined method's combinations on images (m^2), and the intrinsics'
     posterior covariance (n, n) after the rods (None without a camera covariance). ``drop``: rods left out (fit
     pose index, leg 0-3, rod 0-1), e.g. those a run's fit rejected."""
+    C4, post, _edge = predict_combined_images_posteriors(nominal, q_fit, q_rot, q_tra, scene, noise, drop)
+    return C4, post
+
+
+def predict_combined_images_posteriors(
+    nominal: I4Parameters,
+    q_fit: np.ndarray,
+    q_rot: np.ndarray,
+    q_tra: np.ndarray,
+    scene: Scene,
+    noise: ImageNoise,
+    drop: set[tuple[int, int, int]] | None = None,
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """:func:`predict_combined_images` and the limb-edge bias's posterior covariance (2, 2), px^2 (None without the
+    edge-bias nuisances): what the legs method takes from the combined fit (``calib.methods.edge_bias``)."""
     P, steps, G = combined_images_prior(nominal, q_rot, q_tra, scene, noise)
     F = combined_images_pose_information(nominal, q_fit, scene, noise, steps, G, drop).sum(axis=0) + P
     from .predict import _inv
 
     C = _inv(F, "combined")
     post = None
-    if steps.shape[0]:
-        ni = steps.shape[0]
+    ni = steps.shape[0]
+    if ni:
         post = steps.T @ C[7 : 7 + ni, 7 : 7 + ni] @ steps
-    return C[:4, :4], post
+    edge = None
+    if C.shape[0] == 7 + ni + 2:
+        edge = C[7 + ni :, 7 + ni :] * noise.edge_bias_prior_px**2
+    return C[:4, :4], post, edge
 
 
 # -- end-effector ----------------------------------------------------------------------------------------------
@@ -419,9 +437,13 @@ def predict_legs_images(
     scene: Scene,
     noise: ImageNoise,
     intrinsics_cov: np.ndarray | None = None,
+    edge_cov_px2: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
     """Predicted covariances of the legs method on images: seven parameters (7, 7), four combinations (4, 4), and
-    the seven's parts (``joint_centres``, ``leg_directions``, ``intrinsics``, ``limb_edge_bias``, ``a_priori``)."""
+    the seven's parts (``joint_centres``, ``leg_directions``, ``intrinsics``, ``limb_edge_bias``, ``a_priori``).
+    ``edge_cov_px2`` (2, 2): the limb-edge bias's covariance the method uses, the combined fit's measurement of it
+    (:func:`predict_combined_images_posteriors`; the method's default); None: the allowance
+    (``edge_bias_prior_px`` per limb)."""
     from ..methods.legs import (
         PlaneObservation,
         _IntrinsicsEffect,
@@ -522,7 +544,11 @@ def predict_legs_images(
         E[nz:, nz:] = noise.edge_bias_prior_px * np.eye(2)
         Jz = np.stack([(seven_for(e) - seven_for(-e)) / 2.0 for e in E], axis=1)
         parts["intrinsics"] = Jz[:, :nz] @ Jz[:, :nz].T
-        parts["limb_edge_bias"] = Jz[:, nz:] @ Jz[:, nz:].T
+        if edge_cov_px2 is not None and noise.edge_bias_prior_px > 0:
+            J_px = Jz[:, nz:] / noise.edge_bias_prior_px
+            parts["limb_edge_bias"] = J_px @ np.asarray(edge_cov_px2, dtype=np.float64) @ J_px.T
+        else:
+            parts["limb_edge_bias"] = Jz[:, nz:] @ Jz[:, nz:].T
     cov7 = np.sum(np.stack(list(parts.values())), axis=0)
     if noise.legs_prior_std_m:
         _s, cov7, parts = _with_prior(seven, cov7, parts, nominal, noise.legs_prior_std_m)

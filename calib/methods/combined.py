@@ -377,6 +377,7 @@ def calibrate_combined(
             "estimate_px": (-z[ni:] * e_std).tolist(),
             "std_px": (np.sqrt(np.diag(parts["full"])[4 + nw + ni :]) * e_std).tolist(),
             "prior_std_px": e_std,
+            "covariance_px2": (parts["full"][4 + nw + ni :, 4 + nw + ni :] * e_std**2).tolist(),
         }
     names = intr.intrinsics_names(prob.intrinsics.camera) if prob.intrinsics is not None else intr.INTRINSICS_NAMES
     refined = None if steps is None else dict(zip(names, (steps.T @ z[:ni]).tolist(), strict=True))

@@ -30,6 +30,7 @@ from ..baseframe import BaseFrameResult
 from ..errors import I4calError, InputError
 from ..observations import Observations
 from ..parameters import I4Parameters
+from .edge_bias import MeasuredEdgeBias
 from .iterations import IterationCallback
 from .result import MethodResult
 
@@ -52,10 +53,16 @@ class MethodContext:
     on_iteration : callable or None
         Receives ``{"stage", "iteration", "cost"}`` after each iteration of the method's fits
         (:mod:`calib.methods.iterations`).
+    limb_edge_bias : MeasuredEdgeBias or None
+        The limb-edge bias a combined fit of the same run measured (None: none measured).
+    limb_edge_bias_tried : bool
+        A combined fit of the same run already tried to measure it (then None means it could not).
     """
 
     base_frame: BaseFrameResult | None = None
     on_iteration: IterationCallback | None = None
+    limb_edge_bias: MeasuredEdgeBias | None = None
+    limb_edge_bias_tried: bool = False
 
 
 #: ``fit(observations, context) -> MethodResult``.
@@ -265,7 +272,9 @@ def _fit_end_effector(obs: Observations, ctx: MethodContext) -> MethodResult:
 def _fit_legs(obs: Observations, ctx: MethodContext) -> MethodResult:
     from .legs import calibrate_legs
 
-    return calibrate_legs(obs, on_iteration=ctx.on_iteration)
+    # the combined fit's measurement of the limb-edge bias when the run already made one, else its own
+    edge = ctx.limb_edge_bias if ctx.limb_edge_bias_tried else True
+    return calibrate_legs(obs, on_iteration=ctx.on_iteration, edge_bias=edge)
 
 
 def _combined_model(params: I4Parameters, q: np.ndarray) -> tuple[Callable[[np.ndarray], np.ndarray], int]:

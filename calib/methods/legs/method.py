@@ -10,6 +10,7 @@ from ...observations import Observations
 from ...parameters import COMBINATION_NAMES, PARAMETER_NAMES, SEVEN_TO_FOUR, I4Parameters
 from ...robust import chi2_gate
 from ..combined import EDGE_BIAS_STD_PX
+from ..edge_bias import MeasuredEdgeBias, measured_edge_bias
 from ..iterations import IterationCallback
 from ..result import MethodResult, combos_dict, std_dict
 from .constants import PRIOR_STD_M
@@ -32,6 +33,7 @@ def calibrate_legs(
     on_iteration: IterationCallback | None = None,
     edge_bias_std_px: float = EDGE_BIAS_STD_PX,
     prior_std_m: float | None = PRIOR_STD_M,
+    edge_bias: MeasuredEdgeBias | bool | None = True,
 ) -> MethodResult:
     """Identify all seven parameters from leg observations only (four steps).
 
@@ -51,8 +53,14 @@ def calibrate_legs(
         of the uncertainty propagation; :mod:`.iterations`).
     edge_bias_std_px : float
         Standard deviation (px) of a limb-edge bias common to every rod (per limb), propagated into the
-        standard deviations like the intrinsics (the combined method estimates it; here it is not
-        identifiable apart from the joints and the rod radius).
+        standard deviations like the intrinsics when no measured bias is used (here it is not identifiable apart
+        from the joints and the rod radius).
+    edge_bias : MeasuredEdgeBias, True or None
+        The limb-edge bias the combined fit measured on the same rods (``diagnostics.limb_edge_bias`` of
+        :func:`calib.methods.combined.calibrate_combined`: per limb, outward px, and its covariance). Every rod's
+        limbs are corrected by it (the whole estimate redone, as for the intrinsics) and its covariance replaces the
+        ``edge_bias_std_px`` allowance. True (default): measured here with the combined fit when the rods carry
+        limb samples and the camera its covariance; None or False: the allowance only.
     prior_std_m : float or None
         Standard deviation (m) of each of the seven parameters around the nominal (a priori) geometry: the
         bench's manufacturing tolerance. Along the directions the legs' data know less well than it (their
@@ -196,6 +204,7 @@ def calibrate_legs(
     eff = _IntrinsicsEffect.build(obs, lock_data, data) if use_planes else None
     cov_intr = np.zeros((7, 7))
     cov_edge = np.zeros((7, 7))
+    edge_note: dict | None = None
     if eff is not None:
 
         def seven_for(z: np.ndarray) -> np.ndarray:
@@ -220,10 +229,21 @@ def calibrate_legs(
         nz = eff.steps.shape[0]
         E = np.zeros((nz + 2, nz + 2))
         E[:nz, :nz] = np.eye(nz)
-        E[nz:, nz:] = edge_bias_std_px * np.eye(2)
+        step_px = edge_bias_std_px if edge_bias_std_px > 0 else EDGE_BIAS_STD_PX
+        E[nz:, nz:] = step_px * np.eye(2)
         Jz = np.stack([(seven_for(e) - seven_for(-e)) / 2.0 for e in E], axis=1)
         cov_intr = Jz[:, :nz] @ Jz[:, :nz].T
-        cov_edge = Jz[:, nz:] @ Jz[:, nz:].T
+        J_px = Jz[:, nz:] / step_px  # the seven's change per px of outward bias on each limb
+        measured_edge = measured_edge_bias(obs) if edge_bias is True else (edge_bias or None)
+        if measured_edge is not None:
+            # the limbs corrected by the measured bias (moved inward by it), the whole estimate redone; its
+            # remaining uncertainty is the measurement's
+            seven = seven_for(np.concatenate([np.zeros(nz), -measured_edge.estimate_px]))
+            cov_edge = J_px @ measured_edge.covariance_px2 @ J_px.T
+            edge_note = measured_edge.to_dict() | {"applied": True}
+        else:
+            cov_edge = (edge_bias_std_px**2) * (J_px @ J_px.T)
+            edge_note = {"applied": False, "allowance_std_px": edge_bias_std_px}
     cov = cov_joints + cov_dirs + cov_intr + cov_edge
     parts7 = {
         "joint_centres": cov_joints,
@@ -316,6 +336,7 @@ def calibrate_legs(
             "poses_rejected": rejected_poses,
             "line_residual_rms_mm": res_rms * 1e3,
             "joint_centres_camera": P.mean(axis=1).tolist(),
+            "limb_edge_bias": edge_note,
             "locked_q": q_lock.tolist(),
             "rod_pair_check": pair_check,
             "joint_repaired": None if repair is None else repair.to_dict(),
