@@ -326,7 +326,10 @@ BUDGET_SOURCES = {
     "board_poses_and_encoders": "board poses (PnP noise, factor from the residuals) and encoders",
     "base_frame": "base frame (rotation and translation phases)",
     "intrinsics": "camera intrinsics (calibration covariance, after the rods' refinement where used)",
-    "limb_edge_bias": f"limb-edge bias common to every rod (prior {EDGE_BIAS_STD_PX:g} px per limb)",
+    "limb_edge_bias": (
+        f"limb-edge bias common to every rod (prior {EDGE_BIAS_STD_PX:g} px per limb; the legs method: the combined "
+        "fit's measurement of it, which corrects its rods)"
+    ),
     "joint_centres": "joint centres (lock phases)",
     "leg_directions": "leg directions of the fit poses",
     "lens_model": "lens model error (the camera calibration's radial residual beyond its noise)",
