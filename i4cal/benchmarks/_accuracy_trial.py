@@ -183,8 +183,9 @@ def trial_record(doc: dict[str, Any], observations: dict[str, Any]) -> dict[str,
     dict
         ``methods``: per method ``ok``, ``error``, ``converged``, ``errors`` and ``std`` (metres, per
         combination), ``gap_validation_rms_mm``, ``a_priori_fallback`` (None, or which parameters the method
-        returned as their a priori values because its data contradicted them); ``bound_std`` (the combined
-        method's Cramer-Rao bound, metres, None when the result has none); ``gap_a_priori_rms_mm``,
+        returned as their a priori values because its data contradicted them), ``unpinned_directions`` (how many
+        directions of the seven its data left to the a priori tolerance); ``bound_std`` (the combined method's
+        Cramer-Rao bound, metres, None when the result has none); ``gap_a_priori_rms_mm``,
         ``gap_truth_rms_mm``; ``edge_noise_px``; ``rods_found`` and ``rods_total``, ``boards_found`` and ``frames``.
     """
     from calib.parameters import COMBINATION_NAMES
@@ -205,6 +206,7 @@ def trial_record(doc: dict[str, Any], observations: dict[str, Any]) -> dict[str,
             problem = "no parameters"
         elif errors and None in errors.values():
             problem = "non-finite parameters"
+        ident = (entry.get("diagnostics") or {}).get("identifiability") or {}
         rec: dict[str, Any] = {
             "ok": not problem,
             "error": problem or None,
@@ -214,9 +216,10 @@ def trial_record(doc: dict[str, Any], observations: dict[str, Any]) -> dict[str,
             "gap_validation_rms_mm": _gap(validation, name),
             # what the method returned when its data could not pin the estimate (the legs method's a priori values,
             # with their tolerance as std and a warning): None when the estimate is the data's
-            "a_priori_fallback": ((entry.get("diagnostics") or {}).get("identifiability") or {}).get(
-                "a_priori_fallback"
-            ),
+            "a_priori_fallback": ident.get("a_priori_fallback"),
+            # directions of the seven the data knew less well than the a priori tolerance (the legs method says so in
+            # a warning; the estimate there is the tolerance's): 0 when the data pinned every one
+            "unpinned_directions": len(ident.get("unpinned") or []),
         }
         if err and "seven" in err:
             rec["seven_errors"] = {k: _finite(v) for k, v in err["seven"].items()}

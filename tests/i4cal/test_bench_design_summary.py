@@ -14,7 +14,7 @@ from i4cal.benchmarks.design import _checks, _data_pinned
 C = ["L", "H-D", "S-q02/2", "S-(q04-q03)/2"]
 
 
-def _trial(errors_mm, std_mm, fallback=None):
+def _trial(errors_mm, std_mm, fallback=None, unpinned=0):
     return {
         "methods": {
             "legs": {
@@ -22,6 +22,7 @@ def _trial(errors_mm, std_mm, fallback=None):
                 "errors": {c: e * 1e-3 for c, e in zip(C, errors_mm, strict=True)},
                 "std": {c: s * 1e-3 for c, s in zip(C, std_mm, strict=True)},
                 "a_priori_fallback": fallback,
+                "unpinned_directions": unpinned,
             }
         }
     }
@@ -30,8 +31,9 @@ def _trial(errors_mm, std_mm, fallback=None):
 def test_a_priori_fallback_trials_are_counted_and_left_out():
     trials = [_trial([0.3, -0.1, 0.4, -0.2], [0.4] * 4), _trial([-0.5, 0.1, 0.0, 0.2], [0.5] * 4)]
     trials.append(_trial([5.0, 2.0, 3.0, -2.9], [6.4, 2.1, 4.2, 4.7], fallback="all seven"))
+    trials.append(_trial([4.3, 1.5, -2.1, -4.7], [6.3, 2.1, 4.2, 4.7], unpinned=2))
     dp = _data_pinned(trials)["legs"]
-    assert dp["n_trials"] == 2 and dp["n_a_priori_fallback"] == 1
+    assert dp["n_trials"] == 2 and dp["n_a_priori_fallback"] == 1 and dp["n_unpinned"] == 1
     assert np.isclose(dp["rms_error_m"]["L"], np.sqrt((0.3**2 + 0.5**2) / 2) * 1e-3)
     assert np.isclose(dp["mean_std_m"]["S-q02/2"], 0.45e-3)
     plans = {
@@ -49,7 +51,7 @@ def test_trial_record_carries_the_methods_fallback():
         "methods": {
             "legs": {
                 "std": dict.fromkeys(C, 1e-3),
-                "diagnostics": {"identifiability": {"a_priori_fallback": "L, S, D"}},
+                "diagnostics": {"identifiability": {"a_priori_fallback": "L, S, D", "unpinned": [{}, {}]}},
                 "converged": True,
             },
             "combined": {"std": dict.fromkeys(C, 1e-4), "diagnostics": {}, "converged": True},
@@ -58,4 +60,5 @@ def test_trial_record_carries_the_methods_fallback():
     }
     rec = trial_record(doc, {"frames": []})
     assert rec["methods"]["legs"]["a_priori_fallback"] == "L, S, D"
+    assert rec["methods"]["legs"]["unpinned_directions"] == 2
     assert rec["methods"]["combined"]["a_priori_fallback"] is None
