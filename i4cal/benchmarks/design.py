@@ -17,7 +17,8 @@ paper's 20-pose plan's for every combination, and each method's prediction withi
 ``--plans designed-12,paper-20`` runs only those plans; each plan's ``trials`` lists every trial's errors and
 reported std per method (and whether the method fell back to its a priori values or its data left a direction to
 the a priori tolerance); ``data_pinned`` has each method's RMS error and mean std over the other trials, with the
-counts left out, and ``checks.predicted_images_over_rms_data_pinned`` the prediction's ratio to that RMS. ``--json PATH`` writes everything (format
+counts left out, and ``checks.predicted_images_over_rms_data_pinned`` the prediction's ratio to that RMS.
+``--json PATH`` writes everything (format
 ``i4cal.bench-design/1``).
 """
 
