@@ -319,10 +319,11 @@ def calibrate_combined(
         Sig[2 * a : 2 * a + 2, 2 * a : 2 * a + 2] = s2 * shape[a]
     # the two rods of a leg in one frame share a frame and the gap between them: their errors correlate. The
     # correlation of their whitened residuals (pooled over the run's pairs) enters the sandwich's meat
-    pair_rho, n_pairs = _pair_correlation(prob, Wh, raw(x).reshape(m, 2))
+    pairs = _rod_pairs(prob)
+    pair_rho = _pair_correlation(pairs, Wh, r)
     if pair_rho > 0:
         Lc = np.linalg.inv(Wh)  # r = Lc w: each rod's whitening undone
-        for a, b in _rod_pairs(prob):
+        for a, b in pairs:
             blk = pair_rho * s2 * Lc[a] @ Lc[b].T
             Sig[2 * a : 2 * a + 2, 2 * b : 2 * b + 2] = blk
             Sig[2 * b : 2 * b + 2, 2 * a : 2 * a + 2] = blk.T
@@ -412,7 +413,7 @@ def calibrate_combined(
             "base_frame_refinement_deg": float(np.rad2deg(np.linalg.norm(w))),
             "joint_base_frame": joint,
             "rod_pair_correlation": pair_rho,
-            "rod_pairs": n_pairs,
+            "rod_pairs": len(pairs),
         },
         residuals=r,
     )
@@ -661,18 +662,17 @@ def _rod_pairs(prob: _Problem) -> list[tuple[int, int]]:
     return pairs
 
 
-def _pair_correlation(prob: _Problem, Wh: np.ndarray, r: np.ndarray) -> tuple[float, int]:
-    """Correlation of the whitened residuals (M, 2) of a leg's two rods in one frame, pooled over both entries and
-    every pair (moments about zero, as the residuals' model has it), clipped to [0, 0.9]; and the number of pairs.
-    0 below 10 pairs (too few to tell)."""
-    pairs = _rod_pairs(prob)
+def _pair_correlation(pairs: list[tuple[int, int]], Wh: np.ndarray, r: np.ndarray) -> float:
+    """Correlation of the whitened residuals (M, 2) of a leg's two rods in one frame (``pairs``:
+    :func:`_rod_pairs`), pooled over both entries and every pair (moments about zero, as the residuals' model has
+    it), clipped to [0, 0.9]; 0 below 10 pairs (too few to tell)."""
     if len(pairs) < 10:
-        return 0.0, len(pairs)
+        return 0.0
     w = np.einsum("mij,mj->mi", Wh, r)
     a, b = (np.array(v) for v in zip(*pairs, strict=True))
     num = float(np.sum(w[a] * w[b]))
     den = float(np.sqrt(np.sum(w[a] ** 2) * np.sum(w[b] ** 2)))
-    return (float(np.clip(num / den, 0.0, 0.9)) if den > 0 else 0.0), len(pairs)
+    return float(np.clip(num / den, 0.0, 0.9)) if den > 0 else 0.0
 
 
 def _sandwich(J: np.ndarray, W: np.ndarray, Sig: np.ndarray) -> np.ndarray:

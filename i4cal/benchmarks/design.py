@@ -164,6 +164,17 @@ def run_design_bench(opts: argparse.Namespace, progress=None) -> dict[str, Any]:
     }
 
 
+def _rms(v: list[float]) -> float:
+    return float(np.sqrt(np.mean(np.square(v))))
+
+
+def _ratios(pr: dict[str, Any], rms: dict[str, Any]) -> dict[str, float | None]:
+    """Per combination, a predicted std over an RMS error (None where either is missing or zero)."""
+    from ._accuracy_report import COMBINATIONS
+
+    return {c: (pr[c] / rms[c]) if pr.get(c) and rms.get(c) else None for c in COMBINATIONS}
+
+
 def _data_pinned(trials: list[dict[str, Any]]) -> dict[str, Any]:
     """Per method, the RMS error and mean reported std (metres) over the trials whose estimate came from the data:
     a trial where the method fell back to the a priori values (its data contradicted them) or where its data knew a
@@ -182,12 +193,9 @@ def _data_pinned(trials: list[dict[str, Any]]) -> dict[str, Any]:
             "n_a_priori_fallback": sum(1 for r in ok if r.get("a_priori_fallback")),
             "n_unpinned": sum(1 for r in ok if r.get("unpinned_directions") and not r.get("a_priori_fallback")),
         }
-        for key, field in (("rms_error_m", "errors"), ("mean_std_m", "std")):
+        for key, field, stat in (("rms_error_m", "errors", _rms), ("mean_std_m", "std", np.mean)):
             vals = {c: [r[field][c] for r in kept if r[field].get(c) is not None] for c in COMBINATIONS}
-            entry[key] = {
-                c: (float(np.sqrt(np.mean(np.square(v)))) if key == "rms_error_m" else float(np.mean(v))) if v else None
-                for c, v in vals.items()
-            }
+            entry[key] = {c: float(stat(v)) if v else None for c, v in vals.items()}
         out[m] = entry
     return out
 
@@ -213,16 +221,11 @@ def _checks(plans: dict[str, dict[str, Any]]) -> dict[str, Any]:
             ratios[name] = {}
             for m in METHODS:
                 pr = p.get(field, {}).get(m) or {}
-                rms = p["summary"]["methods"][m][ref]
-                ratios[name][m] = {c: (pr[c] / rms[c]) if pr.get(c) and rms.get(c) else None for c in COMBINATIONS}
+                ratios[name][m] = _ratios(pr, p["summary"]["methods"][m][ref])
         out[key] = ratios
     out["predicted_images_over_rms_data_pinned"] = {
         name: {
-            m: {
-                c: (pr[c] / rms[c]) if pr.get(c) and rms.get(c) else None
-                for c in COMBINATIONS
-                for pr, rms in [(p.get("predicted_images_std_m", {}).get(m) or {}, p["data_pinned"][m]["rms_error_m"])]
-            }
+            m: _ratios(p.get("predicted_images_std_m", {}).get(m) or {}, p["data_pinned"][m]["rms_error_m"])
             for m in METHODS
             if "data_pinned" in p
         }
