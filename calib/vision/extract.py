@@ -15,6 +15,12 @@ Stages (each over a process pool when ``workers > 1``, with ``progress(done, tot
 4. Rods: the eight rods of every frame, predicted from the nominal model, the encoder values and
    the coarse placement, then measured (:mod:`calib.vision.rods`); the board (measured, or
    predicted when missing) is an occluder.
+5. Rods again, where the nominal prediction was off: the seven parameters, ``camera_from_base`` and
+   ``ee_from_board`` refitted to the rods and boards the first pass measured (robust least squares,
+   :mod:`calib.vision.repredict`); the frames whose prediction that moves by more than
+   ``ExtractOptions.repredict_px`` are measured again on the refitted prediction. On a bench some 15 mm
+   off nominal the first prediction is 15-30 px off (the search band is 18 px): without this, rods are
+   lost or taken for another edge pair. The refit only says where to look (``summary.repredicted``).
 
 A frame whose image is missing or unreadable, a hidden board, a rod that leaves the image: each is
 reported per frame (``missing`` in the frame, ``summary`` per phase) and the rest goes on.
@@ -24,7 +30,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -47,6 +53,7 @@ from .pool import (
     _task_find_rods,
     _task_rods,
 )
+from .repredict import MeasuredRod, Repredicted, prediction_shift_px, refit_prediction, rod_ends_camera
 from .rods import ROD_KEYS, RodSettings, rod_name
 
 Progress = Callable[[int, int], None]
@@ -71,6 +78,10 @@ class ExtractOptions:
     #: standard deviations (Mahalanobis), measure the frames a second time with the refined camera
     refine_camera: bool = True
     refine_min_shift: float = 0.5
+    #: after the rods' first pass, refit the prediction (seven parameters, placement) to the rods and boards it
+    #: measured (:mod:`calib.vision.repredict`) and measure again the frames whose prediction moved by more than
+    #: this (px); None: one pass, on the nominal model's prediction
+    repredict_px: float | None = 3.0
     #: the camera calibration's lens model (:data:`calib.camera.LENS_MODEL_CHOICES`): ``"auto"`` chooses it from
     #: the ``camera`` phase's board views (:func:`calib.camera.calibrate_intrinsics`); None: the dataset's
     #: ``camera.lens_model`` (the bench file's), else ``"auto"``; a given camera keeps its own
@@ -100,6 +111,8 @@ class ExtractionResult:
     intrinsics: IntrinsicsResult | None
     camera_from_base: Rigid | None
     ee_from_board: Rigid | None
+    #: the rods' prediction refitted to the first pass (:mod:`calib.vision.repredict`), when used
+    repredicted: Repredicted | None = None
 
 
 def _short(reason: str) -> str:
@@ -162,9 +175,21 @@ def extract_dataset(
         if refined is None:
             first.summary["camera"]["refined_by_rods"] = info
             return first
-        second = _extract(pool, ds, refined, second_progress, opts, on_frame, corners=corners)
+        second = _extract(
+            pool,
+            ds,
+            refined,
+            second_progress,
+            opts,
+            on_frame,
+            corners=corners,
+            predict_with=first.repredicted,
+            predicted_from=first.camera_from_base,
+        )
     # the camera's calibration (views, rejections) is the first pass's; the second only re-measured
     second.summary["camera"] = {**first.summary["camera"], "refined_by_rods": info}
+    if second.summary.get("repredicted") is not None:  # the nominal prediction's figures are the first pass's
+        second.summary["repredicted"]["first_camera_pass"] = first.summary.get("repredicted")
     cam_frames = {str(i) for i, f in enumerate(ds.frames) if f.phase == "camera"}
     second.summary["frames"] = dict(
         sorted(
@@ -240,10 +265,20 @@ def _extract(
     on_frame: FrameCallback | None,
     keep_images: bool = False,
     corners: dict[int, list] | None = None,
+    predict_with: Repredicted | None = None,
+    predicted_from: Rigid | None = None,
 ) -> ExtractionResult:
     """One pass over the dataset. ``keep_images``: the workers keep the decoded images after the rods stage (a
     second pass follows); ``corners``: filled with each frame's ChArUco corners when empty, reused (the pose
     only) when not."""
+    reported = [-1]  # the last count reported: the end is reported once, whatever the stages reported
+    if progress is not None:
+        user_progress = progress
+
+        def progress(done: int, tot: int) -> None:
+            reported[0] = done
+            user_progress(done, tot)
+
     doc = ds.document
     frames = ds.frames
     cam_idx = [i for i, f in enumerate(frames) if f.phase == "camera"]
@@ -327,6 +362,12 @@ def _extract(
         placement_reason = (
             f"no coarse camera placement: board poses in {len(good)} frames, need {opts.min_placement_frames}"
         )
+    if predict_with is not None and predicted_from is not None and C is not None:
+        # an earlier pass's refit, moved with the camera frame (another camera moves the board poses, hence the
+        # coarse placement, by the same transform)
+        predict_with = replace(
+            predict_with, camera_from_base=C @ predicted_from.inverse() @ predict_with.camera_from_base
+        )
     found: dict[int, Any] = {}
     fallback = None
     if C is None and opts.detect_fallback:  # no placement: the rods are found from scratch in each frame
@@ -376,16 +417,33 @@ def _extract(
                 b = {"R": nb.R.tolist(), "t": nb.t.tolist()}
             except I4calError:
                 b = None
-        rod_items.append((i, C.to_dict(), b))
+        if predict_with is not None:  # the refit of an earlier pass
+            rod_items.append((i, predict_with.camera_from_base.to_dict(), b, None, predict_with.parameters.vector()))
+        else:
+            rod_items.append((i, C.to_dict(), b))
     rods_cb = (
         None if on_frame is None else (lambda r: on_frame(frame_info(r[0], frames[r[0]].phase, boards[r[0]], r[1])))
     )
     rods = dict(pool.run(_task_rods, rod_items, init, progress, done, total, rods_cb))
+    repredicted: dict[str, Any] | None = None
+    fit: Repredicted | None = None
+    if C is not None and E is not None and not found and opts.repredict_px is not None:
+        repredicted, redo, fit = _repredict(ds, camera, boards, rods, C, E, opts.repredict_px, predict_with)
+        if fit is not None and redo:
+            total += len(redo)
+            items = [
+                (i, fit.camera_from_base.to_dict(), b, None, fit.parameters.vector())
+                for i, _cfb, b in (it[:3] for it in rod_items)
+                if i in redo
+            ]
+            rods.update(pool.run(_task_rods, items, init, progress, done + len(rod_items), total, rods_cb))
+        repredicted["first_prediction"] = "nominal" if predict_with is None else "an earlier pass's refit"
+    fit = fit or predict_with
     if on_frame is not None:  # frames whose rods could not be looked for
         for i in obs_idx:
             if i not in rods:
                 on_frame(frame_info(i, frames[i].phase, boards[i], {"reason": placement_reason or "no prediction"}))
-    if progress:
+    if progress and reported[0] < total:
         progress(total, total)
     # -- assemble --------------------------------------------------------------------------------
     out_frames = []
@@ -452,6 +510,7 @@ def _extract(
         "frames": {str(k): v for k, v in sorted(per_frame.items())},
         "camera": intr.summary() if intr else {"source": "given" if not need_calib else "dataset"},
         "placement": {"ok": C is not None, "rms_m": placement_rms, "reason": placement_reason, "detected": fallback},
+        "repredicted": repredicted,
     }
     extraction = {
         "camera": camera.to_dict(),
@@ -465,7 +524,64 @@ def _extract(
     dextra = doc.model_extra or {}
     if "truth" in dextra:
         obs["truth"] = dextra["truth"]
-    return ExtractionResult(obs, summary, camera, intr, C, E)
+    return ExtractionResult(obs, summary, camera, intr, C, E, fit)
+
+
+def _repredict(
+    ds: Dataset,
+    camera: CameraModel,
+    boards: dict[int, dict[str, Any]],
+    rods: dict[int, Any],
+    C: Rigid,
+    E: Rigid,
+    min_shift_px: float,
+    start: Repredicted | None = None,
+) -> tuple[dict[str, Any], set[int], Repredicted | None]:
+    """The rods' prediction refitted to the first pass (:func:`.repredict.refit_prediction`) and the frames whose
+    prediction it moved by more than ``min_shift_px`` (to be measured again). Returns the summary's
+    ``repredicted`` entry (``applied``: whether the refit is used), those frames and the refit. ``start``: the
+    refit the frames were first measured with (an earlier pass's), else the nominal model with ``C``."""
+    doc = ds.document
+    nominal = doc.nominal.parameters()
+    spacing = doc.legs.rod_spacing_m if doc.legs.rod_spacing_m is not None else 0.0
+    idx = sorted(rods)
+    q = np.array([ds.frames[i].q for i in idx], dtype=np.float64).reshape(-1, 4)
+    measured: list[MeasuredRod] = []
+    poses: dict[int, Rigid] = {}
+    for k, i in enumerate(idx):
+        pose = boards.get(i, {}).get("pose")
+        if pose is not None:
+            poses[k] = Rigid(np.asarray(pose["R"]), np.asarray(pose["t"]))
+        for name, v in (rods[i].get("rods") or {}).items():
+            if isinstance(v, dict) and v.get("point") is not None:
+                leg, rod = int(name[3]) - 1, int(name[-1])
+                measured.append(MeasuredRod(k, leg, rod, np.asarray(v["point"]), np.asarray(v["u"])))
+    height = float((doc.board.model_extra or {}).get("height_above_ee_m", 0.0))
+    f_px = float(np.sqrt(camera.K[0, 0] * camera.K[1, 1]))
+    try:
+        C0, E0 = (start.camera_from_base, start.ee_from_board) if start is not None else (C, E)
+        fit = refit_prediction(
+            nominal, q, measured, poses, C0, E0, f_px, spacing, height, start=start.parameters if start else None
+        )
+    except (I4calError, np.linalg.LinAlgError, ValueError) as exc:
+        return {"applied": False, "reason": f"refit failed: {exc}"}, set(), None
+    if fit is None:
+        return {"applied": False, "reason": "too few rods, or the refit did not bring them closer"}, set(), None
+    try:
+        first = rod_ends_camera(start.parameters if start else nominal, q, C0, spacing)[:2]
+        second = rod_ends_camera(fit.parameters, q, fit.camera_from_base, spacing)[:2]
+    except I4calError as exc:
+        return {"applied": False, "reason": f"refitted model cannot close: {exc}"}, set(), None
+    shift = prediction_shift_px(camera.K, (camera.width, camera.height), first, second)
+    redo = {i for i, d in zip(idx, shift, strict=True) if d > min_shift_px}
+    info = {
+        "applied": bool(redo) or start is not None,
+        **fit.summary(),
+        "frames_measured_again": len(redo),
+        "min_shift_px": min_shift_px,
+    }
+    info["max_shift_px"] = float(shift.max()) if shift.size else 0.0
+    return info, redo, fit
 
 
 def frame_info(i: int, phase: str, board: dict[str, Any], rods: dict[str, Any] | None = None) -> dict[str, Any]:

@@ -20,6 +20,7 @@ import numpy as np
 from ..camera import CameraModel
 from ..dataset import Dataset
 from ..errors import I4calError, InputError
+from ..parameters import I4Parameters
 from ..threads import forking_single_threaded, single_threaded_worker
 from ..transforms import Rigid
 from .board import BoardDetection, BoardDetector, to_gray8
@@ -143,6 +144,7 @@ def _task_find_rods(args: tuple[int, dict | None, dict]) -> tuple[int, Any]:
 def _task_rods(args: tuple) -> tuple[int, Any]:
     i, cfb, board = args[:3]
     found = args[3] if len(args) > 3 else None  # a RodDetection when there is no placement
+    seven = args[4] if len(args) > 4 else None  # the seven parameters that predict the rods (default: nominal)
     ds: Dataset = _W["ds"]
     cam: CameraModel = _W["cam"]
     fr = ds.frames[i]
@@ -152,6 +154,8 @@ def _task_rods(args: tuple) -> tuple[int, Any]:
         return i, {"image_error": exc.reason}
     doc = ds.document
     nominal = doc.nominal.parameters()
+    if seven is not None:
+        nominal = I4Parameters.from_vector(seven, T_per_rad=nominal.T_per_rad)
     spacing = doc.legs.rod_spacing_m if doc.legs.rod_spacing_m is not None else 0.0
     try:
         preds = predict_rods(nominal, fr.q, Rigid.from_dict(cfb), spacing) if found is None else []

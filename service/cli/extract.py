@@ -127,6 +127,16 @@ def run(args: argparse.Namespace) -> int:
         )
     elif ref:
         console.print(f"camera not refined: {ref.get('reason')}")
+    rp = s.get("repredicted") or {}
+    rp0 = rp.get("first_camera_pass") or rp
+    if rp0.get("applied"):
+        console.print(
+            f"rods' prediction refitted to the first pass ({rp0['rods']} rods, {rp0['boards']} boards): measured rods "
+            f"{rp0['median_px_before']:.1f} px from the nominal prediction (median), {rp0['median_px_after']:.2f} px "
+            f"from the refitted one; {rp0['frames_measured_again']} frames measured again"
+        )
+    elif rp0.get("reason"):
+        console.print(f"rods' prediction not refitted: {rp0['reason']}")
     pl = s["placement"]
     console.print(
         "coarse camera placement: "

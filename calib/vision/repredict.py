@@ -1,0 +1,276 @@
+"""The rods' prediction refitted to what the first pass measured (a bench whose geometry is far from nominal).
+
+The rods are looked for near their prediction: the *nominal* model at the encoder values and the coarse
+``camera_from_base`` (:mod:`.placement`). On a bench whose geometry is some 15 mm off nominal, that prediction is
+20-30 px off, beyond the search band: rods are lost, or another edge pair (the other rod of the leg, the gap) is
+taken for them. The first pass still measures most rods, and every board pose. This module fits the seven
+parameters, ``camera_from_base`` and ``ee_from_board`` to them (robust least squares, a weak prior towards the
+nominal model), so that a second pass can look where the rods are.
+
+The refit only decides where to look: the rods are then measured from the image edges as in the first pass, and
+the calibration uses those measurements only. Its units: pixels (the camera's focal length times the angles).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import least_squares
+
+from ..errors import I4calError
+from ..kinematics import dkm, joint_points
+from ..parameters import PARAMETER_NAMES, I4Parameters
+from ..transforms import Rigid, matrix_to_rotvec, rot_z, rotvec_to_matrix
+
+Array = NDArray[np.float64]
+
+#: the board's rotation residual is weighed as the displacement of a point this far from its centre (metres)
+BOARD_ARM_M = 0.05
+#: residuals beyond this (px) count less and less (soft-L1): rods the first pass took for another edge pair
+ROBUST_SCALE_PX = 2.0
+
+
+@dataclass
+class MeasuredRod:
+    """One rod measured in the first pass: frame index into the refit's arrays, leg, rod, its axis (camera frame)."""
+
+    frame: int
+    leg: int
+    rod: int
+    point: Array
+    u: Array
+
+
+@dataclass
+class Repredicted:
+    """The refitted prediction and its evidence.
+
+    Attributes
+    ----------
+    parameters : I4Parameters
+        The seven parameters that predict the rods (metres).
+    camera_from_base, ee_from_board : Rigid
+    median_px_before, median_px_after : float
+        Median distance (px) of the measured rods' axes from the prediction's rod ends, with the first prediction
+        and with the refitted one.
+    rods, boards : int
+        Measurements used.
+    """
+
+    parameters: I4Parameters
+    camera_from_base: Rigid
+    ee_from_board: Rigid
+    median_px_before: float
+    median_px_after: float
+    rods: int
+    boards: int
+    shift_m: dict[str, float] = field(default_factory=dict)
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "rods": self.rods,
+            "boards": self.boards,
+            "median_px_before": self.median_px_before,
+            "median_px_after": self.median_px_after,
+            "parameters_shift_mm": {k: v * 1e3 for k, v in self.shift_m.items()},
+        }
+
+
+def _vector(params: I4Parameters, C: Rigid, E: Rigid) -> Array:
+    return np.concatenate([params.vector(), matrix_to_rotvec(C.R), C.t, matrix_to_rotvec(E.R), E.t[:2]]).astype(
+        np.float64
+    )
+
+
+def _unpack(x: Array, T_per_rad: float, board_height_m: float) -> tuple[I4Parameters, Rigid, Rigid]:
+    p = I4Parameters.from_vector(x[:7], T_per_rad=T_per_rad)
+    C = Rigid(rotvec_to_matrix(x[7:10]), np.asarray(x[10:13], dtype=np.float64))
+    E = Rigid(rotvec_to_matrix(x[13:16]), np.array([x[16], x[17], board_height_m]))
+    return p, C, E
+
+
+def rod_ends_camera(
+    params: I4Parameters, q: Array, camera_from_base: Rigid, rod_spacing_m: float
+) -> tuple[Array, Array, Array]:
+    """Predicted rod ends in the camera frame (metres) and the end-effector poses.
+
+    Parameters
+    ----------
+    q : ndarray, shape (N, 4)
+
+    Returns
+    -------
+    top, bottom : ndarray, shape (N, 4, 2, 3)
+        Actuator-side and plate-side ends of every rod (rod 0 on the -x_B side).
+    pose : ndarray, shape (N, 4)
+        ``(X, Y, Z, T)``.
+
+    Raises
+    ------
+    UnreachableError
+        ``params`` cannot close at some ``q``.
+    """
+    pose = dkm(params, q)
+    A, B = joint_points(params, q, pose)
+    off = np.array([-0.5, 0.5])[:, None] * rod_spacing_m * np.array([1.0, 0.0, 0.0])  # (2, 3)
+    top = A[:, :, None, :] + off[None, None]
+    bottom = B[:, :, None, :] + off[None, None]
+    R, t = camera_from_base.R, camera_from_base.t
+    return top @ R.T + t, bottom @ R.T + t, pose
+
+
+def _residuals(
+    x: Array,
+    q: Array,
+    rods: tuple[Array, Array, Array, Array],
+    boards: tuple[Array, Array, Array],
+    f_px: float,
+    nominal: I4Parameters,
+    prior_m: float,
+    rod_spacing_m: float,
+    board_height_m: float,
+) -> Array:
+    """Residuals (px): two per rod, six per board, seven for the prior. ``rods``: frame, leg, rod indices (M,) and
+    the unit normals (M, 3) of the planes through the camera centre and the measured axes; ``boards``: frame
+    indices (B,), measured rotations (B, 3, 3) and translations (B, 3)."""
+    params, C, E = _unpack(x, nominal.T_per_rad, board_height_m)
+    k, i, j, n = rods
+    bk, bR, bt = boards
+    n_out = 2 * len(k) + 6 * len(bk) + 7
+    try:
+        top, bottom, pose = rod_ends_camera(params, q, C, rod_spacing_m)
+    except I4calError:
+        return np.full(n_out, 1e3)
+    out = np.empty(n_out)
+    for e, X in enumerate((top[k, i, j], bottom[k, i, j])):
+        # a predicted end's angle from the measured axis's plane through the camera centre, in px
+        out[e : 2 * len(k) : 2] = f_px * np.einsum("md,md->m", n, X) / np.linalg.norm(X, axis=1)
+    o = 2 * len(k)
+    X, Y, Z, T = pose[bk].T
+    RB = rot_z(T / nominal.T_per_rad)  # (B, 3, 3)
+    tB = np.column_stack([X, params.H + Y, Z])
+    Rp = np.einsum("ij,bjk,kl->bil", C.R, RB, E.R)
+    tp = (np.einsum("bij,j->bi", RB, E.t) + tB) @ C.R.T + C.t
+    scale = f_px / np.maximum(bt[:, 2], 0.05)
+    res = np.empty((len(bk), 6))
+    res[:, :3] = scale[:, None] * (tp - bt)
+    res[:, 3:] = (scale * BOARD_ARM_M)[:, None] * matrix_to_rotvec(Rp @ np.transpose(bR, (0, 2, 1)))
+    out[o : o + 6 * len(bk)] = res.reshape(-1)
+    out[o + 6 * len(bk) :] = (np.asarray(params.vector()) - np.asarray(nominal.vector())) / prior_m
+    return out
+
+
+def refit_prediction(
+    nominal: I4Parameters,
+    q: Array,
+    rods: list[MeasuredRod],
+    boards: dict[int, Rigid],
+    camera_from_base: Rigid,
+    ee_from_board: Rigid,
+    f_px: float,
+    rod_spacing_m: float,
+    board_height_m: float = 0.0,
+    prior_m: float = 0.02,
+    start: I4Parameters | None = None,
+) -> Repredicted | None:
+    """Fit the seven parameters, ``camera_from_base`` and ``ee_from_board`` to the first pass's measurements.
+
+    Parameters
+    ----------
+    nominal : I4Parameters
+        The model the first pass predicted with; the prior's centre.
+    q : ndarray, shape (N, 4)
+        Encoder values (metres) of the frames the measurements index.
+    rods : list of MeasuredRod
+    boards : dict
+        Frame index -> measured ``camera_from_board``.
+    camera_from_base, ee_from_board : Rigid
+        The coarse placement (:func:`.placement.fit_placement`): the starting point.
+    f_px : float
+        Focal length (px): angles to pixels.
+    rod_spacing_m : float
+    board_height_m : float
+        Height of the board's origin above E (fixed, as in the coarse placement).
+    prior_m : float
+        Each parameter's prior std around nominal (metres): a soft pull in directions the measurements leave free.
+    start : I4Parameters, optional
+        The seven parameters the first pass predicted with, when not ``nominal`` (with ``camera_from_base`` and
+        ``ee_from_board``: the starting point and the "before" of the figures).
+
+    Returns
+    -------
+    Repredicted or None
+        None when there is too little to fit (fewer than 8 rods) or the fit does not bring the rods closer to
+        the prediction.
+    """
+    q = np.asarray(q, dtype=np.float64).reshape(-1, 4)
+    if len(rods) < 8:
+        return None
+    normals = np.cross([m.point for m in rods], [m.u for m in rods])
+    packed = (
+        np.array([m.frame for m in rods]),
+        np.array([m.leg for m in rods]),
+        np.array([m.rod for m in rods]),
+        normals / np.linalg.norm(normals, axis=1, keepdims=True),
+    )
+    bk = np.array(sorted(boards), dtype=int)
+    pb = (bk, np.array([boards[b].R for b in bk]).reshape(-1, 3, 3), np.array([boards[b].t for b in bk]).reshape(-1, 3))
+    args = (q, packed, pb, float(f_px), nominal, prior_m, rod_spacing_m, board_height_m)
+    x0 = _vector(start or nominal, camera_from_base, ee_from_board)
+    r0 = _residuals(x0, *args)
+    sol = least_squares(
+        _residuals, x0, args=args, loss="soft_l1", f_scale=ROBUST_SCALE_PX, x_scale="jac", method="trf", max_nfev=200
+    )
+    n_rod = 2 * len(rods)
+
+    def per_rod(r: Array) -> Array:
+        return np.abs(r[:n_rod]).reshape(-1, 2).max(axis=1)
+
+    before = float(np.median(per_rod(r0)))
+    after = float(np.median(per_rod(sol.fun)))
+    if not np.all(np.isfinite(sol.x)) or after >= before:
+        return None
+    params, C, E = _unpack(sol.x, nominal.T_per_rad, board_height_m)
+    shift = {n: float(a - b) for n, a, b in zip(PARAMETER_NAMES, params.vector(), nominal.vector(), strict=True)}
+    return Repredicted(params, C, E, before, after, len(rods), len(boards), shift)
+
+
+def prediction_shift_px(
+    K: Array, size: tuple[int, int], first: tuple[Array, Array], second: tuple[Array, Array], near_m: float = 0.05
+) -> Array:
+    """Per frame, how far (ideal px) a second prediction of the rods moves them where they are seen.
+
+    Per rod, the median over 41 points along it (those in front of the camera that both predictions put inside
+    the image) of the distance between their two images: the rods reach close to the camera, where a millimetre
+    moves the image by tens of pixels over a short stretch, so the median, not the maximum.
+
+    Parameters
+    ----------
+    K : ndarray, shape (3, 3)
+    size : (width, height)
+        The image (px).
+    first, second : tuple of ndarray, shape (N, 4, 2, 3) each
+        ``(top, bottom)`` rod ends in the camera frame (:func:`rod_ends_camera`).
+
+    Returns
+    -------
+    ndarray, shape (N,)
+        The largest of the frame's rods' medians; 0 where no rod is seen.
+    """
+    w, h = size
+    s = np.linspace(0.0, 1.0, 41)[:, None, None, None, None]
+    a = first[0][None] + s * (first[1] - first[0])[None]  # (41, N, 4, 2, 3)
+    b = second[0][None] + s * (second[1] - second[0])[None]
+    ok = (a[..., 2] > near_m) & (b[..., 2] > near_m)
+    pa = (a @ K.T)[..., :2] / np.where(ok, a[..., 2], 1.0)[..., None]
+    pb = (b @ K.T)[..., :2] / np.where(ok, b[..., 2], 1.0)[..., None]
+    for p in (pa, pb):
+        ok &= (p[..., 0] >= 0) & (p[..., 0] <= w) & (p[..., 1] >= 0) & (p[..., 1] <= h)
+    d = np.where(ok, np.linalg.norm(pa - pb, axis=-1), np.nan)
+    seen = ok.any(axis=0)
+    med = np.zeros(seen.shape)
+    med[seen] = np.nanmedian(d[:, seen], axis=0)
+    return med.reshape(len(med), -1).max(axis=1)
