@@ -26,6 +26,7 @@ from ..transforms import Rigid
 from .board import BoardDetection, BoardDetector, to_gray8
 from .detect import DetectSettings, detect_rods, measure_detected
 from .rods import RodSettings, image_ideal_bbox, leg_parallelism, measure_rods, predict_rods, rod_name
+from .rods.types import ROD_BOARD_OCCLUDER_M
 
 Progress = Callable[[int, int], None]
 
@@ -164,7 +165,7 @@ def _task_rods(args: tuple) -> tuple[int, Any]:
     occ = []
     if board is not None:
         # the board (with its margin) plus ~15 mm so that its edges stay out of the profiles
-        oc = _W["det"].outline_camera(np.asarray(board["R"]), np.asarray(board["t"]), margin_m=0.028)
+        oc = _W["det"].outline_camera(np.asarray(board["R"]), np.asarray(board["t"]), margin_m=ROD_BOARD_OCCLUDER_M)
         if np.all(oc[:, 2] > 0):
             occ.append(cam.to_ideal_pixels(oc[:, :2] / oc[:, 2:3]))
     if found is None:

@@ -14,7 +14,7 @@ from ...camera import CameraModel
 from .covariance import _direction_covariance, _line_cov
 from .geometry import _CORR, axis_from_planes, limb_planes
 from .lines import robust_line
-from .types import RodMeasurement, RodPrediction, RodSettings
+from .types import ROD_OCCLUDER_CLEARANCE_PX, RodMeasurement, RodPrediction, RodSettings
 
 Array = NDArray[np.float64]
 
@@ -417,7 +417,7 @@ def measure_rod(
     half = 0.5 * float(np.max(np.abs(seg.off1 - seg.off2)))
     for poly in occluders or []:
         # a profile is hidden when any part of its span is inside the polygon
-        inside &= ~_hidden(centres, (half + 4.0) * n_dir, (-1.0, 0.0, 1.0), poly)
+        inside &= ~_hidden(centres, (half + ROD_OCCLUDER_CLEARANCE_PX) * n_dir, (-1.0, 0.0, 1.0), poly)
     if inside.sum() * s.step_px < s.min_length_px:
         vis = inside.sum() * s.step_px
         out.reason = (

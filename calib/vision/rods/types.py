@@ -54,6 +54,13 @@ def predict_rods(
     return out
 
 
+#: the board hides the rods' profiles within this of the pattern's outline (the board's margin plus ~15 mm, so
+#: that its edges stay out of the profiles), metres
+ROD_BOARD_OCCLUDER_M = 0.028
+#: a profile is left out when any point within the rod's half width plus this (px) of its centre is on the board
+ROD_OCCLUDER_CLEARANCE_PX = 4.0
+
+
 @dataclass
 class RodSettings:
     """Tuning of the rod extraction (pixels are ideal, undistorted pixels)."""
