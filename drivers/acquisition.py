@@ -16,6 +16,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -500,13 +501,18 @@ class Acquisition:
         except (DeviceError, InputError, OSError) as exc:
             await self._fail(u0, exc)
         t0 = time.monotonic()
+        t_prev = -math.inf  # when the previous sample's encoders were last read
         try:
             for k in range(k0, line.samples):
                 u = self.units[i + (k - k0)]
                 if self._aborting:
                     raise asyncio.CancelledError
                 try:
-                    await asyncio.sleep(max(0.0, t0 + (k - k0 + 0.5) / rate - time.monotonic()))
+                    # on schedule; and, when behind it, never closer than half a period to the previous sample: the
+                    # operator moves at the pace they were given, and encoders read back to back while the operator
+                    # moves on look like a jump no axis can make (the axes' plausibility check)
+                    now = time.monotonic()
+                    await asyncio.sleep(max(0.0, t0 + (k - k0 + 0.5) / rate - now, t_prev + 0.5 / rate - now))
                     t_rec = time.perf_counter()
                     for _attempt in range(3):  # the frame must match the encoders (still across the grab)
                         st = await self.actuators.status()
@@ -518,6 +524,7 @@ class Acquisition:
                             raise AlarmError(alarm_message(ax, code), code=code, axis=ax)
                         frame = await self._grab()
                         q2 = await self.actuators.read_encoders()
+                        t_prev = time.monotonic()
                         spread = float(np.max(np.abs(q2 - st.positions)))
                         if spread <= self.line_still_m:
                             break

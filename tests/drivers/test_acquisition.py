@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import asyncio
+import itertools
+import time
 
 import numpy as np
 import pytest
@@ -270,3 +272,52 @@ async def test_bench_file_lens_model_reaches_the_dataset(bench, tmp_path):
     finally:
         await close_devices(acq)
     assert Dataset.open(tmp_path / "ds").document.camera.model_extra["lens_model"] == "rational"
+
+
+async def test_a_late_line_sample_does_not_read_the_encoders_back_to_back(bench, tmp_path):
+    """A line sample that comes late (a slow grab: a loaded machine) is not followed by samples read back to back:
+    the operator moves the ruler on as soon as a sample's encoders were read, so two reads a millisecond apart saw
+    the axes jump by a mark (60 mm here) and the axes' plausibility check stopped the run (seen once in CI). At
+    least half a line period now separates a sample's last encoder read from the next sample's first."""
+    rate = 20.0
+    plan = Plan(name="line", steps=make_plan("line", NOMINAL, line_samples=9).steps)
+    acq = make_acq(bench, plan, tmp_path / "ds", line_rate_hz=rate)
+    reads: list[tuple[str, float]] = []
+    in_line = {"on": False}
+    status, read_encoders, grab = acq.actuators.status, acq.actuators.read_encoders, acq._grab
+    begin, end = acq.operator.begin_line, acq.operator.end_line
+    n = {"grabs": 0}
+
+    async def begin_line(*a, **k):
+        in_line["on"] = True
+        return await begin(*a, **k)
+
+    async def end_line():
+        in_line["on"] = False
+        return await end()
+
+    async def logged_status():
+        if in_line["on"]:
+            reads.append(("status", time.monotonic()))
+        return await status()
+
+    async def logged_read():
+        r = await read_encoders()
+        if in_line["on"]:
+            reads.append(("encoders", time.monotonic()))
+        return r
+
+    async def slow_grab():
+        n["grabs"] += 1
+        if n["grabs"] == 3:
+            await asyncio.sleep(0.4)  # eight periods late
+        return await grab()
+
+    acq.actuators.status, acq.actuators.read_encoders, acq._grab = logged_status, logged_read, slow_grab
+    acq.operator.begin_line, acq.operator.end_line = begin_line, end_line
+    res = await acq.run()
+    await close(acq)
+    assert res.frames == 9
+    gaps = [b[1] - a[1] for a, b in itertools.pairwise(reads) if a[0] == "encoders" and b[0] == "status"]
+    assert len(gaps) == 8
+    assert min(gaps) >= 0.5 / rate - 0.002, gaps  # before: 0.1 ms after the late sample
