@@ -36,6 +36,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "pass; less accurate when the camera calibration is off)",
     )
     p.add_argument(
+        "--no-repredict",
+        dest="repredict",
+        action="store_false",
+        help="look for the rods near the nominal model's prediction only (one pass over the rods); by default the "
+        "prediction is refitted to what that pass measured and the frames it moves by more than 3 px are measured "
+        "again (a bench far from its nominal geometry keeps its rods)",
+    )
+    p.add_argument(
         "--lens-model",
         default=None,
         metavar="MODEL",
@@ -64,7 +72,12 @@ def run(args: argparse.Namespace) -> int:
             field="--lens-model",
         )
     cam = CameraModel.load(args.camera) if args.camera else None
-    opts = ExtractOptions(min_corners=args.min_corners, refine_camera=args.refine_camera, lens_model=args.lens_model)
+    opts = ExtractOptions(
+        min_corners=args.min_corners,
+        refine_camera=args.refine_camera,
+        lens_model=args.lens_model,
+        repredict_px=ExtractOptions.repredict_px if args.repredict else None,
+    )
     if args.quiet:
         res = extract_dataset(args.dataset, camera=cam, workers=args.workers, options=opts)
     else:
@@ -129,7 +142,7 @@ def run(args: argparse.Namespace) -> int:
         console.print(f"camera not refined: {ref.get('reason')}")
     rp = s.get("repredicted") or {}
     rp0 = rp.get("first_camera_pass") or rp
-    if rp0.get("applied"):
+    if rp0.get("median_px_before") is not None:
         console.print(
             f"rods' prediction refitted to the first pass ({rp0['rods']} rods, {rp0['boards']} boards): measured rods "
             f"{rp0['median_px_before']:.1f} px from the nominal prediction (median), {rp0['median_px_after']:.2f} px "

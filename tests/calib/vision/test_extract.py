@@ -220,3 +220,30 @@ def test_cli_extract_counts_the_corners_left_out(tmp_path, capsys):
     assert f"{line}, a glint): {n} (poses {n})" in said, said
     # the poses that lost corners are as clean as the others (a pulled corner left in gave 0.3-1.7 px)
     assert max(f["board"]["rms_px"] for f in doc["frames"] if f["board"]) < 0.2
+
+
+def test_cli_extract_reports_the_refitted_prediction_and_can_skip_it(tmp_path, capsys):
+    """By default the rods' prediction is refitted to the first pass (calib.vision.repredict) and the printout says
+    how far the measured rods were from the nominal prediction and from the refitted one; ``--no-repredict`` keeps
+    one pass on the nominal prediction."""
+    from drivers.sim.imaging import simulate_dataset
+    from service.cli import main
+
+    g = BenchGeometry()
+    root = simulate_dataset(
+        tmp_path / "ds", seed=1, plan=make_plan("pose-set", g.nominal, n_fit=6, seed=1), n_camera_views=0
+    )
+    spec = json.loads((root / "dataset.json").read_text())
+    cam = RenderSettings().camera()
+    spec["camera"].update(K=cam.K.tolist(), dist=cam.dist.tolist())
+    (root / "dataset.json").write_text(json.dumps(spec))
+    out = tmp_path / "obs.json"
+    assert main(["extract", str(root), "-o", str(out), "--workers", "1"]) == 0
+    said = " ".join((lambda c: c.out + c.err)(capsys.readouterr()).split())
+    rp = json.loads(out.read_text())["extraction"]["summary"]["repredicted"]
+    assert rp["median_px_after"] < rp["median_px_before"], rp
+    assert f"rods' prediction refitted to the first pass ({rp['rods']} rods, {rp['boards']} boards)" in said, said
+    assert main(["extract", str(root), "-o", str(out), "--workers", "1", "--no-repredict"]) == 0
+    said = " ".join((lambda c: c.out + c.err)(capsys.readouterr()).split())
+    assert json.loads(out.read_text())["extraction"]["summary"]["repredicted"] is None
+    assert "refitted" not in said, said
