@@ -22,9 +22,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..camera import CameraModel
-from ..kinematics import dkm, joint_points
+from ..kinematics import dkm
 from ..parameters import I4Parameters
 from ..transforms import Rigid, rot_z
+from ..vision.rods.types import rod_ends_camera
 
 __all__ = ["Scene", "VisibilityLimits", "board_outline", "rod_segments", "visibility"]
 
@@ -91,12 +92,8 @@ def board_outline(scene: Scene, per_edge: int = 8) -> np.ndarray:
 
 def rod_segments(scene: Scene, params: I4Parameters, q: np.ndarray, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rod end points in the camera frame: upper (actuator) and lower (plate), each (N, 4, 2, 3)."""
-    A, B = joint_points(params, q, pose)
-    off = np.array([-0.5, 0.5])[:, None] * scene.rod_spacing_m * np.array([1.0, 0.0, 0.0])
-    top = A[:, :, None, :] + off[None, None]
-    bot = B[:, :, None, :] + off[None, None]
-    R, t = scene.camera_from_base.R, scene.camera_from_base.t
-    return top @ R.T + t, bot @ R.T + t
+    top, bot, _ = rod_ends_camera(params, q, scene.camera_from_base, scene.rod_spacing_m, pose)
+    return top, bot
 
 
 def _inside(px: np.ndarray, cam: CameraModel, margin: float) -> np.ndarray:

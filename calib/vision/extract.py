@@ -552,9 +552,10 @@ def _repredict(
         pose = boards.get(i, {}).get("pose")
         if pose is not None:
             poses[k] = Rigid(np.asarray(pose["R"]), np.asarray(pose["t"]))
-        for name, v in (rods[i].get("rods") or {}).items():
+        found_rods = rods[i].get("rods") or {}
+        for leg, rod in ROD_KEYS:
+            v = found_rods.get(rod_name(leg, rod))
             if isinstance(v, dict) and v.get("point") is not None:
-                leg, rod = int(name[3]) - 1, int(name[-1])
                 measured.append(MeasuredRod(k, leg, rod, np.asarray(v["point"]), np.asarray(v["u"])))
     height = float((doc.board.model_extra or {}).get("height_above_ee_m", 0.0))
     f_px = float(np.sqrt(camera.K[0, 0] * camera.K[1, 1]))

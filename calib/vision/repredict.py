@@ -21,9 +21,9 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from ..errors import I4calError
-from ..kinematics import dkm, joint_points
 from ..parameters import PARAMETER_NAMES, I4Parameters
 from ..transforms import Rigid, matrix_to_rotvec, rot_z, rotvec_to_matrix
+from .rods.types import rod_ends_camera
 
 Array = NDArray[np.float64]
 
@@ -90,36 +90,6 @@ def _unpack(x: Array, T_per_rad: float, board_height_m: float) -> tuple[I4Parame
     C = Rigid(rotvec_to_matrix(x[7:10]), np.asarray(x[10:13], dtype=np.float64))
     E = Rigid(rotvec_to_matrix(x[13:16]), np.array([x[16], x[17], board_height_m]))
     return p, C, E
-
-
-def rod_ends_camera(
-    params: I4Parameters, q: Array, camera_from_base: Rigid, rod_spacing_m: float
-) -> tuple[Array, Array, Array]:
-    """Predicted rod ends in the camera frame (metres) and the end-effector poses.
-
-    Parameters
-    ----------
-    q : ndarray, shape (N, 4)
-
-    Returns
-    -------
-    top, bottom : ndarray, shape (N, 4, 2, 3)
-        Actuator-side and plate-side ends of every rod (rod 0 on the -x_B side).
-    pose : ndarray, shape (N, 4)
-        ``(X, Y, Z, T)``.
-
-    Raises
-    ------
-    UnreachableError
-        ``params`` cannot close at some ``q``.
-    """
-    pose = dkm(params, q)
-    A, B = joint_points(params, q, pose)
-    off = np.array([-0.5, 0.5])[:, None] * rod_spacing_m * np.array([1.0, 0.0, 0.0])  # (2, 3)
-    top = A[:, :, None, :] + off[None, None]
-    bottom = B[:, :, None, :] + off[None, None]
-    R, t = camera_from_base.R, camera_from_base.t
-    return top @ R.T + t, bottom @ R.T + t, pose
 
 
 def _residuals(

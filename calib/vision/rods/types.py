@@ -39,19 +39,42 @@ def predict_rods(
 
     Raises :class:`~calib.errors.UnreachableError` when the nominal model cannot close at ``q``.
     """
-    qv = np.asarray(q, dtype=np.float64).reshape(4)
-    pose = dkm(nominal, qv)
-    A, B = joint_points(nominal, qv[None], pose[None])
-    out = []
-    for leg in range(4):
-        for rod in range(2):
-            off = np.array([(rod - 0.5) * rod_spacing_m, 0.0, 0.0])
-            out.append(
-                RodPrediction(
-                    leg, rod, camera_from_base.apply(A[0, leg] + off), camera_from_base.apply(B[0, leg] + off)
-                )
-            )
-    return out
+    top, bottom, _ = rod_ends_camera(
+        nominal, np.asarray(q, dtype=np.float64).reshape(1, 4), camera_from_base, rod_spacing_m
+    )
+    return [RodPrediction(leg, rod, top[0, leg, rod], bottom[0, leg, rod]) for leg in range(4) for rod in range(2)]
+
+
+def rod_ends_camera(
+    params: I4Parameters, q: Array, camera_from_base: Rigid, rod_spacing_m: float, pose: Array | None = None
+) -> tuple[Array, Array, Array]:
+    """Rod ends in the camera frame (metres) and the end-effector poses: every rod of every frame at once.
+
+    Parameters
+    ----------
+    q : ndarray, shape (N, 4)
+    pose : ndarray, shape (N, 4), optional
+        The end-effector poses at ``q``, when already known (default: ``dkm(params, q)``).
+
+    Returns
+    -------
+    top, bottom : ndarray, shape (N, 4, 2, 3)
+        Actuator-side and plate-side ends of every rod (rod 0 on the -x_B side).
+    pose : ndarray, shape (N, 4)
+        ``(X, Y, Z, T)``.
+
+    Raises
+    ------
+    UnreachableError
+        ``params`` cannot close at some ``q``.
+    """
+    pose = dkm(params, q) if pose is None else pose
+    A, B = joint_points(params, q, pose)
+    off = np.array([-0.5, 0.5])[:, None] * rod_spacing_m * np.array([1.0, 0.0, 0.0])  # (2, 3)
+    top = A[:, :, None, :] + off[None, None]
+    bottom = B[:, :, None, :] + off[None, None]
+    R, t = camera_from_base.R, camera_from_base.t
+    return top @ R.T + t, bottom @ R.T + t, pose
 
 
 #: the board hides the rods' profiles within this of the pattern's outline (the board's margin plus ~15 mm, so

@@ -194,20 +194,27 @@ def test_cli_extract_says_the_camera_views_were_weighted(tmp_path, capsys):
     assert "weighted" in cam["method"] and len(cam["view_sigma_px"]) == cam["n_views"]
 
 
-def test_cli_extract_counts_the_corners_left_out(tmp_path, capsys):
-    """Rendered poses where the legs cross the board: corners next to a rod are left out of the board pose
-    (calib.vision.board.reject_corners), counted per frame and per phase, and the printout says so."""
+def _pose_set_with_true_camera(tmp_path, n_fit: int, seed: int):
+    """A rendered pose set (no camera phase) whose dataset carries the renderer's true intrinsics."""
     from drivers.sim.imaging import simulate_dataset
-    from service.cli import main
 
     g = BenchGeometry()
     root = simulate_dataset(
-        tmp_path / "ds", seed=0, plan=make_plan("pose-set", g.nominal, n_fit=12, seed=0), n_camera_views=0
+        tmp_path / "ds", seed=seed, plan=make_plan("pose-set", g.nominal, n_fit=n_fit, seed=seed), n_camera_views=0
     )
     spec = json.loads((root / "dataset.json").read_text())
     cam = RenderSettings().camera()
     spec["camera"].update(K=cam.K.tolist(), dist=cam.dist.tolist())
     (root / "dataset.json").write_text(json.dumps(spec))
+    return root
+
+
+def test_cli_extract_counts_the_corners_left_out(tmp_path, capsys):
+    """Rendered poses where the legs cross the board: corners next to a rod are left out of the board pose
+    (calib.vision.board.reject_corners), counted per frame and per phase, and the printout says so."""
+    from service.cli import main
+
+    root = _pose_set_with_true_camera(tmp_path, n_fit=12, seed=0)
     out = tmp_path / "obs.json"
     assert main(["extract", str(root), "-o", str(out), "--workers", "1"]) == 0
     printed = capsys.readouterr()
@@ -226,17 +233,9 @@ def test_cli_extract_reports_the_refitted_prediction_and_can_skip_it(tmp_path, c
     """By default the rods' prediction is refitted to the first pass (calib.vision.repredict) and the printout says
     how far the measured rods were from the nominal prediction and from the refitted one; ``--no-repredict`` keeps
     one pass on the nominal prediction."""
-    from drivers.sim.imaging import simulate_dataset
     from service.cli import main
 
-    g = BenchGeometry()
-    root = simulate_dataset(
-        tmp_path / "ds", seed=1, plan=make_plan("pose-set", g.nominal, n_fit=6, seed=1), n_camera_views=0
-    )
-    spec = json.loads((root / "dataset.json").read_text())
-    cam = RenderSettings().camera()
-    spec["camera"].update(K=cam.K.tolist(), dist=cam.dist.tolist())
-    (root / "dataset.json").write_text(json.dumps(spec))
+    root = _pose_set_with_true_camera(tmp_path, n_fit=6, seed=1)
     out = tmp_path / "obs.json"
     assert main(["extract", str(root), "-o", str(out), "--workers", "1"]) == 0
     said = " ".join((lambda c: c.out + c.err)(capsys.readouterr()).split())
