@@ -530,7 +530,7 @@ def predict_legs_images(
         cam = design_camera(scene.camera, noise.intrinsics_names)
         idx_fit = (fr.k, fr.leg, fr.rod)
         eff = _IntrinsicsEffect(cam, steps, lock_fields, idx_fit, fr.limbs_px, fr.h)
-        rod_u = np.where(has[..., None], u, 0.0)
+        rod_u = u  # NaN where a rod is not measured, as the method passes them (a zero would flip its pair)
 
         def seven_for(z: np.ndarray) -> np.ndarray:
             pz = eff.lock_planes(z, planes)

@@ -385,3 +385,29 @@ def test_lock_phase_frames_are_weighed_by_their_own_noise(rendered):
             assert planes is not None and all(p.var is not None for p in planes)
             per_rod.append(float(np.sum(joint_from_planes(planes)[2])) / (2 * len(planes) - 3))
     assert 0.7 < float(np.median(per_rod)) < 3.0, np.round(per_rod, 2)
+
+
+def test_image_prediction_of_a_plan_with_a_leg_seen_through_its_second_rod_only(scene):
+    """A fit pose where one leg's first rod is out of the measured set (too short in the image) and its second is
+    measured: the legs method uses the one rod (``_pair_means``), and so must its prediction. It used to fill the
+    missing rod with a zero direction, which flipped the measured one to zero in the intrinsics' effect: the legs
+    prediction then raised on non-finite residuals."""
+    from calib.design import ImageNoise, synthetic_rods
+
+    q_odd = np.array([-0.1105, 0.2272, -0.0996, 0.2438])  # leg 1: rod 1 measured, rod 0 not
+    noise = ImageNoise()
+    rods = synthetic_rods(scene, NOMINAL, q_odd[None], noise.edge_px)
+    seen = set(zip(rods.leg.tolist(), rods.rod.tolist(), strict=True))
+    assert (0, 1) in seen and (0, 0) not in seen, seen
+    paper = make_plan("full", NOMINAL, seed=0, n_fit=12)
+    steps = [s for s in paper.steps if s.phase != "line"]
+    k = next(i for i, s in enumerate(steps) if s.phase == "poses")
+    steps[k] = steps[k].model_copy(update={"q": q_odd.tolist()})
+    plan = Plan(name="odd", steps=steps)
+    pred = predict_plan(plan, NOMINAL, scene, noise)
+    assert not pred.errors, pred.errors
+    std = np.array([pred.std["legs"][c] for c in COMBINATION_NAMES])
+    assert np.all(np.isfinite(std)) and np.all(std > 0), std
+    ref = predict_plan(Plan(name="paper", steps=[s for s in paper.steps if s.phase != "line"]), NOMINAL, scene, noise)
+    # one pose of twelve changed: the same order of magnitude as the paper's plan
+    assert np.all(np.abs(np.log(std / np.array([ref.std["legs"][c] for c in COMBINATION_NAMES]))) < np.log(3)), std
