@@ -45,8 +45,9 @@ __all__ = [
     "synthetic_rods",
 ]
 
-#: the five quantiles of a limb's edge points at which the extraction reports its line (``limbs_px``)
-_QUANTILES = np.array([0.0, 0.25, 0.5, 0.75, 1.0])
+#: where along a limb's visible span the extraction's five ``limbs_px`` lie: the means of its edge points in five
+#: bins of equal count (``calib.vision.rods.measure._limb_samples``), for points spread evenly over the span
+_BIN_MEANS = np.array([0.1, 0.3, 0.5, 0.7, 0.9])
 
 
 def design_camera(camera: CameraModel, names: tuple[str, ...]) -> CameraModel:
@@ -183,7 +184,7 @@ def synthetic_rods(
     # edge points at linspace(t0, t1, m): centroid at the mid-span, spread sum(t^2) = span^2 m (m + 1) / (12 (m - 1))
     centroid = base + (0.5 * (t0 + t1))[..., None] * td
     t_sumsq = length**2 * m * (m + 1) / (12.0 * (m - 1))
-    q5 = base[..., None, :] + (t0[..., None] + _QUANTILES * length[..., None])[..., None] * td[..., None, :]
+    q5 = base[..., None, :] + (t0[..., None] + _BIN_MEANS * length[..., None])[..., None] * td[..., None, :]
     xn = q5.reshape(-1, 2) @ Kinv[:2, :2].T + Kinv[:2, 2]
     limbs_px = cam.distort_normalized(xn).reshape(M, 2, 5, 2)
     cmid = 0.5 * (centroid[:, 0] + centroid[:, 1])

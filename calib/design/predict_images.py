@@ -65,7 +65,11 @@ class ImageNoise:
     Attributes
     ----------
     edge_px : float
-        Effective std of a limb edge point (px; the extraction's residual times its correlation factor).
+        Std of a limb edge point about its line (px): the extraction's edge residual RMS (``rms_px``; the benches'
+        ``edge_noise_px_median``). The rods' ``cov_u`` adds the edge-bias allowance (``edge_bias_px``), which
+        dominates it; the legs method's lock phases leave that allowance out and weigh their frames by this scatter
+        (:func:`calib.methods.legs.limb_line_noise`), so a larger value standing in for the bias would weigh them
+        as noisier than they are.
     rod_scale : float
         The rods' scatter over their ``cov_u`` (the combined method's ``diagnostics.direction_noise_scale`` is
         0.50-0.65 on the image-level twin); the default 0.62 is the value at which the combined prediction equals
@@ -92,7 +96,7 @@ class ImageNoise:
         Encoders (m).
     """
 
-    edge_px: float = 0.11
+    edge_px: float = 0.08
     rod_scale: float = 0.62
     corner_px: float = 0.025
     corner_axis_ratio: float = 3.3

@@ -18,8 +18,9 @@ from calib.vision.rods import _direction_covariance, limb_planes
 from calib.vision.rods.covariance import _direction_covariances
 from service.design import twin_scene
 
-#: the quantiles of a limb's edge points at which the extraction reports its line (as in calib.design.imaging)
-_QUANTILES = np.array([0.0, 0.25, 0.5, 0.75, 1.0])
+#: where along a limb's span the extraction reports its line: the means of five equal-count bins of evenly spread
+#: edge points (calib.vision.rods.measure._limb_samples; as in calib.design.imaging)
+_BIN_MEANS = np.array([0.1, 0.3, 0.5, 0.7, 0.9])
 
 #: the direction covariance is a central difference with steps of 1e-6 rad and 1e-3 px: a rounding of its inputs
 #: (~1e-16 relative) moves it by ~1e-16 / 1e-6 = 1e-10 of its size; ``test_direction_covariances_...`` measures that
@@ -80,7 +81,7 @@ def _synthetic_rods_reference(
             base = foot[0] - (foot[0] @ td) * td
             pts = base + tt[:, None] * td
             fits.append((pts.mean(axis=0), td, edge_px**2, pts))
-            q5 = base + (t0 + _QUANTILES * (t1 - t0))[:, None] * td
+            q5 = base + (t0 + _BIN_MEANS * (t1 - t0))[:, None] * td
             limbs.append(cam.distort_normalized(np.c_[q5, np.ones(5)] @ Kinv.T[:, :2]))
             npts.append(m)
         cmid = 0.5 * (fits[0][0] + fits[1][0])
