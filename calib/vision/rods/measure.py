@@ -141,7 +141,10 @@ class _IdealToImage:
         rad *= r2
         rad += f32(1)
         if self.rational:
-            rad /= f32(1) + r2 * (k4 + r2 * (k5 + r2 * k6))
+            # a rational model's denominator can vanish far outside the image (its pole; the calibration admits no
+            # model with one inside it): grid points of a profile's band that reach it map to inf, beyond the image
+            with np.errstate(divide="ignore", invalid="ignore"):
+                rad /= f32(1) + r2 * (k4 + r2 * (k5 + r2 * k6))
         xd = x * rad
         xd += f32(2) * p1 * xy
         xd += p2 * (r2 + f32(2) * x2)
