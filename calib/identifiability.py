@@ -14,10 +14,10 @@ from collections.abc import Callable
 
 import numpy as np
 
-from .kinematics import dkm, ikm, jacobian_ratios, joint_points, leg_directions
+from .kinematics import base_from_ee, dkm, ikm, jacobian_ratios, joint_points, leg_directions
 from .numdiff import central_jacobian
 from .parameters import PARAMETER_NAMES, I4Parameters, identifiable_parameters
-from .transforms import rot_z, rotvec_to_matrix
+from .transforms import rotvec_to_matrix
 
 _ORDER = ("L", "D", "q02", "q04", "H", "S", "q03")
 _KNOWN = {
@@ -52,8 +52,7 @@ def end_effector_model(params: I4Parameters, q: np.ndarray) -> tuple[Callable, i
         tc = v[10:13]
         Rb = rotvec_to_matrix(v[13:16])
         tb = v[16:19]
-        Re = rot_z(pose[:, 3] / p.T_per_rad)
-        pe = np.column_stack([pose[:, 0], p.H + pose[:, 1], pose[:, 2]])
+        Re, pe = base_from_ee(p, pose)
         Rk = Rc @ Re @ Rb
         tk = (Rc @ (np.einsum("nij,j->ni", Re, tb) + pe).T).T + tc
         return np.concatenate([(Rk.reshape(len(q), -1)) * 1.0, tk], axis=1).ravel()

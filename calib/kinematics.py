@@ -19,10 +19,12 @@ from numpy.typing import ArrayLike, NDArray
 
 from .errors import UnreachableError
 from .parameters import I4Parameters
+from .transforms import rot_z
 
 Array = NDArray[np.float64]
 
 __all__ = [
+    "base_from_ee",
     "dkm",
     "ee_angle",
     "ikm",
@@ -267,3 +269,12 @@ def ee_angle(params: I4Parameters, pose: ArrayLike) -> Array:
     P, single = _as_rows(pose, "pose")
     th = P[:, 3] / params.T_per_rad
     return th[0] if single else th
+
+
+def base_from_ee(params: I4Parameters, pose: ArrayLike) -> tuple[Array, Array]:
+    """The end-effector frame in the base frame: rotation ``rot_z(T / T_per_rad)`` (..., 3, 3) and origin
+    ``E = (X, H + Y, Z)`` (..., 3), metres, for a pose (4,) or poses (N, 4)."""
+    P, single = _as_rows(pose, "pose")
+    R = rot_z(P[:, 3] / params.T_per_rad)
+    t = np.column_stack([P[:, 0], params.H + P[:, 1], P[:, 2]])
+    return (R[0], t[0]) if single else (R, t)

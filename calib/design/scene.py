@@ -22,9 +22,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..camera import CameraModel
-from ..kinematics import dkm
+from ..kinematics import base_from_ee, dkm
 from ..parameters import I4Parameters
-from ..transforms import Rigid, rot_z
+from ..transforms import Rigid
 from ..vision.rods.types import rod_ends_camera
 
 __all__ = ["Scene", "VisibilityLimits", "board_outline", "rod_segments", "visibility"]
@@ -74,11 +74,8 @@ class Scene:
 
     def camera_from_board(self, params: I4Parameters, pose: np.ndarray) -> list[Rigid]:
         """Board poses in the camera frame for poses (N, 4)."""
-        out = []
-        for X, Y, Z, T in np.atleast_2d(pose):
-            base_from_ee = Rigid(rot_z(T / params.T_per_rad), np.array([X, params.H + Y, Z]))
-            out.append(self.camera_from_base @ base_from_ee @ self.ee_from_board)
-        return out
+        Rs, ts = base_from_ee(params, np.atleast_2d(pose))
+        return [self.camera_from_base @ Rigid(R, t) @ self.ee_from_board for R, t in zip(Rs, ts, strict=True)]
 
 
 def board_outline(scene: Scene, per_edge: int = 8) -> np.ndarray:

@@ -39,9 +39,9 @@ import numpy as np
 from ..camera import CameraModel, IntrinsicsResult, calibrate_intrinsics
 from ..dataset import Dataset
 from ..errors import I4calError, InputError
-from ..kinematics import dkm
+from ..kinematics import base_from_ee, dkm
 from ..observations import FORMAT
-from ..transforms import Rigid, rot_z
+from ..transforms import Rigid
 from .board import BoardDetector
 from .detect import DetectSettings, resolve_frames
 from .placement import fit_placement
@@ -406,14 +406,8 @@ def _extract(
         b = boards[i].get("pose")
         if b is None and E is not None:
             try:
-                pose = dkm(doc.nominal.parameters(), np.asarray(frames[i].q))
-                nb = (
-                    C
-                    @ Rigid(
-                        rot_z(pose[3] / doc.nominal.T_per_rad), np.array([pose[0], doc.nominal.H + pose[1], pose[2]])
-                    )
-                    @ E
-                )
+                nom = doc.nominal.parameters()
+                nb = C @ Rigid(*base_from_ee(nom, dkm(nom, np.asarray(frames[i].q)))) @ E
                 b = {"R": nb.R.tolist(), "t": nb.t.tolist()}
             except I4calError:
                 b = None

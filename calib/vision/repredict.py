@@ -21,8 +21,9 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from ..errors import I4calError
+from ..kinematics import base_from_ee
 from ..parameters import PARAMETER_NAMES, I4Parameters
-from ..transforms import Rigid, matrix_to_rotvec, rot_z, rotvec_to_matrix
+from ..transforms import Rigid, matrix_to_rotvec, rotvec_to_matrix
 from .rods.types import rod_ends_camera
 
 Array = NDArray[np.float64]
@@ -119,9 +120,7 @@ def _residuals(
         # a predicted end's angle from the measured axis's plane through the camera centre, in px
         out[e : 2 * len(k) : 2] = f_px * np.einsum("md,md->m", n, X) / np.linalg.norm(X, axis=1)
     o = 2 * len(k)
-    X, Y, Z, T = pose[bk].T
-    RB = rot_z(T / nominal.T_per_rad)  # (B, 3, 3)
-    tB = np.column_stack([X, params.H + Y, Z])
+    RB, tB = base_from_ee(params, pose[bk].reshape(-1, 4))  # (B, 3, 3), (B, 3)
     Rp = np.einsum("ij,bjk,kl->bil", C.R, RB, E.R)
     tp = (np.einsum("bij,j->bi", RB, E.t) + tB) @ C.R.T + C.t
     scale = f_px / np.maximum(bt[:, 2], 0.05)

@@ -15,11 +15,11 @@ from typing import Any
 
 import numpy as np
 
-from calib.kinematics import dkm, ikm, joint_points
+from calib.kinematics import base_from_ee, dkm, ikm, joint_points
 from calib.observations import new_document
 from calib.parameters import NOMINAL, I4Parameters
 from calib.plan import Plan, line_poses, make_plan
-from calib.transforms import Rigid, rot_z, rotvec_to_matrix, unit
+from calib.transforms import Rigid, rotvec_to_matrix, unit
 
 #: The twin's default true geometry: nominal plus a few millimetres (metres).
 DEFAULT_TRUTH = NOMINAL.replace(H=0.4040, q02=1.3775, q03=0.0030, q04=1.3870, S=0.0575, D=0.0620, L=0.9965)
@@ -99,8 +99,7 @@ class BenchGeometry:
 
     # -- truth at a joint vector --------------------------------------------------------------
     def base_from_ee(self, pose: np.ndarray) -> Rigid:
-        X, Y, Z, T = pose
-        return Rigid(rot_z(T / self.truth.T_per_rad), np.array([X, self.truth.H + Y, Z]))
+        return Rigid(*base_from_ee(self.truth, pose))
 
     def camera_from_board(self, pose: np.ndarray) -> Rigid:
         return self.camera_from_base @ self.base_from_ee(pose) @ self.ee_from_board
