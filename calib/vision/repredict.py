@@ -120,7 +120,7 @@ def _residuals(
         # a predicted end's angle from the measured axis's plane through the camera centre, in px
         out[e : 2 * len(k) : 2] = f_px * np.einsum("md,md->m", n, X) / np.linalg.norm(X, axis=1)
     o = 2 * len(k)
-    RB, tB = base_from_ee(params, pose[bk].reshape(-1, 4))  # (B, 3, 3), (B, 3)
+    RB, tB = base_from_ee(params, pose[bk])  # (B, 3, 3), (B, 3)
     Rp = np.einsum("ij,bjk,kl->bil", C.R, RB, E.R)
     tp = (np.einsum("bij,j->bi", RB, E.t) + tB) @ C.R.T + C.t
     scale = f_px / np.maximum(bt[:, 2], 0.05)
