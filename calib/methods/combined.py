@@ -31,6 +31,7 @@ from ..parameters import COMBINATION_NAMES
 from ..robust import chi2_outliers, robust_chi2_scale
 from ..transforms import cross, matrix_to_rotvec, rotvec_to_matrix
 from . import intrinsics as intr
+from . import rod_correlation as rc
 from .iterations import IterationCallback, traced
 from .result import MethodResult, check_excitation, combos_dict, std_dict
 
@@ -310,24 +311,39 @@ def calibrate_combined(
             s2 = s2_new
     xi, w, z = split(x)
     r = raw(x).reshape(m, 2)
-    # covariance: sandwich with the rods' noise model (scaled by the measured sigma^2) and the priors
-    Wfull = np.zeros((2 * m, 2 * m))
-    Sig = np.zeros((2 * m, 2 * m))
-    for a in range(m):
-        Wa = Wh[a].T @ Wh[a]
-        Wfull[2 * a : 2 * a + 2, 2 * a : 2 * a + 2] = Wa
-        Sig[2 * a : 2 * a + 2, 2 * a : 2 * a + 2] = s2 * shape[a]
-    # the two rods of a leg in one frame share a frame and the gap between them: their errors correlate. The
-    # correlation of their whitened residuals (pooled over the run's pairs) enters the sandwich's meat
-    pairs = _rod_pairs(prob)
-    pair_rho = _pair_correlation(pairs, Wh, r)
-    if pair_rho > 0:
-        Lc = np.linalg.inv(Wh)  # r = Lc w: each rod's whitening undone
-        for a, b in pairs:
-            blk = pair_rho * s2 * Lc[a] @ Lc[b].T
-            Sig[2 * a : 2 * a + 2, 2 * b : 2 * b + 2] = blk
-            Sig[2 * b : 2 * b + 2, 2 * a : 2 * a + 2] = blk.T
+    # covariance: sandwich with the rods' error model and the priors
+    Wfull = rc.block_diagonal(np.einsum("mji,mjk->mik", Wh, Wh))  # each rod's weight Wh^T Wh
     Jr = central_jacobian(raw, x)  # unweighted, (2m, 4 + nw + nz)
+    # the rods' errors are not independent: the two rods of a leg in one frame, and rods seen at nearby places of
+    # the image in any frame, share part of theirs (:mod:`.rod_correlation`). The rods' own scale and those
+    # correlations are estimated from the residuals with what the fit absorbs accounted for, and enter the meat
+    Pall = np.zeros((x.size, x.size))
+    if joint:
+        Pall[4 : 4 + nw, 4 : 4 + nw] = Lw.T @ Lw
+    Pall[4 + nw :, 4 + nw :] = np.eye(nz)
+    pairs = _rod_pairs(prob)
+    focal = _focal_px(obs)
+    R_sol = rotvec_to_matrix(w) @ R0 if joint else R0
+    if prob.intrinsics is not None:
+        R_sol = prob.intrinsics.rotation(z) @ R_sol
+    rays = _rod_rays(data, prob)
+    dist_shape = None
+    if rod_cov is not None and focal is not None and rays is not None:
+        g = rc.in_image_sensitivity(prob.u_cam, rays, R_sol, _ratio_grad(prob.u_cam @ R_sol), shape)
+        dist_shape = rc.distance_shape(rays, focal, g, pairs)
+    own = rc.block_diagonal(shape)
+    errs = rc.estimate_rod_errors(
+        r.ravel(),
+        Jr,
+        Wfull / s2,
+        Pall,
+        own,
+        pair_shape=rc.pair_shape(pairs, np.linalg.inv(Wh), m) if len(pairs) >= rc.MIN_PAIRS else None,
+        distance_shape=dist_shape,
+    )
+    if errs.s2 <= 0:  # the priors explain every residual: fall back on the residuals' own scale
+        errs = rc.RodErrors(s2, 0.0, None, errs.dof)
+    Sig = errs.covariance(own)
     check_excitation(np.einsum("mij,mjk->mik", Wh, Jr[:, :4].reshape(m, 2, 4)).reshape(2 * m, 4), COMBINATION_NAMES)
     cov_pose_fixed = _sandwich(Jr[:, :4], Wfull, Sig)
     parts = {"legs_and_encoders": cov_pose_fixed}
@@ -412,7 +428,8 @@ def calibrate_combined(
             "base_frame": bf.summary(),
             "base_frame_refinement_deg": float(np.rad2deg(np.linalg.norm(w))),
             "joint_base_frame": joint,
-            "rod_pair_correlation": pair_rho,
+            "rod_pair_correlation": errs.pair_rho,
+            "rod_errors": errs.summary(),
             "rod_pairs": len(pairs),
         },
         residuals=r,
@@ -662,19 +679,6 @@ def _rod_pairs(prob: _Problem) -> list[tuple[int, int]]:
     return pairs
 
 
-def _pair_correlation(pairs: list[tuple[int, int]], Wh: np.ndarray, r: np.ndarray) -> float:
-    """Correlation of the whitened residuals (M, 2) of a leg's two rods in one frame (``pairs``:
-    :func:`_rod_pairs`), pooled over both entries and every pair (moments about zero, as the residuals' model has
-    it), clipped to [0, 0.9]; 0 below 10 pairs (too few to tell)."""
-    if len(pairs) < 10:
-        return 0.0
-    w = np.einsum("mij,mj->mi", Wh, r)
-    a, b = (np.array(v) for v in zip(*pairs, strict=True))
-    num = float(np.sum(w[a] * w[b]))
-    den = float(np.sqrt(np.sum(w[a] ** 2) * np.sum(w[b] ** 2)))
-    return float(np.clip(num / den, 0.0, 0.9)) if den > 0 else 0.0
-
-
 def _sandwich(J: np.ndarray, W: np.ndarray, Sig: np.ndarray) -> np.ndarray:
     H = J.T @ W @ J
     A = np.linalg.solve(H, J.T @ W)
@@ -697,3 +701,24 @@ def _rod_field(obs: Observations, data: PhaseArrays, prob: _Problem, name: str) 
             return None
         values.append(np.asarray(v, dtype=np.float64))
     return np.asarray(values) if values else None
+
+
+def _focal_px(obs: Observations) -> float | None:
+    """The extraction camera's focal length (px), or None when the observations carry no camera."""
+    cam = ((obs.document.model_extra or {}).get("extraction") or {}).get("camera") or {}
+    K = cam.get("K")
+    if not K:
+        return None
+    f = float(np.sqrt(abs(float(K[0][0]) * float(K[1][1]))))
+    return f if np.isfinite(f) and f > 0 else None
+
+
+def _rod_rays(data: PhaseArrays, prob: _Problem) -> np.ndarray | None:
+    """Unit viewing rays (M, 3) to the rods' measured axis points, camera frame; None when a rod has none."""
+    p = data.rod_p[prob.k, prob.leg, prob.rod]
+    if not np.all(np.isfinite(p)):
+        return None
+    n = np.linalg.norm(p, axis=1, keepdims=True)
+    if np.any(n <= 0):
+        return None
+    return p / n
