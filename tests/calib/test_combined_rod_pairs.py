@@ -24,8 +24,9 @@ S_DEPTH = 5e-4  # rad, in its interpretation plane
 N_REP = 40
 
 
-def _observations(plan, seed: int, rho: float) -> tuple[Observations, np.ndarray]:
-    twin = GeometricTwin(
+def twin_with_exact_rods() -> GeometricTwin:
+    """The geometric twin with exact rods (a test draws their errors) and its default board and encoder noise."""
+    return GeometricTwin(
         noise=NoiseSpec(
             rod_direction_rad=0.0,
             rod_point_m=0.0,
@@ -34,6 +35,10 @@ def _observations(plan, seed: int, rho: float) -> tuple[Observations, np.ndarray
             encoder_m=1e-6,
         )
     )
+
+
+def _observations(plan, seed: int, rho: float) -> tuple[Observations, np.ndarray]:
+    twin = twin_with_exact_rods()
     doc = twin.observations(plan=plan, seed=seed)
     rng = np.random.default_rng(seed)
     for f in doc["frames"]:

@@ -20,7 +20,7 @@ from calib.methods import calibrate_combined
 from calib.methods import rod_correlation as rc
 from calib.observations import Observations
 from calib.parameters import COMBINATION_NAMES
-from drivers.sim.twin import GeometricTwin, NoiseSpec
+from tests.calib.test_combined_rod_pairs import twin_with_exact_rods
 
 FOCAL_PX = 774.0
 
@@ -121,15 +121,7 @@ def test_no_shared_error_is_estimated_near_zero():
 def _twin_observations(plan, seed: int, rho: float) -> tuple[Observations, np.ndarray]:
     """The twin's rods with per-rod anisotropic noise whose in-image part is shared with the rods nearby in the image
     (correlation ``rho * exp(-d / 100 px)``, any frame, any leg), and a camera of focal ``FOCAL_PX``."""
-    twin = GeometricTwin(
-        noise=NoiseSpec(
-            rod_direction_rad=0.0,
-            rod_point_m=0.0,
-            board_rotation_rad=1e-3,
-            board_translation_m=(1e-4, 1e-4, 3e-4),
-            encoder_m=1e-6,
-        )
-    )
+    twin = twin_with_exact_rods()
     doc = twin.observations(plan=plan, seed=seed)
     rods = [rod for f in doc["frames"] for rs in (f.get("legs") or {}).values() for rod in rs if rod is not None]
     p = np.array([rod["point"] for rod in rods])
