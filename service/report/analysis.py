@@ -307,7 +307,21 @@ def conditions(
     ms = result.get("methods", {})
     c = (ms.get("combined") or {}).get("diagnostics") or {}
     if "direction_noise_scale" in c:
-        rows.append(("rod direction noise (combined fit)", f"{np.degrees(c['direction_noise_scale']):.4f} deg"))
+        if c.get("weighting") == "gls":  # a scale on the extraction's per-rod covariances, not an angle
+            rows.append(("rod direction noise (combined fit)", f"{c['direction_noise_scale']:.2f} x the rods' cov_u"))
+        else:
+            rows.append(("rod direction noise (combined fit)", f"{np.degrees(c['direction_noise_scale']):.4f} deg"))
+    shared = c.get("rod_errors") or {}
+    if shared:
+        text = (
+            f"own scale {shared.get('own_scale', float('nan')):.2f}; a leg's two rods {shared['pair_correlation']:.2f}"
+        )
+        if shared.get("distance_correlation") is not None:
+            text += (
+                f"; rods nearby in the image {shared['distance_correlation']:.2f} "
+                f"x exp(-d / {shared['distance_length_px']:.0f} px)"
+            )
+        rows.append(("rods' shared errors (combined fit, correlation)", text))
     lg = (ms.get("legs") or {}).get("diagnostics") or {}
     if lg.get("rod_direction_noise_rad") is not None:
         rows.append(

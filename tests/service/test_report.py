@@ -252,3 +252,31 @@ async def test_api_report_route_and_cli_run_modes(service, dataset, tmp_path, mo
     assert await asyncio.to_thread(main, ["report", rid[:8], "--server", service.url, "-o", str(out2), "--quiet"]) == 0
     assert f"run {rid}" in out2.read_text(encoding="utf-8")
     assert await asyncio.to_thread(main, ["report", rid0, "--server", service.url, "-o", str(out2), "--quiet"]) == 2
+
+
+def test_conditions_show_the_combined_fits_noise_scale_and_the_rods_shared_errors():
+    """An image run's combined fit weighs the rods by their own covariances (GLS): its noise figure is a scale on
+    them, not an angle (it was shown as degrees: 0.56 read as 32 deg); the rods' shared errors are shown too."""
+    from service.report.analysis import conditions
+
+    diag = {
+        "weighting": "gls",
+        "direction_noise_scale": 0.56,
+        "rod_errors": {
+            "own_scale": 0.58,
+            "pair_correlation": 0.13,
+            "distance_correlation": 0.29,
+            "distance_length_px": 100.0,
+            "dof": 300.2,
+        },
+    }
+    rows = dict(conditions({"methods": {"combined": {"diagnostics": diag}}}, None, None))
+    assert rows["rod direction noise (combined fit)"] == "0.56 x the rods' cov_u"
+    shared = rows["rods' shared errors (combined fit, correlation)"]
+    assert shared == "own scale 0.58; a leg's two rods 0.13; rods nearby in the image 0.29 x exp(-d / 100 px)"
+    # the geometric twin's fit (no camera): no distance term, and its noise is an angle
+    diag = {"weighting": "frobenius", "direction_noise_scale": 1e-3, "rod_errors": {**diag["rod_errors"]}}
+    diag["rod_errors"]["distance_correlation"] = None
+    rows = dict(conditions({"methods": {"combined": {"diagnostics": diag}}}, None, None))
+    assert rows["rod direction noise (combined fit)"] == "0.0573 deg"
+    assert rows["rods' shared errors (combined fit, correlation)"] == "own scale 0.58; a leg's two rods 0.13"
