@@ -32,6 +32,11 @@ Array = NDArray[np.float64]
 
 #: OpenCV's distortion coefficients by name: their index in ``dist`` (and, plus 10, in ``cv2.projectPoints``' Jacobian).
 DIST_INDEX = {"k1": 0, "k2": 1, "p1": 2, "p2": 3, "k3": 4, "k4": 5, "k5": 6, "k6": 7}
+#: evaluations allowed to each pass of :func:`refine_weighted`: a bundle the views determine converges in 5-10; one
+#: they do not (OpenCV's rational model on views that stay short of the image's corners, its k4-k6 all but
+#: collinear with k1-k3) crawls along the flat directions for scipy's default 100 per unknown, 23000 evaluations
+#: and about ten minutes a pass on a 30-view phase
+REFINE_MAX_NFEV = 100
 #: reweighting passes of :func:`refine_weighted` (the weights settle in two or three)
 WEIGHTING_ITERATIONS = 3
 #: fewer degrees of freedom per view than this and the views are not weighted (their variances too uncertain)
@@ -215,7 +220,9 @@ def view_variances(residuals: list[Array], n_params: int) -> Array:
     )
 
 
-def refine_weighted(bundle: Bundle, iterations: int = WEIGHTING_ITERATIONS) -> tuple[Bundle, Array]:
+def refine_weighted(
+    bundle: Bundle, iterations: int = WEIGHTING_ITERATIONS, max_nfev: int = REFINE_MAX_NFEV
+) -> tuple[Bundle, Array, bool]:
     """Iteratively reweighted bundle adjustment: each view weighted by its corners' noise variance.
 
     Starts from ``bundle`` (OpenCV's unweighted optimum); each pass sets the weights from the current residuals
@@ -227,8 +234,12 @@ def refine_weighted(bundle: Bundle, iterations: int = WEIGHTING_ITERATIONS) -> t
         The refined state.
     ndarray, shape (V,)
         Each view's noise variance (px^2) at the refined state: the weights of :func:`bundle_covariance`.
+    bool
+        Whether every pass converged within ``max_nfev`` evaluations (False: the views do not determine the bundle
+        well; the state is the last pass's, never worse than the start).
     """
     cur = bundle
+    converged = True
     for _ in range(iterations):
         var = view_variances(cur.residuals(), cur.n_params)
         w = np.concatenate([np.full(p.size, 1.0 / np.sqrt(s)) for p, s in zip(cur.image_points, var, strict=True)])
@@ -240,11 +251,15 @@ def refine_weighted(bundle: Bundle, iterations: int = WEIGHTING_ITERATIONS) -> t
         def jac(x: Array, base: Bundle = base, w: Array = w) -> Array:
             return np.vstack(base.with_vector(x).jacobian()[1]) * w[:, None]
 
-        sol = least_squares(fun, cur.vector(), jac=jac, method="lm", xtol=1e-12, ftol=1e-12, gtol=1e-12)
+        sol = least_squares(
+            fun, cur.vector(), jac=jac, method="lm", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=max_nfev
+        )
         if not np.all(np.isfinite(sol.x)):
+            converged = False
             break
+        converged &= bool(sol.status > 0)
         cur = cur.with_vector(sol.x)
-    return cur, view_variances(cur.residuals(), cur.n_params)
+    return cur, view_variances(cur.residuals(), cur.n_params), converged
 
 
 def view_dof(bundle: Bundle) -> float:

@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .bundle import DIST_INDEX, MIN_VIEW_DOF, Bundle, bundle_covariance, refine_weighted, view_dof
+from .bundle import DIST_INDEX, MIN_VIEW_DOF, REFINE_MAX_NFEV, Bundle, bundle_covariance, refine_weighted, view_dof
 from .bundle import projection_columns as projection_columns
 from .errors import InputError
 
@@ -639,9 +639,10 @@ def calibrate_intrinsics(
     pnames = lens_model_params(chosen)
     bundle = Bundle.of(K, dist, new_obj, [keep[k] for k in keys], rvecs, tvecs, fixed, pnames)
     view_sigma = None
+    refined_converged = True
     if weight_views and view_dof(bundle) > MIN_VIEW_DOF:
         # each view weighted by its own corner noise (calib.bundle: the plain fit's premise fails)
-        bundle, view_var = refine_weighted(bundle)
+        bundle, view_var, refined_converged = refine_weighted(bundle)
         view_sigma = np.sqrt(view_var)
     cov, d_board = bundle_covariance(bundle, None if view_sigma is None else view_sigma**2)
     K, new_obj, rvecs, tvecs = bundle.K, bundle.board_points, bundle.rvecs, bundle.tvecs
@@ -663,6 +664,12 @@ def calibrate_intrinsics(
         warnings.append(
             f"the board views reach {100 * coverage:.0f}% of the image's corner radius: the distortion beyond "
             "is extrapolated (higher-order terms there are not determined; present the board near the corners)"
+        )
+    if not refined_converged:
+        warnings.append(
+            f"lens model {chosen}: the views-weighted refinement did not converge within {REFINE_MAX_NFEV} evaluations "
+            "a pass: the board views do not determine this model well (its coefficients trade off along flat "
+            "directions); views near the image's corners, or a model with fewer terms, would"
         )
     lens_info = {
         "chosen": chosen,

@@ -55,7 +55,8 @@ def test_refine_weighted_finds_the_view_noise_and_is_covered(seed):
         truth.vector()
         + np.r_[rng.normal(0, [2, 2, 3, 3, 1e-3, 1e-3, 1e-4, 1e-4]), np.zeros(truth.n_params - len(NAMES))]
     )
-    refined, var = refine_weighted(start)
+    refined, var, converged = refine_weighted(start)
+    assert converged
     ratio = np.sqrt(var) / sigma
     # each view's std from its ~22 degrees of freedom: within 40% of the truth for most views
     assert np.median(np.abs(np.log(ratio))) < np.log(1.4), ratio
