@@ -51,6 +51,7 @@ __all__ = [
     "estimated_weights_factor",
     "projection_columns",
     "refine_weighted",
+    "spd_inverse",
     "view_dof",
     "view_variances",
 ]
@@ -284,6 +285,22 @@ def estimated_weights_factor(bundle: Bundle) -> float:
     return nu / (nu - 4.0)
 
 
+def spd_inverse(S: Array, rel_floor: float = 1e-15) -> Array:
+    """Inverse of a symmetric positive semi-definite information matrix (n, n), positive semi-definite itself.
+
+    The unknowns' scales differ by many orders (fx in px, a rational model's k6 dimensionless), and a model the views
+    barely determine makes the information nearly singular: ``np.linalg.inv`` then returned variances below zero
+    (a NaN std in the camera file). Here the matrix is scaled to a unit diagonal, decomposed, and its eigenvalues
+    floored at ``rel_floor`` of the largest: an undetermined direction gets a huge variance, never a negative one.
+    """
+    S = 0.5 * (S + S.T)
+    d = np.sqrt(np.clip(np.diag(S), 1e-300, None))
+    w, V = np.linalg.eigh(S / np.outer(d, d))
+    w = np.maximum(w, rel_floor * max(float(w.max()), 1e-300))
+    inv = (V / w) @ V.T
+    return 0.5 * (inv + inv.T) / np.outer(d, d)
+
+
 def bundle_covariance(bundle: Bundle, view_var: ArrayLike | None = None, estimated: bool = True) -> tuple[Array, Array]:
     """Covariance of the intrinsics (marginalised, Schur complement) and the board points' regression on them.
 
@@ -315,7 +332,7 @@ def bundle_covariance(bundle: Bundle, view_var: ArrayLike | None = None, estimat
         info += J.T @ J / s2
     A, B, C = info[:ni, :ni], info[:ni, ni:], info[ni:, ni:]
     CinvBt = np.linalg.solve(C, B.T)  # (n - ni, ni)
-    cov = np.linalg.inv(A - B @ CinvBt)
+    cov = spd_inverse(A - B @ CinvBt)
     if view_var is not None and estimated:
         cov *= estimated_weights_factor(bundle)
     m = bundle.board_points.shape[0]

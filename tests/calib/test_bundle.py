@@ -64,3 +64,26 @@ def test_refine_weighted_finds_the_view_noise_and_is_covered(seed):
     e = refined.vector()[: len(NAMES)] - truth.vector()[: len(NAMES)]
     d2 = float(e @ np.linalg.solve(cov, e))
     assert d2 < 26.1, d2  # chi-square(8) 99.9 %
+
+
+def test_spd_inverse_of_a_nearly_singular_information_is_never_negative():
+    """A lens model the views barely determine (OpenCV's rational one on the image twin's 30 views) gives an
+    information matrix whose unknowns span many orders of scale and two near-collinear directions; ``np.linalg.inv``
+    returned variances below zero there (a NaN std in the camera file)."""
+    from calib.bundle import spd_inverse
+
+    rng = np.random.default_rng(3)
+    n = 12
+    V, _ = np.linalg.qr(rng.standard_normal((n, n)))
+    w = np.logspace(0, -14, n)
+    w[-1] = -1e-12  # the Schur complement's cancellation leaves the undetermined direction a hair below zero
+    scale = np.logspace(3, -3, n)  # px-sized and dimensionless unknowns together
+    S = (V * w) @ V.T * np.outer(scale, scale)
+    naive = np.linalg.inv(S)
+    inv = spd_inverse(S)
+    assert np.all(np.diag(inv) > 0)
+    assert np.all(np.linalg.eigvalsh(inv / np.sqrt(np.outer(np.diag(inv), np.diag(inv)))) > -1e-9)
+    assert np.any(np.diag(naive) < 0), "the case no longer shows the failure it guards against"
+    # a well-conditioned information is inverted as np.linalg.inv does
+    S2 = (V * np.linspace(1.0, 2.0, n)) @ V.T * np.outer(scale, scale)
+    np.testing.assert_allclose(spd_inverse(S2), np.linalg.inv(S2), rtol=1e-9)
