@@ -26,7 +26,8 @@ FOCAL_PX = 774.0
 
 
 def _linear_problem(rng: np.random.Generator, m: int = 150):
-    """A fit of 4 unknowns plus 3 with a unit prior, over m rods' two entries each; rods at random image places."""
+    """A fit of 4 unknowns plus 3 with a unit prior, over m rods' two entries each, rods at random image places:
+    the rods' own error shape (2m, 2m), the shared error's distance shape, the Jacobian (2m, 7) and the priors."""
     mid = rng.uniform([0.0, 0.0], [1000.0, 800.0], size=(m, 2))
     rays = np.c_[(mid - [500.0, 400.0]) / FOCAL_PX, np.ones(m)]
     rays /= np.linalg.norm(rays, axis=1, keepdims=True)
@@ -49,15 +50,13 @@ def _linear_problem(rng: np.random.Generator, m: int = 150):
         J[:, 4 + j] = (g * f[:, None]).ravel()
     P = np.zeros((7, 7))
     P[4:, 4:] = np.eye(3)
-    return rays, own_blocks, g, J, P
+    return rc.block_diagonal(own_blocks), rc.distance_shape(rays, FOCAL_PX, g, []), J, P
 
 
 def test_estimated_shared_error_gives_the_spread_that_independent_rods_miss():
     rng = np.random.default_rng(7)
-    rays, own_blocks, g, J, P = _linear_problem(rng)
-    m = g.shape[0]
-    own = rc.block_diagonal(own_blocks)
-    dist = rc.distance_shape(rays, FOCAL_PX, g, [])
+    own, dist, J, P = _linear_problem(rng)
+    m = own.shape[0] // 2
     s2_true, rho_true = 0.3, 0.4
     cov_e = s2_true * (own + rho_true * dist)
     L = np.linalg.cholesky(cov_e)
@@ -97,10 +96,8 @@ def test_estimated_shared_error_gives_the_spread_that_independent_rods_miss():
 
 def test_no_shared_error_is_estimated_near_zero():
     rng = np.random.default_rng(8)
-    rays, own_blocks, g, J, P = _linear_problem(rng)
-    m = g.shape[0]
-    own = rc.block_diagonal(own_blocks)
-    dist = rc.distance_shape(rays, FOCAL_PX, g, [])
+    own, dist, J, P = _linear_problem(rng)
+    m = own.shape[0] // 2
     L = np.linalg.cholesky(0.3 * own)
     W = np.linalg.inv(own)
     H = J.T @ W @ J + P
