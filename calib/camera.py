@@ -617,6 +617,19 @@ def calibrate_intrinsics(
                 bound = float(np.max(np.abs(dfull[2:4]) + 2 * sfull[6:8])) * 3 * rc**2 * float(full[1][0, 0])
                 e["tangential_bound_px"] = bound
                 e["allowed"] = bound < TANGENTIAL_BOUND_PX
+        # OpenCV's rational model adds a denominator whose k4-k6 all but repeat k1-k3 over the views' radius: fitted
+        # to views that stay short of the image's corners, it lowers the corners' RSS by bending where no corner is,
+        # and its extrapolation there is undetermined (on the image twin's 30-view phases it won BIC on a plain
+        # lens, its k1-k6 std 0.6-5, and the rods moved it by 5 std; the combined errors were 0.5-0.9 mm)
+        kr0, cr0 = _corner_radius_norm(k0, d0, (int(w), int(h)), np.vstack(list(keep.values())))
+        if cr0 > 0 and kr0 / cr0 < MIN_FIELD_COVERAGE:
+            for e in usable:
+                if e["model"].startswith("rational"):
+                    e["allowed"] = False
+                    e["not_allowed_because"] = (
+                        f"the board views reach {100 * kr0 / cr0:.0f}% of the image's corner radius, less than "
+                        f"{100 * MIN_FIELD_COVERAGE:.0f}%: a rational model's extra terms are not determined there"
+                    )
         allowed = [e for e in usable if e.get("allowed", True)]
         chosen = min(allowed, key=lambda e: e["bic"])["model"] if allowed else "k1k2"
     else:
