@@ -155,6 +155,25 @@ def distance_shape(
     return np.einsum("ab,ai,bj->aibj", k, g, g).reshape(2 * m, 2 * m)
 
 
+def _positive_definite(own: Array, shapes: list[Array], rho: Array) -> Array:
+    """``rho`` shrunk (by 0.8 a step) until ``own + sum rho_j S_j`` is positive semi-definite.
+
+    Each correlation alone keeps the covariance positive definite below 1; the two together, the distance kernel
+    leaving out a leg's same-frame pairs, may not at strong correlations.
+    """
+    if not shapes or not np.any(rho > 0):
+        return rho
+    d = np.sqrt(np.clip(np.diag(own), 1e-300, None))
+    scaled_own = own / np.outer(d, d)
+    scaled = [S / np.outer(d, d) for S in shapes]
+    for _ in range(30):
+        S = scaled_own + sum(r * Sj for r, Sj in zip(rho, scaled, strict=True))
+        if float(np.linalg.eigvalsh(S)[0]) >= -1e-10:
+            return rho
+        rho = 0.8 * rho
+    return np.zeros_like(rho)
+
+
 def estimate_rod_errors(
     r: Array,
     J: Array,
@@ -202,6 +221,7 @@ def estimate_rod_errors(
     c, _ = nnls(T / norm[:, None], b / norm)
     s2 = float(c[0])
     rho = np.zeros(len(shapes) - 1) if s2 <= 0 else np.minimum(c[1:] / s2, MAX_CORRELATION)
+    rho = _positive_definite(own, shapes[1:], rho)
     # the own scale again with the correlations held (it is what the first moment pins)
     den = T[0, 0] + float(T[0, 1:] @ rho)
     s2 = max(float(b[0]) / den, 0.0) if den > 0 else 0.0

@@ -157,3 +157,26 @@ def test_combined_std_is_honest_when_rods_nearby_in_the_image_share_their_error(
     assert lo < np.mean(d2) < hi, f"mean squared Mahalanobis error {np.mean(d2):.2f}, expected {lo:.2f}-{hi:.2f}"
     se = np.std(rhos) / np.sqrt(n_rep)
     assert abs(np.mean(rhos) - rho) < 4 * se + 0.05, f"mean estimated correlation {np.mean(rhos):.3f}, drawn {rho}"
+
+
+def test_the_estimated_covariance_is_positive_semi_definite_at_strong_correlations():
+    """A leg's same-frame pair and the distance kernel (which leaves those pairs out) can together make an indefinite
+    covariance at strong correlations (here 0.9 and 0.9: smallest eigenvalue of the correlation matrix -0.61): the
+    estimate shrinks them until it is not, and leaves alone a combination that is."""
+    rng = np.random.default_rng(11)
+    own, dist, _J, _P = _linear_problem(rng)
+    m = own.shape[0] // 2
+    pairs = [(a, a + 1) for a in range(0, m - 1, 2)]
+    whitening_inverse = np.linalg.cholesky(own.reshape(m, 2, m, 2)[np.arange(m), :, np.arange(m), :])
+    pair = rc.pair_shape(pairs, whitening_inverse, m)
+
+    def smallest(rp, rd):
+        S = own + rp * pair + rd * dist
+        d = np.sqrt(np.diag(S))
+        return np.linalg.eigvalsh(S / np.outer(d, d))[0]
+
+    assert smallest(0.9, 0.9) < -0.1  # the case guarded against
+    rp, rd = rc._positive_definite(own, [pair, dist], np.array([0.9, 0.9]))
+    assert smallest(rp, rd) > -1e-9 and rp > 0.3 and rd > 0.3
+    assert smallest(0.0, 0.9) > 0
+    np.testing.assert_array_equal(rc._positive_definite(own, [pair, dist], np.array([0.0, 0.9])), [0.0, 0.9])
