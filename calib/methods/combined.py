@@ -9,9 +9,10 @@ difference (eq. 8) with ``scipy.optimize.least_squares``; each rod contributes i
 of its leg's Jacobian row.
 
 Standard deviations combine (i) the per-pose noise (rod directions and encoders), with the
-direction-noise level estimated from the residuals, and (ii) the base-frame rotation's
-covariance propagated through the fit: the base frame is common to all poses and its error does
-not show in the residuals.
+direction-noise level and the rods' shared errors (a leg's same-frame pair, rods seen at nearby places of the
+image: :mod:`.rod_correlation`) estimated from the residuals with what the fit absorbs accounted for, and (ii) the
+base-frame rotation's, the intrinsics' and the limb-edge bias's covariances propagated through the fit: they are
+common to all poses and their errors do not show in the residuals.
 """
 
 from __future__ import annotations
