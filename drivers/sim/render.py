@@ -63,6 +63,9 @@ class RenderSettings:
     #: every rod's silhouette widened by this much on each side (px; negative: narrowed), on top of what blur and
     #: shading do: a known limb-edge bias, to check the methods' models of it (0: the rod as it is)
     rod_edge_offset_px: float = 0.0
+    #: the rods' shading (a broad diffuse light, an asymmetric term and a specular streak); False: every rod one
+    #: uniform grey, to tell what the shading does to the limb edges from what the blur and the edge model do
+    rod_shading: bool = True
 
     def camera(self) -> CameraModel:
         K = np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
@@ -241,6 +244,8 @@ class BenchRenderer:
         # diffuse light from a broad source plus a specular streak; smooth up to the limbs
         # (matte paint: the shading flattens towards the limbs, where the surface turns away)
         shade = 140.0 + 55.0 * c**4 + 20.0 * rho * c * c + 35.0 * np.exp(-(((rho - 0.35) / 0.15) ** 2))
+        if not self.settings.rod_shading:
+            shade = np.full_like(shade, 170.0)
         zb = zbuf[y0:y1, x0:x1]
         sub = img[y0:y1, x0:x1]
         zin, sin = zb[inside], sub[inside]

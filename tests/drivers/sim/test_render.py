@@ -97,3 +97,19 @@ def test_camera_views_see_the_whole_board():
     for v in views:
         px = r.camera.project(v.apply(r.board_points_nominal))
         assert px.min() > 0 and px[:, 0].max() < 1024 and px[:, 1].max() < 768
+
+
+def test_rods_without_shading_are_one_grey(frames):
+    """``rod_shading=False`` draws every rod one uniform grey (170), to separate what the shading does to the limb
+    edges from what the blur and the edge model do; the default shades them (140-250 across a rod)."""
+    g, tp = frames
+    _, q, pose = tp[0]
+    clean = RenderSettings.clean()
+    shaded = BenchRenderer(g, clean, seed=0).render(q, pose, board_visible=False)
+    uniform = BenchRenderer(g, RenderSettings.clean(rod_shading=False), seed=0).render(q, pose, board_visible=False)
+    rods = shaded != 50  # everything drawn over the flat background
+    assert rods.sum() > 1000
+    inner = uniform[rods]
+    # fully covered pixels are 170 exactly; only the anti-aliased rims take values between it and the background
+    assert np.mean(inner == 170) > 0.6 and np.all((inner >= 50) & (inner <= 170))
+    assert np.ptp(shaded[rods & (uniform == 170)]) > 40  # the same pixels shaded
