@@ -318,10 +318,14 @@ def calibrate_combined(
     # the rods' errors are not independent: the two rods of a leg in one frame, and rods seen at nearby places of
     # the image in any frame, share part of theirs (:mod:`.rod_correlation`). The rods' own scale and those
     # correlations are estimated from the residuals with what the fit absorbs accounted for, and enter the meat
-    Pall = np.zeros((x.size, x.size))
+    # the priors' information: the base frame's refinement (Pw), the intrinsics' (Pz) and the limb-edge biases' (Pe)
+    Pw = np.zeros((x.size, x.size))
     if joint:
-        Pall[4 : 4 + nw, 4 : 4 + nw] = Lw.T @ Lw
-    Pall[4 + nw :, 4 + nw :] = np.eye(nz)
+        Pw[4 : 4 + nw, 4 : 4 + nw] = Lw.T @ Lw
+    Pz = np.zeros((x.size, x.size))
+    Pz[4 + nw : 4 + nw + ni, 4 + nw : 4 + nw + ni] = np.eye(ni)
+    Pe = np.zeros((x.size, x.size))
+    Pe[4 + nw + ni :, 4 + nw + ni :] = np.eye(nz - ni)
     pairs = _rod_pairs(prob)
     focal = _focal_px(obs)
     R_sol = rotvec_to_matrix(w) @ R0 if joint else R0
@@ -337,7 +341,7 @@ def calibrate_combined(
         r.ravel(),
         Jr,
         Wfull / s2,
-        Pall,
+        Pw + Pz + Pe,
         own,
         pair_shape=rc.pair_shape(pairs, np.linalg.inv(Wh), m) if len(pairs) >= rc.MIN_PAIRS else None,
         distance_shape=dist_shape,
@@ -351,12 +355,6 @@ def calibrate_combined(
     cov = cov_pose_fixed.copy()
     cov_intr = None
     if (joint or nz) and s2 > 0:
-        Pw = np.zeros((x.size, x.size))
-        Pw[4 : 4 + nw, 4 : 4 + nw] = Lw.T @ Lw
-        Pz = np.zeros((x.size, x.size))
-        Pz[4 + nw : 4 + nw + ni, 4 + nw : 4 + nw + ni] = np.eye(ni)
-        Pe = np.zeros((x.size, x.size))
-        Pe[4 + nw + ni :, 4 + nw + ni :] = np.eye(nz - ni)
         cov, parts = _joint_covariance(Jr, Wfull / s2, Sig, Pw, Pz, Pe)
         if nz:
             keep = np.arange(4 + nw)  # the same fit with the intrinsics and edges known: what they add
@@ -371,9 +369,7 @@ def calibrate_combined(
     lens_err = None if prob.intrinsics is None else intr.lens_model_error(prob.intrinsics.camera)
     if lens_err is not None and s2 > 0:
         dx = prob.intrinsics.model_error_shift(w, z, lens_err, R0, joint)
-        Hm = Jr.T @ (Wfull / s2) @ Jr
-        if joint or nz:
-            Hm[4:, 4:] += (Pw + Pz + Pe)[4:, 4:]
+        Hm = Jr.T @ (Wfull / s2) @ Jr + Pw + Pz + Pe
         dtheta = -np.linalg.solve(Hm, Jr.T @ (Wfull / s2) @ dx)[:4]
         cov_lens = np.outer(dtheta, dtheta)
         cov = cov + cov_lens
