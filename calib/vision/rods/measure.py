@@ -4,6 +4,7 @@ limb lines, every rod of a frame, and the two rods of a leg compared.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -20,36 +21,50 @@ Array = NDArray[np.float64]
 
 
 def _edges_1d(g: Array, min_contrast: float, side: int = 3) -> tuple[Array, Array, Array]:
-    """Sub-pixel edges along axis 1 of the gradient profiles g (P, S), sample spacing 1 px.
+    """Sub-pixel edges along axis 1 of the gradient profiles g (P, S), in samples.
 
-    Local maxima of |g| with parabolic interpolation, then a correction for the intensity slopes on
-    either side of the edge: for a step of height A between linear ramps of slopes kL and kR seen
-    through a Gaussian of variance s^2, the gradient peaks at ``x0 + (kR - kL) s^2 / A``; kL and kR
-    are read from g at ``side`` px on each side, s^2 from the peak's curvature and A = g_peak
-    sqrt(2 pi) s. Without it, the shading of a rod next to its limb biases the edge by a few
+    Local maxima of |g|, located by a parabola through the logarithms of the three samples about the maximum
+    (exact for the Gaussian that a blurred step's gradient is; a parabola through the values themselves is
+    off by up to 0.07 samples, depending on where the edge falls between samples), then a correction for the
+    intensity slopes on either side of the edge: for a step of height A between linear ramps of slopes kL
+    and kR seen through a Gaussian of variance s^2, the gradient peaks at ``x0 + (kR - kL) s^2 / A``; kL and
+    kR are read from g at ``side`` samples on each side of the located peak (interpolated: read at the
+    nearest samples instead, the Gaussian's tails there differ by an amount that changes with the edge's
+    place between samples, and so did the edge, by up to 0.08 samples), s^2 from the peak's curvature and
+    A = g_peak sqrt(2 pi) s. Without it, the shading of a rod next to its limb biases the edge by a few
     tenths of a pixel, which the near-parallel limb lines amplify ~40x in the axis direction.
 
-    Returns (profile index, position, signed gradient at the peak), float64 (g may be float32).
+    Returns (profile index, position in samples, signed gradient at the peak), float64 (g may be float32).
     """
     a = np.abs(g)
     mid = a[:, 1:-1]
     peak = (mid > a[:, :-2]) & (mid >= a[:, 2:]) & (mid > min_contrast)
-    peak[:, : side - 1] = False
-    peak[:, mid.shape[1] - side + 1 :] = False
+    # the slope samples (side + 1 about the peak, for the interpolation) must lie within the profile
+    peak[:, :side] = False
+    peak[:, mid.shape[1] - side :] = False
     pi, si = np.nonzero(peak)
     si = si + 1
     f64 = np.float64
     y0, y1, y2 = a[pi, si - 1].astype(f64), a[pi, si].astype(f64), a[pi, si + 1].astype(f64)
-    den = y0 - 2 * y1 + y2
-    safe = np.where(np.abs(den) > 1e-12, den, -1e-12)
-    off = np.clip(0.5 * (y0 - y2) / safe, -0.5, 0.5)
+    tiny = 1e-6 * y1
+    l0, l1, l2 = np.log(np.maximum(y0, tiny)), np.log(y1), np.log(np.maximum(y2, tiny))
+    den = l0 - 2 * l1 + l2  # -1 / s^2 for a Gaussian
+    safe = np.where(den < -1e-12, den, -1e-12)
+    off = np.clip(0.5 * (l0 - l2) / safe, -0.5, 0.5)
+    s2 = np.clip(-1.0 / safe, 0.3, 60.0)
     gp = g[pi, si].astype(f64)
-    s2 = np.clip(-y1 / safe, 0.3, 60.0)
-    amp = gp * np.sqrt(2 * np.pi * s2)
-    kL = g[pi, si - side].astype(f64)
-    kR = g[pi, si + side].astype(f64)
+    amp = np.sign(gp) * np.exp(l1 - 0.5 * off * off * safe) * np.sqrt(2 * np.pi * s2)  # the step's height
+    n = g.shape[1]
+
+    def at(x: Array) -> Array:
+        i0 = np.clip(np.floor(x).astype(np.intp), 0, n - 2)
+        fr = np.clip(x - i0, 0.0, 1.0)
+        return (1.0 - fr) * g[pi, i0].astype(f64) + fr * g[pi, i0 + 1].astype(f64)
+
+    x0 = si + off
+    kL, kR = at(x0 - side), at(x0 + side)
     corr = np.clip((kR - kL) * s2 / amp, -0.5, 0.5) * _CORR
-    return pi, si + off - corr, gp
+    return pi, x0 - corr, gp
 
 
 def _gauss_deriv_kernel(sigma: float) -> Array:
@@ -267,6 +282,23 @@ def _predicted_segment(
     return _Segment(a2, t_dir, n_dir, length, off1, off2)
 
 
+def _supported(
+    to_image: Callable[[Array], Array], pts: Array, n_dir: Array, reach: float, width: int, height: int, border: float
+) -> NDArray[np.bool_]:
+    """Which edge points (N, 2 ideal px) have every profile sample within ``reach`` px of them (along ``n_dir``)
+    inside the image, ``border`` px clear of its edge (``to_image``: ideal to distorted pixels)."""
+    ok = np.ones(len(pts), dtype=bool)
+    for sgn in (-1.0, 1.0):
+        q = to_image(pts + sgn * reach * n_dir[None])
+        ok &= (
+            (q[:, 0] >= border)
+            & (q[:, 0] <= width - 1 - border)
+            & (q[:, 1] >= border)
+            & (q[:, 1] <= height - 1 - border)
+        )
+    return ok
+
+
 def _seg_distance(pts: Array, a: Array, b: Array) -> Array:
     """Distance (px) from points (N, 2) to the segment a-b, shape (N,)."""
     d = b - a
@@ -440,7 +472,9 @@ def measure_rod(
     ker = _gauss_deriv_kernel(s.sigma_px / ds)
     g = cv2.filter2D(prof, cv2.CV_32F, ker[None, ::-1].astype(np.float32), borderType=cv2.BORDER_REPLICATE)
     g *= np.float32(1.0 / ds)  # grey levels per pixel
-    pi, pos, sg = _edges_1d(g, s.min_contrast, max(2, round(3.0 / ds)))  # pi ascending (row-major scan)
+    side = max(2, round(3.0 / ds))
+    pi, pos, sg = _edges_1d(g, s.min_contrast, side)  # pi ascending (row-major scan)
+    reach = (len(ker) // 2 + side + 1) * ds  # the samples an edge's position depends on lie within this (px)
     k, x_lo, x_hi, pol = _pair_edges(
         pi, lo + pos * ds, sg, 0.5 * (o1 + o2), np.abs(o2 - o1), s.band_px, s.width_tolerance
     )
@@ -472,13 +506,17 @@ def measure_rod(
     npts: list[int] = []
     for x_e, x_p in zip(edges, pred_off, strict=True):
         pts = centres[k] + x_e[:, None] * n_dir[None]
+        # an edge is measured from the profile's samples within `reach` of it: where some of them lie beyond the
+        # image border they are the border's replicated pixels, and the edge is pulled by up to a few pixels (on
+        # the image-level twin: the first one to three points where a limb leaves the image, by 0.2-4.5 px,
+        # enough to tilt the limb line, always the same way for a given pose)
+        clear = _supported(proj.points, pts, n_dir, reach, camera.width, camera.height, s.border_px)
         if neighbours:
             # drop limb points whose edge may merge with another rod's silhouette
             limb_pred = centres[k] + x_p[:, None] * n_dir[None]
-            clear = np.ones(len(pts), dtype=bool)
             for a_n, b_n, hw in neighbours:
                 clear &= _seg_distance(limb_pred, a_n, b_n) > hw + s.neighbour_px
-            pts = pts[clear]
+        pts = pts[clear]
         if len(pts) < s.min_points:
             out.reason = (
                 f"too few limb edge points ({len(pts)} < {s.min_points}): rod not found in its "
