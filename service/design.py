@@ -110,6 +110,16 @@ def design_for_bench(cfg, request, noise=None):
     )
 
 
+def reference_targets(cfg, plan, noise=None) -> tuple[float, float, float, float]:
+    """The predicted combined std (m) of a reference plan on this bench (the scene and noise of
+    :func:`design_for_bench`): targets for a design at least as accurate on every combination."""
+    from calib.design import targets_from_plan
+
+    return targets_from_plan(
+        plan, cfg.nominal_parameters(), twin_scene(), noise if noise is not None else twin_image_noise()
+    )
+
+
 def summary_lines(result) -> list[str]:
     """Human-readable lines: counts per phase, predicted std per method (mm), motion time."""
     from calib.parameters import COMBINATION_NAMES

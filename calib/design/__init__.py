@@ -12,7 +12,14 @@ See docs/design.md.
 
 from .imaging import calibration_covariance, synthetic_rods
 from .motion import MotionSpec, move_time, order_tour, plan_motion_time
-from .optimize import DesignRequest, DesignResult, design_plan, log_det_information, select_poses
+from .optimize import (
+    DesignRequest,
+    DesignResult,
+    design_plan,
+    log_det_information,
+    select_poses,
+    targets_from_plan,
+)
 from .predict import (
     METHODS,
     DesignNoise,
@@ -49,5 +56,6 @@ __all__ = [
     "predict_plan",
     "select_poses",
     "synthetic_rods",
+    "targets_from_plan",
     "visibility",
 ]

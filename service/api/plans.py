@@ -25,6 +25,11 @@ class DesignBody(BaseModel):
         json_schema_extra={"examples": [{"target_std_m": 5e-5, "max_minutes": 10}, {"n_fit": 12, "criterion": "d"}]},
     )
     target_std_m: float | None = Field(None, gt=0, lt=0.1, description="wanted std of every combination, m")
+    better_than: dict[str, Any] | None = Field(
+        None,
+        description="a reference plan (i4cal.plan/1, e.g. the routine in use): the target is its predicted combined "
+        "std on every combination, the criterion 'target' (not with target_std_m)",
+    )
     max_minutes: float | None = Field(None, gt=0, le=24 * 60, description="longest motion time of the plan")
     n_fit: int | None = Field(None, ge=2, le=100, description="fit poses (default: the smallest meeting the target)")
     criterion: Literal["d", "a", "target"] | None = Field(None, description="default: target with a target, else d")
@@ -84,22 +89,35 @@ async def design(body: DesignBody, request: Request, manager: Manager, settings:
 
     Computed in a worker thread, one design at a time (the run's processes keep their cores)."""
     from calib.design import DesignRequest
+    from calib.plan import Plan
 
-    from ..design import design_for_bench
+    from ..design import design_for_bench, reference_targets
 
     bench = manager.bench
     if bench is None:
         raise unprocessable(InputError("this service has no bench configured", field="bench"))
+    ref = None
+    if body.better_than is not None:
+        if body.target_std_m is not None:
+            raise unprocessable(InputError("give target_std_m or better_than, not both", field="better_than"))
+        try:
+            ref = Plan.from_dict(body.better_than, source="better_than")
+        except InputError as exc:
+            raise unprocessable(exc, prefix=("body", "better_than")) from None
     lock = _lock(request)
     if lock.locked():
         raise HTTPException(status.HTTP_429_TOO_MANY_REQUESTS, detail="another design is being computed")
     async with lock:
         try:
+            target: float | tuple[float, float, float, float] | None = body.target_std_m
+            if ref is not None:
+                target = await asyncio.to_thread(reference_targets, bench.config, ref)
             req = DesignRequest(
                 n_fit=body.n_fit,
-                target_std_m=body.target_std_m,
+                target_std_m=target,
                 max_time_s=None if body.max_minutes is None else body.max_minutes * 60.0,
-                criterion=body.criterion or ("target" if body.target_std_m is not None and body.n_fit is None else "d"),
+                criterion=body.criterion
+                or ("target" if body.better_than is not None or (target is not None and body.n_fit is None) else "d"),
                 methods=tuple(dict.fromkeys(body.methods)),
                 seed=body.seed,
                 n_candidates=min(body.candidates, settings.design_max_candidates),

@@ -19,6 +19,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     a = d.add_argument
     a("--bench", required=True, help="bench configuration (TOML): nominal geometry, soft limits, speeds")
     a("--target-std", default=None, help="wanted std of every combination (0.05mm, 50um, or metres)")
+    a(
+        "--better-than",
+        default=None,
+        metavar="PLAN",
+        help="a plan file (i4cal.plan/1, e.g. the routine in use): the target is its predicted combined std on "
+        "every combination (the shortest plan at least as accurate, or the most accurate relative to it with "
+        "--n-fit)",
+    )
     a("--max-minutes", type=float, default=None, help="longest motion time of the whole plan, minutes")
     a("--n-fit", type=int, default=None, help="fit poses (default: the smallest count meeting the target)")
     a("--criterion", choices=("d", "a", "target"), default=None, help="d (default), a, or target (worst std/target)")
@@ -42,12 +50,15 @@ def _design(args: argparse.Namespace) -> int:
     from calib.design import DesignNoise, DesignRequest
     from calib.errors import InputError
     from calib.jsonio import read_json
+    from calib.parameters import COMBINATION_NAMES
     from calib.pipeline import to_jsonable
-    from calib.plan import validate_plan
+    from calib.plan import Plan, validate_plan
     from drivers.config import load_bench
-    from service.design import design_for_bench, parse_length, summary_lines
+    from service.design import design_for_bench, parse_length, reference_targets, summary_lines
 
     cfg = load_bench(args.bench)
+    if args.target_std is not None and args.better_than is not None:
+        raise InputError("give --target-std or --better-than, not both", field="--better-than")
     target = None if args.target_std is None else parse_length(args.target_std, "--target-std")
     if args.max_minutes is not None and not (0 < args.max_minutes < 1e5):
         raise InputError("must be > 0", field="--max-minutes")
@@ -55,11 +66,20 @@ def _design(args: argparse.Namespace) -> int:
     if args.noise_from:
         doc = read_json(args.noise_from, "noise file")
         noise = DesignNoise.from_mapping(doc.get("noise", doc) if isinstance(doc, dict) else None)
+    if args.better_than is not None:
+        target = reference_targets(cfg, Plan.load(args.better_than), noise)
+        if not args.json:
+            print(
+                f"target: the predicted combined std of {args.better_than}: "
+                + ", ".join(f"{k} {v * 1e3:.3f}" for k, v in zip(COMBINATION_NAMES, target, strict=True))
+                + " mm"
+            )
     req = DesignRequest(
         n_fit=args.n_fit,
         target_std_m=target,
         max_time_s=None if args.max_minutes is None else args.max_minutes * 60.0,
-        criterion=args.criterion or ("target" if target is not None and args.n_fit is None else "d"),
+        criterion=args.criterion
+        or ("target" if args.better_than is not None or (target is not None and args.n_fit is None) else "d"),
         methods=tuple(m.strip() for m in args.methods.split(",") if m.strip()),
         seed=args.seed,
         n_candidates=args.candidates,

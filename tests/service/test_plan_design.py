@@ -54,6 +54,37 @@ def test_cli_design_json_and_a_bad_unit(tmp_path, capsys):
     assert "target-std" in capsys.readouterr().err
 
 
+def _paper_plan(path: Path, n_fit: int = 12) -> Plan:
+    from calib.plan import make_plan
+
+    plan = make_plan("full", NOMINAL, seed=0, n_fit=n_fit)
+    plan = Plan(name="routine", steps=[s for s in plan.steps if s.phase != "line"])
+    plan.save(path)
+    return plan
+
+
+def test_cli_design_better_than_a_reference_plan(tmp_path, capsys):
+    """``--better-than``: the target is the reference's predicted combined std on every combination; the plan
+    designed is the shortest that meets it (its predicted std no larger on any combination)."""
+    ref = tmp_path / "routine.json"
+    _paper_plan(ref)
+    out = tmp_path / "plan.json"
+    argv = ["plan", "design", "--bench", str(BENCH_SIM), "--better-than", str(ref), "--no-line", "--candidates", "60"]
+    assert main([*argv, "-o", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert f"target: the predicted combined std of {ref}" in text
+    design = Plan.load(out).model_extra["design"]
+    assert design["request"]["criterion"] == "target" and design["target_met"] is True
+    target = design["request"]["target_std_m"]
+    assert len(target) == 4 and len(set(target)) == 4  # one per combination, the reference's
+    got = design["prediction"]["std_m"]["combined"]
+    for name, t in zip(("L", "H-D", "S-q02/2", "S-(q04-q03)/2"), target, strict=True):
+        assert got[name] <= t * (1 + 1e-9), (name, got[name], t)
+    assert design["n_fit"] <= 12
+    assert main([*argv, "--target-std", "0.05mm"]) == 2
+    assert "--better-than" in capsys.readouterr().err
+
+
 async def test_acquire_runs_a_designed_plan(sim, tmp_path):
     text = (
         BENCH_SIM.read_text()
@@ -116,6 +147,20 @@ async def test_api_design_draws_at_most_the_services_candidates(tmp_path, sim):
     finally:
         await svc.client.aclose()
         await svc.stop()
+
+
+async def test_api_designs_better_than_a_reference_plan(service, tmp_path):
+    c = service.client
+    ref = _paper_plan(tmp_path / "routine.json").model_dump(mode="json", exclude_none=True)
+    body = {"n_fit": 8, "with_line": False, "candidates": 60, "better_than": ref}
+    r = await c.post(f"{API}/plans/design", json=body, headers=AUTH)
+    assert r.status_code == 200, r.text
+    request = r.json()["plan"]["design"]["request"]
+    assert request["criterion"] == "target" and len(request["target_std_m"]) == 4
+    r = await c.post(f"{API}/plans/design", json={**body, "target_std_m": 5e-5}, headers=AUTH)
+    assert r.status_code == 422 and "better_than" in r.text
+    r = await c.post(f"{API}/plans/design", json={**body, "better_than": {"steps": "none"}}, headers=AUTH)
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"][:2] == ["body", "better_than"], r.text
 
 
 async def test_api_bounds_its_inputs(service):
