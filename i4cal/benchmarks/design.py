@@ -16,7 +16,8 @@ prediction scaled per method and combination by the paper's 20-pose plan's measu
 prediction, i.e. noise levels calibrated by one reference run), and the motion time (trapezoidal profiles,
 ``--speed``/``--accel``). The issue's check: the designed 12-pose plan's combined RMS error no larger than the
 paper's 20-pose plan's for every combination, and each method's prediction within 30% of its RMS error.
-``--plans designed-12,paper-20`` runs only those plans; each plan's ``trials`` lists every trial's errors and
+``--plans designed-12,paper-20`` runs only those plans; each plan's ``steps`` are the plan itself (its frames, as
+``calib.plan.Step``), its ``trials`` list every trial's errors and
 reported std per method (and whether the method fell back to its a priori values or its data left a direction to
 the a priori tolerance); ``data_pinned`` has each method's RMS error and mean std over the other trials, with the
 counts left out, and ``checks.predicted_images_over_rms_data_pinned`` the prediction's ratio to that RMS.
@@ -163,7 +164,6 @@ def run_design_bench(opts: argparse.Namespace, progress=None) -> dict[str, Any]:
             for k in range(opts.trials)
         ]
         p["data_pinned"] = _data_pinned(p["trials"])
-        p.pop("steps")
     ref = plans.get("paper-20")
     for p in plans.values():
         p["predicted_run_std_m"] = {}
