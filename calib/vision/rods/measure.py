@@ -4,7 +4,6 @@ limb lines, every rod of a frame, and the two rods of a leg compared.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -20,7 +19,9 @@ from .types import ROD_OCCLUDER_CLEARANCE_PX, RodMeasurement, RodPrediction, Rod
 Array = NDArray[np.float64]
 
 
-def _edges_1d(g: Array, min_contrast: float, side: int = 3) -> tuple[Array, Array, Array]:
+def _edges_1d(
+    g: Array, min_contrast: float, side: int = 3, valid: NDArray[np.bool_] | None = None, radius: int = 0
+) -> tuple[Array, Array, Array]:
     """Sub-pixel edges along axis 1 of the gradient profiles g (P, S), in samples.
 
     Local maxima of |g|, located by a parabola through the logarithms of the three samples about the maximum
@@ -33,6 +34,13 @@ def _edges_1d(g: Array, min_contrast: float, side: int = 3) -> tuple[Array, Arra
     place between samples, and so did the edge, by up to 0.08 samples), s^2 from the peak's curvature and
     A = g_peak sqrt(2 pi) s. Without it, the shading of a rod next to its limb biases the edge by a few
     tenths of a pixel, which the near-parallel limb lines amplify ~40x in the axis direction.
+
+    ``valid`` (P, S): the samples inside the image (beyond it a profile reads the border's replicated pixels, which
+    pulled the last edges of a limb leaving the image by 0.2-4.5 px): a peak whose derivative kernel (``radius``
+    samples either side) reaches an invalid sample is dropped, one whose slope samples do is kept without the slope
+    correction. Dropping every edge whose slope samples leave the image instead cost the limbs' far ends: on 16
+    paired paper-plan trials the combined RMS error was 0.117, 0.037, 0.081, 0.079 mm that way, 0.100, 0.035,
+    0.070, 0.067 mm this way, with the same removal of the designed plans' H-D bias (-21.9 -> -7.9 um).
 
     Returns (profile index, position in samples, signed gradient at the peak), float64 (g may be float32).
     """
@@ -64,7 +72,20 @@ def _edges_1d(g: Array, min_contrast: float, side: int = 3) -> tuple[Array, Arra
     x0 = si + off
     kL, kR = at(x0 - side), at(x0 + side)
     corr = np.clip((kR - kL) * s2 / amp, -0.5, 0.5) * _CORR
-    return pi, x0 - corr, gp
+    keep = np.ones(pi.size, dtype=bool)
+    if valid is not None:
+        # samples beyond the image (the border's replicated pixels): a peak whose derivative kernel reaches them is
+        # dropped; one whose slope samples do is kept without the slope correction
+        bad = np.concatenate([np.zeros((g.shape[0], 1), dtype=np.intp), np.cumsum(~valid, axis=1)], axis=1)
+
+        def n_bad(lo: Array, hi: Array) -> Array:
+            lo = np.clip(lo, 0, n)
+            hi = np.clip(hi, 0, n)
+            return bad[pi, hi] - bad[pi, lo]
+
+        keep = n_bad(si - radius - 1, si + radius + 2) == 0
+        corr = np.where(n_bad(si - side - 1, si + side + 2) == 0, corr, 0.0)
+    return pi[keep], (x0 - corr)[keep], gp[keep]
 
 
 def _gauss_deriv_kernel(sigma: float) -> Array:
@@ -282,23 +303,6 @@ def _predicted_segment(
     return _Segment(a2, t_dir, n_dir, length, off1, off2)
 
 
-def _supported(
-    to_image: Callable[[Array], Array], pts: Array, n_dir: Array, reach: float, width: int, height: int, border: float
-) -> NDArray[np.bool_]:
-    """Which edge points (N, 2 ideal px) have every profile sample within ``reach`` px of them (along ``n_dir``)
-    inside the image, ``border`` px clear of its edge (``to_image``: ideal to distorted pixels)."""
-    ok = np.ones(len(pts), dtype=bool)
-    for sgn in (-1.0, 1.0):
-        q = to_image(pts + sgn * reach * n_dir[None])
-        ok &= (
-            (q[:, 0] >= border)
-            & (q[:, 0] <= width - 1 - border)
-            & (q[:, 1] >= border)
-            & (q[:, 1] <= height - 1 - border)
-        )
-    return ok
-
-
 def _seg_distance(pts: Array, a: Array, b: Array) -> Array:
     """Distance (px) from points (N, 2) to the segment a-b, shape (N,)."""
     d = b - a
@@ -473,8 +477,8 @@ def measure_rod(
     g = cv2.filter2D(prof, cv2.CV_32F, ker[None, ::-1].astype(np.float32), borderType=cv2.BORDER_REPLICATE)
     g *= np.float32(1.0 / ds)  # grey levels per pixel
     side = max(2, round(3.0 / ds))
-    pi, pos, sg = _edges_1d(g, s.min_contrast, side)  # pi ascending (row-major scan)
-    reach = (len(ker) // 2 + side + 1) * ds  # the samples an edge's position depends on lie within this (px)
+    inside_img = (mx >= 0) & (mx <= camera.width - 1) & (my >= 0) & (my <= camera.height - 1)
+    pi, pos, sg = _edges_1d(g, s.min_contrast, side, inside_img, len(ker) // 2)  # pi ascending (row-major scan)
     k, x_lo, x_hi, pol = _pair_edges(
         pi, lo + pos * ds, sg, 0.5 * (o1 + o2), np.abs(o2 - o1), s.band_px, s.width_tolerance
     )
@@ -506,11 +510,7 @@ def measure_rod(
     npts: list[int] = []
     for x_e, x_p in zip(edges, pred_off, strict=True):
         pts = centres[k] + x_e[:, None] * n_dir[None]
-        # an edge is measured from the profile's samples within `reach` of it: where some of them lie beyond the
-        # image border they are the border's replicated pixels, and the edge is pulled by up to a few pixels (on
-        # the image-level twin: the first one to three points where a limb leaves the image, by 0.2-4.5 px,
-        # enough to tilt the limb line, always the same way for a given pose)
-        clear = _supported(proj.points, pts, n_dir, reach, camera.width, camera.height, s.border_px)
+        clear = np.ones(len(pts), dtype=bool)
         if neighbours:
             # drop limb points whose edge may merge with another rod's silhouette
             limb_pred = centres[k] + x_p[:, None] * n_dir[None]
