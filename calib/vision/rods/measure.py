@@ -510,13 +510,13 @@ def measure_rod(
     npts: list[int] = []
     for x_e, x_p in zip(edges, pred_off, strict=True):
         pts = centres[k] + x_e[:, None] * n_dir[None]
-        clear = np.ones(len(pts), dtype=bool)
         if neighbours:
             # drop limb points whose edge may merge with another rod's silhouette
             limb_pred = centres[k] + x_p[:, None] * n_dir[None]
+            clear = np.ones(len(pts), dtype=bool)
             for a_n, b_n, hw in neighbours:
                 clear &= _seg_distance(limb_pred, a_n, b_n) > hw + s.neighbour_px
-        pts = pts[clear]
+            pts = pts[clear]
         if len(pts) < s.min_points:
             out.reason = (
                 f"too few limb edge points ({len(pts)} < {s.min_points}): rod not found in its "
