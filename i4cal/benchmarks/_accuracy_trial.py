@@ -175,6 +175,34 @@ def _gap(validation: dict[str, Any], name: str) -> float | None:
     return _finite((v.get("gaps_validation") or {}).get("rms_mm"))
 
 
+#: per method, the noise levels its fit measured (diagnostics, dimensionless), which the design's image-level
+#: prediction takes at their twin values (``calib.design.ImageNoise``: ``rod_scale``, ``legs_lock_chi2``,
+#: ``legs_directions_chi2``): the bench records them per trial to check those values
+NOISE_LEVELS: dict[str, tuple[tuple[str, tuple[str, ...]], ...]] = {
+    "combined": (
+        ("direction_noise_scale", ("direction_noise_scale",)),
+        ("rod_own_scale", ("rod_errors", "own_scale")),
+        ("rod_pair_correlation", ("rod_errors", "pair_correlation")),
+        ("rod_distance_correlation", ("rod_errors", "distance_correlation")),
+    ),
+    "legs": (
+        ("lock_chi2", ("step1_residual_chi2_per_dof",)),
+        ("directions_chi2", ("steps34_residual_chi2_per_dof",)),
+    ),
+}
+
+
+def noise_levels(method: str, diagnostics: dict[str, Any]) -> dict[str, float | None]:
+    """The noise levels (:data:`NOISE_LEVELS`) a method's diagnostics carry; None where one is missing."""
+    out: dict[str, float | None] = {}
+    for name, path in NOISE_LEVELS.get(method, ()):
+        v: Any = diagnostics
+        for k in path:
+            v = v.get(k) if isinstance(v, dict) else None
+        out[name] = _finite(v)
+    return out
+
+
 def trial_record(doc: dict[str, Any], observations: dict[str, Any]) -> dict[str, Any]:
     """The numbers of one trial from its result document (:func:`calib.pipeline.calibrate`) and observations.
 
@@ -184,7 +212,8 @@ def trial_record(doc: dict[str, Any], observations: dict[str, Any]) -> dict[str,
         ``methods``: per method ``ok``, ``error``, ``converged``, ``errors`` and ``std`` (metres, per
         combination), ``gap_validation_rms_mm``, ``a_priori_fallback`` (None, or which parameters the method
         returned as their a priori values because its data contradicted them), ``unpinned_directions`` (how many
-        directions of the seven its data left to the a priori tolerance); ``bound_std`` (the combined method's
+        directions of the seven its data left to the a priori tolerance), ``noise_levels`` (:func:`noise_levels`);
+        ``bound_std`` (the combined method's
         Cramer-Rao bound, metres, None when the result has none); ``gap_a_priori_rms_mm``,
         ``gap_truth_rms_mm``; ``edge_noise_px``; ``rods_found`` and ``rods_total``, ``boards_found`` and ``frames``.
     """
@@ -220,6 +249,7 @@ def trial_record(doc: dict[str, Any], observations: dict[str, Any]) -> dict[str,
             # directions of the seven the data knew less well than the a priori tolerance (the legs method says so in
             # a warning; the estimate there is the tolerance's): 0 when the data pinned every one
             "unpinned_directions": len(ident.get("unpinned") or []),
+            "noise_levels": noise_levels(name, entry.get("diagnostics") or {}),
         }
         if err and "seven" in err:
             rec["seven_errors"] = {k: _finite(v) for k, v in err["seven"].items()}

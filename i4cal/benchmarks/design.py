@@ -157,7 +157,10 @@ def run_design_bench(opts: argparse.Namespace, progress=None) -> dict[str, Any]:
                 "index": k,
                 "error": records[f"{name},k={k}"].get("error"),
                 "methods": {
-                    m: {f: r.get(f) for f in ("ok", "errors", "std", "a_priori_fallback", "unpinned_directions")}
+                    m: {
+                        f: r.get(f)
+                        for f in ("ok", "errors", "std", "a_priori_fallback", "unpinned_directions", "noise_levels")
+                    }
                     for m, r in (records[f"{name},k={k}"].get("methods") or {}).items()
                 },
             }
@@ -221,6 +224,12 @@ def _data_pinned(trials: list[dict[str, Any]]) -> dict[str, Any]:
         for key, field, stat in (("rms_error_m", "errors", _rms), ("mean_std_m", "std", np.mean)):
             vals = {c: [r[field][c] for r in kept if r[field].get(c) is not None] for c in COMBINATIONS}
             entry[key] = {c: float(stat(v)) if v else None for c, v in vals.items()}
+        # the noise levels the method measured, mean over the same trials: what the prediction takes them as
+        levels = [r.get("noise_levels") or {} for r in kept]
+        names = sorted({k for lv in levels for k in lv})
+        entry["noise_levels_mean"] = {
+            k: float(np.mean(v)) if (v := [lv[k] for lv in levels if lv.get(k) is not None]) else None for k in names
+        }
         out[m] = entry
     return out
 
@@ -294,6 +303,15 @@ def print_table(doc: dict[str, Any]) -> None:
                     + ", ".join(mm(e["mean_std_m"][c]) for c in COMBINATIONS)
                     + " mm"
                 )
+    for name, p in doc["plans"].items():
+        levels = {m: e.get("noise_levels_mean") for m, e in (p.get("data_pinned") or {}).items()}
+        text = "; ".join(
+            f"{m} " + ", ".join(f"{k} {v:.2f}" for k, v in lv.items() if v is not None)
+            for m, lv in levels.items()
+            if lv
+        )
+        if text:
+            print(f"{name}: noise levels measured (mean): {text}")
     print("checks:", doc["checks"].get("designed12_combined_not_worse_than_paper20"))
     print(f"elapsed {doc['elapsed_s']:.0f} s, {doc['date']}")
 

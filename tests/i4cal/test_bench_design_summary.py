@@ -62,3 +62,42 @@ def test_trial_record_carries_the_methods_fallback():
     assert rec["methods"]["legs"]["a_priori_fallback"] == "L, S, D"
     assert rec["methods"]["legs"]["unpinned_directions"] == 2
     assert rec["methods"]["combined"]["a_priori_fallback"] is None
+
+
+def test_the_methods_measured_noise_levels_are_recorded_and_averaged():
+    """The design's image-level prediction takes the combined method's rod scale and the legs method's chi-square
+    levels at their twin values (``ImageNoise``); each trial records what its fits measured, and the plan's summary
+    their means over the trials whose estimate came from the data, so that a run of the bench checks those values."""
+    doc = {
+        "methods": {
+            "legs": {
+                "std": dict.fromkeys(C, 1e-3),
+                "diagnostics": {"step1_residual_chi2_per_dof": 1.4, "steps34_residual_chi2_per_dof": 0.8},
+                "converged": True,
+            },
+            "combined": {
+                "std": dict.fromkeys(C, 1e-4),
+                "diagnostics": {
+                    "direction_noise_scale": 0.55,
+                    "rod_errors": {"own_scale": 0.6, "pair_correlation": 0.2, "distance_correlation": None},
+                },
+                "converged": True,
+            },
+        },
+        "truth_errors": {"legs": dict.fromkeys(C, 1e-3), "combined": dict.fromkeys(C, 1e-4)},
+    }
+    rec = trial_record(doc, {"frames": []})
+    assert rec["methods"]["legs"]["noise_levels"] == {"lock_chi2": 1.4, "directions_chi2": 0.8}
+    assert rec["methods"]["combined"]["noise_levels"] == {
+        "direction_noise_scale": 0.55,
+        "rod_own_scale": 0.6,
+        "rod_pair_correlation": 0.2,
+        "rod_distance_correlation": None,
+    }
+    a = _trial([0.3, -0.1, 0.4, -0.2], [0.4] * 4)
+    b = _trial([-0.5, 0.1, 0.0, 0.2], [0.5] * 4)
+    c = _trial([5.0, 2.0, 3.0, -2.9], [6.4, 2.1, 4.2, 4.7], fallback="all seven")
+    for t, lock in ((a, 1.2), (b, 1.8), (c, 9.0)):
+        t["methods"]["legs"]["noise_levels"] = {"lock_chi2": lock, "directions_chi2": None}
+    means = _data_pinned([a, b, c])["legs"]["noise_levels_mean"]
+    assert np.isclose(means["lock_chi2"], 1.5) and means["directions_chi2"] is None  # the fallback trial left out

@@ -192,7 +192,8 @@ def calibrate_legs(
     cov_joints = GP @ covP @ GP.T
     # (ii) the leg directions of the fit poses: GLS covariance of (L, S, D), scaled by the chi-square
     c34, chi34, dof34 = _steps34_covariance(pipe, P, U_filled, seven)
-    s2_34 = 1.0 if (not measured and direction_std_rad is not None) else (chi34 / dof34 if dof34 > 0 else 1.0)
+    s2_34_raw = chi34 / dof34 if dof34 > 0 else 1.0
+    s2_34 = 1.0 if (not measured and direction_std_rad is not None) else s2_34_raw
     if measured:  # cov_u is absolute (with the extraction's edge-bias allowance): scaled up, never down
         s2_34 = max(s2_34, 1.0)
     cov_dirs = np.zeros((7, 7))
@@ -331,6 +332,7 @@ def calibrate_legs(
             "step1_frames_rejected": rejected_lock,
             "steps34_weighting": "measured rod covariances (GLS)" if measured else "isotropic",
             "steps34_chi2_per_dof": float(s2_34),
+            "steps34_residual_chi2_per_dof": float(s2_34_raw),
             "rod_direction_noise_rad": scale if not measured else None,
             "rod_pairs_rejected": rejected_pairs,
             "poses_rejected": rejected_poses,
