@@ -113,8 +113,8 @@ def _drop_unset(model: BaseModel, data: dict[str, Any], optional: tuple[str, ...
 
 
 #: the optional, typed rod fields written by the image extraction (:class:`calib.vision.rods.RodMeasurement`)
-ROD_FIELDS: tuple[str, ...] = ("rms_px", "n_points", "plane_angle_rad", "cov_u", "h", "limbs_px")
-RodArrayField = Literal["rms_px", "n_points", "cov_u", "h", "limbs_px"]
+ROD_FIELDS: tuple[str, ...] = ("rms_px", "n_points", "plane_angle_rad", "cov_u", "cov_u_own", "h", "limbs_px")
+RodArrayField = Literal["rms_px", "n_points", "cov_u", "cov_u_own", "h", "limbs_px"]
 #: the optional, typed board fields written by the image extraction (:class:`calib.vision.board.BoardPose`)
 BOARD_FIELDS: tuple[str, ...] = ("rms_px", "n_corners", "corners_rejected", "cov", "d_intrinsics")
 
@@ -142,6 +142,13 @@ class Rod(BaseModel):
         default=None,
         description="shape (3, 3), dimensionless (rad^2 across u): covariance of u in the camera frame, "
         "from the limb edges' scatter and the edge-bias allowance",
+    )
+    cov_u_own: Mat33 | None = Field(
+        default=None,
+        description="shape (3, 3), dimensionless (rad^2 across u): covariance of u without the limb-edge bias every "
+        "rod shares (which a fit measures: the combined method's diagnostics.limb_edge_bias), the allowance "
+        "averaged along the limb over the extraction's rod_settings.edge_bias_length_px; fits that measure the "
+        "shared bias weigh the rod by it, by cov_u when it is absent",
     )
     h: NormalPair | None = Field(
         default=None,
@@ -192,6 +199,11 @@ class Rod(BaseModel):
     @classmethod
     def _cov_u(cls, v: Any) -> Any:
         return _shaped(v, "cov_u", (3, 3), "covariance of u")
+
+    @field_validator("cov_u_own", mode="before")
+    @classmethod
+    def _cov_u_own(cls, v: Any) -> Any:
+        return _shaped(v, "cov_u_own", (3, 3), "covariance of u without the shared edge bias")
 
     @field_validator("h", mode="before")
     @classmethod

@@ -207,7 +207,8 @@ def _bound_for(obs: Observations, params: I4Parameters, res: MethodResult, bf: B
 
 
 def _leg_covariances(obs: Observations, s2: float) -> np.ndarray | None:
-    """Per fit pose and leg, the direction covariance of the leg from its rods' ``cov_u``, (N, 4, 3, 3).
+    """Per fit pose and leg, the direction covariance of the leg from its rods' ``cov_u_own`` (else ``cov_u``: what
+    the combined fit weighs by), (N, 4, 3, 3).
 
     Information sum of the leg's rods in the plane normal to their mean direction; a leg without a
     measured rod gets a covariance so large it carries no information. None when a rod lacks ``cov_u``.
@@ -223,7 +224,7 @@ def _leg_covariances(obs: Observations, s2: float) -> np.ndarray | None:
             for rod in rods:
                 if rod is None:
                     continue
-                c = rod.cov_u
+                c = rod.cov_u_own if rod.cov_u_own is not None else rod.cov_u
                 if c is None:
                     return None
                 u = np.asarray(rod.u, dtype=np.float64)

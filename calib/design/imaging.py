@@ -75,6 +75,8 @@ class RodSet:
         Interpretation-plane normals, ``h . X = radius`` on the axis.
     cov_u : ndarray, shape (M, 3, 3)
         The extraction's direction covariance (edge scatter plus its edge-bias allowance).
+    cov_u_own : ndarray, shape (M, 3, 3)
+        The same with the allowance averaged along the limb (``edge_bias_length_px``): what the fits weigh by.
     limbs_px : ndarray, shape (M, 2, 5, 2)
         Five points per limb line, distorted pixels.
     n_points : ndarray of int, shape (M, 2)
@@ -90,6 +92,7 @@ class RodSet:
     point: np.ndarray
     h: np.ndarray
     cov_u: np.ndarray
+    cov_u_own: np.ndarray
     limbs_px: np.ndarray
     n_points: np.ndarray
     visible_px: np.ndarray
@@ -110,6 +113,7 @@ def synthetic_rods(
     step_px: float = 3.0,
     edge_bias_px: float = 0.05,
     min_length_px: float = 40.0,
+    edge_bias_length_px: float = 100.0,
 ) -> RodSet:
     """The rods of frames ``q`` (N, 4) as the extraction would measure them (see :class:`RodSet`).
 
@@ -189,9 +193,9 @@ def synthetic_rods(
     limbs_px = cam.distort_normalized(xn).reshape(M, 2, 5, 2)
     cmid = 0.5 * (centroid[:, 0] + centroid[:, 1])
     inner = np.c_[cmid, np.ones(M)] @ Kinv.T
-    cov_u = _direction_covariances(
-        K, centroid, td, np.full((M, 2), edge_px**2), m, t_sumsq, length, inner, edge_bias_px
-    )
+    args = (K, centroid, td, np.full((M, 2), edge_px**2), m, t_sumsq, length, inner, edge_bias_px)
+    cov_u = _direction_covariances(*args)
+    cov_u_own = _direction_covariances(*args, edge_bias_length_px)
     return RodSet(
         k=kk.astype(int),
         leg=ii.astype(int),
@@ -200,6 +204,7 @@ def synthetic_rods(
         point=P,
         h=h,
         cov_u=cov_u,
+        cov_u_own=cov_u_own,
         limbs_px=limbs_px,
         n_points=m.astype(int),
         visible_px=v["rod_px"][kk, ii, jj],

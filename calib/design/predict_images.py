@@ -71,10 +71,16 @@ class ImageNoise:
         (:func:`calib.methods.legs.limb_line_noise`), so a larger value standing in for the bias would weigh them
         as noisier than they are.
     rod_scale : float
-        The rods' scatter over their ``cov_u`` (the combined method's ``diagnostics.direction_noise_scale`` is
-        0.50-0.65 on the image-level twin); the default 0.62 is the value at which the combined prediction equals
-        the paper's 20-pose plan's RMS error over 50 trials (docs/design.md): it carries what the prediction leaves
-        out.
+        The rods' scatter over the prediction's synthetic ``cov_u_own`` (what the combined method weighs by): the
+        method's own scale over the extracted ``cov_u_own`` (``diagnostics.rod_errors.own_scale``, mean 0.88 over
+        32 rendered trials) times the extracted over the synthetic covariance's principal std (1.14 in median on
+        the test's rendered dataset): 1.0 (docs/design.md).
+    rod_pair_correlation, rod_distance_correlation : float
+        The rods' error correlations as the combined method estimates them (``diagnostics.rod_errors``: a leg's
+        two rods in one frame; rods seen at nearby places, times exp(-distance / 100 px)); the defaults are their
+        means over 32 rendered trials (designed-12: 0.12 and 0.13; paper-20: 0.17 and 0.22). The prediction's
+        covariance is the method's sandwich with them; the design's exchange leaves them out (per-pose
+        information).
     corner_px : float
         Effective std of a board corner (px) for the board poses' PnP covariance (times the end-effector
         method's measured factor), in a view whose squares are oblique to the pixel axes.
@@ -83,6 +89,8 @@ class ImageNoise:
         fades with the angle (:func:`calib.design.imaging.corner_noise_factor`; ratio 1: every view alike).
     edge_bias_px, step_px : float
         The extraction's edge-bias allowance in ``cov_u`` and its profile spacing (``RodSettings``).
+    edge_bias_length_px : float
+        The allowance's correlation length along a limb (``RodSettings.edge_bias_length_px``).
     edge_bias_prior_px : float
         Prior std of the limb-edge bias common to every rod (``calib.methods.combined.EDGE_BIAS_STD_PX``).
     legs_lock_chi2, legs_directions_chi2 : float
@@ -104,11 +112,14 @@ class ImageNoise:
     """
 
     edge_px: float = 0.08
-    rod_scale: float = 0.62
+    rod_scale: float = 1.0
     corner_px: float = 0.025
     corner_axis_ratio: float = 3.3
     corner_axis_width_deg: float = 5.5
     edge_bias_px: float = 0.05
+    edge_bias_length_px: float = 100.0
+    rod_pair_correlation: float = 0.15
+    rod_distance_correlation: float = 0.18
     step_px: float = 3.0
     edge_bias_prior_px: float = 0.1
     legs_lock_chi2: float = 1.5
@@ -131,10 +142,21 @@ class ImageNoise:
             v = getattr(self, k)
             if not (np.isfinite(v) and v > 0):
                 raise InputError(f"image noise: {k} must be finite and > 0, got {v}", field=k)
-        for k in ("edge_bias_px", "edge_bias_prior_px", "encoder_m"):
+        for k in (
+            "edge_bias_px",
+            "edge_bias_length_px",
+            "edge_bias_prior_px",
+            "encoder_m",
+            "rod_pair_correlation",
+            "rod_distance_correlation",
+        ):
             v = getattr(self, k)
             if not (np.isfinite(v) and v >= 0):
                 raise InputError(f"image noise: {k} must be finite and >= 0, got {v}", field=k)
+        for k in ("rod_pair_correlation", "rod_distance_correlation"):
+            v = getattr(self, k)
+            if not v < 1:
+                raise InputError(f"image noise: {k} must be < 1, got {v}", field=k)
         if not (np.isfinite(self.corner_axis_ratio) and self.corner_axis_ratio >= 1):
             raise InputError(
                 f"image noise: corner_axis_ratio must be finite and >= 1, got {self.corner_axis_ratio}",
@@ -189,6 +211,9 @@ class ImageNoise:
             "corner_axis_ratio": self.corner_axis_ratio,
             "corner_axis_width_deg": self.corner_axis_width_deg,
             "edge_bias_px": self.edge_bias_px,
+            "edge_bias_length_px": self.edge_bias_length_px,
+            "rod_pair_correlation": self.rod_pair_correlation,
+            "rod_distance_correlation": self.rod_distance_correlation,
             "step_px": self.step_px,
             "edge_bias_prior_px": self.edge_bias_prior_px,
             "legs_lock_chi2": self.legs_lock_chi2,
@@ -209,7 +234,15 @@ def _steps(cov: np.ndarray | None, n: int) -> np.ndarray:
 
 
 def _rods(scene: Scene, nominal: I4Parameters, q: np.ndarray, noise: ImageNoise) -> RodSet:
-    return synthetic_rods(scene, nominal, q, noise.edge_px, step_px=noise.step_px, edge_bias_px=noise.edge_bias_px)
+    return synthetic_rods(
+        scene,
+        nominal,
+        q,
+        noise.edge_px,
+        step_px=noise.step_px,
+        edge_bias_px=noise.edge_bias_px,
+        edge_bias_length_px=noise.edge_bias_length_px,
+    )
 
 
 # -- base frame ------------------------------------------------------------------------------------------------
@@ -288,9 +321,12 @@ def _combined_terms(
     steps: np.ndarray,
     G: np.ndarray,
     drop: set[tuple[int, int, int]] | None = None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    correlated: bool = False,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
     """Per rod: Jacobian (M, 2, p) of the raw residuals over (combinations, w, z, edge biases), their noise
-    covariance (M, 2, 2) and the pose index (M,). ``drop``: rods left out, (fit pose index, leg 0-3, rod 0-1)."""
+    covariance (M, 2, 2) and the pose index (M,). ``drop``: rods left out, (fit pose index, leg 0-3, rod 0-1).
+    ``correlated``: also the rods' whole error covariance (2M, 2M) with the method's correlations between rods
+    (:func:`_rod_error_covariance`), else None."""
     from ..methods.combined import _IntrinsicsModel, _ratio_grad, model_ratios
 
     q_fit = np.asarray(q_fit, dtype=np.float64).reshape(-1, 4)
@@ -303,7 +339,7 @@ def _combined_terms(
         )
     rods = rods.subset(keep)
     if len(rods) == 0:
-        return np.zeros((0, 2, 9 + steps.shape[0])), np.zeros((0, 2, 2)), np.zeros(0, dtype=int)
+        return np.zeros((0, 2, 9 + steps.shape[0])), np.zeros((0, 2, 2)), np.zeros(0, dtype=int), None
     cam = design_camera(scene.camera, noise.intrinsics_names)
     im = _IntrinsicsModel(cam, steps, rods.limbs_px, rods.h, G, None, noise.edge_bias_prior_px)
     nz = steps.shape[0] + im.n_edge
@@ -320,9 +356,44 @@ def _combined_terms(
     J = central_jacobian(raw, x0, 1e-7).reshape(len(rods), 2, -1)
     uB = rods.u @ R0
     Gr = _ratio_grad(uB)
-    P = np.einsum("ji,mjk,kl->mil", R0, rods.cov_u, R0)
-    S = noise.rod_scale**2 * np.einsum("mij,mjk,mlk->mil", Gr, P, Gr)
-    return J, S, rods.k
+    P = np.einsum("ji,mjk,kl->mil", R0, rods.cov_u_own, R0)  # as the method weighs its rods
+    shape = np.einsum("mij,mjk,mlk->mil", Gr, P, Gr)
+    S = noise.rod_scale**2 * shape
+    Sig = _rod_error_covariance(rods, shape, Gr, R0, cam.K, noise) if correlated else None
+    return J, S, rods.k, Sig
+
+
+def _rod_error_covariance(
+    rods: RodSet, shape: np.ndarray, ratio_grad: np.ndarray, R_cb: np.ndarray, K: np.ndarray, noise: ImageNoise
+) -> np.ndarray:
+    """The rods' error covariance (2M, 2M) in the combined method's raw residuals, as the method models it
+    (:mod:`calib.methods.rod_correlation`): each rod's own ``shape`` (M, 2, 2), the whitened errors of a leg's two
+    rods in one frame correlated at ``noise.rod_pair_correlation``, the in-image errors of rods seen at nearby places
+    at ``noise.rod_distance_correlation`` (times exp(-distance / 100 px)), all times ``noise.rod_scale^2``."""
+    from ..methods import rod_correlation as rc
+
+    m = len(rods)
+    pairs = []
+    first: dict[tuple[int, int], int] = {}
+    for a, key in enumerate(zip(rods.k.tolist(), rods.leg.tolist(), strict=True)):
+        b = first.setdefault(key, a)
+        if b != a:
+            pairs.append((b, a))
+    own = rc.block_diagonal(shape)
+    shapes, rho = [], []
+    if noise.rod_pair_correlation > 0 and len(pairs) >= rc.MIN_PAIRS:
+        Wh = np.linalg.cholesky(np.linalg.inv(shape + 1e-30 * np.eye(2))).transpose(0, 2, 1)  # the method's whitening
+        shapes.append(rc.pair_shape(pairs, np.linalg.inv(Wh), m))
+        rho.append(noise.rod_pair_correlation)
+    if noise.rod_distance_correlation > 0:
+        rays = rods.point / np.linalg.norm(rods.point, axis=1, keepdims=True)
+        g = rc.in_image_sensitivity(rods.u, rays, R_cb, ratio_grad, shape)
+        shapes.append(rc.distance_shape(rays, float(np.sqrt(K[0, 0] * K[1, 1])), g, pairs))
+        rho.append(noise.rod_distance_correlation)
+    if shapes:
+        r = rc._positive_definite(own, shapes, np.asarray(rho))
+        own = own + sum(rj * Sj for rj, Sj in zip(r, shapes, strict=True))
+    return noise.rod_scale**2 * own
 
 
 def combined_images_pose_information(
@@ -336,7 +407,7 @@ def combined_images_pose_information(
 ) -> np.ndarray:
     """GLS information (N, p, p) of each fit pose's rods over (combinations, w, z, edge biases)."""
     q_fit = np.asarray(q_fit, dtype=np.float64).reshape(-1, 4)
-    J, S, k = _combined_terms(nominal, q_fit, scene, noise, steps, G, drop)
+    J, S, k, _ = _combined_terms(nominal, q_fit, scene, noise, steps, G, drop)
     Si = np.linalg.inv(S + 1e-30 * np.eye(2))
     Fm = np.einsum("mai,mab,mbj->mij", J, Si, J)
     out = np.zeros((len(q_fit), J.shape[2], J.shape[2]))
@@ -387,10 +458,18 @@ def predict_combined_images_posteriors(
     """:func:`predict_combined_images` and the limb-edge bias's posterior covariance (2, 2), px^2 (None without the
     edge-bias nuisances): what the legs method takes from the combined fit (``calib.methods.edge_bias``)."""
     P, steps, G = combined_images_prior(nominal, q_rot, q_tra, scene, noise)
-    F = combined_images_pose_information(nominal, q_fit, scene, noise, steps, G, drop).sum(axis=0) + P
+    q_fit = np.asarray(q_fit, dtype=np.float64).reshape(-1, 4)
+    J, S, _k, Sig = _combined_terms(nominal, q_fit, scene, noise, steps, G, drop, correlated=True)
+    Si = np.linalg.inv(S + 1e-30 * np.eye(2))
+    F = np.einsum("mai,mab,mbj->ij", J, Si, J) + P
     from .predict import _inv
 
     C = _inv(F, "combined")
+    if Sig is not None and len(J):  # the rods' correlated errors: the method's sandwich (its GLS weights kept)
+        from ..methods import rod_correlation as rc
+
+        Jw = (rc.block_diagonal(np.asarray(Si, dtype=np.float64)) @ J.reshape(-1, J.shape[2])).T  # J^T W, (p, 2M)
+        C = C @ (Jw @ Sig @ Jw.T + P) @ C
     post = None
     ni = steps.shape[0]
     if ni:

@@ -683,8 +683,10 @@ def _sandwich(J: np.ndarray, W: np.ndarray, Sig: np.ndarray) -> np.ndarray:
 
 
 def _rod_covariances(obs: Observations, data: PhaseArrays, prob: _Problem) -> np.ndarray | None:
-    """Per-rod direction covariances (camera frame) when every used rod carries one (extra field ``cov_u``)."""
-    return _rod_field(obs, data, prob, "cov_u")
+    """Per-rod direction covariances (camera frame) when every used rod carries one: ``cov_u_own`` (without the
+    limb-edge bias every rod shares, which this fit measures as two nuisance unknowns), else ``cov_u``."""
+    own = _rod_field(obs, data, prob, "cov_u_own")
+    return own if own is not None else _rod_field(obs, data, prob, "cov_u")
 
 
 def _rod_field(obs: Observations, data: PhaseArrays, prob: _Problem, name: str) -> np.ndarray | None:

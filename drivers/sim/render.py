@@ -60,8 +60,9 @@ class RenderSettings:
     #: in view its inner corners reach ~60% of the image's corner radius at the default, ~70% at 0.75 (measured on
     #: 30-view phases): not enough to determine k3 either way (its std 0.01-0.035)
     camera_view_spread: float = 0.45
-    #: every rod's silhouette widened by this much on each side (px; negative: narrowed), on top of what blur and
-    #: shading do: a known limb-edge bias, to check the methods' models of it (0: the rod as it is)
+    #: every rod's silhouette widened by this much on each side (image px, wherever the rod is in the image;
+    #: negative: narrowed), on top of what blur and shading do: a known limb-edge bias, to check the methods' models
+    #: of it (0: the rod as it is)
     rod_edge_offset_px: float = 0.0
     #: the rods' shading (a broad diffuse light, an asymmetric term and a specular streak); False: every rod one
     #: uniform grey, to tell what the shading does to the limb edges from what the blur and the edge model do
@@ -199,6 +200,20 @@ class BenchRenderer:
             return None
         return x0, y0, x1, y1
 
+    def _normal_scale(self, mx: np.ndarray, my: np.ndarray, line: np.ndarray) -> np.ndarray:
+        """Image pixels per ideal pixel across the image line of ``line`` (normalized coordinates ``l . (x, y, 1) =
+        0``) at the points (mx, my): the distortion's local area scale over its stretch along the line."""
+        f = self.camera.focal_px
+        e = 1e-6
+        x = np.stack([mx, my], axis=1)
+        cam = self.camera
+        ex, ey = np.array([e, 0.0]), np.array([0.0, e])
+        jx = (cam.distort_normalized(x + ex) - cam.distort_normalized(x - ex)) / (2 * e * f)
+        jy = (cam.distort_normalized(x + ey) - cam.distort_normalized(x - ey)) / (2 * e * f)
+        t = np.array([-line[1], line[0]]) / np.hypot(line[0], line[1])
+        det = np.abs(jx[:, 0] * jy[:, 1] - jx[:, 1] * jy[:, 0])
+        return det / np.hypot(jx[:, 0] * t[0] + jy[:, 0] * t[1], jx[:, 1] * t[0] + jy[:, 1] * t[1])
+
     def _draw_rod(self, img: np.ndarray, zbuf: np.ndarray, top: np.ndarray, bottom: np.ndarray) -> None:
         r = self.geometry.rod_radius_m
         f = self.camera.focal_px
@@ -223,12 +238,20 @@ class BenchRenderer:
         mx, my = ray[..., 0].astype(np.float64), ray[..., 1].astype(np.float64)
         da = (hp[0] * mx + hp[1] * my + hp[2]) / np.hypot(hp[0], hp[1]) * f
         db = (hm[0] * mx + hm[1] * my + hm[2]) / np.hypot(hm[0], hm[1]) * f
-        cover = np.clip(0.5 + self.settings.rod_edge_offset_px + np.minimum(da, db), 0.0, 1.0)
+        off = self.settings.rod_edge_offset_px
         # only the pixels inside the rod's wedge (a thin band of its box) can change: the rest is computed on them
-        inside = np.nonzero(cover > 0)
+        inside = np.nonzero(0.5 + 3.0 * abs(off) + np.minimum(da, db) > 0)
         if inside[0].size == 0:
             return
-        mx, my, da, db, cover = mx[inside], my[inside], da[inside], db[inside], cover[inside]
+        mx, my, da, db = mx[inside], my[inside], da[inside], db[inside]
+        if off:  # the offset is in image pixels: in the ideal ones (da, db) it is off over the lens' local scale
+            ma, mb = (self._normal_scale(mx, my, h) for h in (hp, hm))
+            cover = np.clip(0.5 + np.minimum(da + off / ma, db + off / mb), 0.0, 1.0)
+        else:
+            cover = np.clip(0.5 + np.minimum(da, db), 0.0, 1.0)
+        keep = cover > 0
+        mx, my, da, db, cover = mx[keep], my[keep], da[keep], db[keep], cover[keep]
+        inside = (inside[0][keep], inside[1][keep])
         nrm = np.sqrt(mx * mx + my * my + 1.0)
         beta = (u[0] * mx + u[1] * my + u[2]) / nrm
         mP = (top[0] * mx + top[1] * my + top[2]) / nrm

@@ -37,8 +37,10 @@ def _synthetic_rods_reference(
     step_px: float = 3.0,
     edge_bias_px: float = 0.05,
     min_length_px: float = 40.0,
+    edge_bias_length_px: float = 100.0,
 ) -> RodSet:
-    """The per-rod ``synthetic_rods`` before vectorisation (commit 595fbcc), verbatim: the reference."""
+    """The per-rod ``synthetic_rods`` before vectorisation (commit 595fbcc), verbatim, with ``cov_u_own`` (the
+    allowance averaged over ``edge_bias_length_px``) added: the reference."""
     q = np.atleast_2d(np.asarray(q, dtype=np.float64))
     if not (np.isfinite(edge_px) and edge_px > 0):
         raise InputError(f"edge_px must be finite and > 0, got {edge_px}", field="edge_px")
@@ -51,7 +53,8 @@ def _synthetic_rods_reference(
     S = scene.limits.samples_per_rod
     s = (np.arange(S) + 0.5) / S
     fields: dict[str, list] = {
-        f: [] for f in ("k", "leg", "rod", "u", "point", "h", "cov_u", "limbs_px", "n_points", "visible_px")
+        f: []
+        for f in ("k", "leg", "rod", "u", "point", "h", "cov_u", "cov_u_own", "limbs_px", "n_points", "visible_px")
     }
     for k, i, j in zip(*np.nonzero(v["rod_px"] >= min_length_px), strict=True):
         vis = v["rod_visible"][k, i, j]
@@ -93,10 +96,18 @@ def _synthetic_rods_reference(
         fields["point"].append(P)
         fields["h"].append(h)
         fields["cov_u"].append(_direction_covariance(K, fits, inner, edge_bias_px))
+        fields["cov_u_own"].append(_direction_covariance(K, fits, inner, edge_bias_px, edge_bias_length_px))
         fields["limbs_px"].append(np.stack(limbs))
         fields["n_points"].append(npts)
         fields["visible_px"].append(v["rod_px"][k, i, j])
-    shapes = {"u": (0, 3), "point": (0, 3), "h": (0, 2, 3), "cov_u": (0, 3, 3), "limbs_px": (0, 2, 5, 2)}
+    shapes = {
+        "u": (0, 3),
+        "point": (0, 3),
+        "h": (0, 2, 3),
+        "cov_u": (0, 3, 3),
+        "cov_u_own": (0, 3, 3),
+        "limbs_px": (0, 2, 5, 2),
+    }
     out = {
         f: (np.asarray(val) if val else np.zeros(shapes.get(f, (0,)) if f != "n_points" else (0, 2)))
         for f, val in fields.items()
@@ -120,10 +131,10 @@ def _assert_same_rods(new: RodSet, ref: RodSet, cov_rtol: float) -> None:
         np.testing.assert_allclose(getattr(new, f), getattr(ref, f), rtol=RTOL, atol=RTOL * scale, err_msg=f)
     size = float(np.abs(ref.limbs_px).max())
     np.testing.assert_allclose(new.limbs_px, ref.limbs_px, rtol=RTOL, atol=RTOL * size, err_msg="limbs_px")
-    cov_scale = np.abs(ref.cov_u).max(axis=(1, 2), keepdims=True)  # per rod
-    assert np.all(np.abs(new.cov_u - ref.cov_u) <= cov_rtol * cov_scale), np.max(
-        np.abs(new.cov_u - ref.cov_u) / cov_scale
-    )
+    for f in ("cov_u", "cov_u_own"):
+        a, b = getattr(new, f), getattr(ref, f)
+        cov_scale = np.abs(b).max(axis=(1, 2), keepdims=True)  # per rod
+        assert np.all(np.abs(a - b) <= cov_rtol * cov_scale), (f, np.max(np.abs(a - b) / cov_scale))
 
 
 @pytest.fixture(scope="module")

@@ -575,6 +575,7 @@ def measure_rod(
     out.u = u
     out.point = X
     out.cov_u = _direction_covariance(K, fits, inner, s.edge_bias_px)
+    out.cov_u_own = _direction_covariance(K, fits, inner, s.edge_bias_px, s.edge_bias_length_px)
     out.limbs_px = _limb_samples(camera, fits, proj)
     return out
 

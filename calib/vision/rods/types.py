@@ -103,6 +103,9 @@ class RodSettings:
     border_px: float = 3.0  #: samples closer to the image border are dropped
     near_m: float = 0.05  #: the segment is clipped to z >= near_m
     edge_bias_px: float = 0.05  #: slowly varying edge bias allowed for in ``cov_u`` (end-to-end, px)
+    #: its correlation length along a limb (px) in ``cov_u_own``, where it averages over longer spans
+    #: (``covariance.edge_bias_factor``); ``cov_u`` keeps the allowance whole (it also covers the bias every rod shares)
+    edge_bias_length_px: float = 100.0
     neighbour_px: float = 4.0  #: limb points closer than this to another rod's predicted silhouette: dropped
     #: the rods' brightness against their surroundings: +1 brighter, -1 darker, 0 decided per frame by most rods
     polarity: int = 0
@@ -123,6 +126,9 @@ class RodMeasurement:
     reason: str | None = None
     lines_px: list[Array] = field(default_factory=list)  # per limb (a, b, c) in ideal pixels, a^2+b^2=1
     cov_u: Array | None = None  #: (3, 3) covariance of u (camera frame) from the limb edges' scatter
+    #: (3, 3) the same without the edge bias every rod shares: the allowance averaged along the limb
+    #: (``RodSettings.edge_bias_length_px``), what a fit that measures the shared bias weighs the rod by
+    cov_u_own: Array | None = None
     #: (2, 5, 2) per limb, five points of its fitted line spread over the measured edge points
     #: (quantiles 0, 1/4, 1/2, 3/4, 1 along it), in distorted pixels: the raw measurement, from which
     #: the limb planes can be recomputed for other intrinsics (uncertainty propagation)
@@ -149,6 +155,8 @@ class RodMeasurement:
             d["point"] = self.point.tolist()
         if self.cov_u is not None:
             d["cov_u"] = self.cov_u.tolist()
+        if self.cov_u_own is not None:
+            d["cov_u_own"] = self.cov_u_own.tolist()
         if self.h is not None:
             d["h"] = [self.h[0].tolist(), self.h[1].tolist()]  # interpretation-plane normals (camera frame)
         if self.limbs_px is not None:

@@ -113,3 +113,44 @@ def test_rods_without_shading_are_one_grey(frames):
     # fully covered pixels are 170 exactly; only the anti-aliased rims take values between it and the background
     assert np.mean(inner == 170) > 0.6 and np.all((inner >= 50) & (inner <= 170))
     assert np.ptp(shaded[rods & (uniform == 170)]) > 40  # the same pixels shaded
+
+
+def test_rod_edge_offset_is_in_image_pixels_across_the_field(frames):
+    """``rod_edge_offset_px`` widens every silhouette by that many image pixels on each side wherever the rod is: the
+    limbs measured on clean renders at -0.1 and +0.1 px move apart by 0.4 image px, in the middle of the field and
+    near its border alike. It was applied in ideal (undistorted) pixels: with the twin's barrel lens (k1 = -0.3) the
+    limbs moved 0.38 image px apart in the middle of the field and 0.36 near its border, and the combined fit's
+    limb-edge bias, modelled in image pixels, followed 1.5-1.65x the offset (tests/calib/test_edge_bias.py)."""
+    from calib.vision.rods import measure_rods, predict_rods
+
+    g, _ = frames
+    tp = GeometricTwin(g).true_poses(make_plan("pose-set", g.nominal, n_fit=16, seed=3))
+    widths: dict[float, dict[tuple[int, int, int], tuple[float, float, tuple[int, int]]]] = {}
+    for off in (-0.1, 0.1):
+        r = BenchRenderer(g, RenderSettings.clean(rod_edge_offset_px=off), seed=0)
+        cam = r.camera
+        w: dict[tuple[int, int, int], tuple[float, float, tuple[int, int]]] = {}
+        for i, (_, q, pose) in enumerate(tp):
+            preds = predict_rods(g.nominal, q, g.camera_from_base, g.rod_spacing_m)
+            for m in measure_rods(r.render(q, pose), cam, preds, g.rod_radius_m):
+                if m.ok:
+                    lp = np.asarray(m.limbs_px)  # (2, 5, 2) distorted px: the middle sample of limb 0 against limb 1
+                    t = lp[1, 3] - lp[1, 1]
+                    n = np.array([-t[1], t[0]]) / np.linalg.norm(t)
+                    radius = np.linalg.norm(lp[0, 2] - [cam.K[0, 2], cam.K[1, 2]])
+                    w[(i, m.leg, m.rod)] = (abs((lp[0, 2] - lp[1, 2]) @ n), radius, m.n_points)
+        widths[off] = w
+    # the same edge points on both renders (else the limb samples sit elsewhere along the tapering silhouette)
+    keys = [k for k in sorted(set(widths[-0.1]) & set(widths[0.1])) if widths[-0.1][k][2] == widths[0.1][k][2]]
+    d = np.array([widths[0.1][k][0] - widths[-0.1][k][0] for k in keys])
+    radius = np.array([widths[0.1][k][1] for k in keys])
+    centre, border = d[radius < 330], d[radius > 420]
+    print(
+        f"{len(d)} rods; width change, image px: centre {np.median(centre):.3f} ({len(centre)} rods), "
+        f"border {np.median(border):.3f} ({len(border)})"
+    )
+    assert len(centre) >= 5 and len(border) >= 5
+    # a limb's samples are located to ~0.01 px on a clean render (their spread here); the ideal-pixel offset gave
+    # 0.376 and 0.358
+    assert abs(np.median(centre) - 0.4) < 0.02
+    assert abs(np.median(border) - 0.4) < 0.02
