@@ -123,7 +123,7 @@ def synthetic_rods(
     residual, including the correlation of neighbouring edges). A rod around the camera centre (no limb planes) is
     left out. Every rod of every frame is computed at once (array operations, no loop over rods).
     """
-    from ..vision.rods.covariance import _direction_covariances
+    from ..vision.rods.covariance import _direction_covariances_set
 
     q = np.atleast_2d(np.asarray(q, dtype=np.float64))
     if not (np.isfinite(edge_px) and edge_px > 0):
@@ -193,9 +193,18 @@ def synthetic_rods(
     limbs_px = cam.distort_normalized(xn).reshape(M, 2, 5, 2)
     cmid = 0.5 * (centroid[:, 0] + centroid[:, 1])
     inner = np.c_[cmid, np.ones(M)] @ Kinv.T
-    args = (K, centroid, td, np.full((M, 2), edge_px**2), m, t_sumsq, length, inner, edge_bias_px)
-    cov_u = _direction_covariances(*args)
-    cov_u_own = _direction_covariances(*args, edge_bias_length_px)
+    cov_u, cov_u_own = _direction_covariances_set(
+        K,
+        centroid,
+        td,
+        np.full((M, 2), edge_px**2),
+        m,
+        t_sumsq,
+        length,
+        inner,
+        edge_bias_px,
+        (0.0, edge_bias_length_px),
+    )
     return RodSet(
         k=kk.astype(int),
         leg=ii.astype(int),

@@ -373,17 +373,11 @@ def _rod_error_covariance(
     from ..methods import rod_correlation as rc
 
     m = len(rods)
-    pairs = []
-    first: dict[tuple[int, int], int] = {}
-    for a, key in enumerate(zip(rods.k.tolist(), rods.leg.tolist(), strict=True)):
-        b = first.setdefault(key, a)
-        if b != a:
-            pairs.append((b, a))
+    pairs = rc.rod_pairs(rods.k, rods.leg)
     own = rc.block_diagonal(shape)
     shapes, rho = [], []
     if noise.rod_pair_correlation > 0 and len(pairs) >= rc.MIN_PAIRS:
-        Wh = np.linalg.cholesky(np.linalg.inv(shape + 1e-30 * np.eye(2))).transpose(0, 2, 1)  # the method's whitening
-        shapes.append(rc.pair_shape(pairs, np.linalg.inv(Wh), m))
+        shapes.append(rc.pair_shape(pairs, np.linalg.inv(rc.whitening(shape)), m))
         rho.append(noise.rod_pair_correlation)
     if noise.rod_distance_correlation > 0:
         rays = rods.point / np.linalg.norm(rods.point, axis=1, keepdims=True)
@@ -466,9 +460,7 @@ def predict_combined_images_posteriors(
 
     C = _inv(F, "combined")
     if Sig is not None and len(J):  # the rods' correlated errors: the method's sandwich (its GLS weights kept)
-        from ..methods import rod_correlation as rc
-
-        Jw = (rc.block_diagonal(np.asarray(Si, dtype=np.float64)) @ J.reshape(-1, J.shape[2])).T  # J^T W, (p, 2M)
+        Jw = np.einsum("mab,mbj->maj", Si, J).reshape(-1, J.shape[2]).T  # J^T W, (p, 2M)
         C = C @ (Jw @ Sig @ Jw.T + P) @ C
     post = None
     ni = steps.shape[0]

@@ -232,7 +232,7 @@ def calibrate_combined(
     m = prob.u_cam.shape[0]
     shape = prob.noise_shape(rod_cov)  # relative covariance of each rod's two entries, (m, 2, 2)
     if weighting == "gls":
-        Wh = np.linalg.cholesky(np.linalg.inv(shape + 1e-30 * np.eye(2))).transpose(0, 2, 1)  # L^T L = C^-1
+        Wh = rc.whitening(shape)  # L^T L = C^-1
     else:
         Wh = np.broadcast_to(np.eye(2), (m, 2, 2))
     R0 = bf.camera_from_base_R
@@ -667,13 +667,7 @@ def _whitened_d2(
 
 def _rod_pairs(prob: _Problem) -> list[tuple[int, int]]:
     """Index pairs (a, b) of the two rods of one leg seen in the same frame."""
-    first: dict[tuple[int, int], int] = {}
-    pairs = []
-    for a, (k, leg) in enumerate(zip(prob.k.tolist(), prob.leg.tolist(), strict=True)):
-        b = first.setdefault((k, leg), a)
-        if b != a:
-            pairs.append((b, a))
-    return pairs
+    return rc.rod_pairs(prob.k, prob.leg)
 
 
 def _sandwich(J: np.ndarray, W: np.ndarray, Sig: np.ndarray) -> np.ndarray:

@@ -79,6 +79,24 @@ class RodErrors:
         }
 
 
+def rod_pairs(k: np.ndarray, leg: np.ndarray) -> list[tuple[int, int]]:
+    """Index pairs (a, b), a < b, of the two rods of one leg seen in the same frame, from each rod's frame ``k`` and
+    ``leg`` (M,)."""
+    first: dict[tuple[int, int], int] = {}
+    pairs = []
+    for a, key in enumerate(zip(np.asarray(k).tolist(), np.asarray(leg).tolist(), strict=True)):
+        b = first.setdefault(key, a)
+        if b != a:
+            pairs.append((b, a))
+    return pairs
+
+
+def whitening(shape: np.ndarray) -> np.ndarray:
+    """Each rod's whitening ``Wh`` (M, 2, 2) of its own error ``shape`` (M, 2, 2): upper triangular, ``Wh^T Wh =
+    shape^-1``."""
+    return np.linalg.cholesky(np.linalg.inv(shape + 1e-30 * np.eye(2))).transpose(0, 2, 1)
+
+
 def block_diagonal(blocks: Array) -> Array:
     """The (2M, 2M) block-diagonal matrix of M (2, 2) blocks."""
     m = blocks.shape[0]

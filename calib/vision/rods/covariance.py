@@ -72,13 +72,37 @@ def _direction_covariance(
     ~1/(plane angle) times less precise than its image component: the covariance is strongly
     anisotropic, which the combined method's GLS weighting uses.
     """
-    # all 9 parameter sets (nominal, then +/- each of the 4) at once
-    var = []
+    return _direction_covariance_set(K, fits, inner, edge_bias_px, (edge_bias_length_px,))[0]
+
+
+def _direction_covariance_set(
+    K: Array,
+    fits: list[tuple[Array, Array, float, Array]],
+    inner: Array,
+    edge_bias_px: float,
+    lengths_px: tuple[float, ...],
+) -> list[Array]:
+    """:func:`_direction_covariance` for each of the allowance's correlation lengths ``lengths_px``, the limb planes'
+    derivatives computed once."""
+    spans, parts = [], []
     for c, td, s2, pts in fits:
         t = (pts - c) @ td
-        span = max(float(t.max() - t.min()), 1.0)
-        b2 = edge_bias_px**2 * float(edge_bias_factor(span, edge_bias_length_px))
-        var += [s2 / max(float(t @ t), 1e-9) + b2 / span**2, s2 / len(pts) + 0.25 * b2]
+        spans.append(max(float(t.max() - t.min()), 1.0))
+        parts.append((s2 / max(float(t @ t), 1e-9), s2 / len(pts)))
+    J = _direction_jacobian(K, fits, inner)
+    out = []
+    for length in lengths_px:
+        var = []
+        for span, (v_ang, v_sh) in zip(spans, parts, strict=True):
+            b2 = edge_bias_px**2 * float(edge_bias_factor(span, length))
+            var += [v_ang + b2 / span**2, v_sh + 0.25 * b2]
+        out.append(J @ np.diag(var) @ J.T)
+    return out
+
+
+def _direction_jacobian(K: Array, fits: list[tuple[Array, Array, float, Array]], inner: Array) -> Array:
+    """d u / d (angle, offset of limb 0, angle, offset of limb 1), (3, 4), by central differences."""
+    # all 9 parameter sets (nominal, then +/- each of the 4) at once
     step = np.array([1e-6, 1e-3, 1e-6, 1e-3])
     P = np.zeros((9, 4))
     for k in range(4):
@@ -104,8 +128,7 @@ def _direction_covariance(
     )  # h1 x h2, row by row
     u /= np.linalg.norm(u, axis=1, keepdims=True)
     u *= np.where(u @ u[0] > 0, 1.0, -1.0)[:, None]
-    J = ((u[1::2] - u[2::2]) / (2.0 * step[:, None])).T  # (3, 4)
-    return J @ np.diag(var) @ J.T
+    return ((u[1::2] - u[2::2]) / (2.0 * step[:, None])).T  # (3, 4)
 
 
 def _direction_covariances(
@@ -151,14 +174,44 @@ def _direction_covariances(
     ndarray, shape (M, 3, 3)
         Covariance of each rod's unit axis direction.
     """
+    return _direction_covariances_set(
+        K, centroids, directions, s2, n_points, t_sumsq, t_span, inner, edge_bias_px, (edge_bias_length_px,)
+    )[0]
+
+
+def _direction_covariances_set(
+    K: Array,
+    centroids: Array,
+    directions: Array,
+    s2: Array,
+    n_points: Array,
+    t_sumsq: Array,
+    t_span: Array,
+    inner: Array,
+    edge_bias_px: float,
+    lengths_px: tuple[float, ...],
+) -> list[Array]:
+    """:func:`_direction_covariances` for each of the allowance's correlation lengths ``lengths_px``, the limb
+    planes' derivatives computed once."""
     c = np.asarray(centroids, dtype=np.float64)
     td = np.asarray(directions, dtype=np.float64)
     s2 = np.asarray(s2, dtype=np.float64)
     span = np.maximum(np.asarray(t_span, dtype=np.float64), 1.0)
-    b2 = edge_bias_px**2 * edge_bias_factor(span, edge_bias_length_px)
-    var_ang = s2 / np.maximum(np.asarray(t_sumsq, dtype=np.float64), 1e-9) + b2 / span**2
-    var_sh = s2 / np.asarray(n_points, dtype=np.float64) + 0.25 * b2
-    var = np.stack([var_ang[:, 0], var_sh[:, 0], var_ang[:, 1], var_sh[:, 1]], axis=1)  # (M, 4)
+    J = _direction_jacobians(K, c, td, inner)
+    noise_ang = s2 / np.maximum(np.asarray(t_sumsq, dtype=np.float64), 1e-9)
+    noise_sh = s2 / np.asarray(n_points, dtype=np.float64)
+    out = []
+    for length in lengths_px:
+        b2 = edge_bias_px**2 * edge_bias_factor(span, length)
+        var_ang = noise_ang + b2 / span**2
+        var_sh = noise_sh + 0.25 * b2
+        var = np.stack([var_ang[:, 0], var_sh[:, 0], var_ang[:, 1], var_sh[:, 1]], axis=1)  # (M, 4)
+        out.append(np.einsum("mki,mk,mkj->mij", J, var, J))
+    return out
+
+
+def _direction_jacobians(K: Array, c: Array, td: Array, inner: Array) -> Array:
+    """:func:`_direction_jacobian` of M rods at once (limb centroids and directions (M, 2, 2)), (M, 4, 3)."""
     step = np.array([1e-6, 1e-3, 1e-6, 1e-3])
     P = np.zeros((9, 4))
     for k in range(4):
@@ -185,5 +238,4 @@ def _direction_covariances(
     )  # (M, 9, 3)
     u /= np.linalg.norm(u, axis=-1, keepdims=True)
     u *= np.where(np.einsum("mpi,mi->mp", u, u[:, 0]) > 0, 1.0, -1.0)[..., None]
-    J = (u[:, 1::2] - u[:, 2::2]) / (2.0 * step[:, None])  # (M, 4, 3)
-    return np.einsum("mki,mk,mkj->mij", J, var, J)
+    return (u[:, 1::2] - u[:, 2::2]) / (2.0 * step[:, None])  # (M, 4, 3)

@@ -11,7 +11,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ...camera import CameraModel
-from .covariance import _direction_covariance, _line_cov
+from .covariance import _direction_covariance_set, _line_cov
 from .geometry import _CORR, axis_from_planes, limb_planes
 from .lines import robust_line
 from .types import ROD_OCCLUDER_CLEARANCE_PX, RodMeasurement, RodPrediction, RodSettings
@@ -574,8 +574,8 @@ def measure_rod(
     out.h = (hs[0], hs[1])
     out.u = u
     out.point = X
-    out.cov_u = _direction_covariance(K, fits, inner, s.edge_bias_px)
-    out.cov_u_own = _direction_covariance(K, fits, inner, s.edge_bias_px, s.edge_bias_length_px)
+    # the allowance whole (cov_u) and averaged along the limb (cov_u_own), the planes' derivatives computed once
+    out.cov_u, out.cov_u_own = _direction_covariance_set(K, fits, inner, s.edge_bias_px, (0.0, s.edge_bias_length_px))
     out.limbs_px = _limb_samples(camera, fits, proj)
     return out
 
