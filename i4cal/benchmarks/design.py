@@ -26,7 +26,10 @@ An RMS error over a few tens of trials is itself uncertain (over 50 trials of no
 -14% and +17% of the true one; heavier-tailed errors make it wider): each ratio of a prediction to an RMS error also
 has its 90% bootstrap interval over the trials (``checks.predicted_images_over_rms_interval90``), and
 ``checks.prediction_within_30pct`` counts the predictions within 30% of their RMS error and lists the others with
-their intervals, so that a miss can be told from the Monte-Carlo's own scatter (the table's last lines).
+their intervals, so that a miss can be told from the Monte-Carlo's own scatter (the table's last lines). The
+methods' own mean reported std is checked against the RMS error the same way (``checks.reported_std_within_30pct``,
+``reported_std_over_rms_interval90``: is each method honest on this plan?), each one outside with its trials' mean
+error and that mean's standard error, which tell a bias of the plan's poses from a spread the std misses.
 ``--json PATH`` writes everything (format ``i4cal.bench-design/1``); ``--report PATH`` prints the table and the
 checks of a file written so (recomputed with this version), without running anything.
 """
@@ -266,9 +269,17 @@ def _trial_errors(trials: list[dict[str, Any]], method: str, combination: str) -
     return np.asarray(vals)
 
 
-def _prediction_intervals(plans: dict[str, dict[str, Any]]) -> tuple[dict[str, Any], dict[str, Any]]:
-    """Per plan, method and combination, the 90% bootstrap interval of the image prediction over the RMS error, and
-    the count of predictions within :data:`WITHIN_FACTOR` of their RMS error with the others listed."""
+def _prediction_intervals(
+    plans: dict[str, dict[str, Any]], source: str = "predicted"
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Per plan, method and combination, the 90% bootstrap interval of a std over the RMS error, and the count of
+    those within :data:`WITHIN_FACTOR` of their RMS error with the others listed.
+
+    ``source``: ``"predicted"``, the plan's image prediction (``predicted_images_std_m``); ``"reported"``, the
+    method's mean reported std over the same trials (``summary...mean_std_m``: is the method's own uncertainty
+    honest on this plan?). Each one listed outside also has the trials' mean error and its standard error (m): an
+    RMS error the std does not cover may be a bias common to the plan's trials (a systematic error of its poses).
+    """
     from ._accuracy_report import COMBINATIONS, METHODS
 
     intervals: dict[str, Any] = {}
@@ -276,8 +287,9 @@ def _prediction_intervals(plans: dict[str, dict[str, Any]]) -> tuple[dict[str, A
     for name, p in plans.items():
         intervals[name] = {}
         for m in METHODS:
-            pr = (p.get("predicted_images_std_m") or {}).get(m) or {}
-            rms = p["summary"]["methods"][m]["rms_error_m"]
+            s = p["summary"]["methods"][m]
+            pr = ((p.get("predicted_images_std_m") or {}).get(m) if source == "predicted" else s["mean_std_m"]) or {}
+            rms = s["rms_error_m"]
             intervals[name][m] = {}
             for c in COMBINATIONS:
                 e = _trial_errors(p.get("trials") or [], m, c)
@@ -297,6 +309,8 @@ def _prediction_intervals(plans: dict[str, dict[str, Any]]) -> tuple[dict[str, A
                             "ratio": ratio,
                             "interval90": [lo, hi],
                             "interval_reaches_within": bool(hi >= 1.0 / WITHIN_FACTOR and lo <= WITHIN_FACTOR),
+                            "mean_error_m": float(np.mean(e)),
+                            "mean_error_se_m": float(np.std(e, ddof=1) / np.sqrt(e.size)),
                         }
                     )
     summary = {"factor": WITHIN_FACTOR, "n": n, "within": n - len(outside), "outside": outside}
@@ -367,6 +381,9 @@ def _checks(plans: dict[str, dict[str, Any]]) -> dict[str, Any]:
     }
     if all("trials" in p and "summary" in p for p in plans.values()):
         out["predicted_images_over_rms_interval90"], out["prediction_within_30pct"] = _prediction_intervals(plans)
+        out["reported_std_over_rms_interval90"], out["reported_std_within_30pct"] = _prediction_intervals(
+            plans, "reported"
+        )
     return out
 
 
@@ -425,6 +442,19 @@ def print_table(doc: dict[str, Any]) -> None:
         for o in within["outside"]:
             lo, hi = o["interval90"]
             print(f"  {o['plan']} {o['method']} {o['combination']}: {o['ratio']:.2f} ({lo:.2f}-{hi:.2f})")
+    honest = doc["checks"].get("reported_std_within_30pct")
+    if honest:
+        print(
+            f"the methods' mean reported std within {100 * (honest['factor'] - 1):.0f}% of the RMS error: "
+            f"{honest['within']} of {honest['n']}"
+            + (" (outside, with the ratio's 90% interval and the trials' mean error):" if honest["outside"] else "")
+        )
+        for o in honest["outside"]:
+            lo, hi = o["interval90"]
+            bias = ""
+            if "mean_error_m" in o:
+                bias = f", mean error {o['mean_error_m'] * 1e3:+.3f} +/- {o['mean_error_se_m'] * 1e3:.3f} mm"
+            print(f"  {o['plan']} {o['method']} {o['combination']}: {o['ratio']:.2f} ({lo:.2f}-{hi:.2f}){bias}")
     print(f"elapsed {doc['elapsed_s']:.0f} s, {doc['date']}")
 
 

@@ -167,6 +167,26 @@ def test_checks_count_the_predictions_within_30_percent_and_list_the_others_with
     assert checks["predicted_images_over_rms_interval90"]["paper-20"]["combined"]["L"] is None
 
 
+def test_checks_list_the_reported_std_that_does_not_cover_the_error_with_the_bias():
+    """The methods' own std is checked against the RMS error too (is the method honest on this plan?). A method that
+    reports the spread of its errors but not their common offset (a bias of the plan's poses: the legs method's L on
+    the seed-2 paper plan, -0.82 +/- 0.13 mm, std 0.72x its RMS error) is listed with its trials' mean error."""
+    rng = np.random.default_rng(4)
+    spread, bias = 0.2, 0.3
+    e = bias + rng.normal(size=50) * spread
+    plan = _plan_with(e, spread)  # the mean reported std is the spread alone
+    checks = _checks({"paper-20": plan})
+    honest = checks["reported_std_within_30pct"]
+    assert honest["n"] == 4 and honest["within"] == 0
+    for o in honest["outside"]:
+        assert o["method"] == "legs" and o["ratio"] < 1 / 1.3
+        se = o["mean_error_se_m"]
+        assert abs(o["mean_error_m"] - bias * 1e-3) < 3 * se and np.isclose(se, spread * 1e-3 / np.sqrt(50), rtol=0.3)
+    # a std equal to the RMS error is within
+    plan_ok = _plan_with(e, float(np.sqrt(np.mean(e**2))))
+    assert _checks({"paper-20": plan_ok})["reported_std_within_30pct"]["within"] == 4
+
+
 def test_report_reprints_a_saved_bench_and_refuses_other_files(tmp_path, capsys):
     """``i4cal bench design --report FILE`` prints the table and the checks of a saved run, recomputed, without
     running a trial; another file is refused with its name."""
@@ -189,6 +209,7 @@ def test_report_reprints_a_saved_bench_and_refuses_other_files(tmp_path, capsys)
     out = capsys.readouterr().out
     assert "image predictions within 30% of the RMS error: 0 of 4" in out
     assert "designed-12 legs L: " in out
+    assert "the methods' mean reported std within 30% of the RMS error: 0 of 4" in out
     other = tmp_path / "other.json"
     other.write_text(json.dumps({"format": "something-else"}))
     with pytest.raises(InputError, match="other.json"):
