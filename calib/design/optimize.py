@@ -69,6 +69,8 @@ Criterion = Literal["d", "a", "target"]
 OPTIMISED_METHODS = ("combined", "end-effector")
 #: rounds of the count's choice against the plan's prediction when it misses the target (tests: 1-2 suffice)
 DESIGN_ROUNDS = 4
+#: the exchange's targets are tightened by the prediction's miss times this
+TIGHTEN_MARGIN = 1.02
 SPANS_DEG = (120.0, 180.0, 240.0, 300.0, 330.0)
 LENGTHS_M = (0.15, 0.25, 0.35, 0.45)
 
@@ -462,19 +464,20 @@ def design_plan(
     crit: Criterion = req.criterion
     n_hi = min(req.n_max, len(cq))
 
-    def choose(tt: np.ndarray | None) -> tuple[int, np.ndarray]:
-        """The count and the poses for the (exchange's) targets ``tt``."""
+    def choose(tt: np.ndarray | None, n_from: int, fewer: bool) -> tuple[int, np.ndarray]:
+        """The count (from ``n_from`` up; ``fewer``: then down while the exchange still meets it) and the poses for
+        the exchange's targets ``tt``."""
         if req.n_fit:
             return req.n_fit, select_poses(infos, req.n_fit, crit, tt, start_index(req.n_fit))
         if tt is None:
             reference(20)
             return 20, select_poses(infos, 20, crit, tt, None)
         greedy = select_poses(infos, n_hi, crit, tt, None, max_passes=0)
-        n = next((k for k in range(req.n_min, n_hi + 1) if meets(greedy[:k], tt)), None)
+        n = next((k for k in range(n_from, n_hi + 1) if meets(greedy[:k], tt)), None)
         if n is None:
             return n_hi, select_poses(infos, n_hi, crit, tt, None)
         sel = select_poses(infos, n, crit, tt, greedy[:n])
-        while n > req.n_min:  # the exchange may meet the target with fewer poses
+        while fewer and n > req.n_min:  # the exchange may meet the target with fewer poses
             s2 = select_poses(infos, n - 1, crit, tt, greedy[: n - 1])
             if not meets(s2, tt):
                 break
@@ -507,18 +510,19 @@ def design_plan(
     # methods' own uncertainty (their rod correlations, the camera's calibration), somewhat larger: the target is
     # judged on the prediction, and while the prediction misses it the exchange's targets are tightened by the
     # miss and the count chosen again
-    tt_sel = t
-    for round_ in range(DESIGN_ROUNDS):
-        n, sel = choose(tt_sel)
+    tt_sel, n, rounds = t, req.n_min, 0
+    while True:
+        n, sel = choose(tt_sel, n, fewer=rounds == 0)
         n, sel, plan, mt, reduced = fit_time(n, sel, tt_sel)
         pred = predict_plan(plan, nominal, scene, noise, weighting=req.weighting)
-        if t is None or req.n_fit or reduced or n >= n_hi:
+        rounds += 1
+        if t is None or req.n_fit or reduced or n >= n_hi or rounds >= DESIGN_ROUNDS:
             break
         miss = excess(pred)
         if np.all(miss <= 1.0 + 1e-9) or not np.all(np.isfinite(miss)):
             break
-        if round_ + 1 < DESIGN_ROUNDS:
-            tt_sel = tt_sel / np.maximum(miss, 1.0)
+        # tightened by the miss and a margin, so that a near miss does not take every round
+        tt_sel = tt_sel / np.maximum(miss * TIGHTEN_MARGIN, 1.0)
     if reduced and req.max_time_s is not None and mt["total_s"] > req.max_time_s:
         fixed_part = mt["total_s"] - mt["per_phase_s"].get("poses", 0.0)
         notes.append(f"the plan without fit poses already takes {fixed_part / 60:.1f} min")
@@ -527,14 +531,15 @@ def design_plan(
     target_met = None if t is None else bool(np.all(excess(pred) <= 1.0 + 1e-9))
     time_met = None if req.max_time_s is None else mt["total_s"] <= req.max_time_s
     if target_met is False:
-        notes.append(
-            "the target is not met (predicted): "
-            + (
-                "within the time allowed"
-                if reduced
-                else f"with {n} fit poses" + ("" if req.n_fit else " (the most tried)")
-            )
-        )
+        if reduced:
+            why = "within the time allowed"
+        elif req.n_fit:
+            why = f"with {n} fit poses"
+        elif n >= n_hi:
+            why = f"with {n} fit poses (the most tried; more candidate poses may reach it)"
+        else:
+            why = f"with {n} fit poses after {rounds} choices of the count"
+        notes.append("the target is not met (predicted): " + why)
     F = infos.total(sel)
     crit_vals = {f"logdet_{m}": float(_cov4(F[m])[1]) for m in F}
     result = DesignResult(
