@@ -432,30 +432,29 @@ def print_table(doc: dict[str, Any]) -> None:
         if text:
             print(f"{name}: noise levels measured (mean): {text}")
     print("checks:", doc["checks"].get("designed12_combined_not_worse_than_paper20"))
-    within = doc["checks"].get("prediction_within_30pct")
-    if within:
-        print(
-            f"image predictions within {100 * (within['factor'] - 1):.0f}% of the RMS error: {within['within']} of "
-            f"{within['n']}"
-            + (" (outside, with the ratio's 90% interval over the trials):" if within["outside"] else "")
-        )
-        for o in within["outside"]:
-            lo, hi = o["interval90"]
-            print(f"  {o['plan']} {o['method']} {o['combination']}: {o['ratio']:.2f} ({lo:.2f}-{hi:.2f})")
-    honest = doc["checks"].get("reported_std_within_30pct")
-    if honest:
-        print(
-            f"the methods' mean reported std within {100 * (honest['factor'] - 1):.0f}% of the RMS error: "
-            f"{honest['within']} of {honest['n']}"
-            + (" (outside, with the ratio's 90% interval and the trials' mean error):" if honest["outside"] else "")
-        )
-        for o in honest["outside"]:
-            lo, hi = o["interval90"]
-            bias = ""
-            if "mean_error_m" in o:
-                bias = f", mean error {o['mean_error_m'] * 1e3:+.3f} +/- {o['mean_error_se_m'] * 1e3:.3f} mm"
-            print(f"  {o['plan']} {o['method']} {o['combination']}: {o['ratio']:.2f} ({lo:.2f}-{hi:.2f}){bias}")
+    for key, what in (
+        ("prediction_within_30pct", "image predictions"),
+        ("reported_std_within_30pct", "the methods' mean reported std"),
+    ):
+        _print_within(doc["checks"].get(key), what)
     print(f"elapsed {doc['elapsed_s']:.0f} s, {doc['date']}")
+
+
+def _print_within(within: dict[str, Any] | None, what: str) -> None:
+    """One check of :func:`_prediction_intervals`: the count within, then each one outside with its ratio's 90%
+    interval over the trials (and, when recorded, the trials' mean error)."""
+    if not within:
+        return
+    print(
+        f"{what} within {100 * (within['factor'] - 1):.0f}% of the RMS error: {within['within']} of {within['n']}"
+        + (" (outside, with the ratio's 90% interval over the trials):" if within["outside"] else "")
+    )
+    for o in within["outside"]:
+        lo, hi = o["interval90"]
+        bias = ""
+        if "mean_error_m" in o:
+            bias = f", mean error {o['mean_error_m'] * 1e3:+.3f} +/- {o['mean_error_se_m'] * 1e3:.3f} mm"
+        print(f"  {o['plan']} {o['method']} {o['combination']}: {o['ratio']:.2f} ({lo:.2f}-{hi:.2f}){bias}")
 
 
 def _ints(text: str) -> list[int]:
