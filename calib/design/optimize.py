@@ -67,7 +67,7 @@ __all__ = ["DesignRequest", "DesignResult", "design_plan", "log_det_information"
 
 Criterion = Literal["d", "a", "target"]
 OPTIMISED_METHODS = ("combined", "end-effector")
-#: rounds of the count's choice against the plan's prediction when it misses the target (tests: 1-2 suffice)
+#: choices of the count at most, while the plan's prediction misses the target
 DESIGN_ROUNDS = 4
 #: the exchange's targets are tightened by the prediction's miss times this
 TIGHTEN_MARGIN = 1.02
@@ -523,7 +523,7 @@ def design_plan(
             break
         # tightened by the miss and a margin, so that a near miss does not take every round
         tt_sel = tt_sel / np.maximum(miss * TIGHTEN_MARGIN, 1.0)
-    if reduced and req.max_time_s is not None and mt["total_s"] > req.max_time_s:
+    if not req.n_fit and req.max_time_s is not None and mt["total_s"] > req.max_time_s:
         fixed_part = mt["total_s"] - mt["per_phase_s"].get("poses", 0.0)
         notes.append(f"the plan without fit poses already takes {fixed_part / 60:.1f} min")
     if not req.n_fit and t is None:

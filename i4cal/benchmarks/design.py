@@ -269,7 +269,7 @@ def _trial_errors(trials: list[dict[str, Any]], method: str, combination: str) -
     return np.asarray(vals)
 
 
-def _prediction_intervals(
+def _std_over_rms_intervals(
     plans: dict[str, dict[str, Any]], source: str = "predicted"
 ) -> tuple[dict[str, Any], dict[str, Any]]:
     """Per plan, method and combination, the 90% bootstrap interval of a std over the RMS error, and the count of
@@ -380,8 +380,8 @@ def _checks(plans: dict[str, dict[str, Any]]) -> dict[str, Any]:
         for name, p in plans.items()
     }
     if all("trials" in p and "summary" in p for p in plans.values()):
-        out["predicted_images_over_rms_interval90"], out["prediction_within_30pct"] = _prediction_intervals(plans)
-        out["reported_std_over_rms_interval90"], out["reported_std_within_30pct"] = _prediction_intervals(
+        out["predicted_images_over_rms_interval90"], out["prediction_within_30pct"] = _std_over_rms_intervals(plans)
+        out["reported_std_over_rms_interval90"], out["reported_std_within_30pct"] = _std_over_rms_intervals(
             plans, "reported"
         )
     return out
@@ -441,7 +441,7 @@ def print_table(doc: dict[str, Any]) -> None:
 
 
 def _print_within(within: dict[str, Any] | None, what: str) -> None:
-    """One check of :func:`_prediction_intervals`: the count within, then each one outside with its ratio's 90%
+    """One check of :func:`_std_over_rms_intervals`: the count within, then each one outside with its ratio's 90%
     interval over the trials (and, when recorded, the trials' mean error)."""
     if not within:
         return
