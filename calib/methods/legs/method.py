@@ -25,7 +25,7 @@ from .pipeline import (
     _steps34_covariance,
     _steps34_sandwich,
 )
-from .repair import REPAIR_CHI2_MAX, repair_joint
+from .repair import REPAIR_CHI2_MAX, REPAIR_PAIR_FACTOR, repair_joint
 from .uncertainty import _identifiability, _IntrinsicsEffect, _pair_consistency, _prior_conflict, _with_prior
 
 #: step 2's parameters (H, q02, q03, q04; indices into PARAMETER_NAMES): from the lock phases' joints alone
@@ -160,7 +160,7 @@ def calibrate_legs(
         U_r, CU_r, _ = _pair_means(data.rod_u, hr, C_rods)
         return _LegsPipeline(q_lock, data.q, pts, hl, CU_r, nom), np.where(hl[..., None], U_r, 0.0)
 
-    flagged = [c["leg"] - 1 for c in pair_check if c["scale"] > 1.0]
+    flagged = [c["leg"] - 1 for c in pair_check if c["scale"] > 1.0 and c["chi2"] >= REPAIR_PAIR_FACTOR * c["gate"]]
     repair = repair_joint(P, flagged, fit_data, chi2_max=REPAIR_CHI2_MAX if measured else None)
     if repair is not None and repair.left_out_of_fit_poses:
         pipe, U_filled = fit_data(repair.leg, repair.rod)

@@ -34,6 +34,11 @@ REPAIR_GAIN = 4.0
 #: far above its noise is no repair (clean image-twin trials: 0.4-4.5; a wrong rod's joint replaced by a still wrong
 #: one, on the geometric twin: 17.8)
 REPAIR_CHI2_MAX = 6.0
+#: a flagged leg's joints are repaired only when its rod-pair chi-square is this many times the check's gate: a joint
+#: tens of standard deviations off, what a rod taken for another edge gives (rods moved 40 mm on the geometric twin:
+#: 5700-98000 for a gate of 16); a leg just over the gate is only widened (a rendered paper-plan trial's leg at 20,
+#: its joints right, was repaired 5.8 mm off when any flagged leg was tried)
+REPAIR_PAIR_FACTOR = 100.0
 
 
 @dataclass(frozen=True)
@@ -125,7 +130,10 @@ def repair_joint(
     Four hypotheses for the flagged leg: either joint wrong, with that rod's fit-pose directions kept or left out
     (a rod measured wrong the same way in every frame is often wrong in the fit poses too: its leg's direction is
     then its partner's alone). The one with the smallest robust chi-square per dof is kept when it is at least
-    :data:`REPAIR_GAIN` times below the measured joints'.
+    :data:`REPAIR_GAIN` times below the measured joints' with the same fit-pose data (that rod left out too when the
+    hypothesis leaves it out: a rod wrong in the fit poses alone is no evidence against its joint; on a rendered
+    paper-plan trial a right joint was replaced, 5.8 mm off, because leaving its rod out lowered the chi-square from
+    2556 to 1.8, which leaving it out with the measured joint does as well).
 
     Parameters
     ----------
@@ -145,6 +153,9 @@ def repair_joint(
     leg = flagged[0]
     try:
         before = _fit_chi2(*_with(fit_data(leg, None), P))
+        # the measured joints with each rod left out of the fit poses: what a repair that leaves it out is judged
+        # against (a rod wrong in the fit poses alone lowers the chi-square when left out, whatever its joint)
+        unrepaired = {None: before} | {rod: _fit_chi2(*_with(fit_data(leg, rod), P)) for rod in (0, 1)}
         cands = []
         for rod in (0, 1):
             T = joint_repair_map(leg, rod)
@@ -154,11 +165,11 @@ def repair_joint(
     except (ConvergenceError, IdentifiabilityError, np.linalg.LinAlgError):  # no repair; the check's scaling stands
         return None
     chi2 = np.array([c[0] for c in cands])
-    if not (np.isfinite(before) and np.all(np.isfinite(chi2))):
+    if not (np.all(np.isfinite(list(unrepaired.values()))) and np.all(np.isfinite(chi2))):
         return None
     best = int(np.argmin(chi2))
     after, rod, left_out, T = cands[best]
-    if after * REPAIR_GAIN > before or (chi2_max is not None and after > chi2_max):
+    if after * REPAIR_GAIN > unrepaired[rod if left_out else None] or (chi2_max is not None and after > chi2_max):
         return None
     other = float(min(c[0] for c in cands if c[1] != rod))
     moved = float(np.linalg.norm((T @ P.reshape(24)).reshape(4, 2, 3)[leg, rod] - P[leg, rod]))

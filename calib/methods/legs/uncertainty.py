@@ -149,7 +149,8 @@ def _pair_consistency(P: np.ndarray, covP: np.ndarray) -> tuple[np.ndarray, list
     covP : ndarray, shape (4, 2, 3, 3)
         The joints' covariances, scaled where needed.
     check : list of dict
-        Per leg: ``separation_mm``, ``deviation_mm`` (from the other legs' mean), ``chi2``, ``scale``.
+        Per leg: ``separation_mm``, ``deviation_mm`` (from the other legs' mean), ``chi2``, ``gate`` (the flag's
+        threshold on it), ``scale``.
     warnings : list of str
     """
     sep = P[:, 1] - P[:, 0]
@@ -184,6 +185,7 @@ def _pair_consistency(P: np.ndarray, covP: np.ndarray) -> tuple[np.ndarray, list
                 "separation_mm": float(np.linalg.norm(sep[i]) * 1e3),
                 "deviation_mm": float(np.linalg.norm(e) * 1e3),
                 "chi2": c2,
+                "gate": limit,
                 "scale": scale,
             }
         )
