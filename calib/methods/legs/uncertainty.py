@@ -140,9 +140,9 @@ def _pair_consistency(P: np.ndarray, covP: np.ndarray) -> tuple[np.ndarray, list
     The reference's own covariance matters: a joint's covariance is long along its line of sight (the rod's depth
     comes from its apparent width) and the four legs are seen along different lines, so the other legs' error lies
     where this leg's covariance is thin. Against the component-wise median of the four with the leg's covariance
-    alone (the check until 2026-11) the chi-square was 74 in median over 24 rendered trials of a paper plan (96
-    legs; chi-square(3): 2.37), flagging nothing a wrong joint did not exceed 30-fold; against the others' mean with
-    both covariances it is 2.2.
+    alone (the check before 2026-11-27) the chi-square was 74 in median over 24 rendered trials of a paper plan (96
+    legs; chi-square(3): 2.37), so the common scale raised the gate 30-fold; against the others' mean with both
+    covariances it is 2.2.
 
     Returns
     -------
