@@ -131,9 +131,7 @@ def repair_joint(
     (a rod measured wrong the same way in every frame is often wrong in the fit poses too: its leg's direction is
     then its partner's alone). The one with the smallest robust chi-square per dof is kept when it is at least
     :data:`REPAIR_GAIN` times below the measured joints' with the same fit-pose data (that rod left out too when the
-    hypothesis leaves it out: a rod wrong in the fit poses alone is no evidence against its joint; on a rendered
-    paper-plan trial a right joint was replaced, 5.8 mm off, because leaving its rod out lowered the chi-square from
-    2556 to 1.8, which leaving it out with the measured joint does as well).
+    hypothesis leaves it out: what leaving a rod out gains is no evidence against its joint).
 
     Parameters
     ----------

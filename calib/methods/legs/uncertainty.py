@@ -166,11 +166,11 @@ def _pair_consistency(P: np.ndarray, covP: np.ndarray) -> tuple[np.ndarray, list
         except np.linalg.LinAlgError:
             return np.full(3, np.nan), float("nan")
 
-    loo = [against(i, [k for k in range(4) if k != i])[1] for i in range(4)]
-    worst = int(np.nanargmax(loo)) if np.any(np.isfinite(loo)) else 0
+    loo = [against(i, [k for k in range(4) if k != i]) for i in range(4)]
+    c2_loo = [c for _, c in loo]
+    worst = int(np.nanargmax(c2_loo)) if np.any(np.isfinite(c2_loo)) else 0
     # the other legs against each other, without the worst: their common scale sets the gate
-    rows = [against(i, [k for k in range(4) if k not in (i, worst)]) for i in range(4) if i != worst]
-    rows.insert(worst, against(worst, [k for k in range(4) if k != worst]))
+    rows = [loo[i] if i == worst else against(i, [k for k in range(4) if k not in (i, worst)]) for i in range(4)]
     finite = [c for i, (_, c) in enumerate(rows) if i != worst and np.isfinite(c)]
     common = max(1.0, robust_chi2_scale(finite, 3)) if finite else 1.0
     limit = float(chi2_gate(3)) * common
