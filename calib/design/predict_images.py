@@ -543,7 +543,8 @@ def predict_legs_images(
         _IntrinsicsEffect,
         _LegsPipeline,
         _pair_means,
-        _steps34_covariance,
+        _pair_own_covariances,
+        _steps34_sandwich,
         _with_prior,
         joint_from_planes,
         limb_line_noise,
@@ -597,10 +598,12 @@ def predict_legs_images(
     fr = _rods(scene, nominal, q_fit, noise)
     u = np.full((N, 4, 2, 3), np.nan)
     Cr = np.full((N, 4, 2, 3, 3), np.nan)
+    Co = np.full((N, 4, 2, 3, 3), np.nan)
     has = np.zeros((N, 4, 2), dtype=bool)
     pts = np.full((N, 4, 3), np.nan)
     u[fr.k, fr.leg, fr.rod] = fr.u
     Cr[fr.k, fr.leg, fr.rod] = fr.cov_u
+    Co[fr.k, fr.leg, fr.rod] = fr.cov_u_own
     has[fr.k, fr.leg, fr.rod] = True
     U, CU, _ = _pair_means(u, has, Cr)
     has_leg = np.asarray(has.any(axis=2))
@@ -612,9 +615,11 @@ def predict_legs_images(
     seven = pipe.run(P, Uf)
     x2 = np.array([*seven[1:4].tolist(), seven[0]])
     GP = central_jacobian(lambda p: pipe.run(p.reshape(4, 2, 3), Uf, x2), P.ravel(), 1e-7)  # (7, 24)
-    c34, _chi, _dof = _steps34_covariance(pipe, P, Uf, seven)
-    # the method scales both by its residuals' chi-square per dof; the prediction by their level on the twin
-    parts = {"joint_centres": noise.legs_lock_chi2 * (GP @ covP @ GP.T), "leg_directions": np.zeros((7, 7))}
+    covJ = noise.legs_lock_chi2 * covP
+    CU_own = np.nan_to_num(_pair_own_covariances(u, has, Cr, Co))
+    c34, _chi, _expected = _steps34_sandwich(pipe, P, Uf, seven, CU_own, covJ)
+    # the method scales both by its residuals' chi-square level; the prediction by their levels on the twin
+    parts = {"joint_centres": GP @ covJ @ GP.T, "leg_directions": np.zeros((7, 7))}
     idx = np.array([6, 4, 5])
     parts["leg_directions"][np.ix_(idx, idx)] = noise.legs_directions_chi2 * c34
     parts["intrinsics"] = np.zeros((7, 7))

@@ -22,8 +22,12 @@ RADIUS = 0.008
 RMS_PX, N_POINTS = 0.1, 150
 
 
-def with_planes(doc: dict, rng: np.random.Generator | None = None) -> dict:
-    """Give every rod ``h``, ``rms_px``, ``n_points`` and ``cov_u`` (noisy limb lines when ``rng``)."""
+def with_planes(doc: dict, rng: np.random.Generator | None = None, bias: bool = False) -> dict:
+    """Give every rod ``h``, ``rms_px``, ``n_points`` and ``cov_u`` (noisy limb lines when ``rng``).
+
+    ``bias``: the limb lines are perturbed by their edge scatter alone, ``cov_u`` adds the 0.05 px edge-bias
+    allowance to it and ``cov_u_own`` is the scatter's (the extraction's two covariances when no bias is shared).
+    """
     doc["extraction"] = {"camera": {"K": K.tolist()}, "rod_settings": {"step_px": 3.0, "edge_bias_px": 0.05}}
     for f in doc["frames"]:
         for rods in (f.get("legs") or {}).values():
@@ -33,8 +37,9 @@ def with_planes(doc: dict, rng: np.random.Generator | None = None) -> dict:
                 h = np.array(limb_planes(p0, u0, RADIUS))
                 rms, npts = np.array([RMS_PX, RMS_PX]), np.array([N_POINTS, N_POINTS])
                 dh, var = limb_line_noise(K, h, p0, rms, npts)
+                var_own = limb_line_noise(K, h, p0, rms, npts, edge_bias_px=0.0)[1] if bias else var
                 if rng is not None:
-                    e = rng.normal(0.0, np.sqrt(var))  # (2, 2): each limb's angle and offset
+                    e = rng.normal(0.0, np.sqrt(var_own))  # (2, 2): each limb's angle and offset
                     h = unit(h + np.einsum("qp,qpi->qi", e, dh))
                 u, X = axis_from_planes(h[0], h[1], RADIUS)
                 u = u * np.sign(u @ u0)
@@ -46,6 +51,8 @@ def with_planes(doc: dict, rng: np.random.Generator | None = None) -> dict:
                     n_points=npts.tolist(),
                     cov_u=planes_direction_covariance(h, dh, var).tolist(),
                 )
+                if bias:
+                    rod["cov_u_own"] = planes_direction_covariance(h, dh, var_own).tolist()
     return doc
 
 
@@ -116,3 +123,41 @@ def test_rod_pair_check_is_a_chi_square_of_three_dof(twin, paper_plan):
     assert 1.2 < float(np.median(c2)) < 4.0, np.round(c2, 1)
     assert float(np.mean(c2)) < 6.0, np.round(c2, 1)
     assert all(s == 1.0 for s in scales), scales
+
+
+def test_leg_directions_part_is_the_own_errors_through_the_fits_gain(twin, paper_plan):
+    """Steps 3-4 weigh each leg direction by ``cov_u``, which carries the extraction's edge-bias allowance whole; the
+    leg directions' part of the std is their own errors (``cov_u_own``) through that fit's gain, at the level their
+    chi-square shows beyond what those errors and the joints' make it expect. With ``cov_u_own = cov_u`` the sandwich
+    is the GLS covariance and the expectation the equations' dof; at a quarter of it, a quarter of both."""
+    from scipy.linalg import block_diag
+
+    from calib.methods.legs.joints import _plane_observations, _step1_planes
+    from calib.methods.legs.pipeline import _leg_directions, _LegsPipeline, _steps34_covariance, _steps34_sandwich
+    from calib.parameters import NOMINAL
+
+    doc = with_planes(twin.observations(plan=paper_plan, seed=5), np.random.default_rng(5), bias=True)
+    obs = Observations.from_dict(doc)
+    lock = [obs.arrays(f"lock-{i + 1}") for i in range(4)]
+    planes = [[_plane_observations(obs, lock[i], i, j) for j in range(2)] for i in range(4)]
+    P, covPij, *_ = _step1_planes(planes)  # type: ignore[arg-type]
+    data = obs.arrays("poses")
+    U, CU, pts, has_leg, measured, _rej, _C = _leg_directions(obs, data, None)
+    assert measured
+    Uf = np.where(has_leg[..., None], U, 0.0)
+    pipe = _LegsPipeline(np.array([lock[i].q[:, i].mean() for i in range(4)]), data.q, pts, has_leg, CU, NOMINAL)
+    seven = pipe.run(P, Uf)
+    c34, chi, dof = _steps34_covariance(pipe, P, Uf, seven)
+    CUf = np.nan_to_num(CU)
+    for k in (1.0, 0.25):
+        cov, chi_w, expected = _steps34_sandwich(pipe, P, Uf, seven, k * CUf, np.zeros((24, 24)))
+        np.testing.assert_allclose(cov, k * c34, rtol=1e-6)
+        assert chi_w == pytest.approx(chi, rel=1e-9) and expected == pytest.approx(k * dof, rel=1e-6), (expected, dof)
+    # the joints' errors add to the expected chi-square (they are in the residuals, fixed in steps 3-4)
+    covP = block_diag(*covPij.reshape(8, 3, 3))
+    assert _steps34_sandwich(pipe, P, Uf, seven, CUf, covP)[2] > dof
+    r = calibrate_legs(obs, prior_std_m=None)
+    assert "cov_u_own" in r.diagnostics["steps34_weighting"], r.diagnostics["steps34_weighting"]
+    expected_per_dof = r.diagnostics["steps34_expected_chi2_per_dof"]
+    level = max(r.diagnostics["steps34_residual_chi2_per_dof"] / expected_per_dof, 1.0)
+    assert r.diagnostics["steps34_chi2_per_dof"] == pytest.approx(level, rel=1e-12)

@@ -185,6 +185,14 @@ def test_checks_list_the_reported_std_that_does_not_cover_the_error_with_the_bia
     # a std equal to the RMS error is within
     plan_ok = _plan_with(e, float(np.sqrt(np.mean(e**2))))
     assert _checks({"paper-20": plan_ok})["reported_std_within_30pct"]["within"] == 4
+    # against the trials' spread about their mean, the same std is within: what it misses is the bias alone
+    of_spread = checks["reported_std_within_30pct_of_spread"]
+    assert of_spread["reference"] == "spread" and of_spread["n"] == 4 and of_spread["within"] == 4, of_spread
+    lo, hi = checks["reported_std_over_spread_interval90"]["paper-20"]["legs"]["L"]
+    assert lo < 1.0 < hi, (lo, hi)
+    # a std twice the spread is outside it, its interval above 1.3
+    wide = _checks({"paper-20": _plan_with(e, 2.0 * float(np.std(e, ddof=1)))})["reported_std_within_30pct_of_spread"]
+    assert wide["within"] == 0 and all(o["interval90"][0] > 1.3 for o in wide["outside"]), wide
 
 
 def test_report_reprints_a_saved_bench_and_refuses_other_files(tmp_path, capsys):

@@ -15,7 +15,16 @@ from ..iterations import IterationCallback
 from ..result import MethodResult, combos_dict, std_dict
 from .constants import PRIOR_STD_M
 from .joints import _plane_observations, _step1_planes, intersect_lines, joint_from_planes
-from .pipeline import _gate_poses, _leg_directions, _LegsPipeline, _pair_means, _steps34_covariance
+from .pipeline import (
+    _gate_poses,
+    _leg_directions,
+    _LegsPipeline,
+    _pair_means,
+    _pair_own_covariances,
+    _rod_own_covariances,
+    _steps34_covariance,
+    _steps34_sandwich,
+)
 from .repair import REPAIR_CHI2_MAX, REPAIR_PAIR_FACTOR, repair_joint
 from .uncertainty import _identifiability, _IntrinsicsEffect, _pair_consistency, _prior_conflict, _with_prior
 
@@ -194,7 +203,15 @@ def calibrate_legs(
     c34, chi34, dof34 = _steps34_covariance(pipe, P, U_filled, seven)
     s2_34_raw = chi34 / dof34 if dof34 > 0 else 1.0
     s2_34 = 1.0 if (not measured and direction_std_rad is not None) else s2_34_raw
-    if measured:  # cov_u is absolute (with the extraction's edge-bias allowance): scaled up, never down
+    C_own = _rod_own_covariances(obs, data) if measured else None
+    expected34 = None
+    if C_own is not None:
+        # the directions' own errors (cov_u_own) through the fit's gain; their level is the chi-square over what
+        # those errors and the joints' together make it expect, never below 1 (both are absolute)
+        CU_own = np.nan_to_num(_pair_own_covariances(data.rod_u, has_rod, C_rods, C_own))
+        c34, chi_w, expected34 = _steps34_sandwich(pipe, P, U_filled, seven, CU_own, covP)
+        s2_34 = max(chi_w / expected34, 1.0) if expected34 > 0 else 1.0
+    elif measured:  # cov_u is absolute (with the extraction's edge-bias allowance): scaled up, never down
         s2_34 = max(s2_34, 1.0)
     cov_dirs = np.zeros((7, 7))
     idx = np.array([6, 4, 5])
@@ -330,9 +347,16 @@ def calibrate_legs(
             "step1_chi2_per_dof": float(s2_1),
             "step1_residual_chi2_per_dof": float(s2_1_raw),
             "step1_frames_rejected": rejected_lock,
-            "steps34_weighting": "measured rod covariances (GLS)" if measured else "isotropic",
+            "steps34_weighting": (
+                "measured rod covariances (GLS; cov_u_own through its gain)"
+                if expected34 is not None
+                else "measured rod covariances (GLS)"
+                if measured
+                else "isotropic"
+            ),
             "steps34_chi2_per_dof": float(s2_34),
             "steps34_residual_chi2_per_dof": float(s2_34_raw),
+            "steps34_expected_chi2_per_dof": None if expected34 is None or dof34 <= 0 else expected34 / dof34,
             "rod_direction_noise_rad": scale if not measured else None,
             "rod_pairs_rejected": rejected_pairs,
             "poses_rejected": rejected_poses,

@@ -313,6 +313,37 @@ def _pair_means(u: np.ndarray, has: np.ndarray, C: np.ndarray) -> tuple[np.ndarr
     return U, CU, pair_d2
 
 
+def _pair_own_covariances(u: np.ndarray, has: np.ndarray, C: np.ndarray, C_own: np.ndarray) -> np.ndarray:
+    """Per pose and leg, the own covariance (N, 4, 3, 3) of :func:`_pair_means`'s direction: its two rods weighed by
+    their covariances ``C`` (N, 4, 2, 3, 3), their errors' covariances ``C_own`` (``cov_u_own``); NaN without a
+    rod."""
+    dot = np.einsum("nlk,nlk->nl", u[:, :, 0], u[:, :, 1])
+    sgn = np.where(np.isnan(dot), 1.0, np.sign(dot))
+    out = np.full((*u.shape[:2], 3, 3), np.nan)
+    for k, leg in zip(*np.nonzero(has.any(axis=2)), strict=True):
+        if not has[k, leg].all():
+            out[k, leg] = C_own[k, leg, int(np.argmax(has[k, leg]))]
+            continue
+        m = unit(u[k, leg, 0] + sgn[k, leg] * u[k, leg, 1])
+        T = tangent_basis(m)
+        Wi = np.linalg.inv(np.einsum("ai,kab,bj->kij", T, C[k, leg], T) + 1e-18 * np.eye(2))
+        Cm = np.linalg.inv(Wi.sum(axis=0))
+        Co = np.einsum("ai,kab,bj->kij", T, C_own[k, leg], T)
+        out[k, leg] = T @ (Cm @ np.einsum("kij,kjl,kml->im", Wi, Co, Wi) @ Cm) @ T.T
+    return out
+
+
+def _rod_own_covariances(obs: Observations, data: PhaseArrays) -> np.ndarray | None:
+    """Every measured rod's ``cov_u_own`` (N, 4, 2, 3, 3), NaN where no rod; None when a measured rod lacks it."""
+    C = np.full((len(data), 4, 2, 3, 3), np.nan)
+    for k, leg, rod in zip(*np.nonzero(data.has_rod), strict=True):
+        c = _rod_field(obs, data, k, leg, rod, "cov_u_own")
+        if c is None or c.shape != (3, 3):
+            return None
+        C[k, leg, rod] = c
+    return C
+
+
 def _leg_directions(
     obs: Observations, data: PhaseArrays, direction_std_rad: float | None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool, list[dict[str, int]], np.ndarray]:
@@ -382,3 +413,72 @@ def _steps34_covariance(
     r = pipe.whitened(theta, Aq, Uo, y)
     dof = int(pipe.mask.sum()) - 3
     return np.linalg.inv(J.T @ J), float(np.sum(r**2)), dof
+
+
+def _steps34_sandwich(
+    pipe: _LegsPipeline, P: np.ndarray, U: np.ndarray, seven: np.ndarray, cov_leg_own: np.ndarray, covP: np.ndarray
+) -> tuple[np.ndarray, float, float]:
+    """The leg directions' own part of (L, S, D)'s covariance and the steps 3-4 chi-square against its expectation.
+
+    The fit weighs each pose's equations by the leg directions' ``cov_u`` (its whitening ``pipe.W``), which carries
+    the extraction's edge-bias allowance whole; most of that allowance is the limb-edge bias every rod shares, which
+    the method corrects by the combined fit's measurement and propagates apart (``limb_edge_bias``). What the
+    directions add of their own is ``cov_u_own`` (the allowance averaged along the limb): the covariance here is the
+    fit's gain applied to it (a sandwich). The fit's residuals also carry the joints' errors (fixed in steps 3-4 and
+    propagated apart), so their chi-square is compared with what the own errors and the joints' together make it
+    expect.
+
+    Parameters
+    ----------
+    pipe : _LegsPipeline
+        Fitted (its whitening ``W`` set).
+    P : ndarray, shape (4, 2, 3)
+        The joints, camera frame (m).
+    U : ndarray, shape (N, 4, 3)
+        Leg directions (zero where unused).
+    seven : ndarray, shape (7,)
+        The estimate (PARAMETER_NAMES order).
+    cov_leg_own : ndarray, shape (N, 4, 3, 3)
+        The leg directions' own covariance (rad^2).
+    covP : ndarray, shape (24, 24)
+        The joints' covariance ((leg, rod, xyz) order, m^2).
+
+    Returns
+    -------
+    cov : ndarray, shape (3, 3)
+        (L, S, D), m^2.
+    chi2 : float
+        The whitened residuals' sum of squares.
+    expected : float
+        Its expectation under ``cov_leg_own`` and ``covP``: ``tr(M W (C_own + G covP G^T) W^T M^T)``, ``M`` the fit's
+        residual projector, ``G`` the equations' change with the joints.
+    """
+    assert pipe.W is not None
+    theta = seven[[6, 4, 5]]
+    x, A0, _ = pipe.frame(P)
+    y = pipe.y_axis(x, A0)
+    Aq, Uo = pipe.oriented(x, A0, U)
+    J = pipe.whitened_jacobian(theta, Aq, Uo, y).reshape(-1, 3)
+    r = pipe.whitened(theta, Aq, Uo, y).ravel()
+    own = _LegsPipeline(pipe.q_lock, pipe.q_fit, pipe.rod_p, pipe.has_leg, cov_leg_own, pipe.nominal)
+    C_own = own.covariances(theta, Aq, Uo, y)  # (N, 4, 4), identity on unused equations
+    C_own = np.where(pipe.mask[:, :, None] & pipe.mask[:, None, :], C_own, 0.0)
+    WCW = np.einsum("nij,njk,nlk->nil", pipe.W, C_own, pipe.W)
+    n = WCW.shape[0]
+    S = np.zeros((4 * n, 4 * n))
+    for k in range(n):
+        S[4 * k : 4 * k + 4, 4 * k : 4 * k + 4] = WCW[k]
+    Ainv = np.linalg.inv(J.T @ J)
+    gain = Ainv @ J.T
+    cov = gain @ S @ gain.T
+
+    def whitened_at(pv: np.ndarray) -> np.ndarray:
+        xx, AA, _ = pipe.frame(pv.reshape(4, 2, 3))
+        yy = pipe.y_axis(xx, AA)
+        Aq2, Uo2 = pipe.oriented(xx, AA, U)
+        return pipe.whitened(theta, Aq2, Uo2, yy).ravel()
+
+    G = central_jacobian(whitened_at, P.ravel(), h=1e-7)  # (4N, 24)
+    M = np.eye(J.shape[0]) - J @ gain
+    expected = float(np.trace(M @ (S + G @ covP @ G.T) @ M.T))
+    return cov, float(r @ r), expected
