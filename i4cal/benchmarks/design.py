@@ -126,7 +126,6 @@ def _plans(
 def run_design_bench(opts: argparse.Namespace, progress=None) -> dict[str, Any]:
     import multiprocessing as mp
 
-    from ._accuracy_report import COMBINATIONS, METHODS, summarize
     from ._accuracy_trial import TrialTask, init_worker, run_trial
     from .accuracy import _cores, default_spread_m, draw_truth, trial_seed
 
@@ -145,7 +144,7 @@ def run_design_bench(opts: argparse.Namespace, progress=None) -> dict[str, Any]:
             camera_views=30,
         )
         for name, p in plans.items()
-        for k in range(opts.trials)
+        for k in _trial_indices(opts)
     ]
     workers = min(opts.workers or _cores(), len(tasks))
     records: dict[str, dict[str, Any]] = {}
@@ -165,21 +164,59 @@ def run_design_bench(opts: argparse.Namespace, progress=None) -> dict[str, Any]:
             if progress:
                 progress(i, len(tasks))
     for name, p in plans.items():
-        p["summary"] = summarize([records[f"{name},k={k}"] for k in range(opts.trials)])
-        # per trial, each method's errors and reported std (metres), to look at the tails
+        p["records"] = [records[f"{name},k={k}"] for k in _trial_indices(opts)]
+    _summarize_plans(plans)
+    from .speed import machine_info
+
+    return {
+        "format": FORMAT,
+        "argv": list(sys.argv),
+        "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+        "machine": machine_info(),
+        "options": {k: v for k, v in vars(opts).items() if k != "handler"},
+        "plans": plans,
+        "checks": _checks(plans),
+        "elapsed_s": time.perf_counter() - t0,
+    }
+
+
+def _reduced_record(trial: dict[str, Any]) -> dict[str, Any]:
+    """A trial record rebuilt from a bench's per-trial entry (each method's errors and std, no gaps or bounds)."""
+    return {
+        "index": trial.get("index"),
+        "error": trial.get("error"),
+        "methods": {m: {**r, "gap_validation_rms_mm": None} for m, r in (trial.get("methods") or {}).items()},
+    }
+
+
+def _trial_indices(opts: argparse.Namespace) -> range:
+    """The trials a run renders: ``--trials`` of them from ``--first-trial`` (trial k's truth and seed depend on k
+    and ``--seed`` alone, so runs of disjoint ranges merge into one: ``--report A.json B.json``)."""
+    first = getattr(opts, "first_trial", 0) or 0
+    return range(first, first + opts.trials)
+
+
+def _summarize_plans(plans: dict[str, dict[str, Any]]) -> None:
+    """From each plan's full trial ``records``: its ``summary``, per-trial ``trials`` (each method's errors and
+    reported std, metres, to look at the tails), ``data_pinned`` and ``predicted_run_std_m``."""
+    from ._accuracy_report import COMBINATIONS, METHODS, summarize
+
+    for p in plans.values():
+        recs = p["records"]
+        p["summary"] = summarize(recs)
         p["trials"] = [
             {
-                "index": k,
-                "error": records[f"{name},k={k}"].get("error"),
+                "index": r.get("index"),
+                "error": r.get("error"),
                 "methods": {
                     m: {
-                        f: r.get(f)
+                        f: x.get(f)
                         for f in ("ok", "errors", "std", "a_priori_fallback", "unpinned_directions", "noise_levels")
                     }
-                    for m, r in (records[f"{name},k={k}"].get("methods") or {}).items()
+                    for m, x in (r.get("methods") or {}).items()
                 },
             }
-            for k in range(opts.trials)
+            for r in recs
         ]
         p["data_pinned"] = _data_pinned(p["trials"])
     ref = plans.get("paper-20")
@@ -193,18 +230,59 @@ def run_design_bench(opts: argparse.Namespace, progress=None) -> dict[str, Any]:
             p["predicted_run_std_m"][m] = {
                 c: (pr[c] * rms[c] / ref["predicted_std_m"][m][c]) if rms.get(c) else None for c in COMBINATIONS
             }
-    from .speed import machine_info
 
-    return {
-        "format": FORMAT,
-        "argv": list(sys.argv),
-        "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
-        "machine": machine_info(),
-        "options": {k: v for k, v in vars(opts).items() if k != "handler"},
-        "plans": plans,
-        "checks": _checks(plans),
-        "elapsed_s": time.perf_counter() - t0,
-    }
+
+def merge_benches(docs: list[dict[str, Any]], names: list[str]) -> dict[str, Any]:
+    """One design bench from runs of the same plans over disjoint trial ranges (``--first-trial``).
+
+    Every run must hold the same plans with the same steps, at the same ``--seed``; a trial index in two runs is
+    refused. The summaries and checks are recomputed over all the trials; the predictions are the first run's (the
+    same plans give the same ones). A run written before the trials' full records were kept has only each method's
+    errors and std per trial (``trials``): its trials count in every check and in the methods' RMS errors and mean
+    std, not in the summaries' bounds, efficiencies, gaps or timings (``records_reduced`` lists such files).
+
+    Raises
+    ------
+    InputError
+        Naming the file and what does not match.
+    """
+    import copy
+
+    from calib.errors import InputError
+
+    docs = [copy.deepcopy(d) for d in docs]
+    reduced = []
+    for doc, path in zip(docs, names, strict=True):
+        for p in doc["plans"].values():
+            if "records" not in p:
+                p["records"] = [_reduced_record(t) for t in p.get("trials") or []]
+                if path not in reduced:
+                    reduced.append(path)
+    first = docs[0]
+    seed = (first.get("options") or {}).get("seed")
+    seen: dict[str, dict[int, str]] = {name: {} for name in first["plans"]}
+    for doc, path in zip(docs, names, strict=True):
+        if (doc.get("options") or {}).get("seed") != seed:
+            raise InputError(f"{path}: --seed {doc.get('options', {}).get('seed')} where {names[0]} has {seed}")
+        if set(doc["plans"]) != set(first["plans"]):
+            raise InputError(f"{path}: plans {sorted(doc['plans'])} where {names[0]} has {sorted(first['plans'])}")
+        for name, p in doc["plans"].items():
+            if p["steps"] != first["plans"][name]["steps"]:
+                raise InputError(f"{path}: plan {name}'s poses differ from those of {names[0]}")
+            for r in p["records"]:
+                k = int(r["index"])
+                if k in seen[name]:
+                    raise InputError(f"{path}: trial {k} of {name} is in {seen[name][k]} too")
+                seen[name][k] = path
+    for name, p in first["plans"].items():
+        recs = [r for doc in docs for r in doc["plans"][name]["records"]]
+        p["records"] = sorted(recs, key=lambda r: int(r["index"]))
+    _summarize_plans(first["plans"])
+    first["merged_from"] = list(names)
+    first["records_reduced"] = reduced
+    first["elapsed_s"] = float(sum(d.get("elapsed_s", 0.0) for d in docs))
+    first["checks"] = _checks(first["plans"])
+    return first
 
 
 def _rms(v: list[float]) -> float:
@@ -253,8 +331,9 @@ def ratio_interval(
     from scipy.stats import bootstrap
 
     e = np.asarray(errors, dtype=np.float64).reshape(-1)
-    if e.size < 2 or not np.all(np.isfinite(e)):
-        raise ValueError(f"errors must be finite, shape (n,) with n >= 2, got {e.size} value(s)")
+    need = 3 if about_mean else 2  # the jackknife of a spread needs two values left
+    if e.size < need or not np.all(np.isfinite(e)):
+        raise ValueError(f"errors must be finite, shape (n,) with n >= {need}, got {e.size} value(s)")
     if not np.any(e):
         raise ValueError("errors are all zero: no RMS error to compare a prediction with")
 
@@ -314,7 +393,7 @@ def _std_over_rms_intervals(
             intervals[name][m] = {}
             for c in COMBINATIONS:
                 e = _trial_errors(p.get("trials") or [], m, c)
-                if not pr.get(c) or not rms.get(c) or e.size < 2:
+                if not pr.get(c) or not rms.get(c) or e.size < (3 if about_mean else 2):
                     intervals[name][m][c] = None
                     continue
                 lo, hi = ratio_interval(pr[c], e, about_mean=about_mean)
@@ -502,6 +581,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     a = p.add_argument
     a("--trials", type=int, default=5, help="trials per plan (default 5)")
+    a(
+        "--first-trial",
+        type=int,
+        default=0,
+        help="index of the first trial (default 0): runs of disjoint ranges merge with --report A.json B.json",
+    )
     a("--counts", type=_ints, default=[8, 12, 20, 30], help="fit-pose counts (default 8,12,20,30)")
     a("--seed", type=int, default=0)
     a("--workers", type=int, default=None)
@@ -524,8 +609,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     a(
         "--report",
         default=None,
+        nargs="+",
         metavar="PATH",
-        help="print the table and checks of a file written by --json (recomputed), without running anything",
+        help="print the table and checks of a file written by --json (recomputed), without running anything; several "
+        "files of disjoint trial ranges (--first-trial) are merged (and written to --json when given)",
     )
     p.set_defaults(handler=run)
 
@@ -539,19 +626,24 @@ def run(args: argparse.Namespace) -> int:
         import json
         from pathlib import Path
 
-        try:
-            doc = json.loads(Path(args.report).read_text())
-            if doc.get("format") != FORMAT:
-                raise InputError(
-                    f"{args.report}: not an {FORMAT} file (format {doc.get('format')!r})", field="--report"
-                )
-            doc["checks"] = _checks(doc["plans"])
-        except (OSError, ValueError, KeyError, TypeError) as exc:
-            raise InputError(f"{args.report}: cannot read a design bench: {exc}", field="--report") from exc
+        paths = [args.report] if isinstance(args.report, str) else list(args.report)
+        docs = []
+        for path in paths:
+            try:
+                doc = json.loads(Path(path).read_text())
+                if doc.get("format") != FORMAT:
+                    raise InputError(f"{path}: not an {FORMAT} file (format {doc.get('format')!r})", field="--report")
+                doc["checks"] = _checks(doc["plans"])
+            except (OSError, ValueError, KeyError, TypeError) as exc:
+                raise InputError(f"{path}: cannot read a design bench: {exc}", field="--report") from exc
+            docs.append(doc)
+        doc = docs[0] if len(docs) == 1 else merge_benches(docs, paths)
         print_table(doc)
+        if len(docs) > 1 and getattr(args, "json", None):
+            write_json_atomic(args.json, to_jsonable(doc), indent=1)
         return 0
-    if args.trials < 1 or not args.counts or min(args.counts) < 4:
-        raise InputError("--trials >= 1 and fit-pose counts >= 4", field="--trials")
+    if args.trials < 1 or args.first_trial < 0 or not args.counts or min(args.counts) < 4:
+        raise InputError("--trials >= 1, --first-trial >= 0 and fit-pose counts >= 4", field="--trials")
     doc = run_design_bench(args, lambda i, n: print(f"\r{i}/{n} trials", end="", file=sys.stderr))
     print(file=sys.stderr)
     print_table(doc)

@@ -222,3 +222,84 @@ def test_report_reprints_a_saved_bench_and_refuses_other_files(tmp_path, capsys)
     other.write_text(json.dumps({"format": "something-else"}))
     with pytest.raises(InputError, match="other.json"):
         run(argparse.Namespace(report=str(other), trials=5, counts=[12]))
+
+
+def _bench_doc(indices: range, rng: np.random.Generator, steps: list | None = None) -> dict:
+    """A design bench of one plan (paper-20) whose trials ``indices`` carry full records of the three methods."""
+    from i4cal.benchmarks.design import FORMAT, _checks, _summarize_plans
+
+    def record(k: int) -> dict:
+        e = rng.normal(size=(3, 4)) * 0.2e-3
+        return {
+            "index": k,
+            "methods": {
+                m: {
+                    "ok": True,
+                    "errors": dict(zip(C, e[i].tolist(), strict=True)),
+                    "std": dict.fromkeys(C, 0.2e-3),
+                    "gap_validation_rms_mm": 0.1,
+                }
+                for i, m in enumerate(("combined", "end-effector", "legs"))
+            },
+        }
+
+    pred = {m: dict.fromkeys(C, 0.2e-3) for m in ("combined", "end-effector", "legs")}
+    plan = {
+        "steps": steps or [{"phase": "poses", "q": [0.1, 0.1, 0.1, 0.1]}],
+        "motion_s": 100.0,
+        "predicted_std_m": pred,
+        "predicted_images_std_m": pred,
+        "records": [record(k) for k in indices],
+    }
+    plans = {"paper-20": plan}
+    _summarize_plans(plans)
+    return {
+        "format": FORMAT,
+        "options": {"seed": 0},
+        "plans": plans,
+        "checks": _checks(plans),
+        "elapsed_s": 5.0,
+        "date": "today",
+    }
+
+
+def test_runs_of_disjoint_trial_ranges_merge_into_one_bench(tmp_path, capsys):
+    """``--first-trial`` runs a range of trials; ``--report A.json B.json`` merges runs of disjoint ranges of the
+    same plans into one (summaries and checks over every trial, written with --json). Overlapping trials or other
+    poses are refused, naming the file."""
+    import argparse
+    import json
+
+    from calib.errors import InputError
+    from i4cal.benchmarks.design import merge_benches, run
+
+    rng = np.random.default_rng(6)
+    a, b = _bench_doc(range(0, 10), rng), _bench_doc(range(10, 30), rng)
+    merged = merge_benches([a, b], ["a.json", "b.json"])
+    p = merged["plans"]["paper-20"]
+    assert [t["index"] for t in p["trials"]] == list(range(30))
+    errs = np.array([r["methods"]["legs"]["errors"]["L"] for d in (a, b) for r in d["plans"]["paper-20"]["records"]])
+    assert np.isclose(p["summary"]["methods"]["legs"]["rms_error_m"]["L"], np.sqrt(np.mean(errs**2)))
+    assert merged["checks"]["prediction_within_30pct"]["n"] == 12 and merged["elapsed_s"] == 10.0
+    with pytest.raises(InputError, match="trial 5 of paper-20 is in a.json"):
+        merge_benches([a, _bench_doc(range(5, 8), rng)], ["a.json", "c.json"])
+    with pytest.raises(InputError, match="d.json: plan paper-20's poses differ"):
+        other = _bench_doc(range(40, 42), rng, steps=[{"phase": "poses", "q": [0.2, 0.1, 0.1, 0.1]}])
+        merge_benches([a, other], ["a.json", "d.json"])
+    # a run written before the full records were kept merges from its per-trial errors and std
+    old = _bench_doc(range(30, 40), rng)
+    del old["plans"]["paper-20"]["records"]
+    with_old = merge_benches([a, old], ["a.json", "old.json"])
+    assert with_old["records_reduced"] == ["old.json"] and len(with_old["plans"]["paper-20"]["trials"]) == 20
+    assert with_old["plans"]["paper-20"]["summary"]["methods"]["legs"]["n_ok"] == 20
+    # through the command: the merged table and checks printed, and written
+    for name, doc in (("a.json", a), ("b.json", b)):
+        for m in ("combined", "end-effector", "legs"):
+            doc["plans"]["paper-20"]["summary"]["methods"][m].setdefault("n_ok", 0)
+        (tmp_path / name).write_text(json.dumps(doc))
+    out_path = tmp_path / "merged.json"
+    args = argparse.Namespace(report=[str(tmp_path / "a.json"), str(tmp_path / "b.json")], json=str(out_path))
+    assert run(args) == 0
+    assert "(30 ok)" in capsys.readouterr().out
+    back = json.loads(out_path.read_text())
+    assert len(back["plans"]["paper-20"]["trials"]) == 30 and back["merged_from"][1].endswith("b.json")
