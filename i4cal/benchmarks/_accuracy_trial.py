@@ -188,6 +188,9 @@ NOISE_LEVELS: dict[str, tuple[tuple[str, tuple[str, ...]], ...]] = {
     "legs": (
         ("lock_chi2", ("step1_residual_chi2_per_dof",)),
         ("directions_chi2", ("steps34_residual_chi2_per_dof",)),
+        # the level its leg directions' own part is scaled by (the chi-square over its expectation, floored at 1):
+        # what ``legs_directions_chi2`` stands for
+        ("directions_level", ("steps34_chi2_per_dof",)),
     ),
 }
 

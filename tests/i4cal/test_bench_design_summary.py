@@ -73,7 +73,11 @@ def test_the_methods_measured_noise_levels_are_recorded_and_averaged():
         "methods": {
             "legs": {
                 "std": dict.fromkeys(C, 1e-3),
-                "diagnostics": {"step1_residual_chi2_per_dof": 1.4, "steps34_residual_chi2_per_dof": 0.8},
+                "diagnostics": {
+                    "step1_residual_chi2_per_dof": 1.4,
+                    "steps34_residual_chi2_per_dof": 0.8,
+                    "steps34_chi2_per_dof": 1.0,
+                },
                 "converged": True,
             },
             "combined": {
@@ -88,7 +92,7 @@ def test_the_methods_measured_noise_levels_are_recorded_and_averaged():
         "truth_errors": {"legs": dict.fromkeys(C, 1e-3), "combined": dict.fromkeys(C, 1e-4)},
     }
     rec = trial_record(doc, {"frames": []})
-    assert rec["methods"]["legs"]["noise_levels"] == {"lock_chi2": 1.4, "directions_chi2": 0.8}
+    assert rec["methods"]["legs"]["noise_levels"] == {"lock_chi2": 1.4, "directions_chi2": 0.8, "directions_level": 1.0}
     assert rec["methods"]["combined"]["noise_levels"] == {
         "direction_noise_scale": 0.55,
         "rod_own_scale": 0.6,
