@@ -91,6 +91,13 @@ class DesignRequest:
     criterion : {"d", "a", "target"}
     methods : tuple of str
         Methods whose predicted accuracy the selection optimises (combined, end-effector).
+    draws : int
+        Independent draws of the ``n_candidates`` candidate poses, each designed in full, the best kept (by the
+        criterion on its prediction: the exchange finds a local optimum of the poses drawn, and another draw can
+        hold a better one). 1: the one draw of ``seed``.
+    candidate_draw : int
+        Which draw of the candidates this is (0: the ``seed``'s own; the lock, validation and reference poses
+        do not change with it).
     """
 
     n_fit: int | None = None
@@ -107,6 +114,8 @@ class DesignRequest:
     n_min: int = 4
     n_max: int = 60
     weighting: str = "gls"
+    draws: int = 1
+    candidate_draw: int = 0
 
     def __post_init__(self) -> None:
         if self.n_fit is not None and not (2 <= self.n_fit <= 200):
@@ -132,6 +141,8 @@ class DesignRequest:
             raise InputError("n_base 3..100, n_lock 2..50, n_validation 0..200", field="n_base")
         if not (2 <= self.n_min <= self.n_max <= 200):
             raise InputError("need 2 <= n_min <= n_max <= 200", field="n_max")
+        if not (1 <= self.draws <= 20) or self.candidate_draw < 0:
+            raise InputError("draws must be in 1..20 (and candidate_draw >= 0)", field="draws")
 
     def targets(self) -> np.ndarray | None:
         if self.target_std_m is None:
@@ -400,10 +411,12 @@ def design_plan(
     motion = motion or MotionSpec()
     noise = noise or DesignNoise()
     ws = ws or Workspace()
+    if req.draws > 1:
+        return _best_of_draws(nominal, scene, req, limits=limits, motion=motion, noise=noise, ws=ws)
     t = req.targets()
     notes: list[str] = []
     span, length, rot, tra, _ = _sweeps(nominal, scene, limits, ws, noise, req.n_base)
-    rng = np.random.default_rng(req.seed)
+    rng = np.random.default_rng(req.seed if req.candidate_draw == 0 else [req.seed, req.candidate_draw])
     cand_q = ikm(nominal, random_poses(nominal, req.n_candidates, rng, ws, limits))
     refs: dict[int, np.ndarray] = {}
 
@@ -566,9 +579,57 @@ def design_plan(
         "criterion": req.criterion,
         "methods": list(req.methods),
         "seed": req.seed,
+        "draws": req.draws,
+        "candidate_draw": req.candidate_draw,
     }
     result.plan = Plan.model_validate({**plan.model_dump(exclude_none=True), "design": design})
     return result
+
+
+def design_score(result: DesignResult, request: DesignRequest) -> tuple[float, ...]:
+    """How good a design is, lower better: a met target first, then fewer fit poses when the count was free,
+    then the criterion on the plan's prediction (``"target"``: the worst predicted std over its target among the
+    optimised methods; ``"a"``: the sum of their predicted variances, over the targets' squares when given, else
+    per mm^2; ``"d"``: minus the sum of their information's log-determinants), then the motion time."""
+    pred, t = result.prediction, request.targets()
+    stds = [np.array([pred.std[m][c] for c in COMBINATION_NAMES]) for m in request.methods if m in pred.std]
+    if len(stds) < len(request.methods):
+        return (np.inf,)
+    if request.criterion == "target":
+        assert t is not None
+        crit = float(max(np.max(sd / t) for sd in stds))
+    elif request.criterion == "a":
+        scale = t if t is not None else np.full(4, 1e-3)
+        crit = float(sum(np.sum((sd / scale) ** 2) for sd in stds))
+    else:
+        crit = -float(sum(v for k, v in result.criterion.items() if k.startswith("logdet_")))
+    return (
+        float(result.target_met is False),
+        float(result.n_fit if request.n_fit is None else 0),
+        crit,
+        float(result.motion["total_s"]),
+    )
+
+
+def _best_of_draws(nominal, scene, req: DesignRequest, **kw: Any) -> DesignResult:
+    """:func:`design_plan` for each of ``req.draws`` draws of the candidates; the best by :func:`design_score`."""
+    from dataclasses import replace
+
+    results = [design_plan(nominal, scene, replace(req, draws=1, candidate_draw=k), **kw) for k in range(req.draws)]
+    scores = [design_score(r, req) for r in results]
+    k = min(range(len(results)), key=lambda i: scores[i])
+    best = results[k]
+    best.notes.append(
+        f"best of {req.draws} draws of {req.n_candidates} candidate poses (draw {k}; "
+        + ", ".join(f"{s[2]:.4g}" for s in scores)
+        + " by the criterion)"
+    )
+    design = dict(best.plan.model_extra.get("design") or {})
+    design["request"] = {**design.get("request", {}), "draws": req.draws, "candidate_draw": k}
+    design["notes"] = best.notes
+    design["draws_criterion"] = [s[2] for s in scores]
+    best.plan = Plan.model_validate({**best.plan.model_dump(exclude_none=True), "design": design})
+    return best
 
 
 def targets_from_plan(

@@ -51,6 +51,11 @@ FORMAT = "i4cal.bench-design/1"
 #: only among enough of them (designed-12, predicted combined L std: 0.109 mm from 300, 0.099 from 1000, 0.094 from
 #: 3000; 30 s of design)
 DEFAULT_CANDIDATES = 3000
+#: independent draws of those candidates, each designed, the best kept (by the target criterion on the prediction):
+#: one draw's exchange stops at a local optimum of its poses (seed 1, worst predicted ratio to the paper's 20: 0.795
+#: from the seed's own 3000, 0.724 from another draw of 5000, while at seed 2 the other draw was worse, 0.719
+#: against 0.657)
+DEFAULT_DRAWS = 3
 #: a prediction within this factor of the RMS error either way (1.3: the issue's 30%) counts as within
 WITHIN_FACTOR = 1.3
 #: bootstrap resamples of the trials for a ratio's interval (seeded: the same file gives the same intervals)
@@ -66,6 +71,7 @@ def _plans(
     accel: float,
     only: list[str] | None = None,
     candidates: int = DEFAULT_CANDIDATES,
+    draws: int = 1,
 ) -> dict[str, dict[str, Any]]:
     from calib.design import (
         DesignRequest,
@@ -103,6 +109,7 @@ def _plans(
                     with_line=False,
                     seed=seed,
                     n_candidates=candidates,
+                    draws=draws,
                     criterion="target",
                     target_std_m=targets,
                 )
@@ -130,7 +137,9 @@ def run_design_bench(opts: argparse.Namespace, progress=None) -> dict[str, Any]:
     from .accuracy import _cores, default_spread_m, draw_truth, trial_seed
 
     t0 = time.perf_counter()
-    plans = _plans(opts.counts, opts.seed, opts.speed, opts.accel, opts.plans, opts.candidates)
+    plans = _plans(
+        opts.counts, opts.seed, opts.speed, opts.accel, opts.plans, opts.candidates, getattr(opts, "draws", 1)
+    )
     spread = default_spread_m()
     tasks = [
         TrialTask(
@@ -604,6 +613,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=DEFAULT_CANDIDATES,
         help=f"candidate poses the designed plans are chosen from (default {DEFAULT_CANDIDATES}; "
         "`i4cal plan design --candidates`)",
+    )
+    a(
+        "--draws",
+        type=int,
+        default=DEFAULT_DRAWS,
+        help=f"draws of the candidates for the designed plans, the best kept (default {DEFAULT_DRAWS}; "
+        "`i4cal plan design --draws`)",
     )
     a("--json", default=None, metavar="PATH")
     a(

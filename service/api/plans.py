@@ -36,6 +36,7 @@ class DesignBody(BaseModel):
     methods: list[Literal["combined", "end-effector"]] = Field(["combined"], min_length=1, max_length=2)
     seed: int = Field(0, ge=0, le=2**31 - 1)
     candidates: int = Field(300, ge=20, le=1000, description="candidate poses drawn")
+    draws: int = Field(1, ge=1, le=5, description="independent draws of the candidates, each designed, the best kept")
     with_line: bool = Field(True, description="include the guided line (straightness)")
 
 
@@ -121,6 +122,7 @@ async def design(body: DesignBody, request: Request, manager: Manager, settings:
                 methods=tuple(dict.fromkeys(body.methods)),
                 seed=body.seed,
                 n_candidates=min(body.candidates, settings.design_max_candidates),
+                draws=body.draws,
                 with_line=body.with_line,
             )
             res = await _finish_even_if_abandoned(

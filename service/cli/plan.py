@@ -33,6 +33,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     a("--methods", default="combined", help="methods the selection optimises: combined,end-effector")
     a("--seed", type=int, default=0, help="seed of the candidate poses")
     a("--candidates", type=int, default=300, help="candidate poses drawn (default 300)")
+    a(
+        "--draws",
+        type=int,
+        default=1,
+        help="independent draws of the candidates, each designed, the best kept (default 1; the exchange finds a "
+        "local optimum of the poses drawn)",
+    )
     a("--no-line", action="store_true", help="leave out the guided line (straightness)")
     a(
         "--noise-from",
@@ -83,6 +90,7 @@ def _design(args: argparse.Namespace) -> int:
         methods=tuple(m.strip() for m in args.methods.split(",") if m.strip()),
         seed=args.seed,
         n_candidates=args.candidates,
+        draws=args.draws,
         with_line=not args.no_line,
     )
     res = design_for_bench(cfg, req, noise)

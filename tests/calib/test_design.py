@@ -501,3 +501,38 @@ def test_image_prediction_of_a_plan_with_a_leg_seen_through_its_second_rod_only(
     ref = predict_plan(Plan(name="paper", steps=[s for s in paper.steps if s.phase != "line"]), NOMINAL, scene, noise)
     # one pose of twelve changed: the same order of magnitude as the paper's plan
     assert np.all(np.abs(np.log(std / np.array([ref.std["legs"][c] for c in COMBINATION_NAMES]))) < np.log(3)), std
+
+
+def test_best_of_several_candidate_draws(scene):
+    """``draws``: each draw of the candidates designed in full, the best kept by the criterion on its prediction.
+    The best of three is at least as good as each draw alone (here strictly better than the seed's own draw, whose
+    exchange stops at a local optimum), draw 0 is the one-draw design, and the plan says which draw it is."""
+    from dataclasses import replace
+
+    from calib.design import design_score
+    from calib.errors import InputError
+
+    target = (1.0e-4, 0.4e-4, 1.0e-4, 1.0e-4)
+    req = DesignRequest(
+        n_fit=8,
+        n_lock=2,
+        n_validation=0,
+        with_line=False,
+        n_candidates=120,
+        seed=4,
+        criterion="target",
+        target_std_m=target,
+    )
+    singles = [design_plan(NOMINAL, scene, replace(req, candidate_draw=k)) for k in range(3)]
+    best = design_plan(NOMINAL, scene, replace(req, draws=3))
+    scores = [design_score(r, req)[2] for r in singles]
+    assert design_score(best, req)[2] == pytest.approx(min(scores), rel=1e-12), scores
+    assert scores[0] > min(scores), scores  # another draw holds a better design than the seed's own
+    # draw 0 is the seed's own: the design without draws
+    plain = design_plan(NOMINAL, scene, req)
+    assert phase_q(plain.plan, "poses").tolist() == phase_q(singles[0].plan, "poses").tolist()
+    k = int(np.argmin(scores))
+    assert best.plan.model_extra["design"]["request"]["candidate_draw"] == k
+    assert any("best of 3 draws" in n for n in best.notes), best.notes
+    with pytest.raises(InputError, match="draws"):
+        replace(req, draws=0)
