@@ -624,7 +624,7 @@ def _best_of_draws(nominal, scene, req: DesignRequest, **kw: Any) -> DesignResul
         + ", ".join(f"{s[2]:.4g}" for s in scores)
         + " by the criterion)"
     )
-    design = dict(best.plan.model_extra.get("design") or {})
+    design = dict((best.plan.model_extra or {}).get("design") or {})
     design["request"] = {**design.get("request", {}), "draws": req.draws, "candidate_draw": k}
     design["notes"] = best.notes
     design["draws_criterion"] = [s[2] for s in scores]
