@@ -242,13 +242,16 @@ def _summarize_plans(plans: dict[str, dict[str, Any]]) -> None:
 
 
 def merge_benches(docs: list[dict[str, Any]], names: list[str]) -> dict[str, Any]:
-    """One design bench from runs of the same plans over disjoint trial ranges (``--first-trial``).
+    """One design bench from runs at the same ``--seed``: a plan in several runs gets the trials of all of them
+    (disjoint trial ranges, ``--first-trial``; the same poses), a plan in one run is taken as it is (``--plans``:
+    the designed plans run apart from the paper's, say).
 
-    Every run must hold the same plans with the same steps, at the same ``--seed``; a trial index in two runs is
-    refused. The summaries and checks are recomputed over all the trials; the predictions are the first run's (the
-    same plans give the same ones). A run written before the trials' full records were kept has only each method's
-    errors and std per trial (``trials``): its trials count in every check and in the methods' RMS errors and mean
-    std, not in the summaries' bounds, efficiencies, gaps or timings (``records_reduced`` lists such files).
+    A trial index of a plan in two runs, a plan whose poses differ between runs, or another seed is refused. The
+    summaries and checks are recomputed over all the trials; a plan's predictions are those of the first run that
+    holds it (the same poses give the same ones). A run written before the trials' full records were kept has only
+    each method's errors and std per trial (``trials``): its trials count in every check and in the methods' RMS
+    errors and mean std, not in the summaries' bounds, efficiencies, gaps or timings (``records_reduced`` lists such
+    files). Each plan lists the files it came from (``sources``).
 
     Raises
     ------
@@ -259,39 +262,45 @@ def merge_benches(docs: list[dict[str, Any]], names: list[str]) -> dict[str, Any
 
     from calib.errors import InputError
 
-    docs = [copy.deepcopy(d) for d in docs]
-    reduced = []
+    seed = (docs[0].get("options") or {}).get("seed")
+    merged: dict[str, dict[str, Any]] = {}
+    seen: dict[str, dict[int, str]] = {}
+    reduced: list[str] = []
     for doc, path in zip(docs, names, strict=True):
-        for p in doc["plans"].values():
+        if (doc.get("options") or {}).get("seed") != seed:
+            raise InputError(f"{path}: --seed {doc.get('options', {}).get('seed')} where {names[0]} has {seed}")
+        for name, p in doc["plans"].items():
+            p = copy.deepcopy(p)
             if "records" not in p:
                 p["records"] = [_reduced_record(t) for t in p.get("trials") or []]
                 if path not in reduced:
                     reduced.append(path)
-    first = docs[0]
-    seed = (first.get("options") or {}).get("seed")
-    seen: dict[str, dict[int, str]] = {name: {} for name in first["plans"]}
-    for doc, path in zip(docs, names, strict=True):
-        if (doc.get("options") or {}).get("seed") != seed:
-            raise InputError(f"{path}: --seed {doc.get('options', {}).get('seed')} where {names[0]} has {seed}")
-        if set(doc["plans"]) != set(first["plans"]):
-            raise InputError(f"{path}: plans {sorted(doc['plans'])} where {names[0]} has {sorted(first['plans'])}")
-        for name, p in doc["plans"].items():
-            if p["steps"] != first["plans"][name]["steps"]:
-                raise InputError(f"{path}: plan {name}'s poses differ from those of {names[0]}")
+            if name in merged:
+                if p["steps"] != merged[name]["steps"]:
+                    first = merged[name]["sources"][0]
+                    raise InputError(f"{path}: plan {name}'s poses differ from those of {first}")
+                merged[name]["records"] += p["records"]
+                merged[name]["sources"].append(path)
+            else:
+                merged[name] = {**p, "sources": [path]}
+                seen[name] = {}
             for r in p["records"]:
                 k = int(r["index"])
                 if k in seen[name]:
                     raise InputError(f"{path}: trial {k} of {name} is in {seen[name][k]} too")
                 seen[name][k] = path
-    for name, p in first["plans"].items():
-        recs = [r for doc in docs for r in doc["plans"][name]["records"]]
-        p["records"] = sorted(recs, key=lambda r: int(r["index"]))
-    _summarize_plans(first["plans"])
-    first["merged_from"] = list(names)
-    first["records_reduced"] = reduced
-    first["elapsed_s"] = float(sum(d.get("elapsed_s", 0.0) for d in docs))
-    first["checks"] = _checks(first["plans"])
-    return first
+    for p in merged.values():
+        p["records"] = sorted(p["records"], key=lambda r: int(r["index"]))
+    _summarize_plans(merged)
+    out = {k: v for k, v in docs[0].items() if k != "plans"}
+    out.update(
+        plans=merged,
+        merged_from=list(names),
+        records_reduced=reduced,
+        elapsed_s=float(sum(d.get("elapsed_s", 0.0) for d in docs)),
+        checks=_checks(merged),
+    )
+    return out
 
 
 def _rms(v: list[float]) -> float:

@@ -228,8 +228,8 @@ def test_report_reprints_a_saved_bench_and_refuses_other_files(tmp_path, capsys)
         run(argparse.Namespace(report=str(other), trials=5, counts=[12]))
 
 
-def _bench_doc(indices: range, rng: np.random.Generator, steps: list | None = None) -> dict:
-    """A design bench of one plan (paper-20) whose trials ``indices`` carry full records of the three methods."""
+def _bench_doc(indices: range, rng: np.random.Generator, steps: list | None = None, name: str = "paper-20") -> dict:
+    """A design bench of one plan (``name``) whose trials ``indices`` carry full records of the three methods."""
     from i4cal.benchmarks.design import FORMAT, _checks, _summarize_plans
 
     def record(k: int) -> dict:
@@ -255,7 +255,7 @@ def _bench_doc(indices: range, rng: np.random.Generator, steps: list | None = No
         "predicted_images_std_m": pred,
         "records": [record(k) for k in indices],
     }
-    plans = {"paper-20": plan}
+    plans = {name: plan}
     _summarize_plans(plans)
     return {
         "format": FORMAT,
@@ -296,6 +296,10 @@ def test_runs_of_disjoint_trial_ranges_merge_into_one_bench(tmp_path, capsys):
     with_old = merge_benches([a, old], ["a.json", "old.json"])
     assert with_old["records_reduced"] == ["old.json"] and len(with_old["plans"]["paper-20"]["trials"]) == 20
     assert with_old["plans"]["paper-20"]["summary"]["methods"]["legs"]["n_ok"] == 20
+    # plans run apart (--plans designed-12, then paper-20) merge into one bench with the designed-vs-paper check
+    both = merge_benches([_bench_doc(range(30), rng, name="designed-12"), a], ["d.json", "a.json"])
+    assert set(both["plans"]) == {"designed-12", "paper-20"} and both["plans"]["designed-12"]["sources"] == ["d.json"]
+    assert set(both["checks"]["designed12_combined_not_worse_than_paper20"]) == set(C)
     # through the command: the merged table and checks printed, and written
     for name, doc in (("a.json", a), ("b.json", b)):
         for m in ("combined", "end-effector", "legs"):
