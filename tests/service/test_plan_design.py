@@ -52,6 +52,12 @@ def test_cli_design_json_and_a_bad_unit(tmp_path, capsys):
     assert doc["n_fit"] == 4 and doc["motion"]["total_s"] > 0
     assert main(["plan", "design", "--bench", str(BENCH_SIM), "--target-std", "3 furlongs"]) == 2
     assert "target-std" in capsys.readouterr().err
+    # --draws: the best of several draws of the candidates, said in the notes
+    assert main(["plan", "design", "--bench", str(BENCH_SIM), *SMALL, "--draws", "2", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert any("best of 2 draws" in n for n in doc["notes"]), doc["notes"]
+    assert main(["plan", "design", "--bench", str(BENCH_SIM), *SMALL, "--draws", "0"]) == 2
+    assert "draws" in capsys.readouterr().err
 
 
 def _paper_plan(path: Path, n_fit: int = 12) -> Plan:
@@ -163,11 +169,23 @@ async def test_api_designs_better_than_a_reference_plan(service, tmp_path):
     assert r.status_code == 422 and r.json()["detail"][0]["loc"][:2] == ["body", "better_than"], r.text
 
 
+async def test_api_designs_the_best_of_several_candidate_draws(service):
+    """``draws``: the best of several draws of the candidates, the plan saying which draw it is."""
+    body = {"n_fit": 4, "with_line": False, "candidates": 40, "draws": 2}
+    r = await service.client.post(f"{API}/plans/design", json=body, headers=AUTH)
+    assert r.status_code == 200, r.text
+    request = r.json()["plan"]["design"]["request"]
+    assert request["draws"] == 2 and request["candidate_draw"] in (0, 1), request
+    assert any("best of 2 draws of 40 candidate poses" in n for n in r.json()["notes"]), r.json()["notes"]
+
+
 async def test_api_bounds_its_inputs(service):
     c = service.client
     for bad in (
         {"n_fit": 1000},
         {"candidates": 10**6},
+        {"draws": 6},
+        {"draws": 0},
         {"target_std_m": -1},
         {"methods": ["legs"]},
         {"what": 1},
