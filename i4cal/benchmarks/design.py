@@ -314,6 +314,11 @@ def _ratios(pr: dict[str, Any], rms: dict[str, Any]) -> dict[str, float | None]:
     return {c: (pr[c] / rms[c]) if pr.get(c) and rms.get(c) else None for c in COMBINATIONS}
 
 
+def _min_trials(about_mean: bool) -> int:
+    """The fewest errors a ratio's interval takes: 2 for an RMS, 3 for a spread (its jackknife leaves two)."""
+    return 3 if about_mean else 2
+
+
 def ratio_interval(
     predicted: float,
     errors: np.ndarray,
@@ -349,7 +354,7 @@ def ratio_interval(
     from scipy.stats import bootstrap
 
     e = np.asarray(errors, dtype=np.float64).reshape(-1)
-    need = 3 if about_mean else 2  # the jackknife of a spread needs two values left
+    need = _min_trials(about_mean)
     if e.size < need or not np.all(np.isfinite(e)):
         raise ValueError(f"errors must be finite, shape (n,) with n >= {need}, got {e.size} value(s)")
     if not np.any(e):
@@ -411,7 +416,7 @@ def _std_over_rms_intervals(
             intervals[name][m] = {}
             for c in COMBINATIONS:
                 e = _trial_errors(p.get("trials") or [], m, c)
-                if not pr.get(c) or not rms.get(c) or e.size < (3 if about_mean else 2):
+                if not pr.get(c) or not rms.get(c) or e.size < _min_trials(about_mean):
                     intervals[name][m][c] = None
                     continue
                 lo, hi = ratio_interval(pr[c], e, about_mean=about_mean)
@@ -658,11 +663,20 @@ def run(args: argparse.Namespace) -> int:
                 doc = json.loads(Path(path).read_text())
                 if doc.get("format") != FORMAT:
                     raise InputError(f"{path}: not an {FORMAT} file (format {doc.get('format')!r})", field="--report")
-                doc["checks"] = _checks(doc["plans"])
+                if len(paths) == 1:  # several are checked once, merged
+                    doc["checks"] = _checks(doc["plans"])
             except (OSError, ValueError, KeyError, TypeError) as exc:
                 raise InputError(f"{path}: cannot read a design bench: {exc}", field="--report") from exc
             docs.append(doc)
-        doc = docs[0] if len(docs) == 1 else merge_benches(docs, paths)
+        if len(docs) == 1:
+            doc = docs[0]
+        else:
+            try:
+                doc = merge_benches(docs, paths)
+            except InputError:
+                raise
+            except (ValueError, KeyError, TypeError) as exc:
+                raise InputError(f"{', '.join(paths)}: cannot merge design benches: {exc}", field="--report") from exc
         print_table(doc)
         if len(docs) > 1 and getattr(args, "json", None):
             write_json_atomic(args.json, to_jsonable(doc), indent=1)
