@@ -24,7 +24,7 @@ plan, trapezoidal profiles, fit poses ordered by a nearest-neighbour tour with 2
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -611,10 +611,8 @@ def design_score(result: DesignResult, request: DesignRequest) -> tuple[float, .
     )
 
 
-def _best_of_draws(nominal, scene, req: DesignRequest, **kw: Any) -> DesignResult:
+def _best_of_draws(nominal: I4Parameters, scene: Scene, req: DesignRequest, **kw: Any) -> DesignResult:
     """:func:`design_plan` for each of ``req.draws`` draws of the candidates; the best by :func:`design_score`."""
-    from dataclasses import replace
-
     results = [design_plan(nominal, scene, replace(req, draws=1, candidate_draw=k), **kw) for k in range(req.draws)]
     scores = [design_score(r, req) for r in results]
     k = min(range(len(results)), key=lambda i: scores[i])
