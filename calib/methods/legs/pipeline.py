@@ -5,6 +5,7 @@ means, the gating of poses and the steps' covariance.
 from __future__ import annotations
 
 import numpy as np
+from scipy.linalg import block_diag
 from scipy.optimize import least_squares
 
 from ...errors import ConvergenceError, IdentifiabilityError
@@ -124,6 +125,13 @@ class _LegsPipeline:
         theta0 = np.array([nom.L, nom.S, nom.D]) if theta_init is None else np.asarray(theta_init, dtype=np.float64)
         L, S, D = self.robust34(x, y, A0, U, theta0) if robust else self.steps34(x, y, A0, U, theta0, on_iteration)
         return np.array([H, q02, q03, q04, S, D, L])
+
+    def geometry(self, P: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For joints ``P`` (4, 2, 3) and leg directions ``U`` (N, 4, 3): A_i(q_i) per fit pose (N, 4, 3), the
+        directions oriented from A to B (N, 4, 3) and the base frame's y axis (3,), what the fit's equations take."""
+        x, A0, _ = self.frame(P)
+        Aq, Uo = self.oriented(x, A0, U)
+        return Aq, Uo, self.y_axis(x, A0)
 
     @staticmethod
     def y_axis(x: np.ndarray, A0: np.ndarray) -> np.ndarray:
@@ -387,10 +395,8 @@ def _leg_directions(
 
 def _gate_poses(pipe: _LegsPipeline, P: np.ndarray, U: np.ndarray, seven: np.ndarray) -> np.ndarray:
     """Poses (bool, (N,)) whose whitened equations exceed their chi-square 99.9% quantile (robust scale)."""
-    x, A0, _ = pipe.frame(P)
-    Aq, Uo = pipe.oriented(x, A0, U)
-    theta = seven[[6, 4, 5]]
-    d2 = np.sum(pipe.whitened(theta, Aq, Uo, pipe.y_axis(x, A0)) ** 2, axis=1)
+    Aq, Uo, y = pipe.geometry(P, U)
+    d2 = np.sum(pipe.whitened(seven[[6, 4, 5]], Aq, Uo, y) ** 2, axis=1)
     m = pipe.mask.sum(axis=1)
     used = m > 0
     if used.sum() < 4:
@@ -405,9 +411,7 @@ def _steps34_covariance(
     pipe: _LegsPipeline, P: np.ndarray, U: np.ndarray, seven: np.ndarray
 ) -> tuple[np.ndarray, float, int]:
     """GLS covariance (3, 3) of (L, S, D) for unit-scaled weights, the chi-square and its dof."""
-    x, A0, _ = pipe.frame(P)
-    y = pipe.y_axis(x, A0)
-    Aq, Uo = pipe.oriented(x, A0, U)
+    Aq, Uo, y = pipe.geometry(P, U)
     theta = seven[[6, 4, 5]]
     J = central_jacobian(lambda t: pipe.whitened(t, Aq, Uo, y).ravel(), theta, h=1e-7)
     r = pipe.whitened(theta, Aq, Uo, y)
@@ -455,28 +459,19 @@ def _steps34_sandwich(
     """
     assert pipe.W is not None
     theta = seven[[6, 4, 5]]
-    x, A0, _ = pipe.frame(P)
-    y = pipe.y_axis(x, A0)
-    Aq, Uo = pipe.oriented(x, A0, U)
+    Aq, Uo, y = pipe.geometry(P, U)
     J = pipe.whitened_jacobian(theta, Aq, Uo, y).reshape(-1, 3)
     r = pipe.whitened(theta, Aq, Uo, y).ravel()
     own = _LegsPipeline(pipe.q_lock, pipe.q_fit, pipe.rod_p, pipe.has_leg, cov_leg_own, pipe.nominal)
     C_own = own.covariances(theta, Aq, Uo, y)  # (N, 4, 4), identity on unused equations
     C_own = np.where(pipe.mask[:, :, None] & pipe.mask[:, None, :], C_own, 0.0)
-    WCW = np.einsum("nij,njk,nlk->nil", pipe.W, C_own, pipe.W)
-    n = WCW.shape[0]
-    S = np.zeros((4 * n, 4 * n))
-    for k in range(n):
-        S[4 * k : 4 * k + 4, 4 * k : 4 * k + 4] = WCW[k]
+    S = block_diag(*np.einsum("nij,njk,nlk->nil", pipe.W, C_own, pipe.W))
     Ainv = np.linalg.inv(J.T @ J)
     gain = Ainv @ J.T
     cov = gain @ S @ gain.T
 
     def whitened_at(pv: np.ndarray) -> np.ndarray:
-        xx, AA, _ = pipe.frame(pv.reshape(4, 2, 3))
-        yy = pipe.y_axis(xx, AA)
-        Aq2, Uo2 = pipe.oriented(xx, AA, U)
-        return pipe.whitened(theta, Aq2, Uo2, yy).ravel()
+        return pipe.whitened(theta, *pipe.geometry(pv.reshape(4, 2, 3), U)).ravel()
 
     G = central_jacobian(whitened_at, P.ravel(), h=1e-7)  # (4N, 24)
     M = np.eye(J.shape[0]) - J @ gain

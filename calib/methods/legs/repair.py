@@ -110,9 +110,7 @@ def joint_repair_map(leg: int, rod: int) -> np.ndarray:
 def _fit_chi2(pipe: _LegsPipeline, P: np.ndarray, U: np.ndarray) -> float:
     """Robust chi-square per degree of freedom of the fit poses' equations after a robust steps 3-4 fit with ``P``."""
     seven = pipe.run(P, U, robust=True)
-    x, A0, _ = pipe.frame(P)
-    Aq, Uo = pipe.oriented(x, A0, U)
-    d2 = np.sum(pipe.whitened(seven[[6, 4, 5]], Aq, Uo, pipe.y_axis(x, A0)) ** 2, axis=1)
+    d2 = np.sum(pipe.whitened(seven[[6, 4, 5]], *pipe.geometry(P, U)) ** 2, axis=1)
     m = pipe.mask.sum(axis=1)
     used = m > 0
     return float(robust_chi2_scale(d2[used], m[used])) if used.sum() >= 4 else float("nan")
