@@ -49,6 +49,7 @@ __all__ = [
     "combined_images_pose_information",
     "combined_images_prior",
     "end_effector_images_pose_information",
+    "joint_depth_systematic",
     "predict_combined_images",
     "predict_end_effector_images",
     "predict_legs_images",
@@ -100,6 +101,20 @@ class ImageNoise:
         error). The defaults are their means over 64 rendered trials of the image-level twin (designed-12 plans of
         seeds 0 and 1, paper-20 of seed 1): 1.53 and 1.32 (docs/design.md). 1: the covariances as the noise model
         gives them.
+    legs_rod_cov_ratio : float
+        The extracted fit-pose rods' own covariances over the synthetic ones, as the legs method's steps 3-4 weigh
+        them (variance ratio of their leg-directions part before its chi-square level): 1.25-1.28 in median over
+        the trials of three rendered plans (seed-0 designed-12 and paper-20, seed-2 paper-20), the synthetic
+        ``cov_u``'s principal std being 1.10-1.14x smaller than the extracted (docs/design.md). The combined
+        prediction has it in ``rod_scale``.
+    legs_joint_depth_sys_m, legs_joint_depth_sys_leg_share : float
+        The lock phases' joints' systematic error along their line of sight (m, RMS per joint) and the share of
+        its variance common to a leg's two joints. The rods' shading biases a rod's limb edges by an amount that
+        depends on its apparent width, the same in every frame of a lock phase (the rod barely moves), so its
+        frames cannot average it and their scatter does not show it: on noise-free renders of the lock phases
+        (16 trials each of two plans) the joints' errors about their common depth were 0.79 mm RMS, half of the
+        variance per leg (docs/design.md). The legs method does not carry it yet; the prediction adds it
+        (``joint_depth_systematic``), as part of the error a run will have. 0: left out.
     legs_prior_std_m : float or None
         The legs method's a priori tolerance per parameter (``calib.methods.legs.PRIOR_STD_M``).
     intrinsics_names : tuple of str
@@ -124,6 +139,9 @@ class ImageNoise:
     edge_bias_prior_px: float = 0.1
     legs_lock_chi2: float = 1.5
     legs_directions_chi2: float = 1.3
+    legs_rod_cov_ratio: float = 1.26
+    legs_joint_depth_sys_m: float = 0.8e-3
+    legs_joint_depth_sys_leg_share: float = 0.5
     legs_prior_std_m: float | None = 0.01
     intrinsics_names: tuple[str, ...] = DEFAULT_INTRINSICS_NAMES
     intrinsics_cov: tuple[tuple[float, ...], ...] | None = None
@@ -138,6 +156,7 @@ class ImageNoise:
             "corner_axis_width_deg",
             "legs_lock_chi2",
             "legs_directions_chi2",
+            "legs_rod_cov_ratio",
         ):
             v = getattr(self, k)
             if not (np.isfinite(v) and v > 0):
@@ -149,10 +168,17 @@ class ImageNoise:
             "encoder_m",
             "rod_pair_correlation",
             "rod_distance_correlation",
+            "legs_joint_depth_sys_m",
         ):
             v = getattr(self, k)
             if not (np.isfinite(v) and v >= 0):
                 raise InputError(f"image noise: {k} must be finite and >= 0, got {v}", field=k)
+        if not (np.isfinite(self.legs_joint_depth_sys_leg_share) and 0 <= self.legs_joint_depth_sys_leg_share <= 1):
+            raise InputError(
+                "image noise: legs_joint_depth_sys_leg_share must be within [0, 1], got "
+                f"{self.legs_joint_depth_sys_leg_share}",
+                field="legs_joint_depth_sys_leg_share",
+            )
         for k in ("rod_pair_correlation", "rod_distance_correlation"):
             v = getattr(self, k)
             if not v < 1:
@@ -218,6 +244,9 @@ class ImageNoise:
             "edge_bias_prior_px": self.edge_bias_prior_px,
             "legs_lock_chi2": self.legs_lock_chi2,
             "legs_directions_chi2": self.legs_directions_chi2,
+            "legs_rod_cov_ratio": self.legs_rod_cov_ratio,
+            "legs_joint_depth_sys_m": self.legs_joint_depth_sys_m,
+            "legs_joint_depth_sys_leg_share": self.legs_joint_depth_sys_leg_share,
             "legs_prior_std_m": self.legs_prior_std_m,
             "intrinsics_names": list(self.intrinsics_names),
             "intrinsics_std": None
@@ -524,6 +553,37 @@ def predict_end_effector_images(
 
 
 # -- legs ------------------------------------------------------------------------------------------------------
+def joint_depth_systematic(P: np.ndarray, noise: ImageNoise) -> np.ndarray:
+    """Covariance (24, 24) of the lock phases' joints' systematic error along their lines of sight.
+
+    Parameters
+    ----------
+    P : ndarray, shape (4, 2, 3)
+        The joints (leg, rod), camera frame, metres.
+    noise : ImageNoise
+        ``legs_joint_depth_sys_m`` (RMS per joint, m) and ``legs_joint_depth_sys_leg_share`` (the share of its
+        variance common to a leg's two joints).
+
+    Returns
+    -------
+    ndarray, shape (24, 24)
+        In the (leg, rod, xyz) order of the method's joints, m^2.
+    """
+    P = np.asarray(P, dtype=np.float64)
+    if P.shape != (4, 2, 3):
+        raise ValueError(f"P must have shape (4, 2, 3), got {P.shape}")
+    los = P / np.linalg.norm(P, axis=-1, keepdims=True)
+    s2 = noise.legs_joint_depth_sys_m**2
+    rho = noise.legs_joint_depth_sys_leg_share
+    C = np.zeros((24, 24))
+    for i in range(4):
+        for a in range(2):
+            for b in range(2):
+                ka, kb = (2 * i + a) * 3, (2 * i + b) * 3
+                C[ka : ka + 3, kb : kb + 3] = s2 * (1.0 if a == b else rho) * np.outer(los[i, a], los[i, b])
+    return C
+
+
 def predict_legs_images(
     nominal: I4Parameters,
     q_fit: np.ndarray,
@@ -534,7 +594,8 @@ def predict_legs_images(
     edge_cov_px2: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
     """Predicted covariances of the legs method on images: seven parameters (7, 7), four combinations (4, 4), and
-    the seven's parts (``joint_centres``, ``leg_directions``, ``intrinsics``, ``limb_edge_bias``, ``a_priori``).
+    the seven's parts (``joint_centres``, ``joint_depth_systematic`` (:func:`joint_depth_systematic`; not in the
+    method's own std), ``leg_directions``, ``intrinsics``, ``limb_edge_bias``, ``a_priori``).
     ``edge_cov_px2`` (2, 2): the limb-edge bias's covariance the method uses, the combined fit's measurement of it
     (:func:`predict_combined_images_posteriors`; the method's default); None: the allowance
     (``edge_bias_prior_px`` per limb)."""
@@ -620,8 +681,11 @@ def predict_legs_images(
     c34, _chi, _expected = _steps34_sandwich(pipe, P, Uf, seven, CU_own, covJ)
     # the method scales both by its residuals' chi-square level; the prediction by their levels on the twin
     parts = {"joint_centres": GP @ covJ @ GP.T, "leg_directions": np.zeros((7, 7))}
+    if noise.legs_joint_depth_sys_m > 0:
+        parts["joint_depth_systematic"] = GP @ joint_depth_systematic(P, noise) @ GP.T
     idx = np.array([6, 4, 5])
-    parts["leg_directions"][np.ix_(idx, idx)] = noise.legs_directions_chi2 * c34
+    # the extracted rods' covariances are larger than the synthetic ones (``legs_rod_cov_ratio``)
+    parts["leg_directions"][np.ix_(idx, idx)] = noise.legs_directions_chi2 * noise.legs_rod_cov_ratio * c34
     parts["intrinsics"] = np.zeros((7, 7))
     parts["limb_edge_bias"] = np.zeros((7, 7))
     cov_i = noise.covariance() if intrinsics_cov is None else intrinsics_cov

@@ -33,7 +33,8 @@ error and that mean's standard error, which tell a bias of the plan's poses from
 the trials' spread about their mean (``checks.reported_std_within_30pct_of_spread``,
 ``reported_std_over_spread_interval90``): a std within its spread but not within its RMS error misses a bias alone.
 ``--json PATH`` writes everything (format ``i4cal.bench-design/1``); ``--report PATH`` prints the table and the
-checks of a file written so (recomputed with this version), without running anything.
+checks of a file written so (recomputed with this version), without running anything; with ``--repredict`` the
+plans' predictions are recomputed too (the trials kept: a change to the prediction alone, checked in seconds).
 """
 
 from __future__ import annotations
@@ -128,6 +129,38 @@ def _plans(
                 "candidates": drawn,
             }
     return out
+
+
+def repredict(doc: dict[str, Any]) -> dict[str, Any]:
+    """``doc`` (a design bench) with every plan's predictions (``predicted_std_m``, ``predicted_images_std_m``)
+    recomputed from its steps by the current prediction code, at the bench's seed, and its checks redone.
+
+    The trials are kept as they are: a change to the prediction alone is checked against a saved bench in seconds,
+    where running its trials again takes hours. ``repredicted`` records when and what the predictions were before.
+    """
+    from datetime import UTC, datetime
+
+    from calib.design import predict_plan
+    from calib.parameters import NOMINAL
+    from calib.plan import Plan
+    from service.design import twin_image_noise, twin_scene
+
+    seed = int((doc.get("options") or {}).get("seed", 0))
+    scene = twin_scene()
+    image_noise = twin_image_noise(seed=seed)
+    before = {}
+    for name, p in doc["plans"].items():
+        plan = Plan(name=name, steps=p["steps"])
+        before[name] = p.get("predicted_images_std_m")
+        p["predicted_std_m"] = predict_plan(plan, NOMINAL, scene).std
+        p["predicted_images_std_m"] = predict_plan(plan, NOMINAL, scene, image_noise).std
+    doc["repredicted"] = {
+        "date": datetime.now(UTC).isoformat(timespec="seconds"),
+        "image_noise": image_noise.to_dict() | {"intrinsics_std": None},
+        "predicted_images_std_m_before": before,
+    }
+    doc["checks"] = _checks(doc["plans"])
+    return doc
 
 
 def run_design_bench(opts: argparse.Namespace, progress=None) -> dict[str, Any]:
@@ -644,6 +677,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="print the table and checks of a file written by --json (recomputed), without running anything; several "
         "files of disjoint trial ranges (--first-trial) are merged (and written to --json when given)",
     )
+    a(
+        "--repredict",
+        action="store_true",
+        help="with --report: recompute every plan's predictions with the current code (the trials kept) before the "
+        "checks, and write the result to --json when given",
+    )
     p.set_defaults(handler=run)
 
 
@@ -677,8 +716,10 @@ def run(args: argparse.Namespace) -> int:
                 raise
             except (ValueError, KeyError, TypeError) as exc:
                 raise InputError(f"{', '.join(paths)}: cannot merge design benches: {exc}", field="--report") from exc
+        if getattr(args, "repredict", False):
+            doc = repredict(doc)
         print_table(doc)
-        if len(docs) > 1 and getattr(args, "json", None):
+        if (len(docs) > 1 or getattr(args, "repredict", False)) and getattr(args, "json", None):
             write_json_atomic(args.json, to_jsonable(doc), indent=1)
         return 0
     if args.trials < 1 or args.first_trial < 0 or not args.counts or min(args.counts) < 4:

@@ -331,6 +331,9 @@ BUDGET_SOURCES = {
         "fit's measurement of it, which corrects its rods)"
     ),
     "joint_centres": "joint centres (lock phases)",
+    "joint_depth_systematic": (
+        "joint centres' systematic depth error (the rods' shading; in the prediction, not in the method's std)"
+    ),
     "leg_directions": "leg directions of the fit poses",
     "lens_model": "lens model error (the camera calibration's radial residual beyond its noise)",
     "a_priori": "a priori geometry (manufacturing tolerance) where the data do not pin the parameters",

@@ -311,3 +311,40 @@ def test_runs_of_disjoint_trial_ranges_merge_into_one_bench(tmp_path, capsys):
     assert "(30 ok)" in capsys.readouterr().out
     back = json.loads(out_path.read_text())
     assert len(back["plans"]["paper-20"]["trials"]) == 30 and back["merged_from"][1].endswith("b.json")
+
+
+def test_repredict_recomputes_a_saved_benchs_predictions_and_keeps_its_trials(tmp_path, capsys):
+    """``--report FILE --repredict --json OUT``: every plan's predictions recomputed from its steps by the current
+    code (the bench's seed, the twin's image noise), the checks redone against the same trials, the old
+    predictions kept under ``repredicted``; the trials untouched."""
+    import argparse
+    import json
+
+    from calib.design import predict_plan
+    from calib.parameters import NOMINAL
+    from calib.plan import Plan, make_plan
+    from i4cal.benchmarks.design import run
+    from service.design import twin_image_noise, twin_scene
+
+    plan = make_plan("full", NOMINAL, seed=0, n_fit=8)
+    steps = [s.model_dump(exclude_none=True) for s in plan.steps if s.phase != "line"]
+    doc = _bench_doc(range(20), np.random.default_rng(6), steps=steps, name="paper-8")
+    path, out_path = tmp_path / "bench.json", tmp_path / "repredicted.json"
+    path.write_text(json.dumps(doc))
+    assert run(argparse.Namespace(report=[str(path)], repredict=True, json=str(out_path))) == 0
+    assert "image predictions within 30%" in capsys.readouterr().out
+    new = json.loads(out_path.read_text())
+    p = new["plans"]["paper-8"]
+    want = predict_plan(Plan(name="paper-8", steps=steps), NOMINAL, twin_scene(), twin_image_noise(seed=0)).std
+    for m in ("combined", "end-effector", "legs"):
+        for c in C:
+            assert p["predicted_images_std_m"][m][c] == pytest.approx(want[m][c], rel=1e-9)
+            assert new["repredicted"]["predicted_images_std_m_before"]["paper-8"][m][c] == 0.2e-3
+    assert p["records"] == doc["plans"]["paper-8"]["records"]
+    # the checks are those of the new predictions against the same RMS errors
+    rms = p["summary"]["methods"]["legs"]["rms_error_m"]["L"]
+    ratio = new["checks"]["predicted_images_over_rms"]["paper-8"]["legs"]["L"]
+    assert ratio == pytest.approx(want["legs"]["L"] / rms, rel=1e-9)
+    # without --json nothing is written; without --repredict the saved predictions are used
+    assert run(argparse.Namespace(report=[str(path)], repredict=False, json=None)) == 0
+    assert json.loads(path.read_text()) == doc
