@@ -36,6 +36,7 @@ import numpy as np
 
 from ..camera import INTRINSICS_NAMES
 from ..errors import IdentifiabilityError, InputError
+from ..methods.legs.constants import JOINT_DEPTH_SYS_LEG_SHARE, JOINT_DEPTH_SYS_M
 from ..numdiff import central_jacobian
 from ..parameters import COMBINATION_NAMES, I4Parameters
 from ..transforms import matrix_to_rotvec, rotvec_to_matrix
@@ -49,7 +50,6 @@ __all__ = [
     "combined_images_pose_information",
     "combined_images_prior",
     "end_effector_images_pose_information",
-    "joint_depth_systematic",
     "predict_combined_images",
     "predict_end_effector_images",
     "predict_legs_images",
@@ -109,12 +109,8 @@ class ImageNoise:
         prediction has it in ``rod_scale``.
     legs_joint_depth_sys_m, legs_joint_depth_sys_leg_share : float
         The lock phases' joints' systematic error along their line of sight (m, RMS per joint) and the share of
-        its variance common to a leg's two joints. The rods' shading biases a rod's limb edges by an amount that
-        depends on its apparent width, the same in every frame of a lock phase (the rod barely moves), so its
-        frames cannot average it and their scatter does not show it: on noise-free renders of the lock phases
-        (16 trials each of two plans) the joints' errors about their common depth were 0.79 mm RMS, half of the
-        variance per leg (docs/design.md). The legs method does not carry it yet; the prediction adds it
-        (``joint_depth_systematic``), as part of the error a run will have. 0: left out.
+        its variance common to a leg's two joints: the legs method's (``calib.methods.legs.constants``,
+        ``joint_depth_systematic``; the rods' shading, the same in every frame of a lock phase). 0: left out.
     legs_prior_std_m : float or None
         The legs method's a priori tolerance per parameter (``calib.methods.legs.PRIOR_STD_M``).
     intrinsics_names : tuple of str
@@ -140,8 +136,8 @@ class ImageNoise:
     legs_lock_chi2: float = 1.5
     legs_directions_chi2: float = 1.3
     legs_rod_cov_ratio: float = 1.26
-    legs_joint_depth_sys_m: float = 0.8e-3
-    legs_joint_depth_sys_leg_share: float = 0.5
+    legs_joint_depth_sys_m: float = JOINT_DEPTH_SYS_M
+    legs_joint_depth_sys_leg_share: float = JOINT_DEPTH_SYS_LEG_SHARE
     legs_prior_std_m: float | None = 0.01
     intrinsics_names: tuple[str, ...] = DEFAULT_INTRINSICS_NAMES
     intrinsics_cov: tuple[tuple[float, ...], ...] | None = None
@@ -553,37 +549,6 @@ def predict_end_effector_images(
 
 
 # -- legs ------------------------------------------------------------------------------------------------------
-def joint_depth_systematic(P: np.ndarray, noise: ImageNoise) -> np.ndarray:
-    """Covariance (24, 24) of the lock phases' joints' systematic error along their lines of sight.
-
-    Parameters
-    ----------
-    P : ndarray, shape (4, 2, 3)
-        The joints (leg, rod), camera frame, metres.
-    noise : ImageNoise
-        ``legs_joint_depth_sys_m`` (RMS per joint, m) and ``legs_joint_depth_sys_leg_share`` (the share of its
-        variance common to a leg's two joints).
-
-    Returns
-    -------
-    ndarray, shape (24, 24)
-        In the (leg, rod, xyz) order of the method's joints, m^2.
-    """
-    P = np.asarray(P, dtype=np.float64)
-    if P.shape != (4, 2, 3):
-        raise ValueError(f"P must have shape (4, 2, 3), got {P.shape}")
-    los = P / np.linalg.norm(P, axis=-1, keepdims=True)
-    s2 = noise.legs_joint_depth_sys_m**2
-    rho = noise.legs_joint_depth_sys_leg_share
-    C = np.zeros((24, 24))
-    for i in range(4):
-        for a in range(2):
-            for b in range(2):
-                ka, kb = (2 * i + a) * 3, (2 * i + b) * 3
-                C[ka : ka + 3, kb : kb + 3] = s2 * (1.0 if a == b else rho) * np.outer(los[i, a], los[i, b])
-    return C
-
-
 def predict_legs_images(
     nominal: I4Parameters,
     q_fit: np.ndarray,
@@ -594,8 +559,8 @@ def predict_legs_images(
     edge_cov_px2: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
     """Predicted covariances of the legs method on images: seven parameters (7, 7), four combinations (4, 4), and
-    the seven's parts (``joint_centres``, ``joint_depth_systematic`` (:func:`joint_depth_systematic`; not in the
-    method's own std), ``leg_directions``, ``intrinsics``, ``limb_edge_bias``, ``a_priori``).
+    the seven's parts (``joint_centres``, ``joint_depth_systematic``, ``leg_directions``, ``intrinsics``,
+    ``limb_edge_bias``, ``a_priori``).
     ``edge_cov_px2`` (2, 2): the limb-edge bias's covariance the method uses, the combined fit's measurement of it
     (:func:`predict_combined_images_posteriors`; the method's default); None: the allowance
     (``edge_bias_prior_px`` per limb)."""
@@ -607,6 +572,7 @@ def predict_legs_images(
         _pair_own_covariances,
         _steps34_sandwich,
         _with_prior,
+        joint_depth_systematic,
         joint_from_planes,
         limb_line_noise,
     )
@@ -682,7 +648,8 @@ def predict_legs_images(
     # the method scales both by its residuals' chi-square level; the prediction by their levels on the twin
     parts = {"joint_centres": GP @ covJ @ GP.T, "leg_directions": np.zeros((7, 7))}
     if noise.legs_joint_depth_sys_m > 0:
-        parts["joint_depth_systematic"] = GP @ joint_depth_systematic(P, noise) @ GP.T
+        sys_cov = joint_depth_systematic(P, noise.legs_joint_depth_sys_m, noise.legs_joint_depth_sys_leg_share)
+        parts["joint_depth_systematic"] = GP @ sys_cov @ GP.T
     idx = np.array([6, 4, 5])
     # the extracted rods' covariances are larger than the synthetic ones (``legs_rod_cov_ratio``)
     parts["leg_directions"][np.ix_(idx, idx)] = noise.legs_directions_chi2 * noise.legs_rod_cov_ratio * c34

@@ -332,7 +332,7 @@ BUDGET_SOURCES = {
     ),
     "joint_centres": "joint centres (lock phases)",
     "joint_depth_systematic": (
-        "joint centres' systematic depth error (the rods' shading; in the prediction, not in the method's std)"
+        "joint centres' systematic depth error (the rods' shading, the same in every frame of a lock phase)"
     ),
     "leg_directions": "leg directions of the fit poses",
     "lens_model": "lens model error (the camera calibration's radial residual beyond its noise)",

@@ -575,19 +575,18 @@ def test_best_of_several_candidate_draws(scene):
         replace(req, draws=0)
 
 
-def test_joint_depth_systematic_is_along_the_lines_of_sight_shared_within_a_leg(designed, scene):
+def test_joint_depth_systematic_is_along_the_lines_of_sight_shared_within_a_leg(designed, scene, rendered):
     """The lock phases' joints' systematic depth error (the rods' shading, the same in every frame of a lock phase):
-    per joint ``legs_joint_depth_sys_m`` along its line of sight, ``legs_joint_depth_sys_leg_share`` of its variance
-    common to a leg's two joints, none between legs; the legs prediction carries it as a part of its own and is
-    larger for it, the other methods unchanged."""
+    per joint ``JOINT_DEPTH_SYS_M`` along its line of sight, ``JOINT_DEPTH_SYS_LEG_SHARE`` of its variance common to
+    a leg's two joints, none between legs. The legs method carries it as a part of its std (estimates unchanged) and
+    so does its prediction; the other methods' predictions are unchanged."""
     from calib.design import ImageNoise
-    from calib.design.predict_images import joint_depth_systematic
-    from calib.errors import InputError
+    from calib.methods.legs import joint_depth_systematic
+    from calib.methods.legs.constants import JOINT_DEPTH_SYS_LEG_SHARE, JOINT_DEPTH_SYS_M
 
     rng = np.random.default_rng(11)
     P = rng.normal(size=(4, 2, 3)) * 0.1 + np.array([0.0, 0.0, 0.7])
-    noise = ImageNoise(legs_joint_depth_sys_m=0.8e-3, legs_joint_depth_sys_leg_share=0.5)
-    C = joint_depth_systematic(P, noise)
+    C = joint_depth_systematic(P, 0.8e-3, 0.5)
     assert C.shape == (24, 24) and np.allclose(C, C.T) and np.linalg.eigvalsh(C)[0] > -1e-18
     los = (P / np.linalg.norm(P, axis=-1, keepdims=True)).reshape(8, 3)
     for a in range(8):
@@ -596,11 +595,26 @@ def test_joint_depth_systematic_is_along_the_lines_of_sight_shared_within_a_leg(
             want = 0.0 if a // 2 != b // 2 else (1.0 if a == b else 0.5)
             assert np.allclose(block, want * 0.8e-3**2 * np.outer(los[a], los[b]), atol=1e-20), (a, b)
     with pytest.raises(ValueError, match="shape"):
-        joint_depth_systematic(P[:3], noise)
-    with pytest.raises(InputError, match="leg_share"):
-        ImageNoise(legs_joint_depth_sys_leg_share=1.5)
-    with_sys = predict_plan(designed.plan, NOMINAL, scene, ImageNoise())
+        joint_depth_systematic(P[:3], 0.8e-3, 0.5)
+    with pytest.raises(ValueError, match="leg_share"):
+        joint_depth_systematic(P, 0.8e-3, 1.5)
+    noise = ImageNoise()
+    assert (noise.legs_joint_depth_sys_m, noise.legs_joint_depth_sys_leg_share) == (
+        JOINT_DEPTH_SYS_M,
+        JOINT_DEPTH_SYS_LEG_SHARE,
+    )
+    with_sys = predict_plan(designed.plan, NOMINAL, scene, noise)
     without = predict_plan(designed.plan, NOMINAL, scene, ImageNoise(legs_joint_depth_sys_m=0.0))
     for k in COMBINATION_NAMES:
         assert with_sys.std["legs"][k] > without.std["legs"][k]
         assert with_sys.std["combined"][k] == without.std["combined"][k]
+    # the method: the same estimate, a larger std by its own part
+    _plan, obs, _doc = rendered
+    r = calibrate_legs(obs)
+    r0 = calibrate_legs(obs, joint_depth_sys_m=0.0)
+    for k in COMBINATION_NAMES:  # the same up to rounding (the a priori blend's eigen-decomposition)
+        assert r.combinations[k] == pytest.approx(r0.combinations[k], rel=1e-12, abs=1e-15)
+    assert max(r.std_breakdown["joint_depth_systematic"].values()) > 0
+    assert max(r0.std_breakdown["joint_depth_systematic"].values()) == 0
+    for k in COMBINATION_NAMES:
+        assert r.combinations_std[k] > r0.combinations_std[k]

@@ -50,7 +50,7 @@ from .method import calibrate_legs
 
 # used by calib.design's predictions (the method's own noise model and steps)
 from .pipeline import _LegsPipeline, _pair_means, _pair_own_covariances, _steps34_covariance, _steps34_sandwich  # noqa: F401
-from .uncertainty import _IntrinsicsEffect, _with_prior  # noqa: F401
+from .uncertainty import _IntrinsicsEffect, _with_prior, joint_depth_systematic  # noqa: F401
 
 __all__ = [
     "PRIOR_STD_M",

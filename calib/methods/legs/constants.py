@@ -7,6 +7,15 @@ _PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 #: bench built to its drawings within about +/-10 mm per length (the twin's default truth is 5.3 mm RMS and at most
 #: 8.4 mm from nominal; the accuracy benchmark draws its truths with 5.3 mm std)
 PRIOR_STD_M = 0.01
+#: The lock phases' joints' systematic error along their lines of sight (m, RMS per joint) for rods measured on images,
+#: and the share of its variance common to a leg's two joints. The rods' shading biases a rod's limb edges by an amount
+#: that depends on its apparent width, the same in every frame of a lock phase (the rod barely moves), so the frames
+#: cannot average it and their scatter does not show it: on noise-free renders of the image-level twin's lock phases
+#: (16 trials each of two plans) the joints' errors about their common depth were 0.79 mm RMS, half of the variance
+#: per leg (docs/design.md); over 42 noisy trials of another plan the joints' mean errors about their common depth
+#: were 0.67 mm RMS
+JOINT_DEPTH_SYS_M = 0.8e-3
+JOINT_DEPTH_SYS_LEG_SHARE = 0.5
 #: Floor (m) of the rod-pair check's separation std: below any measurement (noise-free data are never flagged)
 _PAIR_FLOOR_M = 1e-6
 #: the four step-3/4 equations of a pose: (leg a, leg b) of |Ba Bb| - 2S, then of (Bb - Ba) . y - 2D

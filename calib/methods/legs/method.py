@@ -13,7 +13,7 @@ from ..combined import EDGE_BIAS_STD_PX
 from ..edge_bias import MeasuredEdgeBias, measured_edge_bias
 from ..iterations import IterationCallback
 from ..result import MethodResult, combos_dict, std_dict
-from .constants import PRIOR_STD_M
+from .constants import JOINT_DEPTH_SYS_LEG_SHARE, JOINT_DEPTH_SYS_M, PRIOR_STD_M
 from .joints import _plane_observations, _step1_planes, intersect_lines, joint_from_planes
 from .pipeline import (
     _gate_poses,
@@ -26,7 +26,14 @@ from .pipeline import (
     _steps34_sandwich,
 )
 from .repair import REPAIR_CHI2_MAX, REPAIR_PAIR_FACTOR, repair_joint
-from .uncertainty import _identifiability, _IntrinsicsEffect, _pair_consistency, _prior_conflict, _with_prior
+from .uncertainty import (
+    _identifiability,
+    _IntrinsicsEffect,
+    _pair_consistency,
+    _prior_conflict,
+    _with_prior,
+    joint_depth_systematic,
+)
 
 #: step 2's parameters (H, q02, q03, q04; indices into PARAMETER_NAMES): from the lock phases' joints alone
 _STEP2 = np.array([PARAMETER_NAMES.index(n) for n in ("H", "q02", "q03", "q04")])
@@ -43,6 +50,7 @@ def calibrate_legs(
     edge_bias_std_px: float = EDGE_BIAS_STD_PX,
     prior_std_m: float | None = PRIOR_STD_M,
     edge_bias: MeasuredEdgeBias | bool | None = True,
+    joint_depth_sys_m: float = JOINT_DEPTH_SYS_M,
 ) -> MethodResult:
     """Identify all seven parameters from leg observations only (four steps).
 
@@ -70,6 +78,11 @@ def calibrate_legs(
         limbs are corrected by it (the whole estimate redone, as for the intrinsics) and its covariance replaces the
         ``edge_bias_std_px`` allowance. True (default): measured here with the combined fit when the rods carry
         limb samples and the camera its covariance; None or False: the allowance only.
+    joint_depth_sys_m : float
+        RMS (m) of each lock-phase joint's systematic error along its line of sight when the joints come from image
+        planes (:data:`.constants.JOINT_DEPTH_SYS_M`, half of its variance common to a leg's two joints): the rods'
+        shading biases their limb edges the same way in every frame of a lock phase. Propagated like the joints'
+        noise (``std_breakdown.joint_depth_systematic``); 0: left out.
     prior_std_m : float or None
         Standard deviation (m) of each of the seven parameters around the nominal (a priori) geometry: the
         bench's manufacturing tolerance. Along the directions the legs' data know less well than it (their
@@ -199,6 +212,11 @@ def calibrate_legs(
         dP[a] = h
         GP[:, a] = (f(P + dP.reshape(4, 2, 3)) - f(P - dP.reshape(4, 2, 3))) / (2 * h)
     cov_joints = GP @ covP @ GP.T
+    # (i') the joints' systematic depth error from the rods' shading (image planes only), which the lock phases'
+    #      frames cannot average and their chi-square does not show
+    cov_jsys = np.zeros((7, 7))
+    if use_planes and joint_depth_sys_m > 0:
+        cov_jsys = GP @ joint_depth_systematic(P, joint_depth_sys_m, JOINT_DEPTH_SYS_LEG_SHARE) @ GP.T
     # (ii) the leg directions of the fit poses: GLS covariance of (L, S, D), scaled by the chi-square
     c34, chi34, dof34 = _steps34_covariance(pipe, P, U_filled, seven)
     s2_34_raw = chi34 / dof34 if dof34 > 0 else 1.0
@@ -262,9 +280,10 @@ def calibrate_legs(
         else:
             cov_edge = (edge_bias_std_px**2) * (J_px @ J_px.T)
             edge_note = {"applied": False, "allowance_std_px": edge_bias_std_px}
-    cov = cov_joints + cov_dirs + cov_intr + cov_edge
+    cov = cov_joints + cov_jsys + cov_dirs + cov_intr + cov_edge
     parts7 = {
         "joint_centres": cov_joints,
+        "joint_depth_systematic": cov_jsys,
         "leg_directions": cov_dirs,
         "intrinsics": cov_intr,
         "limb_edge_bias": cov_edge,

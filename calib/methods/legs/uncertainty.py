@@ -125,6 +125,39 @@ class _IntrinsicsEffect:
         return out
 
 
+def joint_depth_systematic(P: np.ndarray, std_m: float, leg_share: float) -> np.ndarray:
+    """Covariance (24, 24) of the lock phases' joints' systematic error along their lines of sight.
+
+    Parameters
+    ----------
+    P : ndarray, shape (4, 2, 3)
+        The joints (leg, rod), camera frame, metres.
+    std_m : float
+        RMS of each joint's systematic error along its line of sight, metres (:data:`.constants.JOINT_DEPTH_SYS_M`).
+    leg_share : float
+        The share of its variance common to a leg's two joints, within [0, 1]; none is common between legs.
+
+    Returns
+    -------
+    ndarray, shape (24, 24)
+        In the (leg, rod, xyz) order of the method's joints, m^2.
+    """
+    P = np.asarray(P, dtype=np.float64)
+    if P.shape != (4, 2, 3):
+        raise ValueError(f"P must have shape (4, 2, 3), got {P.shape}")
+    if not (np.isfinite(std_m) and std_m >= 0 and 0.0 <= leg_share <= 1.0):
+        raise ValueError(f"std_m must be finite and >= 0 and leg_share within [0, 1], got {std_m}, {leg_share}")
+    los = P / np.linalg.norm(P, axis=-1, keepdims=True)
+    C = np.zeros((24, 24))
+    for i in range(4):
+        for a in range(2):
+            for b in range(2):
+                ka, kb = (2 * i + a) * 3, (2 * i + b) * 3
+                share = 1.0 if a == b else leg_share
+                C[ka : ka + 3, kb : kb + 3] = std_m**2 * share * np.outer(los[i, a], los[i, b])
+    return C
+
+
 def _pair_consistency(P: np.ndarray, covP: np.ndarray) -> tuple[np.ndarray, list[dict], list[str]]:
     """The two upper joints of each leg against the other legs': their separations (4, 3) must agree.
 
