@@ -124,6 +124,7 @@ def synthetic_rods(
     left out. Every rod of every frame is computed at once (array operations, no loop over rods).
     """
     from ..vision.rods.covariance import _direction_covariances_set
+    from ..vision.rods.geometry import axis_point_seen_along
 
     q = np.atleast_2d(np.asarray(q, dtype=np.float64))
     if not (np.isfinite(edge_px) and edge_px > 0):
@@ -193,14 +194,11 @@ def synthetic_rods(
     limbs_px = cam.distort_normalized(xn).reshape(M, 2, 5, 2)
     cmid = 0.5 * (centroid[:, 0] + centroid[:, 1])
     inner = np.c_[cmid, np.ones(M)] @ Kinv.T
-    # the axis point seen at the middle of the visible limbs (nearest the ray through their centre line there), as
-    # the extraction reports it (``calib.vision.rods.measure``): the legs method pivots each limb line's noise
-    # about its foot, and the 3-D middle sample (above) projects off the image middle by perspective, about 12% of
-    # the span on the twin's lock phases, which weighed the prediction's lock planes 1.6-1.9x the method's
-    ray = inner / np.linalg.norm(inner, axis=1, keepdims=True)
-    w = uu - np.einsum("mi,mi->m", uu, ray)[:, None] * ray
-    ww = np.einsum("mi,mi->m", w, w)
-    P = P - np.where(ww > 1e-12, np.einsum("mi,mi->m", P, w) / np.maximum(ww, 1e-12), 0.0)[:, None] * uu
+    # the axis point seen at the middle of the visible limbs, as the extraction reports it: the legs method pivots
+    # each limb line's noise about its foot, and the 3-D middle sample (above) projects off the image middle by
+    # perspective, about 12% of the span on the twin's lock phases, which weighed the prediction's lock planes
+    # 1.6-1.9x the method's
+    P = axis_point_seen_along(P, uu, inner)
     cov_u, cov_u_own = _direction_covariances_set(
         K,
         centroid,

@@ -79,7 +79,6 @@ def _plans(
         MotionSpec,
         design_plan,
         plan_motion_time,
-        predict_plan,
         targets_from_plan,
     )
     from calib.parameters import NOMINAL
@@ -116,19 +115,28 @@ def _plans(
                 )
                 res = design_plan(NOMINAL, scene, request, motion=motion, noise=image_noise)
                 plan, drawn = res.plan, res.candidates
-            pred = predict_plan(plan, NOMINAL, scene)
-            pred_img = predict_plan(plan, NOMINAL, scene, image_noise)
             out[f"{kind}-{n}"] = {
                 "kind": kind,
                 "n_fit": n,
                 "steps": [s.model_dump(exclude_none=True) for s in plan.steps],
                 "counts": plan.count(),
                 "motion_s": plan_motion_time(plan, motion, NOMINAL)["total_s"],
-                "predicted_std_m": pred.std,
-                "predicted_images_std_m": pred_img.std,
+                **_predictions(plan, scene, image_noise),
                 "candidates": drawn,
             }
     return out
+
+
+def _predictions(plan: Any, scene: Any, image_noise: Any) -> dict[str, Any]:
+    """A plan's predicted std per method (metres): with the geometric twin's noise (``predicted_std_m``) and on
+    images (``predicted_images_std_m``)."""
+    from calib.design import predict_plan
+    from calib.parameters import NOMINAL
+
+    return {
+        "predicted_std_m": predict_plan(plan, NOMINAL, scene).std,
+        "predicted_images_std_m": predict_plan(plan, NOMINAL, scene, image_noise).std,
+    }
 
 
 def repredict(doc: dict[str, Any]) -> dict[str, Any]:
@@ -140,23 +148,18 @@ def repredict(doc: dict[str, Any]) -> dict[str, Any]:
     """
     from datetime import UTC, datetime
 
-    from calib.design import predict_plan
-    from calib.parameters import NOMINAL
     from calib.plan import Plan
     from service.design import twin_image_noise, twin_scene
 
-    seed = int((doc.get("options") or {}).get("seed", 0))
     scene = twin_scene()
-    image_noise = twin_image_noise(seed=seed)
+    image_noise = twin_image_noise(seed=int((doc.get("options") or {}).get("seed", 0)))
     before = {}
     for name, p in doc["plans"].items():
-        plan = Plan(name=name, steps=p["steps"])
         before[name] = p.get("predicted_images_std_m")
-        p["predicted_std_m"] = predict_plan(plan, NOMINAL, scene).std
-        p["predicted_images_std_m"] = predict_plan(plan, NOMINAL, scene, image_noise).std
+        p.update(_predictions(Plan(name=name, steps=p["steps"]), scene, image_noise))
     doc["repredicted"] = {
         "date": datetime.now(UTC).isoformat(timespec="seconds"),
-        "image_noise": image_noise.to_dict() | {"intrinsics_std": None},
+        "image_noise": image_noise.to_dict(),
         "predicted_images_std_m_before": before,
     }
     doc["checks"] = _checks(doc["plans"])

@@ -147,15 +147,10 @@ def joint_depth_systematic(P: np.ndarray, std_m: float, leg_share: float) -> np.
         raise ValueError(f"P must have shape (4, 2, 3), got {P.shape}")
     if not (np.isfinite(std_m) and std_m >= 0 and 0.0 <= leg_share <= 1.0):
         raise ValueError(f"std_m must be finite and >= 0 and leg_share within [0, 1], got {std_m}, {leg_share}")
-    los = P / np.linalg.norm(P, axis=-1, keepdims=True)
-    C = np.zeros((24, 24))
-    for i in range(4):
-        for a in range(2):
-            for b in range(2):
-                ka, kb = (2 * i + a) * 3, (2 * i + b) * 3
-                share = 1.0 if a == b else leg_share
-                C[ka : ka + 3, kb : kb + 3] = std_m**2 * share * np.outer(los[i, a], los[i, b])
-    return C
+    los = (P / np.linalg.norm(P, axis=-1, keepdims=True)).reshape(8, 3)
+    # the eight joints' correlation: 1 on the diagonal, leg_share between a leg's two joints, 0 between legs
+    R = np.kron(np.eye(4), np.array([[1.0, leg_share], [leg_share, 1.0]]))
+    return std_m**2 * np.einsum("ab,ai,bj->aibj", R, los, los).reshape(24, 24)
 
 
 def _pair_consistency(P: np.ndarray, covP: np.ndarray) -> tuple[np.ndarray, list[dict], list[str]]:

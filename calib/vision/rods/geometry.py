@@ -74,3 +74,30 @@ def axis_from_planes(h1: ArrayLike, h2: ArrayLike, radius: float | None) -> tupl
     M = np.vstack([a, b, u])
     X = np.linalg.solve(M, np.array([radius, radius, 0.0]))
     return u, X
+
+
+def axis_point_seen_along(point: ArrayLike, u: ArrayLike, ray: ArrayLike) -> Array:
+    """The point of each axis (``point + t u``) nearest the ray from the camera centre along ``ray``.
+
+    What a rod's measurement reports as its point: the axis point seen at the middle of its visible limbs (``ray``
+    through their centre line there), not the point nearest the camera centre, which for a rod seen obliquely lies
+    far outside the image. An axis along the ray keeps ``point``.
+
+    Parameters
+    ----------
+    point, u, ray : array_like, shape (..., 3)
+        An axis point (m, camera frame), the axis's unit direction, and the ray's direction (any length).
+
+    Returns
+    -------
+    ndarray, shape (..., 3)
+        Metres, camera frame.
+    """
+    X = np.asarray(point, dtype=np.float64)
+    uu = np.asarray(u, dtype=np.float64)
+    r = np.asarray(ray, dtype=np.float64)
+    r = r / np.linalg.norm(r, axis=-1, keepdims=True)
+    w = uu - np.sum(uu * r, axis=-1, keepdims=True) * r
+    ww = np.sum(w * w, axis=-1, keepdims=True)
+    t = np.where(ww > 1e-12, np.sum(X * w, axis=-1, keepdims=True) / np.maximum(ww, 1e-12), 0.0)
+    return X - t * uu

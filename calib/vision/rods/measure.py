@@ -12,7 +12,7 @@ from numpy.typing import NDArray
 
 from ...camera import CameraModel
 from .covariance import _direction_covariance_set, _line_cov
-from .geometry import _CORR, axis_from_planes, limb_planes
+from .geometry import _CORR, axis_from_planes, axis_point_seen_along, limb_planes
 from .lines import robust_line
 from .types import ROD_OCCLUDER_CLEARANCE_PX, RodMeasurement, RodPrediction, RodSettings
 
@@ -564,13 +564,10 @@ def measure_rod(
         return out
     if u @ pred.u < 0:
         u = -u
-    # report the axis point seen at the middle of the visible part (nearest the ray through the
-    # centre line there), not the point nearest the camera centre, which for a rod seen obliquely
-    # lies far outside the image and carries the direction's error multiplied by that distance
-    ray = inner / np.linalg.norm(inner)
-    w = u - (u @ ray) * ray
-    if float(w @ w) > 1e-12:
-        X = X - ((X @ w) / float(w @ w)) * u
+    # report the axis point seen at the middle of the visible part, not the point nearest the camera centre,
+    # which for a rod seen obliquely lies far outside the image and carries the direction's error multiplied by
+    # that distance
+    X = axis_point_seen_along(X, u, inner)
     out.h = (hs[0], hs[1])
     out.u = u
     out.point = X
