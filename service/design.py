@@ -120,8 +120,9 @@ def reference_targets(cfg, plan, noise=None) -> tuple[float, float, float, float
     )
 
 
-def summary_lines(result) -> list[str]:
-    """Human-readable lines: counts per phase, predicted std per method (mm), motion time."""
+def summary_lines(result, breakdown: bool = False) -> list[str]:
+    """Human-readable lines: counts per phase, predicted std per method (mm), motion time; with ``breakdown``, under
+    each method the std that each source of error contributes (``Prediction.parts``)."""
     from calib.parameters import COMBINATION_NAMES
 
     counts = result.plan.count()
@@ -131,9 +132,12 @@ def summary_lines(result) -> list[str]:
         f"fit poses {result.n_fit}; rotation sweep {sw['rotation_span_deg']:.0f} deg, "
         f"translation {sw['translation_length_m'] * 1e3:.0f} mm"
     )
-    out.append("predicted std (mm): " + " | ".join(f"{k:>13}" for k in COMBINATION_NAMES))
+    out.append(f"{'predicted std (mm):':<29}" + " | ".join(f"{k:>13}" for k in COMBINATION_NAMES))
     for m, std in result.prediction.std.items():
-        out.append(f"  {m:<16} " + " | ".join(f"{std[k] * 1e3:13.4f}" for k in COMBINATION_NAMES))
+        out.append(f"  {m:<26} " + " | ".join(f"{std[k] * 1e3:13.4f}" for k in COMBINATION_NAMES))
+        for part, pstd in (result.prediction.parts.get(m, {}) if breakdown else {}).items():
+            if any(v > 1e-9 for v in pstd.values()):  # parts that contribute at least a nanometre
+                out.append(f"    {part:<24} " + " | ".join(f"{pstd[k] * 1e3:13.4f}" for k in COMBINATION_NAMES))
     for m, why in result.prediction.errors.items():
         out.append(f"  {m:<16} not predicted: {why}")
     mt = result.motion

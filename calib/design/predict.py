@@ -405,6 +405,14 @@ def predict_legs(
     return cov7, SEVEN_TO_FOUR @ cov7 @ SEVEN_TO_FOUR.T
 
 
+def _parts_std(parts: dict[str, np.ndarray]) -> dict[str, dict[str, float]]:
+    """Each part's (4, 4) covariance (m^2) as its std (m) per combination."""
+    return {
+        name: {k: float(np.sqrt(max(c[i, i], 0.0))) for i, k in enumerate(COMBINATION_NAMES)}
+        for name, c in parts.items()
+    }
+
+
 # -- a whole plan ---------------------------------------------------------------------------------------------
 @dataclass
 class Prediction:
@@ -416,11 +424,17 @@ class Prediction:
     errors: dict[str, str] = field(default_factory=dict)
     noise: dict[str, Any] = field(default_factory=dict)
     weighting: str = "gls"
+    #: per method, the std (m) per combination that each independent source of error contributes (their variances
+    #: add up to ``std``'s): the image-level prediction of the end-effector (board poses and encoders, intrinsics) and
+    #: legs methods (the lock phases' joint centres and their systematic depth error, the fit poses' leg directions,
+    #: intrinsics, limb-edge bias, a priori), what tells which phase limits a combination
+    parts: dict[str, dict[str, dict[str, float]]] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         return {
             "std_m": self.std,
             "covariance_m2": self.covariance,
+            "parts_std_m": self.parts,
             "legs_seven_std_m": self.legs_seven_std,
             "errors": self.errors,
             "noise": self.noise,
@@ -512,10 +526,12 @@ def _predict_plan_images(
             elif len(q_fit) < 2:
                 raise IdentifiabilityError("the plan has fewer than 2 fit poses")
             elif m == "end-effector":
-                cov, _parts = predict_end_effector_images(nominal, q_fit, scene, noise, posterior)
+                cov, parts = predict_end_effector_images(nominal, q_fit, scene, noise, posterior)
+                out.parts[m] = _parts_std(parts)
             else:
                 q_lock = [phase_q(plan, f"lock-{i}") for i in range(1, 5)]
-                cov7, cov, _parts7 = predict_legs_images(nominal, q_fit, q_lock, scene, noise, posterior, edge_post)
+                cov7, cov, parts7 = predict_legs_images(nominal, q_fit, q_lock, scene, noise, posterior, edge_post)
+                out.parts[m] = _parts_std({k: SEVEN_TO_FOUR @ v @ SEVEN_TO_FOUR.T for k, v in parts7.items()})
                 out.legs_seven_std = {k: float(np.sqrt(max(cov7[i, i], 0.0))) for i, k in enumerate(PARAMETER_NAMES)}
         except IdentifiabilityError as exc:
             out.errors[m] = str(exc)

@@ -45,7 +45,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--noise-from",
         default=None,
         help="JSON with the noise levels (an observations file's 'noise', or the keys "
-        "of calib.design.DesignNoise); default: the geometric twin's",
+        "of calib.design.DesignNoise); default: the image-level model of the simulated bench's camera",
+    )
+    a(
+        "--breakdown",
+        action="store_true",
+        help="under each method, the std (mm) that each source of error contributes (which phase limits a "
+        "combination: fit poses, lock phases, camera calibration); always in --json as prediction.parts_std_m",
     )
     a("--json", action="store_true", help="print the design summary as JSON")
     a("-o", "--out", default=None, help="write the plan (i4cal.plan/1) for i4cal acquire --plan / POST /api/v1/runs")
@@ -98,7 +104,7 @@ def _design(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(to_jsonable(res.summary()), indent=1))
     else:
-        print("\n".join(summary_lines(res)))
+        print("\n".join(summary_lines(res, breakdown=args.breakdown)))
     if args.out:
         res.plan.save(args.out)
         if not args.json:

@@ -396,6 +396,29 @@ def test_image_prediction_scales_with_the_image_noise(designed, scene):
             assert twice.std[m][k] == pytest.approx(2 * base.std[m][k], rel=1e-3), (m, k)
 
 
+def test_image_prediction_parts_add_up_to_the_std(designed, scene):
+    """The parts each source of error contributes (what ``i4cal plan design --breakdown`` prints) are independent:
+    their variances add up to the predicted variance, per method and combination; the legs' include the lock
+    phases' systematic depth error, and that part scales with its level."""
+    from calib.design import ImageNoise
+
+    pred = predict_plan(designed.plan, NOMINAL, scene, ImageNoise())
+    assert set(pred.parts) == {"end-effector", "legs"}
+    assert {"joint_centres", "joint_depth_systematic", "leg_directions", "intrinsics"} <= set(pred.parts["legs"])
+    for m, parts in pred.parts.items():
+        for k in COMBINATION_NAMES:
+            total = sum(p[k] ** 2 for p in parts.values())
+            assert total == pytest.approx(pred.std[m][k] ** 2, rel=1e-9), (m, k)
+    assert pred.to_dict()["parts_std_m"] == pred.parts
+    sys_m = ImageNoise().legs_joint_depth_sys_m
+    half = predict_plan(designed.plan, NOMINAL, scene, ImageNoise(legs_joint_depth_sys_m=sys_m / 2))
+    for k in COMBINATION_NAMES:
+        assert pred.parts["legs"]["joint_depth_systematic"][k] > 0
+        assert half.parts["legs"]["joint_depth_systematic"][k] == pytest.approx(
+            pred.parts["legs"]["joint_depth_systematic"][k] / 2, rel=1e-6
+        )
+
+
 def test_image_noise_rejects_bad_levels():
     from calib.design import ImageNoise
     from calib.errors import InputError

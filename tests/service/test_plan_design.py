@@ -8,6 +8,7 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from calib.dataset import Dataset
@@ -58,6 +59,30 @@ def test_cli_design_json_and_a_bad_unit(tmp_path, capsys):
     assert any("best of 2 draws" in n for n in doc["notes"]), doc["notes"]
     assert main(["plan", "design", "--bench", str(BENCH_SIM), *SMALL, "--draws", "0"]) == 2
     assert "draws" in capsys.readouterr().err
+
+
+def test_cli_design_breaks_the_prediction_down_by_source(capsys):
+    """--breakdown prints, under the end-effector and legs methods, the std each source of error contributes, whose
+    squares add up to the method's (the printed figures, rounded to 0.1 nm); --json always carries them."""
+    assert main(["plan", "design", "--bench", str(BENCH_SIM), *SMALL, "--breakdown"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    rows = {ln.split()[0]: ln for ln in lines if ln.startswith("  ") and "|" in ln}
+    legs_at = next(i for i, ln in enumerate(lines) if ln.startswith("  legs "))
+    parts = [ln for ln in lines[legs_at + 1 :] if ln.startswith("    ") and "|" in ln]
+    names = {ln.split()[0] for ln in parts}
+    assert {"joint_centres", "joint_depth_systematic", "leg_directions"} <= names, lines
+
+    def values(line: str) -> list[float]:
+        return [float(v) for v in line.split(None, 1)[1].split("|")]
+
+    total = np.array(values(rows["legs"]))
+    summed = np.sqrt(np.sum([np.square(values(ln)) for ln in parts], axis=0))
+    assert summed == pytest.approx(total, abs=2e-4)
+    assert main(["plan", "design", "--bench", str(BENCH_SIM), *SMALL]) == 0
+    assert "joint_depth_systematic" not in capsys.readouterr().out
+    assert main(["plan", "design", "--bench", str(BENCH_SIM), *SMALL, "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert set(doc["prediction"]["parts_std_m"]) == {"end-effector", "legs"}
 
 
 def _paper_plan(path: Path, n_fit: int = 12) -> Plan:
