@@ -47,6 +47,11 @@ class DesignOut(BaseModel):
     counts: dict[str, int] = Field(description="frames per phase")
     n_fit: int
     predicted_std_m: dict[str, dict[str, float]] = Field(description="per method and combination, metres")
+    predicted_parts_std_m: dict[str, dict[str, dict[str, float]]] = Field(
+        default_factory=dict,
+        description="per method (end-effector, legs), the std (m) per combination each independent source of error "
+        "contributes (their squares add up to predicted_std_m): which phase limits a combination",
+    )
     legs_seven_std_m: dict[str, float] | None
     prediction_errors: dict[str, str]
     motion_time_s: float
@@ -138,6 +143,7 @@ async def design(body: DesignBody, request: Request, manager: Manager, settings:
         counts=res.plan.count(),
         n_fit=res.n_fit,
         predicted_std_m=pred.std,
+        predicted_parts_std_m=pred.parts,
         legs_seven_std_m=pred.legs_seven_std,
         prediction_errors=pred.errors,
         motion_time_s=res.motion["total_s"],

@@ -318,7 +318,18 @@ $("#apply").addEventListener("click", async () => {
 // -- experiment design (POST /api/v1/plans/design): the prediction before a run, predicted vs obtained after ----
 let designed = null;  // the last design: {plan, predicted_std_m, ...}
 
-function designRows(pred, obtained) {
+// the sources of a prediction's error (predicted_parts_std_m), named by the phase or calibration they come from
+const PART_LABELS = {
+  board_poses_and_encoders: "fit poses: board poses, encoders",
+  joint_centres: "lock phases: joint centres",
+  joint_depth_systematic: "lock phases: shading (systematic)",
+  leg_directions: "fit poses: leg directions",
+  intrinsics: "camera intrinsics",
+  limb_edge_bias: "limb-edge bias",
+  a_priori: "a priori tolerance",
+};
+
+function designRows(pred, obtained, parts) {
   let h = "<tr><th>method</th>" + COMBOS.map((k) => `<th>${k}</th>`).join("") + "</tr>";
   for (const m of Object.keys(pred)) {
     h += `<tr><th>${esc(methodLabel(m))}</th>` + COMBOS.map((k) => {
@@ -328,6 +339,11 @@ function designRows(pred, obtained) {
       const ratio = o && p ? ` (${(o / p).toFixed(2)}×)` : "";
       return `<td>${mm(p)} / ${mm(o)}${ratio}</td>`;
     }).join("") + "</tr>";
+    for (const [part, std] of Object.entries((parts && parts[m]) || {})) {
+      if (!COMBOS.some((k) => std[k] > 1e-9)) continue;  // parts that contribute at least a nanometre
+      h += `<tr class="part"><td>of which ${esc(PART_LABELS[part] || part)}</td>` +
+        COMBOS.map((k) => `<td>${mm(std[k])}</td>`).join("") + "</tr>";
+    }
   }
   return h;
 }
@@ -353,7 +369,7 @@ $("#design-form").addEventListener("submit", async (ev) => {
     ` · motion ${(d.motion_time_s / 60).toFixed(1)} min` +
     (d.target_met === null ? "" : d.target_met ? " · target met" : " · target NOT met") +
     (d.time_met === null ? "" : d.time_met ? " · time met" : " · time NOT met");
-  $("#design-table").innerHTML = designRows(d.predicted_std_m);
+  $("#design-table").innerHTML = designRows(d.predicted_std_m, undefined, d.predicted_parts_std_m);
   $("#design-start").disabled = false;
 });
 

@@ -152,6 +152,11 @@ async def test_api_designs_a_plan_that_runs_inline(service):
     d = r.json()
     assert d["n_fit"] == 4 and d["counts"]["poses"] == 4
     assert d["predicted_std_m"]["combined"]["L"] > 0 and d["motion_time_s"] > 0
+    # the sources of the end-effector and legs methods' error, their squares adding up to the method's std
+    assert set(d["predicted_parts_std_m"]) == {"end-effector", "legs"}
+    for m, parts in d["predicted_parts_std_m"].items():
+        for k, std in d["predicted_std_m"][m].items():
+            assert sum(p[k] ** 2 for p in parts.values()) == pytest.approx(std**2, rel=1e-9), (m, k)
     plan = Plan.from_dict(d["plan"])
     validate_plan(plan, NOMINAL)  # the simulated bench's limits are the defaults
     r = await c.post(f"{API}/runs", json={"plan": d["plan"], "methods": []}, headers=AUTH)
@@ -251,6 +256,9 @@ async def test_dashboard_designs_and_starts_a_plan(service):
             summary = await page.text_content("#design-summary")
             assert "4 fit poses" in summary and "motion" in summary
             assert table.count("\u00b1") == 0 and len(await page.query_selector_all("#design-table tr")) >= 4
+            # under the legs method, the sources of its error: the lock phases' shading among them
+            assert "of which lock phases: shading (systematic)" in table, table
+            assert len(await page.query_selector_all("#design-table tr.part")) >= 4
             await page.click("#design-start")
             await page.wait_for_function(
                 "document.querySelector('#message').textContent.includes('started designed run')", timeout=30_000
