@@ -26,7 +26,9 @@ An RMS error over a few tens of trials is itself uncertain (over 50 trials of no
 -14% and +17% of the true one; heavier-tailed errors make it wider): each ratio of a prediction to an RMS error also
 has its 90% bootstrap interval over the trials (``checks.predicted_images_over_rms_interval90``), and
 ``checks.prediction_within_30pct`` counts the predictions within 30% of their RMS error and lists the others with
-their intervals, so that a miss can be told from the Monte-Carlo's own scatter (the table's last lines). The
+their intervals, so that a miss can be told from the Monte-Carlo's own scatter (the table's last lines);
+``checks.prediction_within_30pct_per_method`` gives each method's prediction scale, the geometric mean over its four
+combinations of predicted / RMS error, with its interval. The
 methods' own mean reported std is checked against the RMS error the same way (``checks.reported_std_within_30pct``,
 ``reported_std_over_rms_interval90``: is each method honest on this plan?), each one outside with its trials' mean
 error and that mean's standard error, which tell a bias of the plan's poses from a spread the std misses; and against
@@ -552,7 +554,57 @@ def _checks(plans: dict[str, dict[str, Any]]) -> dict[str, Any]:
         out["reported_std_over_spread_interval90"], out["reported_std_within_30pct_of_spread"] = (
             _std_over_rms_intervals(plans, "reported", about_mean=True)
         )
+        out["prediction_within_30pct_per_method"] = _per_method_within(plans)
     return out
+
+
+def _per_method_within(plans: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """Per plan and method, the image prediction's scale over the RMS error: the geometric mean over the method's
+    four combinations of predicted std / RMS error (each combination counts alike, whatever its size), with its 90%
+    bootstrap interval (BCa, the trials resampled together for the four), and the count within
+    :data:`WITHIN_FACTOR`. A method whose prediction is right in scale but off on one combination (a bias of the
+    plan's poses there) is within here and listed in ``prediction_within_30pct``."""
+    from scipy.stats import bootstrap
+
+    from ._accuracy_report import COMBINATIONS, METHODS
+
+    ratios: dict[str, Any] = {}
+    n, outside = 0, []
+    for name, p in plans.items():
+        ratios[name] = {}
+        for m in METHODS:
+            pr = (p.get("predicted_images_std_m") or {}).get(m) or {}
+            cols = [_trial_errors(p.get("trials") or [], m, c) for c in COMBINATIONS]
+            if not all(pr.get(c) for c in COMBINATIONS) or len({e.size for e in cols}) != 1 or cols[0].size < 2:
+                ratios[name][m] = None
+                continue
+            E = np.stack(cols)  # (4, n): the trials the method succeeded in have all four
+            if not np.all(np.any(E, axis=1)):
+                ratios[name][m] = None
+                continue
+            logp = np.log([pr[c] for c in COMBINATIONS])
+
+            def scale(*e: np.ndarray, axis: int = -1, logp: np.ndarray = logp) -> np.ndarray:
+                rms = np.sqrt(np.mean(np.square(np.stack(e)), axis=axis))
+                return np.exp(np.mean(logp.reshape((4,) + (1,) * (rms.ndim - 1)) - np.log(rms), axis=0))
+
+            ratio = float(scale(*E))
+            ci = bootstrap(
+                tuple(E),
+                scale,
+                paired=True,
+                confidence_level=0.9,
+                n_resamples=BOOTSTRAP_RESAMPLES,
+                method="BCa",
+                rng=np.random.default_rng(0),
+            ).confidence_interval
+            ratios[name][m] = {"ratio": ratio, "interval90": [float(ci.low), float(ci.high)]}
+            n += 1
+            if not 1.0 / WITHIN_FACTOR <= ratio <= WITHIN_FACTOR:
+                outside.append(
+                    {"plan": name, "method": m, "ratio": ratio, "interval90": [float(ci.low), float(ci.high)]}
+                )
+    return {"factor": WITHIN_FACTOR, "n": n, "within": n - len(outside), "outside": outside, "ratios": ratios}
 
 
 def print_table(doc: dict[str, Any]) -> None:
@@ -606,6 +658,16 @@ def print_table(doc: dict[str, Any]) -> None:
         ("reported_std_within_30pct_of_spread", "the methods' mean reported std"),
     ):
         _print_within(doc["checks"].get(key), what)
+    per = doc["checks"].get("prediction_within_30pct_per_method")
+    if per and per["n"]:
+        rs = [r["ratio"] for pm in per["ratios"].values() for r in pm.values() if r]
+        print(
+            f"image predictions per method (geometric mean over its four combinations of predicted / RMS error) within "
+            f"{100 * (per['factor'] - 1):.0f}%: {per['within']} of {per['n']} ({min(rs):.2f}-{max(rs):.2f})"
+        )
+        for o in per["outside"]:
+            lo, hi = o["interval90"]
+            print(f"  {o['plan']} {o['method']}: {o['ratio']:.2f} ({lo:.2f}-{hi:.2f})")
     print(f"elapsed {doc['elapsed_s']:.0f} s, {doc['date']}")
 
 

@@ -171,6 +171,31 @@ def test_checks_count_the_predictions_within_30_percent_and_list_the_others_with
     assert checks["predicted_images_over_rms_interval90"]["paper-20"]["combined"]["L"] is None
 
 
+def test_checks_give_each_methods_prediction_scale_over_its_four_combinations():
+    """Per plan and method, the geometric mean over the four combinations of predicted / RMS error, with its 90%
+    bootstrap interval: a prediction 2x too large everywhere is outside (interval above 1.3); one 2x too large on a
+    single combination (a bias of the plan's poses there) is within per method, 2^(1/4), and listed outside per
+    combination."""
+    rng = np.random.default_rng(5)
+    e = rng.normal(size=50) * 0.2
+    rms_mm = float(np.sqrt(np.mean(e**2)))
+    one_off = _plan_with(e, rms_mm)
+    one_off["predicted_images_std_m"]["legs"]["L"] *= 2.0
+    plans = {"designed-12": _plan_with(e, 2.0 * rms_mm), "paper-20": one_off}
+    checks = _checks(plans)
+    per = checks["prediction_within_30pct_per_method"]
+    assert per["n"] == 2 and per["within"] == 1, per
+    (o,) = per["outside"]
+    assert (o["plan"], o["method"]) == ("designed-12", "legs") and np.isclose(o["ratio"], 2.0)
+    assert o["interval90"][0] > 1.3
+    r = per["ratios"]["paper-20"]["legs"]
+    assert np.isclose(r["ratio"], 2.0**0.25) and r["interval90"][0] < 2.0**0.25 < r["interval90"][1]
+    assert per["ratios"]["paper-20"]["combined"] is None  # no prediction, no trials: not counted
+    assert [(x["plan"], x["combination"]) for x in checks["prediction_within_30pct"]["outside"]].count(
+        ("paper-20", "L")
+    ) == 1
+
+
 def test_checks_list_the_reported_std_that_does_not_cover_the_error_with_the_bias():
     """The methods' own std is checked against the RMS error too (is the method honest on this plan?). A method that
     reports the spread of its errors but not their common offset (a bias of the plan's poses: the legs method's L on
