@@ -181,6 +181,21 @@ class DesignResult:
         }
 
 
+def _worst_miss(pred: Prediction, methods: tuple[str, ...], target_m: np.ndarray) -> str:
+    """``"; worst: <method> <combination> 0.066 mm predicted for 0.050 mm (1.33x)"``, the combination furthest over
+    its target among the optimised methods ("" when none is predicted)."""
+    worst = None
+    for m in methods:
+        for i, c in enumerate(COMBINATION_NAMES):
+            s = (pred.std.get(m) or {}).get(c)
+            if s is not None and (worst is None or s / target_m[i] > worst[0]):
+                worst = (s / target_m[i], m, c, s, target_m[i])
+    if worst is None:
+        return ""
+    r, m, c, s, tm = worst
+    return f"; worst: {m} {c} {s * 1e3:.3f} mm predicted for {tm * 1e3:.3f} mm ({r:.2f}x)"
+
+
 # -- criteria ---------------------------------------------------------------------------------------------------
 class _Infos:
     """Per-candidate information of each optimised method, with the priors (base frame, tiny ridge)."""
@@ -552,7 +567,7 @@ def design_plan(
             why = f"with {n} fit poses (the most tried; more candidate poses may reach it)"
         else:
             why = f"with {n} fit poses after {rounds} choices of the count"
-        notes.append("the target is not met (predicted): " + why)
+        notes.append("the target is not met (predicted): " + why + _worst_miss(pred, req.methods, t))
     F = infos.total(sel)
     crit_vals = {f"logdet_{m}": float(_cov4(F[m])[1]) for m in F}
     result = DesignResult(
