@@ -137,8 +137,9 @@ class DesignRequest:
             )
         if not (20 <= self.n_candidates <= 5000):
             raise InputError("n_candidates must be in 20..5000", field="n_candidates")
-        if not (3 <= self.n_base <= 100 and 2 <= self.n_lock <= 50 and 0 <= self.n_validation <= 200):
-            raise InputError("n_base 3..100, n_lock 2..50, n_validation 0..200", field="n_base")
+        for name, lo, hi in (("n_base", 3, 100), ("n_lock", 2, 50), ("n_validation", 0, 200)):
+            if not (lo <= getattr(self, name) <= hi):
+                raise InputError(f"must be in {lo}..{hi}, got {getattr(self, name)}", field=name)
         if not (2 <= self.n_min <= self.n_max <= 200):
             raise InputError("need 2 <= n_min <= n_max <= 200", field="n_max")
         if not (1 <= self.draws <= 20) or self.candidate_draw < 0:

@@ -38,6 +38,13 @@ class DesignBody(BaseModel):
     candidates: int = Field(300, ge=20, le=1000, description="candidate poses drawn")
     draws: int = Field(1, ge=1, le=5, description="independent draws of the candidates, each designed, the best kept")
     with_line: bool = Field(True, description="include the guided line (straightness)")
+    lock_frames: int = Field(
+        5,
+        ge=2,
+        le=50,
+        description="frames per lock phase (lock-1..4): the legs method's joints, its S and H-D (predicted_parts_std_m "
+        "says when they limit it)",
+    )
 
 
 class DesignOut(BaseModel):
@@ -128,6 +135,7 @@ async def design(body: DesignBody, request: Request, manager: Manager, settings:
                 seed=body.seed,
                 n_candidates=min(body.candidates, settings.design_max_candidates),
                 draws=body.draws,
+                n_lock=body.lock_frames,
                 with_line=body.with_line,
             )
             res = await _finish_even_if_abandoned(

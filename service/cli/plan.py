@@ -42,6 +42,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     a("--no-line", action="store_true", help="leave out the guided line (straightness)")
     a(
+        "--lock-frames",
+        type=int,
+        default=5,
+        help="frames per lock phase, 2-50 (default 5): the legs method's joints; --breakdown says when they limit it",
+    )
+    a(
         "--noise-from",
         default=None,
         help="JSON with the noise levels (an observations file's 'noise', or the keys "
@@ -73,6 +79,8 @@ def _design(args: argparse.Namespace) -> int:
     if args.target_std is not None and args.better_than is not None:
         raise InputError("give --target-std or --better-than, not both", field="--better-than")
     target = None if args.target_std is None else parse_length(args.target_std, "--target-std")
+    if not 2 <= args.lock_frames <= 50:
+        raise InputError(f"must be in 2..50, got {args.lock_frames}", field="--lock-frames")
     if args.max_minutes is not None and not (0 < args.max_minutes < 1e5):
         raise InputError("must be > 0", field="--max-minutes")
     noise = None
@@ -98,6 +106,7 @@ def _design(args: argparse.Namespace) -> int:
         n_candidates=args.candidates,
         draws=args.draws,
         with_line=not args.no_line,
+        n_lock=args.lock_frames,
     )
     res = design_for_bench(cfg, req, noise)
     validate_plan(res.plan, cfg.nominal_parameters(), cfg.calib_limits())

@@ -85,6 +85,25 @@ def test_cli_design_breaks_the_prediction_down_by_source(capsys):
     assert set(doc["prediction"]["parts_std_m"]) == {"end-effector", "legs"}
 
 
+def test_cli_design_lock_frames_buy_the_legs_joints(capsys):
+    """--lock-frames sets the frames of each lock phase: twice as many shrink the legs method's joint-centre part (the
+    sensor noise, which averages over the frames) but not its systematic depth part (the shading, which does not)."""
+    parts = {}
+    for frames in (4, 8):
+        assert main(["plan", "design", "--bench", str(BENCH_SIM), *SMALL, "--lock-frames", str(frames), "--json"]) == 0
+        doc = json.loads(capsys.readouterr().out)
+        assert all(doc["counts"][f"lock-{i}"] == frames for i in range(1, 5)), doc["counts"]
+        parts[frames] = doc["prediction"]["parts_std_m"]["legs"]
+    for k in ("L", "S-q02/2", "S-(q04-q03)/2"):
+        ratio = parts[8]["joint_centres"][k] / parts[4]["joint_centres"][k]
+        assert 0.5 < ratio < 0.85, (k, ratio)  # about 1/sqrt(2), the lock poses differing
+        sys_ratio = parts[8]["joint_depth_systematic"][k] / parts[4]["joint_depth_systematic"][k]
+        assert sys_ratio > 0.8, (k, sys_ratio)
+    for bad in ("1", "51"):
+        assert main(["plan", "design", "--bench", str(BENCH_SIM), *SMALL, "--lock-frames", bad]) == 2
+        assert "--lock-frames" in capsys.readouterr().err
+
+
 def _paper_plan(path: Path, n_fit: int = 12) -> Plan:
     from calib.plan import make_plan
 
@@ -220,6 +239,8 @@ async def test_api_bounds_its_inputs(service):
         {"methods": ["legs"]},
         {"what": 1},
         {"criterion": "target"},
+        {"lock_frames": 1},
+        {"lock_frames": 51},
     ):
         r = await c.post(f"{API}/plans/design", json=bad, headers=AUTH)
         assert r.status_code == 422, (bad, r.text)
