@@ -269,13 +269,14 @@ async def test_dashboard_designs_and_starts_a_plan(service):
             await page.fill("#token", TOKEN)
             await page.dispatch_event("#token", "change")
             await page.fill("#design-nfit", "4")
+            await page.fill("#design-lock", "3")
             await page.click("#design")
             await page.wait_for_function(
                 "document.querySelector('#design-table').textContent.includes('S-(q04-q03)/2')", timeout=120_000
             )
             table = await page.text_content("#design-table")
             summary = await page.text_content("#design-summary")
-            assert "4 fit poses" in summary and "motion" in summary
+            assert "4 fit poses" in summary and "motion" in summary and "lock-1 3" in summary, summary
             assert table.count("\u00b1") == 0 and len(await page.query_selector_all("#design-table tr")) >= 4
             # under the legs method, the sources of its error: the lock phases' shading among them
             assert "of which lock phases: shading (systematic)" in table, table
