@@ -110,6 +110,25 @@ def design_for_bench(cfg, request, noise=None):
     )
 
 
+def tradeoff_for_bench(cfg, request, counts, noise=None, progress=None):
+    """:func:`calib.design.design_tradeoff` on a bench configuration, the scene and noise of
+    :func:`design_for_bench`: ``(rows, results)``, one design per count."""
+    from calib.design import design_tradeoff
+
+    if noise is None:
+        noise = twin_image_noise()
+    return design_tradeoff(
+        cfg.nominal_parameters(),
+        twin_scene(),
+        request,
+        counts,
+        progress=progress,
+        limits=cfg.calib_limits(),
+        motion=motion_spec(cfg),
+        noise=noise,
+    )
+
+
 def reference_targets(cfg, plan, noise=None) -> tuple[float, float, float, float]:
     """The predicted combined std (m) of a reference plan on this bench (the scene and noise of
     :func:`design_for_bench`): targets for a design at least as accurate on every combination."""
@@ -151,4 +170,39 @@ def summary_lines(result, breakdown: bool = False) -> list[str]:
     if result.time_met is not None:
         out.append(f"time limit {'met' if result.time_met else 'NOT met'}")
     out += [f"note: {n}" for n in result.notes]
+    return out
+
+
+def tradeoff_lines(rows, request, recommended: int | None) -> list[str]:
+    """Human-readable trade-off: per method a table of fit poses, motion time and predicted std (mm), optimised methods
+    first; then the target and the recommended count."""
+    from calib.parameters import COMBINATION_NAMES
+
+    methods = list(dict.fromkeys([*request.methods, *(m for r in rows for m in r.std_m)]))
+    out = ["trade-off: the designed plan for each fit-pose count (predicted std in mm, motion time of the whole plan)"]
+    head = f"  {'fit poses':>9} | {'motion min':>10} | " + " | ".join(f"{k:>13}" for k in COMBINATION_NAMES)
+    for m in methods:
+        out.append(f"{m}{' (optimised)' if m in request.methods else ''}:")
+        out.append(head)
+        for r in rows:
+            std = r.std_m.get(m)
+            vals = " | ".join(f"{std[k] * 1e3:13.4f}" if std else f"{'-':>13}" for k in COMBINATION_NAMES)
+            out.append(f"  {r.n_fit:9d} | {r.motion_s / 60:10.2f} | {vals}")
+    t = request.targets()
+    if t is not None:
+        out.append(
+            "target "
+            + ", ".join(f"{k} {v * 1e3:.3f}" for k, v in zip(COMBINATION_NAMES, t, strict=True))
+            + " mm; worst predicted std over it: "
+            + ", ".join(f"{r.n_fit} poses {r.worst_ratio:.2f}x" for r in rows if r.worst_ratio is not None)
+        )
+    if request.max_time_s is not None:
+        out.append(
+            f"time limit {request.max_time_s / 60:.2f} min: "
+            + ", ".join(f"{r.n_fit} poses {'within' if r.time_met else 'over'}" for r in rows)
+        )
+    if recommended is not None:
+        out.append(f"recommended: {recommended} fit poses (the fewest that meet the target within the time)")
+    elif t is not None or request.max_time_s is not None:
+        out.append("no count listed meets the target within the time")
     return out

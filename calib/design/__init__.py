@@ -5,7 +5,8 @@
   measurements of known noise (:class:`DesignNoise`) or, through :mod:`.predict_images` and :mod:`.imaging`, on
   images (:class:`ImageNoise`: what the extraction measures and the methods' image-level uncertainty);
 * :mod:`.motion`: trapezoidal motion time and a tour of the poses;
-* :mod:`.optimize`: greedy + exchange selection of the fit poses and the sweeps' extents; :func:`design_plan`.
+* :mod:`.optimize`: greedy + exchange selection of the fit poses and the sweeps' extents; :func:`design_plan`;
+* :mod:`.tradeoff`: one design per fit-pose count, accuracy against motion time (:func:`design_tradeoff`).
 
 See docs/design.md.
 """
@@ -33,6 +34,7 @@ from .predict import (
 )
 from .predict_images import ImageNoise
 from .scene import Scene, VisibilityLimits, visibility
+from .tradeoff import TradeoffRow, design_tradeoff, parse_counts, recommended_count
 
 __all__ = [
     "METHODS",
@@ -43,19 +45,23 @@ __all__ = [
     "MotionSpec",
     "Prediction",
     "Scene",
+    "TradeoffRow",
     "VisibilityLimits",
     "calibration_covariance",
     "design_plan",
     "design_score",
+    "design_tradeoff",
     "log_det_information",
     "move_time",
     "order_tour",
+    "parse_counts",
     "phase_q",
     "plan_motion_time",
     "predict_combined",
     "predict_end_effector",
     "predict_legs",
     "predict_plan",
+    "recommended_count",
     "select_poses",
     "synthetic_rods",
     "targets_from_plan",

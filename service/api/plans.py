@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, HTTPException, Request, status
 from pydantic import BaseModel, ConfigDict, Field
 
+from calib.design.tradeoff import MAX_TRADEOFF_COUNTS
 from calib.errors import I4calError, InputError
 
 from ..auth import Writer
@@ -88,23 +89,72 @@ async def _finish_even_if_abandoned(work: asyncio.Future[Any]) -> Any:
         raise
 
 
-@router.post(
-    "/design",
-    response_model=DesignOut,
-    responses={
-        401: {"description": "no or wrong bearer token"},
-        422: {"description": "invalid request, or no bench configured: the field is named"},
-        429: {"description": "another design is being computed"},
-    },
-)
-async def design(body: DesignBody, request: Request, manager: Manager, settings: SettingsDep, _: Writer) -> DesignOut:
-    """Design a plan for this service's bench: fit poses, sweeps, order; predicted std and motion time.
+class TradeoffBody(DesignBody):
+    """A design per fit-pose count (``n_fit`` is each of ``counts`` in turn); everything else as for a design."""
 
-    Computed in a worker thread, one design at a time (the run's processes keep their cores)."""
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={"examples": [{"counts": [8, 12, 20, 30], "target_std_m": 5e-5, "max_minutes": 10}]},
+    )
+    counts: list[Annotated[int, Field(ge=2, le=100)]] = Field(
+        min_length=1,
+        max_length=MAX_TRADEOFF_COUNTS,
+        description="fit-pose counts, each 2..100 (one full design each: seconds of CPU)",
+    )
+    n_fit: None = Field(None, description="not used: the counts are the trade-off's")
+
+
+class TradeoffRowOut(BaseModel):
+    n_fit: int
+    motion_s: float = Field(description="motion time of the whole plan, seconds")
+    predicted_std_m: dict[str, dict[str, float]] = Field(description="per method and combination, metres")
+    worst_ratio_to_target: float | None = Field(description="largest predicted std of the optimised methods / target")
+    target_met: bool | None
+    time_met: bool | None
+
+
+class TradeoffOut(BaseModel):
+    rows: list[TradeoffRowOut] = Field(description="one designed plan per count, in increasing count")
+    recommended_n_fit: int | None = Field(
+        description="the fewest fit poses that meet the target within max_minutes (null: none asked, or none meets)"
+    )
+    recommended_plan: dict[str, Any] | None = Field(
+        description="that count's plan (i4cal.plan/1): POST it to /api/v1/runs as an inline plan"
+    )
+    notes: list[str]
+
+
+_ERRORS: dict[int | str, dict[str, Any]] = {
+    401: {"description": "no or wrong bearer token"},
+    422: {"description": "invalid request, or no bench configured: the field is named"},
+    429: {"description": "another design is being computed"},
+}
+
+
+def _design_request(body: DesignBody, target: Any, settings: Any) -> Any:
     from calib.design import DesignRequest
+
+    return DesignRequest(
+        n_fit=body.n_fit,
+        target_std_m=target,
+        max_time_s=None if body.max_minutes is None else body.max_minutes * 60.0,
+        criterion=body.criterion
+        or ("target" if body.better_than is not None or (target is not None and body.n_fit is None) else "d"),
+        methods=tuple(dict.fromkeys(body.methods)),
+        seed=body.seed,
+        n_candidates=min(body.candidates, settings.design_max_candidates),
+        draws=body.draws,
+        n_lock=body.lock_frames,
+        with_line=body.with_line,
+    )
+
+
+async def _designed(body: DesignBody, request: Request, manager: Any, settings: Any, work: Any) -> Any:
+    """``work(config, DesignRequest)`` for the body, in a worker thread, one design at a time: the reference plan read
+    and its targets predicted, input errors as 422 naming the field, 429 while another design runs."""
     from calib.plan import Plan
 
-    from ..design import design_for_bench, reference_targets
+    from ..design import reference_targets
 
     bench = manager.bench
     if bench is None:
@@ -125,26 +175,28 @@ async def design(body: DesignBody, request: Request, manager: Manager, settings:
             target: float | tuple[float, float, float, float] | None = body.target_std_m
             if ref is not None:
                 target = await asyncio.to_thread(reference_targets, bench.config, ref)
-            req = DesignRequest(
-                n_fit=body.n_fit,
-                target_std_m=target,
-                max_time_s=None if body.max_minutes is None else body.max_minutes * 60.0,
-                criterion=body.criterion
-                or ("target" if body.better_than is not None or (target is not None and body.n_fit is None) else "d"),
-                methods=tuple(dict.fromkeys(body.methods)),
-                seed=body.seed,
-                n_candidates=min(body.candidates, settings.design_max_candidates),
-                draws=body.draws,
-                n_lock=body.lock_frames,
-                with_line=body.with_line,
-            )
-            res = await _finish_even_if_abandoned(
-                asyncio.ensure_future(asyncio.to_thread(design_for_bench, bench.config, req))
-            )
+            req = _design_request(body, target, settings)
+            return await _finish_even_if_abandoned(asyncio.ensure_future(asyncio.to_thread(work, bench.config, req)))
         except InputError as exc:
             raise unprocessable(exc) from None
         except I4calError as exc:
             raise unprocessable(InputError(str(exc), field="plan")) from None
+
+
+def _capped(body: DesignBody, settings: Any) -> list[str]:
+    if body.candidates > settings.design_max_candidates:
+        return [f"candidates: {settings.design_max_candidates} drawn, the service's limit (asked {body.candidates})"]
+    return []
+
+
+@router.post("/design", response_model=DesignOut, responses=_ERRORS)
+async def design(body: DesignBody, request: Request, manager: Manager, settings: SettingsDep, _: Writer) -> DesignOut:
+    """Design a plan for this service's bench: fit poses, sweeps, order; predicted std and motion time.
+
+    Computed in a worker thread, one design at a time (the run's processes keep their cores)."""
+    from ..design import design_for_bench
+
+    res = await _designed(body, request, manager, settings, design_for_bench)
     pred = res.prediction
     return DesignOut(
         plan=res.plan.model_dump(mode="json", exclude_none=True),
@@ -159,10 +211,32 @@ async def design(body: DesignBody, request: Request, manager: Manager, settings:
         sweeps=res.sweeps,
         target_met=res.target_met,
         time_met=res.time_met,
-        notes=res.notes
-        + (
-            [f"candidates: {settings.design_max_candidates} drawn, the service's limit (asked {body.candidates})"]
-            if body.candidates > settings.design_max_candidates
-            else []
-        ),
+        notes=res.notes + _capped(body, settings),
+    )
+
+
+@router.post("/tradeoff", response_model=TradeoffOut, responses=_ERRORS)
+async def tradeoff(
+    body: TradeoffBody, request: Request, manager: Manager, settings: SettingsDep, _: Writer
+) -> TradeoffOut:
+    """Accuracy against bench time: a designed plan per fit-pose count, its predicted std and motion time, and the
+    fewest poses that meet the target within the time (calib.design.design_tradeoff)."""
+    from calib.design import parse_counts, recommended_count
+
+    from ..design import tradeoff_for_bench
+
+    try:
+        counts = parse_counts(body.counts)
+    except InputError as exc:
+        raise unprocessable(exc, prefix=("body",)) from None
+    rows, results = await _designed(
+        body, request, manager, settings, lambda cfg, req: tradeoff_for_bench(cfg, req, counts)
+    )
+    best = recommended_count(rows)
+    plan = None if best is None else results[[r.n_fit for r in rows].index(best)].plan
+    return TradeoffOut(
+        rows=[TradeoffRowOut(**r.to_dict()) for r in rows],
+        recommended_n_fit=best,
+        recommended_plan=None if plan is None else plan.model_dump(mode="json", exclude_none=True),
+        notes=_capped(body, settings),
     )

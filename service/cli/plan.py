@@ -59,6 +59,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="under each method, the std (mm) that each source of error contributes (which phase limits a "
         "combination: fit poses, lock phases, camera calibration); always in --json as prediction.parts_std_m",
     )
+    a(
+        "--tradeoff",
+        default=None,
+        metavar="COUNTS",
+        help="e.g. 8,12,20,30: design a plan for each fit-pose count and print them side by side (predicted std per "
+        "method and combination, motion time, the target's worst ratio), recommending the fewest poses that meet "
+        "the target within --max-minutes; -o then writes that plan (not with --n-fit)",
+    )
     a("--json", action="store_true", help="print the design summary as JSON")
     a("-o", "--out", default=None, help="write the plan (i4cal.plan/1) for i4cal acquire --plan / POST /api/v1/runs")
     d.set_defaults(handler=_design)
@@ -79,6 +87,8 @@ def _design(args: argparse.Namespace) -> int:
     if args.target_std is not None and args.better_than is not None:
         raise InputError("give --target-std or --better-than, not both", field="--better-than")
     target = None if args.target_std is None else parse_length(args.target_std, "--target-std")
+    if args.tradeoff is not None and args.n_fit is not None:
+        raise InputError("give --tradeoff COUNTS or --n-fit, not both", field="--tradeoff")
     if not 2 <= args.lock_frames <= 50:
         raise InputError(f"must be in 2..50, got {args.lock_frames}", field="--lock-frames")
     if args.max_minutes is not None and not (0 < args.max_minutes < 1e5):
@@ -108,6 +118,8 @@ def _design(args: argparse.Namespace) -> int:
         with_line=not args.no_line,
         n_lock=args.lock_frames,
     )
+    if args.tradeoff is not None:
+        return _tradeoff(args, cfg, req, noise)
     res = design_for_bench(cfg, req, noise)
     validate_plan(res.plan, cfg.nominal_parameters(), cfg.calib_limits())
     if args.json:
@@ -118,4 +130,51 @@ def _design(args: argparse.Namespace) -> int:
         res.plan.save(args.out)
         if not args.json:
             print(f"wrote {args.out}")
+    return 0
+
+
+def _tradeoff(args: argparse.Namespace, cfg, req, noise) -> int:
+    """``plan design --tradeoff``: one design per count, printed side by side; ``-o`` writes the recommended one."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from calib.design import parse_counts, recommended_count
+    from calib.errors import InputError
+    from calib.pipeline import to_jsonable
+    from calib.plan import validate_plan
+    from service.design import tradeoff_for_bench, tradeoff_lines
+
+    from ._output import make_console
+
+    counts = parse_counts(args.tradeoff, "--tradeoff")
+    bar = Progress(
+        TextColumn("[bold]designing"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=make_console(stderr=True),
+        transient=True,
+    )
+    task = bar.add_task("design", total=len(counts))
+    with bar:
+        rows, results = tradeoff_for_bench(
+            cfg, req, counts, noise, progress=lambda done, tot: bar.update(task, completed=done)
+        )
+    best = recommended_count(rows)
+    if args.json:
+        doc = {"tradeoff": [r.to_dict() for r in rows], "recommended_n_fit": best, "methods": list(req.methods)}
+        print(json.dumps(to_jsonable(doc), indent=1))
+    else:
+        print("\n".join(tradeoff_lines(rows, req, best)))
+    if args.out:
+        if best is None:
+            raise InputError(
+                "no count of the trade-off meets the target within the time (or none was given): nothing to write; "
+                "pick a count and run with --n-fit N -o PLAN",
+                field="--out",
+            )
+        res = results[[r.n_fit for r in rows].index(best)]
+        validate_plan(res.plan, cfg.nominal_parameters(), cfg.calib_limits())
+        res.plan.save(args.out)
+        if not args.json:
+            print(f"wrote {args.out} ({best} fit poses)")
     return 0

@@ -348,18 +348,24 @@ function designRows(pred, obtained, parts) {
   return h;
 }
 
-$("#design-form").addEventListener("submit", async (ev) => {
-  ev.preventDefault();
+// the design form's fields as a request body (POST /plans/design and /plans/tradeoff); fit poses only for a design
+function designBody(withCount) {
   const body = {};
   const t = parseFloat($("#design-target").value);
   if (t > 0) body.target_std_m = t * 1e-3;
   const minutes = parseFloat($("#design-minutes").value);
   if (minutes > 0) body.max_minutes = minutes;
   const n = parseInt($("#design-nfit").value, 10);
-  if (n > 0) body.n_fit = n;
+  if (withCount && n > 0) body.n_fit = n;
   const lockFrames = parseInt($("#design-lock").value, 10);
   if (lockFrames > 0) body.lock_frames = lockFrames;
   if ($("#design-criterion").value) body.criterion = $("#design-criterion").value;
+  return body;
+}
+
+$("#design-form").addEventListener("submit", async (ev) => {
+  ev.preventDefault();
+  const body = designBody(true);
   $("#design-summary").textContent = "designing…";
   $("#design-start").disabled = true;
   try {
@@ -373,6 +379,38 @@ $("#design-form").addEventListener("submit", async (ev) => {
     (d.time_met === null ? "" : d.time_met ? " · time met" : " · time NOT met");
   $("#design-table").innerHTML = designRows(d.predicted_std_m, undefined, d.predicted_parts_std_m);
   $("#design-start").disabled = false;
+});
+
+// accuracy against bench time (POST /api/v1/plans/tradeoff): a designed plan per count; "use" sets the fit poses
+$("#tradeoff").addEventListener("click", async () => {
+  const counts = $("#tradeoff-counts").value.split(",").map((c) => parseInt(c, 10)).filter((c) => c > 0);
+  if (!counts.length) { say("compare: give fit-pose counts, e.g. 8,12,20,30", true); return; }
+  $("#tradeoff-summary").textContent = `designing ${counts.length} plans…`;
+  let d;
+  try {
+    d = await api("POST", "/plans/tradeoff", { ...designBody(false), counts });
+  } catch (e) { $("#tradeoff-summary").textContent = ""; say("compare: " + e.message, true); return; }
+  const withTarget = d.rows.some((r) => r.worst_ratio_to_target !== null);
+  let h = "<tr><th>fit poses</th><th>motion (min)</th>" + COMBOS.map((k) => `<th>combined ${k}</th>`).join("") +
+    (withTarget ? "<th>worst / target</th>" : "") + "<th></th></tr>";
+  for (const r of d.rows) {
+    const std = r.predicted_std_m.combined || {};
+    const best = r.n_fit === d.recommended_n_fit;
+    h += `<tr${best ? ' class="recommended"' : ""}><td>${r.n_fit}${best ? " (recommended)" : ""}</td>` +
+      `<td>${(r.motion_s / 60).toFixed(2)}${r.time_met === false ? " (over)" : ""}</td>` +
+      COMBOS.map((k) => `<td>${mm(std[k])}</td>`).join("") +
+      (withTarget ? `<td>${r.worst_ratio_to_target.toFixed(2)}×</td>` : "") +
+      `<td><button type="button" class="use-count" data-n="${r.n_fit}">use</button></td></tr>`;
+  }
+  $("#tradeoff-table").innerHTML = h;
+  $("#tradeoff-summary").textContent = d.recommended_n_fit !== null
+    ? `the fewest fit poses meeting the target within the time: ${d.recommended_n_fit}`
+    : (withTarget || d.rows.some((r) => r.time_met !== null) ? "no count listed meets the target within the time"
+      : "predicted std (mm) of the combined method per count; give a target to get a recommendation");
+  document.querySelectorAll("#tradeoff-table .use-count").forEach((b) => b.addEventListener("click", () => {
+    $("#design-nfit").value = b.dataset.n;
+    say(`fit poses set to ${b.dataset.n}: Design to see its plan`);
+  }));
 });
 
 $("#design-start").addEventListener("click", async () => {

@@ -135,6 +135,37 @@ def test_cli_design_better_than_a_reference_plan(tmp_path, capsys):
     assert "--better-than" in capsys.readouterr().err
 
 
+def test_cli_tradeoff_prints_each_count_and_writes_the_recommended_plan(tmp_path, capsys):
+    """``--tradeoff``: a designed plan per count side by side; with a target, the fewest poses meeting it, which ``-o``
+    writes; no plan to write when none meets it; not with ``--n-fit``."""
+    small = ["--no-line", "--candidates", "60", "--lock-frames", "2"]
+    argv = ["plan", "design", "--bench", str(BENCH_SIM), "--tradeoff", "12,4", *small, "--json"]
+    assert main(argv) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert [r["n_fit"] for r in doc["tradeoff"]] == [4, 12] and doc["recommended_n_fit"] is None
+    few, many = (
+        [r["predicted_std_m"]["combined"][k] for k in ("L", "H-D", "S-q02/2", "S-(q04-q03)/2")] for r in doc["tradeoff"]
+    )
+    # a target between the two counts' worst predicted std: 12 poses meet it, 4 do not
+    target = float(np.sqrt(max(few) * max(many)))
+    out = tmp_path / "plan.json"
+    argv = ["plan", "design", "--bench", str(BENCH_SIM), "--tradeoff", "4,12", *small, "--target-std", f"{target:.6g}"]
+    assert main([*argv, "-o", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "trade-off" in text and "combined (optimised):" in text and "legs:" in text
+    assert "recommended: 12 fit poses" in text and f"wrote {out} (12 fit poses)" in text
+    plan = Plan.load(out)
+    validate_plan(plan, NOMINAL)
+    assert plan.count()["poses"] == 12
+    # a target no count meets: nothing written, the option named
+    assert main([*argv[:-1], "1e-7", "-o", str(tmp_path / "none.json")]) == 2
+    assert "--out" in capsys.readouterr().err and not (tmp_path / "none.json").exists()
+    assert main(["plan", "design", "--bench", str(BENCH_SIM), "--tradeoff", "4,8", "--n-fit", "4"]) == 2
+    assert "--tradeoff" in capsys.readouterr().err
+    assert main(["plan", "design", "--bench", str(BENCH_SIM), "--tradeoff", "4,eight"]) == 2
+    assert "--tradeoff" in capsys.readouterr().err
+
+
 async def test_acquire_runs_a_designed_plan(sim, tmp_path):
     text = (
         BENCH_SIM.read_text()
@@ -228,6 +259,30 @@ async def test_api_designs_the_best_of_several_candidate_draws(service):
     assert any("best of 2 draws of 40 candidate poses" in n for n in r.json()["notes"]), r.json()["notes"]
 
 
+async def test_api_tradeoff_designs_each_count_and_recommends_one(service):
+    c = service.client
+    body = {"counts": [12, 4], "with_line": False, "candidates": 60, "lock_frames": 2}
+    r = await c.post(f"{API}/plans/tradeoff", json=body)
+    assert r.status_code == 401
+    r = await c.post(f"{API}/plans/tradeoff", json=body, headers=AUTH)
+    assert r.status_code == 200, r.text
+    d = r.json()
+    assert [row["n_fit"] for row in d["rows"]] == [4, 12] and d["recommended_n_fit"] is None
+    few, many = (max(row["predicted_std_m"]["combined"].values()) for row in d["rows"])
+    assert many < few and d["rows"][0]["motion_s"] < d["rows"][1]["motion_s"]
+    r = await c.post(f"{API}/plans/tradeoff", json={**body, "target_std_m": float(np.sqrt(few * many))}, headers=AUTH)
+    assert r.status_code == 200, r.text
+    d = r.json()
+    assert [row["target_met"] for row in d["rows"]] == [False, True] and d["recommended_n_fit"] == 12
+    plan = Plan.from_dict(d["recommended_plan"])
+    validate_plan(plan, NOMINAL)
+    assert plan.count()["poses"] == 12
+    for bad in ({"counts": []}, {"counts": [1]}, {"counts": [101]}, {"counts": list(range(2, 11))}, {"n_fit": 4}):
+        r = await c.post(f"{API}/plans/tradeoff", json={**body, **bad}, headers=AUTH)
+        assert r.status_code == 422, (bad, r.text)
+        assert r.json()["detail"][0]["loc"][:2] in (["body", "counts"], ["body", "n_fit"]), r.text
+
+
 async def test_api_bounds_its_inputs(service):
     c = service.client
     for bad in (
@@ -290,6 +345,30 @@ async def test_dashboard_designs_and_starts_a_plan(service):
             )
             r = await service.client.get(f"{API}/runs/{run_id}", headers=AUTH)
             assert r.status_code == 200 and r.json()["plan"] == "designed"
+            # accuracy against bench time: a row per count, the more poses the smaller the combined std; a target
+            # between them recommends the larger, and "use" puts its count in the form
+            await page.fill("#tradeoff-counts", "4, 10")
+            await page.click("#tradeoff")
+            await page.wait_for_function(
+                "document.querySelectorAll('#tradeoff-table .use-count').length === 2", timeout=120_000
+            )
+            rows = await page.eval_on_selector_all(
+                "#tradeoff-table tr", "(trs) => trs.slice(1).map((tr) => [...tr.cells].map((c) => c.textContent))"
+            )
+            assert [row[0] for row in rows] == ["4", "10"], rows
+            worst = [max(float(v) for v in row[2:6]) for row in rows]
+            assert worst[1] < worst[0], rows
+            await page.fill("#design-target", f"{(worst[0] * worst[1]) ** 0.5:.4f}")
+            await page.click("#tradeoff")
+            await page.wait_for_function(
+                "document.querySelector('#tradeoff-table').textContent.includes('(recommended)')", timeout=120_000
+            )
+            assert "fewest fit poses meeting the target within the time: 10" in await page.text_content(
+                "#tradeoff-summary"
+            )
+            assert len(await page.query_selector_all("#tradeoff-table tr.recommended")) == 1
+            await page.click("#tradeoff-table tr.recommended .use-count")
+            assert await page.input_value("#design-nfit") == "10"
             assert not errors, errors
         finally:
             await browser.close()

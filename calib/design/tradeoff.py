@@ -1,0 +1,154 @@
+"""Accuracy against bench time: one design per fit-pose count, side by side, before any motion.
+
+A calibration engineer deciding how long to keep a robot on the bench asks what each extra minute buys. With a target
+and no count, :func:`.optimize.design_plan` answers one question (the smallest count that meets the target); the
+trade-off answers the one before it: for each count asked, the designed plan's predicted std per method and
+combination and its motion time (``i4cal plan design --tradeoff 8,12,20,30``, ``POST /api/v1/plans/tradeoff``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError
+from ..parameters import COMBINATION_NAMES, I4Parameters
+from .optimize import DesignRequest, DesignResult, design_plan
+from .scene import Scene
+
+__all__ = ["MAX_TRADEOFF_COUNTS", "TradeoffRow", "design_tradeoff", "parse_counts", "recommended_count"]
+
+#: most counts in one trade-off (each is a full design: seconds of CPU)
+MAX_TRADEOFF_COUNTS = 8
+
+
+@dataclass(frozen=True)
+class TradeoffRow:
+    """One count of a trade-off: what its designed plan is predicted to give, and what it costs.
+
+    Attributes
+    ----------
+    n_fit : int
+        Fit poses.
+    motion_s : float
+        Motion time of the whole plan (sweeps, fit poses, lock phases, line, validation), seconds.
+    std_m : dict
+        Predicted std per method and combination, metres (every method the plan feeds, not only the optimised ones).
+    worst_ratio : float or None
+        The largest predicted std of the optimised methods over its target (None without a target; <= 1: met).
+    target_met, time_met : bool or None
+        The target (judged on the optimised methods) and the time limit; None when not asked.
+    """
+
+    n_fit: int
+    motion_s: float
+    std_m: dict[str, dict[str, float]]
+    worst_ratio: float | None
+    target_met: bool | None
+    time_met: bool | None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "n_fit": self.n_fit,
+            "motion_s": self.motion_s,
+            "predicted_std_m": self.std_m,
+            "worst_ratio_to_target": self.worst_ratio,
+            "target_met": self.target_met,
+            "time_met": self.time_met,
+        }
+
+
+def parse_counts(counts: Sequence[int] | str, field: str = "counts") -> list[int]:
+    """Fit-pose counts, sorted and unique: from a sequence of ints or ``"8,12,20,30"``.
+
+    Raises
+    ------
+    InputError
+        Naming ``field``: not integers, none, more than :data:`MAX_TRADEOFF_COUNTS`, or one outside 2..200.
+    """
+    if isinstance(counts, str):
+        try:
+            values = [int(c) for c in counts.replace(" ", "").split(",") if c]
+        except ValueError:
+            why = f"comma-separated fit-pose counts, e.g. 8,12,20,30 (got {counts!r})"
+            raise InputError(why, field=field) from None
+    else:
+        values = [int(c) for c in counts]
+    out = sorted(set(values))
+    if not out:
+        raise InputError("at least one fit-pose count", field=field)
+    if len(out) > MAX_TRADEOFF_COUNTS:
+        raise InputError(f"at most {MAX_TRADEOFF_COUNTS} counts (got {len(out)})", field=field)
+    bad = [c for c in out if not 2 <= c <= 200]
+    if bad:
+        raise InputError(f"fit-pose counts must be in 2..200 (got {', '.join(map(str, bad))})", field=field)
+    return out
+
+
+def design_tradeoff(
+    nominal: I4Parameters,
+    scene: Scene,
+    request: DesignRequest,
+    counts: Sequence[int] | str,
+    progress: Callable[[int, int], None] | None = None,
+    **kw: Any,
+) -> tuple[list[TradeoffRow], list[DesignResult]]:
+    """One design per count (``request`` with ``n_fit`` set to it; everything else as asked: criterion, methods,
+    target, candidates and their draws, lock frames, line).
+
+    Parameters
+    ----------
+    counts : sequence of int or str
+        Fit-pose counts (:func:`parse_counts`).
+    progress : callable, optional
+        Called with (designs done, designs in all) after each.
+    **kw
+        :func:`.optimize.design_plan`'s keywords (``limits``, ``motion``, ``noise``, ``ws``).
+
+    Returns
+    -------
+    rows : list of TradeoffRow
+        In increasing count.
+    results : list of DesignResult
+        The designs themselves (their plans, to write the one chosen).
+    """
+    ns = parse_counts(counts)
+    t = request.targets()
+    rows: list[TradeoffRow] = []
+    results: list[DesignResult] = []
+    for i, n in enumerate(ns):
+        res = design_plan(nominal, scene, replace(request, n_fit=n), **kw)
+        results.append(res)
+        rows.append(_row(res, request, t))
+        if progress is not None:
+            progress(i + 1, len(ns))
+    return rows, results
+
+
+def _row(res: DesignResult, request: DesignRequest, t: np.ndarray | None) -> TradeoffRow:
+    std = res.prediction.std
+    worst = None
+    if t is not None:
+        ratios = [std[m][c] / t[i] for m in request.methods if m in std for i, c in enumerate(COMBINATION_NAMES)]
+        missing = any(m not in std for m in request.methods)
+        worst = float("inf") if missing or not ratios else float(max(ratios))
+    return TradeoffRow(
+        n_fit=res.n_fit,
+        motion_s=float(res.motion["total_s"]),
+        std_m={m: dict(v) for m, v in std.items()},
+        worst_ratio=worst,
+        target_met=res.target_met,
+        time_met=res.time_met,
+    )
+
+
+def recommended_count(rows: Sequence[TradeoffRow]) -> int | None:
+    """The smallest count whose plan meets the target within the time limit (whichever of them was asked); None when
+    neither was asked or no count meets them."""
+    if all(r.target_met is None and r.time_met is None for r in rows):
+        return None
+    ok = [r.n_fit for r in rows if r.target_met is not False and r.time_met is not False]
+    return min(ok) if ok else None

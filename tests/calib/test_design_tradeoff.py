@@ -1,0 +1,110 @@
+"""The accuracy / bench-time trade-off (calib.design.tradeoff): one design per fit-pose count, each the design that
+``design_plan`` gives for that count, the target's ratio and the recommended count consistent with the predictions."""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from calib.design import (
+    DesignRequest,
+    Scene,
+    design_plan,
+    design_tradeoff,
+    parse_counts,
+    recommended_count,
+)
+from calib.errors import InputError
+from calib.parameters import COMBINATION_NAMES, NOMINAL
+from calib.plan import validate_plan
+from drivers.sim.render import RenderSettings
+from drivers.sim.twin import BenchGeometry
+
+SMALL = {"n_lock": 2, "n_validation": 0, "with_line": False, "n_candidates": 100}
+
+
+@pytest.fixture(scope="module")
+def scene() -> Scene:
+    g = BenchGeometry()
+    rs = RenderSettings()
+    return Scene(
+        camera=rs.camera(),
+        camera_from_base=g.camera_from_base,
+        ee_from_board=g.ee_from_board,
+        board_size_m=rs.board.size_m,
+        board_margin_m=rs.board_margin_m,
+        rod_radius_m=g.rod_radius_m,
+        rod_spacing_m=g.rod_spacing_m,
+    )
+
+
+def _combined(row) -> np.ndarray:
+    return np.array([row.std_m["combined"][c] for c in COMBINATION_NAMES])
+
+
+def test_each_count_is_the_design_of_that_count(scene):
+    """Rows in increasing count, each the plan and prediction ``design_plan`` gives for that count; more poses
+    predict a smaller combined std on every combination, and take longer."""
+    req = DesignRequest(**SMALL)
+    done = []
+    rows, results = design_tradeoff(NOMINAL, scene, req, "24,6,12", progress=lambda d, t: done.append((d, t)))
+    assert [r.n_fit for r in rows] == [6, 12, 24]
+    assert done == [(1, 3), (2, 3), (3, 3)]
+    for row, res in zip(rows, results, strict=True):
+        alone = design_plan(NOMINAL, scene, replace(req, n_fit=row.n_fit))
+        assert res.plan.count()["poses"] == row.n_fit
+        np.testing.assert_allclose(_combined(row), [alone.prediction.std["combined"][c] for c in COMBINATION_NAMES])
+        assert row.motion_s == pytest.approx(alone.motion["total_s"])
+        assert set(row.std_m) == {"combined", "end-effector", "legs"}
+        validate_plan(res.plan, NOMINAL)
+        # no target and no time limit were asked
+        assert row.worst_ratio is None and row.target_met is None and row.time_met is None
+    assert np.all(_combined(rows[-1]) < _combined(rows[0])), (_combined(rows[0]), _combined(rows[-1]))
+    assert rows[0].motion_s < rows[-1].motion_s
+    assert recommended_count(rows) is None
+
+
+def test_target_and_time_pick_the_fewest_poses_that_meet_both(scene):
+    """With a target the rows carry the worst predicted std over it (optimised methods) and whether it is met; with a
+    time limit too, the recommended count is the fewest that meets both."""
+    # a target between what 6 and 20 poses are predicted to give
+    probe, _ = design_tradeoff(NOMINAL, scene, DesignRequest(**SMALL), [6, 20])
+    target = float(np.sqrt(np.max(_combined(probe[0])) * np.max(_combined(probe[1]))))
+    req = DesignRequest(**SMALL, target_std_m=target, criterion="target")
+    rows, _ = design_tradeoff(NOMINAL, scene, req, [6, 10, 14, 20])
+    for r in rows:
+        assert r.worst_ratio == pytest.approx(np.max(_combined(r)) / target)
+        assert r.target_met == (r.worst_ratio <= 1.0 + 1e-9)
+    assert rows[0].target_met is False and rows[-1].target_met is True
+    first = min(r.n_fit for r in rows if r.target_met)
+    assert recommended_count(rows) == first
+    # a time limit: the same designs (the count is given), each within it or not; the fewest poses meeting both
+    assert all(a.motion_s < b.motion_s for a, b in itertools.pairwise(rows))
+    t_first = next(r.motion_s for r in rows if r.n_fit == first)
+    for limit, want in ((t_first * (1 + 1e-6), first), (t_first * (1 - 1e-6), None)):
+        timed, _ = design_tradeoff(NOMINAL, scene, replace(req, max_time_s=limit), [r.n_fit for r in rows])
+        np.testing.assert_allclose([r.motion_s for r in timed], [r.motion_s for r in rows])
+        assert [r.time_met for r in timed] == [r.motion_s <= limit for r in rows]
+        assert recommended_count(timed) == want, (limit, want)
+
+
+@pytest.mark.parametrize(
+    ("counts", "says"),
+    [
+        ("8,x", "comma-separated"),
+        ("", "at least one"),
+        ([1, 8], "2..200"),
+        (list(range(2, 12)), "at most 8"),
+    ],
+)
+def test_bad_counts_are_refused_naming_the_field(counts, says):
+    with pytest.raises(InputError, match=says) as exc:
+        parse_counts(counts, field="--tradeoff")
+    assert exc.value.field == "--tradeoff"
+
+
+def test_counts_are_sorted_and_unique():
+    assert parse_counts("30, 8,12,8") == [8, 12, 30]
