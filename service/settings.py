@@ -89,6 +89,13 @@ class Settings(BaseSettings):
         description="most candidate poses a plan design (POST /api/v1/plans/design) draws: its CPU time grows with "
         "them (~7 s at the default 300 on one core); a request asking for more is drawn with this many and says so",
     )
+    design_max_tradeoff_designs: int = Field(
+        8,
+        ge=1,
+        le=40,
+        description="most designs one trade-off (POST /api/v1/plans/tradeoff) computes, its counts times its draws "
+        "(each design ~2-7 s of CPU): a request asking for more is refused (422), naming 'counts'",
+    )
     job_niceness: int = Field(
         5,
         ge=0,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import threading
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, HTTPException, Request, status
@@ -77,13 +78,16 @@ def _lock(request: Request) -> asyncio.Lock:
     return lock
 
 
-async def _finish_even_if_abandoned(work: asyncio.Future[Any]) -> Any:
+async def _finish_even_if_abandoned(work: asyncio.Future[Any], stop: threading.Event | None = None) -> Any:
     """The result of ``work`` (a design in a worker thread); if the request is cancelled (the client went away), wait
     for the thread to end before giving up, so that the design lock stays held while the computation runs: a thread
-    cannot be stopped, and releasing the lock early let abandoned designs pile up on the cores."""
+    cannot be stopped, and releasing the lock early let abandoned designs pile up on the cores. ``stop`` is set first:
+    a computation of several designs (a trade-off) checks it between them and ends early."""
     try:
         return await asyncio.shield(work)
     except asyncio.CancelledError:
+        if stop is not None:
+            stop.set()
         with contextlib.suppress(BaseException):
             await asyncio.wait([work])
         raise
@@ -149,7 +153,9 @@ def _design_request(body: DesignBody, target: Any, settings: Any) -> Any:
     )
 
 
-async def _designed(body: DesignBody, request: Request, manager: Any, settings: Any, work: Any) -> Any:
+async def _designed(
+    body: DesignBody, request: Request, manager: Any, settings: Any, work: Any, stop: threading.Event | None = None
+) -> Any:
     """``work(config, DesignRequest)`` for the body, in a worker thread, one design at a time: the reference plan read
     and its targets predicted, input errors as 422 naming the field, 429 while another design runs."""
     from calib.plan import Plan
@@ -176,11 +182,17 @@ async def _designed(body: DesignBody, request: Request, manager: Any, settings: 
             if ref is not None:
                 target = await asyncio.to_thread(reference_targets, bench.config, ref)
             req = _design_request(body, target, settings)
-            return await _finish_even_if_abandoned(asyncio.ensure_future(asyncio.to_thread(work, bench.config, req)))
+            return await _finish_even_if_abandoned(
+                asyncio.ensure_future(asyncio.to_thread(work, bench.config, req)), stop
+            )
         except InputError as exc:
             raise unprocessable(exc) from None
         except I4calError as exc:
             raise unprocessable(InputError(str(exc), field="plan")) from None
+
+
+class _AbandonedError(Exception):
+    """A trade-off whose request was cancelled, ended between two designs (nobody reads it)."""
 
 
 def _capped(body: DesignBody, settings: Any) -> list[str]:
@@ -227,10 +239,23 @@ async def tradeoff(
 
     try:
         counts = parse_counts(body.counts)
+        designs = len(counts) * body.draws
+        if designs > settings.design_max_tradeoff_designs:
+            raise InputError(
+                f"at most {settings.design_max_tradeoff_designs} designs per trade-off on this service "
+                f"(counts x draws = {len(counts)} x {body.draws})",
+                field="counts",
+            )
     except InputError as exc:
         raise unprocessable(exc, prefix=("body",)) from None
+    stop = threading.Event()
+
+    def progress(done: int, total: int) -> None:
+        if stop.is_set():  # the client went away: the designs left are not computed
+            raise _AbandonedError(f"trade-off abandoned after {done} of {total} designs")
+
     rows, results = await _designed(
-        body, request, manager, settings, lambda cfg, req: tradeoff_for_bench(cfg, req, counts)
+        body, request, manager, settings, lambda cfg, req: tradeoff_for_bench(cfg, req, counts, progress=progress), stop
     )
     best = recommended_count(rows)
     plan = None if best is None else results[[r.n_fit for r in rows].index(best)].plan

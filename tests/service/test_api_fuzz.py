@@ -44,6 +44,7 @@ def live_url(tmp_path_factory):
         # the operator's cap on a design's cost (a design of 300 candidates computes for ~7 s): the fuzz is about the
         # routes' answers to any input, the designs' size is tests/service/test_plan_design.py's
         design_max_candidates=40,
+        design_max_tradeoff_designs=2,
     )
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

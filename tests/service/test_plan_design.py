@@ -277,7 +277,15 @@ async def test_api_tradeoff_designs_each_count_and_recommends_one(service):
     plan = Plan.from_dict(d["recommended_plan"])
     validate_plan(plan, NOMINAL)
     assert plan.count()["poses"] == 12
-    for bad in ({"counts": []}, {"counts": [1]}, {"counts": [101]}, {"counts": list(range(2, 11))}, {"n_fit": 4}):
+    too_many = {"counts": [4, 8, 12], "draws": 3}  # 9 designs, over the service's 8
+    for bad in (
+        {"counts": []},
+        {"counts": [1]},
+        {"counts": [101]},
+        {"counts": list(range(2, 11))},
+        {"n_fit": 4},
+        too_many,
+    ):
         r = await c.post(f"{API}/plans/tradeoff", json={**body, **bad}, headers=AUTH)
         assert r.status_code == 422, (bad, r.text)
         assert r.json()["detail"][0]["loc"][:2] in (["body", "counts"], ["body", "n_fit"]), r.text
@@ -422,3 +430,40 @@ async def test_an_abandoned_design_keeps_the_lock_until_its_thread_ends():
     with pytest.raises(asyncio.CancelledError):
         await task
     assert not lock.locked()
+
+
+async def test_an_abandoned_tradeoff_stops_between_designs():
+    """A trade-off computes several designs in one thread: when its client goes away the stop event is set and the
+    designs left are not computed (the lock is held until the one under way ends)."""
+    import asyncio
+    import threading
+
+    from calib.design import DesignRequest, design_tradeoff
+    from service.api.plans import _finish_even_if_abandoned
+    from service.design import twin_scene
+
+    lock, stop, first = asyncio.Lock(), threading.Event(), threading.Event()
+    done: list[int] = []
+
+    def progress(d: int, total: int) -> None:
+        done.append(d)
+        first.set()
+        if stop.is_set():
+            raise RuntimeError("abandoned")
+
+    req = DesignRequest(n_lock=2, n_validation=0, with_line=False, n_candidates=40)
+
+    def work():
+        return design_tradeoff(NOMINAL, twin_scene(), req, [4, 5, 6, 7, 8, 9, 10, 11], progress=progress)
+
+    async def handler():
+        async with lock:
+            return await _finish_even_if_abandoned(asyncio.ensure_future(asyncio.to_thread(work)), stop)
+
+    task = asyncio.create_task(handler())
+    assert await asyncio.to_thread(first.wait, 60)
+    task.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await task
+    assert stop.is_set() and not lock.locked()
+    assert len(done) < 8, done  # it ended after the design under way, not after all eight
