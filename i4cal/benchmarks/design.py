@@ -75,6 +75,7 @@ def _plans(
     only: list[str] | None = None,
     candidates: int = DEFAULT_CANDIDATES,
     draws: int = 1,
+    lock_frames: int = 5,
 ) -> dict[str, dict[str, Any]]:
     from calib.design import (
         DesignRequest,
@@ -93,7 +94,7 @@ def _plans(
     out: dict[str, dict[str, Any]] = {}
 
     def paper(n: int) -> Plan:
-        plan = make_plan("full", NOMINAL, seed=seed, n_fit=n)
+        plan = make_plan("full", NOMINAL, seed=seed, n_fit=n, n_lock=lock_frames)
         return Plan(name=f"paper-{n}", steps=[s for s in plan.steps if s.phase != "line"])
 
     # every designed plan is asked to beat the paper's 20-pose plan on every combination (the reference):
@@ -114,6 +115,7 @@ def _plans(
                     draws=draws,
                     criterion="target",
                     target_std_m=targets,
+                    n_lock=lock_frames,
                 )
                 res = design_plan(NOMINAL, scene, request, motion=motion, noise=image_noise)
                 plan, drawn = res.plan, res.candidates
@@ -176,7 +178,14 @@ def run_design_bench(opts: argparse.Namespace, progress=None) -> dict[str, Any]:
 
     t0 = time.perf_counter()
     plans = _plans(
-        opts.counts, opts.seed, opts.speed, opts.accel, opts.plans, opts.candidates, getattr(opts, "draws", 1)
+        opts.counts,
+        opts.seed,
+        opts.speed,
+        opts.accel,
+        opts.plans,
+        opts.candidates,
+        getattr(opts, "draws", 1),
+        getattr(opts, "lock_frames", 5),
     )
     spread = default_spread_m()
     tasks = [
@@ -733,6 +742,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help=f"draws of the candidates for the designed plans, the best kept (default {DEFAULT_DRAWS}; "
         "`i4cal plan design --draws`)",
     )
+    a(
+        "--lock-frames",
+        type=int,
+        default=5,
+        help="frames per lock phase of every plan, paper's and designed, 2-50 (default 5, the paper's; "
+        "`i4cal plan design --lock-frames`): what the legs method's joints average over",
+    )
     a("--json", default=None, metavar="PATH")
     a(
         "--report",
@@ -789,6 +805,8 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if args.trials < 1 or args.first_trial < 0 or not args.counts or min(args.counts) < 4:
         raise InputError("--trials >= 1, --first-trial >= 0 and fit-pose counts >= 4", field="--trials")
+    if not 2 <= args.lock_frames <= 50:
+        raise InputError(f"must be in 2..50, got {args.lock_frames}", field="--lock-frames")
     doc = run_design_bench(args, lambda i, n: print(f"\r{i}/{n} trials", end="", file=sys.stderr))
     print(file=sys.stderr)
     print_table(doc)

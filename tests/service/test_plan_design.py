@@ -398,6 +398,11 @@ def test_bench_design_compares_plans_of_equal_fit_counts():
         assert set(p["predicted_images_std_m"]) == {"combined", "end-effector", "legs"}
     assert plans["designed-8"]["motion_s"] <= plans["paper-8"]["motion_s"] * 1.05
     assert i4cal_main(["bench", "design", "--trials", "0"]) == 2
+    # --lock-frames: every plan's lock phases, the paper's and the designed one's
+    three = _plans([8], seed=0, speed=0.05, accel=0.5, candidates=60, lock_frames=3)
+    for p in three.values():
+        assert [p["counts"][f"lock-{i}"] for i in (1, 2, 3, 4)] == [3, 3, 3, 3], p["counts"]
+    assert i4cal_main(["bench", "design", "--trials", "1", "--lock-frames", "1"]) == 2
 
 
 async def test_an_abandoned_design_keeps_the_lock_until_its_thread_ends():
