@@ -197,6 +197,31 @@ def _worst_miss(pred: Prediction, methods: tuple[str, ...], target_m: np.ndarray
     return f"; worst: {m} {c} {s * 1e3:.3f} mm predicted for {tm * 1e3:.3f} mm ({r:.2f}x)"
 
 
+#: Over the design bench's eight plans on the image-level twin (seeds 0-3, designed 12 and paper 20, 100 trials each),
+#: the legs prediction over its RMS error per combination: its range (docs/design.md, README "Benchmarks")
+LEGS_RATIO_RANGE_TWIN = (0.65, 1.36)
+#: the share of a legs combination's predicted variance from the lock phases' shading above which a design says so
+SHADING_NOTE_SHARE = 0.1
+
+
+def _shading_note(pred: Prediction) -> str | None:
+    """A note when the legs prediction leans on its model of the rods' shading (the lock phases' systematic depth
+    error), which is right on average over plans but not plan by plan; None otherwise."""
+    sys_part = (pred.parts.get("legs") or {}).get("joint_depth_systematic")
+    std = pred.std.get("legs")
+    if not sys_part or not std:
+        return None
+    share = max((sys_part[c] / std[c]) ** 2 for c in COMBINATION_NAMES if std[c] > 0)
+    if share < SHADING_NOTE_SHARE:
+        return None
+    lo, hi = LEGS_RATIO_RANGE_TWIN
+    return (
+        f"legs: up to {share:.0%} of a combination's predicted variance is the lock phases' shading, a model of its "
+        f"average over plans; on the simulated bench the legs prediction was {lo:.2f}-{hi:.2f}x its RMS error from one "
+        "plan to another (docs/design.md)"
+    )
+
+
 # -- criteria ---------------------------------------------------------------------------------------------------
 class _Infos:
     """Per-candidate information of each optimised method, with the priors (base frame, tiny ridge)."""
@@ -569,6 +594,9 @@ def design_plan(
         else:
             why = f"with {n} fit poses after {rounds} choices of the count"
         notes.append("the target is not met (predicted): " + why + _worst_miss(pred, req.methods, t))
+    shading = _shading_note(pred)
+    if shading:
+        notes.append(shading)
     F = infos.total(sel)
     crit_vals = {f"logdet_{m}": float(_cov4(F[m])[1]) for m in F}
     result = DesignResult(

@@ -645,3 +645,20 @@ def test_joint_depth_systematic_is_along_the_lines_of_sight_shared_within_a_leg(
     assert max(r0.std_breakdown["joint_depth_systematic"].values()) == 0
     for k in COMBINATION_NAMES:
         assert r.combinations_std[k] > r0.combinations_std[k]
+
+
+def test_a_design_says_when_the_legs_prediction_leans_on_its_shading_model(scene):
+    """The legs prediction's shading part (the lock phases' systematic depth error) is right on average over plans,
+    not plan by plan: a design whose legs prediction leans on it says so, with the share of the variance it is; without
+    that part in the model, no such note."""
+    from calib.design import ImageNoise
+
+    req = DesignRequest(n_fit=8, n_lock=3, n_validation=0, with_line=False, n_candidates=60)
+    res = design_plan(NOMINAL, scene, req, noise=ImageNoise())
+    parts, std = res.prediction.parts["legs"]["joint_depth_systematic"], res.prediction.std["legs"]
+    share = max((parts[k] / std[k]) ** 2 for k in COMBINATION_NAMES)
+    notes = [n for n in res.notes if "lock phases' shading" in n]
+    assert share > 0.1 and len(notes) == 1, res.notes
+    assert f"up to {share:.0%} of a combination's predicted variance" in notes[0]
+    plain = design_plan(NOMINAL, scene, req, noise=ImageNoise(legs_joint_depth_sys_m=0.0))
+    assert not any("shading" in n for n in plain.notes), plain.notes
