@@ -201,8 +201,11 @@ def tradeoff_lines(rows, request, recommended: int | None) -> list[str]:
             f"time limit {request.max_time_s / 60:.2f} min: "
             + ", ".join(f"{r.n_fit} poses {'within' if r.time_met else 'over'}" for r in rows)
         )
+    from calib.design import recommendation_reason
+
+    why = recommendation_reason(rows)
     if recommended is not None:
-        out.append(f"recommended: {recommended} fit poses (the fewest that meet the target within the time)")
+        out.append(f"recommended: {recommended} fit poses ({why})")
     elif t is not None or request.max_time_s is not None:
-        out.append("no count listed meets the target within the time")
+        out.append(f"no count listed qualifies ({why})")
     return out

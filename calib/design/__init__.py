@@ -34,7 +34,7 @@ from .predict import (
 )
 from .predict_images import ImageNoise
 from .scene import Scene, VisibilityLimits, visibility
-from .tradeoff import TradeoffRow, design_tradeoff, parse_counts, recommended_count
+from .tradeoff import TradeoffRow, design_tradeoff, parse_counts, recommendation_reason, recommended_count
 
 __all__ = [
     "METHODS",
@@ -61,6 +61,7 @@ __all__ = [
     "predict_end_effector",
     "predict_legs",
     "predict_plan",
+    "recommendation_reason",
     "recommended_count",
     "select_poses",
     "synthetic_rods",

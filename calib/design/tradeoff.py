@@ -19,7 +19,14 @@ from ..parameters import COMBINATION_NAMES, I4Parameters
 from .optimize import DesignRequest, DesignResult, design_plan
 from .scene import Scene
 
-__all__ = ["MAX_TRADEOFF_COUNTS", "TradeoffRow", "design_tradeoff", "parse_counts", "recommended_count"]
+__all__ = [
+    "MAX_TRADEOFF_COUNTS",
+    "TradeoffRow",
+    "design_tradeoff",
+    "parse_counts",
+    "recommendation_reason",
+    "recommended_count",
+]
 
 #: most counts in one trade-off (each is a full design: seconds of CPU)
 MAX_TRADEOFF_COUNTS = 8
@@ -146,9 +153,24 @@ def _row(res: DesignResult, request: DesignRequest, t: np.ndarray | None) -> Tra
 
 
 def recommended_count(rows: Sequence[TradeoffRow]) -> int | None:
-    """The smallest count whose plan meets the target within the time limit (whichever of them was asked); None when
-    neither was asked or no count meets them."""
-    if all(r.target_met is None and r.time_met is None for r in rows):
-        return None
-    ok = [r.n_fit for r in rows if r.target_met is not False and r.time_met is not False]
-    return min(ok) if ok else None
+    """The count to run: with a target, the fewest fit poses that meet it (within the time limit when one was asked);
+    with a time limit alone, the most that fit in it (the most accurate plan the time allows); None when neither was
+    asked or no count qualifies."""
+    if any(r.target_met is not None for r in rows):
+        ok = [r.n_fit for r in rows if r.target_met and r.time_met is not False]
+        return min(ok) if ok else None
+    if any(r.time_met is not None for r in rows):
+        ok = [r.n_fit for r in rows if r.time_met]
+        return max(ok) if ok else None
+    return None
+
+
+def recommendation_reason(rows: Sequence[TradeoffRow]) -> str:
+    """Why :func:`recommended_count` chose its count (or why none), for display."""
+    target = any(r.target_met is not None for r in rows)
+    timed = any(r.time_met is not None for r in rows)
+    if target:
+        return "the fewest fit poses that meet the target" + (" within the time" if timed else "")
+    if timed:
+        return "the most fit poses that fit in the time"
+    return "no target or time limit: nothing to recommend"

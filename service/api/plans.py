@@ -120,8 +120,10 @@ class TradeoffRowOut(BaseModel):
 class TradeoffOut(BaseModel):
     rows: list[TradeoffRowOut] = Field(description="one designed plan per count, in increasing count")
     recommended_n_fit: int | None = Field(
-        description="the fewest fit poses that meet the target within max_minutes (null: none asked, or none meets)"
+        description="with a target, the fewest fit poses that meet it within max_minutes; with max_minutes alone, the "
+        "most that fit in it (null: neither asked, or no count qualifies)"
     )
+    recommendation: str = Field(description="why that count (or why none)")
     recommended_plan: dict[str, Any] | None = Field(
         description="that count's plan (i4cal.plan/1): POST it to /api/v1/runs as an inline plan"
     )
@@ -233,7 +235,7 @@ async def tradeoff(
 ) -> TradeoffOut:
     """Accuracy against bench time: a designed plan per fit-pose count, its predicted std and motion time, and the
     fewest poses that meet the target within the time (calib.design.design_tradeoff)."""
-    from calib.design import parse_counts, recommended_count
+    from calib.design import parse_counts, recommendation_reason, recommended_count
 
     from ..design import tradeoff_for_bench
 
@@ -262,6 +264,7 @@ async def tradeoff(
     return TradeoffOut(
         rows=[TradeoffRowOut(**r.to_dict()) for r in rows],
         recommended_n_fit=best,
+        recommendation=recommendation_reason(rows),
         recommended_plan=None if plan is None else plan.model_dump(mode="json", exclude_none=True),
         notes=_capped(body, settings),
     )

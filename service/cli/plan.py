@@ -65,7 +65,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         metavar="COUNTS",
         help="e.g. 8,12,20,30: design a plan for each fit-pose count and print them side by side (predicted std per "
         "method and combination, motion time, the target's worst ratio), recommending the fewest poses that meet "
-        "the target within --max-minutes; -o then writes that plan (not with --n-fit)",
+        "the target within --max-minutes (with --max-minutes alone: the most that fit in it); -o then writes that "
+        "plan (not with --n-fit)",
     )
     a("--json", action="store_true", help="print the design summary as JSON")
     a("-o", "--out", default=None, help="write the plan (i4cal.plan/1) for i4cal acquire --plan / POST /api/v1/runs")
@@ -168,8 +169,9 @@ def _tradeoff(args: argparse.Namespace, cfg, req, noise) -> int:
     if args.out:
         if best is None:
             raise InputError(
-                "no count of the trade-off meets the target within the time (or none was given): nothing to write; "
-                "pick a count and run with --n-fit N -o PLAN",
+                "no count of the trade-off qualifies (a target met within the time, or with a time limit alone one "
+                "that fits in it; neither given: nothing to choose): nothing to write; pick a count and run with "
+                "--n-fit N -o PLAN",
                 field="--out",
             )
         res = results[[r.n_fit for r in rows].index(best)]

@@ -404,9 +404,9 @@ $("#tradeoff").addEventListener("click", async () => {
   }
   $("#tradeoff-table").innerHTML = h;
   $("#tradeoff-summary").textContent = d.recommended_n_fit !== null
-    ? `the fewest fit poses meeting the target within the time: ${d.recommended_n_fit}`
-    : (withTarget || d.rows.some((r) => r.time_met !== null) ? "no count listed meets the target within the time"
-      : "predicted std (mm) of the combined method per count; give a target to get a recommendation");
+    ? `recommended: ${d.recommended_n_fit} fit poses (${d.recommendation})`
+    : (withTarget || d.rows.some((r) => r.time_met !== null) ? `no count listed qualifies (${d.recommendation})`
+      : "predicted std (mm) of the combined method per count; give a target or minutes to get a recommendation");
   document.querySelectorAll("#tradeoff-table .use-count").forEach((b) => b.addEventListener("click", () => {
     $("#design-nfit").value = b.dataset.n;
     say(`fit poses set to ${b.dataset.n}: Design to see its plan`);

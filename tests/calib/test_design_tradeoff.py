@@ -15,6 +15,7 @@ from calib.design import (
     design_plan,
     design_tradeoff,
     parse_counts,
+    recommendation_reason,
     recommended_count,
 )
 from calib.errors import InputError
@@ -89,6 +90,20 @@ def test_target_and_time_pick_the_fewest_poses_that_meet_both(scene):
         np.testing.assert_allclose([r.motion_s for r in timed], [r.motion_s for r in rows])
         assert [r.time_met for r in timed] == [r.motion_s <= limit for r in rows]
         assert recommended_count(timed) == want, (limit, want)
+        assert recommendation_reason(timed) == "the fewest fit poses that meet the target within the time"
+
+
+def test_a_time_limit_alone_recommends_the_most_poses_that_fit(scene):
+    """Without a target the most accurate plan the time allows: the largest count whose plan fits in the time."""
+    rows, _ = design_tradeoff(NOMINAL, scene, DesignRequest(**SMALL), [6, 12, 24])
+    assert all(a.motion_s < b.motion_s for a, b in itertools.pairwise(rows))
+    limit = 0.5 * (rows[1].motion_s + rows[2].motion_s)  # 6 and 12 poses fit, 24 do not
+    timed, _ = design_tradeoff(NOMINAL, scene, DesignRequest(**SMALL, max_time_s=limit), [6, 12, 24])
+    assert [r.time_met for r in timed] == [True, True, False] and all(r.target_met is None for r in timed)
+    assert recommended_count(timed) == 12
+    assert recommendation_reason(timed) == "the most fit poses that fit in the time"
+    short, _ = design_tradeoff(NOMINAL, scene, DesignRequest(**SMALL, max_time_s=0.5 * rows[0].motion_s), [6, 12])
+    assert recommended_count(short) is None
 
 
 @pytest.mark.parametrize(

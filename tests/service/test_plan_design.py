@@ -274,6 +274,7 @@ async def test_api_tradeoff_designs_each_count_and_recommends_one(service):
     assert r.status_code == 200, r.text
     d = r.json()
     assert [row["target_met"] for row in d["rows"]] == [False, True] and d["recommended_n_fit"] == 12
+    assert d["recommendation"] == "the fewest fit poses that meet the target"
     plan = Plan.from_dict(d["recommended_plan"])
     validate_plan(plan, NOMINAL)
     assert plan.count()["poses"] == 12
@@ -371,9 +372,8 @@ async def test_dashboard_designs_and_starts_a_plan(service):
             await page.wait_for_function(
                 "document.querySelector('#tradeoff-table').textContent.includes('(recommended)')", timeout=120_000
             )
-            assert "fewest fit poses meeting the target within the time: 10" in await page.text_content(
-                "#tradeoff-summary"
-            )
+            summary = await page.text_content("#tradeoff-summary")
+            assert "recommended: 10 fit poses (the fewest fit poses that meet the target)" in summary, summary
             assert len(await page.query_selector_all("#tradeoff-table tr.recommended")) == 1
             await page.click("#tradeoff-table tr.recommended .use-count")
             assert await page.input_value("#design-nfit") == "10"
