@@ -429,6 +429,58 @@ def _line_steps(nominal, limits: SoftLimits, ws: Workspace, notes: list[str]) ->
     return []
 
 
+@dataclass
+class _Pool:
+    """What a design computes before it knows its count: the sweeps and the drawn candidates (their visibility, and
+    each optimised method's information per visible candidate and prior)."""
+
+    span: float
+    length: float
+    rot: list[Step]
+    tra: list[Step]
+    qr: np.ndarray
+    qt: np.ndarray
+    cand_q: np.ndarray
+    visible: np.ndarray
+    information: dict[str, np.ndarray]
+    prior: dict[str, np.ndarray]
+
+
+def _candidate_pool(
+    nominal: I4Parameters,
+    scene: Scene,
+    req: DesignRequest,
+    limits: SoftLimits,
+    ws: Workspace,
+    noise: DesignNoise | ImageNoise,
+    cache: dict[Any, Any] | None,
+) -> _Pool:
+    key = ("pool", req.seed, req.candidate_draw, req.n_candidates, req.n_base, req.methods)
+    if cache is not None and key in cache:
+        return cache[key]
+    span, length, rot, tra, _ = _sweeps(nominal, scene, limits, ws, noise, req.n_base)
+    rng = np.random.default_rng(req.seed if req.candidate_draw == 0 else [req.seed, req.candidate_draw])
+    cand_q = ikm(nominal, random_poses(nominal, req.n_candidates, rng, ws, limits))
+    visible = visibility(scene, nominal, cand_q)["ok"]
+    qr = np.array([s.q for s in rot])
+    qt = np.array([s.q for s in tra])
+    pool = _Pool(
+        span=span,
+        length=length,
+        rot=rot,
+        tra=tra,
+        qr=qr,
+        qt=qt,
+        cand_q=cand_q,
+        visible=visible,
+        information={m: _method_information(m, nominal, cand_q[visible], scene, noise, qr, qt) for m in req.methods},
+        prior={m: _method_prior(m, nominal, qr, qt, scene, noise) for m in req.methods},
+    )
+    if cache is not None:
+        cache[key] = pool
+    return pool
+
+
 def design_plan(
     nominal: I4Parameters,
     scene: Scene,
@@ -438,8 +490,13 @@ def design_plan(
     motion: MotionSpec | None = None,
     noise: DesignNoise | ImageNoise | None = None,
     ws: Workspace | None = None,
+    cache: dict[Any, Any] | None = None,
 ) -> DesignResult:
     """Design a plan: sweeps, fit poses (count, choice, order), lock and validation poses; predict it.
+
+    ``cache``: a dict shared by designs that differ only in their count, target or criterion (a trade-off,
+    :func:`.tradeoff.design_tradeoff`; the same ``limits``, ``motion``, ``noise`` and ``ws``): the sweeps, the drawn
+    candidates' visibility and information are computed once per candidate draw (the same design, faster).
 
     Returns
     -------
@@ -453,12 +510,11 @@ def design_plan(
     noise = noise or DesignNoise()
     ws = ws or Workspace()
     if req.draws > 1:
-        return _best_of_draws(nominal, scene, req, limits=limits, motion=motion, noise=noise, ws=ws)
+        return _best_of_draws(nominal, scene, req, limits=limits, motion=motion, noise=noise, ws=ws, cache=cache)
     t = req.targets()
     notes: list[str] = []
-    span, length, rot, tra, _ = _sweeps(nominal, scene, limits, ws, noise, req.n_base)
-    rng = np.random.default_rng(req.seed if req.candidate_draw == 0 else [req.seed, req.candidate_draw])
-    cand_q = ikm(nominal, random_poses(nominal, req.n_candidates, rng, ws, limits))
+    pool = _candidate_pool(nominal, scene, req, limits, ws, noise, cache)
+    span, length, rot, tra, cand_q = pool.span, pool.length, pool.rot, pool.tra, pool.cand_q
     refs: dict[int, np.ndarray] = {}
 
     def reference(n: int) -> np.ndarray:
@@ -468,15 +524,18 @@ def design_plan(
 
     fixed = [req.n_fit] if req.n_fit else []
     ref_q = np.concatenate([reference(n) for n in (fixed or [20])])
-    all_q = np.concatenate([cand_q, ref_q])
-    vis = visibility(scene, nominal, all_q)["ok"]
-    cq = all_q[vis]
-    n_vis_ref = int(vis[len(cand_q) :].sum())
-    qr = np.array([s.q for s in rot])
-    qt = np.array([s.q for s in tra])
+    vis_ref = visibility(scene, nominal, ref_q)["ok"]
+    cq = np.concatenate([cand_q[pool.visible], ref_q[vis_ref]])
+    n_vis_ref = int(vis_ref.sum())
+    qr, qt = pool.qr, pool.qt
     infos = _Infos(
-        {m: _method_information(m, nominal, cq, scene, noise, qr, qt) for m in req.methods},
-        {m: _method_prior(m, nominal, qr, qt, scene, noise) for m in req.methods},
+        {
+            m: np.concatenate(
+                [pool.information[m], _method_information(m, nominal, ref_q[vis_ref], scene, noise, qr, qt)]
+            )
+            for m in req.methods
+        },
+        pool.prior,
     )
     lock = _lock_steps(nominal, scene, limits, ws, req.n_lock, req.seed)
     val = (
@@ -610,7 +669,7 @@ def design_plan(
         criterion=crit_vals,
         candidates={
             "drawn": len(cand_q),
-            "visible": int(vis[: len(cand_q)].sum()),
+            "visible": int(pool.visible.sum()),
             "reference_visible": n_vis_ref,
         },
         notes=notes,

@@ -113,7 +113,8 @@ def design_tradeoff(
     progress : callable, optional
         Called with (designs done, designs in all) after each.
     **kw
-        :func:`.optimize.design_plan`'s keywords (``limits``, ``motion``, ``noise``, ``ws``).
+        :func:`.optimize.design_plan`'s keywords (``limits``, ``motion``, ``noise``, ``ws``); the designs share their
+        sweeps and candidates (``cache``), which do not depend on the count.
 
     Returns
     -------
@@ -126,8 +127,9 @@ def design_tradeoff(
     t = request.targets()
     rows: list[TradeoffRow] = []
     results: list[DesignResult] = []
+    cache: dict[Any, Any] = {}  # the sweeps and candidates of each draw, the same for every count
     for i, n in enumerate(ns):
-        res = design_plan(nominal, scene, replace(request, n_fit=n), **kw)
+        res = design_plan(nominal, scene, replace(request, n_fit=n), cache=cache, **kw)
         results.append(res)
         rows.append(_row(res, request, t))
         if progress is not None:

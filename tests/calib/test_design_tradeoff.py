@@ -123,3 +123,16 @@ def test_bad_counts_are_refused_naming_the_field(counts, says):
 
 def test_counts_are_sorted_and_unique():
     assert parse_counts("30, 8,12,8") == [8, 12, 30]
+
+
+def test_designs_of_one_candidate_draw_share_the_sweeps_and_candidates(scene):
+    """``cache``: designs that differ in their count compute the sweeps and the candidates' information once per
+    candidate draw, and are the designs computed without it."""
+    cache: dict = {}
+    req = DesignRequest(**SMALL, draws=2)
+    shared = [design_plan(NOMINAL, scene, replace(req, n_fit=n), cache=cache) for n in (6, 10)]
+    assert len(cache) == 2  # one pool per candidate draw
+    for res, n in zip(shared, (6, 10), strict=True):
+        alone = design_plan(NOMINAL, scene, replace(req, n_fit=n))
+        assert res.plan.steps == alone.plan.steps
+        assert res.prediction.std == alone.prediction.std
