@@ -189,12 +189,18 @@ def _worst_miss(pred: Prediction, methods: tuple[str, ...], target_m: np.ndarray
     for m in methods:
         for i, c in enumerate(COMBINATION_NAMES):
             s = (pred.std.get(m) or {}).get(c)
-            if s is not None and (worst is None or s / target_m[i] > worst[0]):
-                worst = (s / target_m[i], m, c, s, target_m[i])
+            if s is None:
+                continue
+            with np.errstate(over="ignore"):  # a target of 1e-300 m: an infinite ratio, as intended
+                r = float(np.float64(s) / target_m[i])
+            if worst is None or r > worst[0]:
+                worst = (r, m, c, float(s), float(target_m[i]))
     if worst is None:
         return ""
     r, m, c, s, tm = worst
-    return f"; worst: {m} {c} {s * 1e3:.3f} mm predicted for {tm * 1e3:.3f} mm ({r:.2f}x)"
+    ratio = f"{r:.2f}x" if r < 1e3 else f"{r:.3g}x"
+    want = f"{tm * 1e3:.3f}" if tm >= 1e-6 else f"{tm * 1e3:.3g}"
+    return f"; worst: {m} {c} {s * 1e3:.3f} mm predicted for {want} mm ({ratio})"
 
 
 #: Over the design bench's eight plans on the image-level twin (seeds 0-3, designed 12 and paper 20, 100 trials each),
@@ -616,7 +622,8 @@ def design_plan(
         for m in req.methods:
             if m not in pred.std:
                 return np.full(4, np.inf)
-            out = np.maximum(out, np.array([pred.std[m][c] for c in COMBINATION_NAMES]) / t)
+            with np.errstate(over="ignore"):  # a target of 1e-300 m: an infinite excess, as intended
+                out = np.maximum(out, np.array([pred.std[m][c] for c in COMBINATION_NAMES]) / t)
         return out
 
     # the exchange ranks poses by their information (no correlations between rods); the plan's prediction is the
