@@ -203,7 +203,7 @@ def _worst_miss(pred: Prediction, methods: tuple[str, ...], target_m: np.ndarray
     return f"; worst: {m} {c} {s * 1e3:.3f} mm predicted for {want} mm ({ratio})"
 
 
-#: Over the design bench's eight plans on the image-level twin (seeds 0-3, designed 12 and paper 20, 100 trials each),
+#: Over the design bench's ten plans on the image-level twin (seeds 0-4, designed 12 and paper 20, 100 trials each),
 #: the legs prediction over its RMS error per combination: its range (docs/design.md, README "Benchmarks")
 LEGS_RATIO_RANGE_TWIN = (0.65, 1.36)
 #: the share of a legs combination's predicted variance from the lock phases' shading above which a design says so
@@ -223,8 +223,8 @@ def _shading_note(pred: Prediction) -> str | None:
     lo, hi = LEGS_RATIO_RANGE_TWIN
     return (
         f"legs: up to {share:.0%} of a combination's predicted variance is the lock phases' shading, a model of its "
-        f"average over plans; on the simulated bench the legs prediction was {lo:.2f}-{hi:.2f}x its RMS error from one "
-        "plan to another (docs/design.md)"
+        f"average over plans; on the simulated bench's ten benched plans the legs prediction was {lo:.2f}-{hi:.2f}x "
+        "its RMS error from one plan to another (docs/design.md)"
     )
 
 
