@@ -138,7 +138,7 @@ def _tradeoff(args: argparse.Namespace, cfg, req, noise) -> int:
     """``plan design --tradeoff``: one design per count, printed side by side; ``-o`` writes the recommended one."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from calib.design import parse_counts, recommended_count
+    from calib.design import parse_counts, recommendation_reason, recommended_count
     from calib.errors import InputError
     from calib.pipeline import to_jsonable
     from calib.plan import validate_plan
@@ -162,7 +162,12 @@ def _tradeoff(args: argparse.Namespace, cfg, req, noise) -> int:
         )
     best = recommended_count(rows)
     if args.json:
-        doc = {"tradeoff": [r.to_dict() for r in rows], "recommended_n_fit": best, "methods": list(req.methods)}
+        doc = {
+            "tradeoff": [r.to_dict() for r in rows],
+            "recommended_n_fit": best,
+            "recommendation": recommendation_reason(rows),
+            "methods": list(req.methods),
+        }
         print(json.dumps(to_jsonable(doc), indent=1))
     else:
         print("\n".join(tradeoff_lines(rows, req, best)))

@@ -143,6 +143,7 @@ def test_cli_tradeoff_prints_each_count_and_writes_the_recommended_plan(tmp_path
     assert main(argv) == 0
     doc = json.loads(capsys.readouterr().out)
     assert [r["n_fit"] for r in doc["tradeoff"]] == [4, 12] and doc["recommended_n_fit"] is None
+    assert doc["recommendation"] == "no target or time limit: nothing to recommend"
     few, many = (
         [r["predicted_std_m"]["combined"][k] for k in ("L", "H-D", "S-q02/2", "S-(q04-q03)/2")] for r in doc["tradeoff"]
     )
