@@ -198,7 +198,7 @@ def _worst_miss(pred: Prediction, methods: tuple[str, ...], target_m: np.ndarray
     if worst is None:
         return ""
     r, m, c, s, tm = worst
-    ratio = f"{r:.2f}x" if r < 1e3 else f"{r:.3g}x"
+    ratio = f"{r:.2f}x" if r < 1e3 else f"{r:.3g}x" if np.isfinite(r) else "no finite ratio"
     want = f"{tm * 1e3:.3f}" if tm >= 1e-6 else f"{tm * 1e3:.3g}"
     return f"; worst: {m} {c} {s * 1e3:.3f} mm predicted for {want} mm ({ratio})"
 
@@ -705,12 +705,15 @@ def design_score(result: DesignResult, request: DesignRequest) -> tuple[float, .
     stds = [np.array([pred.std[m][c] for c in COMBINATION_NAMES]) for m in request.methods if m in pred.std]
     if len(stds) < len(request.methods):
         return (np.inf,)
+    # a target of 1e-320 m: an infinite criterion, as intended
     if request.criterion == "target":
         assert t is not None
-        crit = float(max(np.max(sd / t) for sd in stds))
+        with np.errstate(over="ignore", divide="ignore"):
+            crit = float(max(np.max(sd / t) for sd in stds))
     elif request.criterion == "a":
         scale = t if t is not None else np.full(4, 1e-3)
-        crit = float(sum(np.sum((sd / scale) ** 2) for sd in stds))
+        with np.errstate(over="ignore", divide="ignore"):
+            crit = float(sum(np.sum((sd / scale) ** 2) for sd in stds))
     else:
         crit = -float(sum(v for k, v in result.criterion.items() if k.startswith("logdet_")))
     return (

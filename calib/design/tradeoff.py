@@ -141,7 +141,13 @@ def _row(res: DesignResult, request: DesignRequest, t: np.ndarray | None) -> Tra
     std = res.prediction.std
     worst = None
     if t is not None:
-        ratios = [std[m][c] / t[i] for m in request.methods if m in std for i, c in enumerate(COMBINATION_NAMES)]
+        with np.errstate(over="ignore"):  # a target of 1e-300 m: an infinite ratio, as intended
+            ratios = [
+                float(np.float64(std[m][c]) / t[i])
+                for m in request.methods
+                if m in std
+                for i, c in enumerate(COMBINATION_NAMES)
+            ]
         missing = any(m not in std for m in request.methods)
         worst = float("inf") if missing or not ratios else float(max(ratios))
     return TradeoffRow(

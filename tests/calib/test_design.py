@@ -665,16 +665,21 @@ def test_a_design_says_when_the_legs_prediction_leans_on_its_shading_model(scene
 
 
 def test_an_absurdly_small_target_is_not_met_without_overflow_warnings(scene):
-    """A target of 1e-300 m (the API accepts any positive target): not met, the worst ratio said in a readable form,
+    """A target of 5e-324 m (the API accepts any positive target): not met, the worst ratio said in a readable form,
     and no overflow warning on the way (the API fuzz found three)."""
     import warnings
 
     req = DesignRequest(
-        target_std_m=1e-300, criterion="target", n_max=6, n_lock=2, n_validation=0, with_line=False, n_candidates=40
+        target_std_m=5e-324, criterion="target", n_max=6, n_lock=2, n_validation=0, with_line=False, n_candidates=40
     )
     with warnings.catch_warnings():
         warnings.simplefilter("error", RuntimeWarning)
         res = design_plan(NOMINAL, scene, req)
     assert res.target_met is False
     note = next(n for n in res.notes if "target is not met" in n)
-    assert "predicted for 1e-297 mm (" in note and "e+29" in note, note
+    assert "predicted for 4.94e-321 mm (no finite ratio)" in note, note
+    # and with several candidate draws, each judged by that criterion
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        drawn = design_plan(NOMINAL, scene, replace(req, draws=2))
+    assert drawn.target_met is False

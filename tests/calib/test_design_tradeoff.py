@@ -136,3 +136,16 @@ def test_designs_of_one_candidate_draw_share_the_sweeps_and_candidates(scene):
         alone = design_plan(NOMINAL, scene, replace(req, n_fit=n))
         assert res.plan.steps == alone.plan.steps
         assert res.prediction.std == alone.prediction.std
+
+
+def test_an_absurdly_small_target_gives_an_infinite_ratio_without_warnings(scene):
+    """A target of 5e-324 m (the API accepts any positive one): every count misses it, no overflow warning (the API
+    fuzz found one)."""
+    import warnings
+
+    req = DesignRequest(**SMALL, target_std_m=5e-324, criterion="target")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        rows, _ = design_tradeoff(NOMINAL, scene, req, [4, 6])
+    assert all(r.target_met is False and r.worst_ratio == np.inf for r in rows)
+    assert recommended_count(rows) is None
