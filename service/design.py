@@ -90,6 +90,17 @@ def motion_spec(cfg) -> Any:
     )
 
 
+def _bench_inputs(cfg, noise=None) -> tuple[Any, Any, dict[str, Any]]:
+    """A bench configuration's nominal geometry, the twin's scene, and ``calib.design.design_plan``'s keywords (soft
+    limits, motion, noise; the noise by default the image-level model of the twin's camera)."""
+    kw = {
+        "limits": cfg.calib_limits(),
+        "motion": motion_spec(cfg),
+        "noise": noise if noise is not None else twin_image_noise(),
+    }
+    return cfg.nominal_parameters(), twin_scene(), kw
+
+
 def design_for_bench(cfg, request, noise=None):
     """Design a plan for a bench configuration; returns ``calib.design.DesignResult``.
 
@@ -98,16 +109,8 @@ def design_for_bench(cfg, request, noise=None):
     """
     from calib.design import design_plan
 
-    if noise is None:
-        noise = twin_image_noise()
-    return design_plan(
-        cfg.nominal_parameters(),
-        twin_scene(),
-        request,
-        limits=cfg.calib_limits(),
-        motion=motion_spec(cfg),
-        noise=noise,
-    )
+    nominal, scene, kw = _bench_inputs(cfg, noise)
+    return design_plan(nominal, scene, request, **kw)
 
 
 def tradeoff_for_bench(cfg, request, counts, noise=None, progress=None):
@@ -115,18 +118,8 @@ def tradeoff_for_bench(cfg, request, counts, noise=None, progress=None):
     :func:`design_for_bench`: ``(rows, results)``, one design per count."""
     from calib.design import design_tradeoff
 
-    if noise is None:
-        noise = twin_image_noise()
-    return design_tradeoff(
-        cfg.nominal_parameters(),
-        twin_scene(),
-        request,
-        counts,
-        progress=progress,
-        limits=cfg.calib_limits(),
-        motion=motion_spec(cfg),
-        noise=noise,
-    )
+    nominal, scene, kw = _bench_inputs(cfg, noise)
+    return design_tradeoff(nominal, scene, request, counts, progress=progress, **kw)
 
 
 def reference_targets(cfg, plan, noise=None) -> tuple[float, float, float, float]:
@@ -173,9 +166,10 @@ def summary_lines(result, breakdown: bool = False) -> list[str]:
     return out
 
 
-def tradeoff_lines(rows, request, recommended: int | None) -> list[str]:
+def tradeoff_lines(rows, request) -> list[str]:
     """Human-readable trade-off: per method a table of fit poses, motion time and predicted std (mm), optimised methods
     first; then the target and the recommended count."""
+    from calib.design import recommendation_reason, recommended_count
     from calib.parameters import COMBINATION_NAMES
 
     methods = list(dict.fromkeys([*request.methods, *(m for r in rows for m in r.std_m)]))
@@ -201,9 +195,7 @@ def tradeoff_lines(rows, request, recommended: int | None) -> list[str]:
             f"time limit {request.max_time_s / 60:.2f} min: "
             + ", ".join(f"{r.n_fit} poses {'within' if r.time_met else 'over'}" for r in rows)
         )
-    from calib.design import recommendation_reason
-
-    why = recommendation_reason(rows)
+    recommended, why = recommended_count(rows), recommendation_reason(rows)
     if recommended is not None:
         out.append(f"recommended: {recommended} fit poses ({why})")
     elif t is not None or request.max_time_s is not None:

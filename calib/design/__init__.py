@@ -34,7 +34,14 @@ from .predict import (
 )
 from .predict_images import ImageNoise
 from .scene import Scene, VisibilityLimits, visibility
-from .tradeoff import TradeoffRow, design_tradeoff, parse_counts, recommendation_reason, recommended_count
+from .tradeoff import (
+    TradeoffRow,
+    design_tradeoff,
+    parse_counts,
+    recommendation_reason,
+    recommended_count,
+    recommended_design,
+)
 
 __all__ = [
     "METHODS",
@@ -63,6 +70,7 @@ __all__ = [
     "predict_plan",
     "recommendation_reason",
     "recommended_count",
+    "recommended_design",
     "select_poses",
     "synthetic_rods",
     "targets_from_plan",

@@ -182,6 +182,13 @@ class DesignResult:
         }
 
 
+def ratio_to_target(std_m: Any, target_m: Any) -> np.ndarray:
+    """``std_m / target_m`` (float64, broadcast): a target as small as the API accepts (down to 5e-324 m) gives an
+    infinite ratio, as intended, without an overflow warning."""
+    with np.errstate(over="ignore", divide="ignore"):
+        return np.asarray(std_m, dtype=np.float64) / target_m
+
+
 def _worst_miss(pred: Prediction, methods: tuple[str, ...], target_m: np.ndarray) -> str:
     """``"; worst: <method> <combination> 0.066 mm predicted for 0.050 mm (1.33x)"``, the combination furthest over
     its target among the optimised methods ("" when none is predicted)."""
@@ -191,8 +198,7 @@ def _worst_miss(pred: Prediction, methods: tuple[str, ...], target_m: np.ndarray
             s = (pred.std.get(m) or {}).get(c)
             if s is None:
                 continue
-            with np.errstate(over="ignore"):  # a target of 1e-300 m: an infinite ratio, as intended
-                r = float(np.float64(s) / target_m[i])
+            r = float(ratio_to_target(s, target_m[i]))
             if worst is None or r > worst[0]:
                 worst = (r, m, c, float(s), float(target_m[i]))
     if worst is None:
@@ -622,8 +628,7 @@ def design_plan(
         for m in req.methods:
             if m not in pred.std:
                 return np.full(4, np.inf)
-            with np.errstate(over="ignore"):  # a target of 1e-300 m: an infinite excess, as intended
-                out = np.maximum(out, np.array([pred.std[m][c] for c in COMBINATION_NAMES]) / t)
+            out = np.maximum(out, ratio_to_target([pred.std[m][c] for c in COMBINATION_NAMES], t))
         return out
 
     # the exchange ranks poses by their information (no correlations between rods); the plan's prediction is the
@@ -705,15 +710,13 @@ def design_score(result: DesignResult, request: DesignRequest) -> tuple[float, .
     stds = [np.array([pred.std[m][c] for c in COMBINATION_NAMES]) for m in request.methods if m in pred.std]
     if len(stds) < len(request.methods):
         return (np.inf,)
-    # a target of 1e-320 m: an infinite criterion, as intended
     if request.criterion == "target":
         assert t is not None
-        with np.errstate(over="ignore", divide="ignore"):
-            crit = float(max(np.max(sd / t) for sd in stds))
+        crit = float(max(np.max(ratio_to_target(sd, t)) for sd in stds))
     elif request.criterion == "a":
         scale = t if t is not None else np.full(4, 1e-3)
-        with np.errstate(over="ignore", divide="ignore"):
-            crit = float(sum(np.sum((sd / scale) ** 2) for sd in stds))
+        with np.errstate(over="ignore"):  # the ratios' squares: infinite for the tiniest targets, as intended
+            crit = float(sum(np.sum(ratio_to_target(sd, scale) ** 2) for sd in stds))
     else:
         crit = -float(sum(v for k, v in result.criterion.items() if k.startswith("logdet_")))
     return (

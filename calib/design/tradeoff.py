@@ -16,7 +16,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..parameters import COMBINATION_NAMES, I4Parameters
-from .optimize import DesignRequest, DesignResult, design_plan
+from .optimize import DesignRequest, DesignResult, design_plan, ratio_to_target
 from .scene import Scene
 
 __all__ = [
@@ -26,6 +26,7 @@ __all__ = [
     "parse_counts",
     "recommendation_reason",
     "recommended_count",
+    "recommended_design",
 ]
 
 #: most counts in one trade-off (each is a full design: seconds of CPU)
@@ -141,13 +142,12 @@ def _row(res: DesignResult, request: DesignRequest, t: np.ndarray | None) -> Tra
     std = res.prediction.std
     worst = None
     if t is not None:
-        with np.errstate(over="ignore"):  # a target of 1e-300 m: an infinite ratio, as intended
-            ratios = [
-                float(np.float64(std[m][c]) / t[i])
-                for m in request.methods
-                if m in std
-                for i, c in enumerate(COMBINATION_NAMES)
-            ]
+        ratios = [
+            float(ratio_to_target(std[m][c], t[i]))
+            for m in request.methods
+            if m in std
+            for i, c in enumerate(COMBINATION_NAMES)
+        ]
         missing = any(m not in std for m in request.methods)
         worst = float("inf") if missing or not ratios else float(max(ratios))
     return TradeoffRow(
@@ -171,6 +171,12 @@ def recommended_count(rows: Sequence[TradeoffRow]) -> int | None:
         ok = [r.n_fit for r in rows if r.time_met]
         return max(ok) if ok else None
     return None
+
+
+def recommended_design(rows: Sequence[TradeoffRow], results: Sequence[DesignResult]) -> DesignResult | None:
+    """The design of :func:`recommended_count` among ``results`` (:func:`design_tradeoff`'s, in the rows' order)."""
+    best = recommended_count(rows)
+    return None if best is None else results[[r.n_fit for r in rows].index(best)]
 
 
 def recommendation_reason(rows: Sequence[TradeoffRow]) -> str:

@@ -235,7 +235,7 @@ async def tradeoff(
 ) -> TradeoffOut:
     """Accuracy against bench time: a designed plan per fit-pose count, its predicted std and motion time, and the
     fewest poses that meet the target within the time (calib.design.design_tradeoff)."""
-    from calib.design import parse_counts, recommendation_reason, recommended_count
+    from calib.design import parse_counts, recommendation_reason, recommended_count, recommended_design
 
     from ..design import tradeoff_for_bench
 
@@ -260,7 +260,8 @@ async def tradeoff(
         body, request, manager, settings, lambda cfg, req: tradeoff_for_bench(cfg, req, counts, progress=progress), stop
     )
     best = recommended_count(rows)
-    plan = None if best is None else results[[r.n_fit for r in rows].index(best)].plan
+    chosen = recommended_design(rows, results)
+    plan = None if chosen is None else chosen.plan
     return TradeoffOut(
         rows=[TradeoffRowOut(**r.to_dict()) for r in rows],
         recommended_n_fit=best,

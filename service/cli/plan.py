@@ -138,7 +138,7 @@ def _tradeoff(args: argparse.Namespace, cfg, req, noise) -> int:
     """``plan design --tradeoff``: one design per count, printed side by side; ``-o`` writes the recommended one."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from calib.design import parse_counts, recommendation_reason, recommended_count
+    from calib.design import parse_counts, recommendation_reason, recommended_count, recommended_design
     from calib.errors import InputError
     from calib.pipeline import to_jsonable
     from calib.plan import validate_plan
@@ -170,16 +170,16 @@ def _tradeoff(args: argparse.Namespace, cfg, req, noise) -> int:
         }
         print(json.dumps(to_jsonable(doc), indent=1))
     else:
-        print("\n".join(tradeoff_lines(rows, req, best)))
+        print("\n".join(tradeoff_lines(rows, req)))
     if args.out:
-        if best is None:
+        res = recommended_design(rows, results)
+        if res is None:
             raise InputError(
                 "no count of the trade-off qualifies (a target met within the time, or with a time limit alone one "
                 "that fits in it; neither given: nothing to choose): nothing to write; pick a count and run with "
                 "--n-fit N -o PLAN",
                 field="--out",
             )
-        res = results[[r.n_fit for r in rows].index(best)]
         validate_plan(res.plan, cfg.nominal_parameters(), cfg.calib_limits())
         res.plan.save(args.out)
         if not args.json:

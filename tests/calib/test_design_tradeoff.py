@@ -21,25 +21,14 @@ from calib.design import (
 from calib.errors import InputError
 from calib.parameters import COMBINATION_NAMES, NOMINAL
 from calib.plan import validate_plan
-from drivers.sim.render import RenderSettings
-from drivers.sim.twin import BenchGeometry
+from tests.calib.test_design import twin_scene
 
 SMALL = {"n_lock": 2, "n_validation": 0, "with_line": False, "n_candidates": 100}
 
 
 @pytest.fixture(scope="module")
 def scene() -> Scene:
-    g = BenchGeometry()
-    rs = RenderSettings()
-    return Scene(
-        camera=rs.camera(),
-        camera_from_base=g.camera_from_base,
-        ee_from_board=g.ee_from_board,
-        board_size_m=rs.board.size_m,
-        board_margin_m=rs.board_margin_m,
-        rod_radius_m=g.rod_radius_m,
-        rod_spacing_m=g.rod_spacing_m,
-    )
+    return twin_scene()
 
 
 def _combined(row) -> np.ndarray:
