@@ -122,14 +122,23 @@ def tradeoff_for_bench(cfg, request, counts, noise=None, progress=None):
     return design_tradeoff(nominal, scene, request, counts, progress=progress, **kw)
 
 
-def reference_targets(cfg, plan, noise=None) -> tuple[float, float, float, float]:
-    """The predicted combined std (m) of a reference plan on this bench (the scene and noise of
-    :func:`design_for_bench`): targets for a design at least as accurate on every combination."""
+def reference_targets(cfg, plan, noise=None, methods=("combined",)) -> dict[str, tuple[float, float, float, float]]:
+    """Per method, the predicted std (m) per combination of a reference plan on this bench (the scene and noise of
+    :func:`design_for_bench`): targets for a design at least as accurate on every combination of every method."""
     from calib.design import targets_from_plan
 
-    return targets_from_plan(
-        plan, cfg.nominal_parameters(), twin_scene(), noise if noise is not None else twin_image_noise()
-    )
+    scene, nz = twin_scene(), noise if noise is not None else twin_image_noise()
+    return {m: targets_from_plan(plan, cfg.nominal_parameters(), scene, nz, method=m) for m in methods}
+
+
+def better_than_request(targets: dict[str, tuple[float, float, float, float]]) -> dict[str, Any]:
+    """``calib.design.DesignRequest``'s target fields for :func:`reference_targets`: ``target_std_m`` the combined
+    method's (else the first method's), ``method_targets_m`` every other method's own."""
+    first = "combined" if "combined" in targets else next(iter(targets))
+    return {
+        "target_std_m": targets[first],
+        "method_targets_m": tuple((m, t) for m, t in targets.items() if m != first),
+    }
 
 
 def summary_lines(result, breakdown: bool = False) -> list[str]:

@@ -24,6 +24,7 @@ plan, trapezoidal profiles, fit poses ordered by a nearest-neighbour tour with 2
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
@@ -44,6 +45,7 @@ from ..plan import (
     random_poses,
     rotation_sweep,
 )
+from .legs_criterion import LegsCriterion
 from .motion import MotionSpec, order_tour, plan_motion_time
 from .predict import (
     DesignNoise,
@@ -66,7 +68,7 @@ from .scene import Scene, visibility
 __all__ = ["DesignRequest", "DesignResult", "design_plan", "log_det_information", "select_poses"]
 
 Criterion = Literal["d", "a", "target"]
-OPTIMISED_METHODS = ("combined", "end-effector")
+OPTIMISED_METHODS = ("combined", "end-effector", "legs")
 #: choices of the count at most, while the plan's prediction misses the target
 DESIGN_ROUNDS = 4
 #: the exchange's targets are tightened by the prediction's miss times this
@@ -98,6 +100,10 @@ class DesignRequest:
     candidate_draw : int
         Which draw of the candidates this is (0: the ``seed``'s own; the lock, validation and reference poses
         do not change with it).
+    method_targets_m : tuple of (str, 4 floats)
+        Per optimised method, its own target std per combination (m) in place of ``target_std_m``, which the others
+        keep (``--better-than``: the reference plan's predicted std of each method, the legs method's being 5-20x the
+        combined one's); needs ``target_std_m``.
     """
 
     n_fit: int | None = None
@@ -116,6 +122,7 @@ class DesignRequest:
     weighting: str = "gls"
     draws: int = 1
     candidate_draw: int = 0
+    method_targets_m: tuple[tuple[str, tuple[float, ...]], ...] = ()
 
     def __post_init__(self) -> None:
         if self.n_fit is not None and not (2 <= self.n_fit <= 200):
@@ -144,12 +151,28 @@ class DesignRequest:
             raise InputError("need 2 <= n_min <= n_max <= 200", field="n_max")
         if not (1 <= self.draws <= 20) or self.candidate_draw < 0:
             raise InputError("draws must be in 1..20 (and candidate_draw >= 0)", field="draws")
+        for m, v in self.method_targets_m:
+            if m not in self.methods:
+                raise InputError(f"a target for {m!r}, which is not optimised", field="method_targets")
+            tv = np.asarray(v, dtype=np.float64)
+            if tv.shape != (4,) or not np.all(np.isfinite(tv) & (tv > 0)):
+                raise InputError(f"{m}: four finite std > 0 needed, got {v!r}", field="method_targets")
+        if self.method_targets_m and self.target_std_m is None:
+            raise InputError("method targets need target_std_m (the other methods' target)", field="target_std")
 
     def targets(self) -> np.ndarray | None:
         if self.target_std_m is None:
             return None
         t = np.atleast_1d(np.asarray(self.target_std_m, dtype=np.float64))
         return np.repeat(t, 4) if t.size == 1 else t
+
+    def targets_by_method(self) -> dict[str, np.ndarray] | None:
+        """Each optimised method's target std per combination (4,), m; None without a target."""
+        t = self.targets()
+        if t is None:
+            return None
+        own = {m: np.asarray(v, dtype=np.float64) for m, v in self.method_targets_m}
+        return {m: own.get(m, t) for m in self.methods}
 
 
 @dataclass
@@ -189,11 +212,11 @@ def ratio_to_target(std_m: Any, target_m: Any) -> np.ndarray:
         return np.asarray(std_m, dtype=np.float64) / target_m
 
 
-def _worst_miss(pred: Prediction, methods: tuple[str, ...], target_m: np.ndarray) -> str:
+def _worst_miss(pred: Prediction, targets: dict[str, np.ndarray]) -> str:
     """``"; worst: <method> <combination> 0.066 mm predicted for 0.050 mm (1.33x)"``, the combination furthest over
-    its target among the optimised methods ("" when none is predicted)."""
+    its target among the optimised methods (``targets``: per method, (4,) m; "" when none is predicted)."""
     worst = None
-    for m in methods:
+    for m, target_m in targets.items():
         for i, c in enumerate(COMBINATION_NAMES):
             s = (pred.std.get(m) or {}).get(c)
             if s is None:
@@ -235,15 +258,31 @@ def _shading_note(pred: Prediction) -> str | None:
 
 
 # -- criteria ---------------------------------------------------------------------------------------------------
-class _Infos:
-    """Per-candidate information of each optimised method, with the priors (base frame, tiny ridge)."""
+Cov4 = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
-    def __init__(self, per: dict[str, np.ndarray], prior: dict[str, np.ndarray]) -> None:
+
+class _Infos:
+    """Per-candidate additive statistics of each optimised method, with the priors (base frame, tiny ridge), and how
+    a sum of them gives the four combinations' covariance (``cov4``: :func:`_cov4` for an information matrix, the
+    legs method's :meth:`.legs_criterion.LegsCriterion.cov4`)."""
+
+    def __init__(
+        self, per: dict[str, np.ndarray], prior: dict[str, np.ndarray], cov4: dict[str, Cov4] | None = None
+    ) -> None:
         self.per = per
         self.prior = prior
+        self.cov4 = {m: (cov4 or {}).get(m, _cov4) for m in per}
 
     def total(self, idx: np.ndarray) -> dict[str, np.ndarray]:
         return {m: self.prior[m] + F[idx].sum(axis=0) for m, F in self.per.items()}
+
+    def ridge(self, m: str) -> np.ndarray:
+        """A tiny ridge on the information part of ``m``'s statistic, for the greedy start."""
+        F = self.per[m]
+        r = np.zeros(F.shape[1:])
+        k = F.shape[1]
+        r[:, :k] = np.diag(1e-9 * np.mean(np.einsum("kii->ki", F[:, :, :k]), axis=0))
+        return r
 
 
 def _cov4(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -261,12 +300,14 @@ def _cov4(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return C4, ld
 
 
-def _score(F: dict[str, np.ndarray], criterion: Criterion, t: np.ndarray | None) -> np.ndarray:
-    """Lower is better; batched over the leading axes."""
-    ref = t if t is not None else np.full(4, 1e-3)
+def _score(
+    infos: _Infos, F: dict[str, np.ndarray], criterion: Criterion, t: dict[str, np.ndarray] | None
+) -> np.ndarray:
+    """Lower is better; batched over the leading axes. ``t``: per method its targets (4,), m."""
     d = a = worst = 0.0
-    for Fm in F.values():
-        C4, ld = _cov4(Fm)
+    for m, Fm in F.items():
+        ref = t[m] if t is not None else np.full(4, 1e-3)
+        C4, ld = infos.cov4[m](Fm)
         var = np.einsum("...ii->...i", C4)
         d = d - ld
         with np.errstate(divide="ignore", over="ignore"):  # a target of 1e-300 m: an infinite score, as intended
@@ -285,7 +326,7 @@ def select_poses(
     infos: _Infos,
     n: int,
     criterion: Criterion,
-    targets: np.ndarray | None,
+    targets: dict[str, np.ndarray] | None,
     start: np.ndarray | None = None,
     max_passes: int = 50,
 ) -> np.ndarray:
@@ -294,18 +335,18 @@ def select_poses(
     M = next(iter(infos.per.values())).shape[0]
     if n > M:
         raise InputError(f"only {M} visible candidate poses for {n} fit poses (more candidates or fewer poses)")
-    ridge = {m: 1e-9 * np.mean(np.einsum("kii->ki", F), axis=0) for m, F in infos.per.items()}
+    ridge = {m: infos.ridge(m) for m in infos.per}
     chosen: list[int] = []
     for _ in range(n):
         base = infos.total(np.array(chosen, dtype=int))
         cand = np.setdiff1d(np.arange(M), chosen)
-        F = {m: base[m][None] + infos.per[m][cand] + np.diag(ridge[m])[None] for m in base}
-        s = _score(F, criterion, targets)
+        F = {m: base[m][None] + infos.per[m][cand] + ridge[m][None] for m in base}
+        s = _score(infos, F, criterion, targets)
         chosen.append(int(cand[int(np.argmin(s))]))
     sel = np.array(chosen, dtype=int)
-    best = float(_score(infos.total(sel), criterion, targets))
+    best = float(_score(infos, infos.total(sel), criterion, targets))
     if start is not None and len(start) == n:
-        s0 = float(_score(infos.total(np.asarray(start)), criterion, targets))
+        s0 = float(_score(infos, infos.total(np.asarray(start)), criterion, targets))
         if s0 < best:
             sel, best = np.asarray(start, dtype=int).copy(), s0
     for _ in range(max_passes):
@@ -315,7 +356,7 @@ def select_poses(
             break
         # every (remove i, add c) swap at once: base - F_i + F_c
         F = {m: base[m][None, None] - infos.per[m][sel][:, None] + infos.per[m][out][None, :] for m in base}
-        s = _score(F, criterion, targets)
+        s = _score(infos, F, criterion, targets)
         i, c = np.unravel_index(int(np.argmin(s)), s.shape)
         if not s[i, c] < best - 1e-10 * max(abs(best), 1.0):
             break
@@ -338,18 +379,26 @@ def log_det_information(
     out = {}
     for m in methods:
         q_rot, q_tra = phase_q(plan, "rotation"), phase_q(plan, "translation")
-        F = _method_information(m, nominal, q_fit, scene, noise, q_rot, q_tra).sum(axis=0) + _method_prior(
+        legs = None
+        if m == "legs":
+            if not isinstance(noise, ImageNoise):
+                raise InputError("the legs criterion needs the image-level noise model", field="methods")
+            legs = LegsCriterion(nominal, [phase_q(plan, f"lock-{i}") for i in range(1, 5)], scene, noise)
+        F = _method_information(m, nominal, q_fit, scene, noise, q_rot, q_tra, legs).sum(axis=0) + _method_prior(
             m, nominal, q_rot, q_tra, scene, noise
         )
-        out[m] = float(_cov4(F)[1])
+        out[m] = float((legs.cov4 if legs is not None else _cov4)(F)[1])
     return out
 
 
 def _method_information(
-    m: str, nominal, q, scene: Scene, noise: DesignNoise | ImageNoise, q_rot=None, q_tra=None
+    m: str, nominal, q, scene: Scene, noise: DesignNoise | ImageNoise, q_rot=None, q_tra=None, legs=None
 ) -> np.ndarray:
     """Per fit pose (N, p, p) information of method ``m`` (on images the combined method's nuisances, whose
-    base-frame coupling needs the sweeps ``q_rot``, ``q_tra``)."""
+    base-frame coupling needs the sweeps ``q_rot``, ``q_tra``); for the legs method (N, 3, 30), its
+    :class:`.legs_criterion.LegsCriterion`'s statistics."""
+    if m == "legs":
+        return legs.pose_statistics(q)
     if isinstance(noise, ImageNoise):
         if m == "combined":
             _P, steps, G = combined_images_prior(nominal, q_rot, q_tra, scene, noise)
@@ -361,6 +410,8 @@ def _method_information(
 
 
 def _method_prior(m: str, nominal, q_rot, q_tra, scene: Scene, noise: DesignNoise | ImageNoise) -> np.ndarray:
+    if m == "legs":
+        return np.zeros((3, 30))
     if isinstance(noise, ImageNoise):
         return combined_images_prior(nominal, q_rot, q_tra, scene, noise)[0] if m == "combined" else np.zeros((16, 16))
     if m == "combined":
@@ -454,8 +505,11 @@ class _Pool:
     qt: np.ndarray
     cand_q: np.ndarray
     visible: np.ndarray
+    lock: list[Step]
     information: dict[str, np.ndarray]
     prior: dict[str, np.ndarray]
+    cov4: dict[str, Cov4]
+    legs: LegsCriterion | None
 
 
 def _candidate_pool(
@@ -467,10 +521,21 @@ def _candidate_pool(
     noise: DesignNoise | ImageNoise,
     cache: dict[Any, Any] | None,
 ) -> _Pool:
-    key = ("pool", req.seed, req.candidate_draw, req.n_candidates, req.n_base, req.methods)
+    key = ("pool", req.seed, req.candidate_draw, req.n_candidates, req.n_base, req.n_lock, req.methods)
     if cache is not None and key in cache:
         return cache[key]
     span, length, rot, tra, _ = _sweeps(nominal, scene, limits, ws, noise, req.n_base)
+    lock = _lock_steps(nominal, scene, limits, ws, req.n_lock, req.seed)
+    legs = None
+    if "legs" in req.methods:
+        if not isinstance(noise, ImageNoise):
+            raise InputError(
+                "optimising for the legs method needs the image-level noise model (the default, or a run's)",
+                field="methods",
+            )
+        legs = LegsCriterion(
+            nominal, [np.array([s.q for s in lock if s.phase == f"lock-{i}"]) for i in range(1, 5)], scene, noise
+        )
     rng = np.random.default_rng(req.seed if req.candidate_draw == 0 else [req.seed, req.candidate_draw])
     cand_q = ikm(nominal, random_poses(nominal, req.n_candidates, rng, ws, limits))
     visible = visibility(scene, nominal, cand_q)["ok"]
@@ -485,8 +550,13 @@ def _candidate_pool(
         qt=qt,
         cand_q=cand_q,
         visible=visible,
-        information={m: _method_information(m, nominal, cand_q[visible], scene, noise, qr, qt) for m in req.methods},
+        lock=lock,
+        information={
+            m: _method_information(m, nominal, cand_q[visible], scene, noise, qr, qt, legs) for m in req.methods
+        },
         prior={m: _method_prior(m, nominal, qr, qt, scene, noise) for m in req.methods},
+        cov4={"legs": legs.cov4} if legs is not None else {},
+        legs=legs,
     )
     if cache is not None:
         cache[key] = pool
@@ -524,6 +594,7 @@ def design_plan(
     if req.draws > 1:
         return _best_of_draws(nominal, scene, req, limits=limits, motion=motion, noise=noise, ws=ws, cache=cache)
     t = req.targets()
+    tmap = req.targets_by_method()
     notes: list[str] = []
     pool = _candidate_pool(nominal, scene, req, limits, ws, noise, cache)
     span, length, rot, tra, cand_q = pool.span, pool.length, pool.rot, pool.tra, pool.cand_q
@@ -543,13 +614,14 @@ def design_plan(
     infos = _Infos(
         {
             m: np.concatenate(
-                [pool.information[m], _method_information(m, nominal, ref_q[vis_ref], scene, noise, qr, qt)]
+                [pool.information[m], _method_information(m, nominal, ref_q[vis_ref], scene, noise, qr, qt, pool.legs)]
             )
             for m in req.methods
         },
         pool.prior,
+        pool.cov4,
     )
-    lock = _lock_steps(nominal, scene, limits, ws, req.n_lock, req.seed)
+    lock = pool.lock
     val = (
         _visible_steps(
             pose_set(nominal, 3 * req.n_validation, req.seed + 2, phase="validation", ws=ws, limits=limits),
@@ -578,18 +650,19 @@ def design_plan(
         plan = Plan(name="designed", steps=[*rot, *tra, *fit, *lock, *line, *val])
         return plan, plan_motion_time(plan, motion, nominal)
 
-    def meets(sel: np.ndarray, tt: np.ndarray | None) -> bool:
+    def meets(sel: np.ndarray, tt: dict[str, np.ndarray] | None) -> bool:
         if tt is None:
             return True
-        for C in (_cov4(F)[0] for F in infos.total(sel).values()):
-            if np.any(np.sqrt(np.maximum(np.diag(C), 0)) > tt):
+        for m, F in infos.total(sel).items():
+            C = infos.cov4[m](F)[0]
+            if np.any(np.sqrt(np.maximum(np.diag(C), 0)) > tt[m]):
                 return False
         return True
 
     crit: Criterion = req.criterion
     n_hi = min(req.n_max, len(cq))
 
-    def choose(tt: np.ndarray | None, n_from: int, fewer: bool) -> tuple[int, np.ndarray]:
+    def choose(tt: dict[str, np.ndarray] | None, n_from: int, fewer: bool) -> tuple[int, np.ndarray]:
         """The count (from ``n_from`` up; ``fewer``: then down while the exchange still meets it) and the poses for
         the exchange's targets ``tt``."""
         if req.n_fit:
@@ -609,7 +682,9 @@ def design_plan(
             n, sel = n - 1, s2
         return n, sel
 
-    def fit_time(n: int, sel: np.ndarray, tt: np.ndarray | None) -> tuple[int, np.ndarray, Plan, dict[str, Any], bool]:
+    def fit_time(
+        n: int, sel: np.ndarray, tt: dict[str, np.ndarray] | None
+    ) -> tuple[int, np.ndarray, Plan, dict[str, Any], bool]:
         """The plan of ``sel``; when it takes longer than allowed, the largest that fits the time."""
         plan, mt = build(sel)
         reduced = False
@@ -621,21 +696,21 @@ def design_plan(
                 plan, mt = build(sel)
         return n, sel, plan, mt, reduced
 
-    def excess(pred: Prediction) -> np.ndarray:
-        """Per combination, the largest predicted std of the optimised methods over the target (inf: no prediction)."""
-        assert t is not None
-        out = np.zeros(4)
-        for m in req.methods:
-            if m not in pred.std:
-                return np.full(4, np.inf)
-            out = np.maximum(out, ratio_to_target([pred.std[m][c] for c in COMBINATION_NAMES], t))
-        return out
+    def excess(pred: Prediction) -> dict[str, np.ndarray]:
+        """Per optimised method and combination, the predicted std over the target (inf: no prediction)."""
+        assert tmap is not None
+        return {
+            m: ratio_to_target([pred.std[m][c] for c in COMBINATION_NAMES], tmap[m])
+            if m in pred.std
+            else np.full(4, np.inf)
+            for m in req.methods
+        }
 
     # the exchange ranks poses by their information (no correlations between rods); the plan's prediction is the
     # methods' own uncertainty (their rod correlations, the camera's calibration), somewhat larger: the target is
     # judged on the prediction, and while the prediction misses it the exchange's targets are tightened by the
     # miss and the count chosen again
-    tt_sel, n, rounds = t, req.n_min, 0
+    tt_sel, n, rounds = tmap, req.n_min, 0
     while True:
         n, sel = choose(tt_sel, n, fewer=rounds == 0)
         n, sel, plan, mt, reduced = fit_time(n, sel, tt_sel)
@@ -644,16 +719,18 @@ def design_plan(
         if t is None or req.n_fit or reduced or n >= n_hi or rounds >= DESIGN_ROUNDS:
             break
         miss = excess(pred)
-        if np.all(miss <= 1.0 + 1e-9) or not np.all(np.isfinite(miss)):
+        worst = np.max(np.stack(list(miss.values())))
+        if worst <= 1.0 + 1e-9 or not np.isfinite(worst):
             break
         # tightened by the miss and a margin, so that a near miss does not take every round
-        tt_sel = tt_sel / np.maximum(miss * TIGHTEN_MARGIN, 1.0)
+        assert tt_sel is not None
+        tt_sel = {m: tt_sel[m] / np.maximum(miss[m] * TIGHTEN_MARGIN, 1.0) for m in tt_sel}
     if not req.n_fit and req.max_time_s is not None and mt["total_s"] > req.max_time_s:
         fixed_part = mt["total_s"] - mt["per_phase_s"].get("poses", 0.0)
         notes.append(f"the plan without fit poses already takes {fixed_part / 60:.1f} min")
     if not req.n_fit and t is None:
         notes.append("no target and no count: 20 fit poses (the paper's count)")
-    target_met = None if t is None else bool(np.all(excess(pred) <= 1.0 + 1e-9))
+    target_met = None if tmap is None else bool(all(np.all(v <= 1.0 + 1e-9) for v in excess(pred).values()))
     time_met = None if req.max_time_s is None else mt["total_s"] <= req.max_time_s
     if target_met is False:
         if reduced:
@@ -664,12 +741,13 @@ def design_plan(
             why = f"with {n} fit poses (the most tried; more candidate poses may reach it)"
         else:
             why = f"with {n} fit poses after {rounds} choices of the count"
-        notes.append("the target is not met (predicted): " + why + _worst_miss(pred, req.methods, t))
+        assert tmap is not None
+        notes.append("the target is not met (predicted): " + why + _worst_miss(pred, tmap))
     shading = _shading_note(pred)
     if shading:
         notes.append(shading)
     F = infos.total(sel)
-    crit_vals = {f"logdet_{m}": float(_cov4(F[m])[1]) for m in F}
+    crit_vals = {f"logdet_{m}": float(infos.cov4[m](F[m])[1]) for m in F}
     result = DesignResult(
         plan=plan,
         prediction=pred,
@@ -690,6 +768,7 @@ def design_plan(
     design["request"] = {
         "n_fit": req.n_fit,
         "target_std_m": None if t is None else t.tolist(),
+        **({"method_targets_m": {m: list(v) for m, v in req.method_targets_m}} if req.method_targets_m else {}),
         "max_time_s": req.max_time_s,
         "criterion": req.criterion,
         "methods": list(req.methods),
@@ -706,17 +785,21 @@ def design_score(result: DesignResult, request: DesignRequest) -> tuple[float, .
     then the criterion on the plan's prediction (``"target"``: the worst predicted std over its target among the
     optimised methods; ``"a"``: the sum of their predicted variances, over the targets' squares when given, else
     per mm^2; ``"d"``: minus the sum of their information's log-determinants), then the motion time."""
-    pred, t = result.prediction, request.targets()
-    stds = [np.array([pred.std[m][c] for c in COMBINATION_NAMES]) for m in request.methods if m in pred.std]
-    if len(stds) < len(request.methods):
+    pred, t = result.prediction, request.targets_by_method()
+    if any(m not in pred.std for m in request.methods):
         return (np.inf,)
+    stds = {m: np.array([pred.std[m][c] for c in COMBINATION_NAMES]) for m in request.methods}
     if request.criterion == "target":
         assert t is not None
-        crit = float(max(np.max(ratio_to_target(sd, t)) for sd in stds))
+        crit = float(max(np.max(ratio_to_target(sd, t[m])) for m, sd in stds.items()))
     elif request.criterion == "a":
-        scale = t if t is not None else np.full(4, 1e-3)
         with np.errstate(over="ignore"):  # the ratios' squares: infinite for the tiniest targets, as intended
-            crit = float(sum(np.sum(ratio_to_target(sd, scale) ** 2) for sd in stds))
+            crit = float(
+                sum(
+                    np.sum(ratio_to_target(sd, t[m] if t is not None else np.full(4, 1e-3)) ** 2)
+                    for m, sd in stds.items()
+                )
+            )
     else:
         crit = -float(sum(v for k, v in result.criterion.items() if k.startswith("logdet_")))
     return (

@@ -46,10 +46,14 @@ from .scene import Scene
 __all__ = [
     "DEFAULT_INTRINSICS_NAMES",
     "ImageNoise",
+    "LegsFitDirections",
+    "LegsLock",
     "base_frame_images",
     "combined_images_pose_information",
     "combined_images_prior",
     "end_effector_images_pose_information",
+    "legs_fit_directions",
+    "legs_lock_joints",
     "predict_combined_images",
     "predict_end_effector_images",
     "predict_legs_images",
@@ -549,34 +553,37 @@ def predict_end_effector_images(
 
 
 # -- legs ------------------------------------------------------------------------------------------------------
-def predict_legs_images(
-    nominal: I4Parameters,
-    q_fit: np.ndarray,
-    q_lock: list[np.ndarray],
-    scene: Scene,
-    noise: ImageNoise,
-    intrinsics_cov: np.ndarray | None = None,
-    edge_cov_px2: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
-    """Predicted covariances of the legs method on images: seven parameters (7, 7), four combinations (4, 4), and
-    the seven's parts (``joint_centres``, ``joint_depth_systematic``, ``leg_directions``, ``intrinsics``,
-    ``limb_edge_bias``, ``a_priori``).
-    ``edge_cov_px2`` (2, 2): the limb-edge bias's covariance the method uses, the combined fit's measurement of it
-    (:func:`predict_combined_images_posteriors`; the method's default); None: the allowance
-    (``edge_bias_prior_px`` per limb)."""
-    from ..methods.legs import (
-        PlaneObservation,
-        _IntrinsicsEffect,
-        _LegsPipeline,
-        _pair_means,
-        _pair_own_covariances,
-        _steps34_sandwich,
-        _with_prior,
-        joint_depth_systematic,
-        joint_from_planes,
-        limb_line_noise,
-    )
-    from .predict import SEVEN_TO_FOUR
+@dataclass(frozen=True)
+class LegsLock:
+    """The legs method's step 1 on a plan's lock phases, as the prediction rebuilds it at the nominal geometry.
+
+    Attributes
+    ----------
+    q_locked : ndarray, shape (4,)
+        Each locked actuator's value (mean over its phase), metres.
+    planes : list
+        Per leg and rod, the :class:`calib.methods.legs.PlaneObservation` of each lock frame.
+    lock_fields : list
+        Per leg and rod, the limb samples (distorted pixels) and interpretation planes, for redoing the planes
+        with other intrinsics.
+    P : ndarray, shape (4, 2, 3)
+        The joints (leg, rod), camera frame, metres.
+    covP : ndarray, shape (24, 24)
+        Their covariance from the lock frames' limb lines (before the lock phases' chi-square level), m^2.
+    """
+
+    q_locked: np.ndarray
+    planes: list[Any]
+    lock_fields: list[Any]
+    P: np.ndarray
+    covP: np.ndarray
+
+
+def legs_lock_joints(nominal: I4Parameters, q_lock: list[np.ndarray], scene: Scene, noise: ImageNoise) -> LegsLock:
+    """Step 1 of the legs method on the lock phases ``q_lock`` (four arrays (n_i, 4) of actuator values, metres):
+    the joints and their covariance (:class:`LegsLock`). Raises IdentifiabilityError naming the phase and rod
+    when a rod is in view in fewer than 2 of its lock frames."""
+    from ..methods.legs import PlaneObservation, joint_from_planes, limb_line_noise
 
     if len(q_lock) != 4 or any(len(np.atleast_2d(q)) < 2 for q in q_lock):
         raise IdentifiabilityError("the legs method needs at least 2 frames in each of lock-1 .. lock-4")
@@ -619,7 +626,33 @@ def predict_legs_images(
         for j in range(2):
             k = (2 * i + j) * 3
             covP[k : k + 3, k : k + 3] = np.linalg.inv(joint_from_planes(planes[i][j])[1])
-    # fit poses: leg directions from the two rods (covariance-weighted), as the method combines them
+    return LegsLock(q_locked, planes, lock_fields, P, covP)
+
+
+@dataclass(frozen=True)
+class LegsFitDirections:
+    """The fit poses' rods and leg directions as the legs method combines them (NaN where a rod is not seen).
+
+    Attributes: ``rods`` (the synthetic :class:`.imaging.RodSet`), ``u`` (N, 4, 2, 3) rod directions, ``cov_u`` and
+    ``cov_u_own`` (N, 4, 2, 3, 3) their covariances, ``has`` (N, 4, 2), ``U`` (N, 4, 3) and ``CU`` (N, 4, 3, 3) the
+    legs' directions (the two rods' covariance-weighted mean) and covariances, ``has_leg`` (N, 4), ``pts`` (N, 4, 3) a
+    point on each leg's rods (camera frame, metres)."""
+
+    rods: RodSet
+    u: np.ndarray
+    cov_u: np.ndarray
+    cov_u_own: np.ndarray
+    has: np.ndarray
+    U: np.ndarray
+    CU: np.ndarray
+    has_leg: np.ndarray
+    pts: np.ndarray
+
+
+def legs_fit_directions(nominal: I4Parameters, q_fit: np.ndarray, scene: Scene, noise: ImageNoise) -> LegsFitDirections:
+    """The leg directions of the fit poses ``q_fit`` (N, 4) (actuator values, metres), :class:`LegsFitDirections`."""
+    from ..methods.legs import _pair_means
+
     q_fit = np.asarray(q_fit, dtype=np.float64).reshape(-1, 4)
     N = len(q_fit)
     fr = _rods(scene, nominal, q_fit, noise)
@@ -637,6 +670,51 @@ def predict_legs_images(
     for k, i, j in zip(fr.k, fr.leg, fr.rod, strict=True):
         if np.isnan(pts[k, i, 0]):
             pts[k, i] = fr.point[(fr.k == k) & (fr.leg == i) & (fr.rod == j)][0]
+    return LegsFitDirections(fr, u, Cr, Co, has, U, CU, has_leg, pts)
+
+
+def predict_legs_images(
+    nominal: I4Parameters,
+    q_fit: np.ndarray,
+    q_lock: list[np.ndarray],
+    scene: Scene,
+    noise: ImageNoise,
+    intrinsics_cov: np.ndarray | None = None,
+    edge_cov_px2: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """Predicted covariances of the legs method on images: seven parameters (7, 7), four combinations (4, 4), and
+    the seven's parts (``joint_centres``, ``joint_depth_systematic``, ``leg_directions``, ``intrinsics``,
+    ``limb_edge_bias``, ``a_priori``).
+    ``edge_cov_px2`` (2, 2): the limb-edge bias's covariance the method uses, the combined fit's measurement of it
+    (:func:`predict_combined_images_posteriors`; the method's default); None: the allowance
+    (``edge_bias_prior_px`` per limb)."""
+    from ..methods.legs import (
+        _IntrinsicsEffect,
+        _LegsPipeline,
+        _pair_means,
+        _pair_own_covariances,
+        _steps34_sandwich,
+        _with_prior,
+        joint_depth_systematic,
+        joint_from_planes,
+    )
+    from .predict import SEVEN_TO_FOUR
+
+    lk = legs_lock_joints(nominal, q_lock, scene, noise)
+    q_locked, planes, lock_fields, P, covP = lk.q_locked, lk.planes, lk.lock_fields, lk.P, lk.covP
+    q_fit = np.asarray(q_fit, dtype=np.float64).reshape(-1, 4)
+    fd = legs_fit_directions(nominal, q_fit, scene, noise)
+    fr, u, Cr, Co, has, U, CU, has_leg, pts = (
+        fd.rods,
+        fd.u,
+        fd.cov_u,
+        fd.cov_u_own,
+        fd.has,
+        fd.U,
+        fd.CU,
+        fd.has_leg,
+        fd.pts,
+    )
     pipe = _LegsPipeline(q_locked, q_fit, pts, has_leg, CU, nominal)
     Uf = np.where(has_leg[..., None], U, 0.0)
     seven = pipe.run(P, Uf)

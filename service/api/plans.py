@@ -35,7 +35,7 @@ class DesignBody(BaseModel):
     max_minutes: float | None = Field(None, gt=0, le=24 * 60, description="longest motion time of the plan")
     n_fit: int | None = Field(None, ge=2, le=100, description="fit poses (default: the smallest meeting the target)")
     criterion: Literal["d", "a", "target"] | None = Field(None, description="default: target with a target, else d")
-    methods: list[Literal["combined", "end-effector"]] = Field(["combined"], min_length=1, max_length=2)
+    methods: list[Literal["combined", "end-effector", "legs"]] = Field(["combined"], min_length=1, max_length=3)
     seed: int = Field(0, ge=0, le=2**31 - 1)
     candidates: int = Field(300, ge=20, le=1000, description="candidate poses drawn")
     draws: int = Field(1, ge=1, le=5, description="independent draws of the candidates, each designed, the best kept")
@@ -137,15 +137,19 @@ _ERRORS: dict[int | str, dict[str, Any]] = {
 }
 
 
-def _design_request(body: DesignBody, target: Any, settings: Any) -> Any:
+def _design_request(body: DesignBody, targets: dict[str, Any], settings: Any) -> Any:
     from calib.design import DesignRequest
 
     return DesignRequest(
         n_fit=body.n_fit,
-        target_std_m=target,
+        **targets,
         max_time_s=None if body.max_minutes is None else body.max_minutes * 60.0,
         criterion=body.criterion
-        or ("target" if body.better_than is not None or (target is not None and body.n_fit is None) else "d"),
+        or (
+            "target"
+            if body.better_than is not None or (targets["target_std_m"] is not None and body.n_fit is None)
+            else "d"
+        ),
         methods=tuple(dict.fromkeys(body.methods)),
         seed=body.seed,
         n_candidates=min(body.candidates, settings.design_max_candidates),
@@ -162,7 +166,7 @@ async def _designed(
     and its targets predicted, input errors as 422 naming the field, 429 while another design runs."""
     from calib.plan import Plan
 
-    from ..design import reference_targets
+    from ..design import better_than_request, reference_targets
 
     bench = manager.bench
     if bench is None:
@@ -180,10 +184,12 @@ async def _designed(
         raise HTTPException(status.HTTP_429_TOO_MANY_REQUESTS, detail="another design is being computed")
     async with lock:
         try:
-            target: float | tuple[float, float, float, float] | None = body.target_std_m
+            targets: dict[str, Any] = {"target_std_m": body.target_std_m}
             if ref is not None:
-                target = await asyncio.to_thread(reference_targets, bench.config, ref)
-            req = _design_request(body, target, settings)
+                methods = tuple(dict.fromkeys(body.methods))
+                refs = await asyncio.to_thread(reference_targets, bench.config, ref, None, methods)
+                targets = better_than_request(refs)
+            req = _design_request(body, targets, settings)
             return await _finish_even_if_abandoned(
                 asyncio.ensure_future(asyncio.to_thread(work, bench.config, req)), stop
             )

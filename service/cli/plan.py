@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from typing import Any
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -30,7 +31,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     a("--max-minutes", type=float, default=None, help="longest motion time of the whole plan, minutes")
     a("--n-fit", type=int, default=None, help="fit poses (default: the smallest count meeting the target)")
     a("--criterion", choices=("d", "a", "target"), default=None, help="d (default), a, or target (worst std/target)")
-    a("--methods", default="combined", help="methods the selection optimises: combined,end-effector")
+    a(
+        "--methods",
+        default="combined",
+        help="methods the selection optimises, any of combined,end-effector,legs (legs: its joints' gain and leg "
+        "directions, with the image-level noise model; with --better-than each method aims at the plan's own std)",
+    )
     a("--seed", type=int, default=0, help="seed of the candidate poses")
     a("--candidates", type=int, default=300, help="candidate poses drawn (default 300)")
     a(
@@ -82,7 +88,13 @@ def _design(args: argparse.Namespace) -> int:
     from calib.pipeline import to_jsonable
     from calib.plan import Plan, validate_plan
     from drivers.config import load_bench
-    from service.design import design_for_bench, parse_length, reference_targets, summary_lines
+    from service.design import (
+        better_than_request,
+        design_for_bench,
+        parse_length,
+        reference_targets,
+        summary_lines,
+    )
 
     cfg = load_bench(args.bench)
     if args.target_std is not None and args.better_than is not None:
@@ -98,21 +110,25 @@ def _design(args: argparse.Namespace) -> int:
     if args.noise_from:
         doc = read_json(args.noise_from, "noise file")
         noise = DesignNoise.from_mapping(doc.get("noise", doc) if isinstance(doc, dict) else None)
+    methods = tuple(dict.fromkeys(m.strip() for m in args.methods.split(",") if m.strip()))
+    targets: dict[str, Any] = {"target_std_m": target}
     if args.better_than is not None:
-        target = reference_targets(cfg, Plan.load(args.better_than), noise)
+        refs = reference_targets(cfg, Plan.load(args.better_than), noise, methods)
+        targets = better_than_request(refs)
         if not args.json:
-            print(
-                f"target: the predicted combined std of {args.better_than}: "
-                + ", ".join(f"{k} {v * 1e3:.3f}" for k, v in zip(COMBINATION_NAMES, target, strict=True))
-                + " mm"
-            )
+            for m, ref in refs.items():
+                print(
+                    f"target: the predicted {m} std of {args.better_than}: "
+                    + ", ".join(f"{k} {v * 1e3:.3f}" for k, v in zip(COMBINATION_NAMES, ref, strict=True))
+                    + " mm"
+                )
     req = DesignRequest(
         n_fit=args.n_fit,
-        target_std_m=target,
+        **targets,
         max_time_s=None if args.max_minutes is None else args.max_minutes * 60.0,
         criterion=args.criterion
         or ("target" if args.better_than is not None or (target is not None and args.n_fit is None) else "d"),
-        methods=tuple(m.strip() for m in args.methods.split(",") if m.strip()),
+        methods=methods,
         seed=args.seed,
         n_candidates=args.candidates,
         draws=args.draws,
