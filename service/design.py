@@ -191,12 +191,17 @@ def tradeoff_lines(rows, request) -> list[str]:
             std = r.std_m.get(m)
             vals = " | ".join(f"{std[k] * 1e3:13.4f}" if std else f"{'-':>13}" for k in COMBINATION_NAMES)
             out.append(f"  {r.n_fit:9d} | {r.motion_s / 60:10.2f} | {vals}")
-    t = request.targets()
+    t = request.targets_by_method()
     if t is not None:
+        own = len({tuple(v) for v in t.values()}) > 1
         out.append(
-            "target "
-            + ", ".join(f"{k} {v * 1e3:.3f}" for k, v in zip(COMBINATION_NAMES, t, strict=True))
-            + " mm; worst predicted std over it: "
+            "; ".join(
+                ("target " + (f"{m} " if own else ""))
+                + ", ".join(f"{k} {v * 1e3:.3f}" for k, v in zip(COMBINATION_NAMES, tm, strict=True))
+                + " mm"
+                for m, tm in (t.items() if own else list(t.items())[:1])
+            )
+            + "; worst predicted std over it: "
             + ", ".join(f"{r.n_fit} poses {r.worst_ratio:.2f}x" for r in rows if r.worst_ratio is not None)
         )
     if request.max_time_s is not None:

@@ -148,11 +148,13 @@ class LegsCriterion:
         A = stats[..., :3]
         M = stats[..., 3:6]
         B = stats[..., 6:]
-        d = np.sqrt(np.maximum(np.einsum("...ii->...i", A), 1e-300))
+        d = np.sqrt(np.einsum("...ii->...i", A))
+        good = np.all(d > 0, axis=-1)
+        d = np.where(good[..., None], d, 1.0)
         As = A / (d[..., :, None] * d[..., None, :])
         w, V = np.linalg.eigh(0.5 * (As + np.swapaxes(As, -1, -2)))
-        ok = w[..., 0] > 1e-13 * w[..., -1]
-        w = np.maximum(w, 1e-300)
+        ok = good & (w[..., 0] > 1e-13 * w[..., -1])
+        w = np.where(ok[..., None], w, 1.0)  # undetermined sets: a finite stand-in, their log det -inf below
         Ai = np.einsum("...ik,...k,...jk->...ij", V, 1.0 / w, V) / (d[..., :, None] * d[..., None, :])
         # the seven's gain in the joints: G2 for (H, q02, q03, q04), -A^-1 B for (L, S, D)
         G = np.zeros((*A.shape[:-2], 7, 24))

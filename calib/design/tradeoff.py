@@ -125,7 +125,7 @@ def design_tradeoff(
         The designs themselves (their plans, to write the one chosen).
     """
     ns = parse_counts(counts)
-    t = request.targets()
+    t = request.targets_by_method()
     rows: list[TradeoffRow] = []
     results: list[DesignResult] = []
     cache: dict[Any, Any] = {}  # the sweeps and candidates of each draw, the same for every count
@@ -138,12 +138,12 @@ def design_tradeoff(
     return rows, results
 
 
-def _row(res: DesignResult, request: DesignRequest, t: np.ndarray | None) -> TradeoffRow:
+def _row(res: DesignResult, request: DesignRequest, t: dict[str, np.ndarray] | None) -> TradeoffRow:
     std = res.prediction.std
     worst = None
     if t is not None:
         ratios = [
-            float(ratio_to_target(std[m][c], t[i]))
+            float(ratio_to_target(std[m][c], t[m][i]))
             for m in request.methods
             if m in std
             for i, c in enumerate(COMBINATION_NAMES)

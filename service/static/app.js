@@ -360,6 +360,7 @@ function designBody(withCount) {
   const lockFrames = parseInt($("#design-lock").value, 10);
   if (lockFrames > 0) body.lock_frames = lockFrames;
   if ($("#design-criterion").value) body.criterion = $("#design-criterion").value;
+  if ($("#design-legs").checked) body.methods = ["combined", "legs"];
   return body;
 }
 
@@ -376,7 +377,8 @@ $("#design-form").addEventListener("submit", async (ev) => {
     Object.entries(d.counts).map(([k, v]) => `${k} ${v}`).join(", ") +
     ` · motion ${(d.motion_time_s / 60).toFixed(1)} min` +
     (d.target_met === null ? "" : d.target_met ? " · target met" : " · target NOT met") +
-    (d.time_met === null ? "" : d.time_met ? " · time met" : " · time NOT met");
+    (d.time_met === null ? "" : d.time_met ? " · time met" : " · time NOT met") +
+    ` · designed for ${d.plan.design.request.methods.join(" and ")}`;
   $("#design-table").innerHTML = designRows(d.predicted_std_m, undefined, d.predicted_parts_std_m);
   $("#design-start").disabled = false;
 });

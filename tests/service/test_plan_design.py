@@ -236,6 +236,27 @@ async def test_api_design_draws_at_most_the_services_candidates(tmp_path, sim):
         await svc.stop()
 
 
+def test_cli_design_for_the_legs_method_too(tmp_path, capsys):
+    """``--methods combined,legs --better-than``: each method aims at the reference's own predicted std, and the plan
+    meets both (the legs method's std is 5-20x the combined one's: one target for both could not be met)."""
+    ref = tmp_path / "routine.json"
+    _paper_plan(ref)
+    out = tmp_path / "plan.json"
+    argv = ["plan", "design", "--bench", str(BENCH_SIM), "--better-than", str(ref), "--methods", "combined,legs"]
+    assert main([*argv, "--no-line", "--candidates", "300", "-o", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert f"target: the predicted combined std of {ref}" in text
+    assert f"target: the predicted legs std of {ref}" in text
+    design = Plan.load(out).model_extra["design"]
+    assert design["request"]["methods"] == ["combined", "legs"] and design["target_met"] is True
+    targets = {"combined": design["request"]["target_std_m"], **design["request"]["method_targets_m"]}
+    for m, target in targets.items():
+        got = design["prediction"]["std_m"][m]
+        for name, t in zip(("L", "H-D", "S-q02/2", "S-(q04-q03)/2"), target, strict=True):
+            assert got[name] <= t * (1 + 1e-9), (m, name, got[name], t)
+    assert targets["legs"][0] > 3 * targets["combined"][0]
+
+
 async def test_api_designs_better_than_a_reference_plan(service, tmp_path):
     c = service.client
     ref = _paper_plan(tmp_path / "routine.json").model_dump(mode="json", exclude_none=True)
@@ -244,6 +265,10 @@ async def test_api_designs_better_than_a_reference_plan(service, tmp_path):
     assert r.status_code == 200, r.text
     request = r.json()["plan"]["design"]["request"]
     assert request["criterion"] == "target" and len(request["target_std_m"]) == 4
+    r = await c.post(f"{API}/plans/design", json={**body, "methods": ["combined", "legs"]}, headers=AUTH)
+    assert r.status_code == 200, r.text
+    request = r.json()["plan"]["design"]["request"]
+    assert request["methods"] == ["combined", "legs"] and len(request["method_targets_m"]["legs"]) == 4
     r = await c.post(f"{API}/plans/design", json={**body, "target_std_m": 5e-5}, headers=AUTH)
     assert r.status_code == 422 and "better_than" in r.text
     r = await c.post(f"{API}/plans/design", json={**body, "better_than": {"steps": "none"}}, headers=AUTH)
@@ -347,6 +372,15 @@ async def test_dashboard_designs_and_starts_a_plan(service):
             # under the legs method, the sources of its error: the lock phases' shading among them
             assert "of which lock phases: shading (systematic)" in table, table
             assert len(await page.query_selector_all("#design-table tr.part")) >= 4
+            assert "designed for combined" in summary and "legs" not in summary, summary
+            # designed for the legs method too: the request says so, the summary too
+            await page.check("#design-legs")
+            await page.click("#design")
+            await page.wait_for_function(
+                "document.querySelector('#design-summary').textContent.includes('designed for combined and legs')",
+                timeout=120_000,
+            )
+            await page.uncheck("#design-legs")
             await page.click("#design-start")
             await page.wait_for_function(
                 "document.querySelector('#message').textContent.includes('started designed run')", timeout=30_000
