@@ -325,6 +325,16 @@ def test_runs_of_disjoint_trial_ranges_merge_into_one_bench(tmp_path, capsys):
     both = merge_benches([_bench_doc(range(30), rng, name="designed-12"), a], ["d.json", "a.json"])
     assert set(both["plans"]) == {"designed-12", "paper-20"} and both["plans"]["designed-12"]["sources"] == ["d.json"]
     assert set(both["checks"]["designed12_combined_not_worse_than_paper20"]) == set(C)
+    # a plan designed for the legs method too (--design-methods combined,legs) is checked on both against paper-20
+    legs_doc = _bench_doc(range(30), rng, name="designed-legs-12")
+    legs_doc["plans"]["designed-legs-12"].update(n_fit=12, design_methods=["combined", "legs"])
+    with_legs = merge_benches([legs_doc, a, b], ["l.json", "a.json", "b.json"])
+    check = with_legs["checks"]["designed-legs-12_not_worse_than_paper20"]
+    assert set(check) == {"combined", "legs"} and set(check["legs"]) == set(C)
+    rms = {
+        n: with_legs["plans"][n]["summary"]["methods"]["legs"]["rms_error_m"] for n in ("designed-legs-12", "paper-20")
+    }
+    assert check["legs"] == {c: rms["designed-legs-12"][c] <= rms["paper-20"][c] for c in C}
     # through the command: the merged table and checks printed, and written
     for name, doc in (("a.json", a), ("b.json", b)):
         for m in ("combined", "end-effector", "legs"):
