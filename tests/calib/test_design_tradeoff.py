@@ -138,3 +138,27 @@ def test_an_absurdly_small_target_gives_an_infinite_ratio_without_warnings(scene
         rows, _ = design_tradeoff(NOMINAL, scene, req, [4, 6])
     assert all(r.target_met is False and r.worst_ratio == np.inf for r in rows)
     assert recommended_count(rows) is None
+
+
+def test_each_optimised_method_is_judged_on_its_own_target(scene):
+    """Designed for the combined and legs methods with a target of their own each (``method_targets_m``, what
+    ``--better-than`` gives): a row's worst ratio is the larger of the two methods' own, and the printed line names
+    both targets."""
+    from service.design import tradeoff_lines, twin_image_noise
+
+    noise = twin_image_noise()
+    tc, tl = (0.08e-3,) * 4, (0.6e-3, 0.3e-3, 0.7e-3, 0.6e-3)
+    req = DesignRequest(
+        **{**SMALL, "n_lock": 3},
+        methods=("combined", "legs"),
+        target_std_m=tc,
+        method_targets_m=(("legs", tl),),
+        criterion="target",
+    )
+    rows, _ = design_tradeoff(NOMINAL, scene, req, [6, 12], noise=noise)
+    for r in rows:
+        legs = np.array([r.std_m["legs"][c] for c in COMBINATION_NAMES])
+        want = max(np.max(_combined(r) / np.asarray(tc)), np.max(legs / np.asarray(tl)))
+        assert r.worst_ratio == pytest.approx(want)
+    text = "\n".join(tradeoff_lines(rows, req))
+    assert "target combined L 0.080" in text and "target legs L 0.600" in text, text
