@@ -83,6 +83,9 @@ def test_designed_for_combined_and_legs_beats_the_paper_on_both(scene, noise, pa
     assert np.max(ratios(alone, "legs", tl)) > np.max(ratios(both, "legs", tl))
     assert both.plan.model_extra["design"]["request"]["method_targets_m"] == {"legs": list(tl)}
     assert "logdet_legs" in both.criterion and np.isfinite(both.criterion["logdet_legs"])
+    # the design says how far the legs prediction of plans designed for it went on the twin
+    assert any("designed for the legs method" in n and "0.58-1.42x" in n for n in both.notes), both.notes
+    assert not any("designed for the legs method" in n for n in alone.notes)
 
 
 def test_requests_name_what_is_wrong(scene):
