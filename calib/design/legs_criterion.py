@@ -26,6 +26,7 @@ import numpy as np
 
 from ..numdiff import central_jacobian
 from ..parameters import SEVEN_TO_FOUR, I4Parameters
+from .predict import mark_undetermined, scaled_inverse
 from .predict_images import ImageNoise, legs_fit_directions, legs_lock_joints
 from .scene import Scene
 
@@ -143,26 +144,16 @@ class LegsCriterion:
 
     def cov4(self, stats: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Batched: summed statistics (..., 3, 30) -> the four combinations' covariance (..., 4, 4), m^2, and the log
-        det of its inverse (-inf where ``A`` is singular), as :func:`.optimize._cov4` gives them for the other
-        methods."""
+        det of its inverse (-inf where ``A`` is singular, and the variances inf), as :func:`.optimize._cov4` gives them
+        for the other methods."""
         A = stats[..., :3]
         M = stats[..., 3:6]
         B = stats[..., 6:]
-        d = np.sqrt(np.einsum("...ii->...i", A))
-        good = np.all(d > 0, axis=-1)
-        d = np.where(good[..., None], d, 1.0)
-        As = A / (d[..., :, None] * d[..., None, :])
-        w, V = np.linalg.eigh(0.5 * (As + np.swapaxes(As, -1, -2)))
-        ok = good & (w[..., 0] > 1e-13 * w[..., -1])
-        w = np.where(ok[..., None], w, 1.0)  # undetermined sets: a finite stand-in, their log det -inf below
-        Ai = np.einsum("...ik,...k,...jk->...ij", V, 1.0 / w, V) / (d[..., :, None] * d[..., None, :])
+        Ai, ok = scaled_inverse(A)
         # the seven's gain in the joints: G2 for (H, q02, q03, q04), -A^-1 B for (L, S, D)
         G = np.zeros((*A.shape[:-2], 7, 24))
         G[..., :4, :] = self.G2
         G[..., _LSD_ROWS, :] = -(Ai @ B)
         cov7 = G @ self.sigma_P @ np.swapaxes(G, -1, -2)
         cov7[..., _LSD_ROWS[:, None], _LSD_ROWS[None, :]] += self.dir_scale * (Ai @ M @ Ai)
-        C4 = SEVEN_TO_FOUR @ self._with_prior(cov7) @ SEVEN_TO_FOUR.T
-        sign, logdet = np.linalg.slogdet(C4)
-        ld = np.where(ok & (sign > 0), -logdet, -np.inf)
-        return C4, ld
+        return mark_undetermined(SEVEN_TO_FOUR @ self._with_prior(cov7) @ SEVEN_TO_FOUR.T, ok)

@@ -53,8 +53,10 @@ from .predict import (
     base_frame_information,
     combined_pose_information,
     end_effector_pose_information,
+    mark_undetermined,
     phase_q,
     predict_plan,
+    scaled_inverse,
 )
 from .predict_images import (
     ImageNoise,
@@ -290,17 +292,9 @@ class _Infos:
 
 def _cov4(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Batched: (..., p, p) information -> (..., 4, 4) covariance of the first four and log det of their
-    information (-inf where singular)."""
-    d = np.sqrt(np.maximum(np.einsum("...ii->...i", F), 1e-300))
-    Fs = F / (d[..., :, None] * d[..., None, :])
-    w, V = np.linalg.eigh(0.5 * (Fs + np.swapaxes(Fs, -1, -2)))
-    ok = w[..., 0] > 1e-13 * w[..., -1]
-    w = np.maximum(w, 1e-300)
-    Ci = np.einsum("...ik,...k,...jk->...ij", V, 1.0 / w, V) / (d[..., :, None] * d[..., None, :])
-    C4 = Ci[..., :4, :4]
-    sign, logdet = np.linalg.slogdet(C4)
-    ld = np.where(ok & (sign > 0), -logdet, -np.inf)
-    return C4, ld
+    information (-inf where singular, and the variances inf)."""
+    Ci, ok = scaled_inverse(F)
+    return mark_undetermined(Ci[..., :4, :4], ok)
 
 
 def _score(

@@ -122,6 +122,28 @@ class DesignNoise:
         }
 
 
+def scaled_inverse(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Batched inverse of symmetric (..., p, p) matrices, scaled to unit diagonal first (information in m^-2 and
+    rad^-2 side by side), and whether each is determined (its eigenvalues within 1e-13 of the largest, a positive
+    diagonal). Undetermined ones get a finite stand-in: the callers mark them (log det -inf, variances inf)."""
+    d = np.sqrt(np.einsum("...ii->...i", F))
+    good = np.all(d > 0, axis=-1)
+    d = np.where(good[..., None], d, 1.0)
+    Fs = F / (d[..., :, None] * d[..., None, :])
+    w, V = np.linalg.eigh(0.5 * (Fs + np.swapaxes(Fs, -1, -2)))
+    ok = good & (w[..., 0] > 1e-13 * w[..., -1])
+    w = np.where(ok[..., None], w, 1.0)
+    return np.einsum("...ik,...k,...jk->...ij", V, 1.0 / w, V) / (d[..., :, None] * d[..., None, :]), ok
+
+
+def mark_undetermined(C: np.ndarray, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Batched covariances (..., k, k) and the log det of their inverses, both marked where undetermined (``ok``
+    False, :func:`scaled_inverse`): variances inf, log det -inf."""
+    sign, logdet = np.linalg.slogdet(C)
+    ld = np.where(ok & (sign > 0), -logdet, -np.inf)
+    return np.where(ok[..., None, None], C, np.inf), ld
+
+
 def phase_q(plan: Plan, *phases: str) -> np.ndarray:
     """Joint values (N, 4) of a plan's steps in ``phases`` (metres; guided lines are left out)."""
     qs = [s.q for s in plan.steps if s.phase in phases and s.q is not None]
