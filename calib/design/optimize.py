@@ -45,6 +45,7 @@ from ..plan import (
     random_poses,
     rotation_sweep,
 )
+from .beyond_count import DesignedCount, past_the_count_search
 from .legs_criterion import LegsCriterion
 from .motion import MotionSpec, order_tour, plan_motion_time
 from .predict import (
@@ -75,6 +76,8 @@ OPTIMISED_METHODS = ("combined", "end-effector", "legs")
 DESIGN_ROUNDS = 4
 #: the exchange's targets are tightened by the prediction's miss times this
 TIGHTEN_MARGIN = 1.02
+#: the most fit poses a plan takes (``n_fit``, ``n_max``; past ``n_max`` when a target needs them: :mod:`.beyond_count`)
+N_FIT_MOST = 200
 SPANS_DEG = (120.0, 180.0, 240.0, 300.0, 330.0)
 LENGTHS_M = (0.15, 0.25, 0.35, 0.45)
 
@@ -127,8 +130,8 @@ class DesignRequest:
     method_targets_m: tuple[tuple[str, tuple[float, ...]], ...] = ()
 
     def __post_init__(self) -> None:
-        if self.n_fit is not None and not (2 <= self.n_fit <= 200):
-            raise InputError(f"n_fit must be in 2..200, got {self.n_fit}", field="n_fit")
+        if self.n_fit is not None and not (2 <= self.n_fit <= N_FIT_MOST):
+            raise InputError(f"n_fit must be in 2..{N_FIT_MOST}, got {self.n_fit}", field="n_fit")
         if self.criterion not in ("d", "a", "target"):
             raise InputError(f"criterion must be d, a or target, got {self.criterion!r}", field="criterion")
         if self.criterion == "target" and self.target_std_m is None:
@@ -149,8 +152,8 @@ class DesignRequest:
         for name, lo, hi in (("n_base", 3, 100), ("n_lock", 2, 50), ("n_validation", 0, 200)):
             if not (lo <= getattr(self, name) <= hi):
                 raise InputError(f"must be in {lo}..{hi}, got {getattr(self, name)}", field=name)
-        if not (2 <= self.n_min <= self.n_max <= 200):
-            raise InputError("need 2 <= n_min <= n_max <= 200", field="n_max")
+        if not (2 <= self.n_min <= self.n_max <= N_FIT_MOST):
+            raise InputError(f"need 2 <= n_min <= n_max <= {N_FIT_MOST}", field="n_max")
         if not (1 <= self.draws <= 20) or self.candidate_draw < 0:
             raise InputError("draws must be in 1..20 (and candidate_draw >= 0)", field="draws")
         for m, v in self.method_targets_m:
@@ -191,6 +194,7 @@ class DesignResult:
     criterion: dict[str, float]
     candidates: dict[str, int]
     notes: list[str] = field(default_factory=list)
+    count_trend: dict[str, Any] | None = None
 
     def summary(self) -> dict[str, Any]:
         return {
@@ -204,6 +208,7 @@ class DesignResult:
             "criterion": self.criterion,
             "candidates": self.candidates,
             "notes": self.notes,
+            **({"count_trend": self.count_trend} if self.count_trend is not None else {}),
         }
 
 
@@ -232,6 +237,11 @@ def _worst_miss(pred: Prediction, targets: dict[str, np.ndarray]) -> str:
     ratio = f"{r:.2f}x" if r < 1e3 else f"{r:.3g}x" if np.isfinite(r) else "no finite ratio"
     want = f"{tm * 1e3:.3f}" if tm >= 1e-6 else f"{tm * 1e3:.3g}"
     return f"; worst: {m} {c} {s * 1e3:.3f} mm predicted for {want} mm ({ratio})"
+
+
+def _worst_ratio(excess: dict[str, np.ndarray]) -> float:
+    """The largest predicted std over its target among the methods' combinations (inf: not predicted)."""
+    return float(np.max(np.stack(list(excess.values()))))
 
 
 #: Over the design bench's ten plans on the image-level twin (seeds 0-4, designed 12 and paper 20, 100 trials each),
@@ -722,6 +732,30 @@ def design_plan(
         # tightened by the miss and a margin, so that a near miss does not take every round
         assert tt_sel is not None
         tt_sel = {m: tt_sel[m] / np.maximum(miss[m] * TIGHTEN_MARGIN, 1.0) for m in tt_sel}
+    trend_why, count_trend = "", None
+    worst_hi = _worst_ratio(excess(pred)) if tmap is not None else 0.0
+    if not req.n_fit and not reduced and n >= n_hi and np.isfinite(worst_hi) and worst_hi > 1.0 + 1e-9:
+        assert tmap is not None
+
+        def design_at(k: int) -> DesignedCount:
+            sel_k = select_poses(infos, k, crit, tt_sel, None)
+            plan_k, mt_k = build(sel_k)
+            return DesignedCount(
+                k, sel_k, plan_k, mt_k, predict_plan(plan_k, nominal, scene, noise, weighting=req.weighting)
+            )
+
+        past = past_the_count_search(
+            DesignedCount(n, sel, plan, mt, pred),
+            design_at,
+            lambda p: _worst_ratio(excess(p)),
+            tmap,
+            req.max_time_s,
+            min(N_FIT_MOST, len(cq)),
+        )
+        if past is not None:
+            best, count_trend, trend_why, note = past
+            n, sel, plan, mt, pred = best
+            notes.extend([note] if note else [])
     if not req.n_fit and req.max_time_s is not None and mt["total_s"] > req.max_time_s:
         fixed_part = mt["total_s"] - mt["per_phase_s"].get("poses", 0.0)
         notes.append(f"the plan without fit poses already takes {fixed_part / 60:.1f} min")
@@ -734,6 +768,8 @@ def design_plan(
             why = "within the time allowed"
         elif req.n_fit:
             why = f"with {n} fit poses"
+        elif trend_why:
+            why = trend_why
         elif n >= n_hi:
             why = f"with {n} fit poses (the most tried; more candidate poses may reach it)"
         else:
@@ -767,6 +803,7 @@ def design_plan(
             "reference_visible": n_vis_ref,
         },
         notes=notes,
+        count_trend=count_trend,
     )
     design = result.summary()
     design["request"] = {

@@ -49,6 +49,16 @@ class DesignBody(BaseModel):
     )
 
 
+class CountTrendOut(BaseModel):
+    """How the predicted std falls with the number of fit poses, fitted through two designed counts."""
+
+    n_fit: list[int] = Field(description="the two fit-pose counts the trend was fitted from")
+    floor_std_m: dict[str, dict[str, float]] = Field(
+        description="per method and combination, the std (m) no number of such fit poses goes below"
+    )
+    n_fit_needed: int | None = Field(description="the fewest fit poses the trend says meet the target; null: none")
+
+
 class DesignOut(BaseModel):
     plan: dict[str, Any] = Field(
         description="the plan (i4cal.plan/1, its 'design' field the summary): POST it to /api/v1/runs as an inline plan"
@@ -69,6 +79,11 @@ class DesignOut(BaseModel):
     target_met: bool | None
     time_met: bool | None
     notes: list[str]
+    count_trend: CountTrendOut | None = Field(
+        default=None,
+        description="when the target is missed with the most fit poses the count search tries: how the predicted std "
+        "falls with the count (var = floor + slope / N through two counts)",
+    )
 
 
 def _lock(request: Request) -> asyncio.Lock:
@@ -232,6 +247,7 @@ async def design(body: DesignBody, request: Request, manager: Manager, settings:
         target_met=res.target_met,
         time_met=res.time_met,
         notes=res.notes + _capped(body, settings),
+        count_trend=res.count_trend,
     )
 
 

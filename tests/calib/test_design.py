@@ -457,7 +457,8 @@ def test_target_met_is_judged_on_the_plans_prediction(scene):
     rods' correlations; on images the plan's prediction (the method's own uncertainty) is larger. The target used to
     be judged on the exchange's information: for 0.05 mm on the image-level twin the design returned 43 fit poses,
     "target met", and a predicted combined L std of 0.058 mm. Now the count is chosen again, the exchange's targets
-    tightened by the prediction's miss, until the prediction meets the target or the count reaches its maximum."""
+    tightened by the prediction's miss, until the prediction meets the target or the count reaches its maximum (and
+    beyond it as far as the trend of the prediction over the count says: ``tests/calib/test_count_trend.py``)."""
     from service.design import twin_image_noise
 
     noise = twin_image_noise()
@@ -467,12 +468,9 @@ def test_target_met_is_judged_on_the_plans_prediction(scene):
         got = res.prediction.std["combined"]
         print(target, res.n_fit, {k: round(v * 1e3, 4) for k, v in got.items()}, res.notes)
         assert res.target_met is (max(got.values()) <= target * (1 + 1e-9)), (target, res.target_met, got)
-        if target == 5e-5:  # beyond these 300 candidates' reach: said so, with the most poses tried
-            assert res.n_fit == base.n_max and any("not met" in n for n in res.notes), (res.n_fit, res.notes)
-            # the note names the combination furthest over the target, with its predicted std
-            worst = max(got, key=lambda k: got[k])
-            said = f"worst: combined {worst} {got[worst] * 1e3:.3f} mm predicted for 0.050 mm"
-            assert any(said in n for n in res.notes), (said, res.notes)
+        if target == 5e-5:  # beyond the count search's n_max: met with the count the trend over the count gave
+            assert res.target_met and res.n_fit > base.n_max, (res.n_fit, res.notes)
+            assert any(f"beyond the {base.n_max} the count search tries" in n for n in res.notes), res.notes
         else:
             assert res.target_met, (res.n_fit, got, res.notes)
             # the smallest count that meets it, give or take the exchange: a few poses fewer miss it

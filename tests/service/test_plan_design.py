@@ -508,3 +508,20 @@ async def test_an_abandoned_tradeoff_stops_between_designs():
         await task
     assert stop.is_set() and not lock.locked()
     assert len(done) < 8, done  # it ended after the design under way, not after all eight
+
+
+async def test_api_says_how_the_predicted_std_falls_past_the_count_search(service):
+    """A target the count search's most poses miss: the response carries the trend of the predicted std over the
+    count (``count_trend``: the counts it was fitted at, the level each combination stays above, the count it needs),
+    as the plan file does, and the note says it."""
+    body = {"with_line": False, "candidates": 60, "lock_frames": 2, "target_std_m": 1e-5}
+    r = await service.client.post(f"{API}/plans/design", json=body, headers=AUTH)
+    assert r.status_code == 200, r.text
+    d = r.json()
+    trend = d["count_trend"]
+    assert d["target_met"] is False and trend == d["plan"]["design"]["count_trend"], d
+    assert len(trend["n_fit"]) == 2 and trend["n_fit"][0] < trend["n_fit"][1], trend
+    floor = trend["floor_std_m"]["combined"]
+    assert set(floor) == {"L", "H-D", "S-q02/2", "S-(q04-q03)/2"} and all(v >= 0 for v in floor.values()), floor
+    assert trend["n_fit_needed"] is None or trend["n_fit_needed"] > d["n_fit"], trend
+    assert any("by the trend of the predicted std from" in n for n in d["notes"]), d["notes"]
