@@ -13,7 +13,6 @@ from calib.design import DesignRequest, design_plan, predict_plan
 from calib.design.count_trend import fit_count_trend
 from calib.design.optimize import N_FIT_MOST
 from calib.parameters import COMBINATION_NAMES, NOMINAL
-from service.design import twin_image_noise, twin_scene
 
 #: a design small enough for a test: no validation poses, no guided line, two frames per lock phase
 BASE = DesignRequest(n_lock=2, n_validation=0, with_line=False, n_candidates=300, n_max=16)
@@ -54,16 +53,6 @@ def test_trend_of_a_std_that_does_not_fall_or_falls_faster_than_one_over_n():
 def test_trend_rejects_bad_input_naming_it(args, match):
     with pytest.raises(ValueError, match=match):
         fit_count_trend(*args)
-
-
-@pytest.fixture(scope="module")
-def scene():
-    return twin_scene()
-
-
-@pytest.fixture(scope="module")
-def noise():
-    return twin_image_noise()
 
 
 def test_design_goes_past_the_count_search_when_the_trend_says_more_poses_meet_the_target(scene, noise):

@@ -14,19 +14,6 @@ from calib.design.predict_images import predict_legs_images
 from calib.errors import InputError
 from calib.parameters import COMBINATION_NAMES, NOMINAL
 from calib.plan import Plan, make_plan
-from service.design import twin_image_noise
-
-from .test_design import twin_scene
-
-
-@pytest.fixture(scope="module")
-def scene():
-    return twin_scene()
-
-
-@pytest.fixture(scope="module")
-def noise():
-    return twin_image_noise()
 
 
 @pytest.fixture(scope="module")
