@@ -101,16 +101,17 @@ def _bench_inputs(cfg, noise=None) -> tuple[Any, Any, dict[str, Any]]:
     return cfg.nominal_parameters(), twin_scene(), kw
 
 
-def design_for_bench(cfg, request, noise=None):
+def design_for_bench(cfg, request, noise=None, status=None):
     """Design a plan for a bench configuration; returns ``calib.design.DesignResult``.
 
     ``noise``: ``calib.design.DesignNoise`` or ``ImageNoise``; default: the image-level model of the twin's camera
-    (:func:`twin_image_noise`), what the methods' uncertainty is on images.
+    (:func:`twin_image_noise`), what the methods' uncertainty is on images. ``status``: called with what the design
+    is doing (``calib.design.design_plan``).
     """
     from calib.design import design_plan
 
     nominal, scene, kw = _bench_inputs(cfg, noise)
-    return design_plan(nominal, scene, request, **kw)
+    return design_plan(nominal, scene, request, status=status, **kw)
 
 
 def tradeoff_for_bench(cfg, request, counts, noise=None, progress=None):

@@ -580,12 +580,15 @@ def design_plan(
     noise: DesignNoise | ImageNoise | None = None,
     ws: Workspace | None = None,
     cache: dict[Any, Any] | None = None,
+    status: Callable[[str], None] | None = None,
 ) -> DesignResult:
     """Design a plan: sweeps, fit poses (count, choice, order), lock and validation poses; predict it.
 
     ``cache``: a dict shared by designs that differ only in their count, target or criterion (a trade-off,
     :func:`.tradeoff.design_tradeoff`; the same ``limits``, ``motion``, ``noise`` and ``ws``): the sweeps, the drawn
     candidates' visibility and information are computed once per candidate draw (the same design, faster).
+    ``status``: called with a line saying what the design is doing (a long design's progress: the candidates'
+    draw, each count designed and predicted).
 
     Returns
     -------
@@ -598,11 +601,15 @@ def design_plan(
     motion = motion or MotionSpec()
     noise = noise or DesignNoise()
     ws = ws or Workspace()
+    say = status or (lambda _line: None)
     if req.draws > 1:
-        return _best_of_draws(nominal, scene, req, limits=limits, motion=motion, noise=noise, ws=ws, cache=cache)
+        return _best_of_draws(
+            nominal, scene, req, limits=limits, motion=motion, noise=noise, ws=ws, cache=cache, status=status
+        )
     t = req.targets()
     tmap = req.targets_by_method()
     notes: list[str] = []
+    say(f"{req.n_candidates} candidate poses: sweeps, visibility, information")
     pool = _candidate_pool(nominal, scene, req, limits, ws, noise, cache)
     span, length, rot, tra, cand_q = pool.span, pool.length, pool.rot, pool.tra, pool.cand_q
     refs: dict[int, np.ndarray] = {}
@@ -719,8 +726,10 @@ def design_plan(
     # miss and the count chosen again
     tt_sel, n, rounds = tmap, req.n_min, 0
     while True:
+        say(f"choosing the fit poses{'' if req.n_fit else ' and their count'} (choice {rounds + 1})")
         n, sel = choose(tt_sel, n, fewer=rounds == 0)
         n, sel, plan, mt, reduced = fit_time(n, sel, tt_sel)
+        say(f"predicting {n} fit poses")
         pred = predict_plan(plan, nominal, scene, noise, weighting=req.weighting)
         rounds += 1
         if t is None or req.n_fit or reduced or n >= n_hi or rounds >= DESIGN_ROUNDS:
@@ -738,6 +747,7 @@ def design_plan(
         assert tmap is not None
 
         def design_at(k: int) -> DesignedCount:
+            say(f"past the count search: {k} fit poses")
             sel_k = select_poses(infos, k, crit, tt_sel, None)
             plan_k, mt_k = build(sel_k)
             return DesignedCount(
@@ -853,7 +863,11 @@ def design_score(result: DesignResult, request: DesignRequest) -> tuple[float, .
 
 def _best_of_draws(nominal: I4Parameters, scene: Scene, req: DesignRequest, **kw: Any) -> DesignResult:
     """:func:`design_plan` for each of ``req.draws`` draws of the candidates; the best by :func:`design_score`."""
-    results = [design_plan(nominal, scene, replace(req, draws=1, candidate_draw=k), **kw) for k in range(req.draws)]
+    status = kw.pop("status", None)
+    results = []
+    for k in range(req.draws):
+        tell = None if status is None else (lambda line, k=k: status(f"draw {k + 1}/{req.draws}: {line}"))
+        results.append(design_plan(nominal, scene, replace(req, draws=1, candidate_draw=k), status=tell, **kw))
     scores = [design_score(r, req) for r in results]
     k = min(range(len(results)), key=lambda i: scores[i])
     best = results[k]

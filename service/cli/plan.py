@@ -137,7 +137,11 @@ def _design(args: argparse.Namespace) -> int:
     )
     if args.tradeoff is not None:
         return _tradeoff(args, cfg, req, noise)
-    res = design_for_bench(cfg, req, noise)
+    from ._output import make_console
+
+    # a design takes seconds to minutes (up to 200 fit poses, several candidate draws): say what it is doing
+    with make_console(stderr=True).status("designing the plan") as shown:
+        res = design_for_bench(cfg, req, noise, status=lambda line: shown.update(f"designing the plan: {line}"))
     validate_plan(res.plan, cfg.nominal_parameters(), cfg.calib_limits())
     if args.json:
         print(json.dumps(to_jsonable(res.summary()), indent=1))

@@ -64,7 +64,8 @@ def test_design_goes_past_the_count_search_when_the_trend_says_more_poses_meet_t
         design_plan(NOMINAL, scene, replace(BASE, n_fit=28), noise=noise).plan, NOMINAL, scene, noise, ("combined",)
     ).std["combined"]
     goal = tuple(1.02 * target[c] for c in COMBINATION_NAMES)
-    res = design_plan(NOMINAL, scene, replace(BASE, target_std_m=goal), noise=noise)
+    said: list[str] = []
+    res = design_plan(NOMINAL, scene, replace(BASE, target_std_m=goal), noise=noise, status=said.append)
     got = res.prediction.std["combined"]
     print(res.n_fit, {c: round(got[c] / goal[i], 3) for i, c in enumerate(COMBINATION_NAMES)}, res.notes)
     assert res.n_fit > BASE.n_max and res.target_met, (res.n_fit, res.notes)
@@ -73,6 +74,18 @@ def test_design_goes_past_the_count_search_when_the_trend_says_more_poses_meet_t
     trend = res.count_trend
     assert trend is not None and trend["n_fit_needed"] is not None and trend["n_fit_needed"] <= res.n_fit
     assert res.plan.design is not None and res.plan.design["count_trend"] == trend  # in the plan file too
+    # a long design says what it is doing: the candidates, each choice of the count, each count past the search
+    assert said[0] == "80 candidate poses: sweeps, visibility, information", said
+    assert "choosing the fit poses and their count (choice 1)" in said, said
+    assert f"past the count search: {res.n_fit} fit poses" in said, said
+
+
+def test_design_of_several_draws_says_which_draw_it_is_on(scene):
+    said: list[str] = []
+    req = DesignRequest(n_fit=4, n_lock=2, n_validation=0, with_line=False, n_candidates=40, draws=2)
+    design_plan(NOMINAL, scene, req, status=said.append)
+    assert said[0] == "draw 1/2: 40 candidate poses: sweeps, visibility, information", said
+    assert "draw 2/2: predicting 4 fit poses" in said, said
 
 
 def test_design_says_where_more_poses_level_off(scene, noise):
