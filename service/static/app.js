@@ -368,6 +368,7 @@ $("#design-form").addEventListener("submit", async (ev) => {
   ev.preventDefault();
   const body = designBody(true);
   $("#design-summary").textContent = "designing…";
+  $("#design-notes").replaceChildren();
   $("#design-start").disabled = true;
   try {
     designed = await api("POST", "/plans/design", body);
@@ -379,6 +380,8 @@ $("#design-form").addEventListener("submit", async (ev) => {
     (d.target_met === null ? "" : d.target_met ? " · target met" : " · target NOT met") +
     (d.time_met === null ? "" : d.time_met ? " · time met" : " · time NOT met") +
     ` · designed for ${d.plan.design.request.methods.join(" and ")}`;
+  // what the design found: why a target is missed, how far more poses go, what the prediction leans on
+  $("#design-notes").replaceChildren(...d.notes.map((n) => Object.assign(document.createElement("li"), { textContent: n })));
   $("#design-table").innerHTML = designRows(d.predicted_std_m, undefined, d.predicted_parts_std_m);
   $("#design-start").disabled = false;
 });

@@ -380,6 +380,9 @@ async def test_dashboard_designs_and_starts_a_plan(service):
                 "document.querySelector('#design-summary').textContent.includes('designed for combined and legs')",
                 timeout=120_000,
             )
+            # the design's notes under its summary: here what a design for the legs method leans on
+            notes = await page.text_content("#design-notes")
+            assert "designed for the legs method: the poses are those its predicted std is smallest for" in notes, notes
             await page.uncheck("#design-legs")
             await page.click("#design-start")
             await page.wait_for_function(
