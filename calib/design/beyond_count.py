@@ -107,7 +107,7 @@ def past_the_count_search(
         # the trend's count, kept in the bracket's middle half so that the bracket shrinks by a quarter at least
         q = (hi.k - lo.k) // 4
         mid = design_at(min(max(trend.needed(targets) or hi.k, lo.k + q), hi.k - q))
-        if worst_of(mid.pred) <= 1.0 + 1e-9:
+        if worst_of(mid.pred) <= 1.0 + 1e-9 and (max_time_s is None or mid.mt["total_s"] <= max_time_s):
             hi = mid
         else:
             lo = mid
