@@ -179,7 +179,7 @@ def summary_lines(result, breakdown: bool = False) -> list[str]:
 def tradeoff_lines(rows, request) -> list[str]:
     """Human-readable trade-off: per method a table of fit poses, motion time and predicted std (mm), optimised methods
     first; then the target and the recommended count."""
-    from calib.design import recommendation_reason, recommended_count
+    from calib.design import recommendation_reason, recommended_count, tradeoff_trend
     from calib.parameters import COMBINATION_NAMES
 
     methods = list(dict.fromkeys([*request.methods, *(m for r in rows for m in r.std_m)]))
@@ -209,6 +209,17 @@ def tradeoff_lines(rows, request) -> list[str]:
         out.append(
             f"time limit {request.max_time_s / 60:.2f} min: "
             + ", ".join(f"{r.n_fit} poses {'within' if r.time_met else 'over'}" for r in rows)
+        )
+    trend = tradeoff_trend(rows, request)
+    if trend is not None:
+        a, b = trend["n_fit"]
+        floors = "; ".join(
+            f"{m} " + ", ".join(f"{k} {v * 1e3:.3f}" for k, v in fl.items()) for m, fl in trend["floor_std_m"].items()
+        )
+        need = trend["n_fit_needed"]
+        reach = "" if t is None else f"; the target in about {need} fit poses" if need else "; the target in none"
+        out.append(
+            f"with more fit poses (the trend of the predicted std from {a} to {b}): levels off near {floors} mm{reach}"
         )
     recommended, why = recommended_count(rows), recommendation_reason(rows)
     if recommended is not None:

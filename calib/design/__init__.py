@@ -41,6 +41,7 @@ from .tradeoff import (
     recommendation_reason,
     recommended_count,
     recommended_design,
+    tradeoff_trend,
 )
 
 __all__ = [
@@ -74,5 +75,6 @@ __all__ = [
     "select_poses",
     "synthetic_rods",
     "targets_from_plan",
+    "tradeoff_trend",
     "visibility",
 ]

@@ -16,6 +16,8 @@ import numpy as np
 
 from ..errors import InputError
 from ..parameters import COMBINATION_NAMES, I4Parameters
+from .beyond_count import trend_summary
+from .count_trend import fit_count_trend
 from .optimize import DesignRequest, DesignResult, design_plan, ratio_to_target
 from .scene import Scene
 
@@ -27,6 +29,7 @@ __all__ = [
     "recommendation_reason",
     "recommended_count",
     "recommended_design",
+    "tradeoff_trend",
 ]
 
 #: most counts in one trade-off (each is a full design: seconds of CPU)
@@ -188,3 +191,24 @@ def recommendation_reason(rows: Sequence[TradeoffRow]) -> str:
     if timed:
         return "the most fit poses that fit in the time"
     return "no target or time limit: nothing to recommend"
+
+
+def tradeoff_trend(rows: Sequence[TradeoffRow], request: DesignRequest) -> dict[str, Any] | None:
+    """Past the largest count: the trend of the predicted std over the count (:mod:`.count_trend`) through the two
+    largest counts, for the optimised methods: ``{"n_fit": [n1, n2], "floor_std_m": {method: {combination: m}},
+    "n_fit_needed": the count it says meets the target (None: none, or no target)}``; None with fewer than two counts
+    or an optimised method without a prediction at both."""
+    if len(rows) < 2:
+        return None
+    a, b = sorted(rows, key=lambda r: r.n_fit)[-2:]
+    if any(m not in a.std_m or m not in b.std_m for m in request.methods):
+        return None
+
+    def std(r: TradeoffRow) -> dict[str, np.ndarray]:
+        return {m: np.array([r.std_m[m][c] for c in COMBINATION_NAMES]) for m in request.methods}
+
+    trend = fit_count_trend(a.n_fit, std(a), b.n_fit, std(b))
+    out = trend_summary(trend, request.targets_by_method() or {})
+    if request.targets_by_method() is None:
+        out["n_fit_needed"] = None
+    return out

@@ -143,6 +143,11 @@ class TradeoffOut(BaseModel):
         description="that count's plan (i4cal.plan/1): POST it to /api/v1/runs as an inline plan"
     )
     notes: list[str]
+    count_trend: CountTrendOut | None = Field(
+        default=None,
+        description="past the largest count: the trend of the optimised methods' predicted std through the two largest "
+        "counts (the level each combination settles to, the count it says meets the target)",
+    )
 
 
 _ERRORS: dict[int | str, dict[str, Any]] = {
@@ -257,7 +262,13 @@ async def tradeoff(
 ) -> TradeoffOut:
     """Accuracy against bench time: a designed plan per fit-pose count, its predicted std and motion time, and the
     fewest poses that meet the target within the time (calib.design.design_tradeoff)."""
-    from calib.design import parse_counts, recommendation_reason, recommended_count, recommended_design
+    from calib.design import (
+        parse_counts,
+        recommendation_reason,
+        recommended_count,
+        recommended_design,
+        tradeoff_trend,
+    )
 
     from ..design import tradeoff_for_bench
 
@@ -278,9 +289,13 @@ async def tradeoff(
         if stop.is_set():  # the client went away: the designs left are not computed
             raise _AbandonedError(f"trade-off abandoned after {done} of {total} designs")
 
-    rows, results = await _designed(
-        body, request, manager, settings, lambda cfg, req: tradeoff_for_bench(cfg, req, counts, progress=progress), stop
-    )
+    asked: dict[str, Any] = {}  # the DesignRequest the body became (its methods and targets, for the count trend)
+
+    def work(cfg: Any, req: Any) -> Any:
+        asked["request"] = req
+        return tradeoff_for_bench(cfg, req, counts, progress=progress)
+
+    rows, results = await _designed(body, request, manager, settings, work, stop)
     best = recommended_count(rows)
     chosen = recommended_design(rows, results)
     plan = None if chosen is None else chosen.plan
@@ -290,4 +305,5 @@ async def tradeoff(
         recommendation=recommendation_reason(rows),
         recommended_plan=None if plan is None else plan.model_dump(mode="json", exclude_none=True),
         notes=_capped(body, settings),
+        count_trend=tradeoff_trend(rows, asked["request"]),
     )

@@ -158,7 +158,13 @@ def _tradeoff(args: argparse.Namespace, cfg, req, noise) -> int:
     """``plan design --tradeoff``: one design per count, printed side by side; ``-o`` writes the recommended one."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from calib.design import parse_counts, recommendation_reason, recommended_count, recommended_design
+    from calib.design import (
+        parse_counts,
+        recommendation_reason,
+        recommended_count,
+        recommended_design,
+        tradeoff_trend,
+    )
     from calib.errors import InputError
     from calib.pipeline import to_jsonable
     from calib.plan import validate_plan
@@ -187,6 +193,7 @@ def _tradeoff(args: argparse.Namespace, cfg, req, noise) -> int:
             "recommended_n_fit": best,
             "recommendation": recommendation_reason(rows),
             "methods": list(req.methods),
+            "count_trend": tradeoff_trend(rows, req),
         }
         print(json.dumps(to_jsonable(doc), indent=1))
     else:

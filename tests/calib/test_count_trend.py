@@ -9,7 +9,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from calib.design import DesignRequest, design_plan, predict_plan
+from calib.design import DesignRequest, TradeoffRow, design_plan, predict_plan, tradeoff_trend
 from calib.design.count_trend import fit_count_trend
 from calib.design.optimize import N_FIT_MOST
 from calib.parameters import COMBINATION_NAMES, NOMINAL
@@ -40,6 +40,26 @@ def test_trend_of_a_std_that_does_not_fall_or_falls_faster_than_one_over_n():
     np.testing.assert_allclose(trend.floor_var["legs"], [4.0, 0.0])
     np.testing.assert_allclose(trend.slope["legs"], [0.0, 0.01 * 20])
     assert trend.needed({"legs": np.array([2.5, 0.05])}) == 80
+
+
+def test_tradeoff_trend_through_its_two_largest_counts():
+    """A trade-off's rows (any order) give the trend past its largest count through its two largest counts, for the
+    optimised methods; the count it says meets the target when one was asked."""
+    floor, slope = np.array([4e-5, 1e-5, 2e-5, 2e-5]) ** 2, np.array([3e-7, 2e-8, 1e-7, 1e-7])
+
+    def row(n: int) -> TradeoffRow:
+        std = dict(zip(COMBINATION_NAMES, np.sqrt(floor + slope / n).tolist(), strict=True))
+        return TradeoffRow(n, 60.0 + n, {"combined": std, "legs": std}, None, None, None)
+
+    rows = [row(30), row(8), row(12)]
+    trend = tradeoff_trend(rows, DesignRequest())
+    assert trend is not None and trend["n_fit"] == [12, 30] and trend["n_fit_needed"] is None
+    assert set(trend["floor_std_m"]) == {"combined"}  # the optimised methods
+    np.testing.assert_allclose(list(trend["floor_std_m"]["combined"].values()), np.sqrt(floor), rtol=1e-6)
+    asked = tradeoff_trend(rows, DesignRequest(target_std_m=5e-5))
+    assert asked is not None and asked["n_fit_needed"] == 334
+    assert tradeoff_trend(rows[:1], DesignRequest()) is None
+    assert tradeoff_trend(rows, DesignRequest(methods=("end-effector",))) is None  # no prediction of it in the rows
 
 
 @pytest.mark.parametrize(

@@ -144,6 +144,7 @@ def test_cli_tradeoff_prints_each_count_and_writes_the_recommended_plan(tmp_path
     doc = json.loads(capsys.readouterr().out)
     assert [r["n_fit"] for r in doc["tradeoff"]] == [4, 12] and doc["recommended_n_fit"] is None
     assert doc["recommendation"] == "no target or time limit: nothing to recommend"
+    assert doc["count_trend"]["n_fit"] == [4, 12] and doc["count_trend"]["n_fit_needed"] is None, doc["count_trend"]
     few, many = (
         [r["predicted_std_m"]["combined"][k] for k in ("L", "H-D", "S-q02/2", "S-(q04-q03)/2")] for r in doc["tradeoff"]
     )
@@ -155,6 +156,7 @@ def test_cli_tradeoff_prints_each_count_and_writes_the_recommended_plan(tmp_path
     text = capsys.readouterr().out
     assert "trade-off" in text and "combined (optimised):" in text and "legs:" in text
     assert "recommended: 12 fit poses" in text and f"wrote {out} (12 fit poses)" in text
+    assert "with more fit poses (the trend of the predicted std from 4 to 12): levels off near combined L" in text, text
     plan = Plan.load(out)
     validate_plan(plan, NOMINAL)
     assert plan.count()["poses"] == 12
@@ -301,6 +303,11 @@ async def test_api_tradeoff_designs_each_count_and_recommends_one(service):
     d = r.json()
     assert [row["target_met"] for row in d["rows"]] == [False, True] and d["recommended_n_fit"] == 12
     assert d["recommendation"] == "the fewest fit poses that meet the target"
+    # past the largest count, the trend through the two counts: the level each combination settles to, and the count
+    # it says meets the target (12 does: at most 12)
+    trend = d["count_trend"]
+    assert trend["n_fit"] == [4, 12] and trend["n_fit_needed"] is not None and trend["n_fit_needed"] <= 12, trend
+    assert all(0 <= v <= many for v in trend["floor_std_m"]["combined"].values()), trend
     plan = Plan.from_dict(d["recommended_plan"])
     validate_plan(plan, NOMINAL)
     assert plan.count()["poses"] == 12
