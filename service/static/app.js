@@ -412,6 +412,12 @@ $("#tradeoff").addEventListener("click", async () => {
     ? `recommended: ${d.recommended_n_fit} fit poses (${d.recommendation})`
     : (withTarget || d.rows.some((r) => r.time_met !== null) ? `no count listed qualifies (${d.recommendation})`
       : "predicted std (mm) of the combined method per count; give a target or minutes to get a recommendation");
+  const tr = d.count_trend;  // past the largest count: where more poses level off, when the target is reached
+  if (tr && tr.floor_std_m.combined) {
+    $("#tradeoff-summary").textContent += ` · with more fit poses (trend from ${tr.n_fit[0]} to ${tr.n_fit[1]}): ` +
+      "combined levels off near " + COMBOS.map((k) => `${k} ${mm(tr.floor_std_m.combined[k])}`).join(", ") + " mm" +
+      (withTarget ? (tr.n_fit_needed ? `, the target in about ${tr.n_fit_needed}` : ", the target in none") : "");
+  }
   document.querySelectorAll("#tradeoff-table .use-count").forEach((b) => b.addEventListener("click", () => {
     $("#design-nfit").value = b.dataset.n;
     say(`fit poses set to ${b.dataset.n}: Design to see its plan`);

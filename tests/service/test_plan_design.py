@@ -420,6 +420,8 @@ async def test_dashboard_designs_and_starts_a_plan(service):
             )
             summary = await page.text_content("#tradeoff-summary")
             assert "recommended: 10 fit poses (the fewest fit poses that meet the target)" in summary, summary
+            # and past the largest count, where more poses level off (the trend through 4 and 10)
+            assert "with more fit poses (trend from 4 to 10): combined levels off near L " in summary, summary
             assert len(await page.query_selector_all("#tradeoff-table tr.recommended")) == 1
             await page.click("#tradeoff-table tr.recommended .use-count")
             assert await page.input_value("#design-nfit") == "10"
