@@ -9,7 +9,7 @@ Units: metres, seconds.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -17,7 +17,7 @@ import numpy as np
 from ..parameters import COMBINATION_NAMES
 from ..plan import Plan
 from .count_trend import CountTrend, fit_count_trend
-from .predict import Prediction
+from .predict import Prediction, ratio_to_target
 
 __all__ = ["TREND_ROUNDS", "DesignedCount", "count_std", "past_the_count_search", "trend_summary"]
 
@@ -25,16 +25,11 @@ __all__ = ["TREND_ROUNDS", "DesignedCount", "count_std", "past_the_count_search"
 TREND_ROUNDS = 4
 
 
-def _ratio(std_m: float, target_m: float) -> float:
-    with np.errstate(over="ignore", divide="ignore"):
-        return float(np.float64(std_m) / target_m)
-
-
-def count_std(pred: Prediction, targets: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """Per method of ``targets``, its predicted std per combination (4,), m (inf where it has no prediction)."""
+def count_std(std: dict[str, dict[str, float]], methods: Iterable[str]) -> dict[str, np.ndarray]:
+    """Per method of ``methods``, its std per combination (4,) from a prediction's ``std`` (method -> combination ->
+    m), m (inf where it has none)."""
     return {
-        m: np.array([(pred.std.get(m) or {}).get(c, np.inf) for c in COMBINATION_NAMES], dtype=np.float64)
-        for m in targets
+        m: np.array([(std.get(m) or {}).get(c, np.inf) for c in COMBINATION_NAMES], dtype=np.float64) for m in methods
     }
 
 
@@ -85,13 +80,17 @@ def past_the_count_search(
             n_try = int(0.95 * n_try) if top is None else (top.k + n_try) // 2
     if top is None:
         return None
+
+    def trend_of(lo: DesignedCount, hi: DesignedCount) -> CountTrend:
+        return fit_count_trend(lo.k, count_std(lo.pred.std, targets), hi.k, count_std(hi.pred.std, targets))
+
     n_most = top.k
     lo, hi = cur, top
     within = "" if max_time_s is None or n_most == most else f" within the {max_time_s / 60:.1f} min allowed"
     if worst_of(hi.pred) > 1.0 + 1e-9:
-        trend = fit_count_trend(lo.k, count_std(lo.pred, targets), hi.k, count_std(hi.pred, targets))
+        trend = trend_of(lo, hi)
         floor = trend.floor_std()
-        _r, m, i = max((float(_ratio(floor[m][i], t[i])), m, i) for m, t in targets.items() for i in range(4))
+        _r, m, i = max((float(ratio_to_target(floor[m][i], t[i])), m, i) for m, t in targets.items() for i in range(4))
         best = hi if worst_of(hi.pred) < worst_of(lo.pred) else lo
         why = (
             f"with {best.k} fit poses; {hi.k}, the most the design takes{within}, miss it too: by the trend of the "
@@ -103,7 +102,7 @@ def past_the_count_search(
     for _round in range(TREND_ROUNDS):
         if hi.k - lo.k <= max(2, hi.k // 20):
             break
-        trend = fit_count_trend(lo.k, count_std(lo.pred, targets), hi.k, count_std(hi.pred, targets))
+        trend = trend_of(lo, hi)
         # the trend's count, kept in the bracket's middle half so that the bracket shrinks by a quarter at least
         q = (hi.k - lo.k) // 4
         mid = design_at(min(max(trend.needed(targets) or hi.k, lo.k + q), hi.k - q))
@@ -111,7 +110,7 @@ def past_the_count_search(
             hi = mid
         else:
             lo = mid
-    trend = fit_count_trend(lo.k, count_std(lo.pred, targets), hi.k, count_std(hi.pred, targets))
+    trend = trend_of(lo, hi)
     note = (
         f"{hi.k} fit poses, beyond the {cur.k} the count search tries: {hi.k} meet the target, {lo.k} do not "
         "(the counts between guessed by the trend of the predicted std over the count)"
@@ -119,11 +118,11 @@ def past_the_count_search(
     return hi, trend_summary(trend, targets), "", note
 
 
-def trend_summary(trend: CountTrend, targets: dict[str, np.ndarray]) -> dict[str, Any]:
+def trend_summary(trend: CountTrend, targets: dict[str, np.ndarray] | None) -> dict[str, Any]:
     """``count_trend`` of a design: the two counts, the floor std per method and combination (m), the count the
-    trend says meets the targets (None: none)."""
+    trend says meets the targets (None: none, or no targets)."""
     return {
         "n_fit": list(trend.n),
         "floor_std_m": {m: dict(zip(COMBINATION_NAMES, v.tolist(), strict=True)) for m, v in trend.floor_std().items()},
-        "n_fit_needed": trend.needed(targets),
+        "n_fit_needed": None if targets is None else trend.needed(targets),
     }

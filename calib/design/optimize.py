@@ -45,7 +45,7 @@ from ..plan import (
     random_poses,
     rotation_sweep,
 )
-from .beyond_count import DesignedCount, past_the_count_search
+from .beyond_count import DesignedCount, count_std, past_the_count_search
 from .legs_criterion import LegsCriterion
 from .motion import MotionSpec, order_tour, plan_motion_time
 from .predict import (
@@ -57,6 +57,7 @@ from .predict import (
     mark_undetermined,
     phase_q,
     predict_plan,
+    ratio_to_target,
     scaled_inverse,
 )
 from .predict_images import (
@@ -210,13 +211,6 @@ class DesignResult:
             "notes": self.notes,
             **({"count_trend": self.count_trend} if self.count_trend is not None else {}),
         }
-
-
-def ratio_to_target(std_m: Any, target_m: Any) -> np.ndarray:
-    """``std_m / target_m`` (float64, broadcast): a target as small as the API accepts (down to 5e-324 m) gives an
-    infinite ratio, as intended, without an overflow warning."""
-    with np.errstate(over="ignore", divide="ignore"):
-        return np.asarray(std_m, dtype=np.float64) / target_m
 
 
 def _worst_miss(pred: Prediction, targets: dict[str, np.ndarray]) -> str:
@@ -839,7 +833,7 @@ def design_score(result: DesignResult, request: DesignRequest) -> tuple[float, .
     pred, t = result.prediction, request.targets_by_method()
     if any(m not in pred.std for m in request.methods):
         return (np.inf,)
-    stds = {m: np.array([pred.std[m][c] for c in COMBINATION_NAMES]) for m in request.methods}
+    stds = count_std(pred.std, request.methods)
     if request.criterion == "target":
         assert t is not None
         crit = float(max(np.max(ratio_to_target(sd, t[m])) for m, sd in stds.items()))

@@ -122,6 +122,13 @@ class DesignNoise:
         }
 
 
+def ratio_to_target(std_m: Any, target_m: Any) -> np.ndarray:
+    """``std_m / target_m`` (float64, broadcast): a target as small as the API accepts (down to 5e-324 m) gives an
+    infinite ratio, as intended, without an overflow warning."""
+    with np.errstate(over="ignore", divide="ignore"):
+        return np.asarray(std_m, dtype=np.float64) / target_m
+
+
 def scaled_inverse(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Batched inverse of symmetric (..., p, p) matrices, scaled to unit diagonal first (information in m^-2 and
     rad^-2 side by side), and whether each is determined (its eigenvalues within 1e-13 of the largest, a positive

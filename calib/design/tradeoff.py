@@ -16,7 +16,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..parameters import COMBINATION_NAMES, I4Parameters
-from .beyond_count import trend_summary
+from .beyond_count import count_std, trend_summary
 from .count_trend import fit_count_trend
 from .optimize import DesignRequest, DesignResult, design_plan, ratio_to_target
 from .scene import Scene
@@ -204,11 +204,5 @@ def tradeoff_trend(rows: Sequence[TradeoffRow], request: DesignRequest) -> dict[
     if any(m not in a.std_m or m not in b.std_m for m in request.methods):
         return None
 
-    def std(r: TradeoffRow) -> dict[str, np.ndarray]:
-        return {m: np.array([r.std_m[m][c] for c in COMBINATION_NAMES]) for m in request.methods}
-
-    trend = fit_count_trend(a.n_fit, std(a), b.n_fit, std(b))
-    out = trend_summary(trend, request.targets_by_method() or {})
-    if request.targets_by_method() is None:
-        out["n_fit_needed"] = None
-    return out
+    trend = fit_count_trend(a.n_fit, count_std(a.std_m, request.methods), b.n_fit, count_std(b.std_m, request.methods))
+    return trend_summary(trend, request.targets_by_method())
