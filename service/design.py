@@ -3,7 +3,8 @@
 The camera's placement is not in a bench file: the design uses the mounting the simulated bench and the
 image-level twin use (:class:`drivers.sim.twin.BenchGeometry`, :class:`drivers.sim.render.RenderSettings`),
 with the bench's nominal geometry, soft limits, speeds, accelerations and settle times. Shared by
-``i4cal plan design`` and ``POST /api/v1/plans/design``.
+``i4cal plan design`` / ``plan predict``, ``POST /api/v1/plans/design`` / ``/plans/predict`` and the runs (a run's
+prediction).
 """
 
 from __future__ import annotations
@@ -132,6 +133,42 @@ def reference_targets(cfg, plan, noise=None, methods=("combined",)) -> dict[str,
     return {m: targets_from_plan(plan, cfg.nominal_parameters(), scene, nz, method=m) for m in methods}
 
 
+def check_for_bench(cfg, plan, noise=None, methods=None):
+    """:func:`calib.design.check_plan` on a bench configuration, the scene and noise of :func:`design_for_bench`: a
+    plan's predicted std per method and combination, its motion time, the steps the camera will not see.
+
+    ``methods``: those of the design's (``calib.design.METHODS``) to predict; default all of them.
+    """
+    from calib.design import METHODS, check_plan
+
+    nominal, scene, kw = _bench_inputs(cfg, noise)
+    wanted = tuple(m for m in (methods or METHODS) if m in METHODS)
+    return check_plan(plan, nominal, scene, kw["noise"], kw["motion"], methods=wanted)
+
+
+def run_prediction(cfg, plan_doc: dict[str, Any], methods: list[str]) -> dict[str, Any] | None:
+    """What a run's plan is predicted to buy, stored with the run (``Run.prediction``, ``GET /api/v1/runs/{id}``):
+    per method of the run that the design predicts, the std per combination (m), the methods it cannot predict and
+    why, the motion time (s), the steps the camera will not see, the notes. None when no method of the run is
+    predicted (e.g. a run that only records)."""
+    from calib.design import METHODS
+    from calib.plan import Plan
+
+    wanted = tuple(m for m in methods if m in METHODS)
+    if not wanted:
+        return None
+    check = check_for_bench(cfg, Plan.model_validate(plan_doc), None, wanted)
+    pred = check.prediction
+    return {
+        "predicted_std_m": pred.std,
+        "prediction_errors": pred.errors,
+        "motion_time_s": check.motion["total_s"],
+        "unseen": check.unseen,
+        "notes": check.notes,
+        "noise": "the image-level model of the simulated bench's camera",
+    }
+
+
 def better_than_request(targets: dict[str, tuple[float, float, float, float]]) -> dict[str, Any]:
     """``calib.design.DesignRequest``'s target fields for :func:`reference_targets`: ``target_std_m`` the combined
     method's (else the first method's), ``method_targets_m`` every other method's own."""
@@ -142,11 +179,44 @@ def better_than_request(targets: dict[str, tuple[float, float, float, float]]) -
     }
 
 
+def prediction_lines(pred, motion: dict[str, Any], breakdown: bool = False) -> list[str]:
+    """The predicted std per method and combination (mm; with ``breakdown`` each source's under its method), the
+    methods not predicted and why, and the motion time per phase: the lines a design and a plan's check share."""
+    from calib.parameters import COMBINATION_NAMES
+
+    out = [f"{'predicted std (mm):':<29}" + " | ".join(f"{k:>13}" for k in COMBINATION_NAMES)]
+    for m, std in pred.std.items():
+        out.append(f"  {m:<26} " + " | ".join(f"{std[k] * 1e3:13.4f}" for k in COMBINATION_NAMES))
+        for part, pstd in (pred.parts.get(m, {}) if breakdown else {}).items():
+            if any(v > 1e-9 for v in pstd.values()):  # parts that contribute at least a nanometre
+                out.append(f"    {part:<24} " + " | ".join(f"{pstd[k] * 1e3:13.4f}" for k in COMBINATION_NAMES))
+    for m, why in pred.errors.items():
+        out.append(f"  {m:<16} not predicted: {why}")
+    out.append(
+        f"motion time {motion['total_s'] / 60:.2f} min ("
+        + ", ".join(f"{k} {v:.1f} s" for k, v in motion["per_phase_s"].items())
+        + ")"
+    )
+    return out
+
+
+def check_lines(check, breakdown: bool = False) -> list[str]:
+    """Human-readable check of a plan (``calib.design.PlanCheck``): its counts, the prediction, the motion time, the
+    steps the camera will not see, the notes."""
+    out = [f"plan {check.plan_name}: " + ", ".join(f"{k} {v}" for k, v in check.counts.items())]
+    out += prediction_lines(check.prediction, check.motion, breakdown)
+    for u in check.unseen:
+        what = [] if u["board"] else ["board out of view"]
+        if u["rods_hidden"]:
+            what.append("rods " + ", ".join(u["rods_hidden"]) + " hidden or out of the image")
+        out.append(f"  step {u['step']} ({u['phase']}): " + "; ".join(what))
+    out += [f"note: {n}" for n in check.notes]
+    return out
+
+
 def summary_lines(result, breakdown: bool = False) -> list[str]:
     """Human-readable lines: counts per phase, predicted std per method (mm), motion time; with ``breakdown``, under
     each method the std that each source of error contributes (``Prediction.parts``)."""
-    from calib.parameters import COMBINATION_NAMES
-
     counts = result.plan.count()
     out = ["plan: " + ", ".join(f"{k} {v}" for k, v in counts.items())]
     sw = result.sweeps
@@ -154,20 +224,7 @@ def summary_lines(result, breakdown: bool = False) -> list[str]:
         f"fit poses {result.n_fit}; rotation sweep {sw['rotation_span_deg']:.0f} deg, "
         f"translation {sw['translation_length_m'] * 1e3:.0f} mm"
     )
-    out.append(f"{'predicted std (mm):':<29}" + " | ".join(f"{k:>13}" for k in COMBINATION_NAMES))
-    for m, std in result.prediction.std.items():
-        out.append(f"  {m:<26} " + " | ".join(f"{std[k] * 1e3:13.4f}" for k in COMBINATION_NAMES))
-        for part, pstd in (result.prediction.parts.get(m, {}) if breakdown else {}).items():
-            if any(v > 1e-9 for v in pstd.values()):  # parts that contribute at least a nanometre
-                out.append(f"    {part:<24} " + " | ".join(f"{pstd[k] * 1e3:13.4f}" for k in COMBINATION_NAMES))
-    for m, why in result.prediction.errors.items():
-        out.append(f"  {m:<16} not predicted: {why}")
-    mt = result.motion
-    out.append(
-        f"motion time {mt['total_s'] / 60:.2f} min ("
-        + ", ".join(f"{k} {v:.1f} s" for k, v in mt["per_phase_s"].items())
-        + ")"
-    )
+    out += prediction_lines(result.prediction, result.motion, breakdown)
     if result.target_met is not None:
         out.append(f"target {'met' if result.target_met else 'NOT met'}")
     if result.time_met is not None:

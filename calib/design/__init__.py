@@ -6,11 +6,14 @@
   images (:class:`ImageNoise`: what the extraction measures and the methods' image-level uncertainty);
 * :mod:`.motion`: trapezoidal motion time and a tour of the poses;
 * :mod:`.optimize`: greedy + exchange selection of the fit poses and the sweeps' extents; :func:`design_plan`;
+* :mod:`.check`: a plan the user already has: its prediction, motion time and the steps not in view
+  (:func:`check_plan`);
 * :mod:`.tradeoff`: one design per fit-pose count, accuracy against motion time (:func:`design_tradeoff`).
 
 See docs/design.md.
 """
 
+from .check import PlanCheck, check_plan
 from .imaging import calibration_covariance, synthetic_rods
 from .motion import MotionSpec, move_time, order_tour, plan_motion_time
 from .optimize import (
@@ -51,11 +54,13 @@ __all__ = [
     "DesignResult",
     "ImageNoise",
     "MotionSpec",
+    "PlanCheck",
     "Prediction",
     "Scene",
     "TradeoffRow",
     "VisibilityLimits",
     "calibration_covariance",
+    "check_plan",
     "design_plan",
     "design_score",
     "design_tradeoff",

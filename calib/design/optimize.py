@@ -248,7 +248,7 @@ LEGS_DESIGNED_RATIO_RANGE_TWIN = (0.58, 1.42)
 SHADING_NOTE_SHARE = 0.1
 
 
-def _shading_note(pred: Prediction) -> str | None:
+def shading_note(pred: Prediction) -> str | None:
     """A note when the legs prediction leans on its model of the rods' shading (the lock phases' systematic depth
     error), which is right on average over plans but not plan by plan; None otherwise."""
     sys_part = (pred.parts.get("legs") or {}).get("joint_depth_systematic")
@@ -780,7 +780,7 @@ def design_plan(
             why = f"with {n} fit poses after {rounds} choices of the count"
         assert tmap is not None
         notes.append("the target is not met (predicted): " + why + _worst_miss(pred, tmap))
-    shading = _shading_note(pred)
+    shading = shading_note(pred)
     if shading:
         notes.append(shading)
     if "legs" in req.methods:

@@ -1,4 +1,5 @@
-"""Plans: experiment design before motion (``POST /api/v1/plans/design``; calib.design, docs/design.md)."""
+"""Plans: experiment design before motion (``POST /api/v1/plans/design``, ``/tradeoff``) and what a plan you have
+will buy (``POST /api/v1/plans/predict``); calib.design, docs/design.md."""
 
 from __future__ import annotations
 
@@ -13,10 +14,52 @@ from pydantic import BaseModel, ConfigDict, Field
 from calib.design.tradeoff import MAX_TRADEOFF_COUNTS
 from calib.errors import I4calError, InputError
 
-from ..auth import Writer
+from ..auth import Reader, Writer
 from .deps import Manager, SettingsDep, unprocessable
 
 router = APIRouter(prefix="/api/v1/plans", tags=["plans"])
+
+PlanName = Literal["full", "rotation-sweep", "equal-translation", "pose-set", "lock-actuator", "line", "validation"]
+
+
+def resolve_plan(spec: str | dict[str, Any] | None, manager: Any) -> Any:
+    """The plan a request names (default ``full``, at this service's plan sizes) or holds inline, validated against
+    the bench's soft limits and nominal model: the plan a run executes and a prediction is made for. Called in a
+    worker thread: a plan at its size bounds (``calib.plan.MAX_PLAN_FRAMES``) is checked without holding up the
+    event loop.
+
+    Raises
+    ------
+    HTTPException
+        422 naming the field (e.g. ``["body", "plan", "steps", 3, "line", "samples"]``).
+    """
+    from calib.plan import Plan, make_plan, validate_plan
+
+    bench = manager.bench
+    if bench is None:
+        raise unprocessable(InputError("this service has no bench configured; upload a dataset instead", field="bench"))
+    nominal = bench.config.nominal_parameters()
+    try:
+        if spec is None or isinstance(spec, str):
+            sz = manager.settings.plan_sizes
+            plan = make_plan(
+                spec or "full",
+                nominal,
+                seed=sz.seed,
+                n_base=sz.n_base,
+                n_fit=sz.n_fit,
+                n_lock=sz.n_lock,
+                n_validation=sz.n_validation,
+                line_samples=sz.line_samples,
+            )
+        else:
+            plan = Plan.from_dict(spec)
+            if len(plan.steps) == 0:
+                raise InputError("a plan needs at least one step", field="steps")
+        validate_plan(plan, nominal, bench.config.calib_limits())
+    except InputError as exc:
+        raise unprocessable(exc, ("body", "plan")) from None
+    return plan
 
 
 class DesignBody(BaseModel):
@@ -47,6 +90,50 @@ class DesignBody(BaseModel):
         description="frames per lock phase (lock-1..4): the legs method's joints, its S and H-D (predicted_parts_std_m "
         "says when they limit it)",
     )
+
+
+#: predictions computed or waiting for their turn at once, beyond which a request gets 429
+MAX_PREDICTIONS_WAITING = 4
+
+
+class PredictBody(BaseModel):
+    """A plan to predict: a name (at this service's plan sizes, as a run would execute it) or an inline plan."""
+
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={"examples": [{"plan": "full"}, {"plan": "full", "methods": ["combined", "legs"]}]},
+    )
+    plan: PlanName | dict[str, Any] | None = Field(
+        None, description="a plan name, or an inline plan (i4cal.plan/1); default 'full'"
+    )
+    methods: list[Literal["combined", "end-effector", "legs"]] = Field(
+        ["combined", "end-effector", "legs"], min_length=1, max_length=3
+    )
+
+
+class UnseenStep(BaseModel):
+    step: int = Field(description="index of the step in the plan")
+    phase: str
+    board: bool = Field(description="the board in view (facing the camera, inside the image)")
+    rods_hidden: list[str] = Field(description="rods ('leg.rod', from 1) shorter than the extraction's 40 px")
+
+
+class PredictOut(BaseModel):
+    plan: str = Field(description="plan name")
+    counts: dict[str, int] = Field(description="frames per phase as planned")
+    measured_counts: dict[str, int] = Field(
+        description="frames per phase the prediction counts: the board phases without their steps out of view"
+    )
+    predicted_std_m: dict[str, dict[str, float]] = Field(description="per method and combination, metres")
+    predicted_parts_std_m: dict[str, dict[str, dict[str, float]]] = Field(
+        default_factory=dict, description="per method, the std (m) per combination each source of error contributes"
+    )
+    legs_seven_std_m: dict[str, float] | None
+    prediction_errors: dict[str, str] = Field(description="methods the plan cannot feed, and why")
+    motion_time_s: float
+    motion_per_phase_s: dict[str, float]
+    unseen: list[UnseenStep] = Field(description="steps the camera will not see in full")
+    notes: list[str]
 
 
 class CountTrendOut(BaseModel):
@@ -86,10 +173,12 @@ class DesignOut(BaseModel):
     )
 
 
-def _lock(request: Request) -> asyncio.Lock:
-    lock = getattr(request.app.state, "design_lock", None)
+def _lock(request: Request, name: str = "design_lock") -> asyncio.Lock:
+    """The app's lock ``name``: one design (or one prediction) computed at a time."""
+    lock = getattr(request.app.state, name, None)
     if lock is None:
-        lock = request.app.state.design_lock = asyncio.Lock()
+        lock = asyncio.Lock()
+        setattr(request.app.state, name, lock)
     return lock
 
 
@@ -153,7 +242,7 @@ class TradeoffOut(BaseModel):
 _ERRORS: dict[int | str, dict[str, Any]] = {
     401: {"description": "no or wrong bearer token"},
     422: {"description": "invalid request, or no bench configured: the field is named"},
-    429: {"description": "another design is being computed"},
+    429: {"description": "another design is being computed (a prediction: too many waiting)"},
 }
 
 
@@ -253,6 +342,45 @@ async def design(body: DesignBody, request: Request, manager: Manager, settings:
         time_met=res.time_met,
         notes=res.notes + _capped(body, settings),
         count_trend=res.count_trend,
+    )
+
+
+@router.post("/predict", response_model=PredictOut, responses=_ERRORS)
+async def predict(body: PredictBody, request: Request, manager: Manager, _: Reader) -> PredictOut:
+    """What a plan will buy on this service's bench, before anything moves: each method's predicted std per
+    combination, the motion time, the steps the camera will not see (the prediction counts only what will be
+    measured). Computed in a worker thread, one prediction at a time."""
+    from ..design import check_for_bench
+
+    plan = await asyncio.to_thread(resolve_plan, body.plan, manager)
+    state = request.app.state
+    waiting = getattr(state, "predictions_waiting", 0)
+    if waiting >= MAX_PREDICTIONS_WAITING:
+        raise HTTPException(status.HTTP_429_TOO_MANY_REQUESTS, detail="too many predictions waiting; try again")
+    state.predictions_waiting = waiting + 1
+    try:
+        async with _lock(request, "predict_lock"):  # a prediction takes a second or two: they wait their turn
+            work = asyncio.ensure_future(
+                asyncio.to_thread(check_for_bench, manager.bench.config, plan, None, tuple(dict.fromkeys(body.methods)))
+            )
+            check = await _finish_even_if_abandoned(work)
+    except I4calError as exc:
+        raise unprocessable(InputError(str(exc), field="plan")) from None
+    finally:
+        state.predictions_waiting -= 1
+    pred = check.prediction
+    return PredictOut(
+        plan=check.plan_name,
+        counts=check.counts,
+        measured_counts=check.measured_counts,
+        predicted_std_m=pred.std,
+        predicted_parts_std_m=pred.parts,
+        legs_seven_std_m=pred.legs_seven_std,
+        prediction_errors=pred.errors,
+        motion_time_s=check.motion["total_s"],
+        motion_per_phase_s=check.motion["per_phase_s"],
+        unseen=[UnseenStep(**u) for u in check.unseen],
+        notes=check.notes,
     )
 
 

@@ -27,12 +27,11 @@ from ..settings import BENCH_NAME_PATTERN
 from .calibration import CalibrationOut, calibration_out
 from .deps import ID_PATTERN, Manager, RunId, conflict, get_run, not_found, unprocessable
 from .methods import MethodName
+from .plans import PlanName, resolve_plan
 
 #: ParsedJSONRoute: a request's JSON (an inline plan: up to ~1 MB at the plan's size bounds) is parsed once, in a
 #: worker thread, by the strict-JSON middleware (service/hardening.py), not again in the event loop
 router = APIRouter(prefix="/runs", tags=["runs"], route_class=ParsedJSONRoute)
-
-PlanName = Literal["full", "rotation-sweep", "equal-translation", "pose-set", "lock-actuator", "line", "validation"]
 
 
 class RunCreate(BaseModel):
@@ -74,6 +73,25 @@ class Progress(BaseModel):
     last_frame: int | None = None
 
 
+class RunPrediction(BaseModel):
+    """What the run's plan was predicted to buy before motion (the image-level model of the simulated bench's
+    camera; docs/design.md): after the fits, set it beside each method's reported std."""
+
+    predicted_std_m: dict[str, dict[str, float]] = Field(
+        default_factory=dict, description="per method and combination, metres"
+    )
+    prediction_errors: dict[str, str] = Field(
+        default_factory=dict, description="methods of the run the plan cannot feed, and why"
+    )
+    motion_time_s: float | None = Field(None, description="predicted motion time of the whole plan, seconds")
+    unseen: list[dict[str, Any]] = Field(
+        default_factory=list,
+        description="steps the camera will not see in full: step, phase, board (in view), rods_hidden",
+    )
+    notes: list[str] = Field(default_factory=list)
+    error: str | None = Field(None, description="why there is no prediction (it never fails the run)")
+
+
 class RunOut(BaseModel):
     id: str
     state: Literal[STATES]  # type: ignore[valid-type]
@@ -94,6 +112,11 @@ class RunOut(BaseModel):
     timings: dict[str, float]
     error: str | None
     has_result: bool
+    prediction: RunPrediction | None = Field(
+        None,
+        description="the plan's predicted std per method and combination and its motion time, computed as the run "
+        "starts (null: not yet, or an offline run)",
+    )
 
 
 def run_out(manager: RunManager, run) -> RunOut:
@@ -121,6 +144,7 @@ def run_out(manager: RunManager, run) -> RunOut:
         timings=run.timings or {},
         error=run.error,
         has_result=run.result is not None,
+        prediction=None if run.prediction is None else RunPrediction.model_validate(run.prediction),
     )
 
 
@@ -135,45 +159,6 @@ ERRORS: dict[int | str, dict[str, Any]] = {
     401: {"description": "no or wrong bearer token"},
     404: {"description": "no such run"},
 }
-
-
-def _resolve_plan(body: RunCreate, manager: RunManager):
-    """The plan of a request, validated against the bench's soft limits and nominal model (run in a worker thread:
-    a plan at its size bounds, ``calib.plan.MAX_PLAN_FRAMES``, is checked without holding up the event loop).
-
-    Raises
-    ------
-    HTTPException
-        422 naming the field (e.g. ``["body", "plan", "steps", 3, "line", "samples"]``).
-    """
-    from calib.plan import Plan, make_plan, validate_plan
-
-    bench = manager.bench
-    if bench is None:
-        raise unprocessable(InputError("this service has no bench configured; upload a dataset instead", field="bench"))
-    nominal = bench.config.nominal_parameters()
-    spec = body.plan if body.plan is not None else "full"
-    try:
-        if isinstance(spec, str):
-            sz = manager.settings.plan_sizes
-            plan = make_plan(
-                spec,
-                nominal,
-                seed=sz.seed,
-                n_base=sz.n_base,
-                n_fit=sz.n_fit,
-                n_lock=sz.n_lock,
-                n_validation=sz.n_validation,
-                line_samples=sz.line_samples,
-            )
-        else:
-            plan = Plan.from_dict(spec)
-            if len(plan.steps) == 0:
-                raise InputError("a plan needs at least one step", field="steps")
-        validate_plan(plan, nominal, bench.config.calib_limits())
-    except InputError as exc:
-        raise unprocessable(exc, ("body", "plan")) from None
-    return plan
 
 
 @router.post(
@@ -195,7 +180,7 @@ async def create_run(body: RunCreate, manager: Manager, _: Writer) -> RunOut:
     if body.dataset is None:
         if manager.bench_holder is not None:
             raise conflict(f"run {manager.bench_holder} holds the bench")
-        plan = await asyncio.to_thread(_resolve_plan, body, manager)
+        plan = await asyncio.to_thread(resolve_plan, body.plan, manager)
         plan_name = plan.name
     try:
         run = manager.create(

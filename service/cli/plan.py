@@ -1,4 +1,4 @@
-"""``i4cal plan design``: experiment design before motion (calib.design; docs/design.md)."""
+"""``i4cal plan design`` and ``plan predict``: experiment design before motion (calib.design; docs/design.md)."""
 
 from __future__ import annotations
 
@@ -77,13 +77,80 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     a("--json", action="store_true", help="print the design summary as JSON")
     a("-o", "--out", default=None, help="write the plan (i4cal.plan/1) for i4cal acquire --plan / POST /api/v1/runs")
     d.set_defaults(handler=_design)
+    c = sub.add_parser(
+        "predict",
+        help="what a plan you already have will buy: predicted std per method and combination, motion time, the "
+        "steps the camera will not see",
+        description="Predicts, before motion, each method's std per combination (mm) for a plan as it is (a plan "
+        "name or an i4cal.plan/1 file, e.g. the routine in use), its motion time on the bench, and the steps whose "
+        "board or rods the camera will not see (the prediction counts only what will be measured).",
+    )
+    c.add_argument("plan", metavar="PLAN", help="a plan name (full, pose-set, ...) or a plan JSON file")
+    c.add_argument("--bench", required=True, help="bench configuration (TOML): nominal geometry, soft limits, speeds")
+    c.add_argument("--seed", type=int, default=0, help="seed of a generated plan (a plan name)")
+    c.add_argument(
+        "--methods",
+        default="combined,end-effector,legs",
+        help="methods to predict, any of combined,end-effector,legs (default: all three)",
+    )
+    c.add_argument(
+        "--noise-from",
+        default=None,
+        help="JSON with the noise levels (as plan design's); default: the image-level model of the simulated "
+        "bench's camera",
+    )
+    c.add_argument("--breakdown", action="store_true", help="under each method, the std each source contributes")
+    c.add_argument("--json", action="store_true", help="print the check as JSON (metres, seconds)")
+    c.set_defaults(handler=_predict)
     p.set_defaults(handler=lambda args: (p.print_help(), 1)[1])
 
 
-def _design(args: argparse.Namespace) -> int:
-    from calib.design import DesignNoise, DesignRequest
-    from calib.errors import InputError
+def _noise_from(path: str | None):
+    """``--noise-from``: the noise levels of a JSON file (an observations file's ``noise`` or DesignNoise's keys)."""
+    from calib.design import DesignNoise
     from calib.jsonio import read_json
+
+    if not path:
+        return None
+    doc = read_json(path, "noise file")
+    return DesignNoise.from_mapping(doc.get("noise", doc) if isinstance(doc, dict) else None)
+
+
+def _methods(text: str, field: str) -> tuple[str, ...]:
+    """A ``--methods`` list, each a method the design predicts."""
+    from calib.design import METHODS
+    from calib.errors import InputError
+
+    methods = tuple(dict.fromkeys(m.strip() for m in text.split(",") if m.strip()))
+    bad = [m for m in methods if m not in METHODS]
+    if bad or not methods:
+        raise InputError(f"{', '.join(bad) or 'none given'}: methods are {', '.join(METHODS)}", field=field)
+    return methods
+
+
+def _predict(args: argparse.Namespace) -> int:
+    from calib.pipeline import to_jsonable
+    from calib.plan import validate_plan
+    from drivers.config import load_bench
+    from service.design import check_for_bench, check_lines
+
+    from .acquire import _load_plan
+
+    cfg = load_bench(args.bench)
+    methods = _methods(args.methods, "--methods")
+    plan = _load_plan(args.plan, cfg.nominal_parameters(), args.seed)
+    validate_plan(plan, cfg.nominal_parameters(), cfg.calib_limits())
+    check = check_for_bench(cfg, plan, _noise_from(args.noise_from), methods)
+    if args.json:
+        print(json.dumps(to_jsonable(check.summary()), indent=1))
+    else:
+        print("\n".join(check_lines(check, breakdown=args.breakdown)))
+    return 0
+
+
+def _design(args: argparse.Namespace) -> int:
+    from calib.design import DesignRequest
+    from calib.errors import InputError
     from calib.parameters import COMBINATION_NAMES
     from calib.pipeline import to_jsonable
     from calib.plan import Plan, validate_plan
@@ -106,10 +173,7 @@ def _design(args: argparse.Namespace) -> int:
         raise InputError(f"must be in 2..50, got {args.lock_frames}", field="--lock-frames")
     if args.max_minutes is not None and not (0 < args.max_minutes < 1e5):
         raise InputError("must be > 0", field="--max-minutes")
-    noise = None
-    if args.noise_from:
-        doc = read_json(args.noise_from, "noise file")
-        noise = DesignNoise.from_mapping(doc.get("noise", doc) if isinstance(doc, dict) else None)
+    noise = _noise_from(args.noise_from)
     methods = tuple(dict.fromkeys(m.strip() for m in args.methods.split(",") if m.strip()))
     targets: dict[str, Any] = {"target_std_m": target}
     if args.better_than is not None:

@@ -66,6 +66,9 @@ class Run(Base):
     timings: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
     result: Mapped[dict[str, Any] | None] = mapped_column(JSON)
     extraction: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    #: the plan's prediction before motion (``service.design.run_prediction``): predicted std per method and
+    #: combination (m), motion time; None until computed (offline runs: never)
+    prediction: Mapped[dict[str, Any] | None] = mapped_column(JSON)
 
 
 class Event(Base):

@@ -37,6 +37,9 @@ class Stages:
         t0 = time.monotonic()
         run = m.get(run_id)
         timings: dict[str, float] = dict(run.timings or {})
+        predicting = None
+        if run.plan is not None and run.prediction is None and m.bench is not None:
+            predicting = asyncio.create_task(self.predict(run_id, run))
         try:
             if run.started_at is None:
                 m.update(run_id, started_at=_now())
@@ -59,6 +62,8 @@ class Stages:
                 timings["calibration_s"] = time.monotonic() - ts
                 await asyncio.to_thread(write_json_atomic, m.run_dir(run) / "result.json", doc)
                 m.update(run_id, result=doc)
+            if predicting is not None:  # computed while the bench moved: done long before a run's end
+                await predicting
             timings["total_s"] = timings.get("total_s", 0.0) + time.monotonic() - t0
             m._transition(run_id, RunEvent.FINISH, finished_at=_now(), timings=timings, phase="")
         except asyncio.CancelledError:
@@ -101,6 +106,28 @@ class Stages:
             self.m._transition(run_id, event, **values)
         except IllegalTransitionError as exc:
             log.warning("run %s: %s", run_id, exc)
+
+    async def predict(self, run_id: str, run: Run) -> None:
+        """The plan's prediction before motion (:func:`service.design.run_prediction`: predicted std per method and
+        combination, motion time), computed in a worker thread while the bench moves and stored with the run as soon
+        as it is ready (event ``prediction``). A prediction that fails is stored as its error; it never fails the
+        run."""
+        from ..design import run_prediction
+
+        m = self.m
+        assert m.bench is not None
+        try:
+            doc = await asyncio.to_thread(run_prediction, m.bench.config, run.plan, list(run.methods or []))
+        except Exception as exc:  # the prediction is advice: the run goes on without it
+            log.warning("run %s: no prediction: %s", run_id, exc)
+            doc = {"error": f"{type(exc).__name__}: {exc}"}
+        if doc is None:
+            return
+        try:
+            m.update(run_id, prediction=doc)
+            m.emit(run_id, "prediction", {"predicted_std_m": doc.get("predicted_std_m"), "error": doc.get("error")})
+        except Exception as exc:  # e.g. the service closed its database while the prediction was computed
+            log.warning("run %s: prediction not stored: %s", run_id, exc)
 
     # -- acquisition ---------------------------------------------------------------------------------
     async def acquire(self, run_id: str, a: ActiveRun) -> None:

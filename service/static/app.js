@@ -429,24 +429,51 @@ $("#design-start").addEventListener("click", async () => {
   const methods = [...document.querySelectorAll("#methods input:checked")].map((i) => i.value);
   try {
     const run = await api("POST", "/runs", { plan: designed.plan, methods, note: "designed plan" });
-    localStorage.setItem("i4cal-prediction-" + run.id, JSON.stringify(designed.predicted_std_m));
     say(`started designed run ${run.id.slice(0, 8)}`);
     await refreshRuns();
     select(run.id);
   } catch (e) { say(e.message, true); }
 });
 
-function showPredicted(id, res) {
-  let pred = null;
-  try { pred = JSON.parse(localStorage.getItem("i4cal-prediction-" + id) || "null"); } catch (e) { pred = null; }
+// predicted before the run (stored with the run by the service: GET /runs/{id}'s prediction) vs obtained
+async function showPredicted(id, res) {
+  let run = null;
+  try { run = await api("GET", "/runs/" + id); } catch (e) { run = null; }
+  if (id !== selected) return;
+  const pred = run && run.prediction && Object.keys(run.prediction.predicted_std_m || {}).length
+    ? run.prediction.predicted_std_m : null;
   $("#design-compare").hidden = !pred;
   if (!pred) return;
   $("#design-compare-table").innerHTML = designRows(pred, res.methods) +
     `<tr><td colspan="${COMBOS.length + 1}" class="muted">predicted / obtained (reported std; obtained ÷ predicted)</td></tr>`;
 }
 
+// what the chosen plan will buy before it runs (POST /api/v1/plans/predict); the latest request wins
+let predicting = 0;
+async function predictChosenPlan() {
+  const ticket = ++predicting;
+  const plan = $("#plan").value;
+  $("#plan-prediction").textContent = `predicting ${plan}…`;
+  let d;
+  try {
+    d = await api("POST", "/plans/predict", { plan });
+  } catch (e) {
+    if (ticket === predicting) { $("#plan-prediction").textContent = ""; $("#plan-prediction-table").innerHTML = ""; }
+    return;
+  }
+  if (ticket !== predicting) return;
+  const why = Object.entries(d.prediction_errors).map(([m, w]) => `${methodLabel(m)}: ${w}`);
+  $("#plan-prediction").textContent = `${d.plan}: predicted std (mm) · motion ${(d.motion_time_s / 60).toFixed(1)} min` +
+    (d.unseen.length ? ` · ${d.unseen.length} steps not fully in view` : "") +
+    (why.length ? " · not predicted: " + why.join("; ") : "");
+  $("#plan-prediction-table").innerHTML = Object.keys(d.predicted_std_m).length ? designRows(d.predicted_std_m) : "";
+}
+$("#plan").addEventListener("change", predictChosenPlan);
+$("#token").addEventListener("change", predictChosenPlan);
+
 refreshRuns();
 refreshDevices();
 refreshCurrent();
+predictChosenPlan();
 setInterval(refreshRuns, 3000);
 setInterval(refreshDevices, 5000);

@@ -10,6 +10,7 @@ import zipfile
 
 import httpx
 import numpy as np
+import pytest
 
 from tests.service.conftest import AUTH, make_settings, read_events, start_service, wait_state
 from tests.service.held import HELD_GRAB, hold_camera
@@ -282,7 +283,14 @@ async def test_full_run_real_images_results_apply(tmp_path):
                 assert all(abs(e["parameters"][k] - truth[k]) < 5 * e["std"][k] for k in truth), (m, e)
             evs = await read_events(c, rid)
             kinds = {e["type"] for e in evs}
-            assert {"state", "progress", "extraction", "fit"} <= kinds
+            assert {"state", "progress", "extraction", "fit", "prediction"} <= kinds
+            # the plan's prediction, kept with the run as it started: POST /plans/predict's for the same plan
+            ref = (await c.post(f"{API}/plans/predict", json={"plan": "full"}, headers=AUTH)).json()
+            pred = run["prediction"]
+            assert pred["error"] is None and pred["motion_time_s"] == pytest.approx(ref["motion_time_s"], rel=1e-9)
+            assert set(pred["predicted_std_m"]) == set(ref["predicted_std_m"]), (pred, ref["prediction_errors"])
+            for m, std in ref["predicted_std_m"].items():
+                assert pred["predicted_std_m"][m] == pytest.approx(std, rel=1e-9), m
             stages = {e["data"].get("stage") for e in evs if e["type"] == "progress"}
             assert stages == {"acquisition", "extraction", "calibration"}
             frames = (await c.get(f"{API}/runs/{rid}/frames")).json()

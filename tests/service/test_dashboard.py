@@ -46,6 +46,12 @@ async def test_dashboard_starts_a_run_and_shows_results(tmp_path):
                     await page.wait_for_function("document.querySelector('#message').textContent.includes('401')")
                     await page.fill("#token", TOKEN)
                     await page.dispatch_event("#token", "change")
+                    # before it runs: what the chosen plan will buy (POST /plans/predict)
+                    await page.wait_for_function(
+                        "document.querySelector('#plan-prediction').textContent.includes('full: predicted std (mm)')",
+                        timeout=60_000,
+                    )
+                    assert "S-(q04-q03)/2" in await page.inner_text("#plan-prediction-table")
                     await page.fill("#note", "from the browser")
                     await page.click("#start")
                     await page.wait_for_function("document.querySelector('#message').textContent.includes('started')")
@@ -65,6 +71,11 @@ async def test_dashboard_starts_a_run_and_shows_results(tmp_path):
                     t1 = await page.inner_text("#table1")
                     for word in ("a priori", "combined", "end-effector", "legs", "S-(q04-q03)/2", "±"):
                         assert word in t1
+                    # the prediction the service kept with the run, beside the std the fits report (this browser
+                    # never designed anything: the prediction comes from the run, not from the page's storage)
+                    await page.wait_for_selector("#design-compare:not([hidden])", timeout=30_000)
+                    compare = await page.inner_text("#design-compare-table")
+                    assert "combined" in compare and "×)" in compare, compare
                     t2 = await page.inner_text("#table2")
                     assert "legs" in t2 and "q04" in t2
                     assert await page.locator("#plot svg circle").count() > 0

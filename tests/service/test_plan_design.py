@@ -395,9 +395,8 @@ async def test_dashboard_designs_and_starts_a_plan(service):
             await page.wait_for_function(
                 "document.querySelector('#message').textContent.includes('started designed run')", timeout=30_000
             )
-            run_id = await page.evaluate(
-                "Object.keys(localStorage).find((k) => k.startsWith('i4cal-prediction-')).slice(17)"
-            )
+            run_id = (await service.client.get(f"{API}/runs", headers=AUTH)).json()[0]["id"]
+            assert (await page.text_content("#message")).endswith(f"started designed run {run_id[:8]}")
             r = await service.client.get(f"{API}/runs/{run_id}", headers=AUTH)
             assert r.status_code == 200 and r.json()["plan"] == "designed"
             # accuracy against bench time: a row per count, the more poses the smaller the combined std; a target

@@ -1,0 +1,152 @@
+"""A plan the user already has (the routine in use, the paper's, a colleague's file): what it will buy before motion.
+
+:func:`check_plan` gives, for a plan as it is, each method's predicted std per combination, the motion time and the
+steps the camera will not see. The prediction counts only what will be measured: a step whose board is out of view
+(or turned away) gives no board pose, so the board phases (the sweeps, the fit poses, validation) are predicted
+without it, and the rods each method gets are those in view (the image-level model keeps every rod of at least the
+extraction's 40 px). A design (:func:`.optimize.design_plan`) only ever picks steps in view; a plan written by hand
+or for another camera may not be.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..parameters import I4Parameters
+from ..plan import Plan
+from .motion import MotionSpec, plan_motion_time
+from .optimize import shading_note
+from .predict import METHODS, DesignNoise, Prediction, predict_plan
+from .predict_images import ImageNoise
+from .scene import Scene, visibility
+
+__all__ = ["BOARD_PHASES", "EXTRACTION_MIN_ROD_PX", "PlanCheck", "check_plan"]
+
+#: phases whose frames are measured by the board (a frame without the board in view gives them nothing)
+BOARD_PHASES = ("rotation", "translation", "poses", "validation")
+#: the extraction's shortest rod, pixels (``calib.vision.rods``: a shorter visible part is not measured)
+EXTRACTION_MIN_ROD_PX = 40.0
+
+
+@dataclass
+class PlanCheck:
+    """A plan's prediction before motion (:func:`check_plan`).
+
+    Attributes
+    ----------
+    plan_name : str
+    counts : dict
+        Frames per phase as planned.
+    measured_counts : dict
+        Frames per phase the prediction counts: the board phases without their steps whose board is out of view.
+    prediction : Prediction
+        Per method, the predicted std per combination (m) and its sources.
+    motion : dict
+        ``total_s`` and ``per_phase_s``: the motion time as planned, seconds.
+    unseen : list of dict
+        Per step the camera will not see in full: ``step`` (index in the plan), ``phase``, ``board`` (in view),
+        ``rods_hidden`` (the rods, ``"leg.rod"`` numbered from 1, below the extraction's 40 px).
+    notes : list of str
+    """
+
+    plan_name: str
+    counts: dict[str, int]
+    measured_counts: dict[str, int]
+    prediction: Prediction
+    motion: dict[str, Any]
+    unseen: list[dict[str, Any]] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-ready: what ``i4cal plan predict --json`` prints and ``POST /api/v1/plans/predict`` answers."""
+        return {
+            "plan": self.plan_name,
+            "counts": self.counts,
+            "measured_counts": self.measured_counts,
+            "prediction": self.prediction.to_dict(),
+            "motion": self.motion,
+            "unseen": self.unseen,
+            "notes": self.notes,
+        }
+
+
+def _unseen_steps(plan: Plan, nominal: I4Parameters, scene: Scene) -> list[dict[str, Any]]:
+    """The steps (with joint values) whose board is out of view or with a rod below the extraction's minimum."""
+    idx = [i for i, s in enumerate(plan.steps) if s.q is not None]
+    if not idx:
+        return []
+    q = np.array([plan.steps[i].q for i in idx], dtype=np.float64)
+    v = visibility(scene, nominal, q)
+    out = []
+    for k, i in enumerate(idx):
+        legs, rods = np.nonzero(v["rod_px"][k] < EXTRACTION_MIN_ROD_PX)
+        hidden = [f"{leg + 1}.{rod + 1}" for leg, rod in zip(legs, rods, strict=True)]
+        if not v["board"][k] or hidden:
+            out.append({"step": i, "phase": plan.steps[i].phase, "board": bool(v["board"][k]), "rods_hidden": hidden})
+    return out
+
+
+def check_plan(
+    plan: Plan,
+    nominal: I4Parameters,
+    scene: Scene,
+    noise: DesignNoise | ImageNoise,
+    motion: MotionSpec,
+    methods: tuple[str, ...] = METHODS,
+) -> PlanCheck:
+    """Predict what a plan will buy: each method's std per combination, its motion time, the steps not in view.
+
+    Parameters
+    ----------
+    plan : Plan
+        The plan as it will run (validated against the bench's limits by the caller).
+    nominal : I4Parameters
+        The bench's nominal geometry, which places the parts in the image.
+    scene : Scene
+        The camera, its mounting, the board and rods.
+    noise : DesignNoise or ImageNoise
+        The measurement noise model (:func:`.predict.predict_plan`).
+    motion : MotionSpec
+        The bench's speeds, accelerations and settle times.
+    methods : tuple of str
+        Methods to predict.
+
+    Returns
+    -------
+    PlanCheck
+    """
+    unseen = _unseen_steps(plan, nominal, scene)
+    blind = {u["step"] for u in unseen if not u["board"] and u["phase"] in BOARD_PHASES}
+    measured = plan.model_copy(update={"steps": [s for i, s in enumerate(plan.steps) if i not in blind]})
+    pred = predict_plan(measured, nominal, scene, noise, methods=methods)
+    notes = []
+    if blind:
+        per: dict[str, int] = {}
+        for i in sorted(blind):
+            per[plan.steps[i].phase] = per.get(plan.steps[i].phase, 0) + 1
+        notes.append(
+            "the board is out of view in "
+            + ", ".join(f"{n} {ph} step{'s' if n > 1 else ''}" for ph, n in per.items())
+            + ": predicted without them (they give no board pose); the steps are listed in 'unseen'"
+        )
+    hidden = [u for u in unseen if u["rods_hidden"]]
+    if hidden:
+        notes.append(
+            f"{len(hidden)} step{'s' if len(hidden) > 1 else ''} with a rod hidden or out of the image (shorter than "
+            f"the extraction's {EXTRACTION_MIN_ROD_PX:.0f} px): the prediction leaves those rods out"
+        )
+    sn = shading_note(pred)
+    if sn:
+        notes.append(sn)
+    return PlanCheck(
+        plan_name=plan.name,
+        counts=plan.count(),
+        measured_counts=measured.count(),
+        prediction=pred,
+        motion=plan_motion_time(plan, motion, nominal),
+        unseen=unseen,
+        notes=notes,
+    )

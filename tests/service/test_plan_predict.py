@@ -1,0 +1,110 @@
+"""What a plan will buy before motion: `i4cal plan predict`, POST /api/v1/plans/predict, and a run's prediction kept
+with the run (GET /api/v1/runs/{id}) beside what the fits then report; on the simulated bench (real Modbus on
+loopback, real HTTP)."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from pathlib import Path
+
+import numpy as np
+
+from calib.design import visibility
+from calib.kinematics import ikm
+from calib.parameters import NOMINAL
+from calib.plan import Plan, SoftLimits, Step, make_plan, random_poses
+from service.cli import main
+from service.design import twin_scene
+from tests.service.conftest import AUTH, wait_state
+
+API = "/api/v1"
+BENCH_SIM = Path(__file__).resolve().parents[2] / "deploy" / "bench-sim.toml"
+
+
+def _plan_with_blind_fit_poses(n: int) -> Plan:
+    """The paper's plan with ``n`` more fit poses (within the limits, reachable) whose board is out of view."""
+    scene = twin_scene()
+    q = ikm(NOMINAL, random_poses(NOMINAL, 3000, np.random.default_rng(3), limits=SoftLimits()))
+    blind = q[~visibility(scene, NOMINAL, q)["board"]][:n]
+    assert len(blind) == n
+    full = make_plan("full", NOMINAL)
+    return Plan(name="mine", steps=[*full.steps, *(Step(phase="poses", q=x) for x in blind.tolist())])
+
+
+def test_cli_predicts_a_plan_name_and_a_plan_file(tmp_path, capsys):
+    assert main(["plan", "predict", "full", "--bench", str(BENCH_SIM)]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("plan full: rotation 10, translation 10, poses 20"), out
+    assert "predicted std (mm)" in out and "motion time" in out
+    rows = {ln.split()[0]: ln for ln in out.splitlines() if ln.startswith("  ") and "|" in ln}
+    assert {"combined", "end-effector", "legs"} <= set(rows), out
+    # a file with fit poses the camera will not see: listed by step, and said in the notes
+    path = tmp_path / "mine.json"
+    plan = _plan_with_blind_fit_poses(2)
+    plan.save(path)
+    assert main(["plan", "predict", str(path), "--bench", str(BENCH_SIM), "--methods", "combined", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    n = len(plan.steps)
+    assert [u["step"] for u in doc["unseen"]] == [n - 2, n - 1] and not doc["unseen"][0]["board"]
+    assert doc["counts"]["poses"] == 22 and doc["measured_counts"]["poses"] == 20
+    assert set(doc["prediction"]["std_m"]) == {"combined"} and doc["motion"]["total_s"] > 0
+    assert main(["plan", "predict", str(path), "--bench", str(BENCH_SIM)]) == 0
+    out = capsys.readouterr().out
+    assert f"  step {n - 1} (poses): board out of view" in out, out
+    # user mistakes: one line naming the option or the file, exit status 2
+    assert main(["plan", "predict", "full", "--bench", str(BENCH_SIM), "--methods", "combined,magic"]) == 2
+    assert "--methods" in capsys.readouterr().err
+    assert main(["plan", "predict", str(tmp_path / "none.json"), "--bench", str(BENCH_SIM)]) == 2
+    assert "none.json" in capsys.readouterr().err
+
+
+async def test_api_predicts_the_plan_a_run_would_execute(service):
+    c = service.client
+    r = await c.post(f"{API}/plans/predict", json={"plan": "full", "methods": ["combined", "legs"]}, headers=AUTH)
+    assert r.status_code == 200, r.text
+    d = r.json()
+    assert set(d["predicted_std_m"]) <= {"combined", "legs"} and d["predicted_std_m"]["combined"]["L"] > 0
+    assert d["motion_time_s"] > 0 and d["plan"] == "full" and d["unseen"] == []
+    # requests at the same time (a page asking again as its token is entered) wait their turn, none refused
+    both = await asyncio.gather(
+        *(c.post(f"{API}/plans/predict", json={"plan": p}, headers=AUTH) for p in ("full", "pose-set"))
+    )
+    assert [x.status_code for x in both] == [200, 200] and both[1].json()["plan"] == "pose-set"
+    # an inline plan with fit poses out of view: listed, not counted
+    plan = _plan_with_blind_fit_poses(1)
+    r = await c.post(
+        f"{API}/plans/predict", json={"plan": plan.model_dump(mode="json", exclude_none=True)}, headers=AUTH
+    )
+    assert r.status_code == 200, r.text
+    d = r.json()
+    assert d["unseen"] == [{"step": len(plan.steps) - 1, "phase": "poses", "board": False, "rods_hidden": []}]
+    assert d["measured_counts"]["poses"] == d["counts"]["poses"] - 1
+    # an invalid plan: 422 naming the field
+    bad = plan.model_dump(mode="json", exclude_none=True)
+    bad["steps"][3]["q"] = [9.0, 0.0, 0.0, 0.0]
+    r = await c.post(f"{API}/plans/predict", json={"plan": bad}, headers=AUTH)
+    assert r.status_code == 422 and "steps" in r.text, r.text
+
+
+async def test_a_prediction_never_holds_up_or_fails_a_run(service, monkeypatch):
+    """A run that only records (no method) has no prediction; a prediction that fails is stored as its error and
+    the run goes on (the full prediction of a run is checked against POST /plans/predict in
+    tests/service/test_api.py's full run on images)."""
+    from service import design
+
+    c = service.client
+    r = await c.post(f"{API}/runs", json={"plan": "full", "methods": []}, headers=AUTH)
+    run = await wait_state(c, r.json()["id"])
+    assert run["state"] == "done" and run["prediction"] is None, run
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("no scene for this bench")
+
+    monkeypatch.setattr(design, "run_prediction", broken)
+    r = await c.post(f"{API}/runs", json={"plan": "rotation-sweep", "methods": []}, headers=AUTH)
+    run = await wait_state(c, r.json()["id"])
+    assert run["state"] == "done", run["error"]
+    assert run["prediction"]["error"] == "RuntimeError: no scene for this bench", run["prediction"]
+    events = (await c.get(f"{API}/runs/{run['id']}/events", params={"follow": "false"})).text
+    assert "event: prediction" in events
