@@ -377,14 +377,36 @@ def lock_actuator(
     return steps
 
 
+#: the shortest guided line :func:`guided_line` shortens a line to within a bench's limits (m)
+MIN_LINE_LENGTH_M = 0.1
+
+
 def guided_line(
-    nominal: I4Parameters, length_m: float = 0.5, samples: int = 51, ws: Workspace | None = None
+    nominal: I4Parameters,
+    length_m: float = 0.5,
+    samples: int = 51,
+    ws: Workspace | None = None,
+    limits: SoftLimits | None = None,
 ) -> list[Step]:
-    """The paper's straightness test: a 500 mm line mostly along x_B, through the workspace centre."""
+    """The paper's straightness test: a 500 mm line mostly along x_B, through the workspace centre.
+
+    With ``limits`` (a bench's soft limits), a line whose samples leave them (or the reachable workspace) is
+    shortened about the centre, by 5% at a time, to the longest that stays within; shorter than
+    :data:`MIN_LINE_LENGTH_M` is an error naming ``line``.
+    """
     ws = ws or Workspace()
     c = ws.centre()
     d = np.array([0.96, 0.25, 0.12, 0.0])
     d[:3] /= np.linalg.norm(d[:3])
+    s = np.linspace(-0.5, 0.5, samples)[:, None]
+    while limits is not None and not np.all(_good(nominal, c + s * d * length_m, ws, limits)):
+        length_m *= 0.95
+        if length_m < MIN_LINE_LENGTH_M:
+            raise InputError(
+                f"no guided line of {MIN_LINE_LENGTH_M * 1e3:.0f} mm or more through the workspace centre stays "
+                "within the soft limits",
+                field="line",
+            )
     a = c - d * length_m / 2
     b = c + d * length_m / 2
     return [Step(phase="line", line=LineSpec(start_pose=a.tolist(), end_pose=b.tolist(), samples=samples))]
@@ -401,16 +423,23 @@ def make_plan(
     n_validation: int = 10,
     line_samples: int = 51,
     ws: Workspace | None = None,
+    limits: SoftLimits | None = None,
 ) -> Plan:
-    """Build one of the named plans (see :data:`PLAN_NAMES`)."""
+    """Build one of the named plans (see :data:`PLAN_NAMES`).
+
+    ``limits``: the bench's soft limits, within which the drawn poses (fit poses, lock phases, validation) are
+    drawn and the guided line shortened to (:func:`guided_line`); default: no line shortened, the poses drawn
+    within :class:`SoftLimits`' (the simulated bench's). The sweeps are placed about the workspace's centre:
+    :func:`validate_plan` says when they leave a bench's limits.
+    """
     ws = ws or Workspace()
     parts = {
         "rotation-sweep": lambda: rotation_sweep(nominal, n_base, ws=ws),
         "equal-translation": lambda: equal_translation(nominal, n_base, ws=ws),
-        "pose-set": lambda: pose_set(nominal, n_fit, seed, ws=ws),
-        "lock-actuator": lambda: lock_actuator(nominal, n_lock, seed + 1, ws=ws),
-        "line": lambda: guided_line(nominal, samples=line_samples, ws=ws),
-        "validation": lambda: pose_set(nominal, n_validation, seed + 2, phase="validation", ws=ws),
+        "pose-set": lambda: pose_set(nominal, n_fit, seed, ws=ws, limits=limits),
+        "lock-actuator": lambda: lock_actuator(nominal, n_lock, seed + 1, ws=ws, limits=limits),
+        "line": lambda: guided_line(nominal, samples=line_samples, ws=ws, limits=limits),
+        "validation": lambda: pose_set(nominal, n_validation, seed + 2, phase="validation", ws=ws, limits=limits),
     }
     if name == "full":
         steps = [

@@ -51,6 +51,7 @@ def resolve_plan(spec: str | dict[str, Any] | None, manager: Any) -> Any:
                 n_lock=sz.n_lock,
                 n_validation=sz.n_validation,
                 line_samples=sz.line_samples,
+                limits=bench.config.calib_limits(),
             )
         else:
             plan = Plan.from_dict(spec)

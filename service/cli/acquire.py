@@ -32,11 +32,12 @@ def register(subparsers) -> None:
     p.set_defaults(handler=_run)
 
 
-def _load_plan(spec: str, nominal, seed: int):
+def _load_plan(spec: str, cfg, seed: int):
+    """A plan name (its poses drawn within the bench's soft limits) or a plan file."""
     from calib.plan import PLAN_NAMES, Plan, make_plan
 
     if spec in PLAN_NAMES:
-        return make_plan(spec, nominal, seed=seed)
+        return make_plan(spec, cfg.nominal_parameters(), seed=seed, limits=cfg.calib_limits())
     return Plan.load(spec)
 
 
@@ -48,8 +49,7 @@ def _run(args: argparse.Namespace) -> int:
     from drivers.config import load_bench
 
     cfg = load_bench(args.bench)
-    nominal = cfg.nominal_parameters()
-    plan = _load_plan(args.plan, nominal, args.seed)
+    plan = _load_plan(args.plan, cfg, args.seed)
     console = Console(stderr=True)
     bar = Progress(
         TextColumn("[bold]{task.description}"),

@@ -138,7 +138,7 @@ def _predict(args: argparse.Namespace) -> int:
 
     cfg = load_bench(args.bench)
     methods = _methods(args.methods, "--methods")
-    plan = _load_plan(args.plan, cfg.nominal_parameters(), args.seed)
+    plan = _load_plan(args.plan, cfg, args.seed)
     validate_plan(plan, cfg.nominal_parameters(), cfg.calib_limits())
     check = check_for_bench(cfg, plan, _noise_from(args.noise_from), methods)
     if args.json:

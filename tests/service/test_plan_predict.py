@@ -108,3 +108,12 @@ async def test_a_prediction_never_holds_up_or_fails_a_run(service, monkeypatch):
     assert run["prediction"]["error"] == "RuntimeError: no scene for this bench", run["prediction"]
     events = (await c.get(f"{API}/runs/{run['id']}/events", params={"follow": "false"})).text
     assert "event: prediction" in events
+
+
+def test_cli_predicts_the_paper_plan_on_the_real_bench_example(capsys):
+    """A named plan is drawn within the bench's own soft limits (the real example's 0-750 mm; the line shortened to
+    them): before, the 'full' plan for the simulated bench's limits was refused there, naming a fit pose."""
+    real = BENCH_SIM.with_name("bench-real.example.toml")
+    assert main(["plan", "predict", "full", "--bench", str(real)]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("plan full: rotation 10, translation 10, poses 20") and "line" in out, out
