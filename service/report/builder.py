@@ -56,6 +56,9 @@ class ReportInputs:
         The dataset v1 directory (frames).
     run : dict, optional
         Service run metadata: ``id``, ``bench``, ``state``, ``plan``, ``note``, ``created_at``, ``finished_at``.
+    prediction : dict, optional
+        The run's prediction before motion (``Run.prediction``: ``predicted_std_m`` per method and combination,
+        ``motion_time_s``), set beside what the methods report.
     source : str
         What the report was made from (run id, dataset or file path), for the title block.
     methods : list of str, optional
@@ -69,6 +72,7 @@ class ReportInputs:
     source: str = ""
     methods: list[str] | None = None
     extra_rows: list[tuple[str, str]] = field(default_factory=list)
+    prediction: dict[str, Any] | None = None
 
 
 def build_report(inputs: ReportInputs, *, progress: Progress | None = None, max_frames: int = 3) -> str:
@@ -114,6 +118,7 @@ def build_report(inputs: ReportInputs, *, progress: Progress | None = None, max_
     body.append(_parameters(res, methods, truth))
     step("parameters")
     body.append(_budget(res, methods))
+    body.append(_predicted(inputs.prediction, res, methods))
     body.append(_combinations(res, methods))
     body.append(_validation(res))
     step("validation")
@@ -201,6 +206,7 @@ def _contents() -> Raw:
     items = [
         ("parameters", "Identified parameters"),
         ("budget", "Uncertainty budget"),
+        ("predicted", "Predicted before the run vs obtained"),
         ("combinations", "The four identifiable combinations"),
         ("validation", "Validation: displacement gaps and straightness"),
         ("residuals", "Residuals per pose and per leg"),
@@ -365,6 +371,40 @@ def _budget(res: dict, methods: list[str]) -> Raw:
     if not shown:
         parts = ["Not available: the results carry no uncertainty breakdown."]
     return section("budget", "Uncertainty budget", *parts)
+
+
+def _predicted(prediction: dict[str, Any] | None, res: dict, methods: list[str]) -> Raw:
+    """The run's prediction before motion beside each method's reported std (obtained / predicted)."""
+    title = "Predicted before the run vs obtained"
+    pred = (prediction or {}).get("predicted_std_m") or {}
+    shown = [m for m in methods if m in pred and (res["methods"].get(m) or {}).get("std")]
+    if not shown:
+        why = (prediction or {}).get("error") or (
+            "the report was not made from a run on the bench (an offline run, files)"
+            if prediction is None
+            else "none of these methods was predicted for the run's plan"
+        )
+        return section("predicted", title, f"Not available: {why}.")
+    rows = []
+    for m in shown:
+        got = res["methods"][m]["std"]
+        cells = []
+        for k in COMBINATION_NAMES:
+            p, o = pred[m].get(k), got.get(k)
+            ratio = f" ({o / p:.2f}x)" if p and o else ""
+            cells.append(f"{mm(p, 4)} / {mm(o, 4)}{ratio}")
+        rows.append([m, *cells])
+    motion = prediction.get("motion_time_s") if prediction else None
+    return section(
+        "predicted",
+        title,
+        "What the run's plan was predicted to buy before it moved (docs/design.md: the methods' uncertainty models at "
+        "the noise levels measured on the image-level twin), beside the standard deviation each method reports: "
+        "predicted / obtained in mm, obtained over predicted in brackets. A ratio far from 1 says the run's data "
+        "were noisier (or cleaner) than the model's, or that the plan lost frames."
+        + ("" if motion is None else f" Predicted motion time: {motion / 60:.1f} min."),
+        table(["method", *(f"{k} (mm)" for k in COMBINATION_NAMES)], rows, cls="data wide"),
+    )
 
 
 def _combinations(res: dict, methods: list[str]) -> Raw:

@@ -68,6 +68,7 @@ def inputs_from_run(data_dir: Path, run: Any, methods: list[str] | None = None) 
         run=run_metadata(run),
         source=f"run {run.id}",
         methods=methods,
+        prediction=run.prediction,
     )
 
 

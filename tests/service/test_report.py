@@ -254,6 +254,32 @@ async def test_api_report_route_and_cli_run_modes(service, dataset, tmp_path, mo
     assert await asyncio.to_thread(main, ["report", rid0, "--server", service.url, "-o", str(out2), "--quiet"]) == 2
 
 
+def test_report_sets_the_runs_prediction_beside_the_reported_std(built):
+    """A run's prediction before motion (Run.prediction) stands beside each method's reported std, with their
+    ratio; a report not made from a run says why there is none."""
+    import dataclasses
+
+    inputs, html, _ = built
+
+    def predicted(doc: str) -> str:
+        sec = doc[doc.index('<section id="predicted">') :]
+        return sec[: sec.index("</section>")]
+
+    assert "Not available: the report was not made from a run on the bench" in predicted(html)
+    std = inputs.result["methods"]["combined"]["std"]
+    pred = {"combined": {k: 2 * v for k, v in std.items()}, "legs": {k: 1.0 for k in COMBINATION_NAMES}}
+    doc = build_report(
+        dataclasses.replace(inputs, prediction={"predicted_std_m": pred, "motion_time_s": 300.0}, methods=["combined"]),
+        max_frames=0,
+    )
+    sec = predicted(doc)
+    for k in COMBINATION_NAMES:
+        assert f"{2 * std[k] * 1e3:.4f} / {std[k] * 1e3:.4f} (0.50x)" in sec, (k, sec)
+    assert "Predicted motion time: 5.0 min" in sec and "legs" not in sec  # only the methods shown
+    doc = build_report(dataclasses.replace(inputs, prediction={"error": "RuntimeError: boom"}), max_frames=0)
+    assert "Not available: RuntimeError: boom" in predicted(doc)
+
+
 def test_conditions_show_the_combined_fits_noise_scale_and_the_rods_shared_errors():
     """An image run's combined fit weighs the rods by their own covariances (GLS): its noise figure is a scale on
     them, not an angle (it was shown as degrees: 0.56 read as 32 deg); the rods' shared errors are shown too."""
