@@ -23,7 +23,7 @@ from .predict import METHODS, DesignNoise, Prediction, predict_plan
 from .predict_images import ImageNoise
 from .scene import Scene, visibility
 
-__all__ = ["BOARD_PHASES", "EXTRACTION_MIN_ROD_PX", "PlanCheck", "check_plan"]
+__all__ = ["BOARD_PHASES", "EXTRACTION_MIN_ROD_PX", "PlanCheck", "check_plan", "measured_plan"]
 
 #: phases whose frames are measured by the board (a frame without the board in view gives them nothing)
 BOARD_PHASES = ("rotation", "translation", "poses", "validation")
@@ -89,6 +89,14 @@ def _unseen_steps(plan: Plan, nominal: I4Parameters, scene: Scene) -> list[dict[
     return out
 
 
+def measured_plan(plan: Plan, nominal: I4Parameters, scene: Scene) -> tuple[Plan, list[dict[str, Any]]]:
+    """What the camera will measure of a plan: the plan without its board-phase steps whose board is out of view
+    (they give no board pose), and every step not seen in full (:class:`PlanCheck`'s ``unseen``)."""
+    unseen = _unseen_steps(plan, nominal, scene)
+    blind = {u["step"] for u in unseen if not u["board"] and u["phase"] in BOARD_PHASES}
+    return plan.model_copy(update={"steps": [s for i, s in enumerate(plan.steps) if i not in blind]}), unseen
+
+
 def check_plan(
     plan: Plan,
     nominal: I4Parameters,
@@ -118,9 +126,8 @@ def check_plan(
     -------
     PlanCheck
     """
-    unseen = _unseen_steps(plan, nominal, scene)
+    measured, unseen = measured_plan(plan, nominal, scene)
     blind = {u["step"] for u in unseen if not u["board"] and u["phase"] in BOARD_PHASES}
-    measured = plan.model_copy(update={"steps": [s for i, s in enumerate(plan.steps) if i not in blind]})
     pred = predict_plan(measured, nominal, scene, noise, methods=methods)
     notes = []
     if blind:
