@@ -15,10 +15,11 @@ from typing import Any
 
 import numpy as np
 
+from ..errors import InputError
 from ..parameters import I4Parameters
 from ..plan import Plan
 from .motion import MotionSpec, plan_motion_time
-from .optimize import shading_note
+from .optimize import N_FIT_MOST, shading_note
 from .predict import METHODS, DesignNoise, Prediction, predict_plan
 from .predict_images import ImageNoise
 from .scene import Scene, visibility
@@ -29,6 +30,12 @@ __all__ = ["BOARD_PHASES", "EXTRACTION_MIN_ROD_PX", "PlanCheck", "check_plan", "
 BOARD_PHASES = ("rotation", "translation", "poses", "validation")
 #: the extraction's shortest rod, pixels (``calib.vision.rods``: a shorter visible part is not measured)
 EXTRACTION_MIN_ROD_PX = 40.0
+#: the most frames of the predicted phases (sweeps, fit poses, lock phases) a plan is predicted for: the image-level
+#: prediction's cost grows faster than the square of the rods (200 fit poses 7.5 s, 1000 fit poses 5 min on 2 cores)
+MAX_PREDICTED_FRAMES = 400
+_PREDICTED_PHASES = ("rotation", "translation", "poses", "lock-1", "lock-2", "lock-3", "lock-4")
+#: steps whose visibility is computed at once (its arrays grow as steps x 64 rod pairs x 64 samples)
+_VISIBILITY_CHUNK = 256
 
 
 @dataclass
@@ -79,14 +86,33 @@ def _unseen_steps(plan: Plan, nominal: I4Parameters, scene: Scene) -> list[dict[
     if not idx:
         return []
     q = np.array([plan.steps[i].q for i in idx], dtype=np.float64)
-    v = visibility(scene, nominal, q)
     out = []
-    for k, i in enumerate(idx):
-        legs, rods = np.nonzero(v["rod_px"][k] < EXTRACTION_MIN_ROD_PX)
-        hidden = [f"{leg + 1}.{rod + 1}" for leg, rod in zip(legs, rods, strict=True)]
-        if not v["board"][k] or hidden:
-            out.append({"step": i, "phase": plan.steps[i].phase, "board": bool(v["board"][k]), "rods_hidden": hidden})
+    for c0 in range(0, len(idx), _VISIBILITY_CHUNK):
+        v = visibility(scene, nominal, q[c0 : c0 + _VISIBILITY_CHUNK])
+        for k, i in enumerate(idx[c0 : c0 + _VISIBILITY_CHUNK]):
+            legs, rods = np.nonzero(v["rod_px"][k] < EXTRACTION_MIN_ROD_PX)
+            hidden = [f"{leg + 1}.{rod + 1}" for leg, rod in zip(legs, rods, strict=True)]
+            if not v["board"][k] or hidden:
+                out.append(
+                    {"step": i, "phase": plan.steps[i].phase, "board": bool(v["board"][k]), "rods_hidden": hidden}
+                )
     return out
+
+
+def _check_size(plan: Plan) -> None:
+    """Refuse a plan too large to predict in reasonable time, naming what is over."""
+    counts = plan.count()
+    if counts.get("poses", 0) > N_FIT_MOST:
+        raise InputError(
+            f"{counts['poses']} fit poses: a prediction takes at most {N_FIT_MOST} (what a design takes)",
+            field="steps",
+        )
+    n = sum(counts.get(ph, 0) for ph in _PREDICTED_PHASES)
+    if n > MAX_PREDICTED_FRAMES:
+        raise InputError(
+            f"{n} frames in the sweeps, fit poses and lock phases: a prediction takes at most {MAX_PREDICTED_FRAMES}",
+            field="steps",
+        )
 
 
 def measured_plan(plan: Plan, nominal: I4Parameters, scene: Scene) -> tuple[Plan, list[dict[str, Any]]]:
@@ -125,7 +151,14 @@ def check_plan(
     Returns
     -------
     PlanCheck
+
+    Raises
+    ------
+    InputError
+        The plan is too large to predict (more than ``N_FIT_MOST`` fit poses or :data:`MAX_PREDICTED_FRAMES` frames
+        in the predicted phases), naming ``steps``.
     """
+    _check_size(plan)
     measured, unseen = measured_plan(plan, nominal, scene)
     blind = {u["step"] for u in unseen if not u["board"] and u["phase"] in BOARD_PHASES}
     pred = predict_plan(measured, nominal, scene, noise, methods=methods)

@@ -365,6 +365,8 @@ async def predict(body: PredictBody, request: Request, manager: Manager, _: Read
                 asyncio.to_thread(check_for_bench, manager.bench.config, plan, None, tuple(dict.fromkeys(body.methods)))
             )
             check = await _finish_even_if_abandoned(work)
+    except InputError as exc:
+        raise unprocessable(exc, ("body", "plan")) from None
     except I4calError as exc:
         raise unprocessable(InputError(str(exc), field="plan")) from None
     finally:

@@ -6,6 +6,8 @@ import numpy as np
 import pytest
 
 from calib.design import MotionSpec, check_plan, plan_motion_time, predict_plan, targets_from_plan, visibility
+from calib.design.check import MAX_PREDICTED_FRAMES
+from calib.errors import InputError
 from calib.kinematics import ikm
 from calib.parameters import NOMINAL
 from calib.plan import Plan, SoftLimits, Step, make_plan, random_poses, validate_plan
@@ -72,3 +74,30 @@ def test_a_plan_that_feeds_no_method_says_why(scene, noise):
     assert check.prediction.std == {}
     assert set(check.prediction.errors) == {"combined", "end-effector", "legs"}
     assert all("fit poses" in why for why in check.prediction.errors.values())
+
+
+def test_a_plan_too_large_to_predict_is_refused_at_once(scene, noise):
+    """The image-level prediction's cost grows faster than the square of the rods (1000 fit poses: 5 min): more fit
+    poses than a design takes, or more predicted frames than MAX_PREDICTED_FRAMES, is an error naming the steps."""
+    full = make_plan("full", NOMINAL)
+    q = ikm(NOMINAL, random_poses(NOMINAL, 201, np.random.default_rng(1), limits=LIMITS))
+    many = Plan(name="many", steps=[*full.steps, *(Step(phase="poses", q=x) for x in q.tolist())])
+    with pytest.raises(InputError, match="221 fit poses: a prediction takes at most 200") as err:
+        check_plan(many, NOMINAL, scene, noise, MOTION)
+    assert err.value.field == "steps"
+    lock = [s for s in full.steps if s.phase == "lock-1"]
+    heavy = Plan(name="heavy", steps=[*full.steps, *lock * (MAX_PREDICTED_FRAMES // len(lock))])
+    with pytest.raises(InputError, match=f"at most {MAX_PREDICTED_FRAMES}"):
+        check_plan(heavy, NOMINAL, scene, noise, MOTION)
+
+
+def test_steps_beyond_a_visibility_chunk_are_named_by_their_own_index(scene, noise):
+    """Visibility is computed 256 steps at a time (its arrays grow as steps x 64 x 64): a blind step after 300
+    validation steps is still named by its index in the plan."""
+    full = make_plan("full", NOMINAL)
+    q = ikm(NOMINAL, random_poses(NOMINAL, 300, np.random.default_rng(2), limits=LIMITS))
+    seen = visibility(scene, NOMINAL, q)["board"]
+    extra = [Step(phase="validation", q=x) for x in q[seen].tolist()]
+    plan = Plan(name="long", steps=[*full.steps, *extra, Step(phase="validation", q=_board_out_of_view(scene, 1)[0])])
+    check = check_plan(plan, NOMINAL, scene, noise, MOTION, methods=("combined",))
+    assert [u["step"] for u in check.unseen if not u["board"]] == [len(plan.steps) - 1]
