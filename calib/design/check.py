@@ -24,7 +24,15 @@ from .predict import METHODS, DesignNoise, Prediction, predict_plan
 from .predict_images import ImageNoise
 from .scene import Scene, visibility
 
-__all__ = ["BOARD_PHASES", "EXTRACTION_MIN_ROD_PX", "PlanCheck", "check_plan", "measured_plan"]
+__all__ = [
+    "BOARD_PHASES",
+    "EXTRACTION_MIN_ROD_PX",
+    "MAX_PREDICTED_FRAMES",
+    "PlanCheck",
+    "check_plan",
+    "check_size",
+    "measured_plan",
+]
 
 #: phases whose frames are measured by the board (a frame without the board in view gives them nothing)
 BOARD_PHASES = ("rotation", "translation", "poses", "validation")
@@ -99,7 +107,7 @@ def _unseen_steps(plan: Plan, nominal: I4Parameters, scene: Scene) -> list[dict[
     return out
 
 
-def _check_size(plan: Plan) -> None:
+def check_size(plan: Plan) -> None:
     """Refuse a plan too large to predict in reasonable time, naming what is over."""
     counts = plan.count()
     if counts.get("poses", 0) > N_FIT_MOST:
@@ -158,7 +166,7 @@ def check_plan(
         The plan is too large to predict (more than ``N_FIT_MOST`` fit poses or :data:`MAX_PREDICTED_FRAMES` frames
         in the predicted phases), naming ``steps``.
     """
-    _check_size(plan)
+    check_size(plan)
     measured, unseen = measured_plan(plan, nominal, scene)
     blind = {u["step"] for u in unseen if not u["board"] and u["phase"] in BOARD_PHASES}
     pred = predict_plan(measured, nominal, scene, noise, methods=methods)

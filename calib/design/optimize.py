@@ -894,8 +894,9 @@ def targets_from_plan(
     steps whose board is out of view (:func:`.check.measured_plan`), which would make the target stricter than the
     reference gives.
     """
-    from .check import measured_plan  # check builds on this module
+    from .check import check_size, measured_plan  # check builds on this module
 
+    check_size(plan)
     pred = predict_plan(measured_plan(plan, nominal, scene)[0], nominal, scene, noise)
     if method not in pred.std:
         why = pred.errors.get(method, "no prediction")

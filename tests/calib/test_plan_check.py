@@ -85,6 +85,8 @@ def test_a_plan_too_large_to_predict_is_refused_at_once(scene, noise):
     with pytest.raises(InputError, match="221 fit poses: a prediction takes at most 200") as err:
         check_plan(many, NOMINAL, scene, noise, MOTION)
     assert err.value.field == "steps"
+    with pytest.raises(InputError, match="221 fit poses"):  # as a reference to design against, too
+        targets_from_plan(many, NOMINAL, scene, noise)
     lock = [s for s in full.steps if s.phase == "lock-1"]
     heavy = Plan(name="heavy", steps=[*full.steps, *lock * (MAX_PREDICTED_FRAMES // len(lock))])
     with pytest.raises(InputError, match=f"at most {MAX_PREDICTED_FRAMES}"):
