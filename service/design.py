@@ -165,7 +165,7 @@ def run_prediction(cfg, plan_doc: dict[str, Any], methods: list[str]) -> dict[st
         "motion_time_s": check.motion["total_s"],
         "unseen": check.unseen,
         "notes": check.notes,
-        "noise": "the image-level model of the simulated bench's camera",
+        "noise": "the image-level model of the simulated bench's camera and mounting (docs/design.md)",
     }
 
 

@@ -89,6 +89,9 @@ class RunPrediction(BaseModel):
         description="steps the camera will not see in full: step, phase, board (in view), rods_hidden",
     )
     notes: list[str] = Field(default_factory=list)
+    noise: str | None = Field(
+        None, description="the noise model the prediction assumes (the camera's placement is the simulated bench's)"
+    )
     error: str | None = Field(None, description="why there is no prediction (it never fails the run)")
 
 
