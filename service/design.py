@@ -206,7 +206,14 @@ def check_lines(check, breakdown: bool = False) -> list[str]:
     out = [f"plan {check.plan_name}: " + ", ".join(f"{k} {v}" for k, v in check.counts.items())]
     out += prediction_lines(check.prediction, check.motion, breakdown)
     for u in check.unseen:
-        what = [] if u["board"] else ["board out of view"]
+        c = u.get("board_corners", 0)
+        what = (
+            []
+            if u["board"]
+            else [f"board partly out of view ({c} corners in the image)"]
+            if c >= 6
+            else [f"board out of view ({c} corners in the image: no board pose)"]
+        )
         if u["rods_hidden"]:
             what.append("rods " + ", ".join(u["rods_hidden"]) + " hidden or out of the image")
         out.append(f"  step {u['step']} ({u['phase']}): " + "; ".join(what))

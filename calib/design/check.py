@@ -1,9 +1,10 @@
 """A plan the user already has (the routine in use, the paper's, a colleague's file): what it will buy before motion.
 
 :func:`check_plan` gives, for a plan as it is, each method's predicted std per combination, the motion time and the
-steps the camera will not see. The prediction counts only what will be measured: a step whose board is out of view
-(or turned away) gives no board pose, so the board phases (the sweeps, the fit poses, validation) are predicted
-without it, and the rods each method gets are those in view (the image-level model keeps every rod of at least the
+steps the camera will not see. The prediction counts only what will be measured: a step with fewer than the extraction's
+6 board corners in the image (or the board turned away) gives no board pose, so the board phases (the sweeps, the fit
+poses, validation) are predicted without it (a board partly in view is measured from the corners in view: counted,
+and said), and the rods each method gets are those in view (the image-level model keeps every rod of at least the
 extraction's 40 px). A design (:func:`.optimize.design_plan`) only ever picks steps in view; a plan written by hand
 or for another camera may not be.
 """
@@ -16,8 +17,10 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from ..kinematics import dkm
 from ..parameters import I4Parameters
 from ..plan import Plan
+from .imaging import board_corners
 from .motion import MotionSpec, plan_motion_time
 from .optimize import N_FIT_MOST, shading_note
 from .predict import METHODS, DesignNoise, Prediction, predict_plan
@@ -36,6 +39,10 @@ __all__ = [
 
 #: phases whose frames are measured by the board (a frame without the board in view gives them nothing)
 BOARD_PHASES = ("rotation", "translation", "poses", "validation")
+#: the fewest inner corners the extraction makes a board pose from (``calib.vision.board.DEFAULT_MIN_CORNERS``)
+MIN_BOARD_CORNERS = 6
+#: margin (px) from the image border within which a corner counts as in view (the corner refinement's window)
+_CORNER_MARGIN_PX = 5.0
 #: the extraction's shortest rod, pixels (``calib.vision.rods``: a shorter visible part is not measured)
 EXTRACTION_MIN_ROD_PX = 40.0
 #: the most frames of the predicted phases (sweeps, fit poses, lock phases) a plan is predicted for: the image-level
@@ -56,14 +63,17 @@ class PlanCheck:
     counts : dict
         Frames per phase as planned.
     measured_counts : dict
-        Frames per phase the prediction counts: the board phases without their steps whose board is out of view.
+        Frames per phase the prediction counts: the board phases without their steps with fewer than
+        :data:`MIN_BOARD_CORNERS` of the board's corners in view.
     prediction : Prediction
         Per method, the predicted std per combination (m) and its sources.
     motion : dict
         ``total_s`` and ``per_phase_s``: the motion time as planned, seconds.
     unseen : list of dict
-        Per step the camera will not see in full: ``step`` (index in the plan), ``phase``, ``board`` (in view),
-        ``rods_hidden`` (the rods, ``"leg.rod"`` numbered from 1, below the extraction's 40 px).
+        Per step the camera will not see in full: ``step`` (index in the plan), ``phase``, ``board`` (wholly in
+        view, margin included), ``board_corners`` (its inner corners in the image, the board facing the camera;
+        fewer than :data:`MIN_BOARD_CORNERS`: no board pose), ``rods_hidden`` (the rods, ``"leg.rod"`` numbered
+        from 1, below the extraction's 40 px).
     notes : list of str
     """
 
@@ -88,8 +98,28 @@ class PlanCheck:
         }
 
 
+def _corners_in_view(scene: Scene, nominal: I4Parameters, q: np.ndarray) -> np.ndarray:
+    """Per pose (N,), how many of the board's inner corners are in the image, the board facing the camera."""
+    pts = board_corners(scene)
+    cam = scene.camera
+    out = np.zeros(len(q), dtype=int)
+    for k, cb in enumerate(scene.camera_from_board(nominal, dkm(nominal, q))):
+        pc = cb.apply(pts)
+        if float(cb.R[:, 2] @ cb.t) <= 0.0 or np.any(pc[:, 2] <= 0.05):  # turned away, or at the camera
+            continue
+        px = cam.project(pc)
+        m = _CORNER_MARGIN_PX
+        out[k] = int(
+            np.sum(
+                (px[:, 0] >= m) & (px[:, 1] >= m) & (px[:, 0] <= cam.width - 1 - m) & (px[:, 1] <= cam.height - 1 - m)
+            )
+        )
+    return out
+
+
 def _unseen_steps(plan: Plan, nominal: I4Parameters, scene: Scene) -> list[dict[str, Any]]:
-    """The steps (with joint values) whose board is out of view or with a rod below the extraction's minimum."""
+    """The steps (with joint values) whose board is not wholly in view or with a rod below the extraction's
+    minimum; each with how many of the board's inner corners are in view."""
     idx = [i for i, s in enumerate(plan.steps) if s.q is not None]
     if not idx:
         return []
@@ -104,6 +134,14 @@ def _unseen_steps(plan: Plan, nominal: I4Parameters, scene: Scene) -> list[dict[
                 out.append(
                     {"step": i, "phase": plan.steps[i].phase, "board": bool(v["board"][k]), "rods_hidden": hidden}
                 )
+    blind = [u for u in out if not u["board"]]
+    if blind:
+        n = _corners_in_view(scene, nominal, np.array([plan.steps[u["step"]].q for u in blind], dtype=np.float64))
+        for u, c in zip(blind, n.tolist(), strict=True):
+            u["board_corners"] = c
+    n_all = len(board_corners(scene))
+    for u in out:
+        u.setdefault("board_corners", n_all)
     return out
 
 
@@ -127,7 +165,7 @@ def measured_plan(plan: Plan, nominal: I4Parameters, scene: Scene) -> tuple[Plan
     """What the camera will measure of a plan: the plan without its board-phase steps whose board is out of view
     (they give no board pose), and every step not seen in full (:class:`PlanCheck`'s ``unseen``)."""
     unseen = _unseen_steps(plan, nominal, scene)
-    blind = {u["step"] for u in unseen if not u["board"] and u["phase"] in BOARD_PHASES}
+    blind = {u["step"] for u in unseen if u["board_corners"] < MIN_BOARD_CORNERS and u["phase"] in BOARD_PHASES}
     return plan.model_copy(update={"steps": [s for i, s in enumerate(plan.steps) if i not in blind]}), unseen
 
 
@@ -168,7 +206,8 @@ def check_plan(
     """
     check_size(plan)
     measured, unseen = measured_plan(plan, nominal, scene)
-    blind = {u["step"] for u in unseen if not u["board"] and u["phase"] in BOARD_PHASES}
+    blind = {u["step"] for u in unseen if u["board_corners"] < MIN_BOARD_CORNERS and u["phase"] in BOARD_PHASES}
+    partial = [u for u in unseen if not u["board"] and u["step"] not in blind and u["phase"] in BOARD_PHASES]
     pred = predict_plan(measured, nominal, scene, noise, methods=methods)
     notes = []
     if blind:
@@ -176,9 +215,15 @@ def check_plan(
         for i in sorted(blind):
             per[plan.steps[i].phase] = per.get(plan.steps[i].phase, 0) + 1
         notes.append(
-            "the board is out of view in "
+            f"fewer than {MIN_BOARD_CORNERS} of the board's corners in view in "
             + ", ".join(f"{n} {ph} step{'s' if n > 1 else ''}" for ph, n in per.items())
             + ": predicted without them (they give no board pose); the steps are listed in 'unseen'"
+        )
+    if partial:
+        notes.append(
+            f"the board partly out of view in {len(partial)} step{'s' if len(partial) > 1 else ''} (some corners or "
+            "its margin outside the image): the extraction measures the corners in view, the prediction counts them "
+            "all there (slightly optimistic for those steps); listed in 'unseen' with 'board_corners'"
         )
     hidden = [u for u in unseen if u["rods_hidden"]]
     if hidden:

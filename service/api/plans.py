@@ -115,7 +115,10 @@ class PredictBody(BaseModel):
 class UnseenStep(BaseModel):
     step: int = Field(description="index of the step in the plan")
     phase: str
-    board: bool = Field(description="the board in view (facing the camera, inside the image)")
+    board: bool = Field(description="the board wholly in view, its margin included (facing the camera)")
+    board_corners: int = Field(
+        description="the board's inner corners in the image (fewer than 6: no board pose, left out of the prediction)"
+    )
     rods_hidden: list[str] = Field(description="rods ('leg.rod', from 1) shorter than the extraction's 40 px")
 
 

@@ -22,8 +22,9 @@ API = "/api/v1"
 BENCH_SIM = Path(__file__).resolve().parents[2] / "deploy" / "bench-sim.toml"
 
 
-def _plan_with_blind_fit_poses(n: int) -> Plan:
-    """The paper's plan with ``n`` more fit poses (within the limits, reachable) whose board is out of view."""
+def _plan_with_partly_seen_fit_poses(n: int) -> Plan:
+    """The paper's plan with ``n`` more fit poses (within the limits, reachable) whose board's margin leaves the
+    image (its corners stay in view: tests/calib/test_plan_check.py has boards the camera cannot measure)."""
     scene = twin_scene()
     q = ikm(NOMINAL, random_poses(NOMINAL, 3000, np.random.default_rng(3), limits=SoftLimits()))
     blind = q[~visibility(scene, NOMINAL, q)["board"]][:n]
@@ -39,19 +40,20 @@ def test_cli_predicts_a_plan_name_and_a_plan_file(tmp_path, capsys):
     assert "predicted std (mm)" in out and "motion time" in out
     rows = {ln.split()[0]: ln for ln in out.splitlines() if ln.startswith("  ") and "|" in ln}
     assert {"combined", "end-effector", "legs"} <= set(rows), out
-    # a file with fit poses the camera will not see: listed by step, and said in the notes
+    # a file with fit poses the camera will not see in full: listed by step, and said in the notes
     path = tmp_path / "mine.json"
-    plan = _plan_with_blind_fit_poses(2)
+    plan = _plan_with_partly_seen_fit_poses(2)
     plan.save(path)
     assert main(["plan", "predict", str(path), "--bench", str(BENCH_SIM), "--methods", "combined", "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     n = len(plan.steps)
     assert [u["step"] for u in doc["unseen"]] == [n - 2, n - 1] and not doc["unseen"][0]["board"]
-    assert doc["counts"]["poses"] == 22 and doc["measured_counts"]["poses"] == 20
+    assert doc["unseen"][0]["board_corners"] == 15 and doc["measured_counts"]["poses"] == 22  # measured, counted
+    assert any("partly out of view in 2 steps" in n for n in doc["notes"]), doc["notes"]
     assert set(doc["prediction"]["std_m"]) == {"combined"} and doc["motion"]["total_s"] > 0
     assert main(["plan", "predict", str(path), "--bench", str(BENCH_SIM)]) == 0
     out = capsys.readouterr().out
-    assert f"  step {n - 1} (poses): board out of view" in out, out
+    assert f"  step {n - 1} (poses): board partly out of view (15 corners in the image)" in out, out
     # user mistakes: one line naming the option or the file, exit status 2
     assert main(["plan", "predict", "full", "--bench", str(BENCH_SIM), "--methods", "combined,magic"]) == 2
     assert "--methods" in capsys.readouterr().err
@@ -71,15 +73,17 @@ async def test_api_predicts_the_plan_a_run_would_execute(service):
         *(c.post(f"{API}/plans/predict", json={"plan": p}, headers=AUTH) for p in ("full", "pose-set"))
     )
     assert [x.status_code for x in both] == [200, 200] and both[1].json()["plan"] == "pose-set"
-    # an inline plan with fit poses out of view: listed, not counted
-    plan = _plan_with_blind_fit_poses(1)
+    # an inline plan with a fit pose whose board is partly out of view: listed with its corners in view
+    plan = _plan_with_partly_seen_fit_poses(1)
     r = await c.post(
         f"{API}/plans/predict", json={"plan": plan.model_dump(mode="json", exclude_none=True)}, headers=AUTH
     )
     assert r.status_code == 200, r.text
     d = r.json()
-    assert d["unseen"] == [{"step": len(plan.steps) - 1, "phase": "poses", "board": False, "rods_hidden": []}]
-    assert d["measured_counts"]["poses"] == d["counts"]["poses"] - 1
+    assert d["unseen"] == [
+        {"step": len(plan.steps) - 1, "phase": "poses", "board": False, "board_corners": 15, "rods_hidden": []}
+    ]
+    assert d["measured_counts"] == d["counts"]
     # an invalid plan: 422 naming the field
     bad = plan.model_dump(mode="json", exclude_none=True)
     bad["steps"][3]["q"] = [9.0, 0.0, 0.0, 0.0]
