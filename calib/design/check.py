@@ -124,7 +124,7 @@ def _unseen_steps(plan: Plan, nominal: I4Parameters, scene: Scene) -> list[dict[
     if not idx:
         return []
     q = np.array([plan.steps[i].q for i in idx], dtype=np.float64)
-    out = []
+    out: list[dict[str, Any]] = []
     for c0 in range(0, len(idx), _VISIBILITY_CHUNK):
         v = visibility(scene, nominal, q[c0 : c0 + _VISIBILITY_CHUNK])
         for k, i in enumerate(idx[c0 : c0 + _VISIBILITY_CHUNK]):
@@ -136,7 +136,8 @@ def _unseen_steps(plan: Plan, nominal: I4Parameters, scene: Scene) -> list[dict[
                 )
     blind = [u for u in out if not u["board"]]
     if blind:
-        n = _corners_in_view(scene, nominal, np.array([plan.steps[u["step"]].q for u in blind], dtype=np.float64))
+        qb = np.array([plan.steps[int(u["step"])].q for u in blind], dtype=np.float64)
+        n = _corners_in_view(scene, nominal, qb)
         for u, c in zip(blind, n.tolist(), strict=True):
             u["board_corners"] = c
     n_all = len(board_corners(scene))
