@@ -31,8 +31,13 @@ def parse_length(text: str | float, field: str = "target-std") -> float:
     return value
 
 
-def twin_scene():
-    """The camera, its mounting, the board and the rods of the simulated bench (calib.design.Scene)."""
+def twin_scene(camera=None):
+    """The camera, its mounting, the board and the rods of the simulated bench (calib.design.Scene).
+
+    ``camera``: a ``calib.camera.CameraModel`` (the bench's own: intrinsics, lens, image size, e.g. a camera file of
+    ``i4cal extract``) in place of the twin's, at the twin's mounting (a bench file does not hold the camera's
+    placement).
+    """
     from calib.design import Scene
     from drivers.sim.render import RenderSettings
     from drivers.sim.twin import BenchGeometry
@@ -40,7 +45,7 @@ def twin_scene():
     g = BenchGeometry()
     rs = RenderSettings()
     return Scene(
-        camera=rs.camera(),
+        camera=camera if camera is not None else rs.camera(),
         camera_from_base=g.camera_from_base,
         ee_from_board=g.ee_from_board,
         board_size_m=rs.board.size_m,
@@ -57,13 +62,14 @@ def twin_scene():
 CALIBRATION_CORNER_PX = 0.05
 
 
-def twin_image_noise(views: int = 30, seed: int = 0, **levels: Any):
+def twin_image_noise(views: int = 30, seed: int = 0, camera=None, **levels: Any):
     """The image-level prediction's noise for the simulated bench (``calib.design.ImageNoise``).
 
     Its levels are :class:`calib.design.ImageNoise`'s defaults (measured on the image-level twin, docs/design.md)
     unless given in ``levels``; the camera's calibration covariance is that of ``views`` board views of the twin's
     camera phase (``BenchRenderer.random_board_views``, the views ``simulate_dataset`` renders for ``seed``) at
-    :data:`CALIBRATION_CORNER_PX`, the lens model being the twin's (k1, k2, p1, p2, k3).
+    :data:`CALIBRATION_CORNER_PX`, the lens model being the twin's (k1, k2, p1, p2, k3). ``camera``: the bench's own
+    camera (:func:`twin_scene`), whose calibration is then predicted from those views.
     """
     import numpy as np
 
@@ -74,7 +80,7 @@ def twin_image_noise(views: int = 30, seed: int = 0, **levels: Any):
     noise = ImageNoise(**levels)
     renderer = BenchRenderer(BenchGeometry(), RenderSettings(), seed=seed)
     v = renderer.random_board_views(views, np.random.default_rng([seed, 7]))
-    cov = calibration_covariance(twin_scene(), v, CALIBRATION_CORNER_PX, noise.intrinsics_names)
+    cov = calibration_covariance(twin_scene(camera), v, CALIBRATION_CORNER_PX, noise.intrinsics_names)
     return noise.with_intrinsics(cov)
 
 
@@ -91,62 +97,66 @@ def motion_spec(cfg) -> Any:
     )
 
 
-def _bench_inputs(cfg, noise=None) -> tuple[Any, Any, dict[str, Any]]:
-    """A bench configuration's nominal geometry, the twin's scene, and ``calib.design.design_plan``'s keywords (soft
-    limits, motion, noise; the noise by default the image-level model of the twin's camera)."""
+def _bench_inputs(cfg, noise=None, camera=None) -> tuple[Any, Any, dict[str, Any]]:
+    """A bench configuration's nominal geometry, the twin's scene (with ``camera``, the bench's own camera, when
+    given), and ``calib.design.design_plan``'s keywords (soft limits, motion, noise; the noise by default the
+    image-level model of that camera)."""
     kw = {
         "limits": cfg.calib_limits(),
         "motion": motion_spec(cfg),
-        "noise": noise if noise is not None else twin_image_noise(),
+        "noise": noise if noise is not None else twin_image_noise(camera=camera),
     }
-    return cfg.nominal_parameters(), twin_scene(), kw
+    return cfg.nominal_parameters(), twin_scene(camera), kw
 
 
-def design_for_bench(cfg, request, noise=None, status=None):
+def design_for_bench(cfg, request, noise=None, status=None, camera=None):
     """Design a plan for a bench configuration; returns ``calib.design.DesignResult``.
 
     ``noise``: ``calib.design.DesignNoise`` or ``ImageNoise``; default: the image-level model of the twin's camera
     (:func:`twin_image_noise`), what the methods' uncertainty is on images. ``status``: called with what the design
-    is doing (``calib.design.design_plan``).
+    is doing (``calib.design.design_plan``). ``camera``: the bench's own camera (:func:`twin_scene`).
     """
     from calib.design import design_plan
 
-    nominal, scene, kw = _bench_inputs(cfg, noise)
+    nominal, scene, kw = _bench_inputs(cfg, noise, camera)
     return design_plan(nominal, scene, request, status=status, **kw)
 
 
-def tradeoff_for_bench(cfg, request, counts, noise=None, progress=None):
+def tradeoff_for_bench(cfg, request, counts, noise=None, progress=None, camera=None):
     """:func:`calib.design.design_tradeoff` on a bench configuration, the scene and noise of
     :func:`design_for_bench`: ``(rows, results)``, one design per count."""
     from calib.design import design_tradeoff
 
-    nominal, scene, kw = _bench_inputs(cfg, noise)
+    nominal, scene, kw = _bench_inputs(cfg, noise, camera)
     return design_tradeoff(nominal, scene, request, counts, progress=progress, **kw)
 
 
-def reference_targets(cfg, plan, noise=None, methods=("combined",)) -> dict[str, tuple[float, float, float, float]]:
+def reference_targets(
+    cfg, plan, noise=None, methods=("combined",), camera=None
+) -> dict[str, tuple[float, float, float, float]]:
     """Per method, the predicted std (m) per combination of a reference plan on this bench (the scene and noise of
     :func:`design_for_bench`): targets for a design at least as accurate on every combination of every method."""
     from calib.design import targets_from_plan
 
-    scene, nz = twin_scene(), noise if noise is not None else twin_image_noise()
+    scene, nz = twin_scene(camera), noise if noise is not None else twin_image_noise(camera=camera)
     return {m: targets_from_plan(plan, cfg.nominal_parameters(), scene, nz, method=m) for m in methods}
 
 
-def check_for_bench(cfg, plan, noise=None, methods=None):
+def check_for_bench(cfg, plan, noise=None, methods=None, camera=None):
     """:func:`calib.design.check_plan` on a bench configuration, the scene and noise of :func:`design_for_bench`: a
     plan's predicted std per method and combination, its motion time, the steps the camera will not see.
 
-    ``methods``: those of the design's (``calib.design.METHODS``) to predict; default all of them.
+    ``methods``: those of the design's (``calib.design.METHODS``) to predict; default all of them. ``camera``: the
+    bench's own camera (:func:`twin_scene`).
     """
     from calib.design import METHODS, check_plan
 
-    nominal, scene, kw = _bench_inputs(cfg, noise)
+    nominal, scene, kw = _bench_inputs(cfg, noise, camera)
     wanted = tuple(m for m in (methods or METHODS) if m in METHODS)
     return check_plan(plan, nominal, scene, kw["noise"], kw["motion"], methods=wanted)
 
 
-def run_prediction(cfg, plan_doc: dict[str, Any], methods: list[str]) -> dict[str, Any] | None:
+def run_prediction(cfg, plan_doc: dict[str, Any], methods: list[str], camera=None) -> dict[str, Any] | None:
     """What a run's plan is predicted to buy, stored with the run (``Run.prediction``, ``GET /api/v1/runs/{id}``):
     per method of the run that the design predicts, the std per combination (m), the methods it cannot predict and
     why, the motion time (s), the steps the camera will not see, the notes. None when no method of the run is
@@ -157,7 +167,7 @@ def run_prediction(cfg, plan_doc: dict[str, Any], methods: list[str]) -> dict[st
     wanted = tuple(m for m in methods if m in METHODS)
     if not wanted:
         return None
-    check = check_for_bench(cfg, Plan.model_validate(plan_doc), None, wanted)
+    check = check_for_bench(cfg, Plan.model_validate(plan_doc), None, wanted, camera)
     pred = check.prediction
     return {
         "predicted_std_m": pred.std,
@@ -165,7 +175,12 @@ def run_prediction(cfg, plan_doc: dict[str, Any], methods: list[str]) -> dict[st
         "motion_time_s": check.motion["total_s"],
         "unseen": check.unseen,
         "notes": check.notes,
-        "noise": "the image-level model of the simulated bench's camera and mounting (docs/design.md)",
+        "noise": (
+            "the image-level model of the simulated bench's camera and mounting (docs/design.md)"
+            if camera is None
+            else f"the image-level model with this service's camera ({camera.width} x {camera.height} px) at the "
+            "simulated bench's mounting (docs/design.md)"
+        ),
     }
 
 

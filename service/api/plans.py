@@ -300,7 +300,7 @@ async def _designed(
             targets: dict[str, Any] = {"target_std_m": body.target_std_m}
             if ref is not None:
                 methods = tuple(dict.fromkeys(body.methods))
-                refs = await asyncio.to_thread(reference_targets, bench.config, ref, None, methods)
+                refs = await asyncio.to_thread(reference_targets, bench.config, ref, None, methods, bench.camera_model)
                 targets = better_than_request(refs)
             req = _design_request(body, targets, settings)
             return await _finish_even_if_abandoned(
@@ -329,7 +329,8 @@ async def design(body: DesignBody, request: Request, manager: Manager, settings:
     Computed in a worker thread, one design at a time (the run's processes keep their cores)."""
     from ..design import design_for_bench
 
-    res = await _designed(body, request, manager, settings, design_for_bench)
+    camera = manager.bench.camera_model if manager.bench is not None else None
+    res = await _designed(body, request, manager, settings, lambda cfg, req: design_for_bench(cfg, req, camera=camera))
     pred = res.prediction
     return DesignOut(
         plan=res.plan.model_dump(mode="json", exclude_none=True),
@@ -365,7 +366,14 @@ async def predict(body: PredictBody, request: Request, manager: Manager, _: Read
     try:
         async with _lock(request, "predict_lock"):  # a prediction takes a second or two: they wait their turn
             work = asyncio.ensure_future(
-                asyncio.to_thread(check_for_bench, manager.bench.config, plan, None, tuple(dict.fromkeys(body.methods)))
+                asyncio.to_thread(
+                    check_for_bench,
+                    manager.bench.config,
+                    plan,
+                    None,
+                    tuple(dict.fromkeys(body.methods)),
+                    manager.bench.camera_model,
+                )
             )
             check = await _finish_even_if_abandoned(work)
     except InputError as exc:
@@ -427,7 +435,7 @@ async def tradeoff(
 
     def work(cfg: Any, req: Any) -> Any:
         asked["request"] = req
-        return tradeoff_for_bench(cfg, req, counts, progress=progress)
+        return tradeoff_for_bench(cfg, req, counts, progress=progress, camera=manager.bench.camera_model)
 
     rows, results = await _designed(body, request, manager, settings, work, stop)
     best = recommended_count(rows)

@@ -6,6 +6,18 @@ import argparse
 import json
 from typing import Any
 
+_CAMERA_HELP = (
+    "the bench's own camera (i4cal.camera/1: intrinsics, lens, image size; e.g. the camera file of i4cal extract) in "
+    "place of the simulated bench's, at its mounting: what is in view, and the image-level noise model"
+)
+
+
+def _camera(path: str | None):
+    """``--camera``: the camera model of a camera file, or None."""
+    from calib.camera import CameraModel
+
+    return None if path is None else CameraModel.load(path)
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("plan", help="plans: design one before motion (predicted accuracy, motion time)")
@@ -53,6 +65,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=5,
         help="frames per lock phase, 2-50 (default 5): the legs method's joints; --breakdown says when they limit it",
     )
+    a("--camera", default=None, metavar="FILE", help=_CAMERA_HELP)
     a(
         "--noise-from",
         default=None,
@@ -93,6 +106,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default="combined,end-effector,legs",
         help="methods to predict, any of combined,end-effector,legs (default: all three)",
     )
+    c.add_argument("--camera", default=None, metavar="FILE", help=_CAMERA_HELP)
     c.add_argument(
         "--noise-from",
         default=None,
@@ -140,7 +154,7 @@ def _predict(args: argparse.Namespace) -> int:
     methods = _methods(args.methods, "--methods")
     plan = _load_plan(args.plan, cfg, args.seed)
     validate_plan(plan, cfg.nominal_parameters(), cfg.calib_limits())
-    check = check_for_bench(cfg, plan, _noise_from(args.noise_from), methods)
+    check = check_for_bench(cfg, plan, _noise_from(args.noise_from), methods, _camera(args.camera))
     if args.json:
         print(json.dumps(to_jsonable(check.summary()), indent=1))
     else:
@@ -174,10 +188,11 @@ def _design(args: argparse.Namespace) -> int:
     if args.max_minutes is not None and not (0 < args.max_minutes < 1e5):
         raise InputError("must be > 0", field="--max-minutes")
     noise = _noise_from(args.noise_from)
+    camera = _camera(args.camera)
     methods = tuple(dict.fromkeys(m.strip() for m in args.methods.split(",") if m.strip()))
     targets: dict[str, Any] = {"target_std_m": target}
     if args.better_than is not None:
-        refs = reference_targets(cfg, Plan.load(args.better_than), noise, methods)
+        refs = reference_targets(cfg, Plan.load(args.better_than), noise, methods, camera)
         targets = better_than_request(refs)
         if not args.json:
             for m, ref in refs.items():
@@ -200,12 +215,14 @@ def _design(args: argparse.Namespace) -> int:
         n_lock=args.lock_frames,
     )
     if args.tradeoff is not None:
-        return _tradeoff(args, cfg, req, noise)
+        return _tradeoff(args, cfg, req, noise, camera)
     from ._output import make_console
 
     # a design takes seconds to minutes (up to 200 fit poses, several candidate draws): say what it is doing
     with make_console(stderr=True).status("designing the plan") as shown:
-        res = design_for_bench(cfg, req, noise, status=lambda line: shown.update(f"designing the plan: {line}"))
+        res = design_for_bench(
+            cfg, req, noise, status=lambda line: shown.update(f"designing the plan: {line}"), camera=camera
+        )
     validate_plan(res.plan, cfg.nominal_parameters(), cfg.calib_limits())
     if args.json:
         print(json.dumps(to_jsonable(res.summary()), indent=1))
@@ -218,7 +235,7 @@ def _design(args: argparse.Namespace) -> int:
     return 0
 
 
-def _tradeoff(args: argparse.Namespace, cfg, req, noise) -> int:
+def _tradeoff(args: argparse.Namespace, cfg, req, noise, camera=None) -> int:
     """``plan design --tradeoff``: one design per count, printed side by side; ``-o`` writes the recommended one."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -248,7 +265,7 @@ def _tradeoff(args: argparse.Namespace, cfg, req, noise) -> int:
     task = bar.add_task("design", total=len(counts))
     with bar:
         rows, results = tradeoff_for_bench(
-            cfg, req, counts, noise, progress=lambda done, tot: bar.update(task, completed=done)
+            cfg, req, counts, noise, progress=lambda done, tot: bar.update(task, completed=done), camera=camera
         )
     best = recommended_count(rows)
     if args.json:

@@ -33,11 +33,16 @@ class DeviceState:
 class Bench:
     """The bench this service drives: a configuration, optionally an in-process simulated bench."""
 
-    def __init__(self, name: str, config: Any, *, sim: Any = None, camera_spec: dict | None = None) -> None:
+    def __init__(
+        self, name: str, config: Any, *, sim: Any = None, camera_spec: dict | None = None, camera_model: Any = None
+    ) -> None:
         self.name = name
         self.config = config  # drivers.config.BenchConfig
         self.sim = sim
         self.camera_spec = camera_spec or {}
+        #: the camera file's model (``camera_file``: intrinsics, lens, image size), which the predictions use in
+        #: place of the simulated bench's camera; None without a camera file
+        self.camera_model = camera_model
         self.devices = {k: DeviceState(k, getattr(config, k).uri) for k in ("actuators", "camera", "operator")}
 
     @classmethod
@@ -45,6 +50,7 @@ class Bench:
         from drivers.config import BenchConfig, load_bench
 
         camera_spec: dict[str, Any] = {}
+        cam = None
         if settings.camera_file:
             from calib.camera import CameraModel
 
@@ -64,14 +70,14 @@ class Bench:
             cfg = BenchConfig.model_validate(sim.config)
             if sim.camera is not None and not camera_spec:
                 camera_spec = sim.camera
-            return cls(bench_name(settings, cfg), cfg, sim=sim, camera_spec=camera_spec)
+            return cls(bench_name(settings, cfg), cfg, sim=sim, camera_spec=camera_spec, camera_model=cam)
         if settings.bench is not None:
             cfg = BenchConfig.model_validate(settings.bench)
         elif settings.bench_file is not None:
             cfg = load_bench(settings.bench_file)
         else:
             return None
-        return cls(bench_name(settings, cfg), cfg, camera_spec=camera_spec)
+        return cls(bench_name(settings, cfg), cfg, camera_spec=camera_spec, camera_model=cam)
 
     async def close(self) -> None:
         if self.sim is not None:

@@ -117,7 +117,9 @@ class Stages:
         m = self.m
         assert m.bench is not None
         try:
-            doc = await asyncio.to_thread(run_prediction, m.bench.config, run.plan, list(run.methods or []))
+            doc = await asyncio.to_thread(
+                run_prediction, m.bench.config, run.plan, list(run.methods or []), m.bench.camera_model
+            )
         except Exception as exc:  # the prediction is advice: the run goes on without it
             log.warning("run %s: no prediction: %s", run_id, exc)
             doc = {"error": f"{type(exc).__name__}: {exc}"}

@@ -288,7 +288,7 @@ async def test_full_run_real_images_results_apply(tmp_path):
             ref = (await c.post(f"{API}/plans/predict", json={"plan": "full"}, headers=AUTH)).json()
             pred = run["prediction"]
             assert pred["error"] is None and pred["motion_time_s"] == pytest.approx(ref["motion_time_s"], rel=1e-9)
-            assert "simulated bench's camera" in pred["noise"]
+            assert "this service's camera (1024 x 768 px)" in pred["noise"]  # its camera file's
             assert set(pred["predicted_std_m"]) == set(ref["predicted_std_m"]), (pred, ref["prediction_errors"])
             for m, std in ref["predicted_std_m"].items():
                 assert pred["predicted_std_m"][m] == pytest.approx(std, rel=1e-9), m

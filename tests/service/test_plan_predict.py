@@ -121,3 +121,54 @@ def test_cli_predicts_the_paper_plan_on_the_real_bench_example(capsys):
     assert main(["plan", "predict", "full", "--bench", str(real)]) == 0
     out = capsys.readouterr().out
     assert out.startswith("plan full: rotation 10, translation 10, poses 20") and "line" in out, out
+
+
+def _camera_file(path: Path, width: int, height: int) -> Path:
+    """The simulated bench's lens on a ``width`` x ``height`` sensor, as a camera file (i4cal.camera/1)."""
+    import dataclasses
+
+    dataclasses.replace(twin_scene().camera, width=width, height=height).save(path)
+    return path
+
+
+def test_cli_predicts_and_designs_for_the_benchs_own_camera(tmp_path, capsys):
+    """--camera FILE: the bench's own camera in place of the simulated bench's. On a 640 x 480 sensor the paper's
+    plan loses board poses (listed, not counted) and its predicted std grows; on a 900 x 680 one a design for that
+    camera keeps every sweep and fit pose's board wholly in view, where the same design for the simulated bench's
+    camera does not."""
+    small = _camera_file(tmp_path / "small.json", 640, 480)
+    base = ["plan", "predict", "full", "--bench", str(BENCH_SIM), "--methods", "end-effector", "--json"]
+    assert main(base) == 0
+    ref = json.loads(capsys.readouterr().out)
+    assert main([*base, "--camera", str(small)]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    blind = [u for u in doc["unseen"] if u["board_corners"] < 6 and u["phase"] == "poses"]
+    assert blind and doc["measured_counts"]["poses"] == doc["counts"]["poses"] - len(blind)
+    got, was = doc["prediction"]["std_m"]["end-effector"], ref["prediction"]["std_m"]["end-effector"]
+    assert all(got[k] > was[k] for k in got), (got, was)
+    cam = _camera_file(tmp_path / "cam.json", 900, 680)
+    design = ["plan", "design", "--bench", str(BENCH_SIM), "--n-fit", "4", "--no-line", "--candidates", "60"]
+    partly = {}
+    for name, extra in (("twin", []), ("own", ["--camera", str(cam)])):
+        plan = tmp_path / f"{name}.json"
+        assert main([*design, *extra, "-o", str(plan)]) == 0
+        capsys.readouterr()
+        assert main(["plan", "predict", str(plan), "--bench", str(BENCH_SIM), "--camera", str(cam), "--json"]) == 0
+        unseen = json.loads(capsys.readouterr().out)["unseen"]
+        partly[name] = [u for u in unseen if u["phase"] in ("rotation", "translation", "poses") and not u["board"]]
+    assert partly["twin"] and not partly["own"], partly
+
+
+async def test_the_services_camera_file_is_the_predictions_camera(tmp_path, sim):
+    """A service with a camera file predicts with that camera: POST /plans/predict and a run's prediction."""
+    from tests.service.conftest import make_settings, start_service
+
+    cam = _camera_file(tmp_path / "cam.json", 640, 480)
+    svc = await start_service(make_settings(tmp_path, sim, camera_file=cam), sim)
+    try:
+        d = (await svc.client.post(f"{API}/plans/predict", json={"plan": "full"}, headers=AUTH)).json()
+        assert any(u["board_corners"] < 6 for u in d["unseen"]), d["unseen"]
+        assert d["measured_counts"] != d["counts"]
+    finally:
+        await svc.client.aclose()
+        await svc.stop()
