@@ -475,22 +475,60 @@ def _lock_steps(nominal, scene, limits, ws, n_lock: int, seed: int) -> list[Step
 
 
 def _line_steps(nominal, limits: SoftLimits, ws: Workspace, notes: list[str]) -> list[Step]:
-    """The paper's 500 mm guided line, shortened in 50 mm steps until every sample is within the soft limits."""
-    from ..errors import UnreachableError
-    from ..plan import line_poses
+    """The paper's 500 mm guided line through ``ws``'s centre, shortened until every sample is within the soft limits
+    (:func:`calib.plan.guided_line`); left out, and said, when not even 100 mm fits."""
+    try:
+        steps = guided_line(nominal, ws=ws, limits=limits)
+    except InputError:
+        notes.append("no guided line (straightness) fits within the soft limits: left out")
+        return []
+    line = steps[0].line
+    assert line is not None
+    length = float(np.linalg.norm(np.subtract(line.end_pose[:3], line.start_pose[:3])))
+    if length < 0.5 - 1e-9:
+        notes.append(f"guided line shortened to {length * 1e3:.0f} mm to stay within the soft limits")
+    return steps
 
-    for length in np.arange(0.5, 0.149, -0.05):
-        steps = guided_line(nominal, length_m=float(length), ws=ws)
+
+#: shifts (m) of the centre about which the sweeps, lock phases and line are placed, tried in this order when the
+#: workspace's own centre keeps no sweep's or lock phase's board in view (a camera that sees less than the twin's)
+CENTRE_SHIFTS_M = tuple(
+    sorted(
+        (
+            (dx, dy, dz)
+            for dx in (0.0, -0.05, 0.05, -0.1, 0.1)
+            for dy in (0.0, -0.05, 0.05)
+            for dz in (0.0, -0.05, 0.05, -0.1, 0.1)
+        ),
+        key=lambda d: (d[0] ** 2 + d[1] ** 2 + d[2] ** 2, d),
+    )
+)
+
+
+def _shifted(ws: Workspace, d: tuple[float, float, float]) -> Workspace:
+    """``ws`` moved by ``d`` (its box, hence its centre)."""
+    return ws.model_copy(
+        update={k: (lo + dk, hi + dk) for k, (lo, hi), dk in zip("XYZ", (ws.X, ws.Y, ws.Z), d, strict=True)}
+    )
+
+
+def _placed_phases(
+    nominal, scene, limits, ws, noise, req
+) -> tuple[tuple[float, float, list[Step], list[Step], float], list[Step], Workspace]:
+    """The sweeps and lock phases about ``ws``'s centre, or, when the camera sees neither there, about the nearest
+    centre of :data:`CENTRE_SHIFTS_M` where it sees both; the workspace they are placed in."""
+    first: InputError | None = None
+    for d in CENTRE_SHIFTS_M:
+        at = _shifted(ws, d) if any(d) else ws
         try:
-            q = ikm(nominal, line_poses(steps[0].line))
-        except UnreachableError:
+            sweeps = _sweeps(nominal, scene, limits, at, noise, req.n_base)
+            lock = _lock_steps(nominal, scene, limits, at, req.n_lock, req.seed)
+        except InputError as exc:
+            first = first or exc
             continue
-        if _in_limits(q, limits).all():
-            if length < 0.5 - 1e-9:
-                notes.append(f"guided line shortened to {length * 1e3:.0f} mm to stay within the soft limits")
-            return steps
-    notes.append("no guided line (straightness) fits within the soft limits: left out")
-    return []
+        return sweeps, lock, at
+    assert first is not None
+    raise InputError(f"{first.reason} (about the workspace centre or within 100 mm of it)", field=first.field)
 
 
 @dataclass
@@ -511,6 +549,9 @@ class _Pool:
     prior: dict[str, np.ndarray]
     cov4: dict[str, Cov4]
     legs: LegsCriterion | None
+    #: the workspace whose centre the sweeps, lock phases and line are placed about (``ws``, or one moved by
+    #: :data:`CENTRE_SHIFTS_M` when the camera sees them nowhere else)
+    placed: Workspace
 
 
 def _candidate_pool(
@@ -525,8 +566,7 @@ def _candidate_pool(
     key = ("pool", req.seed, req.candidate_draw, req.n_candidates, req.n_base, req.n_lock, req.methods)
     if cache is not None and key in cache:
         return cache[key]
-    span, length, rot, tra, _ = _sweeps(nominal, scene, limits, ws, noise, req.n_base)
-    lock = _lock_steps(nominal, scene, limits, ws, req.n_lock, req.seed)
+    (span, length, rot, tra, _), lock, placed = _placed_phases(nominal, scene, limits, ws, noise, req)
     legs = None
     if "legs" in req.methods:
         if not isinstance(noise, ImageNoise):
@@ -558,6 +598,7 @@ def _candidate_pool(
         prior={m: _method_prior(m, nominal, qr, qt, scene, noise) for m in req.methods},
         cov4={"legs": legs.cov4} if legs is not None else {},
         legs=legs,
+        placed=placed,
     )
     if cache is not None:
         cache[key] = pool
@@ -641,7 +682,14 @@ def design_plan(
         if req.n_validation
         else []
     )
-    line = _line_steps(nominal, limits, ws, notes) if req.with_line else []
+    if pool.placed is not ws:
+        shift = np.subtract(pool.placed.centre()[:3], ws.centre()[:3]) * 1e3
+        notes.append(
+            "the sweeps, lock phases and line are placed about a centre moved by ("
+            + ", ".join(f"{v:+.0f}" for v in shift)
+            + ") mm in (X, Y, Z): about the workspace's own centre the camera does not see their board"
+        )
+    line = _line_steps(nominal, limits, pool.placed, notes) if req.with_line else []
 
     def start_index(n: int) -> np.ndarray | None:
         r = reference(n) if n in refs else None
