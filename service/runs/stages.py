@@ -67,6 +67,9 @@ class Stages:
             timings["total_s"] = timings.get("total_s", 0.0) + time.monotonic() - t0
             m._transition(run_id, RunEvent.FINISH, finished_at=_now(), timings=timings, phase="")
         except asyncio.CancelledError:
+            # the service stops or the run is aborted: nobody waits for the prediction (a resumed run predicts again)
+            if predicting is not None:
+                predicting.cancel()
             timings["total_s"] = timings.get("total_s", 0.0) + time.monotonic() - t0
             if a.aborting:
                 self._end(run_id, RunEvent.ABORT, finished_at=_now(), timings=timings, error="aborted on request")
