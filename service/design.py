@@ -9,6 +9,8 @@ prediction).
 
 from __future__ import annotations
 
+import functools
+import json
 import re
 from typing import Any
 
@@ -71,17 +73,31 @@ def twin_image_noise(views: int = 30, seed: int = 0, camera=None, **levels: Any)
     :data:`CALIBRATION_CORNER_PX`, the lens model being the twin's (k1, k2, p1, p2, k3). ``camera``: the bench's own
     camera (:func:`twin_scene`), whose calibration is then predicted from those views.
     """
+    from calib.design import ImageNoise
+
+    noise = ImageNoise(**levels)
+    camera_json = None if camera is None else json.dumps(camera.to_dict(), sort_keys=True)
+    cov = _calibration_covariance(views, seed, camera_json, tuple(noise.intrinsics_names))
+    return noise.with_intrinsics(cov.copy())
+
+
+@functools.lru_cache(maxsize=8)
+def _calibration_covariance(views: int, seed: int, camera_json: str | None, names: tuple[str, ...]) -> Any:
+    """:func:`twin_image_noise`'s calibration covariance (about 0.5 s of CPU), computed once per views,
+    seed, camera and intrinsics: every run's prediction and every design of a service would compute it again."""
     import numpy as np
 
-    from calib.design import ImageNoise, calibration_covariance
+    from calib.camera import CameraModel
+    from calib.design import calibration_covariance
     from drivers.sim.render import BenchRenderer, RenderSettings
     from drivers.sim.twin import BenchGeometry
 
-    noise = ImageNoise(**levels)
+    camera = None if camera_json is None else CameraModel.from_dict(json.loads(camera_json))
     renderer = BenchRenderer(BenchGeometry(), RenderSettings(), seed=seed)
     v = renderer.random_board_views(views, np.random.default_rng([seed, 7]))
-    cov = calibration_covariance(twin_scene(camera), v, CALIBRATION_CORNER_PX, noise.intrinsics_names)
-    return noise.with_intrinsics(cov)
+    cov = calibration_covariance(twin_scene(camera), v, CALIBRATION_CORNER_PX, names)
+    cov.setflags(write=False)
+    return cov
 
 
 def motion_spec(cfg) -> Any:

@@ -25,7 +25,7 @@ from .motion import MotionSpec, plan_motion_time
 from .optimize import N_FIT_MOST, shading_note
 from .predict import METHODS, DesignNoise, Prediction, predict_plan
 from .predict_images import ImageNoise
-from .scene import Scene, visibility
+from .scene import Scene, _inside, visibility
 
 __all__ = [
     "BOARD_PHASES",
@@ -107,13 +107,7 @@ def _corners_in_view(scene: Scene, nominal: I4Parameters, q: np.ndarray) -> np.n
         pc = cb.apply(pts)
         if float(cb.R[:, 2] @ cb.t) <= 0.0 or np.any(pc[:, 2] <= 0.05):  # turned away, or at the camera
             continue
-        px = cam.project(pc)
-        m = _CORNER_MARGIN_PX
-        out[k] = int(
-            np.sum(
-                (px[:, 0] >= m) & (px[:, 1] >= m) & (px[:, 0] <= cam.width - 1 - m) & (px[:, 1] <= cam.height - 1 - m)
-            )
-        )
+        out[k] = int(np.sum(_inside(cam.project(pc), cam, _CORNER_MARGIN_PX)))
     return out
 
 
@@ -162,11 +156,16 @@ def check_size(plan: Plan) -> None:
         )
 
 
+def _no_board_pose(u: dict[str, Any]) -> bool:
+    """An unseen step of a board phase from which the extraction gets no board pose."""
+    return u["board_corners"] < MIN_BOARD_CORNERS and u["phase"] in BOARD_PHASES
+
+
 def measured_plan(plan: Plan, nominal: I4Parameters, scene: Scene) -> tuple[Plan, list[dict[str, Any]]]:
     """What the camera will measure of a plan: the plan without its board-phase steps whose board is out of view
     (they give no board pose), and every step not seen in full (:class:`PlanCheck`'s ``unseen``)."""
     unseen = _unseen_steps(plan, nominal, scene)
-    blind = {u["step"] for u in unseen if u["board_corners"] < MIN_BOARD_CORNERS and u["phase"] in BOARD_PHASES}
+    blind = {u["step"] for u in unseen if _no_board_pose(u)}
     return plan.model_copy(update={"steps": [s for i, s in enumerate(plan.steps) if i not in blind]}), unseen
 
 
@@ -207,7 +206,7 @@ def check_plan(
     """
     check_size(plan)
     measured, unseen = measured_plan(plan, nominal, scene)
-    blind = {u["step"] for u in unseen if u["board_corners"] < MIN_BOARD_CORNERS and u["phase"] in BOARD_PHASES}
+    blind = {u["step"] for u in unseen if _no_board_pose(u)}
     partial = [u for u in unseen if not u["board"] and u["step"] not in blind and u["phase"] in BOARD_PHASES]
     pred = predict_plan(measured, nominal, scene, noise, methods=methods)
     notes = []

@@ -316,6 +316,18 @@ class _AbandonedError(Exception):
     """A trade-off whose request was cancelled, ended between two designs (nobody reads it)."""
 
 
+def _predicted(pred: Any, motion: dict[str, Any]) -> dict[str, Any]:
+    """The prediction and motion-time fields a design and a plan's prediction answer alike."""
+    return {
+        "predicted_std_m": pred.std,
+        "predicted_parts_std_m": pred.parts,
+        "legs_seven_std_m": pred.legs_seven_std,
+        "prediction_errors": pred.errors,
+        "motion_time_s": motion["total_s"],
+        "motion_per_phase_s": motion["per_phase_s"],
+    }
+
+
 def _capped(body: DesignBody, settings: Any) -> list[str]:
     if body.candidates > settings.design_max_candidates:
         return [f"candidates: {settings.design_max_candidates} drawn, the service's limit (asked {body.candidates})"]
@@ -331,17 +343,11 @@ async def design(body: DesignBody, request: Request, manager: Manager, settings:
 
     camera = manager.bench.camera_model if manager.bench is not None else None
     res = await _designed(body, request, manager, settings, lambda cfg, req: design_for_bench(cfg, req, camera=camera))
-    pred = res.prediction
     return DesignOut(
         plan=res.plan.model_dump(mode="json", exclude_none=True),
         counts=res.plan.count(),
         n_fit=res.n_fit,
-        predicted_std_m=pred.std,
-        predicted_parts_std_m=pred.parts,
-        legs_seven_std_m=pred.legs_seven_std,
-        prediction_errors=pred.errors,
-        motion_time_s=res.motion["total_s"],
-        motion_per_phase_s=res.motion["per_phase_s"],
+        **_predicted(res.prediction, res.motion),
         sweeps=res.sweeps,
         target_met=res.target_met,
         time_met=res.time_met,
@@ -382,17 +388,11 @@ async def predict(body: PredictBody, request: Request, manager: Manager, _: Read
         raise unprocessable(InputError(str(exc), field="plan")) from None
     finally:
         state.predictions_waiting -= 1
-    pred = check.prediction
     return PredictOut(
         plan=check.plan_name,
         counts=check.counts,
         measured_counts=check.measured_counts,
-        predicted_std_m=pred.std,
-        predicted_parts_std_m=pred.parts,
-        legs_seven_std_m=pred.legs_seven_std,
-        prediction_errors=pred.errors,
-        motion_time_s=check.motion["total_s"],
-        motion_per_phase_s=check.motion["per_phase_s"],
+        **_predicted(check.prediction, check.motion),
         unseen=[UnseenStep(**u) for u in check.unseen],
         notes=check.notes,
     )

@@ -87,3 +87,13 @@ class OneLineParser(argparse.ArgumentParser):
 
     def error(self, message: str) -> Any:
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def load_plan(spec: str, cfg, seed: int):
+    """A ``--plan`` / ``PLAN``: a plan name (its poses drawn within the bench configuration's soft limits) or a plan
+    file."""
+    from calib.plan import PLAN_NAMES, Plan, make_plan
+
+    if spec in PLAN_NAMES:
+        return make_plan(spec, cfg.nominal_parameters(), seed=seed, limits=cfg.calib_limits())
+    return Plan.load(spec)

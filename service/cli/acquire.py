@@ -32,15 +32,6 @@ def register(subparsers) -> None:
     p.set_defaults(handler=_run)
 
 
-def _load_plan(spec: str, cfg, seed: int):
-    """A plan name (its poses drawn within the bench's soft limits) or a plan file."""
-    from calib.plan import PLAN_NAMES, Plan, make_plan
-
-    if spec in PLAN_NAMES:
-        return make_plan(spec, cfg.nominal_parameters(), seed=seed, limits=cfg.calib_limits())
-    return Plan.load(spec)
-
-
 def _run(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
@@ -48,8 +39,10 @@ def _run(args: argparse.Namespace) -> int:
     from drivers.acquisition import AcquisitionError, acquisition_from_config, close_devices
     from drivers.config import load_bench
 
+    from ._args import load_plan
+
     cfg = load_bench(args.bench)
-    plan = _load_plan(args.plan, cfg, args.seed)
+    plan = load_plan(args.plan, cfg, args.seed)
     console = Console(stderr=True)
     bar = Progress(
         TextColumn("[bold]{task.description}"),

@@ -148,11 +148,11 @@ def _predict(args: argparse.Namespace) -> int:
     from drivers.config import load_bench
     from service.design import check_for_bench, check_lines
 
-    from .acquire import _load_plan
+    from ._args import load_plan
 
     cfg = load_bench(args.bench)
     methods = _methods(args.methods, "--methods")
-    plan = _load_plan(args.plan, cfg, args.seed)
+    plan = load_plan(args.plan, cfg, args.seed)
     validate_plan(plan, cfg.nominal_parameters(), cfg.calib_limits())
     check = check_for_bench(cfg, plan, _noise_from(args.noise_from), methods, _camera(args.camera))
     if args.json:
