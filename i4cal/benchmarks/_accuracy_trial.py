@@ -110,11 +110,65 @@ def calibrate_camera(task: CameraTask) -> dict[str, Any]:
     }
 
 
+#: the lens parameters of a camera's ``dist`` (OpenCV's order), after fx, fy, cx, cy
+_DIST_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+
+
+def intrinsics_vector(camera: Any, names: list[str] | tuple[str, ...]) -> list[float]:
+    """``camera``'s intrinsics ``names`` (px for fx, fy, cx, cy; a lens term the camera does not carry is 0)."""
+    K, dist = camera.K, list(camera.dist)
+    fixed = {"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2]}
+    return [
+        float(fixed[n])
+        if n in fixed
+        else (float(dist[_DIST_NAMES.index(n)]) if _DIST_NAMES.index(n) < len(dist) else 0.0)
+        for n in names
+    ]
+
+
+def error_against_covariance(error: Any, covariance: Any) -> dict[str, Any] | None:
+    """How an estimate's error compares with the covariance it reports: ``mahalanobis`` (e^T C^-1 e), ``dof`` and
+    ``principal_z2``, the squared error along each principal direction of C over its variance, smallest variance
+    first (each is chi-square(1) when C is right: mean 1). None when C is not positive definite.
+
+    The rods' refinement of the camera (``calibration.covariance_refined``) is right on average over its principal
+    directions but one on the image-level twin: along the lens's radial distortion, which the rods pin 30-60 times
+    better than the board views, the mean is 2.5-3.0 (docs/design.md); the design bench records it per trial.
+    """
+    import numpy as np
+
+    e = np.asarray(error, dtype=np.float64).reshape(-1)
+    C = np.asarray(covariance, dtype=np.float64)
+    if C.shape != (e.size, e.size) or not np.all(np.isfinite(C)) or not np.all(np.isfinite(e)):
+        return None
+    w, V = np.linalg.eigh(0.5 * (C + C.T))
+    if w[0] <= 0:
+        return None
+    z2 = (V.T @ e) ** 2 / w
+    return {"mahalanobis": float(z2.sum()), "dof": int(e.size), "principal_z2": z2.tolist()}
+
+
+def _refined_honesty(res: Any, true: Any) -> dict[str, Any] | None:
+    """The extraction's camera (refined by the rods) against the renderer's, in its ``covariance_refined``
+    (:func:`error_against_covariance`); None when the rods did not refine it."""
+    from calib.camera import intrinsics_names
+
+    calib = res.camera.extra.get("calibration") or {}
+    cov = calib.get("covariance_refined")
+    if cov is None:
+        return None
+    names = list(calib.get("covariance_params") or intrinsics_names(res.camera))
+    err = [a - b for a, b in zip(intrinsics_vector(res.camera, names), intrinsics_vector(true, names), strict=True)]
+    return error_against_covariance(err, cov)
+
+
 def _camera_record(res: Any, rs: Any) -> dict[str, Any]:
     """The calibrated camera of an extraction against the renderer's: ``camera`` (the extraction's, refined by the
     rods when they moved it), ``true_camera``, ``intrinsics`` (reprojection RMS px, views, rejected, ``error_vs_true``
-    of the calibration, ``refined_error_vs_true`` of the extraction's camera, and the calibration's ``std`` of fx,
-    fy, cx, cy [px], k1, k2, p1, p2), ``lens_model`` (the lens model the calibration chose and its evidence)."""
+    of the calibration, ``refined_error_vs_true`` of the extraction's camera, the calibration's ``std`` of fx,
+    fy, cx, cy [px], k1, k2, p1, p2, and ``refined_against_covariance``: the extraction's camera's error in its
+    ``covariance_refined``, :func:`error_against_covariance`), ``lens_model`` (the lens model the calibration chose
+    and its evidence)."""
     from calib.camera import INTRINSICS_NAMES
 
     s = res.intrinsics.summary()
@@ -141,6 +195,7 @@ def _camera_record(res: Any, rs: Any) -> dict[str, Any]:
                 k: float(a - b) for k, a, b in zip(INTRINSICS_NAMES, vec(res.camera), vec(true), strict=True)
             },
             "std": dict(zip(INTRINSICS_NAMES, std, strict=True)),
+            "refined_against_covariance": _refined_honesty(res, true),
         },
         "lens_model": (cam.extra.get("calibration") or {}).get("lens_model"),
     }

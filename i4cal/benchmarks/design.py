@@ -279,10 +279,12 @@ def _summarize_plans(plans: dict[str, dict[str, Any]]) -> None:
                     }
                     for m, x in (r.get("methods") or {}).items()
                 },
+                "camera_refined": ((r.get("camera") or {}).get("intrinsics") or {}).get("refined_against_covariance"),
             }
             for r in recs
         ]
         p["data_pinned"] = _data_pinned(p["trials"])
+        p["camera_refined"] = camera_refined_summary(p["trials"])
     ref = plans.get("paper-20")
     for p in plans.values():
         p["predicted_run_std_m"] = {}
@@ -501,6 +503,30 @@ def _std_over_rms_intervals(
     return intervals, summary
 
 
+def camera_refined_summary(trials: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """Over a plan's trials, the rods' refined camera against the covariance it reports (each trial's
+    ``camera_refined``, :func:`._accuracy_trial.error_against_covariance`): ``n`` trials, the mean Mahalanobis
+    distance per degree of freedom and the mean squared error over the variance along each principal direction,
+    smallest variance first (``principal_z2_mean``, trials of the most common size only). Each is 1 when the
+    covariance is right, within about ``expected_se`` = sqrt(2 / n) for a direction (sqrt(2 / (n dof)) for the
+    distance). None when no trial recorded it (benches before 2026-11-28, or a camera the rods did not refine)."""
+    rows = [t.get("camera_refined") for t in trials]
+    rows = [r for r in rows if r and r.get("dof")]
+    if not rows:
+        return None
+    dofs = [int(r["dof"]) for r in rows]
+    dof = max(set(dofs), key=dofs.count)
+    same = np.array([r["principal_z2"] for r in rows if int(r["dof"]) == dof], dtype=np.float64)
+    n = len(rows)
+    return {
+        "n": n,
+        "mahalanobis_per_dof_mean": float(np.mean([r["mahalanobis"] / r["dof"] for r in rows])),
+        "dof": dof,
+        "principal_z2_mean": same.mean(axis=0).tolist(),
+        "expected_se": float(np.sqrt(2.0 / len(same))),
+    }
+
+
 def _data_pinned(trials: list[dict[str, Any]]) -> dict[str, Any]:
     """Per method, the RMS error and mean reported std (metres) over the trials whose estimate came from the data:
     a trial where the method fell back to the a priori values (its data contradicted them) or where its data knew a
@@ -675,6 +701,16 @@ def print_table(doc: dict[str, Any]) -> None:
         )
         if text:
             print(f"{name}: noise levels measured (mean): {text}")
+    for name, p in doc["plans"].items():
+        cam = camera_refined_summary(p.get("trials") or [])
+        if cam:
+            print(
+                f"{name}: the rods' refined camera against its covariance over {cam['n']} trials: Mahalanobis per "
+                f"degree of freedom {cam['mahalanobis_per_dof_mean']:.2f}; per principal direction, smallest variance "
+                "first: "
+                + ", ".join(f"{v:.2f}" for v in cam["principal_z2_mean"])
+                + f" (each 1 when it holds, +/- {cam['expected_se']:.2f})"
+            )
     print("checks:", doc["checks"].get("designed12_combined_not_worse_than_paper20"))
     for key, v in doc["checks"].items():
         if key.endswith("_not_worse_than_paper20") and key != "designed12_combined_not_worse_than_paper20":
