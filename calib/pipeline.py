@@ -15,6 +15,7 @@ from .errors import I4calError
 from .identifiability import identifiability
 from .methods.edge_bias import MeasuredEdgeBias
 from .methods.iterations import IterationCallback
+from .methods.measured_intrinsics import MeasuredIntrinsics
 from .methods.registry import MethodContext, get_method, method_names
 from .methods.result import MethodResult
 from .observations import LEG_KEYS, Observations, Rod
@@ -121,7 +122,10 @@ def calibrate(
             continue
         if name == "combined":
             shared = dataclasses.replace(
-                shared, limb_edge_bias=MeasuredEdgeBias.from_result(res), limb_edge_bias_tried=True
+                shared,
+                limb_edge_bias=MeasuredEdgeBias.from_result(res),
+                limb_edge_bias_tried=True,
+                intrinsics=MeasuredIntrinsics.from_result(res),
             )
         entry = res.to_dict()
         entry["time_s"] = time.perf_counter() - t0

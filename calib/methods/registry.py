@@ -32,6 +32,7 @@ from ..observations import Observations
 from ..parameters import I4Parameters
 from .edge_bias import MeasuredEdgeBias
 from .iterations import IterationCallback
+from .measured_intrinsics import MeasuredIntrinsics
 from .result import MethodResult
 
 #: Name of a method: lower case, digits and dashes (it is a URL, CLI and JSON key).
@@ -57,12 +58,15 @@ class MethodContext:
         The limb-edge bias a combined fit of the same run measured (None: none measured).
     limb_edge_bias_tried : bool
         A combined fit of the same run already tried to measure it (then None means it could not).
+    intrinsics : MeasuredIntrinsics or None
+        The intrinsics as that combined fit re-estimated them (None: not re-estimated).
     """
 
     base_frame: BaseFrameResult | None = None
     on_iteration: IterationCallback | None = None
     limb_edge_bias: MeasuredEdgeBias | None = None
     limb_edge_bias_tried: bool = False
+    intrinsics: MeasuredIntrinsics | None = None
 
 
 #: ``fit(observations, context) -> MethodResult``.
@@ -272,9 +276,13 @@ def _fit_end_effector(obs: Observations, ctx: MethodContext) -> MethodResult:
 def _fit_legs(obs: Observations, ctx: MethodContext) -> MethodResult:
     from .legs import calibrate_legs
 
-    # the combined fit's measurement of the limb-edge bias when the run already made one, else its own
-    edge = ctx.limb_edge_bias if ctx.limb_edge_bias_tried else True
-    return calibrate_legs(obs, on_iteration=ctx.on_iteration, edge_bias=edge)
+    # the combined fit's measurements of the limb-edge bias and the intrinsics when the run already made them, else its
+    # own
+    if ctx.limb_edge_bias_tried:
+        return calibrate_legs(
+            obs, on_iteration=ctx.on_iteration, edge_bias=ctx.limb_edge_bias, intrinsics=ctx.intrinsics
+        )
+    return calibrate_legs(obs, on_iteration=ctx.on_iteration)
 
 
 def _combined_model(params: I4Parameters, q: np.ndarray) -> tuple[Callable[[np.ndarray], np.ndarray], int]:

@@ -5,13 +5,15 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import block_diag
 
+from ...camera import intrinsics_names
 from ...errors import IdentifiabilityError
 from ...observations import Observations
 from ...parameters import COMBINATION_NAMES, PARAMETER_NAMES, SEVEN_TO_FOUR, I4Parameters
 from ...robust import chi2_gate
 from ..combined import EDGE_BIAS_STD_PX
-from ..edge_bias import MeasuredEdgeBias, measured_edge_bias
+from ..edge_bias import MeasuredEdgeBias
 from ..iterations import IterationCallback
+from ..measured_intrinsics import MeasuredIntrinsics
 from ..result import MethodResult, combos_dict, std_dict
 from .constants import JOINT_DEPTH_SYS_LEG_SHARE, JOINT_DEPTH_SYS_M, PRIOR_STD_M
 from .joints import _plane_observations, _step1_planes, intersect_lines, joint_from_planes
@@ -51,6 +53,7 @@ def calibrate_legs(
     prior_std_m: float | None = PRIOR_STD_M,
     edge_bias: MeasuredEdgeBias | bool | None = True,
     joint_depth_sys_m: float = JOINT_DEPTH_SYS_M,
+    intrinsics: MeasuredIntrinsics | bool | None = True,
 ) -> MethodResult:
     """Identify all seven parameters from leg observations only (four steps).
 
@@ -83,6 +86,13 @@ def calibrate_legs(
         planes (:data:`.constants.JOINT_DEPTH_SYS_M`, half of its variance common to a leg's two joints): the rods'
         shading biases their limb edges the same way in every frame of a lock phase. Propagated like the joints'
         noise (``std_breakdown.joint_depth_systematic``); 0: left out.
+    intrinsics : MeasuredIntrinsics, True or None
+        The intrinsics as the combined fit re-estimates them on the same rods (:mod:`calib.methods.measured_intrinsics`:
+        the shift from the extraction's camera and its posterior covariance). Every rod is re-measured through them
+        (the whole estimate redone, with the edge-bias correction) and their posterior is the intrinsics' part of the
+        std. The extraction's camera is the rods' refinement's first step only, off beyond its covariance where the
+        calibration was far off. True (default): re-estimated here with the combined fit (the one that measures the
+        edge bias); None or False: the extraction's camera and its ``covariance_refined``.
     prior_std_m : float or None
         Standard deviation (m) of each of the seven parameters around the nominal (a priori) geometry: the
         bench's manufacturing tolerance. Along the directions the legs' data know less well than it (their
@@ -241,6 +251,7 @@ def calibrate_legs(
     cov_intr = np.zeros((7, 7))
     cov_edge = np.zeros((7, 7))
     edge_note: dict | None = None
+    intr_note: dict = {"applied": False}
     if eff is not None:
 
         def seven_for(z: np.ndarray) -> np.ndarray:
@@ -270,16 +281,30 @@ def calibrate_legs(
         Jz = np.stack([(seven_for(e) - seven_for(-e)) / 2.0 for e in E], axis=1)
         cov_intr = Jz[:, :nz] @ Jz[:, :nz].T
         J_px = Jz[:, nz:] / step_px  # the seven's change per px of outward bias on each limb
-        measured_edge = measured_edge_bias(obs) if edge_bias is True else (edge_bias or None)
-        if measured_edge is not None:
+        fit = _combined_fit(obs) if (edge_bias is True or intrinsics is True) else None
+        measured_edge = (None if fit is None else MeasuredEdgeBias.from_result(fit)) if edge_bias is True else edge_bias
+        measured_intr = (
+            (None if fit is None else MeasuredIntrinsics.from_result(fit)) if intrinsics is True else intrinsics
+        )
+        # the intrinsics re-estimated by the combined fit on these rods: the rods re-measured through them, their
+        # posterior as the intrinsics' part (the extraction's refined camera is that fit's first step only)
+        z_intr = np.zeros(nz)
+        got = measured_intr.along(intrinsics_names(eff.camera)) if measured_intr else None
+        if got is not None:
+            A = np.linalg.pinv(eff.steps.T)  # the principal steps' coordinates of a move of the intrinsics
+            z_intr = A @ got[0]
+            cov_intr = Jz[:, :nz] @ (A @ got[1] @ A.T) @ Jz[:, :nz].T
+            intr_note = measured_intr.to_dict() | {"applied": True}  # type: ignore[union-attr]
+        if measured_edge:
             # the limbs corrected by the measured bias (moved inward by it), the whole estimate redone; its
             # remaining uncertainty is the measurement's
-            seven = seven_for(np.concatenate([np.zeros(nz), -measured_edge.estimate_px]))
             cov_edge = J_px @ measured_edge.covariance_px2 @ J_px.T
             edge_note = measured_edge.to_dict() | {"applied": True}
         else:
             cov_edge = (edge_bias_std_px**2) * (J_px @ J_px.T)
             edge_note = {"applied": False, "allowance_std_px": edge_bias_std_px}
+        if measured_edge or got is not None:
+            seven = seven_for(np.concatenate([z_intr, -measured_edge.estimate_px if measured_edge else np.zeros(2)]))
     cov = cov_joints + cov_jsys + cov_dirs + cov_intr + cov_edge
     parts7 = {
         "joint_centres": cov_joints,
@@ -382,6 +407,7 @@ def calibrate_legs(
             "line_residual_rms_mm": res_rms * 1e3,
             "joint_centres_camera": P.mean(axis=1).tolist(),
             "limb_edge_bias": edge_note,
+            "intrinsics_refit": intr_note,
             "locked_q": q_lock.tolist(),
             "rod_pair_check": pair_check,
             "joint_repaired": None if repair is None else repair.to_dict(),
@@ -396,3 +422,14 @@ def calibrate_legs(
         },
         residuals=None,
     )
+
+
+def _combined_fit(obs: Observations) -> MethodResult | None:
+    """The combined fit of the same observations (its edge-bias and intrinsics measurements); None when it fails."""
+    from ...errors import I4calError
+    from ..combined import calibrate_combined
+
+    try:
+        return calibrate_combined(obs)
+    except I4calError:
+        return None
