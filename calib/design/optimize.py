@@ -879,8 +879,8 @@ def design_score(result: DesignResult, request: DesignRequest) -> tuple[float, .
     optimised methods; ``"a"``: the sum of their predicted variances, over the targets' squares when given, else
     per mm^2; ``"d"``: minus the sum of their information's log-determinants), then the motion time."""
     pred, t = result.prediction, request.targets_by_method()
-    if any(m not in pred.std for m in request.methods):
-        return (np.inf,)
+    if any(m not in pred.std for m in request.methods):  # a method the plan cannot determine: last, whatever else
+        return (np.inf, np.inf, np.inf, np.inf)
     stds = count_std(pred.std, request.methods)
     if request.criterion == "target":
         assert t is not None

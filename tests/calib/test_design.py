@@ -677,3 +677,18 @@ def test_an_absurdly_small_target_is_not_met_without_overflow_warnings(scene):
         warnings.simplefilter("error", RuntimeWarning)
         drawn = design_plan(NOMINAL, scene, replace(req, draws=2))
     assert drawn.target_met is False
+
+
+def test_draws_of_a_plan_a_method_cannot_determine_are_ranked_not_a_crash(scene):
+    """Two fit poses leave the end-effector method undetermined: each draw's prediction has no std for it, which
+    ranks it last (infinite in every part of the score). The score was a 1-tuple then and the draws' note read its
+    third entry: the API fuzz's 500 on ``{"n_fit": 2, "methods": ["end-effector"], "draws": 2}``."""
+    from calib.design import design_score
+
+    req = DesignRequest(
+        n_fit=2, n_lock=2, n_validation=0, with_line=False, n_candidates=60, seed=1, methods=("end-effector",), draws=2
+    )
+    res = design_plan(NOMINAL, scene, req)
+    assert "end-effector" not in res.prediction.std
+    assert design_score(res, req) == (np.inf, np.inf, np.inf, np.inf)
+    assert any("best of 2 draws" in n and "inf" in n for n in res.notes), res.notes
