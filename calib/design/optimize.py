@@ -239,8 +239,8 @@ def _worst_ratio(excess: dict[str, np.ndarray]) -> float:
 
 
 #: Over the design bench's ten plans on the image-level twin (seeds 0-4, designed 12 and paper 20, 100 trials each),
-#: the legs prediction over its RMS error per combination: its range (docs/design.md, README "Benchmarks"; the seed-0,
-#: 1 and 3 paper plans with the legs method's re-estimated intrinsics, 2026-11-28)
+#: the legs prediction over its RMS error per combination: its range (docs/design.md, README "Benchmarks"; the paper
+#: plans of seeds 0-3 with the legs method's re-estimated intrinsics, 2026-11-28)
 LEGS_RATIO_RANGE_TWIN = (0.77, 1.36)
 #: Over the design bench's five plans designed for the combined and legs methods (seeds 0-4, 12 fit poses aimed at
 #: the paper's 20, 100 trials each): the legs prediction over its RMS error per combination, its range
