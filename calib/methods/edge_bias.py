@@ -14,8 +14,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..errors import I4calError
-from ..observations import Observations
 from .result import MethodResult
 
 Array = NDArray[np.float64]
@@ -54,14 +52,3 @@ class MeasuredEdgeBias:
             "estimate_px": self.estimate_px.tolist(),
             "covariance_px2": self.covariance_px2.tolist(),
         }
-
-
-def measured_edge_bias(obs: Observations) -> MeasuredEdgeBias | None:
-    """The combined fit's measurement of the limb-edge bias on ``obs``; None when it cannot make one (no limb
-    samples or camera covariance, or the fit fails: the caller then keeps its allowance)."""
-    from .combined import calibrate_combined
-
-    try:
-        return MeasuredEdgeBias.from_result(calibrate_combined(obs))
-    except I4calError:
-        return None

@@ -18,8 +18,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..errors import I4calError
-from ..observations import Observations
 from .result import MethodResult
 
 Array = NDArray[np.float64]
@@ -73,13 +71,3 @@ class MeasuredIntrinsics:
             "shift": dict(zip(self.names, self.shift.tolist(), strict=True)),
             "covariance": self.covariance.tolist(),
         }
-
-
-def measured_intrinsics(obs: Observations) -> MeasuredIntrinsics | None:
-    """The combined fit's re-estimate of the intrinsics on ``obs``; None when it cannot make one."""
-    from .combined import calibrate_combined
-
-    try:
-        return MeasuredIntrinsics.from_result(calibrate_combined(obs))
-    except I4calError:
-        return None

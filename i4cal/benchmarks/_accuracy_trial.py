@@ -110,22 +110,6 @@ def calibrate_camera(task: CameraTask) -> dict[str, Any]:
     }
 
 
-#: the lens parameters of a camera's ``dist`` (OpenCV's order), after fx, fy, cx, cy
-_DIST_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
-
-
-def intrinsics_vector(camera: Any, names: list[str] | tuple[str, ...]) -> list[float]:
-    """``camera``'s intrinsics ``names`` (px for fx, fy, cx, cy; a lens term the camera does not carry is 0)."""
-    K, dist = camera.K, list(camera.dist)
-    fixed = {"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2]}
-    return [
-        float(fixed[n])
-        if n in fixed
-        else (float(dist[_DIST_NAMES.index(n)]) if _DIST_NAMES.index(n) < len(dist) else 0.0)
-        for n in names
-    ]
-
-
 def error_against_covariance(error: Any, covariance: Any) -> dict[str, Any] | None:
     """How an estimate's error compares with the covariance it reports: ``mahalanobis`` (e^T C^-1 e), ``dof`` and
     ``principal_z2``, the squared error along each principal direction of C over its variance, smallest variance
@@ -151,15 +135,14 @@ def error_against_covariance(error: Any, covariance: Any) -> dict[str, Any] | No
 def _refined_honesty(res: Any, true: Any) -> dict[str, Any] | None:
     """The extraction's camera (refined by the rods) against the renderer's, in its ``covariance_refined``
     (:func:`error_against_covariance`); None when the rods did not refine it."""
-    from calib.camera import intrinsics_names
+    from calib.camera import intrinsics_names, intrinsics_vector
 
     calib = res.camera.extra.get("calibration") or {}
     cov = calib.get("covariance_refined")
     if cov is None:
         return None
     names = list(calib.get("covariance_params") or intrinsics_names(res.camera))
-    err = [a - b for a, b in zip(intrinsics_vector(res.camera, names), intrinsics_vector(true, names), strict=True)]
-    return error_against_covariance(err, cov)
+    return error_against_covariance(intrinsics_vector(res.camera, names) - intrinsics_vector(true, names), cov)
 
 
 def _camera_record(res: Any, rs: Any) -> dict[str, Any]:
@@ -169,13 +152,13 @@ def _camera_record(res: Any, rs: Any) -> dict[str, Any]:
     fy, cx, cy [px], k1, k2, p1, p2, and ``refined_against_covariance``: the extraction's camera's error in its
     ``covariance_refined``, :func:`error_against_covariance`), ``lens_model`` (the lens model the calibration chose
     and its evidence)."""
-    from calib.camera import INTRINSICS_NAMES
+    from calib.camera import INTRINSICS_NAMES, intrinsics_vector
 
     s = res.intrinsics.summary()
     cam, true = res.intrinsics.camera, rs.camera()  # the calibration's (the extraction's may be refined by the rods)
 
-    def vec(c: Any) -> list[float]:
-        return [c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2], *c.dist[:4]]
+    def vec(c: Any) -> Any:
+        return intrinsics_vector(c, INTRINSICS_NAMES)
 
     calib = cam.extra.get("calibration") or {}
     cov, names = calib.get("covariance"), list(calib.get("covariance_params") or INTRINSICS_NAMES)

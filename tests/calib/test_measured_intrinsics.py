@@ -61,17 +61,17 @@ def rendered(tmp_path_factory):
 
 
 def test_the_re_estimate_is_within_its_posterior_where_the_one_step_camera_is_not(rendered):
-    from calib.camera import intrinsics_names
-    from calib.methods.measured_intrinsics import measured_intrinsics
+    from calib.camera import intrinsics_names, intrinsics_vector
+    from calib.methods.combined import calibrate_combined
     from drivers.sim.render import RenderSettings
-    from i4cal.benchmarks._accuracy_trial import error_against_covariance, intrinsics_vector
+    from i4cal.benchmarks._accuracy_trial import error_against_covariance
 
     res, obs = rendered
     cam = res.camera
     names = intrinsics_names(cam)
     err = np.array(intrinsics_vector(cam, names)) - np.array(intrinsics_vector(RenderSettings().camera(), names))
     one_step = error_against_covariance(err, cam.extra["calibration"]["covariance_refined"])
-    m = measured_intrinsics(obs)
+    m = MeasuredIntrinsics.from_result(calibrate_combined(obs))
     shift, post = m.along(names)
     again = error_against_covariance(err + shift, post)
     n = len(names)

@@ -12,8 +12,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from calib.camera import CameraModel
-from i4cal.benchmarks._accuracy_trial import _refined_honesty, error_against_covariance, intrinsics_vector
+from calib.camera import CameraModel, intrinsics_vector
+from i4cal.benchmarks._accuracy_trial import _refined_honesty, error_against_covariance
 from i4cal.benchmarks.design import _summarize_plans, camera_refined_summary, print_table
 
 NAMES = ["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"]

@@ -6,7 +6,7 @@ import numpy as np
 from scipy.linalg import block_diag
 
 from ...camera import intrinsics_names
-from ...errors import IdentifiabilityError
+from ...errors import I4calError, IdentifiabilityError
 from ...observations import Observations
 from ...parameters import COMBINATION_NAMES, PARAMETER_NAMES, SEVEN_TO_FOUR, I4Parameters
 from ...robust import chi2_gate
@@ -426,7 +426,6 @@ def calibrate_legs(
 
 def _combined_fit(obs: Observations) -> MethodResult | None:
     """The combined fit of the same observations (its edge-bias and intrinsics measurements); None when it fails."""
-    from ...errors import I4calError
     from ..combined import calibrate_combined
 
     try:
