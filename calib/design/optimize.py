@@ -240,7 +240,7 @@ def _worst_ratio(excess: dict[str, np.ndarray]) -> float:
 
 #: Over the design bench's ten plans on the image-level twin (seeds 0-4, designed 12 and paper 20, 100 trials each),
 #: the legs prediction over its RMS error per combination: its range (docs/benchmarks.md, README "Benchmarks"; the
-#: paper plans of seeds 0-3 and the designed plans of seeds 0-2 with the legs method's re-estimated intrinsics,
+#: plans of seeds 0-3 with the legs method's re-estimated intrinsics,
 #: 2026-11-28)
 LEGS_RATIO_RANGE_TWIN = (0.77, 1.30)
 #: Over the design bench's five plans designed for the combined and legs methods (seeds 0-4, 12 fit poses aimed at
