@@ -271,7 +271,8 @@ def calibrate_combined(
         traced(stage1, on_iteration, "eq8"), x[free], method="lm", xtol=1e-14, ftol=1e-14, gtol=1e-14, max_nfev=500
     )
     # out of evaluations at its minimum (crawling on rounding noise) is converged; anywhere else it is not
-    stopped_stationary = [n for n in [check_converged(sol, stage1, "combined fit")] if n]
+    note = check_converged(sol, stage1, "combined fit")
+    stopped_stationary = [note] if note else []
     x[free] = sol.x
     nfev = sol.nfev
     # direction-noise scale from the whitened residuals: sigma^2 = chi2 / dof
