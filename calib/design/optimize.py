@@ -239,12 +239,12 @@ def _worst_ratio(excess: dict[str, np.ndarray]) -> float:
 
 
 #: Over the design bench's ten plans on the image-level twin (seeds 0-4, designed 12 and paper 20, 100 trials each),
-#: the legs prediction over its RMS error per combination: its range (docs/benchmarks.md, README "Benchmarks"; the
-#: plans of seeds 0-3 with the legs method's re-estimated intrinsics,
-#: 2026-11-28)
+#: the legs prediction over its RMS error per combination: its range (docs/benchmarks.md, README "Benchmarks";
+#: ``benchmarks/results/design-seed*.json``, which tests/calib/test_design_bench_ranges.py checks it against)
 LEGS_RATIO_RANGE_TWIN = (0.77, 1.30)
 #: Over the design bench's five plans designed for the combined and legs methods (seeds 0-4, 12 fit poses aimed at
 #: the paper's 20, 100 trials each): the legs prediction over its RMS error per combination, its range
+#: (``benchmarks/results/design-legs-seed*.json``)
 LEGS_DESIGNED_RATIO_RANGE_TWIN = (0.58, 1.42)
 #: the share of a legs combination's predicted variance from the lock phases' shading above which a design says so
 SHADING_NOTE_SHARE = 0.1
