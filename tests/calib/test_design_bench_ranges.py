@@ -8,29 +8,25 @@ the legs prediction fell from the RMS error from one benched plan to another. Th
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 import pytest
 
 from calib.design.optimize import LEGS_DESIGNED_RATIO_RANGE_TWIN, LEGS_RATIO_RANGE_TWIN
-from calib.parameters import COMBINATION_NAMES
 
 RESULTS = Path(__file__).resolve().parents[2] / "benchmarks" / "results"
 
 
-def _legs_ratio_range(files: list[Path]) -> tuple[float, float]:
-    """Min and max over the files' plans and combinations of the legs prediction over its RMS error, over the trials
-    in which the legs method succeeded without falling back to its prior (a trial that does says so to the user; its
-    error is the prior's, which no prediction of the data's accuracy is about)."""
-    ratios = []
-    for f in files:
-        for plan in json.loads(f.read_text())["plans"].values():
-            legs = [t["methods"]["legs"] for t in plan["trials"]]
-            errors = [r["errors"] for r in legs if r.get("ok") and not r.get("a_priori_fallback")]
-            for c in COMBINATION_NAMES:
-                rms = math.sqrt(sum(e[c] ** 2 for e in errors) / len(errors))
-                ratios.append(plan["predicted_images_std_m"]["legs"][c] / rms)
+def _legs_ratio_range(docs: list[dict]) -> tuple[float, float]:
+    """Min and max over the benches' plans and combinations of the legs prediction over its RMS error on the trials
+    whose data pinned the estimate (the bench's ``predicted_images_over_rms_data_pinned``: a trial where the method
+    fell back to its prior says so to the user, and its error is the prior's, which no prediction is about)."""
+    ratios = [
+        float(r)
+        for doc in docs
+        for plan in doc["checks"]["predicted_images_over_rms_data_pinned"].values()
+        for r in plan["legs"].values()
+    ]
     return min(ratios), max(ratios)
 
 
@@ -44,7 +40,7 @@ def _legs_ratio_range(files: list[Path]) -> tuple[float, float]:
 def test_the_stated_legs_ratio_range_is_the_benches_range(pattern, n_plans, stated):
     files = sorted(RESULTS.glob(pattern))
     assert len(files) == 5, files
-    n = sum(len(json.loads(f.read_text())["plans"]) for f in files)
-    assert n == n_plans
-    lo, hi = _legs_ratio_range(files)
+    docs = [json.loads(f.read_text()) for f in files]
+    assert sum(len(doc["plans"]) for doc in docs) == n_plans
+    lo, hi = _legs_ratio_range(docs)
     assert (round(lo, 2), round(hi, 2)) == stated
