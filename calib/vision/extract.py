@@ -53,6 +53,8 @@ from .pool import (
     _task_find_rods,
     _task_rods,
 )
+from .recover import STARTS as RECOVERY_STARTS
+from .recover import lost_in_search, measured_lines
 from .repredict import MeasuredRod, Repredicted, prediction_shift_px, refit_prediction, rod_ends_camera
 from .rods import ROD_KEYS, RodSettings, rod_name
 
@@ -86,6 +88,9 @@ class ExtractOptions:
     #: the ``camera`` phase's board views (:func:`calib.camera.calibrate_intrinsics`); None: the dataset's
     #: ``camera.lens_model`` (the bench file's), else ``"auto"``; a given camera keeps its own
     lens_model: str | None = None
+    #: when more than this share of the rods looked for are lost in their search bands (:mod:`.recover`), refit the
+    #: prediction robustly and measure every frame again (kept when it loses fewer); None: never
+    recover_lost_share: float | None = 0.05
 
 
 @dataclass
@@ -153,56 +158,135 @@ def extract_dataset(
     ds = dataset if isinstance(dataset, Dataset) else Dataset.open(dataset)
     workers = max(1, int(workers or os.cpu_count() or 1))
     opts = options or ExtractOptions()
-    total = [0]  # the first pass's count, which the second continues
+    base = [0, 0]  # the frames counted by the passes before this one, and this pass's total
 
-    def first_progress(done: int, tot: int) -> None:
-        total[0] = tot
+    def pass_progress(done: int, tot: int) -> None:
+        base[1] = tot
         if progress:
-            progress(done, tot)
+            progress(base[0] + done, base[0] + tot)
 
-    def second_progress(done: int, tot: int) -> None:
-        if progress:
-            progress(total[0] + done, total[0] + tot)
+    def next_pass() -> None:
+        base[0], base[1] = base[0] + base[1], 0
 
     with _Pool(workers) as pool:
         corners: dict[int, list] = {}
-        first = _extract(
-            pool, ds, camera, first_progress, opts, on_frame, keep_images=opts.refine_camera, corners=corners
-        )
-        if not opts.refine_camera:
-            return first
-        refined, info = refined_camera(first, opts.refine_min_shift)
-        if refined is None:
-            first.summary["camera"]["refined_by_rods"] = info
-            return first
-        second = _extract(
-            pool,
-            ds,
-            refined,
-            second_progress,
-            opts,
-            on_frame,
-            corners=corners,
-            predict_with=first.repredicted,
-            predicted_from=first.camera_from_base,
-        )
-    # the camera's calibration (views, rejections) is the first pass's; the second only re-measured
-    second.summary["camera"] = {**first.summary["camera"], "refined_by_rods": info}
-    if second.summary.get("repredicted") is not None:  # the nominal prediction's figures are the first pass's
-        second.summary["repredicted"]["first_camera_pass"] = first.summary.get("repredicted")
+        res = _extract(pool, ds, camera, pass_progress, opts, on_frame, keep_images=opts.refine_camera, corners=corners)
+        if opts.refine_camera:
+            refined, info = refined_camera(res, opts.refine_min_shift)
+            if refined is None:
+                res.summary["camera"]["refined_by_rods"] = info
+            else:
+                next_pass()
+                first, res = (
+                    res,
+                    _extract(
+                        pool,
+                        ds,
+                        refined,
+                        pass_progress,
+                        opts,
+                        on_frame,
+                        corners=corners,
+                        predict_with=res.repredicted,
+                        predicted_from=res.camera_from_base,
+                    ),
+                )
+                # the camera's calibration (views, rejections) is the first pass's; the second only re-measured
+                _carry_camera_phase(ds, first, res, {**first.summary["camera"], "refined_by_rods": info})
+                if res.summary.get("repredicted") is not None:  # the nominal prediction's figures are the first's
+                    res.summary["repredicted"]["first_camera_pass"] = first.summary.get("repredicted")
+        if opts.recover_lost_share is not None:
+            res = _recover(pool, ds, res, opts, on_frame, corners, pass_progress, next_pass)
+    return res
+
+
+def _carry_camera_phase(ds: Dataset, earlier: ExtractionResult, later: ExtractionResult, camera: dict) -> None:
+    """A later pass re-measured the frames: the camera's calibration (summary ``camera``, the ``camera`` phase's
+    frames, the intrinsics) stays the earlier pass's."""
+    later.summary["camera"] = camera
     cam_frames = {str(i) for i, f in enumerate(ds.frames) if f.phase == "camera"}
-    second.summary["frames"] = dict(
+    later.summary["frames"] = dict(
         sorted(
             {
-                **{k: v for k, v in first.summary["frames"].items() if k in cam_frames},
-                **second.summary["frames"],
+                **{k: v for k, v in earlier.summary["frames"].items() if k in cam_frames},
+                **later.summary["frames"],
             }.items(),
             key=lambda kv: int(kv[0]),
         )
     )
-    second.observations["extraction"]["summary"] = second.summary
-    second.intrinsics = first.intrinsics
-    return second
+    later.observations["extraction"]["summary"] = later.summary
+    later.intrinsics = earlier.intrinsics
+
+
+def _recover(
+    pool: _Pool,
+    ds: Dataset,
+    res: ExtractionResult,
+    opts: ExtractOptions,
+    on_frame: FrameCallback | None,
+    corners: dict[int, list],
+    progress: Progress,
+    next_pass: Callable[[], None],
+) -> ExtractionResult:
+    """When more than ``opts.recover_lost_share`` of the rods looked for were lost in their search bands
+    (:func:`.recover.lost_in_search`): the prediction refitted robustly to every line measured (each may be its own
+    rod, its leg's other rod or the gap between them; :data:`.recover.STARTS` more starting points) and every frame
+    measured again on it. The new pass is kept when it loses fewer rods. Recorded in ``summary["recovered"]``."""
+    if res.camera_from_base is None or res.ee_from_board is None or opts.recover_lost_share is None:
+        return res
+    lost, looked = lost_in_search(res.observations)
+    if looked == 0 or lost <= opts.recover_lost_share * looked:
+        return res
+    doc = ds.document
+    info: dict[str, Any] = {"lost_before": lost, "looked_for_before": looked, "share": opts.recover_lost_share}
+    q, lines, boards = measured_lines(res.observations)
+    start = res.repredicted
+    C0, E0 = (start.camera_from_base, start.ee_from_board) if start else (res.camera_from_base, res.ee_from_board)
+    try:
+        fit = refit_prediction(
+            doc.nominal.parameters(),
+            q,
+            lines,
+            boards,
+            C0,
+            E0,
+            float(np.sqrt(res.camera.K[0, 0] * res.camera.K[1, 1])),
+            doc.legs.rod_spacing_m if doc.legs.rod_spacing_m is not None else 0.0,
+            float((doc.board.model_extra or {}).get("height_above_ee_m", 0.0)),
+            mixture=True,
+            starts=RECOVERY_STARTS,
+        )
+    except (I4calError, np.linalg.LinAlgError, ValueError) as exc:
+        res.summary["recovered"] = {**info, "applied": False, "reason": f"robust refit failed: {exc}"}
+        return res
+    if fit is None:
+        res.summary["recovered"] = {
+            **info,
+            "applied": False,
+            "reason": "the robust refit did not bring the lines closer",
+        }
+        return res
+    info["refit"] = fit.summary()
+    next_pass()
+    again = _extract(
+        pool,
+        ds,
+        res.camera,
+        progress,
+        opts,
+        on_frame,
+        corners=corners,
+        predict_with=fit,
+        predicted_from=res.camera_from_base,
+    )
+    lost_after, looked_after = lost_in_search(again.observations)
+    info.update(lost_after=lost_after, looked_for_after=looked_after)
+    if lost_after >= lost:
+        res.summary["recovered"] = {**info, "applied": False, "reason": "measured again, as many rods were lost"}
+        return res
+    _carry_camera_phase(ds, res, again, res.summary["camera"])
+    again.summary["recovered"] = {**info, "applied": True, "repredicted_before": res.summary.get("repredicted")}
+    return again
 
 
 def refined_camera(res: ExtractionResult, min_shift: float = 0.5) -> tuple[CameraModel | None, dict[str, Any]]:

@@ -95,6 +95,7 @@ def summarize(trials: list[dict[str, Any]]) -> dict[str, Any]:
         "trial_errors": dict(Counter(_short(t["error"]) for t in trials if t.get("error"))),
         "edge_noise_px_median": statistics.median(edge) if edge else None,
         "rods_found_fraction": rods[0] / rods[1] if rods[1] else None,
+        "trials_extraction_recovered": sum(bool((t.get("extraction_recovered") or {}).get("applied")) for t in done),
         "gap_a_priori_rms_mm": _rms(
             [t["gap_a_priori_rms_mm"] for t in done if t.get("gap_a_priori_rms_mm") is not None]
         ),

@@ -256,7 +256,8 @@ def trial_record(doc: dict[str, Any], observations: dict[str, Any]) -> dict[str,
         directions of the seven its data left to the a priori tolerance), ``noise_levels`` (:func:`noise_levels`);
         ``bound_std`` (the combined method's
         Cramer-Rao bound, metres, None when the result has none); ``gap_a_priori_rms_mm``,
-        ``gap_truth_rms_mm``; ``edge_noise_px``; ``rods_found`` and ``rods_total``, ``boards_found`` and ``frames``.
+        ``gap_truth_rms_mm``; ``edge_noise_px``; ``rods_found`` and ``rods_total``, ``boards_found`` and ``frames``;
+        ``extraction_recovered`` (:func:`calib.vision.extract.extract_dataset`'s ``summary["recovered"]``, or None).
     """
     from calib.parameters import COMBINATION_NAMES
 
@@ -310,7 +311,17 @@ def trial_record(doc: dict[str, Any], observations: dict[str, Any]) -> dict[str,
         "boards_found": sum(1 for fr in frames if fr.get("board")),
         "rods_found": rods,
         "rods_total": 8 * len(frames),
+        # the extraction's second look when too many rods were lost in their search bands (calib.vision.recover):
+        # None when it was not needed
+        "extraction_recovered": _recovered(observations),
     }
+
+
+def _recovered(observations: dict[str, Any]) -> dict[str, Any] | None:
+    rec = ((observations.get("extraction") or {}).get("summary") or {}).get("recovered")
+    if not rec:
+        return None
+    return {k: rec.get(k) for k in ("applied", "lost_before", "lost_after", "looked_for_before", "reason")}
 
 
 def run_trial(task: TrialTask) -> dict[str, Any]:

@@ -250,6 +250,7 @@ def _reduced_record(trial: dict[str, Any]) -> dict[str, Any]:
         "index": trial.get("index"),
         "error": trial.get("error"),
         "methods": {m: {**r, "gap_validation_rms_mm": None} for m, r in (trial.get("methods") or {}).items()},
+        **{k: trial[k] for k in ("rods_found", "rods_total", "extraction_recovered") if k in trial},
     }
 
 
@@ -280,6 +281,7 @@ def _summarize_plans(plans: dict[str, dict[str, Any]]) -> None:
                     for m, x in (r.get("methods") or {}).items()
                 },
                 "camera_refined": ((r.get("camera") or {}).get("intrinsics") or {}).get("refined_against_covariance"),
+                **{k: r[k] for k in ("rods_found", "rods_total", "extraction_recovered") if k in r},
             }
             for r in recs
         ]
