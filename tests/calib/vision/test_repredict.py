@@ -23,6 +23,8 @@ from calib.vision.repredict import MeasuredRod, prediction_shift_px, refit_predi
 from drivers.sim.imaging import simulate_dataset
 from drivers.sim.twin import BenchGeometry
 
+from ._far_bench import lost_and_far
+
 #: the design benchmark's trial 47 (i4cal.benchmarks.accuracy.draw_truth(0, 47, default spread)), metres
 TRUTH = I4Parameters.from_vector(
     [0.40385660714828314, 1.386133281760735, 0.0010519741715442228, 1.3874446821661581, 0.061482799100059084,
@@ -84,28 +86,9 @@ def test_far_bench_keeps_its_rods(tmp_path):
 
     def outcome(opts: ExtractOptions) -> tuple[int, int, dict]:
         res = extract_dataset(root, workers=1, options=opts)
-        lost = far = 0
-        for f in res.observations["frames"]:
-            q = np.asarray(f["truth"]["q"])
-            top, bottom, _ = rod_ends_camera(TRUTH, q[None], g.camera_from_base, g.rod_spacing_m)
-            for i in range(4):
-                for j in range(2):
-                    m = f["legs"][str(i + 1)][j]
-                    if m is None:  # lost, unless out of the image or behind the board
-                        lost += int(not f["missing"].get(f"leg{i + 1}.rod{j}", "").startswith("not enough of the rod"))
-                        continue
-                    u_true = bottom[0, i, j] - top[0, i, j]
-                    u_true /= np.linalg.norm(u_true)
-                    u = np.asarray(m["u"]) * np.sign(np.asarray(m["u"]) @ u_true)
-                    d = u - u_true
-                    cov = np.asarray(m["cov_u"]) + 1e-12 * np.eye(3)
-                    # the direction has two degrees of freedom: the distance in the plane normal to u_true
-                    P = np.eye(3) - np.outer(u_true, u_true)
-                    d2 = float(d @ P @ np.linalg.pinv(P @ cov @ P, rcond=1e-9) @ P @ d)
-                    far += int(d2 > 13.8)  # chi-square(2) 99.9%
-        return lost, far, res.summary.get("repredicted") or {}
+        return (*lost_and_far(res.observations, TRUTH, g), res.summary.get("repredicted") or {})
 
-    lost_old, far_old, _ = outcome(ExtractOptions(repredict_px=None))
+    lost_old, far_old, _ = outcome(ExtractOptions(repredict_px=None, recover_lost_share=None))
     assert lost_old + far_old >= 20, (lost_old, far_old)  # the trap is real: one pass on the nominal prediction fails
     lost, far, info = outcome(ExtractOptions())
     assert info["applied"] and info["median_px_before"] > 10.0, info
