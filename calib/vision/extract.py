@@ -285,7 +285,10 @@ def _recover(
         res.summary["recovered"] = {**info, "applied": False, "reason": "measured again, as many rods were lost"}
         return res
     _carry_camera_phase(ds, res, again, res.summary["camera"])
-    again.summary["recovered"] = {**info, "applied": True, "repredicted_before": res.summary.get("repredicted")}
+    before = res.summary.get("repredicted")
+    again.summary["recovered"] = {**info, "applied": True, "repredicted_before": before}
+    if again.summary.get("repredicted") is not None and before is not None:  # the nominal prediction's figures
+        again.summary["repredicted"]["first_camera_pass"] = before.get("first_camera_pass") or before
     return again
 
 

@@ -44,6 +44,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "again (a bench far from its nominal geometry keeps its rods)",
     )
     p.add_argument(
+        "--no-recover",
+        dest="recover",
+        action="store_false",
+        help="keep the extraction even when more than 5%% of the rods looked for are lost in their search bands; by "
+        "default the prediction is then refitted robustly (each measured line its rod, its leg's other rod or the "
+        "gap between them) and every frame measured again, kept when it loses fewer rods",
+    )
+    p.add_argument(
         "--lens-model",
         default=None,
         metavar="MODEL",
@@ -77,6 +85,7 @@ def run(args: argparse.Namespace) -> int:
         refine_camera=args.refine_camera,
         lens_model=args.lens_model,
         repredict_px=ExtractOptions.repredict_px if args.repredict else None,
+        recover_lost_share=ExtractOptions.recover_lost_share if args.recover else None,
     )
     if args.quiet:
         res = extract_dataset(args.dataset, camera=cam, workers=args.workers, options=opts)
@@ -150,6 +159,20 @@ def run(args: argparse.Namespace) -> int:
         )
     elif rp0.get("reason"):
         console.print(f"rods' prediction not refitted: {rp0['reason']}")
+    rec = s.get("recovered")
+    if rec:
+        kinds = ", ".join(f"{k} {v}" for k, v in ((rec.get("refit") or {}).get("lines_explained_as") or {}).items())
+        console.print(
+            f"rods lost in their search bands: {rec['lost_before']} of {rec['looked_for_before']} looked for (more "
+            f"than {rec['share']:.0%}): "
+            + (
+                f"prediction refitted robustly (lines explained as {kinds}"
+                f"; {rec['refit']['starts']} starts), every frame measured again: {rec['lost_after']} lost"
+                + ("" if rec["applied"] else f"; not kept: {rec['reason']}")
+                if rec.get("refit")
+                else f"not recovered: {rec['reason']}"
+            )
+        )
     pl = s["placement"]
     console.print(
         "coarse camera placement: "
