@@ -21,6 +21,10 @@ Stages (each over a process pool when ``workers > 1``, with ``progress(done, tot
    ``ExtractOptions.repredict_px`` are measured again on the refitted prediction. On a bench some 15 mm
    off nominal the first prediction is 15-30 px off (the search band is 18 px): without this, rods are
    lost or taken for another edge pair. The refit only says where to look (``summary.repredicted``).
+6. Rods once more, when more than ``ExtractOptions.recover_lost_share`` of those looked for were lost in their search
+   bands (:mod:`calib.vision.recover`): the prediction refitted robustly (each measured line its own rod, its leg's
+   other rod or the gap between them; several starts) and every frame measured again, kept when it loses fewer rods
+   (``summary.recovered``). A bench some 16 mm off nominal whose prediction falls between the rods of most legs.
 
 A frame whose image is missing or unreadable, a hidden board, a rod that leaves the image: each is
 reported per frame (``missing`` in the frame, ``summary`` per phase) and the rest goes on.
