@@ -93,7 +93,8 @@ class ExtractOptions:
     #: ``camera.lens_model`` (the bench file's), else ``"auto"``; a given camera keeps its own
     lens_model: str | None = None
     #: when more than this share of the rods looked for are lost in their search bands (:mod:`.recover`), refit the
-    #: prediction robustly and measure every frame again (kept when it loses fewer); None: never
+    #: prediction robustly and measure every frame again (kept when it loses fewer); None: never (nor with
+    #: ``repredict_px=None``: one pass on the nominal prediction)
     recover_lost_share: float | None = 0.05
 
 
@@ -237,6 +238,8 @@ def _recover(
     rod, its leg's other rod or the gap between them; :data:`.recover.STARTS` more starting points) and every frame
     measured again on it. The new pass is kept when it loses fewer rods. Recorded in ``summary["recovered"]``."""
     if res.camera_from_base is None or res.ee_from_board is None or opts.recover_lost_share is None:
+        return res
+    if opts.repredict_px is None:  # asked for one pass on the nominal prediction
         return res
     lost, looked = lost_in_search(res.observations)
     if looked == 0 or lost <= opts.recover_lost_share * looked:
