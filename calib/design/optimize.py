@@ -241,8 +241,8 @@ def _worst_ratio(excess: dict[str, np.ndarray]) -> float:
 #: Over the design bench's ten plans on the image-level twin (seeds 0-4, designed 12 and paper 20, 200 trials each),
 #: the legs prediction over its RMS error per combination: its range (docs/benchmarks.md, README "Benchmarks";
 #: ``benchmarks/results/design-seed*.json``, which tests/calib/test_design_bench_ranges.py checks it against), over
-#: the trials whose data pinned the estimate (``checks.predicted_images_over_rms_data_pinned``; left out: one of the
-#: 2000, seed 4's trial 119, where the legs method fell back to its prior)
+#: the trials whose data pinned the estimate (``checks.predicted_images_over_rms_data_pinned``; on the current
+#: figures every trial: no method fell back to its prior in the 2000)
 LEGS_RATIO_RANGE_TWIN = (0.78, 1.25)
 #: Over the design bench's five plans designed for the combined and legs methods (seeds 0-4, 12 fit poses aimed at
 #: the paper's 20, 100 trials each): the legs prediction over its RMS error per combination, its range
