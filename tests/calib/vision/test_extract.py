@@ -239,8 +239,10 @@ def test_cli_extract_reports_the_refitted_prediction_and_can_skip_it(tmp_path, c
     out = tmp_path / "obs.json"
     assert main(["extract", str(root), "-o", str(out), "--workers", "1"]) == 0
     said = " ".join((lambda c: c.out + c.err)(capsys.readouterr()).split())
-    rp = json.loads(out.read_text())["extraction"]["summary"]["repredicted"]
+    summary = json.loads(out.read_text())["extraction"]["summary"]
+    rp = summary["repredicted"]
     assert rp["median_px_after"] < rp["median_px_before"], rp
+    assert "recovered" not in summary and "search bands" not in said  # the refit found the rods: no second look
     assert f"rods' prediction refitted to the first pass ({rp['rods']} rods, {rp['boards']} boards)" in said, said
     assert main(["extract", str(root), "-o", str(out), "--workers", "1", "--no-repredict"]) == 0
     said = " ".join((lambda c: c.out + c.err)(capsys.readouterr()).split())
