@@ -45,6 +45,7 @@ from ..dataset import Dataset
 from ..errors import I4calError, InputError
 from ..kinematics import base_from_ee, dkm
 from ..observations import FORMAT
+from ..parameters import I4Parameters
 from ..transforms import Rigid
 from .board import BoardDetector
 from .detect import DetectSettings, resolve_frames
@@ -182,33 +183,31 @@ def extract_dataset(
                 res.summary["camera"]["refined_by_rods"] = info
             else:
                 next_pass()
-                first, res = (
-                    res,
-                    _extract(
-                        pool,
-                        ds,
-                        refined,
-                        pass_progress,
-                        opts,
-                        on_frame,
-                        corners=corners,
-                        predict_with=res.repredicted,
-                        predicted_from=res.camera_from_base,
-                    ),
+                first = res
+                res = _extract(
+                    pool,
+                    ds,
+                    refined,
+                    pass_progress,
+                    opts,
+                    on_frame,
+                    corners=corners,
+                    predict_with=first.repredicted,
+                    predicted_from=first.camera_from_base,
                 )
-                # the camera's calibration (views, rejections) is the first pass's; the second only re-measured
-                _carry_camera_phase(ds, first, res, {**first.summary["camera"], "refined_by_rods": info})
-                if res.summary.get("repredicted") is not None:  # the nominal prediction's figures are the first's
-                    res.summary["repredicted"]["first_camera_pass"] = first.summary.get("repredicted")
-        if opts.recover_lost_share is not None:
-            res = _recover(pool, ds, res, opts, on_frame, corners, pass_progress, next_pass)
+                _carry_over(ds, first, res, {**first.summary["camera"], "refined_by_rods": info})
+        res = _recover(pool, ds, res, opts, on_frame, corners, pass_progress, next_pass)
     return res
 
 
-def _carry_camera_phase(ds: Dataset, earlier: ExtractionResult, later: ExtractionResult, camera: dict) -> None:
+def _carry_over(ds: Dataset, earlier: ExtractionResult, later: ExtractionResult, camera: dict) -> None:
     """A later pass re-measured the frames: the camera's calibration (summary ``camera``, the ``camera`` phase's
-    frames, the intrinsics) stays the earlier pass's."""
+    frames, the intrinsics) stays the earlier pass's, and so do the figures of the nominal prediction's refit
+    (``repredicted.first_camera_pass``)."""
     later.summary["camera"] = camera
+    before = earlier.summary.get("repredicted")
+    if later.summary.get("repredicted") is not None:
+        later.summary["repredicted"]["first_camera_pass"] = (before or {}).get("first_camera_pass") or before
     cam_frames = {str(i) for i, f in enumerate(ds.frames) if f.phase == "camera"}
     later.summary["frames"] = dict(
         sorted(
@@ -244,24 +243,14 @@ def _recover(
     lost, looked = lost_in_search(res.observations)
     if looked == 0 or lost <= opts.recover_lost_share * looked:
         return res
-    doc = ds.document
     info: dict[str, Any] = {"lost_before": lost, "looked_for_before": looked, "share": opts.recover_lost_share}
     q, lines, boards = measured_lines(res.observations)
     start = res.repredicted
     C0, E0 = (start.camera_from_base, start.ee_from_board) if start else (res.camera_from_base, res.ee_from_board)
+    nominal, f_px, spacing, height = _refit_inputs(ds, res.camera)
     try:
         fit = refit_prediction(
-            doc.nominal.parameters(),
-            q,
-            lines,
-            boards,
-            C0,
-            E0,
-            float(np.sqrt(res.camera.K[0, 0] * res.camera.K[1, 1])),
-            doc.legs.rod_spacing_m if doc.legs.rod_spacing_m is not None else 0.0,
-            float((doc.board.model_extra or {}).get("height_above_ee_m", 0.0)),
-            mixture=True,
-            starts=RECOVERY_STARTS,
+            nominal, q, lines, boards, C0, E0, f_px, spacing, height, mixture=True, starts=RECOVERY_STARTS
         )
     except (I4calError, np.linalg.LinAlgError, ValueError) as exc:
         res.summary["recovered"] = {**info, "applied": False, "reason": f"robust refit failed: {exc}"}
@@ -291,11 +280,8 @@ def _recover(
     if lost_after >= lost:
         res.summary["recovered"] = {**info, "applied": False, "reason": "measured again, as many rods were lost"}
         return res
-    _carry_camera_phase(ds, res, again, res.summary["camera"])
-    before = res.summary.get("repredicted")
-    again.summary["recovered"] = {**info, "applied": True, "repredicted_before": before}
-    if again.summary.get("repredicted") is not None and before is not None:  # the nominal prediction's figures
-        again.summary["repredicted"]["first_camera_pass"] = before.get("first_camera_pass") or before
+    _carry_over(ds, res, again, res.summary["camera"])
+    again.summary["recovered"] = {**info, "applied": True, "repredicted_before": res.summary.get("repredicted")}
     return again
 
 
@@ -615,6 +601,15 @@ def _extract(
     return ExtractionResult(obs, summary, camera, intr, C, E, fit)
 
 
+def _refit_inputs(ds: Dataset, camera: CameraModel) -> tuple[I4Parameters, float, float, float]:
+    """What a refit of the rods' prediction takes from the dataset and camera: the nominal parameters, the focal
+    length (px), the rods' spacing (m) and the board's height above the end-effector (m)."""
+    doc = ds.document
+    spacing = doc.legs.rod_spacing_m if doc.legs.rod_spacing_m is not None else 0.0
+    height = float((doc.board.model_extra or {}).get("height_above_ee_m", 0.0))
+    return doc.nominal.parameters(), float(np.sqrt(camera.K[0, 0] * camera.K[1, 1])), spacing, height
+
+
 def _repredict(
     ds: Dataset,
     camera: CameraModel,
@@ -629,9 +624,7 @@ def _repredict(
     prediction it moved by more than ``min_shift_px`` (to be measured again). Returns the summary's
     ``repredicted`` entry (``applied``: whether the refit is used), those frames and the refit. ``start``: the
     refit the frames were first measured with (an earlier pass's), else the nominal model with ``C``."""
-    doc = ds.document
-    nominal = doc.nominal.parameters()
-    spacing = doc.legs.rod_spacing_m if doc.legs.rod_spacing_m is not None else 0.0
+    nominal, f_px, spacing, height = _refit_inputs(ds, camera)
     idx = sorted(rods)
     q = np.array([ds.frames[i].q for i in idx], dtype=np.float64).reshape(-1, 4)
     measured: list[MeasuredRod] = []
@@ -645,8 +638,6 @@ def _repredict(
             v = found_rods.get(rod_name(leg, rod))
             if isinstance(v, dict) and v.get("point") is not None:
                 measured.append(MeasuredRod(k, leg, rod, np.asarray(v["point"]), np.asarray(v["u"])))
-    height = float((doc.board.model_extra or {}).get("height_above_ee_m", 0.0))
-    f_px = float(np.sqrt(camera.K[0, 0] * camera.K[1, 1]))
     try:
         C0, E0 = (start.camera_from_base, start.ee_from_board) if start is not None else (C, E)
         fit = refit_prediction(

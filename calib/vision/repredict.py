@@ -264,9 +264,9 @@ def refit_prediction(
         return np.abs(r[:n_rod]).reshape(-1, 2).max(axis=1)
 
     before = float(np.median(per_rod(r0)))
-    if sol is None or float(np.median(per_rod(sol.fun))) >= before:
+    after = float(np.median(per_rod(sol.fun))) if sol is not None else np.inf
+    if sol is None or after >= before:
         return None
-    after = float(np.median(per_rod(sol.fun)))
     params, C, E = _unpack(sol.x, nominal.T_per_rad, board_height_m)
     shift = {n: float(a - b) for n, a, b in zip(PARAMETER_NAMES, params.vector(), nominal.vector(), strict=True)}
     out = Repredicted(params, C, E, before, after, len(rods), len(boards), shift)

@@ -1,4 +1,4 @@
-"""Shared by the far-bench tests: how many rods an extraction lost, and how many lie beyond their own bound."""
+"""Shared by the far-bench tests: their plan, exact board poses, and how many rods an extraction lost or misplaced."""
 
 from __future__ import annotations
 
@@ -6,9 +6,29 @@ from typing import Any
 
 import numpy as np
 
-from calib.parameters import I4Parameters
+from calib.kinematics import dkm
+from calib.parameters import NOMINAL, I4Parameters
+from calib.plan import Plan, make_plan
+from calib.transforms import Rigid, rot_z
 from calib.vision.repredict import rod_ends_camera
 from drivers.sim.twin import BenchGeometry
+
+
+def far_plan() -> Plan:
+    """A 42-frame full plan (8 base, 12 fit, 3 per lock phase, 2 validation poses) without its guided line."""
+    plan = make_plan("full", NOMINAL, seed=0, n_base=8, n_fit=12, n_lock=3, n_validation=2)
+    return Plan(name="far", steps=[s for s in plan.steps if s.phase != "line"])
+
+
+def exact_boards(g: BenchGeometry, q: np.ndarray) -> dict[int, Rigid]:
+    """The true ``camera_from_board`` at each row of ``q`` (N, 4), keyed by row."""
+    truth = g.truth
+    return {
+        k: g.camera_from_base
+        @ Rigid(rot_z(p[3] / truth.T_per_rad), np.array([p[0], truth.H + p[1], p[2]]))
+        @ g.ee_from_board
+        for k, p in enumerate(dkm(truth, q))
+    }
 
 
 def lost_and_far(observations: dict[str, Any], truth: I4Parameters, g: BenchGeometry) -> tuple[int, int]:

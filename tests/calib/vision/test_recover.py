@@ -14,17 +14,15 @@ import json
 import numpy as np
 import pytest
 
-from calib.kinematics import dkm
 from calib.parameters import NOMINAL, I4Parameters
-from calib.plan import Plan, make_plan
-from calib.transforms import Rigid, rot_z
+from calib.transforms import Rigid
 from calib.vision.placement import fit_placement
 from calib.vision.recover import lost_in_search, measured_lines
 from calib.vision.repredict import HYPOTHESES, MeasuredRod, refit_prediction, rod_ends_camera
 from drivers.sim.imaging import simulate_dataset
 from drivers.sim.twin import BenchGeometry
 
-from ._far_bench import lost_and_far
+from ._far_bench import exact_boards, far_plan, lost_and_far
 
 #: i4cal.benchmarks.accuracy.draw_truth(4, 119, default spread), metres
 TRUTH = I4Parameters.from_vector(
@@ -34,22 +32,11 @@ TRUTH = I4Parameters.from_vector(
 )  # fmt: skip
 
 
-def _plan() -> Plan:
-    plan = make_plan("full", NOMINAL, seed=0, n_base=8, n_fit=12, n_lock=3, n_validation=2)
-    return Plan(name="far", steps=[s for s in plan.steps if s.phase != "line"])
-
-
 def _lines_and_boards(g: BenchGeometry) -> tuple[np.ndarray, list[MeasuredRod], dict[int, Rigid], list[str]]:
     """Exact lines of the far bench as the first pass measured them: in every frame, the first rod of legs 1-3 is
     the gap between the leg's rods and leg 4's second rod is its first; the rest are their own rods."""
-    q = np.array([s.q for s in _plan().steps if s.phase in ("rotation", "poses")])
-    pose = dkm(TRUTH, q)
-    boards = {
-        k: g.camera_from_base
-        @ Rigid(rot_z(p[3] / TRUTH.T_per_rad), np.array([p[0], TRUTH.H + p[1], p[2]]))
-        @ g.ee_from_board
-        for k, p in enumerate(pose)
-    }
+    q = np.array([s.q for s in far_plan().steps if s.phase in ("rotation", "poses")])
+    boards = exact_boards(g, q)
     top, bottom, _ = rod_ends_camera(TRUTH, q, g.camera_from_base, g.rod_spacing_m)
     lines, what = [], []
     for k in range(len(q)):
@@ -116,7 +103,7 @@ def test_far_bench_recovers_its_rods(tmp_path, capsys):
     from service.cli import main
 
     g = BenchGeometry(truth=TRUTH)
-    root = simulate_dataset(tmp_path / "ds", seed=3, geometry=g, plan=_plan(), n_camera_views=0)
+    root = simulate_dataset(tmp_path / "ds", seed=3, geometry=g, plan=far_plan(), n_camera_views=0)
     doc = json.loads((root / "dataset.json").read_text())
     doc["camera"]["K"], doc["camera"]["dist"] = doc["truth"]["K"], doc["truth"]["dist"]
     (root / "dataset.json").write_text(json.dumps(doc))

@@ -13,17 +13,15 @@ import json
 import numpy as np
 import pytest
 
-from calib.kinematics import dkm
 from calib.parameters import NOMINAL, I4Parameters
-from calib.plan import Plan, make_plan
-from calib.transforms import Rigid, rot_z
+from calib.transforms import Rigid
 from calib.vision.extract import ExtractOptions, extract_dataset
 from calib.vision.placement import fit_placement
 from calib.vision.repredict import MeasuredRod, prediction_shift_px, refit_prediction, rod_ends_camera
 from drivers.sim.imaging import simulate_dataset
 from drivers.sim.twin import BenchGeometry
 
-from ._far_bench import lost_and_far
+from ._far_bench import exact_boards, far_plan, lost_and_far
 
 #: the design benchmark's trial 47 (i4cal.benchmarks.accuracy.draw_truth(0, 47, default spread)), metres
 TRUTH = I4Parameters.from_vector(
@@ -34,23 +32,12 @@ TRUTH = I4Parameters.from_vector(
 K = np.array([[774.0, 0.0, 512.0], [0.0, 774.0, 384.0], [0.0, 0.0, 1.0]])
 
 
-def _plan() -> Plan:
-    plan = make_plan("full", NOMINAL, seed=0, n_base=8, n_fit=12, n_lock=3, n_validation=2)
-    return Plan(name="far", steps=[s for s in plan.steps if s.phase != "line"])
-
-
 def test_refit_brings_the_prediction_onto_the_rods():
     """Exact measurements of a far-from-nominal bench: the nominal model with its coarse placement predicts the rods
     more than 10 px off (median); refitted, within 0.1 px, and the frames it moved are those above the threshold."""
     g = BenchGeometry(truth=TRUTH)
-    q = np.array([s.q for s in _plan().steps if s.phase in ("rotation", "poses")])
-    pose = dkm(TRUTH, q)
-    boards = {
-        k: g.camera_from_base
-        @ Rigid(rot_z(p[3] / TRUTH.T_per_rad), np.array([p[0], TRUTH.H + p[1], p[2]]))
-        @ g.ee_from_board
-        for k, p in enumerate(pose)
-    }
+    q = np.array([s.q for s in far_plan().steps if s.phase in ("rotation", "poses")])
+    boards = exact_boards(g, q)
     top, bottom, _ = rod_ends_camera(TRUTH, q, g.camera_from_base, g.rod_spacing_m)
     u = (bottom - top) / np.linalg.norm(bottom - top, axis=-1, keepdims=True)
     rods = [MeasuredRod(k, i, j, top[k, i, j], u[k, i, j]) for k in range(len(q)) for i in range(4) for j in range(2)]
@@ -79,7 +66,7 @@ def test_far_bench_keeps_its_rods(tmp_path):
     edge pair (measured: 45 lost, 3 beyond their bound, of 248); with the refit every rod is found and lies within its
     own covariance's 99.9% bound of the truth."""
     g = BenchGeometry(truth=TRUTH)
-    root = simulate_dataset(tmp_path / "ds", seed=3, geometry=g, plan=_plan(), n_camera_views=0)
+    root = simulate_dataset(tmp_path / "ds", seed=3, geometry=g, plan=far_plan(), n_camera_views=0)
     doc = json.loads((root / "dataset.json").read_text())
     doc["camera"]["K"], doc["camera"]["dist"] = doc["truth"]["K"], doc["truth"]["dist"]
     (root / "dataset.json").write_text(json.dumps(doc))
