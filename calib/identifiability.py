@@ -16,7 +16,7 @@ import numpy as np
 
 from .kinematics import base_from_ee, dkm, ikm, jacobian_ratios, joint_points, leg_directions
 from .numdiff import central_jacobian
-from .parameters import PARAMETER_NAMES, I4Parameters, identifiable_parameters
+from .parameters import PARAMETER_NAMES, I4Parameters
 from .transforms import rotvec_to_matrix
 
 _ORDER = ("L", "D", "q02", "q04", "H", "S", "q03")
@@ -151,30 +151,4 @@ def _fmt(terms: list[tuple[float, str]]) -> str:
     return s
 
 
-def identifiability(method: str, params: I4Parameters, q: np.ndarray) -> dict:
-    """Identifiability report of a registered method (:mod:`calib.methods.registry`) at a pose set (encoders q).
-
-    Raises
-    ------
-    ValueError
-        The method is not registered, or has no identifiability model.
-    """
-    from .errors import InputError
-    from .methods.registry import get_method
-
-    q = np.asarray(q, dtype=np.float64)
-    try:
-        spec = get_method(method)
-    except InputError as exc:
-        raise ValueError(str(exc)) from None
-    if spec.identifiability is None:
-        raise ValueError(f"method {method!r} has no identifiability model")
-    f, k = spec.identifiability(params, q)
-    out = analyse(f, params, k)
-    out["method"] = method
-    out["n_poses"] = int(q.shape[0])
-    out["combination_values"] = identifiable_parameters(params)
-    return out
-
-
-__all__ = ["analyse", "identifiability", "ikm"]
+__all__ = ["analyse", "ikm"]

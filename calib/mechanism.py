@@ -11,16 +11,12 @@ Conventions: metres and radians; one pose of shape ``(pose_dim,)`` or many of sh
 vector of shape ``(n_joints,)`` or many of shape ``(N, n_joints)``; results keep the leading shape. Poses or joint
 vectors out of reach raise :class:`calib.errors.UnreachableError` naming the row and the leg.
 
-The registry (in the style of :mod:`calib.methods.registry`): :func:`get_mechanism` by name, :func:`mechanisms`,
-:func:`mechanism_names`; :func:`register_mechanism` adds one (a module of this package: one line in
-:func:`_builtin_factories`).
+The registry of mechanisms by name is :mod:`calib.mechanisms` (it imports the implementations; this module imports
+none of them).
 """
 
 from __future__ import annotations
 
-import re
-import threading
-from collections.abc import Callable
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
@@ -183,96 +179,4 @@ def joint_targets(
     return q
 
 
-# -- registry -----------------------------------------------------------------------------------------------------
-_lock = threading.RLock()
-_registry: dict[str, Mechanism] = {}
-_builtins_loaded = False
-
-
-def register_mechanism(mechanism: Mechanism, *, replace: bool = False) -> Mechanism:
-    """Register ``mechanism`` under its name; return it.
-
-    Raises
-    ------
-    InputError
-        A bad name, or a mechanism of that name exists and ``replace`` is False.
-    """
-    if not re.match(NAME_PATTERN, str(getattr(mechanism, "name", ""))):
-        raise InputError(f"mechanism name {getattr(mechanism, 'name', None)!r} must match {NAME_PATTERN}", field="name")
-    if not isinstance(mechanism, Mechanism):
-        raise InputError(f"{mechanism.name!r} does not implement calib.mechanism.Mechanism", field="mechanism")
-    with _lock:
-        _ensure_builtins()
-        if mechanism.name in _registry and not replace:
-            raise InputError(f"a mechanism named {mechanism.name!r} is already registered", field="name")
-        _registry[mechanism.name] = mechanism
-    return mechanism
-
-
-def mechanisms() -> tuple[Mechanism, ...]:
-    """Every registered mechanism, in registration order (the built-in ones first)."""
-    _ensure_builtins()
-    with _lock:
-        return tuple(_registry.values())
-
-
-def mechanism_names() -> tuple[str, ...]:
-    """Names of the registered mechanisms."""
-    return tuple(m.name for m in mechanisms())
-
-
-def get_mechanism(name: str) -> Mechanism:
-    """The mechanism ``name``.
-
-    Raises
-    ------
-    InputError
-        No such mechanism (the message lists the registered ones).
-    """
-    _ensure_builtins()
-    mech = _registry.get(name)
-    if mech is None:
-        raise InputError(f"unknown mechanism {name!r}; mechanisms are {', '.join(_registry)}", field="mechanism")
-    return mech
-
-
-def _ensure_builtins() -> None:
-    global _builtins_loaded
-    if _builtins_loaded:
-        return
-    with _lock:
-        if _builtins_loaded:
-            return
-        for factory in _builtin_factories():
-            m = factory()
-            _registry.setdefault(m.name, m)
-        _builtins_loaded = True
-
-
-def _i4() -> Mechanism:
-    from .mechanisms.i4 import I4Mechanism
-
-    return I4Mechanism()
-
-
-def _linear_delta() -> Mechanism:
-    from .mechanisms.linear_delta import LinearDelta
-
-    return LinearDelta()
-
-
-def _builtin_factories() -> list[Callable[[], Mechanism]]:
-    """The mechanisms of this package, one line each."""
-    return [_i4, _linear_delta]
-
-
-__all__ = [
-    "NAME_PATTERN",
-    "Mechanism",
-    "as_rows",
-    "get_mechanism",
-    "joint_targets",
-    "mechanism_names",
-    "mechanisms",
-    "register_mechanism",
-]
+__all__ = ["NAME_PATTERN", "Mechanism", "as_rows", "joint_targets"]

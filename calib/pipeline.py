@@ -12,11 +12,10 @@ import numpy as np
 
 from .baseframe import BaseFrameResult, base_frame_from_observations
 from .errors import I4calError
-from .identifiability import identifiability
 from .methods.edge_bias import MeasuredEdgeBias
 from .methods.iterations import IterationCallback
 from .methods.measured_intrinsics import MeasuredIntrinsics
-from .methods.registry import MethodContext, get_method, method_names
+from .methods.registry import MethodContext, get_method, method_identifiability, method_names
 from .methods.result import MethodResult
 from .observations import LEG_KEYS, Observations, Rod
 from .parameters import COMBINATION_NAMES, PARAMETER_NAMES, I4Parameters
@@ -133,7 +132,7 @@ def calibrate(
         entry["parameters_seven_completed"] = full.seven()
         try:
             has_model = specs[name].identifiability is not None
-            entry["identifiability"] = identifiability(name, full, fit.q) if len(fit) and has_model else None
+            entry["identifiability"] = method_identifiability(name, full, fit.q) if len(fit) and has_model else None
         except I4calError as exc:
             entry["identifiability"] = {"error": str(exc)}
         if specs[name].bound and bf is not None:

@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 from calib.errors import InputError
-from calib.mechanism import get_mechanism, joint_targets
+from calib.mechanism import joint_targets
+from calib.mechanisms import get_mechanism
 from calib.mechanisms.linear_delta import DeltaWorkspace
 from calib.methods.generic_end_effector import fit_end_effector
 from drivers.config import load_bench, open_actuators

@@ -28,8 +28,9 @@ import numpy as np
 
 from ..baseframe import BaseFrameResult
 from ..errors import I4calError, InputError
+from ..identifiability import analyse, combined_model, end_effector_model, legs_model
 from ..observations import Observations
-from ..parameters import I4Parameters
+from ..parameters import I4Parameters, identifiable_parameters
 from .edge_bias import MeasuredEdgeBias
 from .iterations import IterationCallback
 from .measured_intrinsics import MeasuredIntrinsics
@@ -286,21 +287,39 @@ def _fit_legs(obs: Observations, ctx: MethodContext) -> MethodResult:
 
 
 def _combined_model(params: I4Parameters, q: np.ndarray) -> tuple[Callable[[np.ndarray], np.ndarray], int]:
-    from ..identifiability import combined_model
-
     return combined_model(params, q), 0
 
 
 def _end_effector_model(params: I4Parameters, q: np.ndarray) -> tuple[Callable[[np.ndarray], np.ndarray], int]:
-    from ..identifiability import end_effector_model
-
     return end_effector_model(params, q)
 
 
 def _legs_model(params: I4Parameters, q: np.ndarray) -> tuple[Callable[[np.ndarray], np.ndarray], int]:
-    from ..identifiability import legs_model
-
     return legs_model(params, q)
+
+
+def method_identifiability(method: str, params: I4Parameters, q: np.ndarray) -> dict:
+    """Identifiability report of a registered method at a pose set (encoders q, (N, 4), m): its
+    :attr:`MethodSpec.identifiability` model analysed by :func:`calib.identifiability.analyse`.
+
+    Raises
+    ------
+    ValueError
+        The method is not registered, or has no identifiability model.
+    """
+    q = np.asarray(q, dtype=np.float64)
+    try:
+        spec = get_method(method)
+    except InputError as exc:
+        raise ValueError(str(exc)) from None
+    if spec.identifiability is None:
+        raise ValueError(f"method {method!r} has no identifiability model")
+    f, k = spec.identifiability(params, q)
+    out = analyse(f, params, k)
+    out["method"] = method
+    out["n_poses"] = int(q.shape[0])
+    out["combination_values"] = identifiable_parameters(params)
+    return out
 
 
 def _builtin_specs() -> list[MethodSpec]:
@@ -353,6 +372,7 @@ __all__ = [
     "apply_order",
     "get_method",
     "load_modules",
+    "method_identifiability",
     "method_names",
     "methods",
     "plugin_modules",

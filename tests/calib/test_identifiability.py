@@ -1,6 +1,6 @@
 import numpy as np
 
-from calib.identifiability import identifiability
+from calib.methods.registry import method_identifiability as identifiability
 from calib.parameters import NOMINAL
 from calib.plan import make_plan
 

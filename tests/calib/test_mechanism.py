@@ -7,14 +7,8 @@ import pytest
 
 from calib import kinematics
 from calib.errors import InputError, UnreachableError
-from calib.mechanism import (
-    Mechanism,
-    get_mechanism,
-    joint_targets,
-    mechanism_names,
-    mechanisms,
-    register_mechanism,
-)
+from calib.mechanism import Mechanism, joint_targets
+from calib.mechanisms import get_mechanism, mechanism_names, mechanisms, register_mechanism
 from calib.mechanisms.i4 import I4Mechanism
 from calib.mechanisms.linear_delta import LinearDelta
 from calib.parameters import NOMINAL, PARAMETER_NAMES, identifiable_parameters

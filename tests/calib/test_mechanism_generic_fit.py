@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from calib.errors import IdentifiabilityError, InputError
-from calib.mechanism import get_mechanism
+from calib.mechanisms import get_mechanism
 from calib.mechanisms.linear_delta import DeltaWorkspace
 from calib.methods.generic_end_effector import fit_end_effector
 from drivers.sim.delta_twin import DEFAULT_TRUTH, DeltaNoise, DeltaTwin
