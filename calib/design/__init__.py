@@ -13,7 +13,7 @@
 See docs/design.md.
 """
 
-from .check import PlanCheck, check_plan
+from .check import PlanCheck, check_plan, targets_from_plan
 from .imaging import calibration_covariance, synthetic_rods
 from .motion import MotionSpec, move_time, order_tour, plan_motion_time
 from .optimize import (
@@ -23,7 +23,6 @@ from .optimize import (
     design_score,
     log_det_information,
     select_poses,
-    targets_from_plan,
 )
 from .predict import (
     METHODS,

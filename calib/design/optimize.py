@@ -928,34 +928,3 @@ def _best_of_draws(nominal: I4Parameters, scene: Scene, req: DesignRequest, **kw
     design["draws_criterion"] = [s[2] for s in scores]
     best.plan = Plan.model_validate({**best.plan.model_dump(exclude_none=True), "design": design})
     return best
-
-
-def targets_from_plan(
-    plan: Plan,
-    nominal: I4Parameters,
-    scene: Scene,
-    noise: DesignNoise | ImageNoise | None = None,
-    method: str = "combined",
-) -> tuple[float, float, float, float]:
-    """A reference plan's predicted std (m) of ``method``'s four combinations, in ``COMBINATION_NAMES`` order.
-
-    As ``target_std_m`` with the ``"target"`` criterion, it asks for a plan at least as accurate as the reference on
-    every combination (``i4cal plan design --better-than``): a D-optimal set can trade one combination for the
-    others, and did (the twin's designed 12 poses were predicted 0.55-0.64x the paper's 20 on three combinations and
-    0.88x on H-D, and measured 1.1x on H-D). The reference is predicted as the camera will measure it: without its
-    steps whose board is out of view (:func:`.check.measured_plan`), which would make the target stricter than the
-    reference gives.
-    """
-    from .check import check_size, measured_plan  # check builds on this module
-
-    check_size(plan)
-    pred = predict_plan(measured_plan(plan, nominal, scene)[0], nominal, scene, noise)
-    if method not in pred.std:
-        why = pred.errors.get(method, "no prediction")
-        raise InputError(f"the reference plan {plan.name!r} has no {method} prediction: {why}", field="better_than")
-    return tuple(float(pred.std[method][c]) for c in COMBINATION_NAMES)  # type: ignore[return-value]
-
-
-def combination_table(pred: Prediction) -> list[tuple[str, list[float]]]:
-    """Rows (method, four std in mm) of a prediction, in COMBINATION_NAMES order."""
-    return [(m, [pred.std[m][k] * 1e3 for k in COMBINATION_NAMES]) for m in pred.std]
