@@ -4,7 +4,7 @@ Pure computation over numpy arrays: this package imports neither ``drivers`` nor
 """
 
 from .errors import ConvergenceError, I4calError, IdentifiabilityError, InputError, UnreachableError
-from .kinematics import dkm, ee_angle, ikm, jacobian, jacobian_ratios, joint_points, leg_directions
+from .kinematics import dkm, ikm, jacobian, jacobian_ratios, joint_points, leg_directions
 from .parameters import COMBINATION_NAMES, NOMINAL, PARAMETER_NAMES, I4Parameters, identifiable_parameters
 
 __all__ = [
@@ -18,7 +18,6 @@ __all__ = [
     "InputError",
     "UnreachableError",
     "dkm",
-    "ee_angle",
     "identifiable_parameters",
     "ikm",
     "jacobian",

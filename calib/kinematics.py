@@ -26,7 +26,6 @@ Array = NDArray[np.float64]
 __all__ = [
     "base_from_ee",
     "dkm",
-    "ee_angle",
     "ikm",
     "jacobian",
     "jacobian_ratios",
@@ -262,13 +261,6 @@ def jacobian(params: I4Parameters, pose: ArrayLike) -> Array:
     J[:, :, 1:3] = r
     J[:, :, 3] = [1.0, 1.0, -1.0, -1.0]
     return J[0] if single else J
-
-
-def ee_angle(params: I4Parameters, pose: ArrayLike) -> Array:
-    """End-effector rotation angle about z_B in radians: ``T / T_per_rad``."""
-    P, single = _as_rows(pose, "pose")
-    th = P[:, 3] / params.T_per_rad
-    return th[0] if single else th
 
 
 def base_from_ee(params: I4Parameters, pose: ArrayLike) -> tuple[Array, Array]:
