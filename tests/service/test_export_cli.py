@@ -5,15 +5,19 @@ and checked; a changed document fails the check; mistakes are one line with exit
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
-from calib.export import REPRODUCE_TOL_M, load_calibration
+from calib.export import REPRODUCE_TOL_M, load_calibration, plan_joints
+from calib.kinematics import dkm, ikm
 from calib.parameters import COMBINATION_NAMES, I4Parameters
+from calib.plan import make_plan
 from service.cli import main
 from service.report.analysis import json_sha256
 
@@ -160,3 +164,43 @@ def test_the_document_loads_as_the_models_seven_parameters(result_file, tmp_path
     p = I4Parameters.from_mapping({**data["seven"], "T_per_rad": data["T_per_rad"]})
     assert p.combinations() == pytest.approx(data["combinations"], abs=REPRODUCE_TOL_M)
     assert data["units"] == {"length": "m", "covariance": "m^2", "T_per_rad": "m/rad", "date": "ISO 8601 UTC"}
+
+
+def _doc_blocks(lang: str) -> list[str]:
+    text = (Path(__file__).resolve().parents[2] / "docs" / "export.md").read_text(encoding="utf-8")
+    return [b.split("```", 1)[0] for b in text.split(f"```{lang}\n")[1:]]
+
+
+@pytest.mark.skipif(not (shutil.which("jq") and shutil.which("cc")), reason="needs jq and a C compiler")
+def test_the_c_example_of_the_docs_matches_the_model(result_file, tmp_path):
+    """docs/export.md's header command and C functions, on an exported file: the same DKM and IKM as calib's."""
+    out = tmp_path / "calibration.json"
+    assert main(["export", str(result_file), "-o", str(out), "--method", "legs"]) == 0
+    (jq_cmd,) = _doc_blocks("sh")
+    (c_code,) = _doc_blocks("c")
+    subprocess.run(jq_cmd, shell=True, cwd=tmp_path, check=True, timeout=30)
+    doc = json.loads(out.read_text(encoding="utf-8"))
+    params = I4Parameters.from_mapping({**doc["seven"], "T_per_rad": doc["T_per_rad"]})
+    q = plan_joints(make_plan("full", I4Parameters.from_mapping(doc["nominal"])), params)
+    main_c = """
+#include <stdio.h>
+int main(void) {
+    double q[4], p[4], q2[4];
+    while (scanf("%lf %lf %lf %lf", &q[0], &q[1], &q[2], &q[3]) == 4) {
+        if (i4_dkm(q, p) || i4_ikm(p, q2)) { printf("unreachable\\n"); continue; }
+        for (int i = 0; i < 4; i++) printf("%.17g ", p[i]);
+        printf("%.17g %.17g %.17g %.17g\\n", q2[0], q2[1], q2[2], q2[3]);
+    }
+    return 0;
+}
+"""
+    (tmp_path / "i4.c").write_text(c_code + main_c, encoding="utf-8")
+    subprocess.run(["cc", "-O2", "-o", "i4", "i4.c", "-lm"], cwd=tmp_path, check=True, timeout=60)
+    stdin = "\n".join(" ".join(repr(float(v)) for v in row) for row in q)
+    res = subprocess.run([str(tmp_path / "i4")], input=stdin, capture_output=True, text=True, check=True, timeout=30)
+    got = np.array([[float(v) for v in line.split()] for line in res.stdout.splitlines()])
+    assert got.shape == (len(q), 8)
+    pose = dkm(params, q)
+    assert np.max(np.abs(got[:, :4] - pose)) < 1e-12
+    assert np.max(np.abs(got[:, 4:] - ikm(params, pose))) < 1e-12
+    assert np.max(np.abs(got[:, 4:] - q)) < 1e-12  # and the round trip
