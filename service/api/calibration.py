@@ -61,7 +61,7 @@ class CurrentCalibrationOut(CalibrationDocument):
     were identified and which fixed at nominal, the four combinations with std and covariance, units, provenance),
     with the calibration record's keys (``id``, ``applied_at``, ``run_id``, ``parameters``, ``parameters_std``)."""
 
-    bench: str  # type: ignore[assignment]  # a record always names its bench
+    bench: str = Field(description="the bench the calibration is applied to")
     id: int
     applied_at: datetime
     run_id: str

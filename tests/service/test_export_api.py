@@ -107,6 +107,16 @@ async def test_export_route_current_calibration_and_cli_run_modes(service, rende
     assert await asyncio.to_thread(main, ["export", rid0, "--server", service.url, "-o", str(tmp_path / "x")]) == 2
     assert "no result" in capsys.readouterr().err
 
+    # a current calibration whose run's result is no longer stored: the document from the record alone
+    from service.db import Run
+
+    with service.app.state.manager.db.session() as s:
+        s.get(Run, rid).result = None
+    cur = (await c.get(f"{API}/calibration/current")).json()
+    gone = load_calibration(cur)
+    assert gone.seven == doc.seven and gone.combinations == doc.combinations and gone.covariance is None
+    assert gone.fixed_at_nominal == ["H", "S", "q03"] and cur["id"] and cur["run_id"] == rid
+
 
 def _dataset(tmp_path) -> dict:
     return json.loads((tmp_path / "unzipped" / "dataset" / "dataset.json").read_text(encoding="utf-8"))
