@@ -2,15 +2,21 @@
 
 from __future__ import annotations
 
+import asyncio
 from datetime import datetime
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Query
+from fastapi.responses import Response
 from pydantic import BaseModel, Field
 
+from calib.errors import InputError
+from calib.export import CalibrationDocument, ExportContext, build_calibration
+
 from ..auth import Reader
+from ..runs import RunNotFoundError
 from ..settings import BENCH_NAME_PATTERN
-from .deps import Manager, not_found
+from .deps import Manager, conflict, not_found
 
 router = APIRouter(prefix="/calibration", tags=["calibration"])
 
@@ -50,22 +56,71 @@ def calibration_out(cal) -> CalibrationOut:
     )
 
 
+class CurrentCalibrationOut(CalibrationDocument):
+    """The current calibration: an ``i4cal.calibration/1`` document (docs/export.md: the seven parameters with which
+    were identified and which fixed at nominal, the four combinations with std and covariance, units, provenance),
+    with the calibration record's keys (``id``, ``applied_at``, ``run_id``, ``parameters``, ``parameters_std``)."""
+
+    bench: str = Field(description="the bench the calibration is applied to")
+    id: int
+    applied_at: datetime
+    run_id: str
+    parameters: dict[str, float | None] | None = Field(
+        None, description="the seven parameters H, q02, q03, q04, S, D, L (m) where the method identifies them"
+    )
+    parameters_std: dict[str, float | None] | None = None
+
+
+def current_document(manager, cal) -> CalibrationDocument:
+    """The document of an applied calibration: from its run's result (covariance, identifiability, warnings,
+    dataset hash), or, when the run's result is no longer stored, from the record alone (no covariance then)."""
+    from ..export import payload_result, run_document
+
+    try:
+        run = manager.get(cal.run_id)
+    except RunNotFoundError:
+        run = None
+    choice = f"applied to bench {cal.bench} (POST /api/v1/runs/{{id}}/apply)"
+    if run is not None and run.result and cal.method in (run.result.get("methods") or {}):
+        doc = run_document(manager.data_dir, run, cal.method, software_version=cal.software_version, bench=cal.bench)
+    else:
+        ctx = ExportContext(software_version=cal.software_version, bench=cal.bench, run=cal.run_id)
+        doc = build_calibration(payload_result(cal.payload or {}), ctx, cal.method)
+    return doc.model_copy(update={"method_choice": choice})
+
+
 @router.get(
     "/current",
-    response_model=CalibrationOut,
+    response_model=CurrentCalibrationOut,
     responses={
+        200: {"content": {"application/yaml": {}}, "description": "the document (JSON, or YAML with format=yaml)"},
         401: {"description": "reads are closed and no valid token"},
         404: {"description": "no calibration applied yet"},
+        409: {"description": "the applied record cannot be made a document (said why)"},
     },
 )
 async def current_calibration(
-    manager: Manager, _: Reader, bench: Annotated[str | None, Query(pattern=BENCH_NAME_PATTERN)] = None
-) -> CalibrationOut:
-    """The calibration a controller loads: the newest applied to ``bench`` (default: this service's bench)."""
+    manager: Manager,
+    _: Reader,
+    bench: Annotated[str | None, Query(pattern=BENCH_NAME_PATTERN)] = None,
+    format: Annotated[Literal["json", "yaml"], Query(description="json (default) or yaml")] = "json",
+) -> Any:
+    """The calibration a controller loads: the newest applied to ``bench`` (default: this service's bench), as an
+    ``i4cal.calibration/1`` document with the record's keys."""
+    from ..export import dumps
+
     cal = manager.current_calibration(bench)
     if cal is None:
         raise not_found(f"calibration of bench {bench or manager.name!r}" if bench or manager.name else "calibration")
-    return calibration_out(cal)
+    try:
+        doc = await asyncio.to_thread(current_document, manager, cal)
+    except InputError as exc:  # a record that cannot be made a document: say what is wrong with it
+        raise conflict(f"the current calibration of bench {cal.bench!r} cannot be made a document: {exc}") from None
+    record = calibration_out(cal).model_dump(include={"id", "applied_at", "run_id", "parameters", "parameters_std"})
+    out = CurrentCalibrationOut.model_validate({**doc.model_dump(), **record})
+    if format == "yaml":
+        return Response(dumps(out, "yaml"), media_type="application/yaml")
+    return out
 
 
 @router.get(

@@ -17,6 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from starlette.background import BackgroundTask
 
 from calib.errors import InputError
+from calib.export import CalibrationDocument
 from calib.methods.registry import method_names
 from calib.resultdoc import ResultDocument
 
@@ -348,6 +349,44 @@ async def run_report(
         raise conflict(f"run is {run.state}; no result")
     html = await asyncio.to_thread(lambda: build_report(inputs_from_run(manager.data_dir, run, methods)))
     return HTMLResponse(html, headers={"Content-Disposition": f'inline; filename="i4cal-report-{run_id}.html"'})
+
+
+@router.get(
+    "/{run_id}/export",
+    response_model=CalibrationDocument,
+    responses={
+        **ERRORS,
+        200: {
+            "content": {"application/yaml": {}},
+            "description": "i4cal.calibration/1 (JSON, or YAML with format=yaml)",
+        },
+        409: {"description": "no result (yet), or the method did not converge"},
+        422: {"description": "the result has no such method"},
+    },
+)
+async def export_run(
+    run_id: RunId,
+    manager: Manager,
+    _: Reader,
+    method: Annotated[MethodName | None, Query(description="default: the recommended method (docs/export.md)")] = None,
+    format: Annotated[Literal["json", "yaml"], Query(description="json (default) or yaml")] = "json",
+) -> Any:
+    """The run's result as the document a robot controller loads (``i4cal.calibration/1``, ``i4cal export RUN``)."""
+    from ..export import dumps, run_document
+
+    run = get_run(manager, run_id)
+    if run.result is None:
+        raise conflict(f"run is {run.state}; no result")
+    entry = (run.result.get("methods") or {}).get(method) if method else None
+    if method and entry is None:
+        raise unprocessable(InputError(f"the run has no result for method {method!r}", field="method"), ("query",))
+    try:
+        doc = await asyncio.to_thread(run_document, manager.data_dir, run, method)
+    except InputError as exc:  # not converged, or none converged
+        raise conflict(str(exc)) from None
+    if format == "yaml":
+        return Response(dumps(doc, "yaml"), media_type="application/yaml")
+    return doc
 
 
 @router.post(
