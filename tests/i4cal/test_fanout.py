@@ -153,3 +153,28 @@ def test_benchmark_is_an_alias_of_bench(capsys):
     assert "i4cal bench accuracy" in capsys.readouterr().out
     assert main(["benchmark", "accuracy", "--trials", "0"]) == 2  # a benchmark's own checks: nothing to run
     assert "--trials" in capsys.readouterr().err
+
+
+def test_a_design_draw_that_failed_is_left_out_and_said_the_best_of_the_others_kept():
+    """``design_plan``'s ``draws_runner`` hands back each draw's design or its error (here the runner itself stands for
+    an engine whose worker died on draw 1: the two other draws are real designs)."""
+    from calib.design import DesignRequest, design_plan, design_score
+    from calib.parameters import NOMINAL
+    from service.design import twin_scene
+
+    scene = twin_scene()
+    req = DesignRequest(n_fit=4, n_lock=2, n_validation=0, with_line=False, n_candidates=40, draws=3)
+    res = design_plan(NOMINAL, scene, req, draws_runner=lambda fn, n: [fn(0), RuntimeError("worker lost"), fn(2)])
+    design = res.plan.model_extra["design"]
+    assert "draw 1 failed, left out: RuntimeError: worker lost" in res.notes
+    assert design["draws_criterion"][1] is None and None not in (
+        design["draws_criterion"][0],
+        design["draws_criterion"][2],
+    )
+    k = design["request"]["candidate_draw"]
+    assert k in (0, 2) and design["draws_criterion"][k] == min(
+        design["draws_criterion"][0], design["draws_criterion"][2]
+    )
+    assert design_score(res, req)[2] == design["draws_criterion"][k]
+    with pytest.raises(RuntimeError, match="worker lost"):  # no draw left: the first error, not an empty design
+        design_plan(NOMINAL, scene, req, draws_runner=lambda fn, n: [RuntimeError("worker lost")] * n)
