@@ -159,7 +159,7 @@ class _InProcess(cf.Executor):
             try:
                 with forking_single_threaded():
                     value = fn(*args)
-            except BaseException as exc:  # handed over like a pool's future
+            except Exception as exc:  # handed over like a pool's future (an interrupt goes on up)
                 f.set_exception(exc)
             else:
                 f.set_result(value)
@@ -215,7 +215,7 @@ class Fanout:
                 raise InputError(
                     f"cannot reach the Dask scheduler at {s.scheduler}: {exc}", field="--scheduler"
                 ) from exc
-            self.workers = len(client.scheduler_info().get("workers", {}))
+            self.workers = len(client.nthreads())
             self.description = f"Dask scheduler {s.scheduler} ({self.workers} workers)"
         else:
             cluster = self._stack.enter_context(
