@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -178,3 +179,19 @@ def test_a_design_draw_that_failed_is_left_out_and_said_the_best_of_the_others_k
     assert design_score(res, req)[2] == design["draws_criterion"][k]
     with pytest.raises(RuntimeError, match="worker lost"):  # no draw left: the first error, not an empty design
         design_plan(NOMINAL, scene, req, draws_runner=lambda fn, n: [RuntimeError("worker lost")] * n)
+
+
+def _square_or_die(x: int) -> int:
+    if x == 1:
+        os._exit(3)  # the worker process dies under the task, as when the machine's memory runs out
+    return x * x
+
+
+def test_a_trial_whose_worker_died_is_reported_and_the_others_complete(cluster):
+    """Run after the cluster's other tests: each worker that dies is restarted by its nanny; Dask gives the task to
+    another worker three more times (``distributed.scheduler.allowed-failures``; a task that was only waiting on the
+    dying worker runs again elsewhere), then reports it."""
+    with Fanout(FanoutSettings(scheduler=cluster)) as fan:
+        outcomes = fan.map(_square_or_die, [0, 1, 2])
+    assert [o.value for o in outcomes] == [0, None, 4]
+    assert outcomes[1].error_text().startswith("KilledWorker:"), outcomes[1].error_text()
