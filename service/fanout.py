@@ -28,7 +28,6 @@ import contextlib
 import functools
 import os
 import sys
-import traceback
 from collections.abc import Callable, Collection, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -294,11 +293,6 @@ class Fanout:
             return [o.value if o.ok else o.error for o in outcomes]
 
         return run
-
-
-def error_traceback(exc: BaseException) -> str:
-    """The traceback of a task's error, as text (the worker's frames when Dask brought them back)."""
-    return "".join(traceback.format_exception(type(exc), exc, exc.__traceback__))
 
 
 @contextlib.contextmanager

@@ -414,10 +414,6 @@ def _load() -> list[float] | None:
         return None
 
 
-def _cores() -> int:
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-
-
 def _version() -> str:
     from service import __version__
 
