@@ -1,4 +1,5 @@
-"""``i4cal bench BENCHMARK``: the benchmarks of :mod:`i4cal.benchmarks` (``accuracy``, ``design``, ``speed``).
+"""``i4cal bench BENCHMARK`` (alias ``i4cal benchmark``): the benchmarks of :mod:`i4cal.benchmarks` (``accuracy``,
+``design``, ``speed``).
 
 Each module of :mod:`i4cal.benchmarks` that defines ``register(subparsers)`` adds its sub-command
 (the same discovery as :mod:`service.cli`), so a new benchmark is a new module there. :mod:`i4cal.cli` adds
@@ -17,6 +18,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     p = subparsers.add_parser(
         "bench",
+        aliases=["benchmark"],
         help="benchmarks of this machine and of the methods (never timed tests)",
         description="Benchmarks: " + ", ".join(f"`i4cal bench {m.name}`" for m in _modules(benchmarks.__path__)) + ".",
     )

@@ -125,17 +125,18 @@ def _bench_inputs(cfg, noise=None, camera=None) -> tuple[Any, Any, dict[str, Any
     return cfg.nominal_parameters(), twin_scene(camera), kw
 
 
-def design_for_bench(cfg, request, noise=None, status=None, camera=None):
+def design_for_bench(cfg, request, noise=None, status=None, camera=None, draws_runner=None):
     """Design a plan for a bench configuration; returns ``calib.design.DesignResult``.
 
     ``noise``: ``calib.design.DesignNoise`` or ``ImageNoise``; default: the image-level model of the twin's camera
     (:func:`twin_image_noise`), what the methods' uncertainty is on images. ``status``: called with what the design
     is doing (``calib.design.design_plan``). ``camera``: the bench's own camera (:func:`twin_scene`).
+    ``draws_runner``: where the candidate draws are designed (``Fanout.index_runner``, :mod:`service.fanout`).
     """
     from calib.design import design_plan
 
     nominal, scene, kw = _bench_inputs(cfg, noise, camera)
-    return design_plan(nominal, scene, request, status=status, **kw)
+    return design_plan(nominal, scene, request, status=status, draws_runner=draws_runner, **kw)
 
 
 def tradeoff_for_bench(cfg, request, counts, noise=None, progress=None, camera=None):

@@ -24,6 +24,7 @@ plan, trapezoidal profiles, fit poses ordered by a nearest-neighbour tour with 2
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any, Literal
@@ -81,6 +82,10 @@ TIGHTEN_MARGIN = 1.02
 N_FIT_MOST = 200
 SPANS_DEG = (120.0, 180.0, 240.0, 300.0, 330.0)
 LENGTHS_M = (0.15, 0.25, 0.35, 0.45)
+
+#: ``run(design_draw, n)``: ``[design_draw(0), ..., design_draw(n - 1)]``, each entry the draw's design or the
+#: exception it raised (e.g. fanned out over processes or machines by the caller; each draw is seeded by its index)
+DrawsRunner = Callable[[Callable[[int], "DesignResult"], int], "list[DesignResult | BaseException]"]
 
 
 @dataclass(frozen=True)
@@ -620,6 +625,7 @@ def design_plan(
     ws: Workspace | None = None,
     cache: dict[Any, Any] | None = None,
     status: Callable[[str], None] | None = None,
+    draws_runner: DrawsRunner | None = None,
 ) -> DesignResult:
     """Design a plan: sweeps, fit poses (count, choice, order), lock and validation poses; predict it.
 
@@ -627,7 +633,9 @@ def design_plan(
     :func:`.tradeoff.design_tradeoff`; the same ``limits``, ``motion``, ``noise`` and ``ws``): the sweeps, the drawn
     candidates' visibility and information are computed once per candidate draw (the same design, faster).
     ``status``: called with a line saying what the design is doing (a long design's progress: the candidates'
-    draw, each count designed and predicted).
+    draw, each count designed and predicted). ``draws_runner``: runs the ``request.draws`` candidate draws' designs
+    (:data:`DrawsRunner`, e.g. fanned out over processes or machines; default one after the other here); a draw that
+    fails there is left out and said in the notes, the best of the others kept.
 
     Returns
     -------
@@ -643,7 +651,16 @@ def design_plan(
     say = status or (lambda _line: None)
     if req.draws > 1:
         return _best_of_draws(
-            nominal, scene, req, limits=limits, motion=motion, noise=noise, ws=ws, cache=cache, status=status
+            nominal,
+            scene,
+            req,
+            draws_runner,
+            limits=limits,
+            motion=motion,
+            noise=noise,
+            ws=ws,
+            cache=cache,
+            status=status,
         )
     t = req.targets()
     tmap = req.targets_by_method()
@@ -907,24 +924,42 @@ def design_score(result: DesignResult, request: DesignRequest) -> tuple[float, .
     )
 
 
-def _best_of_draws(nominal: I4Parameters, scene: Scene, req: DesignRequest, **kw: Any) -> DesignResult:
-    """:func:`design_plan` for each of ``req.draws`` draws of the candidates; the best by :func:`design_score`."""
+def _one_draw(nominal: I4Parameters, scene: Scene, req: DesignRequest, kw: dict[str, Any], k: int) -> DesignResult:
+    """Draw ``k``'s design (its candidates seeded from the request's seed and ``k`` alone, wherever it runs)."""
+    return design_plan(nominal, scene, replace(req, draws=1, candidate_draw=k), **kw)
+
+
+def _best_of_draws(
+    nominal: I4Parameters, scene: Scene, req: DesignRequest, runner: DrawsRunner | None, **kw: Any
+) -> DesignResult:
+    """:func:`design_plan` for each of ``req.draws`` draws of the candidates; the best by :func:`design_score`.
+    With ``runner``: the draws run there, a failed one is left out (said in the notes) unless all failed."""
     status = kw.pop("status", None)
-    results = []
-    for k in range(req.draws):
-        tell = None if status is None else (lambda line, k=k: status(f"draw {k + 1}/{req.draws}: {line}"))
-        results.append(design_plan(nominal, scene, replace(req, draws=1, candidate_draw=k), status=tell, **kw))
+    outcomes: list[DesignResult | BaseException] = []
+    if runner is None:
+        for k in range(req.draws):
+            tell = None if status is None else (lambda line, k=k: status(f"draw {k + 1}/{req.draws}: {line}"))
+            outcomes.append(design_plan(nominal, scene, replace(req, draws=1, candidate_draw=k), status=tell, **kw))
+    else:
+        outcomes = runner(functools.partial(_one_draw, nominal, scene, req, kw), req.draws)
+    failed = [(k, r) for k, r in enumerate(outcomes) if isinstance(r, BaseException)]
+    drawn = [k for k, r in enumerate(outcomes) if not isinstance(r, BaseException)]
+    results = [r for r in outcomes if not isinstance(r, BaseException)]
+    if not results:
+        raise failed[0][1]
     scores = [design_score(r, req) for r in results]
-    k = min(range(len(results)), key=lambda i: scores[i])
-    best = results[k]
+    i = min(range(len(results)), key=lambda j: scores[j])
+    best, k = results[i], drawn[i]
     best.notes.append(
         f"best of {req.draws} draws of {req.n_candidates} candidate poses (draw {k}; "
         + ", ".join(f"{s[2]:.4g}" for s in scores)
         + " by the criterion)"
     )
+    best.notes += [f"draw {j} failed, left out: {type(e).__name__}: {e}" for j, e in failed]
     design = dict((best.plan.model_extra or {}).get("design") or {})
     design["request"] = {**design.get("request", {}), "draws": req.draws, "candidate_draw": k}
     design["notes"] = best.notes
-    design["draws_criterion"] = [s[2] for s in scores]
+    by_draw = dict(zip(drawn, (s[2] for s in scores), strict=True))
+    design["draws_criterion"] = [by_draw.get(j) for j in range(req.draws)]
     best.plan = Plan.model_validate({**best.plan.model_dump(exclude_none=True), "design": design})
     return best

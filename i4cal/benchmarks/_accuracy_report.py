@@ -316,7 +316,7 @@ def print_accuracy(doc: dict[str, Any], console: Any = None) -> None:
     con = console or make_console()
     m = doc["machine"]
     o = doc["options"]
-    where = f"{m['cpu']}, {m['cores']} cores, {doc['workers']} worker(s), {m['date']}"
+    where = f"{m['cpu']}, {m['cores']} cores, {doc.get('engine') or str(doc['workers']) + ' worker(s)'}, {m['date']}"
     study = doc.get("study")
     if study:
         s = study["summary"]

@@ -1,8 +1,8 @@
 """Worker side of ``i4cal bench accuracy``: one camera calibration or one Monte-Carlo trial on the image-level twin.
 
-Both run in a process of the study's pool (or in the calling process with one worker) and return plain
-JSON-able dicts; every length in metres, except the displacement gaps (mm, as the result document gives them)
-and the edge noise (px). Each works in its own temporary directory, deleted afterwards.
+Both run in a worker of the study's Dask cluster (or in the calling process with one worker: :mod:`service.fanout`)
+and return plain JSON-able dicts; every length in metres, except the displacement gaps (mm, as the result document
+gives them) and the edge noise (px). Each works in its own temporary directory, deleted afterwards.
 """
 
 from __future__ import annotations
@@ -17,7 +17,6 @@ from typing import Any
 from pydantic import BaseModel, Field
 
 from calib.methods.registry import method_names
-from calib.threads import single_threaded_worker
 
 #: Methods of :func:`calib.pipeline.calibrate`, in the order of its result document (the registered methods).
 METHODS: tuple[str, ...] = method_names()
@@ -47,11 +46,6 @@ class TrialTask(BaseModel):
     camera_views: int = Field(0, ge=0, description="board views rendered with the trial (its own camera phase)")
     dist: list[float] | None = Field(None, description="the rendered lens's distortion (None: the renderer's default)")
     lens: str | None = Field(None, description="the lens's name in the lens sweep")
-
-
-def init_worker() -> None:
-    """One BLAS and one OpenCV thread per process: the pool already uses every core."""
-    single_threaded_worker()
 
 
 def _finite(x: Any) -> float | None:

@@ -5,8 +5,11 @@ deviation ``--spread-mm``; default the RMS of the twin's default truth's offsets
 millimetres that separate the paper's a priori and identified values, Table I), renders the study's plan on it
 (``drivers.sim.imaging.simulate_dataset``: images, not numbers handed over), extracts the images with the
 camera the study calibrated once from its own rendered camera phase (as a lab does), and calibrates them with
-the three methods. Trials run over a process pool (``--workers``, default all cores), each in a temporary
-directory deleted afterwards; a failing method or trial is counted and reported, never the end of the study.
+the three methods. Trials are fanned out over Dask (:mod:`service.fanout`: a local cluster of ``--workers``
+processes, default all cores; ``--scheduler tcp://HOST:8786`` for a cluster of machines; ``--workers 1``: in this
+process, without Dask), each in a temporary directory deleted afterwards; a trial's truth and seed come from the
+study's seed and the trial's index alone, so the numbers are identical whatever the engine or worker count. A
+failing method or trial is counted and reported with its error, never the end of the study.
 
 Per method and combination: RMS error against the truth, mean reported standard deviation and their ratio
 (honesty; target within 30%), the combined method's Cramer-Rao bound at the noise measured in each run and the
@@ -24,7 +27,8 @@ level: the calibrated camera, its reprojection RMS), ``study`` and ``sweeps.nois
 ``sweeps.lens`` (lists) as points ``{"sweep", "value", "noise_sigma", "n_fit", "lens", "dist", "trials": [per-trial
 records], "summary"}`` (``lens``/``dist``: None outside the lens sweep; a trial record's ``camera.lens_model`` is
 the lens model its calibration chose),
-``elapsed_s`` (wall), ``cpu_s`` (CPU time of the cameras and trials: divided by the cores, about the wall time
+``workers`` and ``engine`` (what ran the trials), ``elapsed_s`` (wall), ``cpu_s`` (CPU time of the cameras and
+trials: divided by the cores, about the wall time
 on an idle machine) and ``load_average`` at the start and end. Lengths in metres (``*_m``), gaps in mm
 (``*_mm``), edge noise in px.
 """
@@ -36,7 +40,7 @@ import os
 import sys
 import time
 from collections.abc import Callable
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures import Future
 from typing import Any
 
 from pydantic import BaseModel, Field, field_validator
@@ -44,7 +48,7 @@ from pydantic import BaseModel, Field, field_validator
 from calib.errors import InputError
 
 from ._accuracy_report import print_accuracy, summarize
-from ._accuracy_trial import CameraTask, TrialTask, calibrate_camera, init_worker, run_trial
+from ._accuracy_trial import CameraTask, TrialTask, calibrate_camera, run_trial
 
 FORMAT = "i4cal.bench-accuracy/1"
 SWEEPS = ("noise", "poses", "lens")
@@ -95,7 +99,8 @@ class AccuracyOptions(BaseModel):
 
     trials: int = Field(50, ge=0, description="trials of the main study (0: sweeps only)")
     seed: int = 0
-    workers: int | None = Field(None, ge=1, description="processes (default: all cores)")
+    workers: int | None = Field(None, ge=1, description="processes (default: all cores; 1: in this process)")
+    scheduler: str | None = Field(None, description="a Dask scheduler's address (tcp://HOST:8786); default local")
     spread_mm: float | None = Field(None, ge=0, description="std of each true parameter around nominal, mm")
     noise_sigma: float = Field(2.0, ge=0, description="renderer sensor noise, grey levels")
     n_base: int = Field(PAPER["n_base"], ge=3, description="rotation and translation frames (each)")
@@ -267,25 +272,10 @@ def study_points(opts: AccuracyOptions) -> list[Point]:
 
 
 # -- running -------------------------------------------------------------------------------------------------
-class _Inline:
-    """The executor interface in this process (one worker)."""
-
-    def submit(self, fn: Callable[..., Any], *args: Any) -> Future:
-        f: Future = Future()
-        try:
-            f.set_result(fn(*args))
-        except BaseException as exc:  # handed over like a pool's future
-            f.set_exception(exc)
-        return f
-
-    def shutdown(self, wait: bool = True, cancel_futures: bool = False) -> None:
-        return None
-
-
 def run_accuracy(opts: AccuracyOptions, on_progress: OnProgress | None = None) -> dict[str, Any]:
     """Run the study (cameras, then trials as soon as their camera is calibrated) and return the JSON document
     without ``command``/``argv`` (see the module docstring)."""
-    import multiprocessing as mp
+    from service.fanout import Fanout, FanoutSettings
 
     from .speed import machine_info
 
@@ -324,12 +314,7 @@ def run_accuracy(opts: AccuracyOptions, on_progress: OnProgress | None = None) -
         else []
     )
     total = len(cam_tasks) + len(trials)
-    workers = min(opts.workers or _cores(), max(total, 1))
-    pool: Any = (
-        _Inline()
-        if workers == 1
-        else ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"), initializer=init_worker)
-    )
+    pool = Fanout(FanoutSettings(workers=opts.workers, scheduler=opts.scheduler), n_tasks=max(total, 1))
     cameras: dict[str, Any] = {}
     records: dict[str, dict[str, Any]] = {}
     running: dict[Future, tuple[str, Any]] = {}
@@ -349,7 +334,7 @@ def run_accuracy(opts: AccuracyOptions, on_progress: OnProgress | None = None) -
 
     if on_progress:
         on_progress(f"calibrating the camera ({len(cam_tasks)} camera phase(s))" if cam_tasks else "trials", 0, total)
-    try:
+    with pool:
         if opts.camera == "true":
             for n in noises:
                 camera_ready(n, true_camera(n))
@@ -359,8 +344,7 @@ def run_accuracy(opts: AccuracyOptions, on_progress: OnProgress | None = None) -
         for c in cam_tasks:
             running[pool.submit(calibrate_camera, c)] = ("camera", c)
         while running:
-            finished, _ = wait(list(running), return_when=FIRST_COMPLETED)
-            for fut in finished:
+            for fut in pool.next_done(list(running)):
                 kind, task = running.pop(fut)
                 done += 1
                 if kind == "camera":
@@ -368,9 +352,7 @@ def run_accuracy(opts: AccuracyOptions, on_progress: OnProgress | None = None) -
                 else:
                     records[task.key] = _trial_result(fut, task)
                 if on_progress:
-                    on_progress(f"trials ({len(records)}/{len(trials)} done, {workers} worker(s))", done, total)
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)
+                    on_progress(_finished(kind, task, records, cameras, pool), done, total)
     out_points = [
         {
             "sweep": p.sweep,
@@ -391,7 +373,8 @@ def run_accuracy(opts: AccuracyOptions, on_progress: OnProgress | None = None) -
         "version": _version(),
         "machine": machine_info(),
         "options": opts.model_dump(),
-        "workers": workers,
+        "workers": pool.workers,
+        "engine": pool.description,
         "spread_m": spread,
         "plans": {str(n): plan_counts(s) for n, s in steps.items()},
         "notes": plan_notes(opts),
@@ -402,6 +385,17 @@ def run_accuracy(opts: AccuracyOptions, on_progress: OnProgress | None = None) -
         "cpu_s": sum(r.get("cpu_s") or 0.0 for r in [*records.values(), *cameras.values()]),
         "load_average": {"start": load_start, "end": _load()},
     }
+
+
+def _finished(kind: str, task: Any, records: dict[str, Any], cameras: dict[str, Any], pool: Any) -> str:
+    """The progress line of a finished task: which one, its error when it failed, where the study is."""
+    if kind == "camera":
+        cam = cameras.get(f"{task.noise_sigma:g}") or {}
+        what = f"camera noise={task.noise_sigma:g}" + (f" FAILED: {cam['error']}" if cam.get("error") else "")
+    else:
+        err = records[task.key].get("error")
+        what = task.key + (f" FAILED: {err}" if err else "")
+    return f"{what} ({len(records)} trials done; {pool.description})"
 
 
 def true_camera(noise_sigma: float) -> dict[str, Any]:
@@ -418,10 +412,6 @@ def _load() -> list[float] | None:
         return [round(x, 2) for x in os.getloadavg()]
     except OSError:
         return None
-
-
-def _cores() -> int:
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 def _version() -> str:
@@ -475,6 +465,8 @@ def _ints(text: str) -> list[int]:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
+    from service.fanout import add_arguments as fanout_arguments
+
     p = subparsers.add_parser(
         "accuracy",
         help="Monte-Carlo accuracy of the methods on the image-level twin (errors, bound, gaps)",
@@ -484,7 +476,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     a = p.add_argument
     a("--trials", type=int, default=None, metavar="N", help="trials of the main study (default 50; 0: sweeps only)")
     a("--seed", type=int, default=None, help="seed of the whole study (default 0)")
-    a("--workers", type=int, default=None, metavar="N", help="processes (default: all cores)")
+    fanout_arguments(p)
     a("--json", metavar="PATH", default=None, help="also write every trial and the summaries as JSON")
     a("--quick", action="store_true", help="3 trials of a small plan; 2 trials per sweep point, 2 points (for tests)")
     a("--with-line", action="store_true", help="also render the guided line (51 frames per trial)")
@@ -529,6 +521,7 @@ _ARGS = {
     "trials": "trials",
     "seed": "seed",
     "workers": "workers",
+    "scheduler": "scheduler",
     "spread_mm": "spread_mm",
     "noise": "noise_sigma",
     "base_poses": "n_base",
@@ -548,12 +541,15 @@ def options_from_args(args: argparse.Namespace) -> AccuracyOptions:
     """``--quick`` presets, then every option given explicitly."""
     from pydantic import ValidationError
 
+    from service.fanout import settings_from
+
     kw: dict[str, Any] = dict(QUICK) if args.quick else {}
     kw.update({field: getattr(args, arg) for arg, field in _ARGS.items() if getattr(args, arg) is not None})
     kw["quick"] = bool(args.quick)
     kw["with_line"] = bool(args.with_line)
     if args.sweep:
         kw["sweeps"] = [s.strip().lower() for s in args.sweep.split(",") if s.strip()]
+    settings_from(args.workers, args.scheduler)  # a bad --scheduler or --workers named before anything runs
     try:
         return AccuracyOptions(**kw)
     except ValidationError as exc:
@@ -565,35 +561,17 @@ def options_from_args(args: argparse.Namespace) -> AccuracyOptions:
 
 def run(args: argparse.Namespace) -> int:
     from rich.console import Console
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TextColumn,
-        TimeElapsedColumn,
-        TimeRemainingColumn,
-    )
 
     from calib.jsonio import write_json_atomic
     from calib.pipeline import to_jsonable
+    from service.fanout import progress_display
 
     opts = options_from_args(args)
     if args.quiet:
         doc = run_accuracy(opts)
     else:
-        with Progress(
-            TextColumn("{task.description}"),
-            BarColumn(),
-            MofNCompleteColumn(),
-            TimeElapsedColumn(),
-            TimeRemainingColumn(),
-            console=Console(stderr=True),
-            transient=True,
-        ) as bar:
-            task = bar.add_task("starting", total=None)
-            doc = run_accuracy(
-                opts, lambda d, done, total: bar.update(task, description=d, completed=done, total=total)
-            )
+        with progress_display("accuracy study") as shown:
+            doc = run_accuracy(opts, shown)
     doc = {"command": command_line(opts), "argv": list(sys.argv), **doc}
     print_accuracy(doc)
     if args.json:

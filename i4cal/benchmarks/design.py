@@ -44,7 +44,6 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from typing import Any
 
 import numpy as np
@@ -77,6 +76,7 @@ def _plans(
     draws: int = 1,
     lock_frames: int = 5,
     design_methods: tuple[str, ...] = ("combined",),
+    draws_runner: Any = None,
 ) -> dict[str, dict[str, Any]]:
     from calib.design import (
         DesignRequest,
@@ -123,7 +123,7 @@ def _plans(
                     methods=design_methods,
                     n_lock=lock_frames,
                 )
-                res = design_plan(NOMINAL, scene, request, motion=motion, noise=image_noise)
+                res = design_plan(NOMINAL, scene, request, motion=motion, noise=image_noise, draws_runner=draws_runner)
                 plan, drawn = res.plan, res.candidates
             out[f"{kind}-{n}"] = {
                 "kind": kind,
@@ -178,12 +178,46 @@ def repredict(doc: dict[str, Any]) -> dict[str, Any]:
 
 
 def run_design_bench(opts: argparse.Namespace, progress=None) -> dict[str, Any]:
-    import multiprocessing as mp
-
-    from ._accuracy_trial import TrialTask, init_worker, run_trial
-    from .accuracy import _cores, default_spread_m, draw_truth, trial_seed
+    """Design the plans, then run every plan's trials, fanned out over Dask (:mod:`service.fanout`: ``opts.workers``
+    local processes or ``opts.scheduler``; one worker: in this process); ``progress(description, done, total)`` as
+    each trial (or design draw) finishes. A trial that fails is recorded with its error."""
+    from service.fanout import Fanout, settings_from
 
     t0 = time.perf_counter()
+    fan = Fanout(settings_from(getattr(opts, "workers", None), getattr(opts, "scheduler", None)))
+    with fan:
+        plans, records = _run_design_bench(opts, fan, progress)
+    for name, p in plans.items():
+        p["records"] = [records[f"{name},k={k}"] for k in _trial_indices(opts)]
+    _summarize_plans(plans)
+    from .speed import machine_info
+
+    return {
+        "format": FORMAT,
+        "argv": list(sys.argv),
+        "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+        "machine": machine_info(),
+        "options": {k: v for k, v in vars(opts).items() if k != "handler"},
+        "engine": fan.description,
+        "plans": plans,
+        "checks": _checks(plans),
+        "elapsed_s": time.perf_counter() - t0,
+    }
+
+
+def _run_design_bench(
+    opts: argparse.Namespace, fan: Any, progress: Any
+) -> tuple[dict[str, dict[str, Any]], dict[str, dict[str, Any]]]:
+    """:func:`run_design_bench`'s work on an open fan-out: the plans (their draws fanned out), then the trials."""
+    from service.fanout import finished_line
+
+    from ._accuracy_trial import TrialTask, run_trial
+    from .accuracy import default_spread_m, draw_truth, trial_seed
+
+    def drawn(outcome: Any, done: int, total: int) -> None:
+        if progress:
+            progress(f"designing: {finished_line(outcome)} ({fan.description})", done, total)
+
     plans = _plans(
         opts.counts,
         opts.seed,
@@ -194,6 +228,7 @@ def run_design_bench(opts: argparse.Namespace, progress=None) -> dict[str, Any]:
         getattr(opts, "draws", 1),
         getattr(opts, "lock_frames", 5),
         tuple(getattr(opts, "design_methods", None) or ("combined",)),
+        draws_runner=fan.index_runner(drawn),
     )
     spread = default_spread_m()
     tasks = [
@@ -210,38 +245,18 @@ def run_design_bench(opts: argparse.Namespace, progress=None) -> dict[str, Any]:
         for name, p in plans.items()
         for k in _trial_indices(opts)
     ]
-    workers = min(opts.workers or _cores(), len(tasks))
-    records: dict[str, dict[str, Any]] = {}
-    with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"), initializer=init_worker) as pool:
-        futs = {pool.submit(run_trial, t): t for t in tasks}
-        for i, f in enumerate(as_completed(futs), 1):
-            t = futs[f]
-            try:
-                records[t.key] = f.result()
-            except Exception as exc:  # a dead worker: counted, not fatal
-                records[t.key] = {
-                    "key": t.key,
-                    "index": t.index,
-                    "error": f"{type(exc).__name__}: {exc}",
-                    "methods": {},
-                }
-            if progress:
-                progress(i, len(tasks))
-    for name, p in plans.items():
-        p["records"] = [records[f"{name},k={k}"] for k in _trial_indices(opts)]
-    _summarize_plans(plans)
-    from .speed import machine_info
 
-    return {
-        "format": FORMAT,
-        "argv": list(sys.argv),
-        "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
-        "machine": machine_info(),
-        "options": {k: v for k, v in vars(opts).items() if k != "handler"},
-        "plans": plans,
-        "checks": _checks(plans),
-        "elapsed_s": time.perf_counter() - t0,
-    }
+    def tell(outcome: Any, done: int, total: int) -> None:
+        if progress:
+            progress(f"{finished_line(outcome)} ({fan.description})", done, total)
+
+    records: dict[str, dict[str, Any]] = {}
+    for o in fan.map(run_trial, tasks, names=[t.key for t in tasks], on_done=tell):
+        t = tasks[o.index]
+        # run_trial records a failing method or extraction itself: an error here is a trial that raised or whose
+        # worker died, counted and reported, never the end of the bench
+        records[t.key] = o.value if o.ok else {"key": t.key, "index": t.index, "error": o.error_text(), "methods": {}}
+    return plans, records
 
 
 def _reduced_record(trial: dict[str, Any]) -> dict[str, Any]:
@@ -759,6 +774,8 @@ def _ints(text: str) -> list[int]:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
+    from service.fanout import add_arguments as fanout_arguments
+
     p = subparsers.add_parser(
         "design",
         help="designed plans vs the paper's plan at equal fit-pose counts (image-level twin)",
@@ -775,7 +792,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     a("--counts", type=_ints, default=[8, 12, 20, 30], help="fit-pose counts (default 8,12,20,30)")
     a("--seed", type=int, default=0)
-    a("--workers", type=int, default=None)
+    fanout_arguments(p, "trials and design draws")
     a("--speed", type=float, default=0.05, help="actuator speed for the motion time, m/s (a bench file's default)")
     a("--accel", type=float, default=0.5, help="acceleration, m/s^2")
     a(
@@ -870,8 +887,11 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--trials >= 1, --first-trial >= 0 and fit-pose counts >= 4", field="--trials")
     if not 2 <= args.lock_frames <= 50:
         raise InputError(f"must be in 2..50, got {args.lock_frames}", field="--lock-frames")
-    doc = run_design_bench(args, lambda i, n: print(f"\r{i}/{n} trials", end="", file=sys.stderr))
-    print(file=sys.stderr)
+    from service.fanout import progress_display, settings_from
+
+    settings_from(args.workers, args.scheduler)  # a bad --workers or --scheduler named before the designs run
+    with progress_display("design bench") as shown:
+        doc = run_design_bench(args, shown)
     print_table(doc)
     if args.json:
         write_json_atomic(args.json, to_jsonable(doc), indent=1)

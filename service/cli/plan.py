@@ -20,6 +20,8 @@ def _camera(path: str | None):
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
+    from service.fanout import add_arguments as fanout_arguments
+
     p = subparsers.add_parser("plan", help="plans: design one before motion (predicted accuracy, motion time)")
     sub = p.add_subparsers(dest="plan_command", metavar="SUBCOMMAND")
     d = sub.add_parser(
@@ -58,6 +60,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="independent draws of the candidates, each designed, the best kept (default 1; the exchange finds a "
         "local optimum of the poses drawn)",
     )
+    fanout_arguments(d, "candidate draws (--draws 2 or more)")
     a("--no-line", action="store_true", help="leave out the guided line (straightness)")
     a(
         "--lock-frames",
@@ -216,13 +219,24 @@ def _design(args: argparse.Namespace) -> int:
     )
     if args.tradeoff is not None:
         return _tradeoff(args, cfg, req, noise, camera)
+    from service.fanout import Fanout, finished_line, settings_from
+
     from ._output import make_console
 
+    settings = settings_from(args.workers, args.scheduler)
     # a design takes seconds to minutes (up to 200 fit poses, several candidate draws): say what it is doing
     with make_console(stderr=True).status("designing the plan") as shown:
-        res = design_for_bench(
-            cfg, req, noise, status=lambda line: shown.update(f"designing the plan: {line}"), camera=camera
-        )
+        if req.draws > 1:  # the draws are independent designs: fanned out (in this process with --workers 1)
+            with Fanout(settings, n_tasks=req.draws) as fan:
+                shown.update(f"designing the plan: {req.draws} candidate draws, {fan.description}")
+                runner = fan.index_runner(
+                    lambda o, done, n: shown.update(f"designing the plan: {done}/{n} draws, {finished_line(o)}")
+                )
+                res = design_for_bench(cfg, req, noise, camera=camera, draws_runner=runner)
+        else:
+            res = design_for_bench(
+                cfg, req, noise, status=lambda line: shown.update(f"designing the plan: {line}"), camera=camera
+            )
     validate_plan(res.plan, cfg.nominal_parameters(), cfg.calib_limits())
     if args.json:
         print(json.dumps(to_jsonable(res.summary()), indent=1))

@@ -34,6 +34,7 @@ TOP_KEYS = {
     "machine",
     "options",
     "workers",
+    "engine",
     "spread_m",
     "plans",
     "notes",

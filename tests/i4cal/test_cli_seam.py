@@ -25,8 +25,9 @@ def _commands(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentPar
 def test_i4cal_has_the_service_commands_and_bench():
     service_commands = _commands(service.cli.build_parser())
     commands = _commands(build_parser())
-    assert "bench" not in service_commands
-    assert set(commands) == set(service_commands) | {"bench"}
+    assert "bench" not in service_commands and "benchmark" not in service_commands
+    assert set(commands) == set(service_commands) | {"bench", "benchmark"}
+    assert commands["benchmark"] is commands["bench"]  # an alias: the same parser
     assert set(_commands(commands["bench"])) == {"accuracy", "design", "speed"}
     # the logging options reach the added command as they reach the service's own
     assert {"-v", "--log-level"} <= set(commands["bench"]._option_string_actions)
