@@ -288,12 +288,17 @@ def fast_axis_config() -> AxisConfig:
     return AxisConfig(default_speed=10.0, accel=1000.0, home_speed=10.0)
 
 
-async def serve_forever(port: int = 5020, *, seed: int = 0, watchdog_s: float = 0.5, print_fn=print) -> None:
+async def serve_forever(
+    port: int = 5020, *, seed: int = 0, watchdog_s: float = 0.5, print_fn=print, on_start=None
+) -> None:
     """Run a :class:`SimBench` until cancelled (the body of ``i4cal sim-bench``); ``watchdog_s``: the
-    controller's communication watchdog (s, 0 = off)."""
+    controller's communication watchdog (s, 0 = off); ``on_start(bench)``: called once it serves, before its URIs
+    are printed."""
     bench = SimBench(port=port, axis_config=fast_axis_config(), seed=seed, watchdog_s=watchdog_s)
     await bench.start()
     try:
+        if on_start is not None:
+            on_start(bench)
         for k, v in bench.uris().items():
             print_fn(f"{k} = {v}")
         await asyncio.Event().wait()
