@@ -33,6 +33,7 @@ from calib.plan import Plan, SoftLimits, line_poses, validate_plan
 
 from .errors import AbortedError, DeviceError, DeviceTimeoutError, FrameError, StopNotConfirmedError
 from .interfaces import Actuators, Camera, Frame, Operator
+from .operators import ConsoleOperator as ConsoleOperator  # where it was before: the console operator
 from .registermap import ALARM_WATCHDOG
 
 log = logging.getLogger(__name__)
@@ -94,22 +95,6 @@ class AcquisitionError(DeviceError):
     ) -> None:
         self.pose, self.step, self.phase, self.cause, self.frames_kept = pose, step, phase, cause, frames_kept
         super().__init__(message)
-
-
-class ConsoleOperator:
-    """A person guides the line; prompted on the terminal (stdin)."""
-
-    async def begin_line(self, start_pose, end_pose, samples: int, rate_hz: float) -> None:
-        print(
-            f"Drives are free. Guide the end-effector along the ruler from {np.round(start_pose, 4).tolist()} "
-            f"to {np.round(end_pose, 4).tolist()} in about {samples / rate_hz:.0f} s, starting when you press "
-            "Enter.",
-            flush=True,
-        )
-        await asyncio.to_thread(input)
-
-    async def end_line(self) -> None:
-        print("Line recorded; the drives will be re-energised.", flush=True)
 
 
 class Acquisition:

@@ -553,7 +553,7 @@ def _replay_camera(c: CameraConfig, uri: DeviceURI) -> Camera:
 
 
 def _console_operator(cfg: BenchConfig, uri: DeviceURI) -> Operator:
-    from .acquisition import ConsoleOperator
+    from .operators import ConsoleOperator
 
     return ConsoleOperator()
 
