@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import datetime
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -59,135 +57,28 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(handler=lambda args: (p.print_help(), 1)[1])
 
 
-@dataclass
-class Session:
-    """What a board session gave: the guide with its kept views, the image size, the grabs made."""
-
-    guide: Any
-    image_size: tuple[int, int]
-    grabs: int
-    log: list[dict[str, Any]] = field(default_factory=list)
-
-
-async def collect_views(cfg, views: int, max_grabs: int, say) -> Session:
-    """Ask the bench's operator for board placements, grab and check each view, until the views cover everything.
-
-    Raises
-    ------
-    InputError
-        The bench's operator cannot hold a board.
-    I4calError
-        ``max_grabs`` grabs made and something is still missing (named).
-    """
-    from calib.camera_views import ViewGoals, ViewGuide
-    from calib.dataset import BoardSpec
-    from calib.errors import I4calError, InputError
-    from calib.vision.board import BoardDetector
-    from drivers.config import open_camera, open_operator
-    from drivers.interfaces import BoardPresenter
-
-    operator = open_operator(cfg)
-    if not isinstance(operator, BoardPresenter):
-        raise InputError(
-            f"the bench's operator ({cfg.operator.uri}) cannot hold the calibration board; use 'console' (a person "
-            "at the bench) or the simulated bench's sim://HOST:PORT",
-            file=cfg.source,
-            field="operator.uri",
-        )
-    board = BoardSpec()  # the board an acquisition records (the end-effector's)
-    detector = BoardDetector(board)
-    camera = open_camera(cfg)
-    guide = None
-    grabs = 0
-    log: list[dict[str, Any]] = []
-    try:
-        await camera.open()
-        while guide is None or not guide.complete:
-            if grabs >= max_grabs:
-                raise I4calError(
-                    f"{grabs} grabs and the views still miss: "
-                    + "; ".join(guide.missing() if guide else ["a board"])
-                    + " (more with --max-grabs)"
-                )
-            placement = guide.next_placement() if guide is not None else ViewGuide.first_placement()
-            say(f"[bold]{placement.text}[/]")
-            await operator.present_board(placement)
-            frame = await camera.grab(cfg.camera.timeout_s)
-            grabs += 1
-            if guide is None:
-                h, w = frame.image.shape[:2]
-                guide = ViewGuide(board, (w, h), ViewGoals(views=views))
-            det = await asyncio.to_thread(detector.detect, frame.image)
-            v = guide.add(grabs, det.ids, det.pixels)
-            log.append({"grab": grabs, "asked": placement.to_dict(), "kept": v.kept, "reason": v.reason})
-            if v.kept:
-                f = v.features
-                assert f is not None
-                say(
-                    f"  grab {grabs}: kept ({len(guide.kept)} views): board spans {100 * f.fill:.0f}% of the width, "
-                    f"turned {f.tilt_deg[0]:+.0f} deg (top away) and {f.tilt_deg[1]:+.0f} deg (right away)"
-                    + (f", fits the others at {v.rms_px:.2f} px RMS" if v.rms_px is not None else "")
-                    + (f"; adds {', '.join(v.added)}" if v.added else "")
-                )
-            else:
-                say(f"  grab {grabs}: [yellow]not kept[/]: {v.reason}")
-            missing = guide.missing()
-            if missing:
-                say("  still missing: " + "; ".join(missing))
-    finally:
-        try:
-            await operator.board_done()
-        finally:
-            await camera.close()
-            close = getattr(operator, "close", None)
-            if close is not None:
-                await close()
-    assert guide is not None
-    return Session(guide, (guide.width, guide.height), grabs, log)
-
-
 def run(args: argparse.Namespace) -> int:
     from rich.console import Console
 
-    from calib.camera import LENS_MODEL_CHOICES, CameraModel, calibrate_intrinsics
-    from calib.errors import InputError
     from drivers.config import load_bench
 
+    from ..camera_session import calibrate_views, check_lens_model, collect_views
     from .calibrate import check_output_file
 
     check_output_file(args.output, "-o/--output")
     cfg = load_bench(args.bench)
-    lens = args.lens_model or cfg.camera.lens_model or "auto"
-    if lens not in LENS_MODEL_CHOICES:
-        raise InputError(
-            f"unknown lens model {lens!r}; lens models are {', '.join(LENS_MODEL_CHOICES)}", field="--lens-model"
-        )
+    lens = check_lens_model(args.lens_model or cfg.camera.lens_model or "auto", "--lens-model")
     console = Console(stderr=True, highlight=False)
     max_grabs = args.max_grabs or 3 * args.views + 20
     session = asyncio.run(collect_views(cfg, args.views, max_grabs, console.print))
-    guide = session.guide
     console.print(
-        f"views cover the image, the tilts and the distances: {len(guide.kept)} kept of {session.grabs} grabs"
+        f"views cover the image, the tilts and the distances: {len(session.guide.kept)} kept of {session.grabs} grabs"
     )
-    res = calibrate_intrinsics(guide.views(), session.image_size, guide.ids_all, guide.points, lens_model=lens)
-    cam = res.camera
-    acquired = {
-        "bench": cfg.name,
-        "bench_file": str(Path(args.bench).resolve()),
-        "camera_uri": cfg.camera.uri,
-        "operator_uri": cfg.operator.uri,
-        "board": guide.board.model_dump(mode="json"),
-        "grabs": session.grabs,
-        "coverage": guide.coverage(),
-        "rejected_by_calibration": {str(k): r for k, r in res.rejected.items()},
-        "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        "software": _version(),
-    }
-    out = CameraModel(cam.K, cam.dist, cam.width, cam.height, {**cam.extra, "acquired": acquired})
-    out.save(args.output)
+    res, camera = calibrate_views(session, cfg, lens, str(Path(args.bench).resolve()))
+    camera.save(args.output)
     print_evidence(res, console)
     console.print(
-        f'wrote {args.output}; name it in the bench file ([camera] intrinsics = "{Path(args.output).name}", relative '
+        f'wrote {args.output}; name it in the bench file (\\[camera] intrinsics = "{Path(args.output).name}", relative '
         "to the bench file) so that `i4cal acquire` records it in every dataset"
     )
     return 0
@@ -249,9 +140,3 @@ def _not_allowed(e: dict[str, Any]) -> str:
     if e.get("tangential_bound_px") is not None:
         return f"tangential terms may reach {e['tangential_bound_px']:.2f} px at the image's corner"
     return "not allowed"
-
-
-def _version() -> str:
-    from service import __version__
-
-    return f"i4cal {__version__}"
