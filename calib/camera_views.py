@@ -352,8 +352,8 @@ class ViewGuide:
             out.append(
                 (
                     "far",
-                    f"a far view: the board spanning {100 * g.far_fill:.0f}% of the image width or less "
-                    + (f"(smallest so far {100 * smallest:.0f}%)" if feats else ""),
+                    f"a far view: the board spanning {100 * g.far_fill:.0f}% of the image width or less"
+                    + (f" (smallest so far {100 * smallest:.0f}%)" if feats else ""),
                 )
             )
         if len(self.kept) < g.views:

@@ -39,14 +39,15 @@ class ConsoleOperator:
         print("Line recorded; the drives will be re-energised.", flush=True)
 
     async def present_board(self, placement: BoardPlacement) -> None:
-        """Say where to hold the board; return when the person presses Enter (the frame is grabbed then).
+        """Wait for the person to hold the board as asked (``placement.text``, which the session has said on the
+        console) and press Enter; the frame is grabbed then.
 
         Raises
         ------
         AbortedError
             The person typed ``q`` (or the input ended).
         """
-        print(f"{placement.text}. Press Enter to grab (q then Enter to stop).", flush=True)
+        print("Press Enter to grab (q then Enter to stop).", flush=True)
         try:
             answer = await asyncio.to_thread(self._read)
         except EOFError:

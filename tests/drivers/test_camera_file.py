@@ -99,7 +99,7 @@ async def test_a_camera_file_of_another_image_size_is_refused_before_the_plan_mo
     assert np.abs(bench.mechanism.q_true() - first_pose).max() > 1e-2  # homed only: the plan's first pose not reached
 
 
-async def test_the_console_operator_asks_for_the_board_in_words():
+async def test_the_console_operator_grabs_on_enter_and_stops_on_q():
     answers = iter(["", "q"])
     op = ConsoleOperator(read=lambda: next(answers))
     placement = ViewGuide.first_placement()
@@ -112,7 +112,7 @@ async def test_the_console_operator_asks_for_the_board_in_words():
         with pytest.raises(AbortedError, match="stopped by the operator"):
             await op.present_board(placement)
     printed = buf.getvalue().splitlines()
-    assert printed[0].startswith("view 1: hold the board") and "Press Enter to grab" in printed[0]
+    assert printed == ["Press Enter to grab (q then Enter to stop)."] * 2  # the session said where, in words
     eof = ConsoleOperator(read=lambda: (_ for _ in ()).throw(EOFError()))
     with contextlib.redirect_stdout(io.StringIO()), pytest.raises(AbortedError, match="input ended"):
         await eof.present_board(placement)

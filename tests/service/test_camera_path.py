@@ -121,3 +121,25 @@ def test_camera_calibrate_then_acquire_full_then_calibrate_all(sim_bench, tmp_pa
     err_std = {k: (comb["combinations"][k] - v) / comb["combinations_std"][k] for k, v in truth.combinations().items()}
     assert all(np.isfinite(list(err_std.values()))) and max(abs(v) for v in err_std.values()) < 3.0, err_std
     print(f"camera {t_camera:.1f} s, acquire {t_acquire:.1f} s, total {t_total:.1f} s; errors/std {err_std}")
+
+
+def test_camera_calibrate_with_a_person_at_the_console(sim_bench, tmp_path):
+    """`operator = "console"`: the placement said in words, Enter grabs (nobody holds a board up: the simulated camera
+    shows the mechanism, whose board is not a whole hand-held view: not kept, and why), q stops: exit status 2,
+    nothing written."""
+    port, _truth = sim_bench
+    bench = _bench_file(tmp_path / "bench.toml", port)
+    bench.write_text(bench.read_text().replace(f'uri = "sim://127.0.0.1:{port + 2}"\n[acq', 'uri = "console"\n[acq'))
+    assert 'uri = "console"' in bench.read_text()
+    out = subprocess.run(
+        [*I4CAL, "camera", "calibrate", "--bench", str(bench), "-o", str(tmp_path / "camera.json")],
+        input="\nq\n",
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert out.returncode == 2, out.stderr
+    assert "view 1: hold the board so that it spans about 45% of the image width" in out.stderr
+    assert out.stdout.count("Press Enter to grab") == 2
+    assert "grab 1: not kept: " in out.stderr and "still missing: the image's top-left corner" in out.stderr
+    assert "stopped by the operator" in out.stderr and not (tmp_path / "camera.json").exists()
