@@ -127,6 +127,7 @@ def calibrate_views(session: Session, cfg, lens_model: str, bench_file: str | No
         "operator_uri": cfg.operator.uri,
         "board": guide.board.model_dump(mode="json"),
         "grabs": session.grabs,
+        "grab_log": session.log,
         "coverage": guide.coverage(),
         "rejected_by_calibration": {str(k): r for k, r in res.rejected.items()},
         "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
