@@ -31,7 +31,8 @@ import json
 import logging
 import time
 import zlib
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -221,8 +222,9 @@ class SimBench:
         rtu: bool = True,
         initial_q: Any = None,
         watchdog_s: float = 0.5,
+        drift_m: Mapping[str, float] | None = None,
     ) -> None:
-        self.geometry = geometry or BenchGeometry()
+        self.geometry = drifted(geometry or BenchGeometry(), drift_m or {})
         if initial_q is None:
             from calib.kinematics import ikm
             from calib.plan import Workspace
@@ -306,18 +308,49 @@ class SimBench:
         return BenchConfig.model_validate(data)
 
 
+#: the seven parameters a drift may move (docs/model.md)
+DRIFT_PARAMETERS = ("H", "q02", "q03", "q04", "S", "D", "L")
+
+
+def drifted(geometry: BenchGeometry, drift_m: Mapping[str, float]) -> BenchGeometry:
+    """``geometry`` whose true parameters moved by ``drift_m`` (parameter name -> change, metres): what a week of
+    production, a crash or a re-homing does to a real bench's geometry, for the check to catch.
+
+    Raises
+    ------
+    ValueError
+        A name that is not one of :data:`DRIFT_PARAMETERS`, or a change that is not finite.
+    """
+    if not drift_m:
+        return geometry
+    bad = [k for k in drift_m if k not in DRIFT_PARAMETERS]
+    if bad:
+        raise ValueError(f"unknown parameter {', '.join(bad)}: a drift moves {', '.join(DRIFT_PARAMETERS)}")
+    if not all(np.isfinite(float(v)) for v in drift_m.values()):
+        raise ValueError("a drift must be a finite length")
+    truth = geometry.truth
+    moved = replace(truth, **{k: getattr(truth, k) + float(v) for k, v in drift_m.items()})
+    return replace(geometry, truth=moved)
+
+
 def fast_axis_config() -> AxisConfig:
     """Sim speeds high enough that a full plan acquires in a few seconds."""
     return AxisConfig(default_speed=10.0, accel=1000.0, home_speed=10.0)
 
 
 async def serve_forever(
-    port: int = 5020, *, seed: int = 0, watchdog_s: float = 0.5, print_fn=print, on_start=None
+    port: int = 5020,
+    *,
+    seed: int = 0,
+    watchdog_s: float = 0.5,
+    print_fn=print,
+    on_start=None,
+    drift_m: Mapping[str, float] | None = None,
 ) -> None:
     """Run a :class:`SimBench` until cancelled (the body of ``i4cal sim-bench``); ``watchdog_s``: the
     controller's communication watchdog (s, 0 = off); ``on_start(bench)``: called once it serves, before its URIs
-    are printed."""
-    bench = SimBench(port=port, axis_config=fast_axis_config(), seed=seed, watchdog_s=watchdog_s)
+    are printed; ``drift_m``: the true geometry's drift (:func:`drifted`)."""
+    bench = SimBench(port=port, axis_config=fast_axis_config(), seed=seed, watchdog_s=watchdog_s, drift_m=drift_m)
     await bench.start()
     try:
         if on_start is not None:
