@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -27,7 +27,10 @@ from scipy.optimize import brentq
 from scipy.stats import multivariate_normal, norm
 
 from .errors import InputError
-from .parameters import COMBINATION_NAMES
+from .parameters import COMBINATION_NAMES, I4Parameters
+
+if TYPE_CHECKING:
+    from .export import CalibrationDocument
 
 Array = NDArray[np.float64]
 Verdict = Literal["holds", "drifted", "inconclusive"]
@@ -330,12 +333,118 @@ def update_from_check(
     return UpdateResult(True, updated, tuple(drift.drifted))
 
 
+#: the completion rule of an update's seven parameters (``completion.rule`` of its ``i4cal.calibration/1`` document)
+UPDATE_COMPLETION_RULE = "combinations+in-force"
+UPDATE_COMPLETION_TEXT = (
+    "a check's update of the four combinations completed with the H, S, q03 of the calibration in force: "
+    "q02 = 2 (S - (S-q02/2)), q04 = q03 + 2 (S - (S-(q04-q03)/2)), D = H - (H-D), L = L"
+)
+
+
+def in_force_estimate(doc: CalibrationDocument) -> CombinationEstimate:
+    """The four combinations and covariance of an ``i4cal.calibration/1`` document, the check's prior.
+
+    Raises
+    ------
+    InputError
+        The document has no covariance (``field="covariance"``): a check cannot test against it.
+    """
+    if doc.covariance is None:
+        raise InputError(
+            "the calibration has no covariance of its combinations: a check cannot test against it", field="covariance"
+        )
+    order = list(doc.covariance_order)
+    if sorted(order) != sorted(COMBINATION_NAMES):
+        raise InputError(f"must name {', '.join(COMBINATION_NAMES)}, got {order}", field="covariance_order")
+    idx = [order.index(k) for k in COMBINATION_NAMES]
+    cov = np.asarray(doc.covariance, dtype=np.float64)
+    if cov.shape != (4, 4):
+        raise InputError(f"must be 4x4, got shape {cov.shape}", field="covariance")
+    return CombinationEstimate.from_dicts(doc.combinations, cov[np.ix_(idx, idx)])
+
+
+def updated_calibration(
+    in_force: CalibrationDocument,
+    update: UpdateResult,
+    *,
+    software_version: str,
+    date: str | None = None,
+    dataset_hash: str | None = None,
+    check: str | None = None,
+) -> CalibrationDocument:
+    """The ``i4cal.calibration/1`` document of an accepted update: the updated combinations and covariance, the
+    seven parameters completed with the calibration in force's H, S, q03 (:data:`UPDATE_COMPLETION_RULE`), the rest
+    of the provenance said (``check``: the check's id; ``source.updated_from``: the calibration in force's run,
+    method and date).
+
+    Raises
+    ------
+    InputError
+        The update was refused (``field="update"``): it must not be applied.
+    """
+    from .export import Completion, Source
+
+    if not update.accepted:
+        raise InputError(f"the update was refused: {update.reason}", field="update")
+    est = update.estimate
+    combos = {k: float(v) for k, v in zip(COMBINATION_NAMES, est.value_m, strict=True)}
+    previous = in_force.to_parameters()
+    params = I4Parameters.from_combinations(combos, previous)
+    std = est.std_m()
+    std4: dict[str, float | None] = {k: float(v) for k, v in zip(COMBINATION_NAMES, std, strict=True)}
+    seven_std: dict[str, float | None] = {
+        "H": None,
+        "q02": 2.0 * float(std[2]),
+        "q03": None,
+        "q04": 2.0 * float(std[3]),
+        "S": None,
+        "D": float(std[1]),
+        "L": float(std[0]),
+    }
+    fixed = ["H", "S", "q03"]
+    return in_force.model_copy(
+        update={
+            "run": None,
+            "method": in_force.method,
+            "method_choice": f"updated by a check ({', '.join(update.reestimated)} re-estimated from the check's "
+            f"frames, the rest from the calibration in force)",
+            "date": date,
+            "exported_at": date,
+            "software_version": software_version,
+            "dataset_hash": dataset_hash,
+            "seven": params.seven(),
+            "seven_std": seven_std,
+            "identified": [n for n in params.seven() if n not in fixed],
+            "fixed_at_nominal": fixed,
+            "completion": Completion(rule=UPDATE_COMPLETION_RULE, text=UPDATE_COMPLETION_TEXT),
+            "combinations": combos,
+            "combinations_std": std4,
+            "covariance": est.covariance_m2.tolist(),
+            "covariance_order": list(COMBINATION_NAMES),
+            "validation": None,
+            "warnings": [],
+            "source": Source.model_validate(
+                {
+                    "result_sha256": None,
+                    "result_file": None,
+                    "check": check,
+                    "updated_from": {"run": in_force.run, "method": in_force.method, "date": in_force.date},
+                }
+            ),
+        },
+        deep=True,
+    )
+
+
 __all__ = [
+    "UPDATE_COMPLETION_RULE",
     "CombinationEstimate",
     "DriftResult",
     "DriftSettings",
     "UpdateResult",
     "check_drift",
+    "in_force_estimate",
     "max_abs_z_threshold",
     "update_from_check",
+    "updated_calibration",
 ]
