@@ -116,4 +116,3 @@ async def test_the_console_operator_grabs_on_enter_and_stops_on_q():
     eof = ConsoleOperator(read=lambda: (_ for _ in ()).throw(EOFError()))
     with contextlib.redirect_stdout(io.StringIO()), pytest.raises(AbortedError, match="input ended"):
         await eof.present_board(placement)
-
