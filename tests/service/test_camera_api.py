@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 
+import numpy as np
 import pytest
 
 from drivers.sim.bench import SimBench
@@ -70,3 +71,22 @@ async def test_a_console_operator_is_refused_with_what_to_run(tmp_path, rendered
     finally:
         await svc.client.aclose()
         await svc.stop()
+
+
+async def test_the_service_bench_takes_the_bench_files_camera_for_its_predictions(tmp_path):
+    """A bench file naming a camera file ([camera] intrinsics): the service's predictions and designs use that camera
+    (without a camera_file setting), as every acquisition records it."""
+    from calib.camera import CameraModel
+    from service.runs.bench import Bench
+    from service.settings import Settings
+
+    cal = {"rms_px": 0.1, "covariance_params": ["fx"], "covariance": [[1.0]]}
+    K = [[30.0, 0.0, 15.5], [0.0, 30.0, 11.5], [0.0, 0.0, 1.0]]
+    CameraModel(np.asarray(K), np.zeros(5), 32, 24, {"calibration": cal}).save(tmp_path / "camera.json")
+    (tmp_path / "bench.toml").write_text(
+        '[actuators]\nuri = "modbus+tcp://127.0.0.1:1"\n'
+        '[camera]\nuri = "sim://127.0.0.1:2"\nintrinsics = "camera.json"\n'
+    )
+    bench = await Bench.from_settings(Settings(data_dir=tmp_path / "data", bench_file=tmp_path / "bench.toml"))
+    assert bench is not None and bench.camera_model is not None
+    assert bench.camera_model.size == (32, 24) and bench.camera_model.extra["calibration"] == cal

@@ -23,7 +23,7 @@ from ..drivers.test_processes import _free_base
 I4CAL = [sys.executable, "-m", "i4cal"]
 
 
-def _i4cal(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
+def _i4cal(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
     out = subprocess.run([*I4CAL, *args], capture_output=True, text=True, timeout=timeout)
     assert out.returncode == 0, f"i4cal {' '.join(args)}: {out.returncode}\n{out.stdout[-3000:]}\n{out.stderr[-3000:]}"
     return out
@@ -125,8 +125,8 @@ def test_camera_calibrate_then_acquire_full_then_calibrate_all(sim_bench, tmp_pa
 
 def test_camera_calibrate_with_a_person_at_the_console(sim_bench, tmp_path):
     """`operator = "console"`: the placement said in words, Enter grabs (nobody holds a board up: the simulated camera
-    shows the mechanism, whose board is not a whole hand-held view: not kept, and why), q stops: exit status 2,
-    nothing written."""
+    shows the mechanism, its board wherever the last run left it; the grab's verdict is said either way), what is
+    still missing said, q stops: exit status 2, nothing written."""
     port, _truth = sim_bench
     bench = _bench_file(tmp_path / "bench.toml", port)
     bench.write_text(bench.read_text().replace(f'uri = "sim://127.0.0.1:{port + 2}"\n[acq', 'uri = "console"\n[acq'))
@@ -136,10 +136,10 @@ def test_camera_calibrate_with_a_person_at_the_console(sim_bench, tmp_path):
         input="\nq\n",
         capture_output=True,
         text=True,
-        timeout=60,
+        timeout=300,
     )
     assert out.returncode == 2, out.stderr
     assert "view 1: hold the board so that it spans about 45% of the image width" in out.stderr
     assert out.stdout.count("Press Enter to grab") == 2
-    assert "grab 1: not kept: " in out.stderr and "still missing: the image's top-left corner" in out.stderr
+    assert "grab 1: " in out.stderr and "still missing: the image's top-left corner" in out.stderr
     assert "stopped by the operator" in out.stderr and not (tmp_path / "camera.json").exists()
