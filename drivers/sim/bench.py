@@ -224,7 +224,8 @@ class SimBench:
         watchdog_s: float = 0.5,
         drift_m: Mapping[str, float] | None = None,
     ) -> None:
-        self.geometry = drifted(geometry or BenchGeometry(), drift_m or {})
+        self._undrifted = geometry or BenchGeometry()
+        self.geometry = drifted(self._undrifted, drift_m or {})
         if initial_q is None:
             from calib.kinematics import ikm
             from calib.plan import Workspace
@@ -239,6 +240,15 @@ class SimBench:
         self.tcp_address: tuple[str, int] | None = None
         self.rtu_url: str | None = None
         self.frame_address: tuple[str, int] | None = None
+
+    def set_drift(self, drift_m: Mapping[str, float]) -> None:
+        """Move the true geometry by ``drift_m`` from the bench's own (:func:`drifted`; ``{}``: back to it) while
+        the bench serves: what a crash or a warm afternoon does between two checks. Takes effect at the next frame
+        and the next move."""
+        self.geometry = drifted(self._undrifted, drift_m)
+        self.mechanism.geometry = self.geometry
+        if hasattr(self.renderer, "geometry"):
+            self.renderer.geometry = self.geometry
 
     async def start(self) -> SimBench:
         p = self.port

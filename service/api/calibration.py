@@ -81,6 +81,10 @@ def current_document(manager, cal) -> CalibrationDocument:
     except RunNotFoundError:
         run = None
     choice = f"applied to bench {cal.bench} (POST /api/v1/runs/{{id}}/apply)"
+    if (cal.payload or {}).get("document"):  # a check's update (POST /api/v1/checks/{id}/apply): its own document
+        doc = CalibrationDocument.model_validate(cal.payload["document"])
+        why = f"applied to bench {cal.bench} (POST /api/v1/checks/{{id}}/apply): {doc.method_choice}"
+        return doc.model_copy(update={"method_choice": why, "bench": cal.bench})
     if run is not None and run.result and cal.method in (run.result.get("methods") or {}):
         doc = run_document(manager.data_dir, run, cal.method, software_version=cal.software_version, bench=cal.bench)
     else:

@@ -91,21 +91,27 @@ class CheckOutcome:
         }
 
 
-def predicted_check_std(cfg, plan) -> dict[str, float] | None:
-    """The check plan's predicted combined std per combination (m): the prediction of ``plan predict``."""
+def predicted_check_std(cfg, plan, camera=None) -> dict[str, float] | None:
+    """The check plan's predicted combined std per combination (m): the prediction of ``plan predict`` (with
+    ``camera``, else the bench file's camera file, else the simulated bench's camera)."""
     from service.design import check_for_bench
 
     intr = cfg.camera_intrinsics()
-    check = check_for_bench(cfg, plan, None, ("combined",), None if intr is None else intr.camera)
+    camera = camera if camera is not None else (None if intr is None else intr.camera)
+    check = check_for_bench(cfg, plan, None, ("combined",), camera)
     std = check.prediction.std.get(CHECK_METHOD)
     return None if std is None else {k: float(std[k]) for k in COMBINATION_NAMES}
 
 
-async def acquire_check(cfg, plan, out: Path, progress: Callable[[Any], None] | None = None):
-    """Acquire the check plan into ``out`` (a dataset v1 directory); the acquisition's result."""
+async def acquire_check(
+    cfg, plan, out: Path, progress: Callable[[Any], None] | None = None, camera_spec: dict[str, Any] | None = None
+):
+    """Acquire the check plan into ``out`` (a dataset v1 directory); the acquisition's result. ``camera_spec``: what
+    the dataset records of the camera (a service's camera file: ``service.runs.Bench.camera_spec``)."""
     from drivers.acquisition import acquisition_from_config, close_devices
 
-    acq = acquisition_from_config(plan, cfg, out, progress=progress)
+    kw: dict[str, Any] = {"camera_spec": camera_spec} if camera_spec else {}
+    acq = acquisition_from_config(plan, cfg, out, progress=progress, **kw)
     try:
         return await acq.run()
     finally:
@@ -182,6 +188,7 @@ async def run_check(
     settings: CheckSettings | None = None,
     *,
     camera=None,
+    camera_spec: dict[str, Any] | None = None,
     progress: Callable[[Any], None] | None = None,
     software_version: str = "",
     now: Callable[[], str] | None = None,
@@ -192,7 +199,7 @@ async def run_check(
 
     settings = settings or CheckSettings()
     t0 = time.monotonic()
-    res = await acquire_check(cfg, plan, out, progress)
+    res = await acquire_check(cfg, plan, out, progress, camera_spec)
     t1 = time.monotonic()
     entry = await asyncio.to_thread(fit_check, Path(res.path), camera)
     outcome = evaluate_check(

@@ -1,6 +1,6 @@
-"""Persistence (SQLAlchemy 2 ORM): runs, events, results, datasets, calibrations, tokens."""
+"""Persistence (SQLAlchemy 2 ORM): runs, events, results, datasets, calibrations, checks, tokens."""
 
-from .models import Base, Calibration, DatasetRecord, Event, Run, Token
+from .models import Base, Calibration, Check, DatasetRecord, Event, Run, Token
 from .session import Database
 
-__all__ = ["Base", "Calibration", "Database", "DatasetRecord", "Event", "Run", "Token"]
+__all__ = ["Base", "Calibration", "Check", "Database", "DatasetRecord", "Event", "Run", "Token"]

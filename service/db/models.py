@@ -123,3 +123,33 @@ class Token(Base):
     revoked_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
     #: last accepted request (updated at most once a minute)
     last_used_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+
+
+class Check(Base):
+    """A check of a bench's calibration in force (``POST /api/v1/checks``, docs/check.md)."""
+
+    __tablename__ = "checks"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)
+    #: running, done (a verdict: ``result``), failed (``error``)
+    state: Mapped[str] = mapped_column(String(16), index=True)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow, index=True)
+    finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+    bench: Mapped[str | None] = mapped_column(String(64), index=True)
+    service: Mapped[str | None] = mapped_column(String(64), index=True)
+    #: holds, drifted, inconclusive (None until done)
+    verdict: Mapped[str | None] = mapped_column(String(16), index=True)
+    #: the applied calibration tested (None: a document given in the request)
+    calibration_id: Mapped[int | None] = mapped_column(Integer)
+    #: the run that calibration descends from (an applied update's row names it too)
+    calibration_run_id: Mapped[str | None] = mapped_column(String(32))
+    in_force: Mapped[dict[str, Any]] = mapped_column(JSON)
+    plan: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    dataset_dir: Mapped[str] = mapped_column(Text)  # relative to the data directory
+    #: the check's document (``i4cal.check/1``)
+    result: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    #: the proposed update's ``i4cal.calibration/1`` document (None: none proposed)
+    update: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    #: the calibration row made of the update (``POST /api/v1/checks/{id}/apply``)
+    applied_calibration_id: Mapped[int | None] = mapped_column(Integer)
+    error: Mapped[str | None] = mapped_column(Text)
