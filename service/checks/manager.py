@@ -38,6 +38,25 @@ class CheckManager:
     def __init__(self, runs: RunManager) -> None:
         self.runs = runs
         self.tasks: dict[str, asyncio.Task] = {}
+        self.recover()
+
+    def recover(self) -> list[str]:
+        """This service's checks left ``running`` by a stop or a crash become ``failed`` (their frames are kept):
+        a check is short, it is started again rather than resumed."""
+        from sqlalchemy import or_
+
+        with self.runs.db.session() as s:
+            mine = (
+                Check.service.is_(None)
+                if self.runs.name is None
+                else or_(Check.service == self.runs.name, Check.service.is_(None))
+            )
+            rows = list(s.scalars(select(Check).where(Check.state == "running", mine)))
+            for row in rows:
+                if row.id not in self.tasks:
+                    row.state, row.finished_at = "failed", datetime.now(UTC)
+                    row.error = "the service stopped during the check; start another"
+            return [r.id for r in rows]
 
     @property
     def data_dir(self) -> Path:
