@@ -9,6 +9,10 @@ Read at each scrape, nothing kept in the service that a restart would lose:
 * ``i4cal_frames_extracted_total``: frames the extraction went through, over every run (its summary's phases);
 * ``i4cal_modbus_*_total`` (requests, retries, timeouts, reconnects, stale, unrequested), ``i4cal_serial_*_total``:
   the drivers' process-wide counters (:mod:`drivers.metrics`), since this service started;
+* the last finished check's statistic (docs/check.md): ``i4cal_check_statistic`` (its largest ``|z|``),
+  ``i4cal_check_threshold``, ``i4cal_check_z{combination}``, ``i4cal_check_change_meters{combination}``,
+  ``i4cal_check_verdict{verdict}`` (1 for its verdict), ``i4cal_check_timestamp_seconds``; ``i4cal_checks{verdict}``:
+  finished checks by verdict;
 * the process's CPU, memory and file descriptors (``process_*``).
 
 A finished run's figures are cached by run id (they no longer change); only active and new runs are read again.
@@ -25,7 +29,7 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Histo
 from prometheus_client.registry import Collector
 from sqlalchemy import select
 
-from .db import Run
+from .db import Check, Run
 
 CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
 #: Bucket bounds (s) of the run and stage duration histograms.
@@ -107,6 +111,63 @@ class DriverCollector(Collector):
             yield CounterMetricFamily(f"i4cal_{name}", f"Driver counter {name}", value=value)
 
 
+class CheckCollector(Collector):
+    """The last finished check's statistic and the checks by verdict, from the database of ``manager`` (its
+    service's checks; every check without a service name)."""
+
+    VERDICTS = ("holds", "drifted", "inconclusive")
+
+    def __init__(self, manager: Any) -> None:
+        self.manager = manager
+
+    def collect(self) -> Iterator[Metric]:
+        from sqlalchemy import func
+
+        name = getattr(self.manager, "name", None)
+        with self.manager.db.session() as s:
+            mine = Check.service == name if name is not None else Check.service.is_(None)
+            counts = dict(
+                s.execute(
+                    select(Check.verdict, func.count()).where(Check.state == "done", mine).group_by(Check.verdict)
+                ).all()
+            )
+            last = s.scalars(
+                select(Check)
+                .where(Check.state == "done", mine)
+                .order_by(Check.finished_at.desc(), Check.id.desc())
+                .limit(1)
+            ).first()
+            doc = dict(last.result or {}) if last is not None else None
+            when = last.finished_at if last is not None else None
+        g = GaugeMetricFamily("i4cal_checks", "Finished checks by verdict", labels=["verdict"])
+        for v in self.VERDICTS:
+            g.add_metric([v], float(counts.get(v, 0)))
+        yield g
+        if doc is None:
+            return
+        yield GaugeMetricFamily("i4cal_check_statistic", "The last check's largest |z|", value=float(doc["statistic"]))
+        yield GaugeMetricFamily(
+            "i4cal_check_threshold", "The |z| above which the last check says drifted", value=float(doc["threshold"])
+        )
+        z = GaugeMetricFamily("i4cal_check_z", "The last check's standardised change", labels=["combination"])
+        ch = GaugeMetricFamily(
+            "i4cal_check_change_meters", "The last check's estimated change, m", labels=["combination"]
+        )
+        for k, c in (doc.get("changes") or {}).items():
+            z.add_metric([k], float(c["z"]))
+            ch.add_metric([k], float(c["change_m"]))
+        yield z
+        yield ch
+        vg = GaugeMetricFamily("i4cal_check_verdict", "The last check's verdict (1)", labels=["verdict"])
+        for v in self.VERDICTS:
+            vg.add_metric([v], 1.0 if doc.get("verdict") == v else 0.0)
+        yield vg
+        if when is not None:
+            yield GaugeMetricFamily(
+                "i4cal_check_timestamp_seconds", "When the last check finished, Unix time", value=when.timestamp()
+            )
+
+
 def make_registry(manager_getter: Any) -> CollectorRegistry:
     """A registry of this service's collectors (one per app: several apps in one process do not mix)."""
 
@@ -122,8 +183,14 @@ def make_registry(manager_getter: Any) -> CollectorRegistry:
                 self._c = RunCollector(m)
             return self._c.collect()
 
+    class _Checks(Collector):
+        def collect(self) -> Iterator[Metric]:
+            m = manager_getter()
+            return iter(()) if m is None else CheckCollector(m).collect()
+
     reg = CollectorRegistry(auto_describe=False)
     reg.register(_Lazy())
+    reg.register(_Checks())
     reg.register(DriverCollector())
     ProcessCollector(registry=reg)
     return reg

@@ -64,3 +64,22 @@ def test_an_update_is_applied_only_when_proposed_once_for_a_calibration_of_this_
         cm.apply("d" * 32)
     with pytest.raises(RunConflictError, match="given in the request"):
         cm.apply("e" * 32)
+
+
+def test_metrics_carry_the_last_checks_statistic(runs):
+    from service.metrics import make_registry, render
+
+    changes = {
+        k: {"change_m": 1e-5 * i, "std_m": 1e-4, "z": 0.1 * i}
+        for i, k in enumerate(("L", "H-D", "S-q02/2", "S-(q04-q03)/2"))
+    }
+    old = {"verdict": "holds", "statistic": 0.3, "threshold": 2.4, "changes": changes}
+    new = {**old, "verdict": "drifted", "statistic": 5.25, "changes": {**changes, "L": {**changes["L"], "z": 5.25}}}
+    _row(runs, "f" * 32, verdict="holds", result=old, finished_at=datetime(2026, 1, 1, tzinfo=UTC))
+    _row(runs, "0" * 32, verdict="drifted", result=new, finished_at=datetime(2026, 1, 2, tzinfo=UTC))
+    _row(runs, "1" * 32, state="running")
+    text = render(make_registry(lambda: runs)).decode()
+    assert "i4cal_check_statistic 5.25" in text
+    assert 'i4cal_check_z{combination="L"} 5.25' in text
+    assert 'i4cal_check_verdict{verdict="drifted"} 1.0' in text
+    assert 'i4cal_checks{verdict="holds"} 1.0' in text and 'i4cal_checks{verdict="drifted"} 1.0' in text
