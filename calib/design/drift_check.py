@@ -14,14 +14,22 @@ from typing import Any
 
 from ..errors import InputError
 from ..parameters import I4Parameters
-from ..plan import Plan, SoftLimits
+from ..plan import Plan, SoftLimits, Step
 from .motion import MotionSpec, plan_motion_time
 from .optimize import DesignRequest, design_plan
 from .predict import DesignNoise
 from .predict_images import ImageNoise
 from .scene import Scene
 
-__all__ = ["CHECK_COUNTS", "CHECK_PHASES", "CheckPlanDesign", "CheckPlanRequest", "design_check_plan", "missing_phases"]
+__all__ = [
+    "CHECK_COUNTS",
+    "CHECK_PHASES",
+    "CheckPlanDesign",
+    "CheckPlanRequest",
+    "design_check_plan",
+    "missing_phases",
+    "with_repeats",
+]
 
 #: the phases the check's combined fit needs
 CHECK_PHASES = ("rotation", "translation", "poses")
@@ -148,3 +156,26 @@ def design_check_plan(
             field="max_seconds",
         )
     return best
+
+
+def with_repeats(plan: Plan, n: int) -> Plan:
+    """``plan`` with its fit poses revisited: ``n - 1`` more tours of them as ``validation`` steps (the combined fit
+    leaves them out), each tour starting one pose further on (every revisit comes from another pose), the first
+    taking two frames at each pose without moving between them (:mod:`calib.repeatability`: the measurement floor).
+
+    Raises
+    ------
+    InputError
+        ``n`` below 2, or fewer than 3 fit poses (``field="repeat"``).
+    """
+    fit = [list(s.q) for s in plan.steps if s.phase == "poses" and s.q is not None]
+    if n < 2 or n > 20:
+        raise InputError(f"must be in 2..20, got {n}", field="repeat")
+    if len(fit) < 3:
+        raise InputError(f"revisiting needs at least 3 fit poses, the plan has {len(fit)}", field="repeat")
+    extra: list[Step] = []
+    for r in range(1, n):
+        k = r % len(fit)
+        for q in [*fit[k:], *fit[:k]]:
+            extra += [Step(phase="validation", q=list(q)) for _ in range(2 if r == 1 else 1)]
+    return Plan(name=f"{plan.name}-repeat-{n}", steps=[*plan.steps, *extra])

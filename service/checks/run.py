@@ -63,6 +63,8 @@ class CheckOutcome:
     calibration: dict[str, Any] = field(default_factory=dict)
     #: the proposed update's ``i4cal.calibration/1`` document, when accepted
     update_document: dict[str, Any] | None = None
+    #: with revisited poses (``--repeat``): :meth:`calib.repeatability.Repeatability.to_dict`
+    repeatability: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """The check's document: ``verdict``, ``drifted`` (combination -> ``{change_m, std_m}``), every
@@ -88,6 +90,7 @@ class CheckOutcome:
             "dataset": self.dataset,
             "plan": self.plan,
             "calibration": self.calibration,
+            "repeatability": self.repeatability,
         }
 
 
@@ -118,15 +121,38 @@ async def acquire_check(
         await close_devices(acq)
 
 
-def fit_check(dataset_dir: Path, camera=None) -> dict[str, Any]:
-    """The combined method's entry of the check's result document (extraction, then the fit)."""
+def fit_check(dataset_dir: Path, camera=None) -> tuple[dict[str, Any], Any]:
+    """The combined method's entry of the check's result document (extraction, then the fit), and the
+    observations."""
     from calib.observations import Observations
     from calib.pipeline import calibrate, to_jsonable
     from calib.vision.extract import extract_dataset
 
     obs = Observations.from_dict(extract_dataset(dataset_dir, camera=camera).observations, source=str(dataset_dir))
     doc = to_jsonable(calibrate(obs, [CHECK_METHOD]))
-    return doc["methods"][CHECK_METHOD]
+    return doc["methods"][CHECK_METHOD], obs
+
+
+def repeat_figures(obs, plan) -> dict[str, Any]:
+    """Repeatability, measurement floor and outliers of a check plan with revisits (``with_repeats``): the board
+    positions of the ``poses`` and ``validation`` frames grouped by the fit pose they were taken at."""
+    import numpy as np
+
+    from calib.repeatability import repeat_groups, repeatability
+
+    poses_q = np.array([s.q for s in plan.steps if s.phase == "poses"])
+    rows = [(i, f) for i, f in enumerate(obs.frames) if f.phase in ("poses", "validation") and f.board is not None]
+    if not rows or not len(poses_q):
+        return repeatability(np.zeros((0, 3)), np.zeros(0, int), np.zeros(0, bool), np.zeros(0, int)).to_dict()
+    idx = np.array([i for i, _ in rows])
+    q = np.array([f.q for _, f in rows])
+    t = np.array([f.board.t for _, f in rows])
+    group = repeat_groups(q, poses_q)
+    val = np.array([f.phase == "validation" for _, f in rows])
+    still = np.zeros(len(rows), bool)
+    for k in range(1, len(rows)):  # the second of two frames in a row at one pose (no motion between them)
+        still[k] = val[k] and val[k - 1] and idx[k] == idx[k - 1] + 1 and group[k] == group[k - 1] and not still[k - 1]
+    return repeatability(t, group, still, idx).to_dict()
 
 
 def evaluate_check(
@@ -201,10 +227,12 @@ async def run_check(
     t0 = time.monotonic()
     res = await acquire_check(cfg, plan, out, progress, camera_spec)
     t1 = time.monotonic()
-    entry = await asyncio.to_thread(fit_check, Path(res.path), camera)
+    entry, obs = await asyncio.to_thread(fit_check, Path(res.path), camera)
     outcome = evaluate_check(
         entry, in_force_doc, settings, software_version=software_version, date=now() if now else None
     )
+    if any(s.phase == "validation" for s in plan.steps):
+        outcome.repeatability = repeat_figures(obs, plan)
     t2 = time.monotonic()
     outcome.timing_s = {"acquisition": t1 - t0, "result_after_last_frame": t2 - t1}
     outcome.dataset = str(res.path)

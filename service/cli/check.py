@@ -55,6 +55,14 @@ def register(subparsers) -> None:
     p.add_argument(
         "--alpha", type=float, default=0.05, help="false-alarm probability when nothing drifted (default 0.05)"
     )
+    p.add_argument(
+        "--repeat",
+        type=int,
+        default=None,
+        metavar="N",
+        help="revisit each fit pose N times (2..20; the first revisit takes two frames without moving): the robot's "
+        "repeatability, the measurement floor and the outliers, beside the verdict (more motion than the budget)",
+    )
     p.add_argument("--plan-cache", default=None, metavar="DIR", help="where designed check plans are kept")
     p.add_argument("--seed", type=int, default=0, help="seed of the designed plan's candidate poses")
     p.add_argument("--json", action="store_true", help="print one JSON object (metres, seconds)")
@@ -71,6 +79,8 @@ def _inputs(args: argparse.Namespace):
 
     if not (math.isfinite(args.max_seconds) and 0 < args.max_seconds < 1e5):
         raise InputError(f"must be in (0, 1e5) seconds, got {args.max_seconds}", field="--max-seconds")
+    if args.repeat is not None and not 2 <= args.repeat <= 20:
+        raise InputError(f"must be in 2..20, got {args.repeat}", field="--repeat")
     if not 0 < args.alpha < 0.5:
         raise InputError(f"must be in (0, 0.5), got {args.alpha}", field="--alpha")
     if args.update_out:
@@ -94,6 +104,7 @@ def _inputs(args: argparse.Namespace):
 
 
 def _plan(args: argparse.Namespace, cfg):
+    from calib.design.drift_check import with_repeats
     from service.checks.plan import check_plan_for_bench, require_check_phases
 
     from ._args import load_plan
@@ -101,10 +112,15 @@ def _plan(args: argparse.Namespace, cfg):
     if args.plan is not None:
         plan = load_plan(args.plan, cfg, args.seed)
         require_check_phases(plan, args.plan)
-        return plan, f"given: {args.plan}"
-    cache = Path(args.plan_cache) if args.plan_cache else None
-    plan, n_fit, source = check_plan_for_bench(cfg, args.max_seconds, cache, args.seed)
-    return plan, f"{source} ({n_fit} fit poses)"
+        source = f"given: {args.plan}"
+    else:
+        cache = Path(args.plan_cache) if args.plan_cache else None
+        plan, n_fit, source = check_plan_for_bench(cfg, args.max_seconds, cache, args.seed)
+        source = f"{source} ({n_fit} fit poses)"
+    if args.repeat is not None:
+        plan = with_repeats(plan, args.repeat)
+        source += f", each fit pose visited {args.repeat} times"
+    return plan, source
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -225,6 +241,19 @@ def _print(doc: dict, con) -> None:
         )
     elif doc["verdict"] == "drifted":
         con.print(f"[red]update refused[/]: {u['reason']}")
+    rp = doc.get("repeatability")
+    if rp:
+
+        def mm(v):
+            return "-" if v is None else f"{v * 1e3:.4f} mm"
+
+        con.print(
+            f"revisits ({rp['poses']} poses, {rp['visits']} visits): repeatability {mm(rp['repeatability_m'])}, "
+            f"measurement floor {mm(rp['measurement_floor_m'])}, the robot's own {mm(rp['robot_repeatability_m'])} "
+            "(3-D RMS of the board's position)"
+        )
+        for o in rp["outliers"]:
+            con.print(f"[yellow]outlier[/]: frame {o['frame']} (pose {o['pose']}) {o['deviation_m'] * 1e3:.4f} mm off")
     tm = doc["timing_s"]
     con.print(
         f"motion {doc['plan'].get('motion_time_s', 0):.1f} s planned, acquisition {tm.get('acquisition', 0):.1f} s, "
