@@ -28,7 +28,7 @@ def test_i4cal_has_the_service_commands_and_bench():
     assert "bench" not in service_commands and "benchmark" not in service_commands
     assert set(commands) == set(service_commands) | {"bench", "benchmark"}
     assert commands["benchmark"] is commands["bench"]  # an alias: the same parser
-    assert set(_commands(commands["bench"])) == {"accuracy", "design", "speed"}
+    assert set(_commands(commands["bench"])) == {"accuracy", "check", "design", "speed"}
     # the logging options reach the added command as they reach the service's own
     assert {"-v", "--log-level"} <= set(commands["bench"]._option_string_actions)
 
