@@ -89,13 +89,19 @@ async def _trial(case: str, k: int, drift_m: float, ctx: dict[str, Any]) -> dict
     doc = _in_force_document(
         dict(zip(COMBINATION_NAMES, map(float, drawn), strict=True)), ctx["cov_full"], truth, ctx["nominal"]
     )
+    from calib.errors import I4calError
+
     sim = SimBench(port=0, seed=seed, drift_m=drift)
     await sim.start()
     try:
-        cfg = sim.bench_config(acquisition={"line_rate_hz": 50.0}, camera={"timeout_s": 10.0})
+        cfg = sim.bench_config(
+            acquisition={"line_rate_hz": 50.0}, camera={"timeout_s": 10.0}, actuators={"timeout_s": 2.0}
+        )
         with tempfile.TemporaryDirectory(prefix="i4cal-bench-check-") as tmp:
             out = await run_check(cfg, ctx["plan"], doc, Path(tmp) / "ds", camera=ctx["camera"])
         now = sim.geometry.truth.combinations()
+    except I4calError as exc:  # a trial that could not acquire: counted apart, the others go on
+        return {"case": case, "seed": seed, "verdict": "failed", "error": str(exc), "drifted": [], "timing_s": {}}
     finally:
         await sim.stop()
     row: dict[str, Any] = {
@@ -117,14 +123,18 @@ async def _trial(case: str, k: int, drift_m: float, ctx: dict[str, Any]) -> dict
     return row
 
 
-def _summary(rows: list[dict[str, Any]], ctx: dict[str, Any]) -> dict[str, Any]:
+def _summary(all_rows: list[dict[str, Any]], ctx: dict[str, Any]) -> dict[str, Any]:
     import numpy as np
 
     from calib.parameters import COMBINATION_NAMES
 
+    rows = [r for r in all_rows if r["verdict"] != "failed"]
+    if not rows:
+        return {"trials": 0, "failed": len(all_rows), "verdicts": {}, "drifted_rate": float("nan")}
     n = len(rows)
     out: dict[str, Any] = {
         "trials": n,
+        "failed": len(all_rows) - n,
         "verdicts": {v: sum(r["verdict"] == v for r in rows) for v in ("holds", "drifted", "inconclusive")},
         "drifted_rate": sum(r["verdict"] == "drifted" for r in rows) / n,
         "result_after_last_frame_s_max": max(r["timing_s"]["result_after_last_frame"] for r in rows),
@@ -207,7 +217,10 @@ def _run(args: argparse.Namespace) -> int:
         rows = [asyncio.run(_trial(case, k, drift_m, ctx)) for k in range(args.trials)]
         figures["cases"][case] = {"drift_m": drift_m, "combination": combo, **_summary(rows, ctx), "rows": rows}
         s = figures["cases"][case]
-        line = f"{case:5s} drift {drift_m * 1e3:6.3f} mm: {s['verdicts']}"
+        line = f"{case:5s} drift {drift_m * 1e3:6.3f} mm: {s['verdicts']}, {s['failed']} failed"
+        if not s["trials"]:
+            print(line, flush=True)
+            continue
         if combo is not None:
             line += (
                 f", detected naming {combo} {s['detected_naming_it']:.0%}, alone {s['named_alone']:.0%}, "
