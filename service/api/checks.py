@@ -43,6 +43,13 @@ class CheckCreate(BaseModel):
     )
     max_seconds: float = Field(60.0, gt=0, lt=1e5, description="motion budget of the designed check plan, s")
     alpha: float = Field(0.05, gt=0, lt=0.5, description="false-alarm probability when nothing drifted")
+    repeat: int | None = Field(
+        None,
+        ge=2,
+        le=20,
+        description="revisit each fit pose this many times: repeatability, measurement floor, outliers "
+        "(the document's repeatability)",
+    )
 
 
 class CheckOut(BaseModel):
@@ -117,7 +124,7 @@ async def create_check(body: CheckCreate, request: Request, manager: Manager, _:
         raise unprocessable(exc, prefix) from None
     try:
         cm.require_free_bench(in_force)
-        plan, source = await asyncio.to_thread(cm.prepare_plan, plan, body.max_seconds)
+        plan, source = await asyncio.to_thread(cm.prepare_plan, plan, body.max_seconds, body.repeat)
         row = cm.create(
             in_force,
             calibration_id=cal_id,

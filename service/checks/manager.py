@@ -101,9 +101,11 @@ class CheckManager:
             raise RunConflictError(f"{self._holder()} holds the bench")
         in_force_estimate(in_force)
 
-    def prepare_plan(self, plan: Any, max_seconds: float = 60.0) -> tuple[Any, str]:
+    def prepare_plan(self, plan: Any, max_seconds: float = 60.0, repeat: int | None = None) -> tuple[Any, str]:
         """The check plan (blocking: in a thread): ``plan`` checked for the check's phases, or the bench's designed
-        one (cached in the data directory); validated against the bench's soft limits before anything moves."""
+        one (cached in the data directory), its fit poses revisited ``repeat`` times when given; validated against
+        the bench's soft limits before anything moves."""
+        from calib.design.drift_check import with_repeats
         from calib.plan import validate_plan
 
         bench = self.runs.bench
@@ -115,6 +117,9 @@ class CheckManager:
             plan, _, source = check_plan_for_bench(cfg, max_seconds, self.data_dir / "check-plans")
         else:
             require_check_phases(plan, "plan")
+        if repeat is not None:
+            plan = with_repeats(plan, repeat)
+            source += f", each fit pose visited {repeat} times"
         validate_plan(plan, cfg.nominal_parameters(), cfg.calib_limits())
         return plan, source
 

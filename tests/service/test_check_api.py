@@ -105,3 +105,13 @@ async def test_drift_over_rest_is_caught_applied_and_then_holds(twin_service):
     listed = (await c.get(f"{API}/checks")).json()
     assert [x["id"] for x in listed] == [after["id"], caught["id"], first["id"]]
     assert (await c.post(f"{API}/checks/{first['id']}/apply", headers=AUTH)).status_code == 409
+    # revisits: every fit pose twice, one of them with a still pair; a count below 2 is refused naming it
+    r = await c.post(f"{API}/checks", json={"repeat": 1}, headers=AUTH)
+    assert r.status_code == 422 and "repeat" in r.text
+    r = await c.post(f"{API}/checks", json={"repeat": 2}, headers=AUTH)
+    assert r.status_code == 202, r.text
+    rep = (await _finished(c, r.json()["id"]))["result"]["repeatability"]
+    n_fit = plan.count()["poses"]
+    assert (rep["poses"], rep["visits"]) == (n_fit, 2 * n_fit), rep
+    # the simulator renders the same image at the same true pose and its axes reach their targets exactly
+    assert rep["measurement_floor_m"] == 0.0 and rep["repeatability_m"] < 1e-9 and rep["outliers"] == []
