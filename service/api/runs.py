@@ -187,7 +187,7 @@ async def create_run(body: RunCreate, manager: Manager, _: Writer) -> RunOut:
             raise conflict(f"run {manager.bench_holder} holds the bench")
         plan = await asyncio.to_thread(resolve_plan, body.plan, manager)
         plan_name = plan.name
-        await _check_space(manager.check_space_for_run, plan)
+    await _check_space(manager.check_space_for_run, plan)
     try:
         run = manager.create(
             plan=plan,

@@ -139,6 +139,8 @@ class RunManager:
         return ids
 
     async def shutdown(self) -> None:
+        if self._held_task is not None:
+            self._held_task.cancel()  # ends not recorded: the runs are marked interrupted at the next start
         for a in list(self.active.values()):
             if a.task is not None and not a.task.done():
                 a.task.cancel()
@@ -496,13 +498,14 @@ class RunManager:
                 "disk full",
             )
 
-    def check_space_for_run(self, plan: Any) -> None:
-        """Before a run on the bench: its plan's frames times the expected frame size, with margin, must fit in the
-        quota and the free space, and the disk must take a write (:class:`StorageError` otherwise). Walks the data
-        directory: call it off the event loop."""
+    def check_space_for_run(self, plan: Any | None) -> None:
+        """Before a run: its plan's frames (none for an offline run, ``plan`` None) times the expected frame size,
+        with margin, must fit in the quota and the free space, and the disk must take a write (:class:`StorageError`
+        otherwise). Walks the data directory: call it off the event loop."""
         self._space_check_held("a new run")
-        need = self.disk.run_bytes(len(plan_units(plan)), self.disk.frame_bytes(self.bench))
-        self.disk.check(need, f"the run ({len(plan_units(plan))} frames)")
+        frames = 0 if plan is None else len(plan_units(plan))
+        need = self.disk.run_bytes(frames, self.disk.frame_bytes(self.bench))
+        self.disk.check(need, f"the run ({frames} frames)")
 
     def check_space_for_resume(self, run_id: str) -> None:
         """Before a resume: the frames still to acquire (or a little for the observations and the result) must fit;
