@@ -491,7 +491,9 @@ class RunManager:
                 log.exception("recording a held run end failed")
 
     def _space_check_held(self, what: str) -> None:
-        if not self.flush_held():
+        """Refuse while an end is held (the database refused it; the event loop retries it every HELD_RETRY_S).
+        Only reads: called from a worker thread, it writes nothing (the events reach the loop's subscribers)."""
+        if self.held:
             raise StorageError(
                 f"disk full: the database on the data disk ({self.data_dir}) refuses to write (the end of run(s) "
                 f"{', '.join(sorted(self.held))} is not recorded yet); {what} cannot start: free space",
@@ -508,10 +510,10 @@ class RunManager:
         self.disk.check(need, f"the run ({frames} frames)")
 
     def check_space_for_resume(self, run_id: str) -> None:
-        """Before a resume: the frames still to acquire (or a little for the observations and the result) must fit;
-        a held end is recorded first. Call it off the event loop."""
+        """Before a resume: the frames still to acquire (or a little for the observations and the result) must fit,
+        and the run's end must be recorded (not held). Call it off the event loop."""
         run = self.get(run_id)
-        if run_id in self.held and not self._record_held(run_id):
+        if run_id in self.held:
             raise StorageError(
                 f"disk full: the database on the data disk ({self.data_dir}) cannot record the run's end yet; "
                 "free space and resume again",
