@@ -97,7 +97,7 @@ class Settings(BaseSettings):
     frame_bytes: int | None = Field(
         None,
         gt=0,
-        description="expected bytes of one frame on disk (default: the camera's width x height x 2, else 16 MiB)",
+        description="expected bytes of one frame on disk (default: the camera's width x height x 2, else 8 MiB)",
     )
     max_archive_members: int = Field(100_000, gt=0)
     max_json_body_bytes: int = Field(

@@ -29,8 +29,8 @@ from .. import failpoints
 
 #: Bytes per pixel assumed for a frame on disk: a 16-bit image, or an 8-bit one PNG could not compress.
 BYTES_PER_PIXEL = 2
-#: A frame's size when the camera's image size is not known (4096 x 2048 at 2 bytes a pixel).
-DEFAULT_FRAME_BYTES = 16 * 1024 * 1024
+#: A frame's size when the camera's image size is not known (2048 x 2048 at 2 bytes a pixel, 4096 x 2048 at 1).
+DEFAULT_FRAME_BYTES = 8 * 1024 * 1024
 #: What a frame adds besides its image: its line in dataset.json (rewritten whole after each frame), its
 #: observations, its share of the result and events.
 PER_FRAME_OVERHEAD_BYTES = 16 * 1024
