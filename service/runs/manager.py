@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import delete, or_, select, update
+from sqlalchemy import and_, delete, or_, select, update
 
 from calib.errors import InputError
 
@@ -157,6 +157,17 @@ class RunManager:
                 raise RunNotFoundError(run_id)
         return self._as_held(run)
 
+    def _state_is(self, state: str) -> Any:
+        """The condition "the run is in ``state``" as this service reports it (held ends included)."""
+        cond: Any = Run.state == state
+        here = [rid for rid, h in self.held.items() if h.target.value == state]
+        gone = [rid for rid, h in self.held.items() if h.target.value != state]
+        if here:
+            cond = or_(cond, Run.id.in_(here))
+        if gone:
+            cond = and_(cond, Run.id.not_in(gone))
+        return cond
+
     def _as_held(self, run: Run) -> Run:
         """The run as this service reports it: a run whose end the database could not take yet is in its end state
         (the detached row is changed, never written back)."""
@@ -171,7 +182,7 @@ class RunManager:
         with self.db.session() as s:
             q = select(Run).order_by(Run.created_at.desc()).limit(limit).offset(offset)
             if state:
-                q = q.where(Run.state == state)
+                q = q.where(self._state_is(state))
             if bench:
                 q = q.where(Run.bench == bench)
             rows = list(s.scalars(q))

@@ -222,6 +222,8 @@ async def test_disk_full_mid_acquisition_fails_the_run_and_resumes(tmp_path, sim
         assert "during the acquisition" in run["error"] and "resume" in run["error"]
         with db.session() as s:  # the database refuses writes: the end is held
             assert s.get(Run, rid).state == "acquiring"
+        listed = (await c.get(f"{API}/runs", params={"state": "failed"})).json()
+        assert [r["id"] for r in listed] == [rid] and (await c.get(f"{API}/runs?state=acquiring")).json() == []
         r = await c.post(f"{API}/runs", json={"plan": "rotation-sweep", "methods": []}, headers=AUTH)
         assert r.status_code == 507 and r.json()["detail"]["limit"] == "disk full", r.text
         r = await c.post(f"{API}/runs/{rid}/resume", headers=AUTH)
