@@ -556,7 +556,9 @@ class RunManager:
             disk), or its result was applied (the current calibration or the history refer to it).
         """
         run = self.get(run_id)
-        if run_id in self.active or run.state in ACTIVE_STATES or run_id in self.held:
+        if run_id in self.held:
+            raise RunConflictError("the run's end is not recorded yet (the disk is full); free space first")
+        if run_id in self.active or run.state in ACTIVE_STATES:
             holds = " and holds the bench" if self.bench_holder == run_id else ""
             raise RunConflictError(f"run is {run.state}{holds}; abort it first (POST /api/v1/runs/{run_id}/abort)")
         if not self.owns(run):

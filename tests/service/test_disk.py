@@ -228,6 +228,8 @@ async def test_disk_full_mid_acquisition_fails_the_run_and_resumes(tmp_path, sim
         assert r.status_code == 507 and r.json()["detail"]["limit"] == "disk full", r.text
         r = await c.post(f"{API}/runs/{rid}/resume", headers=AUTH)
         assert r.status_code == 507, r.text
+        r = await c.delete(f"{API}/runs/{rid}", headers=AUTH)
+        assert r.status_code == 409 and "not recorded yet" in r.text, r.text
 
         flag.unlink()  # room again
         async with asyncio.timeout(10):
