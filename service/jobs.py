@@ -80,13 +80,23 @@ def _noop() -> None:
 
 # -- the child side --------------------------------------------------------------------------------
 def _child_main(
-    conn: Any, target: str, kwargs: dict[str, Any], nice: int, method_modules: tuple[str, ...] = ()
+    conn: Any,
+    target: str,
+    kwargs: dict[str, Any],
+    nice: int,
+    method_modules: tuple[str, ...] = (),
+    disk_full_flag: str | None = None,
 ) -> None:
     """Entry point of a job child: run ``JOBS[target](emit=..., **kwargs)`` and send back the outcome.
 
     ``method_modules``: the modules that registered methods in the server (:func:`calib.methods.registry.
-    plugin_modules`), imported first so that the child knows the same methods.
+    plugin_modules`), imported first so that the child knows the same methods. ``disk_full_flag``: the server's
+    ``I4CAL_DISK_FULL`` (:mod:`service.failpoints`; None in production).
     """
+    if disk_full_flag:
+        from . import failpoints
+
+        failpoints.install(disk_full_flag)
     with contextlib.suppress(OSError):
         os.setpgid(0, 0)  # its own process group: abort kills the extraction's pool with it
     # a forkserver's child would start the extraction's pool through a forkserver of its own (a fresh interpreter
@@ -203,7 +213,9 @@ class Job:
         from calib.methods.registry import plugin_modules
 
         self.process = _CTX.Process(
-            target=_child_main, args=(self._send, target, kwargs, nice, plugin_modules()), name=f"i4cal-{target}"
+            target=_child_main,
+            args=(self._send, target, kwargs, nice, plugin_modules(), os.environ.get("I4CAL_DISK_FULL")),
+            name=f"i4cal-{target}",
         )
         self.killed = False
         self._ended = False

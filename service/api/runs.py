@@ -10,7 +10,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Header, Query, Request, status
+from fastapi import APIRouter, Header, HTTPException, Query, Request, status
 from fastapi import Path as PathParam
 from fastapi.responses import FileResponse, HTMLResponse, Response, StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field
@@ -24,6 +24,7 @@ from calib.resultdoc import ResultDocument
 from ..auth import Reader, Writer
 from ..hardening import ParsedJSONRoute
 from ..runs import STATES, RunConflictError, RunManager
+from ..runs.disk import StorageError
 from ..settings import BENCH_NAME_PATTERN
 from .calibration import CalibrationOut, calibration_out
 from .deps import ID_PATTERN, Manager, RunId, conflict, get_run, not_found, unprocessable
@@ -173,6 +174,7 @@ ERRORS: dict[int | str, dict[str, Any]] = {
         **ERRORS,
         409: {"description": "another run holds the bench"},
         422: {"description": "invalid request: the field is named"},
+        507: {"description": "the plan's frames do not fit (data_quota_bytes, min_free_bytes) or the disk is full"},
     },
 )
 async def create_run(body: RunCreate, manager: Manager, _: Writer) -> RunOut:
@@ -186,6 +188,7 @@ async def create_run(body: RunCreate, manager: Manager, _: Writer) -> RunOut:
             raise conflict(f"run {manager.bench_holder} holds the bench")
         plan = await asyncio.to_thread(resolve_plan, body.plan, manager)
         plan_name = plan.name
+    await _check_space(manager.check_space_for_run, plan)
     try:
         run = manager.create(
             plan=plan,
@@ -197,6 +200,8 @@ async def create_run(body: RunCreate, manager: Manager, _: Writer) -> RunOut:
         )
     except RunConflictError as exc:
         raise conflict(str(exc)) from None
+    except StorageError as exc:
+        raise insufficient_storage(exc) from None
     except InputError as exc:
         raise unprocessable(exc) from None
     return run_out(manager, manager.get(run.id))
@@ -303,13 +308,64 @@ async def pause_run(run_id: RunId, manager: Manager, _: Writer) -> RunOut:
     responses={
         **ERRORS,
         409: {"description": "not paused, failed or interrupted, or the bench is held (the run is left as it was)"},
+        507: {"description": "what is left of the run does not fit, or the disk is full (the run is left as it was)"},
     },
 )
 async def resume_run(run_id: RunId, manager: Manager, _: Writer) -> RunOut:
     """Resume a paused acquisition in place, or a failed or interrupted run from what is on disk: the acquisition
     from its first missing frame (nothing moves when every frame is written), then extraction and fits if their
     output is missing."""
-    return _control(manager, run_id, "resume")
+    get_run(manager, run_id)
+    await _check_space(manager.check_space_for_resume, run_id)
+    try:
+        return _control(manager, run_id, "resume")
+    except StorageError as exc:
+        raise insufficient_storage(exc) from None
+
+
+# -- disk and retention ----------------------------------------------------------------------------------
+def insufficient_storage(exc: StorageError) -> HTTPException:
+    """507 naming the limit (a setting, or ``disk full``) and the cause."""
+    return HTTPException(507, detail={"limit": exc.limit, "msg": str(exc)})
+
+
+async def _check_space(check, *args: Any) -> None:
+    """A space check (it walks the data directory) off the event loop; 507 when it refuses."""
+    try:
+        await asyncio.to_thread(check, *args)
+    except StorageError as exc:
+        raise insufficient_storage(exc) from None
+
+
+class Deleted(BaseModel):
+    id: str
+    freed_bytes: int = Field(description="bytes of the files removed")
+
+
+@router.delete(
+    "/{run_id}",
+    response_model=Deleted,
+    responses={
+        **ERRORS,
+        409: {
+            "description": "the run is executing or holds the bench, belongs to another service, or its result was "
+            "applied (current calibration or history)"
+        },
+        507: {"description": "the disk is full and the database cannot record the deletion"},
+    },
+)
+async def delete_run(run_id: RunId, manager: Manager, _: Writer) -> Deleted:
+    """Delete a run that is not executing (done, failed, aborted or interrupted) with its files: dataset,
+    observations, result, events. A run whose result was applied is kept (409): the calibrations name it."""
+    get_run(manager, run_id)
+    try:
+        path, size = manager.delete_run(run_id)
+    except RunConflictError as exc:
+        raise conflict(str(exc)) from None
+    except StorageError as exc:
+        raise insufficient_storage(exc) from None
+    await asyncio.to_thread(manager.delete_tree, path)
+    return Deleted(id=run_id, freed_bytes=size)
 
 
 @router.get(

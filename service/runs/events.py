@@ -48,12 +48,26 @@ class EventBus:
         data = clean_json(data)
         seq = self._next_seq(run_id)
         t = self.clock() if t is None else t
-        with self.db.session() as s:
-            s.add(Event(run_id=run_id, seq=seq, t=t, type=type_, data=data))
+        try:
+            with self.db.session() as s:
+                s.add(Event(run_id=run_id, seq=seq, t=t, type=type_, data=data))
+        except BaseException:
+            if self._seq.get(run_id) == seq:  # not stored (e.g. disk full): the next event takes its number
+                self._seq[run_id] = seq - 1
+            raise
         ev = {"seq": seq, "t": iso_utc(t), "type": type_, "data": data}
         for q in list(self._subs.get(run_id, ())):
             with contextlib.suppress(asyncio.QueueFull):
                 q.put_nowait(ev)
+
+    def forget(self, run_id: str) -> None:
+        """Drop what is kept in memory of a deleted run (its next number, pending batches)."""
+        self._seq.pop(run_id, None)
+        self._live.pop(run_id, None)
+        self._live_last.pop(run_id, None)
+        timer = self._live_timer.pop(run_id, None)
+        if timer is not None:
+            timer.cancel()
 
     def subscribe(self, run_id: str) -> asyncio.Queue:
         q: asyncio.Queue = asyncio.Queue(maxsize=10_000)

@@ -18,6 +18,7 @@ from .. import failpoints
 from ..db import Run
 from ..jobs import run_job
 from ..timefmt import now_utc as _now
+from .disk import disk_full_reason, is_disk_full
 from .lifecycle import IllegalTransitionError, RunEvent
 
 if TYPE_CHECKING:
@@ -38,12 +39,14 @@ class Stages:
         run = m.get(run_id)
         timings: dict[str, float] = dict(run.timings or {})
         predicting = None
+        stage = "start"
         if run.plan is not None and run.prediction is None and m.bench is not None:
             predicting = asyncio.create_task(self.predict(run_id, run))
         try:
             if run.started_at is None:
                 m.update(run_id, started_at=_now())
             if todo.acquire:
+                stage = "acquisition"
                 ts = time.monotonic()
                 await self.acquire(run_id, a)
                 timings["acquisition_s"] = timings.get("acquisition_s", 0.0) + time.monotonic() - ts
@@ -51,11 +54,13 @@ class Stages:
                 failpoints.hit("stage:acquired")
             run = m.get(run_id)
             if todo.extract:
+                stage = "extraction"
                 ts = time.monotonic()
                 m._transition(run_id, RunEvent.EXTRACT, phase="extraction", done=0, total=0)
                 await self.extract(run_id, run)
                 timings["extraction_s"] = time.monotonic() - ts
             if todo.calibrate:
+                stage = "calibration"
                 ts = time.monotonic()
                 m._transition(run_id, RunEvent.CALIBRATE, phase="calibration", done=0, total=len(run.methods))
                 doc = await self.calibrate(run_id, run)
@@ -64,6 +69,7 @@ class Stages:
                 m.update(run_id, result=doc)
             if predicting is not None:  # computed while the bench moved: done long before a run's end
                 await predicting
+            stage = "end of the run"
             timings["total_s"] = timings.get("total_s", 0.0) + time.monotonic() - t0
             m._transition(run_id, RunEvent.FINISH, finished_at=_now(), timings=timings, phase="")
         except asyncio.CancelledError:
@@ -87,6 +93,10 @@ class Stages:
             timings["total_s"] = timings.get("total_s", 0.0) + time.monotonic() - t0
             if isinstance(exc, AbortedError) or a.aborting:
                 self._end(run_id, RunEvent.ABORT, finished_at=_now(), timings=timings, error="aborted on request")
+            elif is_disk_full(exc):  # resumable from what is on disk once there is room again
+                reason = disk_full_reason(exc, m.data_dir, stage)
+                log.error("run %s: %s", run_id, reason)
+                self._end(run_id, RunEvent.FAIL, finished_at=_now(), timings=timings, error=reason)
             elif isinstance(exc, I4calError):
                 self._end(run_id, RunEvent.FAIL, finished_at=_now(), timings=timings, error=str(exc))
             else:
@@ -104,11 +114,17 @@ class Stages:
             m.bus.close_subscribers(run_id)
 
     def _end(self, run_id: str, event: RunEvent, **values: Any) -> None:
-        """The run's last transition; a run another request already ended stays as it is."""
+        """The run's last transition; a run another request already ended stays as it is. A database that refuses
+        it for want of space: the end is held and recorded as soon as it can be (:meth:`RunManager.hold_end`)."""
         try:
             self.m._transition(run_id, event, **values)
         except IllegalTransitionError as exc:
             log.warning("run %s: %s", run_id, exc)
+        except Exception as exc:
+            if not is_disk_full(exc):
+                raise
+            log.error("run %s: the database cannot record its end (disk full); held until it can", run_id)
+            self.m.hold_end(run_id, event, values)
 
     async def predict(self, run_id: str, run: Run) -> None:
         """The plan's prediction before motion (:func:`service.design.run_prediction`: predicted std per method and
@@ -188,6 +204,8 @@ class Stages:
         try:
             await a.acq.run()
         except AcquisitionError as exc:
+            if is_disk_full(exc):  # the data disk, not a device
+                raise
             dev = "camera" if isinstance(exc.cause, FrameError) or "grab" in str(exc.cause).lower() else "actuators"
             bench.devices[dev].fail(str(exc.cause))
             raise
