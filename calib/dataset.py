@@ -15,13 +15,16 @@ import os
 import threading
 import time
 from pathlib import Path
-from typing import Annotated, Any, Final, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Final, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from .errors import InputError
 from .jsonio import fsync_dir
+
+if TYPE_CHECKING:
+    from .camera import CameraModel
 from .observations import PHASES, Nominal
 
 DATASET_FORMAT: Final = "i4cal.dataset/1"
@@ -41,6 +44,18 @@ class CameraSpec(BaseModel):
     )
     dist: list[float] | None = Field(None, description="OpenCV distortion coefficients (k1 k2 p1 p2 [k3 ...])")
     pixel_size_m: float | None = None
+
+    def camera_model(self) -> CameraModel | None:
+        """The known camera (``K``, ``dist`` and, when the acquisition recorded a camera file, its ``calibration``:
+        covariance, refined board points, lens model), or None when the intrinsics are to be calibrated."""
+        from .camera import CameraModel
+
+        if self.K is None or self.dist is None:
+            return None
+        known = (self.model_extra or {}).get("intrinsics")
+        calibration = known.get("calibration") if isinstance(known, dict) else None
+        extra = {"calibration": calibration} if isinstance(calibration, dict) else {}
+        return CameraModel(np.asarray(self.K, dtype=np.float64), np.asarray(self.dist), self.width, self.height, extra)
 
 
 class BoardSpec(BaseModel):

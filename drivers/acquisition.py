@@ -33,6 +33,7 @@ from calib.plan import Plan, SoftLimits, line_poses, validate_plan
 
 from .errors import AbortedError, DeviceError, DeviceTimeoutError, FrameError, StopNotConfirmedError
 from .interfaces import Actuators, Camera, Frame, Operator
+from .operators import ConsoleOperator as ConsoleOperator  # where it was before: the console operator
 from .registermap import ALARM_WATCHDOG
 
 log = logging.getLogger(__name__)
@@ -94,22 +95,6 @@ class AcquisitionError(DeviceError):
     ) -> None:
         self.pose, self.step, self.phase, self.cause, self.frames_kept = pose, step, phase, cause, frames_kept
         super().__init__(message)
-
-
-class ConsoleOperator:
-    """A person guides the line; prompted on the terminal (stdin)."""
-
-    async def begin_line(self, start_pose, end_pose, samples: int, rate_hz: float) -> None:
-        print(
-            f"Drives are free. Guide the end-effector along the ruler from {np.round(start_pose, 4).tolist()} "
-            f"to {np.round(end_pose, 4).tolist()} in about {samples / rate_hz:.0f} s, starting when you press "
-            "Enter.",
-            flush=True,
-        )
-        await asyncio.to_thread(input)
-
-    async def end_line(self) -> None:
-        print("Line recorded; the drives will be re-energised.", flush=True)
 
 
 class Acquisition:
@@ -376,6 +361,15 @@ class Acquisition:
             raise InputError(
                 f"dataset was recorded with plan {stored.get('name')!r}, not {self.plan.name!r}", file=str(self.out)
             )
+        known = self.camera_spec.get("intrinsics")
+        had = (ds.document.camera.model_extra or {}).get("intrinsics")
+        if isinstance(known, dict) and (not isinstance(had, dict) or had.get("sha256") != known.get("sha256")):
+            raise InputError(
+                "the dataset was recorded with other intrinsics than the bench file's camera file "
+                f"({known.get('file')}); resume with the bench file it was recorded with, or start a new dataset",
+                file=str(self.out),
+                field="camera.intrinsics",
+            )
         self._writer = DatasetWriter(
             self.out,
             camera=ds.document.camera,
@@ -388,6 +382,14 @@ class Acquisition:
 
     def _create_dataset(self, first: Frame) -> None:
         h, w = first.image.shape[:2]
+        known = self.camera_spec.get("intrinsics")
+        if isinstance(known, dict) and (known.get("width"), known.get("height")) != (w, h):
+            raise InputError(
+                f"the camera file was calibrated on {known.get('width')}x{known.get('height')} images, the camera "
+                f"delivers {w}x{h}; calibrate this camera (`i4cal camera calibrate`) or name its own file; no pose "
+                "of the plan was moved to",
+                file=str(known.get("file")),
+            )
         cam = CameraSpec(width=w, height=h, **self.camera_spec)
         self._writer = DatasetWriter(
             self.out,
@@ -576,6 +578,9 @@ def acquisition_from_config(
         cfg.camera, "lens_model", None
     ):  # the bench file fixes the calibration's lens model: the dataset says so
         opts["camera_spec"] = {**(opts.get("camera_spec") or {}), "lens_model": cfg.camera.lens_model}
+    known = cfg.camera_intrinsics()  # read and checked before anything moves
+    if known is not None:  # the bench file names the camera's intrinsics: every dataset carries them
+        opts["camera_spec"] = {**(opts.get("camera_spec") or {}), **intrinsics_spec(known)}
     return Acquisition(
         plan,
         open_actuators(cfg),
@@ -586,6 +591,24 @@ def acquisition_from_config(
         progress=progress,
         **opts,
     )
+
+
+def intrinsics_spec(known) -> dict[str, Any]:
+    """The dataset's camera fields for a known camera (a :class:`drivers.config.IntrinsicsFile`): ``K``, ``dist``,
+    and ``intrinsics`` (the file, its SHA-256, its image size and its ``calibration``: covariance, refined board
+    points, lens model; docs/dataset.md)."""
+    cam = known.camera
+    return {
+        "K": cam.K.tolist(),
+        "dist": cam.dist.tolist(),
+        "intrinsics": {
+            "file": str(known.path),
+            "sha256": known.sha256,
+            "width": int(cam.width),
+            "height": int(cam.height),
+            **cam.extra,
+        },
+    }
 
 
 async def close_devices(acq: Acquisition) -> None:

@@ -15,6 +15,8 @@ A bench file names its devices by URI; device code never asks whether it is simu
     [camera]
     uri = "genicam://?cti=/opt/vendor/x.cti&serial=SN"   # v4l2:///dev/video0, replay://DATASET, sim://HOST:PORT
     lens_model = "k1k2k3"                   # optional: fixes the calibration's lens model (default: auto)
+    intrinsics = "camera.json"              # optional: the camera's intrinsics (`i4cal camera calibrate`), relative
+                                            # to this file; acquire records them in every dataset
     [operator]
     uri = "console"                         # or sim://HOST:PORT (the simulated operator)
     [nominal]
@@ -32,12 +34,13 @@ extra to install.
 
 from __future__ import annotations
 
+import hashlib
 import importlib
 import json
 import tomllib
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 from urllib.parse import parse_qs, unquote, urlsplit
 
 import numpy as np
@@ -48,6 +51,9 @@ from calib.parameters import NOMINAL, I4Parameters
 
 from .interfaces import Actuators, Camera, Operator, SoftLimitsM
 from .registermap import RegisterMap
+
+if TYPE_CHECKING:
+    from calib.camera import CameraModel
 
 
 class LimitsConfig(BaseModel):
@@ -122,6 +128,11 @@ class CameraConfig(BaseModel):
         description="lens model of the camera calibration (calib.camera.LENS_MODEL_CHOICES: auto, k1k2, k1k2k3, "
         "rational[-radial]); recorded in the dataset's camera section, which extraction follows",
     )
+    intrinsics: str | None = Field(
+        None,
+        description="the camera's intrinsics: an i4cal.camera/1 file (written by `i4cal camera calibrate`, "
+        "docs/camera.md), relative to the bench file; acquire records them (and the file's SHA-256) in the dataset",
+    )
 
     @field_validator("lens_model")
     @classmethod
@@ -131,6 +142,14 @@ class CameraConfig(BaseModel):
         if v is not None and v not in LENS_MODEL_CHOICES:
             raise ValueError(f"unknown lens model {v!r}; lens models are {', '.join(LENS_MODEL_CHOICES)}")
         return v
+
+
+class IntrinsicsFile(NamedTuple):
+    """The camera file a bench file names (``[camera] intrinsics``): its model, where it is and its SHA-256."""
+
+    camera: CameraModel
+    path: Path
+    sha256: str
 
 
 class OperatorConfig(BaseModel):
@@ -187,6 +206,54 @@ class BenchConfig(BaseModel):
             return I4Parameters.from_mapping(data)
         except (ValueError, TypeError) as exc:
             raise InputError(str(exc), file=str(path)) from None
+
+    def intrinsics_path(self) -> Path | None:
+        """The camera file named by ``[camera] intrinsics`` (relative to the bench file), or None."""
+        if not self.camera.intrinsics:
+            return None
+        path = Path(self.camera.intrinsics)
+        if self.source and not path.is_absolute():
+            path = Path(self.source).parent / path
+        return path
+
+    def camera_intrinsics(self) -> IntrinsicsFile | None:
+        """The camera file named by ``[camera] intrinsics``, read and checked, or None when the bench names none.
+
+        Raises
+        ------
+        InputError
+            The file is missing, not JSON, not ``i4cal.camera/1`` or not a camera model; the message names the
+            bench file's field and the camera file, and the command that writes one.
+        """
+        from calib.camera import CAMERA_FORMAT, CameraModel
+
+        path = self.intrinsics_path()
+        if path is None:
+            return None
+        where = f"{self.source}, field 'camera.intrinsics'" if self.source else "field 'camera.intrinsics'"
+        try:
+            raw = path.read_bytes()
+        except FileNotFoundError:
+            raise InputError(
+                f"camera file not found ({where}); write it with `i4cal camera calibrate --bench "
+                f"{self.source or 'BENCH'} -o {self.camera.intrinsics}`",
+                file=str(path),
+            ) from None
+        except OSError as exc:
+            raise InputError(f"cannot read the camera file ({where}): {exc.strerror}", file=str(path)) from None
+        try:
+            data = json.loads(raw)
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise InputError(f"not valid JSON ({where}): {exc}", file=str(path)) from None
+        if not isinstance(data, dict) or data.get("format") != CAMERA_FORMAT:
+            got = data.get("format") if isinstance(data, dict) else None
+            raise InputError(
+                f"not a camera file ({where}): format {got!r}, expected {CAMERA_FORMAT!r}",
+                file=str(path),
+                field="format",
+            )
+        camera = CameraModel.from_dict(data, source=str(path))
+        return IntrinsicsFile(camera, path, hashlib.sha256(raw).hexdigest())
 
     def register_map(self) -> RegisterMap:
         data = dict(self.actuators.register_map)
@@ -486,7 +553,7 @@ def _replay_camera(c: CameraConfig, uri: DeviceURI) -> Camera:
 
 
 def _console_operator(cfg: BenchConfig, uri: DeviceURI) -> Operator:
-    from .acquisition import ConsoleOperator
+    from .operators import ConsoleOperator
 
     return ConsoleOperator()
 

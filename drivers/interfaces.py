@@ -8,9 +8,12 @@ Positions are in metres; counts exist only at the register level inside a backen
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from calib.camera_views import BoardPlacement
 
 
 @dataclass(frozen=True)
@@ -139,3 +142,18 @@ class Operator(Protocol):
     ) -> None: ...
 
     async def end_line(self) -> None: ...
+
+
+@runtime_checkable
+class BoardPresenter(Protocol):
+    """Whoever holds the calibration board up for the camera's intrinsics (``i4cal camera calibrate``).
+
+    On a real bench: a person, told where to hold it and pressing Enter (:class:`drivers.operators.ConsoleOperator`).
+    On the simulated bench: the simulated operator, who holds it where asked (:mod:`drivers.sim.hand`).
+    """
+
+    async def present_board(self, placement: BoardPlacement) -> None:
+        """Hold the board as ``placement`` asks; return once it is held still (the next frame is grabbed then)."""
+
+    async def board_done(self) -> None:
+        """The session is over: the board goes back on the end-effector."""

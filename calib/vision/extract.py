@@ -67,6 +67,15 @@ Progress = Callable[[int, int], None]
 FrameCallback = Callable[[dict[str, Any]], None]
 
 
+#: What a dataset with neither intrinsics nor a ``camera`` phase says: how to get the intrinsics.
+NO_INTRINSICS = (
+    "no intrinsics: the dataset has neither camera.K/dist nor a 'camera' phase. Calibrate the camera once: "
+    "`i4cal camera calibrate --bench BENCH.toml -o camera.json` (hand-held board views, docs/camera.md), then name it "
+    'in the bench file (`[camera] intrinsics = "camera.json"`) so that `i4cal acquire` records it in every dataset, '
+    "or give it to this dataset with `--camera camera.json` (i4cal extract, i4cal calibrate)"
+)
+
+
 @dataclass
 class ExtractOptions:
     """Settings of :func:`extract_dataset`."""
@@ -373,12 +382,10 @@ def _extract(
     total = (len(cam_idx) if need_calib else 0) + 2 * len(obs_idx)
     done = 0
     if camera is None and not need_calib:
-        camera = CameraModel(np.asarray(doc.camera.K), np.asarray(doc.camera.dist), doc.camera.width, doc.camera.height)
+        camera = doc.camera.camera_model()  # with the camera file's calibration when the acquisition recorded one
     if need_calib:
         if not cam_idx:
-            raise InputError(
-                "no intrinsics: the dataset has neither camera.K/dist nor a 'camera' phase", file=root, field="camera"
-            )
+            raise InputError(NO_INTRINSICS, file=root, field="camera")
         det = pool.run(_task_detect, cam_idx, (root, None, None, opts.min_corners, rs_dict), progress, done, total)
         done += len(cam_idx)
         views = {}

@@ -138,5 +138,13 @@ class SimOperator:
     async def end_line(self) -> None:
         await self._client.request("ENDLINE", self.timeout_s)
 
+    async def present_board(self, placement) -> None:
+        """The simulated operator holds the board where ``placement`` (a :class:`calib.camera_views.BoardPlacement`)
+        asks, until :meth:`board_done`."""
+        await self._client.request("BOARD " + json.dumps(placement.to_dict()), self.timeout_s)
+
+    async def board_done(self) -> None:
+        await self._client.request("ENDBOARD", self.timeout_s)
+
     async def close(self) -> None:
         self._client.close()

@@ -17,6 +17,9 @@ Frame endpoint (loopback TCP, one request per line, any number per connection):
 * ``LINE {"start_pose", "end_pose", "samples", "rate_hz"}\\n`` -> ``OK {}\\n``: the simulated operator
   starts guiding the free mechanism along the truly straight segment; ``ENDLINE\\n`` -> ``OK {}\\n``.
 * ``INFO\\n`` -> ``OK {"width", "height", "renderer"}\\n``.
+* ``BOARD {"centre", "fill", "tilt_deg", ...}\\n`` -> ``OK {"camera_from_board"}\\n``: the simulated operator holds
+  the calibration board up where asked (a :class:`calib.camera_views.BoardPlacement`, :mod:`drivers.sim.hand`);
+  until ``ENDBOARD\\n`` every ``GRAB`` shows that board alone (its true pose in the header, ``board_pose_true``).
 """
 
 from __future__ import annotations
@@ -94,6 +97,9 @@ class FrameServer:
             self._takes_rng = False
         self.faults = CameraFaults()
         self.seq = 0
+        #: the hand-held board's true pose while the simulated operator holds it up (BOARD ... ENDBOARD)
+        self.held_board: Any = None
+        self._boards = 0
         self._server: asyncio.base_events.Server | None = None
         self._writers: set[asyncio.StreamWriter] = set()
 
@@ -111,6 +117,12 @@ class FrameServer:
                 await asyncio.wait_for(self._server.wait_closed(), 1.0)
 
     def render_now(self) -> tuple[np.ndarray, dict[str, Any]]:
+        if self.held_board is not None and hasattr(self.renderer, "render_board_view"):
+            pose = self.held_board
+            rng = np.random.default_rng([self.seed, 5, self._boards, self.seq])
+            img = np.ascontiguousarray(self.renderer.render_board_view(pose, rng))
+            self.seq += 1
+            return img, {"seq": self.seq, "board_pose_true": pose.to_dict(), "t": time.monotonic()}
         q = self.mechanism.q_true()
         self.mechanism.frame_taken()
         pose = self.mechanism.pose_true(q)
@@ -162,6 +174,17 @@ class FrameServer:
                         writer.write(b"OK {}\n")
                     elif cmd == "ENDLINE":
                         self.mechanism.end_line()
+                        writer.write(b"OK {}\n")
+                    elif cmd == "BOARD":
+                        from .hand import held_board_pose
+
+                        self._boards += 1
+                        rng = np.random.default_rng([self.seed, 4, self._boards])
+                        self.held_board = held_board_pose(json.loads(arg or "{}"), self.renderer, rng)
+                        reply = {"camera_from_board": self.held_board.to_dict()}
+                        writer.write(b"OK " + json.dumps(reply).encode() + b"\n")
+                    elif cmd == "ENDBOARD":
+                        self.held_board = None
                         writer.write(b"OK {}\n")
                     elif cmd == "INFO":
                         r = self.renderer
@@ -288,12 +311,17 @@ def fast_axis_config() -> AxisConfig:
     return AxisConfig(default_speed=10.0, accel=1000.0, home_speed=10.0)
 
 
-async def serve_forever(port: int = 5020, *, seed: int = 0, watchdog_s: float = 0.5, print_fn=print) -> None:
+async def serve_forever(
+    port: int = 5020, *, seed: int = 0, watchdog_s: float = 0.5, print_fn=print, on_start=None
+) -> None:
     """Run a :class:`SimBench` until cancelled (the body of ``i4cal sim-bench``); ``watchdog_s``: the
-    controller's communication watchdog (s, 0 = off)."""
+    controller's communication watchdog (s, 0 = off); ``on_start(bench)``: called once it serves, before its URIs
+    are printed."""
     bench = SimBench(port=port, axis_config=fast_axis_config(), seed=seed, watchdog_s=watchdog_s)
     await bench.start()
     try:
+        if on_start is not None:
+            on_start(bench)
         for k, v in bench.uris().items():
             print_fn(f"{k} = {v}")
         await asyncio.Event().wait()

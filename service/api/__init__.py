@@ -2,7 +2,7 @@
 
 from fastapi import APIRouter
 
-from . import calibration, datasets, devices, methods, runs
+from . import calibration, cameras, datasets, devices, methods, runs
 
 api_router = APIRouter(prefix="/api/v1")
 api_router.include_router(runs.router)
@@ -10,5 +10,6 @@ api_router.include_router(datasets.router)
 api_router.include_router(calibration.router)
 api_router.include_router(devices.router)
 api_router.include_router(methods.router)
+api_router.include_router(cameras.router)
 
 __all__ = ["api_router"]

@@ -13,15 +13,20 @@ from calib.observations import Observations
 from calib.pipeline import calibrate, to_jsonable
 
 
-def load_observations(path: str, console=None) -> Observations:
-    """An observations file, or a dataset directory (extracted on the fly)."""
+def load_observations(path: str, console=None, camera: str | None = None) -> Observations:
+    """An observations file, or a dataset directory (extracted on the fly; ``camera``: an i4cal.camera/1 file for a
+    dataset that records no intrinsics)."""
     p = Path(path)
     if p.is_dir() or p.name == "dataset.json":
         try:
+            from calib.camera import CameraModel
             from calib.vision.extract import extract_dataset
         except ImportError as exc:  # pragma: no cover
             raise InputError(f"cannot extract a dataset here: {exc}", file=str(p)) from None
-        return Observations.from_dict(extract_dataset(p).observations, source=str(p))
+        cam = CameraModel.load(camera) if camera else None
+        return Observations.from_dict(extract_dataset(p, camera=cam).observations, source=str(p))
+    if camera:
+        raise InputError("--camera applies to a dataset (observations already carry their camera)", file=str(p))
     return Observations.load(p)
 
 
@@ -43,7 +48,7 @@ def handler(args: argparse.Namespace) -> int:
     if args.output:
         check_output_file(args.output, "-o/--output")
     err = Console(stderr=True)
-    obs = load_observations(args.observations)
+    obs = load_observations(args.observations, camera=args.camera)
     with err.status("calibrating...", spinner="dots") if not args.json else _Null():
         doc = calibrate(obs, methods, strict=args.method != "all")
     doc = to_jsonable(doc)
@@ -80,6 +85,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         default="all",
         choices=[*method_names(), "all"],
         help="identification method (calib.methods.registry) or all (default)",
+    )
+    p.add_argument(
+        "--camera",
+        metavar="JSON",
+        default=None,
+        help="with a dataset: its camera's intrinsics (i4cal.camera/1, `i4cal camera calibrate`) when the dataset "
+        "records none; default: the dataset's, else calibrated from its 'camera' phase",
     )
     p.add_argument("--json", action="store_true", help="print one JSON object to stdout")
     p.add_argument("-o", "--output", help="also write the result JSON to this file")

@@ -77,6 +77,9 @@ class Bench:
             cfg = load_bench(settings.bench_file)
         else:
             return None
+        if cam is None:  # the bench file's own camera file ([camera] intrinsics): the predictions' camera too
+            known = cfg.camera_intrinsics()  # checked at start-up; every acquisition records it (drivers.acquisition)
+            cam = known.camera if known is not None else None
         return cls(bench_name(settings, cfg), cfg, camera_spec=camera_spec, camera_model=cam)
 
     async def close(self) -> None:
