@@ -43,6 +43,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--workers", type=int, default=None, metavar="N", help="extraction processes (default: all cores)")
     p.add_argument("--frames", type=int, default=3, metavar="N", help="worst poses to show as frames (default 3)")
+    p.add_argument(
+        "--extract",
+        action="store_true",
+        help="for a DATASET: extract its images again even when its observations.json (inside or beside it, written "
+        "after the dataset) already exists",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=handler)
 
@@ -91,13 +97,26 @@ def handler(args: argparse.Namespace) -> int:
 
 def resolve_inputs(args: argparse.Namespace, methods: list[str], progress):
     """ReportInputs for TARGET: a path on disk, else a run of the service's data directory."""
+    from rich.console import Console
+
     from service.report import find_run, inputs_from_path, inputs_from_run
-    from service.report.sources import RUN_ID, read_json
+    from service.report.sources import RUN_ID, existing_observations, read_json
 
     target = Path(args.target)
     if target.exists():
+        ds = target if target.is_dir() else target.parent if target.name == "dataset.json" else None
+        reuse = not getattr(args, "extract", False)
+        found = existing_observations(ds.resolve()) if ds is not None and reuse else None
+        if found is not None:
+            Console(stderr=True).print(
+                f"using the observations already extracted: {found} (--extract to extract again)", highlight=False
+            )
         inputs = inputs_from_path(
-            target.resolve(), methods, workers=args.workers, progress=lambda s, d, t: progress(s, d, t)
+            target.resolve(),
+            methods,
+            workers=args.workers,
+            progress=lambda s, d, t: progress(s, d, t),
+            reuse_observations=reuse,
         )
     elif RUN_ID.match(args.target):
         from service.settings import load_settings
