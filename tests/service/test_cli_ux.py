@@ -75,7 +75,7 @@ def test_the_camera_scale_line_says_what_it_is(result_doc):
 def test_calibrate_says_which_result_to_load_and_what_it_wrote(result_doc, tmp_path, capsys):
     from calib.verdict import verdict
 
-    obs, doc = result_doc
+    obs = result_doc[0]
     out = tmp_path / "r.json"
     assert main(["calibrate", str(obs), "-o", str(out)]) == 0
     stdout, stderr = capsys.readouterr()
