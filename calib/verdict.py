@@ -140,8 +140,11 @@ def verdict(doc: Mapping[str, Any], result: str = "RESULT", order: Sequence[str]
     if not methods:
         return Verdict(None, "no method was run", failed=failed)
     if not converged:
-        why = "; ".join(f"{m}: {f}" for m, f in failed.items())
-        return Verdict(None, f"no fit converged ({why}); the a priori geometry stays", failed=failed)
+        return Verdict(
+            None,
+            f"no fit converged ({', '.join(failed)}: the reasons under Table I); the a priori geometry stays",
+            failed=failed,
+        )
     part, kind = "gaps_validation", "validation"
     if all(_gap(validation, m, part)[0] is None for m in converged):
         part, kind = "gaps_poses", "fit poses"

@@ -19,6 +19,7 @@ from starlette.background import BackgroundTask
 from calib.errors import InputError
 from calib.methods.registry import method_names
 from calib.resultdoc import ResultDocument
+from calib.verdict import verdict
 
 from ..auth import Reader, Writer
 from ..hardening import ParsedJSONRoute
@@ -120,6 +121,10 @@ class RunOut(BaseModel):
         description="the plan's predicted std per method and combination and its motion time, computed as the run "
         "starts (null: not yet, or an offline run)",
     )
+    verdict: dict[str, Any] | None = Field(
+        None,
+        description="which method's result to load and why, the next command (calib.verdict; null: no result yet)",
+    )
 
 
 def run_out(manager: RunManager, run) -> RunOut:
@@ -148,6 +153,7 @@ def run_out(manager: RunManager, run) -> RunOut:
         error=run.error,
         has_result=run.result is not None,
         prediction=None if run.prediction is None else RunPrediction.model_validate(run.prediction),
+        verdict=None if run.result is None else verdict(run.result, run.id).to_dict(),
     )
 
 
