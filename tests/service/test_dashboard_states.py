@@ -191,7 +191,8 @@ async def test_finished_failed_fit_and_running_runs(tmp_path, sim):
                 await _until(page, "document.querySelector('#frame').naturalWidth > 0")
                 await _until(
                     page,
-                    "[...document.querySelectorAll('#log li')].some((li) => li.textContent.includes('state: acquiring'))",
+                    "[...document.querySelectorAll('#log li')]"
+                    ".some((li) => li.textContent.includes('state: acquiring'))",
                 )
                 assert await page.is_disabled("#pause") and await page.is_enabled("#resume")
                 assert await page.is_enabled("#abort")
