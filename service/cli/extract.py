@@ -125,13 +125,13 @@ def run(args: argparse.Namespace) -> int:
         if lm:
             prof = lm.get("residual_profile") or {}
             where = (
-                f"the candidates' evidence in {args.camera_out} (calibration.lens_model)"
+                f"evidence in {args.camera_out} (calibration.lens_model)"
                 if args.camera_out
-                else "the candidates' evidence: --camera-out FILE"
+                else "evidence: --camera-out FILE"
             )
             how = "chosen by BIC" if lm.get("requested") == "auto" else "given"
             console.print(
-                f"lens model: {lm['chosen']} ({how} of {len(lm.get('candidates', []))}; radial model error up to "
+                f"lens model: {lm['chosen']} ({how} among {len(lm.get('candidates', []))}; radial model error up to "
                 f"{prof.get('max_systematic_px', 0.0):.3f} px); {where}",
                 highlight=False,
             )

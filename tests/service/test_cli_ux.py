@@ -216,3 +216,18 @@ def test_report_of_a_dataset_reuses_its_observations(demo_dir, tmp_path, capsys,
     os.utime(demo_dir / "observations.json", (1, 1))
     with pytest.raises(AssertionError, match="extracted again"):
         main(["report", str(demo_dir / "dataset"), "-o", str(out), "--quiet", "--frames", "0"])
+
+
+def test_extract_says_the_lens_model_in_one_line_with_a_pointer_to_the_camera_file(tmp_path, capsys):
+    ds, obs, cam = tmp_path / "ds", tmp_path / "obs.json", tmp_path / "camera.json"
+    assert main(["simulate", "--images", "--plan", "rotation-sweep", "--camera-views", "8", "--out", str(ds)]) == 0
+    capsys.readouterr()
+    fast = ["--no-refine-camera", "--no-repredict", "--no-recover", "--quiet"]
+    assert main(["extract", str(ds), "-o", str(obs), "--camera-out", str(cam), *fast]) == 0
+    err = " ".join(capsys.readouterr().err.split())  # rich wraps at the console's width: compare the words
+    line = err[err.index("lens model:") :]
+    line = line[: line.index("(calibration.lens_model)") + len("(calibration.lens_model)")]
+    assert f"in {cam}" in line and len(line) - len(str(cam)) < 130 and "dBIC" not in line, line
+    # the evidence the line points to is in the camera file
+    lm = json.loads(cam.read_text())["calibration"]["lens_model"]
+    assert len(lm["candidates"]) > 1 and lm["chosen"] in line
