@@ -36,12 +36,12 @@ SMALL_PLAN = {"n_base": 3, "n_fit": 5, "n_lock": 1, "n_validation": 3, "line_sam
 
 
 async def _acquire(out: Path, seed: int, con, small: bool = False) -> Path:
-    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
-
     from calib.plan import make_plan
     from drivers.acquisition import acquire
     from drivers.sim.bench import SimBench
     from drivers.sim.twin import GeometricTwin
+
+    from ._output import LongStep
 
     async with SimBench(port=0, seed=seed) as bench:
         # the simulated camera renders each frame on request: 0.3 s on an idle core, several seconds on a busy
@@ -52,18 +52,10 @@ async def _acquire(out: Path, seed: int, con, small: bool = False) -> Path:
         cam = bench.renderer.camera if hasattr(bench.renderer, "camera") else None
         spec = {"K": cam.K.tolist(), "dist": list(map(float, cam.dist))} if cam is not None else {}
         truth = GeometricTwin(bench.geometry).truth_dict()
-        with Progress(
-            TextColumn("   acquiring"),
-            BarColumn(),
-            TextColumn("{task.completed}/{task.total} poses"),
-            TimeRemainingColumn(),
-            console=con,
-            transient=True,
-        ) as bar:
-            task = bar.add_task("acq", total=len(plan.steps))
+        with LongStep(con, "   acquiring poses", total=len(plan.steps)) as bar:
 
             def progress(p) -> None:
-                bar.update(task, completed=p.done, total=p.total)
+                bar.update(done=p.done, total=p.total)
 
             res = await acquire(plan, cfg, out, progress=progress, camera_spec=spec, extra={"truth": truth})
         con.print(f"   {res.frames} frames written to {out}")
@@ -71,11 +63,11 @@ async def _acquire(out: Path, seed: int, con, small: bool = False) -> Path:
 
 
 def _full(args: argparse.Namespace, con, base: Path) -> dict:
-    from rich.progress import BarColumn, Progress, TextColumn
-
     from calib.observations import Observations
     from calib.pipeline import calibrate, to_jsonable
     from calib.vision.extract import extract_dataset
+
+    from ._output import LongStep
 
     ds = base / "dataset"
     con.print(
@@ -84,15 +76,8 @@ def _full(args: argparse.Namespace, con, base: Path) -> dict:
     )
     asyncio.run(_acquire(ds, args.seed, con, small=getattr(args, "small", False)))
     con.print("2. extraction: ChArUco board poses and the eight rods in every frame (both cores)")
-    with Progress(
-        TextColumn("   extracting"),
-        BarColumn(),
-        TextColumn("{task.completed}/{task.total}"),
-        console=con,
-        transient=True,
-    ) as bar:
-        task = bar.add_task("ext", total=1)
-        res = extract_dataset(ds, progress=lambda d, t: bar.update(task, completed=d, total=t))
+    with LongStep(con, "   extracting frames") as bar:
+        res = extract_dataset(ds, progress=lambda d, t: bar.update(done=d, total=t))
     obs_doc = res.observations
     obs = Observations.from_dict(obs_doc)
     (base / "observations.json").write_text(json.dumps(obs_doc, indent=1))

@@ -55,31 +55,15 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def handler(args: argparse.Namespace) -> int:
     from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     methods = list(method_names()) if "all" in args.methods else list(dict.fromkeys(args.methods))
     out = Path(args.output)
     if not out.parent.is_dir():
         raise InputError("output directory does not exist", file=str(out.parent))
     err = Console(stderr=True)
-    with Progress(
-        TextColumn("{task.description:<10}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        console=err,
-        transient=True,
-        disable=args.quiet,
-    ) as bar:
-        tasks: dict[str, int] = {}
-
-        def progress(stage: str, done: int, total: int) -> None:
-            if stage not in tasks:
-                tasks[stage] = bar.add_task(stage, total=total)
-            bar.update(tasks[stage], completed=done, total=total)
-
+    with _StageProgress(err, args.quiet) as progress:
         if args.server:
-            bar.add_task("fetching", total=None)
+            progress("fetching", 0, 0)
             html = fetch_report(args.server, args.target, args.token, None if "all" in args.methods else methods)
         else:
             from service.report import build_report
@@ -93,6 +77,30 @@ def handler(args: argparse.Namespace) -> int:
     tmp.replace(out)
     err.print(f"wrote {out} ({len(html.encode()) / 1024:.0f} kB)")
     return 0
+
+
+class _StageProgress:
+    """The report's stages (extract, calibrate, report; fetching): rich bars on a terminal, plain periodic lines
+    otherwise (``_output.LongStep``), nothing with ``--quiet``. Called as ``progress(stage, done, total)``."""
+
+    def __init__(self, console, quiet: bool) -> None:
+        self.console, self.quiet = console, quiet
+        self.step = None
+
+    def __enter__(self):
+        from ._output import LongStep
+
+        if not self.quiet:
+            self.step = LongStep(self.console, "report").__enter__()
+        return self
+
+    def __call__(self, stage: str, done: int, total: int) -> None:
+        if self.step is not None:
+            self.step.update(stage, done=done, total=total or None)
+
+    def __exit__(self, *exc) -> None:
+        if self.step is not None:
+            self.step.__exit__(*exc)
 
 
 def resolve_inputs(args: argparse.Namespace, methods: list[str], progress):

@@ -231,3 +231,12 @@ def test_extract_says_the_lens_model_in_one_line_with_a_pointer_to_the_camera_fi
     # the evidence the line points to is in the camera file
     lm = json.loads(cam.read_text())["calibration"]["lens_model"]
     assert len(lm["candidates"]) > 1 and lm["chosen"] in line
+
+
+def test_report_not_on_a_terminal_says_what_it_is_doing(result_doc, tmp_path):
+    res = tmp_path / "r.json"
+    res.write_text(json.dumps(result_doc[1]))
+    r = cli("report", str(res), "-o", str(tmp_path / "r.html"), env={"I4CAL_PROGRESS_EVERY_S": "0.2"})
+    assert r.returncode == 0, r.stderr
+    lines = r.stderr.splitlines()
+    assert lines[0] == "report ..." and any(line.startswith("report done") for line in lines), r.stderr
