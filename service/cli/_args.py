@@ -139,6 +139,6 @@ def load_plan(spec: str, cfg, seed: int):
         close = difflib.get_close_matches(spec, PLAN_NAMES, n=1)
         hint = f"did you mean {close[0]}? " if close else ""
         raise InputError(
-            f"neither a plan name nor a plan file: {hint}plan names are {', '.join(PLAN_NAMES)}", field="PLAN"
+            f"no such plan file, and not a plan name: {hint}plan names are {', '.join(PLAN_NAMES)}", file=spec
         )
     return Plan.load(spec)

@@ -161,7 +161,9 @@ def print_result(doc: dict[str, Any], console: Console | None = None, result: st
     lines = v.lines()
     con.print(f"[{style}]{lines[0]}[/{style}]", soft_wrap=False)
     for extra in lines[1:]:
-        con.print(extra)
+        con.print(extra, highlight=False)
+    if v.next_command and result is None:
+        con.print("(RESULT: the result file, e.g. of i4cal calibrate OBS -o result.json)", highlight=False)
     return v
 
 
