@@ -116,11 +116,13 @@ async def test_finished_failed_fit_and_running_runs(tmp_path, sim):
                 await _until(page, "document.querySelector('#devices').textContent.length > 0")
                 devices = await page.inner_text("#devices")
                 assert "unknown" not in devices and "not contacted yet" in devices, devices
-                # the design form's fields do not break between a label and its input
+                # the forms' fields do not break (a label's text and its input stay on one line)
                 broken = await page.evaluate(
-                    "[...document.querySelectorAll('#design-form label')].filter((l) => {"
+                    "[...document.querySelectorAll('#design-form label, #start-form label')].filter((l) => {"
                     " const i = l.querySelector('input, select'); if (!i) return false;"
-                    " return Math.abs(i.getBoundingClientRect().top - l.getBoundingClientRect().top) > 8; })"
+                    " return l.getClientRects().length > 1"
+                    " || l.getBoundingClientRect().height > 1.5 * Math.max(i.getBoundingClientRect().height,"
+                    " parseFloat(getComputedStyle(l).lineHeight)); })"
                     ".map((l) => l.textContent.trim())"
                 )
                 assert broken == [], broken
