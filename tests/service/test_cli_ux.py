@@ -143,7 +143,7 @@ def test_serve_says_where_the_dashboard_and_the_data_are(tmp_path):
     proc = subprocess.Popen(
         [sys.executable, "-m", "service.cli", "serve", "--port", str(port), "--data-dir", str(data)],
         stdout=subprocess.PIPE,
-        stderr=subprocess.DEVNULL,
+        stderr=(tmp_path / "serve.err").open("w"),
         text=True,
         env={**os.environ, "PYTHONPATH": str(ROOT)},
     )
@@ -156,8 +156,9 @@ def test_serve_says_where_the_dashboard_and_the_data_are(tmp_path):
     finally:
         proc.terminate()
         proc.wait(20)
-    assert len(first) == 3, first
-    assert first[0].strip() == f"i4cal dashboard: http://127.0.0.1:{port}/dashboard", first
+    assert len(first) == 3, (first, (tmp_path / "serve.err").read_text()[-2000:])
+    err = (tmp_path / "serve.err").read_text()[-2000:]
+    assert first[0].strip() == f"i4cal dashboard: http://127.0.0.1:{port}/dashboard", (first, err)
     assert first[2].strip() == f"data directory: {data.resolve()}", first
 
 
