@@ -35,7 +35,7 @@ def _quick(args: argparse.Namespace, con) -> dict:
 SMALL_PLAN = {"n_base": 3, "n_fit": 5, "n_lock": 1, "n_validation": 3, "line_samples": 4}
 
 
-async def _acquire(out: Path, seed: int, con, small: bool = False) -> Path:
+async def _acquire(out: Path, seed: int, con, small: bool = False, temporary: bool = False) -> Path:
     from calib.plan import make_plan
     from drivers.acquisition import acquire
     from drivers.sim.bench import SimBench
@@ -58,7 +58,7 @@ async def _acquire(out: Path, seed: int, con, small: bool = False) -> Path:
                 bar.update(done=p.done, total=p.total)
 
             res = await acquire(plan, cfg, out, progress=progress, camera_spec=spec, extra={"truth": truth})
-        con.print(f"   {res.frames} frames written to {out}")
+        con.print(f"   {res.frames} frames written" + (" (to a temporary directory)" if temporary else f" to {out}"))
         return out
 
 
@@ -74,7 +74,7 @@ def _full(args: argparse.Namespace, con, base: Path) -> dict:
         "1. acquisition on the simulated bench over Modbus TCP (loopback): the paper's full plan, "
         "camera frames rendered by the image-level twin"
     )
-    asyncio.run(_acquire(ds, args.seed, con, small=getattr(args, "small", False)))
+    asyncio.run(_acquire(ds, args.seed, con, small=getattr(args, "small", False), temporary=not args.out))
     con.print("2. extraction: ChArUco board poses and the eight rods in every frame (both cores)")
     with LongStep(con, "   extracting frames") as bar:
         res = extract_dataset(ds, progress=lambda d, t: bar.update(done=d, total=t))
