@@ -32,6 +32,28 @@ from calib.errors import InputError
 BENCH_NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9 ._-]{0,63}$"
 
 
+def default_data_dir() -> Path:
+    """The platform's user data directory for i4cal: ``$XDG_DATA_HOME/i4cal`` (default ``~/.local/share/i4cal``) on
+    Linux and other Unix systems, ``~/Library/Application Support/i4cal`` on macOS, ``%LOCALAPPDATA%\\i4cal`` on
+    Windows (platformdirs' ``user_data_dir`` when it is installed). Never inside the checkout: a read-only checkout or
+    an installed package keeps working."""
+    import os
+    import sys
+
+    try:
+        import platformdirs
+    except ImportError:
+        platformdirs = None
+    if platformdirs is not None:
+        return Path(platformdirs.user_data_dir("i4cal", appauthor=False))
+    if sys.platform == "win32":
+        return Path(os.environ.get("LOCALAPPDATA") or Path.home() / "AppData" / "Local") / "i4cal"
+    if sys.platform == "darwin":
+        return Path.home() / "Library" / "Application Support" / "i4cal"
+    xdg = os.environ.get("XDG_DATA_HOME", "")
+    return (Path(xdg) if os.path.isabs(xdg) else Path.home() / ".local" / "share") / "i4cal"
+
+
 class PlanSizes(BaseModel):
     """Sizes of the named plans the service generates (``calib.plan.make_plan`` keywords)."""
 
@@ -46,7 +68,11 @@ class PlanSizes(BaseModel):
 class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="I4CAL_", env_nested_delimiter="__", extra="forbid")
 
-    data_dir: Path = Field(Path("i4cal-data"), description="database, datasets and results live here")
+    data_dir: Path = Field(
+        default_factory=lambda: default_data_dir(),
+        description="database, datasets and results live here (default: the user's data directory, "
+        "$XDG_DATA_HOME/i4cal or ~/.local/share/i4cal on Linux)",
+    )
     database_url: str | None = Field(
         None,
         description="SQLAlchemy URL: sqlite:///PATH or "

@@ -20,6 +20,7 @@ from calib.errors import InputError
 from calib.export import CalibrationDocument
 from calib.methods.registry import method_names
 from calib.resultdoc import ResultDocument
+from calib.verdict import verdict
 
 from ..auth import Reader, Writer
 from ..hardening import ParsedJSONRoute
@@ -122,6 +123,10 @@ class RunOut(BaseModel):
         description="the plan's predicted std per method and combination and its motion time, computed as the run "
         "starts (null: not yet, or an offline run)",
     )
+    verdict: dict[str, Any] | None = Field(
+        None,
+        description="which method's result to load and why, the next command (calib.verdict; null: no result yet)",
+    )
 
 
 def run_out(manager: RunManager, run) -> RunOut:
@@ -150,6 +155,7 @@ def run_out(manager: RunManager, run) -> RunOut:
         error=run.error,
         has_result=run.result is not None,
         prediction=None if run.prediction is None else RunPrediction.model_validate(run.prediction),
+        verdict=None if run.result is None else verdict(run.result, run.id).to_dict(),
     )
 
 
