@@ -21,6 +21,7 @@ from calib.errors import I4calError
 
 from ..auth import Reader, Writer
 from ..db import DatasetRecord
+from ..hardening import json_file_problem
 from ..runs import new_id, now
 from .deps import DatasetId, Manager, SettingsDep, not_found
 
@@ -202,6 +203,9 @@ def _ingest(archive: Path, dest: Path, max_bytes: int, max_members: int) -> tupl
 
     unpack_archive(archive, dest, max_bytes=max_bytes, max_members=max_members)
     root = _find_root(dest)
+    problem = json_file_problem(root / "dataset.json")  # nested 100000 levels deep: a RecursionError, a 500
+    if problem is not None:
+        raise ArchiveError(problem)
     try:
         ds = Dataset.open(root)
     except I4calError as exc:

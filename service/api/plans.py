@@ -15,7 +15,7 @@ from calib.design.tradeoff import MAX_TRADEOFF_COUNTS
 from calib.errors import I4calError, InputError
 
 from ..auth import Reader, Writer
-from .deps import Manager, SettingsDep, unprocessable
+from .deps import Manager, RequestBody, SettingsDep, unprocessable
 
 router = APIRouter(prefix="/api/v1/plans", tags=["plans"])
 
@@ -63,7 +63,7 @@ def resolve_plan(spec: str | dict[str, Any] | None, manager: Any) -> Any:
     return plan
 
 
-class DesignBody(BaseModel):
+class DesignBody(RequestBody):
     """What to design; every input bounded (a design takes seconds of CPU)."""
 
     model_config = ConfigDict(
@@ -97,7 +97,7 @@ class DesignBody(BaseModel):
 MAX_PREDICTIONS_WAITING = 4
 
 
-class PredictBody(BaseModel):
+class PredictBody(RequestBody):
     """A plan to predict: a name (at this service's plan sizes, as a run would execute it) or an inline plan."""
 
     model_config = ConfigDict(

@@ -25,7 +25,7 @@ from ..hardening import ParsedJSONRoute
 from ..runs import STATES, RunConflictError, RunManager
 from ..settings import BENCH_NAME_PATTERN
 from .calibration import CalibrationOut, calibration_out
-from .deps import ID_PATTERN, Manager, RunId, conflict, get_run, not_found, unprocessable
+from .deps import ID_PATTERN, Manager, RequestBody, RunId, conflict, get_run, not_found, unprocessable
 from .methods import MethodName
 from .plans import PlanName, resolve_plan
 
@@ -34,7 +34,7 @@ from .plans import PlanName, resolve_plan
 router = APIRouter(prefix="/runs", tags=["runs"], route_class=ParsedJSONRoute)
 
 
-class RunCreate(BaseModel):
+class RunCreate(RequestBody):
     """Start a run: a plan on the bench (named or inline), or an uploaded dataset calibrated offline."""
 
     model_config = ConfigDict(
@@ -151,7 +151,7 @@ def run_out(manager: RunManager, run) -> RunOut:
     )
 
 
-class ApplyBody(BaseModel):
+class ApplyBody(RequestBody):
     model_config = ConfigDict(extra="forbid")
     method: MethodName | None = Field(
         None, description="default: the first converged in GET /api/v1/methods' apply order (combined, legs, ...)"

@@ -1,0 +1,240 @@
+"""The service guards the bench against hostile or mistyped input: numbers of another JSON type refused in plans,
+bench files and request bodies (nothing moves), lone UTF-16 surrogates and deep nesting refused with a 4xx on every
+JSON route and in uploads. Real HTTP against the service (uvicorn on loopback) and its simulated bench."""
+
+from __future__ import annotations
+
+import asyncio
+import io
+import json
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fastapi.routing import APIRoute
+
+from calib.errors import InputError
+from calib.plan import Plan, make_plan
+from drivers.config import load_bench
+from service.cli import main
+from tests.service.conftest import AUTH
+
+API = "/api/v1"
+BENCH_SIM = Path(__file__).resolve().parents[2] / "deploy" / "bench-sim.toml"
+HEX = "0123456789abcdef0123456789abcdef"
+#: the finding's inline plan: a boolean and a numeric string where joint targets (m) belong
+MISTYPED_Q = [False, 0.3, "0.3", 0.3]
+
+
+def _valid_step(service) -> dict:
+    nominal = service.app.state.manager.bench.config.nominal_parameters()
+    return make_plan("pose-set", nominal, n_fit=4).steps[0].model_dump(exclude_none=True)
+
+
+def _unmoved(service, q0) -> None:
+    mech = service.sim.mechanism
+    mech.update()
+    assert not any(ax.moving for ax in mech.axes)
+    np.testing.assert_allclose(mech.q_true(), q0, atol=1e-9)
+
+
+# -- numbers must be JSON numbers -------------------------------------------------------------------------------
+async def test_inline_plan_with_a_boolean_or_a_numeric_string_is_refused_and_nothing_moves(service):
+    c, mech = service.client, service.sim.mechanism
+    q0 = mech.q_true().copy()
+    good = _valid_step(service)
+    cases = [
+        ([good, {"phase": "poses", "q": MISTYPED_Q}], ["steps", 1, "q[0]"], "boolean"),
+        ([good, {"phase": "poses", "q": [*good["q"][:2], "0.3", good["q"][3]]}], ["steps", 1, "q[2]"], "string"),
+        ([{"phase": "poses", "q": [*good["q"][:3], True]}], ["steps", 0, "q[3]"], "boolean"),
+    ]
+    for steps, loc, kind in cases:
+        r = await c.post(f"{API}/runs", json={"plan": {"name": "typed", "steps": steps}, "methods": []}, headers=AUTH)
+        assert r.status_code == 422, r.text
+        d = r.json()["detail"][0]
+        assert d["loc"] == ["body", "plan", *loc] and kind in d["msg"], d
+    line = make_plan("line", service.app.state.manager.bench.config.nominal_parameters()).steps[0]
+    step = line.model_dump(exclude_none=True)
+    step["line"]["samples"] = "11"
+    r = await c.post(f"{API}/runs", json={"plan": {"name": "l", "steps": [step]}, "methods": []}, headers=AUTH)
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "plan", "steps", 0, "line", "samples"]
+    await asyncio.sleep(0.2)
+    assert (await c.get(f"{API}/runs")).json() == []
+    assert service.app.state.manager.bench_holder is None
+    _unmoved(service, q0)
+
+
+def test_plan_numbers_integers_are_numbers_booleans_and_strings_are_not():
+    """JSON ``0`` is a valid joint target (m); ``false`` and ``"0.3"`` are not, each named."""
+    plan = Plan.from_dict({"name": "p", "steps": [{"phase": "poses", "q": [0, 0.3, 1, 0.3]}]})
+    assert plan.steps[0].q == [0.0, 0.3, 1.0, 0.3]
+    with pytest.raises(InputError) as e:
+        Plan.from_dict({"name": "p", "steps": [{"phase": "poses", "q": MISTYPED_Q}]}, source="p.json")
+    assert e.value.frame == 0 and e.value.field == "q[0]" and "p.json" in str(e.value)
+    with pytest.raises(InputError) as e:
+        Plan.from_dict({"name": "p", "steps": [{"phase": "poses", "q": [0.1, 0.3, "0.3", 0.3]}]})
+    assert e.value.field == "q[2]"
+
+
+async def test_request_bodies_refuse_booleans_and_numeric_strings_naming_the_field(service):
+    c = service.client
+    for body, field in (
+        ({"max_minutes": True}, "max_minutes"),
+        ({"n_fit": "4"}, "n_fit"),
+        ({"target_std_m": "5e-4"}, "target_std_m"),
+        ({"n_fit": 4.0}, "n_fit"),
+        ({"with_line": "false"}, "with_line"),
+        ({"seed": False}, "seed"),
+    ):
+        r = await c.post(f"{API}/plans/design", json=body, headers=AUTH)
+        assert r.status_code == 422, (body, r.text)
+        assert r.json()["detail"][0]["loc"] == ["body", field], r.text
+    r = await c.post(f"{API}/plans/tradeoff", json={"counts": [4, "8"]}, headers=AUTH)
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "counts", 1], r.text
+    # an integer is a valid number of a float field
+    from service.api.plans import DesignBody
+
+    body = DesignBody.model_validate({"max_minutes": 10, "lock_frames": 5})
+    assert body.max_minutes == 10.0 and isinstance(body.max_minutes, float)
+
+
+def api_routes(app) -> list:
+    """Every API route of the app (path, methods, body_field, dependant), included routers' routes included."""
+    out = []
+    for route in app.routes:
+        if hasattr(route, "effective_route_contexts"):  # a router included by FastAPI >= 0.16x
+            out += list(route.effective_route_contexts())
+        elif isinstance(route, APIRoute):
+            out.append(route)
+    return out
+
+
+def test_every_request_body_is_strict(service):
+    """Every route's JSON body model derives from RequestBody (strict types, no unknown field)."""
+    from service.api.deps import RequestBody
+
+    bodies = 0
+    for route in api_routes(service.app):
+        if route.body_field is not None and route.dependant.body_params:
+            model = route.dependant.body_params[0].field_info.annotation
+            models = [a for a in getattr(model, "__args__", (model,)) if isinstance(a, type)]
+            assert any(issubclass(m, RequestBody) for m in models), (route.path, model)
+            bodies += 1
+    assert bodies >= 5
+
+
+async def test_acquire_refuses_a_plan_file_with_a_boolean_q_and_nothing_moves(sim, tmp_path, capsys):
+    text = (
+        BENCH_SIM.read_text()
+        .replace("modbus+tcp://127.0.0.1:5020", sim.actuators_uri)
+        .replace('uri = "sim://127.0.0.1:5022"', f'uri = "{sim.camera_uri}"', 1)
+        .replace('uri = "sim://127.0.0.1:5022"', f'uri = "{sim.operator_uri}"', 1)
+    )
+    bench = tmp_path / "bench.toml"
+    bench.write_text(text)
+    plan = tmp_path / "plan.json"
+    plan.write_text(json.dumps({"name": "typed", "steps": [{"phase": "poses", "q": MISTYPED_Q}]}))
+    q0 = sim.mechanism.q_true().copy()
+    rc = await asyncio.to_thread(main, ["acquire", "--bench", str(bench), "--plan", str(plan), "--out", "ds"])
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert "q[0]" in err and "plan.json" in err and "boolean" in err, err
+    assert not (tmp_path / "ds").exists()
+    sim.mechanism.update()
+    assert not any(ax.moving for ax in sim.mechanism.axes)
+    np.testing.assert_allclose(sim.mechanism.q_true(), q0, atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "field"),
+    [
+        ("speed_m_s = 10.0", 'speed_m_s = "10.0"', "actuators.speed_m_s"),
+        ("retries = 3", "retries = true", "actuators.retries"),
+        ("q_min = [-0.10, -0.10, -0.10, -0.10]", 'q_min = [-0.10, "-0.10", -0.10, -0.10]', "actuators.limits.q_min.1"),
+        ("timeout_s = 5.0", 'timeout_s = "5"', "camera.timeout_s"),
+    ],
+)
+def test_bench_file_numbers_must_be_numbers(tmp_path, old, new, field):
+    text = BENCH_SIM.read_text()
+    assert old in text
+    p = tmp_path / "bench.toml"
+    p.write_text(text.replace(old, new, 1))
+    with pytest.raises(InputError) as e:
+        load_bench(p)
+    assert e.value.field == field and e.value.file == str(p)
+    p.write_text(text.replace("speed_m_s = 10.0", "speed_m_s = 10"))  # a TOML integer is a number
+    assert load_bench(p).actuators.speed_m_s == 10.0
+
+
+# -- lone surrogates, depth -------------------------------------------------------------------------------------
+def _write_routes(service) -> list[tuple[str, str]]:
+    out = []
+    for route in api_routes(service.app):
+        for m in route.methods & {"POST", "PUT", "PATCH", "DELETE"}:
+            out.append((m, route.path.replace("{run_id}", HEX).replace("{dataset_id}", HEX)))
+    return out
+
+
+async def test_lone_surrogate_is_a_422_on_every_json_route(service):
+    c = service.client
+    routes = _write_routes(service)
+    assert len(routes) >= 8
+    bodies = [
+        (b'{"note": "\\ud800"}', ["body", "note"]),
+        (b'{"plan": {"name": "x\\udfff", "steps": []}}', ["body", "plan", "name"]),
+        (b'{"\\ud800": 1}', ["body", "\\ud800"]),
+        (b'"\xed\xa0\x80"', ["body"]),  # the surrogate's bytes themselves (not UTF-8)
+    ]
+    for method, path in routes:
+        for body, loc in bodies:
+            r = await c.request(method, path, content=body, headers={"Content-Type": "application/json", **AUTH})
+            assert r.status_code == 422, (method, path, r.status_code, r.text)
+            d = r.json()["detail"][0]
+            assert d["type"] == "string_unicode" and d["loc"] == loc, d
+    # a body of another content type reaches the route's validation: its 422 is still written
+    r = await c.post(f"{API}/runs", content=b'{"note": "\xed\xa0\x80"}', headers={"Content-Type": "text/plain", **AUTH})
+    assert 400 <= r.status_code < 500, r.text
+    assert (await c.get(f"{API}/runs")).json() == []
+
+
+async def test_deeply_nested_json_body_is_a_422(service):
+    c = service.client
+    deep = b"[" * 100_000 + b"]" * 100_000
+    r = await c.post(f"{API}/runs", content=deep, headers={"Content-Type": "application/json", **AUTH})
+    assert r.status_code == 422, r.text
+    assert r.json()["detail"][0]["type"] == "json_depth"
+    from service.hardening import MAX_JSON_DEPTH
+
+    nested: object = 1
+    for _ in range(MAX_JSON_DEPTH + 1):
+        nested = {"a": nested}
+    r = await c.post(f"{API}/plans/predict", json={"plan": nested}, headers=AUTH)
+    assert r.status_code == 422 and r.json()["detail"][0]["type"] == "json_depth", r.text
+
+
+def _zip(files: dict[str, bytes]) -> bytes:
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as zf:
+        for name, data in files.items():
+            zf.writestr(name, data)
+    return buf.getvalue()
+
+
+@pytest.mark.parametrize(
+    ("doc", "words"),
+    [
+        (b"[" * 100_000 + b"]" * 100_000, "nested deeper"),
+        (b'{"format": "i4cal.dataset/1", "name": "\\ud800", "frames": []}', "surrogate"),
+    ],
+)
+async def test_uploaded_dataset_json_nested_too_deep_or_with_a_surrogate_is_refused(service, doc, words):
+    c = service.client
+    r = await c.post(
+        f"{API}/datasets", content=_zip({"dataset.json": doc}), headers={"Content-Type": "application/zip", **AUTH}
+    )
+    assert r.status_code == 422, r.text
+    msg = r.json()["detail"][0]["msg"]
+    assert "dataset.json" in msg and words in msg, msg
+    assert list((service.settings.data_dir / "datasets").iterdir()) == []
+    assert (await c.get(f"{API}/datasets")).json() == []
