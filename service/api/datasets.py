@@ -22,6 +22,7 @@ from calib.errors import I4calError
 from ..auth import Reader, Writer
 from ..db import DatasetRecord
 from ..hardening import json_file_problem
+from ..jobs import check_frame_numbers
 from ..runs import new_id, now
 from .deps import DatasetId, Manager, SettingsDep, not_found
 
@@ -208,6 +209,7 @@ def _ingest(archive: Path, dest: Path, max_bytes: int, max_members: int) -> tupl
         raise ArchiveError(problem)
     try:
         ds = Dataset.open(root)
+        check_frame_numbers(root)
     except I4calError as exc:
         raise ArchiveError(f"not a valid dataset v1: {exc}") from None
     for i in range(len(ds.frames)):

@@ -27,7 +27,7 @@ from ..settings import BENCH_NAME_PATTERN
 from .calibration import CalibrationOut, calibration_out
 from .deps import ID_PATTERN, Manager, RequestBody, RunId, conflict, get_run, not_found, unprocessable
 from .methods import MethodName
-from .plans import PlanName, resolve_plan
+from .plans import PlanName, heavy, resolve_plan
 
 #: ParsedJSONRoute: a request's JSON (an inline plan: up to ~1 MB at the plan's size bounds) is parsed once, in a
 #: worker thread, by the strict-JSON middleware (service/hardening.py), not again in the event loop
@@ -333,6 +333,7 @@ async def run_result(run_id: RunId, manager: Manager, _: Reader) -> dict[str, An
     responses={
         **ERRORS,
         409: {"description": "no result (yet)"},
+        429: {"description": "the heavy requests' queue is full (Retry-After: seconds to wait)"},
         200: {"content": {"text/html": {}}, "description": "one self-contained HTML file"},
     },
 )
@@ -340,13 +341,15 @@ async def run_report(
     run_id: RunId, manager: Manager, _: Reader, methods: Annotated[list[MethodName] | None, Query()] = None
 ) -> HTMLResponse:
     """The calibration report (parameters, uncertainties, bound, validation, residuals, identifiability, camera
-    calibration, worst frames, hashes) as one HTML file that opens offline (``i4cal report``)."""
-    from ..report import build_report, inputs_from_run
+    calibration, worst frames, hashes) as one HTML file that opens offline (``i4cal report``). Built in the
+    heavy-request pool (a child process niced below the run's; 429 with Retry-After when its queue is full)."""
+    from sqlalchemy import inspect as sa_inspect
 
     run = get_run(manager, run_id)
     if run.result is None:
         raise conflict(f"run is {run.state}; no result")
-    html = await asyncio.to_thread(lambda: build_report(inputs_from_run(manager.data_dir, run, methods)))
+    row = {a.key: getattr(run, a.key) for a in sa_inspect(run).mapper.column_attrs}
+    html = await heavy(manager, "report", data_dir=str(manager.data_dir), run=row, methods=methods)
     return HTMLResponse(html, headers={"Content-Disposition": f'inline; filename="i4cal-report-{run_id}.html"'})
 
 

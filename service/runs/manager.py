@@ -28,6 +28,7 @@ from calib.errors import InputError
 
 from .. import failpoints
 from ..db import Calibration, Database, DatasetRecord, Run
+from ..jobs import HEAVY_NICE_ABOVE_RUN, HeavyPool
 from ..settings import Settings
 from ..timefmt import now_utc as now
 from . import calibrations
@@ -89,6 +90,9 @@ class RunManager:
         #: this service's name in a shared database: its bench's (None: no bench and no bench_name)
         self.name: str | None = bench.name if bench is not None else settings.bench_name
         self.stages = Stages(self)
+        #: the CPU-heavy requests' pool (plan design, prediction, trade-off, report): child processes niced below the
+        #: run's, a bounded queue (429 beyond)
+        self.heavy = HeavyPool(nice=min(19, settings.job_niceness + HEAVY_NICE_ABOVE_RUN))
 
     def owns(self, run: Run) -> bool:
         """Whether this service executes ``run`` (runs of services sharing the database are theirs to control)."""

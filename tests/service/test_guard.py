@@ -18,7 +18,7 @@ from calib.errors import InputError
 from calib.plan import Plan, make_plan
 from drivers.config import load_bench
 from service.cli import main
-from tests.service.conftest import AUTH
+from tests.service.conftest import AUTH, make_settings, start_service, wait_state
 
 API = "/api/v1"
 BENCH_SIM = Path(__file__).resolve().parents[2] / "deploy" / "bench-sim.toml"
@@ -238,3 +238,50 @@ async def test_uploaded_dataset_json_nested_too_deep_or_with_a_surrogate_is_refu
     assert "dataset.json" in msg and words in msg, msg
     assert list((service.settings.data_dir / "datasets").iterdir()) == []
     assert (await c.get(f"{API}/datasets")).json() == []
+
+
+async def test_a_run_failing_on_a_non_finite_q_says_so_in_one_line(tmp_path, sim):
+    """An uploaded dataset whose dataset.json was changed on disk to hold NaN in a frame's q (NaN cannot come in by
+    upload: refused there, below): the offline run fails with one line naming the frame and the field, no
+    traceback."""
+    from service.design import twin_scene
+
+    cam = tmp_path / "camera.json"
+    twin_scene().camera.save(cam)  # known intrinsics: the run gets as far as the frames' q
+    service = await start_service(make_settings(tmp_path, sim, camera_file=cam), sim)
+    try:
+        await _non_finite_q_run(service)
+    finally:
+        await service.client.aclose()
+        await service.stop()
+
+
+async def _non_finite_q_run(service) -> None:
+    c = service.client
+    rid = (await c.post(f"{API}/runs", json={"plan": "rotation-sweep", "methods": []}, headers=AUTH)).json()["id"]
+    assert (await wait_state(c, rid))["state"] == "done"
+    z = (await c.get(f"{API}/runs/{rid}/dataset")).content
+    r = await c.post(f"{API}/datasets", content=z, headers={"Content-Type": "application/zip", **AUTH})
+    assert r.status_code == 201, r.text
+    ds = r.json()
+    meta = next((service.settings.data_dir / "datasets" / ds["id"]).rglob("dataset.json"))
+    doc = json.loads(meta.read_text())
+    doc["frames"][2]["q"][1] = float("nan")
+    meta.write_text(json.dumps(doc))
+    r = await c.post(f"{API}/runs", json={"dataset": ds["id"], "methods": ["combined"]}, headers=AUTH)
+    assert r.status_code == 202, r.text
+    run = await wait_state(c, r.json()["id"])
+    assert run["state"] == "failed"
+    err = run["error"]
+    assert "\n" not in err and "Traceback" not in err and 'File "' not in err, err
+    assert "frame 2" in err and "q[1]" in err, err
+    # and by upload: refused naming the file, the frame and the field
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as zf:
+        for f in meta.parent.rglob("*"):
+            if f.is_file():
+                zf.write(f, f"dataset/{f.relative_to(meta.parent).as_posix()}")
+    r = await c.post(f"{API}/datasets", content=buf.getvalue(), headers={"Content-Type": "application/zip", **AUTH})
+    assert r.status_code == 422, r.text
+    msg = r.json()["detail"][0]["msg"]
+    assert "dataset.json" in msg and "frame 2" in msg and "q[1]" in msg, msg
