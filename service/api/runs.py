@@ -181,8 +181,8 @@ async def create_run(body: RunCreate, manager: Manager, _: Writer) -> RunOut:
     plan = None
     plan_name = None
     if body.dataset is None:
-        if manager.bench_holder is not None:
-            raise conflict(f"run {manager.bench_holder} holds the bench")
+        if (busy := manager.bench_busy()) is not None:
+            raise conflict(busy)
         plan = await asyncio.to_thread(resolve_plan, body.plan, manager)
         plan_name = plan.name
     try:

@@ -85,6 +85,8 @@ class RunManager:
         self.bench = bench
         self.active: dict[str, ActiveRun] = {}
         self.bench_holder: str | None = None
+        #: the devices are being probed (GET /devices?probe=true): no run starts meanwhile (a second Modbus master)
+        self.probing = False
         self.bus = EventBus(db)
         self.data_dir = settings.data_dir.resolve()
         #: this service's name in a shared database: its bench's (None: no bench and no bench_name)
@@ -179,6 +181,34 @@ class RunManager:
         failpoints.hit(f"state:{new.value}")
         return new
 
+    def bench_busy(self) -> str | None:
+        """Why the bench cannot be taken now (a run holds it, or its devices are being probed); None: it is free."""
+        if self.bench_holder is not None:
+            return f"run {self.bench_holder} holds the bench"
+        if self.probing:
+            return "the bench's devices are being probed (GET /devices?probe=true); try again in a few seconds"
+        return None
+
+    async def probe(self) -> None:
+        """Connect to the bench's devices briefly and record their state, only while no run holds the bench; no run
+        starts meanwhile (its connections would be a second master on the devices' line).
+
+        Raises
+        ------
+        RunConflictError
+            A run holds the bench, or another probe is under way.
+        """
+        if self.bench is None:
+            return
+        busy = self.bench_busy()
+        if busy is not None:
+            raise RunConflictError(busy)
+        self.probing = True
+        try:
+            await self.bench.probe()
+        finally:
+            self.probing = False
+
     def run_dir(self, run: Run) -> Path:
         return self.data_dir / "runs" / run.id
 
@@ -242,8 +272,8 @@ class RunManager:
                 raise InputError("this service has no bench configured; upload a dataset instead", field="bench")
             if bench not in (None, self.bench.name):
                 raise InputError(f"unknown bench {bench!r}; this service drives {self.bench.name!r}", field="bench")
-            if self.bench_holder is not None:
-                raise RunConflictError(f"run {self.bench_holder} holds the bench")
+            if (busy := self.bench_busy()) is not None:
+                raise RunConflictError(busy)
             ds_dir = f"runs/{rid}/dataset"
         run_bench = (bench or self.name) if dataset_id else self.bench.name  # type: ignore[union-attr]
         run = Run(
@@ -300,8 +330,8 @@ class RunManager:
         if todo.acquire:
             if self.bench is None:
                 raise RunConflictError("this service has no bench; the run's acquisition cannot continue here")
-            if self.bench_holder is not None:
-                raise RunConflictError(f"run {self.bench_holder} holds the bench")
+            if (busy := self.bench_busy()) is not None:
+                raise RunConflictError(busy)
         self._transition(run_id, RunEvent.RESUME, error=None, finished_at=None)
         self._start(run, todo)
         return self.get(run_id)

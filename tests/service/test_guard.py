@@ -285,3 +285,105 @@ async def _non_finite_q_run(service) -> None:
     assert r.status_code == 422, r.text
     msg = r.json()["detail"][0]["msg"]
     assert "dataset.json" in msg and "frame 2" in msg and "q[1]" in msg, msg
+
+
+# -- the server protects the run --------------------------------------------------------------------------------
+async def test_every_write_request_needs_a_token_whatever_open_reads(service):
+    """Reads are open (the default): every POST, PUT, PATCH and DELETE is still 401 without a valid token, the
+    prediction included (seconds of CPU), and nothing runs."""
+    assert service.settings.open_reads
+    c = service.client
+    routes = _write_routes(service)
+    assert ("POST", f"{API}/plans/predict") in routes
+    for method, path in routes:
+        for headers in ({}, {"Authorization": "Bearer wrong"}):
+            r = await c.request(method, path, json={}, headers=headers)
+            assert r.status_code == 401, (method, path, r.status_code, r.text)
+            assert r.headers["www-authenticate"] == "Bearer"
+    assert service.app.state.manager.heavy.pending == 0
+    assert (await c.get(f"{API}/runs")).json() == []
+
+
+async def test_probe_needs_a_token_and_never_overlaps_a_run(service, monkeypatch):
+    c, manager = service.client, service.app.state.manager
+    assert (await c.get(f"{API}/devices", params={"probe": "true"})).status_code == 401
+    assert (await c.get(f"{API}/devices")).status_code == 200  # reads stay open
+    r = await c.get(f"{API}/devices", params={"probe": "true"}, headers=AUTH)
+    assert r.status_code == 200 and r.json()["held_by"] is None
+    # a run holds the bench (paused between poses): the probe is refused, no connection is opened
+    rid = (await c.post(f"{API}/runs", json={"plan": "full", "methods": []}, headers=AUTH)).json()["id"]
+    assert (await c.post(f"{API}/runs/{rid}/pause", headers=AUTH)).status_code == 200
+    probes = []
+    real_probe = manager.bench.probe
+
+    async def counted_probe(*args, **kwargs):
+        probes.append(1)
+        return await real_probe(*args, **kwargs)
+
+    monkeypatch.setattr(manager.bench, "probe", counted_probe)
+    r = await c.get(f"{API}/devices", params={"probe": "true"}, headers=AUTH)
+    assert r.status_code == 409 and rid in r.json()["detail"], r.text
+    assert probes == []
+    assert (await c.post(f"{API}/runs/{rid}/abort", headers=AUTH)).status_code == 202
+    await wait_state(c, rid)
+    # while a probe connects (held at its start here, then the real probe), a run cannot start
+    go = asyncio.Event()
+
+    async def held_probe(*args, **kwargs):
+        await go.wait()
+        return await real_probe(*args, **kwargs)
+
+    monkeypatch.setattr(manager.bench, "probe", held_probe)
+    probing = asyncio.create_task(c.get(f"{API}/devices", params={"probe": "true"}, headers=AUTH))
+    for _ in range(200):
+        if manager.probing:
+            break
+        await asyncio.sleep(0.01)
+    r = await c.post(f"{API}/runs", json={"plan": "rotation-sweep", "methods": []}, headers=AUTH)
+    assert r.status_code == 409 and "probed" in r.json()["detail"], r.text
+    go.set()
+    assert (await probing).status_code == 200
+    r = await c.post(f"{API}/runs", json={"plan": "rotation-sweep", "methods": []}, headers=AUTH)
+    assert r.status_code == 202, r.text
+    assert (await wait_state(c, r.json()["id"]))["state"] == "done"
+
+
+def _nice(pid: int) -> int:
+    import os
+
+    return os.getpriority(os.PRIO_PROCESS, pid)
+
+
+async def test_heavy_requests_run_in_a_niced_child_with_a_bounded_queue(service):
+    """A prediction runs in another process, niced above the run's extraction and fits (job_niceness), one at a
+    time; with the queue full the next one gets 429 with Retry-After, and those admitted all finish."""
+    import os
+
+    c, pool = service.client, service.app.state.manager.heavy
+    pool.max_waiting = 1  # 1 computing + 1 waiting; a third is refused
+    body = {"plan": "rotation-sweep", "methods": ["combined"]}
+    first = asyncio.create_task(c.post(f"{API}/plans/predict", json=body, headers=AUTH))
+    for _ in range(1000):
+        if pool.running and pool.running[0].process.pid is not None:
+            break
+        await asyncio.sleep(0.01)
+    pid = pool.running[0].process.pid
+    assert pid != os.getpid()
+    for _ in range(500):  # the child renices itself first thing
+        if _nice(pid) > _nice(os.getpid()):
+            break
+        await asyncio.sleep(0.01)
+    assert pool.running and pool.running[0].process.pid == pid  # still computing
+    assert _nice(pid) > _nice(os.getpid()) and _nice(pid) > service.settings.job_niceness, (_nice(pid), pid)
+    second = asyncio.create_task(c.post(f"{API}/plans/predict", json=body, headers=AUTH))
+    for _ in range(500):
+        if pool.pending == 2:
+            break
+        await asyncio.sleep(0.01)
+    r = await c.post(f"{API}/plans/predict", json=body, headers=AUTH)
+    assert r.status_code == 429, r.text
+    assert int(r.headers["retry-after"]) >= 1
+    r1, r2 = await first, await second
+    assert r1.status_code == 200 and r2.status_code == 200, (r1.text, r2.text)
+    assert r1.json()["predicted_std_m"] == r2.json()["predicted_std_m"]
+    assert pool.pending == 0 and pool.running == [] and pool.noise is not None
