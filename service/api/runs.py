@@ -223,6 +223,14 @@ def _sse(ev: dict[str, Any]) -> str:
     return f"id: {ev['seq']}\nevent: {ev['type']}\ndata: {json.dumps(ev)}\n\n"
 
 
+def _overflow(last: int) -> str:
+    """The ``overflow`` event (no ``id``: the client's Last-Event-ID stays the last event it received): this stream
+    fell behind and ends; reconnect with Last-Event-ID (an EventSource does so by itself) to read every event
+    after ``last`` from the database."""
+    data = {"type": "overflow", "data": {"last_seq": last, "reconnect": "with Last-Event-ID (or ?after=last_seq)"}}
+    return f"event: overflow\ndata: {json.dumps(data)}\n\n"
+
+
 @router.get(
     "/{run_id}/events",
     responses={**ERRORS, 200: {"content": {"text/event-stream": {}}, "description": "Server-Sent Events"}},
@@ -237,7 +245,9 @@ async def run_events(
     follow: bool = True,
 ) -> StreamingResponse:
     """State changes, acquisition progress (pose i/N), extraction progress, fits: past events, then live ones
-    until the run ends. Resumes after ``Last-Event-ID`` (or ``after``)."""
+    until the run ends. Resumes after ``Last-Event-ID`` (or ``after``). A client that falls more than
+    ``SUBSCRIBER_QUEUE_MAX`` events behind gets an ``overflow`` event and the stream ends: reconnect with
+    Last-Event-ID, nothing is lost."""
     get_run(manager, run_id)
     start = after
     if last_event_id and last_event_id.isdigit():
@@ -260,6 +270,9 @@ async def run_events(
                         return
                     yield ": keep-alive\n\n"
                     continue
+                if q.overflowed:  # events were dropped for this slow client: tell it to reconnect from `last`
+                    yield _overflow(last)
+                    return
                 if ev is None:
                     return
                 if ev["seq"] <= last:

@@ -33,7 +33,7 @@ from ..settings import Settings
 from ..timefmt import now_utc as now
 from . import calibrations
 from .bench import Bench
-from .events import EventBus
+from .events import EventBus, Subscription
 from .lifecycle import (
     ACTIVE,
     FINAL,
@@ -104,10 +104,10 @@ class RunManager:
     def emit(self, run_id: str, type_: str, data: dict[str, Any]) -> None:
         self.bus.emit(run_id, type_, data)
 
-    def subscribe(self, run_id: str) -> asyncio.Queue:
+    def subscribe(self, run_id: str) -> Subscription:
         return self.bus.subscribe(run_id)
 
-    def unsubscribe(self, run_id: str, q: asyncio.Queue) -> None:
+    def unsubscribe(self, run_id: str, q: Subscription) -> None:
         self.bus.unsubscribe(run_id, q)
 
     def events(self, run_id: str, after: int = 0) -> list[dict[str, Any]]:
@@ -319,6 +319,8 @@ class RunManager:
         if a is not None:
             if a.acq is None or run.state != RunState.ACQUIRING:
                 raise RunConflictError(f"run is {run.state}; only an acquisition can be paused and resumed")
+            if not a.paused:  # a duplicate resume: nothing to do, and no second 'resumed' event
+                raise RunConflictError("run is acquiring and not paused; nothing to resume")
             a.acq.resume()
             a.paused = False
             self.emit(run_id, "resumed", {})
@@ -341,6 +343,8 @@ class RunManager:
         a = self.active.get(run_id)
         if a is None or a.acq is None or run.state != RunState.ACQUIRING:
             raise RunConflictError(f"run is {run.state}; only an acquisition can be paused")
+        if a.paused:  # a duplicate pause: no second 'paused' event
+            raise RunConflictError("run is already paused")
         a.acq.pause()
         a.paused = True
         self.emit(run_id, "paused", {})

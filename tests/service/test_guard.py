@@ -5,6 +5,7 @@ JSON route and in uploads. Real HTTP against the service (uvicorn on loopback) a
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import io
 import json
 import zipfile
@@ -18,7 +19,7 @@ from calib.errors import InputError
 from calib.plan import Plan, make_plan
 from drivers.config import load_bench
 from service.cli import main
-from tests.service.conftest import AUTH, make_settings, start_service, wait_state
+from tests.service.conftest import AUTH, make_settings, read_events, start_service, wait_state
 
 API = "/api/v1"
 BENCH_SIM = Path(__file__).resolve().parents[2] / "deploy" / "bench-sim.toml"
@@ -387,3 +388,102 @@ async def test_heavy_requests_run_in_a_niced_child_with_a_bounded_queue(service)
     assert r1.status_code == 200 and r2.status_code == 200, (r1.text, r2.text)
     assert r1.json()["predicted_std_m"] == r2.json()["predicted_std_m"]
     assert pool.pending == 0 and pool.running == [] and pool.noise is not None
+
+
+# -- smaller items ------------------------------------------------------------------------------------------------
+def test_token_expires_in_counts_from_issuance(tmp_path, capsys, monkeypatch):
+    """``--expires-in 3s`` lives 3 s from the token's creation, however long the database takes to open (a slow
+    open, migrations on first use: made slow here by 1.5 s before the real upgrade). Before, the 3 s were counted
+    from the command's start: the token lived 0.44 s."""
+    import time
+
+    from sqlalchemy import select
+
+    from service.db import Database, Token
+
+    real_upgrade = Database.upgrade
+
+    def slow_upgrade(self, *args, **kwargs):
+        time.sleep(1.5)
+        return real_upgrade(self, *args, **kwargs)
+
+    monkeypatch.setattr(Database, "upgrade", slow_upgrade)
+    data = tmp_path / "data"
+    assert main(["token", "create", "--data-dir", str(data), "--expires-in", "3s"]) == 0
+    assert "expires" in capsys.readouterr().err
+    db = Database(f"sqlite:///{data / 'i4cal.db'}")
+    try:
+        with db.session() as s:
+            row = s.scalars(select(Token)).one()
+            lifetime = (row.expires_at - row.created_at).total_seconds()
+    finally:
+        db.dispose()
+    assert abs(lifetime - 3.0) < 0.01, lifetime
+
+
+async def _paused_run(c) -> str:
+    """A run acquiring the 'full' plan, paused between two poses (it holds the bench and stays active)."""
+    rid = (await c.post(f"{API}/runs", json={"plan": "full", "methods": []}, headers=AUTH)).json()["id"]
+    async with asyncio.timeout(60):
+        while True:
+            r = await c.post(f"{API}/runs/{rid}/pause", headers=AUTH)
+            if r.status_code == 200:
+                return rid
+            assert (await c.get(f"{API}/runs/{rid}")).json()["state"] in ("queued", "acquiring")
+            await asyncio.sleep(0.01)
+
+
+async def test_a_duplicate_resume_or_pause_is_a_409_and_no_event(service):
+    c = service.client
+    rid = await _paused_run(c)
+    assert (await c.post(f"{API}/runs/{rid}/pause", headers=AUTH)).status_code == 409
+    codes = [(await c.post(f"{API}/runs/{rid}/resume", headers=AUTH)).status_code for _ in range(3)]
+    assert codes == [202, 409, 409], codes
+    run = await wait_state(c, rid)
+    assert run["state"] == "done", run
+    evs = await read_events(c, rid)
+    assert [e["type"] for e in evs].count("resumed") == 1 and [e["type"] for e in evs].count("paused") == 1
+
+
+async def _read_until_overflow(resp, got: list[dict], emit) -> None:
+    """Read a stream's events into ``got``; once the past is read (the ``paused`` event), emit a burst of 40."""
+    kind = None
+    async for line in resp.aiter_lines():
+        if line.startswith("event: "):
+            kind = line[7:]
+        elif line.startswith("data: "):
+            ev = json.loads(line[6:])
+            got.append({**ev, "type": "overflow"} if kind == "overflow" else ev)
+            if ev.get("type") == "paused":
+                for _ in range(40):
+                    emit()
+
+
+async def test_a_slow_event_subscriber_is_told_to_reconnect_and_recovers_every_event(service, monkeypatch):
+    """The live queue of a subscriber holds 3 events here; 40 come at once (a burst: the stream cannot send any
+    in between). The stream sends an ``overflow`` event and ends; reconnecting with Last-Event-ID gives the rest:
+    every event once, in order."""
+    from service.runs import events as events_mod
+
+    c, manager = service.client, service.app.state.manager
+    rid = await _paused_run(c)
+    monkeypatch.setattr(events_mod, "SUBSCRIBER_QUEUE_MAX", 3, raising=False)
+    got: list[dict] = []
+    with contextlib.suppress(TimeoutError):  # before: the stream went on, silently short of events
+        async with asyncio.timeout(15), c.stream("GET", f"{API}/runs/{rid}/events") as resp:
+            await _read_until_overflow(resp, got, lambda: manager.emit(rid, "burst", {}))
+    overflow = next((e for e in got if e.get("type") == "overflow"), None)
+    got = [e for e in got if e.get("type") != "overflow"]
+    assert overflow is not None and overflow["data"]["last_seq"] == got[-1]["seq"], (overflow, got[-1])
+    last = got[-1]["seq"]
+    async with c.stream(
+        "GET", f"{API}/runs/{rid}/events", params={"follow": "false"}, headers={"Last-Event-ID": str(last)}
+    ) as resp:
+        async for line in resp.aiter_lines():
+            if line.startswith("data: "):
+                got.append(json.loads(line[6:]))
+    seqs = [e["seq"] for e in got]
+    assert seqs == list(range(1, len(seqs) + 1)), seqs
+    assert len([e for e in got if e["type"] == "burst"]) == 40
+    assert (await c.post(f"{API}/runs/{rid}/abort", headers=AUTH)).status_code == 202
+    await wait_state(c, rid)
