@@ -4,10 +4,13 @@ and security headers on every response (installed by :func:`install` from ``serv
 * JSON request bodies (``application/json``, ``*+json`` or no content type, as FastAPI parses them) larger than
   ``max_json_body_bytes`` are answered 413, and bodies holding ``NaN``, ``Infinity``, ``-Infinity`` or a number
   beyond the float range (which Python's ``json`` would read as infinite) 422 naming the field, before any route
-  sees them. Standard JSON has no such numbers; the service never computes with them. Large bodies are parsed in
-  a worker thread, once (:class:`ParsedJSONRoute`).
-* Validation errors (422) are serialised with non-finite inputs written as strings: a non-finite value in a field
-  that fails validation can no longer turn the 422 into a 500.
+  sees them. Standard JSON has no such numbers; the service never computes with them. So are strings (and keys)
+  holding a lone UTF-16 surrogate (``"\\ud800"``: not Unicode text, which no response could encode) and documents
+  nested deeper than :data:`MAX_JSON_DEPTH` (Python's parser fails near 1000 levels with a RecursionError). Large
+  bodies are parsed in a worker thread, once (:class:`ParsedJSONRoute`). :func:`json_file_problem` applies the same
+  depth and surrogate checks to an uploaded ``dataset.json``.
+* Validation errors (422) are serialised with non-finite inputs written as strings and lone surrogates or
+  undecodable bytes escaped: a value in a field that fails validation can no longer turn the 422 into a 500.
 * ``allowed_hosts``: requests whose ``Host`` header is not listed get 400 (Starlette's ``TrustedHostMiddleware``;
   against DNS rebinding: a web page cannot reach the service under a name of its own).
 * Every response carries ``Content-Security-Policy`` (the dashboard needs only its own origin; the interactive API

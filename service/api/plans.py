@@ -292,7 +292,11 @@ async def _designed(body: DesignBody, request: Request, manager: Any, settings: 
             raise unprocessable(exc, prefix=("body", "better_than")) from None
     lock = _lock(request)
     if lock.locked():
-        raise HTTPException(status.HTTP_429_TOO_MANY_REQUESTS, detail="another design is being computed")
+        raise HTTPException(
+            status.HTTP_429_TOO_MANY_REQUESTS,
+            detail="another design is being computed",
+            headers={"Retry-After": str(manager.heavy.retry_after_s())},
+        )
     async with lock:
         try:
             targets: dict[str, Any] = {"target_std_m": body.target_std_m}
