@@ -13,7 +13,7 @@ from calib.design.tradeoff import MAX_TRADEOFF_COUNTS
 from calib.errors import I4calError, InputError
 
 from ..auth import Writer
-from ..jobs import PoolBusyError
+from ..jobs import JobError, PoolBusyError
 from .deps import Manager, RequestBody, SettingsDep, unprocessable
 
 router = APIRouter(prefix="/api/v1/plans", tags=["plans"])
@@ -311,6 +311,8 @@ async def _designed(body: DesignBody, request: Request, manager: Any, settings: 
             return res, req
         except InputError as exc:
             raise unprocessable(exc) from None
+        except JobError:
+            raise  # the computation's process crashed: not the request's fault (500, in the log)
         except I4calError as exc:
             raise unprocessable(InputError(str(exc), field="plan")) from None
 
@@ -372,6 +374,8 @@ async def predict(body: PredictBody, manager: Manager, _: Writer) -> PredictOut:
         )
     except InputError as exc:
         raise unprocessable(exc, ("body", "plan")) from None
+    except JobError:
+        raise  # the computation's process crashed: not the request's fault (500, in the log)
     except I4calError as exc:
         raise unprocessable(InputError(str(exc), field="plan")) from None
     return PredictOut(
