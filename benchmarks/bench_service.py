@@ -87,6 +87,15 @@ def runqueue_wait_ms(pid: int) -> float | None:
         return None
 
 
+def cpu_seconds(pid: int) -> float | None:
+    """CPU time (user + system, s) the process ``pid`` itself used so far, its children not included."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return None
+
+
 def free_port(span: int = 1) -> int:
     """A loopback TCP port ``p`` such that ``p .. p + span - 1`` are free (at the time of asking)."""
     for _ in range(100):
@@ -199,6 +208,7 @@ def measure(
             # this process's own garbage collections (~150 ms for a full one) would be counted as the service's
             gc.collect()
             gc.disable()
+            cpu0 = cpu_seconds(proc.pid)
             t_start = time.perf_counter()
             state = "queued"
             while True:
@@ -233,7 +243,10 @@ def measure(
             for t in loaders:
                 t.join(60)
             total = time.perf_counter() - t_start
+            cpu1 = cpu_seconds(proc.pid)
             print(f"run {rid}: {state} in {total:.1f} s; timings {run['timings']}")
+            if cpu0 is not None and cpu1 is not None:
+                print(f"CPU time of the server process during the run: {cpu1 - cpu0:.1f} s (its children not counted)")
             if predict_clients:
                 print(f"predictions posted by {predict_clients} clients during the run, by status: {answers}")
             if run.get("error"):
