@@ -22,6 +22,8 @@ from calib.errors import I4calError
 from .. import failpoints
 from ..auth import Reader, Writer
 from ..db import DatasetRecord
+from ..hardening import json_file_problem
+from ..jobs import check_frame_numbers
 from ..runs import RunConflictError, new_id, now
 from ..runs.disk import StorageError, is_disk_full
 from .deps import DatasetId, Manager, SettingsDep, conflict, not_found
@@ -239,8 +241,12 @@ def _ingest(
 
     unpack_archive(archive, dest, max_bytes=max_bytes, max_members=max_members, room_bytes=room_bytes)
     root = _find_root(dest)
+    problem = json_file_problem(root / "dataset.json")  # nested 100000 levels deep: a RecursionError, a 500
+    if problem is not None:
+        raise ArchiveError(problem)
     try:
         ds = Dataset.open(root)
+        check_frame_numbers(root)
     except I4calError as exc:
         raise ArchiveError(f"not a valid dataset v1: {exc}") from None
     for i in range(len(ds.frames)):

@@ -28,16 +28,16 @@ from ..runs import STATES, RunConflictError, RunManager
 from ..runs.disk import StorageError
 from ..settings import BENCH_NAME_PATTERN
 from .calibration import CalibrationOut, calibration_out
-from .deps import ID_PATTERN, Manager, RunId, conflict, get_run, not_found, unprocessable
+from .deps import ID_PATTERN, Manager, RequestBody, RunId, conflict, get_run, not_found, unprocessable
 from .methods import MethodName
-from .plans import PlanName, resolve_plan
+from .plans import PlanName, heavy, resolve_plan
 
 #: ParsedJSONRoute: a request's JSON (an inline plan: up to ~1 MB at the plan's size bounds) is parsed once, in a
 #: worker thread, by the strict-JSON middleware (service/hardening.py), not again in the event loop
 router = APIRouter(prefix="/runs", tags=["runs"], route_class=ParsedJSONRoute)
 
 
-class RunCreate(BaseModel):
+class RunCreate(RequestBody):
     """Start a run: a plan on the bench (named or inline), or an uploaded dataset calibrated offline."""
 
     model_config = ConfigDict(
@@ -159,7 +159,7 @@ def run_out(manager: RunManager, run) -> RunOut:
     )
 
 
-class ApplyBody(BaseModel):
+class ApplyBody(RequestBody):
     model_config = ConfigDict(extra="forbid")
     method: MethodName | None = Field(
         None, description="default: the first converged in GET /api/v1/methods' apply order (combined, legs, ...)"
@@ -190,8 +190,8 @@ async def create_run(body: RunCreate, manager: Manager, _: Writer) -> RunOut:
     plan = None
     plan_name = None
     if body.dataset is None:
-        if manager.bench_holder is not None:
-            raise conflict(f"run {manager.bench_holder} holds the bench")
+        if (busy := manager.bench_busy()) is not None:
+            raise conflict(busy)
         plan = await asyncio.to_thread(resolve_plan, body.plan, manager)
         plan_name = plan.name
     await _check_space(manager.check_space_for_run, plan)
@@ -235,6 +235,14 @@ def _sse(ev: dict[str, Any]) -> str:
     return f"id: {ev['seq']}\nevent: {ev['type']}\ndata: {json.dumps(ev)}\n\n"
 
 
+def _overflow(last: int) -> str:
+    """The ``overflow`` event (no ``id``: the client's Last-Event-ID stays the last event it received): this stream
+    fell behind and ends; reconnect with Last-Event-ID (an EventSource does so by itself) to read every event
+    after ``last`` from the database."""
+    data = {"type": "overflow", "data": {"last_seq": last, "reconnect": "with Last-Event-ID (or ?after=last_seq)"}}
+    return f"event: overflow\ndata: {json.dumps(data)}\n\n"
+
+
 @router.get(
     "/{run_id}/events",
     responses={**ERRORS, 200: {"content": {"text/event-stream": {}}, "description": "Server-Sent Events"}},
@@ -249,7 +257,9 @@ async def run_events(
     follow: bool = True,
 ) -> StreamingResponse:
     """State changes, acquisition progress (pose i/N), extraction progress, fits: past events, then live ones
-    until the run ends. Resumes after ``Last-Event-ID`` (or ``after``)."""
+    until the run ends. Resumes after ``Last-Event-ID`` (or ``after``). A client that falls more than
+    ``SUBSCRIBER_QUEUE_MAX`` events behind gets an ``overflow`` event and the stream ends: reconnect with
+    Last-Event-ID, nothing is lost."""
     get_run(manager, run_id)
     start = after
     if last_event_id and last_event_id.isdigit():
@@ -272,6 +282,9 @@ async def run_events(
                         return
                     yield ": keep-alive\n\n"
                     continue
+                if q.overflowed:  # events were dropped for this slow client: tell it to reconnect from `last`
+                    yield _overflow(last)
+                    return
                 if ev is None:
                     return
                 if ev["seq"] <= last:
@@ -396,6 +409,7 @@ async def run_result(run_id: RunId, manager: Manager, _: Reader) -> dict[str, An
     responses={
         **ERRORS,
         409: {"description": "no result (yet)"},
+        429: {"description": "the heavy requests' queue is full (Retry-After: seconds to wait)"},
         200: {"content": {"text/html": {}}, "description": "one self-contained HTML file"},
     },
 )
@@ -403,13 +417,15 @@ async def run_report(
     run_id: RunId, manager: Manager, _: Reader, methods: Annotated[list[MethodName] | None, Query()] = None
 ) -> HTMLResponse:
     """The calibration report (parameters, uncertainties, bound, validation, residuals, identifiability, camera
-    calibration, worst frames, hashes) as one HTML file that opens offline (``i4cal report``)."""
-    from ..report import build_report, inputs_from_run
+    calibration, worst frames, hashes) as one HTML file that opens offline (``i4cal report``). Built in the
+    heavy-request pool (a child process niced below the run's; 429 with Retry-After when its queue is full)."""
+    from sqlalchemy import inspect as sa_inspect
 
     run = get_run(manager, run_id)
     if run.result is None:
         raise conflict(f"run is {run.state}; no result")
-    html = await asyncio.to_thread(lambda: build_report(inputs_from_run(manager.data_dir, run, methods)))
+    row = {a.key: getattr(run, a.key) for a in sa_inspect(run).mapper.column_attrs}
+    html = await heavy(manager, "report", data_dir=str(manager.data_dir), run=row, methods=methods)
     return HTMLResponse(html, headers={"Content-Disposition": f'inline; filename="i4cal-report-{run_id}.html"'})
 
 

@@ -28,12 +28,13 @@ from calib.errors import InputError
 
 from .. import failpoints
 from ..db import Calibration, Database, DatasetRecord, Event, Run
+from ..jobs import HEAVY_NICE_ABOVE_RUN, HeavyPool
 from ..settings import Settings
 from ..timefmt import now_utc as now
 from . import calibrations
 from .bench import Bench
 from .disk import DiskGuard, StorageError, data_usage_bytes, is_disk_full
-from .events import EventBus
+from .events import EventBus, Subscription
 from .lifecycle import (
     ACTIVE,
     FINAL,
@@ -97,6 +98,8 @@ class RunManager:
         self.bench = bench
         self.active: dict[str, ActiveRun] = {}
         self.bench_holder: str | None = None
+        #: the devices are being probed (GET /devices?probe=true): no run starts meanwhile (a second Modbus master)
+        self.probing = False
         self.bus = EventBus(db)
         self.data_dir = settings.data_dir.resolve()
         #: this service's name in a shared database: its bench's (None: no bench and no bench_name)
@@ -107,6 +110,9 @@ class RunManager:
         self.held: dict[str, HeldEnd] = {}
         self._held_task: asyncio.Task | None = None
         failpoints.install()
+        #: the CPU-heavy requests' pool (plan design, prediction, trade-off, report): child processes niced below the
+        #: run's, a bounded queue (429 beyond)
+        self.heavy = HeavyPool(nice=min(19, settings.job_niceness + HEAVY_NICE_ABOVE_RUN))
 
     def owns(self, run: Run) -> bool:
         """Whether this service executes ``run`` (runs of services sharing the database are theirs to control)."""
@@ -116,10 +122,10 @@ class RunManager:
     def emit(self, run_id: str, type_: str, data: dict[str, Any]) -> None:
         self.bus.emit(run_id, type_, data)
 
-    def subscribe(self, run_id: str) -> asyncio.Queue:
+    def subscribe(self, run_id: str) -> Subscription:
         return self.bus.subscribe(run_id)
 
-    def unsubscribe(self, run_id: str, q: asyncio.Queue) -> None:
+    def unsubscribe(self, run_id: str, q: Subscription) -> None:
         self.bus.unsubscribe(run_id, q)
 
     def events(self, run_id: str, after: int = 0) -> list[dict[str, Any]]:
@@ -217,6 +223,34 @@ class RunManager:
         failpoints.hit(f"state:{new.value}")
         return new
 
+    def bench_busy(self) -> str | None:
+        """Why the bench cannot be taken now (a run holds it, or its devices are being probed); None: it is free."""
+        if self.bench_holder is not None:
+            return f"run {self.bench_holder} holds the bench"
+        if self.probing:
+            return "the bench's devices are being probed (GET /devices?probe=true); try again in a few seconds"
+        return None
+
+    async def probe(self) -> None:
+        """Connect to the bench's devices briefly and record their state, only while no run holds the bench; no run
+        starts meanwhile (its connections would be a second master on the devices' line).
+
+        Raises
+        ------
+        RunConflictError
+            A run holds the bench, or another probe is under way.
+        """
+        if self.bench is None:
+            return
+        busy = self.bench_busy()
+        if busy is not None:
+            raise RunConflictError(busy)
+        self.probing = True
+        try:
+            await self.bench.probe()
+        finally:
+            self.probing = False
+
     def run_dir(self, run: Run) -> Path:
         return self.data_dir / "runs" / run.id
 
@@ -280,8 +314,8 @@ class RunManager:
                 raise InputError("this service has no bench configured; upload a dataset instead", field="bench")
             if bench not in (None, self.bench.name):
                 raise InputError(f"unknown bench {bench!r}; this service drives {self.bench.name!r}", field="bench")
-            if self.bench_holder is not None:
-                raise RunConflictError(f"run {self.bench_holder} holds the bench")
+            if (busy := self.bench_busy()) is not None:
+                raise RunConflictError(busy)
             ds_dir = f"runs/{rid}/dataset"
         run_bench = (bench or self.name) if dataset_id else self.bench.name  # type: ignore[union-attr]
         run = Run(
@@ -337,6 +371,8 @@ class RunManager:
         if a is not None:
             if a.acq is None or run.state != RunState.ACQUIRING:
                 raise RunConflictError(f"run is {run.state}; only an acquisition can be paused and resumed")
+            if not a.paused:  # a duplicate resume: nothing to do, and no second 'resumed' event
+                raise RunConflictError("run is acquiring and not paused; nothing to resume")
             try:
                 self.emit(run_id, "resumed", {})
             except Exception as exc:
@@ -363,8 +399,8 @@ class RunManager:
         if todo.acquire:
             if self.bench is None:
                 raise RunConflictError("this service has no bench; the run's acquisition cannot continue here")
-            if self.bench_holder is not None:
-                raise RunConflictError(f"run {self.bench_holder} holds the bench")
+            if (busy := self.bench_busy()) is not None:
+                raise RunConflictError(busy)
         self._transition(run_id, RunEvent.RESUME, error=None, finished_at=None)
         self._start(run, todo)
         return self.get(run_id)
@@ -374,6 +410,8 @@ class RunManager:
         a = self.active.get(run_id)
         if a is None or a.acq is None or run.state != RunState.ACQUIRING:
             raise RunConflictError(f"run is {run.state}; only an acquisition can be paused")
+        if a.paused:  # a duplicate pause: no second 'paused' event
+            raise RunConflictError("run is already paused")
         a.acq.pause()
         a.paused = True
         try:
