@@ -14,6 +14,9 @@ import tempfile
 import time
 from pathlib import Path
 
+#: board views of the demo's camera phase (the accuracy study's count; ``plan predict`` assumes as many)
+CAMERA_VIEWS = 30
+
 
 def _quick(args: argparse.Namespace, con) -> dict:
     from calib.observations import Observations
@@ -34,7 +37,29 @@ def _quick(args: argparse.Namespace, con) -> dict:
 SMALL_PLAN = {"n_base": 3, "n_fit": 5, "n_lock": 1, "n_validation": 3, "line_samples": 4}
 
 
-async def _acquire(out: Path, seed: int, con, small: bool = False) -> Path:
+def _camera_phase(renderer, seed: int, views: int = CAMERA_VIEWS):
+    """The intrinsics as a lab obtains them: ``views`` board views held in front of the simulated camera (the
+    views ``simulate_dataset`` renders for ``seed``), calibrated with the board's corners released
+    (``calib.camera.calibrate_intrinsics``). The camera carries its covariance and the board's corners as the
+    calibration refined them: the simulated board is printed off its nominal corners (0.2 mm RMS), and poses of
+    the nominal board would be off by it; the renderer's true intrinsics carry neither."""
+    import numpy as np
+
+    from calib.camera import calibrate_intrinsics
+    from calib.vision.board import BoardDetector
+
+    det = BoardDetector(renderer.settings.board)
+    noise = np.random.default_rng([seed, 11])
+    found = {}
+    for k, view in enumerate(renderer.random_board_views(views, np.random.default_rng([seed, 7]))):
+        d = det.detect(renderer.render_board_view(view, noise))
+        if d.ids.size:
+            found[k] = (d.ids, d.pixels, None)
+    size = (renderer.camera.width, renderer.camera.height)
+    return calibrate_intrinsics(found, size, det.ids_all, det.points_nominal, lens_model="auto").camera
+
+
+async def _acquire(out: Path, seed: int, con, small: bool = False):
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
     from calib.plan import make_plan
@@ -48,7 +73,7 @@ async def _acquire(out: Path, seed: int, con, small: bool = False) -> Path:
         cfg = bench.bench_config(camera={"timeout_s": 30.0})
         con.print(f"   simulated controller at [bold]{bench.actuators_uri}[/bold], camera at {bench.camera_uri}")
         plan = make_plan("full", cfg.nominal_parameters(), seed=seed, **(SMALL_PLAN if small else {}))
-        cam = bench.renderer.camera if hasattr(bench.renderer, "camera") else None
+        cam = _camera_phase(bench.renderer, seed) if hasattr(bench.renderer, "random_board_views") else None
         spec = {"K": cam.K.tolist(), "dist": list(map(float, cam.dist))} if cam is not None else {}
         truth = GeometricTwin(bench.geometry).truth_dict()
         with Progress(
@@ -66,7 +91,7 @@ async def _acquire(out: Path, seed: int, con, small: bool = False) -> Path:
 
             res = await acquire(plan, cfg, out, progress=progress, camera_spec=spec, extra={"truth": truth})
         con.print(f"   {res.frames} frames written to {out}")
-        return out
+        return cam
 
 
 def _full(args: argparse.Namespace, con) -> dict:
@@ -82,7 +107,9 @@ def _full(args: argparse.Namespace, con) -> dict:
         "1. acquisition on the simulated bench over Modbus TCP (loopback): the paper's full plan, "
         "camera frames rendered by the image-level twin"
     )
-    asyncio.run(_acquire(ds, args.seed, con, small=getattr(args, "small", False)))
+    camera = asyncio.run(_acquire(ds, args.seed, con, small=getattr(args, "small", False)))
+    if camera is not None:
+        camera.save(base / "camera.json")
     con.print("2. extraction: ChArUco board poses and the eight rods in every frame (both cores)")
     with Progress(
         TextColumn("   extracting"),
@@ -92,7 +119,7 @@ def _full(args: argparse.Namespace, con) -> dict:
         transient=True,
     ) as bar:
         task = bar.add_task("ext", total=1)
-        res = extract_dataset(ds, progress=lambda d, t: bar.update(task, completed=d, total=t))
+        res = extract_dataset(ds, camera=camera, progress=lambda d, t: bar.update(task, completed=d, total=t))
     obs_doc = res.observations
     obs = Observations.from_dict(obs_doc)
     (base / "observations.json").write_text(__import__("json").dumps(obs_doc, indent=1))
