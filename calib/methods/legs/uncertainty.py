@@ -336,10 +336,11 @@ def _null_space_to_prior(
     """The seven with their component along :func:`combinations_null_space` the a priori values', with the a priori
     tolerance ``prior_std_m`` as its std (``parts["a_priori"]``): the legs' image data do not pin these directions.
 
-    On the image-level twin the lock phases' joints carry an error common to every trial that moves only these
-    directions (20 rendered trials of the accuracy study's plan, and ``i4cal demo``'s dataset: their errors there
-    were 4.1, 20.3 and 12.0 mm RMS against data std of 1.6, 1.8 and 1.3 mm, the same within 1-3 mm on every trial;
-    docs/model.md), so the data's estimate along them is no better than the a priori value. With
+    On the image-level twin the lock phases' joints carry an error common to every run along these directions (20
+    rendered trials of the accuracy study's plan: +5.5, +10.6 and +19.1 mm on average along the basis's three,
+    spread 0.4, 2.1 and 1.7 mm from trial to trial, against data std of 0.46, 2.2 and 1.7 mm; ``i4cal demo``'s
+    dataset +5.7, +11.4, +20.0 mm; docs/model.md), so the data's estimate along them is no better than the a priori
+    value. With
     ``P = N N^T`` (N the basis): ``seven - P (seven - nominal)``, each part ``(I - P) C (I - P)``, plus
     ``prior_std_m^2 P``. The four combinations and their covariance are unchanged (``SEVEN_TO_FOUR P = 0``).
 
@@ -350,13 +351,15 @@ def _null_space_to_prior(
     parts : dict of ndarray (7, 7)
     directions : list of dict
         Per null direction: ``direction`` (unit, per parameter), ``label``, ``data_estimate_m`` (the data's
-        coordinate along it, relative to the nominal), ``reason``.
+        coordinate along it, relative to the nominal), ``data_std_m`` (what the data's covariance gave there),
+        ``reason``.
     """
     N = combinations_null_space()
     P = N @ N.T
     IP = np.eye(7) - P
     nom7 = np.asarray(nom.vector(), dtype=np.float64)
     d = np.asarray(seven, dtype=np.float64) - nom7
+    data_cov = sum(parts.values())
     out = {k: IP @ v @ IP for k, v in parts.items()}
     out["a_priori"] = out.get("a_priori", np.zeros((7, 7))) + prior_std_m**2 * P
     total = sum(out.values())
@@ -369,6 +372,7 @@ def _null_space_to_prior(
                 "direction": {n: float(x) for n, x in zip(PARAMETER_NAMES, v, strict=True)},
                 "label": " ".join(f"{v[j]:+.2f} {PARAMETER_NAMES[j]}" for j in big if abs(v[j]) > 0.2),
                 "data_estimate_m": float(v @ d),
+                "data_std_m": float(np.sqrt(max(v @ data_cov @ v, 0.0))),
                 "reason": "leaves the four combinations unchanged: only the lock phases' joints see it, and on images "
                 "they carry an error common to every run",
             }
