@@ -2,7 +2,8 @@
 
 Default: the simulated bench (a real Modbus server on loopback and the image-level twin's camera)
 runs the paper's full plan through the Modbus driver; the frames are written to a dataset as they
-come, extracted (board poses and rods from the images) and calibrated with the three methods.
+come, extracted (board poses and rods from the images) and calibrated with the three methods. The camera is first
+calibrated from board views, as a lab does (:func:`_camera_phase`; written as ``camera.json`` under ``--out``).
 ``--quick``: the geometric twin only (observations handed over, no images), in about a second.
 """
 
