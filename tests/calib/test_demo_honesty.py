@@ -3,9 +3,10 @@
 and bench, and covers its errors against the simulator's truth.
 
 The demo runs as a user runs it (the simulated bench over Modbus on loopback, its camera phase, the extraction, the
-three methods) once for the module: about 25 s of CPU. Before the demo calibrated its camera from board views, it
-handed the extraction the renderer's true intrinsics: no covariance, and the board's nominal corners, which the
-simulated board misses by 0.2 mm RMS; the end-effector method then reported 5.6-6.1x the predicted std on this plan.
+three methods) once for the module: about 30 s on an idle machine (2 cores). Before the demo calibrated its camera
+from board views, it handed the extraction the renderer's true intrinsics: no covariance, and the board's nominal
+corners, which the simulated board misses by 0.2 mm RMS; the end-effector method then reported 5.6-6.1x the
+predicted std on this plan.
 """
 
 from __future__ import annotations
