@@ -2,7 +2,8 @@
 
 Default: the simulated bench (a real Modbus server on loopback and the image-level twin's camera)
 runs the paper's full plan through the Modbus driver; the frames are written to a dataset as they
-come, extracted (board poses and rods from the images) and calibrated with the three methods.
+come, extracted (board poses and rods from the images) and calibrated with the three methods. The camera is first
+calibrated from board views, as a lab does (:func:`_camera_phase`; written as ``camera.json`` under ``--out``).
 ``--quick``: the geometric twin only (observations handed over, no images), in about a second.
 """
 
@@ -14,6 +15,9 @@ import json
 import tempfile
 import time
 from pathlib import Path
+
+#: board views of the demo's camera phase (the accuracy study's count; ``plan predict`` assumes as many)
+CAMERA_VIEWS = 30
 
 
 def _quick(args: argparse.Namespace, con) -> dict:
@@ -35,7 +39,29 @@ def _quick(args: argparse.Namespace, con) -> dict:
 SMALL_PLAN = {"n_base": 3, "n_fit": 5, "n_lock": 1, "n_validation": 3, "line_samples": 4}
 
 
-async def _acquire(out: Path, seed: int, con, small: bool = False, temporary: bool = False) -> Path:
+def _camera_phase(renderer, seed: int, views: int = CAMERA_VIEWS):
+    """The intrinsics as a lab obtains them: ``views`` board views held in front of the simulated camera (the
+    views ``simulate_dataset`` renders for ``seed``), calibrated with the board's corners released
+    (``calib.camera.calibrate_intrinsics``). The camera carries its covariance and the board's corners as the
+    calibration refined them: the simulated board is printed off its nominal corners (0.2 mm RMS), and poses of
+    the nominal board would be off by it; the renderer's true intrinsics carry neither."""
+    import numpy as np
+
+    from calib.camera import calibrate_intrinsics
+    from calib.vision.board import BoardDetector
+
+    det = BoardDetector(renderer.settings.board)
+    noise = np.random.default_rng([seed, 11])
+    found = {}
+    for k, view in enumerate(renderer.random_board_views(views, np.random.default_rng([seed, 7]))):
+        d = det.detect(renderer.render_board_view(view, noise))
+        if d.ids.size:
+            found[k] = (d.ids, d.pixels, None)
+    size = (renderer.camera.width, renderer.camera.height)
+    return calibrate_intrinsics(found, size, det.ids_all, det.points_nominal, lens_model="auto").camera
+
+
+async def _acquire(out: Path, seed: int, con, small: bool = False, temporary: bool = False):
     from calib.plan import make_plan
     from drivers.acquisition import acquire
     from drivers.sim.bench import SimBench
@@ -49,7 +75,7 @@ async def _acquire(out: Path, seed: int, con, small: bool = False, temporary: bo
         cfg = bench.bench_config(camera={"timeout_s": 30.0})
         con.print(f"   simulated controller at [bold]{bench.actuators_uri}[/bold], camera at {bench.camera_uri}")
         plan = make_plan("full", cfg.nominal_parameters(), seed=seed, **(SMALL_PLAN if small else {}))
-        cam = bench.renderer.camera if hasattr(bench.renderer, "camera") else None
+        cam = _camera_phase(bench.renderer, seed) if hasattr(bench.renderer, "random_board_views") else None
         spec = {"K": cam.K.tolist(), "dist": list(map(float, cam.dist))} if cam is not None else {}
         truth = GeometricTwin(bench.geometry).truth_dict()
         with LongStep(con, "   acquiring poses", total=len(plan.steps)) as bar:
@@ -59,7 +85,7 @@ async def _acquire(out: Path, seed: int, con, small: bool = False, temporary: bo
 
             res = await acquire(plan, cfg, out, progress=progress, camera_spec=spec, extra={"truth": truth})
         con.print(f"   {res.frames} frames written" + (" (to a temporary directory)" if temporary else f" to {out}"))
-        return out
+        return cam
 
 
 def _full(args: argparse.Namespace, con, base: Path) -> dict:
@@ -74,10 +100,12 @@ def _full(args: argparse.Namespace, con, base: Path) -> dict:
         "1. acquisition on the simulated bench over Modbus TCP (loopback): the paper's full plan, "
         "camera frames rendered by the image-level twin"
     )
-    asyncio.run(_acquire(ds, args.seed, con, small=getattr(args, "small", False), temporary=not args.out))
+    camera = asyncio.run(_acquire(ds, args.seed, con, small=getattr(args, "small", False), temporary=not args.out))
+    if camera is not None:
+        camera.save(base / "camera.json")
     con.print("2. extraction: ChArUco board poses and the eight rods in every frame (both cores)")
     with LongStep(con, "   extracting frames") as bar:
-        res = extract_dataset(ds, progress=lambda d, t: bar.update(done=d, total=t))
+        res = extract_dataset(ds, camera=camera, progress=lambda d, t: bar.update(done=d, total=t))
     obs_doc = res.observations
     obs = Observations.from_dict(obs_doc)
     (base / "observations.json").write_text(json.dumps(obs_doc, indent=1))
