@@ -1,7 +1,7 @@
 """Benchmark (not a timed test): does the service keep answering while a run acquires, extracts and fits?
 
     /work/venv/bin/python benchmarks/bench_service.py [--paper-plan] [--workers 2] [--hz 20] [--worst 10]
-                                                      [--sim-process]
+                                                      [--sim-process] [--predict-clients N]
 
 Starts ``i4cal serve`` (a real process, ``sim_bench = true``: the service starts the simulated bench, image-level
 renderer, as its child process; with ``--sim-process`` the bench is ``i4cal sim-bench`` started beside the service and
@@ -9,7 +9,9 @@ named in a bench file, as real devices would be), starts a
 'full' run with all three methods, and polls ``GET /api/v1/runs/{id}`` and ``GET /healthz`` at ``--hz`` from
 this process until the run ends. Prints the latency p50/p99/max per run state (acquiring, extracting,
 calibrating) and the worst samples with their time since the run started (to find what caused them). The goal is
-< 50 ms.
+< 50 ms. ``--predict-clients N``: meanwhile N clients post ``POST /api/v1/plans/predict`` (the paper plan, seconds of
+CPU each) back to back with a token, as a heavy load of requests; their answers are counted (200, 429 when the
+heavy-request pool's queue is full).
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,9 +49,18 @@ def main() -> int:
         action="store_true",
         help="start the simulated bench separately (i4cal sim-bench) and give the service a bench file",
     )
+    ap.add_argument("--predict-clients", type=int, default=0, help="clients posting plan predictions during the run")
     args = ap.parse_args()
     samples: list[Sample] = []
-    print_latencies(measure(args.paper_plan, args.workers, args.hz, samples=samples, sim_process=args.sim_process))
+    lat = measure(
+        args.paper_plan,
+        args.workers,
+        args.hz,
+        samples=samples,
+        sim_process=args.sim_process,
+        predict_clients=args.predict_clients,
+    )
+    print_latencies(lat)
     print_worst(samples, args.worst)
     return 0
 
@@ -71,6 +83,15 @@ def runqueue_wait_ms(pid: int) -> float | None:
     """Total time the main thread of ``pid`` has waited on a run queue, ms (``/proc/PID/schedstat``)."""
     try:
         return int(Path(f"/proc/{pid}/schedstat").read_text().split()[1]) / 1e6
+    except (OSError, IndexError, ValueError):
+        return None
+
+
+def cpu_seconds(pid: int) -> float | None:
+    """CPU time (user + system, s) the process ``pid`` itself used so far, its children not included."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
     except (OSError, IndexError, ValueError):
         return None
 
@@ -131,10 +152,12 @@ def measure(
     *,
     samples: list[Sample] | None = None,
     sim_process: bool = False,
+    predict_clients: int = 0,
 ) -> dict[str, dict[str, list[float]]]:
     """Latencies (ms) of ``{run state: {"status" | "health": [...]}}`` polled while a run goes (also used by
     ``i4cal bench speed``); ``samples``, when given, receives every poll in order. ``sim_process``: the simulated
-    bench is started here (``i4cal sim-bench``) and the service gets a bench file, instead of ``sim_bench = true``."""
+    bench is started here (``i4cal sim-bench``) and the service gets a bench file, instead of ``sim_bench = true``.
+    ``predict_clients``: that many threads post plan predictions back to back while the run goes."""
     port = free_port()
     tmp = Path(tempfile.mkdtemp(prefix="i4cal-bench-"))
     sizes = (
@@ -174,9 +197,18 @@ def measure(
             )
             r.raise_for_status()
             rid = r.json()["id"]
+            stop = threading.Event()
+            answers: dict[int, int] = {}
+            loaders = [
+                threading.Thread(target=_predict_load, args=(url, stop, answers), daemon=True)
+                for _ in range(predict_clients)
+            ]
+            for t in loaders:
+                t.start()
             # this process's own garbage collections (~150 ms for a full one) would be counted as the service's
             gc.collect()
             gc.disable()
+            cpu0 = cpu_seconds(proc.pid)
             t_start = time.perf_counter()
             state = "queued"
             while True:
@@ -207,8 +239,16 @@ def measure(
                     break
                 time.sleep(max(0.0, 1.0 / hz - (time.perf_counter() - t0)))
             gc.enable()
+            stop.set()
+            for t in loaders:
+                t.join(60)
             total = time.perf_counter() - t_start
+            cpu1 = cpu_seconds(proc.pid)
             print(f"run {rid}: {state} in {total:.1f} s; timings {run['timings']}")
+            if cpu0 is not None and cpu1 is not None:
+                print(f"CPU time of the server process during the run: {cpu1 - cpu0:.1f} s (its children not counted)")
+            if predict_clients:
+                print(f"predictions posted by {predict_clients} clients during the run, by status: {answers}")
             if run.get("error"):
                 print("error:", run["error"])
     finally:
@@ -223,6 +263,23 @@ def measure(
                 p.kill()
         shutil.rmtree(tmp, ignore_errors=True)  # the run's dataset (~100 MB of frames for the paper plan)
     return lat
+
+
+def _predict_load(url: str, stop: threading.Event, answers: dict[int, int]) -> None:
+    """Post plan predictions back to back until ``stop``; count the answers by status (a 429 waits Retry-After)."""
+    with httpx.Client(base_url=url, timeout=120) as c:
+        while not stop.is_set():
+            try:
+                r = c.post(
+                    "/api/v1/plans/predict",
+                    json={"plan": "full", "methods": ["combined", "end-effector", "legs"]},
+                    headers={"Authorization": f"Bearer {TOKEN}"},
+                )
+            except httpx.TransportError:
+                return
+            answers[r.status_code] = answers.get(r.status_code, 0) + 1
+            if r.status_code == 429:
+                stop.wait(float(r.headers.get("retry-after", "1")))
 
 
 def print_latencies(lat: dict[str, dict[str, list[float]]]) -> None:

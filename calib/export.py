@@ -21,9 +21,9 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from .errors import InputError, UnreachableError
 from .kinematics import dkm, ikm
-from .methods.registry import apply_order
 from .parameters import COMBINATION_NAMES, PARAMETER_NAMES, I4Parameters
 from .plan import Plan, line_poses
+from .verdict import verdict
 
 CALIBRATION_FORMAT: Final = "i4cal.calibration/1"
 
@@ -173,40 +173,19 @@ def _gap_rms_m(validation: Any) -> tuple[float | None, Literal["validation", "fi
 
 
 def recommended_method(result: dict[str, Any]) -> tuple[str, str]:
-    """The method to export when none is asked for, and why.
-
-    The rule: ``combined`` when it converged (it uses every observation: rods, board poses and base frame);
-    otherwise the converged method with the smallest RMS displacement gap on the validation poses (on the fit poses
-    when the plan has none); methods without a gap after those, in the apply order
-    (:func:`calib.methods.registry.apply_order`).
+    """The method to export when none is asked for, and why: the verdict's (:func:`calib.verdict.verdict`, the
+    rule the demo, ``calibrate``, the report and the dashboard state).
 
     Raises
     ------
     InputError
-        No method of the result converged (``field="methods"``).
+        No method of the result converged, or none improves the a priori geometry's validation gap
+        (``field="methods"``; the message gives the verdict's reason).
     """
-    methods = result.get("methods") or {}
-    ok = [m for m, e in methods.items() if _converged(e)]
-    if not ok:
-        raise InputError("no method of this result converged; nothing to export", field="methods")
-    if "combined" in ok:
-        return "combined", "recommended: combined converged (it uses the rods, the board poses and the base frame)"
-    order = {m: i for i, m in enumerate(apply_order())}
-    validation = result.get("validation") or {}
-
-    def key(m: str) -> tuple[float, int]:
-        gap, _ = _gap_rms_m(validation.get(m))
-        return (math.inf if gap is None else gap, order.get(m, len(order)))
-
-    best = min(ok, key=key)
-    gap, poses = _gap_rms_m(validation.get(best))
-    why = (
-        f"recommended: combined did not converge; {best} has the smallest RMS gap on the {poses} poses "
-        f"({gap * 1e3:.3f} mm) of the converged methods ({', '.join(sorted(ok))})"
-        if gap is not None
-        else f"recommended: combined did not converge; {best} is the first converged method in the apply order"
-    )
-    return best, why
+    v = verdict(result)
+    if v.method is None:
+        raise InputError(f"{v.reason}; nothing recommended to export (name one with --method)", field="methods")
+    return v.method, f"recommended: {v.reason}"
 
 
 # -- the document -----------------------------------------------------------------------------------------------

@@ -23,6 +23,8 @@ def read_json(path: str | Path, what: str = "file") -> Any:
         return json.loads(text)
     except json.JSONDecodeError as exc:
         raise InputError(f"not valid JSON: {exc.msg} at line {exc.lineno} column {exc.colno}", file=str(p)) from None
+    except RecursionError:
+        raise InputError("JSON nested too deeply (arrays and objects within each other)", file=str(p)) from None
 
 
 def fsync_dir(path: str | Path) -> None:

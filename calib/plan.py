@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, Strict, ValidationError
 
 from .errors import InputError, UnreachableError
 from .jsonio import read_json
@@ -31,18 +31,23 @@ MAX_LINE_SAMPLES = 10_000
 #: and this many frames in all (a ``q`` step is one frame, a line step ``samples`` frames).
 MAX_PLAN_FRAMES = 100_000
 
-Vec4 = Annotated[list[float], Field(min_length=4, max_length=4)]
+#: A number of a plan: a JSON number (an integer or a float), never a boolean or a numeric string (``false`` or
+#: ``"0.3"`` would otherwise be read as 0.0 and 0.3, and executed).
+Num = Annotated[float, Strict()]
+#: A count of a plan: a JSON integer, never a boolean, a string or a float.
+Count = Annotated[int, Strict()]
+Vec4 = Annotated[list[Num], Field(min_length=4, max_length=4)]
 
 
 class Workspace(BaseModel):
     """Box of poses used to draw plans (metres; T in metres of the rack)."""
 
     model_config = ConfigDict(frozen=True, allow_inf_nan=False)
-    X: tuple[float, float] = (0.75, 1.15)
-    Y: tuple[float, float] = (-0.12, 0.12)
-    Z: tuple[float, float] = (-0.78, -0.55)
-    T: tuple[float, float] = (-0.045, 0.045)
-    min_leg_x_m: float = Field(0.25, description="smallest horizontal leg reach f = u_x L kept in plans")
+    X: tuple[Num, Num] = (0.75, 1.15)
+    Y: tuple[Num, Num] = (-0.12, 0.12)
+    Z: tuple[Num, Num] = (-0.78, -0.55)
+    T: tuple[Num, Num] = (-0.045, 0.045)
+    min_leg_x_m: Num = Field(0.25, description="smallest horizontal leg reach f = u_x L kept in plans")
 
     def centre(self) -> np.ndarray:
         return np.array([np.mean(self.X), np.mean(self.Y), np.mean(self.Z), 0.0])
@@ -62,8 +67,8 @@ class LineSpec(BaseModel):
     model_config = ConfigDict(allow_inf_nan=False)
     start_pose: Vec4
     end_pose: Vec4
-    samples: int = Field(51, ge=3, le=MAX_LINE_SAMPLES)
-    rate_hz: float = Field(10.0, gt=0)
+    samples: Count = Field(51, ge=3, le=MAX_LINE_SAMPLES)
+    rate_hz: Num = Field(10.0, gt=0)
 
 
 class Step(BaseModel):
@@ -118,9 +123,18 @@ class Plan(BaseModel):
             if len(loc) >= 2 and loc[0] == "steps" and isinstance(loc[1], int):
                 frame = loc[1]
                 loc = loc[2:]
-            raise InputError(err["msg"], file=source, frame=frame, field=_field_name(loc)) from None
+            raise InputError(_error_message(err), file=source, frame=frame, field=_field_name(loc)) from None
         check_plan_size(plan, source)
         return plan
+
+
+def _error_message(err: Any) -> str:
+    """A validation error's message; a boolean or a string where a number belongs said so."""
+    bad = err.get("input")
+    if err["type"] in ("float_type", "int_type") and isinstance(bad, bool | str):
+        kind = "a boolean" if isinstance(bad, bool) else "a string"
+        return f"{err['msg']}: {bad!r} is {kind}, not a JSON number"
+    return str(err["msg"])
 
 
 def _field_name(loc: list[Any]) -> str | None:

@@ -57,13 +57,13 @@ if TYPE_CHECKING:
 
 
 class LimitsConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
     q_min: list[float] = Field(default_factory=lambda: [-0.10] * 4, min_length=1, max_length=16)
     q_max: list[float] = Field(default_factory=lambda: [0.80] * 4, min_length=1, max_length=16)
 
 
 class ActuatorsConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
     uri: str
     axes: int = Field(
         4,
@@ -114,7 +114,7 @@ class ActuatorsConfig(BaseModel):
 
 
 class CameraConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
     uri: str
     timeout_s: float = Field(2.0, gt=0)
     exposure_us: float | None = None
@@ -153,23 +153,23 @@ class IntrinsicsFile(NamedTuple):
 
 
 class OperatorConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
     uri: str = "console"
 
 
 class AcquisitionConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
     line_rate_hz: float | None = Field(None, gt=0, description="override the plan's guided-line sampling rate")
     settle_s: float = Field(0.0, ge=0)
 
 
 class NominalConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
     file: str | None = None
 
 
 class BenchConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
     name: str = "bench"
     actuators: ActuatorsConfig
     camera: CameraConfig

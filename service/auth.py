@@ -49,10 +49,18 @@ def create_token(db: Database, name: str = "", expires_at: datetime | None = Non
     return create_token_record(db, name, expires_at)[0]
 
 
-def create_token_record(db: Database, name: str = "", expires_at: datetime | None = None) -> tuple[str, int]:
-    """:func:`create_token`, with the stored row's id."""
+def create_token_record(
+    db: Database, name: str = "", expires_at: datetime | None = None, expires_in: timedelta | None = None
+) -> tuple[str, int]:
+    """:func:`create_token`, with the stored row's id. ``expires_in``: the token lives this long from its issuance
+    (the time stored as its creation, taken as it is stored: not before the database was opened)."""
     token = new_token()
-    row = Token(name=name, sha256=hash_token(token), prefix=token[:PREFIX_CHARS], expires_at=expires_at)
+    issued = datetime.now(UTC)
+    if expires_in is not None:
+        expires_at = issued + expires_in
+    row = Token(
+        name=name, sha256=hash_token(token), prefix=token[:PREFIX_CHARS], created_at=issued, expires_at=expires_at
+    )
     with db.session() as s:
         s.add(row)
         s.flush()

@@ -173,7 +173,7 @@ def check_for_bench(cfg, plan, noise=None, methods=None, camera=None):
     return check_plan(plan, nominal, scene, kw["noise"], kw["motion"], methods=wanted)
 
 
-def run_prediction(cfg, plan_doc: dict[str, Any], methods: list[str], camera=None) -> dict[str, Any] | None:
+def run_prediction(cfg, plan_doc: dict[str, Any], methods: list[str], camera=None, noise=None) -> dict[str, Any] | None:
     """What a run's plan is predicted to buy, stored with the run (``Run.prediction``, ``GET /api/v1/runs/{id}``):
     per method of the run that the design predicts, the std per combination (m), the methods it cannot predict and
     why, the motion time (s), the steps the camera will not see, the notes. None when no method of the run is
@@ -184,7 +184,7 @@ def run_prediction(cfg, plan_doc: dict[str, Any], methods: list[str], camera=Non
     wanted = tuple(m for m in methods if m in METHODS)
     if not wanted:
         return None
-    check = check_for_bench(cfg, Plan.model_validate(plan_doc), None, wanted, camera)
+    check = check_for_bench(cfg, Plan.model_validate(plan_doc), noise, wanted, camera)
     pred = check.prediction
     return {
         "predicted_std_m": pred.std,

@@ -4,10 +4,13 @@ and security headers on every response (installed by :func:`install` from ``serv
 * JSON request bodies (``application/json``, ``*+json`` or no content type, as FastAPI parses them) larger than
   ``max_json_body_bytes`` are answered 413, and bodies holding ``NaN``, ``Infinity``, ``-Infinity`` or a number
   beyond the float range (which Python's ``json`` would read as infinite) 422 naming the field, before any route
-  sees them. Standard JSON has no such numbers; the service never computes with them. Large bodies are parsed in
-  a worker thread, once (:class:`ParsedJSONRoute`).
-* Validation errors (422) are serialised with non-finite inputs written as strings: a non-finite value in a field
-  that fails validation can no longer turn the 422 into a 500.
+  sees them. Standard JSON has no such numbers; the service never computes with them. So are strings (and keys)
+  holding a lone UTF-16 surrogate (``"\\ud800"``: not Unicode text, which no response could encode) and documents
+  nested deeper than :data:`MAX_JSON_DEPTH` (Python's parser fails near 1000 levels with a RecursionError). Large
+  bodies are parsed in a worker thread, once (:class:`ParsedJSONRoute`). :func:`json_file_problem` applies the same
+  depth and surrogate checks to an uploaded ``dataset.json``.
+* Validation errors (422) are serialised with non-finite inputs written as strings and lone surrogates or
+  undecodable bytes escaped: a value in a field that fails validation can no longer turn the 422 into a 500.
 * ``allowed_hosts``: requests whose ``Host`` header is not listed get 400 (Starlette's ``TrustedHostMiddleware``;
   against DNS rebinding: a web page cannot reach the service under a name of its own).
 * Every response carries ``Content-Security-Policy`` (the dashboard needs only its own origin; the interactive API
@@ -22,6 +25,7 @@ import json
 import math
 import re
 from collections.abc import Callable, Coroutine
+from pathlib import Path
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -115,12 +119,56 @@ def non_finite_path(doc: Any) -> tuple[list[str | int], float] | None:
     return None
 
 
+#: Deepest nesting of arrays and objects accepted in a JSON document (a request body, an uploaded dataset.json); a
+#: plan is 5 levels deep. Python's parser raises RecursionError near 1000 levels, which was a 500.
+MAX_JSON_DEPTH = 64
+_SURROGATE = re.compile("[\ud800-\udfff]")
+
+
+def has_surrogate(text: str) -> bool:
+    """Whether ``text`` holds a lone UTF-16 surrogate (``"\\ud800"`` in JSON: not a Unicode character; a decoded
+    valid pair is one character, so any surrogate left is lone)."""
+    return not text.isascii() and _SURROGATE.search(text) is not None
+
+
+def safe_text(text: str) -> str:
+    """``text`` with its lone surrogates written as ``\\udXXX`` escapes (encodable as UTF-8)."""
+    return text.encode("utf-8", "backslashreplace").decode("utf-8") if has_surrogate(text) else text
+
+
+def document_problem(doc: Any) -> tuple[str, list[str | int]] | None:
+    """The first structural problem of a parsed JSON document: ``("depth", path)`` when it nests deeper than
+    :data:`MAX_JSON_DEPTH` (the path to the first container too deep), ``("surrogate", path)`` for a string (or a key)
+    holding a lone surrogate (the key written escaped); None when it is fine. Iterative: no recursion limit."""
+    stack: list[tuple[list[str | int], Any]] = [([], doc)]
+    while stack:
+        path, v = stack.pop()
+        if isinstance(v, str):
+            if has_surrogate(v):
+                return "surrogate", path
+        elif isinstance(v, dict | list):
+            if len(path) >= MAX_JSON_DEPTH:
+                return "depth", path
+            if isinstance(v, dict):
+                for k in reversed(list(v)):
+                    if has_surrogate(k):
+                        return "surrogate", [*path, safe_text(k)]
+                    stack.append(([*path, k], v[k]))
+            else:
+                stack.extend(([*path, i], x) for i, x in reversed(list(enumerate(v))))
+    return None
+
+
 def _json_safe(v: Any) -> Any:
-    """``v`` with every non-finite float written as a string ("nan", "inf", "-inf")."""
+    """``v`` with every non-finite float written as a string ("nan", "inf", "-inf") and lone surrogates escaped."""
     if isinstance(v, float) and not math.isfinite(v):
         return str(v)
+    if isinstance(v, str):
+        return safe_text(v)
+    if isinstance(v, bytes | bytearray):  # a body of another content type, as the route received it
+        return safe_text(bytes(v).decode("utf-8", "backslashreplace"))
     if isinstance(v, dict):
-        return {k: _json_safe(x) for k, x in v.items()}
+        return {safe_text(k) if isinstance(k, str) else k: _json_safe(x) for k, x in v.items()}
     if isinstance(v, list | tuple):
         return [_json_safe(x) for x in v]
     return v
@@ -147,13 +195,70 @@ def _finite_float(text: str) -> float:
 
 def strict_json(body: bytes) -> tuple[str, Any]:
     """Parse a JSON body: ``("ok", document)``, ``("non_finite", (path, value))`` naming the first NaN, Infinity or
-    out-of-range number, or ``("invalid", None)`` (not JSON: left to FastAPI's own error)."""
+    out-of-range number, ``("surrogate", path)`` naming the first string holding a lone UTF-16 surrogate,
+    ``("depth", path)`` when nested deeper than :data:`MAX_JSON_DEPTH`, or ``("invalid", None)`` (not JSON: left to
+    FastAPI's own error)."""
     try:
-        return "ok", json.loads(body, parse_constant=_reject_constant, parse_float=_finite_float)
+        doc = json.loads(body, parse_constant=_reject_constant, parse_float=_finite_float)
     except _NonFiniteError:
-        return "non_finite", non_finite_path(json.loads(body))
-    except (ValueError, RecursionError):
+        try:
+            return "non_finite", non_finite_path(json.loads(body))
+        except RecursionError:
+            return "depth", []
+    except RecursionError:
+        return "depth", []
+    except ValueError:
         return "invalid", None
+    problem = document_problem(doc)
+    if problem is not None:
+        return problem
+    return "ok", doc
+
+
+def json_file_problem(path: Path) -> str | None:
+    """Why the JSON file ``path`` (e.g. an uploaded ``dataset.json``) cannot be read safely: nested deeper than
+    :data:`MAX_JSON_DEPTH`, or a string with a lone surrogate (the message names the file and where); None when it
+    parses and is fine, or is not JSON at all (left to its reader's own error)."""
+    name = path.name
+    try:
+        doc = json.loads(path.read_bytes())
+    except RecursionError:
+        return f"{name}: JSON nested deeper than {MAX_JSON_DEPTH} levels of arrays and objects"
+    except ValueError:
+        return None
+    problem = document_problem(doc)
+    if problem is None:
+        return None
+    kind, where = problem
+    at = "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in where).lstrip(".") or "the document"
+    if kind == "depth":
+        return f"{name}: JSON nested deeper than {MAX_JSON_DEPTH} levels of arrays and objects (at {at})"
+    return f"{name}: a string holds a lone UTF-16 surrogate, not Unicode text (at {at})"
+
+
+def strict_json_error(kind: str, value: Any, prefix: tuple[str | int, ...] = ("body",)) -> dict[str, Any] | None:
+    """The 422 error item (FastAPI's format) of a :func:`strict_json` outcome other than ``ok`` and ``invalid``."""
+    if kind == "non_finite" and value is not None:
+        path, bad = value
+        return {
+            "type": "finite_number",
+            "loc": [*prefix, *path],
+            "msg": "Input should be a finite number (NaN and Infinity are not JSON numbers)",
+            "input": str(bad),
+        }
+    if kind == "surrogate":
+        return {
+            "type": "string_unicode",
+            "loc": [*prefix, *value],
+            "msg": "a string holds a lone UTF-16 surrogate (\\ud800-\\udfff without its pair): not Unicode text",
+        }
+    if kind == "depth":
+        return {
+            "type": "json_depth",
+            "loc": list(prefix),
+            "msg": f"JSON nested deeper than {MAX_JSON_DEPTH} levels of arrays and objects",
+        }
+    return None
 
 
 class StrictJSONBodies:
@@ -208,14 +313,8 @@ class StrictJSONBodies:
                 kind, value = await asyncio.to_thread(strict_json, body)
             else:
                 kind, value = strict_json(body)
-            if kind == "non_finite" and value is not None:
-                path, bad = value
-                err = {
-                    "type": "finite_number",
-                    "loc": ["body", *path],
-                    "msg": "Input should be a finite number (NaN and Infinity are not JSON numbers)",
-                    "input": str(bad),
-                }
+            err = strict_json_error(kind, value)
+            if err is not None:
                 await _json_response(422, {"detail": [err]})(scope, receive, send)
                 return
             if kind == "ok":
@@ -249,8 +348,9 @@ class ParsedJSONRoute(APIRoute):
 
 
 async def validation_error_handler(request: Request, exc: RequestValidationError) -> JSONResponse:
-    """FastAPI's 422 (``{"detail": [{"loc", "msg", "type", "input", ...}]}``), non-finite inputs as strings."""
-    return _json_response(422, {"detail": _json_safe(jsonable_encoder(exc.errors()))})
+    """FastAPI's 422 (``{"detail": [{"loc", "msg", "type", "input", ...}]}``), non-finite inputs as strings, lone
+    surrogates and undecodable bytes escaped: the 422 itself can always be written."""
+    return _json_response(422, {"detail": _json_safe(jsonable_encoder(_json_safe(exc.errors())))})
 
 
 def allowed_hosts(settings: Settings) -> list[str]:

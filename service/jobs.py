@@ -26,11 +26,21 @@ import traceback
 from collections.abc import Callable
 from typing import Any
 
-from calib.errors import I4calError
+from calib.errors import I4calError, InputError
 
 _CTX = multiprocessing.get_context("forkserver")
 #: Modules the forkserver imports once; every job child starts with them loaded.
-PRELOAD = ["numpy", "scipy.optimize", "cv2", "calib.pipeline", "calib.vision.extract", "service.jobs"]
+PRELOAD = [
+    "numpy",
+    "scipy.optimize",
+    "cv2",
+    "calib.pipeline",
+    "calib.vision.extract",
+    "calib.design",
+    "service.design",
+    "service.report",
+    "service.jobs",
+]
 _warm_lock = threading.Lock()
 _warm = False
 
@@ -80,13 +90,23 @@ def _noop() -> None:
 
 # -- the child side --------------------------------------------------------------------------------
 def _child_main(
-    conn: Any, target: str, kwargs: dict[str, Any], nice: int, method_modules: tuple[str, ...] = ()
+    conn: Any,
+    target: str,
+    kwargs: dict[str, Any],
+    nice: int,
+    method_modules: tuple[str, ...] = (),
+    disk_full_flag: str | None = None,
 ) -> None:
     """Entry point of a job child: run ``JOBS[target](emit=..., **kwargs)`` and send back the outcome.
 
     ``method_modules``: the modules that registered methods in the server (:func:`calib.methods.registry.
-    plugin_modules`), imported first so that the child knows the same methods.
+    plugin_modules`), imported first so that the child knows the same methods. ``disk_full_flag``: the server's
+    ``I4CAL_DISK_FULL`` (:mod:`service.failpoints`; None in production).
     """
+    if disk_full_flag:
+        from . import failpoints
+
+        failpoints.install(disk_full_flag)
     with contextlib.suppress(OSError):
         os.setpgid(0, 0)  # its own process group: abort kills the extraction's pool with it
     # a forkserver's child would start the extraction's pool through a forkserver of its own (a fresh interpreter
@@ -107,14 +127,45 @@ def _child_main(
         result = JOBS[target](emit=emit, **kwargs)
         conn.send(("result", result))
     except I4calError as exc:
-        conn.send(("error", "input", str(exc)))
+        fields = (
+            {k: getattr(exc, k) for k in ("reason", "file", "frame", "field")} if isinstance(exc, InputError) else {}
+        )
+        conn.send(("error", "input", str(exc), fields))
     except BrokenPipeError:
         pass  # the server went away
     except BaseException as exc:  # reported to the server, which fails the run with it
+        # the traceback goes to the service's log (this process's stderr), the run's error is one line
+        traceback.print_exc()
         with contextlib.suppress(BrokenPipeError):
-            conn.send(("error", "internal", f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}"))
+            conn.send(("error", "internal", one_line(f"{type(exc).__name__}: {exc}"), {}))
     finally:
         conn.close()
+
+
+def one_line(text: str, limit: int = 500) -> str:
+    """``text`` on one line (its lines joined by "; "), at most ``limit`` characters: a run's error message."""
+    line = "; ".join(part.strip() for part in str(text).splitlines() if part.strip())
+    return line if len(line) <= limit else line[: limit - 3] + "..."
+
+
+def check_frame_numbers(dataset: str | os.PathLike[str]) -> None:
+    """Every frame's ``q`` (and ``t``) of a dataset finite: a NaN or an infinity (``dataset.json`` is written by
+    Python's ``json``, which writes them) would fail deep in the extraction or the fit.
+
+    Raises
+    ------
+    InputError
+        Names ``dataset.json``, the frame and the field (``q[1]``).
+    """
+    from calib.dataset import Dataset
+
+    ds = Dataset.open(dataset)
+    for i, f in enumerate(ds.frames):
+        for k, v in enumerate(f.q):
+            if not math.isfinite(v):
+                raise InputError(f"{v} is not a finite number", file="dataset.json", frame=i, field=f"q[{k}]")
+        if not math.isfinite(f.t):
+            raise InputError(f"{f.t} is not a finite number", file="dataset.json", frame=i, field="t")
 
 
 def extract_job(*, emit: Emit, dataset: str, out: str, workers: int) -> dict[str, Any]:
@@ -127,6 +178,7 @@ def extract_job(*, emit: Emit, dataset: str, out: str, workers: int) -> dict[str
     from calib.observations import Observations
     from calib.vision.extract import extract_dataset
 
+    check_frame_numbers(dataset)
     last = [0.0]
 
     def progress(done: int, total: int) -> None:
@@ -185,7 +237,79 @@ def fit_job(*, emit: Emit, observations: str, methods: list[str]) -> dict[str, A
     return doc
 
 
-JOBS: dict[str, Callable[..., Any]] = {"extract": extract_job, "fit": fit_job}
+def _heavy_predict(noise: Any, *, config: Any, plan: Any, methods: tuple[str, ...], camera: Any) -> Any:
+    from .design import check_for_bench
+
+    return check_for_bench(config, plan, noise, methods, camera)
+
+
+def _heavy_design(noise: Any, *, config: Any, request: Any, camera: Any) -> Any:
+    from .design import design_for_bench
+
+    return design_for_bench(config, request, noise, camera=camera)
+
+
+def _heavy_tradeoff(noise: Any, *, config: Any, request: Any, counts: list[int], camera: Any) -> Any:
+    from .design import tradeoff_for_bench
+
+    return tradeoff_for_bench(config, request, counts, noise, camera=camera)
+
+
+def _heavy_reference(noise: Any, *, config: Any, plan: Any, methods: tuple[str, ...], camera: Any) -> Any:
+    from .design import reference_targets
+
+    return reference_targets(config, plan, noise, methods, camera)
+
+
+def _heavy_run_prediction(noise: Any, *, config: Any, plan: dict[str, Any], methods: list[str], camera: Any) -> Any:
+    from .design import run_prediction
+
+    return run_prediction(config, plan, methods, camera, noise=noise)
+
+
+def _heavy_report(noise: Any, *, data_dir: str, run: dict[str, Any], methods: list[str] | None) -> Any:
+    from types import SimpleNamespace
+
+    from .report import build_report, inputs_from_run
+
+    return build_report(inputs_from_run(data_dir, SimpleNamespace(**run), methods))
+
+
+#: the CPU-heavy computations of requests (:class:`HeavyPool`) and of a run's prediction, by name; each takes the
+#: prediction noise (None: computed here) and its keywords
+HEAVY_TASKS: dict[str, Callable[..., Any]] = {
+    "predict": _heavy_predict,
+    "design": _heavy_design,
+    "tradeoff": _heavy_tradeoff,
+    "reference": _heavy_reference,
+    "run_prediction": _heavy_run_prediction,
+    "report": _heavy_report,
+}
+#: the tasks that use the prediction noise (the image-level model of the bench's camera: ~0.5-4 s of CPU to make)
+NOISE_TASKS = ("predict", "design", "tradeoff", "reference", "run_prediction")
+
+
+def _predicts(methods: list[str]) -> bool:
+    from calib.design import METHODS
+
+    return any(m in METHODS for m in methods)
+
+
+def heavy_job(*, emit: Emit, task: str, noise: Any = None, camera: Any = None, **kwargs: Any) -> tuple[Any, Any]:
+    """One CPU-heavy computation (:data:`HEAVY_TASKS`) in a job child: ``(result, noise)``, the noise (computed here
+    when not given) sent back so that the server passes it to the next job instead of computing it again."""
+    if task == "run_prediction" and not _predicts(kwargs["methods"]):
+        return None, noise  # a run that only records, or with methods the design does not predict: no prediction
+    if task in NOISE_TASKS and noise is None:
+        from .design import twin_image_noise
+
+        noise = twin_image_noise(camera=camera)
+    if task != "report":
+        kwargs["camera"] = camera
+    return HEAVY_TASKS[task](noise, **kwargs), noise
+
+
+JOBS: dict[str, Callable[..., Any]] = {"extract": extract_job, "fit": fit_job, "heavy": heavy_job}
 
 
 # -- the server side -------------------------------------------------------------------------------
@@ -203,7 +327,9 @@ class Job:
         from calib.methods.registry import plugin_modules
 
         self.process = _CTX.Process(
-            target=_child_main, args=(self._send, target, kwargs, nice, plugin_modules()), name=f"i4cal-{target}"
+            target=_child_main,
+            args=(self._send, target, kwargs, nice, plugin_modules(), os.environ.get("I4CAL_DISK_FULL")),
+            name=f"i4cal-{target}",
         )
         self.killed = False
         self._ended = False
@@ -237,6 +363,10 @@ class Job:
                     return msg[1]
                 elif msg[0] == "error":
                     if msg[1] == "input":
+                        fields = msg[3] if len(msg) > 3 else {}
+                        if fields:
+                            reason = fields.pop("reason")
+                            raise InputError(reason, **fields)
                         raise I4calError(msg[2])
                     raise JobError(f"{self.target} failed: {msg[2]}")
         finally:
@@ -285,3 +415,94 @@ async def run_job(
     except asyncio.CancelledError:
         job.kill()
         raise
+
+
+# -- the pool of CPU-heavy requests ----------------------------------------------------------------------------------
+#: heavy requests computed at once (2 cores: one is the run's)
+HEAVY_WORKERS = 1
+#: heavy requests waiting for their turn beyond the running ones; one more gets 429
+HEAVY_MAX_WAITING = 4
+#: nice increment of the heavy requests' processes above the run's extraction and fits (``job_niceness``)
+HEAVY_NICE_ABOVE_RUN = 5
+
+
+class PoolBusyError(Exception):
+    """The heavy-request pool is full (:data:`HEAVY_MAX_WAITING` waiting): the request is refused, to retry after
+    ``retry_after_s`` seconds."""
+
+    def __init__(self, retry_after_s: int) -> None:
+        super().__init__(f"the service is busy with {HEAVY_MAX_WAITING} heavy requests waiting; retry later")
+        self.retry_after_s = retry_after_s
+
+
+class HeavyPool:
+    """The CPU-heavy requests (plan design, prediction, trade-off, report) run here, outside the server process:
+    each in a job child of the forkserver (:class:`Job`), at most ``workers`` at once, ``max_waiting`` more waiting
+    their turn (beyond: :class:`PoolBusyError`, a 429 with Retry-After), with the niceness ``nice`` (higher than the
+    run's processes: a run's extraction and fits get the CPU first, and the server's event loop before both). A
+    request abandoned by its client kills its child. The prediction noise the children compute is kept for the
+    next ones (:func:`heavy_job`)."""
+
+    def __init__(self, nice: int, workers: int = HEAVY_WORKERS, max_waiting: int = HEAVY_MAX_WAITING) -> None:
+        self.nice = nice
+        self.workers = workers
+        self.max_waiting = max_waiting
+        self.pending = 0  # running + waiting
+        self.running: list[Job] = []
+        self.noise: Any = None
+        self._sem: Any = None
+        self._durations: list[float] = []
+
+    def retry_after_s(self) -> int:
+        """Seconds until a place is likely free: the mean duration of the last jobs times the queue ahead."""
+        mean = sum(self._durations) / len(self._durations) if self._durations else 5.0
+        return max(1, math.ceil(mean * (self.pending - self.workers + 1) / self.workers))
+
+    async def run(self, task: str, **kwargs: Any) -> Any:
+        """The result of ``HEAVY_TASKS[task](noise, **kwargs)`` computed in a child process.
+
+        Raises
+        ------
+        PoolBusyError
+            ``max_waiting`` requests are already waiting.
+        I4calError
+            The computation refused its input (an :class:`calib.errors.InputError` keeps its field).
+        """
+        import asyncio
+
+        if self.pending >= self.workers + self.max_waiting:
+            raise PoolBusyError(self.retry_after_s())
+        if self._sem is None:
+            self._sem = asyncio.Semaphore(self.workers)
+        self.pending += 1
+        try:
+            async with self._sem:
+                return await self._run(task, kwargs, self.nice)
+        finally:
+            self.pending -= 1
+
+    async def run_now(self, task: str, nice: int, **kwargs: Any) -> Any:
+        """:meth:`run` for a run's own computation (its plan's prediction): started at once with the niceness of the
+        run's processes, not queued behind requests; the cached noise shared."""
+        return await self._run(task, kwargs, nice, track=False)
+
+    async def _run(self, task: str, kwargs: dict[str, Any], nice: int, track: bool = True) -> Any:
+        job: list[Job] = []
+
+        def on_job(j: Job) -> None:
+            if track:
+                job.append(j)
+                self.running.append(j)
+
+        t0 = time.monotonic()
+        try:
+            args = {"task": task, **kwargs, **({"noise": self.noise} if task in NOISE_TASKS else {})}
+            result, noise = await run_job("heavy", args, lambda kind, data: None, nice=nice, on_job=on_job)
+        finally:
+            for j in job:
+                self.running.remove(j)
+        if track:
+            self._durations = [*self._durations[-9:], time.monotonic() - t0]
+        if noise is not None:
+            self.noise = noise
+        return result

@@ -11,6 +11,8 @@
     open_reads = true                    # GET endpoints without a token
     token_hashes = []                    # sha256 hex of accepted bearer tokens (`i4cal token create` stores more)
     allowed_hosts = ["127.0.0.1", "localhost", "[::1]"]  # Host header values answered (+ host if one address)
+    data_quota_bytes = 68719476736       # 64 GiB under data_dir at most (0: no quota); 507 beyond
+    min_free_bytes = 1073741824          # 1 GiB always left free on the data disk; 507 beyond
 
 Environment: ``I4CAL_DATA_DIR``, ``I4CAL_PORT``, ``I4CAL_OPEN_READS``, ... (nested: ``I4CAL_PLAN_SIZES__N_FIT``).
 """
@@ -30,6 +32,28 @@ from calib.errors import InputError
 BENCH_NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9 ._-]{0,63}$"
 
 
+def default_data_dir() -> Path:
+    """The platform's user data directory for i4cal: ``$XDG_DATA_HOME/i4cal`` (default ``~/.local/share/i4cal``) on
+    Linux and other Unix systems, ``~/Library/Application Support/i4cal`` on macOS, ``%LOCALAPPDATA%\\i4cal`` on
+    Windows (platformdirs' ``user_data_dir`` when it is installed). Never inside the checkout: a read-only checkout or
+    an installed package keeps working."""
+    import os
+    import sys
+
+    try:
+        import platformdirs
+    except ImportError:
+        platformdirs = None
+    if platformdirs is not None:
+        return Path(platformdirs.user_data_dir("i4cal", appauthor=False))
+    if sys.platform == "win32":
+        return Path(os.environ.get("LOCALAPPDATA") or Path.home() / "AppData" / "Local") / "i4cal"
+    if sys.platform == "darwin":
+        return Path.home() / "Library" / "Application Support" / "i4cal"
+    xdg = os.environ.get("XDG_DATA_HOME", "")
+    return (Path(xdg) if os.path.isabs(xdg) else Path.home() / ".local" / "share") / "i4cal"
+
+
 class PlanSizes(BaseModel):
     """Sizes of the named plans the service generates (``calib.plan.make_plan`` keywords)."""
 
@@ -44,7 +68,11 @@ class PlanSizes(BaseModel):
 class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="I4CAL_", env_nested_delimiter="__", extra="forbid")
 
-    data_dir: Path = Field(Path("i4cal-data"), description="database, datasets and results live here")
+    data_dir: Path = Field(
+        default_factory=lambda: default_data_dir(),
+        description="database, datasets and results live here (default: the user's data directory, "
+        "$XDG_DATA_HOME/i4cal or ~/.local/share/i4cal on Linux)",
+    )
     database_url: str | None = Field(
         None,
         description="SQLAlchemy URL: sqlite:///PATH or "
@@ -67,8 +95,36 @@ class Settings(BaseSettings):
     camera_file: Path | None = Field(None, description="known intrinsics (i4cal.camera/1 JSON) for extraction")
     open_reads: bool = Field(True, description="GET endpoints answer without a token")
     token_hashes: list[str] = Field(default_factory=list, description="sha256 hex digests of accepted tokens")
-    max_upload_bytes: int = Field(512 * 1024 * 1024, gt=0)
-    max_unpacked_bytes: int = Field(4 * 1024 * 1024 * 1024, gt=0)
+    max_upload_bytes: int = Field(512 * 1024 * 1024, gt=0, description="largest upload (the archive as sent), 413")
+    max_unpacked_bytes: int = Field(
+        4 * 1024 * 1024 * 1024,
+        gt=0,
+        description="most bytes one upload may unpack to, counted as they are written (422 naming it)",
+    )
+    data_quota_bytes: int = Field(
+        64 * 1024**3,
+        ge=0,
+        description="most bytes under data_dir (database, runs, datasets, temporary files), counted as written: an "
+        "upload or a run that would pass it is refused (507 naming it); 0: no quota, only the disk's free space",
+    )
+    min_free_bytes: int = Field(
+        1024**3,
+        ge=0,
+        description="free space always left on the data disk: a run or an upload that would leave less is refused "
+        "(507 naming it)",
+    )
+    run_space_margin: float = Field(
+        1.5,
+        ge=1.0,
+        le=10.0,
+        description="a run starts only if the frames still to acquire, times the frame's expected size, times this "
+        "margin, fit in the quota and the free space",
+    )
+    frame_bytes: int | None = Field(
+        None,
+        gt=0,
+        description="expected bytes of one frame on disk (default: the camera's width x height x 2, else 8 MiB)",
+    )
     max_archive_members: int = Field(100_000, gt=0)
     max_json_body_bytes: int = Field(
         4 * 1024 * 1024,

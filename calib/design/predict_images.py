@@ -21,7 +21,9 @@ taken from a run):
   (:func:`calib.methods.legs.limb_line_noise`, the method's own weighting), propagated through steps 2-4; the GLS
   covariance of (L, S, D) from the fit poses' leg directions (two rods' ``cov_u`` combined); the intrinsics'
   posterior and the edge biases redone through the whole estimate (the method's ``_IntrinsicsEffect``); then the
-  a priori tolerance (``legs_prior_std_m``, the method's ``_with_prior``). The method scales its parts by their
+  a priori tolerance (``legs_prior_std_m``, the method's ``_with_prior``), and the a priori values with that
+  tolerance along the three directions the four combinations do not see (the method's ``_null_space_to_prior``:
+  the seven's std, not the four's). The method scales its parts by their
   residual chi-square per degree of freedom, never below 1: the prediction uses 1.
 
 Units: metres, radians; ``_px`` pixels.
@@ -691,6 +693,7 @@ def predict_legs_images(
     from ..methods.legs import (
         _IntrinsicsEffect,
         _LegsPipeline,
+        _null_space_to_prior,
         _pair_means,
         _pair_own_covariances,
         _steps34_sandwich,
@@ -761,4 +764,6 @@ def predict_legs_images(
     cov7 = np.sum(np.stack(list(parts.values())), axis=0)
     if noise.legs_prior_std_m:
         _s, cov7, parts = _with_prior(seven, cov7, parts, nominal, noise.legs_prior_std_m)
+        # as the method: the directions the four combinations do not see are the a priori values on images
+        _s, cov7, parts, _dirs = _null_space_to_prior(_s, parts, nominal, noise.legs_prior_std_m)
     return cov7, SEVEN_TO_FOUR @ cov7 @ SEVEN_TO_FOUR.T, parts

@@ -19,10 +19,15 @@ from sqlalchemy import select
 
 from calib.errors import I4calError
 
+from .. import failpoints
 from ..auth import Reader, Writer
 from ..db import DatasetRecord
-from ..runs import new_id, now
-from .deps import DatasetId, Manager, SettingsDep, not_found
+from ..hardening import json_file_problem
+from ..jobs import check_frame_numbers
+from ..runs import RunConflictError, new_id, now
+from ..runs.disk import StorageError, is_disk_full
+from .deps import DatasetId, Manager, SettingsDep, conflict, not_found
+from .runs import insufficient_storage
 
 router = APIRouter(prefix="/datasets", tags=["datasets"])
 
@@ -75,16 +80,37 @@ def _safe_member(name: str) -> PurePosixPath | None:
 CHUNK_BYTES = 1 << 20
 
 
-def _copy_limited(src, dst_path: Path, budget: list[int], member: str) -> None:
+class RoomExceededError(Exception):
+    """The upload would pass the room the data disk has for it (``data_quota_bytes``, ``min_free_bytes``): 507."""
+
+
+def _copy_limited(src, dst_path: Path, budget: list[int], member: str, room: list[int] | None = None) -> None:
     """Copy ``src`` to ``dst_path`` in chunks, counting the bytes actually read: a chunk that would take the archive
-    past its budget is refused before it is written (declared sizes are not trusted)."""
+    past its budget (or past the disk's ``room``) is refused before it is written (declared sizes are not trusted)."""
+    try:
+        _copy_chunks(src, dst_path, budget, member, room)
+    except OSError as exc:
+        if not is_disk_full(exc):
+            raise
+        raise StorageError(
+            f"disk full: the data disk refused archive member {member[:80]!r} ({exc.strerror}); nothing was kept",
+            "disk full",
+        ) from None
+
+
+def _copy_chunks(src, dst_path: Path, budget: list[int], member: str, room: list[int] | None) -> None:
     with open(dst_path, "wb") as dst:
         while chunk := src.read(CHUNK_BYTES):
             if len(chunk) > budget[0]:
                 raise ArchiveTooLargeError(
                     f"archive member {member[:80]!r} unpacks to more than the configured limit (max_unpacked_bytes)"
                 )
+            if room is not None:
+                if len(chunk) > room[0]:
+                    raise RoomExceededError(member)
+                room[0] -= len(chunk)
             budget[0] -= len(chunk)
+            failpoints.check_disk(dst_path)
             dst.write(chunk)
 
 
@@ -95,7 +121,9 @@ def _too_large(total: int, max_bytes: int, largest: str) -> ArchiveTooLargeError
     )
 
 
-def unpack_archive(archive: Path, dest: Path, *, max_bytes: int, max_members: int) -> None:
+def unpack_archive(
+    archive: Path, dest: Path, *, max_bytes: int, max_members: int, room_bytes: int | None = None
+) -> None:
     """Unpack a zip or tar(.gz) into ``dest``: regular files and directories only, no member outside ``dest``,
     at most ``max_members`` members and ``max_bytes`` unpacked.
 
@@ -104,15 +132,20 @@ def unpack_archive(archive: Path, dest: Path, *, max_bytes: int, max_members: in
     decompressed: a chunk that would exceed ``max_bytes`` is refused before it is written, so at most ``max_bytes``
     ever reach the disk, whatever the archive declares.
 
+    ``room_bytes``: what the data disk has room for (quota, free space), counted the same way.
+
     Raises
     ------
     ArchiveError
         Names the member: unsafe name or type, corrupt data (bad CRC, truncated, unsupported compression,
         encrypted), or too large (:class:`ArchiveTooLargeError`).
+    RoomExceededError
+        It declares or unpacks to more than ``room_bytes``.
     """
     dest.mkdir(parents=True, exist_ok=False)
     root = dest.resolve()
     budget = [max_bytes]
+    room = None if room_bytes is None else [room_bytes]
 
     def target(rel: PurePosixPath) -> Path:
         t = (root / rel).resolve()
@@ -141,10 +174,12 @@ def unpack_archive(archive: Path, dest: Path, *, max_bytes: int, max_members: in
             total = sum(info.file_size for info, _ in files)
             if total > max_bytes:
                 raise _too_large(total, max_bytes, max(files, key=lambda f: f[0].file_size)[0].filename)
+            if room is not None and total > room[0]:
+                raise RoomExceededError(max(files, key=lambda f: f[0].file_size)[0].filename)
             for info, rel in files:
                 try:
                     with zf.open(info) as src:
-                        _copy_limited(src, target(rel), budget, info.filename)
+                        _copy_limited(src, target(rel), budget, info.filename, room)
                 except ArchiveError:
                     raise
                 except (zipfile.BadZipFile, zlib.error, EOFError, OSError, NotImplementedError, RuntimeError) as exc:
@@ -172,6 +207,8 @@ def unpack_archive(archive: Path, dest: Path, *, max_bytes: int, max_members: in
                 total += m.size
                 if total > max_bytes:
                     raise _too_large(total, max_bytes, m.name)
+                if room is not None and total > room[0]:
+                    raise RoomExceededError(m.name)
                 members.append((m, rel))
         except (tarfile.TarError, EOFError, OSError, zlib.error) as exc:
             raise ArchiveError(f"broken archive ({exc})") from None
@@ -181,7 +218,7 @@ def unpack_archive(archive: Path, dest: Path, *, max_bytes: int, max_members: in
                 if src is None:
                     continue
                 with src:
-                    _copy_limited(src, target(rel), budget, m.name)
+                    _copy_limited(src, target(rel), budget, m.name, room)
             except ArchiveError:
                 raise
             except (tarfile.TarError, EOFError, OSError, zlib.error) as exc:
@@ -197,13 +234,19 @@ def _find_root(dest: Path) -> Path:
     raise ArchiveError("no dataset.json at the archive's top level (or in its single top directory)")
 
 
-def _ingest(archive: Path, dest: Path, max_bytes: int, max_members: int) -> tuple[str, int, int]:
+def _ingest(
+    archive: Path, dest: Path, max_bytes: int, max_members: int, room_bytes: int | None = None
+) -> tuple[str, int, int]:
     from calib.dataset import Dataset
 
-    unpack_archive(archive, dest, max_bytes=max_bytes, max_members=max_members)
+    unpack_archive(archive, dest, max_bytes=max_bytes, max_members=max_members, room_bytes=room_bytes)
     root = _find_root(dest)
+    problem = json_file_problem(root / "dataset.json")  # nested 100000 levels deep: a RecursionError, a 500
+    if problem is not None:
+        raise ArchiveError(problem)
     try:
         ds = Dataset.open(root)
+        check_frame_numbers(root)
     except I4calError as exc:
         raise ArchiveError(f"not a valid dataset v1: {exc}") from None
     for i in range(len(ds.frames)):
@@ -233,6 +276,7 @@ def _ingest(archive: Path, dest: Path, max_bytes: int, max_members: int) -> tupl
         413: {"description": "archive too large"},
         415: {"description": "not an archive type"},
         422: {"description": "not a safe archive of a valid dataset"},
+        507: {"description": "no room: data_quota_bytes, min_free_bytes, or the disk is full (nothing kept)"},
     },
 )
 async def upload_dataset(
@@ -256,6 +300,7 @@ async def upload_dataset(
             status.HTTP_413_CONTENT_TOO_LARGE if hasattr(status, "HTTP_413_CONTENT_TOO_LARGE") else 413,
             detail=f"archive larger than {limit} bytes",
         )
+    room, room_limit = await _upload_room(manager)
     tmpdir = manager.data_dir / "tmp"
     tmpdir.mkdir(parents=True, exist_ok=True)
     fd, tmpname = tempfile.mkstemp(dir=tmpdir, suffix=".upload")
@@ -269,25 +314,81 @@ async def upload_dataset(
                 got += len(chunk)
                 if got > limit:
                     raise HTTPException(413, detail=f"archive larger than {limit} bytes")
+                if got > room:
+                    raise insufficient_storage(manager.disk.exceeded("the upload", room, room_limit))
+                failpoints.check_disk(tmp)
                 await asyncio.to_thread(f.write, chunk) if len(chunk) > (1 << 20) else f.write(chunk)
         if got == 0:
             raise HTTPException(422, detail=[{"loc": ["body"], "msg": "empty body", "type": "value_error"}])
         try:
             rel, frames, size = await asyncio.to_thread(
-                _ingest, tmp, dest, settings.max_unpacked_bytes, settings.max_archive_members
+                _ingest, tmp, dest, settings.max_unpacked_bytes, settings.max_archive_members, room - got
             )
         except ArchiveError as exc:
             shutil.rmtree(dest, ignore_errors=True)
             raise HTTPException(422, detail=[{"loc": ["body"], "msg": str(exc), "type": "value_error"}]) from None
+        except RoomExceededError:
+            raise insufficient_storage(manager.disk.exceeded("the upload", room, room_limit)) from None
+        rec = DatasetRecord(id=did, name=name, path=rel, frames=frames, size_bytes=size, created_at=now())
+        with manager.db.session() as s:
+            s.add(rec)
+    except StorageError as exc:
+        shutil.rmtree(dest, ignore_errors=True)
+        raise insufficient_storage(exc) from None
+    except Exception as exc:
+        shutil.rmtree(dest, ignore_errors=True)
+        if not is_disk_full(exc):
+            raise
+        raise insufficient_storage(
+            StorageError(
+                f"disk full: the data disk ({manager.data_dir}) refused the upload; nothing was kept", "disk full"
+            )
+        ) from None
     except BaseException:
         shutil.rmtree(dest, ignore_errors=True)
         raise
     finally:
         tmp.unlink(missing_ok=True)
-    rec = DatasetRecord(id=did, name=name, path=rel, frames=frames, size_bytes=size, created_at=now())
-    with manager.db.session() as s:
-        s.add(rec)
     return dataset_out(rec)
+
+
+async def _upload_room(manager) -> tuple[int, str]:
+    """What an upload may write (the quota and the free space), off the event loop; 507 when nothing."""
+    try:
+        return await asyncio.to_thread(manager.disk.room, "the upload")
+    except StorageError as exc:
+        raise insufficient_storage(exc) from None
+
+
+class DatasetDeleted(BaseModel):
+    id: str
+    freed_bytes: int
+
+
+@router.delete(
+    "/{dataset_id}",
+    response_model=DatasetDeleted,
+    responses={
+        401: {"description": "no or wrong token"},
+        404: {"description": "no such dataset"},
+        409: {"description": "a run that may still read it calibrates it, or it is on another service's disk"},
+        507: {"description": "the disk is full and the database cannot record the deletion"},
+    },
+)
+async def delete_dataset(dataset_id: DatasetId, manager: Manager, _: Writer) -> DatasetDeleted:
+    """Delete an uploaded dataset and its files. Refused (409) while a run that is not done or aborted calibrates
+    it; the results of finished runs are kept (their report then has no frames to show)."""
+    try:
+        found = manager.delete_dataset(dataset_id)
+    except RunConflictError as exc:
+        raise conflict(str(exc)) from None
+    except StorageError as exc:
+        raise insufficient_storage(exc) from None
+    if found is None:
+        raise not_found("dataset")
+    path, size = found
+    await asyncio.to_thread(manager.delete_tree, path)
+    return DatasetDeleted(id=dataset_id, freed_bytes=size)
 
 
 @router.get("", response_model=list[DatasetOut], responses={401: {"description": "reads closed, no token"}})

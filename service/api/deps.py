@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Annotated, Any
 
 from fastapi import Depends, HTTPException, Path, Request, status
+from pydantic import BaseModel, ConfigDict
 
 from calib.errors import InputError
 
@@ -24,6 +25,14 @@ def get_manager(request: Request) -> RunManager:
 
 def get_bench(request: Request) -> Bench | None:
     return request.app.state.manager.bench
+
+
+class RequestBody(BaseModel):
+    """Base of every JSON request body: no unknown field, and strict types: a number must be a JSON number (an
+    integer is a valid float; a boolean or a numeric string is refused, 422 naming the field), a boolean a JSON
+    boolean. Lax coercion would turn ``false`` or ``"0.3"`` into numbers and execute them."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
 
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]

@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 from datetime import datetime
+from typing import Annotated
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Depends, Request
+from fastapi.security import HTTPAuthorizationCredentials
 from pydantic import BaseModel
 
-from ..auth import Reader
-from .deps import Manager
+from ..auth import Reader, bearer, require_token
+from ..runs import RunConflictError
+from .deps import Manager, conflict
 
 router = APIRouter(prefix="/devices", tags=["devices"])
 
@@ -28,15 +31,34 @@ class DevicesOut(BaseModel):
     devices: list[DeviceOut]
 
 
-@router.get("", response_model=DevicesOut, responses={401: {"description": "reads are closed and no token"}})
-async def list_devices(manager: Manager, _: Reader, probe: bool = False) -> DevicesOut:
-    """Each device's connection state and last error. ``probe=true`` connects to them briefly (only while no run
-    holds the bench)."""
+@router.get(
+    "",
+    response_model=DevicesOut,
+    responses={
+        401: {"description": "reads are closed and no token; or probe=true without a token"},
+        409: {"description": "probe=true while a run holds the bench (or another probe is under way)"},
+    },
+)
+async def list_devices(
+    request: Request,
+    manager: Manager,
+    _: Reader,
+    creds: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)],
+    probe: bool = False,
+) -> DevicesOut:
+    """Each device's connection state and last error. ``probe=true`` connects to them briefly: it needs a token
+    (it opens connections to the devices), is refused (409) while a run holds the bench, and no run starts while it
+    runs."""
     bench = manager.bench
+    if probe:
+        require_token(request, creds)
     if bench is None:
         return DevicesOut(bench=None, simulated=False, held_by=None, devices=[])
-    if probe and manager.bench_holder is None:
-        await bench.probe()
+    if probe:
+        try:
+            await manager.probe()
+        except RunConflictError as exc:
+            raise conflict(str(exc)) from None
     return DevicesOut(
         bench=bench.name,
         simulated=bench.sim is not None,

@@ -4,8 +4,6 @@ will buy (``POST /api/v1/plans/predict``); calib.design, docs/design.md."""
 from __future__ import annotations
 
 import asyncio
-import contextlib
-import threading
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, HTTPException, Request, status
@@ -14,8 +12,9 @@ from pydantic import BaseModel, ConfigDict, Field
 from calib.design.tradeoff import MAX_TRADEOFF_COUNTS
 from calib.errors import I4calError, InputError
 
-from ..auth import Reader, Writer
-from .deps import Manager, SettingsDep, unprocessable
+from ..auth import Writer
+from ..jobs import JobError, PoolBusyError
+from .deps import Manager, RequestBody, SettingsDep, unprocessable
 
 router = APIRouter(prefix="/api/v1/plans", tags=["plans"])
 
@@ -63,7 +62,7 @@ def resolve_plan(spec: str | dict[str, Any] | None, manager: Any) -> Any:
     return plan
 
 
-class DesignBody(BaseModel):
+class DesignBody(RequestBody):
     """What to design; every input bounded (a design takes seconds of CPU)."""
 
     model_config = ConfigDict(
@@ -93,11 +92,7 @@ class DesignBody(BaseModel):
     )
 
 
-#: predictions computed or waiting for their turn at once, beyond which a request gets 429
-MAX_PREDICTIONS_WAITING = 4
-
-
-class PredictBody(BaseModel):
+class PredictBody(RequestBody):
     """A plan to predict: a name (at this service's plan sizes, as a run would execute it) or an inline plan."""
 
     model_config = ConfigDict(
@@ -178,7 +173,7 @@ class DesignOut(BaseModel):
 
 
 def _lock(request: Request, name: str = "design_lock") -> asyncio.Lock:
-    """The app's lock ``name``: one design (or one prediction) computed at a time."""
+    """The app's lock ``name``: one design (or trade-off) at a time."""
     lock = getattr(request.app.state, name, None)
     if lock is None:
         lock = asyncio.Lock()
@@ -186,19 +181,20 @@ def _lock(request: Request, name: str = "design_lock") -> asyncio.Lock:
     return lock
 
 
-async def _finish_even_if_abandoned(work: asyncio.Future[Any], stop: threading.Event | None = None) -> Any:
-    """The result of ``work`` (a design in a worker thread); if the request is cancelled (the client went away), wait
-    for the thread to end before giving up, so that the design lock stays held while the computation runs: a thread
-    cannot be stopped, and releasing the lock early let abandoned designs pile up on the cores. ``stop`` is set first:
-    a computation of several designs (a trade-off) checks it between them and ends early."""
+def busy(exc: PoolBusyError) -> HTTPException:
+    """429 with Retry-After: the heavy-request pool's queue is full."""
+    return HTTPException(
+        status.HTTP_429_TOO_MANY_REQUESTS, detail=str(exc), headers={"Retry-After": str(exc.retry_after_s)}
+    )
+
+
+async def heavy(manager: Any, task: str, **kwargs: Any) -> Any:
+    """``task`` (:data:`service.jobs.HEAVY_TASKS`) in the heavy-request pool (a child process, niced below the run);
+    429 with Retry-After when its queue is full."""
     try:
-        return await asyncio.shield(work)
-    except asyncio.CancelledError:
-        if stop is not None:
-            stop.set()
-        with contextlib.suppress(BaseException):
-            await asyncio.wait([work])
-        raise
+        return await manager.heavy.run(task, **kwargs)
+    except PoolBusyError as exc:
+        raise busy(exc) from None
 
 
 class TradeoffBody(DesignBody):
@@ -246,7 +242,10 @@ class TradeoffOut(BaseModel):
 _ERRORS: dict[int | str, dict[str, Any]] = {
     401: {"description": "no or wrong bearer token"},
     422: {"description": "invalid request, or no bench configured: the field is named"},
-    429: {"description": "another design is being computed (a prediction: too many waiting)"},
+    429: {
+        "description": "another design is being computed, or the heavy requests' queue is full (Retry-After: "
+        "seconds to wait)"
+    },
 }
 
 
@@ -272,14 +271,13 @@ def _design_request(body: DesignBody, targets: dict[str, Any], settings: Any) ->
     )
 
 
-async def _designed(
-    body: DesignBody, request: Request, manager: Any, settings: Any, work: Any, stop: threading.Event | None = None
-) -> Any:
-    """``work(config, DesignRequest)`` for the body, in a worker thread, one design at a time: the reference plan read
-    and its targets predicted, input errors as 422 naming the field, 429 while another design runs."""
+async def _designed(body: DesignBody, request: Request, manager: Any, settings: Any, task: str, **kwargs: Any) -> Any:
+    """The heavy task ``task`` (``design`` or ``tradeoff``) for the body, in the heavy-request pool, one design at a
+    time, and the ``DesignRequest`` the body became: the reference plan read and its targets predicted, input
+    errors as 422 naming the field, 429 while another design runs or when the pool's queue is full."""
     from calib.plan import Plan
 
-    from ..design import better_than_request, reference_targets
+    from ..design import better_than_request
 
     bench = manager.bench
     if bench is None:
@@ -294,26 +292,29 @@ async def _designed(
             raise unprocessable(exc, prefix=("body", "better_than")) from None
     lock = _lock(request)
     if lock.locked():
-        raise HTTPException(status.HTTP_429_TOO_MANY_REQUESTS, detail="another design is being computed")
+        raise HTTPException(
+            status.HTTP_429_TOO_MANY_REQUESTS,
+            detail="another design is being computed",
+            headers={"Retry-After": str(manager.heavy.retry_after_s())},
+        )
     async with lock:
         try:
             targets: dict[str, Any] = {"target_std_m": body.target_std_m}
             if ref is not None:
                 methods = tuple(dict.fromkeys(body.methods))
-                refs = await asyncio.to_thread(reference_targets, bench.config, ref, None, methods, bench.camera_model)
+                refs = await heavy(
+                    manager, "reference", config=bench.config, plan=ref, methods=methods, camera=bench.camera_model
+                )
                 targets = better_than_request(refs)
             req = _design_request(body, targets, settings)
-            return await _finish_even_if_abandoned(
-                asyncio.ensure_future(asyncio.to_thread(work, bench.config, req)), stop
-            )
+            res = await heavy(manager, task, config=bench.config, request=req, camera=bench.camera_model, **kwargs)
+            return res, req
         except InputError as exc:
             raise unprocessable(exc) from None
+        except JobError:
+            raise  # the computation's process crashed: not the request's fault (500, in the log)
         except I4calError as exc:
             raise unprocessable(InputError(str(exc), field="plan")) from None
-
-
-class _AbandonedError(Exception):
-    """A trade-off whose request was cancelled, ended between two designs (nobody reads it)."""
 
 
 def _predicted(pred: Any, motion: dict[str, Any]) -> dict[str, Any]:
@@ -338,11 +339,9 @@ def _capped(body: DesignBody, settings: Any) -> list[str]:
 async def design(body: DesignBody, request: Request, manager: Manager, settings: SettingsDep, _: Writer) -> DesignOut:
     """Design a plan for this service's bench: fit poses, sweeps, order; predicted std and motion time.
 
-    Computed in a worker thread, one design at a time (the run's processes keep their cores)."""
-    from ..design import design_for_bench
-
-    camera = manager.bench.camera_model if manager.bench is not None else None
-    res = await _designed(body, request, manager, settings, lambda cfg, req: design_for_bench(cfg, req, camera=camera))
+    Computed in a child process niced below the run's, one design at a time (the run's processes keep their
+    cores)."""
+    res, _req = await _designed(body, request, manager, settings, "design")
     return DesignOut(
         plan=res.plan.model_dump(mode="json", exclude_none=True),
         counts=res.plan.count(),
@@ -357,37 +356,28 @@ async def design(body: DesignBody, request: Request, manager: Manager, settings:
 
 
 @router.post("/predict", response_model=PredictOut, responses=_ERRORS)
-async def predict(body: PredictBody, request: Request, manager: Manager, _: Reader) -> PredictOut:
+async def predict(body: PredictBody, manager: Manager, _: Writer) -> PredictOut:
     """What a plan will buy on this service's bench, before anything moves: each method's predicted std per
     combination, the motion time, the steps the camera will not see (the prediction counts only what will be
-    measured). Computed in a worker thread, one prediction at a time."""
-    from ..design import check_for_bench
-
+    measured). Computed in a child process niced below the run's, one heavy request at a time (429 with
+    Retry-After when too many wait)."""
     plan = await asyncio.to_thread(resolve_plan, body.plan, manager)
-    state = request.app.state
-    waiting = getattr(state, "predictions_waiting", 0)
-    if waiting >= MAX_PREDICTIONS_WAITING:
-        raise HTTPException(status.HTTP_429_TOO_MANY_REQUESTS, detail="too many predictions waiting; try again")
-    state.predictions_waiting = waiting + 1
+    bench = manager.bench
     try:
-        async with _lock(request, "predict_lock"):  # a prediction takes a second or two: they wait their turn
-            work = asyncio.ensure_future(
-                asyncio.to_thread(
-                    check_for_bench,
-                    manager.bench.config,
-                    plan,
-                    None,
-                    tuple(dict.fromkeys(body.methods)),
-                    manager.bench.camera_model,
-                )
-            )
-            check = await _finish_even_if_abandoned(work)
+        check = await heavy(
+            manager,
+            "predict",
+            config=bench.config,
+            plan=plan,
+            methods=tuple(dict.fromkeys(body.methods)),
+            camera=bench.camera_model,
+        )
     except InputError as exc:
         raise unprocessable(exc, ("body", "plan")) from None
+    except JobError:
+        raise  # the computation's process crashed: not the request's fault (500, in the log)
     except I4calError as exc:
         raise unprocessable(InputError(str(exc), field="plan")) from None
-    finally:
-        state.predictions_waiting -= 1
     return PredictOut(
         plan=check.plan_name,
         counts=check.counts,
@@ -412,8 +402,6 @@ async def tradeoff(
         tradeoff_trend,
     )
 
-    from ..design import tradeoff_for_bench
-
     try:
         counts = parse_counts(body.counts)
         designs = len(counts) * body.draws
@@ -425,19 +413,7 @@ async def tradeoff(
             )
     except InputError as exc:
         raise unprocessable(exc, prefix=("body",)) from None
-    stop = threading.Event()
-
-    def progress(done: int, total: int) -> None:
-        if stop.is_set():  # the client went away: the designs left are not computed
-            raise _AbandonedError(f"trade-off abandoned after {done} of {total} designs")
-
-    asked: dict[str, Any] = {}  # the DesignRequest the body became (its methods and targets, for the count trend)
-
-    def work(cfg: Any, req: Any) -> Any:
-        asked["request"] = req
-        return tradeoff_for_bench(cfg, req, counts, progress=progress, camera=manager.bench.camera_model)
-
-    rows, results = await _designed(body, request, manager, settings, work, stop)
+    (rows, results), asked = await _designed(body, request, manager, settings, "tradeoff", counts=counts)
     best = recommended_count(rows)
     chosen = recommended_design(rows, results)
     plan = None if chosen is None else chosen.plan
@@ -447,5 +423,5 @@ async def tradeoff(
         recommendation=recommendation_reason(rows),
         recommended_plan=None if plan is None else plan.model_dump(mode="json", exclude_none=True),
         notes=_capped(body, settings),
-        count_trend=tradeoff_trend(rows, asked["request"]),
+        count_trend=tradeoff_trend(rows, asked),
     )

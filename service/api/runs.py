@@ -10,7 +10,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Header, Query, Request, status
+from fastapi import APIRouter, Header, HTTPException, Query, Request, status
 from fastapi import Path as PathParam
 from fastapi.responses import FileResponse, HTMLResponse, Response, StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field
@@ -20,22 +20,24 @@ from calib.errors import InputError
 from calib.export import CalibrationDocument
 from calib.methods.registry import method_names
 from calib.resultdoc import ResultDocument
+from calib.verdict import verdict
 
 from ..auth import Reader, Writer
 from ..hardening import ParsedJSONRoute
 from ..runs import STATES, RunConflictError, RunManager
+from ..runs.disk import StorageError
 from ..settings import BENCH_NAME_PATTERN
 from .calibration import CalibrationOut, calibration_out
-from .deps import ID_PATTERN, Manager, RunId, conflict, get_run, not_found, unprocessable
+from .deps import ID_PATTERN, Manager, RequestBody, RunId, conflict, get_run, not_found, unprocessable
 from .methods import MethodName
-from .plans import PlanName, resolve_plan
+from .plans import PlanName, heavy, resolve_plan
 
 #: ParsedJSONRoute: a request's JSON (an inline plan: up to ~1 MB at the plan's size bounds) is parsed once, in a
 #: worker thread, by the strict-JSON middleware (service/hardening.py), not again in the event loop
 router = APIRouter(prefix="/runs", tags=["runs"], route_class=ParsedJSONRoute)
 
 
-class RunCreate(BaseModel):
+class RunCreate(RequestBody):
     """Start a run: a plan on the bench (named or inline), or an uploaded dataset calibrated offline."""
 
     model_config = ConfigDict(
@@ -121,6 +123,10 @@ class RunOut(BaseModel):
         description="the plan's predicted std per method and combination and its motion time, computed as the run "
         "starts (null: not yet, or an offline run)",
     )
+    verdict: dict[str, Any] | None = Field(
+        None,
+        description="which method's result to load and why, the next command (calib.verdict; null: no result yet)",
+    )
 
 
 def run_out(manager: RunManager, run) -> RunOut:
@@ -149,10 +155,11 @@ def run_out(manager: RunManager, run) -> RunOut:
         error=run.error,
         has_result=run.result is not None,
         prediction=None if run.prediction is None else RunPrediction.model_validate(run.prediction),
+        verdict=None if run.result is None else verdict(run.result, run.id).to_dict(),
     )
 
 
-class ApplyBody(BaseModel):
+class ApplyBody(RequestBody):
     model_config = ConfigDict(extra="forbid")
     method: MethodName | None = Field(
         None, description="default: the first converged in GET /api/v1/methods' apply order (combined, legs, ...)"
@@ -173,6 +180,7 @@ ERRORS: dict[int | str, dict[str, Any]] = {
         **ERRORS,
         409: {"description": "another run holds the bench"},
         422: {"description": "invalid request: the field is named"},
+        507: {"description": "the plan's frames do not fit (data_quota_bytes, min_free_bytes) or the disk is full"},
     },
 )
 async def create_run(body: RunCreate, manager: Manager, _: Writer) -> RunOut:
@@ -182,10 +190,11 @@ async def create_run(body: RunCreate, manager: Manager, _: Writer) -> RunOut:
     plan = None
     plan_name = None
     if body.dataset is None:
-        if manager.bench_holder is not None:
-            raise conflict(f"run {manager.bench_holder} holds the bench")
+        if (busy := manager.bench_busy()) is not None:
+            raise conflict(busy)
         plan = await asyncio.to_thread(resolve_plan, body.plan, manager)
         plan_name = plan.name
+    await _check_space(manager.check_space_for_run, plan)
     try:
         run = manager.create(
             plan=plan,
@@ -197,6 +206,8 @@ async def create_run(body: RunCreate, manager: Manager, _: Writer) -> RunOut:
         )
     except RunConflictError as exc:
         raise conflict(str(exc)) from None
+    except StorageError as exc:
+        raise insufficient_storage(exc) from None
     except InputError as exc:
         raise unprocessable(exc) from None
     return run_out(manager, manager.get(run.id))
@@ -224,6 +235,14 @@ def _sse(ev: dict[str, Any]) -> str:
     return f"id: {ev['seq']}\nevent: {ev['type']}\ndata: {json.dumps(ev)}\n\n"
 
 
+def _overflow(last: int) -> str:
+    """The ``overflow`` event (no ``id``: the client's Last-Event-ID stays the last event it received): this stream
+    fell behind and ends; reconnect with Last-Event-ID (an EventSource does so by itself) to read every event
+    after ``last`` from the database."""
+    data = {"type": "overflow", "data": {"last_seq": last, "reconnect": "with Last-Event-ID (or ?after=last_seq)"}}
+    return f"event: overflow\ndata: {json.dumps(data)}\n\n"
+
+
 @router.get(
     "/{run_id}/events",
     responses={**ERRORS, 200: {"content": {"text/event-stream": {}}, "description": "Server-Sent Events"}},
@@ -238,7 +257,9 @@ async def run_events(
     follow: bool = True,
 ) -> StreamingResponse:
     """State changes, acquisition progress (pose i/N), extraction progress, fits: past events, then live ones
-    until the run ends. Resumes after ``Last-Event-ID`` (or ``after``)."""
+    until the run ends. Resumes after ``Last-Event-ID`` (or ``after``). A client that falls more than
+    ``SUBSCRIBER_QUEUE_MAX`` events behind gets an ``overflow`` event and the stream ends: reconnect with
+    Last-Event-ID, nothing is lost."""
     get_run(manager, run_id)
     start = after
     if last_event_id and last_event_id.isdigit():
@@ -261,6 +282,9 @@ async def run_events(
                         return
                     yield ": keep-alive\n\n"
                     continue
+                if q.overflowed:  # events were dropped for this slow client: tell it to reconnect from `last`
+                    yield _overflow(last)
+                    return
                 if ev is None:
                     return
                 if ev["seq"] <= last:
@@ -303,13 +327,64 @@ async def pause_run(run_id: RunId, manager: Manager, _: Writer) -> RunOut:
     responses={
         **ERRORS,
         409: {"description": "not paused, failed or interrupted, or the bench is held (the run is left as it was)"},
+        507: {"description": "what is left of the run does not fit, or the disk is full (the run is left as it was)"},
     },
 )
 async def resume_run(run_id: RunId, manager: Manager, _: Writer) -> RunOut:
     """Resume a paused acquisition in place, or a failed or interrupted run from what is on disk: the acquisition
     from its first missing frame (nothing moves when every frame is written), then extraction and fits if their
     output is missing."""
-    return _control(manager, run_id, "resume")
+    get_run(manager, run_id)
+    await _check_space(manager.check_space_for_resume, run_id)
+    try:
+        return _control(manager, run_id, "resume")
+    except StorageError as exc:
+        raise insufficient_storage(exc) from None
+
+
+# -- disk and retention ----------------------------------------------------------------------------------
+def insufficient_storage(exc: StorageError) -> HTTPException:
+    """507 naming the limit (a setting, or ``disk full``) and the cause."""
+    return HTTPException(507, detail={"limit": exc.limit, "msg": str(exc)})
+
+
+async def _check_space(check, *args: Any) -> None:
+    """A space check (it walks the data directory) off the event loop; 507 when it refuses."""
+    try:
+        await asyncio.to_thread(check, *args)
+    except StorageError as exc:
+        raise insufficient_storage(exc) from None
+
+
+class Deleted(BaseModel):
+    id: str
+    freed_bytes: int = Field(description="bytes of the files removed")
+
+
+@router.delete(
+    "/{run_id}",
+    response_model=Deleted,
+    responses={
+        **ERRORS,
+        409: {
+            "description": "the run is executing or holds the bench, belongs to another service, or its result was "
+            "applied (current calibration or history)"
+        },
+        507: {"description": "the disk is full and the database cannot record the deletion"},
+    },
+)
+async def delete_run(run_id: RunId, manager: Manager, _: Writer) -> Deleted:
+    """Delete a run that is not executing (done, failed, aborted or interrupted) with its files: dataset,
+    observations, result, events. A run whose result was applied is kept (409): the calibrations name it."""
+    get_run(manager, run_id)
+    try:
+        path, size = manager.delete_run(run_id)
+    except RunConflictError as exc:
+        raise conflict(str(exc)) from None
+    except StorageError as exc:
+        raise insufficient_storage(exc) from None
+    await asyncio.to_thread(manager.delete_tree, path)
+    return Deleted(id=run_id, freed_bytes=size)
 
 
 @router.get(
@@ -334,6 +409,7 @@ async def run_result(run_id: RunId, manager: Manager, _: Reader) -> dict[str, An
     responses={
         **ERRORS,
         409: {"description": "no result (yet)"},
+        429: {"description": "the heavy requests' queue is full (Retry-After: seconds to wait)"},
         200: {"content": {"text/html": {}}, "description": "one self-contained HTML file"},
     },
 )
@@ -341,13 +417,15 @@ async def run_report(
     run_id: RunId, manager: Manager, _: Reader, methods: Annotated[list[MethodName] | None, Query()] = None
 ) -> HTMLResponse:
     """The calibration report (parameters, uncertainties, bound, validation, residuals, identifiability, camera
-    calibration, worst frames, hashes) as one HTML file that opens offline (``i4cal report``)."""
-    from ..report import build_report, inputs_from_run
+    calibration, worst frames, hashes) as one HTML file that opens offline (``i4cal report``). Built in the
+    heavy-request pool (a child process niced below the run's; 429 with Retry-After when its queue is full)."""
+    from sqlalchemy import inspect as sa_inspect
 
     run = get_run(manager, run_id)
     if run.result is None:
         raise conflict(f"run is {run.state}; no result")
-    html = await asyncio.to_thread(lambda: build_report(inputs_from_run(manager.data_dir, run, methods)))
+    row = {a.key: getattr(run, a.key) for a in sa_inspect(run).mapper.column_attrs}
+    html = await heavy(manager, "report", data_dir=str(manager.data_dir), run=row, methods=methods)
     return HTMLResponse(html, headers={"Content-Disposition": f'inline; filename="i4cal-report-{run_id}.html"'})
 
 

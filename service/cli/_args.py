@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import argparse
 import math
-from collections.abc import Callable
+import re
+from collections.abc import Callable, Sequence
 from typing import Any
 
 
@@ -82,8 +83,41 @@ def check_ranges(parser: argparse.ArgumentParser) -> None:
             action.type = RULES[action.dest]
 
 
+_NEGATIVE_VALUE = re.compile(r"^-\.?\d")
+
+
+def join_negative_values(argv: Sequence[str]) -> list[str]:
+    """``--opt -0.05mm`` as ``--opt=-0.05mm``: a value that starts with a minus sign and a digit is the option's value
+    (argparse would read ``-0.05mm`` as an unknown option and say "expected one argument"), so that the option's own
+    check refuses it with its reason."""
+    out: list[str] = []
+    args = list(argv)
+    i = 0
+    while i < len(args):
+        tok = args[i]
+        if (
+            tok.startswith("--")
+            and len(tok) > 2
+            and "=" not in tok
+            and i + 1 < len(args)
+            and _NEGATIVE_VALUE.match(args[i + 1])
+        ):
+            out.append(f"{tok}={args[i + 1]}")
+            i += 2
+            continue
+        out.append(tok)
+        i += 1
+    return out
+
+
 class OneLineParser(argparse.ArgumentParser):
-    """An argument parser whose usage errors are one line, ``i4cal COMMAND: error: ...`` (exit 2)."""
+    """An argument parser whose usage errors are one line, ``i4cal COMMAND: error: ...`` (exit 2); an option's
+    negative value is read as its value (:func:`join_negative_values`)."""
+
+    def parse_known_args(self, args: Sequence[str] | None = None, namespace: Any = None) -> Any:
+        import sys
+
+        return super().parse_known_args(join_negative_values(sys.argv[1:] if args is None else args), namespace)
 
     def error(self, message: str) -> Any:
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
@@ -92,8 +126,19 @@ class OneLineParser(argparse.ArgumentParser):
 def load_plan(spec: str, cfg, seed: int):
     """A ``--plan`` / ``PLAN``: a plan name (its poses drawn within the bench configuration's soft limits) or a plan
     file."""
+    from pathlib import Path
+
+    from calib.errors import InputError
     from calib.plan import PLAN_NAMES, Plan, make_plan
 
     if spec in PLAN_NAMES:
         return make_plan(spec, cfg.nominal_parameters(), seed=seed, limits=cfg.calib_limits())
+    if not Path(spec).exists():
+        import difflib
+
+        close = difflib.get_close_matches(spec, PLAN_NAMES, n=1)
+        hint = f"did you mean {close[0]}? " if close else ""
+        raise InputError(
+            f"no such plan file, and not a plan name: {hint}plan names are {', '.join(PLAN_NAMES)}", file=spec
+        )
     return Plan.load(spec)

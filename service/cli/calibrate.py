@@ -58,7 +58,9 @@ def handler(args: argparse.Namespace) -> int:
         json.dump(doc, sys.stdout)
         sys.stdout.write("\n")
     else:
-        print_result(doc, make_console())
+        print_result(doc, make_console(), result=args.output)
+    if args.output:
+        err.print(f"wrote {args.output} (the result: i4cal report, i4cal export)", highlight=False)
     failed = [m for m, e in doc["methods"].items() if not e.get("converged")]
     return 1 if failed and len(failed) == len(methods) else 0
 

@@ -2,7 +2,8 @@
 
 Default: the simulated bench (a real Modbus server on loopback and the image-level twin's camera)
 runs the paper's full plan through the Modbus driver; the frames are written to a dataset as they
-come, extracted (board poses and rods from the images) and calibrated with the three methods.
+come, extracted (board poses and rods from the images) and calibrated with the three methods. The camera is first
+calibrated from board views, as a lab does (:func:`_camera_phase`; written as ``camera.json`` under ``--out``).
 ``--quick``: the geometric twin only (observations handed over, no images), in about a second.
 """
 
@@ -10,9 +11,13 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import json
 import tempfile
 import time
 from pathlib import Path
+
+#: board views of the demo's camera phase (the accuracy study's count; ``plan predict`` assumes as many)
+CAMERA_VIEWS = 30
 
 
 def _quick(args: argparse.Namespace, con) -> dict:
@@ -34,13 +39,35 @@ def _quick(args: argparse.Namespace, con) -> dict:
 SMALL_PLAN = {"n_base": 3, "n_fit": 5, "n_lock": 1, "n_validation": 3, "line_samples": 4}
 
 
-async def _acquire(out: Path, seed: int, con, small: bool = False) -> Path:
-    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+def _camera_phase(renderer, seed: int, views: int = CAMERA_VIEWS):
+    """The intrinsics as a lab obtains them: ``views`` board views held in front of the simulated camera (the
+    views ``simulate_dataset`` renders for ``seed``), calibrated with the board's corners released
+    (``calib.camera.calibrate_intrinsics``). The camera carries its covariance and the board's corners as the
+    calibration refined them: the simulated board is printed off its nominal corners (0.2 mm RMS), and poses of
+    the nominal board would be off by it; the renderer's true intrinsics carry neither."""
+    import numpy as np
 
+    from calib.camera import calibrate_intrinsics
+    from calib.vision.board import BoardDetector
+
+    det = BoardDetector(renderer.settings.board)
+    noise = np.random.default_rng([seed, 11])
+    found = {}
+    for k, view in enumerate(renderer.random_board_views(views, np.random.default_rng([seed, 7]))):
+        d = det.detect(renderer.render_board_view(view, noise))
+        if d.ids.size:
+            found[k] = (d.ids, d.pixels, None)
+    size = (renderer.camera.width, renderer.camera.height)
+    return calibrate_intrinsics(found, size, det.ids_all, det.points_nominal, lens_model="auto").camera
+
+
+async def _acquire(out: Path, seed: int, con, small: bool = False, temporary: bool = False):
     from calib.plan import make_plan
     from drivers.acquisition import acquire
     from drivers.sim.bench import SimBench
     from drivers.sim.twin import GeometricTwin
+
+    from ._output import LongStep
 
     async with SimBench(port=0, seed=seed) as bench:
         # the simulated camera renders each frame on request: 0.3 s on an idle core, several seconds on a busy
@@ -48,56 +75,43 @@ async def _acquire(out: Path, seed: int, con, small: bool = False) -> Path:
         cfg = bench.bench_config(camera={"timeout_s": 30.0})
         con.print(f"   simulated controller at [bold]{bench.actuators_uri}[/bold], camera at {bench.camera_uri}")
         plan = make_plan("full", cfg.nominal_parameters(), seed=seed, **(SMALL_PLAN if small else {}))
-        cam = bench.renderer.camera if hasattr(bench.renderer, "camera") else None
+        cam = _camera_phase(bench.renderer, seed) if hasattr(bench.renderer, "random_board_views") else None
         spec = {"K": cam.K.tolist(), "dist": list(map(float, cam.dist))} if cam is not None else {}
         truth = GeometricTwin(bench.geometry).truth_dict()
-        with Progress(
-            TextColumn("   acquiring"),
-            BarColumn(),
-            TextColumn("{task.completed}/{task.total} poses"),
-            TimeRemainingColumn(),
-            console=con,
-            transient=True,
-        ) as bar:
-            task = bar.add_task("acq", total=len(plan.steps))
+        with LongStep(con, "   acquiring poses", total=len(plan.steps)) as bar:
 
             def progress(p) -> None:
-                bar.update(task, completed=p.done, total=p.total)
+                bar.update(done=p.done, total=p.total)
 
             res = await acquire(plan, cfg, out, progress=progress, camera_spec=spec, extra={"truth": truth})
-        con.print(f"   {res.frames} frames written to {out}")
-        return out
+        con.print(f"   {res.frames} frames written" + (" (to a temporary directory)" if temporary else f" to {out}"))
+        return cam
 
 
-def _full(args: argparse.Namespace, con) -> dict:
-    from rich.progress import BarColumn, Progress, TextColumn
-
+def _full(args: argparse.Namespace, con, base: Path) -> dict:
     from calib.observations import Observations
     from calib.pipeline import calibrate, to_jsonable
     from calib.vision.extract import extract_dataset
 
-    base = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="i4cal-demo-"))
+    from ._output import LongStep
+
     ds = base / "dataset"
     con.print(
         "1. acquisition on the simulated bench over Modbus TCP (loopback): the paper's full plan, "
         "camera frames rendered by the image-level twin"
     )
-    asyncio.run(_acquire(ds, args.seed, con, small=getattr(args, "small", False)))
+    camera = asyncio.run(_acquire(ds, args.seed, con, small=getattr(args, "small", False), temporary=not args.out))
+    if camera is not None:
+        camera.save(base / "camera.json")
     con.print("2. extraction: ChArUco board poses and the eight rods in every frame (both cores)")
-    with Progress(
-        TextColumn("   extracting"),
-        BarColumn(),
-        TextColumn("{task.completed}/{task.total}"),
-        console=con,
-        transient=True,
-    ) as bar:
-        task = bar.add_task("ext", total=1)
-        res = extract_dataset(ds, progress=lambda d, t: bar.update(task, completed=d, total=t))
+    with LongStep(con, "   extracting frames") as bar:
+        res = extract_dataset(ds, camera=camera, progress=lambda d, t: bar.update(done=d, total=t))
     obs_doc = res.observations
     obs = Observations.from_dict(obs_doc)
-    (base / "observations.json").write_text(__import__("json").dumps(obs_doc, indent=1))
+    (base / "observations.json").write_text(json.dumps(obs_doc, indent=1))
     found = sum(1 for f in obs.frames if f.board is not None)
-    con.print(f"   {len(obs.frames)} frames, {found} board poses; observations in {base / 'observations.json'}")
+    where = f"; observations in {base / 'observations.json'}" if args.out else ""
+    con.print(f"   {len(obs.frames)} frames, {found} board poses{where}")
     con.print("3. calibration with the three methods")
     return to_jsonable(calibrate(obs))
 
@@ -108,8 +122,26 @@ def handler(args: argparse.Namespace) -> int:
     con = make_console()
     t0 = time.perf_counter()
     con.rule("[bold]i4cal demo[/bold] - simulated I4 bench")
-    doc = _quick(args, con) if args.quick else _full(args, con)
-    print_result(doc, con)
+    if args.quick:
+        doc = _quick(args, con)
+    elif args.out:
+        doc = _full(args, con, Path(args.out))
+    else:
+        # nothing left behind unless asked (--out): the dataset (about 50 MB of images) lives in a temporary
+        # directory removed at the end
+        with tempfile.TemporaryDirectory(prefix="i4cal-demo-") as tmp:
+            doc = _full(args, con, Path(tmp))
+    result = None
+    if args.out:
+        Path(args.out).mkdir(parents=True, exist_ok=True)
+        result = str(Path(args.out) / "result.json")
+        Path(result).write_text(json.dumps(doc, indent=1), encoding="utf-8")
+    print_result(doc, con, result=result)
+    if args.out:
+        kept = "result.json" if args.quick else "dataset/, observations.json, result.json"
+        con.print(f"kept in {args.out}: {kept}")
+    else:
+        con.print("nothing kept (the demo's files were temporary): --out DIR keeps the dataset and the result")
     con.print(f"done in {time.perf_counter() - t0:.1f} s")
     return 0
 
@@ -124,7 +156,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--quick", action="store_true", help="geometric twin only (no images, about a second)")
-    p.add_argument("--out", help="keep the dataset and observations in this directory")
+    p.add_argument(
+        "--out", help="keep the dataset, observations and result in this directory (default: nothing is kept)"
+    )
     # a reduced plan (fewer poses, a 9-sample line): tests only
     p.add_argument("--small", action="store_true", help=argparse.SUPPRESS)
     p.set_defaults(handler=handler)

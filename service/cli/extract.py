@@ -123,20 +123,17 @@ def run(args: argparse.Namespace) -> int:
         )
         lm = i.lens_model or {}
         if lm:
-            cands = ", ".join(
-                f"{e['model']} {e['n_params']}p RMS {e['rms_px']:.3f} px"
-                + (
-                    f" dBIC {e['delta_bic']:+.1f}"
-                    if e.get("delta_bic") is not None and len(lm["candidates"]) > 1
-                    else ""
-                )
-                for e in lm.get("candidates", [])
-            )
             prof = lm.get("residual_profile") or {}
+            where = (
+                f"evidence in {args.camera_out} (calibration.lens_model)"
+                if args.camera_out
+                else "evidence: --camera-out FILE"
+            )
+            how = "chosen by BIC" if lm.get("requested") == "auto" else "given"
             console.print(
-                f"lens model: {lm['chosen']} ({'chosen by BIC' if lm.get('requested') == 'auto' else 'given'}; "
-                f"{cands}); views reach {100 * lm.get('field_coverage', 1.0):.0f}% of the corner radius; "
-                f"radial model error up to {prof.get('max_systematic_px', 0.0):.3f} px"
+                f"lens model: {lm['chosen']} ({how} among {len(lm.get('candidates', []))}; radial model error up to "
+                f"{prof.get('max_systematic_px', 0.0):.3f} px); {where}",
+                highlight=False,
             )
             for w in lm.get("warnings") or []:
                 console.print(f"warning: {w}")

@@ -221,22 +221,19 @@ def _design(args: argparse.Namespace) -> int:
         return _tradeoff(args, cfg, req, noise, camera)
     from service.fanout import Fanout, finished_line, settings_from
 
-    from ._output import make_console
+    from ._output import LongStep, make_console
 
     settings = settings_from(args.workers, args.scheduler)
-    # a design takes seconds to minutes (up to 200 fit poses, several candidate draws): say what it is doing
-    with make_console(stderr=True).status("designing the plan") as shown:
+    # a design takes seconds to minutes (up to 200 fit poses, several candidate draws): say what it is doing, on a
+    # terminal or not
+    with LongStep(make_console(stderr=True), "designing the plan") as shown:
         if req.draws > 1:  # the draws are independent designs: fanned out (in this process with --workers 1)
             with Fanout(settings, n_tasks=req.draws) as fan:
-                shown.update(f"designing the plan: {req.draws} candidate draws, {fan.description}")
-                runner = fan.index_runner(
-                    lambda o, done, n: shown.update(f"designing the plan: {done}/{n} draws, {finished_line(o)}")
-                )
+                shown.update(f"{req.draws} candidate draws, {fan.description}")
+                runner = fan.index_runner(lambda o, done, n: shown.update(f"{done}/{n} draws, {finished_line(o)}"))
                 res = design_for_bench(cfg, req, noise, camera=camera, draws_runner=runner)
         else:
-            res = design_for_bench(
-                cfg, req, noise, status=lambda line: shown.update(f"designing the plan: {line}"), camera=camera
-            )
+            res = design_for_bench(cfg, req, noise, status=lambda line: shown.update(line), camera=camera)
     validate_plan(res.plan, cfg.nominal_parameters(), cfg.calib_limits())
     if args.json:
         print(json.dumps(to_jsonable(res.summary()), indent=1))
@@ -246,13 +243,27 @@ def _design(args: argparse.Namespace) -> int:
         res.plan.save(args.out)
         if not args.json:
             print(f"wrote {args.out}")
-    return 0
+    return _warn_not_predicted(res.prediction.errors, args.n_fit)
+
+
+def _warn_not_predicted(errors: dict[str, str], n_fit: int | None) -> int:
+    """A method the designed plan cannot feed: a warning on stderr saying what it means and what to change, exit 1."""
+    import sys
+
+    if not errors:
+        return 0
+    for method, why in errors.items():
+        why = why.removeprefix(f"{method}: ")
+        print(
+            f"warning: {method}: not predicted: {why}; a run of this plan gives {method} no result"
+            + (f" (--n-fit {n_fit} is too few fit poses for it: give more, or leave --n-fit out)" if n_fit else ""),
+            file=sys.stderr,
+        )
+    return 1
 
 
 def _tradeoff(args: argparse.Namespace, cfg, req, noise, camera=None) -> int:
     """``plan design --tradeoff``: one design per count, printed side by side; ``-o`` writes the recommended one."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
     from calib.design import (
         parse_counts,
         recommendation_reason,
@@ -265,21 +276,12 @@ def _tradeoff(args: argparse.Namespace, cfg, req, noise, camera=None) -> int:
     from calib.plan import validate_plan
     from service.design import tradeoff_for_bench, tradeoff_lines
 
-    from ._output import make_console
+    from ._output import LongStep, make_console
 
     counts = parse_counts(args.tradeoff, "--tradeoff")
-    bar = Progress(
-        TextColumn("[bold]designing"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        console=make_console(stderr=True),
-        transient=True,
-    )
-    task = bar.add_task("design", total=len(counts))
-    with bar:
+    with LongStep(make_console(stderr=True), "designing", total=len(counts)) as bar:
         rows, results = tradeoff_for_bench(
-            cfg, req, counts, noise, progress=lambda done, tot: bar.update(task, completed=done), camera=camera
+            cfg, req, counts, noise, progress=lambda done, tot: bar.update(done=done, total=tot), camera=camera
         )
     best = recommended_count(rows)
     if args.json:

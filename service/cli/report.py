@@ -43,37 +43,27 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--workers", type=int, default=None, metavar="N", help="extraction processes (default: all cores)")
     p.add_argument("--frames", type=int, default=3, metavar="N", help="worst poses to show as frames (default 3)")
+    p.add_argument(
+        "--extract",
+        action="store_true",
+        help="for a DATASET: extract its images again even when its observations.json (inside or beside it, written "
+        "after the dataset) already exists",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=handler)
 
 
 def handler(args: argparse.Namespace) -> int:
     from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     methods = list(method_names()) if "all" in args.methods else list(dict.fromkeys(args.methods))
     out = Path(args.output)
     if not out.parent.is_dir():
         raise InputError("output directory does not exist", file=str(out.parent))
     err = Console(stderr=True)
-    with Progress(
-        TextColumn("{task.description:<10}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        console=err,
-        transient=True,
-        disable=args.quiet,
-    ) as bar:
-        tasks: dict[str, int] = {}
-
-        def progress(stage: str, done: int, total: int) -> None:
-            if stage not in tasks:
-                tasks[stage] = bar.add_task(stage, total=total)
-            bar.update(tasks[stage], completed=done, total=total)
-
+    with _StageProgress(err, args.quiet) as progress:
         if args.server:
-            bar.add_task("fetching", total=None)
+            progress("fetching", 0, 0)
             html = fetch_report(args.server, args.target, args.token, None if "all" in args.methods else methods)
         else:
             from service.report import build_report
@@ -89,15 +79,52 @@ def handler(args: argparse.Namespace) -> int:
     return 0
 
 
+class _StageProgress:
+    """The report's stages (extract, calibrate, report; fetching): rich bars on a terminal, plain periodic lines
+    otherwise (``_output.LongStep``), nothing with ``--quiet``. Called as ``progress(stage, done, total)``."""
+
+    def __init__(self, console, quiet: bool) -> None:
+        self.console, self.quiet = console, quiet
+        self.step = None
+
+    def __enter__(self):
+        from ._output import LongStep
+
+        if not self.quiet:
+            self.step = LongStep(self.console, "report").__enter__()
+        return self
+
+    def __call__(self, stage: str, done: int, total: int) -> None:
+        if self.step is not None:
+            self.step.update(stage, done=done, total=total or None)
+
+    def __exit__(self, *exc) -> None:
+        if self.step is not None:
+            self.step.__exit__(*exc)
+
+
 def resolve_inputs(args: argparse.Namespace, methods: list[str], progress):
     """ReportInputs for TARGET: a path on disk, else a run of the service's data directory."""
+    from rich.console import Console
+
     from service.report import find_run, inputs_from_path, inputs_from_run
-    from service.report.sources import RUN_ID, read_json
+    from service.report.sources import RUN_ID, existing_observations, read_json
 
     target = Path(args.target)
     if target.exists():
+        ds = target if target.is_dir() else target.parent if target.name == "dataset.json" else None
+        reuse = not getattr(args, "extract", False)
+        found = existing_observations(ds.resolve()) if ds is not None and reuse else None
+        if found is not None:
+            Console(stderr=True).print(
+                f"using the observations already extracted: {found} (--extract to extract again)", highlight=False
+            )
         inputs = inputs_from_path(
-            target.resolve(), methods, workers=args.workers, progress=lambda s, d, t: progress(s, d, t)
+            target.resolve(),
+            methods,
+            workers=args.workers,
+            progress=lambda s, d, t: progress(s, d, t),
+            reuse_observations=reuse,
         )
     elif RUN_ID.match(args.target):
         from service.settings import load_settings

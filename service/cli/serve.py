@@ -40,6 +40,7 @@ def _run(args: argparse.Namespace) -> int:
         over["sim_bench"] = True
     settings = load_settings(args.config, **over)
     app = create_app(settings)
+    print(startup_lines(settings), flush=True)
     uvicorn.run(
         app,
         host=settings.host,
@@ -49,3 +50,19 @@ def _run(args: argparse.Namespace) -> int:
         timeout_graceful_shutdown=15,
     )
     return 0
+
+
+def startup_lines(settings) -> str:
+    """What ``serve`` says before it starts: the dashboard's and the API's addresses, the data directory."""
+    host = settings.host
+    shown = "127.0.0.1" if host in ("0.0.0.0", "") else "[::1]" if host == "::" else host
+    if ":" in shown and not shown.startswith("["):
+        shown = f"[{shown}]"
+    port = settings.port if settings.port else "PORT (chosen at start: see the line below)"
+    base = f"http://{shown}:{port}"
+    listen = "" if shown == host else f" (listening on {host}: every interface)"
+    return (
+        f"i4cal dashboard: {base}/dashboard{listen}\n"
+        f"REST API: {base}/api/v1 (OpenAPI: {base}/api/v1/docs)\n"
+        f"data directory: {settings.data_dir.resolve()}"
+    )

@@ -41,8 +41,17 @@ def handler(args: argparse.Namespace) -> int:
         from drivers.sim.imaging import simulate_dataset
         from drivers.sim.twin import BenchGeometry
 
+        from ._output import LongStep, make_console
+
         plan = make_plan(plan_name, BenchGeometry().nominal, seed=args.seed) if plan_name != "full" else None
-        path = simulate_dataset(out, seed=args.seed, plan=plan, n_camera_views=getattr(args, "camera_views", 15))
+        with LongStep(make_console(stderr=True), "rendering frames") as bar:
+            path = simulate_dataset(
+                out,
+                seed=args.seed,
+                plan=plan,
+                n_camera_views=getattr(args, "camera_views", 15),
+                progress=lambda done, total: bar.update(done=done, total=total),
+            )
         con.print(f"wrote dataset [bold]{path}[/bold]")
         return 0
     if out.is_dir():

@@ -102,14 +102,15 @@ def _create(args: argparse.Namespace) -> int:
 
     now = datetime.now(UTC)
     expires_at = None
+    expires_in = None
     if args.expires_in:
-        expires_at = now + parse_duration(args.expires_in)
+        expires_in = parse_duration(args.expires_in)  # counted from the token's issuance, once the database is open
     elif args.expires_at:
         expires_at = parse_time(args.expires_at)
         if expires_at <= now:
             raise InputError(f"{iso_utc(expires_at)} is in the past", field="--expires-at")
     if args.hash_only:
-        if expires_at is not None:
+        if expires_at is not None or expires_in is not None:
             raise InputError("token_hashes do not expire: --hash-only takes no expiry", field="--expires-in")
         token = new_token()
         print(token)
@@ -117,11 +118,12 @@ def _create(args: argparse.Namespace) -> int:
         return 0
     settings, db = _open(args)
     try:
-        token, rid = create_token_record(db, args.name, expires_at)
+        token, rid = create_token_record(db, args.name, expires_at, expires_in)
+        expires = next(r["expires"] for r in token_rows(db) if r["id"] == rid)  # as stored
     finally:
         db.dispose()
     print(token)
-    until = f", expires {iso_utc(expires_at)}" if expires_at else ""
+    until = f", expires {expires}" if expires else ""
     print(f"token {rid} stored (sha256) in {settings.db_url}{until}; it is shown only now", file=sys.stderr)
     return 0
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -29,6 +30,21 @@ def _sqlite_pragmas(dbapi_conn, _record) -> None:
     cur.close()
 
 
+def _disk_full_failpoint(db_file: str):
+    """The disk-full failpoint's database seam (:mod:`service.failpoints`, tests only): while the failpoint covers the
+    database file, a statement that writes fails as SQLite's does on a full disk (``SQLITE_FULL``)."""
+    import sqlite3
+
+    from .. import failpoints
+
+    def before_cursor_execute(conn, cursor, statement, parameters, context, executemany) -> None:
+        verb = statement.lstrip().split(None, 1)[0].upper() if statement.strip() else ""
+        if verb in ("INSERT", "UPDATE", "DELETE", "REPLACE") and failpoints.is_full(db_file):
+            raise sqlite3.OperationalError("database or disk is full")
+
+    return before_cursor_execute
+
+
 class Database:
     """One engine + session factory; ``upgrade()`` brings the schema to Alembic's head."""
 
@@ -46,6 +62,9 @@ class Database:
             ) from None
         if url.startswith("sqlite"):
             event.listen(self.engine, "connect", _sqlite_pragmas)
+            db_file = self.engine.url.database
+            if os.environ.get("I4CAL_DISK_FULL") and db_file:
+                event.listen(self.engine, "before_cursor_execute", _disk_full_failpoint(db_file))
         self.sessions = sessionmaker(self.engine, expire_on_commit=False)
 
     def upgrade(self) -> None:

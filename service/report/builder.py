@@ -16,6 +16,7 @@ import numpy as np
 from calib.methods.combined import EDGE_BIAS_STD_PX
 from calib.parameters import COMBINATION_NAMES, PARAMETER_NAMES
 from calib.validation import recorded_vision_scale, vision_scale_ppm
+from calib.verdict import UNCERTAINTY, verdict
 
 from . import plots
 from .analysis import (
@@ -114,7 +115,11 @@ def build_report(inputs: ReportInputs, *, progress: Progress | None = None, max_
         residuals = {m: leg_residuals(obs, res, m) for m in methods}
     step("residuals")
     truth = _truth_combinations(res, obs_doc)
-    body: list[str] = [_title_block(inputs, res, methods, ds_doc, ds_hash, n_files, __version__), _contents()]
+    body: list[str] = [
+        _title_block(inputs, res, methods, ds_doc, ds_hash, n_files, __version__),
+        _verdict(res, inputs),
+        _contents(),
+    ]
     body.append(_parameters(res, methods, truth))
     step("parameters")
     body.append(_budget(res, methods))
@@ -160,6 +165,23 @@ def build_report(inputs: ReportInputs, *, progress: Progress | None = None, max_
 
 
 # -- sections -----------------------------------------------------------------------------------
+def _verdict(res: dict, inputs: ReportInputs) -> Raw:
+    """The first screen's answer: which method's result to load and why, and the next command (calib.verdict)."""
+    run_id = (inputs.run or {}).get("id")
+    src = inputs.source or ""
+    from_result_file = inputs.observations is None and inputs.dataset_dir is None and src.endswith(".json")
+    result = run_id or (src if from_result_file else "RESULT")
+    v = verdict(res, result)
+    lines = v.lines()
+    cls = "verdict" if v.method else "verdict none"
+    nxt = f"<p>next: <code>{esc(v.next_command)}</code></p>" if v.next_command else ""
+    return Raw(
+        f'<section id="verdict" class="{cls}"><h2>Verdict</h2><p>{esc(lines[0])}</p>{nxt}'
+        f'<p class="note">Uncertainties are {UNCERTAINTY} throughout; the expanded uncertainty U (k = '
+        f"{K_COVERAGE:g}) is given beside them in each method's table.</p></section>"
+    )
+
+
 def _now() -> str:
     return datetime.now(UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
 
@@ -236,18 +258,17 @@ def _parameters(res: dict, methods: list[str], truth: dict[str, float] | None) -
     for m in methods:
         e = res["methods"][m]
         if e.get("parameters"):
-            t1_rows.append(
-                [m, *[f"{mm(e['parameters'][k])} ± {mm(K_COVERAGE * e['std'][k])}" for k in COMBINATION_NAMES]]
-            )
+            t1_rows.append([m, *[f"{mm(e['parameters'][k])} ± {mm(e['std'][k])}" for k in COMBINATION_NAMES]])
         else:
-            t1_rows.append([m, *(["failed"] * 4)])
+            t1_rows.append([m, "fit failed (the reason below)", *([""] * 3)])
     if truth:
         t1_rows.append(["truth (simulation)", *[mm(truth[k]) for k in COMBINATION_NAMES]])
     parts: list[Any] = [
         table(
             ["parameter set", *[f"{k} (mm)" for k in COMBINATION_NAMES]],
             t1_rows,
-            caption=f"Table I - identifiable parameters, value ± U (k = {K_COVERAGE:g})",
+            caption=f"Table I - identifiable parameters (the four combinations), value {UNCERTAINTY}; "
+            f"U (k = {K_COVERAGE:g}) in each method's table",
         )
     ]
     for m in methods:
@@ -306,7 +327,7 @@ def _parameters(res: dict, methods: list[str], truth: dict[str, float] | None) -
         figure(
             plots.parameter_plot(res, methods, truth),
             "parameter deviations",
-            "Identified minus a priori value of each combination, error bars U (k = 2); dotted: truth",
+            "Identified minus a priori value of each combination, error bars ± 1 std; dotted: truth",
         )
     )
     if any((res["methods"][m].get("bound") or {}).get("std") for m in methods):
@@ -414,7 +435,12 @@ def _combinations(res: dict, methods: list[str]) -> Raw:
         ident = res["methods"][m].get("identifiability") or {}
         if "finds_paper_four" in ident:
             four = "yes" if ident["finds_paper_four"] else ("all seven" if ident.get("rank") == 7 else "no")
-            found.append([m, str(ident.get("rank")), four, "; ".join(ident.get("identifiable_combinations") or [])])
+            # the paper's four are spelled as everywhere else; the row-reduced forms the analysis found beside them
+            reduced = "; ".join(ident.get("identifiable_combinations") or [])
+            names = (
+                ", ".join(COMBINATION_NAMES) + f" (row-reduced: {reduced})" if ident["finds_paper_four"] else reduced
+            )
+            found.append([m, str(ident.get("rank")), four, names])
     return section(
         "combinations",
         "The four identifiable combinations",
@@ -424,7 +450,7 @@ def _combinations(res: dict, methods: list[str]) -> Raw:
         "all seven.",
         table(["name", "combination", "meaning"], rows, cls="data wide"),
         table(
-            ["method", "rank", "the paper's four?", "identifiable combinations found (row-reduced)"],
+            ["method", "rank", "the paper's four?", "identifiable combinations found"],
             found,
             cls="data wide",
             caption="Found by the numerical identifiability analysis",

@@ -99,6 +99,8 @@ figcaption { font-size: 12px; color: #444; margin-top: 4px; }
 .note { color: #555; font-size: 13px; }
 .frames figure { display: inline-block; width: 100%; }
 .missing li { color: #7a3b00; }
+.verdict { border-left: 5px solid #2ca02c; background: #eef8ee; padding: 4px 14px; margin: 12px 0; }
+.verdict.none { border-color: #b00; background: #fbeeee; }
 nav ol { columns: 2; font-size: 13px; }
 footer { margin-top: 40px; font-size: 12px; color: #555; border-top: 1px solid var(--rule); padding-top: 8px; }
 @media print { body { background: white; } main { padding: 0; } section { break-inside: avoid-page; } }

@@ -54,7 +54,7 @@ def to_data_uri(fig: Figure) -> str:
 
 
 def parameter_plot(result: dict[str, Any], methods: Sequence[str], truth: dict[str, float] | None) -> str | None:
-    """Each combination's deviation from the a priori value (mm) per method, error bars U (k = 2)."""
+    """Each combination's deviation from the a priori value (mm) per method, error bars ± 1 std."""
     names = [m for m in methods if (result["methods"].get(m) or {}).get("parameters")]
     if not names:
         return None
@@ -66,7 +66,7 @@ def parameter_plot(result: dict[str, Any], methods: Sequence[str], truth: dict[s
             ax.errorbar(
                 [i],
                 [(e["parameters"][key] - nom[key]) * 1e3],
-                yerr=[2 * e["std"][key] * 1e3],
+                yerr=[e["std"][key] * 1e3],
                 fmt="o",
                 color=colour(m),
                 capsize=4,

@@ -110,8 +110,41 @@ def find_run(settings: Any, ident: str) -> Any:
 Progress = Callable[[str, int, int], None]
 
 
+def existing_observations(ds_dir: Path) -> Path | None:
+    """The observations already extracted from the dataset ``ds_dir``, or None.
+
+    Looked for as ``observations.json`` inside the dataset directory, then beside it (where ``i4cal demo --out`` and
+    the service keep them); kept only when written after the dataset's ``dataset.json``, produced by an extraction
+    (an ``extraction`` section) and every frame's ``dataset_frame`` one of the dataset's frames.
+    """
+    ds_json = ds_dir / "dataset.json"
+    try:
+        written = ds_json.stat().st_mtime
+        n_frames = len(json.loads(ds_json.read_text(encoding="utf-8")).get("frames") or [])
+    except (OSError, ValueError, AttributeError):
+        return None
+    for cand in (ds_dir / "observations.json", ds_dir.parent / "observations.json"):
+        try:
+            if not cand.is_file() or cand.stat().st_mtime < written:
+                continue
+            doc = json.loads(cand.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            continue
+        frames = doc.get("frames") if isinstance(doc, dict) else None
+        if not frames or "extraction" not in doc:
+            continue
+        if all(isinstance(f.get("dataset_frame"), int) and 0 <= f["dataset_frame"] < n_frames for f in frames):
+            return cand
+    return None
+
+
 def inputs_from_path(
-    path: Path, methods: list[str], *, workers: int | None = None, progress: Progress | None = None
+    path: Path,
+    methods: list[str],
+    *,
+    workers: int | None = None,
+    progress: Progress | None = None,
+    reuse_observations: bool = True,
 ) -> ReportInputs:
     """Inputs from a dataset directory (extracted, then calibrated), an observations v1 file (calibrated), or a
     result file (``i4cal calibrate -o``; shown as is).
@@ -120,6 +153,9 @@ def inputs_from_path(
     ----------
     progress : callable(stage, done, total), optional
         Stages ``"extract"`` (frames) and ``"calibrate"`` (methods).
+    reuse_observations : bool
+        For a dataset: use the observations already extracted from it (:func:`existing_observations`) instead of
+        extracting again.
     """
     from calib.observations import Observations
     from calib.pipeline import RESULT_FORMAT, calibrate, to_jsonable
@@ -132,8 +168,12 @@ def inputs_from_path(
         ds_dir = p if p.is_dir() else p.parent
         if not (ds_dir / "dataset.json").is_file():
             raise InputError("not a dataset directory (no dataset.json)", file=str(ds_dir))
-        cb = (lambda d, t: progress("extract", d, t)) if progress else None
-        obs_doc = to_jsonable(extract_dataset(ds_dir, workers=workers, progress=cb).observations)
+        found = existing_observations(ds_dir) if reuse_observations else None
+        if found is not None:
+            obs_doc = read_json(found)
+        else:
+            cb = (lambda d, t: progress("extract", d, t)) if progress else None
+            obs_doc = to_jsonable(extract_dataset(ds_dir, workers=workers, progress=cb).observations)
     else:
         doc = read_json(p)
         fmt = doc.get("format") if isinstance(doc, dict) else None

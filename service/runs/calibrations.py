@@ -29,11 +29,11 @@ def calibration_from_run(run: Run, method: str | None, default_bench: str | None
         raise RunConflictError(f"run is {run.state} without a result; nothing to apply")
     methods = run.result.get("methods", {})
     if method is None:
-        from calib.methods.registry import apply_order
+        from calib.verdict import verdict
 
-        method = next((m for m in apply_order() if methods.get(m, {}).get("converged")), None)
+        method = verdict(run.result).method
         if method is None:
-            raise RunConflictError("no method of this run converged; nothing to apply")
+            raise RunConflictError(f"{verdict(run.result).reason}; nothing to apply (name a method to apply one)")
     entry = methods.get(method)
     if entry is None:
         raise InputError(f"run has no result for method {method!r}", field="method")

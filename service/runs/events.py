@@ -7,7 +7,6 @@ kind per :data:`LIVE_INTERVAL_S` and run.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import time
 from collections.abc import Callable
 from datetime import UTC, datetime
@@ -18,6 +17,27 @@ from sqlalchemy import func, select, update
 from ..db import Database, Event, Run
 from ..jobs import clean_json
 from ..timefmt import iso_utc
+
+#: Events a live subscriber (a Server-Sent Events stream) can be behind; beyond, it is told to reconnect (below).
+SUBSCRIBER_QUEUE_MAX = 10_000
+
+
+class Subscription(asyncio.Queue):
+    """A live subscriber's queue of events. When it is full (the client reads more slowly than the run emits) the
+    next events are not queued but ``overflowed`` is set: the stream then sends an ``overflow`` event and ends, and
+    the client reconnects with ``Last-Event-ID`` and reads what it missed from the database (every event is stored):
+    nothing is lost silently."""
+
+    def __init__(self, maxsize: int) -> None:
+        super().__init__(maxsize=maxsize)
+        self.overflowed = False
+
+    def offer(self, item: Any) -> None:
+        try:
+            self.put_nowait(item)
+        except asyncio.QueueFull:
+            self.overflowed = True
+
 
 #: Seconds between two batches of high-rate events of a run (progress, frames, iterations): with at most two kinds
 #: at a time (progress + frames, or iterations), a run writes at most ~10 such events per second.
@@ -30,7 +50,7 @@ class EventBus:
     def __init__(self, db: Database, clock: Callable[[], datetime] = lambda: datetime.now(UTC)) -> None:
         self.db = db
         self.clock = clock
-        self._subs: dict[str, set[asyncio.Queue]] = {}
+        self._subs: dict[str, set[Subscription]] = {}
         self._seq: dict[str, int] = {}
         self._live: dict[str, dict[str, Any]] = {}  # run id -> kind -> pending batch
         self._live_timer: dict[str, asyncio.TimerHandle] = {}
@@ -48,19 +68,32 @@ class EventBus:
         data = clean_json(data)
         seq = self._next_seq(run_id)
         t = self.clock() if t is None else t
-        with self.db.session() as s:
-            s.add(Event(run_id=run_id, seq=seq, t=t, type=type_, data=data))
+        try:
+            with self.db.session() as s:
+                s.add(Event(run_id=run_id, seq=seq, t=t, type=type_, data=data))
+        except BaseException:
+            if self._seq.get(run_id) == seq:  # not stored (e.g. disk full): the next event takes its number
+                self._seq[run_id] = seq - 1
+            raise
         ev = {"seq": seq, "t": iso_utc(t), "type": type_, "data": data}
         for q in list(self._subs.get(run_id, ())):
-            with contextlib.suppress(asyncio.QueueFull):
-                q.put_nowait(ev)
+            q.offer(ev)
 
-    def subscribe(self, run_id: str) -> asyncio.Queue:
-        q: asyncio.Queue = asyncio.Queue(maxsize=10_000)
+    def forget(self, run_id: str) -> None:
+        """Drop what is kept in memory of a deleted run (its next number, pending batches)."""
+        self._seq.pop(run_id, None)
+        self._live.pop(run_id, None)
+        self._live_last.pop(run_id, None)
+        timer = self._live_timer.pop(run_id, None)
+        if timer is not None:
+            timer.cancel()
+
+    def subscribe(self, run_id: str) -> Subscription:
+        q = Subscription(SUBSCRIBER_QUEUE_MAX)
         self._subs.setdefault(run_id, set()).add(q)
         return q
 
-    def unsubscribe(self, run_id: str, q: asyncio.Queue) -> None:
+    def unsubscribe(self, run_id: str, q: Subscription) -> None:
         subs = self._subs.get(run_id)
         if subs is not None:
             subs.discard(q)
@@ -70,8 +103,7 @@ class EventBus:
     def close_subscribers(self, run_id: str) -> None:
         """Tell the live subscribers of ``run_id`` that no more events come (the run ended)."""
         for q in list(self._subs.get(run_id, ())):
-            with contextlib.suppress(asyncio.QueueFull):
-                q.put_nowait(None)
+            q.offer(None)  # a full queue: overflowed, the stream ends at its next event anyway
 
     def events(self, run_id: str, after: int = 0) -> list[dict[str, Any]]:
         with self.db.session() as s:

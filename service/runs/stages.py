@@ -16,8 +16,9 @@ from calib.jsonio import write_json_atomic
 
 from .. import failpoints
 from ..db import Run
-from ..jobs import run_job
+from ..jobs import one_line, run_job
 from ..timefmt import now_utc as _now
+from .disk import disk_full_reason, is_disk_full
 from .lifecycle import IllegalTransitionError, RunEvent
 
 if TYPE_CHECKING:
@@ -36,41 +37,55 @@ class Stages:
         m, todo = self.m, a.remaining
         t0 = time.monotonic()
         run = m.get(run_id)
+        # the timings of every stage of every attempt (a resumed run adds to what its earlier attempts took); stored
+        # as each stage ends, so a crash (SIGKILL) loses only the stage under way
         timings: dict[str, float] = dict(run.timings or {})
+        total0 = timings.get("total_s", 0.0)
+
+        def stage_done(key: str, since: float) -> None:
+            timings[key] = timings.get(key, 0.0) + time.monotonic() - since
+            timings["total_s"] = total0 + time.monotonic() - t0
+            m.update(run_id, timings=dict(timings))
+
         predicting = None
+        stage = "start"
         if run.plan is not None and run.prediction is None and m.bench is not None:
             predicting = asyncio.create_task(self.predict(run_id, run))
         try:
             if run.started_at is None:
                 m.update(run_id, started_at=_now())
             if todo.acquire:
+                stage = "acquisition"
                 ts = time.monotonic()
                 await self.acquire(run_id, a)
-                timings["acquisition_s"] = timings.get("acquisition_s", 0.0) + time.monotonic() - ts
+                stage_done("acquisition_s", ts)
                 m.release(a)
                 failpoints.hit("stage:acquired")
             run = m.get(run_id)
             if todo.extract:
+                stage = "extraction"
                 ts = time.monotonic()
                 m._transition(run_id, RunEvent.EXTRACT, phase="extraction", done=0, total=0)
                 await self.extract(run_id, run)
-                timings["extraction_s"] = time.monotonic() - ts
+                stage_done("extraction_s", ts)
             if todo.calibrate:
+                stage = "calibration"
                 ts = time.monotonic()
                 m._transition(run_id, RunEvent.CALIBRATE, phase="calibration", done=0, total=len(run.methods))
                 doc = await self.calibrate(run_id, run)
-                timings["calibration_s"] = time.monotonic() - ts
+                stage_done("calibration_s", ts)
                 await asyncio.to_thread(write_json_atomic, m.run_dir(run) / "result.json", doc)
                 m.update(run_id, result=doc)
             if predicting is not None:  # computed while the bench moved: done long before a run's end
                 await predicting
-            timings["total_s"] = timings.get("total_s", 0.0) + time.monotonic() - t0
+            stage = "end of the run"
+            timings["total_s"] = total0 + time.monotonic() - t0
             m._transition(run_id, RunEvent.FINISH, finished_at=_now(), timings=timings, phase="")
         except asyncio.CancelledError:
             # the service stops or the run is aborted: nobody waits for the prediction (a resumed run predicts again)
             if predicting is not None:
                 predicting.cancel()
-            timings["total_s"] = timings.get("total_s", 0.0) + time.monotonic() - t0
+            timings["total_s"] = total0 + time.monotonic() - t0
             if a.aborting:
                 self._end(run_id, RunEvent.ABORT, finished_at=_now(), timings=timings, error="aborted on request")
             else:  # service shutting down: the run can be resumed on the next start
@@ -84,11 +99,15 @@ class Stages:
         except Exception as exc:
             from drivers.errors import AbortedError
 
-            timings["total_s"] = timings.get("total_s", 0.0) + time.monotonic() - t0
+            timings["total_s"] = total0 + time.monotonic() - t0
             if isinstance(exc, AbortedError) or a.aborting:
                 self._end(run_id, RunEvent.ABORT, finished_at=_now(), timings=timings, error="aborted on request")
+            elif is_disk_full(exc):  # resumable from what is on disk once there is room again
+                reason = disk_full_reason(exc, m.data_dir, stage)
+                log.error("run %s: %s", run_id, reason)
+                self._end(run_id, RunEvent.FAIL, finished_at=_now(), timings=timings, error=reason)
             elif isinstance(exc, I4calError):
-                self._end(run_id, RunEvent.FAIL, finished_at=_now(), timings=timings, error=str(exc))
+                self._end(run_id, RunEvent.FAIL, finished_at=_now(), timings=timings, error=one_line(str(exc)))
             else:
                 log.exception("run %s failed", run_id)
                 self._end(
@@ -96,7 +115,7 @@ class Stages:
                     RunEvent.FAIL,
                     finished_at=_now(),
                     timings=timings,
-                    error=f"internal error: {type(exc).__name__}: {exc}",
+                    error=one_line(f"internal error: {type(exc).__name__}: {exc}"),
                 )
         finally:
             m.release(a)
@@ -104,28 +123,37 @@ class Stages:
             m.bus.close_subscribers(run_id)
 
     def _end(self, run_id: str, event: RunEvent, **values: Any) -> None:
-        """The run's last transition; a run another request already ended stays as it is."""
+        """The run's last transition; a run another request already ended stays as it is. A database that refuses
+        it for want of space: the end is held and recorded as soon as it can be (:meth:`RunManager.hold_end`)."""
         try:
             self.m._transition(run_id, event, **values)
         except IllegalTransitionError as exc:
             log.warning("run %s: %s", run_id, exc)
+        except Exception as exc:
+            if not is_disk_full(exc):
+                raise
+            log.error("run %s: the database cannot record its end (disk full); held until it can", run_id)
+            self.m.hold_end(run_id, event, values)
 
     async def predict(self, run_id: str, run: Run) -> None:
         """The plan's prediction before motion (:func:`service.design.run_prediction`: predicted std per method and
-        combination, motion time), computed in a worker thread while the bench moves and stored with the run as soon
-        as it is ready (event ``prediction``). A prediction that fails is stored as its error; it never fails the
-        run."""
-        from ..design import run_prediction
-
+        combination, motion time), computed in a child process (niced as the run's other jobs: the server's event
+        loop keeps its CPU) while the bench moves and stored with the run as soon as it is ready (event
+        ``prediction``). A prediction that fails is stored as its error; it never fails the run."""
         m = self.m
         assert m.bench is not None
         try:
-            doc = await asyncio.to_thread(
-                run_prediction, m.bench.config, run.plan, list(run.methods or []), m.bench.camera_model
+            doc = await m.heavy.run_now(
+                "run_prediction",
+                m.settings.job_niceness,
+                config=m.bench.config,
+                plan=run.plan,
+                methods=list(run.methods or []),
+                camera=m.bench.camera_model,
             )
         except Exception as exc:  # the prediction is advice: the run goes on without it
             log.warning("run %s: no prediction: %s", run_id, exc)
-            doc = {"error": f"{type(exc).__name__}: {exc}"}
+            doc = {"error": one_line(f"{type(exc).__name__}: {exc}")}
         if doc is None:
             return
         try:
@@ -188,6 +216,8 @@ class Stages:
         try:
             await a.acq.run()
         except AcquisitionError as exc:
+            if is_disk_full(exc):  # the data disk, not a device
+                raise
             dev = "camera" if isinstance(exc.cause, FrameError) or "grab" in str(exc.cause).lower() else "actuators"
             bench.devices[dev].fail(str(exc.cause))
             raise

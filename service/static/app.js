@@ -21,7 +21,15 @@ function fmtTime(iso) {
 
 const tokenInput = $("#token");
 tokenInput.value = localStorage.getItem("i4cal-token") || "";
-tokenInput.addEventListener("change", () => localStorage.setItem("i4cal-token", tokenInput.value.trim()));
+tokenInput.addEventListener("change", () => {
+  localStorage.setItem("i4cal-token", tokenInput.value.trim());
+  // a new token: what was refused without it is asked again, and the old refusal no longer shown
+  say("");
+  refreshRuns();
+  refreshDevices();
+  refreshCurrent();
+  if (selected) select(selected);
+});
 
 function headers(json) {
   const h = {};
@@ -44,12 +52,86 @@ async function api(method, path, body) {
   return data;
 }
 
+// A GET with the token (reads may be closed: open_reads false); the response as it is.
+function authGet(path) {
+  return fetch(path, { headers: headers(false), cache: "no-store" });
+}
+
+// why a response failed, in words (its JSON detail when there is one)
+async function failure(r) {
+  let detail = r.statusText;
+  try { const d = await r.json(); if (d && d.detail) detail = typeof d.detail === "string" ? d.detail : JSON.stringify(d.detail); } catch (e) { /* not JSON */ }
+  return r.status === 401 ? `${r.status} ${detail}: give the bearer token (top right)` : `${r.status} ${detail}`;
+}
+
+// A download (dataset zip, report) fetched with the token and saved from a blob URL (a plain link cannot send it).
+async function download(path, filename) {
+  say(`downloading ${filename}…`);
+  let r;
+  try { r = await authGet(path); } catch (e) { say(`${filename}: ${e.message}`, true); return; }
+  if (!r.ok) { say(`${filename}: ${await failure(r)}`, true); return; }
+  const url = URL.createObjectURL(await r.blob());
+  const a = Object.assign(document.createElement("a"), { href: url, download: filename });
+  document.body.appendChild(a);
+  a.click();
+  a.remove();
+  setTimeout(() => URL.revokeObjectURL(url), 60_000);
+  say(`downloaded ${filename}`);
+}
+
+// Server-Sent Events read over fetch (EventSource cannot send the token): past events, then live ones; reconnects
+// after the last event seen while the run is active; a failure is said in the live panel.
+class RunEvents {
+  constructor(id, onEvent) {
+    this.id = id; this.onEvent = onEvent; this.last = 0; this.ctrl = null; this.closed = false;
+    this.loop();
+  }
+  close() { this.closed = true; if (this.ctrl) this.ctrl.abort(); }
+  async loop() {
+    while (!this.closed) {
+      this.ctrl = new AbortController();
+      let r;
+      try {
+        r = await fetch(`${API}/runs/${this.id}/events?after=${this.last}`, { headers: headers(false), signal: this.ctrl.signal });
+      } catch (e) { if (this.closed) return; liveError(`live view: ${e.message}; retrying`); await sleep(2000); continue; }
+      if (!r.ok) { liveError(`live view: ${await failure(r)}`); return; }
+      liveError("");
+      try { await this.read(r.body.getReader()); } catch (e) { if (this.closed) return; }
+      if (this.closed || !ACTIVE.includes($("#live-panel").dataset.state)) return;
+      await sleep(1000);
+    }
+  }
+  async read(reader) {
+    const dec = new TextDecoder();
+    let buf = "";
+    for (;;) {
+      const { value, done } = await reader.read();
+      if (done) return;
+      buf += dec.decode(value, { stream: true });
+      let cut;
+      while ((cut = buf.indexOf("\n\n")) >= 0) {
+        const block = buf.slice(0, cut);
+        buf = buf.slice(cut + 2);
+        const data = block.split("\n").filter((l) => l.startsWith("data: ")).map((l) => l.slice(6)).join("\n");
+        if (!data) continue;
+        const ev = JSON.parse(data);
+        this.last = Math.max(this.last, ev.seq || 0);
+        if (!this.closed) this.onEvent(this.id, ev);
+      }
+    }
+  }
+}
+const sleep = (ms) => new Promise((res) => setTimeout(res, ms));
+function liveError(text) { $("#live-error").textContent = text; }
+
 function say(text, isError) {
   const m = $("#message");
   m.textContent = text;
   m.className = isError ? "error" : "";
 }
 
+// a duration in seconds, in the unit that reads best: "3.2 s", "74 s", "2.5 min"
+const fmtDuration = (s) => (s === null || s === undefined ? "–" : s < 10 ? `${s.toFixed(1)} s` : s < 120 ? `${s.toFixed(0)} s` : `${(s / 60).toFixed(1)} min`);
 const mm = (v) => (v === null || v === undefined ? "–" : (v * 1e3).toFixed(3));
 const pm = (v, s) => mm(v) + (s === null || s === undefined ? "" : " ± " + mm(s));
 const esc = (s) => String(s ?? "").replace(/[&<>"]/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;" }[c]));
@@ -84,22 +166,39 @@ async function refreshRuns() {
     tr.dataset.id = r.id;
     tr.dataset.state = r.state;
     if (r.id === selected) tr.className = "selected";
-    tr.innerHTML = `<td><code>${r.id.slice(0, 8)}</code></td><td><span class="state ${r.state}">${r.state}</span></td>` +
+    const [label, cls] = stateBadge(r);
+    tr.innerHTML = `<td><code>${r.id.slice(0, 8)}</code></td><td><span class="state ${cls}">${esc(label)}</span></td>` +
       `<td>${esc(r.bench)}</td><td>${esc(r.plan || (r.dataset ? "dataset " + r.dataset.slice(0, 8) : ""))}</td>` +
       `<td>${r.progress.done}/${r.progress.total}</td><td>${fmtTime(r.created_at)}</td><td>${esc(r.note)}</td>` +
-      `<td>${r.has_result ? `<a class="report" href="${API}/runs/${r.id}/report" target="_blank" rel="noopener">report</a>` : ""}</td>`;
+      `<td>${r.has_result ? `<a class="report" href="${API}/runs/${r.id}/report">report</a>` : ""}</td>`;
     tr.addEventListener("click", () => select(r.id));
+    const rep = tr.querySelector("a.report");
+    if (rep) rep.addEventListener("click", (ev) => { ev.preventDefault(); ev.stopPropagation(); download(rep.getAttribute("href"), `i4cal-report-${r.id.slice(0, 8)}.html`); });
     tb.appendChild(tr);
   }
   if (!selected && runs.length) select(runs[0].id);
 }
 
+// A run's state as shown: "done" only when a fit gave a result to load; a run whose every fit failed is
+// "done · no fit converged" (red), the reason shown once in its results.
+function stateBadge(run) {
+  const v = run.verdict;
+  if (run.state === "done" && v && !v.method) {
+    const failed = Object.keys(v.failed || {});
+    return [failed.length ? "done · no fit converged" : "done · nothing to load", "done-nofit"];
+  }
+  if (run.state === "done" && !run.has_result && run.methods && run.methods.length) return ["done · no result", "done-nofit"];
+  return [run.state + (run.progress && run.progress.paused ? " (paused)" : ""), run.state];
+}
+
+// the devices' states; before the first run the service has not contacted them: said so, not "unknown"
+const DEVICE_STATE = { unknown: "not contacted yet" };
 async function refreshDevices() {
   try {
     const d = await api("GET", "/devices");
     $("#bench").textContent = d.bench ? `bench: ${d.bench}${d.simulated ? " (simulated)" : ""}` : "no bench";
     $("#devices").innerHTML = d.devices.map((x) =>
-      `<span class="dev ${x.state}" title="${esc(x.last_error || x.uri)}">${x.name}: ${x.state}</span>`).join("");
+      `<span class="dev ${x.state}" title="${esc(x.last_error || x.uri)}${x.state === "unknown" ? " (the service connects at the first run)" : ""}">${esc(x.name)}: ${esc(DEVICE_STATE[x.state] || x.state)}</span>`).join("");
   } catch (e) { /* reads may be closed */ }
 }
 
@@ -107,7 +206,7 @@ async function refreshCurrent() {
   try {
     const c = await api("GET", "/calibration/current");
     $("#current").innerHTML = `<p>bench <b>${esc(c.bench)}</b>: ${esc(c.method)} from run <code>${c.run_id.slice(0, 8)}</code>, applied ` +
-      `${fmtTime(c.applied_at)} (i4cal ${esc(c.software_version)})</p><table><tr>` +
+      `${fmtTime(c.applied_at)} (i4cal ${esc(c.software_version)})</p><table><caption>the four combinations (mm, ± 1 std)</caption><tr>` +
       COMBOS.map((k) => `<th>${k}</th>`).join("") + "</tr><tr>" +
       COMBOS.map((k) => `<td>${pm(c.combinations[k], c.combinations_std && c.combinations_std[k])}</td>`).join("") +
       "</tr></table>";
@@ -125,28 +224,44 @@ async function select(id) {
   $("#download").href = `${API}/runs/${id}/dataset`;
   $("#results-panel").hidden = true;
   if (source) source.close();
-  const run = await api("GET", "/runs/" + id);
+  source = null;
+  resetFrame();
+  liveError("");
+  let run;
+  try { run = await api("GET", "/runs/" + id); } catch (e) { liveError(`run ${id.slice(0, 8)}: ${e.message}`); return; }
   showRun(run);
-  source = new EventSource(`${API}/runs/${id}/events`);
-  source.onmessage = null;
   $("#detail").textContent = "";
-  for (const type of ["state", "progress", "extraction", "frames", "fit", "iterations", "paused", "resumed", "applied"]) {
-    source.addEventListener(type, (ev) => onEvent(id, JSON.parse(ev.data)));
-  }
-  source.onerror = () => { if (source) { source.close(); source = null; } };
+  source = new RunEvents(id, onEvent);
   if (run.has_result) showResult(id);
 }
 
 function showRun(run) {
   const st = $("#run-state");
-  st.textContent = run.state + (run.progress.paused ? " (paused)" : "");
-  st.className = "state " + run.state;
+  const [label, cls] = stateBadge(run);
+  st.textContent = label;
+  st.className = "state " + cls;
   $("#live-panel").dataset.state = run.state;
+  // the controls act on an active run only: pause while it runs, resume while paused, abort until it ends
+  const active = ACTIVE.includes(run.state);
+  $("#pause").disabled = !active || run.progress.paused;
+  $("#resume").disabled = !(active && run.progress.paused) && run.state !== "interrupted";
+  $("#abort").disabled = !active && run.state !== "interrupted";
+  $("#timings").textContent = runTimes(run);
   setProgress(run.progress.done, run.progress.total);
   $("#phase").textContent = run.progress.phase || "";
   $("#pose").textContent = run.progress.pose ? run.progress.pose.map((v) => (v * 1e3).toFixed(1)).join(", ") + " mm" : "";
   $("#run-error").textContent = run.error || "";
   if (run.progress.total || run.progress.done) loadFrame(run.id);
+}
+
+// the run's own times: each stage as measured, beside the plan's predicted motion time
+function runTimes(run) {
+  const t = run.timings || {};
+  const parts = [["acquisition", t.acquisition_s], ["extraction", t.extraction_s], ["calibration", t.calibration_s], ["total", t.total_s]]
+    .filter(([, v]) => v !== undefined && v !== null).map(([k, v]) => `${k} ${fmtDuration(v)}`);
+  const pred = run.prediction && run.prediction.motion_time_s;
+  if (pred !== null && pred !== undefined) parts.push(`predicted motion ${fmtDuration(pred)} (motion only: no camera frames or settling)`);
+  return parts.join(" · ");
 }
 
 function setProgress(done, total) {
@@ -155,24 +270,44 @@ function setProgress(done, total) {
   $("#progress-text").textContent = `${done}/${total}`;
 }
 
+// the frame is fetched with the token and shown from a blob URL; hidden until one arrives (no broken image)
+let frameURL = null;
+function resetFrame() {
+  const img = $("#frame");
+  img.hidden = true;
+  img.removeAttribute("src");
+  if (frameURL) URL.revokeObjectURL(frameURL);
+  frameURL = null;
+  $("#frame-caption").textContent = "no frame yet";
+  $("#frame-caption").className = "muted";
+}
+
 function loadFrame(id) {
   if (frameTimer) return;
-  frameTimer = setTimeout(() => {
+  frameTimer = setTimeout(async () => {
     frameTimer = null;
-    const img = $("#frame");
-    const probe = new Image();
     const extracting = $("#live-panel").dataset.state === "extracting";
-    probe.onload = () => {
-      img.src = probe.src;
-      $("#frame-caption").textContent = extracting ? "last frame extracted, with what was found in it" : "last frame";
-    };
-    probe.src = `${API}/runs/${id}/frames/latest?max_width=800&t=${Date.now()}`;
+    let r;
+    try { r = await authGet(`${API}/runs/${id}/frames/latest?max_width=800`); } catch (e) { return; }
+    if (id !== selected) return;
+    const cap = $("#frame-caption");
+    if (r.status === 404) { if (!frameURL) { cap.textContent = "no frame yet"; cap.className = "muted"; } return; }
+    if (!r.ok) { cap.textContent = `frame: ${await failure(r)}`; cap.className = "error"; return; }
+    const url = URL.createObjectURL(await r.blob());
+    const img = $("#frame");
+    img.onload = () => { if (frameURL && frameURL !== url) URL.revokeObjectURL(frameURL); frameURL = url; img.hidden = false; };
+    img.src = url;
+    cap.textContent = extracting ? "last frame extracted, with what was found in it" : "last frame";
+    cap.className = "";
   }, 250);
 }
 
-function log(text) {
+// a log line at the event's own time (the service's clock, shown in the browser's time zone)
+function log(text, t) {
   const li = document.createElement("li");
-  li.textContent = new Date().toLocaleTimeString() + " " + text;
+  const at = t ? new Date(/(Z|[+-]\d\d:?\d\d)$/.test(t) ? t : t + "Z") : new Date();
+  li.textContent = (isNaN(at) ? String(t) : at.toLocaleTimeString()) + " " + text;
+  if (t) li.dataset.t = t;
   const ol = $("#log");
   ol.appendChild(li);
   while (ol.children.length > 200) ol.removeChild(ol.firstChild);
@@ -182,8 +317,9 @@ function log(text) {
 function onEvent(id, ev) {
   if (id !== selected) return;
   const d = ev.data;
+  const L = (text) => log(text, ev.t);
   if (ev.type === "state") {
-    log("state: " + d.state + (d.error ? " — " + d.error : ""));
+    L("state: " + d.state + (d.error ? " — " + d.error : ""));
     api("GET", "/runs/" + id).then(showRun);
     if (d.state === "done") showResult(id);
     refreshRuns();
@@ -192,11 +328,11 @@ function onEvent(id, ev) {
     $("#phase").textContent = (d.stage === "acquisition" ? d.phase || d.state : d.stage) || "";
     if (d.pose) $("#pose").textContent = d.pose.map((v) => (v * 1e3).toFixed(1)).join(", ") + " mm";
     if (d.stage === "acquisition") {
-      if (d.message) log(d.message);
+      if (d.message) L(d.message);
       loadFrame(id);
     }
   } else if (ev.type === "extraction") {
-    log("extraction: " + Object.entries(d.phases || {}).map(([p, c]) => `${p} board ${c.board}/${c.frames} rods ${c.rods}/${c.rods_total}`).join("; "));
+    L("extraction: " + Object.entries(d.phases || {}).map(([p, c]) => `${p} board ${c.board}/${c.frames} rods ${c.rods}/${c.rods_total}`).join("; "));
     loadFrame(id);
   } else if (ev.type === "frames") {
     // per-frame extraction results, batched (at most a few events per second)
@@ -207,7 +343,7 @@ function onEvent(id, ev) {
     $("#detail").textContent = `frame ${f.frame} (${f.phase}, ${f.stage}): ${board}${rods}` + (miss ? ` · ${miss} missing` : "");
     for (const g of d.items) {
       if (g.stage === "rods" && Object.keys(g.missing || {}).length) {
-        log(`frame ${g.frame}: ` + Object.entries(g.missing).map(([k, v]) => `${k}: ${v}`).join("; "));
+        L(`frame ${g.frame}: ` + Object.entries(g.missing).map(([k, v]) => `${k}: ${v}`).join("; "));
       }
     }
     loadFrame(id);
@@ -215,9 +351,9 @@ function onEvent(id, ev) {
     const it = d.items[d.items.length - 1];
     $("#detail").textContent = `fit ${it.method} · ${it.stage} · iteration ${it.iteration} · cost ${Number(it.cost).toExponential(3)}`;
   } else if (ev.type === "fit") {
-    log(`fit ${d.method}: ${d.state}` + (d.iterations ? ` (${d.iterations} evaluations)` : ""));
+    L(`fit ${d.method}: ${d.state}` + (d.iterations ? ` (${d.iterations} evaluations)` : "") + (d.error ? ` — ${d.error}` : ""));
   } else {
-    log(ev.type);
+    L(ev.type);
   }
 }
 
@@ -225,15 +361,19 @@ async function showResult(id) {
   let res;
   try { res = await api("GET", `/runs/${id}/result`); } catch (e) { return; }
   if (id !== selected) return;
+  showVerdict(id);
   const methods = Object.keys(res.methods);
   const nom = res.nominal_combinations || {};
   let h = "<tr><th></th><th>a priori</th>" + methods.map((m) => `<th>${esc(methodLabel(m))}</th>`).join("") + "</tr>";
   for (const k of COMBOS) {
     h += `<tr><th>${k}</th><td>${mm(nom[k])}</td>` + methods.map((m) => {
       const e = res.methods[m];
-      return `<td>${e.parameters ? pm(e.parameters[k], e.std && e.std[k]) : esc(e.error || "failed")}</td>`;
+      return e.parameters ? `<td>${pm(e.parameters[k], e.std && e.std[k])}</td>` : '<td class="error">fit failed</td>';
     }).join("") + "</tr>";
   }
+  // a failed fit's reason, once (not in every cell)
+  $("#fit-errors").replaceChildren(...methods.filter((m) => !res.methods[m].parameters).map((m) =>
+    Object.assign(document.createElement("li"), { textContent: `${methodLabel(m)}: fit failed: ${res.methods[m].error || res.methods[m].message || "no parameters"}` })));
   h += "<tr><th>residual RMS</th><td></td>" + methods.map((m) => {
     const e = res.methods[m];
     return `<td>${e.residual_rms != null ? e.residual_rms.toExponential(3) + " " + esc(e.residual_unit || "") : "–"}</td>`;
@@ -245,14 +385,14 @@ async function showResult(id) {
     h2 += `<tr><th>${k}</th><td>${mm(res.nominal[k])}</td>` + sevenMethods.map((m) =>
       `<td>${pm(res.methods[m].seven[k], res.methods[m].seven_std && res.methods[m].seven_std[k])}</td>`).join("") + "</tr>";
   }
-  $("#table2").innerHTML = sevenMethods.length ? h2 : "<tr><td class=muted>no method of this run identifies the seven parameters (legs does)</td></tr>";
+  $("#table2").innerHTML = sevenMethods.length ? h2 : "<tr><td class=muted>no method of this run identified the seven parameters (legs does)</td></tr>";
   const cols = ["a priori", ...methods];
   const val = res.validation || {};
   const f = (x, key) => (x && x[key] != null ? Number(x[key]).toFixed(3) : "–");
   let h3 = "<tr><th></th>" + cols.map((c) => `<th>${esc(methodLabel(c))}</th>`).join("") + "</tr>";
-  for (const [label, part, key] of [["gaps (fit poses) RMS mm", "gaps_poses", "rms_mm"],
-    ["gaps (validation) RMS mm", "gaps_validation", "rms_mm"], ["gaps (validation) max mm", "gaps_validation", "max_abs_mm"],
-    ["straightness RMS mm", "straightness", "rms_mm"]]) {
+  for (const [label, part, key] of [["gaps (fit poses) RMS", "gaps_poses", "rms_mm"],
+    ["gaps (validation) RMS", "gaps_validation", "rms_mm"], ["gaps (validation) max", "gaps_validation", "max_abs_mm"],
+    ["straightness RMS", "straightness", "rms_mm"]]) {
     h3 += `<tr><th>${label}</th>` + cols.map((c) => `<td>${f((val[c] || {})[part], key)}</td>`).join("") + "</tr>";
   }
   $("#table3").innerHTML = h3;
@@ -260,23 +400,48 @@ async function showResult(id) {
   const sel = $("#apply-method");
   sel.innerHTML = methods.filter((m) => res.methods[m].converged)
     .map((m) => `<option value="${esc(m)}">${esc(methodLabel(m))}</option>`).join("");
+  $("#apply").disabled = !sel.options.length;  // nothing converged: nothing to apply
   $("#results-panel").hidden = false;
   $("#results-panel").dataset.run = id;
   showPredicted(id, res);
 }
 
+// which method's result to load and why, and the next command (the service's calib.verdict, as the CLI says it)
+async function showVerdict(id) {
+  let run;
+  try { run = await api("GET", "/runs/" + id); } catch (e) { return; }
+  if (id !== selected) return;
+  const v = run.verdict;
+  const box = $("#verdict");
+  if (!v) { box.hidden = true; return; }
+  box.hidden = false;
+  box.className = v.method ? "verdict ok" : "verdict none";
+  box.replaceChildren(...v.lines.map((l, i) => {
+    const p = document.createElement("p");
+    if (i === 0) p.textContent = l; else p.append("next: ", Object.assign(document.createElement("code"), { textContent: l.replace(/^next: /, "") }));
+    return p;
+  }));
+  if (v.method) $("#apply-method").value = v.method;
+}
+
 function residualPlot(series) {
-  const W = 640, H = 220, pad = 36;
+  const W = 640, H = 240, pad = 52, bottom = 30;
   const all = series.flatMap(([, g]) => g).filter((v) => v != null);
   if (!all.length) return "<p class=muted>no validation gaps</p>";
   const n = Math.max(...series.map(([, g]) => g.length));
   const ymax = Math.max(...all.map(Math.abs), 1e-6);
   const colors = ["#888", "#1f77b4", "#d62728", "#2ca02c", "#9467bd"];
   const x = (i) => pad + (i + 0.5) * (W - 2 * pad) / Math.max(n, 1);
-  const y = (v) => H / 2 - v / ymax * (H / 2 - 14);
+  const mid = (H - bottom) / 2;
+  const y = (v) => mid - v / ymax * (mid - 14);
   let s = `<svg width="${W}" height="${H}" viewBox="0 0 ${W} ${H}" role="img" aria-label="residual plot">` +
-    `<line x1="${pad}" x2="${W - pad}" y1="${H / 2}" y2="${H / 2}" stroke="#999"/>` +
-    `<text x="2" y="14" font-size="11">+${ymax.toFixed(2)} mm</text><text x="2" y="${H - 4}" font-size="11">-${ymax.toFixed(2)} mm</text>`;
+    `<line x1="${pad}" x2="${W - pad}" y1="${mid}" y2="${mid}" stroke="#999"/>` +
+    `<line x1="${pad}" x2="${pad}" y1="4" y2="${H - bottom}" stroke="#999"/>` +
+    `<text x="${pad - 4}" y="18" font-size="11" text-anchor="end">+${ymax.toFixed(2)}</text>` +
+    `<text x="${pad - 4}" y="${mid + 4}" font-size="11" text-anchor="end">0</text>` +
+    `<text x="${pad - 4}" y="${H - bottom}" font-size="11" text-anchor="end">-${ymax.toFixed(2)}</text>` +
+    `<text class="axis-label" transform="translate(12 ${mid}) rotate(-90)" font-size="11" text-anchor="middle">gap, vision − model (mm)</text>` +
+    `<text class="axis-label" x="${W / 2}" y="${H - 6}" font-size="11" text-anchor="middle">validation pose pair (index)</text>`;
   series.forEach(([name, g], k) => {
     const c = methodColour(name) || colors[k % colors.length];
     g.forEach((v, i) => { if (v != null) s += `<circle cx="${x(i) + (k - 1) * 3}" cy="${y(v)}" r="3" fill="${c}"><title>${name} #${i}: ${v.toFixed(3)} mm</title></circle>`; });
@@ -297,6 +462,11 @@ $("#start-form").addEventListener("submit", async (ev) => {
     await refreshRuns();
     select(run.id);
   } catch (e) { say(e.message, true); }
+});
+
+$("#download").addEventListener("click", (ev) => {
+  ev.preventDefault();
+  if (selected) download(`${API}/runs/${selected}/dataset`, `i4cal-${selected.slice(0, 8)}-dataset.zip`);
 });
 
 for (const action of ["pause", "resume", "abort"]) {
@@ -376,7 +546,7 @@ $("#design-form").addEventListener("submit", async (ev) => {
   const d = designed;
   $("#design-summary").textContent = `${d.n_fit} fit poses · ` +
     Object.entries(d.counts).map(([k, v]) => `${k} ${v}`).join(", ") +
-    ` · motion ${(d.motion_time_s / 60).toFixed(1)} min` +
+    ` · motion ${fmtDuration(d.motion_time_s)}` +
     (d.target_met === null ? "" : d.target_met ? " · target met" : " · target NOT met") +
     (d.time_met === null ? "" : d.time_met ? " · time met" : " · time NOT met") +
     ` · designed for ${d.plan.design.request.methods.join(" and ")}`;
@@ -463,7 +633,7 @@ async function predictChosenPlan() {
   }
   if (ticket !== predicting) return;
   const why = Object.entries(d.prediction_errors).map(([m, w]) => `${methodLabel(m)}: ${w}`);
-  $("#plan-prediction").textContent = `${d.plan}: predicted std (mm) · motion ${(d.motion_time_s / 60).toFixed(1)} min` +
+  $("#plan-prediction").textContent = `${d.plan}: predicted std (mm) · motion ${fmtDuration(d.motion_time_s)} (motion only)` +
     (d.unseen.length ? ` · ${d.unseen.length} steps not fully in view` : "") +
     (why.length ? " · not predicted: " + why.join("; ") : "");
   $("#plan-prediction-table").innerHTML = Object.keys(d.predicted_std_m).length ? designRows(d.predicted_std_m) : "";

@@ -108,29 +108,24 @@ def test_legs_identifies_the_seven_or_says_which_fell_back_to_nominal(result):
 
 
 def test_recommended_method_rule(result):
-    assert recommended_method(result)[0] == "combined"
+    """The export's default method is the verdict's (calib.verdict), the rule every front end states."""
+    from calib.verdict import verdict
+
+    assert recommended_method(result)[0] == verdict(result).method == "combined"
     assert build_calibration(result, CTX).method == "combined"
-    assert build_calibration(result, CTX).method_choice.startswith("recommended: combined converged")
+    assert build_calibration(result, CTX).method_choice.startswith("recommended: load combined")
     r = copy.deepcopy(result)
     r["methods"]["combined"] = {"converged": False, "error": "boom", "parameters": None, "combinations": None}
-    gaps = {m: r["validation"][m]["gaps_validation"]["rms_mm"] for m in ("end-effector", "legs")}
-    best = min(gaps, key=gaps.__getitem__)
     name, why = recommended_method(r)
-    assert name == best and f"{gaps[best]:.3f} mm" in why and "validation poses" in why
-    # swap the gaps: the other one is recommended
-    other = next(m for m in gaps if m != best)
-    r["validation"][best]["gaps_validation"]["rms_mm"], r["validation"][other]["gaps_validation"]["rms_mm"] = (
-        gaps[other],
-        gaps[best],
-    )
-    assert recommended_method(r)[0] == other
-    # no gap at all: the apply order (legs before end-effector)
-    for m in gaps:
+    assert name == verdict(r).method and name in ("end-effector", "legs") and "validation gap" in why
+    # no gap at all to judge by: nothing recommended, the user names the method
+    for m in ("end-effector", "legs"):
         del r["validation"][m]
-    assert recommended_method(r)[0] == "legs"
+    with pytest.raises(InputError, match="--method"):
+        recommended_method(r)
     for m in r["methods"]:
         r["methods"][m]["converged"] = False
-    with pytest.raises(InputError, match="no method of this result converged"):
+    with pytest.raises(InputError, match="no fit converged"):
         recommended_method(r)
     with pytest.raises(InputError, match="'combined' did not converge in this result: boom") as e:
         build_calibration(

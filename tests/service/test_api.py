@@ -24,7 +24,9 @@ async def test_health_and_openapi(service):
     assert (await c.get("/readyz")).json()["status"] == "ready"
     spec = (await c.get(f"{API}/openapi.json")).json()
     assert f"{API}/runs" in spec["paths"] and f"{API}/calibration/current" in spec["paths"]
-    devs = (await c.get(f"{API}/devices", params={"probe": "true"})).json()
+    # a probe connects to the devices: it needs a token whatever open_reads says
+    assert (await c.get(f"{API}/devices", params={"probe": "true"})).status_code == 401
+    devs = (await c.get(f"{API}/devices", params={"probe": "true"}, headers=AUTH)).json()
     assert {d["name"]: d["state"] for d in devs["devices"]}["actuators"] == "connected"
     assert devs["held_by"] is None
 

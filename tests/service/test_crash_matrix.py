@@ -142,6 +142,9 @@ async def test_kill_in_every_state_then_resume(tmp_path, twin, monkeypatch):
             assert (await _post(c, f"{API}/runs/{rid}/resume")).status_code == 202
             run = await wait_state(c, rid, timeout=120)
             assert run["state"] == "done", run
+            # every stage's timing kept across the kills (each stored as its stage ended), not only the last one's
+            assert {"acquisition_s", "extraction_s", "calibration_s", "total_s"} <= set(run["timings"]), run["timings"]
+            assert run["timings"]["total_s"] >= sum(run["timings"][k] for k in ("extraction_s", "calibration_s"))
             res = (await c.get(f"{API}/runs/{rid}/result")).json()
             assert res["methods"]["combined"]["converged"]
             evs = await read_events(c, rid)

@@ -47,7 +47,7 @@ async def test_export_route_current_calibration_and_cli_run_modes(service, rende
     r = await c.get(f"{API}/runs/{rid}/export")
     assert r.status_code == 200 and r.headers["content-type"].startswith("application/json")
     doc = load_calibration(r.json())
-    assert doc.method == "combined" and doc.method_choice.startswith("recommended: combined converged")
+    assert doc.method == "combined" and doc.method_choice.startswith("recommended: load combined")
     assert doc.run == rid and doc.bench == run["bench"] and doc.dataset_hash == ds_hash
     assert datetime.fromisoformat(doc.date) == datetime.fromisoformat(run["finished_at"])
     _reproduces(doc, result["methods"]["combined"])

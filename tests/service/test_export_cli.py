@@ -45,7 +45,7 @@ def test_export_writes_the_document_whose_seven_reproduce_the_combinations(resul
     assert "combined" in capsys.readouterr().err
     doc = load_calibration(json.loads(out.read_text(encoding="utf-8")))
     entry = result["methods"]["combined"]
-    assert doc.method == "combined" and doc.method_choice.startswith("recommended: combined converged")
+    assert doc.method == "combined" and doc.method_choice.startswith("recommended: load combined")
     got = doc.to_parameters().combinations()
     assert max(abs(got[k] - entry["combinations"][k]) for k in COMBINATION_NAMES) <= REPRODUCE_TOL_M
     assert doc.covariance == entry["covariance"] and doc.seven == entry["parameters_seven_completed"]

@@ -452,73 +452,46 @@ def test_bench_design_compares_plans_of_equal_fit_counts():
     assert i4cal_main(["bench", "design", "--trials", "1", "--lock-frames", "1"]) == 2
 
 
-async def test_an_abandoned_design_keeps_the_lock_until_its_thread_ends():
-    """A client that goes away (the request cancelled) must not free the one-design-at-a-time lock while its design
-    still computes in a thread (a thread cannot be stopped): released early, abandoned designs piled up on the cores
-    and every later request timed out (found by the API fuzz test)."""
+async def test_an_abandoned_tradeoff_is_killed_with_its_process_and_frees_the_pool():
+    """A client that goes away (the request cancelled): its trade-off's child process is killed at once, and the
+    pool's place and the one-design lock are free (before, in a thread that could not be stopped, abandoned designs
+    piled up on the cores and every later request timed out: found by the API fuzz test)."""
     import asyncio
-    import threading
+    import os
 
-    from service.api.plans import _finish_even_if_abandoned
+    from calib.design import DesignRequest
+    from drivers.config import load_bench
+    from service.jobs import HeavyPool, warm_up
 
+    await asyncio.to_thread(warm_up)
+    pool = HeavyPool(nice=10)
     lock = asyncio.Lock()
-    started, release = threading.Event(), threading.Event()
-
-    def work() -> int:
-        started.set()
-        release.wait(10)
-        return 1
-
-    async def handler() -> int:
-        async with lock:
-            return await _finish_even_if_abandoned(asyncio.ensure_future(asyncio.to_thread(work)))
-
-    task = asyncio.create_task(handler())
-    assert await asyncio.to_thread(started.wait, 10)
-    task.cancel()
-    await asyncio.sleep(0.1)
-    assert lock.locked() and not task.done()  # the thread still runs: the lock is still held
-    release.set()
-    with pytest.raises(asyncio.CancelledError):
-        await task
-    assert not lock.locked()
-
-
-async def test_an_abandoned_tradeoff_stops_between_designs():
-    """A trade-off computes several designs in one thread: when its client goes away the stop event is set and the
-    designs left are not computed (the lock is held until the one under way ends)."""
-    import asyncio
-    import threading
-
-    from calib.design import DesignRequest, design_tradeoff
-    from service.api.plans import _finish_even_if_abandoned
-    from service.design import twin_scene
-
-    lock, stop, first = asyncio.Lock(), threading.Event(), threading.Event()
-    done: list[int] = []
-
-    def progress(d: int, total: int) -> None:
-        done.append(d)
-        first.set()
-        if stop.is_set():
-            raise RuntimeError("abandoned")
-
     req = DesignRequest(n_lock=2, n_validation=0, with_line=False, n_candidates=40)
-
-    def work():
-        return design_tradeoff(NOMINAL, twin_scene(), req, [4, 5, 6, 7, 8, 9, 10, 11], progress=progress)
+    cfg = load_bench(BENCH_SIM)
 
     async def handler():
         async with lock:
-            return await _finish_even_if_abandoned(asyncio.ensure_future(asyncio.to_thread(work)), stop)
+            return await pool.run("tradeoff", config=cfg, request=req, counts=[4, 5, 6, 7, 8, 9, 10, 11], camera=None)
 
     task = asyncio.create_task(handler())
-    assert await asyncio.to_thread(first.wait, 60)
+    for _ in range(500):
+        if pool.running and pool.running[0].process.pid is not None:
+            break
+        await asyncio.sleep(0.02)
+    pid = pool.running[0].process.pid
+    os.kill(pid, 0)  # the child computes
     task.cancel()
     with pytest.raises(asyncio.CancelledError):
         await task
-    assert stop.is_set() and not lock.locked()
-    assert len(done) < 8, done  # it ended after the design under way, not after all eight
+    assert not lock.locked() and pool.pending == 0 and pool.running == []
+    for _ in range(100):
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            break
+        await asyncio.sleep(0.05)
+    else:
+        raise AssertionError(f"the abandoned trade-off's process {pid} still runs")
 
 
 async def test_api_says_how_the_predicted_std_falls_past_the_count_search(service):

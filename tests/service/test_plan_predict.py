@@ -95,17 +95,16 @@ async def test_a_prediction_never_holds_up_or_fails_a_run(service, monkeypatch):
     """A run that only records (no method) has no prediction; a prediction that fails is stored as its error and
     the run goes on (the full prediction of a run is checked against POST /plans/predict in
     tests/service/test_api.py's full run on images)."""
-    from service import design
-
     c = service.client
     r = await c.post(f"{API}/runs", json={"plan": "full", "methods": []}, headers=AUTH)
     run = await wait_state(c, r.json()["id"])
     assert run["state"] == "done" and run["prediction"] is None, run
 
-    def broken(*args, **kwargs):
+    async def broken(*args, **kwargs):
         raise RuntimeError("no scene for this bench")
 
-    monkeypatch.setattr(design, "run_prediction", broken)
+    # the prediction is computed in a child process (service.jobs.HeavyPool.run_now): it fails as the server sees it
+    monkeypatch.setattr(service.app.state.manager.heavy, "run_now", broken)
     r = await c.post(f"{API}/runs", json={"plan": "rotation-sweep", "methods": []}, headers=AUTH)
     run = await wait_state(c, r.json()["id"])
     assert run["state"] == "done", run["error"]

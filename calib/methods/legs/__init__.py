@@ -50,7 +50,13 @@ from .method import calibrate_legs
 
 # used by calib.design's predictions (the method's own noise model and steps)
 from .pipeline import _LegsPipeline, _pair_means, _pair_own_covariances, _steps34_covariance, _steps34_sandwich  # noqa: F401
-from .uncertainty import _IntrinsicsEffect, _with_prior, joint_depth_systematic  # noqa: F401
+from .uncertainty import (  # noqa: F401
+    _IntrinsicsEffect,
+    _null_space_to_prior,
+    _with_prior,
+    combinations_null_space,
+    joint_depth_systematic,
+)
 
 __all__ = [
     "PRIOR_STD_M",

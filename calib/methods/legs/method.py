@@ -31,6 +31,7 @@ from .repair import REPAIR_CHI2_MAX, REPAIR_PAIR_FACTOR, repair_joint
 from .uncertainty import (
     _identifiability,
     _IntrinsicsEffect,
+    _null_space_to_prior,
     _pair_consistency,
     _prior_conflict,
     _with_prior,
@@ -363,6 +364,17 @@ def calibrate_legs(
                 f"{worst['label']}, data std {worst['data_std_m'] * 1e3:.1f} mm against the a priori "
                 f"{prior_std_m * 1e3:.1f} mm): the result stays near the a priori values there, with their std"
             )
+    not_identified: list[dict] = []
+    if use_planes and prior_std_m and fallback != "all seven":
+        # the directions the four combinations do not see rest on the lock phases' joints alone, which on images carry
+        # an error common to every run (docs/model.md): the a priori values there, with their tolerance
+        seven, cov, parts7, not_identified = _null_space_to_prior(seven, parts7, nom, prior_std_m)
+        warnings.append(
+            "the legs' image data do not identify the seven parameters beyond the four combinations: along "
+            + "; ".join(d["label"] for d in not_identified)
+            + f" the result is the a priori geometry with its {prior_std_m * 1e3:.1f} mm tolerance "
+            "(diagnostics.identifiability.not_identified)"
+        )
     params = I4Parameters.from_mapping({**dict(zip(PARAMETER_NAMES, seven, strict=True)), "T_per_rad": nom.T_per_rad})
     cov4 = SEVEN_TO_FOUR @ cov @ SEVEN_TO_FOUR.T
     std7 = {k: float(np.sqrt(max(cov[i, i], 0.0))) for i, k in enumerate(PARAMETER_NAMES)}
@@ -417,6 +429,7 @@ def calibrate_legs(
                 "prior_conflict_chi2": conflict,
                 "prior_conflict_chi2_step2": conflict_joints,
                 "a_priori_fallback": fallback,
+                "not_identified": not_identified,
                 "data_estimate": {k: float(v) for k, v in zip(PARAMETER_NAMES, seven_data, strict=True)},
             },
         },

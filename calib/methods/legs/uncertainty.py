@@ -314,3 +314,68 @@ def _prior_conflict(
     d = (np.asarray(seven, dtype=np.float64) - np.asarray(nom.vector()))[idx]
     C = 0.5 * (cov + cov.T)[np.ix_(idx, idx)] + prior_std_m**2 * np.eye(idx.size)
     return float(d @ np.linalg.solve(C, d))
+
+
+def combinations_null_space() -> np.ndarray:
+    """An orthonormal basis (7, 3), PARAMETER_NAMES order, of the directions of the seven parameters that leave the
+    four combinations unchanged (the null space of :data:`calib.parameters.SEVEN_TO_FOUR`): H and D together; q03
+    and q04 together; then q02 and q04 - q03 by twice what S moves (the base's and the plate's widths together),
+    made orthogonal to the second. The kinematics, hence the fit poses, do not see them; only the lock phases'
+    joints do."""
+    idx = {n: i for i, n in enumerate(PARAMETER_NAMES)}
+    raw = np.zeros((3, 7))
+    raw[0, [idx["H"], idx["D"]]] = 1.0
+    raw[1, [idx["q03"], idx["q04"]]] = 1.0
+    raw[2, [idx["q02"], idx["q03"], idx["q04"], idx["S"]]] = [2.0, -1.0, 1.0, 1.0]
+    return raw.T / np.linalg.norm(raw, axis=1)
+
+
+def _null_space_to_prior(
+    seven: np.ndarray, parts: dict[str, np.ndarray], nom: I4Parameters, prior_std_m: float
+) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray], list[dict]]:
+    """The seven with their component along :func:`combinations_null_space` the a priori values', with the a priori
+    tolerance ``prior_std_m`` as its std (``parts["a_priori"]``): the legs' image data do not pin these directions.
+
+    On the image-level twin the lock phases' joints carry an error common to every run along these directions (20
+    rendered trials of the accuracy study's plan: +5.5, +10.6 and +19.1 mm on average along the basis's three,
+    spread 0.4, 2.1 and 1.7 mm from trial to trial, against data std of 0.46, 2.2 and 1.7 mm; ``i4cal demo``'s
+    dataset +5.7, +11.4, +20.0 mm): the rods' shading, which offsets a rod's limb edges alike in every frame of a lock
+    phase (without it, with the true camera, +0.2, +0.9, +0.8 mm), and the camera calibration's error on top
+    (docs/model.md). The data's estimate along them is no better than the a priori value. With
+    ``P = N N^T`` (N the basis): ``seven - P (seven - nominal)``, each part ``(I - P) C (I - P)``, plus
+    ``prior_std_m^2 P``. The four combinations and their covariance are unchanged (``SEVEN_TO_FOUR P = 0``).
+
+    Returns
+    -------
+    seven : ndarray, shape (7,)
+    cov : ndarray, shape (7, 7)
+    parts : dict of ndarray (7, 7)
+    directions : list of dict
+        Per null direction: ``direction`` (unit, per parameter), ``label``, ``data_estimate_m`` (the data's
+        coordinate along it, relative to the nominal), ``data_std_m`` (what the data's covariance gave there),
+        ``reason``.
+    """
+    N = combinations_null_space()
+    P = N @ N.T
+    IP = np.eye(7) - P
+    nom7 = np.asarray(nom.vector(), dtype=np.float64)
+    d = np.asarray(seven, dtype=np.float64) - nom7
+    data_cov = sum(parts.values())
+    out = {k: IP @ v @ IP for k, v in parts.items()}
+    out["a_priori"] = out.get("a_priori", np.zeros((7, 7))) + prior_std_m**2 * P
+    total = sum(out.values())
+    dirs = []
+    for k in range(N.shape[1]):
+        v = N[:, k] * np.sign(N[np.argmax(np.abs(N[:, k])), k])
+        big = np.argsort(-np.abs(v))
+        dirs.append(
+            {
+                "direction": {n: float(x) for n, x in zip(PARAMETER_NAMES, v, strict=True)},
+                "label": " ".join(f"{v[j]:+.2f} {PARAMETER_NAMES[j]}" for j in big if abs(v[j]) > 0.2),
+                "data_estimate_m": float(v @ d),
+                "data_std_m": float(np.sqrt(max(v @ data_cov @ v, 0.0))),
+                "reason": "leaves the four combinations unchanged: only the lock phases' joints see it, and on images "
+                "they carry an error common to every run",
+            }
+        )
+    return nom7 + IP @ d, 0.5 * (total + total.T), out, dirs
