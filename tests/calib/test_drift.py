@@ -144,3 +144,58 @@ def test_bad_input_names_the_field():
         check_drift(good, CombinationEstimate(np.array([np.nan, 0, 0, 0]), CHECK_COV))
     with pytest.raises(InputError, match="alpha"):
         DriftSettings(alpha=0.7)
+
+
+def _document(values_m, cov):
+    from calib.export import COMPLETION_RULES, CalibrationDocument, Completion
+    from calib.parameters import NOMINAL, I4Parameters
+
+    combos = dict(zip(COMBINATION_NAMES, map(float, values_m), strict=True))
+    p = I4Parameters.from_combinations(combos, NOMINAL)
+    return CalibrationDocument(
+        method="combined",
+        method_choice="test",
+        software_version="test",
+        run="r" * 32,
+        seven=p.seven(),
+        seven_std=dict.fromkeys(p.seven()),
+        identified=["q02", "q04", "D", "L"],
+        fixed_at_nominal=["H", "S", "q03"],
+        completion=Completion(rule="combinations+nominal", text=COMPLETION_RULES["combinations+nominal"]),
+        T_per_rad=p.T_per_rad,
+        combinations=combos,
+        combinations_std=dict(zip(COMBINATION_NAMES, np.sqrt(np.diag(IN_FORCE_COV)).tolist(), strict=True)),
+        covariance=None if cov is None else cov.tolist(),
+        nominal=NOMINAL.as_dict(),
+        nominal_combinations=NOMINAL.combinations(),
+    )
+
+
+def test_the_update_document_reproduces_its_combinations_and_keeps_the_free_offsets():
+    from calib.drift import in_force_estimate, updated_calibration
+    from calib.export import REPRODUCE_TOL_M, load_calibration
+
+    doc = _document(TRUTH_M, IN_FORCE_COV)
+    prior = in_force_estimate(doc)
+    assert np.array_equal(prior.value_m, TRUTH_M) and np.array_equal(prior.covariance_m2, IN_FORCE_COV)
+    step = 4.0 * np.sqrt(CHECK_COV[0, 0] + IN_FORCE_COV[0, 0])
+    check = CombinationEstimate(TRUTH_M + step * np.eye(4)[0], CHECK_COV)
+    r = check_drift(prior, check)
+    u = update_from_check(prior, check, r)
+    new = load_calibration(updated_calibration(doc, u, software_version="x").model_dump(mode="json"))
+    got = new.to_parameters().combinations()
+    assert all(abs(got[k] - new.combinations[k]) < REPRODUCE_TOL_M for k in COMBINATION_NAMES)
+    assert np.allclose([new.combinations[k] for k in COMBINATION_NAMES], u.estimate.value_m, rtol=0, atol=1e-15)
+    assert (new.seven["H"], new.seven["S"], new.seven["q03"]) == (doc.seven["H"], doc.seven["S"], doc.seven["q03"])
+    assert new.completion.rule == "combinations+in-force" and "L" in new.method_choice
+    assert new.source.model_extra["updated_from"]["run"] == "r" * 32
+    refused = update_from_check(prior, CombinationEstimate(TRUTH_M, CHECK_COV), check_drift(prior, prior))
+    with pytest.raises(InputError, match="refused"):
+        updated_calibration(doc, refused, software_version="x")
+
+
+def test_a_calibration_without_covariance_cannot_be_checked():
+    from calib.drift import in_force_estimate
+
+    with pytest.raises(InputError, match="covariance"):
+        in_force_estimate(_document(TRUTH_M, None))
