@@ -114,7 +114,9 @@ class CheckManager:
         cfg = bench.config
         source = "given"
         if plan is None:
-            plan, _, source = check_plan_for_bench(cfg, max_seconds, self.data_dir / "check-plans")
+            plan, _, source = check_plan_for_bench(
+                cfg, max_seconds, self.data_dir / "check-plans", camera=bench.camera_model
+            )
         else:
             require_check_phases(plan, "plan")
         if repeat is not None:

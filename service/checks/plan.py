@@ -24,40 +24,48 @@ def default_cache_dir() -> Path:
     return Path(xdg) / "i4cal" / "check-plans"
 
 
-def _design_key(cfg, request) -> str:
+def _design_key(cfg, request, camera=None) -> str:
     from service.design import motion_spec
 
     intr = cfg.camera_intrinsics()
     m = motion_spec(cfg)
+    cam = (
+        hashlib.sha256(json.dumps(camera.to_dict(), sort_keys=True).encode()).hexdigest()
+        if camera is not None
+        else (None if intr is None else intr.sha256)
+    )
     key: dict[str, Any] = {
         "version": DESIGN_VERSION,
         "nominal": cfg.nominal_parameters().as_dict(),
         "limits": [list(cfg.actuators.limits.q_min), list(cfg.actuators.limits.q_max)],
         "motion": [m.speed_m_s, m.accel_m_s2, m.settle_s, m.line_rate_hz],
-        "camera": None if intr is None else intr.sha256,
+        "camera": cam,
         "request": request.key(),
     }
     return hashlib.sha256(json.dumps(key, sort_keys=True, default=repr).encode()).hexdigest()[:24]
 
 
-def check_plan_for_bench(cfg, budget_s: float = 60.0, cache_dir: Path | None = None, seed: int = 0):
+def check_plan_for_bench(cfg, budget_s: float = 60.0, cache_dir: Path | None = None, seed: int = 0, camera=None):
     """The bench's designed check plan and where it came from: ``(plan, n_fit, source)``, ``source`` being
-    ``"designed"`` or ``"cached: PATH"``. Designed with the bench's camera file when it names one (else the simulated
-    bench's camera), at its speeds, within ``budget_s`` seconds of motion."""
+    ``"designed"`` or ``"cached: PATH"``. Designed with ``camera`` (a ``calib.camera.CameraModel``: a service's
+    camera file), else the bench file's camera file, else the simulated bench's camera, at the bench's speeds,
+    within ``budget_s`` seconds of motion."""
     from calib.design.drift_check import CheckPlanRequest, design_check_plan
     from calib.plan import Plan
     from service.design import _bench_inputs
 
     request = CheckPlanRequest(budget_s=budget_s, seed=seed)
-    cache = (cache_dir or default_cache_dir()) / f"{_design_key(cfg, request)}.json"
+    cache = (cache_dir or default_cache_dir()) / f"{_design_key(cfg, request, camera)}.json"
     if cache.is_file():
         try:
             plan = Plan.load(cache)
             return plan, plan.count().get("poses", 0), f"cached: {cache}"
         except InputError:
             pass  # a damaged cache entry: designed again below
-    intr = cfg.camera_intrinsics()
-    nominal, scene, kw = _bench_inputs(cfg, None, None if intr is None else intr.camera)
+    if camera is None:
+        intr = cfg.camera_intrinsics()
+        camera = None if intr is None else intr.camera
+    nominal, scene, kw = _bench_inputs(cfg, None, camera)
     design = design_check_plan(nominal, scene, request, **kw)
     try:
         cache.parent.mkdir(parents=True, exist_ok=True)

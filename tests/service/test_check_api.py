@@ -60,7 +60,8 @@ async def test_drift_over_rest_is_caught_applied_and_then_holds(twin_service):
     c = svc.client
     cfg = svc.app.state.manager.bench.config
     cache = svc.settings.data_dir / "check-plans"
-    plan, _, _ = await asyncio.to_thread(check_plan_for_bench, cfg, 60.0, cache)
+    camera = svc.app.state.manager.bench.camera_model
+    plan, _, _ = await asyncio.to_thread(check_plan_for_bench, cfg, 60.0, cache, 0, camera)
     # nothing to check before a calibration is applied
     r = await c.post(f"{API}/checks", json={}, headers=AUTH)
     assert r.status_code == 409 and "no calibration" in r.text
@@ -83,7 +84,7 @@ async def test_drift_over_rest_is_caught_applied_and_then_holds(twin_service):
     assert first["verdict"] == "holds", first["result"]
     assert first["result"]["plan"]["poses"] == plan.count()["poses"]
 
-    pred = await asyncio.to_thread(predicted_check_std, cfg, plan, svc.app.state.manager.bench.camera_model)
+    pred = await asyncio.to_thread(predicted_check_std, cfg, plan, camera)
     drift = DRIFT_IN_STD * math.hypot(pred["L"], in_force["combinations_std"]["L"])
     svc.sim.set_drift({"L": drift})
     caught = await _check(c)
