@@ -284,7 +284,7 @@ class Acquisition:
                 continue
             if attempts == 1:
                 return "motion stopped"
-            return f"motion stopped (confirmed at the {attempts}th stop, {time.monotonic() - t0:.1f} s after the first)"
+            return f"motion stopped (confirmed after {attempts} stops, {time.monotonic() - t0:.1f} s after the first)"
 
     def _mark(self, state: str, pose: int | None, reason: str) -> None:
         """Record the run's state in ``dataset.json`` (``acquisition``); a failure to record it is logged, and the
@@ -377,6 +377,10 @@ class Acquisition:
             stopped = _not_stopped(exc)  # the driver tried for one deadline and nothing reached the controller
         else:
             stopped = await self._safe_stop()
+            if isinstance(exc, StopNotConfirmedError) and exc.__cause__ is not None and stopped.startswith("motion st"):
+                # the driver's own stop was not confirmed, this one was: say what failed and how it ended
+                exc = exc.__cause__
+                stopped = "the first stop was not confirmed; " + stopped
         with contextlib.suppress(Exception):
             await self._flush_writes()
         with contextlib.suppress(Exception):

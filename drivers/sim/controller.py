@@ -469,7 +469,7 @@ def _parse_pdu(unit: int, body: bytes, fc: int | None = None) -> Request | None:
 class _FrontConnection:
     def __init__(self, number: int) -> None:
         self.number = number
-        self.frames: asyncio.Queue[tuple[bytes, Request | None] | None] = asyncio.Queue()
+        self.frames: asyncio.Queue[tuple[bytes, Request | None, bool] | None] = asyncio.Queue()
         self.turn = asyncio.Event()  # released after a freeze
         self.replied = asyncio.Event()
         self.last: Request | None = None  # the request whose reply is awaited
@@ -546,13 +546,23 @@ class FreezeFront:
         ctl = self.controller
         ctl.frozen = False
         ctl.mechanism.last_contact = ctl.mechanism.clock()  # its watchdog did not run meanwhile
-        waiting, self._waiting = self._waiting, []
-        for conn in reversed(waiting) if self.order == "newest" else waiting:
+        while self._waiting:  # connection after connection; what arrives meanwhile on a waiting one waits too
+            conn = self._waiting.pop() if self.order == "newest" else self._waiting.pop(0)
             conn.turn.set()
             while conn.held:  # its buffered requests are executed, in order
                 await asyncio.sleep(0.002)
         self._thawed.set()
         log.warning("controller thawed: %d buffered requests executed late", len(self.executed_late))
+
+    def _hold(self, conn: _FrontConnection) -> bool:
+        """Whether a request arriving now on ``conn`` waits: frozen, or thawing and ``conn`` not yet served."""
+        if not (self.frozen or (not self._thawed.is_set() and not conn.turn.is_set())):
+            return False
+        conn.held += 1
+        if conn not in self._waiting:
+            conn.turn.clear()
+            self._waiting.append(conn)
+        return True
 
     def _check_trigger(self, req: Request | None, when: str) -> None:
         if self._trigger is None or req is None:
@@ -580,7 +590,7 @@ class FreezeFront:
                 buf += data
                 while (got := _split_request(buf, self.framing)) is not None:
                     frame, req, buf = got
-                    await conn.frames.put((frame, req))
+                    await conn.frames.put((frame, req, self._hold(conn)))
         await conn.frames.put(None)  # the client has gone: what it sent is still executed (a FIN, not a reset)
         await forward
         back.cancel()
@@ -592,17 +602,12 @@ class FreezeFront:
 
     async def _forward(self, conn: _FrontConnection, uw: asyncio.StreamWriter) -> None:
         while (item := await conn.frames.get()) is not None:
-            frame, req = item
+            frame, req, late = item
             self._check_trigger(req, "before")
-            late = self.frozen
+            if not late and self.frozen:  # the trigger froze it just now
+                late = self._hold(conn)
             if late:  # buffered: executed once the freeze is over, this connection's turn come
-                conn.held += 1
-                if conn not in self._waiting:
-                    conn.turn.clear()
-                    self._waiting.append(conn)
                 await conn.turn.wait()
-            elif not self._thawed.is_set() and not conn.turn.is_set():
-                await self._thawed.wait()  # what was buffered goes first
             conn.last, conn.replied = req, asyncio.Event()
             with contextlib.suppress(ConnectionError, OSError):
                 uw.write(frame)

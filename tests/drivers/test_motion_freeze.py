@@ -1,0 +1,169 @@
+"""A frozen controller: it stops serving (a stalled PLC, an overloaded gateway, a SIGSTOPped process) while the
+kernel keeps accepting connections and buffering requests, then executes every buffered request late.
+
+Real parts: the simulated controller (a pymodbus server on loopback) behind ``drivers.sim.controller.FreezeFront``
+(a front door on a real socket that buffers while frozen and, once thawed, executes what it buffered connection
+after connection, the newest connection first: the worst order for a master that sent its stop on a new
+connection after a command on an old one). The freeze starts at one point of a move command: before the write
+that carries the target, between the target and the start (a map whose start is a separate write), after the
+start. The property tested is the issue's (a 5 s freeze); the freeze here is 1 s with the driver's timeouts scaled
+down (reply timeout 50 ms, stop deadline 0.3 s): it outlasts everything the driver tries before the run fails, as
+5 s outlast the default settings, and stays shorter than ``stop_persist_s``, so the run's stop is confirmed after
+the thaw. On the old code (a motion command re-sent on fresh connections, the stop on yet another one, no stop
+after the thaw) the buffered starts ran after the run had failed.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import numpy as np
+import pytest
+from drv_helpers import FAST, TinyRenderer
+from test_acquisition import small_plan
+
+from calib.parameters import NOMINAL
+from calib.plan import Plan
+from drivers.acquisition import Acquisition, AcquisitionError
+from drivers.config import open_camera
+from drivers.links import SafetySettings
+from drivers.modbus import ModbusActuators
+from drivers.registermap import RegisterMap
+from drivers.sim.bench import SimBench
+from drivers.sim.controller import FreezeFront, Request
+
+FREEZE_S = 1.0
+SPLIT = RegisterMap(control=9)  # target, speed and start in three writes
+MAPS = {"default": RegisterMap(), "split": SPLIT}
+#: (map, point): when the freeze starts, relative to the command to one axis
+POINTS = [
+    ("default", "before-target"),
+    ("default", "after-start"),
+    ("split", "before-target"),
+    ("split", "between-target-and-start"),
+    ("split", "after-start"),
+]
+
+
+def plan() -> Plan:
+    p = small_plan()
+    return Plan(name="freeze", steps=[s for s in p.steps if s.line is None][:5])
+
+
+def trigger(m: RegisterMap, point: str, axis: int, nth: int):
+    """A predicate true at the ``nth`` request of ``point`` for ``axis`` (0-based), and when to freeze."""
+    off = m.axes[axis].offset
+    unit = m.axes[axis].unit
+    start_reg = off + m.control
+    target_reg = off + m.target
+    seen = {"n": 0}
+
+    def is_start(r: Request) -> bool:
+        return r.writes(start_reg) and bool(r.values[start_reg - r.address] & m.bit("control", "start"))
+
+    def hit(r: Request) -> bool:
+        if r.unit != unit:
+            return False
+        if point in ("before-target", "between-target-and-start"):
+            ok = r.writes(target_reg)
+        else:
+            ok = is_start(r)
+        if ok:
+            seen["n"] += 1
+        return ok and seen["n"] == nth
+
+    return hit, "before" if point == "before-target" else "after"
+
+
+async def run_frozen(tmp_path, mapname: str, point: str, transport: str, axis: int) -> dict:
+    m = MAPS[mapname]
+    bench = SimBench(port=0, axis_config=FAST, renderer=TinyRenderer(), seed=1, regmap=m)
+    await bench.start()
+    if transport == "tcp":
+        upstream, framing = bench.tcp_address, "tcp"
+    else:
+        upstream, framing = ("127.0.0.1", int(bench.rtu_url.rsplit(":", 1)[1])), "rtu"
+    front = FreezeFront(bench.controller, upstream, framing=framing, order="newest")
+    host, port = await front.start()
+    act = ModbusActuators(
+        transport=transport,
+        host=host,
+        port=port,
+        regmap=m,
+        speed_m_s=0.5,
+        accel_m_s2=40.0,
+        timeout_s=0.05,
+        retries=2,
+        backoff_s=0.01,
+        poll_s=0.002,
+        move_timeout_margin_s=0.5,
+        stop_deadline_s=0.3,
+        safety=SafetySettings(stop_persist_s=6 * FREEZE_S),
+    )
+    cfg = bench.bench_config()
+    hit, when = trigger(m, point, axis, nth=3)  # the third move's command (homing and two poses done)
+    front.freeze_on(hit, FREEZE_S, when=when)
+    acq = Acquisition(plan(), act, open_camera(cfg), tmp_path / "ds", nominal=NOMINAL, limits=cfg.calib_limits())
+    error = None
+    try:
+        try:
+            await acq.run()
+        except AcquisitionError as exc:
+            error = str(exc)
+        t_end = time.monotonic()
+        q_end = bench.mechanism.q_true()
+        # watch the mechanism until the freeze is over, everything buffered executed, and 0.4 s more
+        moved: list[tuple[float, int, float]] = []
+        while front.frozen or not front._thawed.is_set() or time.monotonic() < t_end + 0.4:
+            await asyncio.sleep(0.01)
+            q = bench.mechanism.q_true()
+            for i in np.flatnonzero(np.abs(q - q_end) > 1e-6):
+                moved.append((time.monotonic() - t_end, int(i) + 1, float(q[i] - q_end[i])))
+            assert time.monotonic() < t_end + 4 * FREEZE_S + 2, "the freeze never ended"
+        return dict(
+            error=error,
+            moved=moved,
+            moving=[ax.moving for ax in bench.mechanism.axes],
+            late=list(front.executed_late),
+            freezes=front.freezes,
+            stats=dict(act.stats),
+        )
+    finally:
+        await act.close()
+        await acq.camera.close()
+        await front.close()
+        await bench.stop()
+
+
+@pytest.mark.parametrize("transport", ["tcp", "rtu-tcp"])
+@pytest.mark.parametrize(("mapname", "point"), POINTS)
+async def test_a_frozen_controller_never_moves_after_the_run(tmp_path, transport, mapname, point):
+    r = await run_frozen(tmp_path, mapname, point, transport, axis=1)
+    print(transport, mapname, point, {k: v for k, v in r.items() if k != "late"}, "late:", len(r["late"]))
+    assert r["freezes"] == 1, "the freeze point was never reached"
+    assert r["late"], "nothing was executed late: the scenario did not happen"
+    assert r["moved"] == [], f"axes moved after the run had ended: {r['moved'][:5]}"
+    assert not any(r["moving"])
+    # the run failed during the freeze, says why, and that the stop was confirmed (after the thaw)
+    assert r["error"] is not None
+    assert "motion stopped" in r["error"] and "may NOT" not in r["error"], r["error"]
+    assert "no reply" in r["error"], r["error"]
+
+
+async def test_a_motion_command_is_never_sent_again_on_another_connection(tmp_path):
+    """The start of axis 2 goes out and the controller freezes before executing it. The driver reads the axis'
+    state back on the same connection (no answer while frozen) and never sends the start again: after the thaw the
+    controller executed that start exactly once, followed, on the same connection, by the stop."""
+    r = await run_frozen(tmp_path, "default", "before-target", "tcp", axis=1)
+    m = RegisterMap()
+    start, stop = m.bit("control", "start"), m.bit("control", "stop")
+
+    def control_of(q: Request | None) -> int:
+        return q.values[m.control - q.address] if q is not None and q.unit == 2 and q.writes(m.control) else 0
+
+    late = r["late"]
+    starts = [k for k, q in enumerate(late) if control_of(q) & start]
+    assert len(starts) == 1, late  # the start buffered before the freeze, executed once
+    assert any(control_of(q) & stop for q in late[starts[0] + 1 :]), "no stop of axis 2 executed after its late start"
+    assert r["stats"]["motion_unanswered"] >= 1 and r["stats"]["motion_resent"] == 0
