@@ -342,3 +342,59 @@ async def test_an_rtu_duplicate_50_ms_late_never_answers_a_later_read():
         await device.close()
     assert wrong == [], f"readings answered by earlier requests (reply, latest request): {wrong}"
     assert device.requests > 10, device.requests
+
+
+FRAME_FAULTS = dict(delay_prob=0.03, delay_s=DELAYS, duplicate_prob=0.2, duplicate_after_s=(0.0003, 0.05))
+
+
+@pytest.mark.parametrize("transport", ["tcp", "rtu-tcp", "gateway"])
+async def test_no_frame_off_the_truth(bench, tmp_path, transport):
+    """A run through the faulty link (late replies, duplicates up to 50 ms late): every frame written records a q
+    within the encoder's noise of the true joints at the frame (the simulated camera reports them). A run that
+    fails on a fault is resumed, as an operator would."""
+    from test_acquisition import small_plan
+
+    from calib.dataset import Dataset
+    from calib.parameters import NOMINAL
+    from calib.plan import Plan
+    from drivers.acquisition import Acquisition, AcquisitionError
+    from drivers.config import open_camera
+
+    p = small_plan()
+    plan = Plan(name="faults", steps=[s for s in p.steps if s.line is None])
+    proxy, kws, ptys = await open_link(bench, transport, "delay", seed=3)
+    cfg = bench.bench_config()
+    failures = 0
+    try:
+        for k, v in FRAME_FAULTS.items():
+            setattr(proxy.faults, k, v)
+        for attempt in range(4):
+            acq = Acquisition(
+                plan,
+                driver(bench, transport, kws[0]),
+                open_camera(cfg),
+                tmp_path / "ds",
+                nominal=NOMINAL,
+                limits=cfg.calib_limits(),
+                resume=attempt > 0,
+            )
+            try:
+                await acq.run()
+                break
+            except AcquisitionError:
+                failures += 1
+            finally:
+                await acq.actuators.close()
+                await acq.camera.close()
+    finally:
+        for pt in ptys:
+            await pt.close()
+        await proxy.close()
+    ds = Dataset.open(tmp_path / "ds")
+    print(transport, "frames", len(ds.frames), "failed runs", failures, dict(proxy.stats))
+    assert len(ds.frames) == len(plan.steps), (len(ds.frames), failures)
+    assert proxy.stats["delayed"] + proxy.stats["duplicated"] >= 3, dict(proxy.stats)
+    off = [
+        (k, np.max(np.abs(np.asarray(f.q) - np.asarray(f.model_extra["truth"]["q"])))) for k, f in enumerate(ds.frames)
+    ]
+    assert all(d <= TOL_M for _, d in off), [o for o in off if o[1] > TOL_M]

@@ -32,6 +32,7 @@ from drivers.modbus import ModbusActuators
 from drivers.registermap import RegisterMap
 from drivers.sim.bench import SimBench
 from drivers.sim.controller import FreezeFront, Request
+from drivers.sim.faultproxy import SerialGateway
 
 FREEZE_S = 1.0
 SPLIT = RegisterMap(control=9)  # target, speed and start in three writes
@@ -86,8 +87,12 @@ async def run_frozen(tmp_path, mapname: str, point: str, transport: str, axis: i
         upstream, framing = ("127.0.0.1", int(bench.rtu_url.rsplit(":", 1)[1])), "rtu"
     front = FreezeFront(bench.controller, upstream, framing=framing, order="newest")
     host, port = await front.start()
+    gateway = None
+    if transport == "gateway":  # Modbus TCP to a TCP/RTU gateway (short response timeout) on the frozen line
+        gateway = SerialGateway((host, port), client_framing="tcp", line_timeout_s=0.025, route="requester")
+        host, port = await gateway.start()
     act = ModbusActuators(
-        transport=transport,
+        transport="tcp" if transport == "gateway" else transport,
         host=host,
         port=port,
         regmap=m,
@@ -132,11 +137,13 @@ async def run_frozen(tmp_path, mapname: str, point: str, transport: str, axis: i
     finally:
         await act.close()
         await acq.camera.close()
+        if gateway is not None:
+            await gateway.close()
         await front.close()
         await bench.stop()
 
 
-@pytest.mark.parametrize("transport", ["tcp", "rtu-tcp"])
+@pytest.mark.parametrize("transport", ["tcp", "rtu-tcp", "gateway"])
 @pytest.mark.parametrize(("mapname", "point"), POINTS)
 async def test_a_frozen_controller_never_moves_after_the_run(tmp_path, transport, mapname, point):
     r = await run_frozen(tmp_path, mapname, point, transport, axis=1)
