@@ -4,9 +4,14 @@ The link speaks the protocol (Modbus, serial ASCII); the controller owns the mot
 
 Plausible readings. Every decoded position must lie within the soft limits widened by
 ``plausibility_margin_m`` and within ``max_speed_m_s`` x the time since the axis' last accepted
-reading (+ ``plausibility_slack_m``); otherwise :class:`~drivers.errors.ProtocolError` names the axis,
-the value and why, and nothing moves on it (homing, which may re-zero an encoder, is exempt from the
-second test).
+reading (+ ``plausibility_slack_m``); during a commanded move it must also lie on the commanded move (between its
+start and its target), not behind a reading already accepted on it (the move goes one way: an older position is a
+stale reply), and no further along than the commanded speed (and ``max_accel_m_s2`` when set) allows since the
+command was sent. Otherwise :class:`~drivers.errors.ProtocolError` names the axis, the value and why, and nothing
+moves on it (homing, which may re-zero an encoder, and free drives are exempt from the trajectory tests).
+
+After a failure (a stop not confirmed, a motion command whose fate is open on a lost connection) the controller
+stops every axis, confirmed, before it reports a status or moves again (``motion_in_doubt``).
 
 A move follows one shape: check the targets (per-axis soft limits, then the kinematic model), compute a timeout
 from the distances and speeds, write target + speed + start, poll until every axis is in position, and stop every

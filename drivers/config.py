@@ -87,7 +87,7 @@ class ActuatorsConfig(BaseModel):
         True, description="read through varied register windows so a stale reply has the wrong length"
     )
     duplicate_window_s: float = Field(
-        0.1, ge=0, description="a reply may be duplicated this long after it came: its shape is not asked meanwhile"
+        0.06, ge=0, description="a reply may be duplicated this long after it came: its shape is not asked meanwhile"
     )
     motion_confirm_s: float | None = Field(
         None,

@@ -101,7 +101,7 @@ class SafetySettings:
         bounded (the commanded speed still is).
     """
 
-    duplicate_window_s: float = 0.1
+    duplicate_window_s: float = 0.06
     motion_confirm_s: float | None = None
     watchdog_s: float = 0.5
     stop_persist_s: float = 30.0

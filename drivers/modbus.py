@@ -5,24 +5,25 @@
 (:class:`drivers.axes.AxisController`: limits, move timeouts, plausible readings, confirmed stop, cancellation)
 over it.
 
-Stale replies. A reply is taken as the answer to a request only when it matches it: function code,
-unit id, register count or echoed address/count, and on Modbus TCP the transaction id. A request
-that gets no reply in time (or is cancelled, or whose link is cut) leaves its reply possibly still on
-the way, so its link is never reused: it is closed and a fresh one opened. On a link with RTU framing
-(``rtu``: a serial line; ``rtu-tcp``: a serial device server or gateway) a fresh link leads to the same
-wire and an RTU reply names neither a transaction nor an address, so after such a fault the link stays
-closed for ``late_reply_guard_s`` (default twice the reply timeout) and the next request waits until
-the link has been quiet for ``flush_s``; bytes that arrive while no request is outstanding (a late or
-duplicated reply, a reply to another master on a shared line) are counted (``stats["unrequested"]``)
-and discarded. Consecutive reads of one unit (a retry included) ask for windows of different lengths
-(the read-back window, then widened by an adjacent register of the same axis), so that a late or
-duplicated reply to the previous read of that unit has the wrong byte count and is refused
-(``stats["stale"]``) rather than taken for the current answer, on RTU framing and behind a Modbus
-TCP/RTU gateway alike. The read before that has the same length: a request waits until ``flush_s``
-after the last reply to a request of its shape (unit, function, a read's register count, a write's
-address and count), so that a copy of that reply made on the way (a gateway or serial device server
-that duplicates it) has come, while nothing was asked, before a request it would answer goes out.
-A stop (``urgent``) does not wait; the controller reads it back.
+Stale replies. A reply is taken as the answer to a request only when it matches it: function code, unit id,
+register count or echoed address/count, and on Modbus TCP the transaction id (which a TCP/RTU gateway gives a late
+serial reply of another request, so it proves little). What a reply shows of its request is its *shape* (unit,
+function, a read's register count, a write's address and count). A request that got no reply in time (or was
+cancelled, lost its link, got a stale reply) leaves its reply possibly on the way, on every transport: no request of
+its shape goes out for ``late_reply_guard_s``, and its link is not reused (a fresh one is opened). A reply may also
+be duplicated on its way: no request of an axis read's or state read's shape goes out within
+``duplicate_window_s`` after its reply (others: ``flush_s``). Axis reads choose among every window of the axis'
+registers that covers the read-back (six lengths in the default map) the one whose shape is free soonest, so that
+the guards rarely wait. Bytes that arrive while no request is outstanding are counted (``stats["unrequested"]``)
+and discarded; on RTU framing the next request waits for ``flush_s`` of quiet.
+
+Motion commands (a start, a target that starts the move, homing) are sent once. When no reply proves one taken,
+the link stays on its connection (a controller serves a connection in order; pymodbus never closes it on its own):
+it reads the axis' target, speed, control and status registers back there, within ``motion_confirm_s``, and sends
+the command again, on that connection, only when that state proves it was not taken. Otherwise
+:class:`drivers.links.MotionNotConfirmedError`; the stop that follows goes out on the same connection, after the
+command. A connection lost with a command's fate open sets ``motion_in_doubt``: the axis controller stops every
+axis, confirmed, before it reports or moves again.
 """
 
 from __future__ import annotations
@@ -537,9 +538,7 @@ class ModbusLink:
         what = f"axis {axis + 1}: motion command (unit {unit}, register {address}, values {values})"
         for _attempt in range(self.retries + 1):
             try:
-                await self._request(
-                    "write", unit, address, values, motion=True, window_s=self.safety.duplicate_window_s
-                )
+                await self._request("write", unit, address, values, motion=True)
                 return
             except _MotionUnansweredError as exc:
                 if exc.lost or self._pin is None:  # its connection is gone: nothing can prove its fate

@@ -85,9 +85,10 @@ async def test_a_reading_behind_the_commanded_move_is_refused(bench):
         with pytest.raises(ProtocolError, match="axis 1: implausible position .* behind a reading already accepted"):
             # 3 mm back: where the axis was 15 ms ago; within 5 x speed x dt of the last reading
             act.check_reading(0, float(q_now[0] - 0.003), 0.0)
-        await act.stop()
-        with pytest.raises(Exception):  # noqa: B017 - the move ends, stopped
+        move.cancel()  # the move stops (its own stop on cancellation)
+        with pytest.raises(asyncio.CancelledError):
             await move
+        assert not any(ax.moving for ax in bench.mechanism.axes)
 
 
 def frames_plan() -> Plan:
@@ -155,3 +156,27 @@ async def test_a_frame_whose_q_keeps_disagreeing_is_refused(bench, tmp_path):
     assert len(ds.frames) == ei.value.frames_kept == 1
     for f in ds.frames:
         assert np.max(np.abs(np.asarray(f.q) - np.asarray(f.model_extra["truth"]["q"]))) <= 3e-6
+
+
+def test_bench_file_motion_safety_keys_reach_the_driver(bench):
+    from drivers.config import open_actuators
+
+    cfg = bench.bench_config(
+        actuators={
+            "duplicate_window_s": 0.08,
+            "motion_confirm_s": 1.5,
+            "watchdog_s": 1.0,
+            "stop_persist_s": 12.0,
+            "max_accel_m_s2": 900.0,
+        }
+    )
+    act = open_actuators(cfg)
+    assert act.stop_persist_s == 12.0 and act.accel_limit_m_s2 == 900.0
+    link = act.link
+    assert link.safety.duplicate_window_s == 0.08 and link.motion_confirm_s == 1.5
+    assert link.reply_timeout_s == 0.5  # bench timeout 0.5 s, under 0.8 x 1.0 s - backoff
+    defaults = open_actuators(bench.bench_config())
+    assert defaults.link.reply_timeout_s == pytest.approx(0.38)  # capped below the drives' 0.5 s watchdog
+    assert defaults.stop_persist_s == 30.0 and defaults.link.safety.duplicate_window_s == 0.06
+    with pytest.raises(Exception, match="stop_persist_s"):
+        bench.bench_config(actuators={"stop_persist_s": -1})
