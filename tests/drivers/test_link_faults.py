@@ -347,7 +347,7 @@ async def test_an_rtu_duplicate_50_ms_late_never_answers_a_later_read():
 FRAME_FAULTS = dict(delay_prob=0.03, delay_s=DELAYS, duplicate_prob=0.2, duplicate_after_s=(0.0003, 0.05))
 
 
-@pytest.mark.parametrize("transport", ["tcp", "rtu-tcp", "gateway"])
+@pytest.mark.parametrize("transport", ["tcp", "rtu", "rtu-tcp", "gateway"])
 async def test_no_frame_off_the_truth(bench, tmp_path, transport):
     """A run through the faulty link (late replies, duplicates up to 50 ms late): every frame written records a q
     within the encoder's noise of the true joints at the frame (the simulated camera reports them). A run that

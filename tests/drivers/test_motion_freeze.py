@@ -23,6 +23,7 @@ import pytest
 from drv_helpers import FAST, TinyRenderer
 from test_acquisition import small_plan
 
+from calib.dataset import Dataset
 from calib.parameters import NOMINAL
 from calib.plan import Plan
 from drivers.acquisition import Acquisition, AcquisitionError
@@ -35,6 +36,7 @@ from drivers.sim.controller import FreezeFront, Request
 from drivers.sim.faultproxy import SerialGateway
 
 FREEZE_S = 1.0
+TOL_M = 3e-6  # 1 um counts + 0.3 um encoder noise, 10 sigma
 SPLIT = RegisterMap(control=9)  # target, speed and start in three writes
 MAPS = {"default": RegisterMap(), "split": SPLIT}
 #: (map, point): when the freeze starts, relative to the command to one axis
@@ -126,7 +128,11 @@ async def run_frozen(tmp_path, mapname: str, point: str, transport: str, axis: i
             for i in np.flatnonzero(np.abs(q - q_end) > 1e-6):
                 moved.append((time.monotonic() - t_end, int(i) + 1, float(q[i] - q_end[i])))
             assert time.monotonic() < t_end + 4 * FREEZE_S + 2, "the freeze never ended"
+        ds = Dataset.open(tmp_path / "ds")
+        off = [float(np.max(np.abs(np.asarray(f.q) - np.asarray(f.model_extra["truth"]["q"])))) for f in ds.frames]
         return dict(
+            frames_off=[d for d in off if d > TOL_M],
+            frames=len(off),
             error=error,
             moved=moved,
             moving=[ax.moving for ax in bench.mechanism.axes],
@@ -152,6 +158,7 @@ async def test_a_frozen_controller_never_moves_after_the_run(tmp_path, transport
     assert r["late"], "nothing was executed late: the scenario did not happen"
     assert r["moved"] == [], f"axes moved after the run had ended: {r['moved'][:5]}"
     assert not any(r["moving"])
+    assert r["frames"] >= 2 and r["frames_off"] == [], r["frames_off"]  # frames written before the freeze: true
     # the run failed during the freeze, says why, and that the stop was confirmed (after the thaw)
     assert r["error"] is not None
     assert "motion stopped" in r["error"] and "may NOT" not in r["error"], r["error"]
