@@ -558,6 +558,9 @@ class ModbusLink:
                     f"{what}: not taken, and its connection changed: not sent again", axis=axis + 1
                 )
             self.stats["motion_resent"] += 1
+            # answered on its connection after the command: the command's own reply, if any, came before; its shape
+            # is free again on this connection
+            self._late.pop(_reply_shape("write", unit, address, values), None)
             log.warning("%s: not taken (state read back on its connection: %s); sent again on it", what, state)
         raise MotionNotConfirmedError(
             f"{what}: not taken after {self.retries + 1} attempts, each read back on its connection", axis=axis + 1

@@ -474,6 +474,7 @@ class _FrontConnection:
         self.replied = asyncio.Event()
         self.last: Request | None = None  # the request whose reply is awaited
         self.held = 0  # requests that waited out a freeze
+        self.lose_reply = False  # the reply to the request on its way is lost
 
 
 class FreezeFront:
@@ -487,7 +488,8 @@ class FreezeFront:
     case for a master that sent a stop on a new connection after a command on an old one, or ``"oldest"``), each
     connection's in the order sent, and serves on. :meth:`freeze` freezes now; :meth:`freeze_on` freezes when a
     request matching a predicate arrives (``when="before"``: it is buffered) or once it has been answered
-    (``"after"``). ``executed_late``: the requests executed after a freeze ended, in order.
+    (``"after"``). ``executed_late``: the requests executed after a freeze ended, in order. :meth:`lose_on` loses
+    one request, or its reply.
     """
 
     def __init__(
@@ -502,6 +504,8 @@ class FreezeFront:
         self.freezes = 0
         self.executed_late: list[Request | None] = []
         self._trigger: tuple[Callable[[Request], bool], float, str] | None = None
+        self._lose: tuple[Callable[[Request], bool], str] | None = None
+        self.lost: list[tuple[str, Request]] = []  # requests lost, or whose reply was
         self._waiting: list[_FrontConnection] = []
         self._server: asyncio.base_events.Server | None = None
         self._tasks: set[asyncio.Task] = set()
@@ -530,6 +534,13 @@ class FreezeFront:
         if when not in ("before", "after"):
             raise ValueError(f"when must be 'before' or 'after', got {when!r}")
         self._trigger = (match, float(seconds), when)
+
+    def lose_on(self, match: Callable[[Request], bool], *, what: str = "request") -> None:
+        """Lose the next request that ``match`` accepts (``what="request"``: it never reaches the controller, as a
+        frame lost on a serial line) or its reply (``"reply"``: executed, the answer lost)."""
+        if what not in ("request", "reply"):
+            raise ValueError(f"what must be 'request' or 'reply', got {what!r}")
+        self._lose = (match, what)
 
     @property
     def armed(self) -> bool:
@@ -608,7 +619,14 @@ class FreezeFront:
                 late = self._hold(conn)
             if late:  # buffered: executed once the freeze is over, this connection's turn come
                 await conn.turn.wait()
-            conn.last, conn.replied = req, asyncio.Event()
+            conn.last, conn.replied, conn.lose_reply = req, asyncio.Event(), False
+            if self._lose is not None and req is not None and not late and self._lose[0](req):
+                what = self._lose[1]
+                self._lose = None
+                self.lost.append((what, req))
+                if what == "request":
+                    continue
+                conn.lose_reply = True
             with contextlib.suppress(ConnectionError, OSError):
                 uw.write(frame)
                 await uw.drain()
@@ -622,7 +640,9 @@ class FreezeFront:
     async def _back(self, conn: _FrontConnection, ur: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         with contextlib.suppress(ConnectionError, OSError):
             while data := await ur.read(65536):
-                if not writer.is_closing():
+                if conn.lose_reply:
+                    conn.lose_reply = False
+                elif not writer.is_closing():
                     writer.write(data)
                 conn.replied.set()
                 self._check_trigger(conn.last, "after")

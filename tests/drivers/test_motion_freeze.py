@@ -181,3 +181,46 @@ async def test_a_motion_command_is_never_sent_again_on_another_connection(tmp_pa
     assert len(starts) == 1, late  # the start buffered before the freeze, executed once
     assert any(control_of(q) & stop for q in late[starts[0] + 1 :]), "no stop of axis 2 executed after its late start"
     assert r["stats"]["motion_unanswered"] >= 1 and r["stats"]["motion_resent"] == 0
+
+
+async def lossy_move(what: str) -> dict:
+    """One move through a FreezeFront that loses the start write of axis 2 (``what="request"``: it never reaches
+    the controller) or its reply (``"reply"``: executed, the answer lost)."""
+    bench = SimBench(port=0, axis_config=FAST, renderer=TinyRenderer(), seed=1, rtu=False)
+    await bench.start()
+    front = FreezeFront(bench.controller, bench.tcp_address, framing="tcp")
+    host, port = await front.start()
+    m = RegisterMap()
+    act = ModbusActuators(host=host, port=port, speed_m_s=0.5, accel_m_s2=40.0, timeout_s=0.05, retries=2, poll_s=0.002)
+    try:
+        await act.connect()
+        await act.home(timeout_s=5)
+        writes = bench.controller.writes
+        front.lose_on(lambda r: r.unit == 2 and r.writes(m.control) and bool(r.values[-1] & 1), what=what)
+        target = np.array([0.40, 0.41, 0.42, 0.43])
+        q = await act.move(target)
+        return dict(q=q, target=target, stats=dict(act.stats), lost=front.lost, writes=bench.controller.writes - writes)
+    finally:
+        await act.close()
+        await front.close()
+        await bench.stop()
+
+
+async def test_a_lost_start_is_sent_again_only_once_proven_not_taken():
+    """The start of axis 2 never reaches the controller (a frame lost on the line): no reply; the state read back
+    on the same connection shows the old target: not taken, so it is sent again there, once, and the move ends."""
+    r = await lossy_move("request")
+    assert [w for w, _ in r["lost"]] == ["request"]
+    assert r["stats"]["motion_unanswered"] == 1 and r["stats"]["motion_resent"] == 1, r["stats"]
+    assert r["writes"] == 4  # four starts executed: axis 2's once (the lost one never arrived)
+    assert np.allclose(r["q"], r["target"], atol=3e-6)
+
+
+async def test_a_start_whose_reply_is_lost_is_not_sent_again():
+    """The start of axis 2 is executed but its reply lost: the state read back on the same connection shows the new
+    target: taken, not sent again; the move ends."""
+    r = await lossy_move("reply")
+    assert [w for w, _ in r["lost"]] == ["reply"]
+    assert r["writes"] == 4  # the old driver sent it again, blind: 5 starts executed
+    assert r["stats"]["motion_unanswered"] == 1 and r["stats"]["motion_resent"] == 0, r["stats"]
+    assert np.allclose(r["q"], r["target"], atol=3e-6)
