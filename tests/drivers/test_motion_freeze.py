@@ -79,7 +79,11 @@ def trigger(m: RegisterMap, point: str, axis: int, nth: int):
     return hit, "before" if point == "before-target" else "after"
 
 
-async def run_frozen(tmp_path, mapname: str, point: str, transport: str, axis: int) -> dict:
+async def run_frozen(
+    tmp_path, mapname: str, point: str, transport: str, axis: int, *, freeze_s: float = FREEZE_S, defaults: bool = False
+) -> dict:
+    """One run frozen at ``point`` of the third move's command to ``axis``. ``defaults``: the driver's default
+    timeouts, stop deadline and safety settings (the bench file's), else the scaled-down ones."""
     m = MAPS[mapname]
     bench = SimBench(port=0, axis_config=FAST, renderer=TinyRenderer(), seed=1, regmap=m)
     await bench.start()
@@ -93,6 +97,13 @@ async def run_frozen(tmp_path, mapname: str, point: str, transport: str, axis: i
     if transport == "gateway":  # Modbus TCP to a TCP/RTU gateway (short response timeout) on the frozen line
         gateway = SerialGateway((host, port), client_framing="tcp", line_timeout_s=0.025, route="requester")
         host, port = await gateway.start()
+    scaled = dict(
+        timeout_s=0.05,
+        retries=2,
+        backoff_s=0.01,
+        stop_deadline_s=0.3,
+        safety=SafetySettings(stop_persist_s=6 * FREEZE_S),
+    )
     act = ModbusActuators(
         transport="tcp" if transport == "gateway" else transport,
         host=host,
@@ -100,17 +111,13 @@ async def run_frozen(tmp_path, mapname: str, point: str, transport: str, axis: i
         regmap=m,
         speed_m_s=0.5,
         accel_m_s2=40.0,
-        timeout_s=0.05,
-        retries=2,
-        backoff_s=0.01,
         poll_s=0.002,
         move_timeout_margin_s=0.5,
-        stop_deadline_s=0.3,
-        safety=SafetySettings(stop_persist_s=6 * FREEZE_S),
+        **({} if defaults else scaled),
     )
     cfg = bench.bench_config()
     hit, when = trigger(m, point, axis, nth=3)  # the third move's command (homing and two poses done)
-    front.freeze_on(hit, FREEZE_S, when=when)
+    front.freeze_on(hit, freeze_s, when=when)
     acq = Acquisition(plan(), act, open_camera(cfg), tmp_path / "ds", nominal=NOMINAL, limits=cfg.calib_limits())
     error = None
     try:
@@ -127,7 +134,7 @@ async def run_frozen(tmp_path, mapname: str, point: str, transport: str, axis: i
             q = bench.mechanism.q_true()
             for i in np.flatnonzero(np.abs(q - q_end) > 1e-6):
                 moved.append((time.monotonic() - t_end, int(i) + 1, float(q[i] - q_end[i])))
-            assert time.monotonic() < t_end + 4 * FREEZE_S + 2, "the freeze never ended"
+            assert time.monotonic() < t_end + 4 * freeze_s + 2, "the freeze never ended"
         ds = Dataset.open(tmp_path / "ds")
         off = [float(np.max(np.abs(np.asarray(f.q) - np.asarray(f.model_extra["truth"]["q"])))) for f in ds.frames]
         return dict(
@@ -224,3 +231,16 @@ async def test_a_start_whose_reply_is_lost_is_not_sent_again():
     assert r["writes"] == 4  # the old driver sent it again, blind: 5 starts executed
     assert r["stats"]["motion_unanswered"] == 1 and r["stats"]["motion_resent"] == 0, r["stats"]
     assert np.allclose(r["q"], r["target"], atol=3e-6)
+
+
+@pytest.mark.slow
+async def test_the_issue_case_a_5_s_freeze_on_default_settings(tmp_path):
+    """The issue's case at full scale: the controller frozen 5 s just as a move's start goes out, the driver on its
+    default settings (reply timeout 0.5 s capped to 0.38 s, stop deadline 2 s, a failed run stopping for up to
+    30 s): the run fails during the freeze, keeps stopping, and says the stop was confirmed once the controller
+    answered again; nothing moves after."""
+    r = await run_frozen(tmp_path, "default", "before-target", "tcp", axis=1, freeze_s=5.0, defaults=True)
+    assert r["freezes"] == 1 and r["late"]
+    assert r["moved"] == [] and not any(r["moving"])
+    assert "motion stopped" in r["error"] and "may NOT" not in r["error"] and "no reply" in r["error"], r["error"]
+    assert r["stats"]["motion_resent"] == 0
