@@ -452,7 +452,7 @@ class ModbusLink:
         of these (start, count), chosen so that no reply that may still come has its shape; the result is then
         ``(start, registers)``. ``urgent`` (a stop): no waiting for a shape or for quiet. ``on``: only on this
         connection, the pinned one (a timeout when it is gone). ``window_s``: how long after a reply of the same
-        shape a copy of it may still come (default ``flush_s``; the axis reads and motion commands use
+        shape a copy of it may still come (default ``flush_s``; the axis reads and state reads use
         ``duplicate_window_s``)."""
         async with self._lock:
             last: str = ""
