@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 from drv_helpers import FAST, TinyRenderer
 from test_acquisition import small_plan
+from test_link_faults import PtyToTcp
 
 from calib.dataset import Dataset
 from calib.parameters import NOMINAL
@@ -93,10 +94,14 @@ async def run_frozen(
         upstream, framing = ("127.0.0.1", int(bench.rtu_url.rsplit(":", 1)[1])), "rtu"
     front = FreezeFront(bench.controller, upstream, framing=framing, order="newest")
     host, port = await front.start()
-    gateway = None
+    gateway = pty = None
     if transport == "gateway":  # Modbus TCP to a TCP/RTU gateway (short response timeout) on the frozen line
         gateway = SerialGateway((host, port), client_framing="tcp", line_timeout_s=0.025, route="requester")
         host, port = await gateway.start()
+    where: dict = dict(host=host, port=port)
+    if transport == "rtu":  # a serial port (pty) relayed to the frozen controller's RTU socket
+        pty = PtyToTcp((host, port))
+        where = dict(serial_port=await pty.start())
     scaled = dict(
         timeout_s=0.05,
         retries=2,
@@ -106,8 +111,7 @@ async def run_frozen(
     )
     act = ModbusActuators(
         transport="tcp" if transport == "gateway" else transport,
-        host=host,
-        port=port,
+        **where,
         regmap=m,
         speed_m_s=0.5,
         accel_m_s2=40.0,
@@ -152,11 +156,13 @@ async def run_frozen(
         await acq.camera.close()
         if gateway is not None:
             await gateway.close()
+        if pty is not None:
+            await pty.close()
         await front.close()
         await bench.stop()
 
 
-@pytest.mark.parametrize("transport", ["tcp", "rtu-tcp", "gateway"])
+@pytest.mark.parametrize("transport", ["tcp", "rtu", "rtu-tcp", "gateway"])
 @pytest.mark.parametrize(("mapname", "point"), POINTS)
 async def test_a_frozen_controller_never_moves_after_the_run(tmp_path, transport, mapname, point):
     r = await run_frozen(tmp_path, mapname, point, transport, axis=1)
