@@ -6,11 +6,13 @@ Real parts: the simulated controller (a pymodbus server on loopback) behind ``dr
 after connection, the newest connection first: the worst order for a master that sent its stop on a new
 connection after a command on an old one). The freeze starts at one point of a move command: before the write
 that carries the target, between the target and the start (a map whose start is a separate write), after the
-start. The property tested is the issue's (a 5 s freeze); the freeze here is 1 s with the driver's timeouts scaled
-down (reply timeout 50 ms, stop deadline 0.3 s): it outlasts everything the driver tries before the run fails, as
-5 s outlast the default settings, and stays shorter than ``stop_persist_s``, so the run's stop is confirmed after
-the thaw. On the old code (a motion command re-sent on fresh connections, the stop on yet another one, no stop
-after the thaw) the buffered starts ran after the run had failed.
+start; over Modbus TCP, RTU (a pty relayed to the front), RTU over TCP and a TCP/RTU gateway with a short response
+timeout: 20 runs. The property tested is the issue's (a 5 s
+freeze); the freeze here is 1 s with the driver's timeouts scaled down (reply timeout 50 ms, stop deadline 0.3 s):
+it outlasts everything the driver tries before the run fails, as 5 s outlast the default settings, and stays
+shorter than ``stop_persist_s``, so the run's stop is confirmed after the thaw. On the old code (a motion command
+re-sent on fresh connections, the stop on yet another one, no stop after the thaw) the buffered starts ran after
+the run had failed.
 """
 
 from __future__ import annotations
