@@ -529,13 +529,15 @@ class ModbusLink:
         await self._request("write", unit, address, values, urgent=urgent)
 
     # -- motion commands: never re-sent blind -------------------------------------------------------
-    async def _motion_write(self, axis: int, unit: int, address: int, values: list[int], taken: _TakenTest) -> None:
+    async def _motion_write(
+        self, axis: int, unit: int, address: int, values: list[int], taken: _TakenTest, label: str
+    ) -> None:
         """Send a motion command (a start, a target that starts, homing) once. When no reply proves it was taken,
         read the axis' state back on the SAME connection (a controller serves a connection in order: an answer
         there proves the command was processed) and send it again only when that state proves it was not taken,
         on that connection still. Otherwise :class:`~drivers.links.MotionNotConfirmedError` (the link stays on
         that connection: the stop that follows goes out after the command)."""
-        what = f"axis {axis + 1}: motion command (unit {unit}, register {address}, values {values})"
+        what = f"axis {axis + 1}: {label} (unit {unit}, register {address})"
         for _attempt in range(self.retries + 1):
             try:
                 await self._request("write", unit, address, values, motion=True)
@@ -650,7 +652,7 @@ class ModbusLink:
         value = (m.bit("control", command) if command else 0) | (m.bit("control", "free") if free else 0)
         if command == "home":
             homing = _Taken(m, home=True)
-            await self._motion_write(axis, unit, addr, [value], homing)
+            await self._motion_write(axis, unit, addr, [value], homing, "the homing command")
             return
         await self.write(unit, addr, [value], urgent=urgent)
 
@@ -662,16 +664,19 @@ class ModbusLink:
             tregs = m.to_regs32(m.m_to_counts(targets_m[i]))
             sregs = m.to_regs32(m.speed_to_counts(speeds_m_s[i]))
             taken = _Taken(m, target=tregs, speed=sregs)
+            label = f"the start of the move to {targets_m[i] * 1e3:.3f} mm"
             if m.start_mode == "target_write":
                 await self.write(unit, off + m.speed, sregs)
-                await self._motion_write(i, unit, off + m.target, tregs, taken)
+                await self._motion_write(i, unit, off + m.target, tregs, taken, label)
             elif m.speed == m.target + 2 and m.control == m.target + 4:
-                await self._motion_write(i, unit, off + m.target, [*tregs, *sregs, m.bit("control", "start")], taken)
+                values = [*tregs, *sregs, m.bit("control", "start")]
+                await self._motion_write(i, unit, off + m.target, values, taken, label)
             else:
                 await self.write(unit, off + m.speed, sregs)
                 await self.write(unit, off + m.target, tregs)
                 # never free here: a move refuses free drives
-                await self._motion_write(i, unit, off + m.control, [m.bit("control", "start")], _Taken(m, start=True))
+                start = [m.bit("control", "start")]
+                await self._motion_write(i, unit, off + m.control, start, _Taken(m, start=True), label)
 
 
 @dataclass(frozen=True)

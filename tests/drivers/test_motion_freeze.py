@@ -178,6 +178,8 @@ async def test_a_frozen_controller_never_moves_after_the_run(tmp_path, transport
     assert r["error"] is not None
     assert "motion stopped" in r["error"] and "may NOT" not in r["error"], r["error"]
     assert "no reply" in r["error"], r["error"]
+    if mapname == "default" or point == "between-target-and-start":  # a start was frozen: the error says so
+        assert "the start of the move to" in r["error"] and "may still execute it; not sent again" in r["error"]
 
 
 async def test_a_motion_command_is_never_sent_again_on_another_connection(tmp_path):
