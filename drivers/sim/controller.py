@@ -25,6 +25,7 @@ delayed there can leave with the next request's transaction id.
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import logging
 from collections.abc import Callable
@@ -338,8 +339,15 @@ class AsciiServer:
 
     def __init__(self, mechanism: Mechanism) -> None:
         self.mechanism = mechanism
+        #: faults: the next N replies lost (the command executed), the next N request lines lost before the
+        #: controller (never executed), the next N replies preceded by line noise
         self.drop_replies = 0
+        self.drop_requests = 0
         self.garble_replies = 0
+        #: a verb (``MOVE``) after whose execution the controller answers nothing more (a controller that stalls)
+        self.mute_after: str | None = None
+        #: commands executed, by verb (``MOVE``, ``CTRL``, ``STAT?``, ...)
+        self.executed: collections.Counter[str] = collections.Counter()
         self._server: asyncio.base_events.Server | None = None
         self._writers: set[asyncio.StreamWriter] = set()
 
@@ -386,7 +394,15 @@ class AsciiServer:
         self._writers.add(writer)
         try:
             while line := await reader.readline():
-                out = self.reply(line.decode(errors="replace"))
+                if self.drop_requests > 0:
+                    self.drop_requests -= 1
+                    continue
+                text = line.decode(errors="replace")
+                verb = text.split()[1] if len(text.split()) > 1 else "?"
+                self.executed[verb] += 1
+                out = self.reply(text)
+                if self.mute_after is not None and verb == self.mute_after:
+                    self.drop_replies = 10**9
                 if self.drop_replies > 0:
                     self.drop_replies -= 1
                     continue
