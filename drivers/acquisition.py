@@ -31,7 +31,7 @@ from calib.kinematics import ikm
 from calib.parameters import NOMINAL, I4Parameters
 from calib.plan import Plan, SoftLimits, line_poses, validate_plan
 
-from .errors import AbortedError, DeviceError, DeviceTimeoutError, FrameError, StopNotConfirmedError
+from .errors import AbortedError, DeviceError, DeviceTimeoutError, FrameError, ProtocolError, StopNotConfirmedError
 from .interfaces import Actuators, Camera, Frame, Operator
 from .operators import ConsoleOperator as ConsoleOperator  # where it was before: the console operator
 from .registermap import ALARM_WATCHDOG
@@ -85,6 +85,30 @@ def _not_stopped(exc: BaseException) -> str:
     if isinstance(exc, StopNotConfirmedError):
         return "motion may NOT have stopped (stop not confirmed); use the emergency stop"
     return f"motion may NOT have stopped (stop failed: {exc}); use the emergency stop"
+
+
+def q_problem(
+    q1: np.ndarray, q2: np.ndarray, target: np.ndarray | None, tol_target_m: float, tol_repeat_m: float
+) -> str:
+    """Why a frame's q (``q1``, read before the grab) cannot be recorded: ``q2`` (read after) differs by more than
+    ``tol_repeat_m``, or ``q1`` is off the commanded ``target`` by more than ``tol_target_m`` (all m, shape (n,));
+    ``""`` when it can."""
+    d = np.abs(np.asarray(q2) - np.asarray(q1))
+    if float(d.max()) > tol_repeat_m:
+        i = int(d.argmax())
+        return (
+            f"q{i + 1} read {q1[i] * 1e3:.4f} mm before the grab and {q2[i] * 1e3:.4f} mm after "
+            f"(more than {tol_repeat_m * 1e3:.4f} mm apart)"
+        )
+    if target is not None:
+        e = np.abs(np.asarray(q1) - target)
+        if float(e.max()) > tol_target_m:
+            i = int(e.argmax())
+            return (
+                f"q{i + 1} read {q1[i] * 1e3:.4f} mm, {e[i] * 1e3:.4f} mm from its commanded target "
+                f"{target[i] * 1e3:.4f} mm (more than {tol_target_m * 1e3:.4f} mm)"
+            )
+    return ""
 
 
 class AcquisitionError(DeviceError):
@@ -152,8 +176,9 @@ class Acquisition:
         self.overheads: list[float] = []
         self.timings: list[tuple[float, float, float]] = []  # (start, in position, written) per pose
         self._record_s: float | None = None  # running estimate of one grab + write
-        self.line_still_m = 1e-5
-        self._pending: asyncio.Future | None = None  # encoders before and after a line frame agree within this
+        self.line_still_m = 1e-5  # encoders before and after a frame agree within this (m)
+        self.frame_reads = 3  # a pose's frame whose q fails its checks is read again, at most this many times
+        self._pending: asyncio.Future | None = None
 
     # -- control ----------------------------------------------------------------------------------
     def pause(self) -> None:
@@ -222,13 +247,29 @@ class Acquisition:
                     return fut.result()
 
     async def _safe_stop(self) -> str:
-        """Stop the actuators; returns what to tell: "motion stopped" only when the stop was confirmed."""
-        try:
-            await asyncio.shield(self.actuators.stop())
-        except Exception as exc:
-            log.error("could not stop the actuators: %s", exc)
-            return _not_stopped(exc)
-        return "motion stopped"
+        """Stop the actuators, and keep stopping while the stop is not confirmed and the controller is connected but
+        silent (a stalled controller, an overloaded gateway: it may execute buffered commands when it answers
+        again), up to the actuators' ``stop_persist_s``. Returns what to tell: "motion stopped" only when a stop
+        was confirmed."""
+        persist_s = float(getattr(self.actuators, "stop_persist_s", 0.0) or 0.0)
+        t0 = time.monotonic()
+        attempts = 0
+        while True:
+            attempts += 1
+            try:
+                await asyncio.shield(self.actuators.stop())
+            except Exception as exc:
+                log.error("could not stop the actuators (attempt %d): %s", attempts, exc)
+                elapsed = time.monotonic() - t0
+                if not getattr(exc, "reachable", False) or elapsed >= persist_s:
+                    tried = f" (stop tried {attempts} times over {elapsed:.1f} s)" if attempts > 1 else ""
+                    return _not_stopped(exc) + tried
+                self._emit(self.state, f"stop not confirmed yet; stopping again ({exc})")
+                await asyncio.sleep(0.05)
+                continue
+            if attempts == 1:
+                return "motion stopped"
+            return f"motion stopped (confirmed after {attempts} stops, {time.monotonic() - t0:.1f} s after the first)"
 
     def _mark(self, state: str, pose: int | None, reason: str) -> None:
         """Record the run's state in ``dataset.json`` (``acquisition``); a failure to record it is logged, and the
@@ -315,8 +356,16 @@ class Acquisition:
         )
 
     async def _fail(self, u: Unit, exc: BaseException) -> None:
-        # the driver already tried to stop (one bounded deadline) when it says the stop is not confirmed
-        stopped = _not_stopped(exc) if isinstance(exc, StopNotConfirmedError) else await self._safe_stop()
+        # a stop the driver could not confirm is tried again (the controller may answer again, and execute what it
+        # had buffered)
+        if isinstance(exc, StopNotConfirmedError) and not getattr(exc, "reachable", False):
+            stopped = _not_stopped(exc)  # the driver tried for one deadline and nothing reached the controller
+        else:
+            stopped = await self._safe_stop()
+            if isinstance(exc, StopNotConfirmedError) and exc.__cause__ is not None and stopped.startswith("motion st"):
+                # the driver's own stop was not confirmed, this one was: say what failed and how it ended
+                exc = exc.__cause__
+                stopped = "the first stop was not confirmed; " + stopped
         with contextlib.suppress(Exception):
             await self._flush_writes()
         with contextlib.suppress(Exception):
@@ -460,6 +509,14 @@ class Acquisition:
         t_moved = time.perf_counter()
         if self.settle_s:
             await asyncio.sleep(self.settle_s)
+        q, frame = await self._checked_frame(u)
+        await self._write_behind(u, q, frame, q_target=list(u.q) if u.q is not None else None)
+        t_end = time.perf_counter()
+        self.timings.append((t_start, t_moved, t_end))
+        self._note_record_time(t_end - t_moved)
+        self._emit("running", "", u.phase)
+
+    async def _read_status(self) -> Any:
         st = await self.actuators.status()
         if st.alarms:
             from .errors import AlarmError
@@ -467,13 +524,29 @@ class Acquisition:
 
             ax, code = next(iter(st.alarms.items()))
             raise AlarmError(alarm_message(ax, code), code=code, axis=ax)
-        q = st.positions
-        frame = await self._grab()
-        await self._write_behind(u, q, frame, q_target=list(u.q) if u.q is not None else None)
-        t_end = time.perf_counter()
-        self.timings.append((t_start, t_moved, t_end))
-        self._note_record_time(t_end - t_moved)
-        self._emit("running", "", u.phase)
+        return st
+
+    async def _checked_frame(self, u: Unit) -> tuple[np.ndarray, Frame]:
+        """A pose's frame and the q it records: the encoders read, the frame grabbed, the encoders read again. The q
+        is kept only when both readings agree (``line_still_m``) and lie at the commanded target (the actuators'
+        ``in_position_m``): a stale reading that got past the link's guards is not written. Read again up to
+        ``frame_reads`` times, then the frame is refused (:class:`~drivers.errors.ProtocolError`: the run fails on
+        it, saying so)."""
+        target = np.asarray(u.q, dtype=float) if u.q is not None else None
+        tol_target = float(getattr(self.actuators, "in_position_m", 2e-5))
+        problem = ""
+        for attempt in range(1, self.frame_reads + 1):
+            st = await self._read_status()
+            frame = await self._grab()
+            q2 = np.asarray(await self.actuators.read_encoders(), dtype=float)
+            problem = q_problem(st.positions, q2, target, tol_target, self.line_still_m)
+            if not problem:
+                return st.positions, frame
+            log.warning("pose %d: %s (reading %d); read again", u.index + 1, problem, attempt)
+            self._emit("running", f"pose {u.index + 1}/{len(self.units)}: {problem}; read again", u.phase)
+        raise ProtocolError(
+            f"frame refused, not written: {problem}, in {self.frame_reads} readings (a stale or wrong encoder reading)"
+        )
 
     def _note_record_time(self, dt: float) -> None:
         self._record_s = dt if self._record_s is None else 0.7 * self._record_s + 0.3 * dt
@@ -530,6 +603,12 @@ class Acquisition:
                         spread = float(np.max(np.abs(q2 - st.positions)))
                         if spread <= self.line_still_m:
                             break
+                    else:
+                        raise FrameError(
+                            f"line sample {k}: frame refused, not written: the encoders read {spread * 1e3:.3f} mm "
+                            "apart before and after the grab, in 3 readings "
+                            f"(more than {self.line_still_m * 1e3:.3f} mm)"
+                        )
                     # in a worker thread like a pose's frame: PNG encoding and the fsync'd dataset.json must not
                     # stall the event loop (the service answers requests from it)
                     await self._write_behind(

@@ -4,9 +4,14 @@ The link speaks the protocol (Modbus, serial ASCII); the controller owns the mot
 
 Plausible readings. Every decoded position must lie within the soft limits widened by
 ``plausibility_margin_m`` and within ``max_speed_m_s`` x the time since the axis' last accepted
-reading (+ ``plausibility_slack_m``); otherwise :class:`~drivers.errors.ProtocolError` names the axis,
-the value and why, and nothing moves on it (homing, which may re-zero an encoder, is exempt from the
-second test).
+reading (+ ``plausibility_slack_m``); during a commanded move it must also lie on the commanded move (between its
+start and its target), not behind a reading already accepted on it (the move goes one way: an older position is a
+stale reply), and no further along than the commanded speed (and ``max_accel_m_s2`` when set) allows since the
+command was sent. Otherwise :class:`~drivers.errors.ProtocolError` names the axis, the value and why, and nothing
+moves on it (homing, which may re-zero an encoder, and free drives are exempt from the trajectory tests).
+
+After a failure (a stop not confirmed, a motion command whose fate is open on a lost connection) the controller
+stops every axis, confirmed, before it reports a status or moves again (``motion_in_doubt``).
 
 A move follows one shape: check the targets (per-axis soft limits, then the kinematic model), compute a timeout
 from the distances and speeds, write target + speed + start, poll until every axis is in position, and stop every
@@ -25,6 +30,7 @@ import logging
 import math
 import time
 from collections.abc import Callable, MutableMapping, Sequence
+from dataclasses import dataclass
 from functools import partial
 from typing import Any
 
@@ -36,6 +42,7 @@ from calib.parameters import I4Parameters
 
 from .errors import (
     AlarmError,
+    DeviceConnectionError,
     DeviceError,
     DeviceTimeoutError,
     LimitError,
@@ -43,7 +50,7 @@ from .errors import (
     StopNotConfirmedError,
 )
 from .interfaces import ActuatorStatus, AxisStatus, SoftLimitsM
-from .links import AxisLink, Command
+from .links import AxisLink, Command, SafetySettings
 from .registermap import ALARM_TEXT
 
 log = logging.getLogger(__name__)
@@ -125,6 +132,8 @@ class AxisController:
         moving.
     backoff_s:
         Pause (s) before a stop that could not be sent is sent again.
+    safety:
+        :class:`drivers.links.SafetySettings` (here: ``stop_persist_s``, read by the acquisition).
 
     A stop that was acknowledged but still reads moving once the drive could have braked from full speed
     (``speed_m_s / accel_m_s2`` plus two polls) is sent again, until the deadline: an acknowledgement proves that a
@@ -151,6 +160,7 @@ class AxisController:
         plausibility_slack_m: float = 1e-3,
         stop_deadline_s: float = 2.0,
         backoff_s: float = 0.02,
+        safety: SafetySettings | None = None,
     ) -> None:
         self.link = link
         self.n_axes = n = link.n_axes
@@ -180,9 +190,19 @@ class AxisController:
         self.backoff_s = float(backoff_s)
         #: a stop still read moving this long (s) after it was sent is sent again: the braking time from full speed
         self.stop_resend_s = self.speed_m_s / max(self.accel_m_s2, 1e-9) + 2 * self.poll_s
+        self.safety = safety or SafetySettings()
+        #: a failed run keeps stopping this long (s) while the controller is connected but silent
+        self.stop_persist_s = self.safety.stop_persist_s
+        self.accel_limit_m_s2 = self.safety.max_accel_m_s2 or math.inf
         self._free_bits = [False] * n
         self._homing = False
         self._last_reading: list[tuple[float, float] | None] = [None] * n  # (position m, monotonic s) per axis
+        #: per axis, the move commanded last: (start position m, target m, speed m/s, monotonic s when sent), and
+        #: the furthest progress (m) read along it; readings are checked against it
+        self._commanded: list[_Commanded | None] = [None] * n
+        #: a motion may be running that nobody confirmed stopped (a failed stop, a command that may still execute):
+        #: the axes are stopped, confirmed, before anything else is reported or moved
+        self._unsafe = False
 
     @property
     def endpoint(self) -> str:
@@ -197,7 +217,20 @@ class AxisController:
     async def connect(self) -> None:
         await self.link.open()
         self._last_reading = [None] * self.n_axes
-        await self.status()  # every axis answers, with plausible positions
+        self._commanded = [None] * self.n_axes
+        await self.status()  # every axis answers, with plausible positions (after a failure: stopped first)
+
+    @property
+    def motion_in_doubt(self) -> bool:
+        """``True`` while a motion may run that no stop has been confirmed against (a failed stop; a motion command
+        that got no reply and may still execute): :meth:`status`, :meth:`move` and :meth:`home` stop first."""
+        return self._unsafe or bool(getattr(self.link, "motion_in_doubt", False))
+
+    async def _stop_first(self) -> None:
+        """When the controller answers again after a failure: stop every axis and confirm it before anything else."""
+        if self.motion_in_doubt:
+            log.warning("%s: a motion may still run after a failure: stopping every axis first", self.endpoint)
+            await self.stop()
 
     async def close(self) -> None:
         await self.link.close()
@@ -230,12 +263,22 @@ class AxisController:
             p0, t0 = prev
             reach = self.max_speed_m_s * max(now - t0, 0.0) + self.plausibility_slack_m
             if abs(position_m - p0) > reach:
-                self._last_reading[axis] = None
+                self._last_reading[axis] = None  # refused once: the next reading is judged afresh
+                self._commanded[axis] = None
                 raise ProtocolError(
                     f"axis {axis + 1}: implausible position {position_m * 1e3:.3f} mm read from {self.endpoint}: "
                     f"{abs(position_m - p0) * 1e3:.3f} mm from the reading {now - t0:.3f} s earlier "
                     f"({p0 * 1e3:.3f} mm), more than the axis can travel at {self.max_speed_m_s:g} m/s "
                     f"({reach * 1e3:.3f} mm); nothing moves on it"
+                )
+        cmd = self._commanded[axis]
+        if cmd is not None and not self._homing and not self._free_bits[axis]:  # noqa: SIM102
+            if problem := cmd.refuses(position_m, now, self.plausibility_slack_m):
+                self._last_reading[axis] = None  # refused once: the next reading is judged afresh
+                self._commanded[axis] = None
+                raise ProtocolError(
+                    f"axis {axis + 1}: implausible position {position_m * 1e3:.3f} mm read from {self.endpoint}: "
+                    f"{problem} (a stale reply?); nothing moves on it"
                 )
         self._last_reading[axis] = (position_m, t_request)
 
@@ -254,6 +297,7 @@ class AxisController:
         return (await self._read([axis]))[axis]
 
     async def status(self) -> ActuatorStatus:
+        await self._stop_first()
         if self.link.reads_every_axis:
             got = await self._read(range(self.n_axes))
             return ActuatorStatus(tuple(got[i] for i in range(self.n_axes)))
@@ -291,13 +335,16 @@ class AxisController:
         n = self.n_axes
         confirmed = [False] * n
         errors: dict[int, str] = {}
+        reached = [False]  # some request reached a connection (a reply, or none in time): not merely unreachable
 
         async def send(i: int) -> float:
             while True:
                 try:
                     await self._control(i, "stop", urgent=True)
+                    reached[0] = True
                     return time.monotonic()
                 except DeviceError as exc:
+                    reached[0] |= not isinstance(exc, DeviceConnectionError)
                     errors[i] = f"stop not sent ({exc})"
                     await asyncio.sleep(self.backoff_s)
 
@@ -319,20 +366,28 @@ class AxisController:
                         sent = await send(i)
                         n_sent += 1
                 except DeviceError as exc:
+                    reached[0] |= not isinstance(exc, DeviceConnectionError)
                     errors[i] = f"not read back ({exc})"
                 await asyncio.sleep(max(self.poll_s, 0.001))
 
         with contextlib.suppress(TimeoutError):
             async with asyncio.timeout(self.stop_deadline_s):
                 await asyncio.gather(*(one(i) for i in range(n)))
-        if not all(confirmed):
+        if all(confirmed):
+            self._unsafe = False
+            if getattr(self.link, "motion_in_doubt", False):
+                self.link.motion_in_doubt = False  # type: ignore[attr-defined]
+        else:
+            self._unsafe = True
             axes = tuple(i + 1 for i in range(n) if not confirmed[i])
             why = "; ".join(f"axis {i + 1}: {errors.get(i, 'no answer')}" for i in range(n) if not confirmed[i])
-            raise StopNotConfirmedError(
+            err = StopNotConfirmedError(
                 f"stop NOT confirmed within {self.stop_deadline_s:.1f} s at {self.endpoint} (axes {list(axes)}): "
                 f"motion may NOT have stopped; use the emergency stop. {why}",
                 axes=axes,
             )
+            err.reachable = reached[0]  # type: ignore[attr-defined]  # connected but silent: worth trying again
+            raise err
         log.debug("stop confirmed in %.3f s", time.monotonic() - t0)
 
     async def _stop_quietly(self) -> StopNotConfirmedError | None:
@@ -352,17 +407,22 @@ class AxisController:
     async def set_free(self, free: bool) -> None:
         for i in range(self.n_axes):
             self._free_bits[i] = bool(free)
+            self._commanded[i] = None  # free: a person moves the axis, no command says where
             await self._control(i, None)
 
     async def _cleanup_stop(self, exc: BaseException) -> None:
-        """After a failed or cancelled move or homing: stop; an unconfirmed stop is the error that matters."""
+        """After a failed or cancelled move or homing: stop; an unconfirmed stop is the error that matters (and the
+        axes are stopped, confirmed, before anything else is reported or moved)."""
         not_stopped = await self._stop_quietly()
         if not_stopped is not None and not isinstance(exc, asyncio.CancelledError):
-            raise StopNotConfirmedError(f"{exc}; then {not_stopped}", axes=not_stopped.axes) from exc
+            err = StopNotConfirmedError(f"{exc}; then {not_stopped}", axes=not_stopped.axes)
+            err.reachable = getattr(not_stopped, "reachable", False)  # type: ignore[attr-defined]
+            raise err from exc
 
     async def home(self, timeout_s: float | None = None) -> None:
         st = await self.status()
         self._raise_alarms(st)
+        self._commanded = [None] * self.n_axes
         self._homing = True
         try:
             for i in range(self.n_axes):
@@ -390,6 +450,11 @@ class AxisController:
         dmax = float(dist.max())
         speeds = np.full(self.n_axes, v) if dmax == 0 else np.maximum(v * dist / dmax, v * 1e-3)
         timeout = timeout_s if timeout_s is not None else self.move_timeout(dist, speeds)
+        t_sent = time.monotonic()
+        self._commanded = [
+            _Commanded(float(st.positions[i]), float(target[i]), float(speeds[i]), t_sent, self.accel_limit_m_s2)
+            for i in range(self.n_axes)
+        ]
         try:
             await self.link.start_move(target, speeds)
 
@@ -419,6 +484,59 @@ class AxisController:
                     f"{np.round(st.positions * 1e3, 3).tolist()} mm; stopped"
                 )
             await asyncio.sleep(self.poll_s)
+
+
+#: a drive may run this much faster than commanded (its speed loop's overshoot) before a reading is refused
+SPEED_TOLERANCE = 1.25
+
+
+def _reach(speed: float, accel: float, t: float) -> float:
+    """Farthest (m) an axis starting from rest travels in ``t`` s at up to ``speed`` m/s, accelerating at up to
+    ``accel`` m/s^2 (``inf``: at once)."""
+    if not math.isfinite(accel) or accel <= 0:
+        return speed * t
+    t_acc = speed / accel
+    return 0.5 * accel * t * t if t <= t_acc else speed * t - 0.5 * speed * t_acc
+
+
+@dataclass
+class _Commanded:
+    """One axis' commanded move: from ``p0`` to ``target`` (m) at up to ``speed`` (m/s), sent at ``t_sent``
+    (monotonic s); ``progress``: the furthest (m) an accepted reading showed along it."""
+
+    p0: float
+    target: float
+    speed: float
+    t_sent: float
+    accel: float
+    progress: float = 0.0
+
+    def refuses(self, position_m: float, now: float, slack_m: float) -> str | None:
+        """Why a reading made by ``now`` cannot be this axis on this move (None: it can). The commanded trajectory
+        goes one way from ``p0`` to ``target``, no faster than the commanded speed and acceleration allow."""
+        length = abs(self.target - self.p0)
+        sign = 1.0 if self.target >= self.p0 else -1.0
+        s = (position_m - self.p0) * sign
+        if s < -slack_m or s > length + slack_m:
+            off = -s if s < 0 else s - length
+            return (
+                f"{off * 1e3:.3f} mm outside the commanded move from {self.p0 * 1e3:.3f} to "
+                f"{self.target * 1e3:.3f} mm, more than the axis can travel on it"
+            )
+        if s < self.progress - slack_m:
+            return (
+                f"{(self.progress - s) * 1e3:.3f} mm behind a reading already accepted on the commanded move to "
+                f"{self.target * 1e3:.3f} mm (which goes one way)"
+            )
+        dt = max(now - self.t_sent, 0.0)
+        reach = _reach(self.speed * SPEED_TOLERANCE, self.accel, dt) + slack_m
+        if s > reach:
+            return (
+                f"{s * 1e3:.3f} mm along the commanded move {dt:.3f} s after it was sent, more than the commanded "
+                f"speed {self.speed:g} m/s allows ({reach * 1e3:.3f} mm)"
+            )
+        self.progress = max(self.progress, s)
+        return None
 
 
 def _log_unretrieved(task: asyncio.Future[Any]) -> None:

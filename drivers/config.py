@@ -89,7 +89,27 @@ class ActuatorsConfig(BaseModel):
         None, gt=0, description="fastest an axis can move, for plausible readings; default 5 x speed_m_s"
     )
     plausibility_margin_m: float = Field(0.05, ge=0, description="readings beyond the soft limits by more: refused")
-    vary_reads: bool = Field(True, description="alternate read lengths so a stale reply has the wrong length")
+    vary_reads: bool = Field(
+        True, description="read through varied register windows so a stale reply has the wrong length"
+    )
+    duplicate_window_s: float = Field(
+        0.06, ge=0, description="a reply may be duplicated this long after it came: its shape is not asked meanwhile"
+    )
+    motion_confirm_s: float | None = Field(
+        None,
+        gt=0,
+        description="an unanswered motion command's state is read back on its connection this long; default 4 x "
+        "the reply timeout",
+    )
+    watchdog_s: float = Field(
+        0.5, ge=0, description="the drives' communication watchdog (0: none); the reply timeout is capped below it"
+    )
+    stop_persist_s: float = Field(
+        30.0, ge=0, description="a failed run keeps stopping this long while the controller is connected but silent"
+    )
+    max_accel_m_s2: float | None = Field(
+        None, gt=0, description="fastest an axis accelerates, for plausible readings; default: not bounded"
+    )
     limits: LimitsConfig = LimitsConfig()
     register_map: dict[str, Any] = Field(default_factory=dict)
 
@@ -467,6 +487,7 @@ def _modbus_actuators(cfg: BenchConfig, uri: DeviceURI, workspace_check: Workspa
         plausibility_margin_m=a.plausibility_margin_m,
         vary_reads=a.vary_reads,
         workspace_check=workspace_check,
+        safety=safety_settings(a),
         **common,
     )
     if uri.scheme == "modbus+rtu":
@@ -479,6 +500,19 @@ def _modbus_actuators(cfg: BenchConfig, uri: DeviceURI, workspace_check: Workspa
         )
     transport = "rtu-tcp" if uri.scheme == "modbus+rtu+tcp" else "tcp"
     return ModbusActuators(transport=transport, host=uri.host or "127.0.0.1", port=uri.port or 502, **kw)
+
+
+def safety_settings(a: ActuatorsConfig) -> Any:
+    """The ``[actuators]`` motion-safety keys as :class:`drivers.links.SafetySettings`."""
+    from .links import SafetySettings
+
+    return SafetySettings(
+        duplicate_window_s=a.duplicate_window_s,
+        motion_confirm_s=a.motion_confirm_s,
+        watchdog_s=a.watchdog_s,
+        stop_persist_s=a.stop_persist_s,
+        max_accel_m_s2=a.max_accel_m_s2,
+    )
 
 
 def _common_actuators(cfg: BenchConfig) -> dict[str, Any]:
@@ -516,6 +550,7 @@ def _serial_ascii_actuators(cfg: BenchConfig, uri: DeviceURI, workspace_check: W
         stop_deadline_s=a.stop_deadline_s,
         max_speed_m_s=a.max_speed_m_s,
         plausibility_margin_m=a.plausibility_margin_m,
+        safety=safety_settings(a),
         **common,
     )
 

@@ -13,10 +13,12 @@ Positions are metres and speeds metres per second here; counts exist only inside
 from __future__ import annotations
 
 from collections.abc import MutableMapping, Sequence
+from dataclasses import dataclass
 from typing import Any, Literal, Protocol
 
 import numpy as np
 
+from .errors import DeviceTimeoutError
 from .interfaces import AxisStatus
 from .registermap import StatusBits
 
@@ -71,6 +73,60 @@ class AxisLink(Protocol):
         """
 
 
+# Optional, read with ``getattr`` by the axis controller: ``motion_in_doubt`` (bool), ``True`` while a motion command
+# that got no reply may still be executed by the controller (its connection was lost before its fate was read back):
+# the controller stops every axis, confirmed, before it reports or moves again, and then clears it.
+
+
+@dataclass(frozen=True)
+class SafetySettings:
+    """The motion-safety settings of a link and its axis controller (bench file ``[actuators]``, same names).
+
+    duplicate_window_s:
+        A reply may be duplicated on its way (a serial device server, a gateway) up to this long (s) after it came:
+        no request whose reply would look the same (unit, function, register count; a write's address and count)
+        goes out meanwhile. Reads pick another window of the axis' registers instead of waiting.
+    motion_confirm_s:
+        After a motion command (a start, a target that starts the move, homing) got no reply: how long (s) the link
+        keeps reading the drive's state back on the SAME connection to learn whether the command was taken.
+        ``None``: ``4 x timeout_s``. Past it the move fails (the command may still execute; the axes are stopped).
+    watchdog_s:
+        The drives' communication watchdog (s; 0: none): the reply timeout is capped at
+        ``0.8 x watchdog_s - backoff_s`` so that a retry reaches the drive before its watchdog stops the move.
+    stop_persist_s:
+        A run that fails keeps stopping the axes this long (s) until the stop is confirmed, while the controller is
+        connected but silent (a stalled PLC, an overloaded gateway); then it says that it could not.
+    max_accel_m_s2:
+        Fastest an axis accelerates (m/s^2), for the plausibility of readings during a commanded move. ``None``: not
+        bounded (the commanded speed still is).
+    """
+
+    duplicate_window_s: float = 0.06
+    motion_confirm_s: float | None = None
+    watchdog_s: float = 0.5
+    stop_persist_s: float = 30.0
+    max_accel_m_s2: float | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("duplicate_window_s", "watchdog_s", "stop_persist_s"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
+        for name in ("motion_confirm_s", "max_accel_m_s2"):
+            if getattr(self, name) is not None and not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
+
+
+class MotionNotConfirmedError(DeviceTimeoutError):
+    """A motion command got no reply and whether the drive took it could not be proven: it may still execute.
+
+    It was not sent again. ``axis``: 1..n.
+    """
+
+    def __init__(self, message: str, *, axis: int) -> None:
+        self.axis = axis
+        super().__init__(message)
+
+
 def decode_status(word: int, bits: StatusBits, position_m: float, alarm_code: int) -> AxisStatus:
     """An axis' status from its status word (bit numbers ``bits``), its position (m) and its alarm code."""
     return AxisStatus(
@@ -84,4 +140,4 @@ def decode_status(word: int, bits: StatusBits, position_m: float, alarm_code: in
     )
 
 
-__all__ = ["AxisLink", "Command", "decode_status"]
+__all__ = ["AxisLink", "Command", "MotionNotConfirmedError", "SafetySettings", "decode_status"]

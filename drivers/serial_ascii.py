@@ -20,6 +20,12 @@ is a stale or stray line and is discarded; every position read must be plausible
 (:meth:`drivers.axes.AxisController.check_reading`); a line that does not parse is a framing error; both lead to a
 retry after the buffers are flushed. No reply within the timeout is retried, then raises
 :class:`~drivers.errors.DeviceTimeoutError`.
+
+A motion command (``MOVE``, ``CTRL`` with the home bit) is never sent again blind: it goes out once; when no reply
+proves it was taken, the link reads ``STAT?`` (the controller answers one line at a time, in order, so a reply to
+the later ``STAT?`` proves the command was processed if it arrived) and sends the command again only when every
+axis it should have set moving is still idle away from its target (it never arrived); otherwise the move is taken,
+or, when even ``STAT?`` gets no answer, :class:`~drivers.links.MotionNotConfirmedError` says it may still execute.
 """
 
 from __future__ import annotations
@@ -27,7 +33,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -35,7 +41,7 @@ import numpy as np
 from .axes import AxisController
 from .errors import DeviceConnectionError, DeviceTimeoutError, MissingExtraError, ProtocolError
 from .interfaces import AxisStatus
-from .links import Command, decode_status
+from .links import Command, MotionNotConfirmedError, decode_status
 from .metrics import CountingStats
 from .registermap import DEFAULT_MAP
 
@@ -104,11 +110,12 @@ class SerialAsciiLink:
                 self._ser.close()
             self._ser = None
 
-    def _transact(self, command: str) -> list[str]:
+    def _transact(self, command: str, retries: int | None = None) -> list[str]:
         import serial
 
+        retries = self.retries if retries is None else retries
         last = ""
-        for attempt in range(self.retries + 1):
+        for attempt in range(retries + 1):
             if attempt:
                 self.stats["retries"] += 1
                 time.sleep(min(self.backoff_s * 2 ** (attempt - 1), self.backoff_max_s))
@@ -160,13 +167,49 @@ class SerialAsciiLink:
             except DeviceConnectionError as exc:
                 last = str(exc)
         if "link error" in last or "cannot open" in last:
-            raise DeviceConnectionError(f"serial controller at {self.url}: {last}, after {self.retries + 1} attempts")
-        raise DeviceTimeoutError(f"serial controller at {self.url}: {last}, after {self.retries + 1} attempts")
+            raise DeviceConnectionError(f"serial controller at {self.url}: {last}, after {retries + 1} attempts")
+        raise DeviceTimeoutError(f"serial controller at {self.url}: {last}, after {retries + 1} attempts")
 
     async def command(self, command: str) -> list[str]:
         """Send one command line, return the reply's values (one request at a time, retried)."""
         async with self._lock:
             return await asyncio.to_thread(self._transact, command)
+
+    async def motion_command(self, command: str, taken: Callable[[dict[int, AxisStatus]], bool | None]) -> None:
+        """Send a motion command once; without a reply, learn from ``STAT?`` whether it was taken.
+
+        ``taken(status)`` says from the axes' status whether the command was taken (True), never arrived (False),
+        or cannot be told (None). Sent again once, only on False; a second silence, None, or no answer to
+        ``STAT?`` raise :class:`~drivers.links.MotionNotConfirmedError` (the command may still execute).
+        """
+        verb = command.split()[0]
+        for attempt in range(2):
+            async with self._lock:
+                try:
+                    await asyncio.to_thread(self._transact, command, 0)
+                    return
+                except DeviceTimeoutError as exc:
+                    self.stats["timeouts"] += 1
+                    why = str(exc)
+            try:
+                status = await self.read_axes(range(ASCII_AXES))
+            except DeviceTimeoutError as exc:
+                raise MotionNotConfirmedError(
+                    f"{verb} got no reply ({why}) and the state could not be read back ({exc}): the controller may "
+                    "still execute it; not sent again",
+                    axis=1,
+                ) from None
+            verdict = taken(status)
+            if verdict:
+                return
+            if verdict is None or attempt == 1:
+                break
+            self.stats["retries"] += 1  # proven not taken: sent again once
+        raise MotionNotConfirmedError(
+            f"{verb} got no reply ({why}) and the axes' state does not prove it was taken or not: the controller "
+            "may still execute it; not sent again",
+            axis=1,
+        )
 
     async def open(self) -> None:
         await asyncio.to_thread(self._open_serial)
@@ -189,12 +232,35 @@ class SerialAsciiLink:
     async def control(self, axis: int, command: Command | None, *, free: bool, urgent: bool = False) -> None:
         m = DEFAULT_MAP
         value = (m.bit("control", command) if command else 0) | (m.bit("control", "free") if free else 0)
-        await self.command(f"CTRL {axis + 1} {value}")
+        line = f"CTRL {axis + 1} {value}"
+        if command == "home":  # a motion: never sent again blind
+
+            def homing(status: dict[int, AxisStatus]) -> bool:
+                return status[axis].moving or status[axis].homed
+
+            await self.motion_command(line, homing)
+            return
+        await self.command(line)  # stop, alarm reset, free: idempotent, retried
 
     async def start_move(self, targets_m: np.ndarray, speeds_m_s: np.ndarray) -> None:
         t = [round(x * 1e6) for x in targets_m]
         v = [max(1, round(x * 1e6)) for x in speeds_m_s]
-        await self.command("MOVE " + " ".join(map(str, t + v)))
+        await self.motion_command("MOVE " + " ".join(map(str, t + v)), _move_taken(np.asarray(targets_m)))
+
+
+def _move_taken(targets_m: np.ndarray, tol_m: float = 5e-6) -> Callable[[dict[int, AxisStatus]], bool | None]:
+    """Whether a ``MOVE`` to ``targets_m`` (m) was taken, from the axes' status: any axis moving or every axis at
+    its target -> taken; every axis idle and one away from its target -> never arrived."""
+
+    def taken(status: dict[int, AxisStatus]) -> bool | None:
+        if any(st.moving for st in status.values()):
+            return True
+        away = [i for i, st in status.items() if abs(st.position_m - float(targets_m[i])) > tol_m]
+        if not away:
+            return True
+        return False if all(not status[i].alarm for i in away) else None
+
+    return taken
 
 
 class SerialAsciiActuators(AxisController):

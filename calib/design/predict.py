@@ -43,6 +43,7 @@ from ..numdiff import central_jacobian
 from ..parameters import COMBINATION_NAMES, PARAMETER_NAMES, SEVEN_TO_FOUR, I4Parameters
 from ..plan import Plan
 from ..transforms import matrix_to_rotvec, rotvec_to_matrix, unit
+from .information import board_pose_sensitivity, end_effector_problem, invert_information
 from .scene import Scene, rod_segments
 
 if TYPE_CHECKING:
@@ -165,15 +166,6 @@ def schur(F: np.ndarray, k: int = 4) -> np.ndarray:
     return F[:k, :k] - F[:k, k:] @ np.linalg.pinv(Fbb, rcond=1e-13, hermitian=True) @ F[k:, :k]
 
 
-def _inv(F: np.ndarray, what: str) -> np.ndarray:
-    d = np.sqrt(np.maximum(np.diag(F), 1e-300))
-    Fs = F / np.outer(d, d)
-    w, V = np.linalg.eigh(0.5 * (Fs + Fs.T))
-    if w[0] <= 1e-12 * w[-1]:
-        raise IdentifiabilityError(f"{what}: the plan does not determine the four combinations")
-    return (V / w) @ V.T / np.outer(d, d)
-
-
 # -- combined ------------------------------------------------------------------------------------------------
 def base_frame_information(
     nominal: I4Parameters, q_rot: np.ndarray, q_tra: np.ndarray, camera_from_base_R: np.ndarray, noise: DesignNoise
@@ -279,81 +271,32 @@ def predict_combined(
     Pw[4:, 4:] = base_frame_information(nominal, q_rot, q_tra, camera_from_base_R, noise)
     if weighting == "gls":
         F = combined_pose_information(nominal, q_fit, camera_from_base_R, noise).sum(axis=0) + Pw
-        return _inv(F, "combined")[:4, :4]
+        return invert_information(F, "combined")[:4, :4]
     if weighting != "frobenius":
         raise InputError(f"weighting must be 'gls' or 'frobenius', got {weighting!r}", field="weighting")
     J, S, _ = _combined_rods(nominal, q_fit, camera_from_base_R)
     s2 = noise.rod_direction_rad**2
     Jf = J.reshape(-1, 7)
     H = Jf.T @ Jf / s2 + Pw
-    Hi = _inv(H, "combined")
+    Hi = invert_information(H, "combined")
     mid = np.einsum("mai,mab,mbj->ij", J, S, J) / s2 + Pw
     return (Hi @ mid @ Hi)[:4, :4]
 
 
 # -- end-effector ---------------------------------------------------------------------------------------------
-def _board_pose_sensitivity(model: Any, x0: np.ndarray, R: np.ndarray, t: np.ndarray, h: float = 1e-7) -> np.ndarray:
-    """The end-effector residuals' sensitivity to each board pose (N, 6, 6): rotation (left rotation vector, rad),
-    then position (m), by central differences of step ``h``."""
-    G = np.zeros((len(R), 6, 6))
-    for a in range(6):
-        d = np.zeros(3)
-        d[a % 3] = h
-        if a < 3:
-            rp = model.residuals(x0, rotvec_to_matrix(d) @ R, t)
-            rm = model.residuals(x0, rotvec_to_matrix(-d) @ R, t)
-        else:
-            rp = model.residuals(x0, R, t + d)
-            rm = model.residuals(x0, R, t - d)
-        G[:, :, a] = (rp - rm) / (2 * h)
-    return G
-
-
-def _ee_problem(nominal: I4Parameters, q_fit: np.ndarray, scene: Scene):
-    from ..methods.end_effector import _Model
-
-    q_fit = np.asarray(q_fit, dtype=np.float64).reshape(-1, 4)
-    pose = dkm(nominal, q_fit)
-    cbs = scene.camera_from_board(nominal, pose)
-    R = np.stack([c.R for c in cbs])
-    t = np.stack([c.t for c in cbs])
-    bc = scene.camera_from_base.inverse()
-    eb = scene.ee_from_board
-    model = _Model(R, t, q_fit, nominal.T_per_rad, bc.R, bc.t[0], eb.R, eb.t[2], pose[:, 3] / nominal.T_per_rad)
-    combos = [nominal.combinations()[k] for k in COMBINATION_NAMES]
-    x0 = np.array(
-        [
-            *combos,
-            -nominal.S,
-            -nominal.S - nominal.q03,
-            0,
-            0,
-            0,
-            bc.t[1] - nominal.H,
-            bc.t[2],
-            0,
-            0,
-            eb.t[0],
-            eb.t[1],
-            0,
-        ]
-    )
-    return model, x0, R, t
-
-
 def end_effector_pose_information(
     nominal: I4Parameters, q_fit: np.ndarray, scene: Scene, noise: DesignNoise | None = None
 ) -> np.ndarray:
     """GLS information (N, 16, 16) of each fit pose's board pose and encoders on the end-effector method's
     unknowns (four combinations first; then the offsets, camera and board transforms and the board's scale)."""
     noise = noise or DesignNoise()
-    model, x0, R, t = _ee_problem(nominal, q_fit, scene)
+    model, x0, R, t = end_effector_problem(nominal, q_fit, scene)
     n = len(R)
     r0 = model.residuals(x0)
     if np.max(np.abs(r0)) > 1e-9:
         raise RuntimeError(f"end-effector design model does not close at nominal ({np.max(np.abs(r0)):.2e})")
     J = central_jacobian(lambda x: model.residuals(x).ravel(), x0, 1e-7).reshape(n, 6, -1)
-    G = _board_pose_sensitivity(model, x0, R, t)
+    G = board_pose_sensitivity(model, x0, R, t)
     Sb = np.diag([noise.board_rotation_rad**2] * 3 + [v**2 for v in noise.board_translation_m])
     C = np.einsum("nij,jk,nlk->nil", G, Sb, G)
     C[:, :4, :4] += noise.encoder_m**2 * np.eye(4)
@@ -367,7 +310,7 @@ def predict_end_effector(
 ) -> np.ndarray:
     """Predicted covariance (4, 4) of the end-effector method's four combinations (m^2)."""
     F = end_effector_pose_information(nominal, q_fit, scene, noise).sum(axis=0)
-    return _inv(F, "end-effector")[:4, :4]
+    return invert_information(F, "end-effector")[:4, :4]
 
 
 # -- legs -----------------------------------------------------------------------------------------------------

@@ -14,8 +14,8 @@ taken from a run):
   their ``d_intrinsics``) as w's prior, N(0, I) priors on z and the edge biases (``edge_bias_prior_px``): the
   inverse of the information, which is the method's covariance (its sandwich collapses when the weights are the
   noise's). Also the intrinsics' posterior (what the rods teach about the camera), which the two other methods use.
-* **end-effector**: the method's IKM residual model (:func:`.predict._ee_problem`) weighted by each pose's PnP
-  covariance (corner noise ``corner_px``) and the encoders: ``(sum J^T C^-1 J)^-1``, plus the intrinsics'
+* **end-effector**: the method's IKM residual model (:func:`.information.end_effector_problem`) weighted by each
+  pose's PnP covariance (corner noise ``corner_px``) and the encoders: ``(sum J^T C^-1 J)^-1``, plus the intrinsics'
   posterior propagated through the fit's gain (the method's ``_intrinsics_part``).
 * **legs**: step 1's joints from the lock phases' plane equations weighted by their limb lines' variances
   (:func:`calib.methods.legs.limb_line_noise`, the method's own weighting), propagated through steps 2-4; the GLS
@@ -40,9 +40,10 @@ from ..camera import INTRINSICS_NAMES
 from ..errors import IdentifiabilityError, InputError
 from ..methods.legs.constants import JOINT_DEPTH_SYS_LEG_SHARE, JOINT_DEPTH_SYS_M
 from ..numdiff import central_jacobian
-from ..parameters import COMBINATION_NAMES, I4Parameters
+from ..parameters import COMBINATION_NAMES, SEVEN_TO_FOUR, I4Parameters
 from ..transforms import matrix_to_rotvec, rotvec_to_matrix
 from .imaging import BoardPoses, RodSet, board_poses, design_camera, synthetic_rods
+from .information import board_pose_sensitivity, end_effector_problem, invert_information
 from .scene import Scene
 
 __all__ = [
@@ -487,9 +488,7 @@ def predict_combined_images_posteriors(
     J, S, _k, Sig = _combined_terms(nominal, q_fit, scene, noise, steps, G, drop, correlated=True)
     Si = np.linalg.inv(S + 1e-30 * np.eye(2))
     F = np.einsum("mai,mab,mbj->ij", J, Si, J) + P
-    from .predict import _inv
-
-    C = _inv(F, "combined")
+    C = invert_information(F, "combined")
     if Sig is not None and len(J):  # the rods' correlated errors: the method's sandwich (its GLS weights kept)
         Jw = np.einsum("mab,mbj->maj", Si, J).reshape(-1, J.shape[2]).T  # J^T W, (p, 2M)
         C = C @ (Jw @ Sig @ Jw.T + P) @ C
@@ -507,12 +506,10 @@ def predict_combined_images_posteriors(
 def _ee_terms(nominal: I4Parameters, q_fit: np.ndarray, scene: Scene, noise: ImageNoise):
     """The end-effector problem's residual Jacobian (N, 6, p), their sensitivity to the board pose (N, 6, 6), the
     board poses (PnP covariance, d_intrinsics) and the residuals' covariance (N, 6, 6)."""
-    from .predict import _board_pose_sensitivity, _ee_problem
-
-    model, x0, R, t = _ee_problem(nominal, q_fit, scene)
+    model, x0, R, t = end_effector_problem(nominal, q_fit, scene)
     n = len(R)
     J = central_jacobian(lambda x: model.residuals(x).ravel(), x0, 1e-7).reshape(n, 6, -1)
-    A = _board_pose_sensitivity(model, x0, R, t)
+    A = board_pose_sensitivity(model, x0, R, t)
     bp = noise.board_poses(scene, nominal, q_fit)
     C = np.einsum("nij,njk,nlk->nil", A, bp.cov, A)
     C[:, :4, :4] += noise.encoder_m**2 * np.eye(4)
@@ -538,12 +535,10 @@ def predict_end_effector_images(
     """Predicted covariance (4, 4) of the end-effector method on images (m^2) and its parts
     (``board_poses_and_encoders``, ``intrinsics``). ``intrinsics_cov``: the camera's covariance the method uses
     (the rods' posterior, as the extraction records it; default: the calibration's)."""
-    from .predict import _inv
-
     J, A, bp, C = _ee_terms(nominal, np.asarray(q_fit, dtype=np.float64).reshape(-1, 4), scene, noise)
     Ci = np.linalg.inv(C)
     F = np.einsum("nai,nab,nbj->ij", J, Ci, J)
-    Fi = _inv(F, "end-effector")
+    Fi = invert_information(F, "end-effector")
     parts = {"board_poses_and_encoders": Fi[:4, :4], "intrinsics": np.zeros((4, 4))}
     cov_i = noise.covariance() if intrinsics_cov is None else intrinsics_cov
     if cov_i is not None:
@@ -701,7 +696,6 @@ def predict_legs_images(
         joint_depth_systematic,
         joint_from_planes,
     )
-    from .predict import SEVEN_TO_FOUR
 
     lk = legs_lock_joints(nominal, q_lock, scene, noise)
     q_locked, planes, lock_fields, P, covP = lk.q_locked, lk.planes, lk.lock_fields, lk.P, lk.covP

@@ -25,8 +25,10 @@ delayed there can leave with the next request's transaction id.
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from pymodbus import FramerType
@@ -39,7 +41,7 @@ from .mechanism import Mechanism
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ALARM_WATCHDOG", "AsciiServer", "Faults", "SimController", "StrictContext"]
+__all__ = ["ALARM_WATCHDOG", "AsciiServer", "Faults", "FreezeFront", "Request", "SimController", "StrictContext"]
 
 
 class StrictContext:
@@ -138,6 +140,7 @@ class SimController:
             )
         self.mechanism = mechanism
         self.watchdog_s = float(watchdog_s)
+        self.frozen = False  # a FreezeFront has stopped the controller (its watchdog does not run either)
         self._watchdog_task: asyncio.Task | None = None
         self.map = regmap
         self.faults = Faults()
@@ -261,6 +264,8 @@ class SimController:
         mech = self.mechanism
         while True:
             await asyncio.sleep(min(0.05, self.watchdog_s / 4))
+            if self.frozen:
+                continue
             now = mech.update()
             if now - mech.last_contact > self.watchdog_s:
                 with mech.lock:
@@ -334,8 +339,15 @@ class AsciiServer:
 
     def __init__(self, mechanism: Mechanism) -> None:
         self.mechanism = mechanism
+        #: faults: the next N replies lost (the command executed), the next N request lines lost before the
+        #: controller (never executed), the next N replies preceded by line noise
         self.drop_replies = 0
+        self.drop_requests = 0
         self.garble_replies = 0
+        #: a verb (``MOVE``) after whose execution the controller answers nothing more (a controller that stalls)
+        self.mute_after: str | None = None
+        #: commands executed, by verb (``MOVE``, ``CTRL``, ``STAT?``, ...)
+        self.executed: collections.Counter[str] = collections.Counter()
         self._server: asyncio.base_events.Server | None = None
         self._writers: set[asyncio.StreamWriter] = set()
 
@@ -382,7 +394,15 @@ class AsciiServer:
         self._writers.add(writer)
         try:
             while line := await reader.readline():
-                out = self.reply(line.decode(errors="replace"))
+                if self.drop_requests > 0:
+                    self.drop_requests -= 1
+                    continue
+                text = line.decode(errors="replace")
+                verb = text.split()[1] if len(text.split()) > 1 else "?"
+                self.executed[verb] += 1
+                out = self.reply(text)
+                if self.mute_after is not None and verb == self.mute_after:
+                    self.drop_replies = 10**9
                 if self.drop_replies > 0:
                     self.drop_replies -= 1
                     continue
@@ -402,5 +422,252 @@ class AsciiServer:
         for w in list(self._writers):
             with contextlib.suppress(Exception):
                 w.transport.abort()
+        if self._server is not None:
+            self._server.close()
+
+
+@dataclass(frozen=True)
+class Request:
+    """A Modbus request as the controller receives it: unit, function code, first register, and the values of a
+    write (``values``) or the register count of a read (``count``)."""
+
+    unit: int
+    function: int
+    address: int
+    count: int
+    values: tuple[int, ...] = ()
+
+    @property
+    def is_write(self) -> bool:
+        return self.function in (6, 16)
+
+    def writes(self, register: int) -> bool:
+        """Whether this request writes ``register`` (absolute address)."""
+        return self.is_write and self.address <= register < self.address + len(self.values)
+
+
+def _split_request(buf: bytes, framing: str) -> tuple[bytes, Request | None, bytes] | None:
+    """One whole request at the head of ``buf`` -> (its bytes, what it asks, the rest); None: more bytes needed."""
+    if framing == "tcp":
+        if len(buf) < 8:
+            return None
+        length = int.from_bytes(buf[4:6], "big")
+        if len(buf) < 6 + length:
+            return None
+        frame, rest = buf[: 6 + length], buf[6 + length :]
+        return frame, _parse_pdu(frame[6], frame[7:]), rest
+    if len(buf) < 2:
+        return None
+    fc = buf[1]
+    n = (9 + buf[6] if len(buf) >= 7 else None) if fc == 16 else 8
+    if n is None or len(buf) < n:
+        return None
+    return buf[:n], _parse_pdu(buf[0], buf[2 : n - 2], fc), buf[n:]
+
+
+def _parse_pdu(unit: int, body: bytes, fc: int | None = None) -> Request | None:
+    """``body``: the PDU after the function code (RTU: ``fc`` given) or including it (TCP)."""
+    if fc is None:
+        fc, body = body[0], body[1:]
+    if len(body) < 4:
+        return None
+    address, count = int.from_bytes(body[0:2], "big"), int.from_bytes(body[2:4], "big")
+    if fc == 6:
+        return Request(unit, fc, address, 1, (count,))
+    if fc == 16:
+        regs = body[5 : 5 + 2 * count]
+        return Request(
+            unit, fc, address, count, tuple(int.from_bytes(regs[k : k + 2], "big") for k in range(0, len(regs), 2))
+        )
+    return Request(unit, fc, address, count)
+
+
+class _FrontConnection:
+    def __init__(self, number: int) -> None:
+        self.number = number
+        self.frames: asyncio.Queue[tuple[bytes, Request | None, bool] | None] = asyncio.Queue()
+        self.turn = asyncio.Event()  # released after a freeze
+        self.replied = asyncio.Event()
+        self.last: Request | None = None  # the request whose reply is awaited
+        self.held = 0  # requests that waited out a freeze
+        self.lose_reply = False  # the reply to the request on its way is lost
+
+
+class FreezeFront:
+    """The simulated controller frozen like a stalled PLC or a SIGSTOPped process, while the kernel keeps accepting.
+
+    A front door (loopback TCP, the controller's framing: ``"tcp"`` Modbus TCP, ``"rtu"`` RTU over TCP) in front of
+    one of the controller's servers (``upstream``). Normally it passes each request on and its reply back, one at
+    a time per connection. While frozen it serves nothing: connections are still accepted and requests buffered
+    (as the kernel does for a stopped process), the controller's watchdog is stopped too (its process is); then
+    it executes every buffered request, connection after connection (``order``: ``"newest"`` first, the worst
+    case for a master that sent a stop on a new connection after a command on an old one, or ``"oldest"``), each
+    connection's in the order sent, and serves on. :meth:`freeze` freezes now; :meth:`freeze_on` freezes when a
+    request matching a predicate arrives (``when="before"``: it is buffered) or once it has been answered
+    (``"after"``). ``executed_late``: the requests executed after a freeze ended, in order. :meth:`lose_on` loses
+    one request, or its reply.
+    """
+
+    def __init__(
+        self, controller: SimController, upstream: tuple[str, int], *, framing: str = "tcp", order: str = "newest"
+    ) -> None:
+        if framing not in ("tcp", "rtu") or order not in ("newest", "oldest"):
+            raise ValueError(
+                f"framing must be 'tcp' or 'rtu' and order 'newest' or 'oldest', got {framing!r}, {order!r}"
+            )
+        self.controller, self.upstream, self.framing, self.order = controller, upstream, framing, order
+        self.frozen = False
+        self.freezes = 0
+        self.executed_late: list[Request | None] = []
+        self._trigger: tuple[Callable[[Request], bool], float, str] | None = None
+        self._lose: tuple[Callable[[Request], bool], str] | None = None
+        self.lost: list[tuple[str, Request]] = []  # requests lost, or whose reply was
+        self._waiting: list[_FrontConnection] = []
+        self._server: asyncio.base_events.Server | None = None
+        self._tasks: set[asyncio.Task] = set()
+        self._writers: set[asyncio.StreamWriter] = set()
+        self._count = 0
+        self._thawed = asyncio.Event()
+        self._thawed.set()
+
+    async def start(self, host: str = "127.0.0.1", port: int = 0) -> tuple[str, int]:
+        self._server = await asyncio.start_server(self._handle, host, port)
+        return self._server.sockets[0].getsockname()[:2]
+
+    def freeze(self, seconds: float) -> None:
+        """Stop serving now for ``seconds``; then execute what was buffered, and serve on."""
+        if self.frozen:
+            return
+        self.frozen = True
+        self.freezes += 1
+        self._thawed.clear()
+        self.controller.frozen = True
+        log.warning("controller frozen for %.2f s (requests buffered)", seconds)
+        self._spawn(self._thaw_after(seconds))
+
+    def freeze_on(self, match: Callable[[Request], bool], seconds: float, *, when: str = "before") -> None:
+        """Freeze for ``seconds`` at the first request that ``match`` accepts: before it is executed, or after."""
+        if when not in ("before", "after"):
+            raise ValueError(f"when must be 'before' or 'after', got {when!r}")
+        self._trigger = (match, float(seconds), when)
+
+    def lose_on(self, match: Callable[[Request], bool], *, what: str = "request") -> None:
+        """Lose the next request that ``match`` accepts (``what="request"``: it never reaches the controller, as a
+        frame lost on a serial line) or its reply (``"reply"``: executed, the answer lost)."""
+        if what not in ("request", "reply"):
+            raise ValueError(f"what must be 'request' or 'reply', got {what!r}")
+        self._lose = (match, what)
+
+    @property
+    def armed(self) -> bool:
+        return self._trigger is not None
+
+    def _spawn(self, coro) -> None:
+        t = asyncio.create_task(coro)
+        self._tasks.add(t)
+        t.add_done_callback(self._tasks.discard)
+
+    async def _thaw_after(self, seconds: float) -> None:
+        await asyncio.sleep(seconds)
+        self.frozen = False
+        ctl = self.controller
+        ctl.frozen = False
+        ctl.mechanism.last_contact = ctl.mechanism.clock()  # its watchdog did not run meanwhile
+        while self._waiting:  # connection after connection; what arrives meanwhile on a waiting one waits too
+            conn = self._waiting.pop() if self.order == "newest" else self._waiting.pop(0)
+            conn.turn.set()
+            while conn.held:  # its buffered requests are executed, in order
+                await asyncio.sleep(0.002)
+        self._thawed.set()
+        log.warning("controller thawed: %d buffered requests executed late", len(self.executed_late))
+
+    def _hold(self, conn: _FrontConnection) -> bool:
+        """Whether a request arriving now on ``conn`` waits: frozen, or thawing and ``conn`` not yet served."""
+        if not (self.frozen or (not self._thawed.is_set() and not conn.turn.is_set())):
+            return False
+        conn.held += 1
+        if conn not in self._waiting:
+            conn.turn.clear()
+            self._waiting.append(conn)
+        return True
+
+    def _check_trigger(self, req: Request | None, when: str) -> None:
+        if self._trigger is None or req is None:
+            return
+        match, seconds, at = self._trigger
+        if at == when and match(req):
+            self._trigger = None
+            self.freeze(seconds)
+
+    async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        self._count += 1
+        conn = _FrontConnection(self._count)
+        self._writers.add(writer)
+        try:
+            ur, uw = await asyncio.open_connection(*self.upstream)
+        except OSError:
+            writer.close()
+            return
+        self._writers.add(uw)
+        forward = asyncio.create_task(self._forward(conn, uw))
+        back = asyncio.create_task(self._back(conn, ur, writer))
+        buf = b""
+        with contextlib.suppress(ConnectionError, OSError):
+            while data := await reader.read(65536):
+                buf += data
+                while (got := _split_request(buf, self.framing)) is not None:
+                    frame, req, buf = got
+                    await conn.frames.put((frame, req, self._hold(conn)))
+        await conn.frames.put(None)  # the client has gone: what it sent is still executed (a FIN, not a reset)
+        await forward
+        back.cancel()
+        with contextlib.suppress(BaseException):
+            await back
+        for w in (uw, writer):
+            w.close()
+            self._writers.discard(w)
+
+    async def _forward(self, conn: _FrontConnection, uw: asyncio.StreamWriter) -> None:
+        while (item := await conn.frames.get()) is not None:
+            frame, req, late = item
+            self._check_trigger(req, "before")
+            if not late and self.frozen:  # the trigger froze it just now
+                late = self._hold(conn)
+            if late:  # buffered: executed once the freeze is over, this connection's turn come
+                await conn.turn.wait()
+            conn.last, conn.replied, conn.lose_reply = req, asyncio.Event(), False
+            if self._lose is not None and req is not None and not late and self._lose[0](req):
+                what = self._lose[1]
+                self._lose = None
+                self.lost.append((what, req))
+                if what == "request":
+                    continue
+                conn.lose_reply = True
+            with contextlib.suppress(ConnectionError, OSError):
+                uw.write(frame)
+                await uw.drain()
+            if late:
+                self.executed_late.append(req)
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(conn.replied.wait(), 0.5)
+            if late:
+                conn.held -= 1
+
+    async def _back(self, conn: _FrontConnection, ur: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        with contextlib.suppress(ConnectionError, OSError):
+            while data := await ur.read(65536):
+                if conn.lose_reply:
+                    conn.lose_reply = False
+                elif not writer.is_closing():
+                    writer.write(data)
+                conn.replied.set()
+                self._check_trigger(conn.last, "after")
+
+    async def close(self) -> None:
+        for w in list(self._writers):
+            with contextlib.suppress(Exception):
+                w.transport.abort()
+        for t in list(self._tasks):
+            t.cancel()
         if self._server is not None:
             self._server.close()

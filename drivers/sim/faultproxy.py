@@ -10,7 +10,13 @@
   device server) to the newest open connection: a late or duplicated reply is handed to whoever asks next,
   which is the hazard a master must survive. ``client_framing="rtu"``: clients speak RTU over TCP
   (transparent); ``"tcp"``: clients speak Modbus TCP and the gateway converts, giving a reply the
-  transaction id of the request it waits for.
+  transaction id of the request it waits for. With a ``line_timeout_s`` shorter than the injected delays this is
+  the Modbus TCP/RTU gateway of the field whose serial response timeout is shorter than the drives' late replies:
+  a reply that comes after the gateway gave up is handed to the next request on the line, with that request's
+  transaction id (tests/drivers/test_link_faults.py, transport ``gateway``).
+
+Duplicates: ``LinkFaults.duplicate_after_s`` sets how late a copy follows its original (the fault matrix: up to
+50 ms, as RTU links and serial device servers that repeat a frame do).
 
 The same :class:`LinkFaults` drive both; randomness is seeded. The faults apply to replies only (a request
 always reaches the controller), so what the master reads can be compared with the simulated mechanism.

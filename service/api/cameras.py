@@ -8,21 +8,20 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, HTTPException, Path, Request, status
 from fastapi.responses import FileResponse
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, Field
 
 from calib.errors import InputError
 
 from ..auth import Reader, Writer
 from ..runs import RunConflictError
 from ..runs.cameras import CameraCalibrationJob, CameraCalibrations
-from .deps import ID_PATTERN, Manager, conflict, not_found, unprocessable
+from .deps import ID_PATTERN, Manager, RequestBody, conflict, not_found, unprocessable
 
 router = APIRouter(prefix="/camera/calibrations", tags=["camera"])
 JobId = Annotated[str, Path(pattern=ID_PATTERN, description="camera calibration id (32 hex digits)")]
 
 
-class CameraCalibrationIn(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+class CameraCalibrationIn(RequestBody):
     views: int = Field(15, ge=5, le=100, description="full-board views to keep, at least")
     lens_model: str | None = Field(
         None, description="auto (chosen by BIC), k1k2, k1k2k3, rational[-radial]; default: the bench's, else auto"

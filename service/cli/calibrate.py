@@ -60,7 +60,7 @@ def handler(args: argparse.Namespace) -> int:
     else:
         print_result(doc, make_console(), result=args.output)
     if args.output:
-        err.print(f"wrote {args.output} (the result: i4cal report, i4cal export)", highlight=False)
+        err.print(f"wrote {args.output} (the result: i4cal report, i4cal export)", highlight=False, soft_wrap=True)
     failed = [m for m, e in doc["methods"].items() if not e.get("converged")]
     return 1 if failed and len(failed) == len(methods) else 0
 

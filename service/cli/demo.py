@@ -74,7 +74,9 @@ async def _acquire(out: Path, seed: int, con, small: bool = False, temporary: bo
         # machine; a real camera's 2 s timeout would make the demo fail there
         cfg = bench.bench_config(camera={"timeout_s": 30.0})
         con.print(f"   simulated controller at [bold]{bench.actuators_uri}[/bold], camera at {bench.camera_uri}")
-        plan = make_plan("full", cfg.nominal_parameters(), seed=seed, **(SMALL_PLAN if small else {}))
+        # the plan `i4cal acquire --plan full` runs and `i4cal plan predict full` predicts (their default seed, 0);
+        # the demo's seed is the bench's (truth, noise)
+        plan = make_plan("full", cfg.nominal_parameters(), seed=0, **(SMALL_PLAN if small else {}))
         cam = _camera_phase(bench.renderer, seed) if hasattr(bench.renderer, "random_board_views") else None
         spec = {"K": cam.K.tolist(), "dist": list(map(float, cam.dist))} if cam is not None else {}
         truth = GeometricTwin(bench.geometry).truth_dict()

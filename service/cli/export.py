@@ -24,8 +24,8 @@ def register(sub: argparse._SubParsersAction) -> None:
             "software version, dataset hash), the seven parameters in metres with which were identified and which "
             "fixed at nominal, the four combinations with std and covariance, the nominal, the units (docs/export.md). "
             "TARGET is a result file (i4cal calibrate -o) or the id (or a unique prefix) of a run of the service "
-            "(its data directory, or --server). Default method: combined when it converged, otherwise the converged "
-            "method with the smallest validation gap. With --check F: reload F, rebuild the model from its seven "
+            "(its data directory, or --server). Default method: the verdict's (the one calibrate, the report and the "
+            "dashboard recommend; docs/export.md). With --check F: reload F, rebuild the model from its seven "
             "parameters and compare its DKM and IKM with the result's own model over a plan's poses (exit 0 pass, "
             "1 fail, 2 usage error)."
         ),

@@ -134,6 +134,7 @@ def run(args: argparse.Namespace) -> int:
                 f"lens model: {lm['chosen']} ({how} among {len(lm.get('candidates', []))}; radial model error up to "
                 f"{prof.get('max_systematic_px', 0.0):.3f} px); {where}",
                 highlight=False,
+                soft_wrap=True,  # a path is never cut across lines
             )
             for w in lm.get("warnings") or []:
                 console.print(f"warning: {w}")

@@ -75,7 +75,7 @@ def handler(args: argparse.Namespace) -> int:
     tmp = out.with_name(out.name + ".tmp")
     tmp.write_text(html, encoding="utf-8")
     tmp.replace(out)
-    err.print(f"wrote {out} ({len(html.encode()) / 1024:.0f} kB)")
+    err.print(f"wrote {out} ({len(html.encode()) / 1024:.0f} kB)", soft_wrap=True)
     return 0
 
 
@@ -88,15 +88,16 @@ class _StageProgress:
         self.step = None
 
     def __enter__(self):
-        from ._output import LongStep
-
-        if not self.quiet:
-            self.step = LongStep(self.console, "report").__enter__()
         return self
 
     def __call__(self, stage: str, done: int, total: int) -> None:
-        if self.step is not None:
-            self.step.update(stage, done=done, total=total or None)
+        if self.quiet:
+            return
+        if self.step is None:  # started by the first stage, so that a mistake in the inputs stays one line
+            from ._output import LongStep
+
+            self.step = LongStep(self.console, "report").__enter__()
+        self.step.update(stage, done=done, total=total or None)
 
     def __exit__(self, *exc) -> None:
         if self.step is not None:

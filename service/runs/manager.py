@@ -2,7 +2,7 @@
 them (pause, resume, abort). The stages themselves are in :mod:`service.runs.stages`.
 
 One run at a time holds the bench; offline runs (from an uploaded dataset) never touch it. Every state change goes
-through :meth:`RunManager._transition`, a compare-and-set on the run's row that the lifecycle's table allows, and
+through :meth:`RunManager.transition`, a compare-and-set on the run's row that the lifecycle's table allows, and
 is persisted as an event pushed to the live subscribers.
 
 No HTTP here: errors are :class:`RunConflictError` / :class:`RunNotFoundError` / :class:`calib.errors.InputError`,
@@ -16,9 +16,8 @@ import contextlib
 import json
 import logging
 import shutil
-import time
 import uuid
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +31,7 @@ from ..jobs import HEAVY_NICE_ABOVE_RUN, HeavyPool
 from ..settings import Settings
 from ..timefmt import now_utc as now
 from . import calibrations
+from .active import ActiveRun
 from .bench import Bench
 from .disk import DiskGuard, StorageError, data_usage_bytes, is_disk_full
 from .events import EventBus, Subscription
@@ -71,24 +71,6 @@ class HeldEnd:
     event: RunEvent
     values: dict[str, Any]
     target: RunState
-
-
-@dataclass
-class ActiveRun:
-    id: str
-    remaining: Remaining
-    task: asyncio.Task | None = None
-    acq: Any = None
-    holds_bench: bool = False
-    aborting: bool = False
-    paused: bool = False
-    last_frame: int | None = None
-    pose: list[float] | None = None
-    started: float = field(default_factory=time.monotonic)
-    #: extraction's detections per dataset frame (observations v1 frame layout), while the run is active
-    detections: dict[int, dict[str, Any]] = field(default_factory=dict)
-    last_extracted: int | None = None
-    job: Any = None  # service.jobs.Job: the extraction or fit process
 
 
 class RunManager:
@@ -139,7 +121,7 @@ class RunManager:
             ids = list(s.scalars(select(Run.id).where(Run.state.in_(ACTIVE_STATES), mine)))
         for rid in ids:
             with contextlib.suppress(IllegalTransitionError):
-                self._transition(
+                self.transition(
                     rid, RunEvent.INTERRUPT, error="the service stopped during the run; resume it to continue"
                 )
         return ids
@@ -195,13 +177,13 @@ class RunManager:
         return [self._as_held(r) for r in rows]
 
     def update(self, run_id: str, **values: Any) -> None:
-        """Set fields of the run's row other than its state (the state moves only by :meth:`_transition`)."""
+        """Set fields of the run's row other than its state (the state moves only by :meth:`transition`)."""
         if "state" in values:
             raise ValueError("the state changes only through a lifecycle transition")
         with self.db.session() as s:
             s.execute(update(Run).where(Run.id == run_id).values(**values))
 
-    def _transition(self, run_id: str, event: RunEvent, **values: Any) -> RunState:
+    def transition(self, run_id: str, event: RunEvent, **values: Any) -> RunState:
         """Move the run by ``event`` (compare-and-set on its current state) with ``values``; emit the state event.
 
         Raises
@@ -401,7 +383,7 @@ class RunManager:
                 raise RunConflictError("this service has no bench; the run's acquisition cannot continue here")
             if (busy := self.bench_busy()) is not None:
                 raise RunConflictError(busy)
-        self._transition(run_id, RunEvent.RESUME, error=None, finished_at=None)
+        self.transition(run_id, RunEvent.RESUME, error=None, finished_at=None)
         self._start(run, todo)
         return self.get(run_id)
 
@@ -429,7 +411,7 @@ class RunManager:
             if not self.owns(run) and run.state not in FINAL:
                 raise RunConflictError(f"run belongs to the service of bench {run.service!r}; abort it there")
             with contextlib.suppress(IllegalTransitionError):  # a final run: abort is a no-op
-                self._transition(run_id, RunEvent.ABORT, finished_at=now(), error="aborted on request")
+                self.transition(run_id, RunEvent.ABORT, finished_at=now(), error="aborted on request")
             return self.get(run_id)
         first = not a.aborting
         a.aborting = True
@@ -512,9 +494,9 @@ class RunManager:
                     err = h.values.get("error")
                     self.bus.emit(run_id, "state", {"state": h.target.value, **({"error": err} if err else {})})
             else:
-                self.held.pop(run_id)  # _transition computes from the row, not from the overlay
+                self.held.pop(run_id)  # transition computes from the row, not from the overlay
                 try:
-                    self._transition(run_id, h.event, **h.values)
+                    self.transition(run_id, h.event, **h.values)
                 except BaseException:
                     self.held[run_id] = h
                     raise

@@ -9,7 +9,7 @@ import asyncio
 import contextlib
 import logging
 import time
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from calib.errors import I4calError
 from calib.jsonio import write_json_atomic
@@ -18,19 +18,47 @@ from .. import failpoints
 from ..db import Run
 from ..jobs import one_line, run_job
 from ..timefmt import now_utc as _now
+from .active import ActiveRun
 from .disk import disk_full_reason, is_disk_full
 from .lifecycle import IllegalTransitionError, RunEvent
 
 if TYPE_CHECKING:
-    from .manager import ActiveRun, RunManager
+    from pathlib import Path
+
+    from ..jobs import HeavyPool
+    from ..settings import Settings
+    from .bench import Bench
+    from .events import EventBus
+    from .lifecycle import RunState
 
 log = logging.getLogger("i4cal.service")
 
 
-class Stages:
-    """Executes runs for a :class:`service.runs.manager.RunManager`."""
+class RunControl(Protocol):
+    """What the stages need of the run manager (:class:`service.runs.manager.RunManager`): the run's row, its
+    events, its state's transitions, its files, the bench it holds."""
 
-    def __init__(self, manager: RunManager) -> None:
+    active: dict[str, ActiveRun]
+    bench: Bench | None
+    bus: EventBus
+    data_dir: Path
+    settings: Settings
+    heavy: HeavyPool
+
+    def get(self, run_id: str) -> Run: ...
+    def update(self, run_id: str, **values: Any) -> None: ...
+    def emit(self, run_id: str, type_: str, data: dict[str, Any]) -> None: ...
+    def transition(self, run_id: str, event: RunEvent, **values: Any) -> RunState: ...
+    def run_dir(self, run: Run) -> Path: ...
+    def dataset_path(self, run: Run) -> Path: ...
+    def release(self, a: ActiveRun) -> None: ...
+    def hold_end(self, run_id: str, event: RunEvent, values: dict[str, Any]) -> None: ...
+
+
+class Stages:
+    """Executes runs for a :class:`RunControl` (the run manager)."""
+
+    def __init__(self, manager: RunControl) -> None:
         self.m = manager
 
     async def execute(self, run_id: str, a: ActiveRun) -> None:
@@ -65,13 +93,13 @@ class Stages:
             if todo.extract:
                 stage = "extraction"
                 ts = time.monotonic()
-                m._transition(run_id, RunEvent.EXTRACT, phase="extraction", done=0, total=0)
+                m.transition(run_id, RunEvent.EXTRACT, phase="extraction", done=0, total=0)
                 await self.extract(run_id, run)
                 stage_done("extraction_s", ts)
             if todo.calibrate:
                 stage = "calibration"
                 ts = time.monotonic()
-                m._transition(run_id, RunEvent.CALIBRATE, phase="calibration", done=0, total=len(run.methods))
+                m.transition(run_id, RunEvent.CALIBRATE, phase="calibration", done=0, total=len(run.methods))
                 doc = await self.calibrate(run_id, run)
                 stage_done("calibration_s", ts)
                 await asyncio.to_thread(write_json_atomic, m.run_dir(run) / "result.json", doc)
@@ -80,7 +108,7 @@ class Stages:
                 await predicting
             stage = "end of the run"
             timings["total_s"] = total0 + time.monotonic() - t0
-            m._transition(run_id, RunEvent.FINISH, finished_at=_now(), timings=timings, phase="")
+            m.transition(run_id, RunEvent.FINISH, finished_at=_now(), timings=timings, phase="")
         except asyncio.CancelledError:
             # the service stops or the run is aborted: nobody waits for the prediction (a resumed run predicts again)
             if predicting is not None:
@@ -126,7 +154,7 @@ class Stages:
         """The run's last transition; a run another request already ended stays as it is. A database that refuses
         it for want of space: the end is held and recorded as soon as it can be (:meth:`RunManager.hold_end`)."""
         try:
-            self.m._transition(run_id, event, **values)
+            self.m.transition(run_id, event, **values)
         except IllegalTransitionError as exc:
             log.warning("run %s: %s", run_id, exc)
         except Exception as exc:
@@ -176,7 +204,7 @@ class Stages:
         out = m.dataset_path(run)
         out.parent.mkdir(parents=True, exist_ok=True)
         units = plan_units(plan)
-        m._transition(run_id, RunEvent.ACQUIRE, phase="connecting", total=len(units))
+        m.transition(run_id, RunEvent.ACQUIRE, phase="connecting", total=len(units))
 
         def on_progress(p) -> None:
             a.last_frame = p.done - 1 if p.done else None

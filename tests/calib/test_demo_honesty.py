@@ -37,7 +37,7 @@ def demo(tmp_path_factory) -> dict:
     from service.design import check_for_bench
 
     out = tmp_path_factory.mktemp("demo")
-    _full(argparse.Namespace(out=str(out), seed=1, small=False), make_console())
+    _full(argparse.Namespace(out=str(out), seed=1, small=False), make_console(), out)
     obs_doc = json.loads((out / "observations.json").read_text())
     plan = Plan.model_validate(json.loads((out / "dataset" / "dataset.json").read_text())["plan"])
     check = check_for_bench(load_bench(ROOT / "deploy" / "bench-sim.toml"), plan, methods=METHODS)

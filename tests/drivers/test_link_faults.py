@@ -4,8 +4,11 @@ Real sockets all the way: the simulated controller (pymodbus server), a fault pr
 ``drivers.sim.faultproxy`` in between, the driver over Modbus TCP, RTU over TCP, or RTU on a serial port:
 a pty whose other end is relayed to the gateway's TCP port (the virtual COM port of a serial device
 server; pyserial's ``socket://`` handler sleeps 0.3 s in ``close()``, blocking the event loop).
-Scenarios: replies delayed past the timeout, dropped, duplicated a little later, connections cut, and a
-gateway sharing one serial line with a second master.
+Transports: Modbus TCP (a TCP device behind a fault proxy), RTU on a serial port, RTU over TCP (a serial device
+server) and ``gateway``: Modbus TCP to a TCP/RTU gateway whose serial response timeout is shorter than the late
+replies, so that a reply arriving after the gateway gave up is handed to the next request on the line with that
+request's transaction id. Scenarios: replies delayed past the timeout, dropped, duplicated up to 50 ms later,
+connections cut, and a gateway sharing one serial line with a second master.
 
 A reading is *stale* when the position it reports is not one the axis had while the reading was being
 made: every ``read_axis`` is bracketed by the true position of the simulated mechanism just before the
@@ -40,7 +43,7 @@ SCENARIOS = {
     "delay": dict(delay_prob=0.03, delay_s=DELAYS),
     "drop": dict(drop_prob=0.03),
     "cut": dict(cut_prob=0.02),
-    "duplicate": dict(duplicate_prob=0.2, duplicate_after_s=(0.0003, 0.006)),
+    "duplicate": dict(duplicate_prob=0.2, duplicate_after_s=(0.0003, 0.05)),
     "gateway": dict(delay_prob=0.03, delay_s=DELAYS),
 }
 FAULTS = ("delayed", "dropped", "duplicated", "cuts")
@@ -120,7 +123,7 @@ async def open_link(bench, transport: str, scenario: str, seed: int):
     if transport == "tcp" and scenario != "gateway":
         proxy = FaultProxy(bench.tcp_address, seed=seed)  # a Modbus TCP device
     else:  # one serial line: a serial device server (RTU clients) or a Modbus TCP/RTU gateway (TCP clients)
-        framing = "tcp" if transport == "tcp" else "rtu"
+        framing = "tcp" if transport in ("tcp", "gateway") else "rtu"
         if scenario == "gateway":  # two masters: a gateway whose response timeout outlasts the late replies
             proxy = SerialGateway(rtu_line, client_framing=framing, line_timeout_s=0.25, route="requester", seed=seed)
         else:  # one master behind a serial device server that gives up on the line before the late replies
@@ -136,7 +139,8 @@ async def open_link(bench, transport: str, scenario: str, seed: int):
 
 
 def driver(bench, transport: str, kw: dict) -> ModbusActuators:
-    act = make_modbus(bench, transport, timeout_s=TIMEOUT_S, retries=4, poll_s=0.002, **kw)
+    wire = "tcp" if transport == "gateway" else transport  # the driver speaks Modbus TCP to a gateway
+    act = make_modbus(bench, wire, timeout_s=TIMEOUT_S, retries=4, poll_s=0.002, **kw)
     return act
 
 
@@ -203,8 +207,12 @@ async def run_scenario(bench, transport: str, scenario: str, seed: int = 1) -> d
         await proxy.close()
 
 
-@pytest.mark.parametrize("transport", ["tcp", "rtu", "rtu-tcp"])
-@pytest.mark.parametrize("scenario", list(SCENARIOS))
+MATRIX = [
+    (t, s) for s in SCENARIOS for t in ("tcp", "rtu", "rtu-tcp", "gateway") if (t, s) != ("gateway", "gateway")
+]  # the gateway scenario of tcp already is a TCP/RTU gateway (two masters)
+
+
+@pytest.mark.parametrize(("transport", "scenario"), MATRIX)
 async def test_no_stale_reading(bench, transport, scenario):
     r = await run_scenario(bench, transport, scenario)
     print(transport, scenario, {k: v for k, v in r.items() if k != "stale"}, "stale:", len(r["stale"]))
@@ -219,8 +227,11 @@ class ScriptedRtuDevice:
     ``duplicate_after_s[k]`` after the original. Each reply's registers all hold the request's number k, so a
     reading names the request it answers."""
 
-    def __init__(self, reply_after_s: dict[int, float], duplicate_after_s: dict[int, float]) -> None:
+    def __init__(
+        self, reply_after_s: dict[int, float], duplicate_after_s: dict[int, float], default_after_s: float = 0.0
+    ) -> None:
         self.reply_after_s, self.duplicate_after_s = reply_after_s, duplicate_after_s
+        self.default_after_s = default_after_s
         self.requests = 0
         self._server: asyncio.Server | None = None
 
@@ -240,7 +251,7 @@ class ScriptedRtuDevice:
                 k, count = self.requests, int.from_bytes(req[4:6], "big")
                 body = bytes([req[0], 3, 2 * count]) + b"".join(k.to_bytes(2, "big") for _ in range(count))
                 frame = body + FramerRTU.compute_CRC(body).to_bytes(2, "big")
-                delay = self.reply_after_s.get(k, 0.0)
+                delay = self.reply_after_s.get(k, self.default_after_s)
                 loop.call_later(delay, writer.write, frame)
                 if k in self.duplicate_after_s:
                     loop.call_later(delay + self.duplicate_after_s[k], writer.write, frame)
@@ -271,3 +282,119 @@ async def test_a_duplicate_never_answers_a_later_request_of_the_same_shape():
         await device.close()
     assert [g[0] for g in got] == [1, 2, 3], f"read 3 answered by reply {got[2][0]}: {got}"
     assert link.stats["unrequested"] == 1, dict(link.stats)  # the duplicate came, and was discarded
+
+
+def request_number(status) -> int:
+    """The request a ScriptedRtuDevice reply answers: every register holds it, the position's low word too."""
+    return round(status.position_m * 1e6) & 0xFFFF
+
+
+async def test_a_gateway_hands_a_late_reply_to_the_next_request_with_its_transaction_id():
+    """Modbus TCP to a TCP/RTU gateway whose serial response timeout (50 ms) is shorter than the drive's late
+    replies: replies 1, 11, 21, 31 come 250 ms after their request (2.5 driver timeouts), the others after 20 ms.
+    The gateway has moved on and hands each late reply to the request then on the line, with that request's
+    transaction id: only its shape can betray it. The old driver trusted the transaction id and alternated two
+    read windows: a late reply landed on a read of the same window (reply 1 answered request 7, reply 11 request
+    17, ...). Now no request of a shape whose reply may still come goes out within the guard: every reading
+    answers the request it was made by."""
+    device = ScriptedRtuDevice(
+        reply_after_s=dict.fromkeys((1, 11, 21, 31), 0.25), duplicate_after_s={}, default_after_s=0.02
+    )
+    line = await device.start()
+    gateway = SerialGateway(line, client_framing="tcp", line_timeout_s=0.05, route="requester")
+    host, port = await gateway.start()
+    link = ModbusLink(transport="tcp", host=host, port=port, timeout_s=0.1, retries=3)
+    wrong = []
+    try:
+        await link.open()
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 1.5:
+            k = request_number(await link.read_axis(0))
+            if k != device.requests:
+                wrong.append((k, device.requests))
+    finally:
+        await link.close()
+        await gateway.close()
+        await device.close()
+    assert wrong == [], f"readings answered by earlier requests (reply, latest request): {wrong}"
+    assert device.requests > 31 and link.stats["timeouts"] >= 4, (device.requests, dict(link.stats))
+
+
+async def test_an_rtu_duplicate_50_ms_late_never_answers_a_later_read():
+    """RTU over TCP (a serial device server) that duplicates a reply 40 ms later, default settings: the old
+    driver waited 10 ms (``flush_s``) after a reply of the same shape, and read the same window two reads later
+    (every 2 x 15 ms): the copy answered it. Now a copy is awaited for ``duplicate_window_s`` (0.1 s) and the reads
+    rotate through every window of the axis' registers meanwhile."""
+    device = ScriptedRtuDevice(
+        reply_after_s={}, duplicate_after_s={k: 0.04 for k in range(1, 200)}, default_after_s=0.015
+    )
+    host, port = await device.start()
+    link = ModbusLink(transport="rtu-tcp", host=host, port=port, timeout_s=0.2, retries=2)
+    wrong = []
+    try:
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 0.5:
+            k = request_number(await link.read_axis(0))
+            if k != device.requests:
+                wrong.append((k, device.requests))
+    finally:
+        await link.close()
+        await device.close()
+    assert wrong == [], f"readings answered by earlier requests (reply, latest request): {wrong}"
+    assert device.requests > 10, device.requests
+
+
+FRAME_FAULTS = dict(delay_prob=0.03, delay_s=DELAYS, duplicate_prob=0.2, duplicate_after_s=(0.0003, 0.05))
+
+
+@pytest.mark.parametrize("transport", ["tcp", "rtu", "rtu-tcp", "gateway"])
+async def test_no_frame_off_the_truth(bench, tmp_path, transport):
+    """A run through the faulty link (late replies, duplicates up to 50 ms late): every frame written records a q
+    within the encoder's noise of the true joints at the frame (the simulated camera reports them). A run that
+    fails on a fault is resumed, as an operator would."""
+    from test_acquisition import small_plan
+
+    from calib.dataset import Dataset
+    from calib.parameters import NOMINAL
+    from calib.plan import Plan
+    from drivers.acquisition import Acquisition, AcquisitionError
+    from drivers.config import open_camera
+
+    p = small_plan()
+    plan = Plan(name="faults", steps=[s for s in p.steps if s.line is None])
+    proxy, kws, ptys = await open_link(bench, transport, "delay", seed=3)
+    cfg = bench.bench_config()
+    failures = 0
+    try:
+        for k, v in FRAME_FAULTS.items():
+            setattr(proxy.faults, k, v)
+        for attempt in range(4):
+            acq = Acquisition(
+                plan,
+                driver(bench, transport, kws[0]),
+                open_camera(cfg),
+                tmp_path / "ds",
+                nominal=NOMINAL,
+                limits=cfg.calib_limits(),
+                resume=attempt > 0,
+            )
+            try:
+                await acq.run()
+                break
+            except AcquisitionError:
+                failures += 1
+            finally:
+                await acq.actuators.close()
+                await acq.camera.close()
+    finally:
+        for pt in ptys:
+            await pt.close()
+        await proxy.close()
+    ds = Dataset.open(tmp_path / "ds")
+    print(transport, "frames", len(ds.frames), "failed runs", failures, dict(proxy.stats))
+    assert len(ds.frames) == len(plan.steps), (len(ds.frames), failures)
+    assert proxy.stats["delayed"] + proxy.stats["duplicated"] >= 3, dict(proxy.stats)
+    off = [
+        (k, np.max(np.abs(np.asarray(f.q) - np.asarray(f.model_extra["truth"]["q"])))) for k, f in enumerate(ds.frames)
+    ]
+    assert all(d <= TOL_M for _, d in off), [o for o in off if o[1] > TOL_M]

@@ -66,3 +66,42 @@ async def test_ascii_faults(bench, ascii_act):
     q1 = bench.mechanism.q_true()
     await asyncio.sleep(0.03)
     assert np.array_equal(q1, bench.mechanism.q_true())
+
+
+async def test_ascii_move_whose_reply_is_lost_is_not_sent_again(bench, ascii_act):
+    """The MOVE executed but its reply was lost: STAT? proves it was taken; the MOVE is never sent twice."""
+    act, srv = ascii_act
+    await act.home(timeout_s=5)
+    before = srv.executed["MOVE"]
+    srv.drop_replies = 1
+    q = np.array([0.30, 0.31, 0.32, 0.33])
+    assert np.allclose(await act.move(q), q, atol=3e-6)
+    assert srv.executed["MOVE"] - before == 1
+
+
+async def test_ascii_move_lost_on_the_way_is_sent_again_once_proven_not_taken(bench, ascii_act):
+    """The MOVE line never reached the controller: every axis idle away from its target, so it is sent again once."""
+    act, srv = ascii_act
+    await act.home(timeout_s=5)
+    before = srv.executed["MOVE"]
+    srv.drop_requests = 1
+    q = np.array([0.35, 0.36, 0.37, 0.38])
+    assert np.allclose(await act.move(q), q, atol=3e-6)
+    assert srv.executed["MOVE"] - before == 1
+    assert np.allclose(bench.mechanism.q_true(), q)
+
+
+async def test_ascii_move_whose_fate_cannot_be_read_is_not_sent_again(bench, ascii_act):
+    """No reply to the MOVE nor to the STAT? that follows: the move fails saying it may still execute (and, the
+    controller silent, that the stop could not be confirmed either); the MOVE is not sent again."""
+    from drivers.errors import StopNotConfirmedError
+    from drivers.links import MotionNotConfirmedError
+
+    act, srv = ascii_act
+    await act.home(timeout_s=5)
+    before = srv.executed["MOVE"]
+    srv.mute_after = "MOVE"
+    with pytest.raises((MotionNotConfirmedError, StopNotConfirmedError), match="may still execute"):
+        await act.move([0.25, 0.26, 0.27, 0.28])
+    srv.mute_after, srv.drop_replies = None, 0
+    assert srv.executed["MOVE"] - before == 1
