@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import itertools
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -442,7 +442,7 @@ def radial_residual_profile(
 
 
 def calibrate_intrinsics(
-    views: dict[int, tuple[ArrayLike, ArrayLike, ArrayLike]],
+    views: Mapping[int, tuple[ArrayLike, ArrayLike, object]],
     image_size: tuple[int, int],
     board_ids: ArrayLike,
     board_points: ArrayLike,
