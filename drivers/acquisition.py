@@ -502,6 +502,7 @@ class Acquisition:
             except (DeviceTimeoutError, FrameError) as exc:
                 last = exc
                 log.warning("grab failed (%s); retrying", exc)
+        # grab_retries >= 0: at least one attempt failed and set last
         raise last  # type: ignore[misc]
 
     async def _pose(self, u: Unit) -> None:

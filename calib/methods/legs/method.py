@@ -299,6 +299,7 @@ def calibrate_legs(
             A = np.linalg.pinv(eff.steps.T)  # the principal steps' coordinates of a move of the intrinsics
             z_intr = A @ got[0]
             cov_intr = Jz[:, :nz] @ (A @ got[1] @ A.T) @ Jz[:, :nz].T
+            # got is set only when measured_intr is
             intr_note = measured_intr.to_dict() | {"applied": True}  # type: ignore[union-attr]
         if measured_edge:
             # the limbs corrected by the measured bias (moved inward by it), the whole estimate redone; its
