@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import itertools
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -118,7 +118,10 @@ class CameraModel:
         px = _points2(pixels, "pixels")
         if px.shape[0] == 0:
             return np.zeros((0, 2))
-        out = cv2.undistortPointsIter(px.reshape(-1, 1, 2), self.K, self.dist, None, None, _UNDISTORT_CRITERIA)
+        # OpenCV's stubs do not allow None for R and P, which the function takes (no rectification, normalized out)
+        out = cv2.undistortPointsIter(  # type: ignore[call-overload]
+            px.reshape(-1, 1, 2), self.K, self.dist, None, None, _UNDISTORT_CRITERIA
+        )
         return out.reshape(-1, 2).astype(np.float64)
 
     def to_ideal_pixels(self, xn: ArrayLike) -> Array:
@@ -439,7 +442,7 @@ def radial_residual_profile(
 
 
 def calibrate_intrinsics(
-    views: dict[int, tuple[ArrayLike, ArrayLike, ArrayLike]],
+    views: Mapping[int, tuple[ArrayLike, ArrayLike, object]],
     image_size: tuple[int, int],
     board_ids: ArrayLike,
     board_points: ArrayLike,
@@ -537,7 +540,9 @@ def calibrate_intrinsics(
         objp = [obj.astype(np.float32).reshape(-1, 1, 3) for _ in keys]
         imgp = [keep[k].astype(np.float32).reshape(-1, 1, 2) for k in keys]
         with opencv_single_thread():  # bit-reproducible: OpenCV's threads change the result in the last digits
-            return cv2.calibrateCameraROExtended(
+            # OpenCV's stubs do not allow None for the initial camera matrix and distortion, which the function
+            # takes (no initial guess)
+            return cv2.calibrateCameraROExtended(  # type: ignore[call-overload]
                 objp,
                 imgp,
                 (w, h),
@@ -576,7 +581,7 @@ def calibrate_intrinsics(
     n_board = (3 * m_pts - 7) if fixed >= 0 else 0  # released points less OpenCV's gauge (two points and a z)
     candidates = list(LENS_MODELS) if model == "auto" else [model]
     fits: dict[str, tuple] = {first: ret} if first in candidates else {}
-    evidence = []
+    evidence: list[dict[str, Any]] = []  # one JSON object per candidate model (mixed value types)
     for name in candidates:
         r = fits.get(name) or run(keys, _lens_flags(name))
         fits[name] = r

@@ -145,7 +145,7 @@ class Dataset:
         self.document = document
 
     @classmethod
-    def open(cls, path: str | Path) -> Dataset:
+    def open(cls, path: str | os.PathLike[str]) -> Dataset:
         root = Path(path)
         if root.is_file() and root.name == "dataset.json":
             root = root.parent

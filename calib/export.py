@@ -168,6 +168,7 @@ def _gap_rms_m(validation: Any) -> tuple[float | None, Literal["validation", "fi
         for key, poses in (("gaps_validation", "validation"), ("gaps_poses", "fit")):
             g = validation.get(key)
             if isinstance(g, dict) and isinstance(g.get("rms_mm"), (int, float)) and math.isfinite(g["rms_mm"]):
+                # poses: one of the two literals of the loop's tuples
                 return float(g["rms_mm"]) * 1e-3, poses  # type: ignore[return-value]
     return None, "validation"
 

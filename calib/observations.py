@@ -52,7 +52,8 @@ PHASES: tuple[str, ...] = (
     "validation",
 )
 Phase = Literal["rotation", "translation", "poses", "lock-1", "lock-2", "lock-3", "lock-4", "line", "validation"]
-LEG_KEYS: tuple[str, ...] = ("1", "2", "3", "4")
+LegKey = Literal["1", "2", "3", "4"]
+LEG_KEYS: tuple[LegKey, ...] = ("1", "2", "3", "4")
 
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 Vec4 = Annotated[list[float], Field(min_length=4, max_length=4)]
@@ -300,7 +301,7 @@ class Frame(BaseModel):
     phase: Phase
     q: Vec4 = Field(description="encoder values q1..q4, metres")
     board: Board | None = None
-    legs: dict[Literal["1", "2", "3", "4"], Annotated[list[Rod | None], Field(max_length=2)]] | None = Field(
+    legs: dict[LegKey, Annotated[list[Rod | None], Field(max_length=2)]] | None = Field(
         default=None, description="per leg, its two rods [rod at -x_B side, rod at +x_B side]; null for a missing rod"
     )
 

@@ -10,7 +10,7 @@ method, a guided 500 mm line for straightness, and separate validation poses.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Final, Literal, cast
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, Strict, ValidationError
@@ -20,7 +20,7 @@ from .jsonio import read_json
 from .kinematics import dkm, ikm
 from .parameters import I4Parameters
 
-PLAN_FORMAT = "i4cal.plan/1"
+PLAN_FORMAT: Final = "i4cal.plan/1"
 PLAN_NAMES = ("full", "rotation-sweep", "equal-translation", "pose-set", "lock-actuator", "line", "validation")
 
 #: Size bounds of a plan, checked before any computation on its steps (a plan is user input: the service validates
@@ -71,13 +71,16 @@ class LineSpec(BaseModel):
     rate_hz: Num = Field(10.0, gt=0)
 
 
+StepPhase = Literal[
+    "rotation", "translation", "poses", "lock-1", "lock-2", "lock-3", "lock-4", "line", "validation", "camera"
+]
+
+
 class Step(BaseModel):
     """One plan step: move to ``q`` and record a frame, or record a guided line."""
 
     model_config = ConfigDict(extra="allow", allow_inf_nan=False)
-    phase: Literal[
-        "rotation", "translation", "poses", "lock-1", "lock-2", "lock-3", "lock-4", "line", "validation", "camera"
-    ]
+    phase: StepPhase
     q: Vec4 | None = Field(None, description="joint targets q1..q4 in metres")
     line: LineSpec | None = None
 
@@ -316,7 +319,8 @@ def random_poses(
     limits = limits or SoftLimits()
     out: list[np.ndarray] = []
     for _ in range(200):
-        cand = np.column_stack([rng.uniform(*getattr(ws, k), size=4 * n) for k in "XYZT"])
+        # Workspace's X, Y, Z and T are (low, high) pairs
+        cand = np.column_stack([rng.uniform(*cast("tuple[float, float]", getattr(ws, k)), size=4 * n) for k in "XYZT"])
         out.extend(cand[_good(params, cand, ws, limits)])
         if len(out) >= n:
             return np.asarray(out[:n])
@@ -347,7 +351,7 @@ def pose_set(
     nominal: I4Parameters,
     n: int = 20,
     seed: int = 0,
-    phase: str = "poses",
+    phase: StepPhase = "poses",
     ws: Workspace | None = None,
     limits: SoftLimits | None = None,
 ) -> list[Step]:
@@ -387,7 +391,8 @@ def lock_actuator(
                 break
         else:
             raise InputError(f"could not draw {n_per_axis} poses with actuator {axis + 1} locked")
-        steps += [Step(phase=f"lock-{axis + 1}", q=q.tolist()) for q in got]
+        phase = cast(StepPhase, f"lock-{axis + 1}")  # axis in 0..3: lock-1 .. lock-4
+        steps += [Step(phase=phase, q=q.tolist()) for q in got]
     return steps
 
 

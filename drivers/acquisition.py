@@ -320,6 +320,7 @@ class Acquisition:
         self._note_record_time(time.perf_counter() - t_grab)
         if self._writer is None:
             self._create_dataset(first)
+        assert self._writer is not None  # resumed, or created just above
         self._t0 = time.monotonic()
         self._emit("running", f"starting at pose {start + 1}/{len(self.units)}")
         i = start
@@ -456,6 +457,7 @@ class Acquisition:
         meta = frame.meta or {}
         if "q_true" in meta and "pose_true" in meta:
             extra["truth"] = {"q": list(meta["q_true"]), "pose": list(meta["pose_true"])}
+        assert self._writer is not None  # created (run) before the first frame is grabbed
         self._writer.add_frame(u.phase, q, img, **extra)
         self._done_now += 1
 
@@ -500,6 +502,7 @@ class Acquisition:
             except (DeviceTimeoutError, FrameError) as exc:
                 last = exc
                 log.warning("grab failed (%s); retrying", exc)
+        # grab_retries >= 0: at least one attempt failed and set last
         raise last  # type: ignore[misc]
 
     async def _pose(self, u: Unit) -> None:
@@ -562,6 +565,7 @@ class Acquisition:
         u0 = self.units[i]
         step = self.plan.steps[u0.step]
         line = step.line
+        assert line is not None  # called for a guided line's step only (run)
         k0 = u0.line_sample or 0
         rate = self.line_rate(self.line_rate_hz or line.rate_hz)
         poses = line_poses(line)

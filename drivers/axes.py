@@ -376,6 +376,7 @@ class AxisController:
         if all(confirmed):
             self._unsafe = False
             if getattr(self.link, "motion_in_doubt", False):
+                # the links that track a motion in doubt have the attribute (getattr above)
                 self.link.motion_in_doubt = False  # type: ignore[attr-defined]
         else:
             self._unsafe = True
@@ -416,6 +417,7 @@ class AxisController:
         not_stopped = await self._stop_quietly()
         if not_stopped is not None and not isinstance(exc, asyncio.CancelledError):
             err = StopNotConfirmedError(f"{exc}; then {not_stopped}", axes=not_stopped.axes)
+            # reachable: set on the error where it is raised (above), not a declared attribute
             err.reachable = getattr(not_stopped, "reachable", False)  # type: ignore[attr-defined]
             raise err from exc
 

@@ -367,7 +367,8 @@ def allowed_hosts(settings: Settings) -> list[str]:
 def install(app: FastAPI, settings: Settings) -> None:
     """Add the hardening to ``app``: validation-error handler, strict JSON bodies, Host allow-list, headers (outermost:
     every response, the allow-list's 400 included, carries them)."""
-    app.add_exception_handler(RequestValidationError, validation_error_handler)
+    # Starlette types a handler for any Exception; this one is registered for RequestValidationError only
+    app.add_exception_handler(RequestValidationError, validation_error_handler)  # type: ignore[arg-type]
     app.add_middleware(StrictJSONBodies, max_bytes=settings.max_json_body_bytes)
     app.add_middleware(TrustedHostMiddleware, allowed_hosts=allowed_hosts(settings), www_redirect=False)
     app.add_middleware(SecurityHeaders)

@@ -317,7 +317,7 @@ class Job:
     """One child process running ``JOBS[target]``; :meth:`run` blocks (call it in a thread), :meth:`kill` doesn't."""
 
     def __init__(
-        self, target: str, kwargs: dict[str, Any], on_event: Callable[[str, dict[str, Any]], None], nice: int = 5
+        self, target: str, kwargs: dict[str, Any], on_event: Callable[[str, dict[str, Any]], object], nice: int = 5
     ) -> None:
         if target not in JOBS:
             raise ValueError(f"unknown job {target!r}")

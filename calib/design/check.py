@@ -267,4 +267,5 @@ def targets_from_plan(
     if method not in pred.std:
         why = pred.errors.get(method, "no prediction")
         raise InputError(f"the reference plan {plan.name!r} has no {method} prediction: {why}", field="better_than")
+    # one per combination: the four the declared tuple has
     return tuple(float(pred.std[method][c]) for c in COMBINATION_NAMES)  # type: ignore[return-value]

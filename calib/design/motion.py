@@ -9,6 +9,7 @@ acceleration ``a`` (m/s^2) takes ``d/v + v/a`` when it reaches its top speed (``
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -88,8 +89,10 @@ def order_tour(q: np.ndarray, spec: MotionSpec, start: np.ndarray | None = None)
     return route
 
 
-def plan_motion_time(plan: Plan, spec: MotionSpec, nominal: I4Parameters | None = None) -> dict[str, float]:
+def plan_motion_time(plan: Plan, spec: MotionSpec, nominal: I4Parameters | None = None) -> dict[str, Any]:
     """Motion time of a plan executed in its order, per phase and in total (seconds).
+
+    Returns ``{"total_s": float, "per_phase_s": {phase: float}}``.
 
     The guided line's samples need ``nominal`` to turn its poses into joint values for the move to its start.
     """

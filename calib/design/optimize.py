@@ -314,6 +314,10 @@ def _score(
     infos: _Infos, F: dict[str, np.ndarray], criterion: Criterion, t: dict[str, np.ndarray] | None
 ) -> np.ndarray:
     """Lower is better; batched over the leading axes. ``t``: per method its targets (4,), m."""
+    # 0.0, then arrays over the leading axes once a method's information is added (F holds at least one)
+    d: Any
+    a: Any
+    worst: Any
     d = a = worst = 0.0
     for m, Fm in F.items():
         ref = t[m] if t is not None else np.full(4, 1e-3)

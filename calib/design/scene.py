@@ -164,9 +164,10 @@ def visibility(scene: Scene, params: I4Parameters, q: np.ndarray, samples: bool 
     px = cam.project(safe.reshape(-1, 3)).reshape(n, 8, -1, 2)
     vis = front & _inside(px, cam, lim.margin_px)
     for k in range(n):
-        if polys[k] is not None:
-            normal, d = planes[k]  # type: ignore[misc]
-            inside = _point_in_polygon(px[k].reshape(-1, 2), polys[k]).reshape(8, -1)
+        poly, plane = polys[k], planes[k]
+        if poly is not None and plane is not None:  # both None together (the board behind the camera)
+            normal, d = plane
+            inside = _point_in_polygon(px[k].reshape(-1, 2), poly).reshape(8, -1)
             behind = (P[k] @ normal) > d  # the board's plane lies between the camera and the sample
             vis[k] &= ~(inside & behind)
     # rod a's samples against rod b's image segment (every pair at once): hidden when within the two image

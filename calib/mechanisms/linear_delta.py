@@ -35,6 +35,7 @@ from ..errors import UnreachableError
 from ..mechanism import Array, as_rows
 
 #: The plate's joint angles (design constants) and the nominal column angles: 90, 210, 330 degrees.
+#: (three values: the declared 3-tuple, which mypy cannot count in a generator)
 DESIGN_ANGLES: tuple[float, float, float] = tuple(math.pi / 2 + 2 * math.pi * i / 3 for i in range(3))  # type: ignore[assignment]
 
 PARAMETER_NAMES: tuple[str, ...] = (
@@ -125,6 +126,7 @@ class LinearDeltaParameters:
         v = np.asarray(values, dtype=np.float64).reshape(-1)
         if v.size != len(PARAMETER_NAMES):
             raise ValueError(f"LinearDeltaParameters.from_vector needs {len(PARAMETER_NAMES)} values, got {v.size}")
+        # the slices are arrays of three: __post_init__ makes each field its 3-tuple of floats (_triple)
         return cls(R=v[0:3], theta=v[3:6], L=v[6:9], z0=v[9:12], r=v[12], phi=phi)  # type: ignore[arg-type]
 
     @cached_property

@@ -17,7 +17,7 @@ common to all poses and their errors do not show in the residuals.
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Literal, cast
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -27,7 +27,7 @@ from ..camera import CameraModel
 from ..errors import IdentifiabilityError
 from ..kinematics import pose_from_joints_reduced
 from ..numdiff import central_jacobian
-from ..observations import Observations, PhaseArrays
+from ..observations import LegKey, Observations, PhaseArrays
 from ..parameters import COMBINATION_NAMES
 from ..robust import chi2_outliers, robust_chi2_scale
 from ..transforms import cross, matrix_to_rotvec, rotvec_to_matrix
@@ -371,6 +371,7 @@ def calibrate_combined(
     cov_lens = None
     lens_err = None if prob.intrinsics is None else intr.lens_model_error(prob.intrinsics.camera)
     if lens_err is not None and s2 > 0:
+        assert prob.intrinsics is not None  # lens_err is computed from it
         dx = prob.intrinsics.model_error_shift(w, z, lens_err, R0, joint)
         Hm = Jr.T @ (Wfull / s2) @ Jr + Pw + Pz + Pe
         dtheta = -np.linalg.solve(Hm, Jr.T @ (Wfull / s2) @ dx)[:4]
@@ -387,6 +388,7 @@ def calibrate_combined(
         breakdown["lens_model"] = std_dict(np.zeros((4, 4)) if cov_lens is None else cov_lens)
     edge = None
     if nz > ni and "full" in parts:
+        assert prob.intrinsics is not None  # nz > 0: the intrinsics are fitted
         e_std = prob.intrinsics.edge_std_px
         edge = {
             # z moves the measured limbs (the correction); the limbs' bias is the opposite: outward positive, the rods
@@ -401,6 +403,7 @@ def calibrate_combined(
     # the intrinsics after the rods: their posterior covariance (for methods that do not use the rods)
     posterior = None
     if nz and "full" in parts:
+        assert steps is not None  # nz > 0: the intrinsics' principal steps
         posterior = (steps.T @ parts["full"][4 + nw : 4 + nw + ni, 4 + nw : 4 + nw + ni] @ steps).tolist()
     return MethodResult(
         method="combined",
@@ -694,7 +697,8 @@ def _rod_field(obs: Observations, data: PhaseArrays, prob: _Problem, name: str) 
     values = []
     for k, leg, rod in zip(prob.k, prob.leg, prob.rod, strict=True):
         frame = obs.frames[int(data.index[k])]
-        rods = frame.legs.get(str(leg + 1)) if frame.legs else None
+        key = cast(LegKey, str(leg + 1))  # leg in 0..3
+        rods = frame.legs.get(key) if frame.legs else None
         v = getattr(rods[rod], name, None) if rods and rods[rod] is not None else None
         if v is None:
             return None

@@ -9,6 +9,7 @@ board (away from a camera that sees its face).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -170,28 +171,32 @@ class BoardDetector:
             ok, rvec, tvec = cv2.solvePnP(obj, img, camera.K, camera.dist, flags=cv2.SOLVEPNP_ITERATIVE)
             if not ok:
                 return "board pose failed: solvePnP did not converge"
-        rvec, tvec = cv2.solvePnPRefineLM(obj, img, camera.K, camera.dist, rvec, tvec)
+        # OpenCV's stubs type every output as any Mat; with float64 inputs these are float64 arrays
+        rvec, tvec = cast("tuple[Array, Array]", cv2.solvePnPRefineLM(obj, img, camera.K, camera.dist, rvec, tvec))
         keep, rvec, tvec = reject_corners(obj, img, camera, rvec, tvec, self.min_corners)
         n_rejected = int(n - keep.sum())
         obj, img, ids, n = obj[keep], img[keep], detection.ids[keep], int(keep.sum())
-        proj, jac = cv2.projectPoints(obj, rvec, tvec, camera.K, camera.dist)
+        proj, jac = cast("tuple[Array, Array]", cv2.projectPoints(obj, rvec, tvec, camera.K, camera.dist))
         res = proj.reshape(-1, 2) - img
         rms = float(np.sqrt(np.mean(np.sum(res**2, axis=1))))
         J = jac[:, :6]
         dof = max(2 * n - 6, 1)
         sigma2 = max(float(np.sum(res**2)) / dof, CORNER_FLOOR_PX**2)
         try:
-            cov = sigma2 * np.linalg.inv(J.T @ J)
+            cov = sigma2 * cast("Array", np.linalg.inv(J.T @ J))  # float64 (numpy's stubs: any floating)
         except np.linalg.LinAlgError:
             return "board pose failed: degenerate corner configuration"
-        R, _ = cv2.Rodrigues(rvec)
+        R, _ = cast("tuple[Array, Any]", cv2.Rodrigues(rvec))
         if float(tvec.reshape(-1)[2]) <= 0:
             return "board pose failed: board behind the camera"
         # intrinsics move the pose directly (projection) and through the refined corners they carry
         cols = projection_columns(intrinsics_names(camera))  # the camera's lens model's intrinsics
         ni = len(cols)
         if max(cols) >= jac.shape[1]:  # a coefficient the camera's dist does not hold (zero): its derivative
-            _, jac = cv2.projectPoints(obj, rvec, tvec, camera.K, np.concatenate([camera.dist, np.zeros(8)])[:8])
+            _, jac = cast(
+                "tuple[Array, Array]",
+                cv2.projectPoints(obj, rvec, tvec, camera.K, np.concatenate([camera.dist, np.zeros(8)])[:8]),
+            )
         dX = self.points_d_intrinsics[ids]  # (n, 3, ni)
         if dX.shape[2] != ni:
             dX = np.zeros((n, 3, ni))

@@ -460,7 +460,7 @@ def _extract(
     if C is None and opts.detect_fallback:  # no placement: the rods are found from scratch in each frame
         dset = opts.detect or DetectSettings()
         prior = opts.camera_prior.to_dict() if opts.camera_prior is not None else None
-        items = [(i, prior, dict(dset.__dict__)) for i in obs_idx if "image_error" not in boards[i]]
+        items: list[tuple] = [(i, prior, dict(dset.__dict__)) for i in obs_idx if "image_error" not in boards[i]]
         total += len(items)
         found = {i: d for i, d in pool.run(_task_find_rods, items, init, progress, done, total) if d is not None}
         done += len(items)

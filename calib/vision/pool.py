@@ -329,6 +329,7 @@ class _Pool:
             submit(w)
         while busy:
             for c in mp_wait([self.conns[w] for w in busy]):
+                # wait() returns the connections it was given (typed as any waitable)
                 w = self.conns.index(c)  # type: ignore[arg-type]
                 k = busy.pop(w)
                 done(k, self._answer(w))

@@ -66,7 +66,7 @@ class FallbackRenderer:
 def default_renderer(geometry: BenchGeometry, seed: int = 0) -> Any:
     """The image-level twin's renderer when importable, else :class:`FallbackRenderer`."""
     try:
-        from .render import BenchRenderer  # type: ignore[import-not-found]
+        from .render import BenchRenderer
     except Exception as exc:  # not there yet, or broken: the bench still runs
         log.warning("drivers.sim.render unavailable (%s); using the fallback renderer", exc)
         return FallbackRenderer(geometry)
@@ -271,6 +271,7 @@ class SimBench:
     # -- URIs ---------------------------------------------------------------------------------------
     @property
     def actuators_uri(self) -> str:
+        assert self.tcp_address is not None, "the bench is not started"
         h, p = self.tcp_address
         return f"modbus+tcp://{h}:{p}"
 
@@ -282,6 +283,7 @@ class SimBench:
 
     @property
     def camera_uri(self) -> str:
+        assert self.frame_address is not None, "the bench is not started"
         h, p = self.frame_address
         return f"sim://{h}:{p}"
 

@@ -292,7 +292,8 @@ class SimController:
         if port == 0:
             port = _free_port(host)
         srv = ModbusTcpServer(self.devices(), address=(host, port), trace_packet=self._trace_packet)
-        srv.context = StrictContext(srv.context)
+        # StrictContext wraps the server's context and answers its calls (duck-typed, not a pymodbus subclass)
+        srv.context = StrictContext(srv.context)  # type: ignore[assignment]
         await srv.serve_forever(background=True)
         self._servers.append(srv)
         self._start_watchdog()
@@ -307,7 +308,8 @@ class SimController:
         srv = ModbusSerialServer(
             self.devices(), framer=FramerType.RTU, port=port, baudrate=baudrate, trace_packet=self._trace_packet
         )
-        srv.context = StrictContext(srv.context)
+        # StrictContext wraps the server's context and answers its calls (duck-typed, not a pymodbus subclass)
+        srv.context = StrictContext(srv.context)  # type: ignore[assignment]
         await srv.serve_forever(background=True)
         self._servers.append(srv)
         self._start_watchdog()
@@ -355,7 +357,7 @@ class AsciiServer:
         self._server = await asyncio.start_server(self._handle, host, port)
         return self._server.sockets[0].getsockname()[:2]
 
-    def reply(self, line: str) -> str | None:
+    def reply(self, line: str) -> str:
         from ..registermap import ControlBits, StatusBits
 
         seq, _, rest = line.strip().partition(" ")

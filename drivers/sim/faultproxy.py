@@ -264,6 +264,7 @@ class SerialGateway(_Faulty):
                 client.tid, req = struct.unpack(">H", req[:2])[0], req[2:]
             self._current = client
             self._answered.clear()
+            assert self._line_writer is not None  # opened before this task is started
             self._line_writer.write(req)
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self._answered.wait(), self.line_timeout_s)

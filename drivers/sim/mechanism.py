@@ -158,7 +158,8 @@ class SimAxis:
         self.profile = _Profile(now, self.pos, target, speed, self.config.accel)
         if self.profile.t_total == 0:
             self.profile = None
-            self.homing and self._finish_home()
+            if self.homing:
+                self._finish_home()
 
     def _finish_home(self) -> None:
         self.homing = False

@@ -20,9 +20,11 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass, field
+from typing import Any, cast
 
 import cv2
 import numpy as np
+from numpy.typing import NDArray
 
 from calib.camera import CameraModel
 from calib.dataset import BoardSpec
@@ -75,7 +77,7 @@ class RenderSettings:
     @classmethod
     def clean(cls, **kw) -> RenderSettings:
         """No noise, no blur, no texture, no clutter, an exact board."""
-        base = dict(noise_sigma=0.0, blur_sigma_px=0.0, texture=0.0, clutter_lines=0, board_error_m=0.0)
+        base: dict[str, Any] = dict(noise_sigma=0.0, blur_sigma_px=0.0, texture=0.0, clutter_lines=0, board_error_m=0.0)
         base.update(kw)
         return cls(**base)
 
@@ -156,7 +158,8 @@ class BenchRenderer:
         tex = 22.0 + tex * (215.0 / 255.0)
         self._tex_levels = [tex]
         for _ in range(4):
-            self._tex_levels.append(cv2.pyrDown(self._tex_levels[-1]))
+            # float32 in, float32 out (OpenCV's stubs type the result as any Mat)
+            self._tex_levels.append(cast("NDArray[np.float32]", cv2.pyrDown(self._tex_levels[-1])))
         self._ppm = ppm
         self._margin_m = s.board_margin_m
         # manufacturing error: delta(p) = quadratic polynomial field (2 components) scaled to the set RMS

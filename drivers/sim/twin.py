@@ -11,7 +11,7 @@ alongside.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -64,9 +64,9 @@ class NoiseSpec:
             self.rod_direction_rad * k,
             self.rod_point_m * k,
             self.board_rotation_rad * k,
-            tuple(x * k for x in self.board_translation_m),
+            cast("tuple[float, float, float]", tuple(x * k for x in self.board_translation_m)),  # three in, three out
             self.encoder_m * k,
-        )  # type: ignore[arg-type]
+        )
 
     def to_dict(self) -> dict[str, Any]:
         return {

@@ -11,7 +11,7 @@ import zipfile
 import zlib
 from datetime import datetime
 from pathlib import Path, PurePosixPath
-from typing import Annotated
+from typing import IO, Annotated
 
 from fastapi import APIRouter, HTTPException, Query, Request, status
 from pydantic import BaseModel
@@ -154,6 +154,7 @@ def unpack_archive(
         t.parent.mkdir(parents=True, exist_ok=True)
         return t
 
+    src: IO[bytes] | None  # a member's stream (a tar member that is no regular file has none)
     if zipfile.is_zipfile(archive):
         try:
             zf = zipfile.ZipFile(archive)

@@ -363,6 +363,7 @@ async def predict(body: PredictBody, manager: Manager, _: Writer) -> PredictOut:
     Retry-After when too many wait)."""
     plan = await asyncio.to_thread(resolve_plan, body.plan, manager)
     bench = manager.bench
+    assert bench is not None  # resolve_plan refused a service without a bench (422)
     try:
         check = await heavy(
             manager,
@@ -423,5 +424,6 @@ async def tradeoff(
         recommendation=recommendation_reason(rows),
         recommended_plan=None if plan is None else plan.model_dump(mode="json", exclude_none=True),
         notes=_capped(body, settings),
-        count_trend=tradeoff_trend(rows, asked),
+        # pydantic validates the trend's dict into CountTrendOut (the plugin's typed __init__ wants the model)
+        count_trend=tradeoff_trend(rows, asked),  # type: ignore[arg-type]
     )

@@ -100,6 +100,7 @@ class RunPrediction(BaseModel):
 
 class RunOut(BaseModel):
     id: str
+    # STATES: the run states' values, a tuple built at import (pydantic reads it; mypy needs literals)
     state: Literal[STATES]  # type: ignore[valid-type]
     created_at: datetime
     started_at: datetime | None
@@ -219,6 +220,7 @@ async def list_runs(
     _: Reader,
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
     offset: Annotated[int, Query(ge=0, le=1_000_000)] = 0,
+    # STATES: a tuple built at import (pydantic reads it; mypy needs literals)
     state: Annotated[Literal[STATES] | None, Query()] = None,  # type: ignore[valid-type]
     bench: Annotated[str | None, Query(pattern=BENCH_NAME_PATTERN)] = None,
 ) -> list[RunOut]:

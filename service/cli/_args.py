@@ -114,7 +114,10 @@ class OneLineParser(argparse.ArgumentParser):
     """An argument parser whose usage errors are one line, ``i4cal COMMAND: error: ...`` (exit 2); an option's
     negative value is read as its value (:func:`join_negative_values`)."""
 
-    def parse_known_args(self, args: Sequence[str] | None = None, namespace: Any = None) -> Any:
+    # the base class takes any Iterable; argparse and the CLI pass a list, which join_negative_values indexes
+    def parse_known_args(  # type: ignore[override]
+        self, args: Sequence[str] | None = None, namespace: Any = None
+    ) -> Any:
         import sys
 
         return super().parse_known_args(join_negative_values(sys.argv[1:] if args is None else args), namespace)

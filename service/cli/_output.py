@@ -145,6 +145,7 @@ def print_result(doc: dict[str, Any], console: Console | None = None, result: st
     tables, failed = _table1(doc, width)
     for t in tables:
         con.print(t)
+    line: str | None  # a failed row's message, then the scale line (or None)
     for line in failed:
         con.print(f"[red]{line}[/red]")
     for t in _seven(doc, width):

@@ -15,6 +15,7 @@ import json
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 #: board views of the demo's camera phase (the accuracy study's count; ``plan predict`` assumes as many)
 CAMERA_VIEWS = 30
@@ -36,7 +37,7 @@ def _quick(args: argparse.Namespace, con) -> dict:
 
 
 #: the hidden ``--small`` option's plan sizes (a reduced paper plan for the reproducibility test)
-SMALL_PLAN = {"n_base": 3, "n_fit": 5, "n_lock": 1, "n_validation": 3, "line_samples": 4}
+SMALL_PLAN: dict[str, Any] = {"n_base": 3, "n_fit": 5, "n_lock": 1, "n_validation": 3, "line_samples": 4}
 
 
 def _camera_phase(renderer, seed: int, views: int = CAMERA_VIEWS):

@@ -5,9 +5,13 @@ from __future__ import annotations
 import argparse
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from calib.errors import I4calError, InputError
 from calib.methods.registry import method_names
+
+if TYPE_CHECKING:
+    from ._output import LongStep
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -85,7 +89,7 @@ class _StageProgress:
 
     def __init__(self, console, quiet: bool) -> None:
         self.console, self.quiet = console, quiet
-        self.step = None
+        self.step: LongStep | None = None
 
     def __enter__(self):
         return self

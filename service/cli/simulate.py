@@ -5,13 +5,14 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from typing import Any
 
 
 def noise_from_args(args: argparse.Namespace):
     from drivers.sim.twin import NoiseSpec
 
     base = NoiseSpec().scaled(args.noise)
-    kw = {
+    kw: dict[str, Any] = {  # NoiseSpec's fields
         "rod_direction_rad": base.rod_direction_rad
         if args.rod_direction_mrad is None
         else args.rod_direction_mrad * 1e-3,
@@ -64,7 +65,7 @@ def handler(args: argparse.Namespace) -> int:
     Observations.from_dict(doc)  # validate what we write
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(doc, indent=1), encoding="utf-8")
-    counts = {}
+    counts: dict[str, int] = {}  # frames per phase
     for f in doc["frames"]:
         counts[f["phase"]] = counts.get(f["phase"], 0) + 1
     con.print(

@@ -221,7 +221,7 @@ def missing_items(
                 f"no camera phase: intrinsics {'given' if src == 'given' else 'taken from the dataset'} "
                 "(no reprojection errors, no intrinsic standard deviations)"
             )
-        miss = {}
+        miss: dict[str, int] = {}  # frames missing, per reason
         for c in ((ext.get("summary") or {}).get("phases") or {}).values():
             for k, v in (c.get("missing") or {}).items():
                 miss[k] = miss.get(k, 0) + v

@@ -101,6 +101,7 @@ def build_report(inputs: ReportInputs, *, progress: Progress | None = None, max_
             progress(done[0], steps, label)
 
     ds_doc = None
+    missing_files: list[str]
     ds_hash, n_files, missing_files = None, 0, []
     if inputs.dataset_dir is not None:
         ds_doc = json.loads((inputs.dataset_dir / "dataset.json").read_text(encoding="utf-8"))

@@ -4,9 +4,10 @@ endpoint and the calibration report."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
+from numpy.typing import NDArray
 
 from calib.camera import CameraModel
 
@@ -116,7 +117,7 @@ def load_bgr(path: Path) -> np.ndarray | None:
     if img is None:
         return None
     if img.dtype == np.uint16:
-        img = (img >> 8).astype(np.uint8)
+        img = (cast("NDArray[np.uint16]", img) >> 8).astype(np.uint8)  # dtype checked just above
     if img.ndim == 2:
         img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
     elif img.shape[2] == 4:

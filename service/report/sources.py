@@ -46,7 +46,7 @@ def run_metadata(run: Any) -> dict[str, Any]:
     }
 
 
-def inputs_from_run(data_dir: Path, run: Any, methods: list[str] | None = None) -> ReportInputs:
+def inputs_from_run(data_dir: str | Path, run: Any, methods: list[str] | None = None) -> ReportInputs:
     """A run's result, observations (``runs/<id>/observations.json``) and dataset, from the data directory.
 
     Raises

@@ -12,6 +12,7 @@ turned into status codes by the routers.
 from __future__ import annotations
 
 import asyncio
+import builtins
 import contextlib
 import json
 import logging
@@ -19,9 +20,9 @@ import shutil
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
-from sqlalchemy import and_, delete, or_, select, update
+from sqlalchemy import CursorResult, and_, delete, or_, select, update
 
 from calib.errors import InputError
 
@@ -197,7 +198,11 @@ class RunManager:
             if cur is None:
                 raise RunNotFoundError(run_id)
             new = next_state(cur, event)
-            res = s.execute(update(Run).where(Run.id == run_id, Run.state == cur).values(state=new.value, **values))
+            # an UPDATE's result is a CursorResult (rowcount); Session.execute is typed for any statement
+            res = cast(
+                "CursorResult[Any]",
+                s.execute(update(Run).where(Run.id == run_id, Run.state == cur).values(state=new.value, **values)),
+            )
             if res.rowcount != 1:
                 raise IllegalTransitionError(cur, event)
         err = values.get("error")
@@ -271,7 +276,7 @@ class RunManager:
         *,
         plan: Any,
         plan_name: str | None,
-        methods: list[str],
+        methods: builtins.list[str],  # builtins: the class's own list() shadows the name
         note: str,
         bench: str | None,
         dataset_id: str | None,
@@ -299,6 +304,7 @@ class RunManager:
             if (busy := self.bench_busy()) is not None:
                 raise RunConflictError(busy)
             ds_dir = f"runs/{rid}/dataset"
+        # without dataset_id, self.bench was checked above
         run_bench = (bench or self.name) if dataset_id else self.bench.name  # type: ignore[union-attr]
         run = Run(
             id=rid,
@@ -468,7 +474,9 @@ class RunManager:
         """The newest calibration applied to ``bench`` (default: this service's bench; without one: any bench)."""
         return calibrations.current(self.db, bench or self.name)
 
-    def calibration_history(self, limit: int = 100, offset: int = 0, bench: str | None = None) -> list[Calibration]:
+    def calibration_history(
+        self, limit: int = 100, offset: int = 0, bench: str | None = None
+    ) -> builtins.list[Calibration]:
         """Applied calibrations, newest first: of ``bench``, or of every bench."""
         return calibrations.history(self.db, limit, offset, bench)
 
@@ -605,7 +613,8 @@ class RunManager:
         def remove_rows() -> None:
             with self.db.session() as s:
                 s.execute(delete(Event).where(Event.run_id == run_id))
-                res = s.execute(delete(Run).where(Run.id == run_id, Run.state == run.state))
+                # a DELETE's result is a CursorResult (rowcount); Session.execute is typed for any statement
+                res = cast("CursorResult[Any]", s.execute(delete(Run).where(Run.id == run_id, Run.state == run.state)))
                 if res.rowcount != 1:
                     raise IllegalTransitionError(run.state, RunEvent.ABORT)
 

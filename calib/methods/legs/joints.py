@@ -215,7 +215,7 @@ def joint_from_planes(obs: list[PlaneObservation], iterations: int = 4) -> tuple
 
 
 def _rod_field(
-    obs: Observations, data: PhaseArrays, k: int, leg: int, rod: int, name: RodArrayField
+    obs: Observations, data: PhaseArrays, k: int | np.integer, leg: int, rod: int, name: RodArrayField
 ) -> np.ndarray | None:
     """A declared array field of one rod (``h``, ``cov_u``, ``rms_px``, ``n_points``, ``limbs_px``; see
     :class:`calib.observations.Rod`: shape and finite values checked on reading) as float64, or None when the rod

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import cast
+
 import numpy as np
 from scipy.linalg import block_diag
 
@@ -16,7 +18,7 @@ from ..iterations import IterationCallback
 from ..measured_intrinsics import MeasuredIntrinsics
 from ..result import MethodResult, combos_dict, std_dict
 from .constants import JOINT_DEPTH_SYS_LEG_SHARE, JOINT_DEPTH_SYS_M, PRIOR_STD_M
-from .joints import _plane_observations, _step1_planes, intersect_lines, joint_from_planes
+from .joints import PlaneObservation, _plane_observations, _step1_planes, intersect_lines, joint_from_planes
 from .pipeline import (
     _gate_poses,
     _leg_directions,
@@ -136,11 +138,13 @@ def calibrate_legs(
     # ---- step 1: the joints
     planes = [[_plane_observations(obs, lock_data[i], i, j) for j in range(2)] for i in range(4)]
     use_planes = all(p is not None for row in planes for p in row)
+    # read only when use_planes: then no rod's observations are None
+    planes_ok = cast("list[list[list[PlaneObservation]]]", planes)
     rejected_lock: list[dict[str, int]] = []
     if use_planes:
         frames1 = [[np.nonzero(lock_data[i].has_rod[:, i, j])[0] for j in range(2)] for i in range(4)]
-        P, covPij, s2_1, rejected_lock, res_rms, keep1, s2_1_raw = _step1_planes(planes, frames1)  # type: ignore[arg-type]
-        n_lines = sum(len(planes[i][j]) for i in range(4) for j in range(2))  # type: ignore[arg-type]
+        P, covPij, s2_1, rejected_lock, res_rms, keep1, s2_1_raw = _step1_planes(planes_ok, frames1)
+        n_lines = sum(len(planes_ok[i][j]) for i in range(4) for j in range(2))
     else:
         P = np.zeros((4, 2, 3))
         covPij = np.zeros((4, 2, 3, 3))
@@ -256,7 +260,7 @@ def calibrate_legs(
     if eff is not None:
 
         def seven_for(z: np.ndarray) -> np.ndarray:
-            pz = eff.lock_planes(z, planes)  # type: ignore[arg-type]
+            pz = eff.lock_planes(z, planes_ok)
             Pz = np.array(
                 [
                     [
@@ -295,6 +299,7 @@ def calibrate_legs(
             A = np.linalg.pinv(eff.steps.T)  # the principal steps' coordinates of a move of the intrinsics
             z_intr = A @ got[0]
             cov_intr = Jz[:, :nz] @ (A @ got[1] @ A.T) @ Jz[:, :nz].T
+            # got is set only when measured_intr is
             intr_note = measured_intr.to_dict() | {"applied": True}  # type: ignore[union-attr]
         if measured_edge:
             # the limbs corrected by the measured bias (moved inward by it), the whole estimate redone; its

@@ -4,7 +4,10 @@ means, the gating of poses and the steps' covariance.
 
 from __future__ import annotations
 
+from typing import cast
+
 import numpy as np
+from numpy.typing import NDArray
 from scipy.linalg import block_diag
 from scipy.optimize import least_squares
 
@@ -377,7 +380,8 @@ def _leg_directions(
         uu = np.nan_to_num(u)
         C = s**2 * (np.eye(3) - uu[..., :, None] * uu[..., None, :])
     U, CU, pair_d2 = _pair_means(u, has, C)
-    has_leg = has.any(axis=2)
+    # (N, 4): a reduction over one axis of the (N, 4, 2) mask is an array (the stubs also allow a scalar)
+    has_leg = cast("NDArray[np.bool_]", has.any(axis=2))
     rejected: list[dict[str, int]] = []
     ok = np.isfinite(pair_d2)
     if ok.sum() >= 3:

@@ -5,6 +5,7 @@ check, identifiability per direction and the a priori tolerance.
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 
@@ -33,7 +34,7 @@ class _IntrinsicsEffect:
         camera: CameraModel,
         steps: np.ndarray,
         lock: list[list[tuple[np.ndarray, np.ndarray]]],
-        fit_idx: tuple[np.ndarray, np.ndarray, np.ndarray],
+        fit_idx: tuple[np.ndarray, ...],  # (frame, leg, rod) indices of the used rods (np.nonzero)
         fit_limbs: np.ndarray,
         fit_h: np.ndarray,
     ) -> None:
@@ -238,7 +239,7 @@ def _identifiability(cov: np.ndarray, prior_std_m: float | None) -> dict:
     w = np.maximum(w, 1e-30)
     order = np.argsort(-w)  # weakest (largest variance) first
     ps2 = (prior_std_m or 0.0) ** 2
-    dirs = []
+    dirs: list[dict[str, Any]] = []
     for k in order:
         v = V[:, k] * np.sign(V[np.argmax(np.abs(V[:, k])), k])
         big = np.argsort(-np.abs(v))[:3]

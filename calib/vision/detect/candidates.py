@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+from typing import cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -58,7 +59,7 @@ def find_rods(
     wmax = 2 * radius * f / settings.depth_range_m[0]
     cands: list[tuple[float, int, int, RodCandidate]] = []
     K = camera.K
-    K_inv = np.linalg.inv(K)
+    K_inv = cast("Array", np.linalg.inv(K))  # float64 (numpy's stubs: any floating)
     if len(lines) < 2:
         return []
     T = np.array([ln.t for ln in lines])
@@ -68,8 +69,9 @@ def find_rods(
         a, b = lines[i], lines[j]
         # common direction (a's), extents of both on it
         t = a.t
-        ea = sorted((a.point(a.s0) @ t, a.point(a.s1) @ t))
-        eb = sorted((b.point(b.s0) @ t, b.point(b.s1) @ t))
+        # 1-D @ 1-D: numpy float64 scalars (numpy's stubs type the product as an array)
+        ea = cast("list[float]", sorted((a.point(a.s0) @ t, a.point(a.s1) @ t)))
+        eb = cast("list[float]", sorted((b.point(b.s0) @ t, b.point(b.s1) @ t)))
         s0, s1 = max(ea[0], eb[0]), min(ea[1], eb[1])
         if s1 - s0 < settings.min_rod_px:
             continue
@@ -130,8 +132,9 @@ def find_legs(rods: list[RodCandidate], radius: float, spacing: float, settings:
         if a.bright != b.bright or abs(a.t @ b.t) < np.cos(settings.leg_angle_rad):
             continue
         t = a.t
-        ea = sorted((a.centre[0] @ t, a.centre[1] @ t))
-        eb = sorted((b.centre[0] @ t, b.centre[1] @ t))
+        # 1-D @ 1-D: numpy float64 scalars (numpy's stubs type the product as an array)
+        ea = cast("list[float]", sorted((a.centre[0] @ t, a.centre[1] @ t)))
+        eb = cast("list[float]", sorted((b.centre[0] @ t, b.centre[1] @ t)))
         s0, s1 = max(ea[0], eb[0]), min(ea[1], eb[1])
         if s1 - s0 < 0.3 * min(a.length, b.length):
             continue

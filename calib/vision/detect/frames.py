@@ -5,6 +5,7 @@ consensus placement (``resolve_frames``) and ``measure_detected``.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from typing import Any
 
 import cv2
 import numpy as np
@@ -105,7 +106,7 @@ def _decide(
     s: DetectSettings,
     prior: Rigid | None,
 ) -> RodDetection:
-    kw = {"rods": rods, "leg_candidates": legs_c, "counts": counts}
+    kw: dict[str, Any] = {"rods": rods, "leg_candidates": legs_c, "counts": counts}  # RodDetection's fields
     if len(legs_c) < s.min_legs:
         return _nothing(
             f"rods not detected: {len(legs_c)} rod pairs found ({len(rods)} rods), need {s.min_legs} legs", **kw

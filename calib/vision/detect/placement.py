@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Callable
+from typing import cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -74,7 +75,7 @@ class _Fitter:
         self.r = radius
         self.K = K
         self.KiT = np.linalg.inv(K).T
-        self.Ki = np.linalg.inv(K)
+        self.Ki = cast("Array", np.linalg.inv(K))  # float64 (numpy's stubs: any floating)
         # per rod candidate: limb end points (2 limbs, 2 ends, homogeneous) and limb planes
         self.ends = (
             np.array(
@@ -217,7 +218,7 @@ def associate(
     seeds = []
     for mp in _assignments(model_ang, cand_ang, len(legs_c), settings.min_legs, tol):
         legs = [lg for lg in range(4) if mp[lg] is not None]
-        cand = [mp[lg] for lg in legs]
+        cand = cast("list[int]", [mp[lg] for lg in legs])  # legs: those mp assigns a candidate to
         # no two candidates may share a rod; one polarity for all rods
         used = [r for k in cand for r in legs_c[k].rods]
         if len(set(used)) != len(used) or len({rods[r].bright for r in used}) > 1:

@@ -5,6 +5,7 @@ limb lines, every rod of a frame, and the two rods of a leg compared.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import cv2
 import numpy as np
@@ -20,8 +21,8 @@ Array = NDArray[np.float64]
 
 
 def _edges_1d(
-    g: Array, min_contrast: float, side: int = 3, valid: NDArray[np.bool_] | None = None, radius: int = 0
-) -> tuple[Array, Array, Array]:
+    g: NDArray[np.floating], min_contrast: float, side: int = 3, valid: NDArray[np.bool_] | None = None, radius: int = 0
+) -> tuple[NDArray[np.intp], Array, Array]:
     """Sub-pixel edges along axis 1 of the gradient profiles g (P, S), in samples.
 
     Local maxima of |g|, located by a parabola through the logarithms of the three samples about the maximum
@@ -78,7 +79,7 @@ def _edges_1d(
         # dropped; one whose slope samples do is kept without the slope correction
         bad = np.concatenate([np.zeros((g.shape[0], 1), dtype=np.intp), np.cumsum(~valid, axis=1)], axis=1)
 
-        def n_bad(lo: Array, hi: Array) -> Array:
+        def n_bad(lo: NDArray[np.intp], hi: NDArray[np.intp]) -> NDArray[np.intp]:
             lo = np.clip(lo, 0, n)
             hi = np.clip(hi, 0, n)
             return bad[pi, hi] - bad[pi, lo]
@@ -474,7 +475,11 @@ def measure_rod(
     img = gray if gray.dtype == np.float32 else gray.astype(np.float32)
     prof = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     ker = _gauss_deriv_kernel(s.sigma_px / ds)
-    g = cv2.filter2D(prof, cv2.CV_32F, ker[None, ::-1].astype(np.float32), borderType=cv2.BORDER_REPLICATE)
+    # ddepth CV_32F: the filtered profiles are float32 (OpenCV's stubs type the result as any Mat)
+    g = cast(
+        "NDArray[np.float32]",
+        cv2.filter2D(prof, cv2.CV_32F, ker[None, ::-1].astype(np.float32), borderType=cv2.BORDER_REPLICATE),
+    )
     g *= np.float32(1.0 / ds)  # grey levels per pixel
     side = max(2, round(3.0 / ds))
     inside_img = (mx >= 0) & (mx <= camera.width - 1) & (my >= 0) & (my <= camera.height - 1)
@@ -562,6 +567,7 @@ def measure_rod(
     except ValueError as exc:
         out.reason = str(exc)
         return out
+    assert X is not None  # the radius is given: the axis point is solved for
     if u @ pred.u < 0:
         u = -u
     # report the axis point seen at the middle of the visible part, not the point nearest the camera centre,
@@ -776,6 +782,7 @@ def _frame_polarity(out: list[RodMeasurement], fixed: int = 0) -> int:
 
 def _foot(m: RodMeasurement, x: Array) -> Array:
     """The point of a measured axis nearest x (camera frame, metres)."""
+    assert m.point is not None and m.u is not None  # a measured rod (ok) of measure_rod, whose radius sets the point
     return m.point + ((x - m.point) @ m.u) * m.u
 
 
@@ -785,6 +792,7 @@ def _line_distance_to_point(m: RodMeasurement, x: Array) -> float:
 
 def _line_distance(a: RodMeasurement, b: RodMeasurement) -> float:
     """Distance (metres) between two measured axes, taken at a's point (the rods are near parallel)."""
+    assert a.point is not None  # a measured rod (ok) of measure_rod, whose radius sets the point
     return _line_distance_to_point(b, a.point)
 
 
@@ -795,5 +803,6 @@ def leg_parallelism(meas: list[RodMeasurement]) -> dict[str, float]:
     for leg in range(4):
         a, b = by.get((leg, 0)), by.get((leg, 1))
         if a is not None and b is not None and a.ok and b.ok:
+            assert a.u is not None and b.u is not None  # ok: u is set
             out[str(leg + 1)] = float(np.arccos(np.clip(abs(a.u @ b.u), -1.0, 1.0)))
     return out
