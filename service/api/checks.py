@@ -7,7 +7,7 @@ from datetime import datetime
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Path, Query, Request, status
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, Field
 
 from calib.errors import InputError
 
@@ -15,7 +15,7 @@ from ..auth import Reader, Writer
 from ..checks.manager import CheckManager, CheckNotFoundError
 from ..runs import RunConflictError
 from .calibration import CalibrationOut, calibration_out, current_document
-from .deps import ID_PATTERN, Manager, conflict, not_found, unprocessable
+from .deps import ID_PATTERN, Manager, RequestBody, conflict, not_found, unprocessable
 
 router = APIRouter(prefix="/checks", tags=["checks"])
 CheckId = Annotated[str, Path(pattern=ID_PATTERN, description="check id (32 hex digits)")]
@@ -29,8 +29,7 @@ def checks(request: Request) -> CheckManager:
     return cm
 
 
-class CheckCreate(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+class CheckCreate(RequestBody):
     calibration: dict[str, Any] | None = Field(
         None,
         description="the calibration in force (i4cal.calibration/1); default: the bench's current calibration "
