@@ -7,16 +7,21 @@ import json
 from typing import Any
 
 _CAMERA_HELP = (
-    "the bench's own camera (i4cal.camera/1: intrinsics, lens, image size; e.g. the camera file of i4cal extract) in "
-    "place of the simulated bench's, at its mounting: what is in view, and the image-level noise model"
+    "the bench's own camera (i4cal.camera/1: intrinsics, lens, image size; e.g. the camera file of i4cal camera "
+    "calibrate) in place of the simulated bench's, at its mounting: what is in view, and the image-level noise "
+    "model; default: the bench file's [camera] intrinsics when it names one"
 )
 
 
-def _camera(path: str | None):
-    """``--camera``: the camera model of a camera file, or None."""
+def _camera(path: str | None, cfg: Any = None):
+    """``--camera``: the camera model of a camera file; without it, the bench file's own camera file (``[camera]
+    intrinsics``, as ``acquire`` records it); else None (the simulated bench's camera)."""
     from calib.camera import CameraModel
 
-    return None if path is None else CameraModel.load(path)
+    if path is not None:
+        return CameraModel.load(path)
+    named = cfg.camera_intrinsics() if cfg is not None else None
+    return None if named is None else named.camera
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -157,7 +162,7 @@ def _predict(args: argparse.Namespace) -> int:
     methods = _methods(args.methods, "--methods")
     plan = load_plan(args.plan, cfg, args.seed)
     validate_plan(plan, cfg.nominal_parameters(), cfg.calib_limits())
-    check = check_for_bench(cfg, plan, _noise_from(args.noise_from), methods, _camera(args.camera))
+    check = check_for_bench(cfg, plan, _noise_from(args.noise_from), methods, _camera(args.camera, cfg))
     if args.json:
         print(json.dumps(to_jsonable(check.summary()), indent=1))
     else:
@@ -191,7 +196,7 @@ def _design(args: argparse.Namespace) -> int:
     if args.max_minutes is not None and not (0 < args.max_minutes < 1e5):
         raise InputError("must be > 0", field="--max-minutes")
     noise = _noise_from(args.noise_from)
-    camera = _camera(args.camera)
+    camera = _camera(args.camera, cfg)
     methods = tuple(dict.fromkeys(m.strip() for m in args.methods.split(",") if m.strip()))
     targets: dict[str, Any] = {"target_std_m": target}
     if args.better_than is not None:

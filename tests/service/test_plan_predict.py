@@ -171,3 +171,21 @@ async def test_the_services_camera_file_is_the_predictions_camera(tmp_path, sim)
     finally:
         await svc.client.aclose()
         await svc.stop()
+
+
+def test_cli_predicts_for_the_camera_file_the_bench_file_names(tmp_path, capsys):
+    """Without --camera, `plan predict` uses the bench file's own camera file ([camera] intrinsics), as `acquire`
+    records it: the same prediction as --camera FILE, not the simulated bench's camera."""
+    small = _camera_file(tmp_path / "small.json", 640, 480)
+    bench = tmp_path / "bench.toml"
+    text = BENCH_SIM.read_text(encoding="utf-8")
+    assert "\n[camera]\n" in text
+    bench.write_text(text.replace("\n[camera]\n", '\n[camera]\nintrinsics = "small.json"\n', 1), encoding="utf-8")
+    base = ["plan", "predict", "full", "--methods", "end-effector", "--json"]
+    assert main([*base, "--bench", str(bench)]) == 0
+    named = json.loads(capsys.readouterr().out)["prediction"]["std_m"]
+    assert main([*base, "--bench", str(BENCH_SIM), "--camera", str(small)]) == 0
+    given = json.loads(capsys.readouterr().out)["prediction"]["std_m"]
+    assert main([*base, "--bench", str(BENCH_SIM)]) == 0
+    sim = json.loads(capsys.readouterr().out)["prediction"]["std_m"]
+    assert named == given and named != sim
