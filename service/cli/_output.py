@@ -122,14 +122,20 @@ def _table2(doc: dict[str, Any]) -> Table:
     return t
 
 
+#: a camera length scale this far from 1 (relative) is more than a camera calibration or a board's print explains
+SCALE_CHECK_ABOVE = 0.005
+
+
 def scale_line(doc: dict[str, Any]) -> str | None:
     """The camera's length scale against the encoders, explained in one line (None: not measured)."""
     sc = recorded_vision_scale(doc["validation"])
     if not sc or sc.get("std") is None:
         return None
+    far = abs(float(sc.get("scale", 1.0)) - 1.0) > SCALE_CHECK_ABOVE
     return (
         f"camera length scale vs encoders (translation phase, {sc['n_poses']} poses): {vision_scale_ppm(sc)}; "
-        "Table II's gaps are divided by it (far from 0: check the board's square length)"
+        "Table II's gaps are divided by it"
+        + (" (beyond 0.5%: check the board's square length in the bench file)" if far else "")
     )
 
 

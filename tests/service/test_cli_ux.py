@@ -241,3 +241,17 @@ def test_report_not_on_a_terminal_says_what_it_is_doing(result_doc, tmp_path):
     assert r.returncode == 0, r.stderr
     lines = r.stderr.splitlines()
     assert lines[0] == "report ..." and any(line.startswith("report done") for line in lines), r.stderr
+
+
+def test_the_camera_scale_line_asks_to_check_the_board_only_when_far_off():
+    """The demo's camera scale (about -0.16%) is what a calibrated camera gives; only beyond 0.5% is the board's
+    square length worth checking."""
+    from service.cli._output import scale_line
+
+    def doc(scale: float) -> dict:
+        return {"validation": {"a priori": {"vision_scale": {"scale": scale, "std": 7e-5, "n_poses": 10}}}}
+
+    near, far = scale_line(doc(1 - 1.6e-3)), scale_line(doc(1 + 8e-3))
+    assert near is not None and far is not None
+    assert "-1600 +/- 70 ppm" in near and "check" not in near
+    assert "check the board's square length" in far
