@@ -408,11 +408,13 @@ async function showResult(id) {
 
 // which method's result to load and why, and the next command (the service's calib.verdict, as the CLI says it)
 async function showVerdict(id) {
+  const box = $("#verdict");
+  if (box.dataset.run !== id) { box.hidden = true; box.replaceChildren(); }  // never another run's verdict meanwhile
   let run;
   try { run = await api("GET", "/runs/" + id); } catch (e) { return; }
   if (id !== selected) return;
+  box.dataset.run = id;
   const v = run.verdict;
-  const box = $("#verdict");
   if (!v) { box.hidden = true; return; }
   box.hidden = false;
   box.className = v.method ? "verdict ok" : "verdict none";
