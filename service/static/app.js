@@ -701,7 +701,7 @@ function driftPlot(name, pts) {
     `<text x="${left - 4}" y="${top + 8}" font-size="10" text-anchor="end">+${ymax.toFixed(3)}</text>` +
     `<text x="${left - 4}" y="${f(mid + 4)}" font-size="10" text-anchor="end">0</text>` +
     `<text x="${left - 4}" y="${H - bottom}" font-size="10" text-anchor="end">-${ymax.toFixed(3)}</text>` +
-    `<text class="axis-label" transform="translate(12 ${f(mid)}) rotate(-90)" font-size="11" text-anchor="middle">change of ${esc(name)} (mm)</text>` +
+    `<text class="axis-label" transform="translate(12 ${f(mid)}) rotate(-90)" font-size="11" text-anchor="middle">change (mm)</text>` +
     `<text class="axis-label" x="${left + inner / 2}" y="${H - 4}" font-size="11" text-anchor="middle">time of the check (local)</text>` +
     `<text x="${left}" y="${H - bottom + 13}" font-size="9">${esc(short(pts[0].iso))}</text>`;
   if (t1 > t0) s += `<text x="${W - right}" y="${H - bottom + 13}" font-size="9" text-anchor="end">${esc(short(pts[pts.length - 1].iso))}</text>`;
