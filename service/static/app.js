@@ -643,9 +643,86 @@ async function predictChosenPlan() {
 $("#plan").addEventListener("change", predictChosenPlan);
 $("#token").addEventListener("change", predictChosenPlan);
 
+// -- checks (GET /api/v1/checks): each check's verdict, and each combination's change over time against the threshold
+const VERDICT_COLOUR = { holds: "#1a7f2e", drifted: "#c00", inconclusive: "#888" };
+const checkTime = (c) => c.finished_at || c.created_at;
+const utcMs = (iso) => Date.parse(/(Z|[+-]\d\d:?\d\d)$/.test(iso) ? iso : iso + "Z");
+
+async function refreshChecks() {
+  let list;
+  try { list = await api("GET", "/checks?limit=200"); } catch (e) {
+    $("#checks-message").textContent = "checks: " + e.message + (e.message.startsWith("401") ? ": give the bearer token (top right)" : "");
+    $("#checks-message").className = "error";
+    return;
+  }
+  $("#checks-message").className = "muted";
+  $("#checks-message").textContent = list.length ? "" : "no check yet (POST /api/v1/checks or i4cal check)";
+  $("#checks tbody").innerHTML = list.map((c) => {
+    const drifted = Object.entries((c.result && c.result.drifted) || {})
+      .map(([k, d]) => `${esc(k)} ${pm(d.change_m, d.std_m)}`).join("; ");
+    const why = c.error || (c.result && c.result.reasons && c.result.reasons.join("; ")) || "";
+    return `<tr data-id="${esc(c.id)}"><td><code>${esc(c.id.slice(0, 8))}</code></td><td>${fmtTime(checkTime(c))}</td>` +
+      `<td>${esc(c.state)}</td><td class="verdict-${esc(c.verdict || "none")}">${esc(c.verdict || "–")}</td>` +
+      `<td>${drifted || `<span class="muted">${esc(why)}</span>`}</td></tr>`;
+  }).join("");
+  // one point per finished check that estimated the combination, oldest first
+  const done = list.filter((c) => c.result && c.result.changes).sort((a, b) => utcMs(checkTime(a)) - utcMs(checkTime(b)));
+  $("#drift-plots").innerHTML = COMBOS.map((k) => {
+    const pts = done.filter((c) => c.result.changes[k] && Number.isFinite(c.result.changes[k].change_m) &&
+      Number.isFinite(c.result.changes[k].std_m) && Number.isFinite(c.result.threshold))
+      .map((c) => ({ id: c.id, t: utcMs(checkTime(c)), iso: checkTime(c), verdict: c.verdict, threshold: c.result.threshold,
+        drifted: k in (c.result.drifted || {}), ...c.result.changes[k] }));
+    return `<figure data-combination="${esc(k)}"><figcaption>${esc(k)}</figcaption>${driftPlot(k, pts)}</figure>`;
+  }).join("");
+}
+
+// one combination's estimated change (mm) per check against time: ± 1 std error bars, the test's band
+// (± threshold × std, per check since each check has its own std) shaded behind; a point outside its band drifted
+function driftPlot(name, pts) {
+  if (!pts.length) return "<p class=muted>no finished check estimated it</p>";
+  const W = 290, H = 200, left = 56, right = 14, top = 10, bottom = 40;
+  const ymax = Math.max(...pts.map((p) => Math.max(Math.abs(p.change_m) + p.std_m, p.threshold * p.std_m)), 1e-9) * 1.1e3;
+  const t0 = Math.min(...pts.map((p) => p.t)), t1 = Math.max(...pts.map((p) => p.t));
+  const inner = W - left - right, half = Math.min(12, inner / (2 * pts.length));
+  const x = (t) => (t1 > t0 ? left + half + (t - t0) / (t1 - t0) * (inner - 2 * half) : left + inner / 2);
+  const mid = top + (H - top - bottom) / 2;
+  const y = (vmm) => mid - vmm / ymax * (mid - top);
+  const f = (v) => v.toFixed(2);
+  const short = (iso) => { const d = new Date(utcMs(iso)); return isNaN(d) ? "" : d.toLocaleString(undefined, { month: "short", day: "numeric", hour: "2-digit", minute: "2-digit" }); };
+  let s = `<svg class="drift-plot" data-combination="${esc(name)}" width="${W}" height="${H}" viewBox="0 0 ${W} ${H}" role="img" aria-label="drift of ${esc(name)}">`;
+  // the band: ± threshold × std around 0 at each check (joined between checks)
+  const upper = pts.map((p) => `${f(x(p.t))},${f(y(p.threshold * p.std_m * 1e3))}`);
+  const lower = pts.map((p) => `${f(x(p.t))},${f(y(-p.threshold * p.std_m * 1e3))}`).reverse();
+  if (pts.length > 1) s += `<polygon class="band-joined" points="${upper.join(" ")} ${lower.join(" ")}" fill="#2ca02c" fill-opacity="0.08"/>`;
+  for (const p of pts) {
+    const b = p.threshold * p.std_m * 1e3;
+    s += `<rect class="band" data-check="${esc(p.id)}" x="${f(x(p.t) - half)}" y="${f(y(b))}" width="${f(2 * half)}" height="${f(y(-b) - y(b))}" fill="#2ca02c" fill-opacity="0.18"><title>threshold: |z| ≤ ${p.threshold.toFixed(2)}, ± ${b.toFixed(3)} mm</title></rect>`;
+  }
+  s += `<line x1="${left}" x2="${W - right}" y1="${f(mid)}" y2="${f(mid)}" stroke="#999"/>` +
+    `<line x1="${left}" x2="${left}" y1="${top}" y2="${H - bottom}" stroke="#999"/>` +
+    `<text x="${left - 4}" y="${top + 8}" font-size="10" text-anchor="end">+${ymax.toFixed(3)}</text>` +
+    `<text x="${left - 4}" y="${f(mid + 4)}" font-size="10" text-anchor="end">0</text>` +
+    `<text x="${left - 4}" y="${H - bottom}" font-size="10" text-anchor="end">-${ymax.toFixed(3)}</text>` +
+    `<text class="axis-label" transform="translate(12 ${f(mid)}) rotate(-90)" font-size="11" text-anchor="middle">change (mm)</text>` +
+    `<text class="axis-label" x="${left + inner / 2}" y="${H - 4}" font-size="11" text-anchor="middle">time of the check (local)</text>` +
+    `<text x="${left}" y="${H - bottom + 13}" font-size="9">${esc(short(pts[0].iso))}</text>`;
+  if (t1 > t0) s += `<text x="${W - right}" y="${H - bottom + 13}" font-size="9" text-anchor="end">${esc(short(pts[pts.length - 1].iso))}</text>`;
+  for (const p of pts) {
+    const c = VERDICT_COLOUR[p.drifted ? "drifted" : p.verdict === "inconclusive" ? "inconclusive" : "holds"];
+    const v = p.change_m * 1e3, e = p.std_m * 1e3;
+    s += `<line class="errbar" data-check="${esc(p.id)}" x1="${f(x(p.t))}" x2="${f(x(p.t))}" y1="${f(y(v + e))}" y2="${f(y(v - e))}" stroke="${c}"/>` +
+      `<circle class="point" data-check="${esc(p.id)}" data-drifted="${p.drifted}" cx="${f(x(p.t))}" cy="${f(y(v))}" r="3.5" fill="${c}">` +
+      `<title>${esc(name)} at ${fmtTime(p.iso)}: ${v.toFixed(3)} ± ${e.toFixed(3)} mm, z ${Number(p.z).toFixed(2)} (threshold ${p.threshold.toFixed(2)})</title></circle>`;
+  }
+  return s + "</svg>";
+}
+$("#token").addEventListener("change", refreshChecks);
+
 refreshRuns();
 refreshDevices();
 refreshCurrent();
 predictChosenPlan();
+refreshChecks();
+setInterval(refreshChecks, 5000);
 setInterval(refreshRuns, 3000);
 setInterval(refreshDevices, 5000);
