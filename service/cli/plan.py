@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from typing import Any
 
 _CAMERA_HELP = (
@@ -15,13 +16,22 @@ _CAMERA_HELP = (
 
 def _camera(path: str | None, cfg: Any = None):
     """``--camera``: the camera model of a camera file; without it, the bench file's own camera file (``[camera]
-    intrinsics``, as ``acquire`` records it); else None (the simulated bench's camera)."""
+    intrinsics``, as ``acquire`` records it); else None (the simulated bench's camera), with a warning when the bench
+    file names a camera file that does not exist yet."""
     from calib.camera import CameraModel
 
     if path is not None:
         return CameraModel.load(path)
-    named = cfg.camera_intrinsics() if cfg is not None else None
-    return None if named is None else named.camera
+    if cfg is None or cfg.intrinsics_path() is None:
+        return None
+    if not cfg.intrinsics_path().exists():  # planning may come before the camera step: say so, predict anyway
+        print(
+            f"warning: the bench file's camera file {cfg.intrinsics_path()} does not exist yet: predicting with the "
+            "simulated bench's camera (write it with `i4cal camera calibrate`, or give --camera FILE)",
+            file=sys.stderr,
+        )
+        return None
+    return cfg.camera_intrinsics().camera
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

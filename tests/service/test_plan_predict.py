@@ -189,3 +189,16 @@ def test_cli_predicts_for_the_camera_file_the_bench_file_names(tmp_path, capsys)
     assert main([*base, "--bench", str(BENCH_SIM)]) == 0
     sim = json.loads(capsys.readouterr().out)["prediction"]["std_m"]
     assert named == given and named != sim
+
+
+def test_cli_predicts_before_the_camera_step_with_a_warning(tmp_path, capsys):
+    """A bench file naming a camera file not written yet (the real-bench example before `i4cal camera calibrate`):
+    the prediction uses the simulated bench's camera and says so."""
+    bench = tmp_path / "bench.toml"
+    text = BENCH_SIM.read_text(encoding="utf-8")
+    bench.write_text(text.replace("\n[camera]\n", '\n[camera]\nintrinsics = "later.json"\n', 1), encoding="utf-8")
+    assert main(["plan", "predict", "full", "--bench", str(bench), "--methods", "end-effector", "--json"]) == 0
+    out = capsys.readouterr()
+    assert "later.json does not exist yet" in out.err
+    assert main(["plan", "predict", "full", "--bench", str(BENCH_SIM), "--methods", "end-effector", "--json"]) == 0
+    assert json.loads(out.out)["prediction"] == json.loads(capsys.readouterr().out)["prediction"]
