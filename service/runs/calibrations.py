@@ -31,9 +31,10 @@ def calibration_from_run(run: Run, method: str | None, default_bench: str | None
     if method is None:
         from calib.verdict import verdict
 
-        method = verdict(run.result).method
-        if method is None:
-            raise RunConflictError(f"{verdict(run.result).reason}; nothing to apply (name a method to apply one)")
+        chosen = verdict(run.result)
+        if chosen.method is None:
+            raise RunConflictError(f"{chosen.reason}; nothing to apply (name a method to apply one)")
+        method = chosen.method
     entry = methods.get(method)
     if entry is None:
         raise InputError(f"run has no result for method {method!r}", field="method")
