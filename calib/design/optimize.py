@@ -75,8 +75,10 @@ __all__ = [
     "DesignRequest",
     "DesignResult",
     "design_plan",
+    "locks_joints",
     "log_det_information",
     "select_poses",
+    "uses_sweeps",
     "validate_request",
 ]
 
@@ -420,6 +422,22 @@ def select_poses(
     return sel
 
 
+def locks_joints(method: str) -> bool:
+    """Whether a method locates the legs' joints from the lock phases (its registry entry's phases name them): the
+    design's statistic for it is then the lock phases' criterion (:class:`.legs_criterion.LegsCriterion`)."""
+    from ..methods.registry import get_method
+
+    return any(p.startswith("lock-") for p in get_method(method).required_phases)
+
+
+def uses_sweeps(method: str) -> bool:
+    """Whether a method takes the base frame from the rotation and translation sweeps (its registry entry's phases
+    name both): the design couples its information to the base frame's, the sweeps being its prior."""
+    from ..methods.registry import get_method
+
+    return {"rotation", "translation"} <= set(get_method(method).required_phases)
+
+
 def log_det_information(
     plan: Plan,
     nominal: I4Parameters,
@@ -427,16 +445,35 @@ def log_det_information(
     noise: DesignNoise | ImageNoise | None = None,
     methods: tuple[str, ...] = ("combined",),
 ) -> dict[str, float]:
-    """D-criterion of a plan: per method, log det of the four combinations' information (m^-2; higher better)."""
+    """D-criterion of a plan: per method, log det of the four combinations' information.
+
+    Parameters
+    ----------
+    plan : Plan
+        Its sweeps, fit poses and (for a method locating joints) lock phases' joint values (m).
+    nominal : I4Parameters
+        The nominal geometry (m, rad).
+    scene : Scene
+        The camera, its mounting, the board and the rods.
+    noise : DesignNoise or ImageNoise, optional
+        The measurement noise (default: ``DesignNoise()``; a method locating joints needs ``ImageNoise``).
+    methods : tuple of str
+        Methods of :data:`OPTIMISED_METHODS`.
+
+    Returns
+    -------
+    dict of str to float
+        Per method, log det of its four combinations' information (m^-2; higher better).
+    """
     noise = noise or DesignNoise()
     q_fit = phase_q(plan, "poses")
     out = {}
     for m in methods:
         q_rot, q_tra = phase_q(plan, "rotation"), phase_q(plan, "translation")
         legs = None
-        if m == "legs":
+        if locks_joints(m):
             if not isinstance(noise, ImageNoise):
-                raise InputError("the legs criterion needs the image-level noise model", field="methods")
+                raise InputError(f"the {m} criterion needs the image-level noise model", field="methods")
             legs = LegsCriterion(nominal, [phase_q(plan, f"lock-{i}") for i in range(1, 5)], scene, noise)
         F = _method_information(m, nominal, q_fit, scene, noise, q_rot, q_tra, legs).sum(axis=0) + _method_prior(
             m, nominal, q_rot, q_tra, scene, noise
@@ -448,31 +485,33 @@ def log_det_information(
 def _method_information(
     m: str, nominal, q, scene: Scene, noise: DesignNoise | ImageNoise, q_rot=None, q_tra=None, legs=None
 ) -> np.ndarray:
-    """Per fit pose (N, p, p) information of method ``m`` (on images the combined method's nuisances, whose
-    base-frame coupling needs the sweeps ``q_rot``, ``q_tra``); for the legs method (N, 3, 30), its
+    """Per fit pose (N, p, p) information of method ``m`` (on images, for a method using the sweeps, its nuisances,
+    whose base-frame coupling needs the sweeps ``q_rot``, ``q_tra``); for a method locating joints (N, 3, 30), its
     :class:`.legs_criterion.LegsCriterion`'s statistics."""
-    if m == "legs":
+    if locks_joints(m):
         return legs.pose_statistics(q)
     if isinstance(noise, ImageNoise):
-        if m == "combined":
+        if uses_sweeps(m):
             _P, steps, G = combined_images_prior(nominal, q_rot, q_tra, scene, noise)
             return combined_images_pose_information(nominal, q, scene, noise, steps, G)
         return end_effector_images_pose_information(nominal, q, scene, noise)
-    if m == "combined":
+    if uses_sweeps(m):
         return combined_pose_information(nominal, q, scene.camera_from_base.R, noise)
     return end_effector_pose_information(nominal, q, scene, noise)
 
 
 def _method_prior(m: str, nominal, q_rot, q_tra, scene: Scene, noise: DesignNoise | ImageNoise) -> np.ndarray:
-    if m == "legs":
+    """Method ``m``'s prior statistic: the base frame's information from the sweeps for a method using them, else
+    zeros of its statistic's shape."""
+    if locks_joints(m):
         return np.zeros((3, 30))
+    if not uses_sweeps(m):
+        return np.zeros((16, 16))
     if isinstance(noise, ImageNoise):
-        return combined_images_prior(nominal, q_rot, q_tra, scene, noise)[0] if m == "combined" else np.zeros((16, 16))
-    if m == "combined":
-        P = np.zeros((7, 7))
-        P[4:, 4:] = base_frame_information(nominal, q_rot, q_tra, scene.camera_from_base.R, noise)
-        return P
-    return np.zeros((16, 16))
+        return combined_images_prior(nominal, q_rot, q_tra, scene, noise)[0]
+    P = np.zeros((7, 7))
+    P[4:, 4:] = base_frame_information(nominal, q_rot, q_tra, scene.camera_from_base.R, noise)
+    return P
 
 
 # -- the plan ---------------------------------------------------------------------------------------------------
@@ -621,10 +660,11 @@ def _candidate_pool(
         return cache[key]
     (span, length, rot, tra, _), lock, placed = _placed_phases(nominal, scene, limits, ws, noise, req)
     legs = None
-    if "legs" in req.methods:
+    locking = [m for m in req.methods if locks_joints(m)]
+    if locking:
         if not isinstance(noise, ImageNoise):
             raise InputError(
-                "optimising for the legs method needs the image-level noise model (the default, or a run's)",
+                f"optimising for the {locking[0]} method needs the image-level noise model (the default, or a run's)",
                 field="methods",
             )
         legs = LegsCriterion(
@@ -649,7 +689,7 @@ def _candidate_pool(
             m: _method_information(m, nominal, cand_q[visible], scene, noise, qr, qt, legs) for m in req.methods
         },
         prior={m: _method_prior(m, nominal, qr, qt, scene, noise) for m in req.methods},
-        cov4={"legs": legs.cov4} if legs is not None else {},
+        cov4={m: legs.cov4 for m in locking} if legs is not None else {},
         legs=legs,
         placed=placed,
     )
