@@ -274,12 +274,34 @@ def summary_lines(result, breakdown: bool = False) -> list[str]:
 
 def tradeoff_lines(rows, request) -> list[str]:
     """Human-readable trade-off: per method a table of fit poses, motion time and predicted std (mm), optimised methods
-    first; then the target and the recommended count."""
-    from calib.design import recommendation_reason, recommended_count, tradeoff_trend
+    first; then the target, the time limit, the trend past the counts listed and the recommended count.
+
+    Parameters
+    ----------
+    rows : list of calib.design.TradeoffRow
+        One designed plan per count (``n_fit``, ``motion_s`` in s, ``std_m`` per method and combination in m).
+    request : calib.design.DesignRequest
+        The request the rows were designed for (its methods, targets in m and time limit in s).
+
+    Returns
+    -------
+    list of str
+        The lines to print (lengths in mm, times in minutes).
+    """
+    out = ["trade-off: the designed plan for each fit-pose count (predicted std in mm, motion time of the whole plan)"]
+    out += _tradeoff_tables(rows, request)
+    out += _tradeoff_target_lines(rows, request)
+    out += _tradeoff_trend_lines(rows, request)
+    out += _tradeoff_recommendation_lines(rows, request)
+    return out
+
+
+def _tradeoff_tables(rows, request) -> list[str]:
+    """Per method (the optimised ones first), the table of fit poses, motion time (min) and predicted std (mm)."""
     from calib.parameters import COMBINATION_NAMES
 
     methods = list(dict.fromkeys([*request.methods, *(m for r in rows for m in r.std_m)]))
-    out = ["trade-off: the designed plan for each fit-pose count (predicted std in mm, motion time of the whole plan)"]
+    out = []
     head = f"  {'fit poses':>9} | {'motion min':>10} | " + " | ".join(f"{k:>13}" for k in COMBINATION_NAMES)
     for m in methods:
         out.append(f"{m}{' (optimised)' if m in request.methods else ''}:")
@@ -288,6 +310,14 @@ def tradeoff_lines(rows, request) -> list[str]:
             std = r.std_m.get(m)
             vals = " | ".join(f"{std[k] * 1e3:13.4f}" if std else f"{'-':>13}" for k in COMBINATION_NAMES)
             out.append(f"  {r.n_fit:9d} | {r.motion_s / 60:10.2f} | {vals}")
+    return out
+
+
+def _tradeoff_target_lines(rows, request) -> list[str]:
+    """The target (mm; per method when they differ) with each count's worst ratio to it, and the time limit (min)."""
+    from calib.parameters import COMBINATION_NAMES
+
+    out = []
     t = request.targets_by_method()
     if t is not None:
         own = len({tuple(v) for v in t.values()}) > 1
@@ -306,20 +336,33 @@ def tradeoff_lines(rows, request) -> list[str]:
             f"time limit {request.max_time_s / 60:.2f} min: "
             + ", ".join(f"{r.n_fit} poses {'within' if r.time_met else 'over'}" for r in rows)
         )
+    return out
+
+
+def _tradeoff_trend_lines(rows, request) -> list[str]:
+    """The level the predicted std settles to with more fit poses (mm), and the count the target needs by that trend."""
+    from calib.design import tradeoff_trend
+
     trend = tradeoff_trend(rows, request)
-    if trend is not None:
-        a, b = trend["n_fit"]
-        floors = "; ".join(
-            f"{m} " + ", ".join(f"{k} {v * 1e3:.3f}" for k, v in fl.items()) for m, fl in trend["floor_std_m"].items()
-        )
-        need = trend["n_fit_needed"]
-        reach = "" if t is None else f"; the target in about {need} fit poses" if need else "; the target in none"
-        out.append(
-            f"with more fit poses (the trend of the predicted std from {a} to {b}): levels off near {floors} mm{reach}"
-        )
+    if trend is None:
+        return []
+    a, b = trend["n_fit"]
+    floors = "; ".join(
+        f"{m} " + ", ".join(f"{k} {v * 1e3:.3f}" for k, v in fl.items()) for m, fl in trend["floor_std_m"].items()
+    )
+    need = trend["n_fit_needed"]
+    t = request.targets_by_method()
+    reach = "" if t is None else f"; the target in about {need} fit poses" if need else "; the target in none"
+    return [f"with more fit poses (the trend of the predicted std from {a} to {b}): levels off near {floors} mm{reach}"]
+
+
+def _tradeoff_recommendation_lines(rows, request) -> list[str]:
+    """The recommended count and why, or why none qualifies (when a target or a time limit was given)."""
+    from calib.design import recommendation_reason, recommended_count
+
     recommended, why = recommended_count(rows), recommendation_reason(rows)
     if recommended is not None:
-        out.append(f"recommended: {recommended} fit poses ({why})")
-    elif t is not None or request.max_time_s is not None:
-        out.append(f"no count listed qualifies ({why})")
-    return out
+        return [f"recommended: {recommended} fit poses ({why})"]
+    if request.targets_by_method() is not None or request.max_time_s is not None:
+        return [f"no count listed qualifies ({why})"]
+    return []
