@@ -1,18 +1,22 @@
 """Experiment design for a bench: the scene and motion figures of a bench file, length units, one entry point.
 
-The camera's placement is not in a bench file: the design uses the mounting the simulated bench and the
-image-level twin use (:class:`drivers.sim.twin.BenchGeometry`, :class:`drivers.sim.render.RenderSettings`),
-with the bench's nominal geometry, soft limits, speeds, accelerations and settle times. Shared by
+The scene (:func:`bench_scene`): the camera's intrinsics are the bench's own camera (a camera file, given by the
+caller), its mounting the bench file's ``[camera.mounting]`` (the camera's pose in the robot's base frame); what the
+bench file does not give is the simulated bench's (:class:`drivers.sim.twin.BenchGeometry`,
+:class:`drivers.sim.render.RenderSettings`: its camera, mounting, board and rods), said in a warning unless the bench
+is the simulated one. With the bench's nominal geometry, soft limits, speeds, accelerations and settle times. Shared by
 ``i4cal plan design`` / ``plan predict``, ``POST /api/v1/plans/design`` / ``/plans/predict`` and the runs (a run's
 prediction).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import re
 from typing import Any
+from urllib.parse import urlsplit
 
 from calib.errors import InputError
 
@@ -37,8 +41,8 @@ def twin_scene(camera=None):
     """The camera, its mounting, the board and the rods of the simulated bench (calib.design.Scene).
 
     ``camera``: a ``calib.camera.CameraModel`` (the bench's own: intrinsics, lens, image size, e.g. a camera file of
-    ``i4cal extract``) in place of the twin's, at the twin's mounting (a bench file does not hold the camera's
-    placement).
+    ``i4cal extract``) in place of the twin's, at the twin's mounting (a bench file's own mounting:
+    :func:`bench_scene`).
     """
     from calib.design import Scene
     from drivers.sim.render import RenderSettings
@@ -55,6 +59,74 @@ def twin_scene(camera=None):
         rod_radius_m=g.rod_radius_m,
         rod_spacing_m=g.rod_spacing_m,
     )
+
+
+@dataclasses.dataclass(frozen=True)
+class BenchScene:
+    """The scene a bench's design places the camera by (:func:`bench_scene`).
+
+    Attributes
+    ----------
+    scene : calib.design.Scene
+        The camera (intrinsics, image size), its mounting (``camera_from_base``, m), the board and the rods.
+    warnings : tuple of str
+        On a bench that is not the simulated one, each part of the camera taken from the simulated bench for want of
+        the bench's own: what is missing, where to give it and what was used instead.
+    """
+
+    scene: Any
+    warnings: tuple[str, ...] = ()
+
+
+def is_simulated(cfg) -> bool:
+    """Whether a bench configuration's camera is the simulated bench's (a ``sim://`` URI)."""
+    return urlsplit(cfg.camera.uri).scheme == "sim"
+
+
+def bench_scene(cfg, camera=None) -> BenchScene:
+    """The scene of a bench configuration: ``camera`` (the bench's own: a ``calib.camera.CameraModel``, e.g. its
+    camera file) at the bench file's ``[camera.mounting]``; what is not given is the simulated bench's
+    (:func:`twin_scene`), with a warning unless the bench's camera is the simulated one.
+
+    Parameters
+    ----------
+    cfg : drivers.config.BenchConfig
+        The bench file (``camera.mounting``: position in m, rotation vector in rad, of the camera in the base frame).
+    camera : calib.camera.CameraModel, optional
+        The bench's camera (intrinsics, lens, image size); None: the simulated bench's.
+
+    Returns
+    -------
+    BenchScene
+    """
+    from calib.transforms import Rigid
+
+    scene = twin_scene(camera)
+    sim = is_simulated(cfg)
+    where = cfg.source or "the bench file"
+    warnings = []
+    mount = cfg.camera.mounting
+    if mount is not None:
+        base_from_camera = Rigid.from_rotvec(mount.rotation_rad, mount.position_m)
+        scene = dataclasses.replace(scene, camera_from_base=base_from_camera.inverse())
+    elif not sim:
+        at = ", ".join(f"{v * 1e3:.0f}" for v in scene.camera_from_base.inverse().t)
+        warnings.append(
+            f"{where} gives no camera mounting ([camera.mounting] position_m, rotation_rad: the camera's pose in the "
+            f"robot's base frame): designed with the simulated bench's (the camera at ({at}) mm in the base frame), "
+            "which places what is in view wrongly when the bench's camera sits elsewhere"
+        )
+    if camera is None and not sim:
+        named = cfg.intrinsics_path()
+        missing = (
+            f"{where} names no camera file ([camera] intrinsics; or --camera FILE)"
+            if named is None
+            else f"the camera file {named} ({where}, [camera] intrinsics) was not read"
+        )
+        warnings.append(
+            f"{missing}: designed with the simulated bench's camera ({scene.camera.width} x {scene.camera.height} px)"
+        )
+    return BenchScene(scene, tuple(warnings))
 
 
 #: corner noise (px) of the camera phase's board views in :func:`twin_image_noise`: what the weighted calibration
@@ -114,15 +186,27 @@ def motion_spec(cfg) -> Any:
 
 
 def _bench_inputs(cfg, noise=None, camera=None) -> tuple[Any, Any, dict[str, Any]]:
-    """A bench configuration's nominal geometry, the twin's scene (with ``camera``, the bench's own camera, when
-    given), and ``calib.design.design_plan``'s keywords (soft limits, motion, noise; the noise by default the
-    image-level model of that camera)."""
+    """A bench configuration's nominal geometry, its scene (:func:`bench_scene`), and ``calib.design.design_plan``'s
+    keywords (soft limits, motion, noise; the noise by default the image-level model of the bench's camera)."""
     kw = {
         "limits": cfg.calib_limits(),
         "motion": motion_spec(cfg),
         "noise": noise if noise is not None else twin_image_noise(camera=camera),
     }
-    return cfg.nominal_parameters(), twin_scene(camera), kw
+    return cfg.nominal_parameters(), bench_scene(cfg, camera).scene, kw
+
+
+def _with_notes(result, notes: tuple[str, ...]):
+    """``result`` (``calib.design.DesignResult``) with ``notes`` first among its notes and its plan's."""
+    if not notes:
+        return result
+    from calib.plan import Plan
+
+    result.notes[:0] = notes
+    design = dict((result.plan.model_extra or {}).get("design") or {})
+    design["notes"] = result.notes
+    result.plan = Plan.model_validate({**result.plan.model_dump(exclude_none=True), "design": design})
+    return result
 
 
 def design_for_bench(cfg, request, noise=None, status=None, camera=None, draws_runner=None):
@@ -130,22 +214,27 @@ def design_for_bench(cfg, request, noise=None, status=None, camera=None, draws_r
 
     ``noise``: ``calib.design.DesignNoise`` or ``ImageNoise``; default: the image-level model of the twin's camera
     (:func:`twin_image_noise`), what the methods' uncertainty is on images. ``status``: called with what the design
-    is doing (``calib.design.design_plan``). ``camera``: the bench's own camera (:func:`twin_scene`).
-    ``draws_runner``: where the candidate draws are designed (``Fanout.index_runner``, :mod:`service.fanout`).
+    is doing (``calib.design.design_plan``). ``camera``: the bench's own camera (:func:`bench_scene`).
+    ``draws_runner``: where the candidate draws are designed (``Fanout.index_runner``, :mod:`service.fanout`). The
+    scene's warnings (:func:`bench_scene`) come first in the result's notes.
     """
     from calib.design import design_plan
 
     nominal, scene, kw = _bench_inputs(cfg, noise, camera)
-    return design_plan(nominal, scene, request, status=status, draws_runner=draws_runner, **kw)
+    res = design_plan(nominal, scene, request, status=status, draws_runner=draws_runner, **kw)
+    return _with_notes(res, bench_scene(cfg, camera).warnings)
 
 
 def tradeoff_for_bench(cfg, request, counts, noise=None, progress=None, camera=None):
     """:func:`calib.design.design_tradeoff` on a bench configuration, the scene and noise of
-    :func:`design_for_bench`: ``(rows, results)``, one design per count."""
+    :func:`design_for_bench`: ``(rows, results)``, one design per count (each with the scene's warnings in its
+    notes)."""
     from calib.design import design_tradeoff
 
     nominal, scene, kw = _bench_inputs(cfg, noise, camera)
-    return design_tradeoff(nominal, scene, request, counts, progress=progress, **kw)
+    rows, results = design_tradeoff(nominal, scene, request, counts, progress=progress, **kw)
+    warnings = bench_scene(cfg, camera).warnings
+    return rows, [_with_notes(r, warnings) for r in results]
 
 
 def reference_targets(
@@ -155,7 +244,7 @@ def reference_targets(
     :func:`design_for_bench`): targets for a design at least as accurate on every combination of every method."""
     from calib.design import targets_from_plan
 
-    scene, nz = twin_scene(camera), noise if noise is not None else twin_image_noise(camera=camera)
+    scene, nz = bench_scene(cfg, camera).scene, noise if noise is not None else twin_image_noise(camera=camera)
     return {m: targets_from_plan(plan, cfg.nominal_parameters(), scene, nz, method=m) for m in methods}
 
 
@@ -164,13 +253,15 @@ def check_for_bench(cfg, plan, noise=None, methods=None, camera=None):
     plan's predicted std per method and combination, its motion time, the steps the camera will not see.
 
     ``methods``: those of the design's (``calib.design.METHODS``) to predict; default all of them. ``camera``: the
-    bench's own camera (:func:`twin_scene`).
+    bench's own camera (:func:`bench_scene`). The scene's warnings come first in the check's notes.
     """
     from calib.design import METHODS, check_plan
 
     nominal, scene, kw = _bench_inputs(cfg, noise, camera)
     wanted = tuple(m for m in (methods or METHODS) if m in METHODS)
-    return check_plan(plan, nominal, scene, kw["noise"], kw["motion"], methods=wanted)
+    check = check_plan(plan, nominal, scene, kw["noise"], kw["motion"], methods=wanted)
+    check.notes[:0] = bench_scene(cfg, camera).warnings
+    return check
 
 
 def run_prediction(cfg, plan_doc: dict[str, Any], methods: list[str], camera=None, noise=None) -> dict[str, Any] | None:
@@ -192,13 +283,22 @@ def run_prediction(cfg, plan_doc: dict[str, Any], methods: list[str], camera=Non
         "motion_time_s": check.motion["total_s"],
         "unseen": check.unseen,
         "notes": check.notes,
-        "noise": (
-            "the image-level model of the simulated bench's camera and mounting (docs/design.md)"
-            if camera is None
-            else f"the image-level model with this service's camera ({camera.width} x {camera.height} px) at the "
-            "simulated bench's mounting (docs/design.md)"
-        ),
+        "noise": _noise_description(cfg, camera),
     }
+
+
+def _noise_description(cfg, camera) -> str:
+    """Which camera and mounting a run's prediction used (its ``noise``)."""
+    if cfg.camera.mounting is not None:
+        what = "the simulated bench's camera" if camera is None else f"this service's camera ({camera.width} x"
+        what += "" if camera is None else f" {camera.height} px)"
+        return f"the image-level model with {what} at the bench file's camera mounting (docs/design.md)"
+    if camera is None:
+        return "the image-level model of the simulated bench's camera and mounting (docs/design.md)"
+    return (
+        f"the image-level model with this service's camera ({camera.width} x {camera.height} px) at the "
+        "simulated bench's mounting (docs/design.md)"
+    )
 
 
 def better_than_request(targets: dict[str, tuple[float, float, float, float]]) -> dict[str, Any]:
