@@ -166,6 +166,11 @@ class DesignRequest:
 def validate_request(req: DesignRequest) -> None:
     """Check a request's fields, each against its range, in the order of the fields.
 
+    Parameters
+    ----------
+    req : DesignRequest
+        The request (lengths in m, times in s).
+
     Raises
     ------
     InputError
@@ -301,7 +306,19 @@ SHADING_NOTE_SHARE = 0.1
 
 def shading_note(pred: Prediction) -> str | None:
     """A note when the legs prediction leans on its model of the rods' shading (the lock phases' systematic depth
-    error), which is right on average over plans but not plan by plan; None otherwise."""
+    error), which is right on average over plans but not plan by plan.
+
+    Parameters
+    ----------
+    pred : Prediction
+        A plan's prediction (its ``parts``: per method and source, std per combination in m).
+
+    Returns
+    -------
+    str or None
+        The note; None when the shading's share of every legs combination's variance is below
+        :data:`SHADING_NOTE_SHARE`.
+    """
     sys_part = (pred.parts.get("legs") or {}).get("joint_depth_systematic")
     std = pred.std.get("legs")
     if not sys_part or not std:
@@ -387,7 +404,33 @@ def select_poses(
     max_passes: int = 50,
 ) -> np.ndarray:
     """Indices of ``n`` candidates: greedy, then Fedorov exchange (the start is the better of the greedy set
-    and ``start``)."""
+    and ``start``).
+
+    Parameters
+    ----------
+    infos : _Infos
+        Per method, the candidates' additive statistics (M candidates) and their priors.
+    n : int
+        Fit poses to choose.
+    criterion : {"d", "a", "target"}
+        What is minimised (:func:`_score`).
+    targets : dict of str to ndarray, shape (4,), or None
+        Per method, the target std per combination, m.
+    start : ndarray of int, shape (n,), optional
+        A selection to start the exchange from when it scores better than the greedy one.
+    max_passes : int
+        Most swaps of the exchange (0: the greedy selection).
+
+    Returns
+    -------
+    ndarray of int, shape (n,)
+        Indices into the candidates.
+
+    Raises
+    ------
+    InputError
+        Fewer than ``n`` candidates.
+    """
     M = next(iter(infos.per.values())).shape[0]
     if n > M:
         raise InputError(f"only {M} visible candidate poses for {n} fit poses (more candidates or fewer poses)")
@@ -424,7 +467,17 @@ def select_poses(
 
 def locks_joints(method: str) -> bool:
     """Whether a method locates the legs' joints from the lock phases (its registry entry's phases name them): the
-    design's statistic for it is then the lock phases' criterion (:class:`.legs_criterion.LegsCriterion`)."""
+    design's statistic for it is then the lock phases' criterion (:class:`.legs_criterion.LegsCriterion`).
+
+    Parameters
+    ----------
+    method : str
+        A registered method's name (:mod:`calib.methods.registry`).
+
+    Returns
+    -------
+    bool
+    """
     from ..methods.registry import get_method
 
     return any(p.startswith("lock-") for p in get_method(method).required_phases)
@@ -432,7 +485,17 @@ def locks_joints(method: str) -> bool:
 
 def uses_sweeps(method: str) -> bool:
     """Whether a method takes the base frame from the rotation and translation sweeps (its registry entry's phases
-    name both): the design couples its information to the base frame's, the sweeps being its prior."""
+    name both): the design couples its information to the base frame's, the sweeps being its prior.
+
+    Parameters
+    ----------
+    method : str
+        A registered method's name (:mod:`calib.methods.registry`).
+
+    Returns
+    -------
+    bool
+    """
     from ..methods.registry import get_method
 
     return {"rotation", "translation"} <= set(get_method(method).required_phases)
@@ -1107,7 +1170,21 @@ def design_score(result: DesignResult, request: DesignRequest) -> tuple[float, .
     """How good a design is, lower better: a met target first, then fewer fit poses when the count was free,
     then the criterion on the plan's prediction (``"target"``: the worst predicted std over its target among the
     optimised methods; ``"a"``: the sum of their predicted variances, over the targets' squares when given, else
-    per mm^2; ``"d"``: minus the sum of their information's log-determinants), then the motion time."""
+    per mm^2; ``"d"``: minus the sum of their information's log-determinants), then the motion time.
+
+    Parameters
+    ----------
+    result : DesignResult
+        A design.
+    request : DesignRequest
+        What it was designed for (criterion, methods, targets in m, whether the count was fixed).
+
+    Returns
+    -------
+    tuple of 4 float
+        (target missed, fit poses, criterion, motion time in s), compared in that order; all inf when an optimised
+        method has no prediction.
+    """
     pred, t = result.prediction, request.targets_by_method()
     if any(m not in pred.std for m in request.methods):  # a method the plan cannot determine: last, whatever else
         return (np.inf, np.inf, np.inf, np.inf)
