@@ -210,13 +210,29 @@ def _with_notes(result, notes: tuple[str, ...]):
 
 
 def design_for_bench(cfg, request, noise=None, status=None, camera=None, draws_runner=None):
-    """Design a plan for a bench configuration; returns ``calib.design.DesignResult``.
+    """Design a plan for a bench configuration.
 
-    ``noise``: ``calib.design.DesignNoise`` or ``ImageNoise``; default: the image-level model of the twin's camera
-    (:func:`twin_image_noise`), what the methods' uncertainty is on images. ``status``: called with what the design
-    is doing (``calib.design.design_plan``). ``camera``: the bench's own camera (:func:`bench_scene`).
-    ``draws_runner``: where the candidate draws are designed (``Fanout.index_runner``, :mod:`service.fanout`). The
-    scene's warnings (:func:`bench_scene`) come first in the result's notes.
+    Parameters
+    ----------
+    cfg : drivers.config.BenchConfig
+        The bench file: nominal geometry, soft limits (m), speeds (m/s), accelerations (m/s^2), settle times (s), the
+        camera's mounting.
+    request : calib.design.DesignRequest
+        What to design.
+    noise : calib.design.DesignNoise or ImageNoise, optional
+        Default: the image-level model of the bench's camera (:func:`twin_image_noise`), what the methods'
+        uncertainty is on images.
+    status : callable, optional
+        Called with what the design is doing (``calib.design.design_plan``).
+    camera : calib.camera.CameraModel, optional
+        The bench's own camera (:func:`bench_scene`).
+    draws_runner : callable, optional
+        Where the candidate draws are designed (``Fanout.index_runner``, :mod:`service.fanout`).
+
+    Returns
+    -------
+    calib.design.DesignResult
+        The scene's warnings (:func:`bench_scene`) first among its notes.
     """
     from calib.design import design_plan
 
@@ -252,8 +268,23 @@ def check_for_bench(cfg, plan, noise=None, methods=None, camera=None):
     """:func:`calib.design.check_plan` on a bench configuration, the scene and noise of :func:`design_for_bench`: a
     plan's predicted std per method and combination, its motion time, the steps the camera will not see.
 
-    ``methods``: those of the design's (``calib.design.METHODS``) to predict; default all of them. ``camera``: the
-    bench's own camera (:func:`bench_scene`). The scene's warnings come first in the check's notes.
+    Parameters
+    ----------
+    cfg : drivers.config.BenchConfig
+        The bench file.
+    plan : calib.plan.Plan
+        The plan as it will run.
+    noise : calib.design.DesignNoise or ImageNoise, optional
+        As :func:`design_for_bench`'s.
+    methods : tuple of str, optional
+        Those of the design's (``calib.design.METHODS``) to predict; default all of them.
+    camera : calib.camera.CameraModel, optional
+        The bench's own camera (:func:`bench_scene`).
+
+    Returns
+    -------
+    calib.design.PlanCheck
+        Std in m, times in s; the scene's warnings first among its notes.
     """
     from calib.design import METHODS, check_plan
 
