@@ -113,8 +113,8 @@ def bench_scene(cfg, camera=None) -> BenchScene:
         at = ", ".join(f"{v * 1e3:.0f}" for v in scene.camera_from_base.inverse().t)
         warnings.append(
             f"{where} gives no camera mounting ([camera.mounting] position_m, rotation_rad: the camera's pose in the "
-            f"robot's base frame): designed with the simulated bench's (the camera at ({at}) mm in the base frame), "
-            "which places what is in view wrongly when the bench's camera sits elsewhere"
+            f"robot's base frame): the simulated bench's is used (the camera at ({at}) mm in the base frame), which "
+            "misplaces what is in view when this bench's camera sits elsewhere"
         )
     if camera is None and not sim:
         named = cfg.intrinsics_path()
@@ -124,7 +124,7 @@ def bench_scene(cfg, camera=None) -> BenchScene:
             else f"the camera file {named} ({where}, [camera] intrinsics) was not read"
         )
         warnings.append(
-            f"{missing}: designed with the simulated bench's camera ({scene.camera.width} x {scene.camera.height} px)"
+            f"{missing}: the simulated bench's camera is used ({scene.camera.width} x {scene.camera.height} px)"
         )
     return BenchScene(scene, tuple(warnings))
 

@@ -95,9 +95,14 @@ def test_a_real_bench_without_a_mounting_says_what_it_used(tmp_path, capsys):
     out = tmp_path / "plan.json"
     assert main(["plan", "design", "--bench", str(bench), *SMALL, "--json", "-o", str(out)]) == 0
     err = capsys.readouterr().err
-    assert "warning:" in err and "[camera.mounting]" in err and "simulated bench's camera (" in err, err
+    assert "warning:" in err and "[camera.mounting]" in err and "simulated bench's camera is used" in err, err
     notes = Plan.load(out).model_extra["design"]["notes"]
     assert any("[camera.mounting]" in n and "(950, 400, 30) mm" in n for n in notes), notes
+    # plan predict: the same, in the check's notes
+    assert main(["plan", "predict", str(out), "--bench", str(bench), "--methods", "combined", "--json"]) == 0
+    captured = capsys.readouterr()
+    assert "[camera.mounting]" in captured.err
+    assert any("[camera.mounting]" in n for n in json.loads(captured.out)["notes"])
     # the same bench with a mounting: only the camera file is missing
     bench = _bench(tmp_path, "real-mounted.toml", _mounting(), uri="v4l2:///dev/video0")
     assert [w for w in bench_scene(load_bench(bench)).warnings if "[camera.mounting]" in w] == []
