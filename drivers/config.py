@@ -133,6 +133,25 @@ class ActuatorsConfig(BaseModel):
         return self
 
 
+class CameraMountingConfig(BaseModel):
+    """Where the camera sits on the bench: its frame (OpenCV's: x right, y down, z along the optical axis) in the
+    robot's base frame, ``p_base = R(rotation_rad) p_camera + position_m`` (``rotation_rad`` a rotation vector).
+    What experiment design places the camera by (``i4cal plan design`` / ``plan predict``)."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
+    position_m: list[float] = Field(min_length=3, max_length=3, description="the camera centre in the base frame, m")
+    rotation_rad: list[float] = Field(
+        min_length=3, max_length=3, description="rotation vector of the camera's axes in the base frame, rad"
+    )
+
+    @field_validator("position_m", "rotation_rad")
+    @classmethod
+    def _finite(cls, v: list[float]) -> list[float]:
+        if not np.all(np.isfinite(v)):
+            raise ValueError("must be finite")
+        return v
+
+
 class CameraConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", strict=True)
     uri: str
@@ -152,6 +171,9 @@ class CameraConfig(BaseModel):
         None,
         description="the camera's intrinsics: an i4cal.camera/1 file (written by `i4cal camera calibrate`, "
         "docs/camera.md), relative to the bench file; acquire records them (and the file's SHA-256) in the dataset",
+    )
+    mounting: CameraMountingConfig | None = Field(
+        None, description="the camera's pose in the robot's base frame (experiment design); default: not given"
     )
 
     @field_validator("lens_model")

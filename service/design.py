@@ -1,18 +1,22 @@
 """Experiment design for a bench: the scene and motion figures of a bench file, length units, one entry point.
 
-The camera's placement is not in a bench file: the design uses the mounting the simulated bench and the
-image-level twin use (:class:`drivers.sim.twin.BenchGeometry`, :class:`drivers.sim.render.RenderSettings`),
-with the bench's nominal geometry, soft limits, speeds, accelerations and settle times. Shared by
+The scene (:func:`bench_scene`): the camera's intrinsics are the bench's own camera (a camera file, given by the
+caller), its mounting the bench file's ``[camera.mounting]`` (the camera's pose in the robot's base frame); what the
+bench file does not give is the simulated bench's (:class:`drivers.sim.twin.BenchGeometry`,
+:class:`drivers.sim.render.RenderSettings`: its camera, mounting, board and rods), said in a warning unless the bench
+is the simulated one. With the bench's nominal geometry, soft limits, speeds, accelerations and settle times. Shared by
 ``i4cal plan design`` / ``plan predict``, ``POST /api/v1/plans/design`` / ``/plans/predict`` and the runs (a run's
 prediction).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import re
 from typing import Any
+from urllib.parse import urlsplit
 
 from calib.errors import InputError
 
@@ -37,8 +41,8 @@ def twin_scene(camera=None):
     """The camera, its mounting, the board and the rods of the simulated bench (calib.design.Scene).
 
     ``camera``: a ``calib.camera.CameraModel`` (the bench's own: intrinsics, lens, image size, e.g. a camera file of
-    ``i4cal extract``) in place of the twin's, at the twin's mounting (a bench file does not hold the camera's
-    placement).
+    ``i4cal extract``) in place of the twin's, at the twin's mounting (a bench file's own mounting:
+    :func:`bench_scene`).
     """
     from calib.design import Scene
     from drivers.sim.render import RenderSettings
@@ -55,6 +59,74 @@ def twin_scene(camera=None):
         rod_radius_m=g.rod_radius_m,
         rod_spacing_m=g.rod_spacing_m,
     )
+
+
+@dataclasses.dataclass(frozen=True)
+class BenchScene:
+    """The scene a bench's design places the camera by (:func:`bench_scene`).
+
+    Attributes
+    ----------
+    scene : calib.design.Scene
+        The camera (intrinsics, image size), its mounting (``camera_from_base``, m), the board and the rods.
+    warnings : tuple of str
+        On a bench that is not the simulated one, each part of the camera taken from the simulated bench for want of
+        the bench's own: what is missing, where to give it and what was used instead.
+    """
+
+    scene: Any
+    warnings: tuple[str, ...] = ()
+
+
+def is_simulated(cfg) -> bool:
+    """Whether a bench configuration's camera is the simulated bench's (a ``sim://`` URI)."""
+    return urlsplit(cfg.camera.uri).scheme == "sim"
+
+
+def bench_scene(cfg, camera=None) -> BenchScene:
+    """The scene of a bench configuration: ``camera`` (the bench's own: a ``calib.camera.CameraModel``, e.g. its
+    camera file) at the bench file's ``[camera.mounting]``; what is not given is the simulated bench's
+    (:func:`twin_scene`), with a warning unless the bench's camera is the simulated one.
+
+    Parameters
+    ----------
+    cfg : drivers.config.BenchConfig
+        The bench file (``camera.mounting``: position in m, rotation vector in rad, of the camera in the base frame).
+    camera : calib.camera.CameraModel, optional
+        The bench's camera (intrinsics, lens, image size); None: the simulated bench's.
+
+    Returns
+    -------
+    BenchScene
+    """
+    from calib.transforms import Rigid
+
+    scene = twin_scene(camera)
+    sim = is_simulated(cfg)
+    where = cfg.source or "the bench file"
+    warnings = []
+    mount = cfg.camera.mounting
+    if mount is not None:
+        base_from_camera = Rigid.from_rotvec(mount.rotation_rad, mount.position_m)
+        scene = dataclasses.replace(scene, camera_from_base=base_from_camera.inverse())
+    elif not sim:
+        at = ", ".join(f"{v * 1e3:.0f}" for v in scene.camera_from_base.inverse().t)
+        warnings.append(
+            f"{where} gives no camera mounting ([camera.mounting] position_m, rotation_rad: the camera's pose in the "
+            f"robot's base frame): the simulated bench's is used (the camera at ({at}) mm in the base frame), which "
+            "misplaces what is in view when this bench's camera sits elsewhere"
+        )
+    if camera is None and not sim:
+        named = cfg.intrinsics_path()
+        missing = (
+            f"{where} names no camera file ([camera] intrinsics; or --camera FILE)"
+            if named is None
+            else f"the camera file {named} ({where}, [camera] intrinsics) was not read"
+        )
+        warnings.append(
+            f"{missing}: the simulated bench's camera is used ({scene.camera.width} x {scene.camera.height} px)"
+        )
+    return BenchScene(scene, tuple(warnings))
 
 
 #: corner noise (px) of the camera phase's board views in :func:`twin_image_noise`: what the weighted calibration
@@ -114,38 +186,71 @@ def motion_spec(cfg) -> Any:
 
 
 def _bench_inputs(cfg, noise=None, camera=None) -> tuple[Any, Any, dict[str, Any]]:
-    """A bench configuration's nominal geometry, the twin's scene (with ``camera``, the bench's own camera, when
-    given), and ``calib.design.design_plan``'s keywords (soft limits, motion, noise; the noise by default the
-    image-level model of that camera)."""
+    """A bench configuration's nominal geometry, its scene (:func:`bench_scene`), and ``calib.design.design_plan``'s
+    keywords (soft limits, motion, noise; the noise by default the image-level model of the bench's camera)."""
     kw = {
         "limits": cfg.calib_limits(),
         "motion": motion_spec(cfg),
         "noise": noise if noise is not None else twin_image_noise(camera=camera),
     }
-    return cfg.nominal_parameters(), twin_scene(camera), kw
+    return cfg.nominal_parameters(), bench_scene(cfg, camera).scene, kw
+
+
+def _with_notes(result, notes: tuple[str, ...]):
+    """``result`` (``calib.design.DesignResult``) with ``notes`` first among its notes and its plan's."""
+    if not notes:
+        return result
+    from calib.plan import Plan
+
+    result.notes[:0] = notes
+    design = dict((result.plan.model_extra or {}).get("design") or {})
+    design["notes"] = result.notes
+    result.plan = Plan.model_validate({**result.plan.model_dump(exclude_none=True), "design": design})
+    return result
 
 
 def design_for_bench(cfg, request, noise=None, status=None, camera=None, draws_runner=None):
-    """Design a plan for a bench configuration; returns ``calib.design.DesignResult``.
+    """Design a plan for a bench configuration.
 
-    ``noise``: ``calib.design.DesignNoise`` or ``ImageNoise``; default: the image-level model of the twin's camera
-    (:func:`twin_image_noise`), what the methods' uncertainty is on images. ``status``: called with what the design
-    is doing (``calib.design.design_plan``). ``camera``: the bench's own camera (:func:`twin_scene`).
-    ``draws_runner``: where the candidate draws are designed (``Fanout.index_runner``, :mod:`service.fanout`).
+    Parameters
+    ----------
+    cfg : drivers.config.BenchConfig
+        The bench file: nominal geometry, soft limits (m), speeds (m/s), accelerations (m/s^2), settle times (s), the
+        camera's mounting.
+    request : calib.design.DesignRequest
+        What to design.
+    noise : calib.design.DesignNoise or ImageNoise, optional
+        Default: the image-level model of the bench's camera (:func:`twin_image_noise`), what the methods'
+        uncertainty is on images.
+    status : callable, optional
+        Called with what the design is doing (``calib.design.design_plan``).
+    camera : calib.camera.CameraModel, optional
+        The bench's own camera (:func:`bench_scene`).
+    draws_runner : callable, optional
+        Where the candidate draws are designed (``Fanout.index_runner``, :mod:`service.fanout`).
+
+    Returns
+    -------
+    calib.design.DesignResult
+        The scene's warnings (:func:`bench_scene`) first among its notes.
     """
     from calib.design import design_plan
 
     nominal, scene, kw = _bench_inputs(cfg, noise, camera)
-    return design_plan(nominal, scene, request, status=status, draws_runner=draws_runner, **kw)
+    res = design_plan(nominal, scene, request, status=status, draws_runner=draws_runner, **kw)
+    return _with_notes(res, bench_scene(cfg, camera).warnings)
 
 
 def tradeoff_for_bench(cfg, request, counts, noise=None, progress=None, camera=None):
     """:func:`calib.design.design_tradeoff` on a bench configuration, the scene and noise of
-    :func:`design_for_bench`: ``(rows, results)``, one design per count."""
+    :func:`design_for_bench`: ``(rows, results)``, one design per count (each with the scene's warnings in its
+    notes)."""
     from calib.design import design_tradeoff
 
     nominal, scene, kw = _bench_inputs(cfg, noise, camera)
-    return design_tradeoff(nominal, scene, request, counts, progress=progress, **kw)
+    rows, results = design_tradeoff(nominal, scene, request, counts, progress=progress, **kw)
+    warnings = bench_scene(cfg, camera).warnings
+    return rows, [_with_notes(r, warnings) for r in results]
 
 
 def reference_targets(
@@ -155,7 +260,7 @@ def reference_targets(
     :func:`design_for_bench`): targets for a design at least as accurate on every combination of every method."""
     from calib.design import targets_from_plan
 
-    scene, nz = twin_scene(camera), noise if noise is not None else twin_image_noise(camera=camera)
+    scene, nz = bench_scene(cfg, camera).scene, noise if noise is not None else twin_image_noise(camera=camera)
     return {m: targets_from_plan(plan, cfg.nominal_parameters(), scene, nz, method=m) for m in methods}
 
 
@@ -163,14 +268,31 @@ def check_for_bench(cfg, plan, noise=None, methods=None, camera=None):
     """:func:`calib.design.check_plan` on a bench configuration, the scene and noise of :func:`design_for_bench`: a
     plan's predicted std per method and combination, its motion time, the steps the camera will not see.
 
-    ``methods``: those of the design's (``calib.design.METHODS``) to predict; default all of them. ``camera``: the
-    bench's own camera (:func:`twin_scene`).
+    Parameters
+    ----------
+    cfg : drivers.config.BenchConfig
+        The bench file.
+    plan : calib.plan.Plan
+        The plan as it will run.
+    noise : calib.design.DesignNoise or ImageNoise, optional
+        As :func:`design_for_bench`'s.
+    methods : tuple of str, optional
+        Those of the design's (``calib.design.METHODS``) to predict; default all of them.
+    camera : calib.camera.CameraModel, optional
+        The bench's own camera (:func:`bench_scene`).
+
+    Returns
+    -------
+    calib.design.PlanCheck
+        Std in m, times in s; the scene's warnings first among its notes.
     """
     from calib.design import METHODS, check_plan
 
     nominal, scene, kw = _bench_inputs(cfg, noise, camera)
     wanted = tuple(m for m in (methods or METHODS) if m in METHODS)
-    return check_plan(plan, nominal, scene, kw["noise"], kw["motion"], methods=wanted)
+    check = check_plan(plan, nominal, scene, kw["noise"], kw["motion"], methods=wanted)
+    check.notes[:0] = bench_scene(cfg, camera).warnings
+    return check
 
 
 def run_prediction(cfg, plan_doc: dict[str, Any], methods: list[str], camera=None, noise=None) -> dict[str, Any] | None:
@@ -192,13 +314,22 @@ def run_prediction(cfg, plan_doc: dict[str, Any], methods: list[str], camera=Non
         "motion_time_s": check.motion["total_s"],
         "unseen": check.unseen,
         "notes": check.notes,
-        "noise": (
-            "the image-level model of the simulated bench's camera and mounting (docs/design.md)"
-            if camera is None
-            else f"the image-level model with this service's camera ({camera.width} x {camera.height} px) at the "
-            "simulated bench's mounting (docs/design.md)"
-        ),
+        "noise": _noise_description(cfg, camera),
     }
+
+
+def _noise_description(cfg, camera) -> str:
+    """Which camera and mounting a run's prediction used (its ``noise``)."""
+    if cfg.camera.mounting is not None:
+        what = "the simulated bench's camera" if camera is None else f"this service's camera ({camera.width} x"
+        what += "" if camera is None else f" {camera.height} px)"
+        return f"the image-level model with {what} at the bench file's camera mounting (docs/design.md)"
+    if camera is None:
+        return "the image-level model of the simulated bench's camera and mounting (docs/design.md)"
+    return (
+        f"the image-level model with this service's camera ({camera.width} x {camera.height} px) at the "
+        "simulated bench's mounting (docs/design.md)"
+    )
 
 
 def better_than_request(targets: dict[str, tuple[float, float, float, float]]) -> dict[str, Any]:
@@ -274,12 +405,34 @@ def summary_lines(result, breakdown: bool = False) -> list[str]:
 
 def tradeoff_lines(rows, request) -> list[str]:
     """Human-readable trade-off: per method a table of fit poses, motion time and predicted std (mm), optimised methods
-    first; then the target and the recommended count."""
-    from calib.design import recommendation_reason, recommended_count, tradeoff_trend
+    first; then the target, the time limit, the trend past the counts listed and the recommended count.
+
+    Parameters
+    ----------
+    rows : list of calib.design.TradeoffRow
+        One designed plan per count (``n_fit``, ``motion_s`` in s, ``std_m`` per method and combination in m).
+    request : calib.design.DesignRequest
+        The request the rows were designed for (its methods, targets in m and time limit in s).
+
+    Returns
+    -------
+    list of str
+        The lines to print (lengths in mm, times in minutes).
+    """
+    out = ["trade-off: the designed plan for each fit-pose count (predicted std in mm, motion time of the whole plan)"]
+    out += _tradeoff_tables(rows, request)
+    out += _tradeoff_target_lines(rows, request)
+    out += _tradeoff_trend_lines(rows, request)
+    out += _tradeoff_recommendation_lines(rows, request)
+    return out
+
+
+def _tradeoff_tables(rows, request) -> list[str]:
+    """Per method (the optimised ones first), the table of fit poses, motion time (min) and predicted std (mm)."""
     from calib.parameters import COMBINATION_NAMES
 
     methods = list(dict.fromkeys([*request.methods, *(m for r in rows for m in r.std_m)]))
-    out = ["trade-off: the designed plan for each fit-pose count (predicted std in mm, motion time of the whole plan)"]
+    out = []
     head = f"  {'fit poses':>9} | {'motion min':>10} | " + " | ".join(f"{k:>13}" for k in COMBINATION_NAMES)
     for m in methods:
         out.append(f"{m}{' (optimised)' if m in request.methods else ''}:")
@@ -288,6 +441,14 @@ def tradeoff_lines(rows, request) -> list[str]:
             std = r.std_m.get(m)
             vals = " | ".join(f"{std[k] * 1e3:13.4f}" if std else f"{'-':>13}" for k in COMBINATION_NAMES)
             out.append(f"  {r.n_fit:9d} | {r.motion_s / 60:10.2f} | {vals}")
+    return out
+
+
+def _tradeoff_target_lines(rows, request) -> list[str]:
+    """The target (mm; per method when they differ) with each count's worst ratio to it, and the time limit (min)."""
+    from calib.parameters import COMBINATION_NAMES
+
+    out = []
     t = request.targets_by_method()
     if t is not None:
         own = len({tuple(v) for v in t.values()}) > 1
@@ -306,20 +467,33 @@ def tradeoff_lines(rows, request) -> list[str]:
             f"time limit {request.max_time_s / 60:.2f} min: "
             + ", ".join(f"{r.n_fit} poses {'within' if r.time_met else 'over'}" for r in rows)
         )
+    return out
+
+
+def _tradeoff_trend_lines(rows, request) -> list[str]:
+    """The level the predicted std settles to with more fit poses (mm), and the count the target needs by that trend."""
+    from calib.design import tradeoff_trend
+
     trend = tradeoff_trend(rows, request)
-    if trend is not None:
-        a, b = trend["n_fit"]
-        floors = "; ".join(
-            f"{m} " + ", ".join(f"{k} {v * 1e3:.3f}" for k, v in fl.items()) for m, fl in trend["floor_std_m"].items()
-        )
-        need = trend["n_fit_needed"]
-        reach = "" if t is None else f"; the target in about {need} fit poses" if need else "; the target in none"
-        out.append(
-            f"with more fit poses (the trend of the predicted std from {a} to {b}): levels off near {floors} mm{reach}"
-        )
+    if trend is None:
+        return []
+    a, b = trend["n_fit"]
+    floors = "; ".join(
+        f"{m} " + ", ".join(f"{k} {v * 1e3:.3f}" for k, v in fl.items()) for m, fl in trend["floor_std_m"].items()
+    )
+    need = trend["n_fit_needed"]
+    t = request.targets_by_method()
+    reach = "" if t is None else f"; the target in about {need} fit poses" if need else "; the target in none"
+    return [f"with more fit poses (the trend of the predicted std from {a} to {b}): levels off near {floors} mm{reach}"]
+
+
+def _tradeoff_recommendation_lines(rows, request) -> list[str]:
+    """The recommended count and why, or why none qualifies (when a target or a time limit was given)."""
+    from calib.design import recommendation_reason, recommended_count
+
     recommended, why = recommended_count(rows), recommendation_reason(rows)
     if recommended is not None:
-        out.append(f"recommended: {recommended} fit poses ({why})")
-    elif t is not None or request.max_time_s is not None:
-        out.append(f"no count listed qualifies ({why})")
-    return out
+        return [f"recommended: {recommended} fit poses ({why})"]
+    if request.targets_by_method() is not None or request.max_time_s is not None:
+        return [f"no count listed qualifies ({why})"]
+    return []

@@ -142,7 +142,19 @@ def _unseen_steps(plan: Plan, nominal: I4Parameters, scene: Scene) -> list[dict[
 
 
 def check_size(plan: Plan) -> None:
-    """Refuse a plan too large to predict in reasonable time, naming what is over."""
+    """Refuse a plan too large to predict in reasonable time, naming what is over.
+
+    Parameters
+    ----------
+    plan : Plan
+        The plan to predict.
+
+    Raises
+    ------
+    InputError
+        More than ``N_FIT_MOST`` fit poses, or more than :data:`MAX_PREDICTED_FRAMES` frames in the predicted phases
+        (``field="steps"``).
+    """
     counts = plan.count()
     if counts.get("poses", 0) > N_FIT_MOST:
         raise InputError(
@@ -164,7 +176,24 @@ def _no_board_pose(u: dict[str, Any]) -> bool:
 
 def measured_plan(plan: Plan, nominal: I4Parameters, scene: Scene) -> tuple[Plan, list[dict[str, Any]]]:
     """What the camera will measure of a plan: the plan without its board-phase steps whose board is out of view
-    (they give no board pose), and every step not seen in full (:class:`PlanCheck`'s ``unseen``)."""
+    (they give no board pose), and every step not seen in full.
+
+    Parameters
+    ----------
+    plan : Plan
+        The plan as it will run.
+    nominal : I4Parameters
+        The nominal geometry, which places the parts in the image (m, rad).
+    scene : Scene
+        The camera, its mounting, the board and rods.
+
+    Returns
+    -------
+    measured : Plan
+        The plan without the board-phase steps that give no board pose.
+    unseen : list of dict
+        The steps not seen in full (:class:`PlanCheck`'s ``unseen``).
+    """
     unseen = _unseen_steps(plan, nominal, scene)
     blind = {u["step"] for u in unseen if _no_board_pose(u)}
     return plan.model_copy(update={"steps": [s for i, s in enumerate(plan.steps) if i not in blind]}), unseen
@@ -261,6 +290,29 @@ def targets_from_plan(
     0.88x on H-D, and measured 1.1x on H-D). The reference is predicted as the camera will measure it: without its
     steps whose board is out of view (:func:`measured_plan`), which would make the target stricter than the
     reference gives.
+
+    Parameters
+    ----------
+    plan : Plan
+        The reference plan (at most ``N_FIT_MOST`` fit poses).
+    nominal : I4Parameters
+        The nominal geometry (m, rad).
+    scene : Scene
+        The camera, its mounting, the board and rods.
+    noise : DesignNoise or ImageNoise, optional
+        The measurement noise (:func:`.predict.predict_plan`'s default when None).
+    method : str
+        The method whose std is the target.
+
+    Returns
+    -------
+    tuple of 4 float
+        The predicted std per combination, m.
+
+    Raises
+    ------
+    InputError
+        The plan is too large (``field="steps"``), or gives ``method`` no prediction (``field="better_than"``).
     """
     check_size(plan)
     pred = predict_plan(measured_plan(plan, nominal, scene)[0], nominal, scene, noise)

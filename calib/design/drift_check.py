@@ -91,7 +91,18 @@ class CheckPlanDesign:
 
 
 def missing_phases(plan: Plan) -> list[str]:
-    """The phases of :data:`CHECK_PHASES` a plan lacks (a check's combined fit needs every one)."""
+    """The phases of :data:`CHECK_PHASES` a plan lacks (a check's combined fit needs every one).
+
+    Parameters
+    ----------
+    plan : Plan
+        The check plan.
+
+    Returns
+    -------
+    list of str
+        The phases missing, in :data:`CHECK_PHASES`' order (empty: none).
+    """
     have = {s.phase for s in plan.steps}
     return [p for p in CHECK_PHASES if p not in have]
 
@@ -162,6 +173,18 @@ def with_repeats(plan: Plan, n: int) -> Plan:
     """``plan`` with its fit poses revisited: ``n - 1`` more tours of them as ``validation`` steps (the combined fit
     leaves them out), each tour starting one pose further on (every revisit comes from another pose), the first
     taking two frames at each pose without moving between them (:mod:`calib.repeatability`: the measurement floor).
+
+    Parameters
+    ----------
+    plan : Plan
+        The plan whose fit poses are revisited.
+    n : int
+        Visits of each fit pose in all, 2..20.
+
+    Returns
+    -------
+    Plan
+        Named ``<plan>-repeat-<n>``: the plan's steps, then the revisits.
 
     Raises
     ------

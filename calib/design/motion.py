@@ -57,7 +57,22 @@ def move_time(q_from: np.ndarray, q_to: np.ndarray, spec: MotionSpec) -> np.ndar
 
 
 def order_tour(q: np.ndarray, spec: MotionSpec, start: np.ndarray | None = None) -> np.ndarray:
-    """Visiting order (indices) of poses (N, 4): nearest neighbour in move time from ``start``, then 2-opt."""
+    """Visiting order of poses: nearest neighbour in move time from ``start``, then 2-opt.
+
+    Parameters
+    ----------
+    q : ndarray, shape (N, 4)
+        The poses' joint values, m.
+    spec : MotionSpec
+        Speeds, accelerations (the move times).
+    start : ndarray, shape (4,), optional
+        Where the bench is before the first pose, m (None: anywhere, the tour starting at any pose).
+
+    Returns
+    -------
+    ndarray of int, shape (N,)
+        Indices into ``q`` in visiting order.
+    """
     q = np.asarray(q, dtype=np.float64).reshape(-1, 4)
     n = len(q)
     if n <= 2:
@@ -90,11 +105,22 @@ def order_tour(q: np.ndarray, spec: MotionSpec, start: np.ndarray | None = None)
 
 
 def plan_motion_time(plan: Plan, spec: MotionSpec, nominal: I4Parameters | None = None) -> dict[str, Any]:
-    """Motion time of a plan executed in its order, per phase and in total (seconds).
+    """Motion time of a plan executed in its order, per phase and in total.
 
-    Returns ``{"total_s": float, "per_phase_s": {phase: float}}``.
+    Parameters
+    ----------
+    plan : Plan
+        The steps, in their order.
+    spec : MotionSpec
+        Speeds (m/s), accelerations (m/s^2), settle and frame times (s), the line's rate (Hz).
+    nominal : I4Parameters, optional
+        The nominal geometry: a guided line's poses turned into joint values for the move to its start (needed when
+        the plan has a line).
 
-    The guided line's samples need ``nominal`` to turn its poses into joint values for the move to its start.
+    Returns
+    -------
+    dict
+        ``{"total_s": float, "per_phase_s": {phase: float}}``, seconds.
     """
     from ..kinematics import ikm
 

@@ -70,7 +70,17 @@ from .predict_images import (
 )
 from .scene import Scene, visibility
 
-__all__ = ["DesignRequest", "DesignResult", "design_plan", "log_det_information", "select_poses"]
+__all__ = [
+    "BenchSettings",
+    "DesignRequest",
+    "DesignResult",
+    "design_plan",
+    "locks_joints",
+    "log_det_information",
+    "select_poses",
+    "uses_sweeps",
+    "validate_request",
+]
 
 Criterion = Literal["d", "a", "target"]
 OPTIMISED_METHODS = ("combined", "end-effector", "legs")
@@ -136,40 +146,7 @@ class DesignRequest:
     method_targets_m: tuple[tuple[str, tuple[float, ...]], ...] = ()
 
     def __post_init__(self) -> None:
-        if self.n_fit is not None and not (2 <= self.n_fit <= N_FIT_MOST):
-            raise InputError(f"n_fit must be in 2..{N_FIT_MOST}, got {self.n_fit}", field="n_fit")
-        if self.criterion not in ("d", "a", "target"):
-            raise InputError(f"criterion must be d, a or target, got {self.criterion!r}", field="criterion")
-        if self.criterion == "target" and self.target_std_m is None:
-            raise InputError("criterion 'target' needs a target std", field="target_std")
-        t = self.targets()
-        if t is not None and not np.all(np.isfinite(t) & (t > 0)):
-            raise InputError("target std must be finite and > 0", field="target_std")
-        if self.max_time_s is not None and not (np.isfinite(self.max_time_s) and self.max_time_s > 0):
-            raise InputError("max time must be finite and > 0", field="max_time")
-        bad = [m for m in self.methods if m not in OPTIMISED_METHODS]
-        if bad or not self.methods:
-            raise InputError(
-                f"methods to optimise: {', '.join(OPTIMISED_METHODS)} (got {', '.join(self.methods) or 'none'})",
-                field="methods",
-            )
-        if not (20 <= self.n_candidates <= 5000):
-            raise InputError("n_candidates must be in 20..5000", field="n_candidates")
-        for name, lo, hi in (("n_base", 3, 100), ("n_lock", 2, 50), ("n_validation", 0, 200)):
-            if not (lo <= getattr(self, name) <= hi):
-                raise InputError(f"must be in {lo}..{hi}, got {getattr(self, name)}", field=name)
-        if not (2 <= self.n_min <= self.n_max <= N_FIT_MOST):
-            raise InputError(f"need 2 <= n_min <= n_max <= {N_FIT_MOST}", field="n_max")
-        if not (1 <= self.draws <= 20) or self.candidate_draw < 0:
-            raise InputError("draws must be in 1..20 (and candidate_draw >= 0)", field="draws")
-        for m, v in self.method_targets_m:
-            if m not in self.methods:
-                raise InputError(f"a target for {m!r}, which is not optimised", field="method_targets")
-            tv = np.asarray(v, dtype=np.float64)
-            if tv.shape != (4,) or not np.all(np.isfinite(tv) & (tv > 0)):
-                raise InputError(f"{m}: four finite std > 0 needed, got {v!r}", field="method_targets")
-        if self.method_targets_m and self.target_std_m is None:
-            raise InputError("method targets need target_std_m (the other methods' target)", field="target_std")
+        validate_request(self)
 
     def targets(self) -> np.ndarray | None:
         if self.target_std_m is None:
@@ -184,6 +161,76 @@ class DesignRequest:
             return None
         own = {m: np.asarray(v, dtype=np.float64) for m, v in self.method_targets_m}
         return {m: own.get(m, t) for m in self.methods}
+
+
+def validate_request(req: DesignRequest) -> None:
+    """Check a request's fields, each against its range, in the order of the fields.
+
+    Parameters
+    ----------
+    req : DesignRequest
+        The request (lengths in m, times in s).
+
+    Raises
+    ------
+    InputError
+        The first field out of range, naming it (``n_fit``, ``criterion``, ``target_std``, ``max_time``, ``methods``,
+        ``n_candidates``, ``n_base``, ``n_lock``, ``n_validation``, ``n_max``, ``draws``, ``method_targets``).
+    """
+    _check_targets(req)
+    _check_methods(req)
+    _check_counts(req)
+    _check_method_targets(req)
+
+
+def _check_targets(req: DesignRequest) -> None:
+    """The fixed count, the criterion, the target std (m) and the time allowed (s)."""
+    if req.n_fit is not None and not (2 <= req.n_fit <= N_FIT_MOST):
+        raise InputError(f"n_fit must be in 2..{N_FIT_MOST}, got {req.n_fit}", field="n_fit")
+    if req.criterion not in ("d", "a", "target"):
+        raise InputError(f"criterion must be d, a or target, got {req.criterion!r}", field="criterion")
+    if req.criterion == "target" and req.target_std_m is None:
+        raise InputError("criterion 'target' needs a target std", field="target_std")
+    t = req.targets()
+    if t is not None and not np.all(np.isfinite(t) & (t > 0)):
+        raise InputError("target std must be finite and > 0", field="target_std")
+    if req.max_time_s is not None and not (np.isfinite(req.max_time_s) and req.max_time_s > 0):
+        raise InputError("max time must be finite and > 0", field="max_time")
+
+
+def _check_methods(req: DesignRequest) -> None:
+    """The methods to optimise: at least one, each of :data:`OPTIMISED_METHODS`."""
+    bad = [m for m in req.methods if m not in OPTIMISED_METHODS]
+    if bad or not req.methods:
+        raise InputError(
+            f"methods to optimise: {', '.join(OPTIMISED_METHODS)} (got {', '.join(req.methods) or 'none'})",
+            field="methods",
+        )
+
+
+def _check_counts(req: DesignRequest) -> None:
+    """The candidates, the phases' frames, the count search's range and the draws."""
+    if not (20 <= req.n_candidates <= 5000):
+        raise InputError("n_candidates must be in 20..5000", field="n_candidates")
+    for name, lo, hi in (("n_base", 3, 100), ("n_lock", 2, 50), ("n_validation", 0, 200)):
+        if not (lo <= getattr(req, name) <= hi):
+            raise InputError(f"must be in {lo}..{hi}, got {getattr(req, name)}", field=name)
+    if not (2 <= req.n_min <= req.n_max <= N_FIT_MOST):
+        raise InputError(f"need 2 <= n_min <= n_max <= {N_FIT_MOST}", field="n_max")
+    if not (1 <= req.draws <= 20) or req.candidate_draw < 0:
+        raise InputError("draws must be in 1..20 (and candidate_draw >= 0)", field="draws")
+
+
+def _check_method_targets(req: DesignRequest) -> None:
+    """Each method's own target: an optimised method's, four finite std > 0 (m), with ``target_std_m`` given."""
+    for m, v in req.method_targets_m:
+        if m not in req.methods:
+            raise InputError(f"a target for {m!r}, which is not optimised", field="method_targets")
+        tv = np.asarray(v, dtype=np.float64)
+        if tv.shape != (4,) or not np.all(np.isfinite(tv) & (tv > 0)):
+            raise InputError(f"{m}: four finite std > 0 needed, got {v!r}", field="method_targets")
+    if req.method_targets_m and req.target_std_m is None:
+        raise InputError("method targets need target_std_m (the other methods' target)", field="target_std")
 
 
 @dataclass
@@ -259,7 +306,19 @@ SHADING_NOTE_SHARE = 0.1
 
 def shading_note(pred: Prediction) -> str | None:
     """A note when the legs prediction leans on its model of the rods' shading (the lock phases' systematic depth
-    error), which is right on average over plans but not plan by plan; None otherwise."""
+    error), which is right on average over plans but not plan by plan.
+
+    Parameters
+    ----------
+    pred : Prediction
+        A plan's prediction (its ``parts``: per method and source, std per combination in m).
+
+    Returns
+    -------
+    str or None
+        The note; None when the shading's share of every legs combination's variance is below
+        :data:`SHADING_NOTE_SHARE`.
+    """
     sys_part = (pred.parts.get("legs") or {}).get("joint_depth_systematic")
     std = pred.std.get("legs")
     if not sys_part or not std:
@@ -345,7 +404,33 @@ def select_poses(
     max_passes: int = 50,
 ) -> np.ndarray:
     """Indices of ``n`` candidates: greedy, then Fedorov exchange (the start is the better of the greedy set
-    and ``start``)."""
+    and ``start``).
+
+    Parameters
+    ----------
+    infos : _Infos
+        Per method, the candidates' additive statistics (M candidates) and their priors.
+    n : int
+        Fit poses to choose.
+    criterion : {"d", "a", "target"}
+        What is minimised (:func:`_score`).
+    targets : dict of str to ndarray, shape (4,), or None
+        Per method, the target std per combination, m.
+    start : ndarray of int, shape (n,), optional
+        A selection to start the exchange from when it scores better than the greedy one.
+    max_passes : int
+        Most swaps of the exchange (0: the greedy selection).
+
+    Returns
+    -------
+    ndarray of int, shape (n,)
+        Indices into the candidates.
+
+    Raises
+    ------
+    InputError
+        Fewer than ``n`` candidates.
+    """
     M = next(iter(infos.per.values())).shape[0]
     if n > M:
         raise InputError(f"only {M} visible candidate poses for {n} fit poses (more candidates or fewer poses)")
@@ -380,6 +465,42 @@ def select_poses(
     return sel
 
 
+def locks_joints(method: str) -> bool:
+    """Whether a method locates the legs' joints from the lock phases (its registry entry's phases name them): the
+    design's statistic for it is then the lock phases' criterion (:class:`.legs_criterion.LegsCriterion`).
+
+    Parameters
+    ----------
+    method : str
+        A registered method's name (:mod:`calib.methods.registry`).
+
+    Returns
+    -------
+    bool
+    """
+    from ..methods.registry import get_method
+
+    return any(p.startswith("lock-") for p in get_method(method).required_phases)
+
+
+def uses_sweeps(method: str) -> bool:
+    """Whether a method takes the base frame from the rotation and translation sweeps (its registry entry's phases
+    name both): the design couples its information to the base frame's, the sweeps being its prior.
+
+    Parameters
+    ----------
+    method : str
+        A registered method's name (:mod:`calib.methods.registry`).
+
+    Returns
+    -------
+    bool
+    """
+    from ..methods.registry import get_method
+
+    return {"rotation", "translation"} <= set(get_method(method).required_phases)
+
+
 def log_det_information(
     plan: Plan,
     nominal: I4Parameters,
@@ -387,16 +508,35 @@ def log_det_information(
     noise: DesignNoise | ImageNoise | None = None,
     methods: tuple[str, ...] = ("combined",),
 ) -> dict[str, float]:
-    """D-criterion of a plan: per method, log det of the four combinations' information (m^-2; higher better)."""
+    """D-criterion of a plan: per method, log det of the four combinations' information.
+
+    Parameters
+    ----------
+    plan : Plan
+        Its sweeps, fit poses and (for a method locating joints) lock phases' joint values (m).
+    nominal : I4Parameters
+        The nominal geometry (m, rad).
+    scene : Scene
+        The camera, its mounting, the board and the rods.
+    noise : DesignNoise or ImageNoise, optional
+        The measurement noise (default: ``DesignNoise()``; a method locating joints needs ``ImageNoise``).
+    methods : tuple of str
+        Methods of :data:`OPTIMISED_METHODS`.
+
+    Returns
+    -------
+    dict of str to float
+        Per method, log det of its four combinations' information (m^-2; higher better).
+    """
     noise = noise or DesignNoise()
     q_fit = phase_q(plan, "poses")
     out = {}
     for m in methods:
         q_rot, q_tra = phase_q(plan, "rotation"), phase_q(plan, "translation")
         legs = None
-        if m == "legs":
+        if locks_joints(m):
             if not isinstance(noise, ImageNoise):
-                raise InputError("the legs criterion needs the image-level noise model", field="methods")
+                raise InputError(f"the {m} criterion needs the image-level noise model", field="methods")
             legs = LegsCriterion(nominal, [phase_q(plan, f"lock-{i}") for i in range(1, 5)], scene, noise)
         F = _method_information(m, nominal, q_fit, scene, noise, q_rot, q_tra, legs).sum(axis=0) + _method_prior(
             m, nominal, q_rot, q_tra, scene, noise
@@ -408,31 +548,33 @@ def log_det_information(
 def _method_information(
     m: str, nominal, q, scene: Scene, noise: DesignNoise | ImageNoise, q_rot=None, q_tra=None, legs=None
 ) -> np.ndarray:
-    """Per fit pose (N, p, p) information of method ``m`` (on images the combined method's nuisances, whose
-    base-frame coupling needs the sweeps ``q_rot``, ``q_tra``); for the legs method (N, 3, 30), its
+    """Per fit pose (N, p, p) information of method ``m`` (on images, for a method using the sweeps, its nuisances,
+    whose base-frame coupling needs the sweeps ``q_rot``, ``q_tra``); for a method locating joints (N, 3, 30), its
     :class:`.legs_criterion.LegsCriterion`'s statistics."""
-    if m == "legs":
+    if locks_joints(m):
         return legs.pose_statistics(q)
     if isinstance(noise, ImageNoise):
-        if m == "combined":
+        if uses_sweeps(m):
             _P, steps, G = combined_images_prior(nominal, q_rot, q_tra, scene, noise)
             return combined_images_pose_information(nominal, q, scene, noise, steps, G)
         return end_effector_images_pose_information(nominal, q, scene, noise)
-    if m == "combined":
+    if uses_sweeps(m):
         return combined_pose_information(nominal, q, scene.camera_from_base.R, noise)
     return end_effector_pose_information(nominal, q, scene, noise)
 
 
 def _method_prior(m: str, nominal, q_rot, q_tra, scene: Scene, noise: DesignNoise | ImageNoise) -> np.ndarray:
-    if m == "legs":
+    """Method ``m``'s prior statistic: the base frame's information from the sweeps for a method using them, else
+    zeros of its statistic's shape."""
+    if locks_joints(m):
         return np.zeros((3, 30))
+    if not uses_sweeps(m):
+        return np.zeros((16, 16))
     if isinstance(noise, ImageNoise):
-        return combined_images_prior(nominal, q_rot, q_tra, scene, noise)[0] if m == "combined" else np.zeros((16, 16))
-    if m == "combined":
-        P = np.zeros((7, 7))
-        P[4:, 4:] = base_frame_information(nominal, q_rot, q_tra, scene.camera_from_base.R, noise)
-        return P
-    return np.zeros((16, 16))
+        return combined_images_prior(nominal, q_rot, q_tra, scene, noise)[0]
+    P = np.zeros((7, 7))
+    P[4:, 4:] = base_frame_information(nominal, q_rot, q_tra, scene.camera_from_base.R, noise)
+    return P
 
 
 # -- the plan ---------------------------------------------------------------------------------------------------
@@ -581,10 +723,11 @@ def _candidate_pool(
         return cache[key]
     (span, length, rot, tra, _), lock, placed = _placed_phases(nominal, scene, limits, ws, noise, req)
     legs = None
-    if "legs" in req.methods:
+    locking = [m for m in req.methods if locks_joints(m)]
+    if locking:
         if not isinstance(noise, ImageNoise):
             raise InputError(
-                "optimising for the legs method needs the image-level noise model (the default, or a run's)",
+                f"optimising for the {locking[0]} method needs the image-level noise model (the default, or a run's)",
                 field="methods",
             )
         legs = LegsCriterion(
@@ -609,13 +752,354 @@ def _candidate_pool(
             m: _method_information(m, nominal, cand_q[visible], scene, noise, qr, qt, legs) for m in req.methods
         },
         prior={m: _method_prior(m, nominal, qr, qt, scene, noise) for m in req.methods},
-        cov4={"legs": legs.cov4} if legs is not None else {},
+        cov4={m: legs.cov4 for m in locking} if legs is not None else {},
         legs=legs,
         placed=placed,
     )
     if cache is not None:
         cache[key] = pool
     return pool
+
+
+@dataclass(frozen=True)
+class BenchSettings:
+    """The bench side of a design: what :func:`design_plan` takes besides the geometry, the scene and the request.
+
+    Attributes
+    ----------
+    limits : SoftLimits
+        The joints' soft limits (m).
+    motion : MotionSpec
+        Speeds (m/s), accelerations (m/s^2) and settle times (s).
+    noise : DesignNoise or ImageNoise
+        The measurement noise the prediction assumes.
+    ws : Workspace
+        The box the candidate poses are drawn in (m, rad).
+    """
+
+    limits: SoftLimits = field(default_factory=SoftLimits)
+    motion: MotionSpec = field(default_factory=MotionSpec)
+    noise: DesignNoise | ImageNoise = field(default_factory=DesignNoise)
+    ws: Workspace = field(default_factory=Workspace)
+
+
+class _Space:
+    """What a design chooses from: the candidates (those drawn and visible, then the reference sets' visible poses),
+    their statistics per method (:class:`_Infos`), and the plan's fixed phases (sweeps, lock, line, validation); how a
+    selection of candidates becomes a plan."""
+
+    def __init__(
+        self, nominal: I4Parameters, scene: Scene, req: DesignRequest, bench: BenchSettings, pool: _Pool
+    ) -> None:
+        self.nominal, self.scene, self.req, self.bench, self.pool = nominal, scene, req, bench, pool
+        self.refs: dict[int, np.ndarray] = {}
+        fixed = [req.n_fit] if req.n_fit else []
+        ref_q = np.concatenate([self.reference(n) for n in (fixed or [20])])
+        vis_ref = visibility(scene, nominal, ref_q)["ok"]
+        #: (M, 4) joint values of the candidates, m
+        self.cq = np.concatenate([pool.cand_q[pool.visible], ref_q[vis_ref]])
+        self.n_vis_ref = int(vis_ref.sum())
+        self.infos = _Infos(
+            {
+                m: np.concatenate(
+                    [
+                        pool.information[m],
+                        _method_information(
+                            m, nominal, ref_q[vis_ref], scene, bench.noise, pool.qr, pool.qt, pool.legs
+                        ),
+                    ]
+                )
+                for m in req.methods
+            },
+            pool.prior,
+            pool.cov4,
+        )
+        self.val = _validation_steps(nominal, scene, req, bench)
+        self.notes: list[str] = []
+        if pool.placed is not bench.ws:
+            shift = np.subtract(pool.placed.centre()[:3], bench.ws.centre()[:3]) * 1e3
+            self.notes.append(
+                "the sweeps, lock phases and line are placed about a centre moved by ("
+                + ", ".join(f"{v:+.0f}" for v in shift)
+                + ") mm in (X, Y, Z): about the workspace's own centre the camera does not see their board"
+            )
+        self.line = _line_steps(nominal, bench.limits, pool.placed, self.notes) if req.with_line else []
+        #: the most fit poses the count search tries
+        self.n_hi = min(req.n_max, len(self.cq))
+
+    def reference(self, n: int) -> np.ndarray:
+        """The paper's pose set of ``n`` fit poses for the request's seed, (n, 4) joint values, m."""
+        if n not in self.refs:
+            req, b = self.req, self.bench
+            self.refs[n] = np.array([s.q for s in pose_set(self.nominal, n, req.seed, ws=b.ws, limits=b.limits)])
+        return self.refs[n]
+
+    def start_index(self, n: int) -> np.ndarray | None:
+        """The candidates' indices of the reference set of ``n`` poses (None: not all of it is a candidate)."""
+        r = self.reference(n) if n in self.refs else None
+        if r is None:
+            return None
+        cq = self.cq
+        idx = [int(np.argmin(np.abs(cq - q).sum(axis=1))) for q in r]
+        ok = [np.abs(cq[i] - q).sum() < 1e-12 for i, q in zip(idx, r, strict=True)]
+        return np.array(idx) if all(ok) and len(set(idx)) == n else None
+
+    def build(self, sel: np.ndarray) -> tuple[Plan, dict[str, Any]]:
+        """The plan of the candidates ``sel`` (fit poses in tour order) and its motion time (s)."""
+        pool, motion = self.pool, self.bench.motion
+        q = self.cq[sel]
+        order = order_tour(q, motion, start=np.asarray(pool.tra[-1].q))
+        fit = [Step(phase="poses", q=q[i].tolist()) for i in order]
+        plan = Plan(name="designed", steps=[*pool.rot, *pool.tra, *fit, *pool.lock, *self.line, *self.val])
+        return plan, plan_motion_time(plan, motion, self.nominal)
+
+    def meets(self, sel: np.ndarray, tt: dict[str, np.ndarray] | None) -> bool:
+        """Whether the information of ``sel`` gives every method a std within its targets ``tt`` ((4,) m each)."""
+        if tt is None:
+            return True
+        infos = self.infos
+        for m, F in infos.total(sel).items():
+            C = infos.cov4[m](F)[0]
+            if np.any(np.sqrt(np.maximum(np.diag(C), 0)) > tt[m]):
+                return False
+        return True
+
+    def predict(self, plan: Plan) -> Prediction:
+        """The plan's prediction for the request's weighting."""
+        return predict_plan(plan, self.nominal, self.scene, self.bench.noise, weighting=self.req.weighting)
+
+
+def _validation_steps(nominal: I4Parameters, scene: Scene, req: DesignRequest, bench: BenchSettings) -> list[Step]:
+    """The validation poses: ``req.n_validation`` of the paper's validation set with the board in view."""
+    if not req.n_validation:
+        return []
+    steps = pose_set(nominal, 3 * req.n_validation, req.seed + 2, phase="validation", ws=bench.ws, limits=bench.limits)
+    return _visible_steps(steps, scene, nominal, "board", req.n_validation)
+
+
+@dataclass
+class _Choice:
+    """A chosen count and its plan: ``n`` fit poses (candidates ``sel``), the plan, its motion time and prediction;
+    ``reduced``: fewer poses than the target wanted, to fit the time allowed; ``rounds``: choices of the count made;
+    ``tt``: the exchange's targets of the last choice (per method (4,) m)."""
+
+    n: int
+    sel: np.ndarray
+    plan: Plan
+    mt: dict[str, Any]
+    pred: Prediction
+    reduced: bool
+    rounds: int
+    tt: dict[str, np.ndarray] | None
+
+
+def _choose(space: _Space, tt: dict[str, np.ndarray] | None, n_from: int, fewer: bool) -> tuple[int, np.ndarray]:
+    """The count (from ``n_from`` up; ``fewer``: then down while the exchange still meets it) and the poses for
+    the exchange's targets ``tt``."""
+    req, infos, crit, n_hi = space.req, space.infos, space.req.criterion, space.n_hi
+    if req.n_fit:
+        return req.n_fit, select_poses(infos, req.n_fit, crit, tt, space.start_index(req.n_fit))
+    if tt is None:
+        space.reference(20)
+        return 20, select_poses(infos, 20, crit, tt, None)
+    greedy = select_poses(infos, n_hi, crit, tt, None, max_passes=0)
+    n = next((k for k in range(n_from, n_hi + 1) if space.meets(greedy[:k], tt)), None)
+    if n is None:
+        return n_hi, select_poses(infos, n_hi, crit, tt, None)
+    sel = select_poses(infos, n, crit, tt, greedy[:n])
+    while fewer and n > req.n_min:  # the exchange may meet the target with fewer poses
+        s2 = select_poses(infos, n - 1, crit, tt, greedy[: n - 1])
+        if not space.meets(s2, tt):
+            break
+        n, sel = n - 1, s2
+    return n, sel
+
+
+def _fit_time(
+    space: _Space, n: int, sel: np.ndarray, tt: dict[str, np.ndarray] | None
+) -> tuple[int, np.ndarray, Plan, dict[str, Any], bool]:
+    """The plan of ``sel``; when it takes longer than allowed, the largest that fits the time."""
+    req = space.req
+    plan, mt = space.build(sel)
+    reduced = False
+    if req.max_time_s is not None and mt["total_s"] > req.max_time_s and not req.n_fit:
+        while n > req.n_min and mt["total_s"] > req.max_time_s:
+            n -= 1
+            reduced = True
+            sel = select_poses(space.infos, n, req.criterion, tt, sel[:n])
+            plan, mt = space.build(sel)
+    return n, sel, plan, mt, reduced
+
+
+def _excess(pred: Prediction, req: DesignRequest) -> dict[str, np.ndarray]:
+    """Per optimised method and combination, the predicted std over the target (inf: no prediction)."""
+    tmap = req.targets_by_method()
+    assert tmap is not None
+    return {
+        m: ratio_to_target([pred.std[m][c] for c in COMBINATION_NAMES], tmap[m])
+        if m in pred.std
+        else np.full(4, np.inf)
+        for m in req.methods
+    }
+
+
+def _choose_count(space: _Space, say: Callable[[str], None]) -> _Choice:
+    """The count and the fit poses: chosen on the information, then predicted; while the prediction misses the target,
+    the exchange's targets tightened by the miss and the count chosen again (:data:`DESIGN_ROUNDS` at most).
+
+    The exchange ranks poses by their information (no correlations between rods); the plan's prediction is the
+    methods' own uncertainty (their rod correlations, the camera's calibration), somewhat larger: the target is judged
+    on the prediction.
+    """
+    req = space.req
+    tt_sel, n, rounds = req.targets_by_method(), req.n_min, 0
+    while True:
+        say(f"choosing the fit poses{'' if req.n_fit else ' and their count'} (choice {rounds + 1})")
+        n, sel = _choose(space, tt_sel, n, fewer=rounds == 0)
+        n, sel, plan, mt, reduced = _fit_time(space, n, sel, tt_sel)
+        say(f"predicting {n} fit poses")
+        pred = space.predict(plan)
+        rounds += 1
+        if req.target_std_m is None or req.n_fit or reduced or n >= space.n_hi or rounds >= DESIGN_ROUNDS:
+            break
+        miss = _excess(pred, req)
+        worst = np.max(np.stack(list(miss.values())))
+        if worst <= 1.0 + 1e-9 or not np.isfinite(worst):
+            break
+        # tightened by the miss and a margin, so that a near miss does not take every round
+        assert tt_sel is not None
+        tt_sel = {m: tt_sel[m] / np.maximum(miss[m] * TIGHTEN_MARGIN, 1.0) for m in tt_sel}
+    return _Choice(n, sel, plan, mt, pred, reduced, rounds, tt_sel)
+
+
+@dataclass
+class _PastCount:
+    """What the search past ``n_max`` found: ``count_trend`` (None: not searched or nothing found), ``why`` (why the
+    target is missed, "" when it says nothing) and its notes."""
+
+    count_trend: dict[str, Any] | None = None
+    why: str = ""
+    notes: list[str] = field(default_factory=list)
+
+
+def _past_the_count(space: _Space, ch: _Choice, say: Callable[[str], None]) -> _PastCount:
+    """When the count search's most poses miss the target: :func:`.beyond_count.past_the_count_search` (``ch``
+    updated in place to its choice)."""
+    req = space.req
+    tmap = req.targets_by_method()
+    if tmap is None or req.n_fit or ch.reduced or ch.n < space.n_hi:
+        return _PastCount()
+    worst_hi = _worst_ratio(_excess(ch.pred, req))
+    if not (np.isfinite(worst_hi) and worst_hi > 1.0 + 1e-9):
+        return _PastCount()
+
+    def design_at(k: int) -> DesignedCount:
+        say(f"past the count search: {k} fit poses")
+        sel_k = select_poses(space.infos, k, req.criterion, ch.tt, None)
+        plan_k, mt_k = space.build(sel_k)
+        return DesignedCount(k, sel_k, plan_k, mt_k, space.predict(plan_k))
+
+    past = past_the_count_search(
+        DesignedCount(ch.n, ch.sel, ch.plan, ch.mt, ch.pred),
+        design_at,
+        lambda p: _worst_ratio(_excess(p, req)),
+        tmap,
+        req.max_time_s,
+        min(N_FIT_MOST, len(space.cq)),
+    )
+    if past is None:
+        return _PastCount()
+    best, count_trend, trend_why, note = past
+    ch.n, ch.sel, ch.plan, ch.mt, ch.pred = best
+    return _PastCount(count_trend, trend_why, [note] if note else [])
+
+
+def _miss_reason(space: _Space, ch: _Choice, trend_why: str) -> str:
+    """Why the target is missed: the time, the fixed count, the trend past the count search, the most poses tried or
+    the rounds of the count's choice."""
+    if ch.reduced:
+        return "within the time allowed"
+    if space.req.n_fit:
+        return f"with {ch.n} fit poses"
+    if trend_why:
+        return trend_why
+    if ch.n >= space.n_hi:
+        return f"with {ch.n} fit poses (the most tried; more candidate poses may reach it)"
+    return f"with {ch.n} fit poses after {ch.rounds} choices of the count"
+
+
+def _outcome_notes(space: _Space, ch: _Choice, past: _PastCount) -> tuple[bool | None, bool | None, list[str]]:
+    """Whether the target and the time are met (None: not asked for) and the notes on the outcome."""
+    req = space.req
+    tmap = req.targets_by_method()
+    notes: list[str] = []
+    if not req.n_fit and req.max_time_s is not None and ch.mt["total_s"] > req.max_time_s:
+        fixed_part = ch.mt["total_s"] - ch.mt["per_phase_s"].get("poses", 0.0)
+        notes.append(f"the plan without fit poses already takes {fixed_part / 60:.1f} min")
+    if not req.n_fit and req.target_std_m is None:
+        notes.append("no target and no count: 20 fit poses (the paper's count)")
+    target_met = None if tmap is None else bool(all(np.all(v <= 1.0 + 1e-9) for v in _excess(ch.pred, req).values()))
+    time_met = None if req.max_time_s is None else ch.mt["total_s"] <= req.max_time_s
+    if target_met is False:
+        assert tmap is not None
+        notes.append(
+            "the target is not met (predicted): " + _miss_reason(space, ch, past.why) + _worst_miss(ch.pred, tmap)
+        )
+    shading = shading_note(ch.pred)
+    if shading:
+        notes.append(shading)
+    if "legs" in req.methods:
+        lo, hi = LEGS_DESIGNED_RATIO_RANGE_TWIN
+        notes.append(
+            "designed for the legs method: the poses are those its predicted std is smallest for, so what its model "
+            "leaves out weighs more there; on the simulated bench's five plans designed so its prediction was "
+            f"{lo:.2f}-{hi:.2f}x its RMS error (docs/design.md)"
+        )
+    return target_met, time_met, notes
+
+
+def _request_summary(req: DesignRequest) -> dict[str, Any]:
+    """The request as the plan's ``design.request`` records it."""
+    t = req.targets()
+    return {
+        "n_fit": req.n_fit,
+        "target_std_m": None if t is None else t.tolist(),
+        **({"method_targets_m": {m: list(v) for m, v in req.method_targets_m}} if req.method_targets_m else {}),
+        "max_time_s": req.max_time_s,
+        "criterion": req.criterion,
+        "methods": list(req.methods),
+        "seed": req.seed,
+        "draws": req.draws,
+        "candidate_draw": req.candidate_draw,
+    }
+
+
+def _result(space: _Space, ch: _Choice, past: _PastCount) -> DesignResult:
+    """The design's result: the plan (its ``design`` field the summary and the request), prediction, figures, notes."""
+    target_met, time_met, outcome = _outcome_notes(space, ch, past)
+    infos, pool = space.infos, space.pool
+    F = infos.total(ch.sel)
+    result = DesignResult(
+        plan=ch.plan,
+        prediction=ch.pred,
+        motion=ch.mt,
+        n_fit=int(ch.n),
+        sweeps={"rotation_span_deg": float(pool.span), "translation_length_m": float(pool.length)},
+        target_met=target_met,
+        time_met=time_met,
+        criterion={f"logdet_{m}": float(infos.cov4[m](F[m])[1]) for m in F},
+        candidates={
+            "drawn": len(pool.cand_q),
+            "visible": int(pool.visible.sum()),
+            "reference_visible": space.n_vis_ref,
+        },
+        notes=[*space.notes, *past.notes, *outcome],
+        count_trend=past.count_trend,
+    )
+    design = result.summary()
+    design["request"] = _request_summary(space.req)
+    result.plan = Plan.model_validate({**ch.plan.model_dump(exclude_none=True), "design": design})
+    return result
 
 
 def design_plan(
@@ -633,13 +1117,33 @@ def design_plan(
 ) -> DesignResult:
     """Design a plan: sweeps, fit poses (count, choice, order), lock and validation poses; predict it.
 
-    ``cache``: a dict shared by designs that differ only in their count, target or criterion (a trade-off,
-    :func:`.tradeoff.design_tradeoff`; the same ``limits``, ``motion``, ``noise`` and ``ws``): the sweeps, the drawn
-    candidates' visibility and information are computed once per candidate draw (the same design, faster).
-    ``status``: called with a line saying what the design is doing (a long design's progress: the candidates'
-    draw, each count designed and predicted). ``draws_runner``: runs the ``request.draws`` candidate draws' designs
-    (:data:`DrawsRunner`, e.g. fanned out over processes or machines; default one after the other here); a draw that
-    fails there is left out and said in the notes, the best of the others kept.
+    The stages: the candidate pool (:func:`_candidate_pool`: sweeps, lock phases, the candidates' visibility and
+    information), the design space (:class:`_Space`: the reference poses, validation, line), the count and the poses
+    (:func:`_choose_count`), past the count search when its most poses miss the target (:func:`_past_the_count`),
+    the result and its notes (:func:`_result`).
+
+    Parameters
+    ----------
+    nominal : I4Parameters
+        The bench's nominal geometry (m, rad).
+    scene : Scene
+        The camera, its mounting, the board and the rods.
+    request : DesignRequest, optional
+        What to design (default: ``DesignRequest()``).
+    limits, motion, noise, ws : optional
+        The bench's soft limits, motion figures, measurement noise and workspace (:class:`BenchSettings`' fields;
+        defaults: theirs).
+    cache : dict, optional
+        Shared by designs that differ only in their count, target or criterion (a trade-off,
+        :func:`.tradeoff.design_tradeoff`; the same ``limits``, ``motion``, ``noise`` and ``ws``): the sweeps, the
+        drawn candidates' visibility and information are computed once per candidate draw (the same design, faster).
+    status : callable, optional
+        Called with a line saying what the design is doing (a long design's progress: the candidates' draw, each
+        count designed and predicted).
+    draws_runner : DrawsRunner, optional
+        Runs the ``request.draws`` candidate draws' designs (:data:`DrawsRunner`, e.g. fanned out over processes or
+        machines; default one after the other here); a draw that fails there is left out and said in the notes, the
+        best of the others kept.
 
     Returns
     -------
@@ -648,261 +1152,39 @@ def design_plan(
         that :func:`calib.plan.validate_plan` accepts for ``limits``.
     """
     req = request or DesignRequest()
-    limits = limits or SoftLimits()
-    motion = motion or MotionSpec()
-    noise = noise or DesignNoise()
-    ws = ws or Workspace()
-    say = status or (lambda _line: None)
+    bench = BenchSettings(
+        limits=limits or SoftLimits(), motion=motion or MotionSpec(), noise=noise or DesignNoise(), ws=ws or Workspace()
+    )
     if req.draws > 1:
-        return _best_of_draws(
-            nominal,
-            scene,
-            req,
-            draws_runner,
-            limits=limits,
-            motion=motion,
-            noise=noise,
-            ws=ws,
-            cache=cache,
-            status=status,
-        )
-    t = req.targets()
-    tmap = req.targets_by_method()
-    notes: list[str] = []
+        return _best_of_draws(nominal, scene, req, draws_runner, bench=bench, cache=cache, status=status)
+    say = status or (lambda _line: None)
     say(f"{req.n_candidates} candidate poses: sweeps, visibility, information")
-    pool = _candidate_pool(nominal, scene, req, limits, ws, noise, cache)
-    span, length, rot, tra, cand_q = pool.span, pool.length, pool.rot, pool.tra, pool.cand_q
-    refs: dict[int, np.ndarray] = {}
-
-    def reference(n: int) -> np.ndarray:
-        if n not in refs:
-            refs[n] = np.array([s.q for s in pose_set(nominal, n, req.seed, ws=ws, limits=limits)])
-        return refs[n]
-
-    fixed = [req.n_fit] if req.n_fit else []
-    ref_q = np.concatenate([reference(n) for n in (fixed or [20])])
-    vis_ref = visibility(scene, nominal, ref_q)["ok"]
-    cq = np.concatenate([cand_q[pool.visible], ref_q[vis_ref]])
-    n_vis_ref = int(vis_ref.sum())
-    qr, qt = pool.qr, pool.qt
-    infos = _Infos(
-        {
-            m: np.concatenate(
-                [pool.information[m], _method_information(m, nominal, ref_q[vis_ref], scene, noise, qr, qt, pool.legs)]
-            )
-            for m in req.methods
-        },
-        pool.prior,
-        pool.cov4,
-    )
-    lock = pool.lock
-    val = (
-        _visible_steps(
-            pose_set(nominal, 3 * req.n_validation, req.seed + 2, phase="validation", ws=ws, limits=limits),
-            scene,
-            nominal,
-            "board",
-            req.n_validation,
-        )
-        if req.n_validation
-        else []
-    )
-    if pool.placed is not ws:
-        shift = np.subtract(pool.placed.centre()[:3], ws.centre()[:3]) * 1e3
-        notes.append(
-            "the sweeps, lock phases and line are placed about a centre moved by ("
-            + ", ".join(f"{v:+.0f}" for v in shift)
-            + ") mm in (X, Y, Z): about the workspace's own centre the camera does not see their board"
-        )
-    line = _line_steps(nominal, limits, pool.placed, notes) if req.with_line else []
-
-    def start_index(n: int) -> np.ndarray | None:
-        r = reference(n) if n in refs else None
-        if r is None:
-            return None
-        idx = [int(np.argmin(np.abs(cq - q).sum(axis=1))) for q in r]
-        ok = [np.abs(cq[i] - q).sum() < 1e-12 for i, q in zip(idx, r, strict=True)]
-        return np.array(idx) if all(ok) and len(set(idx)) == n else None
-
-    def build(sel: np.ndarray) -> tuple[Plan, dict[str, Any]]:
-        q = cq[sel]
-        order = order_tour(q, motion, start=np.asarray(tra[-1].q))
-        fit = [Step(phase="poses", q=q[i].tolist()) for i in order]
-        plan = Plan(name="designed", steps=[*rot, *tra, *fit, *lock, *line, *val])
-        return plan, plan_motion_time(plan, motion, nominal)
-
-    def meets(sel: np.ndarray, tt: dict[str, np.ndarray] | None) -> bool:
-        if tt is None:
-            return True
-        for m, F in infos.total(sel).items():
-            C = infos.cov4[m](F)[0]
-            if np.any(np.sqrt(np.maximum(np.diag(C), 0)) > tt[m]):
-                return False
-        return True
-
-    crit: Criterion = req.criterion
-    n_hi = min(req.n_max, len(cq))
-
-    def choose(tt: dict[str, np.ndarray] | None, n_from: int, fewer: bool) -> tuple[int, np.ndarray]:
-        """The count (from ``n_from`` up; ``fewer``: then down while the exchange still meets it) and the poses for
-        the exchange's targets ``tt``."""
-        if req.n_fit:
-            return req.n_fit, select_poses(infos, req.n_fit, crit, tt, start_index(req.n_fit))
-        if tt is None:
-            reference(20)
-            return 20, select_poses(infos, 20, crit, tt, None)
-        greedy = select_poses(infos, n_hi, crit, tt, None, max_passes=0)
-        n = next((k for k in range(n_from, n_hi + 1) if meets(greedy[:k], tt)), None)
-        if n is None:
-            return n_hi, select_poses(infos, n_hi, crit, tt, None)
-        sel = select_poses(infos, n, crit, tt, greedy[:n])
-        while fewer and n > req.n_min:  # the exchange may meet the target with fewer poses
-            s2 = select_poses(infos, n - 1, crit, tt, greedy[: n - 1])
-            if not meets(s2, tt):
-                break
-            n, sel = n - 1, s2
-        return n, sel
-
-    def fit_time(
-        n: int, sel: np.ndarray, tt: dict[str, np.ndarray] | None
-    ) -> tuple[int, np.ndarray, Plan, dict[str, Any], bool]:
-        """The plan of ``sel``; when it takes longer than allowed, the largest that fits the time."""
-        plan, mt = build(sel)
-        reduced = False
-        if req.max_time_s is not None and mt["total_s"] > req.max_time_s and not req.n_fit:
-            while n > req.n_min and mt["total_s"] > req.max_time_s:
-                n -= 1
-                reduced = True
-                sel = select_poses(infos, n, crit, tt, sel[:n])
-                plan, mt = build(sel)
-        return n, sel, plan, mt, reduced
-
-    def excess(pred: Prediction) -> dict[str, np.ndarray]:
-        """Per optimised method and combination, the predicted std over the target (inf: no prediction)."""
-        assert tmap is not None
-        return {
-            m: ratio_to_target([pred.std[m][c] for c in COMBINATION_NAMES], tmap[m])
-            if m in pred.std
-            else np.full(4, np.inf)
-            for m in req.methods
-        }
-
-    # the exchange ranks poses by their information (no correlations between rods); the plan's prediction is the
-    # methods' own uncertainty (their rod correlations, the camera's calibration), somewhat larger: the target is
-    # judged on the prediction, and while the prediction misses it the exchange's targets are tightened by the
-    # miss and the count chosen again
-    tt_sel, n, rounds = tmap, req.n_min, 0
-    while True:
-        say(f"choosing the fit poses{'' if req.n_fit else ' and their count'} (choice {rounds + 1})")
-        n, sel = choose(tt_sel, n, fewer=rounds == 0)
-        n, sel, plan, mt, reduced = fit_time(n, sel, tt_sel)
-        say(f"predicting {n} fit poses")
-        pred = predict_plan(plan, nominal, scene, noise, weighting=req.weighting)
-        rounds += 1
-        if t is None or req.n_fit or reduced or n >= n_hi or rounds >= DESIGN_ROUNDS:
-            break
-        miss = excess(pred)
-        worst = np.max(np.stack(list(miss.values())))
-        if worst <= 1.0 + 1e-9 or not np.isfinite(worst):
-            break
-        # tightened by the miss and a margin, so that a near miss does not take every round
-        assert tt_sel is not None
-        tt_sel = {m: tt_sel[m] / np.maximum(miss[m] * TIGHTEN_MARGIN, 1.0) for m in tt_sel}
-    trend_why, count_trend = "", None
-    worst_hi = _worst_ratio(excess(pred)) if tmap is not None else 0.0
-    if not req.n_fit and not reduced and n >= n_hi and np.isfinite(worst_hi) and worst_hi > 1.0 + 1e-9:
-        assert tmap is not None
-
-        def design_at(k: int) -> DesignedCount:
-            say(f"past the count search: {k} fit poses")
-            sel_k = select_poses(infos, k, crit, tt_sel, None)
-            plan_k, mt_k = build(sel_k)
-            return DesignedCount(
-                k, sel_k, plan_k, mt_k, predict_plan(plan_k, nominal, scene, noise, weighting=req.weighting)
-            )
-
-        past = past_the_count_search(
-            DesignedCount(n, sel, plan, mt, pred),
-            design_at,
-            lambda p: _worst_ratio(excess(p)),
-            tmap,
-            req.max_time_s,
-            min(N_FIT_MOST, len(cq)),
-        )
-        if past is not None:
-            best, count_trend, trend_why, note = past
-            n, sel, plan, mt, pred = best
-            notes.extend([note] if note else [])
-    if not req.n_fit and req.max_time_s is not None and mt["total_s"] > req.max_time_s:
-        fixed_part = mt["total_s"] - mt["per_phase_s"].get("poses", 0.0)
-        notes.append(f"the plan without fit poses already takes {fixed_part / 60:.1f} min")
-    if not req.n_fit and t is None:
-        notes.append("no target and no count: 20 fit poses (the paper's count)")
-    target_met = None if tmap is None else bool(all(np.all(v <= 1.0 + 1e-9) for v in excess(pred).values()))
-    time_met = None if req.max_time_s is None else mt["total_s"] <= req.max_time_s
-    if target_met is False:
-        if reduced:
-            why = "within the time allowed"
-        elif req.n_fit:
-            why = f"with {n} fit poses"
-        elif trend_why:
-            why = trend_why
-        elif n >= n_hi:
-            why = f"with {n} fit poses (the most tried; more candidate poses may reach it)"
-        else:
-            why = f"with {n} fit poses after {rounds} choices of the count"
-        assert tmap is not None
-        notes.append("the target is not met (predicted): " + why + _worst_miss(pred, tmap))
-    shading = shading_note(pred)
-    if shading:
-        notes.append(shading)
-    if "legs" in req.methods:
-        lo, hi = LEGS_DESIGNED_RATIO_RANGE_TWIN
-        notes.append(
-            "designed for the legs method: the poses are those its predicted std is smallest for, so what its model "
-            "leaves out weighs more there; on the simulated bench's five plans designed so its prediction was "
-            f"{lo:.2f}-{hi:.2f}x its RMS error (docs/design.md)"
-        )
-    F = infos.total(sel)
-    crit_vals = {f"logdet_{m}": float(infos.cov4[m](F[m])[1]) for m in F}
-    result = DesignResult(
-        plan=plan,
-        prediction=pred,
-        motion=mt,
-        n_fit=int(n),
-        sweeps={"rotation_span_deg": float(span), "translation_length_m": float(length)},
-        target_met=target_met,
-        time_met=time_met,
-        criterion=crit_vals,
-        candidates={
-            "drawn": len(cand_q),
-            "visible": int(pool.visible.sum()),
-            "reference_visible": n_vis_ref,
-        },
-        notes=notes,
-        count_trend=count_trend,
-    )
-    design = result.summary()
-    design["request"] = {
-        "n_fit": req.n_fit,
-        "target_std_m": None if t is None else t.tolist(),
-        **({"method_targets_m": {m: list(v) for m, v in req.method_targets_m}} if req.method_targets_m else {}),
-        "max_time_s": req.max_time_s,
-        "criterion": req.criterion,
-        "methods": list(req.methods),
-        "seed": req.seed,
-        "draws": req.draws,
-        "candidate_draw": req.candidate_draw,
-    }
-    result.plan = Plan.model_validate({**plan.model_dump(exclude_none=True), "design": design})
-    return result
+    pool = _candidate_pool(nominal, scene, req, bench.limits, bench.ws, bench.noise, cache)
+    space = _Space(nominal, scene, req, bench, pool)
+    choice = _choose_count(space, say)
+    past = _past_the_count(space, choice, say)
+    return _result(space, choice, past)
 
 
 def design_score(result: DesignResult, request: DesignRequest) -> tuple[float, ...]:
     """How good a design is, lower better: a met target first, then fewer fit poses when the count was free,
     then the criterion on the plan's prediction (``"target"``: the worst predicted std over its target among the
     optimised methods; ``"a"``: the sum of their predicted variances, over the targets' squares when given, else
-    per mm^2; ``"d"``: minus the sum of their information's log-determinants), then the motion time."""
+    per mm^2; ``"d"``: minus the sum of their information's log-determinants), then the motion time.
+
+    Parameters
+    ----------
+    result : DesignResult
+        A design.
+    request : DesignRequest
+        What it was designed for (criterion, methods, targets in m, whether the count was fixed).
+
+    Returns
+    -------
+    tuple of 4 float
+        (target missed, fit poses, criterion, motion time in s), compared in that order; all inf when an optimised
+        method has no prediction.
+    """
     pred, t = result.prediction, request.targets_by_method()
     if any(m not in pred.std for m in request.methods):  # a method the plan cannot determine: last, whatever else
         return (np.inf, np.inf, np.inf, np.inf)
@@ -934,11 +1216,23 @@ def _one_draw(nominal: I4Parameters, scene: Scene, req: DesignRequest, kw: dict[
 
 
 def _best_of_draws(
-    nominal: I4Parameters, scene: Scene, req: DesignRequest, runner: DrawsRunner | None, **kw: Any
+    nominal: I4Parameters,
+    scene: Scene,
+    req: DesignRequest,
+    runner: DrawsRunner | None,
+    bench: BenchSettings,
+    cache: dict[Any, Any] | None,
+    status: Callable[[str], None] | None,
 ) -> DesignResult:
     """:func:`design_plan` for each of ``req.draws`` draws of the candidates; the best by :func:`design_score`.
     With ``runner``: the draws run there, a failed one is left out (said in the notes) unless all failed."""
-    status = kw.pop("status", None)
+    kw: dict[str, Any] = {
+        "limits": bench.limits,
+        "motion": bench.motion,
+        "noise": bench.noise,
+        "ws": bench.ws,
+        "cache": cache,
+    }
     outcomes: list[DesignResult | BaseException] = []
     if runner is None:
         for k in range(req.draws):

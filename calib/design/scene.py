@@ -73,13 +73,39 @@ class Scene:
     board_square_m: float = 0.04
 
     def camera_from_board(self, params: I4Parameters, pose: np.ndarray) -> list[Rigid]:
-        """Board poses in the camera frame for poses (N, 4)."""
+        """Board poses in the camera frame.
+
+        Parameters
+        ----------
+        params : I4Parameters
+            The geometry (m, rad).
+        pose : ndarray, shape (N, 4) or (4,)
+            End-effector poses (X, Y, Z in m, the rotation in rad).
+
+        Returns
+        -------
+        list of Rigid
+            ``camera_from_board`` per pose (m).
+        """
         Rs, ts = base_from_ee(params, np.atleast_2d(pose))
         return [self.camera_from_base @ Rigid(R, t) @ self.ee_from_board for R, t in zip(Rs, ts, strict=True)]
 
 
 def board_outline(scene: Scene, per_edge: int = 8) -> np.ndarray:
-    """Points (4 * per_edge, 3) along the board's outline (pattern plus margin), board frame."""
+    """Points along the board's outline (pattern plus margin).
+
+    Parameters
+    ----------
+    scene : Scene
+        The board's size and margin (m).
+    per_edge : int
+        Points per edge.
+
+    Returns
+    -------
+    ndarray, shape (4 * per_edge, 3)
+        The points in the board frame, m.
+    """
     W, H = scene.board_size_m
     m = scene.board_margin_m
     c = np.array([[-m, -m, 0.0], [W + m, -m, 0.0], [W + m, H + m, 0.0], [-m, H + m, 0.0]])
@@ -88,7 +114,24 @@ def board_outline(scene: Scene, per_edge: int = 8) -> np.ndarray:
 
 
 def rod_segments(scene: Scene, params: I4Parameters, q: np.ndarray, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rod end points in the camera frame: upper (actuator) and lower (plate), each (N, 4, 2, 3)."""
+    """Rod end points in the camera frame: upper (actuator) and lower (plate).
+
+    Parameters
+    ----------
+    scene : Scene
+        The camera's mounting and the rods' spacing (m).
+    params : I4Parameters
+        The geometry (m, rad).
+    q : ndarray, shape (N, 4)
+        Joint values, m.
+    pose : ndarray, shape (N, 4)
+        The end-effector poses at ``q`` (m, rad).
+
+    Returns
+    -------
+    top, bottom : ndarray, shape (N, 4, 2, 3)
+        Per pose, leg and rod, the upper and lower end points, m.
+    """
     top, bot, _ = rod_ends_camera(params, q, scene.camera_from_base, scene.rod_spacing_m, pose)
     return top, bot
 

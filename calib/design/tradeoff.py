@@ -75,6 +75,18 @@ class TradeoffRow:
 def parse_counts(counts: Sequence[int] | str, field: str = "counts") -> list[int]:
     """Fit-pose counts, sorted and unique: from a sequence of ints or ``"8,12,20,30"``.
 
+    Parameters
+    ----------
+    counts : sequence of int or str
+        The counts, or their comma-separated text.
+    field : str
+        The option or field named in an error.
+
+    Returns
+    -------
+    list of int
+        The counts, increasing, each in 2..200.
+
     Raises
     ------
     InputError
@@ -166,7 +178,18 @@ def _row(res: DesignResult, request: DesignRequest, t: dict[str, np.ndarray] | N
 def recommended_count(rows: Sequence[TradeoffRow]) -> int | None:
     """The count to run: with a target, the fewest fit poses that meet it (within the time limit when one was asked);
     with a time limit alone, the most that fit in it (the most accurate plan the time allows); None when neither was
-    asked or no count qualifies."""
+    asked or no count qualifies.
+
+    Parameters
+    ----------
+    rows : sequence of TradeoffRow
+        One per count (:func:`design_tradeoff`).
+
+    Returns
+    -------
+    int or None
+        The recommended count of fit poses.
+    """
     if any(r.target_met is not None for r in rows):
         ok = [r.n_fit for r in rows if r.target_met and r.time_met is not False]
         return min(ok) if ok else None
@@ -177,13 +200,37 @@ def recommended_count(rows: Sequence[TradeoffRow]) -> int | None:
 
 
 def recommended_design(rows: Sequence[TradeoffRow], results: Sequence[DesignResult]) -> DesignResult | None:
-    """The design of :func:`recommended_count` among ``results`` (:func:`design_tradeoff`'s, in the rows' order)."""
+    """The design of :func:`recommended_count` among ``results``.
+
+    Parameters
+    ----------
+    rows : sequence of TradeoffRow
+        One per count.
+    results : sequence of DesignResult
+        :func:`design_tradeoff`'s designs, in the rows' order.
+
+    Returns
+    -------
+    DesignResult or None
+        The recommended count's design; None when no count qualifies.
+    """
     best = recommended_count(rows)
     return None if best is None else results[[r.n_fit for r in rows].index(best)]
 
 
 def recommendation_reason(rows: Sequence[TradeoffRow]) -> str:
-    """Why :func:`recommended_count` chose its count (or why none), for display."""
+    """Why :func:`recommended_count` chose its count (or why none), for display.
+
+    Parameters
+    ----------
+    rows : sequence of TradeoffRow
+        One per count.
+
+    Returns
+    -------
+    str
+        The reason, in words.
+    """
     target = any(r.target_met is not None for r in rows)
     timed = any(r.time_met is not None for r in rows)
     if target:
@@ -197,7 +244,20 @@ def tradeoff_trend(rows: Sequence[TradeoffRow], request: DesignRequest) -> dict[
     """Past the largest count: the trend of the predicted std over the count (:mod:`.count_trend`) through the two
     largest counts, for the optimised methods: ``{"n_fit": [n1, n2], "floor_std_m": {method: {combination: m}},
     "n_fit_needed": the count it says meets the target (None: none, or no target)}``; None with fewer than two counts
-    or an optimised method without a prediction at both."""
+    or an optimised method without a prediction at both.
+
+    Parameters
+    ----------
+    rows : sequence of TradeoffRow
+        One per count (std in m).
+    request : DesignRequest
+        The optimised methods and their targets (m).
+
+    Returns
+    -------
+    dict or None
+        The trend's summary (lengths in m).
+    """
     if len(rows) < 2:
         return None
     a, b = sorted(rows, key=lambda r: r.n_fit)[-2:]

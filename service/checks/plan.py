@@ -1,5 +1,6 @@
 """A bench's check plan: designed once (``calib.design.drift_check``) and kept in a cache keyed by what the design
-depends on (the bench's nominal geometry, soft limits, speeds, camera file, and the request), or the user's own."""
+depends on (the bench's nominal geometry, soft limits, speeds, camera file and mounting, and the request), or the
+user's own."""
 
 from __future__ import annotations
 
@@ -42,6 +43,8 @@ def _design_key(cfg, request, camera=None) -> str:
         "camera": cam,
         "request": request.key(),
     }
+    if cfg.camera.mounting is not None:  # the bench file's camera mounting places what the design sees
+        key["mounting"] = cfg.camera.mounting.model_dump()
     return hashlib.sha256(json.dumps(key, sort_keys=True, default=repr).encode()).hexdigest()[:24]
 
 

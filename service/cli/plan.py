@@ -34,6 +34,15 @@ def _camera(path: str | None, cfg: Any = None):
     return cfg.camera_intrinsics().camera
 
 
+def _warn_scene(cfg: Any, camera: Any) -> None:
+    """On stderr, what of the camera the design takes from the simulated bench for want of the bench's own
+    (``service.design.bench_scene``: the mounting, the intrinsics)."""
+    from service.design import bench_scene
+
+    for line in bench_scene(cfg, camera).warnings:
+        print(f"warning: {line}", file=sys.stderr)
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:
     from service.fanout import add_arguments as fanout_arguments
 
@@ -172,7 +181,9 @@ def _predict(args: argparse.Namespace) -> int:
     methods = _methods(args.methods, "--methods")
     plan = load_plan(args.plan, cfg, args.seed)
     validate_plan(plan, cfg.nominal_parameters(), cfg.calib_limits())
-    check = check_for_bench(cfg, plan, _noise_from(args.noise_from), methods, _camera(args.camera, cfg))
+    camera = _camera(args.camera, cfg)
+    _warn_scene(cfg, camera)
+    check = check_for_bench(cfg, plan, _noise_from(args.noise_from), methods, camera)
     if args.json:
         print(json.dumps(to_jsonable(check.summary()), indent=1))
     else:
@@ -207,6 +218,7 @@ def _design(args: argparse.Namespace) -> int:
         raise InputError("must be > 0", field="--max-minutes")
     noise = _noise_from(args.noise_from)
     camera = _camera(args.camera, cfg)
+    _warn_scene(cfg, camera)
     methods = tuple(dict.fromkeys(m.strip() for m in args.methods.split(",") if m.strip()))
     targets: dict[str, Any] = {"target_std_m": target}
     if args.better_than is not None:
