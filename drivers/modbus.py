@@ -485,29 +485,11 @@ class ModbusLink:
                     raise
                 except _NoAnswerError as exc:
                     last = exc.why
-                    if motion:
-                        self.stats["motion_unanswered"] += 1
-                        if exc.lost:
-                            self.motion_in_doubt = True
-                        else:
-                            self._pin = self._link  # its fate is read back on this connection, and the stop goes here
-                        self._fault()
-                        raise _MotionUnansweredError(
-                            f"Modbus controller at {self.endpoint}, unit {unit}: {last}", lost=exc.lost
-                        ) from None
-                    if exc.lost and self._pin is self._link:
-                        self._pin_lost()
-                    self._fault()
+                    self._unanswered(exc, unit, motion)
                     continue
                 if rr.isError():
-                    code = int(getattr(rr, "exception_code", 0) or 0)
-                    msg = (
-                        f"unit {unit} register {address}: exception code {code} ({EXCEPTION_TEXT.get(code, 'unknown')})"
-                    )
-                    if code in RETRYABLE_EXCEPTIONS and not motion:
-                        last = msg
-                        continue
-                    raise ProtocolError(msg, exception_code=code)
+                    last = self._exception_reply(rr, unit, address, motion)
+                    continue
                 if windows:
                     return address, list(rr.registers)
                 return list(rr.registers) if kind == "read" else []
@@ -518,6 +500,34 @@ class ModbusLink:
             raise DeviceTimeoutError(
                 f"Modbus controller at {self.endpoint}, unit {unit}: {last}, after {n_attempts} attempts"
             )
+
+    def _unanswered(self, exc: _NoAnswerError, unit: int, motion: bool) -> None:
+        """A request got no answer (:meth:`_exchange`): the link marked faulty, the pinned connection dropped when it
+        was lost; a motion command raises :class:`_MotionUnansweredError` (never re-sent here), the others return to
+        be retried."""
+        if motion:
+            self.stats["motion_unanswered"] += 1
+            if exc.lost:
+                self.motion_in_doubt = True
+            else:
+                self._pin = self._link  # its fate is read back on this connection, and the stop goes here
+            self._fault()
+            raise _MotionUnansweredError(
+                f"Modbus controller at {self.endpoint}, unit {unit}: {exc.why}", lost=exc.lost
+            ) from None
+        if exc.lost and self._pin is self._link:
+            self._pin_lost()
+        self._fault()
+
+    @staticmethod
+    def _exception_reply(rr: Any, unit: int, address: int, motion: bool) -> str:
+        """A Modbus exception reply: its message when it may be retried (busy codes, never a motion command), else
+        :class:`~drivers.errors.ProtocolError`."""
+        code = int(getattr(rr, "exception_code", 0) or 0)
+        msg = f"unit {unit} register {address}: exception code {code} ({EXCEPTION_TEXT.get(code, 'unknown')})"
+        if code in RETRYABLE_EXCEPTIONS and not motion:
+            return msg
+        raise ProtocolError(msg, exception_code=code)
 
     async def read(self, unit: int, address: int, count: int) -> list[int]:
         """Holding registers ``address .. address + count - 1`` of unit ``unit``, by one checked request."""
