@@ -82,7 +82,7 @@ def lens_dist(name: str) -> tuple[float, ...]:
 
 #: The paper-sized plan (``calib.plan.make_plan`` defaults): what a trial renders unless reduced.
 PAPER = {"n_base": 10, "n_fit": 20, "n_lock": 5, "n_validation": 10}
-QUICK = {
+QUICK: dict[str, Any] = {
     "trials": 3,
     "n_base": 6,
     "n_fit": 10,
@@ -305,7 +305,7 @@ def run_accuracy(opts: AccuracyOptions, on_progress: OnProgress | None = None) -
         FanoutSettings(workers=opts.workers, scheduler=opts.scheduler), n_tasks=max(len(cam_tasks) + len(trials), 1)
     )
     records, cameras = _run_tasks(pool, opts.camera, trials, cam_tasks, on_progress)
-    out_points = [
+    out_points: list[dict[str, Any]] = [
         {
             "sweep": p.sweep,
             "value": p.value,

@@ -527,8 +527,7 @@ def camera_refined_summary(trials: list[dict[str, Any]]) -> dict[str, Any] | Non
     smallest variance first (``principal_z2_mean``, trials of the most common size only). Each is 1 when the
     covariance is right, within about ``expected_se`` = sqrt(2 / n) for a direction (sqrt(2 / (n dof)) for the
     distance). None when no trial recorded it (benches before 2026-11-28, or a camera the rods did not refine)."""
-    rows = [t.get("camera_refined") for t in trials]
-    rows = [r for r in rows if r and r.get("dof")]
+    rows: list[dict[str, Any]] = [r for t in trials if (r := t.get("camera_refined")) and r.get("dof")]
     if not rows:
         return None
     dofs = [int(r["dof"]) for r in rows]
