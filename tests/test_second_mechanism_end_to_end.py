@@ -1,4 +1,4 @@
-"""The second mechanism end to end: a linear Delta on a three-axis simulated Modbus bench (issue 14).
+"""The second mechanism end to end: a linear Delta on a three-axis simulated Modbus bench.
 
 Real parts: the bench file (TOML, ``[actuators] axes = 3``) read by ``drivers.config.load_bench``, the simulated
 controller as a real pymodbus server on loopback, the real Modbus driver (``open_actuators``) moving the three axes

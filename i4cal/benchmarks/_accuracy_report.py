@@ -10,7 +10,7 @@ from typing import Any
 from ._accuracy_trial import METHODS
 
 COMBINATIONS: tuple[str, ...] = ("L", "H-D", "S-q02/2", "S-(q04-q03)/2")
-EFFICIENCY_TARGET = 0.67  #: bound RMS / error RMS of the combined method (issue 6)
+EFFICIENCY_TARGET = 0.67  #: the combined method's bound RMS / error RMS at least this: near its Cramer-Rao bound
 HONESTY_TOLERANCE = 0.30  #: mean reported std / RMS error within 1 -/+ this
 
 

@@ -526,7 +526,8 @@ def camera_refined_summary(trials: list[dict[str, Any]]) -> dict[str, Any] | Non
     distance per degree of freedom and the mean squared error over the variance along each principal direction,
     smallest variance first (``principal_z2_mean``, trials of the most common size only). Each is 1 when the
     covariance is right, within about ``expected_se`` = sqrt(2 / n) for a direction (sqrt(2 / (n dof)) for the
-    distance). None when no trial recorded it (benches before 2026-11-28, or a camera the rods did not refine)."""
+    distance). None when no trial recorded it (a bench file without ``camera_refined``, or a camera the rods did
+    not refine)."""
     rows: list[dict[str, Any]] = [r for t in trials if (r := t.get("camera_refined")) and r.get("dof")]
     if not rows:
         return None

@@ -436,7 +436,7 @@ def test_image_noise_rejects_bad_levels():
 
 
 def test_designed_12_beats_the_paper_20_on_images(scene):
-    """Issue 15's target, as predicted on images (the image-level twin's camera, its calibration from 30 views): the
+    """The design's target, as predicted on images (the image-level twin's camera, its calibration from 30 views): the
     plan designed with 12 fit poses gives the combined method a std no larger than the paper's 20-pose plan for
     each of the four combinations, and takes less motion time."""
     from service.design import twin_image_noise
