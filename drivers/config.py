@@ -422,7 +422,7 @@ def operator_schemes() -> tuple[str, ...]:
 def open_actuators(cfg: BenchConfig, *, workspace_check: WorkspaceCheck | None = None) -> Actuators:
     """The actuators backend named by ``cfg.actuators.uri`` (not yet connected), by its scheme's factory.
 
-    ``workspace_check``: refuses joint targets another mechanism cannot reach (raises
+    ``workspace_check``: refuses joint targets outside a workspace (raises
     :class:`calib.errors.UnreachableError`; e.g. ``lambda q: delta.dkm(nominal, q)``); default: the nominal I4's
     DKM, used with four axes only.
     """
@@ -520,7 +520,7 @@ def safety_settings(a: ActuatorsConfig) -> Any:
 
 
 def _common_actuators(cfg: BenchConfig) -> dict[str, Any]:
-    # the nominal I4 checks the targets of four axes; another mechanism's check is ``workspace_check``
+    # the nominal I4 checks the targets of four axes; with other axes, ``workspace_check`` when given
     a = cfg.actuators
     return dict(limits=cfg.soft_limits(), nominal=cfg.nominal_parameters() if a.axes == 4 else None)
 

@@ -67,7 +67,7 @@ class SoftLimitsM:
 @runtime_checkable
 class Actuators(Protocol):
     """Linear axes q1..qn (metres): four for the I4 (the default), as many as the bench file's
-    ``[actuators] axes`` otherwise (docs/mechanisms.md)."""
+    ``[actuators] axes`` otherwise (docs/drivers.md)."""
 
     limits: SoftLimitsM
 

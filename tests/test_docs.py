@@ -28,3 +28,20 @@ def test_every_docs_page_named_exists_and_is_indexed():
     pages = {p.name for p in (ROOT / "docs").glob("*.md")} - {"index.md"}
     unindexed = sorted(pages - set(re.findall(r"\]\(([a-z_]+\.md)\)", INDEX)))
     assert not unindexed, f"docs pages not in docs/index.md: {unindexed}"
+
+
+#: a date (2026-11-24), an issue number (issue 13) or a session's name: the marks of a lab notebook's narrative
+NARRATIVE = re.compile(r"(?<![-\w])20\d\d-[01]\d-[0-3]\d(?![T\d])|\b[Ii]ssue #?\d+|\b\w+th session\b")
+
+
+def test_no_dated_narrative_in_docs_outside_benchmarks():
+    """How a thing was found belongs in docs/benchmarks.md and git history; the other pages say what is."""
+    found = [
+        f"{p.name}:{n}: {m.group(0)}"
+        for p in sorted((ROOT / "docs").glob("*.md"))
+        if p.name != "benchmarks.md"
+        for n, line in enumerate(p.read_text(encoding="utf-8").splitlines(), 1)
+        for m in [NARRATIVE.search(line)]
+        if m
+    ]
+    assert not found, found
