@@ -66,18 +66,6 @@ class BaseFrameResult:
     axis_state: dict | None = field(default=None, repr=False, compare=False)
     translation_scale_std: float = 0.0
 
-    @property
-    def x_B(self) -> Array:
-        return self.camera_from_base_R[:, 0]
-
-    @property
-    def y_B(self) -> Array:
-        return self.camera_from_base_R[:, 1]
-
-    @property
-    def z_B(self) -> Array:
-        return self.camera_from_base_R[:, 2]
-
     def summary(self) -> dict:
         return {
             "camera_from_base_R": self.camera_from_base_R.tolist(),

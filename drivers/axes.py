@@ -102,6 +102,25 @@ def check_targets(
     return qv
 
 
+@dataclass(frozen=True)
+class AxisSettings:
+    """How an :class:`AxisController` moves the axes and judges their readings (the keywords of the same names of
+    :class:`AxisController`, documented there): speeds in m/s, accelerations in m/s^2, times in s, lengths in m."""
+
+    speed_m_s: float = 0.05
+    accel_m_s2: float = 0.5
+    poll_s: float = 0.002
+    settle_s: float = 0.0
+    in_position_m: float = 2e-5
+    move_timeout_factor: float = 2.0
+    move_timeout_margin_s: float = 1.0
+    home_timeout_s: float = 60.0
+    max_speed_m_s: float | None = None
+    plausibility_margin_m: float = 0.05
+    plausibility_slack_m: float = 1e-3
+    stop_deadline_s: float = 2.0
+
+
 class AxisController:
     """:class:`drivers.interfaces.Actuators` over a :class:`drivers.links.AxisLink`: the motion, whatever the protocol.
 

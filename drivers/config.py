@@ -34,6 +34,7 @@ extra to install.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import importlib
 import json
@@ -489,39 +490,42 @@ def open_operator(cfg: BenchConfig) -> Operator:
 
 # -- the built-in backends: each imports its module only when a URI of its scheme is opened -----------------------
 def _modbus_actuators(cfg: BenchConfig, uri: DeviceURI, workspace_check: WorkspaceCheck | None) -> Actuators:
-    from .modbus import ModbusActuators
+    from .axes import AxisSettings
+    from .modbus import ModbusActuators, ModbusLinkSettings
 
     a = cfg.actuators
     common = _common_actuators(cfg)
-    kw: dict[str, Any] = dict(
+    link = ModbusLinkSettings(
         regmap=cfg.register_map(),
-        speed_m_s=a.speed_m_s,
-        accel_m_s2=a.accel_m_s2,
         timeout_s=float(uri.query.get("timeout", a.timeout_s)),
         retries=a.retries,
+        late_reply_guard_s=a.late_reply_guard_s,
+        vary_reads=a.vary_reads,
+    )
+    axes = AxisSettings(
+        speed_m_s=a.speed_m_s,
+        accel_m_s2=a.accel_m_s2,
         poll_s=a.poll_s,
         settle_s=a.settle_s,
         in_position_m=a.in_position_m,
         home_timeout_s=a.home_timeout_s,
         stop_deadline_s=a.stop_deadline_s,
-        late_reply_guard_s=a.late_reply_guard_s,
         max_speed_m_s=a.max_speed_m_s,
         plausibility_margin_m=a.plausibility_margin_m,
-        vary_reads=a.vary_reads,
-        workspace_check=workspace_check,
-        safety=safety_settings(a),
-        **common,
     )
+    safety = safety_settings(a)
     if uri.scheme == "modbus+rtu":
         if not uri.path:
             raise InputError(
                 f"{uri.text!r}: a serial device path is needed, e.g. modbus+rtu:///dev/ttyUSB0", field="actuators.uri"
             )
-        return ModbusActuators(
-            transport="rtu", serial_port=uri.path, baudrate=int(uri.query.get("baudrate", 115200)), **kw
+        link = dataclasses.replace(
+            link, transport="rtu", serial_port=uri.path, baudrate=int(uri.query.get("baudrate", 115200))
         )
-    transport = "rtu-tcp" if uri.scheme == "modbus+rtu+tcp" else "tcp"
-    return ModbusActuators(transport=transport, host=uri.host or "127.0.0.1", port=uri.port or 502, **kw)
+    else:
+        transport = "rtu-tcp" if uri.scheme == "modbus+rtu+tcp" else "tcp"
+        link = dataclasses.replace(link, transport=transport, host=uri.host or "127.0.0.1", port=uri.port or 502)
+    return ModbusActuators(link, axes, workspace_check=workspace_check, safety=safety, **common)
 
 
 def safety_settings(a: ActuatorsConfig) -> Any:

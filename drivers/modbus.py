@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import logging
 import time
 from collections.abc import Callable, Sequence
@@ -44,7 +45,7 @@ from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOEx
 
 from calib.parameters import I4Parameters
 
-from .axes import AxisController, alarm_message, check_targets
+from .axes import AxisController, AxisSettings, alarm_message, check_targets
 from .errors import DeviceConnectionError, DeviceTimeoutError, ProtocolError
 from .interfaces import AxisStatus, SoftLimitsM
 from .links import Command, MotionNotConfirmedError, SafetySettings, decode_status
@@ -100,6 +101,27 @@ class _MotionUnansweredError(DeviceTimeoutError):
         super().__init__(message)
 
 
+@dataclass(frozen=True)
+class ModbusLinkSettings:
+    """How a :class:`ModbusLink` reaches the controller and retries (each field documented there): the transport
+    (``"tcp"``, ``"rtu"``, ``"rtu-tcp"``) and its endpoint, the register map, the reply timeout, retries and back-off
+    (s), the late-reply guard and the RTU flush (s), varied read windows."""
+
+    transport: str = "tcp"
+    host: str = "127.0.0.1"
+    port: int = 502
+    serial_port: str | None = None
+    baudrate: int = 115200
+    regmap: RegisterMap = DEFAULT_MAP
+    timeout_s: float = 0.5
+    retries: int = 3
+    backoff_s: float = 0.02
+    backoff_max_s: float = 1.0
+    late_reply_guard_s: float | None = None
+    flush_s: float = 0.01
+    vary_reads: bool = True
+
+
 class ModbusLink:
     """:class:`drivers.links.AxisLink` over Modbus: checked, retried requests, one in flight, never a stale reply.
 
@@ -135,38 +157,24 @@ class ModbusLink:
 
     reads_every_axis = False
 
-    def __init__(
-        self,
-        *,
-        transport: str = "tcp",
-        host: str = "127.0.0.1",
-        port: int = 502,
-        serial_port: str | None = None,
-        baudrate: int = 115200,
-        regmap: RegisterMap = DEFAULT_MAP,
-        timeout_s: float = 0.5,
-        retries: int = 3,
-        backoff_s: float = 0.02,
-        backoff_max_s: float = 1.0,
-        late_reply_guard_s: float | None = None,
-        flush_s: float = 0.01,
-        vary_reads: bool = True,
-        safety: SafetySettings | None = None,
-    ) -> None:
+    def __init__(self, settings: ModbusLinkSettings | None = None, safety: SafetySettings | None = None) -> None:
+        st = settings or ModbusLinkSettings()
+        transport, regmap, timeout_s = st.transport, st.regmap, st.timeout_s
         if transport not in ("tcp", "rtu", "rtu-tcp"):
             raise ValueError(f"unknown Modbus transport {transport!r}")
         self.transport = transport
-        self.host, self.port = host, int(port)
-        self.serial_port, self.baudrate = serial_port, int(baudrate)
+        self.host, self.port = st.host, int(st.port)
+        self.serial_port, self.baudrate = st.serial_port, int(st.baudrate)
         self.map = regmap
         self.n_axes = len(regmap.axes)
         self.safety = safety or SafetySettings()
         self.timeout_s = float(timeout_s)
-        self.retries = int(retries)
-        self.backoff_s, self.backoff_max_s = float(backoff_s), float(backoff_max_s)
-        self.late_reply_guard_s = float(2 * self.timeout_s if late_reply_guard_s is None else late_reply_guard_s)
-        self.flush_s = float(flush_s)
-        self.vary_reads = bool(vary_reads)
+        self.retries = int(st.retries)
+        self.backoff_s, self.backoff_max_s = float(st.backoff_s), float(st.backoff_max_s)
+        guard = st.late_reply_guard_s
+        self.late_reply_guard_s = float(2 * self.timeout_s if guard is None else guard)
+        self.flush_s = float(st.flush_s)
+        self.vary_reads = bool(st.vary_reads)
         wd = self.safety.watchdog_s
         #: the reply timeout in use: ``timeout_s``, capped so that a retry goes out before the drives' watchdog trips
         self.reply_timeout_s = min(self.timeout_s, max(0.8 * wd - self.backoff_s, 0.05)) if wd else self.timeout_s
@@ -485,29 +493,11 @@ class ModbusLink:
                     raise
                 except _NoAnswerError as exc:
                     last = exc.why
-                    if motion:
-                        self.stats["motion_unanswered"] += 1
-                        if exc.lost:
-                            self.motion_in_doubt = True
-                        else:
-                            self._pin = self._link  # its fate is read back on this connection, and the stop goes here
-                        self._fault()
-                        raise _MotionUnansweredError(
-                            f"Modbus controller at {self.endpoint}, unit {unit}: {last}", lost=exc.lost
-                        ) from None
-                    if exc.lost and self._pin is self._link:
-                        self._pin_lost()
-                    self._fault()
+                    self._unanswered(exc, unit, motion)
                     continue
                 if rr.isError():
-                    code = int(getattr(rr, "exception_code", 0) or 0)
-                    msg = (
-                        f"unit {unit} register {address}: exception code {code} ({EXCEPTION_TEXT.get(code, 'unknown')})"
-                    )
-                    if code in RETRYABLE_EXCEPTIONS and not motion:
-                        last = msg
-                        continue
-                    raise ProtocolError(msg, exception_code=code)
+                    last = self._exception_reply(rr, unit, address, motion)
+                    continue
                 if windows:
                     return address, list(rr.registers)
                 return list(rr.registers) if kind == "read" else []
@@ -518,6 +508,34 @@ class ModbusLink:
             raise DeviceTimeoutError(
                 f"Modbus controller at {self.endpoint}, unit {unit}: {last}, after {n_attempts} attempts"
             )
+
+    def _unanswered(self, exc: _NoAnswerError, unit: int, motion: bool) -> None:
+        """A request got no answer (:meth:`_exchange`): the link marked faulty, the pinned connection dropped when it
+        was lost; a motion command raises :class:`_MotionUnansweredError` (never re-sent here), the others return to
+        be retried."""
+        if motion:
+            self.stats["motion_unanswered"] += 1
+            if exc.lost:
+                self.motion_in_doubt = True
+            else:
+                self._pin = self._link  # its fate is read back on this connection, and the stop goes here
+            self._fault()
+            raise _MotionUnansweredError(
+                f"Modbus controller at {self.endpoint}, unit {unit}: {exc.why}", lost=exc.lost
+            ) from None
+        if exc.lost and self._pin is self._link:
+            self._pin_lost()
+        self._fault()
+
+    @staticmethod
+    def _exception_reply(rr: Any, unit: int, address: int, motion: bool) -> str:
+        """A Modbus exception reply: its message when it may be retried (busy codes, never a motion command), else
+        :class:`~drivers.errors.ProtocolError`."""
+        code = int(getattr(rr, "exception_code", 0) or 0)
+        msg = f"unit {unit} register {address}: exception code {code} ({EXCEPTION_TEXT.get(code, 'unknown')})"
+        if code in RETRYABLE_EXCEPTIONS and not motion:
+            return msg
+        raise ProtocolError(msg, exception_code=code)
 
     async def read(self, unit: int, address: int, count: int) -> list[int]:
         """Holding registers ``address .. address + count - 1`` of unit ``unit``, by one checked request."""
@@ -739,89 +757,42 @@ class ModbusActuators(AxisController):
 
     Parameters
     ----------
-    transport, host, port, serial_port, baudrate, regmap, timeout_s, retries, backoff_s, backoff_max_s, \
-late_reply_guard_s, flush_s, vary_reads:
-        The link's (:class:`ModbusLink`); ``backoff_s`` is also the pause before a stop is sent again.
-    limits, nominal, workspace_check, speed_m_s, accel_m_s2, poll_s, settle_s, in_position_m, move_timeout_factor, \
-move_timeout_margin_s, home_timeout_s, max_speed_m_s, plausibility_margin_m, plausibility_slack_m, stop_deadline_s:
-        The axis controller's (:class:`drivers.axes.AxisController`).
+    link:
+        The link's settings (:class:`ModbusLinkSettings`); its ``backoff_s`` is also the pause before a stop is sent
+        again.
+    axes:
+        The axis controller's motion settings (:class:`drivers.axes.AxisSettings`).
+    limits, nominal, workspace_check:
+        The axis controller's soft limits and kinematic check (:class:`drivers.axes.AxisController`).
     safety:
         :class:`drivers.links.SafetySettings`, both's (duplicate window, motion confirmation, the drives' watchdog,
         how long a failed run keeps stopping).
 
-    The number of axes is the register map's (``len(regmap.axes)``, four by default); ``limits`` must have as many
-    values (default: -0.10 to 0.80 m on every axis).
+    The number of axes is the register map's (``len(link.regmap.axes)``, four by default); ``limits`` must have as
+    many values (default: -0.10 to 0.80 m on every axis).
     """
 
     def __init__(
         self,
+        link: ModbusLinkSettings | None = None,
+        axes: AxisSettings | None = None,
         *,
-        transport: str = "tcp",
-        host: str = "127.0.0.1",
-        port: int = 502,
-        serial_port: str | None = None,
-        baudrate: int = 115200,
-        regmap: RegisterMap = DEFAULT_MAP,
         limits: SoftLimitsM | None = None,
         nominal: I4Parameters | None = None,
-        speed_m_s: float = 0.05,
-        accel_m_s2: float = 0.5,
-        timeout_s: float = 0.5,
-        retries: int = 3,
-        backoff_s: float = 0.02,
-        backoff_max_s: float = 1.0,
-        poll_s: float = 0.002,
-        settle_s: float = 0.0,
-        in_position_m: float = 2e-5,
-        move_timeout_factor: float = 2.0,
-        move_timeout_margin_s: float = 1.0,
-        home_timeout_s: float = 60.0,
-        late_reply_guard_s: float | None = None,
-        flush_s: float = 0.01,
-        vary_reads: bool = True,
-        max_speed_m_s: float | None = None,
-        plausibility_margin_m: float = 0.05,
-        plausibility_slack_m: float = 1e-3,
-        stop_deadline_s: float = 2.0,
         workspace_check: Callable[[np.ndarray], Any] | None = None,
         safety: SafetySettings | None = None,
     ) -> None:
         safety = safety or SafetySettings()
-        self.modbus = ModbusLink(
-            transport=transport,
-            host=host,
-            port=port,
-            serial_port=serial_port,
-            baudrate=baudrate,
-            regmap=regmap,
-            timeout_s=timeout_s,
-            retries=retries,
-            backoff_s=backoff_s,
-            backoff_max_s=backoff_max_s,
-            late_reply_guard_s=late_reply_guard_s,
-            flush_s=flush_s,
-            vary_reads=vary_reads,
-            safety=safety,
-        )
+        link = link or ModbusLinkSettings()
+        self.modbus = ModbusLink(link, safety)
         super().__init__(
             self.modbus,
             limits=limits,
             nominal=nominal,
             workspace_check=workspace_check,
-            speed_m_s=speed_m_s,
-            accel_m_s2=accel_m_s2,
-            poll_s=poll_s,
-            settle_s=settle_s,
-            in_position_m=in_position_m,
-            move_timeout_factor=move_timeout_factor,
-            move_timeout_margin_s=move_timeout_margin_s,
-            home_timeout_s=home_timeout_s,
-            max_speed_m_s=max_speed_m_s,
-            plausibility_margin_m=plausibility_margin_m,
-            plausibility_slack_m=plausibility_slack_m,
-            stop_deadline_s=stop_deadline_s,
-            backoff_s=backoff_s,
+            backoff_s=link.backoff_s,
             safety=safety,
+            **dataclasses.asdict(axes or AxisSettings()),
         )
 
     # the link's settings and raw register access, as before the split
@@ -881,6 +852,7 @@ __all__ = [
     "RTU_FRAMED",
     "ModbusActuators",
     "ModbusLink",
+    "ModbusLinkSettings",
     "alarm_message",
     "check_targets",
 ]

@@ -84,12 +84,6 @@ class RegisterMap(BaseModel):
             self.target + 2, self.speed + 2, self.control + 1, self.status + 1, self.actual + 2, self.alarm_code + 1
         )
 
-    def readback_window(self) -> tuple[int, int]:
-        """Relative (start, count) of one read that covers status, actual position and alarm code."""
-        lo = min(self.status, self.actual, self.alarm_code)
-        hi = max(self.status + 1, self.actual + 2, self.alarm_code + 1)
-        return lo, hi - lo
-
     # -- values ---------------------------------------------------------------------------
     def to_regs32(self, value: int) -> list[int]:
         v = int(value)

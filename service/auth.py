@@ -38,22 +38,14 @@ PREFIX_CHARS = 8
 LAST_USED_EVERY = timedelta(seconds=60)
 
 
-def create_token(db: Database, name: str = "", expires_at: datetime | None = None) -> str:
-    """Store a new token's hash (and its first characters) and return the token (shown once).
-
-    Parameters
-    ----------
-    expires_at : datetime, optional
-        Refused from then on (aware, or naive UTC); None: no expiry.
-    """
-    return create_token_record(db, name, expires_at)[0]
-
-
 def create_token_record(
     db: Database, name: str = "", expires_at: datetime | None = None, expires_in: timedelta | None = None
 ) -> tuple[str, int]:
-    """:func:`create_token`, with the stored row's id. ``expires_in``: the token lives this long from its issuance
-    (the time stored as its creation, taken as it is stored: not before the database was opened)."""
+    """Store a new token's hash (and its first characters); the token (shown once) and the stored row's id.
+
+    ``expires_at``: refused from then on (aware, or naive UTC); None: no expiry. ``expires_in``: the token lives
+    this long from its issuance (the time stored as its creation, taken as it is stored: not before the database
+    was opened)."""
     token = new_token()
     issued = datetime.now(UTC)
     if expires_in is not None:
@@ -97,10 +89,6 @@ def check_token(request: Request, token: str) -> TokenCheck:
         if row.last_used_at is None or now - row.last_used_at >= LAST_USED_EVERY:
             s.execute(update(Token).where(Token.id == row.id).values(last_used_at=now))
     return TokenCheck(True)
-
-
-def token_valid(request: Request, token: str) -> bool:
-    return check_token(request, token).ok
 
 
 def _unauthorized(detail: str) -> HTTPException:

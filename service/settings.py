@@ -178,14 +178,6 @@ class Settings(BaseSettings):
             return self.database_url
         return f"sqlite:///{(self.data_dir / 'i4cal.db').resolve()}"
 
-    @property
-    def datasets_dir(self) -> Path:
-        return self.data_dir / "datasets"
-
-    @property
-    def runs_dir(self) -> Path:
-        return self.data_dir / "runs"
-
 
 def normalize_database_url(url: str | None) -> str | None:
     """The database URL the service uses: SQLite, or PostgreSQL through psycopg 3 (``postgresql://`` and

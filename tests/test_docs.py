@@ -30,7 +30,7 @@ def test_every_docs_page_named_exists_and_is_indexed():
     assert not unindexed, f"docs pages not in docs/index.md: {unindexed}"
 
 
-#: a date (2026-11-24), an issue number (issue 13) or a session's name: the marks of a lab notebook's narrative
+#: a date (YYYY-MM-DD), an issue number or a session's name: the marks of a lab notebook's narrative
 NARRATIVE = re.compile(r"(?<![-\w])20\d\d-[01]\d-[0-3]\d(?![T\d])|\b[Ii]ssue #?\d+|\b\w+th session\b")
 
 

@@ -560,10 +560,6 @@ class FreezeFront:
             raise ValueError(f"what must be 'request' or 'reply', got {what!r}")
         self._lose = (match, what)
 
-    @property
-    def armed(self) -> bool:
-        return self._trigger is not None
-
     def _spawn(self, coro) -> None:
         t = asyncio.create_task(coro)
         self._tasks.add(t)

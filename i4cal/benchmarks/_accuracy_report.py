@@ -10,7 +10,7 @@ from typing import Any
 from ._accuracy_trial import METHODS
 
 COMBINATIONS: tuple[str, ...] = ("L", "H-D", "S-q02/2", "S-(q04-q03)/2")
-EFFICIENCY_TARGET = 0.67  #: bound RMS / error RMS of the combined method (issue 6)
+EFFICIENCY_TARGET = 0.67  #: the combined method's bound RMS / error RMS at least this: near its Cramer-Rao bound
 HONESTY_TOLERANCE = 0.30  #: mean reported std / RMS error within 1 -/+ this
 
 
@@ -43,39 +43,60 @@ def method_summary(trials: list[dict[str, Any]], name: str) -> dict[str, Any]:
         ``gap_validation_rms_mm`` (RMS over trials of each trial's validation gap RMS) and
         ``gap_below_a_priori`` (trials whose gap is below their a priori gap).
     """
-    ok = [t for t in trials if ((t.get("methods") or {}).get(name) or {}).get("ok")]
-    failures = Counter(
-        _short(t["error"] if t.get("error") else ((t.get("methods") or {}).get(name) or {}).get("error") or "not run")
-        for t in trials
-        if not ((t.get("methods") or {}).get(name) or {}).get("ok")
-    )
+    ok = [t for t in trials if _method_record(t, name).get("ok")]
+    failures = Counter(_failure_message(t, name) for t in trials if not _method_record(t, name).get("ok"))
     out: dict[str, Any] = {"n_ok": len(ok), "n_failed": len(trials) - len(ok), "failures": dict(failures)}
     for field in ("rms_error_m", "mean_std_m", "std_over_error", "bound_rms_m", "efficiency", "within_2_std"):
         out[field] = {}
     for c in COMBINATIONS:
-        errs = [t["methods"][name]["errors"][c] for t in ok]
-        stds = [s[c] for t in ok if (s := t["methods"][name]["std"]) and s.get(c) is not None]
-        err_rms, std_mean = _rms(errs), _mean(stds)
-        with_bound = [t for t in ok if t.get("bound_std") and t["bound_std"].get(c) is not None]
-        b_rms = _rms([t["bound_std"][c] for t in with_bound])
-        e_rms_b = _rms([t["methods"][name]["errors"][c] for t in with_bound])
-        out["rms_error_m"][c] = err_rms
-        out["mean_std_m"][c] = std_mean
-        out["std_over_error"][c] = _ratio(std_mean, err_rms)
-        out["bound_rms_m"][c] = b_rms
-        out["efficiency"][c] = _ratio(b_rms, e_rms_b)
-        z = [
-            abs(t["methods"][name]["errors"][c]) / sd
-            for t in ok
-            if (sd := (t["methods"][name]["std"] or {}).get(c)) and t["methods"][name]["errors"][c] is not None
-        ]
-        out["within_2_std"][c] = sum(1 for v in z if v <= 2.0) / len(z) if z else None
-    gaps = [(t["methods"][name]["gap_validation_rms_mm"], t.get("gap_a_priori_rms_mm")) for t in ok]
-    gaps = [(g, a) for g, a in gaps if g is not None]
-    out["gap_validation_rms_mm"] = _rms([g for g, _ in gaps])
-    out["gap_below_a_priori"] = sum(1 for g, a in gaps if a is not None and g < a)
-    out["gap_trials"] = len(gaps)
+        for field, value in _combination_stats(ok, name, c).items():
+            out[field][c] = value
+    out.update(_gap_stats(ok, name))
     return out
+
+
+def _method_record(trial: dict[str, Any], name: str) -> dict[str, Any]:
+    """One method's record in a trial (empty when the trial failed before the method ran)."""
+    return (trial.get("methods") or {}).get(name) or {}
+
+
+def _failure_message(trial: dict[str, Any], name: str) -> str:
+    """Why a method has no estimate in a trial: the trial's error, else the method's, else ``not run``."""
+    return _short(trial["error"] if trial.get("error") else _method_record(trial, name).get("error") or "not run")
+
+
+def _combination_stats(ok: list[dict[str, Any]], name: str, c: str) -> dict[str, float | None]:
+    """One method's statistics on one combination over the trials it succeeded in (metres, or ratios)."""
+    errs = [t["methods"][name]["errors"][c] for t in ok]
+    stds = [s[c] for t in ok if (s := t["methods"][name]["std"]) and s.get(c) is not None]
+    err_rms, std_mean = _rms(errs), _mean(stds)
+    with_bound = [t for t in ok if t.get("bound_std") and t["bound_std"].get(c) is not None]
+    b_rms = _rms([t["bound_std"][c] for t in with_bound])
+    e_rms_b = _rms([t["methods"][name]["errors"][c] for t in with_bound])
+    z = [
+        abs(t["methods"][name]["errors"][c]) / sd
+        for t in ok
+        if (sd := (t["methods"][name]["std"] or {}).get(c)) and t["methods"][name]["errors"][c] is not None
+    ]
+    return {
+        "rms_error_m": err_rms,
+        "mean_std_m": std_mean,
+        "std_over_error": _ratio(std_mean, err_rms),
+        "bound_rms_m": b_rms,
+        "efficiency": _ratio(b_rms, e_rms_b),
+        "within_2_std": sum(1 for v in z if v <= 2.0) / len(z) if z else None,
+    }
+
+
+def _gap_stats(ok: list[dict[str, Any]], name: str) -> dict[str, Any]:
+    """One method's validation gaps over the trials it succeeded in (mm) against their a priori gaps."""
+    pairs = [(t["methods"][name]["gap_validation_rms_mm"], t.get("gap_a_priori_rms_mm")) for t in ok]
+    gaps = [(g, a) for g, a in pairs if g is not None]
+    return {
+        "gap_validation_rms_mm": _rms([g for g, _ in gaps]),
+        "gap_below_a_priori": sum(1 for g, a in gaps if a is not None and g < a),
+        "gap_trials": len(gaps),
+    }
 
 
 def summarize(trials: list[dict[str, Any]]) -> dict[str, Any]:
@@ -314,66 +335,76 @@ def print_accuracy(doc: dict[str, Any], console: Any = None) -> None:
     from service.cli._output import make_console
 
     con = console or make_console()
-    m = doc["machine"]
-    o = doc["options"]
-    where = f"{m['cpu']}, {m['cores']} cores, {doc.get('engine') or str(doc['workers']) + ' worker(s)'}, {m['date']}"
     study = doc.get("study")
     if study:
-        s = study["summary"]
-        title = (
-            f"i4cal bench accuracy - {s['trials']} trials, sensor noise {study['noise_sigma']:g} grey "
-            f"(edge noise {_px(s['edge_noise_px_median'])} px), {study['n_fit']} fit poses, truth spread "
-            f"{doc['spread_m'] * 1e3:.2f} mm, seed {o['seed']} - {where}"
-        )
-        for table in study_tables(study, title):
-            con.print(table)
-        for line in target_lines(s):
-            con.print(line)
-        if s["trials_failed"]:
-            con.print(
-                f"[red]{s['trials_failed']} trial(s) failed: "
-                + "; ".join(f"{n}x {e}" for e, n in s["trial_errors"].items())
-                + "[/red]"
-            )
+        _print_study(con, doc, study)
     for name, points in doc["sweeps"].items():
         con.print(lens_table(points) if name == "lens" else sweep_table(name, points))
     for cam_noise, cam in doc["cameras"].items():
         if cam.get("camera") is None:
             con.print(f"[red]camera phase at noise {cam_noise}: {cam.get('error')}[/red]")
+    o = doc["options"]
     counts = (
         ", ".join(f"{k} {v}" for k, v in doc["plans"][str(o["n_fit"])].items())
         if str(o["n_fit"]) in doc["plans"]
         else ""
     )
-    if o["camera"] == "true":
-        cam_text = "extraction with the renderer's true intrinsics (--camera true)"
-    elif o["camera"] == "per-trial":
-        points = [doc.get("study") or {}, *(pt for pts in (doc.get("sweeps") or {}).values() for pt in pts)]
-        cams = list({t["key"]: t["camera"] for pt in points for t in pt.get("trials", []) if t.get("camera")}.values())
-        cam_text = (
-            f"camera calibrated in every trial from its own {o['camera_views']} rendered board views; "
-            "intrinsics error RMS / mean reported std over the trials: "
-            + ", ".join(f"{k} {_intr_rms(cams, k)}" for k in ("fx", "cx", "cy", "k1"))
-            + "; after the rods' refinement, error RMS: "
-            + ", ".join(f"{k} {_intr_rms(cams, k, 'refined_error_vs_true')}" for k in ("fx", "cx", "cy", "k1"))
-        )
-    else:
-        cam_text = (
-            f"camera calibrated once per noise level from {o['camera_views']} rendered board views ("
-            + ", ".join(
-                f"noise {n}: fx {_dpx(c, 'fx')}, cx {_dpx(c, 'cx')}, cy {_dpx(c, 'cy')} px"
-                for n, c in doc["cameras"].items()
-                if c.get("camera")
-            )
-            + " off the truth)"
-        )
-    con.print(f"[dim]per trial: {counts}; {cam_text}[/dim]")
+    con.print(f"[dim]per trial: {counts}; {camera_text(doc)}[/dim]")
     for note in doc["notes"]:
         con.print(f"[dim]note: {note}[/dim]")
     load = doc.get("load_average") or {}
     con.print(
         f"[dim]{doc['elapsed_s']:.0f} s in all ({doc['cpu_s']:.0f} CPU s in the workers; load average "
         f"{_load_text(load.get('start'))} at the start, {_load_text(load.get('end'))} at the end)[/dim]"
+    )
+
+
+def _print_study(con: Any, doc: dict[str, Any], study: dict[str, Any]) -> None:
+    """The main study's tables, its targets and its failed trials."""
+    m = doc["machine"]
+    o = doc["options"]
+    where = f"{m['cpu']}, {m['cores']} cores, {doc.get('engine') or str(doc['workers']) + ' worker(s)'}, {m['date']}"
+    s = study["summary"]
+    title = (
+        f"i4cal bench accuracy - {s['trials']} trials, sensor noise {study['noise_sigma']:g} grey "
+        f"(edge noise {_px(s['edge_noise_px_median'])} px), {study['n_fit']} fit poses, truth spread "
+        f"{doc['spread_m'] * 1e3:.2f} mm, seed {o['seed']} - {where}"
+    )
+    for table in study_tables(study, title):
+        con.print(table)
+    for line in target_lines(s):
+        con.print(line)
+    if s["trials_failed"]:
+        con.print(
+            f"[red]{s['trials_failed']} trial(s) failed: "
+            + "; ".join(f"{n}x {e}" for e, n in s["trial_errors"].items())
+            + "[/red]"
+        )
+
+
+def camera_text(doc: dict[str, Any]) -> str:
+    """How the study's extraction got its intrinsics (``--camera``), with the calibrated cameras' errors."""
+    o = doc["options"]
+    if o["camera"] == "true":
+        return "extraction with the renderer's true intrinsics (--camera true)"
+    if o["camera"] == "per-trial":
+        points = [doc.get("study") or {}, *(pt for pts in (doc.get("sweeps") or {}).values() for pt in pts)]
+        cams = list({t["key"]: t["camera"] for pt in points for t in pt.get("trials", []) if t.get("camera")}.values())
+        return (
+            f"camera calibrated in every trial from its own {o['camera_views']} rendered board views; "
+            "intrinsics error RMS / mean reported std over the trials: "
+            + ", ".join(f"{k} {_intr_rms(cams, k)}" for k in ("fx", "cx", "cy", "k1"))
+            + "; after the rods' refinement, error RMS: "
+            + ", ".join(f"{k} {_intr_rms(cams, k, 'refined_error_vs_true')}" for k in ("fx", "cx", "cy", "k1"))
+        )
+    return (
+        f"camera calibrated once per noise level from {o['camera_views']} rendered board views ("
+        + ", ".join(
+            f"noise {n}: fx {_dpx(c, 'fx')}, cx {_dpx(c, 'cx')}, cy {_dpx(c, 'cy')} px"
+            for n, c in doc["cameras"].items()
+            if c.get("camera")
+        )
+        + " off the truth)"
     )
 
 

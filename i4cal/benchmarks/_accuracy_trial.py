@@ -260,40 +260,11 @@ def trial_record(doc: dict[str, Any], observations: dict[str, Any]) -> dict[str,
     methods: dict[str, Any] = {}
     for name in METHODS:
         entry = (doc.get("methods") or {}).get(name)
-        if entry is None:
-            continue
-        err = truth_errors.get(name)
-        std = entry.get("std") or {}
-        errors = {k: _finite(err.get(k)) for k in COMBINATION_NAMES} if err else None
-        stds = {k: _finite(std.get(k)) for k in COMBINATION_NAMES} if std else None
-        problem = entry.get("error")
-        if not problem and not errors:
-            problem = "no parameters"
-        elif errors and None in errors.values():
-            problem = "non-finite parameters"
-        ident = (entry.get("diagnostics") or {}).get("identifiability") or {}
-        rec: dict[str, Any] = {
-            "ok": not problem,
-            "error": problem or None,
-            "converged": bool(entry.get("converged")),
-            "errors": errors,
-            "std": stds,
-            "gap_validation_rms_mm": _gap(validation, name),
-            # what the method returned when its data could not pin the estimate (the legs method's a priori values,
-            # with their tolerance as std and a warning): None when the estimate is the data's
-            "a_priori_fallback": ident.get("a_priori_fallback"),
-            # directions of the seven the data knew less well than the a priori tolerance (the legs method says so in
-            # a warning; the estimate there is the tolerance's): 0 when the data pinned every one
-            "unpinned_directions": len(ident.get("unpinned") or []),
-            "noise_levels": noise_levels(name, entry.get("diagnostics") or {}),
-        }
-        if err and "seven" in err:
-            rec["seven_errors"] = {k: _finite(v) for k, v in err["seven"].items()}
-        methods[name] = rec
+        if entry is not None:
+            methods[name] = method_record(name, entry, truth_errors.get(name), validation)
     bound = ((doc.get("methods") or {}).get("combined") or {}).get("bound") or {}
     bstd = bound.get("std")
     frames = observations.get("frames", [])
-    rods = sum(1 for fr in frames for rs in (fr.get("legs") or {}).values() for r in rs or [] if r)
     return {
         "methods": methods,
         "bound_std": {k: _finite(bstd.get(k)) for k in COMBINATION_NAMES} if isinstance(bstd, dict) else None,
@@ -303,12 +274,56 @@ def trial_record(doc: dict[str, Any], observations: dict[str, Any]) -> dict[str,
         "edge_noise_px": edge_noise_px(observations),
         "frames": len(frames),
         "boards_found": sum(1 for fr in frames if fr.get("board")),
-        "rods_found": rods,
+        "rods_found": _rods_found(frames),
         "rods_total": 8 * len(frames),
         # the extraction's second look when too many rods were lost in their search bands (calib.vision.recover):
         # None when it was not needed
         "extraction_recovered": _recovered(observations),
     }
+
+
+def method_record(
+    name: str, entry: dict[str, Any], err: dict[str, Any] | None, validation: dict[str, Any]
+) -> dict[str, Any]:
+    """One method's numbers in a trial (the ``methods`` entries of :func:`trial_record`).
+
+    ``entry`` is the method's entry of the result document, ``err`` its errors against the truth (metres, per
+    combination and ``seven``; None when the result has none), ``validation`` the result's validation section.
+    """
+    from calib.parameters import COMBINATION_NAMES
+
+    std = entry.get("std") or {}
+    errors = {k: _finite(err.get(k)) for k in COMBINATION_NAMES} if err else None
+    stds = {k: _finite(std.get(k)) for k in COMBINATION_NAMES} if std else None
+    problem = entry.get("error")
+    if not problem and not errors:
+        problem = "no parameters"
+    elif errors and None in errors.values():
+        problem = "non-finite parameters"
+    ident = (entry.get("diagnostics") or {}).get("identifiability") or {}
+    rec: dict[str, Any] = {
+        "ok": not problem,
+        "error": problem or None,
+        "converged": bool(entry.get("converged")),
+        "errors": errors,
+        "std": stds,
+        "gap_validation_rms_mm": _gap(validation, name),
+        # what the method returned when its data could not pin the estimate (the legs method's a priori values,
+        # with their tolerance as std and a warning): None when the estimate is the data's
+        "a_priori_fallback": ident.get("a_priori_fallback"),
+        # directions of the seven the data knew less well than the a priori tolerance (the legs method says so in
+        # a warning; the estimate there is the tolerance's): 0 when the data pinned every one
+        "unpinned_directions": len(ident.get("unpinned") or []),
+        "noise_levels": noise_levels(name, entry.get("diagnostics") or {}),
+    }
+    if err and "seven" in err:
+        rec["seven_errors"] = {k: _finite(v) for k, v in err["seven"].items()}
+    return rec
+
+
+def _rods_found(frames: list[dict[str, Any]]) -> int:
+    """Rods measured over the frames (at most eight a frame: two per leg)."""
+    return sum(1 for fr in frames for rs in (fr.get("legs") or {}).values() for r in rs or [] if r)
 
 
 def _recovered(observations: dict[str, Any]) -> dict[str, Any] | None:

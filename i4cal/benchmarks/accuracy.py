@@ -41,7 +41,7 @@ import sys
 import time
 from collections.abc import Callable
 from concurrent.futures import Future
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from pydantic import BaseModel, Field, field_validator
 
@@ -49,6 +49,9 @@ from calib.errors import InputError
 
 from ._accuracy_report import print_accuracy, summarize
 from ._accuracy_trial import CameraTask, TrialTask, calibrate_camera, run_trial
+
+if TYPE_CHECKING:
+    from service.fanout import Fanout
 
 FORMAT = "i4cal.bench-accuracy/1"
 SWEEPS = ("noise", "poses", "lens")
@@ -79,7 +82,7 @@ def lens_dist(name: str) -> tuple[float, ...]:
 
 #: The paper-sized plan (``calib.plan.make_plan`` defaults): what a trial renders unless reduced.
 PAPER = {"n_base": 10, "n_fit": 20, "n_lock": 5, "n_validation": 10}
-QUICK = {
+QUICK: dict[str, Any] = {
     "trials": 3,
     "n_base": 6,
     "n_fit": 10,
@@ -287,22 +290,7 @@ def run_accuracy(opts: AccuracyOptions, on_progress: OnProgress | None = None) -
     spread = spread_m(opts)
     fits = sorted({p.n_fit for p in points})
     steps = {n: plan_steps(opts, n) for n in fits}
-    trials: dict[str, TrialTask] = {}
-    for p in points:
-        for k, key in enumerate(p.trial_keys()):
-            if key not in trials:
-                trials[key] = TrialTask(
-                    key=key,
-                    index=k,
-                    seed=trial_seed(opts.seed, k),
-                    truth=draw_truth(opts.seed, k, spread),
-                    noise_sigma=p.noise_sigma,
-                    steps=steps[p.n_fit],
-                    camera=None,
-                    camera_views=opts.camera_views if opts.camera == "per-trial" else 0,
-                    dist=list(lens_dist(p.lens)) if p.lens is not None else None,
-                    lens=p.lens,
-                )
+    trials = trial_tasks(opts, points, steps, spread)
     noises = sorted({t.noise_sigma for t in trials.values()})
     cam_steps = [s for s in steps[fits[-1]] if s["phase"] == "rotation"][: opts.camera_poses]
     cam_tasks = (
@@ -313,47 +301,11 @@ def run_accuracy(opts: AccuracyOptions, on_progress: OnProgress | None = None) -
         if opts.camera == "calibrated"
         else []
     )
-    total = len(cam_tasks) + len(trials)
-    pool = Fanout(FanoutSettings(workers=opts.workers, scheduler=opts.scheduler), n_tasks=max(total, 1))
-    cameras: dict[str, Any] = {}
-    records: dict[str, dict[str, Any]] = {}
-    running: dict[Future, tuple[str, Any]] = {}
-    done = 0
-
-    def camera_ready(noise: float, cam: dict[str, Any]) -> None:
-        nonlocal done
-        cameras[f"{noise:g}"] = cam
-        for t in trials.values():
-            if t.noise_sigma != noise:
-                continue
-            if cam.get("camera") is None:
-                records[t.key] = _failed(t, f"camera calibration failed: {cam.get('error')}")
-                done += 1
-            else:
-                running[pool.submit(run_trial, t.model_copy(update={"camera": cam["camera"]}))] = ("trial", t)
-
-    if on_progress:
-        on_progress(f"calibrating the camera ({len(cam_tasks)} camera phase(s))" if cam_tasks else "trials", 0, total)
-    with pool:
-        if opts.camera == "true":
-            for n in noises:
-                camera_ready(n, true_camera(n))
-        elif opts.camera == "per-trial":
-            for t in trials.values():
-                running[pool.submit(run_trial, t)] = ("trial", t)
-        for c in cam_tasks:
-            running[pool.submit(calibrate_camera, c)] = ("camera", c)
-        while running:
-            for fut in pool.next_done(list(running)):
-                kind, task = running.pop(fut)
-                done += 1
-                if kind == "camera":
-                    camera_ready(task.noise_sigma, _camera_result(fut, task))
-                else:
-                    records[task.key] = _trial_result(fut, task)
-                if on_progress:
-                    on_progress(_finished(kind, task, records, cameras, pool), done, total)
-    out_points = [
+    pool = Fanout(
+        FanoutSettings(workers=opts.workers, scheduler=opts.scheduler), n_tasks=max(len(cam_tasks) + len(trials), 1)
+    )
+    records, cameras = _run_tasks(pool, opts.camera, trials, cam_tasks, on_progress)
+    out_points: list[dict[str, Any]] = [
         {
             "sweep": p.sweep,
             "value": p.value,
@@ -385,6 +337,80 @@ def run_accuracy(opts: AccuracyOptions, on_progress: OnProgress | None = None) -
         "cpu_s": sum(r.get("cpu_s") or 0.0 for r in [*records.values(), *cameras.values()]),
         "load_average": {"start": load_start, "end": _load()},
     }
+
+
+def trial_tasks(
+    opts: AccuracyOptions, points: list[Point], steps: dict[int, list[dict[str, Any]]], spread: float
+) -> dict[str, TrialTask]:
+    """The distinct trials of the study's points by key (trials shared by several points run once); no camera yet."""
+    trials: dict[str, TrialTask] = {}
+    for p in points:
+        for k, key in enumerate(p.trial_keys()):
+            if key not in trials:
+                trials[key] = TrialTask(
+                    key=key,
+                    index=k,
+                    seed=trial_seed(opts.seed, k),
+                    truth=draw_truth(opts.seed, k, spread),
+                    noise_sigma=p.noise_sigma,
+                    steps=steps[p.n_fit],
+                    camera=None,
+                    camera_views=opts.camera_views if opts.camera == "per-trial" else 0,
+                    dist=list(lens_dist(p.lens)) if p.lens is not None else None,
+                    lens=p.lens,
+                )
+    return trials
+
+
+def _run_tasks(
+    pool: Fanout,
+    camera: str,
+    trials: dict[str, TrialTask],
+    cam_tasks: list[CameraTask],
+    on_progress: OnProgress | None,
+) -> tuple[dict[str, dict[str, Any]], dict[str, Any]]:
+    """Run the cameras, then each trial as soon as its camera is ready, on ``pool``; the trials' records by key and
+    the cameras by noise level."""
+    total = len(cam_tasks) + len(trials)
+    cameras: dict[str, Any] = {}
+    records: dict[str, dict[str, Any]] = {}
+    running: dict[Future, tuple[str, Any]] = {}
+    done = 0
+
+    def camera_ready(noise: float, cam: dict[str, Any]) -> None:
+        nonlocal done
+        cameras[f"{noise:g}"] = cam
+        for t in trials.values():
+            if t.noise_sigma != noise:
+                continue
+            if cam.get("camera") is None:
+                records[t.key] = _failed(t, f"camera calibration failed: {cam.get('error')}")
+                done += 1
+            else:
+                running[pool.submit(run_trial, t.model_copy(update={"camera": cam["camera"]}))] = ("trial", t)
+
+    if on_progress:
+        on_progress(f"calibrating the camera ({len(cam_tasks)} camera phase(s))" if cam_tasks else "trials", 0, total)
+    with pool:
+        if camera == "true":
+            for n in sorted({t.noise_sigma for t in trials.values()}):
+                camera_ready(n, true_camera(n))
+        elif camera == "per-trial":
+            for t in trials.values():
+                running[pool.submit(run_trial, t)] = ("trial", t)
+        for c in cam_tasks:
+            running[pool.submit(calibrate_camera, c)] = ("camera", c)
+        while running:
+            for fut in pool.next_done(list(running)):
+                kind, task = running.pop(fut)
+                done += 1
+                if kind == "camera":
+                    camera_ready(task.noise_sigma, _camera_result(fut, task))
+                else:
+                    records[task.key] = _trial_result(fut, task)
+                if on_progress:
+                    on_progress(_finished(kind, task, records, cameras, pool), done, total)
+    return records, cameras
 
 
 def _finished(kind: str, task: Any, records: dict[str, Any], cameras: dict[str, Any], pool: Any) -> str:

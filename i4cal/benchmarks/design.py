@@ -526,9 +526,9 @@ def camera_refined_summary(trials: list[dict[str, Any]]) -> dict[str, Any] | Non
     distance per degree of freedom and the mean squared error over the variance along each principal direction,
     smallest variance first (``principal_z2_mean``, trials of the most common size only). Each is 1 when the
     covariance is right, within about ``expected_se`` = sqrt(2 / n) for a direction (sqrt(2 / (n dof)) for the
-    distance). None when no trial recorded it (benches before 2026-11-28, or a camera the rods did not refine)."""
-    rows = [t.get("camera_refined") for t in trials]
-    rows = [r for r in rows if r and r.get("dof")]
+    distance). None when no trial recorded it (a bench file without ``camera_refined``, or a camera the rods did
+    not refine)."""
+    rows: list[dict[str, Any]] = [r for t in trials if (r := t.get("camera_refined")) and r.get("dof")]
     if not rows:
         return None
     dofs = [int(r["dof"]) for r in rows]
@@ -550,69 +550,41 @@ def _data_pinned(trials: list[dict[str, Any]]) -> dict[str, Any]:
     direction of the seven less well than the a priori tolerance (the rods of a leg hidden in most fit poses, say) is
     left out and counted: the method says so in a warning, with the tolerance in its std. A plan's predicted std is
     for runs whose data pin the estimate, as the plan was designed to."""
-    from ._accuracy_report import COMBINATIONS, METHODS
+    from ._accuracy_report import METHODS
 
-    out: dict[str, Any] = {}
-    for m in METHODS:
-        rows = [t["methods"].get(m) or {} for t in trials]
-        ok = [r for r in rows if r.get("ok") and r.get("errors") and r.get("std")]
-        kept = [r for r in ok if not r.get("a_priori_fallback") and not r.get("unpinned_directions")]
-        entry: dict[str, Any] = {
-            "n_trials": len(kept),
-            "n_a_priori_fallback": sum(1 for r in ok if r.get("a_priori_fallback")),
-            "n_unpinned": sum(1 for r in ok if r.get("unpinned_directions") and not r.get("a_priori_fallback")),
-        }
-        for key, field, stat in (("rms_error_m", "errors", _rms), ("mean_std_m", "std", np.mean)):
-            vals = {c: [r[field][c] for r in kept if r[field].get(c) is not None] for c in COMBINATIONS}
-            entry[key] = {c: float(stat(v)) if v else None for c, v in vals.items()}
-        # the noise levels the method measured, mean over the same trials: what the prediction takes them as
-        levels = [r.get("noise_levels") or {} for r in kept]
-        names = sorted({k for lv in levels for k in lv})
-        entry["noise_levels_mean"] = {
-            k: float(np.mean(v)) if (v := [lv[k] for lv in levels if lv.get(k) is not None]) else None for k in names
-        }
-        out[m] = entry
-    return out
+    return {m: _data_pinned_method([t["methods"].get(m) or {} for t in trials]) for m in METHODS}
+
+
+def _data_pinned_method(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """:func:`_data_pinned` for one method, from its record in each trial."""
+    from ._accuracy_report import COMBINATIONS
+
+    ok = [r for r in rows if r.get("ok") and r.get("errors") and r.get("std")]
+    kept = [r for r in ok if not r.get("a_priori_fallback") and not r.get("unpinned_directions")]
+    entry: dict[str, Any] = {
+        "n_trials": len(kept),
+        "n_a_priori_fallback": sum(1 for r in ok if r.get("a_priori_fallback")),
+        "n_unpinned": sum(1 for r in ok if r.get("unpinned_directions") and not r.get("a_priori_fallback")),
+    }
+    for key, field, stat in (("rms_error_m", "errors", _rms), ("mean_std_m", "std", np.mean)):
+        vals = {c: [r[field][c] for r in kept if r[field].get(c) is not None] for c in COMBINATIONS}
+        entry[key] = {c: float(stat(v)) if v else None for c, v in vals.items()}
+    # the noise levels the method measured, mean over the same trials: what the prediction takes them as
+    entry["noise_levels_mean"] = _noise_levels_mean([r.get("noise_levels") or {} for r in kept])
+    return entry
+
+
+def _noise_levels_mean(levels: list[dict[str, Any]]) -> dict[str, float | None]:
+    """Each noise level's mean over the trials that measured it (None where none did), by name."""
+    names = sorted({k for lv in levels for k in lv})
+    return {k: float(np.mean(v)) if (v := [lv[k] for lv in levels if lv.get(k) is not None]) else None for k in names}
 
 
 def _checks(plans: dict[str, dict[str, Any]]) -> dict[str, Any]:
-    from ._accuracy_report import COMBINATIONS, METHODS
-
-    out: dict[str, Any] = {}
-    d12, p20 = plans.get("designed-12"), plans.get("paper-20")
-    if d12 and p20:
-        a = d12["summary"]["methods"]["combined"]["rms_error_m"]
-        b = p20["summary"]["methods"]["combined"]["rms_error_m"]
-        out["designed12_combined_not_worse_than_paper20"] = {
-            c: (a[c] <= b[c]) if a.get(c) is not None and b.get(c) is not None else None for c in COMBINATIONS
-        }
-    for name, p in plans.items():  # plans designed for other methods too: each of them against the paper's 20
-        if p20 and p.get("n_fit") == 12 and name != "designed-12" and p.get("design_methods"):
-            out[f"{name}_not_worse_than_paper20"] = {
-                m: {c: (a[c] <= b[c]) if a.get(c) is not None and b.get(c) is not None else None for c in COMBINATIONS}
-                for m in p["design_methods"]
-                for a, b in [(p["summary"]["methods"][m]["rms_error_m"], p20["summary"]["methods"][m]["rms_error_m"])]
-            }
-    for key, field, ref in (
-        ("predicted_over_rms", "predicted_std_m", "rms_error_m"),
-        ("predicted_images_over_rms", "predicted_images_std_m", "rms_error_m"),
-        ("predicted_images_over_mean_std", "predicted_images_std_m", "mean_std_m"),
-    ):
-        ratios: dict[str, dict[str, dict[str, float | None]]] = {}
-        for name, p in plans.items():
-            ratios[name] = {}
-            for m in METHODS:
-                pr = p.get(field, {}).get(m) or {}
-                ratios[name][m] = _ratios(pr, p["summary"]["methods"][m][ref])
-        out[key] = ratios
-    out["predicted_images_over_rms_data_pinned"] = {
-        name: {
-            m: _ratios(p.get("predicted_images_std_m", {}).get(m) or {}, p["data_pinned"][m]["rms_error_m"])
-            for m in METHODS
-            if "data_pinned" in p
-        }
-        for name, p in plans.items()
-    }
+    """The design bench's checks on its plans: designed plans against the paper's 20 poses, the predictions and the
+    reported std against the RMS errors (ratios, intervals and counts within)."""
+    out: dict[str, Any] = _not_worse_checks(plans)
+    out.update(_prediction_ratios(plans))
     if all("trials" in p and "summary" in p for p in plans.values()):
         out["predicted_images_over_rms_interval90"], out["prediction_within_30pct"] = _std_over_rms_intervals(plans)
         out["reported_std_over_rms_interval90"], out["reported_std_within_30pct"] = _std_over_rms_intervals(
@@ -622,6 +594,56 @@ def _checks(plans: dict[str, dict[str, Any]]) -> dict[str, Any]:
             _std_over_rms_intervals(plans, "reported", about_mean=True)
         )
         out["prediction_within_30pct_per_method"] = _per_method_within(plans)
+    return out
+
+
+def _not_worse(a: dict[str, Any], b: dict[str, Any]) -> dict[str, bool | None]:
+    """Per combination, whether the RMS error ``a`` is at most ``b`` (None where either is missing)."""
+    from ._accuracy_report import COMBINATIONS
+
+    return {c: (a[c] <= b[c]) if a.get(c) is not None and b.get(c) is not None else None for c in COMBINATIONS}
+
+
+def _not_worse_checks(plans: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """The designed 12-pose plans' RMS errors against the paper's 20-pose plan's: the combined method's for
+    ``designed-12``, then each plan designed for other methods on each of its methods."""
+    out: dict[str, Any] = {}
+    d12, p20 = plans.get("designed-12"), plans.get("paper-20")
+    if d12 and p20:
+        out["designed12_combined_not_worse_than_paper20"] = _not_worse(
+            d12["summary"]["methods"]["combined"]["rms_error_m"], p20["summary"]["methods"]["combined"]["rms_error_m"]
+        )
+    for name, p in plans.items():  # plans designed for other methods too: each of them against the paper's 20
+        if p20 and p.get("n_fit") == 12 and name != "designed-12" and p.get("design_methods"):
+            out[f"{name}_not_worse_than_paper20"] = {
+                m: _not_worse(p["summary"]["methods"][m]["rms_error_m"], p20["summary"]["methods"][m]["rms_error_m"])
+                for m in p["design_methods"]
+            }
+    return out
+
+
+def _prediction_ratios(plans: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """Per plan and method, the predicted std over the RMS error or the mean reported std, per combination."""
+    from ._accuracy_report import METHODS
+
+    out: dict[str, Any] = {}
+    for key, field, ref in (
+        ("predicted_over_rms", "predicted_std_m", "rms_error_m"),
+        ("predicted_images_over_rms", "predicted_images_std_m", "rms_error_m"),
+        ("predicted_images_over_mean_std", "predicted_images_std_m", "mean_std_m"),
+    ):
+        out[key] = {
+            name: {m: _ratios(p.get(field, {}).get(m) or {}, p["summary"]["methods"][m][ref]) for m in METHODS}
+            for name, p in plans.items()
+        }
+    out["predicted_images_over_rms_data_pinned"] = {
+        name: {
+            m: _ratios(p.get("predicted_images_std_m", {}).get(m) or {}, p["data_pinned"][m]["rms_error_m"])
+            for m in METHODS
+            if "data_pinned" in p
+        }
+        for name, p in plans.items()
+    }
     return out
 
 
@@ -674,21 +696,33 @@ def _per_method_within(plans: dict[str, dict[str, Any]]) -> dict[str, Any]:
     return {"factor": WITHIN_FACTOR, "n": n, "within": n - len(outside), "outside": outside, "ratios": ratios}
 
 
-def print_table(doc: dict[str, Any]) -> None:
-    from ._accuracy_report import COMBINATIONS, METHODS
+def _mm(v: float | None) -> str:
+    return "-" if v is None else f"{v * 1e3:.3f}"
 
-    def mm(v):
-        return "-" if v is None else f"{v * 1e3:.3f}"
+
+def print_table(doc: dict[str, Any]) -> None:
+    """The design bench on the terminal: per plan and method the errors, std and predictions, then the checks."""
+    _print_errors(doc["plans"])
+    _print_data_pinned(doc["plans"])
+    _print_noise_levels(doc["plans"])
+    _print_cameras(doc["plans"])
+    _print_checks(doc["checks"])
+    print(f"elapsed {doc['elapsed_s']:.0f} s, {doc['date']}")
+
+
+def _print_errors(plans: dict[str, Any]) -> None:
+    """Per plan and method, per combination: RMS error / mean std / image prediction / prediction (mm)."""
+    from ._accuracy_report import COMBINATIONS, METHODS
 
     print(f"{'plan':<12} {'motion':>7} {'method':<13} " + " ".join(f"{c:>27}" for c in COMBINATIONS))
     print(f"{'':<12} {'min':>7} {'':<13} " + " ".join(f"{'rms / std / pred_img / pred':>27}" for _ in COMBINATIONS))
-    for name, p in doc["plans"].items():
+    for name, p in plans.items():
         for m in METHODS:
             s = p["summary"]["methods"][m]
             pr = p["predicted_std_m"].get(m, {})
             pri = p.get("predicted_images_std_m", {}).get(m, {})
             cells = [
-                f"{mm(s['rms_error_m'][c])}/{mm(s['mean_std_m'][c])}/{mm(pri.get(c))}/{mm(pr.get(c))}"
+                f"{_mm(s['rms_error_m'][c])}/{_mm(s['mean_std_m'][c])}/{_mm(pri.get(c))}/{_mm(pr.get(c))}"
                 for c in COMBINATIONS
             ]
             print(
@@ -696,7 +730,13 @@ def print_table(doc: dict[str, Any]) -> None:
                 + " ".join(f"{x:>27}" for x in cells)
                 + f"  ({s['n_ok']} ok)"
             )
-    for name, p in doc["plans"].items():
+
+
+def _print_data_pinned(plans: dict[str, Any]) -> None:
+    """The trials left out of the data-pinned statistics (:func:`_data_pinned`), per plan and method."""
+    from ._accuracy_report import COMBINATIONS
+
+    for name, p in plans.items():
         dp = p.get("data_pinned") or {}
         for m, e in dp.items():
             if e.get("n_a_priori_fallback") or e.get("n_unpinned"):
@@ -704,12 +744,16 @@ def print_table(doc: dict[str, Any]) -> None:
                     f"{name}: {m} fell back to its a priori values in {e['n_a_priori_fallback']} trial(s), its data "
                     f"left a direction to the a priori tolerance in {e['n_unpinned']}; over the other "
                     f"{e['n_trials']}: rms "
-                    + ", ".join(mm(e["rms_error_m"][c]) for c in COMBINATIONS)
+                    + ", ".join(_mm(e["rms_error_m"][c]) for c in COMBINATIONS)
                     + " mm; std "
-                    + ", ".join(mm(e["mean_std_m"][c]) for c in COMBINATIONS)
+                    + ", ".join(_mm(e["mean_std_m"][c]) for c in COMBINATIONS)
                     + " mm"
                 )
-    for name, p in doc["plans"].items():
+
+
+def _print_noise_levels(plans: dict[str, Any]) -> None:
+    """The noise levels the methods measured, mean per plan."""
+    for name, p in plans.items():
         levels = {m: e.get("noise_levels_mean") for m, e in (p.get("data_pinned") or {}).items()}
         text = "; ".join(
             f"{m} " + ", ".join(f"{k} {v:.2f}" for k, v in lv.items() if v is not None)
@@ -718,7 +762,11 @@ def print_table(doc: dict[str, Any]) -> None:
         )
         if text:
             print(f"{name}: noise levels measured (mean): {text}")
-    for name, p in doc["plans"].items():
+
+
+def _print_cameras(plans: dict[str, Any]) -> None:
+    """The rods' refined camera against its covariance (:func:`camera_refined_summary`), per plan."""
+    for name, p in plans.items():
         cam = camera_refined_summary(p.get("trials") or [])
         if cam:
             print(
@@ -728,8 +776,12 @@ def print_table(doc: dict[str, Any]) -> None:
                 + ", ".join(f"{v:.2f}" for v in cam["principal_z2_mean"])
                 + f" (each 1 when it holds, +/- {cam['expected_se']:.2f})"
             )
-    print("checks:", doc["checks"].get("designed12_combined_not_worse_than_paper20"))
-    for key, v in doc["checks"].items():
+
+
+def _print_checks(checks: dict[str, Any]) -> None:
+    """The checks of :func:`_checks`: not worse than the paper's 20 poses, then the counts within."""
+    print("checks:", checks.get("designed12_combined_not_worse_than_paper20"))
+    for key, v in checks.items():
         if key.endswith("_not_worse_than_paper20") and key != "designed12_combined_not_worse_than_paper20":
             print(f"checks: {key}:", v)
     for key, what in (
@@ -737,8 +789,8 @@ def print_table(doc: dict[str, Any]) -> None:
         ("reported_std_within_30pct", "the methods' mean reported std"),
         ("reported_std_within_30pct_of_spread", "the methods' mean reported std"),
     ):
-        _print_within(doc["checks"].get(key), what)
-    per = doc["checks"].get("prediction_within_30pct_per_method")
+        _print_within(checks.get(key), what)
+    per = checks.get("prediction_within_30pct_per_method")
     if per and per["n"]:
         rs = [r["ratio"] for pm in per["ratios"].values() for r in pm.values() if r]
         print(
@@ -748,7 +800,6 @@ def print_table(doc: dict[str, Any]) -> None:
         for o in per["outside"]:
             lo, hi = o["interval90"]
             print(f"  {o['plan']} {o['method']}: {o['ratio']:.2f} ({lo:.2f}-{hi:.2f})")
-    print(f"elapsed {doc['elapsed_s']:.0f} s, {doc['date']}")
 
 
 def _print_within(within: dict[str, Any] | None, what: str) -> None:

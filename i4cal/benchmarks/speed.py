@@ -464,10 +464,13 @@ async def modbus_round_trips(reads: int = 1000, step: Step = _no_step) -> dict[s
     from pymodbus.client import AsyncModbusTcpClient
 
     from drivers.config import open_actuators
+    from drivers.modbus import ModbusActuators
     from drivers.sim.bench import SimBench, fast_axis_config
 
     out: dict[str, list[float]] = {"raw": [], "driver": [], "status": []}
     async with SimBench(port=0, axis_config=fast_axis_config(), renderer=ConstantRenderer(), rtu=False) as b:
+        if b.tcp_address is None:
+            raise I4calError("the simulated controller serves no TCP port")
         host, port = b.tcp_address
         client = AsyncModbusTcpClient(host, port=port, timeout=1.0)
         if not await client.connect():
@@ -484,6 +487,8 @@ async def modbus_round_trips(reads: int = 1000, step: Step = _no_step) -> dict[s
         finally:
             client.close()
         act = open_actuators(b.bench_config())
+        if not isinstance(act, ModbusActuators):
+            raise I4calError(f"the simulated bench's actuators are no Modbus driver: {type(act).__name__}")
         await act.connect()
         try:
             for k in range(reads):

@@ -9,6 +9,7 @@ import tarfile
 import tempfile
 import zipfile
 import zlib
+from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path, PurePosixPath
 from typing import IO, Annotated
@@ -143,74 +144,107 @@ def unpack_archive(
         It declares or unpacks to more than ``room_bytes``.
     """
     dest.mkdir(parents=True, exist_ok=False)
-    root = dest.resolve()
-    budget = [max_bytes]
-    room = None if room_bytes is None else [room_bytes]
+    out = _Unpacking(dest.resolve(), [max_bytes], None if room_bytes is None else [room_bytes])
+    if zipfile.is_zipfile(archive):
+        _unpack_zip(archive, out, max_bytes, max_members)
+    else:
+        _unpack_tar(archive, out, max_bytes, max_members)
 
-    def target(rel: PurePosixPath) -> Path:
-        t = (root / rel).resolve()
-        if root not in t.parents:
+
+@dataclass
+class _Unpacking:
+    """Where an archive unpacks (``root``, resolved) and what is left of its byte budget and of the disk's room (one
+    element lists, counted down as the chunks are written; ``room`` None: no room limit)."""
+
+    root: Path
+    budget: list[int]
+    room: list[int] | None
+
+    def target(self, rel: PurePosixPath) -> Path:
+        """The file a member's relative path unpacks to (its directory made); raises if it escapes ``root``."""
+        t = (self.root / rel).resolve()
+        if self.root not in t.parents:
             raise ArchiveError(f"archive member {str(rel)[:80]!r} escapes the data directory")
         t.parent.mkdir(parents=True, exist_ok=True)
         return t
 
-    src: IO[bytes] | None  # a member's stream (a tar member that is no regular file has none)
-    if zipfile.is_zipfile(archive):
-        try:
-            zf = zipfile.ZipFile(archive)
-        except (zipfile.BadZipFile, OSError, EOFError, ValueError) as exc:
-            raise ArchiveError(f"broken zip archive ({exc})") from None
-        with zf:
-            infos = zf.infolist()
-            if len(infos) > max_members:
-                raise ArchiveError(f"archive has {len(infos)} members, more than {max_members}")
-            files: list[tuple[zipfile.ZipInfo, PurePosixPath]] = []
-            for info in infos:
-                mode = (info.external_attr >> 16) & 0o170000
-                if mode and mode not in (0o100000, 0o040000):
-                    raise ArchiveError(f"archive member {info.filename[:80]!r} is not a regular file")
-                rel = _safe_member(info.filename)
-                if rel is not None and not info.is_dir():
-                    files.append((info, rel))
-            total = sum(info.file_size for info, _ in files)
-            if total > max_bytes:
-                raise _too_large(total, max_bytes, max(files, key=lambda f: f[0].file_size)[0].filename)
-            if room is not None and total > room[0]:
-                raise RoomExceededError(max(files, key=lambda f: f[0].file_size)[0].filename)
-            for info, rel in files:
-                try:
-                    with zf.open(info) as src:
-                        _copy_limited(src, target(rel), budget, info.filename, room)
-                except ArchiveError:
-                    raise
-                except (zipfile.BadZipFile, zlib.error, EOFError, OSError, NotImplementedError, RuntimeError) as exc:
-                    raise ArchiveError(
-                        f"archive member {info.filename[:80]!r} is corrupt or unreadable ({exc})"
-                    ) from None
-        return
+    def copy(self, src: IO[bytes], rel: PurePosixPath, member: str) -> None:
+        """Copy one member's stream to its target, within the budget and the room."""
+        _copy_limited(src, self.target(rel), self.budget, member, self.room)
+
+
+def _zip_files(infos: list[zipfile.ZipInfo]) -> list[tuple[zipfile.ZipInfo, PurePosixPath]]:
+    """The zip's regular files with their safe relative paths; raises on any other type or unsafe name."""
+    files: list[tuple[zipfile.ZipInfo, PurePosixPath]] = []
+    for info in infos:
+        mode = (info.external_attr >> 16) & 0o170000
+        if mode and mode not in (0o100000, 0o040000):
+            raise ArchiveError(f"archive member {info.filename[:80]!r} is not a regular file")
+        rel = _safe_member(info.filename)
+        if rel is not None and not info.is_dir():
+            files.append((info, rel))
+    return files
+
+
+def _unpack_zip(archive: Path, out: _Unpacking, max_bytes: int, max_members: int) -> None:
+    """:func:`unpack_archive` for a zip: every member checked from the central directory, then copied."""
+    try:
+        zf = zipfile.ZipFile(archive)
+    except (zipfile.BadZipFile, OSError, EOFError, ValueError) as exc:
+        raise ArchiveError(f"broken zip archive ({exc})") from None
+    with zf:
+        infos = zf.infolist()
+        if len(infos) > max_members:
+            raise ArchiveError(f"archive has {len(infos)} members, more than {max_members}")
+        files = _zip_files(infos)
+        total = sum(info.file_size for info, _ in files)
+        if total > max_bytes:
+            raise _too_large(total, max_bytes, max(files, key=lambda f: f[0].file_size)[0].filename)
+        if out.room is not None and total > out.room[0]:
+            raise RoomExceededError(max(files, key=lambda f: f[0].file_size)[0].filename)
+        for info, rel in files:
+            try:
+                with zf.open(info) as src:
+                    out.copy(src, rel, info.filename)
+            except ArchiveError:
+                raise
+            except (zipfile.BadZipFile, zlib.error, EOFError, OSError, NotImplementedError, RuntimeError) as exc:
+                raise ArchiveError(f"archive member {info.filename[:80]!r} is corrupt or unreadable ({exc})") from None
+
+
+def _tar_files(
+    tf: tarfile.TarFile, out: _Unpacking, max_bytes: int, max_members: int
+) -> list[tuple[tarfile.TarInfo, PurePosixPath]]:
+    """The tar's regular files with their safe relative paths, from the headers only: names, types, declared sizes
+    (stops as soon as a limit is passed)."""
+    members: list[tuple[tarfile.TarInfo, PurePosixPath]] = []
+    total = 0
+    for n, m in enumerate(tf, start=1):
+        if n > max_members:
+            raise ArchiveError(f"archive has more than {max_members} members")
+        rel = _safe_member(m.name)
+        if m.isdir() or rel is None:
+            continue
+        if not m.isfile():
+            raise ArchiveError(f"archive member {m.name[:80]!r} is not a regular file (link or device)")
+        total += m.size
+        if total > max_bytes:
+            raise _too_large(total, max_bytes, m.name)
+        if out.room is not None and total > out.room[0]:
+            raise RoomExceededError(m.name)
+        members.append((m, rel))
+    return members
+
+
+def _unpack_tar(archive: Path, out: _Unpacking, max_bytes: int, max_members: int) -> None:
+    """:func:`unpack_archive` for a tar(.gz): a first pass over the headers, then the members copied."""
     try:
         tf = tarfile.open(archive, mode="r:*")  # noqa: SIM115 (closed by the with below)
     except (tarfile.TarError, OSError, EOFError, zlib.error) as exc:
         raise ArchiveError(f"not a zip or tar archive ({exc})") from None
     with tf:
-        members: list[tuple[tarfile.TarInfo, PurePosixPath]] = []
-        total = 0
         try:
-            # first pass, headers only: names, types, declared sizes (stops as soon as the limit is passed)
-            for n, m in enumerate(tf, start=1):
-                if n > max_members:
-                    raise ArchiveError(f"archive has more than {max_members} members")
-                rel = _safe_member(m.name)
-                if m.isdir() or rel is None:
-                    continue
-                if not m.isfile():
-                    raise ArchiveError(f"archive member {m.name[:80]!r} is not a regular file (link or device)")
-                total += m.size
-                if total > max_bytes:
-                    raise _too_large(total, max_bytes, m.name)
-                if room is not None and total > room[0]:
-                    raise RoomExceededError(m.name)
-                members.append((m, rel))
+            members = _tar_files(tf, out, max_bytes, max_members)
         except (tarfile.TarError, EOFError, OSError, zlib.error) as exc:
             raise ArchiveError(f"broken archive ({exc})") from None
         for m, rel in members:
@@ -219,7 +253,7 @@ def unpack_archive(
                 if src is None:
                     continue
                 with src:
-                    _copy_limited(src, target(rel), budget, m.name, room)
+                    out.copy(src, rel, m.name)
             except ArchiveError:
                 raise
             except (tarfile.TarError, EOFError, OSError, zlib.error) as exc:

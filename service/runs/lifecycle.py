@@ -127,11 +127,6 @@ class Remaining:
             return E.CALIBRATE
         return E.FINISH
 
-    @property
-    def moves(self) -> bool:
-        """Whether the run will command the actuators (only the acquisition does)."""
-        return self.acquire
-
 
 def remaining_stages(
     *,

@@ -4,11 +4,13 @@ import numpy as np
 import pytest
 
 from calib.baseframe import base_frame_from_observations
-from calib.bound import MeasurementNoise, crlb_combined, ml_combined
+from calib.bound import MeasurementNoise, crlb_combined
 from calib.methods import calibrate_combined
 from calib.observations import Observations
 from calib.parameters import COMBINATION_NAMES
 from drivers.sim.twin import GeometricTwin, NoiseSpec
+
+from ._ml_estimator import ml_combined
 
 K = 0.1  # small noise: the ML estimator is efficient there
 TWIN_NOISE = NoiseSpec(5e-4 * K, 0.0, 3e-4 * K, (1e-4 * K, 1e-4 * K, 3e-4 * K), 0.0)

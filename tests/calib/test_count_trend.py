@@ -77,9 +77,9 @@ def test_trend_rejects_bad_input_naming_it(args, match):
 
 
 def test_design_goes_past_the_count_search_when_the_trend_says_more_poses_meet_the_target(scene, noise):
-    """The count search stops at ``n_max``; a target that 28 designed poses meet used to be reported "not met" with
-    16. Now the trend of the prediction (at 8 and 16 poses, refitted at the counts it gives) picks a larger count,
-    and the plan's own prediction meets the target there."""
+    """The count search stops at ``n_max``, yet a target that 28 designed poses meet is not reported "not met" with
+    16: the trend of the prediction (at 8 and 16 poses, refitted at the counts it gives) picks a larger count, and
+    the plan's own prediction meets the target there."""
     target = predict_plan(
         design_plan(NOMINAL, scene, replace(BASE, n_fit=28), noise=noise).plan, NOMINAL, scene, noise, ("combined",)
     ).std["combined"]

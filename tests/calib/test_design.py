@@ -436,7 +436,7 @@ def test_image_noise_rejects_bad_levels():
 
 
 def test_designed_12_beats_the_paper_20_on_images(scene):
-    """Issue 15's target, as predicted on images (the image-level twin's camera, its calibration from 30 views): the
+    """The design's target, as predicted on images (the image-level twin's camera, its calibration from 30 views): the
     plan designed with 12 fit poses gives the combined method a std no larger than the paper's 20-pose plan for
     each of the four combinations, and takes less motion time."""
     from service.design import twin_image_noise
@@ -454,11 +454,11 @@ def test_designed_12_beats_the_paper_20_on_images(scene):
 
 def test_target_met_is_judged_on_the_plans_prediction(scene):
     """``target_met`` says what the plan's prediction says. The exchange ranks poses by their information without the
-    rods' correlations; on images the plan's prediction (the method's own uncertainty) is larger. The target used to
-    be judged on the exchange's information: for 0.05 mm on the image-level twin the design returned 43 fit poses,
-    "target met", and a predicted combined L std of 0.058 mm. Now the count is chosen again, the exchange's targets
-    tightened by the prediction's miss, until the prediction meets the target or the count reaches its maximum (and
-    beyond it as far as the trend of the prediction over the count says: ``tests/calib/test_count_trend.py``)."""
+    rods' correlations; on images the plan's prediction (the method's own uncertainty) is larger, so a target judged on
+    the exchange's information alone would be "met" by a plan whose prediction misses it. The count is chosen again, the
+    exchange's targets tightened by the prediction's miss, until the prediction meets the target or the count reaches
+    its maximum (and beyond it as far as the trend of the prediction over the count says:
+    ``tests/calib/test_count_trend.py``)."""
     from service.design import twin_image_noise
 
     noise = twin_image_noise()
@@ -537,9 +537,9 @@ def test_legs_prediction_carries_the_methods_chi_square_levels(rendered, scene):
 
 def test_image_prediction_of_a_plan_with_a_leg_seen_through_its_second_rod_only(scene):
     """A fit pose where one leg's first rod is out of the measured set (too short in the image) and its second is
-    measured: the legs method uses the one rod (``_pair_means``), and so must its prediction. It used to fill the
-    missing rod with a zero direction, which flipped the measured one to zero in the intrinsics' effect: the legs
-    prediction then raised on non-finite residuals."""
+    measured: the legs method uses the one rod (``_pair_means``), and so must its prediction: a missing rod filled with
+    a zero direction would zero the measured one in the intrinsics' effect and the prediction would raise on
+    non-finite residuals."""
     from calib.design import ImageNoise, synthetic_rods
 
     q_odd = np.array([-0.1105, 0.2272, -0.0996, 0.2438])  # leg 1: rod 1 measured, rod 0 not

@@ -1,5 +1,5 @@
 """The design prediction's board-corner noise follows the squares' angle to the pixel axes, as the rendered twin's
-corners do (issue 15).
+corners do.
 
 Sub-pixel ChArUco corners whose square edges run along the pixel rows and columns are about three times noisier
 than those of a view turned by 20 degrees or more (the edge's pixel phase is the same all along it). The prediction

@@ -1,5 +1,5 @@
 """The vectorised ``synthetic_rods`` (every rod of every frame at once) and the batched direction covariance give the
-per-rod implementation's results to rounding, on the simulated bench's scene, in a fraction of its time (issue 15)."""
+per-rod implementation's results to rounding, on the simulated bench's scene, in a fraction of its time."""
 
 from __future__ import annotations
 
@@ -39,7 +39,7 @@ def _synthetic_rods_reference(
     min_length_px: float = 40.0,
     edge_bias_length_px: float = 100.0,
 ) -> RodSet:
-    """The per-rod ``synthetic_rods`` before vectorisation (commit 595fbcc), verbatim, with ``cov_u_own`` (the
+    """The per-rod ``synthetic_rods`` (one rod at a time, the vectorised one's reference), with ``cov_u_own`` (the
     allowance averaged over ``edge_bias_length_px``) added: the reference."""
     q = np.atleast_2d(np.asarray(q, dtype=np.float64))
     if not (np.isfinite(edge_px) and edge_px > 0):
@@ -89,7 +89,7 @@ def _synthetic_rods_reference(
             npts.append(m)
         cmid = 0.5 * (fits[0][0] + fits[1][0])
         inner = Kinv @ np.append(cmid, 1.0)
-        # since 2026-11-27 the point is the axis point seen at the limbs' image middle, as the extraction reports it
+        # the point is the axis point seen at the limbs' image middle, as the extraction reports it
         ray = inner / np.linalg.norm(inner)
         w = u - (u @ ray) * ray
         P = P - ((P @ w) / float(w @ w)) * u
@@ -243,9 +243,9 @@ def test_synthetic_rods_drop_the_rods_around_the_camera_like_the_per_rod_one(sce
 def test_synthetic_rods_report_the_point_seen_at_the_limbs_middle(scene, poses):
     """Each rod's ``point`` is the axis point seen at the middle of its visible limbs, where the extraction reports
     it (``calib.vision.rods.measure``): the legs method pivots each limb line's noise about that point's foot
-    (``limb_line_noise``). Before 2026-11-27 it was the 3-D middle of the visible axis samples, which perspective
-    puts off the image middle (on the simulated bench's lock phases by about 12% of the span, where extracted rods
-    are within 2%), and the prediction weighed the lock planes 1.6-1.9x the method's."""
+    (``limb_line_noise``). The 3-D middle of the visible axis samples would not do: perspective puts it off the
+    image middle (on the simulated bench's lock phases by about 12% of the span, where extracted rods are within
+    2%), and the prediction would weigh the lock planes 1.6-1.9x the method's."""
     rods = synthetic_rods(scene, NOMINAL, poses[:40], 0.08)
     K = scene.camera.K
     x = rods.point @ K.T

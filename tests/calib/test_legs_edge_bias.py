@@ -1,12 +1,11 @@
 """The legs method against rods rendered with a known limb-edge offset.
 
-The legs method cannot tell a limb-edge bias common to every rod apart from its joints and the rod radius: it used to
-carry it as an allowance only (0.1 px per limb in its std), and its estimate moved with the bias (on the twin about
--0.7 mm of L per +0.1 px; the twin's own rods, whose edges the extraction places 0.00-0.04 px outward and whose depth
-the shading tilts by about 5 mrad, gave L a -1.3 mm bias over the lens sweep's trials). It now corrects every rod by
-the bias the combined fit measures on the same rods (``calib.methods.edge_bias``), with that measurement's covariance
-in its std. The same dataset (seed, truth, camera phase) rendered with every silhouette widened by -0.25 and +0.25 px
-(``RenderSettings.rod_edge_offset_px``) must then give the same combinations within their reported std.
+The legs method cannot tell a limb-edge bias common to every rod apart from its joints and the rod radius: as an
+allowance only (0.1 px per limb in its std) its estimate would move with the bias (on the twin about -0.7 mm of L per
++0.1 px). It corrects every rod by the bias the combined fit measures on the same rods (``calib.methods.edge_bias``),
+with that measurement's covariance in its std. The same dataset (seed, truth, camera phase) rendered with every
+silhouette widened by -0.25 and +0.25 px (``RenderSettings.rod_edge_offset_px``) must then give the same combinations
+within their reported std.
 """
 
 from __future__ import annotations

@@ -1,14 +1,13 @@
-"""The legs method never does worse than doing nothing (issue 13).
+"""The legs method never does worse than doing nothing.
 
-Reproduced on the geometric twin: on the default seed-0 rendered dataset one rod of leg 2 was taken for another
-edge in every lock-2 frame, its joint landed ~60 mm off, and the legs method was 10 mm off on S-q02/2 with a std of
-3.7 mm and a validation gap worse than the a priori one. Here every lock-2 observation of that rod is moved by the
-same 40 mm (a consistently wrong rod image; the twin's rods carry no ``h``, so step 1 intersects their lines).
+The case: one rod of leg 2 taken for another edge in every lock-2 frame puts its joint tens of mm off; without its prior
+the legs method is then several mm off on S-q02/2, with a validation gap worse than the a priori one. Here, on the
+geometric twin, every lock-2 observation of that rod is moved by the same 40 mm (a consistently wrong rod image; the
+twin's rods carry no ``h``, so step 1 intersects their lines).
 
-Checked: the rod-pair check finds leg 2 (its two joints disagree with the other legs' spacing), the result warns
-and names the direction the data cannot pin, its errors lie within 3 of its standard deviations (they were
-up to 4 of them before), and the validation gap is below the a priori one; on clean data (every direction
-pinned) the prior changes nothing.
+Checked: the rod-pair check finds leg 2 (its two joints disagree with the other legs' spacing), the result warns and
+names the direction the data cannot pin, its errors lie within 3 of its standard deviations, and the validation gap is
+below the a priori one; on clean data (every direction pinned) the prior changes nothing.
 """
 
 from __future__ import annotations

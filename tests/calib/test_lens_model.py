@@ -1,4 +1,4 @@
-"""The calibration's lens model chosen by the data (issue 13), on synthetic ChArUco corners.
+"""The calibration's lens model chosen by the data, on synthetic ChArUco corners.
 
 Board corners are projected through a known lens with ``cv2``'s model (``CameraModel.project``) plus seeded
 0.1 px noise, from views that reach the image's corners (only the inner corners need be in view) or, as the

@@ -1,4 +1,4 @@
-"""Plan size bounds and finite numbers (issue 12, findings 4 and 6b): refused with an InputError naming the step and
+"""Plan size bounds and finite numbers: refused with an InputError naming the step and
 the field, before any kinematics; the vectorised validation reports the same first error as a step-by-step check."""
 
 from __future__ import annotations

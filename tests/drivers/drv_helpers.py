@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
-from drivers.modbus import ModbusActuators
+from drivers.axes import AxisSettings
+from drivers.modbus import ModbusActuators, ModbusLinkSettings
 from drivers.sim.bench import SimBench
 from drivers.sim.mechanism import AxisConfig
 
@@ -39,4 +42,16 @@ def make_modbus(bench: SimBench, transport: str = "tcp", **kw) -> ModbusActuator
         move_timeout_margin_s=0.5,
     )
     opts.update(kw)
-    return ModbusActuators(**opts)
+    return modbus_actuators(**opts)
+
+
+def modbus_actuators(**kw) -> ModbusActuators:
+    """A Modbus driver from flat keywords: each one goes to the settings object that has the field
+    (:class:`ModbusLinkSettings` or :class:`AxisSettings`); the rest (limits, nominal, workspace_check, safety) to
+    the driver."""
+    link_fields = {f.name for f in dataclasses.fields(ModbusLinkSettings)}
+    axis_fields = {f.name for f in dataclasses.fields(AxisSettings)}
+    link = ModbusLinkSettings(**{k: v for k, v in kw.items() if k in link_fields})
+    axes = AxisSettings(**{k: v for k, v in kw.items() if k in axis_fields})
+    rest = {k: v for k, v in kw.items() if k not in link_fields and k not in axis_fields}
+    return ModbusActuators(link, axes, **rest)

@@ -30,7 +30,7 @@ import pytest
 from drv_helpers import make_modbus
 
 from drivers.errors import DeviceError
-from drivers.modbus import ModbusActuators, ModbusLink
+from drivers.modbus import ModbusActuators, ModbusLink, ModbusLinkSettings
 from drivers.sim.faultproxy import FaultProxy, SerialGateway, cancel_and_wait
 
 Q_A = np.array([0.40, 0.41, 0.42, 0.43])
@@ -274,7 +274,9 @@ async def test_a_duplicate_never_answers_a_later_request_of_the_same_shape():
     comes while nothing is asked, and is discarded."""
     device = ScriptedRtuDevice(reply_after_s={3: 0.015}, duplicate_after_s={1: 0.006})
     host, port = await device.start()
-    link = ModbusLink(transport="rtu-tcp", host=host, port=port, timeout_s=0.5, retries=0, flush_s=0.05)
+    link = ModbusLink(
+        ModbusLinkSettings(transport="rtu-tcp", host=host, port=port, timeout_s=0.5, retries=0, flush_s=0.05)
+    )
     try:
         got = [await link.read(1, 5, 4), await link.read(1, 4, 5), await link.read(1, 5, 4)]
     finally:
@@ -303,7 +305,7 @@ async def test_a_gateway_hands_a_late_reply_to_the_next_request_with_its_transac
     line = await device.start()
     gateway = SerialGateway(line, client_framing="tcp", line_timeout_s=0.05, route="requester")
     host, port = await gateway.start()
-    link = ModbusLink(transport="tcp", host=host, port=port, timeout_s=0.1, retries=3)
+    link = ModbusLink(ModbusLinkSettings(transport="tcp", host=host, port=port, timeout_s=0.1, retries=3))
     wrong = []
     try:
         await link.open()
@@ -329,7 +331,7 @@ async def test_an_rtu_duplicate_50_ms_late_never_answers_a_later_read():
         reply_after_s={}, duplicate_after_s={k: 0.04 for k in range(1, 200)}, default_after_s=0.015
     )
     host, port = await device.start()
-    link = ModbusLink(transport="rtu-tcp", host=host, port=port, timeout_s=0.2, retries=2)
+    link = ModbusLink(ModbusLinkSettings(transport="rtu-tcp", host=host, port=port, timeout_s=0.2, retries=2))
     wrong = []
     try:
         t0 = time.monotonic()

@@ -25,7 +25,7 @@ from drivers.config import BenchConfig, open_actuators, open_camera, open_operat
 from drivers.errors import AlarmError, DeviceError, LimitError, ProtocolError, StopNotConfirmedError
 from drivers.interfaces import Actuators, AxisStatus
 from drivers.links import Command
-from drivers.modbus import ModbusActuators, ModbusLink
+from drivers.modbus import ModbusActuators, ModbusLink, ModbusLinkSettings
 from drivers.serial_ascii import SerialAsciiActuators, SerialAsciiLink
 
 
@@ -222,7 +222,7 @@ async def test_free_drives_are_refused_a_move():
 
 def test_both_drivers_are_the_controller_over_a_link():
     """Composed, not inherited: the ASCII driver is no Modbus driver; both are the one controller."""
-    mb = ModbusActuators(port=1)
+    mb = ModbusActuators(ModbusLinkSettings(port=1))
     sa = SerialAsciiActuators("socket://127.0.0.1:1", speed_m_s=0.1, backoff_s=0.05)
     assert isinstance(mb, AxisController) and isinstance(mb.link, ModbusLink) and mb.n_axes == 4
     assert isinstance(sa, AxisController) and isinstance(sa.link, SerialAsciiLink) and sa.n_axes == 4

@@ -10,8 +10,9 @@ import pytest
 from drv_helpers import FAST, TinyRenderer, make_modbus
 
 from calib.parameters import NOMINAL
+from drivers.axes import AxisSettings
 from drivers.errors import AlarmError, DeviceConnectionError, DeviceTimeoutError, LimitError, ProtocolError
-from drivers.modbus import ModbusActuators
+from drivers.modbus import ModbusActuators, ModbusLinkSettings
 from drivers.registermap import AxisAddress, RegisterMap
 from drivers.sim.bench import SimBench
 from drivers.sim.faultproxy import FaultProxy
@@ -87,7 +88,8 @@ async def test_late_reply_never_answers_another_request(bench):
     host, port = await proxy.start()
     try:
         act = ModbusActuators(
-            host=host, port=port, timeout_s=0.1, retries=2, backoff_s=0.01, poll_s=0.001, speed_m_s=2.0, accel_m_s2=40.0
+            ModbusLinkSettings(host=host, port=port, timeout_s=0.1, retries=2, backoff_s=0.01),
+            AxisSettings(poll_s=0.001, speed_m_s=2.0, accel_m_s2=40.0),
         )
         async with act:
             await act.home(timeout_s=5)
@@ -210,14 +212,8 @@ async def test_other_register_map():
     async with SimBench(port=0, axis_config=FAST, renderer=TinyRenderer(), regmap=m, rtu=False) as b:
         host, port = b.tcp_address
         act = ModbusActuators(
-            host=host,
-            port=port,
-            regmap=m,
-            speed_m_s=2.0,
-            accel_m_s2=40.0,
-            timeout_s=0.2,
-            poll_s=0.001,
-            in_position_m=1e-6,
+            ModbusLinkSettings(host=host, port=port, regmap=m, timeout_s=0.2),
+            AxisSettings(speed_m_s=2.0, accel_m_s2=40.0, poll_s=0.001, in_position_m=1e-6),
         )
         async with act:
             await act.home(timeout_s=5)

@@ -22,7 +22,7 @@ import time
 
 import numpy as np
 import pytest
-from drv_helpers import FAST, TinyRenderer
+from drv_helpers import FAST, TinyRenderer, modbus_actuators
 from test_acquisition import small_plan
 from test_link_faults import PtyToTcp
 
@@ -30,9 +30,10 @@ from calib.dataset import Dataset
 from calib.parameters import NOMINAL
 from calib.plan import Plan
 from drivers.acquisition import Acquisition, AcquisitionError
+from drivers.axes import AxisSettings
 from drivers.config import open_camera
 from drivers.links import SafetySettings
-from drivers.modbus import ModbusActuators
+from drivers.modbus import ModbusActuators, ModbusLinkSettings
 from drivers.registermap import RegisterMap
 from drivers.sim.bench import SimBench
 from drivers.sim.controller import FreezeFront, Request
@@ -111,7 +112,7 @@ async def run_frozen(
         stop_deadline_s=0.3,
         safety=SafetySettings(stop_persist_s=6 * FREEZE_S),
     )
-    act = ModbusActuators(
+    act = modbus_actuators(
         transport="tcp" if transport == "gateway" else transport,
         **where,
         regmap=m,
@@ -208,7 +209,10 @@ async def lossy_move(what: str) -> dict:
     front = FreezeFront(bench.controller, bench.tcp_address, framing="tcp")
     host, port = await front.start()
     m = RegisterMap()
-    act = ModbusActuators(host=host, port=port, speed_m_s=0.5, accel_m_s2=40.0, timeout_s=0.05, retries=2, poll_s=0.002)
+    act = ModbusActuators(
+        ModbusLinkSettings(host=host, port=port, timeout_s=0.05, retries=2),
+        AxisSettings(speed_m_s=0.5, accel_m_s2=40.0, poll_s=0.002),
+    )
     try:
         await act.connect()
         await act.home(timeout_s=5)

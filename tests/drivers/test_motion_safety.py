@@ -1,4 +1,4 @@
-"""Motion safety of the Modbus driver and the simulated controller (issue 12: findings 5, 8, 9, cancellation).
+"""Motion safety of the Modbus driver and the simulated controller: limits, stops, cancellation.
 
 Real parts: the simulated controller is a pymodbus server on loopback; the wire is checked byte for byte
 with a raw socket where a third-party client's strictness matters (the FC6 echo).

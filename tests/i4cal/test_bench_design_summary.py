@@ -1,9 +1,9 @@
 """``i4cal bench design``'s summary of the trials whose estimate came from the data.
 
 The legs method returns its a priori values (with their tolerance as std and a warning) when its data contradict
-them; a plan's predicted std is for runs whose data pin the estimate. Such a trial used to be averaged into the RMS
-error the prediction is compared with: one of 50 (error 2.9 mm, std 4.7 mm) moved the designed plan's legs
-S-(q04-q03)/2 RMS from 0.49 to 0.64 mm. It is now left out of ``data_pinned`` and counted.
+them; a plan's predicted std is for runs whose data pin the estimate. Averaged into the RMS error the prediction is
+compared with, one such trial in 50 (error 2.9 mm, std 4.7 mm) moves a legs combination's RMS by a third; it is
+left out of ``data_pinned`` and counted.
 """
 
 import numpy as np

@@ -1,6 +1,6 @@
 """The dashboard and the API docs under their Content-Security-Policy in a real headless chromium (no CSP bypass):
 nothing is refused, the pages work; the dashboard shows a run's UTC creation time in the browser's time zone
-(Europe/Paris here), named (issue 12, finding 11: it was shown one hour off).
+(Europe/Paris here), named, not one hour off.
 
 Needs ``chromium`` and the ``playwright`` package (as test_dashboard.py); skipped without them."""
 

@@ -4,8 +4,8 @@ frames are all on disk.
 
 The kills are exact: ``I4CAL_CRASH_AT`` (:mod:`service.failpoints`) makes the process SIGKILL itself right after a
 transition is committed (``state:queued``, ``state:acquiring``, ``state:extracting``, ``state:calibrating``) or right
-after the last frame is written (``stage:acquired``, the moment issue 12's finding 1 was about); one more kill is sent
-from outside at an arbitrary moment of the acquisition (mid-motion). The simulated bench (real Modbus server on
+after the last frame is written (``stage:acquired``: every frame on disk, the run not yet extracting); one more kill is
+sent from outside at an arbitrary moment of the acquisition (mid-motion). The simulated bench (real Modbus server on
 loopback, image-level twin) lives in the test's process and counts every motion its axes start.
 """
 

@@ -1,4 +1,4 @@
-"""``i4cal demo`` is reproducible at a seed (issue 13): the same dataset (encoders, images), observations and
+"""``i4cal demo`` is reproducible at a seed: the same dataset (encoders, images), observations and
 tables on two runs.
 
 The full path runs for real: a Modbus server on loopback driven by the Modbus driver, the simulated operator

@@ -1,4 +1,4 @@
-"""Durability (issue 12): SQLite commits with ``synchronous=FULL`` (WAL), and every rename-based writer flushes the
+"""Durability: SQLite commits with ``synchronous=FULL`` (WAL), and every rename-based writer flushes the
 directory after its rename. A power cut cannot be made here: the directory flush is observed by recording which
 files and directories ``os.fsync`` is called on, and in which order with the renames (the real calls still run)."""
 

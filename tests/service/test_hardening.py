@@ -1,4 +1,4 @@
-"""Service hardening (issue 12, findings 4, 6, 10; input bounds, security headers, Host allow-list), over real HTTP
+"""Service hardening (input bounds, archive unpacking, security headers, Host allow-list), over real HTTP
 against the service (uvicorn on loopback) and its simulated bench."""
 
 from __future__ import annotations

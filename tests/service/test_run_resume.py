@@ -21,7 +21,7 @@ async def _until_done_at_least(c, rid: str, n: int) -> None:
 
 
 async def test_refused_resume_leaves_the_run_as_it_was(tmp_path, sim):
-    """Issue 12, finding 3: a resume answered 409 (the bench is held by another run) left the run 'queued' forever."""
+    """A resume answered 409 (the bench is held by another run) leaves the run as it was, never 'queued' forever."""
     settings = make_settings(tmp_path, sim, plan_sizes={"n_fit": 30}, bench_overrides=HELD_GRAB)
     camera = hold_camera(sim)
     camera.hold_at_pose(4)  # the run waits on its fourth pose's frame while the service stops
@@ -66,8 +66,8 @@ async def test_refused_resume_leaves_the_run_as_it_was(tmp_path, sim):
 
 
 async def test_failed_run_resumes_from_its_last_good_pose(tmp_path, sim):
-    """Issue 12, finding 7: a run failed on a device fault said "resume the run to continue from this pose" and could
-    not be resumed. Now it resumes at the failed pose: every pose recorded once, in the plan's order."""
+    """A run failed on a device fault, which says "resume the run to continue from this pose", resumes at the failed
+    pose: every pose recorded once, in the plan's order."""
     # a short grab timeout: the silent camera fails the run after two of them (the grab and its retry)
     settings = make_settings(tmp_path, sim, plan_sizes={"n_fit": 12}, bench_overrides={"camera": {"timeout_s": 1.0}})
     camera = hold_camera(sim)

@@ -1,4 +1,4 @@
-"""Timestamps are timezone-aware UTC everywhere (issue 12, finding 11): the database layer gives back aware UTC
+"""Timestamps are timezone-aware UTC everywhere: the database layer gives back aware UTC
 datetimes on SQLite (which has no time zones) and on PostgreSQL (whose timestamptz comes back in the session's zone,
 here a server set to New York), the API's JSON and the Server-Sent Events write them with ``Z``."""
 

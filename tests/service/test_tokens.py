@@ -1,4 +1,4 @@
-"""Bearer tokens (issue 12, Tokens): ``i4cal token create [--expires-in|--expires-at]``, ``list``, ``revoke``; an
+"""Bearer tokens: ``i4cal token create [--expires-in|--expires-at]``, ``list``, ``revoke``; an
 expired or revoked token gets 401, ``token_hashes`` of the configuration keep working. The command line runs in this
 process (``service.cli.main``) on the service's data directory; the service is real (uvicorn on loopback)."""
 

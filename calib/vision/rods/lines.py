@@ -11,17 +11,10 @@ Array = NDArray[np.float64]
 
 
 # ---------------------------------------------------------------------------------------------
-def _fit_line_tls(pts: Array, w: Array | None = None) -> Array:
-    """Total least squares line (a, b, c), a^2 + b^2 = 1, of points (N, 2) with optional weights.
-
-    The normal is the minor axis of the (weighted) scatter matrix, in closed form for 2x2.
-    """
-    a, b, c = _tls(pts, w)
-    return np.array([a, b, c])
-
-
 def _tls(q: Array, w: Array | None = None) -> tuple[float, float, float]:
-    """:func:`_fit_line_tls` as three floats (the normal (a, b) and c), for the inner loops."""
+    """Total least squares line of points ``q`` (N, 2) with optional weights ``w`` (N,): the normal (a, b),
+    a^2 + b^2 = 1, and c, as three floats for the inner loops. The normal is the minor axis of the (weighted) scatter
+    matrix, in closed form for 2x2."""
     if w is None:
         m = q.sum(0) / q.shape[0]
         d = q - m

@@ -1,4 +1,4 @@
-"""Bit-reproducibility (issue 13): the same rendered dataset gives the same images, and ``i4cal extract`` the same
+"""Bit-reproducibility: the same rendered dataset gives the same images, and ``i4cal extract`` the same
 observations bytes, whatever the worker count and from one process to the next.
 
 Each extraction runs in its own ``i4cal extract`` process: OpenCV's multi-threaded ``calibrateCameraRO`` gave an

@@ -59,7 +59,7 @@ def test_rendered_dataset_calibrates(tmp_path):
     d_cal, d_ref = vec(it.camera) - true_vec, vec(res.camera) - true_vec
     m_cal, m_ref = (float(np.sqrt(d @ np.linalg.solve(cov, d))) for d in (d_cal, d_ref))
     print(f"intrinsics off the truth: calibrated {m_cal:.2f} std, refined by the rods {m_ref:.2f} std")
-    # k3 is a nuisance of the refinement since this camera phase's views reach ~60% of the corner radius (issue 13):
+    # k3 is a nuisance of the refinement since this camera phase's views reach ~60% of the corner radius:
     # the rods share their information on k1, k2 with it (measured: 2.25 -> 1.52 std over the eight; with k3
     # fixed at its true 0 it was 2.27 -> 0.52)
     assert m_ref < m_cal
