@@ -58,10 +58,12 @@ def model_ratios(combos: np.ndarray, q: np.ndarray) -> np.ndarray:
     combos : ndarray, shape (4,)
         ``(L, H-D, S-q02/2, S-(q04-q03)/2)`` in metres.
     q : ndarray, shape (N, 4)
+        Encoder values, m.
 
     Returns
     -------
     ndarray, shape (N, 4, 2)
+        Per pose and leg, ``(u_y/u_x, u_z/u_x)`` (dimensionless).
     """
     c = combos[1]
     Y, Z, f1, f3 = pose_from_joints_reduced(combos, q)
@@ -86,7 +88,7 @@ def pose_set_model(params: I4Parameters, q: np.ndarray) -> PoseSetModel:
 
 
 def ratio_gradient(u: np.ndarray) -> np.ndarray:
-    """d(u_y/u_x, u_z/u_x)/du, shape (M, 2, 3)."""
+    """The Jacobian entries' derivatives in the directions ``u`` (M, 3): d(u_y/u_x, u_z/u_x)/du, shape (M, 2, 3)."""
     ux, uy, uz = u[:, 0], u[:, 1], u[:, 2]
     G = np.zeros((u.shape[0], 2, 3))
     G[:, 0, 0] = -uy / ux**2
@@ -328,6 +330,18 @@ def combined_rods(obs: Observations, base_frame: BaseFrameResult | None, cfg: Co
     (:mod:`.intrinsics`). Their error is common to every rod, so it does not average out; the rods also carry
     information on it, which the joint fit uses.
 
+    Parameters
+    ----------
+    obs : Observations
+    base_frame : BaseFrameResult or None
+        Computed from ``obs`` when None.
+    cfg : CombinedSettings
+
+    Returns
+    -------
+    _Rods
+        M rods (directions in the camera frame, unit), their poses and legs.
+
     Raises
     ------
     IdentifiabilityError
@@ -365,7 +379,21 @@ def combined_rods(obs: Observations, base_frame: BaseFrameResult | None, cfg: Co
 def gate_rods(rods: _Rods, x0: np.ndarray, on_iteration: IterationCallback | None) -> list[dict[str, int]]:
     """Outlier rods (a limb taken for another edge): a first fit, then every rod whose whitened residual is beyond the
     chi-square(2) 99.9% quantile of a robust noise scale is dropped and the fit repeated, until none is (at most 5
-    rounds). ``rods`` keeps the others; returns the dropped ones (frame, leg 1-4, rod)."""
+    rounds). ``rods`` keeps the others.
+
+    Parameters
+    ----------
+    rods : _Rods
+        Updated in place (its problem's rods and covariances).
+    x0 : ndarray, shape (4 + nz,)
+        Start: the combinations (m), then the nuisance unknowns (units of their std).
+    on_iteration : callable, optional
+
+    Returns
+    -------
+    list of dict
+        The dropped rods: ``frame``, ``leg`` (1-4), ``rod`` (0-1).
+    """
     prob, data = rods.prob, rods.data
     rejected: list[dict[str, int]] = []
     gate: tuple[np.ndarray, float] | None = None  # the previous round's solution and noise level: the next starts there
@@ -678,7 +706,8 @@ def _joint_covariance(
 
 
 class RodIntrinsicsModel:
-    """How the measured rods and the base frame move with the camera's intrinsics.
+    """How the measured rods and the base frame move with the camera's intrinsics (the combined method's nuisance
+    model; experiment design predicts with it).
 
     The intrinsics are ``camera + steps^T z`` (``steps`` (n, 8): one standard deviation along each
     principal direction of their covariance, :mod:`.intrinsics`; z the nuisance unknowns, prior

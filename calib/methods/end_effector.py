@@ -87,6 +87,31 @@ def pose_set_model(params: I4Parameters, q: np.ndarray) -> PoseSetModel:
 
 
 class EndEffectorModel:
+    """The end-effector method's model: per board pose, the IKM's four joint residuals (m) and the pose's two tilt
+    residuals (rad) as a function of the 16 unknowns ``x`` (:data:`_NAMES`: the four combinations, two joint
+    offsets, the camera's rotation (3, rad) and y, z position (m), the board's tilt on the end-effector (2, rad) and
+    its offset (2, m), the board's scale).
+
+    Parameters
+    ----------
+    R, t : ndarray, shape (N, 3, 3), (N, 3)
+        The board poses in the camera (rotation; position, m).
+    q : ndarray, shape (N, 4)
+        Encoder values, m.
+    T_per_rad : float
+        The end-effector's T per radian of rotation, m/rad.
+    R_bc0 : ndarray, shape (3, 3)
+        The camera-to-base rotation the camera's rotation unknowns refine.
+    t_bc_x : float
+        The camera's x position in the base frame (held: a gauge freedom), m.
+    R_eb0 : ndarray, shape (3, 3)
+        The board-to-end-effector rotation the tilt unknowns refine.
+    t_eb_z : float
+        The board's height on the end-effector (held), m.
+    theta_ref : ndarray, shape (N,)
+        Reference rotation angles (rad) that pick each pose's turn.
+    """
+
     def __init__(
         self,
         R: np.ndarray,
@@ -105,7 +130,21 @@ class EndEffectorModel:
         self.R_eb0, self.t_eb_z = R_eb0, t_eb_z
         self.theta_ref = theta_ref
 
-    def ee_poses(self, x: np.ndarray, R: np.ndarray | None = None, t: np.ndarray | None = None):
+    def jacobian(self, x: np.ndarray, h: float = 1e-7) -> np.ndarray:
+        """d residuals / d x, shape (N, 6, 16), by central differences of step ``h``."""
+        n = self.R.shape[0]
+        return central_jacobian(lambda v: self.residuals(v).ravel(), x, h).reshape(n, 6, -1)
+
+    def pose_sensitivity(self, x: np.ndarray, h: float = 1e-7) -> np.ndarray:
+        """d residuals_k / d (board pose error_k), shape (N, 6, 6): rotation (left, camera frame; rad) then
+        translation (m)."""
+        return _pose_sensitivity(self, x, h)
+
+    def ee_poses(
+        self, x: np.ndarray, R: np.ndarray | None = None, t: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The end-effector poses the board poses give: positions (N, 3), m, rotation angles (N,), rad, tilts (N, 2),
+        rad."""
         R = self.R if R is None else R
         t = self.t if t is None else t
         R_bc = rotvec_to_matrix(x[6:9]) @ self.R_bc0
@@ -121,7 +160,8 @@ class EndEffectorModel:
         return p, theta, tilt
 
     def residuals(self, x: np.ndarray, R: np.ndarray | None = None, t: np.ndarray | None = None) -> np.ndarray:
-        """Per pose (N, 6): 4 IKM residuals (m), 2 tilt residuals (rad)."""
+        """Per pose (N, 6): 4 IKM residuals (m), 2 tilt residuals (rad), for the unknowns ``x`` (16,) and the board
+        poses ``R``, ``t`` (default: the model's)."""
         L, c, s1, s3, o1, o3 = x[:6]
         p, theta, tilt = self.ee_poses(x, R, t)
         X, Y, Z = p.T

@@ -223,16 +223,7 @@ def fit_end_effector(
     est = mechanism.from_vector(v_hat, reference=p0)
 
     # what these data leave unidentified, at the estimate (the fit's subspace was chosen at the start point)
-    col_hat = np.linalg.norm(J_hat, axis=0)
-    D_hat = np.where(col_hat > 0, 1.0 / np.where(col_hat > 0, col_hat, 1.0), 0.0)
-    _, s_hat, Vt_hat = np.linalg.svd(J_hat * D_hat, full_matrices=False)
-    rank_hat = int(np.sum(s_hat > rank_rtol * s_hat[0]))
-    null = D_hat[:, None] * Vt_hat[rank_hat:].T
-    norms = np.linalg.norm(null, axis=0)
-    null_unit = null / np.where(norms > 0, norms, 1.0)
-    for j in range(null_unit.shape[1]):  # sign: largest component positive
-        if null_unit[np.argmax(np.abs(null_unit[:, j])), j] < 0:
-            null_unit[:, j] *= -1
+    rank_hat, null_unit = _null_directions(J_hat, rank_rtol)
     ident = {n: bool(np.all(np.abs(null_unit[k]) < 1e-6)) for k, n in enumerate(names)}
     std_v = np.sqrt(np.clip(np.diag(cov_v), 0.0, None))
     comb_names = mechanism.combination_names
@@ -266,6 +257,22 @@ def fit_end_effector(
         nfev=int(sol.nfev),
         converged=True,
     )
+
+
+def _null_directions(J: Array, rank_rtol: float) -> tuple[int, Array]:
+    """The rank of the column-scaled Jacobian ``J`` (M, P) and its null directions as unit columns (P, P - rank), each
+    signed so that its largest component is positive."""
+    col = np.linalg.norm(J, axis=0)
+    D = np.where(col > 0, 1.0 / np.where(col > 0, col, 1.0), 0.0)
+    _, s, Vt = np.linalg.svd(J * D, full_matrices=False)
+    rank = int(np.sum(s > rank_rtol * s[0]))
+    null = D[:, None] * Vt[rank:].T
+    norms = np.linalg.norm(null, axis=0)
+    null_unit = null / np.where(norms > 0, norms, 1.0)
+    for j in range(null_unit.shape[1]):  # sign: largest component positive
+        if null_unit[np.argmax(np.abs(null_unit[:, j])), j] < 0:
+            null_unit[:, j] *= -1
+    return rank, null_unit
 
 
 __all__ = ["GenericEndEffectorResult", "fit_end_effector"]

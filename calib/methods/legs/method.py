@@ -363,7 +363,19 @@ def lock_phases(obs: Observations) -> LockPhases:
 
 
 def plane_observations(obs: Observations, lock: LockPhases) -> list[list[list[PlaneObservation]]] | None:
-    """Every lock-phase rod's frames as plane observations ([4][2] lists), or None when a rod lacks its planes."""
+    """Every lock-phase rod's frames as plane observations.
+
+    Parameters
+    ----------
+    obs : Observations
+    lock : LockPhases
+
+    Returns
+    -------
+    list of list of list of PlaneObservation, or None
+        Per lock phase and rod ([4][2]), its frames' planes (normals in the camera frame, the rod radius in m); None
+        when a rod's frame lacks them (``h`` or a point).
+    """
     planes = [[_plane_observations(obs, lock.data[i], i, j) for j in range(2)] for i in range(4)]
     if not all(p is not None for row in planes for p in row):
         return None
@@ -405,7 +417,20 @@ def locate_joints(lock: LockPhases, planes: list[list[list[PlaneObservation]]] |
 
 
 def fit_directions(obs: Observations, data: PhaseArrays, direction_std_rad: float | None) -> FitDirections:
-    """The fit poses' leg directions and their covariances (:func:`.pipeline.leg_directions`)."""
+    """The fit poses' leg directions and their covariances (:func:`.pipeline.leg_directions`).
+
+    Parameters
+    ----------
+    obs : Observations
+    data : PhaseArrays
+        The fit poses (N frames).
+    direction_std_rad : float or None
+        Rod direction noise (rad) for rods without ``cov_u``; None: relative (scaled by the residuals).
+
+    Returns
+    -------
+    FitDirections
+    """
     U, CU, pts, has_leg, measured, rejected, C_rods = leg_directions(obs, data, direction_std_rad)
     return FitDirections(data, U, CU, pts, has_leg, measured, rejected, C_rods)
 
@@ -535,7 +560,22 @@ def directions_part(
 ) -> DirectionsPart:
     """The fit poses' leg directions' part: the GLS covariance of (L, S, D) scaled by the chi-square, or, with the rods'
     own errors (``cov_u_own``), those through the fit's gain at the level the chi-square shows beyond what they and
-    the joints' make it expect (never below 1: both are absolute)."""
+    the joints' make it expect (never below 1: both are absolute).
+
+    Parameters
+    ----------
+    obs : Observations
+    fit : RepairedFit
+    est : SevenFit
+    dirs : FitDirections
+    direction_std_rad : float or None
+        Known rod direction noise (rad) for rods without ``cov_u`` (then the scale is 1).
+
+    Returns
+    -------
+    DirectionsPart
+        Its covariance (7, 7), m^2, in the (L, S, D) block.
+    """
     c34, chi34, dof34 = steps34_covariance(fit.model, fit.P, fit.U, est.seven)
     s2_raw = chi34 / dof34 if dof34 > 0 else 1.0
     s2 = 1.0 if (not dirs.measured and direction_std_rad is not None) else s2_raw

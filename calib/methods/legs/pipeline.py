@@ -60,7 +60,14 @@ def _step2_gram_jacobian(x: np.ndarray) -> np.ndarray:
 
 
 def fit_step2(V: np.ndarray, x0: np.ndarray, on_iteration: IterationCallback | None = None) -> np.ndarray:
-    """(q02, q03, q04, H) from V (3, 3) rows OA2, OA3, OA4 at zero encoder (eq. 9)."""
+    """Step 2 (eq. 9): (q02, q03, q04, H), m, shape (4,), from ``V`` (3, 3), rows OA2, OA3, OA4 at zero encoder (m),
+    starting at ``x0`` (4,), m.
+
+    Raises
+    ------
+    ConvergenceError
+        The least-squares fit did not converge.
+    """
     G = V @ V.T
     meas = np.array([G[a, b] for a, b in _PAIRS])
     fun, jac = traced_jac(lambda x: _step2_gram(x) - meas, _step2_gram_jacobian, on_iteration, "step 2")
@@ -88,7 +95,25 @@ def _gls_pair(u: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray, flo
 
 
 class LegsModel:
-    """Steps 2-4 as a function of the joint points (step 1 output) and the fit-pose leg directions."""
+    """The legs method's model: steps 2-4 as a function of the joint points (step 1's output) and the fit poses' leg
+    directions, with the residuals of steps 3-4's equations, their Jacobian in (L, S, D) and their covariance from
+    the leg directions' (what the fit weighs by and experiment design predicts with).
+
+    Parameters
+    ----------
+    q_lock : ndarray, shape (4,)
+        Each lock phase's locked actuator value, m.
+    q_fit : ndarray, shape (N, 4)
+        The fit poses' actuator values, m.
+    rod_p : ndarray, shape (N, 4, 3)
+        A point on each leg's rods, camera frame, m (NaN where none; orients the directions).
+    has_leg : ndarray of bool, shape (N, 4)
+        The legs seen in each fit pose.
+    cov_leg : ndarray, shape (N, 4, 3, 3)
+        Each leg direction's covariance, rad^2 (or relative).
+    nominal : I4Parameters
+        The a priori geometry (the fits' start and the axes' orientation).
+    """
 
     def __init__(
         self,
@@ -416,7 +441,8 @@ def leg_directions(
 
 
 def gate_poses(pipe: LegsModel, P: np.ndarray, U: np.ndarray, seven: np.ndarray) -> np.ndarray:
-    """Poses (bool, (N,)) whose whitened equations exceed their chi-square 99.9% quantile (robust scale)."""
+    """Poses (bool, (N,)) whose whitened equations exceed their chi-square 99.9% quantile (robust scale), for joints
+    ``P`` (4, 2, 3), m, leg directions ``U`` (N, 4, 3) and the estimate ``seven`` (7,), PARAMETER_NAMES order, m."""
     Aq, Uo, y = pipe.geometry(P, U)
     d2 = np.sum(pipe.whitened(seven[[6, 4, 5]], Aq, Uo, y) ** 2, axis=1)
     m = pipe.mask.sum(axis=1)
@@ -432,7 +458,8 @@ def gate_poses(pipe: LegsModel, P: np.ndarray, U: np.ndarray, seven: np.ndarray)
 def steps34_covariance(
     pipe: LegsModel, P: np.ndarray, U: np.ndarray, seven: np.ndarray
 ) -> tuple[np.ndarray, float, int]:
-    """GLS covariance (3, 3) of (L, S, D) for unit-scaled weights, the chi-square and its dof."""
+    """GLS covariance (3, 3) of (L, S, D), m^2, for unit-scaled weights, the chi-square and its dof, for joints ``P``
+    (4, 2, 3), m, leg directions ``U`` (N, 4, 3) and the estimate ``seven`` (7,), PARAMETER_NAMES order, m."""
     Aq, Uo, y = pipe.geometry(P, U)
     theta = seven[[6, 4, 5]]
     J = central_jacobian(lambda t: pipe.whitened(t, Aq, Uo, y).ravel(), theta, h=1e-7)
