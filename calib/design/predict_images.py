@@ -417,7 +417,7 @@ def _rod_error_covariance(
         shapes.append(rc.distance_shape(rays, float(np.sqrt(K[0, 0] * K[1, 1])), g, pairs))
         rho.append(noise.rod_distance_correlation)
     if shapes:
-        r = rc._positive_definite(own, shapes, np.asarray(rho))
+        r = rc.positive_definite(own, shapes, np.asarray(rho))
         own = own + sum(rj * Sj for rj, Sj in zip(r, shapes, strict=True))
     return noise.rod_scale**2 * own
 
