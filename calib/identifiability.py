@@ -1,7 +1,8 @@
 """Identifiability analysis: numerical rank of a method's identification Jacobian over the seven parameters.
 
-The Jacobian of the method's measurement model with respect to (H, q02, q03, q04, S, D, L) is computed
-numerically at a parameter set and pose set; nuisance parameters of the method (camera and board
+The Jacobian of the method's measurement model (its :class:`calib.methods.model.PoseSetModel`, read through the
+registry: :func:`calib.methods.registry.method_identifiability`) with respect to (H, q02, q03, q04, S, D, L) is
+computed numerically at a parameter set and pose set; nuisance parameters of the method (camera and board
 transforms) are projected out. Its singular values give the rank and the condition number; the row
 space, brought to reduced row-echelon form with the column order (L, D, q02, q04, H, S, q03), gives
 the identifiable combinations in a readable form. For the combined and end-effector methods on a
@@ -14,10 +15,9 @@ from collections.abc import Callable
 
 import numpy as np
 
-from .kinematics import base_from_ee, dkm, ikm, jacobian_ratios, joint_points, leg_directions
+from .kinematics import ikm
 from .numdiff import central_jacobian
 from .parameters import PARAMETER_NAMES, I4Parameters
-from .transforms import rotvec_to_matrix
 
 _ORDER = ("L", "D", "q02", "q04", "H", "S", "q03")
 _KNOWN = {
@@ -28,55 +28,28 @@ _KNOWN = {
 }
 
 
-def _params(v: np.ndarray, ref: I4Parameters) -> I4Parameters:
-    return I4Parameters.from_vector(v, T_per_rad=ref.T_per_rad)
-
-
-def combined_model(params: I4Parameters, q: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
-    """Jacobian entries (eq. 4) predicted from encoder values, as a function of the seven parameters."""
-
-    def f(v: np.ndarray) -> np.ndarray:
-        p = _params(v, params)
-        return jacobian_ratios(leg_directions(p, dkm(p, q))).ravel()
-
-    return f
-
-
-def end_effector_model(params: I4Parameters, q: np.ndarray) -> tuple[Callable, int]:
-    """Board poses predicted from encoders through the DKM, with 12 nuisance transform parameters."""
-
-    def f(v: np.ndarray) -> np.ndarray:
-        p = _params(v[:7], params)
-        pose = dkm(p, q)
-        Rc = rotvec_to_matrix(v[7:10])
-        tc = v[10:13]
-        Rb = rotvec_to_matrix(v[13:16])
-        tb = v[16:19]
-        Re, pe = base_from_ee(p, pose)
-        Rk = Rc @ Re @ Rb
-        tk = (Rc @ (np.einsum("nij,j->ni", Re, tb) + pe).T).T + tc
-        return np.concatenate([(Rk.reshape(len(q), -1)) * 1.0, tk], axis=1).ravel()
-
-    return f, 12
-
-
-def legs_model(params: I4Parameters, q: np.ndarray) -> tuple[Callable, int]:
-    """Joint centres A_i, B_i in the camera frame (what the rods determine), with 6 camera nuisances."""
-
-    def f(v: np.ndarray) -> np.ndarray:
-        p = _params(v[:7], params)
-        pose = dkm(p, q)
-        A, B = joint_points(p, q, pose)
-        R = rotvec_to_matrix(v[7:10])
-        return (np.concatenate([A, B], axis=1) @ R.T + v[10:13]).ravel()
-
-    return f, 6
-
-
 def analyse(
     fun: Callable[[np.ndarray], np.ndarray], params: I4Parameters, n_nuisance: int = 0, rel_tol: float = 1e-7
 ) -> dict:
-    """Rank, singular values, condition number and identifiable combinations of a measurement model."""
+    """Rank, singular values, condition number and identifiable combinations of a measurement model.
+
+    Parameters
+    ----------
+    fun : callable
+        ``fun(x) -> (M,)``: the measurements predicted for ``x`` (7 + n_nuisance,), the seven parameters (m) first.
+    params : I4Parameters
+        The linearisation point.
+    n_nuisance : int
+        Nuisance unknowns after the seven (projected out).
+    rel_tol : float
+        Singular values below ``rel_tol`` times the largest count as zero.
+
+    Returns
+    -------
+    dict
+        ``rank``, ``singular_values``, ``condition_number``, ``identifiable_combinations`` (readable),
+        ``paper_combinations_in_row_space``, ``finds_paper_four``, ``non_identifiable_directions``.
+    """
     x0 = np.concatenate([np.asarray(params.vector()), np.zeros(n_nuisance)])
     J = central_jacobian(fun, x0, 1e-6)
     J7 = J[:, :7]

@@ -12,9 +12,8 @@ import numpy as np
 
 from .baseframe import BaseFrameResult, base_frame_from_observations
 from .errors import I4calError
-from .methods.edge_bias import MeasuredEdgeBias
+from .methods.combined_measurements import CombinedMeasurements
 from .methods.iterations import IterationCallback
-from .methods.measured_intrinsics import MeasuredIntrinsics
 from .methods.registry import MethodContext, get_method, method_identifiability, method_names
 from .methods.result import MethodResult
 from .observations import LEG_KEYS, Observations, Rod
@@ -104,8 +103,8 @@ def calibrate(
         try:
             res = run_method(name, obs, bf, on_iteration=_tag(on_iteration, name), context=shared)
         except I4calError as exc:
-            if name == "combined":
-                shared = dataclasses.replace(shared, limb_edge_bias_tried=True)
+            if name == "combined":  # tried: the later methods do not run it again
+                shared = dataclasses.replace(shared, combined=CombinedMeasurements())
             if strict:
                 raise
             out["methods"][name] = {
@@ -119,13 +118,8 @@ def calibrate(
             if progress:
                 progress(name, "failed")
             continue
-        if name == "combined":
-            shared = dataclasses.replace(
-                shared,
-                limb_edge_bias=MeasuredEdgeBias.from_result(res),
-                limb_edge_bias_tried=True,
-                intrinsics=MeasuredIntrinsics.from_result(res),
-            )
+        if name == "combined":  # its measurements, passed forward to the methods that carry them (legs)
+            shared = dataclasses.replace(shared, combined=CombinedMeasurements.from_result(res))
         entry = res.to_dict()
         entry["time_s"] = time.perf_counter() - t0
         full = res.full_parameters(nominal)

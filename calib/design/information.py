@@ -55,7 +55,7 @@ def end_effector_problem(nominal: I4Parameters, q_fit: np.ndarray, scene: Scene)
     """The end-effector method's residual model at the nominal geometry for fit poses ``q_fit`` (N, 4), m, seen by
     ``scene``: ``(model, x0, R, t)``, the model, its unknowns at nominal (the four combinations first), and the
     board poses in the camera (N, 3, 3), (N, 3), m."""
-    from ..methods.end_effector import _Model
+    from ..methods.end_effector import EndEffectorModel
 
     q_fit = np.asarray(q_fit, dtype=np.float64).reshape(-1, 4)
     pose = dkm(nominal, q_fit)
@@ -64,7 +64,9 @@ def end_effector_problem(nominal: I4Parameters, q_fit: np.ndarray, scene: Scene)
     t = np.stack([c.t for c in cbs])
     bc = scene.camera_from_base.inverse()
     eb = scene.ee_from_board
-    model = _Model(R, t, q_fit, nominal.T_per_rad, bc.R, bc.t[0], eb.R, eb.t[2], pose[:, 3] / nominal.T_per_rad)
+    model = EndEffectorModel(
+        R, t, q_fit, nominal.T_per_rad, bc.R, bc.t[0], eb.R, eb.t[2], pose[:, 3] / nominal.T_per_rad
+    )
     combos = [nominal.combinations()[k] for k in COMBINATION_NAMES]
     x0 = np.array(
         [

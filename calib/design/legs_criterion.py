@@ -56,8 +56,7 @@ class LegsCriterion:
     """
 
     def __init__(self, nominal: I4Parameters, q_lock: list[np.ndarray], scene: Scene, noise: ImageNoise) -> None:
-        from ..methods.legs import _LegsPipeline, joint_depth_systematic
-        from ..methods.legs.pipeline import _step2
+        from ..methods.legs import LegsModel, fit_step2, joint_depth_systematic
 
         self.nominal, self.scene, self.noise = nominal, scene, noise
         lk = legs_lock_joints(nominal, q_lock, scene, noise)
@@ -70,7 +69,7 @@ class LegsCriterion:
         self.sigma_P = sigma  # (24, 24) m^2
         self.dir_scale = noise.legs_directions_chi2 * noise.legs_rod_cov_ratio
         x0 = np.array([nominal.q02, nominal.q03, nominal.q04, nominal.H])
-        pipe = _LegsPipeline(
+        pipe = LegsModel(
             self.q_locked,
             np.zeros((1, 4)),
             np.full((1, 4, 3), np.nan),
@@ -81,7 +80,7 @@ class LegsCriterion:
 
         def step2(p: np.ndarray) -> np.ndarray:
             _x, A0, _ = pipe.frame(p.reshape(4, 2, 3))
-            q02, q03, q04, H = _step2(A0[1:] - A0[0], x0)
+            q02, q03, q04, H = fit_step2(A0[1:] - A0[0], x0)
             return np.array([H, q02, q03, q04])
 
         self.G2 = central_jacobian(step2, self.P.ravel(), _STEP_M)  # (4, 24): (H, q02, q03, q04) per joint coordinate
@@ -90,7 +89,7 @@ class LegsCriterion:
     def pose_statistics(self, q: np.ndarray) -> np.ndarray:
         """Per fit pose (N, 3, 30) the additive statistic ``[J^T C^-1 J | J^T C^-1 C_own C^-1 J | J^T C^-1 R]`` (see the
         module); zero for a pose without the four legs in view."""
-        from ..methods.legs import _LegsPipeline, _pair_own_covariances
+        from ..methods.legs import LegsModel, pair_own_covariances
 
         q = np.asarray(q, dtype=np.float64).reshape(-1, 4)
         out = np.zeros((len(q), 3, _WIDTH))
@@ -100,15 +99,15 @@ class LegsCriterion:
         ok = fd.has_leg.all(axis=1)
         if not ok.any():
             return out
-        CU_own = np.nan_to_num(_pair_own_covariances(fd.u, fd.has, fd.cov_u, fd.cov_u_own))[ok]
-        pipe = _LegsPipeline(self.q_locked, q[ok], fd.pts[ok], fd.has_leg[ok], fd.CU[ok], self.nominal)
+        CU_own = np.nan_to_num(pair_own_covariances(fd.u, fd.has, fd.cov_u, fd.cov_u_own))[ok]
+        pipe = LegsModel(self.q_locked, q[ok], fd.pts[ok], fd.has_leg[ok], fd.CU[ok], self.nominal)
         nom = self.nominal
         theta = np.array([nom.L, nom.S, nom.D])
         U = fd.U[ok]
         Aq, Uo, y = pipe.geometry(self.P, U)
         J = pipe.jacobian(theta, Aq, Uo, y)  # (n, 4, 3)
         Ci = np.linalg.inv(pipe.covariances(theta, Aq, Uo, y))  # (n, 4, 4): the fit's weights (``cov_u``)
-        own = _LegsPipeline(self.q_locked, q[ok], fd.pts[ok], fd.has_leg[ok], CU_own, self.nominal)
+        own = LegsModel(self.q_locked, q[ok], fd.pts[ok], fd.has_leg[ok], CU_own, self.nominal)
         C_own = own.covariances(theta, Aq, Uo, y)  # (n, 4, 4): the directions' own errors (``cov_u_own``)
         # the orientation of each leg direction as at the nominal joints, so that a moved joint does not flip it
         sgn = np.sign(np.einsum("nij,nij->ni", Uo, U))[..., None]

@@ -205,7 +205,7 @@ def _combined_rods(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per rod observation (2 per leg and pose): Jacobian (M, 2, 7) of eq. 8's raw residuals over
     (combinations, w), their relative noise covariance (M, 2, 2) for unit direction noise, pose index (M,)."""
-    from ..methods.combined import _ratio_grad, model_ratios
+    from ..methods.combined import model_ratios, ratio_gradient
 
     q_fit = np.asarray(q_fit, dtype=np.float64).reshape(-1, 4)
     R0 = np.asarray(camera_from_base_R, dtype=np.float64)
@@ -227,7 +227,7 @@ def _combined_rods(
     x0 = np.concatenate([xi0, np.zeros(3)])
     J = central_jacobian(raw, x0, 1e-7).reshape(-1, 2, 7)
     ub = u_cam @ R0
-    G = _ratio_grad(ub)
+    G = ratio_gradient(ub)
     P = np.eye(3)[None] - ub[:, :, None] * ub[:, None, :]
     S = np.einsum("mij,mjk,mlk->mil", G, P, G)
     return J, S, k_idx
@@ -339,7 +339,7 @@ def predict_legs(
     q_lock : list of 4 ndarrays, shape (N_i, 4)
         Frames of the ``lock-1`` .. ``lock-4`` phases (actuator i fixed), metres.
     """
-    from ..methods.legs import _LegsPipeline, _steps34_covariance
+    from ..methods.legs import LegsModel, steps34_covariance
 
     noise = noise or DesignNoise()
     if len(q_lock) != 4 or any(len(np.atleast_2d(q)) < 2 for q in q_lock):
@@ -366,11 +366,11 @@ def predict_legs(
     U = unit(u.mean(axis=2))  # (N, 4, 3)
     CU = (su2 / 2.0) * (np.eye(3)[None, None] - U[..., :, None] * U[..., None, :])
     pts = 0.5 * (top + bot).mean(axis=2)
-    pipe = _LegsPipeline(q_locked, q_fit, pts, np.ones((len(q_fit), 4), dtype=bool), CU, nominal)
+    pipe = LegsModel(q_locked, q_fit, pts, np.ones((len(q_fit), 4), dtype=bool), CU, nominal)
     seven = pipe.run(P, U)
     x2 = np.array([*seven[1:4].tolist(), seven[0]])
     GP = central_jacobian(lambda p: pipe.run(p.reshape(4, 2, 3), U, x2), P.ravel(), 1e-7)  # (7, 24)
-    c34, _chi, _dof = _steps34_covariance(pipe, P, U, seven)
+    c34, _chi, _dof = steps34_covariance(pipe, P, U, seven)
     cov7 = GP @ covP @ GP.T
     idx = np.array([6, 4, 5])
     cov7[np.ix_(idx, idx)] += c34

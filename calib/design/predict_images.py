@@ -20,9 +20,9 @@ taken from a run):
 * **legs**: step 1's joints from the lock phases' plane equations weighted by their limb lines' variances
   (:func:`calib.methods.legs.limb_line_noise`, the method's own weighting), propagated through steps 2-4; the GLS
   covariance of (L, S, D) from the fit poses' leg directions (two rods' ``cov_u`` combined); the intrinsics'
-  posterior and the edge biases redone through the whole estimate (the method's ``_IntrinsicsEffect``); then the
-  a priori tolerance (``legs_prior_std_m``, the method's ``_with_prior``), and the a priori values with that
-  tolerance along the three directions the four combinations do not see (the method's ``_null_space_to_prior``:
+  posterior and the edge biases redone through the whole estimate (the method's ``IntrinsicsEffect``); then the
+  a priori tolerance (``legs_prior_std_m``, the method's ``with_prior``), and the a priori values with that
+  tolerance along the three directions the four combinations do not see (the method's ``null_space_to_prior``:
   the seven's std, not the four's). The method scales its parts by their
   residual chi-square per degree of freedom, never below 1: the prediction uses 1.
 
@@ -359,7 +359,7 @@ def _combined_terms(
     covariance (M, 2, 2) and the pose index (M,). ``drop``: rods left out, (fit pose index, leg 0-3, rod 0-1).
     ``correlated``: also the rods' whole error covariance (2M, 2M) with the method's correlations between rods
     (:func:`_rod_error_covariance`), else None."""
-    from ..methods.combined import _IntrinsicsModel, _ratio_grad, model_ratios
+    from ..methods.combined import RodIntrinsicsModel, model_ratios, ratio_gradient
 
     q_fit = np.asarray(q_fit, dtype=np.float64).reshape(-1, 4)
     R0 = scene.camera_from_base.R
@@ -373,7 +373,7 @@ def _combined_terms(
     if len(rods) == 0:
         return np.zeros((0, 2, 9 + steps.shape[0])), np.zeros((0, 2, 2)), np.zeros(0, dtype=int), None
     cam = design_camera(scene.camera, noise.intrinsics_names)
-    im = _IntrinsicsModel(cam, steps, rods.limbs_px, rods.h, G, None, noise.edge_bias_prior_px)
+    im = RodIntrinsicsModel(cam, steps, rods.limbs_px, rods.h, G, None, noise.edge_bias_prior_px)
     nz = steps.shape[0] + im.n_edge
     xi0 = np.array([nominal.combinations()[k] for k in COMBINATION_NAMES])
 
@@ -387,7 +387,7 @@ def _combined_terms(
     x0 = np.concatenate([xi0, np.zeros(3 + nz)])
     J = central_jacobian(raw, x0, 1e-7).reshape(len(rods), 2, -1)
     uB = rods.u @ R0
-    Gr = _ratio_grad(uB)
+    Gr = ratio_gradient(uB)
     P = np.einsum("ji,mjk,kl->mil", R0, rods.cov_u_own, R0)  # as the method weighs its rods
     shape = np.einsum("mij,mjk,mlk->mil", Gr, P, Gr)
     S = noise.rod_scale**2 * shape
@@ -417,7 +417,7 @@ def _rod_error_covariance(
         shapes.append(rc.distance_shape(rays, float(np.sqrt(K[0, 0] * K[1, 1])), g, pairs))
         rho.append(noise.rod_distance_correlation)
     if shapes:
-        r = rc._positive_definite(own, shapes, np.asarray(rho))
+        r = rc.positive_definite(own, shapes, np.asarray(rho))
         own = own + sum(rj * Sj for rj, Sj in zip(r, shapes, strict=True))
     return noise.rod_scale**2 * own
 
@@ -648,7 +648,7 @@ class LegsFitDirections:
 
 def legs_fit_directions(nominal: I4Parameters, q_fit: np.ndarray, scene: Scene, noise: ImageNoise) -> LegsFitDirections:
     """The leg directions of the fit poses ``q_fit`` (N, 4) (actuator values, metres), :class:`LegsFitDirections`."""
-    from ..methods.legs import _pair_means
+    from ..methods.legs import pair_means
 
     q_fit = np.asarray(q_fit, dtype=np.float64).reshape(-1, 4)
     N = len(q_fit)
@@ -662,7 +662,7 @@ def legs_fit_directions(nominal: I4Parameters, q_fit: np.ndarray, scene: Scene, 
     Cr[fr.k, fr.leg, fr.rod] = fr.cov_u
     Co[fr.k, fr.leg, fr.rod] = fr.cov_u_own
     has[fr.k, fr.leg, fr.rod] = True
-    U, CU, _ = _pair_means(u, has, Cr)
+    U, CU, _ = pair_means(u, has, Cr)
     has_leg = np.asarray(has.any(axis=2))
     for k, i, j in zip(fr.k, fr.leg, fr.rod, strict=True):
         if np.isnan(pts[k, i, 0]):
@@ -686,15 +686,15 @@ def predict_legs_images(
     (:func:`predict_combined_images_posteriors`; the method's default); None: the allowance
     (``edge_bias_prior_px`` per limb)."""
     from ..methods.legs import (
-        _IntrinsicsEffect,
-        _LegsPipeline,
-        _null_space_to_prior,
-        _pair_means,
-        _pair_own_covariances,
-        _steps34_sandwich,
-        _with_prior,
+        IntrinsicsEffect,
+        LegsModel,
         joint_depth_systematic,
         joint_from_planes,
+        null_space_to_prior,
+        pair_means,
+        pair_own_covariances,
+        steps34_sandwich,
+        with_prior,
     )
 
     lk = legs_lock_joints(nominal, q_lock, scene, noise)
@@ -712,14 +712,14 @@ def predict_legs_images(
         fd.has_leg,
         fd.pts,
     )
-    pipe = _LegsPipeline(q_locked, q_fit, pts, has_leg, CU, nominal)
+    pipe = LegsModel(q_locked, q_fit, pts, has_leg, CU, nominal)
     Uf = np.where(has_leg[..., None], U, 0.0)
     seven = pipe.run(P, Uf)
     x2 = np.array([*seven[1:4].tolist(), seven[0]])
     GP = central_jacobian(lambda p: pipe.run(p.reshape(4, 2, 3), Uf, x2), P.ravel(), 1e-7)  # (7, 24)
     covJ = noise.legs_lock_chi2 * covP
-    CU_own = np.nan_to_num(_pair_own_covariances(u, has, Cr, Co))
-    c34, _chi, _expected = _steps34_sandwich(pipe, P, Uf, seven, CU_own, covJ)
+    CU_own = np.nan_to_num(pair_own_covariances(u, has, Cr, Co))
+    c34, _chi, _expected = steps34_sandwich(pipe, P, Uf, seven, CU_own, covJ)
     # the method scales both by its residuals' chi-square level; the prediction by their levels on the twin
     parts = {"joint_centres": GP @ covJ @ GP.T, "leg_directions": np.zeros((7, 7))}
     if noise.legs_joint_depth_sys_m > 0:
@@ -735,13 +735,13 @@ def predict_legs_images(
     if steps.shape[0] or noise.edge_bias_prior_px > 0:
         cam = design_camera(scene.camera, noise.intrinsics_names)
         idx_fit = (fr.k, fr.leg, fr.rod)
-        eff = _IntrinsicsEffect(cam, steps, lock_fields, idx_fit, fr.limbs_px, fr.h)
+        eff = IntrinsicsEffect(cam, steps, lock_fields, idx_fit, fr.limbs_px, fr.h)
         rod_u = u  # NaN where a rod is not measured, as the method passes them (a zero would flip its pair)
 
         def seven_for(z: np.ndarray) -> np.ndarray:
             pz = eff.lock_planes(z, planes)
             Pz = np.array([[joint_from_planes(pz[i][j])[0] for j in range(2)] for i in range(4)])
-            Uz = _pair_means(eff.rod_u(z, rod_u), has, Cr)[0]
+            Uz = pair_means(eff.rod_u(z, rod_u), has, Cr)[0]
             return pipe.run(Pz, np.where(pipe.has_leg[..., None], Uz, 0.0), x2)
 
         nz = steps.shape[0]
@@ -757,7 +757,7 @@ def predict_legs_images(
             parts["limb_edge_bias"] = Jz[:, nz:] @ Jz[:, nz:].T
     cov7 = np.sum(np.stack(list(parts.values())), axis=0)
     if noise.legs_prior_std_m:
-        _s, cov7, parts = _with_prior(seven, cov7, parts, nominal, noise.legs_prior_std_m)
+        _s, cov7, parts = with_prior(seven, cov7, parts, nominal, noise.legs_prior_std_m)
         # as the method: the directions the four combinations do not see are the a priori values on images
-        _s, cov7, parts, _dirs = _null_space_to_prior(_s, parts, nominal, noise.legs_prior_std_m)
+        _s, cov7, parts, _dirs = null_space_to_prior(_s, parts, nominal, noise.legs_prior_std_m)
     return cov7, SEVEN_TO_FOUR @ cov7 @ SEVEN_TO_FOUR.T, parts

@@ -17,7 +17,8 @@ common to all poses and their errors do not show in the residuals.
 
 from __future__ import annotations
 
-from typing import Literal, cast
+from dataclasses import dataclass
+from typing import Any, Literal, cast
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -25,15 +26,16 @@ from scipy.optimize import least_squares
 from ..baseframe import BaseFrameResult, base_frame_from_observations, estimate_base_frame
 from ..camera import CameraModel
 from ..errors import IdentifiabilityError
-from ..kinematics import pose_from_joints_reduced
+from ..kinematics import dkm, jacobian_ratios, leg_directions, pose_from_joints_reduced
 from ..numdiff import central_jacobian
 from ..observations import LegKey, Observations, PhaseArrays
-from ..parameters import COMBINATION_NAMES
+from ..parameters import COMBINATION_NAMES, I4Parameters
 from ..robust import chi2_outliers, robust_chi2_scale
 from ..transforms import cross, matrix_to_rotvec, rotvec_to_matrix
 from . import intrinsics as intr
 from . import rod_correlation as rc
 from .iterations import IterationCallback, traced
+from .model import PoseSetModel
 from .result import MethodResult, check_excitation, combos_dict, std_dict
 from .stationary import check_converged
 
@@ -56,10 +58,12 @@ def model_ratios(combos: np.ndarray, q: np.ndarray) -> np.ndarray:
     combos : ndarray, shape (4,)
         ``(L, H-D, S-q02/2, S-(q04-q03)/2)`` in metres.
     q : ndarray, shape (N, 4)
+        Encoder values, m.
 
     Returns
     -------
     ndarray, shape (N, 4, 2)
+        Per pose and leg, ``(u_y/u_x, u_z/u_x)`` (dimensionless).
     """
     c = combos[1]
     Y, Z, f1, f3 = pose_from_joints_reduced(combos, q)
@@ -70,8 +74,21 @@ def model_ratios(combos: np.ndarray, q: np.ndarray) -> np.ndarray:
     return out
 
 
-def _ratio_grad(u: np.ndarray) -> np.ndarray:
-    """d(u_y/u_x, u_z/u_x)/du, shape (M, 2, 3)."""
+def pose_set_model(params: I4Parameters, q: np.ndarray) -> PoseSetModel:
+    """The combined method's measurement model at encoder values ``q`` (N, 4), m: the Jacobian entries (eq. 4) the
+    legs give in the base frame, ``(u_iy/u_ix, u_iz/u_ix)`` per pose and leg, (N * 4 * 2,), as a function of the seven
+    parameters (no nuisance: the base frame is measured apart)."""
+    q = np.asarray(q, dtype=np.float64)
+
+    def f(v: np.ndarray) -> np.ndarray:
+        p = I4Parameters.from_vector(v, T_per_rad=params.T_per_rad)
+        return jacobian_ratios(leg_directions(p, dkm(p, q))).ravel()
+
+    return PoseSetModel(f, params, 0)
+
+
+def ratio_gradient(u: np.ndarray) -> np.ndarray:
+    """The Jacobian entries' derivatives in the directions ``u`` (M, 3): d(u_y/u_x, u_z/u_x)/du, shape (M, 2, 3)."""
     ux, uy, uz = u[:, 0], u[:, 1], u[:, 2]
     G = np.zeros((u.shape[0], 2, 3))
     G[:, 0, 0] = -uy / ux**2
@@ -99,7 +116,7 @@ class _Problem:
         for name in ("u_cam", "k", "leg", "rod"):
             setattr(self, name, getattr(self, name)[keep])
         self.n_poses = len(np.unique(self.k))
-        self.intrinsics: _IntrinsicsModel | None = None
+        self.intrinsics: RodIntrinsicsModel | None = None
 
     def select(self, keep: np.ndarray) -> None:
         """Keep only the rods where ``keep`` (bool, (M,)) is set."""
@@ -128,11 +145,118 @@ class _Problem:
     def noise_shape(self, use_rod_cov: np.ndarray | None = None) -> np.ndarray:
         """Relative covariance of each rod's 2 ratio residuals for direction noise, (M, 2, 2)."""
         uB = self.u_cam @ self.R_cb
-        G = _ratio_grad(uB)
+        G = ratio_gradient(uB)
         P = np.eye(3)[None] - uB[:, :, None] * uB[:, None, :]
         if use_rod_cov is not None:
             P = np.einsum("ji,mjk,kl->mil", self.R_cb, use_rod_cov, self.R_cb)
         return np.einsum("mij,mjk,mlk->mil", G, P, G)
+
+
+@dataclass(frozen=True)
+class CombinedSettings:
+    """The combined method's settings (see :func:`calibrate_combined` for each).
+
+    Attributes
+    ----------
+    weighting : {"auto", "frobenius", "gls"}
+    phases : tuple of str
+        Phases whose frames are fit poses.
+    encoder_std_m : float
+        Encoder noise, m.
+    edge_bias_std_px : float
+        Prior std (px) of the limb-edge bias common to every rod (0: not modelled).
+    """
+
+    weighting: Weighting = "auto"
+    phases: tuple[str, ...] = ("poses",)
+    encoder_std_m: float = 1e-6
+    edge_bias_std_px: float = EDGE_BIAS_STD_PX
+
+
+@dataclass
+class _Rods:
+    """The rods of the fit poses ready for eq. 8: the problem, the observations' arrays, the base frame, the rods'
+    measured direction covariances ((M, 3, 3) or None) and the intrinsics' nuisance size."""
+
+    prob: _Problem
+    data: PhaseArrays
+    bf: BaseFrameResult
+    rod_cov: np.ndarray | None
+    weighting: str
+    ni: int = 0  # intrinsics' principal directions
+    nz: int = 0  # and the limb-edge biases
+
+    @property
+    def steps(self) -> np.ndarray | None:
+        return None if self.prob.intrinsics is None else self.prob.intrinsics.steps
+
+    @property
+    def z0(self) -> np.ndarray:
+        """The nuisance unknowns' prior mean (the calibration's intrinsics in their units)."""
+        return np.zeros(self.nz) if self.prob.intrinsics is None else self.prob.intrinsics.z0
+
+
+@dataclass
+class _Eq8:
+    """Eq. 8 with the base frame's refinement ``w`` (3 when its covariance is known) and the intrinsics' ``z`` as
+    nuisance unknowns: unknowns ``v = (combinations (4, m), w (nw, rad), z (nz, units of their std))``."""
+
+    prob: _Problem
+    Wh: np.ndarray  # (m, 2, 2) each rod's whitening (identity for the Frobenius weighting)
+    R0: np.ndarray  # (3, 3) the base frame's board-only rotation
+    joint: bool  # the rotation is refined with its prior
+    Lw: np.ndarray  # (3, 3) Lw^T Lw = its information (zeros when not joint)
+    z0: np.ndarray  # (nz,) the nuisance's prior mean
+    shape: np.ndarray  # (m, 2, 2) each rod's relative noise covariance (dimensionless)
+
+    @property
+    def m(self) -> int:
+        return self.Wh.shape[0]
+
+    @property
+    def nw(self) -> int:
+        return 3 if self.joint else 0
+
+    def split(self, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        nw = self.nw
+        return v[:4], (v[4 : 4 + nw] if self.joint else np.zeros(3)), v[4 + nw :]
+
+    def raw(self, v: np.ndarray) -> np.ndarray:
+        """Unweighted residuals (2m,): model minus measured Jacobian entries."""
+        xi, w, z = self.split(v)
+        return (self.prob.model(xi) - self.prob.measured(rotvec_to_matrix(w) @ self.R0, z)).ravel()
+
+    def eq8(self, v: np.ndarray) -> np.ndarray:
+        """Weighted residuals (2m,)."""
+        return np.einsum("mij,mj->mi", self.Wh, self.raw(v).reshape(self.m, 2)).ravel()
+
+    def priors(self, v: np.ndarray) -> np.ndarray:
+        _xi, w, z = self.split(v)
+        return np.concatenate([self.Lw @ w if self.joint else np.zeros(0), z - self.z0])
+
+
+@dataclass
+class _Eq8Solution:
+    """The fit's unknowns ``x``, the direction-noise scale ``s2`` (chi-square per dof), evaluations, scipy's last
+    solution and the stages that stopped at their minimum out of evaluations."""
+
+    x: np.ndarray
+    s2: float
+    nfev: int
+    sol: Any
+    stopped_stationary: list[dict[str, Any]]
+
+
+@dataclass
+class _Covariance:
+    """The combinations' covariance (4, 4), m^2, its named parts, the rods' error model and the prior blocks."""
+
+    cov: np.ndarray
+    parts: dict[str, np.ndarray]
+    errs: rc.RodErrors
+    cov_intr: np.ndarray | None
+    cov_lens: np.ndarray | None
+    n_pairs: int
 
 
 def calibrate_combined(
@@ -144,6 +268,7 @@ def calibrate_combined(
     encoder_std_m: float = 1e-6,
     on_iteration: IterationCallback | None = None,
     edge_bias_std_px: float = EDGE_BIAS_STD_PX,
+    settings: CombinedSettings | None = None,
 ) -> MethodResult:
     """Identify the four combinations from leg observations and the base frame (eq. 8).
 
@@ -171,6 +296,9 @@ def calibrate_combined(
         Prior standard deviation (px) of the limb-edge bias common to every rod (one outward offset per
         limb, nuisance unknowns of the fit with the intrinsics'; 0: not modelled). Needs the rods' limb
         samples (``limbs_px``).
+    settings : CombinedSettings, optional
+        The settings at once; given, it replaces ``weighting``, ``phases``, ``encoder_std_m`` and
+        ``edge_bias_std_px``.
 
     Returns
     -------
@@ -183,10 +311,48 @@ def calibrate_combined(
     ConvergenceError
         The fit did not converge.
     """
+    cfg = settings or CombinedSettings(weighting, phases, encoder_std_m, edge_bias_std_px)
+    rods = combined_rods(obs, base_frame, cfg)
+    x0 = np.concatenate([np.array([obs.nominal.combinations()[k] for k in COMBINATION_NAMES]), np.zeros(rods.nz)])
+    rejected = gate_rods(rods, x0, on_iteration)
+    problem = _eq8_problem(rods)
+    fit = fit_eq8(problem, x0, on_iteration)
+    r = problem.raw(fit.x).reshape(problem.m, 2)
+    covariance = combined_covariance(obs, rods, problem, fit, r)
+    return _combined_result(rods, problem, fit, covariance, r, rejected)
+
+
+def combined_rods(obs: Observations, base_frame: BaseFrameResult | None, cfg: CombinedSettings) -> _Rods:
+    """The fit poses' rods in the base frame, checked, with their covariances and the intrinsics' model.
+
+    The camera's intrinsics are nuisance unknowns: z (n,) in units of one standard deviation along each principal
+    direction of their covariance, prior N(0, I); the measured quantities move by D z to first order
+    (:mod:`.intrinsics`). Their error is common to every rod, so it does not average out; the rods also carry
+    information on it, which the joint fit uses.
+
+    Parameters
+    ----------
+    obs : Observations
+    base_frame : BaseFrameResult or None
+        Computed from ``obs`` when None.
+    cfg : CombinedSettings
+
+    Returns
+    -------
+    _Rods
+        M rods (directions in the camera frame, unit), their poses and legs.
+
+    Raises
+    ------
+    IdentifiabilityError
+        No frames in the phases, too few rods, or a pose set that does not excite a parameter.
+    ValueError
+        An unknown weighting.
+    """
     bf = base_frame or base_frame_from_observations(obs)
-    data = obs.arrays(*phases)
+    data = obs.arrays(*cfg.phases)
     if len(data) == 0:
-        raise IdentifiabilityError(f"no frames in phase(s) {', '.join(phases)} for the combined fit")
+        raise IdentifiabilityError(f"no frames in phase(s) {', '.join(cfg.phases)} for the combined fit")
     prob = _Problem(data, bf.camera_from_base_R)
     m = prob.u_cam.shape[0]
     if m * 2 < 8 or prob.n_poses < 2:
@@ -196,30 +362,44 @@ def calibrate_combined(
         )
     x0 = np.array([obs.nominal.combinations()[k] for k in COMBINATION_NAMES])
     check_excitation(central_jacobian(prob.residuals, x0), COMBINATION_NAMES)
-
     rod_cov = _rod_covariances(obs, data, prob)
+    weighting: str = cfg.weighting
     if weighting == "auto":
         weighting = "gls" if rod_cov is not None else "frobenius"
     if weighting not in ("gls", "frobenius"):
         raise ValueError(f"weighting must be 'auto', 'frobenius' or 'gls', got {weighting!r}")
-    # the camera's intrinsics as nuisance unknowns: z (n,) in units of one standard deviation along
-    # each principal direction of their covariance, prior N(0, I); the measured quantities move by
-    # D z to first order (:mod:`.intrinsics`). Their error is common to every rod, so it does not
-    # average out; the rods also carry information on it, which the joint fit uses.
-    prob.intrinsics = _IntrinsicsModel.build(obs, data, prob, bf, edge_bias_std_px)
-    steps = None if prob.intrinsics is None else prob.intrinsics.steps
-    ni = 0 if steps is None else steps.shape[0]  # intrinsics' principal directions
-    nz = 0 if prob.intrinsics is None else ni + prob.intrinsics.n_edge  # and the limb-edge biases
-    z0 = np.zeros(nz) if prob.intrinsics is None else prob.intrinsics.z0  # the calibration's intrinsics
-    # 0. outlier rods (a limb taken for another edge): a first fit, then every rod whose whitened
-    #    residual is beyond the chi-square(2) 99.9% quantile of a robust noise scale is dropped and
-    #    the fit repeated, until none is
+    prob.intrinsics = RodIntrinsicsModel.build(obs, data, prob, bf, cfg.edge_bias_std_px)
+    rods = _Rods(prob, data, bf, rod_cov, weighting)
+    if prob.intrinsics is not None:
+        rods.ni = prob.intrinsics.steps.shape[0]
+        rods.nz = rods.ni + prob.intrinsics.n_edge
+    return rods
+
+
+def gate_rods(rods: _Rods, x0: np.ndarray, on_iteration: IterationCallback | None) -> list[dict[str, int]]:
+    """Outlier rods (a limb taken for another edge): a first fit, then every rod whose whitened residual is beyond the
+    chi-square(2) 99.9% quantile of a robust noise scale is dropped and the fit repeated, until none is (at most 5
+    rounds). ``rods`` keeps the others.
+
+    Parameters
+    ----------
+    rods : _Rods
+        Updated in place (its problem's rods and covariances).
+    x0 : ndarray, shape (4 + nz,)
+        Start: the combinations (m), then the nuisance unknowns (units of their std).
+    on_iteration : callable, optional
+
+    Returns
+    -------
+    list of dict
+        The dropped rods: ``frame``, ``leg`` (1-4), ``rod`` (0-1).
+    """
+    prob, data = rods.prob, rods.data
     rejected: list[dict[str, int]] = []
-    x0 = np.concatenate([x0, np.zeros(nz)])
     gate: tuple[np.ndarray, float] | None = None  # the previous round's solution and noise level: the next starts there
     for gate_round in range(5):
-        shape = prob.noise_shape(rod_cov)
-        d2, gate = _whitened_d2(prob, shape, x0, bf.cov_rotvec, on_iteration, start=gate, round_index=gate_round)
+        shape = prob.noise_shape(rods.rod_cov)
+        d2, gate = _whitened_d2(prob, shape, x0, rods.bf.cov_rotvec, on_iteration, start=gate, round_index=gate_round)
         bad = chi2_outliers(d2, 2)
         if not bad.any() or (~bad).sum() * 2 < 8:
             break
@@ -228,44 +408,51 @@ def calibrate_combined(
             for k, leg, rod in zip(prob.k[bad], prob.leg[bad], prob.rod[bad], strict=True)
         ]
         prob.select(~bad)
-        if rod_cov is not None:
-            rod_cov = rod_cov[~bad]
+        if rods.rod_cov is not None:
+            rods.rod_cov = rods.rod_cov[~bad]
+    return rejected
+
+
+def _eq8_problem(rods: _Rods) -> _Eq8:
+    """Eq. 8 over the kept rods with its weighting and the base frame's prior."""
+    prob = rods.prob
     m = prob.u_cam.shape[0]
-    shape = prob.noise_shape(rod_cov)  # relative covariance of each rod's two entries, (m, 2, 2)
-    if weighting == "gls":
+    shape = prob.noise_shape(rods.rod_cov)  # relative covariance of each rod's two entries, (m, 2, 2)
+    if rods.weighting == "gls":
         Wh = rc.whitening(shape)  # L^T L = C^-1
     else:
         Wh = np.broadcast_to(np.eye(2), (m, 2, 2))
-    R0 = bf.camera_from_base_R
-    cov_w = bf.cov_rotvec
+    cov_w = rods.bf.cov_rotvec
     joint = bool(np.all(np.linalg.eigvalsh(cov_w) > 1e-20))
     Lw = np.linalg.cholesky(np.linalg.inv(cov_w)).T if joint else np.zeros((3, 3))
-    # unknowns: the four combinations, the base frame's refinement w (3, when its covariance is
-    # known) and the intrinsics' z (nz)
-    nw = 3 if joint else 0
+    return _Eq8(prob, Wh, rods.bf.camera_from_base_R, joint, Lw, rods.z0, shape)
 
-    def split(v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        return v[:4], (v[4 : 4 + nw] if joint else np.zeros(3)), v[4 + nw :]
 
-    def raw(v: np.ndarray) -> np.ndarray:
-        xi, w, z = split(v)
-        return (prob.model(xi) - prob.measured(rotvec_to_matrix(w) @ R0, z)).ravel()
+def fit_eq8(problem: _Eq8, x0: np.ndarray, on_iteration: IterationCallback | None) -> _Eq8Solution:
+    """1. The paper's fit: eq. 8 with the base frame of step 1 (and the intrinsics' prior). 2. The base frame's
+    rotation is common to every pose: its error does not average out and it inflates the residuals; it is
+    re-estimated jointly with the parameters (and the intrinsics), each with its prior, so that the fit and its
+    covariance account for them; the data are weighed by 1/s2 against the priors (at most 3 passes).
 
-    def eq8(v: np.ndarray) -> np.ndarray:
-        return np.einsum("mij,mj->mi", Wh, raw(v).reshape(m, 2)).ravel()
+    Parameters
+    ----------
+    problem : _Eq8
+    x0 : ndarray, shape (4 + nz,)
+        The combinations' start (m), then the nuisance's (zeros).
+    on_iteration : callable, optional
 
-    def priors(v: np.ndarray) -> np.ndarray:
-        _xi, w, z = split(v)
-        return np.concatenate([Lw @ w if joint else np.zeros(0), z - z0])
-
-    # 1. the paper's fit: eq. 8 with the base frame of step 1 (and the intrinsics' prior)
+    Returns
+    -------
+    _Eq8Solution
+    """
+    nw, nz = problem.nw, problem.z0.size
     x = np.concatenate([x0[:4], np.zeros(nw), x0[4:]])
     free = np.r_[np.ones(4, bool), np.zeros(nw, bool), np.ones(nz, bool)]
 
     def stage1(vf: np.ndarray) -> np.ndarray:
         v = x.copy()
         v[free] = vf
-        return np.concatenate([eq8(v), v[4 + nw :] - z0])
+        return np.concatenate([problem.eq8(v), v[4 + nw :] - problem.z0])
 
     sol = least_squares(
         traced(stage1, on_iteration, "eq8"), x[free], method="lm", xtol=1e-14, ftol=1e-14, gtol=1e-14, max_nfev=500
@@ -276,23 +463,20 @@ def calibrate_combined(
     x[free] = sol.x
     nfev = sol.nfev
     # direction-noise scale from the whitened residuals: sigma^2 = chi2 / dof
-    Cinv = np.linalg.inv(shape + 1e-300 * np.eye(2))
+    Cinv = np.linalg.inv(problem.shape + 1e-300 * np.eye(2))
+    m = problem.m
 
     def noise_scale(v: np.ndarray) -> float:
-        r = raw(v).reshape(m, 2)
+        r = problem.raw(v).reshape(m, 2)
         return float(np.einsum("mi,mij,mj->", r, Cinv, r)) / max(2 * m - 4, 1)
 
     s2 = noise_scale(x)
-    # 2. the base frame's rotation is common to every pose: its error does not average out and it
-    #    inflates the residuals. Re-estimate it jointly with the parameters (and the intrinsics),
-    #    each with its prior, so that the fit and its covariance account for them; the data are
-    #    weighed by 1/s2 against the priors.
-    if (joint or nz) and s2 > 0:
+    if (problem.joint or nz) and s2 > 0:
         for npass in range(3):
             sc = 1.0 / np.sqrt(s2)
 
             def full(v: np.ndarray, sc: float = sc) -> np.ndarray:
-                return np.concatenate([sc * eq8(v), priors(v)])
+                return np.concatenate([sc * problem.eq8(v), problem.priors(v)])
 
             sol = least_squares(
                 traced(full, on_iteration, f"joint-{npass + 1}"),
@@ -313,18 +497,41 @@ def calibrate_combined(
                 s2 = s2_new
                 break
             s2 = s2_new
-    xi, w, z = split(x)
-    r = raw(x).reshape(m, 2)
-    # covariance: sandwich with the rods' error model and the priors
+    return _Eq8Solution(x, s2, nfev, sol, stopped_stationary)
+
+
+def combined_covariance(obs: Observations, rods: _Rods, problem: _Eq8, fit: _Eq8Solution, r: np.ndarray) -> _Covariance:
+    """The combinations' covariance: a sandwich with the rods' error model and the priors.
+
+    The rods' errors are not independent: the two rods of a leg in one frame, and rods seen at nearby places of the
+    image in any frame, share part of theirs (:mod:`.rod_correlation`). The rods' own scale and those correlations are
+    estimated from the residuals with what the fit absorbs accounted for. The priors' information: the base frame's
+    refinement (Pw), the intrinsics' (Pz) and the limb-edge biases' (Pe). The lens model's error (the board views'
+    radial residual beyond their noise) is propagated at one standard deviation through the fit's gain, a Type B
+    component.
+
+    Parameters
+    ----------
+    obs : Observations
+    rods : _Rods
+    problem : _Eq8
+    fit : _Eq8Solution
+    r : ndarray, shape (m, 2)
+        The raw residuals at the solution.
+
+    Returns
+    -------
+    _Covariance
+    """
+    prob, x, s2 = rods.prob, fit.x, fit.s2
+    m, nw, ni, nz = problem.m, problem.nw, rods.ni, rods.nz
+    Wh, shape, joint, R0 = problem.Wh, problem.shape, problem.joint, problem.R0
+    _xi, w, z = problem.split(x)
     Wfull = rc.block_diagonal(np.einsum("mji,mjk->mik", Wh, Wh))  # each rod's weight Wh^T Wh
-    Jr = central_jacobian(raw, x)  # unweighted, (2m, 4 + nw + nz)
-    # the rods' errors are not independent: the two rods of a leg in one frame, and rods seen at nearby places of
-    # the image in any frame, share part of theirs (:mod:`.rod_correlation`). The rods' own scale and those
-    # correlations are estimated from the residuals with what the fit absorbs accounted for, and enter the meat
-    # the priors' information: the base frame's refinement (Pw), the intrinsics' (Pz) and the limb-edge biases' (Pe)
+    Jr = central_jacobian(problem.raw, x)  # unweighted, (2m, 4 + nw + nz)
     Pw = np.zeros((x.size, x.size))
     if joint:
-        Pw[4 : 4 + nw, 4 : 4 + nw] = Lw.T @ Lw
+        Pw[4 : 4 + nw, 4 : 4 + nw] = problem.Lw.T @ problem.Lw
     Pz = np.zeros((x.size, x.size))
     Pz[4 + nw : 4 + nw + ni, 4 + nw : 4 + nw + ni] = np.eye(ni)
     Pe = np.zeros((x.size, x.size))
@@ -334,10 +541,10 @@ def calibrate_combined(
     R_sol = rotvec_to_matrix(w) @ R0 if joint else R0
     if prob.intrinsics is not None:
         R_sol = prob.intrinsics.rotation(z) @ R_sol
-    rays = _rod_rays(data, prob)
+    rays = _rod_rays(rods.data, prob)
     dist_shape = None
-    if rod_cov is not None and focal is not None and rays is not None:
-        g = rc.in_image_sensitivity(prob.u_cam, rays, R_sol, _ratio_grad(prob.u_cam @ R_sol), shape)
+    if rods.rod_cov is not None and focal is not None and rays is not None:
+        g = rc.in_image_sensitivity(prob.u_cam, rays, R_sol, ratio_gradient(prob.u_cam @ R_sol), shape)
         dist_shape = rc.distance_shape(rays, focal, g, pairs)
     own = rc.block_diagonal(shape)
     errs = rc.estimate_rod_errors(
@@ -365,9 +572,6 @@ def calibrate_combined(
                 Jr[:, keep], Wfull / s2, Sig, Pw[np.ix_(keep, keep)], Pz[np.ix_(keep, keep)]
             )
             cov_intr = cov - cov_known
-    # the lens model's error (the board views' radial residual beyond their noise, calibration.lens_model): a
-    # systematic distortion the fit's model does not have, propagated at one standard deviation through the fit's
-    # gain (the rods' limb samples moved by it), a Type B component of the standard deviations
     cov_lens = None
     lens_err = None if prob.intrinsics is None else intr.lens_model_error(prob.intrinsics.camera)
     if lens_err is not None and s2 > 0:
@@ -377,6 +581,55 @@ def calibrate_combined(
         dtheta = -np.linalg.solve(Hm, Jr.T @ (Wfull / s2) @ dx)[:4]
         cov_lens = np.outer(dtheta, dtheta)
         cov = cov + cov_lens
+    return _Covariance(cov, parts, errs, cov_intr, cov_lens, len(pairs))
+
+
+def _combined_result(
+    rods: _Rods, problem: _Eq8, fit: _Eq8Solution, c: _Covariance, r: np.ndarray, rejected: list[dict[str, int]]
+) -> MethodResult:
+    """The :class:`MethodResult` of the stages' outputs."""
+    prob, nw, ni, nz = rods.prob, problem.nw, rods.ni, rods.nz
+    xi, w, z = problem.split(fit.x)
+    return MethodResult(
+        method="combined",
+        combinations=combos_dict(xi),
+        combinations_std=std_dict(c.cov),
+        covariance=c.cov,
+        residual_rms=float(np.sqrt(np.mean(r**2))),
+        residual_unit="Jacobian entry (dimensionless)",
+        n_observations=2 * problem.m,
+        n_poses=prob.n_poses,
+        iterations=int(fit.nfev),
+        converged=True,
+        message=str(fit.sol.message),
+        std_breakdown=_breakdown(problem.joint, prob.intrinsics is not None, ni, nz, c),
+        diagnostics={
+            "weighting": rods.weighting,
+            "direction_noise_scale": float(np.sqrt(fit.s2)),
+            "rods_rejected": rejected,
+            "rods_used": int(problem.m),
+            "intrinsics_covariance": None if c.cov_intr is None else c.cov_intr.tolist(),
+            "intrinsics_refinement": _intrinsics_refinement(rods, z),
+            "intrinsics_posterior_covariance": _intrinsics_posterior(rods, c, nw),
+            "limb_edge_bias": _edge_bias(rods, c, z, nw),
+            "rods_dropped_near_vertical": prob.dropped,
+            "base_frame": rods.bf.summary(),
+            "base_frame_refinement_deg": float(np.rad2deg(np.linalg.norm(w))),
+            "joint_base_frame": problem.joint,
+            "rod_pair_correlation": c.errs.pair_rho,
+            "rod_errors": c.errs.summary(),
+            "rod_pairs": c.n_pairs,
+            # the stages that ran out of evaluations at their minimum (calib.methods.stationary), with the decrease
+            # one more Gauss-Newton step would have given; empty when scipy's tolerances were met
+            "stopped_stationary": fit.stopped_stationary,
+        },
+        residuals=r,
+    )
+
+
+def _breakdown(joint: bool, has_intrinsics: bool, ni: int, nz: int, c: _Covariance) -> dict[str, dict[str, float]]:
+    """The standard deviations' parts (m)."""
+    parts = c.parts
     breakdown = {"legs_and_encoders": std_dict(parts["legs_and_encoders"])}
     if joint:
         breakdown["base_frame"] = std_dict(parts.get("base_frame", np.zeros((4, 4))))
@@ -384,62 +637,47 @@ def calibrate_combined(
         breakdown["intrinsics"] = std_dict(parts.get("intrinsics", np.zeros((4, 4))))
     if nz > ni:
         breakdown["limb_edge_bias"] = std_dict(parts.get("edge_bias", np.zeros((4, 4))))
-    if prob.intrinsics is not None:
-        breakdown["lens_model"] = std_dict(np.zeros((4, 4)) if cov_lens is None else cov_lens)
-    edge = None
-    if nz > ni and "full" in parts:
-        assert prob.intrinsics is not None  # nz > 0: the intrinsics are fitted
-        e_std = prob.intrinsics.edge_std_px
-        edge = {
-            # z moves the measured limbs (the correction); the limbs' bias is the opposite: outward positive, the rods
-            # seen wider than they are (checked on images rendered with a known offset: tests/calib/test_edge_bias.py)
-            "estimate_px": (-z[ni:] * e_std).tolist(),
-            "std_px": (np.sqrt(np.diag(parts["full"])[4 + nw + ni :]) * e_std).tolist(),
-            "prior_std_px": e_std,
-            "covariance_px2": (parts["full"][4 + nw + ni :, 4 + nw + ni :] * e_std**2).tolist(),
-        }
-    names = intr.intrinsics_names(prob.intrinsics.camera) if prob.intrinsics is not None else intr.INTRINSICS_NAMES
-    refined = None if steps is None else dict(zip(names, (steps.T @ z[:ni]).tolist(), strict=True))
-    # the intrinsics after the rods: their posterior covariance (for methods that do not use the rods)
-    posterior = None
-    if nz and "full" in parts:
-        assert steps is not None  # nz > 0: the intrinsics' principal steps
-        posterior = (steps.T @ parts["full"][4 + nw : 4 + nw + ni, 4 + nw : 4 + nw + ni] @ steps).tolist()
-    return MethodResult(
-        method="combined",
-        combinations=combos_dict(xi),
-        combinations_std=std_dict(cov),
-        covariance=cov,
-        residual_rms=float(np.sqrt(np.mean(r**2))),
-        residual_unit="Jacobian entry (dimensionless)",
-        n_observations=2 * m,
-        n_poses=prob.n_poses,
-        iterations=int(nfev),
-        converged=True,
-        message=str(sol.message),
-        std_breakdown=breakdown,
-        diagnostics={
-            "weighting": weighting,
-            "direction_noise_scale": float(np.sqrt(s2)),
-            "rods_rejected": rejected,
-            "rods_used": int(m),
-            "intrinsics_covariance": None if cov_intr is None else cov_intr.tolist(),
-            "intrinsics_refinement": refined,
-            "intrinsics_posterior_covariance": posterior,
-            "limb_edge_bias": edge,
-            "rods_dropped_near_vertical": prob.dropped,
-            "base_frame": bf.summary(),
-            "base_frame_refinement_deg": float(np.rad2deg(np.linalg.norm(w))),
-            "joint_base_frame": joint,
-            "rod_pair_correlation": errs.pair_rho,
-            "rod_errors": errs.summary(),
-            "rod_pairs": len(pairs),
-            # the stages that ran out of evaluations at their minimum (calib.methods.stationary), with the decrease
-            # one more Gauss-Newton step would have given; empty when scipy's tolerances were met
-            "stopped_stationary": stopped_stationary,
-        },
-        residuals=r,
-    )
+    if has_intrinsics:
+        breakdown["lens_model"] = std_dict(np.zeros((4, 4)) if c.cov_lens is None else c.cov_lens)
+    return breakdown
+
+
+def _edge_bias(rods: _Rods, c: _Covariance, z: np.ndarray, nw: int) -> dict[str, Any] | None:
+    """The limb-edge bias the fit measured (per limb, outward px) with its std and covariance; None when not fitted."""
+    ni, nz = rods.ni, rods.nz
+    if not (nz > ni and "full" in c.parts):
+        return None
+    assert rods.prob.intrinsics is not None  # nz > 0: the intrinsics are fitted
+    e_std = rods.prob.intrinsics.edge_std_px
+    full = c.parts["full"]
+    return {
+        # z moves the measured limbs (the correction); the limbs' bias is the opposite: outward positive, the rods
+        # seen wider than they are (checked on images rendered with a known offset: tests/calib/test_edge_bias.py)
+        "estimate_px": (-z[ni:] * e_std).tolist(),
+        "std_px": (np.sqrt(np.diag(full)[4 + nw + ni :]) * e_std).tolist(),
+        "prior_std_px": e_std,
+        "covariance_px2": (full[4 + nw + ni :, 4 + nw + ni :] * e_std**2).tolist(),
+    }
+
+
+def _intrinsics_refinement(rods: _Rods, z: np.ndarray) -> dict[str, float] | None:
+    """The intrinsics' shift the rods give (px for fx, fy, cx, cy), by name; None when not fitted."""
+    steps = rods.steps
+    if steps is None:
+        return None
+    cam = rods.prob.intrinsics.camera if rods.prob.intrinsics is not None else None
+    names = intr.intrinsics_names(cam) if cam is not None else intr.INTRINSICS_NAMES
+    return dict(zip(names, (steps.T @ z[: rods.ni]).tolist(), strict=True))
+
+
+def _intrinsics_posterior(rods: _Rods, c: _Covariance, nw: int) -> list | None:
+    """The intrinsics after the rods: their posterior covariance (for methods that do not use the rods)."""
+    ni = rods.ni
+    if not (rods.nz and "full" in c.parts):
+        return None
+    steps = rods.steps
+    assert steps is not None  # nz > 0: the intrinsics' principal steps
+    return (steps.T @ c.parts["full"][4 + nw : 4 + nw + ni, 4 + nw : 4 + nw + ni] @ steps).tolist()
 
 
 def _joint_covariance(
@@ -467,8 +705,9 @@ def _joint_covariance(
     return total, parts
 
 
-class _IntrinsicsModel:
-    """How the measured rods and the base frame move with the camera's intrinsics.
+class RodIntrinsicsModel:
+    """How the measured rods and the base frame move with the camera's intrinsics (the combined method's nuisance
+    model; experiment design predicts with it).
 
     The intrinsics are ``camera + steps^T z`` (``steps`` (n, 8): one standard deviation along each
     principal direction of their covariance, :mod:`.intrinsics`; z the nuisance unknowns, prior
@@ -508,7 +747,7 @@ class _IntrinsicsModel:
     @classmethod
     def build(
         cls, obs: Observations, data: PhaseArrays, prob: _Problem, bf: BaseFrameResult, edge_bias_std_px: float = 0.0
-    ) -> _IntrinsicsModel | None:
+    ) -> RodIntrinsicsModel | None:
         """None when the camera's uncertainty or a rod's limb samples are missing."""
         prior = intr.intrinsics_prior(obs, refined=False)  # the rods are used again here
         limbs = _rod_field(obs, data, prob, "limbs_px")

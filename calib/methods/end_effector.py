@@ -28,19 +28,23 @@ The standard deviations come from the weighted normal matrix.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Any
+
 import numpy as np
 from scipy.optimize import least_squares
 
 from ..baseframe import base_frame_from_observations
 from ..errors import ConvergenceError, I4calError, IdentifiabilityError
-from ..kinematics import dkm
+from ..kinematics import base_from_ee, dkm
 from ..numdiff import central_jacobian
 from ..observations import Observations, PhaseArrays
-from ..parameters import COMBINATION_NAMES
+from ..parameters import COMBINATION_NAMES, I4Parameters
 from ..robust import chi2_outliers, robust_chi2_scale
 from ..transforms import kabsch_points, matrix_to_rotvec, orthonormalize, rot_z, rotvec_to_matrix, skew
 from . import intrinsics as intr
 from .iterations import IterationCallback, trf_callback
+from .model import PoseSetModel
 from .result import MethodResult, check_excitation, combos_dict, std_dict
 
 _NAMES = (
@@ -60,7 +64,54 @@ _NAMES = (
 )
 
 
-class _Model:
+def pose_set_model(params: I4Parameters, q: np.ndarray) -> PoseSetModel:
+    """The end-effector method's measurement model at encoder values ``q`` (N, 4), m: the board poses predicted through
+    the DKM, per pose the rotation matrix's nine entries then the position (m), (N * 12,), as a function of the seven
+    parameters then 12 nuisance unknowns: the camera's placement in the base frame (rotation vector, rad; position, m)
+    and the board's on the end-effector (the same)."""
+    q = np.asarray(q, dtype=np.float64)
+
+    def f(v: np.ndarray) -> np.ndarray:
+        p = I4Parameters.from_vector(v[:7], T_per_rad=params.T_per_rad)
+        pose = dkm(p, q)
+        Rc = rotvec_to_matrix(v[7:10])
+        tc = v[10:13]
+        Rb = rotvec_to_matrix(v[13:16])
+        tb = v[16:19]
+        Re, pe = base_from_ee(p, pose)
+        Rk = Rc @ Re @ Rb
+        tk = (Rc @ (np.einsum("nij,j->ni", Re, tb) + pe).T).T + tc
+        return np.concatenate([(Rk.reshape(len(q), -1)) * 1.0, tk], axis=1).ravel()
+
+    return PoseSetModel(f, params, 12)
+
+
+class EndEffectorModel:
+    """The end-effector method's model: per board pose, the IKM's four joint residuals (m) and the pose's two tilt
+    residuals (rad) as a function of the 16 unknowns ``x`` (:data:`_NAMES`: the four combinations, two joint
+    offsets, the camera's rotation (3, rad) and y, z position (m), the board's tilt on the end-effector (2, rad) and
+    its offset (2, m), the board's scale).
+
+    Parameters
+    ----------
+    R, t : ndarray, shape (N, 3, 3), (N, 3)
+        The board poses in the camera (rotation; position, m).
+    q : ndarray, shape (N, 4)
+        Encoder values, m.
+    T_per_rad : float
+        The end-effector's T per radian of rotation, m/rad.
+    R_bc0 : ndarray, shape (3, 3)
+        The camera-to-base rotation the camera's rotation unknowns refine.
+    t_bc_x : float
+        The camera's x position in the base frame (held: a gauge freedom), m.
+    R_eb0 : ndarray, shape (3, 3)
+        The board-to-end-effector rotation the tilt unknowns refine.
+    t_eb_z : float
+        The board's height on the end-effector (held), m.
+    theta_ref : ndarray, shape (N,)
+        Reference rotation angles (rad) that pick each pose's turn.
+    """
+
     def __init__(
         self,
         R: np.ndarray,
@@ -79,7 +130,21 @@ class _Model:
         self.R_eb0, self.t_eb_z = R_eb0, t_eb_z
         self.theta_ref = theta_ref
 
-    def ee_poses(self, x: np.ndarray, R: np.ndarray | None = None, t: np.ndarray | None = None):
+    def jacobian(self, x: np.ndarray, h: float = 1e-7) -> np.ndarray:
+        """d residuals / d x, shape (N, 6, 16), by central differences of step ``h``."""
+        n = self.R.shape[0]
+        return central_jacobian(lambda v: self.residuals(v).ravel(), x, h).reshape(n, 6, -1)
+
+    def pose_sensitivity(self, x: np.ndarray, h: float = 1e-7) -> np.ndarray:
+        """d residuals_k / d (board pose error_k), shape (N, 6, 6): rotation (left, camera frame; rad) then
+        translation (m)."""
+        return _pose_sensitivity(self, x, h)
+
+    def ee_poses(
+        self, x: np.ndarray, R: np.ndarray | None = None, t: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The end-effector poses the board poses give: positions (N, 3), m, rotation angles (N,), rad, tilts (N, 2),
+        rad."""
         R = self.R if R is None else R
         t = self.t if t is None else t
         R_bc = rotvec_to_matrix(x[6:9]) @ self.R_bc0
@@ -95,7 +160,8 @@ class _Model:
         return p, theta, tilt
 
     def residuals(self, x: np.ndarray, R: np.ndarray | None = None, t: np.ndarray | None = None) -> np.ndarray:
-        """Per pose (N, 6): 4 IKM residuals (m), 2 tilt residuals (rad)."""
+        """Per pose (N, 6): 4 IKM residuals (m), 2 tilt residuals (rad), for the unknowns ``x`` (16,) and the board
+        poses ``R``, ``t`` (default: the model's)."""
         L, c, s1, s3, o1, o3 = x[:6]
         p, theta, tilt = self.ee_poses(x, R, t)
         X, Y, Z = p.T
@@ -106,6 +172,52 @@ class _Model:
         return np.column_stack([qm - self.q, tilt])
 
 
+@dataclass(frozen=True)
+class EndEffectorSettings:
+    """The end-effector method's settings (see :func:`calibrate_end_effector`).
+
+    Attributes
+    ----------
+    phases : tuple of str
+        Phases whose frames enter the fit.
+    encoder_std_m : float
+        Encoder noise, m.
+    iterations : int
+        Re-weighting passes.
+    """
+
+    phases: tuple[str, ...] = ("poses",)
+    encoder_std_m: float = 1e-6
+    iterations: int = 2
+
+
+class WeightedResiduals:
+    """The fit's whitened residuals ``Wh_k r_k(x)`` of the kept poses, flattened (6 M,): ``Wh`` (N, 6, 6) each pose's
+    whitening, ``keep`` (N,) the poses in the fit (both updated by the fit's passes)."""
+
+    def __init__(self, model: EndEffectorModel) -> None:
+        n = model.R.shape[0]
+        self.model = model
+        self.Wh = np.broadcast_to(np.eye(6), (n, 6, 6)).copy()
+        self.keep = np.ones(n, dtype=bool)
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        return np.einsum("nij,nj->ni", self.Wh, self.model.residuals(x))[self.keep].ravel()
+
+
+@dataclass
+class _PassesOutcome:
+    """The re-weighted fit: unknowns ``x`` (16,), evaluations, the board poses' noise (diagonal ``Sigma_b`` (6, 6) or
+    the common factor ``scale2`` of their covariances), whether the data are noise-free, scipy's last solution."""
+
+    x: np.ndarray
+    nfev: int
+    Sigma_b: np.ndarray
+    scale2: float
+    noise_free: bool
+    sol: Any
+
+
 def calibrate_end_effector(
     obs: Observations,
     *,
@@ -113,6 +225,7 @@ def calibrate_end_effector(
     encoder_std_m: float = 1e-6,
     iterations: int = 2,
     on_iteration: IterationCallback | None = None,
+    settings: EndEffectorSettings | None = None,
 ) -> MethodResult:
     """Identify the four combinations from board poses and encoders (IKM residuals).
 
@@ -129,14 +242,38 @@ def calibrate_end_effector(
         Re-weighting passes (noise covariance estimated from the residuals).
     on_iteration : callable, optional
         Receives ``{"stage", "iteration", "cost"}`` after each iteration of the fits (:mod:`.iterations`).
+    settings : EndEffectorSettings, optional
+        The settings at once; given, it replaces ``phases``, ``encoder_std_m`` and ``iterations``.
 
     Returns
     -------
     MethodResult
     """
-    nominal = obs.nominal
-    data = obs.arrays(*phases)
+    cfg = settings or EndEffectorSettings(phases, encoder_std_m, iterations)
+    data = obs.arrays(*cfg.phases)
     data = data.subset(data.has_board)
+    model, x0 = initial_model(obs, data, cfg.phases)
+    C_board = board_covariances(obs, data)  # (n, 6, 6) or None (numbers without the extraction's covariances)
+    wres = WeightedResiduals(model)
+    check_excitation(central_jacobian(lambda x: model.residuals(x).ravel(), x0), _NAMES)
+    fit = fit_passes(wres, x0, C_board, cfg, on_iteration)
+    chi2_pose = np.zeros(len(data))
+    if C_board is not None and not fit.noise_free:
+        chi2_pose = reject_poses(wres, fit, C_board, cfg.encoder_std_m, on_iteration)
+    return _end_effector_result(obs, data, wres, fit, C_board, chi2_pose)
+
+
+def initial_model(obs: Observations, data: PhaseArrays, phases: tuple[str, ...]) -> tuple[EndEffectorModel, np.ndarray]:
+    """The model of the board poses ``data`` and the unknowns' start (16,): the nominal combinations, the camera from
+    the base frame (or Kabsch on the nominal positions), the translations by linear least squares and the offsets
+    where the nominal pose says they are.
+
+    Raises
+    ------
+    IdentifiabilityError
+        Fewer than 4 board poses, or poses the nominal DKM cannot reach.
+    """
+    nominal = obs.nominal
     n = len(data)
     if n < 4:
         raise IdentifiabilityError(
@@ -165,7 +302,7 @@ def calibrate_end_effector(
         b[3 * k : 3 * k + 3] = poses_nom[k, :3] - R_bc0 @ t[k]
     sol0 = np.linalg.lstsq(A, b, rcond=None)[0]
     t_eb0, t_bc0 = np.array([sol0[0], sol0[1], 0.0]), sol0[2:]
-    model = _Model(R, t, q, nominal.T_per_rad, R_bc0, t_bc0[0], R_eb0, t_eb0[2], theta_nom)
+    model = EndEffectorModel(R, t, q, nominal.T_per_rad, R_bc0, t_bc0[0], R_eb0, t_eb0[2], theta_nom)
     combos0 = np.array([nominal.combinations()[k] for k in COMBINATION_NAMES])
     x0 = np.concatenate(
         [combos0, [-nominal.S, -nominal.S - nominal.q03], np.zeros(3), t_bc0[1:], [0.0, 0.0], t_eb0[:2], [0.0]]
@@ -174,23 +311,33 @@ def calibrate_end_effector(
     r0 = model.residuals(x0)
     x0[4] -= np.mean(r0[:, :2])
     x0[5] -= np.mean(r0[:, 2:4])
+    return model, x0
 
-    C_board = board_covariances(obs, data)  # (n, 6, 6) or None (numbers without the extraction's covariances)
-    Wh = np.broadcast_to(np.eye(6), (n, 6, 6)).copy()
-    keep = np.ones(n, dtype=bool)
 
-    def wres(x: np.ndarray) -> np.ndarray:
-        return np.einsum("nij,nj->ni", Wh, model.residuals(x))[keep].ravel()
+def fit_passes(
+    wres: WeightedResiduals,
+    x0: np.ndarray,
+    C_board: np.ndarray | None,
+    cfg: EndEffectorSettings,
+    on_iteration: IterationCallback | None,
+) -> _PassesOutcome:
+    """The fit, re-weighted each pass: by each pose's own covariance (PnP) times one common factor measured from the
+    residuals, or, without covariances, by a diagonal board-pose noise estimated from the residuals.
 
-    check_excitation(central_jacobian(lambda x: model.residuals(x).ravel(), x0), _NAMES)
-    p = x0.size
+    Raises
+    ------
+    ConvergenceError
+        A pass did not converge.
+    """
+    model = wres.model
+    n, p = model.R.shape[0], x0.size
     x = x0
     nfev = 0
     Sigma_b = np.zeros((6, 6))
     scale2 = 1.0
-    chi2_pose = np.zeros(n)
-    n_passes = max(iterations, 1) + (1 if C_board is not None else 0)
+    n_passes = max(cfg.iterations, 1) + (1 if C_board is not None else 0)
     noise_free = False
+    sol = None
     for npass in range(n_passes):
         if npass > 0:
             r = model.residuals(x)
@@ -200,7 +347,7 @@ def calibrate_end_effector(
             Ak = _pose_sensitivity(model, x)  # (n, 6, 6)
             if C_board is not None:
                 # each pose's own covariance (PnP), times one common factor measured from the residuals
-                scale2 = _board_noise_factor(Ak, C_board, r, keep, p)
+                scale2 = _board_noise_factor(Ak, C_board, r, wres.keep, p)
                 Cr = scale2 * Ak @ C_board @ Ak.transpose(0, 2, 1)
             else:
                 # map residuals back to board-pose errors (rotation left-perturbation, translation), per pose;
@@ -208,26 +355,56 @@ def calibrate_end_effector(
                 eps = np.linalg.solve(Ak, r[..., None])[..., 0]
                 Sigma_b = np.diag(np.diag(eps.T @ eps)) / max(n - p / 6.0, 1.0)
                 Cr = Ak @ Sigma_b @ Ak.transpose(0, 2, 1)
-            Wh = _whitener(Cr, encoder_std_m)
-        sol = _solve(wres, x, on_iteration, f"pass-{npass + 1}")
-        if sol.status <= 0 or not np.all(np.isfinite(sol.x)):
-            raise ConvergenceError(f"end-effector fit did not converge: {sol.message}")
+            wres.Wh = _whitener(Cr, cfg.encoder_std_m)
+        sol = _solve_checked(wres, x, on_iteration, f"pass-{npass + 1}")
         x = sol.x
         nfev += sol.nfev
-    if C_board is not None and not noise_free:
-        # poses whose residual the model does not explain (a wrong board pose): studentized chi-square test,
-        # one round from the fit with every pose, then one refit without them and with the factor re-measured
-        chi2_pose = _studentized_chi2(central_jacobian(wres, x), wres(x), n)
-        keep = _gate(chi2_pose, p)
-        if not keep.all():
-            Ak = _pose_sensitivity(model, x)
-            scale2 = _board_noise_factor(Ak, C_board, model.residuals(x), keep, p)
-            Wh = _whitener(scale2 * Ak @ C_board @ Ak.transpose(0, 2, 1), encoder_std_m)
-            sol = _solve(wres, x, on_iteration, "without rejected poses")
-            if sol.status <= 0 or not np.all(np.isfinite(sol.x)):
-                raise ConvergenceError(f"end-effector fit did not converge: {sol.message}")
-            x = sol.x
-            nfev += sol.nfev
+    return _PassesOutcome(x, nfev, Sigma_b, scale2, noise_free, sol)
+
+
+def reject_poses(
+    wres: WeightedResiduals,
+    fit: _PassesOutcome,
+    C_board: np.ndarray,
+    encoder_std_m: float,
+    on_iteration: IterationCallback | None,
+) -> np.ndarray:
+    """Poses whose residual the model does not explain (a wrong board pose): a studentized chi-square test, one round
+    from the fit with every pose, then one refit without them and with the factor re-measured (``wres`` and ``fit``
+    updated). Returns each pose's studentized chi-square (N,)."""
+    model, x = wres.model, fit.x
+    n, p = model.R.shape[0], x.size
+    chi2_pose = _studentized_chi2(central_jacobian(wres, x), wres(x), n)
+    wres.keep = _gate(chi2_pose, p)
+    if not wres.keep.all():
+        Ak = _pose_sensitivity(model, x)
+        fit.scale2 = _board_noise_factor(Ak, C_board, model.residuals(x), wres.keep, p)
+        wres.Wh = _whitener(fit.scale2 * Ak @ C_board @ Ak.transpose(0, 2, 1), encoder_std_m)
+        sol = _solve_checked(wres, x, on_iteration, "without rejected poses")
+        fit.x, fit.sol = sol.x, sol
+        fit.nfev += sol.nfev
+    return chi2_pose
+
+
+def _solve_checked(fun: WeightedResiduals, x0: np.ndarray, on_iteration: IterationCallback | None, stage: str) -> Any:
+    """:func:`_solve`, raising when it did not converge."""
+    sol = _solve(fun, x0, on_iteration, stage)
+    if sol.status <= 0 or not np.all(np.isfinite(sol.x)):
+        raise ConvergenceError(f"end-effector fit did not converge: {sol.message}")
+    return sol
+
+
+def _end_effector_result(
+    obs: Observations,
+    data: PhaseArrays,
+    wres: WeightedResiduals,
+    fit: _PassesOutcome,
+    C_board: np.ndarray | None,
+    chi2_pose: np.ndarray,
+) -> MethodResult:
+    """The covariance (from the weighted normal matrix, with the intrinsics' part) and the :class:`MethodResult`."""
+    model, x, keep = wres.model, fit.x, wres.keep
+    n, p = len(data), x.size
     r = model.residuals(x)
     J = central_jacobian(wres, x)
     check_excitation(J, _NAMES)
@@ -237,10 +414,11 @@ def calibrate_end_effector(
         chi2_total = float(np.sum(wres(x) ** 2))
         dof = max(6 * int(keep.sum()) - p, 1)
         cov_full = np.linalg.inv(J.T @ J) * max(chi2_total / dof, 1e-300)
+    Sigma_b = fit.Sigma_b
     if C_board is not None:
-        Sigma_b = scale2 * np.median(C_board[keep], axis=0)
+        Sigma_b = fit.scale2 * np.median(C_board[keep], axis=0)
     cov_poses = cov_full[:4, :4]
-    intr_part = None if noise_free else _intrinsics_part(obs, data, model, x, Wh, keep, J)
+    intr_part = None if fit.noise_free else _intrinsics_part(obs, data, model, x, wres.Wh, keep, J)
     cov_intr = None
     noise_factor = None
     if intr_part is not None:
@@ -262,9 +440,9 @@ def calibrate_end_effector(
         residual_unit="m (IKM joint residual)",
         n_observations=6 * n,
         n_poses=n,
-        iterations=int(nfev),
+        iterations=int(fit.nfev),
         converged=True,
-        message=str(sol.message),
+        message=str(fit.sol.message),
         std_breakdown=breakdown,
         diagnostics={
             "tilt_residual_rms_deg": float(np.rad2deg(np.sqrt(np.mean(r[:, 4:] ** 2)))),
@@ -273,7 +451,7 @@ def calibrate_end_effector(
                 "translation_mm": (np.sqrt(np.diag(Sigma_b)[3:]) * 1e3).tolist(),
             },
             "board_noise_model": "per-pose covariance x factor" if C_board is not None else "diagonal, from residuals",
-            "board_cov_factor": float(np.sqrt(scale2)) if C_board is not None else None,
+            "board_cov_factor": float(np.sqrt(fit.scale2)) if C_board is not None else None,
             "noise_factor_without_intrinsics": noise_factor,
             "rejected_poses": [int(i) for i in data.index[~keep]],
             "pose_chi2": chi2_pose.tolist(),
@@ -355,7 +533,13 @@ def board_covariances(obs: Observations, arrays: PhaseArrays) -> np.ndarray | No
 
 
 def _intrinsics_part(
-    obs: Observations, data: PhaseArrays, model: _Model, x: np.ndarray, Wh: np.ndarray, keep: np.ndarray, J: np.ndarray
+    obs: Observations,
+    data: PhaseArrays,
+    model: EndEffectorModel,
+    x: np.ndarray,
+    Wh: np.ndarray,
+    keep: np.ndarray,
+    J: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """How the camera intrinsics' error, common to every pose, moves the whitened residuals and the estimate.
 
@@ -481,7 +665,7 @@ def _gate(chi2_pose: np.ndarray, n_params: int) -> np.ndarray:
     return keep
 
 
-def _pose_sensitivity(model: _Model, x: np.ndarray, h: float = 1e-7) -> np.ndarray:
+def _pose_sensitivity(model: EndEffectorModel, x: np.ndarray, h: float = 1e-7) -> np.ndarray:
     """d residuals_k / d (board pose error_k), shape (N, 6, 6): rotation (left, camera frame) then translation."""
     n = model.R.shape[0]
     A = np.zeros((n, 6, 6))

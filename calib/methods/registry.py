@@ -1,11 +1,12 @@
 """The method registry: every identification method, described once, read by every consumer.
 
 A method is a :class:`MethodSpec`: its name (the key in result documents, ``--method`` and the API), a label and a
-colour for the report and the dashboard, a one-sentence description, the observation phases it needs, its
-identifiability model, whether the pipeline computes a Cramer-Rao bound for it, and a uniform
-``fit(observations, context) -> MethodResult``. The pipeline (:mod:`calib.pipeline`), the identifiability report,
-the command line, the REST service (``GET /api/v1/methods``), the report and the dashboard list the methods from
-here, in registration order.
+colour for the report and the dashboard, a one-sentence description, the observation phases it needs, its public
+measurement model at a pose set (``model(params, q) -> PoseSetModel``: predictions, residuals, Jacobian, covariance;
+:mod:`calib.methods.model`, :func:`method_model`), whether the pipeline computes a Cramer-Rao bound for it, and a
+uniform ``fit(observations, context) -> MethodResult``. The pipeline (:mod:`calib.pipeline`), the identifiability
+report, the command line, the REST service (``GET /api/v1/methods``), the report and the dashboard list the methods
+from here, in registration order.
 
 Adding a method: write its module (a ``fit`` function and a ``MethodSpec``) and register it, either with one line in
 :func:`_builtin_specs` (a method of this package) or, outside the package, with :func:`register_method` in a module
@@ -28,12 +29,12 @@ import numpy as np
 
 from ..baseframe import BaseFrameResult
 from ..errors import I4calError, InputError
-from ..identifiability import analyse, combined_model, end_effector_model, legs_model
+from ..identifiability import analyse
 from ..observations import Observations
 from ..parameters import I4Parameters, identifiable_parameters
-from .edge_bias import MeasuredEdgeBias
+from .combined_measurements import CombinedMeasurements
 from .iterations import IterationCallback
-from .measured_intrinsics import MeasuredIntrinsics
+from .model import ModelFactory, PoseSetModel
 from .result import MethodResult
 
 #: Name of a method: lower case, digits and dashes (it is a URL, CLI and JSON key).
@@ -55,25 +56,21 @@ class MethodContext:
     on_iteration : callable or None
         Receives ``{"stage", "iteration", "cost"}`` after each iteration of the method's fits
         (:mod:`calib.methods.iterations`).
-    limb_edge_bias : MeasuredEdgeBias or None
-        The limb-edge bias a combined fit of the same run measured (None: none measured).
-    limb_edge_bias_tried : bool
-        A combined fit of the same run already tried to measure it (then None means it could not).
-    intrinsics : MeasuredIntrinsics or None
-        The intrinsics as that combined fit re-estimated them (None: not re-estimated).
+    combined : CombinedMeasurements or None
+        What a combined fit of the same run measured (the limb-edge bias and the intrinsics; empty when it failed);
+        None: no combined fit ran before (a method that needs its measurements runs it once itself).
     """
 
     base_frame: BaseFrameResult | None = None
     on_iteration: IterationCallback | None = None
-    limb_edge_bias: MeasuredEdgeBias | None = None
-    limb_edge_bias_tried: bool = False
-    intrinsics: MeasuredIntrinsics | None = None
+    combined: CombinedMeasurements | None = None
 
 
 #: ``fit(observations, context) -> MethodResult``.
 FitFunction = Callable[[Observations, MethodContext], MethodResult]
 #: ``model(params, q) -> (f, n_nuisance)``: the method's measurement model as a function of the seven parameters
 #: followed by ``n_nuisance`` nuisance parameters (:func:`calib.identifiability.analyse`); ``q`` (N, 4) encoders, m.
+#: The same as a :data:`calib.methods.model.ModelFactory`, in the tuple form.
 IdentifiabilityModel = Callable[[I4Parameters, np.ndarray], tuple[Callable[[np.ndarray], np.ndarray], int]]
 
 
@@ -97,11 +94,16 @@ class MethodSpec:
     required_phases : tuple of str
         Observation phases it needs (observations v1 phase names).
     identifiability : callable or None
-        Its measurement model for the identifiability report (:data:`IdentifiabilityModel`); None: no report.
+        Its measurement model for the identifiability report, in the tuple form (:data:`IdentifiabilityModel`);
+        derived from ``model`` when not given. None (and no ``model``): no report.
     bound : bool
         The pipeline computes the Cramer-Rao bound of its estimate (the combined method's bound).
     apply_rank : int
         Preference when a run's result is applied without naming a method: the converged method of lowest rank.
+    model : callable or None
+        Its public measurement model at a pose set, ``model(params, q) -> PoseSetModel`` (residuals, Jacobian,
+        covariance: :mod:`calib.methods.model`; :func:`method_model`); derived from ``identifiability`` when not
+        given. None: the method has none.
     """
 
     name: str
@@ -113,6 +115,7 @@ class MethodSpec:
     identifiability: IdentifiabilityModel | None = None
     bound: bool = False
     apply_rank: int = 100
+    model: ModelFactory | None = None
 
     def __post_init__(self) -> None:
         if not re.match(NAME_PATTERN, self.name) or self.name == "all":
@@ -121,6 +124,11 @@ class MethodSpec:
             raise InputError(f"method {self.name}: colour {self.colour!r} is not #rrggbb", field="colour")
         if not callable(self.fit):
             raise InputError(f"method {self.name}: fit is not callable", field="fit")
+        # one model, two forms: the PoseSetModel factory and the identifiability report's (f, n_nuisance)
+        if self.model is None and self.identifiability is not None:
+            object.__setattr__(self, "model", _model_from_tuple(self.identifiability))
+        elif self.model is not None and self.identifiability is None:
+            object.__setattr__(self, "identifiability", _tuple_from_model(self.model))
 
     def summary(self) -> dict[str, Any]:
         """JSON-able description (``GET /api/v1/methods``)."""
@@ -133,6 +141,22 @@ class MethodSpec:
             "identifiability": self.identifiability is not None,
             "bound": self.bound,
         }
+
+
+def _model_from_tuple(identifiability: IdentifiabilityModel) -> ModelFactory:
+    def model(params: I4Parameters, q: np.ndarray) -> PoseSetModel:
+        f, k = identifiability(params, q)
+        return PoseSetModel(f, params, k)
+
+    return model
+
+
+def _tuple_from_model(model: ModelFactory) -> IdentifiabilityModel:
+    def identifiability(params: I4Parameters, q: np.ndarray) -> tuple[Callable[[np.ndarray], np.ndarray], int]:
+        m = model(params, q)
+        return m.fun, m.n_nuisance
+
+    return identifiability
 
 
 _lock = threading.RLock()
@@ -277,30 +301,65 @@ def _fit_end_effector(obs: Observations, ctx: MethodContext) -> MethodResult:
 def _fit_legs(obs: Observations, ctx: MethodContext) -> MethodResult:
     from .legs import calibrate_legs
 
-    # the combined fit's measurements of the limb-edge bias and the intrinsics when the run already made them, else its
-    # own
-    if ctx.limb_edge_bias_tried:
-        return calibrate_legs(
-            obs, on_iteration=ctx.on_iteration, edge_bias=ctx.limb_edge_bias, intrinsics=ctx.intrinsics
-        )
-    return calibrate_legs(obs, on_iteration=ctx.on_iteration)
+    # the combined fit's measurements of the limb-edge bias and the intrinsics when the run already made them; None:
+    # calibrate_legs runs the combined fit once itself when its data need them
+    return calibrate_legs(obs, on_iteration=ctx.on_iteration, combined=ctx.combined)
 
 
-def _combined_model(params: I4Parameters, q: np.ndarray) -> tuple[Callable[[np.ndarray], np.ndarray], int]:
-    return combined_model(params, q), 0
+def _combined_model(params: I4Parameters, q: np.ndarray) -> PoseSetModel:
+    from .combined import pose_set_model
+
+    return pose_set_model(params, q)
 
 
-def _end_effector_model(params: I4Parameters, q: np.ndarray) -> tuple[Callable[[np.ndarray], np.ndarray], int]:
-    return end_effector_model(params, q)
+def _end_effector_model(params: I4Parameters, q: np.ndarray) -> PoseSetModel:
+    from .end_effector import pose_set_model
+
+    return pose_set_model(params, q)
 
 
-def _legs_model(params: I4Parameters, q: np.ndarray) -> tuple[Callable[[np.ndarray], np.ndarray], int]:
-    return legs_model(params, q)
+def _legs_model(params: I4Parameters, q: np.ndarray) -> PoseSetModel:
+    from .legs import pose_set_model
+
+    return pose_set_model(params, q)
+
+
+def method_model(method: str, params: I4Parameters, q: np.ndarray) -> PoseSetModel:
+    """The measurement model of a registered method at a pose set (:attr:`MethodSpec.model`).
+
+    Parameters
+    ----------
+    method : str
+        A registered method's name.
+    params : I4Parameters
+        The linearisation point.
+    q : ndarray, shape (N, 4)
+        Encoder values of the poses, m.
+
+    Returns
+    -------
+    PoseSetModel
+        Its predictions, residuals, Jacobian (in the seven parameters, m, then its nuisance unknowns) and the
+        covariance of the four combinations for a given measurement noise.
+
+    Raises
+    ------
+    ValueError
+        The method is not registered, or has no model.
+    """
+    q = np.asarray(q, dtype=np.float64)
+    try:
+        spec = get_method(method)
+    except InputError as exc:
+        raise ValueError(str(exc)) from None
+    if spec.model is None:
+        raise ValueError(f"method {method!r} has no identifiability model")
+    return spec.model(params, q)
 
 
 def method_identifiability(method: str, params: I4Parameters, q: np.ndarray) -> dict:
     """Identifiability report of a registered method at a pose set (encoders q, (N, 4), m): its
-    :attr:`MethodSpec.identifiability` model analysed by :func:`calib.identifiability.analyse`.
+    :attr:`MethodSpec.model` analysed by :func:`calib.identifiability.analyse`.
 
     Raises
     ------
@@ -308,14 +367,8 @@ def method_identifiability(method: str, params: I4Parameters, q: np.ndarray) -> 
         The method is not registered, or has no identifiability model.
     """
     q = np.asarray(q, dtype=np.float64)
-    try:
-        spec = get_method(method)
-    except InputError as exc:
-        raise ValueError(str(exc)) from None
-    if spec.identifiability is None:
-        raise ValueError(f"method {method!r} has no identifiability model")
-    f, k = spec.identifiability(params, q)
-    out = analyse(f, params, k)
+    model = method_model(method, params, q)
+    out = analyse(model.fun, params, model.n_nuisance)
     out["method"] = method
     out["n_poses"] = int(q.shape[0])
     out["combination_values"] = identifiable_parameters(params)
@@ -333,7 +386,7 @@ def _builtin_specs() -> list[MethodSpec]:
             "base frame found from the board's rotation and translation phases, fitted to the model's",
             fit=_fit_combined,
             required_phases=("rotation", "translation", "poses"),
-            identifiability=_combined_model,
+            model=_combined_model,
             bound=True,
             apply_rank=0,
         ),
@@ -345,7 +398,7 @@ def _builtin_specs() -> list[MethodSpec]:
             "board placements as nuisance parameters",
             fit=_fit_end_effector,
             required_phases=("poses",),
-            identifiability=_end_effector_model,
+            model=_end_effector_model,
             apply_rank=2,
         ),
         MethodSpec(
@@ -356,7 +409,7 @@ def _builtin_specs() -> list[MethodSpec]:
             "leg axes",
             fit=_fit_legs,
             required_phases=("lock-1", "lock-2", "lock-3", "lock-4", "poses"),
-            identifiability=_legs_model,
+            model=_legs_model,
             apply_rank=1,
         ),
     ]
@@ -373,6 +426,7 @@ __all__ = [
     "get_method",
     "load_modules",
     "method_identifiability",
+    "method_model",
     "method_names",
     "methods",
     "plugin_modules",

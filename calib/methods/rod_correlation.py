@@ -173,8 +173,9 @@ def distance_shape(
     return np.einsum("ab,ai,bj->aibj", k, g, g).reshape(2 * m, 2 * m)
 
 
-def _positive_definite(own: Array, shapes: list[Array], rho: Array) -> Array:
-    """``rho`` shrunk (by 0.8 a step) until ``own + sum rho_j S_j`` is positive semi-definite.
+def positive_definite(own: Array, shapes: list[Array], rho: Array) -> Array:
+    """``rho`` (K,) shrunk (by 0.8 a step) until ``own + sum rho_j S_j`` is positive semi-definite (``own`` and each
+    ``S_j`` (2M, 2M), the rods' error shapes, dimensionless); the correlations (K,) returned.
 
     Each correlation alone keeps the covariance positive definite below 1; the two together, the distance kernel
     leaving out a leg's same-frame pairs, may not at strong correlations.
@@ -239,7 +240,7 @@ def estimate_rod_errors(
     c, _ = nnls(T / norm[:, None], b / norm)
     s2 = float(c[0])
     rho = np.zeros(len(shapes) - 1) if s2 <= 0 else np.minimum(c[1:] / s2, MAX_CORRELATION)
-    rho = _positive_definite(own, shapes[1:], rho)
+    rho = positive_definite(own, shapes[1:], rho)
     # the own scale again with the correlations held (it is what the first moment pins)
     den = T[0, 0] + float(T[0, 1:] @ rho)
     s2 = max(float(b[0]) / den, 0.0) if den > 0 else 0.0
@@ -247,3 +248,7 @@ def estimate_rod_errors(
     pair_rho = next(it) if pair_shape is not None else 0.0
     dist_rho = next(it) if distance_shape is not None else None
     return RodErrors(s2, float(pair_rho), dist_rho, dof, pair_shape, distance_shape)
+
+
+#: the former private name (tests read it)
+_positive_definite = positive_definite

@@ -98,3 +98,24 @@ def test_the_legs_method_uses_the_re_estimate_and_without_a_shift_is_what_it_was
     for k in old.combinations:
         assert same.combinations[k] == pytest.approx(old.combinations[k], abs=1e-9)
         assert same.combinations_std[k] == pytest.approx(old.combinations_std[k], rel=1e-6)
+
+
+def test_the_legs_method_uses_the_combined_measurements_passed_in_without_a_fit_of_its_own(rendered, monkeypatch):
+    """What the legs method takes from the combined fit (limb-edge bias, intrinsics) is passed in: given, it runs no
+    combined fit and gives what it gives alone (where it runs that fit once itself)."""
+    import calib.methods.combined as combined
+    from calib.methods.combined_measurements import CombinedMeasurements
+    from calib.methods.legs import calibrate_legs
+
+    _, obs = rendered
+    measured = CombinedMeasurements.from_result(combined.calibrate_combined(obs))
+    assert measured.edge_bias is not None and measured.intrinsics is not None
+    calls = []
+    real = combined.calibrate_combined
+    monkeypatch.setattr(combined, "calibrate_combined", lambda *a, **k: calls.append(1) or real(*a, **k))
+    alone = calibrate_legs(obs)
+    assert len(calls) == 1  # alone: the combined fit once
+    given = calibrate_legs(obs, combined=measured)
+    assert len(calls) == 1  # given: none
+    assert given.to_dict() == alone.to_dict()
+    assert given.diagnostics["limb_edge_bias"]["applied"] and given.diagnostics["intrinsics_refit"]["applied"]

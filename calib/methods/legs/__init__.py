@@ -45,25 +45,57 @@ The two parts come from different frames (``lock-i`` and fit phases) and are ind
 from __future__ import annotations
 
 from .constants import PRIOR_STD_M
-from .joints import PlaneObservation, intersect_lines, joint_from_planes, limb_line_noise, planes_direction_covariance
-from .method import calibrate_legs
-
-# used by calib.design's predictions (the method's own noise model and steps)
-from .pipeline import _LegsPipeline, _pair_means, _pair_own_covariances, _steps34_covariance, _steps34_sandwich  # noqa: F401
-from .uncertainty import (  # noqa: F401
-    _IntrinsicsEffect,
+from .joints import (
+    PlaneObservation,
+    Step1Planes,
+    intersect_lines,
+    joint_from_planes,
+    limb_line_noise,
+    planes_direction_covariance,
+    step1_planes,
+)
+from .method import LegsSettings, calibrate_legs
+from .pipeline import (
+    LegsModel,
+    fit_step2,
+    leg_directions,
+    pair_means,
+    pair_own_covariances,
+    pose_set_model,
+    steps34_covariance,
+    steps34_sandwich,
+)
+from .uncertainty import (  # noqa: F401 - _null_space_to_prior: tests read it
+    IntrinsicsEffect,
     _null_space_to_prior,
-    _with_prior,
     combinations_null_space,
     joint_depth_systematic,
+    null_space_to_prior,
+    with_prior,
 )
 
 __all__ = [
     "PRIOR_STD_M",
+    "IntrinsicsEffect",
+    "LegsModel",
+    "LegsSettings",
     "PlaneObservation",
+    "Step1Planes",
     "calibrate_legs",
+    "combinations_null_space",
+    "fit_step2",
     "intersect_lines",
+    "joint_depth_systematic",
     "joint_from_planes",
+    "leg_directions",
     "limb_line_noise",
+    "null_space_to_prior",
+    "pair_means",
+    "pair_own_covariances",
     "planes_direction_covariance",
+    "pose_set_model",
+    "step1_planes",
+    "steps34_covariance",
+    "steps34_sandwich",
+    "with_prior",
 ]

@@ -339,15 +339,91 @@ def _gross_single_rods(
     return out
 
 
-def _step1_planes(
+@dataclass(frozen=True)
+class Step1Planes:
+    """Step 1's joints from the lock phases' plane equations.
+
+    Attributes
+    ----------
+    P : ndarray, shape (4, 2, 3)
+        The upper joints (leg, rod), camera frame, m.
+    cov : ndarray, shape (4, 2, 3, 3)
+        Their covariances, m^2 (scaled by ``s2``).
+    s2 : float
+        The chi-square per dof that scales them (at least 1 with absolute variances).
+    rejected : list of dict
+        Dropped frames: lock phase (1-4), rod (0-1), index among the rod's frames.
+    residual_rms_m : float
+        RMS of the kept equations' residuals, m.
+    keep : list of list of ndarray of bool
+        The frames kept per rod, [4][2].
+    s2_raw : float
+        The residuals' chi-square per dof (before the floor at 1 of absolute variances).
+    """
+
+    P: np.ndarray
+    cov: np.ndarray
+    s2: float
+    rejected: list[dict[str, int]]
+    residual_rms_m: float
+    keep: list[list[np.ndarray]]
+    s2_raw: float
+
+
+def step1_planes(
     planes: list[list[list[PlaneObservation]]], frames: list[list[np.ndarray]] | None = None
-) -> tuple[np.ndarray, np.ndarray, float, list[dict[str, int]], float, list[list[np.ndarray]], float]:
-    """Step 1 with plane equations: joints (4, 2, 3), covariances (4, 2, 3, 3), the chi-square per dof that scales
-    them, dropped frames (lock phase, rod, index among the rod's frames), the residual RMS (m), the frames kept per
-    rod (bool, [4][2]) and the residuals' chi-square per dof (before the floor at 1 of absolute variances)."""
-    absolute = all(o.var is not None for row in planes for rod in row for o in rod)
-    # robust noise scale from every frame's chi-square drop; absolute variances: at least 1; relative
-    # ones: residuals below a nanometre are never outliers
+) -> Step1Planes:
+    """Step 1 with plane equations: every rod's joint by weighted least squares over its lock phase's frames, gross
+    single rods and outlying frames dropped against a robust noise scale.
+
+    Parameters
+    ----------
+    planes : list of list of list of PlaneObservation
+        Per lock phase i (leg i locked) and rod j, the rod's frames ([4][2] lists).
+    frames : list of list of ndarray of int, optional
+        Per lock phase and rod, the frame index of each observation (to find the frames with both rods); None: no
+        single-rod check.
+
+    Returns
+    -------
+    Step1Planes
+    """
+    absolute = _absolute_variances(planes)
+    s_rob = _step1_noise_scale(planes, absolute)
+    keep = [_kept_frames(planes[i], None if frames is None else frames[i], s_rob) for i in range(4)]
+    rejected = [
+        {"lock": i + 1, "rod": j, "frame_of_rod": int(m)}
+        for i in range(4)
+        for j in range(2)
+        for m in np.nonzero(~keep[i][j])[0]
+    ]
+    fits = [[joint_from_planes(_kept(planes[i][j], keep[i][j])) for j in range(2)] for i in range(4)]
+    P = np.array([[fits[i][j][0] for j in range(2)] for i in range(4)])
+    A = np.array([[fits[i][j][1] for j in range(2)] for i in range(4)])
+    chi = sum(float(np.sum(fits[i][j][2])) for i in range(4) for j in range(2))
+    dof = sum(2 * int(keep[i][j].sum()) - 3 for i in range(4) for j in range(2))
+    s2 = chi / dof if dof > 0 else 1.0
+    s2_raw = s2
+    if _absolute_variances(planes):
+        # absolute variances (from the extraction's edge scatter): what the residuals show beyond it scales them
+        # up; never down (an under-dispersed lock phase of few frames is no evidence of less noise)
+        s2 = max(s2, 1.0)
+    rms = _step1_residual_rms(planes, keep, P)
+    return Step1Planes(P, s2 * np.linalg.inv(A), s2, rejected, rms, keep, s2_raw)
+
+
+def _absolute_variances(planes: list[list[list[PlaneObservation]]]) -> bool:
+    """Every plane observation carries its variances (from the extraction's edge scatter)."""
+    return all(o.var is not None for row in planes for rod in row for o in rod)
+
+
+def _kept(obs: list[PlaneObservation], keep: np.ndarray) -> list[PlaneObservation]:
+    return [o for o, kk in zip(obs, keep, strict=True) if kk]
+
+
+def _step1_noise_scale(planes: list[list[list[PlaneObservation]]], absolute: bool) -> float:
+    """Robust noise scale from every frame's chi-square drop; absolute variances: at least 1; relative ones: residuals
+    below a nanometre are never outliers."""
     pool = np.concatenate(
         [
             _deleted_d2(planes[i][j], np.ones(len(planes[i][j]), dtype=bool))
@@ -357,46 +433,42 @@ def _step1_planes(
         ]
         or [np.zeros(0)]
     )
-    s_rob = max(robust_chi2_scale(pool, 2) if pool.size else 0.0, 1.0 if absolute else 1e-18)
-    keep = []
-    for i in range(4):
-        # single rods far off the joint located from the frames with both rods: dropped before trimming
-        gross = (
-            _gross_single_rods(planes[i], frames[i], 100.0 * float(chi2_gate(2)) * s_rob)
-            if frames is not None
-            else [np.zeros(len(planes[i][j]), dtype=bool) for j in range(2)]
-        )
-        row = []
-        for j in range(2):
-            k_ok = np.nonzero(~gross[j])[0]
-            kk = np.zeros(len(planes[i][j]), dtype=bool)
-            kk[k_ok[_trim_rod([planes[i][j][m] for m in k_ok], s_rob)]] = True
-            row.append(kk)
-        keep.append(row)
-    rejected = [
-        {"lock": i + 1, "rod": j, "frame_of_rod": int(m)}
-        for i in range(4)
-        for j in range(2)
-        for m in np.nonzero(~keep[i][j])[0]
-    ]
-    fits = [
-        [joint_from_planes([o for o, kk in zip(planes[i][j], keep[i][j], strict=True) if kk]) for j in range(2)]
-        for i in range(4)
-    ]
-    P = np.array([[fits[i][j][0] for j in range(2)] for i in range(4)])
-    A = np.array([[fits[i][j][1] for j in range(2)] for i in range(4)])
-    chi = sum(float(np.sum(fits[i][j][2])) for i in range(4) for j in range(2))
-    dof = sum(2 * int(keep[i][j].sum()) - 3 for i in range(4) for j in range(2))
-    s2 = chi / dof if dof > 0 else 1.0
-    s2_raw = s2
-    if all(o.var is not None for row in planes for rod in row for o in rod):
-        # absolute variances (from the extraction's edge scatter): what the residuals show beyond it scales them
-        # up; never down (an under-dispersed lock phase of few frames is no evidence of less noise)
-        s2 = max(s2, 1.0)
+    return max(robust_chi2_scale(pool, 2) if pool.size else 0.0, 1.0 if absolute else 1e-18)
+
+
+def _kept_frames(row: list[list[PlaneObservation]], frames: list[np.ndarray] | None, s_rob: float) -> list[np.ndarray]:
+    """One lock phase's frames kept per rod (bool, [2]): single rods far off the joint located from the frames with
+    both rods dropped first, then each rod trimmed (:func:`_trim_rod`)."""
+    gross = (
+        _gross_single_rods(row, frames, 100.0 * float(chi2_gate(2)) * s_rob)
+        if frames is not None
+        else [np.zeros(len(row[j]), dtype=bool) for j in range(2)]
+    )
+    out = []
+    for j in range(2):
+        k_ok = np.nonzero(~gross[j])[0]
+        kk = np.zeros(len(row[j]), dtype=bool)
+        kk[k_ok[_trim_rod([row[j][m] for m in k_ok], s_rob)]] = True
+        out.append(kk)
+    return out
+
+
+def _step1_residual_rms(
+    planes: list[list[list[PlaneObservation]]], keep: list[list[np.ndarray]], P: np.ndarray
+) -> float:
+    """RMS (m) of the kept plane equations' residuals at the joints ``P`` (4, 2, 3)."""
     sq, n_eq = 0.0, 0
     for i in range(4):
         for j in range(2):
-            used = [o for o, kk in zip(planes[i][j], keep[i][j], strict=True) if kk]
+            used = _kept(planes[i][j], keep[i][j])
             sq += float(sum(np.sum((o.h @ P[i, j] - o.r) ** 2) for o in used))
             n_eq += 2 * len(used)
-    return P, s2 * np.linalg.inv(A), s2, rejected, float(np.sqrt(sq / max(n_eq, 1))), keep, s2_raw
+    return float(np.sqrt(sq / max(n_eq, 1)))
+
+
+def _step1_planes(
+    planes: list[list[list[PlaneObservation]]], frames: list[list[np.ndarray]] | None = None
+) -> tuple[np.ndarray, np.ndarray, float, list[dict[str, int]], float, list[list[np.ndarray]], float]:
+    """:func:`step1_planes` as a tuple ``(P, cov, s2, rejected, residual_rms_m, keep, s2_raw)``."""
+    r = step1_planes(planes, frames)
+    return r.P, r.cov, r.s2, r.rejected, r.residual_rms_m, r.keep, r.s2_raw

@@ -12,14 +12,32 @@ from scipy.linalg import block_diag
 from scipy.optimize import least_squares
 
 from ...errors import ConvergenceError, IdentifiabilityError
+from ...kinematics import dkm, joint_points
 from ...numdiff import central_jacobian
 from ...observations import Observations, PhaseArrays
 from ...parameters import I4Parameters
 from ...robust import chi2_outliers, robust_chi2_scale
-from ...transforms import tangent_basis, unit
+from ...transforms import rotvec_to_matrix, tangent_basis, unit
 from ..iterations import IterationCallback, traced_jac
+from ..model import PoseSetModel
 from .constants import _EQ_LEGS, _PAIRS
 from .joints import _rod_field
+
+
+def pose_set_model(params: I4Parameters, q: np.ndarray) -> PoseSetModel:
+    """The legs method's measurement model at encoder values ``q`` (N, 4), m: the joint centres A_i, B_i the rods
+    determine, camera frame (m), (N * 8 * 3,), as a function of the seven parameters then 6 nuisance unknowns, the
+    camera's placement (rotation vector, rad; position, m)."""
+    q = np.asarray(q, dtype=np.float64)
+
+    def f(v: np.ndarray) -> np.ndarray:
+        p = I4Parameters.from_vector(v[:7], T_per_rad=params.T_per_rad)
+        pose = dkm(p, q)
+        A, B = joint_points(p, q, pose)
+        R = rotvec_to_matrix(v[7:10])
+        return (np.concatenate([A, B], axis=1) @ R.T + v[10:13]).ravel()
+
+    return PoseSetModel(f, params, 6)
 
 
 def _step2_gram(x: np.ndarray) -> np.ndarray:
@@ -41,8 +59,15 @@ def _step2_gram_jacobian(x: np.ndarray) -> np.ndarray:
     return np.stack([dG[:, a, b] for a, b in _PAIRS])
 
 
-def _step2(V: np.ndarray, x0: np.ndarray, on_iteration: IterationCallback | None = None) -> np.ndarray:
-    """(q02, q03, q04, H) from V (3, 3) rows OA2, OA3, OA4 at zero encoder (eq. 9)."""
+def fit_step2(V: np.ndarray, x0: np.ndarray, on_iteration: IterationCallback | None = None) -> np.ndarray:
+    """Step 2 (eq. 9): (q02, q03, q04, H), m, shape (4,), from ``V`` (3, 3), rows OA2, OA3, OA4 at zero encoder (m),
+    starting at ``x0`` (4,), m.
+
+    Raises
+    ------
+    ConvergenceError
+        The least-squares fit did not converge.
+    """
     G = V @ V.T
     meas = np.array([G[a, b] for a, b in _PAIRS])
     fun, jac = traced_jac(lambda x: _step2_gram(x) - meas, _step2_gram_jacobian, on_iteration, "step 2")
@@ -69,8 +94,26 @@ def _gls_pair(u: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray, flo
     return unit(m + T @ em), T @ Cm @ T.T, d2
 
 
-class _LegsPipeline:
-    """Steps 2-4 as a function of the joint points (step 1 output) and the fit-pose leg directions."""
+class LegsModel:
+    """The legs method's model: steps 2-4 as a function of the joint points (step 1's output) and the fit poses' leg
+    directions, with the residuals of steps 3-4's equations, their Jacobian in (L, S, D) and their covariance from
+    the leg directions' (what the fit weighs by and experiment design predicts with).
+
+    Parameters
+    ----------
+    q_lock : ndarray, shape (4,)
+        Each lock phase's locked actuator value, m.
+    q_fit : ndarray, shape (N, 4)
+        The fit poses' actuator values, m.
+    rod_p : ndarray, shape (N, 4, 3)
+        A point on each leg's rods, camera frame, m (NaN where none; orients the directions).
+    has_leg : ndarray of bool, shape (N, 4)
+        The legs seen in each fit pose.
+    cov_leg : ndarray, shape (N, 4, 3, 3)
+        Each leg direction's covariance, rad^2 (or relative).
+    nominal : I4Parameters
+        The a priori geometry (the fits' start and the axes' orientation).
+    """
 
     def __init__(
         self,
@@ -122,7 +165,7 @@ class _LegsPipeline:
         nom = self.nominal
         x, A0, _ = self.frame(P)
         V = A0[1:] - A0[0]
-        x2 = _step2(V, np.array([nom.q02, nom.q03, nom.q04, nom.H]) if x2_init is None else x2_init, on_iteration)
+        x2 = fit_step2(V, np.array([nom.q02, nom.q03, nom.q04, nom.H]) if x2_init is None else x2_init, on_iteration)
         q02, q03, q04, H = x2
         y = self.y_axis(x, A0)
         theta0 = np.array([nom.L, nom.S, nom.D]) if theta_init is None else np.asarray(theta_init, dtype=np.float64)
@@ -287,7 +330,7 @@ class _LegsPipeline:
         return theta
 
 
-def _pair_means(u: np.ndarray, has: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def pair_means(u: np.ndarray, has: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per pose and leg, the covariance-weighted mean of its rods' directions.
 
     Parameters
@@ -324,8 +367,8 @@ def _pair_means(u: np.ndarray, has: np.ndarray, C: np.ndarray) -> tuple[np.ndarr
     return U, CU, pair_d2
 
 
-def _pair_own_covariances(u: np.ndarray, has: np.ndarray, C: np.ndarray, C_own: np.ndarray) -> np.ndarray:
-    """Per pose and leg, the own covariance (N, 4, 3, 3) of :func:`_pair_means`'s direction: its two rods weighed by
+def pair_own_covariances(u: np.ndarray, has: np.ndarray, C: np.ndarray, C_own: np.ndarray) -> np.ndarray:
+    """Per pose and leg, the own covariance (N, 4, 3, 3) of :func:`pair_means`'s direction: its two rods weighed by
     their covariances ``C`` (N, 4, 2, 3, 3), their errors' covariances ``C_own`` (``cov_u_own``); NaN without a
     rod."""
     dot = np.einsum("nlk,nlk->nl", u[:, :, 0], u[:, :, 1])
@@ -344,7 +387,7 @@ def _pair_own_covariances(u: np.ndarray, has: np.ndarray, C: np.ndarray, C_own: 
     return out
 
 
-def _rod_own_covariances(obs: Observations, data: PhaseArrays) -> np.ndarray | None:
+def rod_own_covariances(obs: Observations, data: PhaseArrays) -> np.ndarray | None:
     """Every measured rod's ``cov_u_own`` (N, 4, 2, 3, 3), NaN where no rod; None when a measured rod lacks it."""
     C = np.full((len(data), 4, 2, 3, 3), np.nan)
     for k, leg, rod in zip(*np.nonzero(data.has_rod), strict=True):
@@ -355,7 +398,7 @@ def _rod_own_covariances(obs: Observations, data: PhaseArrays) -> np.ndarray | N
     return C
 
 
-def _leg_directions(
+def leg_directions(
     obs: Observations, data: PhaseArrays, direction_std_rad: float | None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool, list[dict[str, int]], np.ndarray]:
     """Per pose and leg: direction (N,4,3), its covariance (N,4,3,3), a rod point (N,4,3), mask (N,4).
@@ -379,7 +422,7 @@ def _leg_directions(
         s = 1.0 if direction_std_rad is None else direction_std_rad
         uu = np.nan_to_num(u)
         C = s**2 * (np.eye(3) - uu[..., :, None] * uu[..., None, :])
-    U, CU, pair_d2 = _pair_means(u, has, C)
+    U, CU, pair_d2 = pair_means(u, has, C)
     # (N, 4): a reduction over one axis of the (N, 4, 2) mask is an array (the stubs also allow a scalar)
     has_leg = cast("NDArray[np.bool_]", has.any(axis=2))
     rejected: list[dict[str, int]] = []
@@ -397,8 +440,9 @@ def _leg_directions(
     return U, CU, pts, has_leg, measured, rejected, C
 
 
-def _gate_poses(pipe: _LegsPipeline, P: np.ndarray, U: np.ndarray, seven: np.ndarray) -> np.ndarray:
-    """Poses (bool, (N,)) whose whitened equations exceed their chi-square 99.9% quantile (robust scale)."""
+def gate_poses(pipe: LegsModel, P: np.ndarray, U: np.ndarray, seven: np.ndarray) -> np.ndarray:
+    """Poses (bool, (N,)) whose whitened equations exceed their chi-square 99.9% quantile (robust scale), for joints
+    ``P`` (4, 2, 3), m, leg directions ``U`` (N, 4, 3) and the estimate ``seven`` (7,), PARAMETER_NAMES order, m."""
     Aq, Uo, y = pipe.geometry(P, U)
     d2 = np.sum(pipe.whitened(seven[[6, 4, 5]], Aq, Uo, y) ** 2, axis=1)
     m = pipe.mask.sum(axis=1)
@@ -411,10 +455,11 @@ def _gate_poses(pipe: _LegsPipeline, P: np.ndarray, U: np.ndarray, seven: np.nda
     return used & chi2_outliers(d2, np.maximum(m, 1), s_rob)
 
 
-def _steps34_covariance(
-    pipe: _LegsPipeline, P: np.ndarray, U: np.ndarray, seven: np.ndarray
+def steps34_covariance(
+    pipe: LegsModel, P: np.ndarray, U: np.ndarray, seven: np.ndarray
 ) -> tuple[np.ndarray, float, int]:
-    """GLS covariance (3, 3) of (L, S, D) for unit-scaled weights, the chi-square and its dof."""
+    """GLS covariance (3, 3) of (L, S, D), m^2, for unit-scaled weights, the chi-square and its dof, for joints ``P``
+    (4, 2, 3), m, leg directions ``U`` (N, 4, 3) and the estimate ``seven`` (7,), PARAMETER_NAMES order, m."""
     Aq, Uo, y = pipe.geometry(P, U)
     theta = seven[[6, 4, 5]]
     J = central_jacobian(lambda t: pipe.whitened(t, Aq, Uo, y).ravel(), theta, h=1e-7)
@@ -423,8 +468,8 @@ def _steps34_covariance(
     return np.linalg.inv(J.T @ J), float(np.sum(r**2)), dof
 
 
-def _steps34_sandwich(
-    pipe: _LegsPipeline, P: np.ndarray, U: np.ndarray, seven: np.ndarray, cov_leg_own: np.ndarray, covP: np.ndarray
+def steps34_sandwich(
+    pipe: LegsModel, P: np.ndarray, U: np.ndarray, seven: np.ndarray, cov_leg_own: np.ndarray, covP: np.ndarray
 ) -> tuple[np.ndarray, float, float]:
     """The leg directions' own part of (L, S, D)'s covariance and the steps 3-4 chi-square against its expectation.
 
@@ -438,7 +483,7 @@ def _steps34_sandwich(
 
     Parameters
     ----------
-    pipe : _LegsPipeline
+    pipe : LegsModel
         Fitted (its whitening ``W`` set).
     P : ndarray, shape (4, 2, 3)
         The joints, camera frame (m).
@@ -466,7 +511,7 @@ def _steps34_sandwich(
     Aq, Uo, y = pipe.geometry(P, U)
     J = pipe.whitened_jacobian(theta, Aq, Uo, y).reshape(-1, 3)
     r = pipe.whitened(theta, Aq, Uo, y).ravel()
-    own = _LegsPipeline(pipe.q_lock, pipe.q_fit, pipe.rod_p, pipe.has_leg, cov_leg_own, pipe.nominal)
+    own = LegsModel(pipe.q_lock, pipe.q_fit, pipe.rod_p, pipe.has_leg, cov_leg_own, pipe.nominal)
     C_own = own.covariances(theta, Aq, Uo, y)  # (N, 4, 4), identity on unused equations
     C_own = np.where(pipe.mask[:, :, None] & pipe.mask[:, None, :], C_own, 0.0)
     S = block_diag(*np.einsum("nij,njk,nlk->nil", pipe.W, C_own, pipe.W))
@@ -481,3 +526,13 @@ def _steps34_sandwich(
     M = np.eye(J.shape[0]) - J @ gain
     expected = float(np.trace(M @ (S + G @ covP @ G.T) @ M.T))
     return cov, float(r @ r), expected
+
+
+#: the former private names (tests read them)
+_LegsPipeline = LegsModel
+_leg_directions = leg_directions
+_pair_means = pair_means
+_pair_own_covariances = pair_own_covariances
+_steps34_covariance = steps34_covariance
+_steps34_sandwich = steps34_sandwich
+_step2 = fit_step2

@@ -25,7 +25,7 @@ import numpy as np
 
 from ...errors import ConvergenceError, IdentifiabilityError
 from ...robust import robust_chi2_scale
-from .pipeline import _LegsPipeline
+from .pipeline import LegsModel
 
 #: a repair is kept when it divides the fit poses' robust chi-square per degree of freedom by at least this (clean
 #: trials of the twin: 1-2; with one joint 35-71 mm off: 26-380)
@@ -107,7 +107,7 @@ def joint_repair_map(leg: int, rod: int) -> np.ndarray:
     return T
 
 
-def _fit_chi2(pipe: _LegsPipeline, P: np.ndarray, U: np.ndarray) -> float:
+def _fit_chi2(pipe: LegsModel, P: np.ndarray, U: np.ndarray) -> float:
     """Robust chi-square per degree of freedom of the fit poses' equations after a robust steps 3-4 fit with ``P``."""
     seven = pipe.run(P, U, robust=True)
     d2 = np.sum(pipe.whitened(seven[[6, 4, 5]], *pipe.geometry(P, U)) ** 2, axis=1)
@@ -117,7 +117,7 @@ def _fit_chi2(pipe: _LegsPipeline, P: np.ndarray, U: np.ndarray) -> float:
 
 
 #: the fit poses' data, a rod left out of its leg's direction: (leg, rod or None) -> (pipeline, directions (N, 4, 3))
-FitData = Callable[[int, "int | None"], tuple[_LegsPipeline, np.ndarray]]
+FitData = Callable[[int, "int | None"], tuple[LegsModel, np.ndarray]]
 
 
 def repair_joint(
@@ -172,5 +172,5 @@ def repair_joint(
     return JointRepair(leg, rod, T, moved, before, after, other, left_out)
 
 
-def _with(fit: tuple[_LegsPipeline, np.ndarray], P: np.ndarray) -> tuple[_LegsPipeline, np.ndarray, np.ndarray]:
+def _with(fit: tuple[LegsModel, np.ndarray], P: np.ndarray) -> tuple[LegsModel, np.ndarray, np.ndarray]:
     return fit[0], P, fit[1]

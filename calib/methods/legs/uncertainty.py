@@ -20,7 +20,7 @@ from .constants import _PAIR_FLOOR_M
 from .joints import PlaneObservation, _rod_field
 
 
-class _IntrinsicsEffect:
+class IntrinsicsEffect:
     """The rods' planes and directions as measured through other intrinsics (the camera's error).
 
     The intrinsics are ``camera + steps^T z`` (``steps`` (n, 8): one standard deviation along each
@@ -42,7 +42,7 @@ class _IntrinsicsEffect:
         self.fit_idx, self.fit_limbs, self.fit_h = fit_idx, fit_limbs, fit_h
 
     @classmethod
-    def build(cls, obs: Observations, lock_data: list[PhaseArrays], data: PhaseArrays) -> _IntrinsicsEffect | None:
+    def build(cls, obs: Observations, lock_data: list[PhaseArrays], data: PhaseArrays) -> IntrinsicsEffect | None:
         """None when the camera's covariance or any rod's ``limbs_px`` or ``h`` is missing."""
         try:
             prior = intr.intrinsics_prior(obs)
@@ -259,7 +259,7 @@ def _identifiability(cov: np.ndarray, prior_std_m: float | None) -> dict:
     }
 
 
-def _with_prior(
+def with_prior(
     seven: np.ndarray,
     cov: np.ndarray,
     parts: dict[str, np.ndarray],
@@ -331,7 +331,7 @@ def combinations_null_space() -> np.ndarray:
     return raw.T / np.linalg.norm(raw, axis=1)
 
 
-def _null_space_to_prior(
+def null_space_to_prior(
     seven: np.ndarray, parts: dict[str, np.ndarray], nom: I4Parameters, prior_std_m: float
 ) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray], list[dict]]:
     """The seven with their component along :func:`combinations_null_space` the a priori values', with the a priori
@@ -380,3 +380,7 @@ def _null_space_to_prior(
             }
         )
     return nom7 + IP @ d, 0.5 * (total + total.T), out, dirs
+
+
+#: the former private name (tests read it)
+_null_space_to_prior = null_space_to_prior
