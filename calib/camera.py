@@ -91,7 +91,18 @@ class CameraModel:
 
     # -- projection ----------------------------------------------------------------------------
     def project(self, points_cam: ArrayLike) -> Array:
-        """Project camera-frame points (metres), shape (N, 3) -> pixels (N, 2), with distortion."""
+        """Project camera-frame points to pixels, with distortion.
+
+        Parameters
+        ----------
+        points_cam : array_like, shape (N, 3)
+            Points in the camera frame, metres (z > 0 in front of the camera).
+
+        Returns
+        -------
+        ndarray, shape (N, 2)
+            Distorted pixel coordinates.
+        """
         p = np.asarray(points_cam, dtype=np.float64)
         if p.ndim != 2 or p.shape[1] != 3:
             raise ValueError(f"points_cam must have shape (N, 3), got {p.shape}")
@@ -100,7 +111,18 @@ class CameraModel:
         return self.distort_normalized(p[:, :2] / p[:, 2:3])
 
     def distort_normalized(self, xn: ArrayLike) -> Array:
-        """Normalized coordinates (N, 2) -> distorted pixels (N, 2) (OpenCV's model, vectorised)."""
+        """Normalized coordinates to distorted pixels (OpenCV's model, vectorised).
+
+        Parameters
+        ----------
+        xn : array_like, shape (N, 2)
+            Normalized coordinates ``(X/Z, Y/Z)``, dimensionless.
+
+        Returns
+        -------
+        ndarray, shape (N, 2)
+            Distorted pixel coordinates.
+        """
         xy = _points2(xn, "xn")
         d = np.zeros(14)
         d[: self.dist.size] = self.dist
@@ -114,7 +136,18 @@ class CameraModel:
         return np.column_stack([K[0, 0] * xd + K[0, 1] * yd + K[0, 2], K[1, 1] * yd + K[1, 2]])
 
     def undistort_points(self, pixels: ArrayLike) -> Array:
-        """Distorted pixels (N, 2) -> normalized coordinates (N, 2) (iterative inverse, converged)."""
+        """Distorted pixels to normalized coordinates (``cv2.undistortPointsIter``, iterated to convergence).
+
+        Parameters
+        ----------
+        pixels : array_like, shape (N, 2)
+            Distorted pixel coordinates.
+
+        Returns
+        -------
+        ndarray, shape (N, 2)
+            Normalized coordinates ``(X/Z, Y/Z)``, dimensionless.
+        """
         px = _points2(pixels, "pixels")
         if px.shape[0] == 0:
             return np.zeros((0, 2))
@@ -125,18 +158,51 @@ class CameraModel:
         return out.reshape(-1, 2).astype(np.float64)
 
     def to_ideal_pixels(self, xn: ArrayLike) -> Array:
-        """Normalized coordinates (N, 2) -> undistorted ("ideal") pixels (N, 2)."""
+        """Normalized coordinates to undistorted ("ideal") pixels ``K (x, y, 1)``.
+
+        Parameters
+        ----------
+        xn : array_like, shape (N, 2)
+            Normalized coordinates, dimensionless.
+
+        Returns
+        -------
+        ndarray, shape (N, 2)
+            Ideal pixels.
+        """
         xy = _points2(xn, "xn")
         return xy @ self.K[:2, :2].T + self.K[:2, 2]
 
     def from_ideal_pixels(self, uv: ArrayLike) -> Array:
-        """Undistorted ("ideal") pixels (N, 2) -> normalized coordinates (N, 2)."""
+        """Undistorted ("ideal") pixels to normalized coordinates ``K^-1 (u, v, 1)``.
+
+        Parameters
+        ----------
+        uv : array_like, shape (N, 2)
+            Ideal pixels.
+
+        Returns
+        -------
+        ndarray, shape (N, 2)
+            Normalized coordinates, dimensionless.
+        """
         p = _points2(uv, "uv")
         Kinv = np.linalg.inv(self.K)
         return p @ Kinv[:2, :2].T + Kinv[:2, 2]
 
     def normalized_bounds(self, margin_px: float = 0.0) -> Array:
-        """Normalized coordinates of points along the image border, shape (M, 2) (a closed polygon)."""
+        """Normalized coordinates of points along the image border (a closed polygon).
+
+        Parameters
+        ----------
+        margin_px : float
+            Distance of the polygon inside the image's border, pixels.
+
+        Returns
+        -------
+        ndarray, shape (132, 2)
+            33 points per side (top, right, bottom, left), normalized coordinates.
+        """
         w, h = self.width - 1.0, self.height - 1.0
         n = 33
         t = np.linspace(0.0, 1.0, n)
@@ -149,6 +215,13 @@ class CameraModel:
 
     # -- persistence ----------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
+        """The camera as an ``i4cal.camera/1`` JSON object.
+
+        Returns
+        -------
+        dict
+            ``format``, ``width``, ``height`` (px), ``K`` (3 x 3, px), ``dist`` and the ``extra`` fields.
+        """
         return {
             "format": CAMERA_FORMAT,
             "width": int(self.width),
@@ -160,6 +233,24 @@ class CameraModel:
 
     @classmethod
     def from_dict(cls, data: Any, source: str | None = None) -> CameraModel:
+        """A camera from its ``i4cal.camera/1`` JSON object.
+
+        Parameters
+        ----------
+        data : dict
+            The object (:meth:`to_dict`'s layout; fields other than the camera's own kept in ``extra``).
+        source : str, optional
+            Where it was read, named in errors.
+
+        Returns
+        -------
+        CameraModel
+
+        Raises
+        ------
+        InputError
+            Not an object, a missing field or an invalid value, naming ``source`` and the field.
+        """
         if not isinstance(data, dict):
             raise InputError("camera must be a JSON object", file=source)
         try:
@@ -177,12 +268,34 @@ class CameraModel:
             raise InputError(str(exc), file=source) from None
 
     def save(self, path: str | Path) -> None:
+        """Write the camera as ``i4cal.camera/1`` JSON (atomically).
+
+        Parameters
+        ----------
+        path : str or Path
+            The file to write.
+        """
         from .jsonio import write_json_atomic
 
         write_json_atomic(path, self.to_dict())
 
     @classmethod
     def load(cls, path: str | Path) -> CameraModel:
+        """Read an ``i4cal.camera/1`` JSON file.
+
+        Parameters
+        ----------
+        path : str or Path
+
+        Returns
+        -------
+        CameraModel
+
+        Raises
+        ------
+        InputError
+            An unreadable file or an invalid camera, naming the file.
+        """
         from .jsonio import read_json
 
         return cls.from_dict(read_json(path), source=str(path))
@@ -224,6 +337,14 @@ class IntrinsicsResult:
     lens_model: dict[str, Any] | None = None
 
     def summary(self) -> dict[str, Any]:
+        """The calibration's figures as a JSON object.
+
+        Returns
+        -------
+        dict
+            ``rms_px``, ``per_view_rms_px`` and ``rejected`` (keyed by the view key as a string), ``std``,
+            ``n_views`` and, when chosen, ``lens_model``.
+        """
         out = {
             "rms_px": self.rms_px,
             "per_view_rms_px": {str(k): v for k, v in self.per_view_rms_px.items()},
@@ -241,8 +362,13 @@ def opencv_single_thread() -> Iterator[None]:
     """Run OpenCV single-threaded inside the block (the process-wide thread count is restored after).
 
     ``cv2.calibrateCameraRO`` gives results that differ in the last digits from one process to the next
-    when OpenCV runs several threads (measured: fx by ~2e-7 px, enough for a whole extraction to differ
+    when OpenCV runs several threads (fx by ~2e-7 px, enough for a whole extraction to differ
     after the rods' refinement and its second pass); single-threaded it is bit-reproducible.
+
+    Returns
+    -------
+    context manager
+        Yields nothing.
     """
     n = cv2.getNumThreads()
     cv2.setNumThreads(1)
@@ -278,6 +404,16 @@ TANGENTIAL_BOUND_PX = 0.1
 def lens_model_params(model: str) -> tuple[str, ...]:
     """The intrinsic parameters a lens model estimates: ``(fx, fy, cx, cy, *distortion)``.
 
+    Parameters
+    ----------
+    model : str
+        A key of :data:`LENS_MODELS`.
+
+    Returns
+    -------
+    tuple of str
+        The names, in the order of the calibration's covariance.
+
     Raises
     ------
     InputError
@@ -307,6 +443,14 @@ def intrinsics_names(camera: CameraModel) -> tuple[str, ...]:
 
     :data:`INTRINSICS_NAMES` (fx, fy, cx, cy, k1, k2, p1, p2) when the camera does not say (cameras calibrated
     before lens models were chosen); the chosen lens model's (:func:`lens_model_params`) otherwise.
+
+    Parameters
+    ----------
+    camera : CameraModel
+
+    Returns
+    -------
+    tuple of str
     """
     names = ((camera.extra or {}).get("calibration") or {}).get("covariance_params")
     if not names or not all(n in ("fx", "fy", "cx", "cy") or n in DIST_INDEX for n in names):
@@ -315,7 +459,19 @@ def intrinsics_names(camera: CameraModel) -> tuple[str, ...]:
 
 
 def intrinsics_vector(camera: CameraModel, names: tuple[str, ...] | list[str] = INTRINSICS_NAMES) -> Array:
-    """The camera's intrinsics ``names`` as a vector (px for fx, fy, cx, cy; zero for a coefficient ``dist`` lacks)."""
+    """The camera's intrinsics ``names`` as a vector.
+
+    Parameters
+    ----------
+    camera : CameraModel
+    names : sequence of str
+        Intrinsic parameter names (fx, fy, cx, cy and distortion coefficients, :data:`calib.bundle.DIST_INDEX`).
+
+    Returns
+    -------
+    ndarray, shape (len(names),)
+        Pixels for fx, fy, cx, cy; dimensionless for the coefficients (zero for one ``dist`` lacks).
+    """
     d = np.concatenate([camera.dist, np.zeros(8)])
     where = {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}
     return np.array([camera.K[where[n]] if n in where else d[DIST_INDEX[n]] for n in names])
@@ -327,6 +483,19 @@ def moved_camera(
     """``camera`` with the intrinsics ``names`` moved by ``step`` (same length; px for fx, fy, cx, cy).
 
     The distortion vector is lengthened (zeros) when a coefficient beyond it moves (k3: 5, k4..k6: 8).
+
+    Parameters
+    ----------
+    camera : CameraModel
+    step : array_like, shape (len(names),)
+        Pixels for fx, fy, cx, cy; dimensionless for the coefficients.
+    names : sequence of str
+        The intrinsics moved, in ``step``'s order.
+
+    Returns
+    -------
+    CameraModel
+        A new camera (``extra`` shared with ``camera``).
     """
     st = np.asarray(step, dtype=np.float64).reshape(-1)
     K = camera.K.copy()
@@ -388,6 +557,23 @@ def radial_residual_profile(
     (observed minus predicted, px, outward positive), its standard error, and the systematic part
     ``sign(mean) sqrt(max(mean^2 - se^2, 0))`` (the unbiased estimate of the squared mean; zero when the mean
     is within its noise). ``chi2`` = sum (mean / se)^2 over the bins, about ``n_bins`` when nothing is left.
+
+    Parameters
+    ----------
+    K : ndarray, shape (3, 3)
+        Camera matrix, pixels.
+    dist : ndarray, shape (n,)
+        OpenCV's distortion coefficients.
+    board_points : ndarray, shape (M, 3)
+        The board's corners in the board frame, metres.
+    image_points : list of ndarray, shape (M, 2)
+        Per view, the detected pixels of ``board_points``.
+    rvecs, tvecs : list of ndarray, shape (3,)
+        Per view, ``camera_from_board`` (radians, metres).
+    size : tuple of int
+        ``(width, height)``, pixels.
+    n_bins : int
+        Radial bins.
 
     Returns
     -------
@@ -513,15 +699,33 @@ class BoardViews:
         return list(self.image_points)
 
     def stacked_pixels(self) -> Array:
-        """Every kept view's pixels, shape (V M, 2)."""
+        """Every kept view's pixels.
+
+        Returns
+        -------
+        ndarray, shape (V M, 2)
+            Pixels, view after view.
+        """
         return np.vstack(list(self.image_points.values()))
 
     def n_residuals(self) -> int:
-        """Residual coordinates of a fit to the kept views: 2 M V."""
+        """Residual coordinates of a fit to the kept views.
+
+        Returns
+        -------
+        int
+            2 M V.
+        """
         return 2 * self.points.shape[0] * len(self.image_points)
 
     def n_board_unknowns(self) -> int:
-        """The released board coordinates a fit estimates: 3 M less OpenCV's gauge of 7 (0 when not released)."""
+        """The released board coordinates a fit estimates.
+
+        Returns
+        -------
+        int
+            3 M less OpenCV's gauge of 7 (the first point, the fixed one, the last one's z); 0 when not released.
+        """
         return (3 * self.points.shape[0] - 7) if self.fixed_point >= 0 else 0
 
 
@@ -563,7 +767,12 @@ class LensFit:
     per_view_rms_px: Array
 
     def finite(self) -> bool:
-        """Whether K and the distortion coefficients are finite."""
+        """Whether K and the distortion coefficients are finite.
+
+        Returns
+        -------
+        bool
+        """
         return bool(np.all(np.isfinite(self.dist)) and np.all(np.isfinite(self.K)))
 
 
