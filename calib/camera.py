@@ -965,7 +965,8 @@ def reject_outlier_views(board: BoardViews, model: str, settings: IntrinsicsSett
     """Fit ``model`` and reject the worst view while any view's RMS exceeds the outlier limit.
 
     The limit is ``max(outlier_factor * median, outlier_floor_px)`` of the views' RMS reprojection errors; one view
-    is rejected per pass (the worst), at most ``settings.max_outlier_passes`` passes, and the views left refitted.
+    is rejected per pass (the worst), at most ``settings.max_outlier_passes`` passes; the fit returned is always the
+    one of the views kept.
 
     Parameters
     ----------
@@ -1003,6 +1004,9 @@ def reject_outlier_views(board: BoardViews, model: str, settings: IntrinsicsSett
             f"(median {med:.2f} px)"
         )
         del keep[worst]
+    else:  # the last pass rejected a view: the views left are fitted once more
+        _require_views(len(keep), len(rejected), settings.min_views)
+        fit = fit_lens_model(board, model, list(keep))
     return BoardViews(board.ids, board.points, keep, rejected, board.fixed_point, board.image_size), fit
 
 
