@@ -270,8 +270,8 @@ class Bundle:
             R, _ = cv2.Rodrigues(self.rvecs[v])
             dp_dX = jac[:, 3:6].reshape(m, 2, 3) @ R  # d pixel / d board point: d/dt rotated
             blocks = np.zeros((2 * m, 3 * m))
-            for i in range(m):
-                blocks[2 * i : 2 * i + 2, 3 * i : 3 * i + 3] = dp_dX[i]
+            diagonal = np.arange(m)
+            blocks.reshape(m, 2, m, 3)[diagonal, :, diagonal, :] = dp_dX  # point i's 2 x 3 block on the diagonal
             J[:, ni + 6 * nv :] = blocks[:, free]
         return r, J
 

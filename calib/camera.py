@@ -18,6 +18,7 @@ from typing import Any
 import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from threadpoolctl import threadpool_limits
 
 from .bundle import DIST_INDEX, MIN_VIEW_DOF, REFINE_MAX_NFEV, Bundle, bundle_covariance, refine_weighted, view_dof
 from .bundle import projection_columns as projection_columns
@@ -1378,6 +1379,21 @@ def calibrate_intrinsics(
     model = opts.requested_model
     if model != "auto":
         lens_model_params(model)  # raises for an unknown name
+    # one BLAS thread: the bundle's matrices are small, more threads only spin (and change the last digits with the
+    # machine's core count)
+    with threadpool_limits(limits=1):
+        return _calibrate(views, image_size, board_ids, board_points, opts, model)
+
+
+def _calibrate(
+    views: Mapping[int, tuple[ArrayLike, ArrayLike, object]],
+    image_size: tuple[int, int],
+    board_ids: ArrayLike,
+    board_points: ArrayLike,
+    opts: IntrinsicsSettings,
+    model: str,
+) -> IntrinsicsResult:
+    """:func:`calibrate_intrinsics`' stages, in order."""
     board = select_board_views(views, board_ids, board_points, image_size, opts.refine_object)
     first = "k1k2k3" if model == "auto" else model
     board, first_fit = reject_outlier_views(board, first, opts)
