@@ -58,7 +58,18 @@ __all__ = [
 
 
 def projection_columns(names: tuple[str, ...] | list[str]) -> list[int]:
-    """Columns of ``cv2.projectPoints``' Jacobian (rvec 3, tvec 3, fx, fy, cx, cy, dist...) for ``names``."""
+    """Columns of ``cv2.projectPoints``' Jacobian (rvec 3, tvec 3, fx, fy, cx, cy, dist...) for ``names``.
+
+    Parameters
+    ----------
+    names : sequence of str
+        Intrinsic parameter names (fx, fy, cx, cy and keys of :data:`DIST_INDEX`).
+
+    Returns
+    -------
+    list of int
+        One column per name.
+    """
     base = {"fx": 6, "fy": 7, "cx": 8, "cy": 9}
     return [base[n] if n in base else 10 + DIST_INDEX[n] for n in names]
 
@@ -105,7 +116,34 @@ class Bundle:
         fixed_point: int = -1,
         names: tuple[str, ...] | list[str] = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"),
     ) -> Bundle:
-        """Validated copy (float64; ``dist`` padded with zeros to hold every coefficient of ``names``)."""
+        """Validated copy (float64; ``dist`` padded with zeros to hold every coefficient of ``names``).
+
+        Parameters
+        ----------
+        K : array_like, shape (3, 3)
+            Camera matrix, pixels.
+        dist : array_like, shape (n,)
+            OpenCV's distortion coefficients.
+        board_points : array_like, shape (M, 3)
+            Metres.
+        image_points : list of array_like, shape (M, 2)
+            Per view, the detected pixels in the order of ``board_points``.
+        rvecs, tvecs : list of array_like, shape (3,)
+            Per view, ``camera_from_board`` (radians, metres).
+        fixed_point : int
+            ``iFixedPoint`` of the releasing-object method, or -1 when the board points are not refined.
+        names : sequence of str
+            The estimated intrinsics.
+
+        Returns
+        -------
+        Bundle
+
+        Raises
+        ------
+        ValueError
+            Image points of another shape than the board's, or as many views as poses.
+        """
         d = np.asarray(dist, dtype=np.float64).reshape(-1)
         need = max([c - 9 for c in projection_columns(names)] + [d.size])
         if need > d.size:
@@ -144,7 +182,14 @@ class Bundle:
         return len(self.names) + 6 * len(self.image_points) + self.free_board.size
 
     def vector(self) -> Array:
-        """The unknowns as one vector: intrinsics, (rvec, tvec) per view, free board coordinates."""
+        """The unknowns as one vector.
+
+        Returns
+        -------
+        ndarray, shape (n_params,)
+            The intrinsics (``names``' order; px, dimensionless), (rvec [rad], tvec [m]) per view, the free board
+            coordinates (:attr:`free_board`, metres).
+        """
         intr = []
         for c in projection_columns(self.names):
             intr.append(
@@ -154,7 +199,18 @@ class Bundle:
         return np.concatenate([np.asarray(intr), *poses, self.board_points.ravel()[self.free_board]])
 
     def with_vector(self, x: ArrayLike) -> Bundle:
-        """A copy holding the unknowns ``x`` (:meth:`vector`'s layout)."""
+        """A copy holding other values of the unknowns.
+
+        Parameters
+        ----------
+        x : array_like, shape (n_params,)
+            :meth:`vector`'s layout.
+
+        Returns
+        -------
+        Bundle
+            Sharing ``image_points`` with this one.
+        """
         x = np.asarray(x, dtype=np.float64)
         ni, nv = len(self.names), len(self.image_points)
         K, d = self.K.copy(), self.dist.copy()
@@ -177,11 +233,25 @@ class Bundle:
         )
 
     def residuals(self) -> list[Array]:
-        """Per view, projected minus detected pixels, flattened (2M,)."""
+        """Projected minus detected pixels.
+
+        Returns
+        -------
+        list of ndarray, shape (2 M,)
+            Per view, ``(du, dv)`` per corner, flattened, pixels.
+        """
         return [self._view(v, jacobian=False)[0] for v in range(len(self.image_points))]
 
     def jacobian(self) -> tuple[list[Array], list[Array]]:
-        """Per view, the residuals (2M,) and their Jacobian (2M, n_params) over :meth:`vector`."""
+        """The residuals and their Jacobian over :meth:`vector`.
+
+        Returns
+        -------
+        list of ndarray, shape (2 M,)
+            Per view, the residuals (:meth:`residuals`), pixels.
+        list of ndarray, shape (2 M, n_params)
+            Per view, their Jacobian.
+        """
         out = [self._view(v, jacobian=True) for v in range(len(self.image_points))]
         return [r for r, _ in out], [J for _, J in out]
 
@@ -200,8 +270,8 @@ class Bundle:
             R, _ = cv2.Rodrigues(self.rvecs[v])
             dp_dX = jac[:, 3:6].reshape(m, 2, 3) @ R  # d pixel / d board point: d/dt rotated
             blocks = np.zeros((2 * m, 3 * m))
-            for i in range(m):
-                blocks[2 * i : 2 * i + 2, 3 * i : 3 * i + 3] = dp_dX[i]
+            diagonal = np.arange(m)
+            blocks.reshape(m, 2, m, 3)[diagonal, :, diagonal, :] = dp_dX  # point i's 2 x 3 block on the diagonal
             J[:, ni + 6 * nv :] = blocks[:, free]
         return r, J
 
@@ -211,6 +281,18 @@ def view_variances(residuals: list[Array], n_params: int) -> Array:
 
     ``|r_v|^2 / (n_v (N - p) / N)``: each view's share of the bundle's degrees of freedom (N residuals, p unknowns),
     kept at or above ``(MIN_VIEW_SIGMA_FRACTION * s)^2`` of the pooled ``s^2 = |r|^2 / (N - p)``.
+
+    Parameters
+    ----------
+    residuals : list of ndarray, shape (n_v,)
+        Per view, its residuals, pixels.
+    n_params : int
+        The bundle's unknowns.
+
+    Returns
+    -------
+    ndarray, shape (V,)
+        Per view, px^2.
     """
     n = sum(r.size for r in residuals)
     dof = max(n - n_params, 1)
@@ -228,6 +310,15 @@ def refine_weighted(
 
     Starts from ``bundle`` (OpenCV's unweighted optimum); each pass sets the weights from the current residuals
     (:func:`view_variances`) and minimises the weighted squares with ``scipy.optimize.least_squares``.
+
+    Parameters
+    ----------
+    bundle : Bundle
+        The start.
+    iterations : int
+        Reweighting passes.
+    max_nfev : int
+        Evaluations allowed to each pass.
 
     Returns
     -------
@@ -264,7 +355,17 @@ def refine_weighted(
 
 
 def view_dof(bundle: Bundle) -> float:
-    """Degrees of freedom of one view's noise variance (:func:`view_variances`): its mean share of the bundle's."""
+    """Degrees of freedom of one view's noise variance (:func:`view_variances`): its mean share of the bundle's.
+
+    Parameters
+    ----------
+    bundle : Bundle
+
+    Returns
+    -------
+    float
+        ``(N - p) / V``: residual coordinates less unknowns, per view.
+    """
     n = sum(p.size for p in bundle.image_points)
     return float(n - bundle.n_params) / len(bundle.image_points)
 
@@ -278,6 +379,20 @@ def estimated_weights_factor(bundle: Bundle) -> float:
     order. Measured against the truth on the image-level twin's camera phases (k1k2 lens, 100 phases each): the
     intrinsics' mean Mahalanobis distance (chi-square(8): 8) goes from 10.3 to 8.4 with 20 views (nu 21.7) and from
     9.7 to 8.0 with 30 views (nu 22.5).
+
+    Parameters
+    ----------
+    bundle : Bundle
+
+    Returns
+    -------
+    float
+        The factor, above 1.
+
+    Raises
+    ------
+    ValueError
+        :data:`MIN_VIEW_DOF` or fewer degrees of freedom per view.
     """
     nu = view_dof(bundle)
     if nu <= MIN_VIEW_DOF:
@@ -292,6 +407,18 @@ def spd_inverse(S: Array, rel_floor: float = 1e-15) -> Array:
     barely determine makes the information nearly singular: ``np.linalg.inv`` then returned variances below zero
     (a NaN std in the camera file). Here the matrix is scaled to a unit diagonal, decomposed, and its eigenvalues
     floored at ``rel_floor`` of the largest: an undetermined direction gets a huge variance, never a negative one.
+
+    Parameters
+    ----------
+    S : ndarray, shape (n, n)
+        The information matrix (inverse units squared of the unknowns).
+    rel_floor : float
+        The eigenvalues' floor, relative to the largest (of the unit-diagonal matrix).
+
+    Returns
+    -------
+    ndarray, shape (n, n)
+        The covariance, symmetric positive semi-definite.
     """
     S = 0.5 * (S + S.T)
     d = np.sqrt(np.clip(np.diag(S), 1e-300, None))
@@ -308,6 +435,15 @@ def bundle_covariance(bundle: Bundle, view_var: ArrayLike | None = None, estimat
     ``(sum J_v^T J_v / var_v)^-1``, times :func:`estimated_weights_factor` when the variances were ``estimated`` from
     the views' residuals (:func:`refine_weighted`; False: known variances).
     None: one variance for every corner, the residuals' ``s^2``: ``s^2 (J^T J)^-1`` (the unweighted fit's, OpenCV's).
+
+    Parameters
+    ----------
+    bundle : Bundle
+        At the fit's optimum.
+    view_var : array_like, shape (V,), optional
+        Per view, its corners' noise variance, px^2.
+    estimated : bool
+        Whether ``view_var`` was estimated from the views' residuals.
 
     Returns
     -------

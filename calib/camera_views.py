@@ -96,6 +96,13 @@ class BoardPlacement:
     text: str
 
     def to_dict(self) -> dict[str, Any]:
+        """The placement as a JSON object.
+
+        Returns
+        -------
+        dict
+            ``index``, ``centre`` (fractions of the image), ``fill`` (0-1), ``tilt_deg`` (degrees), ``text``.
+        """
         return {
             "index": self.index,
             "centre": list(self.centre),
@@ -130,6 +137,14 @@ class ViewFeatures:
     distance_m: float = float("nan")
 
     def to_dict(self) -> dict[str, Any]:
+        """The features as a JSON object, rounded for display.
+
+        Returns
+        -------
+        dict
+            ``centre`` and ``fill`` (fractions of the image), ``reach`` (0-1 per corner), ``tilt_deg`` (degrees),
+            ``distance_m`` (metres).
+        """
         return {
             "centre": [round(v, 4) for v in self.centre],
             "fill": round(self.fill, 4),
@@ -266,7 +281,22 @@ class ViewGuide:
         return None
 
     def add(self, key: int, ids: ArrayLike, pixels: ArrayLike) -> ViewVerdict:
-        """Check the view ``key`` (detected ChArUco corner ids (M,) and pixels (M, 2)) and keep it or say why not."""
+        """Check a grabbed view and keep it or say why not.
+
+        Parameters
+        ----------
+        key : int
+            The view's key (a frame index).
+        ids : array_like of int, shape (N,)
+            The detected ChArUco corner ids.
+        pixels : array_like, shape (N, 2)
+            Their pixels.
+
+        Returns
+        -------
+        ViewVerdict
+            Kept or not, why, the view's features and RMS against the quick calibration (px), what it added.
+        """
         ids = np.asarray(ids, dtype=int).reshape(-1)
         px = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
         m = self.ids_all.size
@@ -313,8 +343,13 @@ class ViewGuide:
 
     # -- coverage -----------------------------------------------------------------------------------------------
     def missing_items(self) -> list[tuple[str, str]]:
-        """What the kept views still lack: ``(kind, words)`` with kind ``corner:NAME``, ``tilt:NAME``, ``near``,
-        ``far`` or ``count``, in the order they are asked for."""
+        """What the kept views still lack, in the order they are asked for.
+
+        Returns
+        -------
+        list of (str, str)
+            ``(kind, words)`` with kind ``corner:NAME``, ``tilt:NAME``, ``near``, ``far`` or ``count``.
+        """
         g = self.goals
         feats = list(self.features.values())
         out: list[tuple[str, str]] = []
@@ -362,7 +397,13 @@ class ViewGuide:
         return out
 
     def missing(self) -> list[str]:
-        """What is still missing, in words (empty when the views cover everything)."""
+        """What is still missing, in words.
+
+        Returns
+        -------
+        list of str
+            Empty when the views cover everything.
+        """
         return [text for _kind, text in self.missing_items()]
 
     @property
@@ -371,7 +412,12 @@ class ViewGuide:
 
     @staticmethod
     def first_placement() -> BoardPlacement:
-        """The first view, asked before the image size is known: the board in the middle, facing the camera."""
+        """The first view, asked before the image size is known: the board in the middle, facing the camera.
+
+        Returns
+        -------
+        BoardPlacement
+        """
         return BoardPlacement(
             0,
             (0.5, 0.5),
@@ -382,7 +428,12 @@ class ViewGuide:
         )
 
     def next_placement(self) -> BoardPlacement:
-        """Where to hold the board next: for the first thing missing, else a placement that varies the views."""
+        """Where to hold the board next: for the first thing missing, else a placement that varies the views.
+
+        Returns
+        -------
+        BoardPlacement
+        """
         self._asked += 1
         items = self.missing_items()
         kind = items[0][0] if items else "count"
@@ -421,12 +472,25 @@ class ViewGuide:
         return BoardPlacement(self._asked, (float(centre[0]), float(centre[1])), float(fill), tilt, text)
 
     def views(self) -> dict[int, tuple[NDArray[np.int_], Array, None]]:
-        """The kept views as :func:`calib.camera.calibrate_intrinsics` takes them."""
+        """The kept views as :func:`calib.camera.calibrate_intrinsics` takes them.
+
+        Returns
+        -------
+        dict of int to (ndarray, ndarray, None)
+            Per key: the board's corner ids (M,), sorted, and their pixels (M, 2).
+        """
         return {k: (self.ids_all.copy(), v, None) for k, v in self.kept.items()}
 
     def coverage(self) -> dict[str, Any]:
-        """The views' coverage: per image corner the reach, per tilt direction the largest turn, the fills' range,
-        the counts, and what is still missing (the camera file's ``acquired.coverage``)."""
+        """The views' coverage (the camera file's ``acquired.coverage``).
+
+        Returns
+        -------
+        dict
+            ``goals``, ``corner_reach`` (0-1 per image corner), ``tilt_deg`` (the largest turn per direction,
+            degrees), ``fill`` (smallest and largest, fractions of the image width), ``kept``, ``rejected``,
+            ``missing`` (words) and ``views`` (each kept view's features).
+        """
         feats = list(self.features.values())
         return {
             "goals": {k: getattr(self.goals, k) for k in GOAL_KEYS},

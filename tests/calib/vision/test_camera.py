@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
+from threadpoolctl import threadpool_limits
 
 from calib.camera import CameraModel, calibrate_intrinsics
 from calib.dataset import BoardSpec
@@ -93,3 +96,66 @@ def test_calibrate_needs_enough_views():
     views = _views(3, np.random.default_rng(2), 0.05, pts)
     with pytest.raises(InputError, match="at least 5"):
         calibrate_intrinsics(views, (1024, 768), ids, pts)
+
+
+def test_as_many_outlier_views_as_passes_are_all_rejected_and_the_rest_fitted():
+    """Each pass rejects the worst view; when the last allowed pass still rejects one, the views left are fitted
+    again (the camera and the poses are those of the kept views, not of a fit that still had the rejected one)."""
+    ids, pts = board_corners(BoardSpec())
+    rng = np.random.default_rng(4)
+    views = _views(12, rng, 0.05, pts)
+    for key in range(5):  # five views whose corners are off by 2-4 px (a moving board), each worse than the last
+        views[key] = (ids, views[key][1] + rng.normal(0.0, 2.0 + 0.5 * key, (len(pts), 2)), None)
+    res = calibrate_intrinsics(views, (1024, 768), ids, pts)
+    assert sorted(res.rejected) == [0, 1, 2, 3, 4]
+    assert sorted(res.per_view_rms_px) == list(range(5, 12))
+    assert res.rms_px < 0.1  # the fit of the clean views: noise 0.05 px
+    for name, i, j in (("fx", 0, 0), ("fy", 1, 1), ("cx", 0, 2), ("cy", 1, 2)):
+        assert abs(res.camera.K[i, j] - K[i, j]) < 4 * res.std[name], name
+
+
+def _calibration_bytes(res):
+    return json.dumps({"camera": res.camera.to_dict(), "summary": res.summary()}, sort_keys=True).encode()
+
+
+def test_the_stages_called_one_by_one_give_what_calibrate_intrinsics_gives():
+    from calib import camera as cm
+
+    ids, pts = board_corners(BoardSpec())
+    views = _views(12, np.random.default_rng(6), 0.05, pts)
+    settings = cm.IntrinsicsSettings(lens_model="auto")
+    whole = calibrate_intrinsics(views, (1024, 768), ids, pts, settings)
+    with threadpool_limits(limits=1):
+        board = cm.select_board_views(views, ids, pts, (1024, 768), settings.refine_object)
+        board, first = cm.reject_outlier_views(board, "k1k2k3", settings)
+        fits = cm.fit_lens_candidates(board, list(cm.LENS_MODELS), {"k1k2k3": first})
+        choice = cm.choose_lens_model("auto", fits, board)
+        refined = cm.refine_intrinsics(fits[choice.chosen], board, settings.weight_views)
+        staged = cm.intrinsics_result(board, choice, refined, "auto")
+    assert [e["model"] for e in choice.evidence] == list(cm.LENS_MODELS)
+    assert _calibration_bytes(staged) == _calibration_bytes(whole)
+
+
+def test_a_settings_object_and_keywords_agree_and_an_unknown_setting_is_named():
+    from calib.camera import IntrinsicsSettings
+
+    ids, pts = board_corners(BoardSpec())
+    views = _views(8, np.random.default_rng(7), 0.05, pts)
+    by_object = calibrate_intrinsics(views, (1024, 768), ids, pts, IntrinsicsSettings(lens_model="k1k2k3"))
+    by_keyword = calibrate_intrinsics(views, (1024, 768), ids, pts, lens_model="k1k2k3")
+    assert by_object.lens_model["chosen"] == "k1k2k3"
+    assert _calibration_bytes(by_object) == _calibration_bytes(by_keyword)
+    with pytest.raises(TypeError, match="lens_modle"):
+        calibrate_intrinsics(views, (1024, 768), ids, pts, lens_modle="k1k2")
+
+
+def test_the_calibration_does_not_depend_on_the_blas_thread_count():
+    """Its small matrices are solved with one BLAS thread whatever the process runs with (more threads changed the
+    last digits of the covariance, so the camera file's bytes depended on the machine's core count)."""
+    ids, pts = board_corners(BoardSpec())
+    views = _views(12, np.random.default_rng(8), 0.05, pts)
+    with threadpool_limits(limits=1):
+        one = calibrate_intrinsics(views, (1024, 768), ids, pts, lens_model="auto")
+    with threadpool_limits(limits=2):
+        two = calibrate_intrinsics(views, (1024, 768), ids, pts, lens_model="auto")
+    assert _calibration_bytes(one) == _calibration_bytes(two)
