@@ -308,6 +308,28 @@ class ResultDocument(Record):
             err = exc.errors()[0]
             raise InputError(err["msg"], file=source, field=".".join(str(p) for p in err["loc"])) from None
 
+    @classmethod
+    def of(cls, doc: ResultDocument | Mapping[str, Any]) -> ResultDocument:
+        """``doc`` as a document to read: a :class:`ResultDocument` as is; a mapping may be a part of one (the keys a
+        reader needs, such as ``methods`` and ``validation``): a missing ``format`` is this format's, a method entry
+        without ``converged`` did not converge. For reading only (:meth:`from_dict` loads a whole document).
+
+        Raises
+        ------
+        pydantic.ValidationError
+            A value of the wrong type.
+        """
+        if isinstance(doc, ResultDocument):
+            return doc
+        data = {"format": RESULT_FORMAT, **doc}
+        methods = data.get("methods")
+        if isinstance(methods, Mapping):
+            data["methods"] = {
+                m: e if not isinstance(e, Mapping) or "converged" in e else {**e, "converged": False}
+                for m, e in methods.items()
+            }
+        return cls.model_validate(data)
+
     def to_dict(self) -> dict[str, Any]:
         """The document as JSON values (what is stored and printed): the keys it was built or loaded with."""
         return to_jsonable(self.model_dump(exclude_unset=True))

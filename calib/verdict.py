@@ -25,7 +25,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
 
-from .resultdoc import RESULT_FORMAT, Gaps, MethodEntry, ResultDocument, ValidationEntry
+from .resultdoc import Gaps, MethodEntry, ResultDocument, ValidationEntry
 
 #: the uncertainty convention of every std shown by the CLI, the dashboard and the report
 UNCERTAINTY = "± 1 std"
@@ -85,13 +85,6 @@ class Verdict:
         return d
 
 
-def _document(doc: ResultDocument | Mapping[str, Any]) -> ResultDocument:
-    """``doc`` as a :class:`ResultDocument` (a mapping may be a part of one: ``methods`` and ``validation``)."""
-    if isinstance(doc, ResultDocument):
-        return doc
-    return ResultDocument.model_validate({"format": RESULT_FORMAT, **doc})
-
-
 def _gap(validation: Mapping[str, ValidationEntry], name: str, part: str) -> tuple[float | None, int]:
     """The RMS gap (mm) of parameter set ``name`` on ``part`` (``validation`` or ``poses``), and its pose pairs."""
     v = validation.get(name)
@@ -144,7 +137,7 @@ def verdict(
         from calib.methods.registry import apply_order
 
         order = apply_order()
-    document = _document(doc)
+    document = ResultDocument.of(doc)
     methods, validation = document.methods, document.validation
     failed = {m: f for m, e in methods.items() if (f := e.failure) is not None}
     converged = [m for m, e in methods.items() if m not in failed and _std_max_mm(e) is not None]

@@ -76,9 +76,9 @@ def json_sha256(doc: Any) -> str:
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
 
 
-def method_parameters(result: ResultDocument, method: str) -> I4Parameters | None:
+def method_parameters(result: ResultDocument | dict[str, Any], method: str) -> I4Parameters | None:
     """The seven parameters a converged method stands for (identified, or completed with the a priori ones)."""
-    return result.method_parameters(method)
+    return ResultDocument.of(result).method_parameters(method)
 
 
 @dataclass
@@ -113,7 +113,7 @@ class LegResiduals:
             return np.sqrt(np.nanmean(a**2, axis=0)) if len(a) else np.full(4, np.nan)
 
 
-def leg_residuals(obs: Any, result: ResultDocument, method: str) -> LegResiduals | None:
+def leg_residuals(obs: Any, result: ResultDocument | dict[str, Any], method: str) -> LegResiduals | None:
     """Per-pose, per-leg residual angles of ``method``'s geometry on the fit and validation poses.
 
     The rods' axes are turned into the base frame with the rotation estimated from the ``rotation`` and
@@ -126,8 +126,9 @@ def leg_residuals(obs: Any, result: ResultDocument, method: str) -> LegResiduals
     result : ResultDocument
         The result document of :func:`calib.pipeline.calibrate_document`.
     """
-    params = result.method_parameters(method)
-    R = result.base_frame.rotation() if result.base_frame is not None else None
+    doc = ResultDocument.of(result)
+    params = doc.method_parameters(method)
+    R = doc.base_frame.rotation() if doc.base_frame is not None else None
     if params is None or R is None:
         return None
     frames: list[int] = []
@@ -153,10 +154,10 @@ def leg_residuals(obs: Any, result: ResultDocument, method: str) -> LegResiduals
     return LegResiduals(frames, phases, np.array(rows).reshape(-1, 4))
 
 
-def reference_method(result: ResultDocument, methods: list[str] | None = None) -> str | None:
+def reference_method(result: ResultDocument | dict[str, Any], methods: list[str] | None = None) -> str | None:
     """The method whose residuals pick the worst poses: the paper's combined one when it converged, else the
     first converged one."""
-    ms = result.methods
+    ms = ResultDocument.of(result).methods
     names = [m for m in method_order(ms) if m in ms and (methods is None or m in methods)]
     return next((m for m in names if ms[m].converged and ms[m].parameters), None)
 
@@ -180,7 +181,7 @@ class Missing:
 
 
 def missing_items(
-    result: ResultDocument,
+    result: ResultDocument | dict[str, Any],
     obs_doc: dict[str, Any] | None,
     dataset_dir: Path | None,
     methods: list[str],
@@ -188,6 +189,7 @@ def missing_items(
 ) -> Missing:
     """Everything absent from the inputs that a reader of the report would expect."""
     m = Missing()
+    result = ResultDocument.of(result)
     for text in (
         *_missing_inputs(obs_doc, dataset_dir, missing_files),
         *_missing_extraction(obs_doc),
@@ -279,9 +281,10 @@ def _missing_in_result(result: ResultDocument) -> list[str]:
 
 
 def conditions(
-    result: ResultDocument, obs_doc: dict[str, Any] | None, dataset_doc: dict[str, Any] | None
+    result: ResultDocument | dict[str, Any], obs_doc: dict[str, Any] | None, dataset_doc: dict[str, Any] | None
 ) -> list[tuple[str, str]]:
     """Measurement conditions as (item, value) rows, for display (mm, deg, px)."""
+    result = ResultDocument.of(result)
     rows: list[tuple[str, str]] = []
     rows.append(("poses per phase", ", ".join(f"{k} {v}" for k, v in result.phases.items()) or "-"))
     if dataset_doc:
