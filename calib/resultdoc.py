@@ -334,6 +334,18 @@ class ResultDocument(Record):
         """The document as JSON values (what is stored and printed): the keys it was built or loaded with."""
         return to_jsonable(self.model_dump(exclude_unset=True))
 
+    def merge(self, part: ResultDocument, method: str) -> Self:
+        """This document with ``method``'s entry, validation and truth errors from ``part`` (a document of the same
+        observations in which ``method`` ran), in place; returns ``self``."""
+        self.methods[method] = part.methods[method]
+        if method in part.validation:
+            self.validation[method] = part.validation[method]
+        if part.truth_errors:
+            if self.truth_errors is None:
+                self.truth_errors = {}
+            self.truth_errors.update(part.truth_errors)
+        return self
+
     # -- what the readers ask ---------------------------------------------------------------------------------------
     def entry(self, method: str) -> MethodEntry | None:
         return self.methods.get(method)
