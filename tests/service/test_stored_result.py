@@ -100,3 +100,24 @@ def test_a_stored_result_renders_the_report_the_verdict_and_the_export(name):
 def _same_but_dates(a: str, b: str) -> bool:
     date = re.compile(r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d UTC")
     return date.sub("DATE", a) == date.sub("DATE", b)
+
+
+def test_merging_one_method_at_a_time_gives_each_methods_entry_validation_and_truth_error():
+    """The service fits one method at a time and merges the parts (service.jobs.fit_job)."""
+    raw = json.loads((DATA / "result_twin_seed1.json").read_text(encoding="utf-8"))
+
+    def part(method: str) -> ResultDocument:
+        d = json.loads(json.dumps(raw))
+        d["methods"] = {method: d["methods"][method]}
+        d["validation"] = {k: v for k, v in d["validation"].items() if k in ("a priori", method, "truth")}
+        d["truth_errors"] = {method: d["truth_errors"][method]}
+        return ResultDocument.from_dict(d)
+
+    doc = part("combined").merge(part("legs"), "legs")
+    out = doc.to_dict()
+    assert list(out["methods"]) == ["combined", "legs"]
+    assert out["methods"]["legs"] == raw["methods"]["legs"]
+    assert list(out["validation"]) == ["a priori", "combined", "truth", "legs"]
+    assert out["validation"]["legs"] == raw["validation"]["legs"]
+    assert out["truth_errors"] == {m: raw["truth_errors"][m] for m in ("combined", "legs")}
+    assert doc.truth_error("legs") == raw["truth_errors"]["legs"]
