@@ -23,6 +23,7 @@ from .errors import InputError, UnreachableError
 from .kinematics import dkm, ikm
 from .parameters import COMBINATION_NAMES, PARAMETER_NAMES, I4Parameters
 from .plan import Plan, line_poses
+from .resultdoc import Combinations, MethodEntry, ResultDocument, ValidationEntry
 from .verdict import verdict
 
 CALIBRATION_FORMAT: Final = "i4cal.calibration/1"
@@ -154,26 +155,18 @@ class ExportContext:
 
 
 # -- which method ---------------------------------------------------------------------------------------------
-def _converged(entry: Any) -> bool:
-    return (
-        isinstance(entry, dict)
-        and bool(entry.get("converged"))
-        and bool(entry.get("combinations") or entry.get("parameters"))
-    )
-
-
-def _gap_rms_m(validation: Any) -> tuple[float | None, Literal["validation", "fit"]]:
+def _gap_rms_m(validation: ValidationEntry | None) -> tuple[float | None, Literal["validation", "fit"]]:
     """The RMS displacement gap of one parameter set's validation entry, m, and which poses it is over."""
-    if isinstance(validation, dict):
-        for key, poses in (("gaps_validation", "validation"), ("gaps_poses", "fit")):
-            g = validation.get(key)
-            if isinstance(g, dict) and isinstance(g.get("rms_mm"), (int, float)) and math.isfinite(g["rms_mm"]):
+    if validation is not None:
+        for gaps, poses in ((validation.gaps_validation, "validation"), (validation.gaps_poses, "fit")):
+            rms = gaps.rms_finite_mm() if gaps is not None else None
+            if rms is not None:
                 # poses: one of the two literals of the loop's tuples
-                return float(g["rms_mm"]) * 1e-3, poses  # type: ignore[return-value]
+                return rms * 1e-3, poses  # type: ignore[return-value]
     return None, "validation"
 
 
-def recommended_method(result: dict[str, Any]) -> tuple[str, str]:
+def recommended_method(result: ResultDocument | dict[str, Any]) -> tuple[str, str]:
     """The method to export when none is asked for, and why: the verdict's (:func:`calib.verdict.verdict`, the
     rule the demo, ``calibrate``, the report and the dashboard state).
 
@@ -190,32 +183,31 @@ def recommended_method(result: dict[str, Any]) -> tuple[str, str]:
 
 
 # -- the document -----------------------------------------------------------------------------------------------
-def _four(mapping: Any, what: str) -> dict[str, float]:
-    if not isinstance(mapping, dict):
+def _four(mapping: Combinations | None, what: str) -> dict[str, float]:
+    if mapping is None:
         raise InputError(f"the result has no {what}", field=what)
     out = {}
     for k in COMBINATION_NAMES:
         v = mapping.get(k)
-        if not isinstance(v, (int, float)) or not math.isfinite(v):
+        if v is None or not math.isfinite(v):
             raise InputError(f"{k} is missing or not a finite number", field=f"{what}.{k}")
         out[k] = float(v)
     return out
 
 
-def _nominal(result: dict[str, Any]) -> I4Parameters:
+def _nominal(result: ResultDocument) -> I4Parameters:
     try:
-        return I4Parameters.from_mapping(result.get("nominal") or {})
+        return I4Parameters.from_mapping(result.nominal)
     except (ValueError, TypeError) as exc:
         raise InputError(f"the result's nominal geometry: {exc}", field="nominal") from None
 
 
-def _status(entry: dict[str, Any]) -> tuple[str, list[str], list[str]]:
+def _status(entry: MethodEntry) -> tuple[str, list[str], list[str]]:
     """Completion rule, identified parameters, parameters fixed at nominal."""
-    if not entry.get("seven"):
+    if not entry.seven:
         fixed = list(FREE_PARAMETERS)
         return "combinations+nominal", [n for n in PARAMETER_NAMES if n not in fixed], fixed
-    ident = ((entry.get("diagnostics") or {}).get("identifiability")) or {}
-    fallback = ident.get("a_priori_fallback") if isinstance(ident, dict) else None
+    fallback = entry.diagnostics.a_priori_fallback() if entry.diagnostics is not None else None
     if fallback == "all seven":
         return "a-priori all", [], list(PARAMETER_NAMES)
     if fallback == "L, S, D":
@@ -224,39 +216,53 @@ def _status(entry: dict[str, Any]) -> tuple[str, list[str], list[str]]:
     return "identified", list(PARAMETER_NAMES), []
 
 
-def method_parameters(result: dict[str, Any], method: str) -> I4Parameters:
-    """The seven parameters method ``method`` of ``result`` stands for (what its own validation used):
-    ``parameters_seven_completed``, else ``seven``, else its combinations completed with the nominal H, S, q03.
+def _entry(result: ResultDocument, method: str) -> MethodEntry:
+    """Method ``method``'s entry of ``result``, converged.
 
     Raises
     ------
     InputError
         No such method, or it did not converge (``field="method"``).
     """
-    entry = (result.get("methods") or {}).get(method)
+    entry = result.methods.get(method)
     if entry is None:
-        have = ", ".join(result.get("methods") or {}) or "none"
+        have = ", ".join(result.methods) or "none"
         raise InputError(f"the result has no method {method!r} (it has: {have})", field="method")
-    if not _converged(entry):
-        why = f": {entry.get('error')}" if entry.get("error") else ""
+    if not entry.ok:
+        why = f": {entry.error}" if entry.error else ""
         raise InputError(f"method {method!r} did not converge in this result{why}; nothing to export", field="method")
-    nominal = _nominal(result)
-    seven = entry.get("parameters_seven_completed") or entry.get("seven")
+    return entry
+
+
+def method_parameters(result: ResultDocument | dict[str, Any], method: str) -> I4Parameters:
+    """The seven parameters method ``method`` of ``result`` stands for (what its own validation used):
+    ``parameters_seven_completed``, else ``seven``, else its combinations completed with the nominal H, S, q03.
+
+    Raises
+    ------
+    InputError
+        Not a result document, no such method, or it did not converge (``field="method"``).
+    """
+    doc = ResultDocument.from_dict(result)
+    entry = _entry(doc, method)
+    nominal = _nominal(doc)
+    seven = entry.seven_or_completed
     if seven:
         try:
             return I4Parameters.from_mapping({**seven, "T_per_rad": nominal.T_per_rad})
         except (ValueError, TypeError) as exc:
             raise InputError(f"{exc}", field=f"methods.{method}.parameters_seven_completed") from None
-    combos = _four(entry.get("combinations") or entry.get("parameters"), f"methods.{method}.combinations")
-    return I4Parameters.from_combinations(combos, nominal)
+    return I4Parameters.from_combinations(_four(entry.values, f"methods.{method}.combinations"), nominal)
 
 
-def _seven_std(entry: dict[str, Any], fixed: list[str], cov: np.ndarray | None, std4: dict) -> dict[str, float | None]:
+def _seven_std(
+    entry: MethodEntry, fixed: list[str], cov: np.ndarray | None, std4: dict[str, float | None]
+) -> dict[str, float | None]:
     """Standard deviations of the seven: the method's, or those of the combinations through the completion."""
-    if entry.get("seven_std"):
-        return {n: (None if n in fixed else _finite_or_none(entry["seven_std"].get(n))) for n in PARAMETER_NAMES}
+    if entry.seven_std:
+        return {n: (None if n in fixed else _finite_or_none(entry.seven_std.get(n))) for n in PARAMETER_NAMES}
     # completed: L = c1, D = H - c2, q02 = 2 S - 2 c3, q04 = q03 + 2 S - 2 c4 (H, S, q03 fixed)
-    s = {k: _finite_or_none(std4.get(k)) for k in COMBINATION_NAMES}
+    s = dict(std4)
     if cov is not None:
         s = {k: float(math.sqrt(max(cov[i, i], 0.0))) for i, k in enumerate(COMBINATION_NAMES)}
 
@@ -277,12 +283,11 @@ def _finite_or_none(v: Any) -> float | None:
     return float(v) if isinstance(v, (int, float)) and math.isfinite(v) else None
 
 
-def _covariance(entry: dict[str, Any], where: str) -> np.ndarray | None:
-    c = entry.get("covariance")
-    if c is None:
+def _covariance(entry: MethodEntry, where: str) -> np.ndarray | None:
+    if entry.covariance is None:
         return None
     try:
-        a = np.asarray(c, dtype=np.float64)
+        a = np.asarray(entry.covariance, dtype=np.float64)
     except (TypeError, ValueError):
         raise InputError("not a 4x4 matrix of numbers", field=where) from None
     if a.shape != (4, 4) or not np.all(np.isfinite(a)):
@@ -290,12 +295,14 @@ def _covariance(entry: dict[str, Any], where: str) -> np.ndarray | None:
     return a
 
 
-def build_calibration(result: dict[str, Any], context: ExportContext, method: str | None = None) -> CalibrationDocument:
+def build_calibration(
+    result: ResultDocument | dict[str, Any], context: ExportContext, method: str | None = None
+) -> CalibrationDocument:
     """The ``i4cal.calibration/1`` document of one method of a result.
 
     Parameters
     ----------
-    result : dict
+    result : ResultDocument or dict
         An ``i4cal.result/1`` document (``i4cal calibrate -o``, ``GET /api/v1/runs/{id}/result``).
     context : ExportContext
         Provenance the result does not hold.
@@ -312,15 +319,13 @@ def build_calibration(result: dict[str, Any], context: ExportContext, method: st
     InputError
         Not a result document, no such method, not converged, or values that do not agree (names the field).
     """
-    if not isinstance(result, dict) or result.get("format") != "i4cal.result/1":
-        got = result.get("format") if isinstance(result, dict) else type(result).__name__
-        raise InputError(f"not an i4cal.result/1 document (format {got!r})", field="format")
+    doc = ResultDocument.from_dict(result)
     choice = f"asked for: {method}"
     if method is None:
-        method, choice = recommended_method(result)
-    params = method_parameters(result, method)
-    entry = result["methods"][method]
-    combos = _four(entry.get("combinations") or entry.get("parameters"), f"methods.{method}.combinations")
+        method, choice = recommended_method(doc)
+    params = method_parameters(doc, method)
+    entry = _entry(doc, method)
+    combos = _four(entry.values, f"methods.{method}.combinations")
     got = params.combinations()
     worst = max(COMBINATION_NAMES, key=lambda k: abs(got[k] - combos[k]))
     if abs(got[worst] - combos[worst]) > REPRODUCE_TOL_M:
@@ -331,12 +336,11 @@ def build_calibration(result: dict[str, Any], context: ExportContext, method: st
         )
     rule, identified, fixed = _status(entry)
     cov = _covariance(entry, f"methods.{method}.covariance")
-    std4_raw = entry.get("combinations_std") or entry.get("std") or {}
+    std4_raw = entry.values_std or {}
     std4 = {k: _finite_or_none(std4_raw.get(k)) for k in COMBINATION_NAMES}
-    nominal = _nominal(result)
-    validation = result.get("validation") or {}
-    gap, poses = _gap_rms_m(validation.get(method))
-    gap0, _ = _gap_rms_m(validation.get("a priori"))
+    nominal = _nominal(doc)
+    gap, poses = _gap_rms_m(doc.validation.get(method))
+    gap0, _ = _gap_rms_m(doc.validation.get("a priori"))
     return CalibrationDocument(
         bench=context.bench,
         run=context.run,
@@ -360,7 +364,7 @@ def build_calibration(result: dict[str, Any], context: ExportContext, method: st
         validation=None
         if gap is None and gap0 is None
         else Validation(poses=poses, gap_rms_m=gap, a_priori_gap_rms_m=gap0),
-        warnings=[str(w) for w in entry.get("warnings") or []],
+        warnings=[str(w) for w in entry.warnings or []],
         source=Source(result_sha256=context.result_sha256, result_file=context.result_file),
     )
 

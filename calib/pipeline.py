@@ -14,14 +14,15 @@ from .baseframe import BaseFrameResult, base_frame_from_observations
 from .errors import I4calError
 from .methods.combined_measurements import CombinedMeasurements
 from .methods.iterations import IterationCallback
-from .methods.registry import MethodContext, get_method, method_identifiability, method_names
+from .methods.registry import MethodContext, MethodSpec, get_method, method_identifiability, method_names
 from .methods.result import MethodResult
 from .observations import LEG_KEYS, Observations, Rod
 from .parameters import COMBINATION_NAMES, PARAMETER_NAMES, I4Parameters
+from .resultdoc import RESULT_FORMAT, BaseFrameSummary, MethodEntry, ResultDocument, ValidationEntry, to_jsonable
 from .transforms import tangent_basis
 from .validation import validate, vision_scale
 
-RESULT_FORMAT = "i4cal.result/1"
+__all__ = ["RESULT_FORMAT", "calibrate", "calibrate_document", "run_method", "to_jsonable"]
 
 
 def __getattr__(name: str) -> Any:
@@ -54,6 +55,20 @@ def calibrate(
     progress: Callable[[str, str], None] | None = None,
     on_iteration: IterationCallback | None = None,
 ) -> dict[str, Any]:
+    """The result document of :func:`calibrate_document` as a mapping (``i4cal calibrate --json``: what is stored
+    and printed; numpy values as the methods gave them, :func:`to_jsonable` makes them JSON)."""
+    doc = calibrate_document(obs, methods, strict=strict, progress=progress, on_iteration=on_iteration)
+    return doc.model_dump(exclude_unset=True)
+
+
+def calibrate_document(
+    obs: Observations,
+    methods: Iterable[str] | None = None,
+    *,
+    strict: bool = False,
+    progress: Callable[[str, str], None] | None = None,
+    on_iteration: IterationCallback | None = None,
+) -> ResultDocument:
     """Run the methods, validate each result, and return the result document.
 
     Parameters
@@ -71,29 +86,17 @@ def calibrate(
 
     Returns
     -------
-    dict
-        ``{"format", "methods": {name: {...}}, "validation": {"a priori": ..., name: ...}, "base_frame",
-        "nominal", "truth_errors"?}``.
+    ResultDocument
+        ``format``, ``nominal``, ``nominal_combinations``, ``methods`` (per method), ``validation`` (``a priori``,
+        per method, ``truth`` on simulated data), ``phases``, ``base_frame``, ``truth_errors`` (simulated data).
     """
     methods = list(method_names() if methods is None else methods)
     specs = {name: get_method(name) for name in methods}  # an unknown name fails before any fit
     nominal = obs.nominal
-    out: dict[str, Any] = {
-        "format": RESULT_FORMAT,
-        "nominal": nominal.as_dict(),
-        "nominal_combinations": nominal.combinations(),
-        "methods": {},
-        "validation": {},
-        "phases": obs.phases(),
-    }
-    bf = None
-    try:
-        bf = base_frame_from_observations(obs)
-        out["base_frame"] = bf.summary()
-    except I4calError as exc:
-        out["base_frame"] = {"error": str(exc)}
+    entries: dict[str, MethodEntry] = {}
+    bf, bf_summary = _base_frame(obs)
     scale = vision_scale(obs, bf)  # the validation's measuring instrument, calibrated once against the encoders
-    out["validation"]["a priori"] = validate(obs, nominal, scale)
+    validation = {"a priori": ValidationEntry.model_validate(validate(obs, nominal, scale))}
     fit = obs.arrays("poses")
     shared = MethodContext()  # what one method measures that a later one uses (the combined fit's edge bias)
     for name in methods:
@@ -107,49 +110,103 @@ def calibrate(
                 shared = dataclasses.replace(shared, combined=CombinedMeasurements())
             if strict:
                 raise
-            out["methods"][name] = {
-                "converged": False,
-                "error": str(exc),
-                "parameters": None,
-                "std": None,
-                "combinations": None,
-                "combinations_std": None,
-            }
+            entries[name] = _failed_entry(exc)
             if progress:
                 progress(name, "failed")
             continue
         if name == "combined":  # its measurements, passed forward to the methods that carry them (legs)
             shared = dataclasses.replace(shared, combined=CombinedMeasurements.from_result(res))
-        entry = res.to_dict()
-        entry["time_s"] = time.perf_counter() - t0
         full = res.full_parameters(nominal)
-        entry["parameters_seven_completed"] = full.seven()
-        try:
-            has_model = specs[name].identifiability is not None
-            entry["identifiability"] = method_identifiability(name, full, fit.q) if len(fit) and has_model else None
-        except I4calError as exc:
-            entry["identifiability"] = {"error": str(exc)}
-        if specs[name].bound and bf is not None:
-            entry["bound"] = _bound_for(obs, full, res, bf)
-        out["methods"][name] = entry
-        try:
-            out["validation"][name] = validate(obs, full, scale)
-        except I4calError as exc:
-            out["validation"][name] = {"error": str(exc)}
+        entries[name] = _method_entry(obs, res, full, specs[name], bf, fit.q, time.perf_counter() - t0)
+        validation[name] = _validation(obs, full, scale)
         if progress:
             progress(name, "done")
     truth = obs.document.model_extra.get("truth") if obs.document.model_extra else None
+    parts: dict[str, Any] = {}
     if isinstance(truth, dict) and "combinations" in truth:
-        te: dict[str, Any] = {}
-        for name, entry in out["methods"].items():
-            if entry.get("parameters"):
-                te[name] = {k: entry["parameters"][k] - truth["combinations"][k] for k in COMBINATION_NAMES}
-                if "seven" in entry and "parameters" in truth:
-                    te[name]["seven"] = {k: entry["seven"][k] - truth["parameters"][k] for k in PARAMETER_NAMES}
-        out["truth_errors"] = te
+        parts["truth_errors"] = _truth_errors(entries, truth)
         with contextlib.suppress(I4calError, KeyError, ValueError):
-            out["validation"]["truth"] = validate(obs, I4Parameters.from_mapping(truth["parameters"]), scale)
-    return out
+            validation["truth"] = _validation(obs, I4Parameters.from_mapping(truth["parameters"]), scale)
+    return ResultDocument.model_validate(
+        {
+            "format": RESULT_FORMAT,
+            "nominal": nominal.as_dict(),
+            "nominal_combinations": nominal.combinations(),
+            "methods": entries,
+            "validation": validation,
+            "phases": obs.phases(),
+            "base_frame": bf_summary,
+            **parts,
+        }
+    )
+
+
+def _base_frame(obs: Observations) -> tuple[BaseFrameResult | None, BaseFrameSummary]:
+    """The base frame from the board's rotation and translation phases, and its summary (or why there is none)."""
+    try:
+        bf = base_frame_from_observations(obs)
+    except I4calError as exc:
+        return None, BaseFrameSummary(error=str(exc))
+    return bf, BaseFrameSummary.model_validate(bf.summary())
+
+
+def _failed_entry(exc: I4calError) -> MethodEntry:
+    """The entry of a method that gave no result: why, and null values under both names."""
+    return MethodEntry(
+        converged=False,
+        error=str(exc),
+        parameters=None,
+        std=None,
+        combinations=None,
+        combinations_std=None,
+    )
+
+
+def _method_entry(
+    obs: Observations,
+    res: MethodResult,
+    full: I4Parameters,
+    spec: MethodSpec,
+    bf: BaseFrameResult | None,
+    q_fit: np.ndarray,
+    time_s: float,
+) -> MethodEntry:
+    """A method's entry: its result, its wall time ``time_s`` (s), the seven parameters it stands for (``full``),
+    its identifiability at the fit poses ``q_fit`` ((N, 4), m) and, for a method with one, its Cramer-Rao bound."""
+    entry = res.to_dict()
+    entry["time_s"] = time_s
+    entry["parameters_seven_completed"] = full.seven()
+    try:
+        has_model = spec.identifiability is not None
+        entry["identifiability"] = method_identifiability(spec.name, full, q_fit) if len(q_fit) and has_model else None
+    except I4calError as exc:
+        entry["identifiability"] = {"error": str(exc)}
+    if spec.bound and bf is not None:
+        entry["bound"] = _bound_for(obs, full, res, bf)
+    return MethodEntry.model_validate(entry)
+
+
+def _validation(obs: Observations, params: I4Parameters, scale: dict) -> ValidationEntry:
+    """:func:`calib.validation.validate` of one parameter set, or why it failed."""
+    try:
+        return ValidationEntry.model_validate(validate(obs, params, scale))
+    except I4calError as exc:
+        return ValidationEntry(error=str(exc))
+
+
+def _truth_errors(entries: dict[str, MethodEntry], truth: dict[str, Any]) -> dict[str, Any]:
+    """Method minus truth per combination (and per parameter under ``seven`` when the method identifies them), m."""
+    te: dict[str, Any] = {}
+    for name, entry in entries.items():
+        if entry.parameters:
+            te[name] = {k: _num(entry.parameters[k]) - truth["combinations"][k] for k in COMBINATION_NAMES}
+            if entry.seven is not None and "parameters" in truth:
+                te[name]["seven"] = {k: _num(entry.seven[k]) - truth["parameters"][k] for k in PARAMETER_NAMES}
+    return te
+
+
+def _num(v: float | None) -> float:
+    return float("nan") if v is None else v
 
 
 def _tag(on_iteration: IterationCallback | None, method: str) -> IterationCallback | None:
@@ -238,15 +295,3 @@ def _leg_covariances(obs: Observations, s2: float) -> np.ndarray | None:
             legs.append(V[:, 1:] @ np.diag(inv) @ V[:, 1:].T)
         out.append(legs)
     return np.asarray(out) if out else None
-
-
-def to_jsonable(x: Any) -> Any:
-    if isinstance(x, dict):
-        return {k: to_jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [to_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    if isinstance(x, np.generic):
-        return x.item()
-    return x

@@ -1,6 +1,6 @@
 """Which method's result to load, and why: one rule for the demo, ``i4cal calibrate``, the report and the dashboard.
 
-The rule (:func:`verdict`), applied to a result document (``i4cal calibrate --json``; :mod:`calib.resultdoc`):
+The rule (:func:`verdict`), applied to a result document (:class:`calib.resultdoc.ResultDocument`, or its JSON):
 
 1. Candidates are the methods whose fit converged and that have the four combinations with their std.
 2. A candidate must improve the validation gap (RMS of the displacement gaps on the validation poses) on the a priori
@@ -24,6 +24,8 @@ import math
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
+
+from .resultdoc import Gaps, MethodEntry, ResultDocument, ValidationEntry
 
 #: the uncertainty convention of every std shown by the CLI, the dashboard and the report
 UNCERTAINTY = "± 1 std"
@@ -83,43 +85,45 @@ class Verdict:
         return d
 
 
-def _gap(validation: Mapping[str, Any], name: str, part: str) -> tuple[float | None, int]:
-    g = (validation.get(name) or {}).get(part) or {}
-    rms = g.get("rms_mm")
-    value = None if rms is None else float(rms)
-    ok = value is not None and math.isfinite(value)
-    return (value if ok else None), int(g.get("n_pairs") or len(g.get("gaps_mm") or ()))
+def _gap(validation: Mapping[str, ValidationEntry], name: str, part: str) -> tuple[float | None, int]:
+    """The RMS gap (mm) of parameter set ``name`` on ``part`` (``validation`` or ``poses``), and its pose pairs."""
+    v = validation.get(name)
+    g = (v.gaps(part) if v is not None else None) or Gaps()
+    return g.rms_finite_mm(), g.count()
 
 
-def _std_max_mm(entry: Mapping[str, Any]) -> float | None:
-    std = entry.get("combinations_std") or entry.get("std") or {}
-    vals = [float(std[k]) for k in COMBINATIONS if std.get(k) is not None]
+def _std_max_mm(entry: MethodEntry) -> float | None:
+    std = entry.values_std or {}
+    vals = [float(v) for k in COMBINATIONS if (v := std.get(k)) is not None]
     if len(vals) != len(COMBINATIONS) or not all(math.isfinite(v) for v in vals):
         return None
     return 1e3 * max(vals)
 
 
-def _failure(entry: Mapping[str, Any]) -> str | None:
-    if entry.get("converged") and entry.get("parameters"):
-        return None
-    return str(entry.get("error") or entry.get("message") or "did not converge")
+def _std_or_inf(entry: MethodEntry) -> float:
+    std = _std_max_mm(entry)
+    return math.inf if std is None else std
 
 
-def _floor(validation: Mapping[str, Any], converged: Sequence[str], part: str) -> tuple[float | None, str | None]:
+def _floor(
+    validation: Mapping[str, ValidationEntry], converged: Sequence[str], part: str
+) -> tuple[float | None, str | None]:
     truth, _ = _gap(validation, "truth", part)
     if truth is not None:
         return truth, "true geometry"
-    fits = [g for g in (_gap(validation, m, "gaps_poses")[0] for m in converged) if g is not None]
+    fits = [g for g in (_gap(validation, m, "poses")[0] for m in converged) if g is not None]
     return (min(fits), "best fit-pose gap") if fits else (None, None)
 
 
-def verdict(doc: Mapping[str, Any], result: str = "RESULT", order: Sequence[str] | None = None) -> Verdict:
+def verdict(
+    doc: ResultDocument | Mapping[str, Any], result: str = "RESULT", order: Sequence[str] | None = None
+) -> Verdict:
     """Which method's result to load from a result document, why, and the next command.
 
     Parameters
     ----------
-    doc : mapping
-        A result document (``methods``, ``validation``; :mod:`calib.resultdoc`).
+    doc : ResultDocument or mapping
+        A result document (its ``methods`` and ``validation``; :mod:`calib.resultdoc`).
     result : str
         How the next command names the result (a result file, a run id); ``RESULT`` when there is none yet.
     order : sequence of str, optional
@@ -133,10 +137,10 @@ def verdict(doc: Mapping[str, Any], result: str = "RESULT", order: Sequence[str]
         from calib.methods.registry import apply_order
 
         order = apply_order()
-    methods: Mapping[str, Any] = doc.get("methods") or {}
-    validation: Mapping[str, Any] = doc.get("validation") or {}
-    failed = {m: f for m, e in methods.items() if (f := _failure(e)) is not None}
-    converged = [m for m in methods if m not in failed and _std_max_mm(methods[m]) is not None]
+    document = ResultDocument.of(doc)
+    methods, validation = document.methods, document.validation
+    failed = {m: f for m, e in methods.items() if (f := e.failure) is not None}
+    converged = [m for m, e in methods.items() if m not in failed and _std_max_mm(e) is not None]
     if not methods:
         return Verdict(None, "no method was run", failed=failed)
     if not converged:
@@ -145,9 +149,9 @@ def verdict(doc: Mapping[str, Any], result: str = "RESULT", order: Sequence[str]
             f"no fit converged ({', '.join(failed)}: the reasons under Table I); the a priori geometry stays",
             failed=failed,
         )
-    part, kind = "gaps_validation", "validation"
+    part, kind = "validation", "validation"
     if all(_gap(validation, m, part)[0] is None for m in converged):
-        part, kind = "gaps_poses", "fit poses"
+        part, kind = "poses", "fit poses"
     prior, _ = _gap(validation, "a priori", part)
     floor, floor_source = _floor(validation, converged, part)
     gaps = {m: _gap(validation, m, part) for m in converged}
@@ -166,15 +170,11 @@ def verdict(doc: Mapping[str, Any], result: str = "RESULT", order: Sequence[str]
             floor_source=floor_source,
             failed=failed,
         )
-    best = min(better.values())
-    n = max(1, min(gaps[m][1] for m in better))
-    tied = [m for m, g in better.items() if g <= best * (1.0 + 1.0 / math.sqrt(2.0 * n))]
-    rank = {m: i for i, m in enumerate(order)}
-    chosen = min(tied, key=lambda m: (_std_max_mm(methods[m]), rank.get(m, len(rank))))
+    chosen, tie = _choose(methods, better, gaps, order)
     gap, std = scored[chosen], _std_max_mm(methods[chosen])
     against = f"against the a priori's {prior:.3f} mm" if prior is not None else "(no a priori gap)"
     floor_txt = f" (floor {floor:.3f} mm, {floor_source})" if floor is not None else ""
-    why_std = "; the smallest std of the methods as good on the validation" if len(tied) > 1 else ""
+    why_std = "; the smallest std of the methods as good on the validation" if tie else ""
     reason = (
         f"load {chosen}: {kind} gap RMS {gap:.3f} mm {against}{floor_txt}; largest std {std:.3f} mm "
         f"({UNCERTAINTY}){why_std}"
@@ -191,3 +191,20 @@ def verdict(doc: Mapping[str, Any], result: str = "RESULT", order: Sequence[str]
         failed=failed,
         next_command=EXPORT_COMMAND.format(result=result, method=chosen),
     )
+
+
+def _choose(
+    methods: Mapping[str, MethodEntry],
+    better: Mapping[str, float],
+    gaps: Mapping[str, tuple[float | None, int]],
+    order: Sequence[str],
+) -> tuple[str, bool]:
+    """Of the methods that improve on the a priori (gap RMS in ``better``, mm), the one to load: among those within
+    the gap's sampling uncertainty of the smallest, the smallest largest std (ties: ``order``); and whether the std
+    decided (several tied on the gap)."""
+    best = min(better.values())
+    n = max(1, min(gaps[m][1] for m in better))
+    tied = [m for m, g in better.items() if g <= best * (1.0 + 1.0 / math.sqrt(2.0 * n))]
+    rank = {m: i for i, m in enumerate(order)}
+    chosen = min(tied, key=lambda m: (_std_or_inf(methods[m]), rank.get(m, len(rank))))
+    return chosen, len(tied) > 1

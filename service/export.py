@@ -13,6 +13,7 @@ from typing import Any, Literal
 from calib.errors import InputError
 from calib.export import CalibrationDocument, ExportContext, build_calibration, load_calibration
 from calib.plan import Plan
+from calib.resultdoc import RESULT_FORMAT, MethodEntry, ResultDocument
 
 from .timefmt import iso_utc
 
@@ -87,10 +88,11 @@ def dataset_hash(dataset_dir: Path | None) -> str | None:
     return digest
 
 
-def result_sha256(result: Any) -> str:
+def result_sha256(result: ResultDocument | dict[str, Any]) -> str:
+    """SHA-256 of a result document's JSON in canonical form (``service.report.analysis.json_sha256``)."""
     from .report.analysis import json_sha256
 
-    return json_sha256(result)
+    return json_sha256(result.to_dict() if isinstance(result, ResultDocument) else result)
 
 
 # -- from a run -------------------------------------------------------------------------------------------------------
@@ -184,10 +186,10 @@ def file_context(path: Path, result: Any, dataset_dir: Path | None = None) -> Ex
     )
 
 
-def payload_result(payload: dict[str, Any]) -> dict[str, Any]:
+def payload_result(payload: dict[str, Any]) -> ResultDocument:
     """A result document holding the one method an applied calibration's record keeps (``calibrations.payload``):
     for a calibration whose run's result is no longer stored (no covariance then)."""
-    entry = {
+    entry: dict[str, Any] = {
         "converged": True,
         "combinations": payload.get("combinations"),
         "combinations_std": payload.get("combinations_std"),
@@ -195,11 +197,13 @@ def payload_result(payload: dict[str, Any]) -> dict[str, Any]:
     if payload.get("parameters"):
         entry["seven"] = payload["parameters"]
         entry["seven_std"] = payload.get("parameters_std")
-    return {
-        "format": "i4cal.result/1",
-        "nominal": payload.get("nominal") or {},
-        "methods": {payload.get("method") or "unknown": entry},
-    }
+    return ResultDocument.from_dict(
+        {
+            "format": RESULT_FORMAT,
+            "nominal": payload.get("nominal") or {},
+            "methods": {payload.get("method") or "unknown": MethodEntry.model_validate(entry)},
+        }
+    )
 
 
 __all__ = [

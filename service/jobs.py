@@ -204,37 +204,30 @@ def fit_job(*, emit: Emit, observations: str, methods: list[str]) -> dict[str, A
     ``{"method", "stage", "iteration", "cost"}`` (every iteration of every fit).
     """
     from calib.observations import Observations
-    from calib.pipeline import calibrate, to_jsonable
+    from calib.pipeline import calibrate_document
 
     obs = Observations.load(observations)
-    doc: dict[str, Any] | None = None
+    doc = None
     for k, method in enumerate(methods):
         emit("fit", {"method": method, "state": "start", "index": k, "count": len(methods)})
-        part = clean_json(to_jsonable(calibrate(obs, [method], on_iteration=lambda info: emit("iteration", info))))
-        entry = part["methods"][method]
+        part = calibrate_document(obs, [method], on_iteration=lambda info: emit("iteration", info))
+        entry = part.methods[method]
         emit(
             "fit",
             {
                 "method": method,
-                "state": "done" if entry.get("converged") else "failed",
+                "state": "done" if entry.converged else "failed",
                 "index": k,
                 "count": len(methods),
-                "iterations": entry.get("iterations"),
-                "residual_rms": entry.get("residual_rms"),
-                "error": entry.get("error"),
+                "iterations": entry.iterations,
+                "residual_rms": clean_json(entry.residual_rms),
+                "error": entry.error,
             },
         )
-        if doc is None:
-            doc = part
-            continue
-        doc["methods"][method] = entry
-        if method in part["validation"]:
-            doc["validation"][method] = part["validation"][method]
-        for name, te in (part.get("truth_errors") or {}).items():
-            doc.setdefault("truth_errors", {})[name] = te
+        doc = part if doc is None else doc.merge(part, method)
     if doc is None:
         raise I4calError("no method to fit")
-    return doc
+    return clean_json(doc.to_dict())
 
 
 def _heavy_predict(noise: Any, *, config: Any, plan: Any, methods: tuple[str, ...], camera: Any) -> Any:

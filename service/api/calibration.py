@@ -12,6 +12,7 @@ from pydantic import BaseModel, Field
 
 from calib.errors import InputError
 from calib.export import CalibrationDocument, ExportContext, build_calibration
+from calib.resultdoc import ResultDocument
 
 from ..auth import Reader
 from ..runs import RunNotFoundError
@@ -85,7 +86,7 @@ def current_document(manager, cal) -> CalibrationDocument:
         doc = CalibrationDocument.model_validate(cal.payload["document"])
         why = f"applied to bench {cal.bench} (POST /api/v1/checks/{{id}}/apply): {doc.method_choice}"
         return doc.model_copy(update={"method_choice": why, "bench": cal.bench})
-    if run is not None and run.result and cal.method in (run.result.get("methods") or {}):
+    if run is not None and run.result and cal.method in ResultDocument.from_dict(run.result).methods:
         doc = run_document(manager.data_dir, run, cal.method, software_version=cal.software_version, bench=cal.bench)
     else:
         ctx = ExportContext(software_version=cal.software_version, bench=cal.bench, run=cal.run_id)

@@ -457,8 +457,7 @@ async def export_run(
     run = get_run(manager, run_id)
     if run.result is None:
         raise conflict(f"run is {run.state}; no result")
-    entry = (run.result.get("methods") or {}).get(method) if method else None
-    if method and entry is None:
+    if method and method not in ResultDocument.from_dict(run.result).methods:
         raise unprocessable(InputError(f"the run has no result for method {method!r}", field="method"), ("query",))
     try:
         doc = await asyncio.to_thread(run_document, manager.data_dir, run, method)

@@ -16,6 +16,7 @@ from calib.kinematics import dkm, leg_directions
 from calib.methods.registry import method_names
 from calib.methods.registry import methods as registered_methods
 from calib.parameters import PARAMETER_NAMES, I4Parameters
+from calib.resultdoc import Diagnostics, ResultDocument
 
 #: Phases whose poses get per-pose residuals (the fit set, then the separate validation poses).
 RESIDUAL_PHASES = ("poses", "validation")
@@ -75,16 +76,9 @@ def json_sha256(doc: Any) -> str:
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
 
 
-def method_parameters(result: dict[str, Any], method: str) -> I4Parameters | None:
+def method_parameters(result: ResultDocument | dict[str, Any], method: str) -> I4Parameters | None:
     """The seven parameters a converged method stands for (identified, or completed with the a priori ones)."""
-    e = result.get("methods", {}).get(method) or {}
-    seven = e.get("parameters_seven_completed") or e.get("seven")
-    if not e.get("parameters") or not seven:
-        return None
-    try:
-        return I4Parameters.from_mapping({**seven, "T_per_rad": result.get("nominal", {}).get("T_per_rad")})
-    except (ValueError, KeyError, TypeError):
-        return None
+    return ResultDocument.of(result).method_parameters(method)
 
 
 @dataclass
@@ -119,24 +113,24 @@ class LegResiduals:
             return np.sqrt(np.nanmean(a**2, axis=0)) if len(a) else np.full(4, np.nan)
 
 
-def leg_residuals(obs: Any, result: dict[str, Any], method: str) -> LegResiduals | None:
+def leg_residuals(obs: Any, result: ResultDocument | dict[str, Any], method: str) -> LegResiduals | None:
     """Per-pose, per-leg residual angles of ``method``'s geometry on the fit and validation poses.
 
     The rods' axes are turned into the base frame with the rotation estimated from the ``rotation`` and
-    ``translation`` phases (``result["base_frame"]``); the model's leg directions come from the encoder values
+    ``translation`` phases (``result.base_frame``); the model's leg directions come from the encoder values
     through the identified geometry (DKM then IKM). None when the method has no result or no base frame.
 
     Parameters
     ----------
     obs : calib.observations.Observations
-    result : dict
-        The result document of :func:`calib.pipeline.calibrate`.
+    result : ResultDocument
+        The result document of :func:`calib.pipeline.calibrate_document`.
     """
-    params = method_parameters(result, method)
-    R = (result.get("base_frame") or {}).get("camera_from_base_R")
+    doc = ResultDocument.of(result)
+    params = doc.method_parameters(method)
+    R = doc.base_frame.rotation() if doc.base_frame is not None else None
     if params is None or R is None:
         return None
-    R = np.asarray(R, float)
     frames: list[int] = []
     phases: list[str] = []
     rows = []
@@ -160,15 +154,12 @@ def leg_residuals(obs: Any, result: dict[str, Any], method: str) -> LegResiduals
     return LegResiduals(frames, phases, np.array(rows).reshape(-1, 4))
 
 
-def reference_method(result: dict[str, Any], methods: list[str] | None = None) -> str | None:
+def reference_method(result: ResultDocument | dict[str, Any], methods: list[str] | None = None) -> str | None:
     """The method whose residuals pick the worst poses: the paper's combined one when it converged, else the
     first converged one."""
-    ms = result.get("methods", {})
+    ms = ResultDocument.of(result).methods
     names = [m for m in method_order(ms) if m in ms and (methods is None or m in methods)]
-    for m in names:
-        if result["methods"][m].get("converged") and result["methods"][m].get("parameters"):
-            return m
-    return None
+    return next((m for m in names if ms[m].converged and ms[m].parameters), None)
 
 
 def worst_poses(res: LegResiduals, n: int = 3) -> list[tuple[int, str, float]]:
@@ -190,7 +181,7 @@ class Missing:
 
 
 def missing_items(
-    result: dict[str, Any],
+    result: ResultDocument | dict[str, Any],
     obs_doc: dict[str, Any] | None,
     dataset_dir: Path | None,
     methods: list[str],
@@ -198,167 +189,225 @@ def missing_items(
 ) -> Missing:
     """Everything absent from the inputs that a reader of the report would expect."""
     m = Missing()
+    result = ResultDocument.of(result)
+    for text in (
+        *_missing_inputs(obs_doc, dataset_dir, missing_files),
+        *_missing_extraction(obs_doc),
+        *_missing_methods(result, methods),
+        *_missing_in_result(result),
+    ):
+        m.add(text)
+    return m
+
+
+def _missing_inputs(obs_doc: dict[str, Any] | None, dataset_dir: Path | None, missing_files: list[str]) -> list[str]:
+    """What the report lacks for want of observations, a dataset or its frame images."""
+    out = []
     if obs_doc is None:
-        m.add("no observations: residuals per pose and leg, camera calibration and frames are not shown")
+        out.append("no observations: residuals per pose and leg, camera calibration and frames are not shown")
     if dataset_dir is None:
-        m.add("no dataset: no dataset hash and no frames")
+        out.append("no dataset: no dataset hash and no frames")
     elif missing_files:
-        m.add(
+        out.append(
             f"{len(missing_files)} frame image(s) named in dataset.json are missing: "
             + ", ".join(missing_files[:5])
             + (" ..." if len(missing_files) > 5 else "")
         )
+    return out
+
+
+def _missing_extraction(obs_doc: dict[str, Any] | None) -> list[str]:
+    """What the observations' extraction record says was not measured (or that there is no record)."""
     ext = (obs_doc or {}).get("extraction")
     if obs_doc is not None and not ext:
-        m.add(
+        return [
             "no extraction record: the observations were not produced from images by i4cal extract "
             "(camera calibration quality unknown)"
+        ]
+    if not ext:
+        return []
+    out = []
+    src = ((ext.get("summary") or {}).get("camera") or {}).get("source")
+    if src in ("given", "dataset"):
+        out.append(
+            f"no camera phase: intrinsics {'given' if src == 'given' else 'taken from the dataset'} "
+            "(no reprojection errors, no intrinsic standard deviations)"
         )
-    elif ext:
-        src = ((ext.get("summary") or {}).get("camera") or {}).get("source")
-        if src in ("given", "dataset"):
-            m.add(
-                f"no camera phase: intrinsics {'given' if src == 'given' else 'taken from the dataset'} "
-                "(no reprojection errors, no intrinsic standard deviations)"
-            )
-        miss: dict[str, int] = {}  # frames missing, per reason
-        for c in ((ext.get("summary") or {}).get("phases") or {}).values():
-            for k, v in (c.get("missing") or {}).items():
-                miss[k] = miss.get(k, 0) + v
-        if miss:
-            m.add("not measured in some frames: " + "; ".join(f"{k} x{v}" for k, v in sorted(miss.items())))
+    miss: dict[str, int] = {}  # frames missing, per reason
+    for c in ((ext.get("summary") or {}).get("phases") or {}).values():
+        for k, v in (c.get("missing") or {}).items():
+            miss[k] = miss.get(k, 0) + v
+    if miss:
+        out.append("not measured in some frames: " + "; ".join(f"{k} x{v}" for k, v in sorted(miss.items())))
+    return out
+
+
+def _missing_methods(result: ResultDocument, methods: list[str]) -> list[str]:
+    """The methods asked for that were not run, failed or did not converge, and the bounds not computed."""
+    out = []
     for name in method_order(methods):
         if name not in methods:
             continue
-        e = result.get("methods", {}).get(name)
+        e = result.methods.get(name)
         if e is None:
-            m.add(f"method {name} was not run")
-        elif not e.get("parameters"):
-            m.add(f"method {name} failed: {e.get('error', 'no parameters')}")
-        elif not e.get("converged"):
-            m.add(f"method {name} did not converge: {e.get('message', '')}")
-    comb = result.get("methods", {}).get("combined") or {}
-    if comb.get("parameters") and not (comb.get("bound") or {}).get("std"):
-        note = (comb.get("bound") or {}).get("note", "no base frame")
-        m.add(f"no Cramer-Rao bound for the combined method ({note})")
+            out.append(f"method {name} was not run")
+        elif not e.parameters:
+            out.append(f"method {name} failed: {e.error if e.error is not None else 'no parameters'}")
+        elif not e.converged:
+            out.append(f"method {name} did not converge: {e.message or ''}")
+    comb = result.methods.get("combined")
+    if comb is not None and comb.parameters and not comb.bound_std:
+        note = comb.bound.note if comb.bound is not None and comb.bound.note is not None else "no base frame"
+        out.append(f"no Cramer-Rao bound for the combined method ({note})")
     with_bound = [s.name for s in registered_methods() if s.bound]
-    if any(n not in with_bound for n in result.get("methods", {})):
-        m.add(f"Cramer-Rao bound computed for the {', '.join(with_bound)} method only")
-    bf = result.get("base_frame") or {}
-    if "error" in bf:
-        m.add(f"no base frame: {bf['error']}")
-    ph = result.get("phases") or {}
-    if not ph.get("validation"):
-        m.add("no validation poses: Table II on the fit poses only")
-    if not ph.get("line"):
-        m.add("no line phase: straightness (Table III) not measured")
-    if "truth_errors" not in result:
-        m.add("no truth (not a simulated data set): errors against the true geometry cannot be given")
-    return m
+    if any(n not in with_bound for n in result.methods):
+        out.append(f"Cramer-Rao bound computed for the {', '.join(with_bound)} method only")
+    return out
+
+
+def _missing_in_result(result: ResultDocument) -> list[str]:
+    """What the result's base frame, phases and truth leave out."""
+    out = []
+    bf = result.base_frame
+    if bf is not None and bf.error is not None:
+        out.append(f"no base frame: {bf.error}")
+    if not result.phases.get("validation"):
+        out.append("no validation poses: Table II on the fit poses only")
+    if not result.phases.get("line"):
+        out.append("no line phase: straightness (Table III) not measured")
+    if result.truth_errors is None:
+        out.append("no truth (not a simulated data set): errors against the true geometry cannot be given")
+    return out
 
 
 def conditions(
-    result: dict[str, Any], obs_doc: dict[str, Any] | None, dataset_doc: dict[str, Any] | None
+    result: ResultDocument | dict[str, Any], obs_doc: dict[str, Any] | None, dataset_doc: dict[str, Any] | None
 ) -> list[tuple[str, str]]:
     """Measurement conditions as (item, value) rows, for display (mm, deg, px)."""
+    result = ResultDocument.of(result)
     rows: list[tuple[str, str]] = []
-    ph = result.get("phases") or {}
-    rows.append(("poses per phase", ", ".join(f"{k} {v}" for k, v in ph.items()) or "-"))
+    rows.append(("poses per phase", ", ".join(f"{k} {v}" for k, v in result.phases.items()) or "-"))
     if dataset_doc:
-        cam = dataset_doc.get("camera") or {}
-        rows.append(("image size", f"{cam.get('width')} x {cam.get('height')} px"))
-        b = dataset_doc.get("board") or {}
-        rows.append(
-            (
-                "ChArUco board",
-                f"{b.get('squares_x')} x {b.get('squares_y')} squares of "
-                f"{b.get('square_length_m', 0) * 1e3:.1f} mm, {b.get('dictionary')}",
-            )
-        )
-        legs = dataset_doc.get("legs") or {}
-        if legs.get("rod_radius_m"):
-            rows.append(("rods", f"{legs.get('rods_per_leg', 2)} per leg, radius {legs['rod_radius_m'] * 1e3:.2f} mm"))
-        gen = dataset_doc.get("generator")
-        if isinstance(gen, dict):
-            rows.append(
-                ("data source", f"simulated: {gen.get('name')} (seed {gen.get('seed')}, plan {gen.get('plan')})")
-            )
-        acq = dataset_doc.get("acquisition")
-        if isinstance(acq, dict):
-            rows.append(
-                (
-                    "acquisition",
-                    f"{acq.get('state')}: {acq.get('frames')}/{acq.get('total')} frames "
-                    f"{acq.get('reason') or ''}".strip(),
-                )
-            )
+        rows += _dataset_conditions(dataset_doc)
     elif obs_doc is not None and isinstance(obs_doc.get("noise"), dict):
         rows.append(("data source", "simulated observations (geometric twin, no images)"))
-    bf = result.get("base_frame") or {}
-    if "z_std_deg" in bf:
+    return rows + _fit_conditions(result)
+
+
+def _dataset_conditions(dataset_doc: dict[str, Any]) -> list[tuple[str, str]]:
+    """The camera, board, rods, data source and acquisition a dataset records."""
+    rows: list[tuple[str, str]] = []
+    cam = dataset_doc.get("camera") or {}
+    rows.append(("image size", f"{cam.get('width')} x {cam.get('height')} px"))
+    b = dataset_doc.get("board") or {}
+    rows.append(
+        (
+            "ChArUco board",
+            f"{b.get('squares_x')} x {b.get('squares_y')} squares of "
+            f"{b.get('square_length_m', 0) * 1e3:.1f} mm, {b.get('dictionary')}",
+        )
+    )
+    legs = dataset_doc.get("legs") or {}
+    if legs.get("rod_radius_m"):
+        rows.append(("rods", f"{legs.get('rods_per_leg', 2)} per leg, radius {legs['rod_radius_m'] * 1e3:.2f} mm"))
+    gen = dataset_doc.get("generator")
+    if isinstance(gen, dict):
+        rows.append(("data source", f"simulated: {gen.get('name')} (seed {gen.get('seed')}, plan {gen.get('plan')})"))
+    acq = dataset_doc.get("acquisition")
+    if isinstance(acq, dict):
         rows.append(
             (
-                "base frame",
-                f"z_B std {bf['z_std_deg']:.4f} deg, x_B std {bf['x_std_deg']:.4f} deg, board "
-                f"rotation residual RMS {bf['rotation_residual_rms_deg']:.4f} deg, translation "
-                f"residual RMS {bf['translation_residual_rms_mm']:.3f} mm",
-            )
-        )
-    ms = result.get("methods", {})
-    c = (ms.get("combined") or {}).get("diagnostics") or {}
-    if "direction_noise_scale" in c:
-        if c.get("weighting") == "gls":  # a scale on the extraction's per-rod covariances, not an angle
-            rows.append(("rod direction noise (combined fit)", f"{c['direction_noise_scale']:.2f} x the rods' cov_u"))
-        else:
-            rows.append(("rod direction noise (combined fit)", f"{np.degrees(c['direction_noise_scale']):.4f} deg"))
-    shared = c.get("rod_errors") or {}
-    if shared:
-        text = (
-            f"own scale {shared.get('own_scale', float('nan')):.2f}; a leg's two rods {shared['pair_correlation']:.2f}"
-        )
-        if shared.get("distance_correlation") is not None:
-            text += (
-                f"; rods nearby in the image {shared['distance_correlation']:.2f} "
-                f"x exp(-d / {shared['distance_length_px']:.0f} px)"
-            )
-        rows.append(("rods' shared errors (combined fit, correlation)", text))
-    lg = (ms.get("legs") or {}).get("diagnostics") or {}
-    if lg.get("rod_direction_noise_rad") is not None:
-        rows.append(
-            (
-                "rod direction noise (legs fit)",
-                f"{np.degrees(lg['rod_direction_noise_rad']):.4f} deg; "
-                f"line residual RMS {lg.get('line_residual_rms_mm', 0):.3f} mm",
-            )
-        )
-    elif lg.get("steps34_chi2_per_dof") is not None:
-        rows.append(
-            (
-                "rod noise (legs fit, measured rod covariances)",
-                f"chi-square per degree of freedom: step 1 {lg.get('step1_chi2_per_dof', float('nan')):.2f}, "
-                f"steps 3-4 {lg['steps34_chi2_per_dof']:.2f}; line residual RMS "
-                f"{lg.get('line_residual_rms_mm', 0):.3f} mm",
-            )
-        )
-    ee = (ms.get("end-effector") or {}).get("diagnostics") or {}
-    if isinstance(ee.get("board_noise_std"), dict):
-        rows.append(
-            (
-                "board pose noise (end-effector fit)",
-                ", ".join(_fmt_noise(k, v) for k, v in ee["board_noise_std"].items()),
-            )
-        )
-    bound = ((ms.get("combined") or {}).get("bound") or {}).get("noise")
-    if isinstance(bound, dict):
-        rows.append(
-            (
-                "noise levels of the Cramer-Rao bound",
-                f"rod direction {np.degrees(bound.get('rod_direction_rad', 0)):.4f} deg, board rotation "
-                f"{np.degrees(bound.get('board_rotation_rad', 0)):.4f} deg, board translation "
-                f"{np.mean(bound.get('board_translation_m', [0])) * 1e3:.3f} mm",
+                "acquisition",
+                f"{acq.get('state')}: {acq.get('frames')}/{acq.get('total')} frames {acq.get('reason') or ''}".strip(),
             )
         )
     return rows
+
+
+def _fit_conditions(result: ResultDocument) -> list[tuple[str, str]]:
+    """The base frame's quality and the noise levels the fits measured."""
+    rows: list[tuple[str, str]] = []
+    bf = result.base_frame
+    if bf is not None and bf.z_std_deg is not None:
+        rows.append(
+            (
+                "base frame",
+                f"z_B std {bf.z_std_deg:.4f} deg, x_B std {bf.x_std_deg:.4f} deg, board "
+                f"rotation residual RMS {bf.rotation_residual_rms_deg:.4f} deg, translation "
+                f"residual RMS {bf.translation_residual_rms_mm:.3f} mm",
+            )
+        )
+    rows += _combined_conditions(_diagnostics(result, "combined"))
+    rows += _legs_conditions(_diagnostics(result, "legs"))
+    ee = _diagnostics(result, "end-effector")
+    if isinstance(ee.board_noise_std, dict):
+        rows.append(
+            (
+                "board pose noise (end-effector fit)",
+                ", ".join(_fmt_noise(k, v) for k, v in ee.board_noise_std.items()),
+            )
+        )
+    comb = result.methods.get("combined")
+    noise = comb.bound.noise if comb is not None and comb.bound is not None else None
+    if noise is not None:
+        rows.append(
+            (
+                "noise levels of the Cramer-Rao bound",
+                f"rod direction {np.degrees(noise.rod_direction_rad or 0):.4f} deg, board rotation "
+                f"{np.degrees(noise.board_rotation_rad or 0):.4f} deg, board translation "
+                f"{np.mean(noise.board_translation_m or [0]) * 1e3:.3f} mm",
+            )
+        )
+    return rows
+
+
+def _diagnostics(result: ResultDocument, method: str) -> Diagnostics:
+    """A method's diagnostics (empty when it has none)."""
+    e = result.methods.get(method)
+    return (e.diagnostics if e is not None else None) or Diagnostics()
+
+
+def _combined_conditions(c: Diagnostics) -> list[tuple[str, str]]:
+    """The combined fit's rod noise and the correlations of the rods' errors."""
+    rows: list[tuple[str, str]] = []
+    if c.direction_noise_scale is not None:
+        if c.weighting == "gls":  # a scale on the extraction's per-rod covariances, not an angle
+            rows.append(("rod direction noise (combined fit)", f"{c.direction_noise_scale:.2f} x the rods' cov_u"))
+        else:
+            rows.append(("rod direction noise (combined fit)", f"{np.degrees(c.direction_noise_scale):.4f} deg"))
+    shared = c.rod_errors
+    if shared is not None and shared.model_fields_set:
+        own = shared.own_scale if shared.own_scale is not None else float("nan")
+        text = f"own scale {own:.2f}; a leg's two rods {shared.pair_correlation:.2f}"
+        if shared.distance_correlation is not None:
+            text += (
+                f"; rods nearby in the image {shared.distance_correlation:.2f} "
+                f"x exp(-d / {shared.distance_length_px:.0f} px)"
+            )
+        rows.append(("rods' shared errors (combined fit, correlation)", text))
+    return rows
+
+
+def _legs_conditions(lg: Diagnostics) -> list[tuple[str, str]]:
+    """The legs fit's rod noise (an angle, or the chi-square of the rods' measured covariances)."""
+    line = lg.line_residual_rms_mm if lg.line_residual_rms_mm is not None else 0
+    if lg.rod_direction_noise_rad is not None:
+        return [
+            (
+                "rod direction noise (legs fit)",
+                f"{np.degrees(lg.rod_direction_noise_rad):.4f} deg; line residual RMS {line:.3f} mm",
+            )
+        ]
+    if lg.steps34_chi2_per_dof is not None:
+        step1 = lg.step1_chi2_per_dof if lg.step1_chi2_per_dof is not None else float("nan")
+        return [
+            (
+                "rod noise (legs fit, measured rod covariances)",
+                f"chi-square per degree of freedom: step 1 {step1:.2f}, "
+                f"steps 3-4 {lg.steps34_chi2_per_dof:.2f}; line residual RMS {line:.3f} mm",
+            )
+        ]
+    return []
 
 
 def _fmt_noise(key: str, v: Any) -> str:

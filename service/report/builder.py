@@ -15,7 +15,8 @@ import numpy as np
 
 from calib.methods.combined import EDGE_BIAS_STD_PX
 from calib.parameters import COMBINATION_NAMES, PARAMETER_NAMES
-from calib.validation import recorded_vision_scale, vision_scale_ppm
+from calib.resultdoc import Gaps, MethodEntry, ResultDocument, Straightness
+from calib.validation import vision_scale_ppm
 from calib.verdict import UNCERTAINTY, verdict
 
 from . import plots
@@ -49,8 +50,9 @@ class ReportInputs:
 
     Attributes
     ----------
-    result : dict
-        The result document of :func:`calib.pipeline.calibrate` (``i4cal calibrate --json``), metres.
+    result : ResultDocument or dict
+        The result document of :func:`calib.pipeline.calibrate_document` (or its JSON, ``i4cal calibrate --json``,
+        of any age), metres.
     observations : dict, optional
         The observations v1 document (with its ``extraction`` section when produced from images).
     dataset_dir : Path, optional
@@ -66,7 +68,7 @@ class ReportInputs:
         Methods to show (default: every method of the result).
     """
 
-    result: dict[str, Any]
+    result: ResultDocument | dict[str, Any]
     observations: dict[str, Any] | None = None
     dataset_dir: Path | None = None
     run: dict[str, Any] | None = None
@@ -88,8 +90,8 @@ def build_report(inputs: ReportInputs, *, progress: Progress | None = None, max_
     """
     from service import __version__
 
-    res = inputs.result
-    ms = res.get("methods", {})
+    res = ResultDocument.from_dict(inputs.result, inputs.source or None)
+    ms = res.methods
     methods = [m for m in method_order(ms) if m in ms and (not inputs.methods or m in inputs.methods)]
     obs_doc = inputs.observations
     steps = 9
@@ -166,7 +168,7 @@ def build_report(inputs: ReportInputs, *, progress: Progress | None = None, max_
 
 
 # -- sections -----------------------------------------------------------------------------------
-def _verdict(res: dict, inputs: ReportInputs) -> Raw:
+def _verdict(res: ResultDocument, inputs: ReportInputs) -> Raw:
     """The first screen's answer: which method's result to load and why, and the next command (calib.verdict)."""
     run_id = (inputs.run or {}).get("id")
     src = inputs.source or ""
@@ -189,7 +191,7 @@ def _now() -> str:
 
 def _title_block(
     inputs: ReportInputs,
-    res: dict,
+    res: ResultDocument,
     methods: list[str],
     ds_doc: dict | None,
     ds_hash: str | None,
@@ -209,7 +211,7 @@ def _title_block(
         t = datetime.fromtimestamp((inputs.dataset_dir / "dataset.json").stat().st_mtime, UTC)
         rows.append(("dataset written", t.strftime("%Y-%m-%d %H:%M:%S UTC")))
     rows.append(("report date", _now()))
-    rows.append(("software", f"i4cal {version} (result format {res.get('format', '-')})"))
+    rows.append(("software", f"i4cal {version} (result format {res.format})"))
     rows.append(("dataset SHA-256", f"{ds_hash} ({n_files} files: dataset.json and frames)" if ds_hash else "-"))
     rows.append(
         (
@@ -217,7 +219,7 @@ def _title_block(
             json_sha256(inputs.observations) + " (canonical JSON)" if inputs.observations is not None else "-",
         )
     )
-    rows.append(("result SHA-256", json_sha256(res) + " (canonical JSON)"))
+    rows.append(("result SHA-256", json_sha256(res.to_dict()) + " (canonical JSON)"))
     rows.append(("methods", ", ".join(methods) or "-"))
     return Raw(
         '<header class="title"><h1>Kinematic calibration report</h1><p>I4 parallel robot observed by one '
@@ -242,88 +244,17 @@ def _contents() -> Raw:
     return Raw("<nav><ol>" + "".join(f'<li><a href="#{k}">{esc(t)}</a></li>' for k, t in items) + "</ol></nav>")
 
 
-def _truth_combinations(res: dict, obs_doc: dict | None) -> dict[str, float] | None:
+def _truth_combinations(res: ResultDocument, obs_doc: dict | None) -> dict[str, float] | None:
     t = (obs_doc or {}).get("truth") or {}
     if isinstance(t.get("combinations"), dict):
         return {k: float(t["combinations"][k]) for k in COMBINATION_NAMES}
-    for m, te in (res.get("truth_errors") or {}).items():
-        e = res["methods"].get(m) or {}
-        if e.get("parameters"):
-            return {k: e["parameters"][k] - te[k] for k in COMBINATION_NAMES}
-    return None
+    return res.truth_combinations()
 
 
-def _parameters(res: dict, methods: list[str], truth: dict[str, float] | None) -> Raw:
-    nom = res["nominal_combinations"]
-    t1_rows = [["a priori (nominal)", *[mm(nom[k]) for k in COMBINATION_NAMES]]]
+def _parameters(res: ResultDocument, methods: list[str], truth: dict[str, float] | None) -> Raw:
+    parts: list[Any] = [_table_one(res, methods, truth)]
     for m in methods:
-        e = res["methods"][m]
-        if e.get("parameters"):
-            t1_rows.append([m, *[f"{mm(e['parameters'][k])} ± {mm(e['std'][k])}" for k in COMBINATION_NAMES]])
-        else:
-            t1_rows.append([m, "fit failed (the reason below)", *([""] * 3)])
-    if truth:
-        t1_rows.append(["truth (simulation)", *[mm(truth[k]) for k in COMBINATION_NAMES]])
-    parts: list[Any] = [
-        table(
-            ["parameter set", *[f"{k} (mm)" for k in COMBINATION_NAMES]],
-            t1_rows,
-            caption=f"Table I - identifiable parameters (the four combinations), value {UNCERTAINTY}; "
-            f"U (k = {K_COVERAGE:g}) in each method's table",
-        )
-    ]
-    for m in methods:
-        e = res["methods"][m]
-        if not e.get("parameters"):
-            parts.append(Raw(f"<h3>Method: {esc(m)}</h3><p>failed: {esc(e.get('error', ''))}</p>"))
-            continue
-        bound = (e.get("bound") or {}).get("std") or {}
-        te = (res.get("truth_errors") or {}).get(m)
-        hdr = [
-            "combination",
-            "a priori (mm)",
-            "identified (mm)",
-            "identified - a priori (mm)",
-            "u (mm)",
-            f"U, k = {K_COVERAGE:g} (mm)",
-        ]
-        hdr += ["Cramer-Rao bound (mm)", "u / bound"] if bound else []
-        hdr += ["error vs truth (mm)", "|error| / u"] if te else []
-        rows = []
-        for k in COMBINATION_NAMES:
-            v, u = e["parameters"][k], e["std"][k]
-            row = [k, mm(nom[k]), mm(v, 4), mm(v - nom[k], 4, True), mm(u, 4), mm(K_COVERAGE * u, 4)]
-            if bound:
-                row += [mm(bound.get(k), 4), num(u / bound[k], ".2f") if bound.get(k) else "-"]
-            if te:
-                row += [mm(te[k], 4, True), num(abs(te[k]) / u, ".2f") if u > 0 else "-"]
-            rows.append(row)
-        note = (
-            f"converged: {'yes' if e.get('converged') else 'NO'}, {e.get('iterations')} iterations, "
-            f"{e.get('n_poses')} poses, {e.get('n_observations')} observations, residual RMS "
-            f"{num(e.get('residual_rms'), '.4g')} ({e.get('residual_unit', '')})"
-        )
-        parts += [Raw(f"<h3>Method: {esc(m)}</h3>"), table(hdr, rows), Raw(f'<p class="note">{esc(note)}</p>')]
-        if e.get("seven"):
-            srows = [
-                [
-                    k,
-                    mm(res["nominal"][k]),
-                    mm(e["seven"][k], 4),
-                    mm((e.get("seven_std") or {}).get(k), 4),
-                    mm(K_COVERAGE * ((e.get("seven_std") or {}).get(k) or 0), 4),
-                ]
-                + ([mm(te["seven"][k], 4, True)] if te and "seven" in te else [])
-                for k in PARAMETER_NAMES
-            ]
-            parts.append(
-                table(
-                    ["parameter", "a priori (mm)", "identified (mm)", "u (mm)", "U, k = 2 (mm)"]
-                    + (["error vs truth (mm)"] if te and "seven" in te else []),
-                    srows,
-                    caption=f"{m}: all seven parameters",
-                )
-            )
+        parts += _method_tables(res, m)
     parts.append(
         figure(
             plots.parameter_plot(res, methods, truth),
@@ -331,21 +262,93 @@ def _parameters(res: dict, methods: list[str], truth: dict[str, float] | None) -
             "Identified minus a priori value of each combination, error bars ± 1 std; dotted: truth",
         )
     )
-    if any((res["methods"][m].get("bound") or {}).get("std") for m in methods):
-        parts.append(
-            Raw(
-                '<p class="note">'
-                + esc(
-                    next(
-                        (res["methods"][m]["bound"].get("note", ""))
-                        for m in methods
-                        if (res["methods"][m].get("bound") or {}).get("std")
-                    )
-                )
-                + ".</p>"
-            )
-        )
+    note = next((b.note or "" for m in methods if (b := res.methods[m].bound) is not None and b.std), None)
+    if note is not None:
+        parts.append(Raw('<p class="note">' + esc(note) + ".</p>"))
     return section("parameters", "Identified parameters", *parts)
+
+
+def _table_one(res: ResultDocument, methods: list[str], truth: dict[str, float] | None) -> Raw:
+    """Table I: the four combinations of the a priori geometry, of each method (value ± u) and the truth."""
+    nom = res.nominal_combinations
+    t1_rows = [["a priori (nominal)", *[mm(nom[k]) for k in COMBINATION_NAMES]]]
+    for m in methods:
+        e = res.methods[m]
+        if e.parameters:
+            std = e.std or {}
+            t1_rows.append([m, *[f"{mm(e.parameters[k])} ± {mm(std[k])}" for k in COMBINATION_NAMES]])
+        else:
+            t1_rows.append([m, "fit failed (the reason below)", *([""] * 3)])
+    if truth:
+        t1_rows.append(["truth (simulation)", *[mm(truth[k]) for k in COMBINATION_NAMES]])
+    return table(
+        ["parameter set", *[f"{k} (mm)" for k in COMBINATION_NAMES]],
+        t1_rows,
+        caption=f"Table I - identifiable parameters (the four combinations), value {UNCERTAINTY}; "
+        f"U (k = {K_COVERAGE:g}) in each method's table",
+    )
+
+
+def _method_tables(res: ResultDocument, m: str) -> list[Any]:
+    """One method's combinations (a priori, identified, u, U, bound, error vs truth) and its seven parameters."""
+    e = res.methods[m]
+    if not e.parameters:
+        return [Raw(f"<h3>Method: {esc(m)}</h3><p>failed: {esc(e.error or '')}</p>")]
+    bound = e.bound_std
+    te = res.truth_error(m)
+    nom = res.nominal_combinations
+    hdr = ["combination", "a priori (mm)", "identified (mm)", "identified - a priori (mm)", "u (mm)"]
+    hdr += [f"U, k = {K_COVERAGE:g} (mm)"]
+    hdr += ["Cramer-Rao bound (mm)", "u / bound"] if bound else []
+    hdr += ["error vs truth (mm)", "|error| / u"] if te else []
+    rows = []
+    std = e.std or {}
+    for k in COMBINATION_NAMES:
+        v, u = _f(e.parameters[k]), _f(std[k])
+        row = [k, mm(nom[k]), mm(v, 4), mm(v - _f(nom[k]), 4, True), mm(u, 4), mm(K_COVERAGE * u, 4)]
+        if bound:
+            b = bound.get(k)
+            row += [mm(b, 4), num(u / b, ".2f") if b else "-"]
+        if te:
+            row += [mm(te[k], 4, True), num(abs(te[k]) / u, ".2f") if u > 0 else "-"]
+        rows.append(row)
+    note = (
+        f"converged: {'yes' if e.converged else 'NO'}, {e.iterations} iterations, "
+        f"{e.n_poses} poses, {e.n_observations} observations, residual RMS "
+        f"{num(e.residual_rms, '.4g')} ({e.residual_unit or ''})"
+    )
+    parts: list[Any] = [Raw(f"<h3>Method: {esc(m)}</h3>"), table(hdr, rows), Raw(f'<p class="note">{esc(note)}</p>')]
+    if e.seven:
+        parts.append(_seven_table(res, m, e, te))
+    return parts
+
+
+def _seven_table(res: ResultDocument, m: str, e: MethodEntry, te: dict[str, Any] | None) -> Raw:
+    """A method's seven parameters: a priori, identified, u, U and the error vs truth."""
+    seven, seven_std = e.seven or {}, e.seven_std or {}
+    te7 = te.get("seven") if te else None
+    srows = [
+        [
+            k,
+            mm(res.nominal[k]),
+            mm(seven[k], 4),
+            mm(seven_std.get(k), 4),
+            mm(K_COVERAGE * (seven_std.get(k) or 0), 4),
+        ]
+        + ([mm(te7[k], 4, True)] if te7 is not None else [])
+        for k in PARAMETER_NAMES
+    ]
+    return table(
+        ["parameter", "a priori (mm)", "identified (mm)", "u (mm)", "U, k = 2 (mm)"]
+        + (["error vs truth (mm)"] if te7 is not None else []),
+        srows,
+        caption=f"{m}: all seven parameters",
+    )
+
+
+def _f(v: float | None) -> float:
+    """A value of the document as a float (NaN for null)."""
+    return float("nan") if v is None else float(v)
 
 
 #: what each contribution of a method's ``std_breakdown`` is, for the uncertainty budget
@@ -368,7 +371,7 @@ BUDGET_SOURCES = {
 }
 
 
-def _budget(res: dict, methods: list[str]) -> Raw:
+def _budget(res: ResultDocument, methods: list[str]) -> Raw:
     """Per method, the standard deviation each source contributes (the combined u is their root sum of squares)."""
     parts: list[Any] = [
         "Standard uncertainty contributed by each source, in mm; the sources are independent and the "
@@ -377,13 +380,13 @@ def _budget(res: dict, methods: list[str]) -> Raw:
     ]
     shown = 0
     for m in methods:
-        e = res["methods"].get(m) or {}
-        bd = e.get("std_breakdown") or {}
-        if not bd or not e.get("std"):
+        e = res.methods.get(m)
+        bd = (e.std_breakdown if e is not None else None) or {}
+        if e is None or not bd or not e.std:
             continue
         names = list(next(iter(bd.values())).keys())
         rows = [[BUDGET_SOURCES.get(src, src)] + [mm(v.get(k), 4) for k in names] for src, v in bd.items()]
-        total = e.get("seven_std") if names != list(COMBINATION_NAMES) and e.get("seven_std") else e["std"]
+        total = e.seven_std if names != list(COMBINATION_NAMES) and e.seven_std else e.std
         rows.append(["combined u (root sum of squares)"] + [mm((total or {}).get(k), 4) for k in names])
         parts += [
             Raw(f"<h3>Method: {esc(m)}</h3>"),
@@ -395,11 +398,11 @@ def _budget(res: dict, methods: list[str]) -> Raw:
     return section("budget", "Uncertainty budget", *parts)
 
 
-def _predicted(prediction: dict[str, Any] | None, res: dict, methods: list[str]) -> Raw:
+def _predicted(prediction: dict[str, Any] | None, res: ResultDocument, methods: list[str]) -> Raw:
     """The run's prediction before motion beside each method's reported std (obtained / predicted)."""
     title = "Predicted before the run vs obtained"
     pred = (prediction or {}).get("predicted_std_m") or {}
-    shown = [m for m in methods if m in pred and (res["methods"].get(m) or {}).get("std")]
+    shown = [m for m in methods if m in pred and (e := res.methods.get(m)) is not None and e.std]
     if not shown:
         why = (prediction or {}).get("error") or (
             "the report was not made from a run on the bench (an offline run, files)"
@@ -409,7 +412,7 @@ def _predicted(prediction: dict[str, Any] | None, res: dict, methods: list[str])
         return section("predicted", title, f"Not available: {why}.")
     rows = []
     for m in shown:
-        got = res["methods"][m]["std"]
+        got = res.methods[m].std or {}
         cells = []
         for k in COMBINATION_NAMES:
             p, o = pred[m].get(k), got.get(k)
@@ -429,19 +432,17 @@ def _predicted(prediction: dict[str, Any] | None, res: dict, methods: list[str])
     )
 
 
-def _combinations(res: dict, methods: list[str]) -> Raw:
+def _combinations(res: ResultDocument, methods: list[str]) -> Raw:
     rows = [[k, COMBINATION_MEANING[k][0], COMBINATION_MEANING[k][1]] for k in COMBINATION_NAMES]
     found = []
     for m in methods:
-        ident = res["methods"][m].get("identifiability") or {}
-        if "finds_paper_four" in ident:
-            four = "yes" if ident["finds_paper_four"] else ("all seven" if ident.get("rank") == 7 else "no")
+        ident = res.methods[m].identifiability
+        if ident is not None and ident.finds_paper_four is not None:
+            four = "yes" if ident.finds_paper_four else ("all seven" if ident.rank == 7 else "no")
             # the paper's four are spelled as everywhere else; the row-reduced forms the analysis found beside them
-            reduced = "; ".join(ident.get("identifiable_combinations") or [])
-            names = (
-                ", ".join(COMBINATION_NAMES) + f" (row-reduced: {reduced})" if ident["finds_paper_four"] else reduced
-            )
-            found.append([m, str(ident.get("rank")), four, names])
+            reduced = "; ".join(ident.identifiable_combinations or [])
+            names = ", ".join(COMBINATION_NAMES) + f" (row-reduced: {reduced})" if ident.finds_paper_four else reduced
+            found.append([m, str(ident.rank), four, names])
     return section(
         "combinations",
         "The four identifiable combinations",
@@ -459,28 +460,28 @@ def _combinations(res: dict, methods: list[str]) -> Raw:
     )
 
 
-def _validation(res: dict) -> Raw:
-    val = res.get("validation") or {}
+def _validation(res: ResultDocument) -> Raw:
     g_rows, s_rows = [], []
-    for name, v in val.items():
+    for name, v in res.validation.items():
         label = "true geometry" if name == "truth" else name
-        if "error" in v:
-            g_rows.append([label, v["error"], "", "", "", "", ""])
+        if v.error is not None:
+            g_rows.append([label, v.error, "", "", "", "", ""])
             continue
-        gp, gv = v.get("gaps_poses") or {}, v.get("gaps_validation") or {}
+        gp, gv = v.gaps_poses or Gaps(), v.gaps_validation or Gaps()
         g_rows.append(
             [
                 label,
-                num(gp.get("mean_mm"), "+.4f"),
-                num(gp.get("rms_mm"), ".4f"),
-                num(gp.get("max_abs_mm"), ".4f"),
-                num(gv.get("mean_mm"), "+.4f"),
-                num(gv.get("rms_mm"), ".4f"),
-                num(gv.get("max_abs_mm"), ".4f"),
+                num(gp.mean_mm, "+.4f"),
+                num(gp.rms_mm, ".4f"),
+                num(gp.max_abs_mm, ".4f"),
+                num(gv.mean_mm, "+.4f"),
+                num(gv.rms_mm, ".4f"),
+                num(gv.max_abs_mm, ".4f"),
             ]
         )
-        st = v.get("straightness") or {}
-        s_rows.append([label, num(st.get("rms_mm"), ".4f"), str(st.get("n", "-")), num(st.get("length_mm"), ".1f")])
+        st = v.straightness or Straightness()
+        n = "-" if st.n is None else str(st.n)
+        s_rows.append([label, num(st.rms_mm, ".4f"), n, num(st.length_mm, ".1f")])
     hdr = [
         "parameter set",
         "fit: mean",
@@ -496,7 +497,7 @@ def _validation(res: dict) -> Raw:
         "Displacement gap: length of the end-effector displacement between consecutive poses measured by "
         "the camera (the board point on the rotation axis) minus the one the geometry predicts from the "
         "encoder values, vision's displacements divided by its scale measured on the translation phase "
-        f"({_vision_scale_text(val)}). Straightness: RMS distance of the model positions along the guided line "
+        f"({_vision_scale_text(res)}). Straightness: RMS distance of the model positions along the guided line "
         "to their best-fit line.",
         table(hdr, g_rows, caption="Table II - displacement gaps (mm)"),
         table(
@@ -508,15 +509,15 @@ def _validation(res: dict) -> Raw:
     )
 
 
-def _vision_scale_text(val: dict) -> str:
+def _vision_scale_text(res: ResultDocument) -> str:
     """The validation's vision scale (displacement per encoder metre) as a sentence fragment."""
-    sc = recorded_vision_scale(val)
-    if not sc:
+    sc = res.vision_scale()
+    if sc is None:
         return "not recorded"
-    if sc.get("std") is None:
-        return f"taken as 1: {sc.get('source')}"
-    text = f"{vision_scale_ppm(sc)} from {sc.get('n_poses')} poses"
-    return f"{text}; {sc['warning']}" if sc.get("warning") else text
+    if sc.std is None:
+        return f"taken as 1: {sc.source}"
+    text = f"{vision_scale_ppm(sc.model_dump())} from {sc.n_poses} poses"
+    return f"{text}; {sc.warning}" if sc.warning else text
 
 
 def _residuals(residuals: dict[str, LegResiduals | None]) -> Raw:
@@ -550,23 +551,20 @@ def _residuals(residuals: dict[str, LegResiduals | None]) -> Raw:
     )
 
 
-def _identifiability(res: dict, methods: list[str]) -> Raw:
+def _identifiability(res: ResultDocument, methods: list[str]) -> Raw:
     rows = []
     for m in methods:
-        ident = res["methods"][m].get("identifiability") or {}
-        if "rank" in ident:
-            sv = ident.get("singular_values") or []
+        ident = res.methods[m].identifiability
+        if ident is None:
+            continue
+        if ident.rank is not None:
+            sv = ident.singular_values or []
+            n_poses = "-" if ident.n_poses is None else str(ident.n_poses)
             rows.append(
-                [
-                    m,
-                    str(ident["rank"]),
-                    num(ident.get("condition_number"), ".3g"),
-                    " ".join(f"{s:.3g}" for s in sv),
-                    str(ident.get("n_poses", "-")),
-                ]
+                [m, str(ident.rank), num(ident.condition_number, ".3g"), " ".join(f"{s:.3g}" for s in sv), n_poses]
             )
-        elif "error" in ident:
-            rows.append([m, "-", "-", ident["error"], "-"])
+        elif ident.error is not None:
+            rows.append([m, "-", "-", ident.error, "-"])
     return section(
         "identifiability",
         "Identifiability",
@@ -585,34 +583,19 @@ def _camera(obs_doc: dict | None) -> Raw:
     summ = ext.get("summary") or {}
     cs = summ.get("camera") or {}
     cam = ext.get("camera") or {}
-    K = np.asarray(cam.get("K") or np.eye(3), float)
-    std = cs.get("std") or {}
-    intr = [
-        [k, num(K[i, j], ".2f"), num(std.get(k), ".2f")]
-        for k, (i, j) in (("fx", (0, 0)), ("fy", (1, 1)), ("cx", (0, 2)), ("cy", (1, 2)))
-    ]
-    for name, v in zip(("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"), cam.get("dist") or [], strict=False):
-        intr.append([name, num(v, ".5f"), num(std.get(name), ".5f")])
     src = cs.get("source") or f"calibrated from {cs.get('n_views', '?')} views of the camera phase"
     parts: list[Any] = [
         f"Intrinsics: {src}; image {cam.get('width')} x {cam.get('height')} px."
         + (f" RMS reprojection error {cs['rms_px']:.3f} px." if "rms_px" in cs else "")
     ]
-    parts.append(table(["intrinsic", "value", "std"], intr, caption="Intrinsics (px; distortion dimensionless)"))
+    parts.append(
+        table(
+            ["intrinsic", "value", "std"], _intrinsic_rows(cam, cs), caption="Intrinsics (px; distortion dimensionless)"
+        )
+    )
     lm = cs.get("lens_model") or (cam.get("calibration") or {}).get("lens_model")
     if lm:
-        how = "chosen from the board views" if lm.get("requested") == "auto" else "given"
-        err_px = float((lm.get("residual_profile") or {}).get("max_systematic_px", 0.0))
-        parts.append(
-            f"Lens model {lm.get('chosen')} ({how}; lowest BIC {lm.get('lowest_bic', lm.get('chosen'))}): "
-            + ", ".join(
-                f"{e['model']} {e['n_params']} parameters, RMS {e['rms_px']:.3f} px"
-                + (f", BIC {e['delta_bic']:+.1f}" if e.get("delta_bic") is not None else "")
-                for e in lm.get("candidates") or []
-            )
-            + f". The views reach {100 * float(lm.get('field_coverage', 1.0)):.0f}% of the image's corner radius; "
-            f"radial model error up to {err_px:.3f} px." + "".join(f" {w}." for w in lm.get("warnings") or [])
-        )
+        parts.append(_lens_model_text(lm))
     if cs.get("per_view_rms_px"):
         parts.append(figure(plots.camera_view_plot(cs), "reprojection errors", "RMS reprojection error per view"))
     rej = cs.get("rejected") or {}
@@ -629,10 +612,52 @@ def _camera(obs_doc: dict | None) -> Raw:
         "Coarse camera placement (predicts the rods): "
         + (f"board residual RMS {pl['rms_m'] * 1e3:.2f} mm." if pl.get("ok") else str(pl.get("reason")))
     )
-    prow = []
+    parts.append(
+        table(
+            ["phase", "frames", "board found", "rods found", "not measured"],
+            _extraction_rows(summ),
+            cls="data wide",
+            caption="What extraction found per phase",
+        )
+    )
+    return section("camera", "Camera calibration", *parts)
+
+
+def _intrinsic_rows(cam: dict, cs: dict) -> list[list[str]]:
+    """The camera matrix's focal lengths and principal point, then the distortion coefficients, with their std."""
+    K = np.asarray(cam.get("K") or np.eye(3), float)
+    std = cs.get("std") or {}
+    rows = [
+        [k, num(K[i, j], ".2f"), num(std.get(k), ".2f")]
+        for k, (i, j) in (("fx", (0, 0)), ("fy", (1, 1)), ("cx", (0, 2)), ("cy", (1, 2)))
+    ]
+    for name, v in zip(("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"), cam.get("dist") or [], strict=False):
+        rows.append([name, num(v, ".5f"), num(std.get(name), ".5f")])
+    return rows
+
+
+def _lens_model_text(lm: dict) -> str:
+    """The lens model chosen by the camera calibration, its candidates and its field coverage, as sentences."""
+    how = "chosen from the board views" if lm.get("requested") == "auto" else "given"
+    err_px = float((lm.get("residual_profile") or {}).get("max_systematic_px", 0.0))
+    return (
+        f"Lens model {lm.get('chosen')} ({how}; lowest BIC {lm.get('lowest_bic', lm.get('chosen'))}): "
+        + ", ".join(
+            f"{e['model']} {e['n_params']} parameters, RMS {e['rms_px']:.3f} px"
+            + (f", BIC {e['delta_bic']:+.1f}" if e.get("delta_bic") is not None else "")
+            for e in lm.get("candidates") or []
+        )
+        + f". The views reach {100 * float(lm.get('field_coverage', 1.0)):.0f}% of the image's corner radius; "
+        f"radial model error up to {err_px:.3f} px." + "".join(f" {w}." for w in lm.get("warnings") or [])
+    )
+
+
+def _extraction_rows(summ: dict) -> list[list[str]]:
+    """Per phase: frames, boards and rods found, and what was not measured."""
+    rows = []
     for ph, c in (summ.get("phases") or {}).items():
         miss = "; ".join(f"{k} x{v}" for k, v in (c.get("missing") or {}).items())
-        prow.append(
+        rows.append(
             [
                 ph,
                 str(c.get("frames")),
@@ -641,15 +666,7 @@ def _camera(obs_doc: dict | None) -> Raw:
                 miss or "-",
             ]
         )
-    parts.append(
-        table(
-            ["phase", "frames", "board found", "rods found", "not measured"],
-            prow,
-            cls="data wide",
-            caption="What extraction found per phase",
-        )
-    )
-    return section("camera", "Camera calibration", *parts)
+    return rows
 
 
 def _frames(
@@ -715,7 +732,7 @@ def _method_line(name: str) -> str:
     return f"{spec.label}: {spec.description}."
 
 
-def _method_text(res: dict, methods: list[str]) -> Raw:
+def _method_text(res: ResultDocument, methods: list[str]) -> Raw:
     items = [_method_line(m) for m in methods]
     items.append(
         "Standard uncertainties u are one standard deviation from each fit's covariance, with the noise "

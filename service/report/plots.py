@@ -14,6 +14,7 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
 from calib.parameters import COMBINATION_NAMES
+from calib.resultdoc import Identifiability, ResultDocument
 
 from .analysis import LegResiduals
 
@@ -46,6 +47,11 @@ def _figure(width_in: float, height_in: float, nrows: int = 1, ncols: int = 1, *
     return fig, axes
 
 
+def _f(v: float | None) -> float:
+    """A value of the document as a float (NaN for null)."""
+    return float("nan") if v is None else float(v)
+
+
 def to_data_uri(fig: Figure) -> str:
     """The figure as a PNG ``data:`` URI (no software metadata in the file)."""
     buf = io.BytesIO()
@@ -53,20 +59,20 @@ def to_data_uri(fig: Figure) -> str:
     return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
 
 
-def parameter_plot(result: dict[str, Any], methods: Sequence[str], truth: dict[str, float] | None) -> str | None:
+def parameter_plot(result: ResultDocument, methods: Sequence[str], truth: dict[str, float] | None) -> str | None:
     """Each combination's deviation from the a priori value (mm) per method, error bars ± 1 std."""
-    names = [m for m in methods if (result["methods"].get(m) or {}).get("parameters")]
+    names = [m for m in methods if (e := result.methods.get(m)) is not None and e.parameters]
     if not names:
         return None
-    nom = result["nominal_combinations"]
+    nom = result.nominal_combinations
     fig, axes = _figure(10.0, 3.0, 1, 4)
     for ax, key in zip(axes[0], COMBINATION_NAMES, strict=True):
         for i, m in enumerate(names):
-            e = result["methods"][m]
+            value, std = (result.methods[m].parameters or {})[key], (result.methods[m].std or {})[key]
             ax.errorbar(
                 [i],
-                [(e["parameters"][key] - nom[key]) * 1e3],
-                yerr=[e["std"][key] * 1e3],
+                [(_f(value) - _f(nom[key])) * 1e3],
+                yerr=[_f(std) * 1e3],
                 fmt="o",
                 color=colour(m),
                 capsize=4,
@@ -74,7 +80,7 @@ def parameter_plot(result: dict[str, Any], methods: Sequence[str], truth: dict[s
             )
         ax.axhline(0.0, color=COLOURS["a priori"], lw=1, ls="--", label="a priori")
         if truth:
-            ax.axhline((truth[key] - nom[key]) * 1e3, color="black", lw=1, ls=":", label="truth")
+            ax.axhline((truth[key] - _f(nom[key])) * 1e3, color="black", lw=1, ls=":", label="truth")
         ax.set_title(key, fontsize=10)
         ax.set_xticks(range(len(names)), names, rotation=20, fontsize=8)
         ax.set_xlim(-0.6, len(names) - 0.4)
@@ -85,17 +91,17 @@ def parameter_plot(result: dict[str, Any], methods: Sequence[str], truth: dict[s
     return to_data_uri(fig)
 
 
-def gaps_plot(result: dict[str, Any]) -> str | None:
+def gaps_plot(result: ResultDocument) -> str | None:
     """Displacement gaps (vision - model, mm) per consecutive pose pair, fit poses and validation poses."""
-    val = result.get("validation") or {}
     fig, axes = _figure(10.0, 3.2, 1, 2)
     drawn = False
     for ax, key, title in (
-        (axes[0][0], "gaps_poses", "fit poses"),
-        (axes[0][1], "gaps_validation", "validation poses"),
+        (axes[0][0], "poses", "fit poses"),
+        (axes[0][1], "validation", "validation poses"),
     ):
-        for name, v in val.items():
-            g = (v.get(key) or {}).get("gaps_mm") or []
+        for name, v in result.validation.items():
+            gaps = v.gaps(key)
+            g = (gaps.gaps_mm if gaps is not None else None) or []
             if g:
                 ax.plot(
                     np.arange(1, len(g) + 1),
@@ -153,22 +159,23 @@ def leg_residual_plot(residuals: dict[str, LegResiduals]) -> str | None:
     return to_data_uri(fig)
 
 
-def singular_value_plot(result: dict[str, Any], methods: Sequence[str]) -> str | None:
+def singular_value_plot(result: ResultDocument, methods: Sequence[str]) -> str | None:
     """Singular values of each method's identification Jacobian over the seven parameters, relative to the
     largest, with the rank threshold."""
     fig, axes = _figure(7.0, 3.4)
     ax = axes[0][0]
     drawn = False
     for m in methods:
-        ident = (result["methods"].get(m) or {}).get("identifiability") or {}
-        s = np.asarray(ident.get("singular_values") or [], float)
+        e = result.methods.get(m)
+        ident = (e.identifiability if e is not None else None) or Identifiability()
+        s = np.asarray(ident.singular_values or [], float)
         if s.size and s[0] > 0:
             ax.semilogy(
                 np.arange(1, s.size + 1),
                 np.maximum(s / s[0], 1e-18),
                 marker="o",
                 color=colour(m),
-                label=f"{m} (rank {ident.get('rank')})",
+                label=f"{m} (rank {ident.rank})",
             )
             drawn = True
     if not drawn:

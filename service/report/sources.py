@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from calib.errors import I4calError, InputError
+from calib.resultdoc import ResultDocument
 
 from .builder import ReportInputs
 
@@ -62,7 +63,7 @@ def inputs_from_run(data_dir: str | Path, run: Any, methods: list[str] | None = 
     ds = (data_dir / run.dataset_dir).resolve()
     ds_dir = ds if data_dir in ds.parents and (ds / "dataset.json").is_file() else None
     return ReportInputs(
-        result=run.result,
+        result=ResultDocument.from_dict(run.result, f"run {run.id}"),
         observations=obs,
         dataset_dir=ds_dir,
         run=run_metadata(run),
@@ -158,7 +159,7 @@ def inputs_from_path(
         extracting again.
     """
     from calib.observations import Observations
-    from calib.pipeline import RESULT_FORMAT, calibrate, to_jsonable
+    from calib.pipeline import RESULT_FORMAT, calibrate_document, to_jsonable
 
     p = Path(path)
     ds_dir = None
@@ -178,7 +179,7 @@ def inputs_from_path(
         doc = read_json(p)
         fmt = doc.get("format") if isinstance(doc, dict) else None
         if fmt == RESULT_FORMAT:
-            return ReportInputs(result=doc, source=str(p), methods=methods)
+            return ReportInputs(result=ResultDocument.from_dict(doc, str(p)), source=str(p), methods=methods)
         obs_doc = doc
     obs = Observations.from_dict(obs_doc, source=str(p))
     done = [0]
@@ -189,5 +190,5 @@ def inputs_from_path(
         if progress:
             progress("calibrate", done[0], len(methods))
 
-    result = to_jsonable(calibrate(obs, methods, progress=on_method))
+    result = calibrate_document(obs, methods, progress=on_method)
     return ReportInputs(result=result, observations=obs_doc, dataset_dir=ds_dir, source=str(p), methods=methods)
