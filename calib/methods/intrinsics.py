@@ -275,8 +275,7 @@ def outward_shift_normalized(camera: CameraModel, limbs_px: Array, step_px: floa
     a = np.einsum("mlp,mlp->ml", d[..., 0], d[..., 0])
     b = np.einsum("mlp,mlp->ml", d[..., 0], d[..., 1])
     e = np.einsum("mlp,mlp->ml", d[..., 1], d[..., 1])
-    # the line's direction angle: the fit planes_through does, written apart. Sharing it changed the results by
-    # rounding (outputs 7e-14 apart) and the k3-lens test's H-D error from 2.7 to 3.0 of its std (its bound, issue 13)
+    # the line's direction angle: the fit planes_through does, written apart (sharing it moves results by rounding)
     ang = 0.5 * np.arctan2(2 * b, a - e)
     n = np.stack([-np.sin(ang), np.cos(ang)], axis=-1)  # (M, 2, 2) unit normals
     other = c[:, ::-1] - c  # towards the rod's other limb

@@ -10,10 +10,7 @@ PRIOR_STD_M = 0.01
 #: The lock phases' joints' systematic error along their lines of sight (m, RMS per joint) for rods measured on images,
 #: and the share of its variance common to a leg's two joints. The rods' shading biases a rod's limb edges by an amount
 #: that depends on its apparent width, the same in every frame of a lock phase (the rod barely moves), so the frames
-#: cannot average it and their scatter does not show it: on noise-free renders of the image-level twin's lock phases
-#: (16 trials each of two plans) the joints' errors about their common depth were 0.79 mm RMS, half of the variance
-#: per leg (docs/design.md); over 42 noisy trials of another plan the joints' mean errors about their common depth
-#: were 0.67 mm RMS
+#: cannot average it and their scatter does not show it. Measured on the simulated bench's renders (docs/benchmarks.md).
 JOINT_DEPTH_SYS_M = 0.8e-3
 JOINT_DEPTH_SYS_LEG_SHARE = 0.5
 #: Floor (m) of the rod-pair check's separation std: below any measurement (noise-free data are never flagged)

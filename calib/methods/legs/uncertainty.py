@@ -168,10 +168,9 @@ def _pair_consistency(P: np.ndarray, covP: np.ndarray) -> tuple[np.ndarray, list
 
     The reference's own covariance matters: a joint's covariance is long along its line of sight (the rod's depth
     comes from its apparent width) and the four legs are seen along different lines, so the other legs' error lies
-    where this leg's covariance is thin. Against the component-wise median of the four with the leg's covariance
-    alone (the check before 2026-11-27) the chi-square was 74 in median over 24 rendered trials of a paper plan (96
-    legs; chi-square(3): 2.37), so the common scale raised the gate 30-fold; against the others' mean with both
-    covariances it is 2.2.
+    where this leg's covariance is thin: against the component-wise median of the four with the leg's covariance
+    alone the statistic would be far above chi-square(3) on clean data; against the others' mean with both
+    covariances it follows chi-square(3).
 
     Returns
     -------
