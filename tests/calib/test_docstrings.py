@@ -96,9 +96,11 @@ def _returns_value(fn: ast.FunctionDef | ast.AsyncFunctionDef) -> tuple[bool, bo
                 stack.append(child)
     gen = any(isinstance(n, (ast.Yield, ast.YieldFrom)) for n in own)
     if fn.returns is not None:
-        text = ast.unparse(fn.returns).strip("'\"")
+        text = ast.unparse(fn.returns).strip("'\"").replace(" ", "")
         if text in ("None", "NoReturn", "Never", "typing.NoReturn"):
             return False, gen
+        if gen and re.fullmatch(r"(\w+\.)*(Async)?(Iterator|Generator)\[None(,.*)?\]", text):
+            return False, gen  # a context manager's or a generator's bare ``yield``
         return True, gen
     return gen or any(isinstance(n, ast.Return) and n.value is not None for n in own), gen
 
