@@ -144,7 +144,8 @@ def _check_function(fn: ast.FunctionDef | ast.AsyncFunctionDef, where: str, meth
         if params is None:
             found.append(Finding(where, "no Parameters section"))
         else:
-            documented = _documented_names(params) | {n.lstrip("*") for n in _documented_names(params)}
+            named = _documented_names(params + (_section(doc, "Other Parameters") or ""))
+            documented = named | {n.lstrip("*") for n in named}
             missing = [n for n in names if n not in documented and n.lstrip("*") not in documented]
             if missing:
                 found.append(Finding(where, f"Parameters does not name {', '.join(missing)}"))
