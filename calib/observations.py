@@ -11,8 +11,7 @@ Besides ``u``/``point`` and ``R``/``t``, :class:`Rod` and :class:`Board` declare
 extraction writes and the methods read (the vision -> methods contract: limb planes ``h``, the direction's
 covariance ``cov_u``, limb samples ``limbs_px``, the board pose's ``cov`` and ``d_intrinsics``, quality figures).
 Each is validated (shape, finite values) when present; a field a document does not carry stays absent when it
-is written back (no ``null`` is added), so documents written before these fields were declared round-trip as
-they were.
+is written back (no ``null`` is added), so a document without them round-trips unchanged.
 """
 
 from __future__ import annotations

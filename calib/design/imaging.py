@@ -251,8 +251,8 @@ def synthetic_rods(
     inner = np.c_[cmid, np.ones(M)] @ Kinv.T
     # the axis point seen at the middle of the visible limbs, as the extraction reports it: the legs method pivots
     # each limb line's noise about its foot, and the 3-D middle sample (above) projects off the image middle by
-    # perspective, about 12% of the span on the twin's lock phases, which weighed the prediction's lock planes
-    # 1.6-1.9x the method's
+    # perspective (about 12% of the span on lock phases), which would weigh the prediction's lock planes unlike the
+    # method's
     P = axis_point_seen_along(P, uu, inner)
     cov_u, cov_u_own = _direction_covariances_set(
         K,
