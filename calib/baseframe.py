@@ -106,7 +106,7 @@ def fit_rotation_axis(
     scale_ok : float
         Angle spread (rad), to detect degenerate sweeps.
 
-    Other parameters
+    Other Parameters
     ----------------
     state : dict, optional
         Filled with the fit's final state (parametrisation, solution, weights).
@@ -339,6 +339,11 @@ def translation_scale_std(residuals: Array, s: Array, x: Array) -> float:
         The encoder increments, metres.
     x : ndarray, shape (3,)
         The fitted unit direction.
+
+    Returns
+    -------
+    float
+        The std of the scale (dimensionless).
     """
     return float(np.sqrt(max(float(x @ _displacement_covariance(residuals, s) @ x), 0.0)))
 
@@ -352,7 +357,20 @@ def _displacement_covariance(residuals: Array, s: Array) -> Array:
 
 
 def frame_from_axes(z: Array, x: Array) -> Array:
-    """Right-handed rotation with columns x_B, y_B, z_B (camera frame): z kept, x re-orthogonalised."""
+    """Right-handed rotation with columns x_B, y_B, z_B (camera frame): z kept, x re-orthogonalised.
+
+    Parameters
+    ----------
+    z : ndarray, shape (3,)
+        The base frame's z axis in the camera frame (any norm).
+    x : ndarray, shape (3,)
+        Its x axis, approximately orthogonal to ``z`` (any norm).
+
+    Returns
+    -------
+    ndarray, shape (3, 3)
+        ``camera_from_base`` rotation (dimensionless).
+    """
     z = unit(z)
     y = unit(cross(z, x))
     xo = cross(y, z)
@@ -364,8 +382,21 @@ def estimate_base_frame(
 ) -> BaseFrameResult:
     """Base frame axes in the camera frame from the rotation and translation phases.
 
-    ``start``: an estimate from the same frames with slightly different board poses (a propagation
-    step); the rotation axis's weighted fit then starts from it with its weights and covariance.
+    Parameters
+    ----------
+    rotation : PhaseArrays
+        The rotation phase: encoder values (metres) and ``camera_from_board`` poses (radians, metres).
+    translation : PhaseArrays
+        The translation phase, likewise.
+    start : BaseFrameResult, optional
+        An estimate from the same frames with slightly different board poses (a propagation step); the rotation
+        axis's weighted fit then starts from it with its weights and covariance.
+
+    Returns
+    -------
+    BaseFrameResult
+        ``camera_from_base`` rotation, its 3x3 rotation-vector covariance (radians^2), the axes' stds (radians),
+        residuals and the translation phase's scale (dimensionless).
 
     Raises
     ------
@@ -426,6 +457,23 @@ def estimate_base_frame(
 
 
 def base_frame_from_observations(obs: Observations) -> BaseFrameResult:
+    """:func:`estimate_base_frame` from the ``rotation`` and ``translation`` phases of ``obs``.
+
+    Parameters
+    ----------
+    obs : Observations
+        The observations.
+
+    Returns
+    -------
+    BaseFrameResult
+        The base frame in the camera frame.
+
+    Raises
+    ------
+    IdentifiabilityError
+        Too few board poses, or a phase that does not move.
+    """
     return estimate_base_frame(obs.arrays("rotation"), obs.arrays("translation"))
 
 
@@ -433,6 +481,13 @@ def rotation_axis_point(R: Array, t: Array) -> Array:
     """A point of the board frame that stays fixed while the board turns about a fixed axis.
 
     Solves ``R_k p + t_k = c`` in the least-squares sense (minimum-norm along the axis).
+
+    Parameters
+    ----------
+    R : ndarray, shape (N, 3, 3)
+        ``camera_from_board`` rotations (dimensionless).
+    t : ndarray, shape (N, 3)
+        ``camera_from_board`` translations, metres.
 
     Returns
     -------

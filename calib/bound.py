@@ -41,7 +41,20 @@ class MeasurementNoise:
 
 
 def leg_directions_reduced(combos: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Unit leg directions in the base frame from the four combinations, shape (N, 4, 3)."""
+    """Unit leg directions in the base frame from the four combinations, shape (N, 4, 3).
+
+    Parameters
+    ----------
+    combos : ndarray, shape (4,)
+        The four combinations in :data:`~calib.parameters.COMBINATION_NAMES` order, metres.
+    q : ndarray, shape (N, 4)
+        Encoder values, metres.
+
+    Returns
+    -------
+    ndarray, shape (N, 4, 3)
+        Unit direction of each leg at each pose, base frame (dimensionless).
+    """
     L, c = combos[0], combos[1]
     Y, Z, f1, f3 = pose_from_joints_reduced(combos, q)
     u = np.empty((q.shape[0], 4, 3))
@@ -68,10 +81,23 @@ def combined_fisher(
 
     Parameters
     ----------
+    nominal : I4Parameters
+        Geometry the model is linearised at (metres).
     q_fit, q_rot, q_tra : ndarray, shape (N, 4)
         Encoder values of the fit poses, the rotation phase and the translation phase (metres).
+    noise : MeasurementNoise
+        Standard deviations of the rods' directions (radians) and the board's poses (radians, metres).
+    camera_from_base_R : ndarray, shape (3, 3), optional
+        Rotation from the base frame to the camera's; identity by default.
     rod_cov : ndarray, shape (N_fit, 4, 3, 3), optional
-        Per-leg direction covariance (camera frame) of one rod; default isotropic.
+        Per-leg direction covariance (camera frame) of one rod, radians^2; default isotropic.
+
+    Returns
+    -------
+    ndarray, shape (17 + N_rot, 17 + N_rot)
+        ``J^T J`` of the whitened model; unknowns in the order: the four combinations (metres), the camera rotation
+        (3, radians), the rotation phase's reference orientation (3, radians), its angles (``N_rot``, radians) and
+        ``t_0`` (3, metres).
     """
     R_cb = np.eye(3) if camera_from_base_R is None else np.asarray(camera_from_base_R, dtype=np.float64)
     xi0 = np.array([nominal.combinations()[k] for k in COMBINATION_NAMES])
@@ -141,14 +167,30 @@ def crlb_combined(
 ) -> dict:
     """Predicted standard deviations (the bound) of the four combinations for a plan, before any motion.
 
-    ``rod_cov`` (N_fit, 4, 3, 3), optional: per fit pose and leg, the covariance (camera frame) of the
-    leg's direction measurement (with ``noise.rods_per_leg`` rods averaged in it), e.g. from the
-    rods' measured ``cov_u``; default isotropic ``noise.rod_direction_rad``.
+    Parameters
+    ----------
+    nominal : I4Parameters
+        Geometry the model is linearised at (metres).
+    plan : Plan
+        The plan; its ``poses``, ``rotation`` and ``translation`` phases (at least two steps each) are used.
+    noise : MeasurementNoise, optional
+        Standard deviations of the inputs (radians, metres); the defaults of :class:`MeasurementNoise` if None.
+    camera_from_base_R : ndarray, shape (3, 3), optional
+        Rotation from the base frame to the camera's; identity by default.
+    rod_cov : ndarray, shape (N_fit, 4, 3, 3), optional
+        Per fit pose and leg, the covariance (camera frame, radians^2) of the leg's direction measurement (with
+        ``noise.rods_per_leg`` rods averaged in it), e.g. from the rods' ``cov_u``; default isotropic
+        ``noise.rod_direction_rad``.
 
     Returns
     -------
     dict
-        ``{"std": {name: metres}, "covariance": 4x4, "noise": {...}}``.
+        ``{"std": {name: metres}, "covariance": 4x4 nested list (metres^2), "noise": {...}}``.
+
+    Raises
+    ------
+    ValueError
+        If a phase has fewer than two steps, or the measurements do not determine the four combinations.
     """
     noise = noise or MeasurementNoise()
     q_fit = _phase_q(plan, "poses")

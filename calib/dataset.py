@@ -121,6 +121,13 @@ class DatasetDocument(BaseModel):
 
 
 def dataset_json_schema() -> dict[str, Any]:
+    """The JSON Schema (draft 2020-12) of ``dataset.json`` (``i4cal.dataset/1``).
+
+    Returns
+    -------
+    dict
+        The schema, with its ``$schema`` and ``$id``.
+    """
     schema = DatasetDocument.model_json_schema()
     schema["$schema"] = "https://json-schema.org/draft/2020-12/schema"
     schema["$id"] = "https://i4cal.invalid/schemas/dataset-v1.schema.json"
@@ -146,6 +153,23 @@ class Dataset:
 
     @classmethod
     def open(cls, path: str | os.PathLike[str]) -> Dataset:
+        """Open a dataset directory and validate its ``dataset.json``.
+
+        Parameters
+        ----------
+        path : str or path-like
+            The directory, or its ``dataset.json``.
+
+        Returns
+        -------
+        Dataset
+            The dataset (images are read on demand).
+
+        Raises
+        ------
+        InputError
+            No ``dataset.json``, invalid JSON, another format, or an invalid field (names the frame and field).
+        """
         root = Path(path)
         if root.is_file() and root.name == "dataset.json":
             root = root.parent
@@ -181,11 +205,39 @@ class Dataset:
         return self.document.frames
 
     def image_path(self, index: int) -> Path | None:
+        """Path of a frame's image file.
+
+        Parameters
+        ----------
+        index : int
+            The frame's index.
+
+        Returns
+        -------
+        Path or None
+            The image's path (which may not exist), None for a frame without image.
+        """
         img = self.frames[index].image
         return None if img is None else self.root / img
 
     def load_image(self, index: int) -> np.ndarray:
-        """Read a frame's image unchanged (8 or 16 bit, mono or colour); InputError when missing or corrupt."""
+        """Read a frame's image unchanged (8 or 16 bit, mono or colour); InputError when missing or corrupt.
+
+        Parameters
+        ----------
+        index : int
+            The frame's index.
+
+        Returns
+        -------
+        ndarray, shape (H, W) or (H, W, C)
+            The pixels, uint8 or uint16, as stored.
+
+        Raises
+        ------
+        InputError
+            The frame has no image, or its file is missing or corrupt (names the frame, ``field="image"``).
+        """
         import cv2
 
         path = self.image_path(index)
@@ -248,12 +300,45 @@ class DatasetWriter:
         return len(self._doc["frames"])
 
     def set_extra(self, key: str, value: Any) -> None:
+        """Set a top-level entry of ``dataset.json`` and write the document.
+
+        Parameters
+        ----------
+        key : str
+            The entry's name.
+        value : Any
+            A JSON-serialisable value.
+        """
         with self._lock:
             self._doc[key] = value
             self._flush()
 
     def add_frame(self, phase: str, q: Any, image: np.ndarray | None, t: float | None = None, **extra: Any) -> int:
-        """Write the image (PNG, lossless) then append the frame to ``dataset.json``; returns its index."""
+        """Write the image (PNG, lossless) then append the frame to ``dataset.json``; returns its index.
+
+        Parameters
+        ----------
+        phase : str
+            One of ``DATASET_PHASES``.
+        q : array_like, shape (4,)
+            Encoder values, metres.
+        image : ndarray, shape (H, W) or (H, W, C), optional
+            uint8 or uint16 pixels; None for a frame without image.
+        t : float, optional
+            Time of the frame, seconds from the dataset's start (now by default).
+        **extra : Any
+            Further JSON-serialisable fields of the frame.
+
+        Returns
+        -------
+        int
+            The frame's index.
+
+        Raises
+        ------
+        InputError
+            An unknown phase, a ``q`` without 4 values, or an image of another depth.
+        """
         import cv2
 
         if phase not in DATASET_PHASES:

@@ -58,7 +58,27 @@ class CombinationEstimate:
     def from_dicts(
         cls, values_m: dict[str, float], covariance_m2: list[list[float]] | Array, *, converged: bool = True
     ) -> CombinationEstimate:
-        """From a result's ``combinations`` (name -> metres) and 4x4 ``covariance`` (m^2)."""
+        """From a result's ``combinations`` (name -> metres) and 4x4 ``covariance`` (m^2).
+
+        Parameters
+        ----------
+        values_m : dict
+            ``{name: metres}`` with the four :data:`~calib.parameters.COMBINATION_NAMES` (others ignored).
+        covariance_m2 : array_like, shape (4, 4)
+            Their covariance in that order, m^2.
+        converged : bool, optional
+            Whether the fit that made it converged.
+
+        Returns
+        -------
+        CombinationEstimate
+            The estimate.
+
+        Raises
+        ------
+        InputError
+            If a combination is missing (``field="combinations"``).
+        """
         missing = [k for k in COMBINATION_NAMES if k not in values_m]
         if missing:
             raise InputError(f"missing combinations {missing}", field="combinations")
@@ -344,6 +364,17 @@ UPDATE_COMPLETION_TEXT = (
 def in_force_estimate(doc: CalibrationDocument) -> CombinationEstimate:
     """The four combinations and covariance of an ``i4cal.calibration/1`` document, the check's prior.
 
+    Parameters
+    ----------
+    doc : CalibrationDocument
+        The calibration in force.
+
+    Returns
+    -------
+    CombinationEstimate
+        Its combinations (metres) and their 4x4 covariance (m^2), in
+        :data:`~calib.parameters.COMBINATION_NAMES` order.
+
     Raises
     ------
     InputError
@@ -376,6 +407,26 @@ def updated_calibration(
     seven parameters completed with the calibration in force's H, S, q03 (:data:`UPDATE_COMPLETION_RULE`), the rest
     of the provenance said (``check``: the check's id; ``source.updated_from``: the calibration in force's run,
     method and date).
+
+    Parameters
+    ----------
+    in_force : CalibrationDocument
+        The calibration in force, the update's base.
+    update : UpdateResult
+        The check's accepted update (combinations in metres, covariance in m^2).
+    software_version : str
+        The version recorded in the new document.
+    date : str, optional
+        ISO 8601 time of the update (``date`` and ``exported_at``).
+    dataset_hash : str, optional
+        SHA-256 of the check's dataset.
+    check : str, optional
+        The check's id (``source.check``).
+
+    Returns
+    -------
+    CalibrationDocument
+        The updated calibration (seven parameters in metres, their std in metres, None where fixed).
 
     Raises
     ------

@@ -11,7 +11,25 @@ from .errors import InputError
 
 
 def read_json(path: str | Path, what: str = "file") -> Any:
-    """Parse a JSON file; :class:`InputError` names the file and the line of a syntax error."""
+    """Parse a JSON file; :class:`InputError` names the file and the line of a syntax error.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file, UTF-8.
+    what : str, optional
+        What the file is, for the not-found message ("plan file", "dataset", ...).
+
+    Returns
+    -------
+    Any
+        The parsed document (dict, list, str, number, bool or None).
+
+    Raises
+    ------
+    InputError
+        If the file is missing or unreadable, is not valid JSON, or nests too deeply.
+    """
     p = Path(path)
     try:
         text = p.read_text(encoding="utf-8")
@@ -29,7 +47,13 @@ def read_json(path: str | Path, what: str = "file") -> Any:
 
 def fsync_dir(path: str | Path) -> None:
     """Flush a directory's entries to disk (after a rename in it: without this, a power cut can lose the rename
-    although the file's data were synced). A no-op where directories cannot be opened (Windows)."""
+    although the file's data were synced). A no-op where directories cannot be opened (Windows).
+
+    Parameters
+    ----------
+    path : str or Path
+        The directory.
+    """
     try:
         fd = os.open(path, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
     except (PermissionError, IsADirectoryError):  # pragma: no cover (Windows)
@@ -42,7 +66,17 @@ def fsync_dir(path: str | Path) -> None:
 
 def write_json_atomic(path: str | Path, data: Any, indent: int | None = 1) -> None:
     """Write JSON to a temporary file, flush it, rename it over ``path`` and flush the directory: after a crash or a
-    power cut, ``path`` holds the old or the new document, whole."""
+    power cut, ``path`` holds the old or the new document, whole.
+
+    Parameters
+    ----------
+    path : str or Path
+        The destination file; its temporary sibling is ``.<name>.tmp`` in the same directory.
+    data : Any
+        A JSON-serialisable document.
+    indent : int or None, optional
+        ``json.dump``'s indent (1 by default; None for one line).
+    """
     p = Path(path)
     tmp = p.with_name(f".{p.name}.tmp")
     with open(tmp, "w", encoding="utf-8") as fh:

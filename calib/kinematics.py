@@ -187,9 +187,22 @@ def dkm(params: I4Parameters, q: ArrayLike) -> Array:
 def leg_directions(params: I4Parameters, pose: ArrayLike) -> Array:
     """Unit leg directions ``u_i`` (from A_i to B_i) in the base frame.
 
+    Parameters
+    ----------
+    params : I4Parameters
+        The geometry (metres).
+    pose : array_like, shape (4,) or (N, 4)
+        Poses ``(X, Y, Z, T)``, metres.
+
     Returns
     -------
     ndarray, shape (4, 3) or (N, 4, 3)
+        Unit directions (dimensionless).
+
+    Raises
+    ------
+    UnreachableError
+        If a leg pair cannot reach a pose.
     """
     P, single = _as_rows(pose, "pose")
     A, B = joint_points(params, ikm(params, P), P)
@@ -202,12 +215,15 @@ def joint_points(params: I4Parameters, q: ArrayLike, pose: ArrayLike) -> tuple[A
 
     Parameters
     ----------
+    params : I4Parameters
+        The geometry (metres).
     q, pose : array_like, shape (N, 4)
         Consistent joint values and poses (metres).
 
     Returns
     -------
     A, B : ndarray, shape (N, 4, 3)
+        The joint centres, metres.
     """
     Q, _ = _as_rows(q, "q")
     P, _ = _as_rows(pose, "pose")
@@ -248,6 +264,13 @@ def jacobian_ratios(u: ArrayLike) -> Array:
 def jacobian(params: I4Parameters, pose: ArrayLike) -> Array:
     """Jacobian of the inverse kinematic model, ``q_dot = J X_dot``.
 
+    Parameters
+    ----------
+    params : I4Parameters
+        The geometry (metres).
+    pose : array_like, shape (4,) or (N, 4)
+        Poses ``(X, Y, Z, T)``, metres.
+
     Returns
     -------
     ndarray, shape (4, 4) or (N, 4, 4)
@@ -265,7 +288,22 @@ def jacobian(params: I4Parameters, pose: ArrayLike) -> Array:
 
 def base_from_ee(params: I4Parameters, pose: ArrayLike) -> tuple[Array, Array]:
     """The end-effector frame in the base frame: rotation ``rot_z(T / T_per_rad)`` (..., 3, 3) and origin
-    ``E = (X, H + Y, Z)`` (..., 3), metres, for a pose (4,) or poses (N, 4)."""
+    ``E = (X, H + Y, Z)`` (..., 3), metres, for a pose (4,) or poses (N, 4).
+
+    Parameters
+    ----------
+    params : I4Parameters
+        The geometry (metres; ``T_per_rad`` in metres per radian).
+    pose : array_like, shape (4,) or (N, 4)
+        Poses ``(X, Y, Z, T)``, metres.
+
+    Returns
+    -------
+    R : ndarray, shape (3, 3) or (N, 3, 3)
+        ``base_from_ee`` rotation (dimensionless).
+    t : ndarray, shape (3,) or (N, 3)
+        The end-effector origin in the base frame, metres.
+    """
     P, single = _as_rows(pose, "pose")
     R = rot_z(P[:, 3] / params.T_per_rad)
     t = np.column_stack([P[:, 0], params.H + P[:, 1], P[:, 2]])

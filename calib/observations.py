@@ -11,8 +11,7 @@ Besides ``u``/``point`` and ``R``/``t``, :class:`Rod` and :class:`Board` declare
 extraction writes and the methods read (the vision -> methods contract: limb planes ``h``, the direction's
 covariance ``cov_u``, limb samples ``limbs_px``, the board pose's ``cov`` and ``d_intrinsics``, quality figures).
 Each is validated (shape, finite values) when present; a field a document does not carry stays absent when it
-is written back (no ``null`` is added), so documents written before these fields were declared round-trip as
-they were.
+is written back (no ``null`` is added), so a document without them round-trips unchanged.
 """
 
 from __future__ import annotations
@@ -381,6 +380,18 @@ class PhaseArrays:
         return int(self.q.shape[0])
 
     def subset(self, mask: np.ndarray) -> PhaseArrays:
+        """The frames selected by ``mask``, every array alike.
+
+        Parameters
+        ----------
+        mask : ndarray of bool, shape (N,), or of int
+            The frames kept (a boolean mask or indices).
+
+        Returns
+        -------
+        PhaseArrays
+            The selected frames.
+        """
         return PhaseArrays(*(getattr(self, f)[mask] for f in self.__dataclass_fields__))
 
 
@@ -395,7 +406,25 @@ class Observations:
     # -- construction ------------------------------------------------------------------------
     @classmethod
     def from_dict(cls, data: Any, source: str | None = None) -> Observations:
-        """Validate a parsed JSON document; raise :class:`InputError` naming the first bad field."""
+        """Validate a parsed JSON document; raise :class:`InputError` naming the first bad field.
+
+        Parameters
+        ----------
+        data : Any
+            The parsed JSON document.
+        source : str, optional
+            The file it came from, named in errors.
+
+        Returns
+        -------
+        Observations
+            The validated observations.
+
+        Raises
+        ------
+        InputError
+            Not an object, another format, or an invalid field (names the frame and field).
+        """
         if not isinstance(data, dict):
             raise InputError("the document must be a JSON object", file=source)
         fmt = data.get("format")
@@ -409,12 +438,36 @@ class Observations:
 
     @classmethod
     def load(cls, path: str | Path) -> Observations:
+        """Read and validate an observations file (:meth:`from_dict`).
+
+        Parameters
+        ----------
+        path : str or Path
+            The file (JSON).
+
+        Returns
+        -------
+        Observations
+            The validated observations.
+
+        Raises
+        ------
+        InputError
+            Names the file, and the frame and field of an invalid value.
+        """
         return cls.from_dict(read_json(path), source=str(path))
 
     def to_dict(self) -> dict[str, Any]:
         return self.document.model_dump(mode="json", exclude_none=False)
 
     def save(self, path: str | Path) -> None:
+        """Write the document as JSON, atomically (:func:`~calib.jsonio.write_json_atomic`).
+
+        Parameters
+        ----------
+        path : str or Path
+            The destination file.
+        """
         write_json_atomic(path, self.to_dict())
 
     # -- views ------------------------------------------------------------------------------
@@ -429,7 +482,23 @@ class Observations:
         return counts
 
     def arrays(self, *phases: str) -> PhaseArrays:
-        """Numeric arrays of the frames of the given phases (all frames when none given)."""
+        """Numeric arrays of the frames of the given phases (all frames when none given).
+
+        Parameters
+        ----------
+        *phases : str
+            Phases among ``PHASES``; none: every frame.
+
+        Returns
+        -------
+        PhaseArrays
+            The frames in document order (encoder values and positions in metres, NaN where not observed).
+
+        Raises
+        ------
+        ValueError
+            If a phase is unknown.
+        """
         for ph in phases:
             if ph not in PHASES:
                 raise ValueError(f"unknown phase {ph!r}; phases are {', '.join(PHASES)}")
@@ -483,7 +552,13 @@ def _input_error(exc: ValidationError, source: str | None) -> InputError:
 
 
 def json_schema() -> dict[str, Any]:
-    """The JSON Schema of observations v1 (as shipped in ``calib/schemas``)."""
+    """The JSON Schema of observations v1 (as shipped in ``calib/schemas``).
+
+    Returns
+    -------
+    dict
+        The schema (draft 2020-12), with its ``$schema`` and ``$id``.
+    """
     schema = ObservationsDocument.model_json_schema()
     schema["$schema"] = "https://json-schema.org/draft/2020-12/schema"
     schema["$id"] = "https://i4cal.invalid/schemas/observations-v1.schema.json"
@@ -491,5 +566,20 @@ def json_schema() -> dict[str, Any]:
 
 
 def new_document(nominal: I4Parameters, frames: list[dict[str, Any]], **extra: Any) -> dict[str, Any]:
-    """Assemble an observations v1 dict from plain frame dicts."""
+    """Assemble an observations v1 dict from plain frame dicts.
+
+    Parameters
+    ----------
+    nominal : I4Parameters
+        The nominal geometry recorded in the document (metres).
+    frames : list of dict
+        The frames (``phase``, ``q`` in metres, ``board``, ``legs``, ...).
+    **extra : Any
+        Further top-level entries.
+
+    Returns
+    -------
+    dict
+        The document, to validate with :meth:`Observations.from_dict`.
+    """
     return {"format": FORMAT, "nominal": nominal.as_dict(), "frames": frames, **extra}

@@ -94,12 +94,41 @@ class I4Parameters:
         return identifiable_parameters(self)
 
     def replace(self, **changes: Any) -> I4Parameters:
-        """A copy with some fields changed."""
+        """A copy with some fields changed.
+
+        Parameters
+        ----------
+        **changes : float
+            New values of fields, by name (metres; ``T_per_rad`` in metres per radian).
+
+        Returns
+        -------
+        I4Parameters
+            The copy, validated.
+        """
         return replace(self, **changes)
 
     @classmethod
     def from_vector(cls, values: Any, T_per_rad: float = DEFAULT_T_PER_RAD) -> I4Parameters:
-        """Build from seven values in :data:`PARAMETER_NAMES` order."""
+        """Build from seven values in :data:`PARAMETER_NAMES` order.
+
+        Parameters
+        ----------
+        values : iterable of float, length 7
+            The seven parameters, metres.
+        T_per_rad : float, optional
+            Rack-and-pinion constant, metres per radian.
+
+        Returns
+        -------
+        I4Parameters
+            The geometry.
+
+        Raises
+        ------
+        ValueError
+            If there are not seven values, or a value is invalid.
+        """
         vals = [float(v) for v in values]
         if len(vals) != 7:
             raise ValueError(f"I4Parameters.from_vector needs 7 values, got {len(vals)}")
@@ -107,7 +136,24 @@ class I4Parameters:
 
     @classmethod
     def from_mapping(cls, data: dict[str, Any]) -> I4Parameters:
-        """Build from a mapping with the seven names (and optionally ``T_per_rad``)."""
+        """Build from a mapping with the seven names (and optionally ``T_per_rad``).
+
+        Parameters
+        ----------
+        data : dict
+            ``{name: metres}`` for the seven :data:`PARAMETER_NAMES`, optionally ``"T_per_rad"`` (metres per
+            radian; None keeps the default). Other keys are ignored.
+
+        Returns
+        -------
+        I4Parameters
+            The geometry.
+
+        Raises
+        ------
+        ValueError
+            If a name is missing or a value is invalid.
+        """
         missing = [n for n in PARAMETER_NAMES if n not in data]
         if missing:
             raise ValueError(f"missing parameter(s): {', '.join(missing)}")
@@ -123,6 +169,18 @@ class I4Parameters:
         The parts no Jacobian- or IKM-based method sees (H, S, q03: constant offsets of X
         and T) are taken from ``reference``; D, q02 and q04 follow from the combinations.
         The result has exactly the given combinations and predicts the same displacements.
+
+        Parameters
+        ----------
+        combos : dict
+            The four combinations, ``{name: metres}`` keyed by :data:`COMBINATION_NAMES`.
+        reference : I4Parameters
+            Geometry giving H, S, q03 and ``T_per_rad``.
+
+        Returns
+        -------
+        I4Parameters
+            The completed geometry.
         """
         H, S, q03 = reference.H, reference.S, reference.q03
         return cls(
@@ -139,6 +197,11 @@ class I4Parameters:
 
 def identifiable_parameters(params: I4Parameters) -> dict[str, float]:
     """The four combinations identifiable by Jacobian- or IKM-based methods, in metres.
+
+    Parameters
+    ----------
+    params : I4Parameters
+        The geometry (metres).
 
     Returns
     -------

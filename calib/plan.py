@@ -50,6 +50,7 @@ class Workspace(BaseModel):
     min_leg_x_m: Num = Field(0.25, description="smallest horizontal leg reach f = u_x L kept in plans")
 
     def centre(self) -> np.ndarray:
+        """The box's centre ``(X, Y, Z, 0)``, metres, shape (4,)."""
         return np.array([np.mean(self.X), np.mean(self.Y), np.mean(self.Z), 0.0])
 
 
@@ -86,28 +87,67 @@ class Step(BaseModel):
 
 
 class Plan(BaseModel):
+    """An ``i4cal.plan/1`` document: a named list of steps (joint targets in metres, guided lines)."""
+
     model_config = ConfigDict(extra="allow", allow_inf_nan=False)
     format: Literal["i4cal.plan/1"] = PLAN_FORMAT
     name: str
     steps: list[Step] = Field(max_length=MAX_PLAN_STEPS)
 
     def count(self) -> dict[str, int]:
+        """Frames per phase (a line step counts its samples), ``{phase: count}``."""
         out: dict[str, int] = {}
         for s in self.steps:
             out[s.phase] = out.get(s.phase, 0) + (s.line.samples if s.line else 1)
         return out
 
     def save(self, path: str | Path) -> None:
+        """Write the plan as JSON (fields left unset omitted).
+
+        Parameters
+        ----------
+        path : str or Path
+            The destination file.
+        """
         Path(path).write_text(self.model_dump_json(indent=1, exclude_none=True), encoding="utf-8")
 
     @classmethod
     def load(cls, path: str | Path) -> Plan:
+        """Read and validate a plan file (:meth:`from_dict`).
+
+        Parameters
+        ----------
+        path : str or Path
+            The plan file (JSON).
+
+        Returns
+        -------
+        Plan
+            The validated plan.
+
+        Raises
+        ------
+        InputError
+            Names the file, and the step and field of an invalid value.
+        """
         return cls.from_dict(read_json(path, "plan file"), source=str(path))
 
     @classmethod
     def from_dict(cls, data: Any, source: str | None = None) -> Plan:
         """Validate a plan document: its size first (:data:`MAX_PLAN_STEPS`, :data:`MAX_LINE_SAMPLES`,
         :data:`MAX_PLAN_FRAMES`), then every field (finite numbers only).
+
+        Parameters
+        ----------
+        data : Any
+            The parsed JSON document.
+        source : str, optional
+            The file it came from, named in errors.
+
+        Returns
+        -------
+        Plan
+            The validated plan.
 
         Raises
         ------
@@ -151,6 +191,18 @@ def _field_name(loc: list[Any]) -> str | None:
 def check_plan_size(plan: Plan, source: str | None = None) -> int:
     """The plan's number of frames, after checking its size bounds (cheap: no kinematics).
 
+    Parameters
+    ----------
+    plan : Plan
+        The plan.
+    source : str, optional
+        The file it came from, named in errors.
+
+    Returns
+    -------
+    int
+        Frames in all (a ``q`` step one, a line step its ``samples``).
+
     Raises
     ------
     InputError
@@ -181,6 +233,15 @@ def validate_plan(plan: Plan, nominal: I4Parameters, limits: SoftLimits | None =
     """Check the plan's size (:func:`check_plan_size`), then every step against soft limits and the nominal model
     before anything moves. The joint vectors of all steps are checked together (vectorised: a plan at its size
     bounds validates in a fraction of a second); the first step found wrong is then checked alone for the message.
+
+    Parameters
+    ----------
+    plan : Plan
+        The plan.
+    nominal : I4Parameters
+        The geometry the steps must be reachable by (metres).
+    limits : SoftLimits, optional
+        Per-axis encoder limits (metres); :class:`SoftLimits`' defaults if None.
 
     Raises
     ------
@@ -289,7 +350,18 @@ def _line_poses(line: LineSpec) -> np.ndarray:
 
 
 def line_poses(line: LineSpec) -> np.ndarray:
-    """Poses of a guided line's samples, shape (samples, 4)."""
+    """Poses of a guided line's samples, shape (samples, 4).
+
+    Parameters
+    ----------
+    line : LineSpec
+        The line (start and end poses in metres).
+
+    Returns
+    -------
+    ndarray, shape (samples, 4)
+        Poses ``(X, Y, Z, T)`` evenly spaced from start to end, metres.
+    """
     return _line_poses(line)
 
 
@@ -314,7 +386,31 @@ def random_poses(
     ws: Workspace | None = None,
     limits: SoftLimits | None = None,
 ) -> np.ndarray:
-    """``n`` poses drawn uniformly in the workspace box, reachable and within limits (nominal model)."""
+    """``n`` poses drawn uniformly in the workspace box, reachable and within limits (nominal model).
+
+    Parameters
+    ----------
+    params : I4Parameters
+        The geometry (metres).
+    n : int
+        Number of poses.
+    rng : numpy.random.Generator
+        The random source.
+    ws : Workspace, optional
+        The box (metres); :class:`Workspace`'s defaults if None.
+    limits : SoftLimits, optional
+        Per-axis encoder limits (metres); :class:`SoftLimits`' defaults if None.
+
+    Returns
+    -------
+    ndarray, shape (n, 4)
+        Poses ``(X, Y, Z, T)``, metres.
+
+    Raises
+    ------
+    InputError
+        If ``n`` such poses cannot be drawn (a box mostly out of reach).
+    """
     ws = ws or Workspace()
     limits = limits or SoftLimits()
     out: list[np.ndarray] = []
@@ -330,7 +426,24 @@ def random_poses(
 def rotation_sweep(
     nominal: I4Parameters, n: int = 10, span_rad: float = np.deg2rad(300), ws: Workspace | None = None
 ) -> list[Step]:
-    """T varies at fixed X, Y, Z: q1, q2 up and q3, q4 down by the same amount."""
+    """T varies at fixed X, Y, Z: q1, q2 up and q3, q4 down by the same amount.
+
+    Parameters
+    ----------
+    nominal : I4Parameters
+        The geometry (metres; ``T_per_rad`` converts the span).
+    n : int, optional
+        Number of steps.
+    span_rad : float, optional
+        End-effector rotation from the first step to the last, radians (300 degrees by default).
+    ws : Workspace, optional
+        The box whose centre the sweep is about.
+
+    Returns
+    -------
+    list of Step
+        ``n`` steps of phase ``rotation``, joint targets in metres.
+    """
     ws = ws or Workspace()
     c = ws.centre()
     q0 = ikm(nominal, c)
@@ -341,7 +454,24 @@ def rotation_sweep(
 def equal_translation(
     nominal: I4Parameters, n: int = 10, length_m: float = 0.35, ws: Workspace | None = None
 ) -> list[Step]:
-    """All four actuators move equally: the end-effector translates along x_B."""
+    """All four actuators move equally: the end-effector translates along x_B.
+
+    Parameters
+    ----------
+    nominal : I4Parameters
+        The geometry (metres).
+    n : int, optional
+        Number of steps.
+    length_m : float, optional
+        Travel from the first step to the last, metres.
+    ws : Workspace, optional
+        The box whose centre the translation is about.
+
+    Returns
+    -------
+    list of Step
+        ``n`` steps of phase ``translation``, joint targets in metres.
+    """
     ws = ws or Workspace()
     q0 = ikm(nominal, ws.centre())
     return [Step(phase="translation", q=(q0 + d).tolist()) for d in np.linspace(-length_m / 2, length_m / 2, n)]
@@ -355,7 +485,33 @@ def pose_set(
     ws: Workspace | None = None,
     limits: SoftLimits | None = None,
 ) -> list[Step]:
-    """``n`` poses spread over the workspace, reachable by the nominal model (seeded)."""
+    """``n`` poses spread over the workspace, reachable by the nominal model (seeded).
+
+    Parameters
+    ----------
+    nominal : I4Parameters
+        The geometry (metres).
+    n : int, optional
+        Number of poses.
+    seed : int, optional
+        Seed of the draw.
+    phase : str, optional
+        The steps' phase (``poses`` for fit poses, ``validation``).
+    ws : Workspace, optional
+        The box the poses are drawn in (metres).
+    limits : SoftLimits, optional
+        Per-axis encoder limits (metres).
+
+    Returns
+    -------
+    list of Step
+        ``n`` steps, joint targets in metres.
+
+    Raises
+    ------
+    InputError
+        If ``n`` reachable poses cannot be drawn.
+    """
     rng = np.random.default_rng(seed)
     poses = random_poses(nominal, n, rng, ws, limits)
     return [Step(phase=phase, q=q.tolist()) for q in ikm(nominal, poses)]
@@ -368,7 +524,31 @@ def lock_actuator(
     ws: Workspace | None = None,
     limits: SoftLimits | None = None,
 ) -> list[Step]:
-    """For each actuator in turn, ``n_per_axis`` poses with that actuator fixed."""
+    """For each actuator in turn, ``n_per_axis`` poses with that actuator fixed.
+
+    Parameters
+    ----------
+    nominal : I4Parameters
+        The geometry (metres).
+    n_per_axis : int, optional
+        Poses per locked actuator.
+    seed : int, optional
+        Seed of the draw.
+    ws : Workspace, optional
+        The box the poses are drawn in (metres; X is free, shifted to hold the lock).
+    limits : SoftLimits, optional
+        Per-axis encoder limits (metres).
+
+    Returns
+    -------
+    list of Step
+        ``4 n_per_axis`` steps of phases ``lock-1`` .. ``lock-4``, joint targets in metres.
+
+    Raises
+    ------
+    InputError
+        If an actuator's poses cannot be drawn.
+    """
     ws = ws or Workspace()
     limits = limits or SoftLimits()
     rng = np.random.default_rng(seed)
@@ -412,6 +592,29 @@ def guided_line(
     With ``limits`` (a bench's soft limits), a line whose samples leave them (or the reachable workspace) is
     shortened about the centre, by 5% at a time, to the longest that stays within; shorter than
     :data:`MIN_LINE_LENGTH_M` is an error naming ``line``.
+
+    Parameters
+    ----------
+    nominal : I4Parameters
+        The geometry (metres).
+    length_m : float, optional
+        Length of the line, metres.
+    samples : int, optional
+        Frames recorded along it.
+    ws : Workspace, optional
+        The box whose centre the line goes through.
+    limits : SoftLimits, optional
+        A bench's encoder limits (metres); None: the line is not shortened.
+
+    Returns
+    -------
+    list of Step
+        One step of phase ``line``.
+
+    Raises
+    ------
+    InputError
+        If no line of :data:`MIN_LINE_LENGTH_M` or more stays within ``limits`` (``field="line"``).
     """
     ws = ws or Workspace()
     c = ws.centre()
@@ -450,6 +653,39 @@ def make_plan(
     drawn and the guided line shortened to (:func:`guided_line`); default: no line shortened, the poses drawn
     within :class:`SoftLimits`' (the simulated bench's). The sweeps are placed about the workspace's centre:
     :func:`validate_plan` says when they leave a bench's limits.
+
+    Parameters
+    ----------
+    name : str
+        One of :data:`PLAN_NAMES`.
+    nominal : I4Parameters
+        The geometry the poses are computed with (metres).
+    seed : int, optional
+        Seed of the drawn poses (fit poses ``seed``, lock phases ``seed + 1``, validation ``seed + 2``).
+    n_base : int, optional
+        Steps of each base-frame sweep (rotation, translation).
+    n_fit : int, optional
+        Fit poses.
+    n_lock : int, optional
+        Poses per locked actuator.
+    n_validation : int, optional
+        Validation poses.
+    line_samples : int, optional
+        Frames along the guided line.
+    ws : Workspace, optional
+        The box the poses are drawn in (metres).
+    limits : SoftLimits, optional
+        The bench's encoder limits (metres).
+
+    Returns
+    -------
+    Plan
+        The plan, named ``name``.
+
+    Raises
+    ------
+    InputError
+        If ``name`` is unknown (``field="plan"``) or its poses cannot be drawn.
     """
     ws = ws or Workspace()
     parts = {

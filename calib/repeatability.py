@@ -72,7 +72,22 @@ class Repeatability:
 
 def repeat_groups(q: Array, poses_q: Array, tol_m: float = 1e-4) -> NDArray[np.int64]:
     """Which commanded pose each frame was taken at: the index in ``poses_q`` (k, 4) of the nearest joint vector to
-    each frame's encoders ``q`` (n, 4), metres, or -1 when none is within ``tol_m`` in every joint."""
+    each frame's encoders ``q`` (n, 4), metres, or -1 when none is within ``tol_m`` in every joint.
+
+    Parameters
+    ----------
+    q : ndarray, shape (n, 4)
+        Encoder values of the frames, metres.
+    poses_q : ndarray, shape (k, 4)
+        Commanded joint vectors, metres.
+    tol_m : float, optional
+        Largest per-joint distance to the nearest pose, metres (0.1 mm by default).
+
+    Returns
+    -------
+    ndarray of int, shape (n,)
+        Index into ``poses_q`` per frame, -1 for none.
+    """
     q = np.asarray(q, dtype=np.float64)
     poses_q = np.asarray(poses_q, dtype=np.float64)
     d = np.abs(q[:, None, :] - poses_q[None, :, :]).max(axis=2)

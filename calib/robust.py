@@ -26,7 +26,20 @@ def _chi2_ppf(q: ArrayLike, dof: ArrayLike) -> NDArray[np.float64]:
 
 
 def chi2_gate(dof: ArrayLike, quantile: float = GATE_QUANTILE) -> NDArray[np.float64]:
-    """The gate ``chi2.ppf(quantile, dof)``, shape of ``dof`` (an unscaled threshold on a squared norm)."""
+    """The gate ``chi2.ppf(quantile, dof)``, shape of ``dof`` (an unscaled threshold on a squared norm).
+
+    Parameters
+    ----------
+    dof : array_like, shape (N,) or scalar
+        Degrees of freedom of each residual block.
+    quantile : float, optional
+        Probability a good block falls below the gate (dimensionless, :data:`GATE_QUANTILE` by default).
+
+    Returns
+    -------
+    ndarray, shape of ``dof``
+        The gate on the squared whitened norm (dimensionless; NaN where ``dof <= 0``).
+    """
     return _chi2_ppf(quantile, dof)
 
 
@@ -39,6 +52,16 @@ def robust_chi2_scale(d2: ArrayLike, dof: ArrayLike) -> float:
         Squared whitened residual norms (dimensionless).
     dof : array_like, shape (N,) or scalar
         Their degrees of freedom.
+
+    Returns
+    -------
+    float
+        The squared noise factor ``s`` (dimensionless; 1 when the assumed noise is right).
+
+    Raises
+    ------
+    ValueError
+        If ``d2`` is empty.
     """
     d2a = np.asarray(d2, dtype=np.float64)
     if d2a.size == 0:
@@ -47,7 +70,22 @@ def robust_chi2_scale(d2: ArrayLike, dof: ArrayLike) -> float:
 
 
 def chi2_outliers(d2: ArrayLike, dof: ArrayLike, scale: float | None = None) -> NDArray[np.bool_]:
-    """Blocks (bool, shape of ``d2``) beyond the gate at the noise factor ``scale`` (default: the robust one)."""
+    """Blocks (bool, shape of ``d2``) beyond the gate at the noise factor ``scale`` (default: the robust one).
+
+    Parameters
+    ----------
+    d2 : array_like, shape (N,)
+        Squared whitened residual norms (dimensionless).
+    dof : array_like, shape (N,) or scalar
+        Their degrees of freedom.
+    scale : float, optional
+        Squared noise factor (dimensionless); :func:`robust_chi2_scale` of the blocks by default.
+
+    Returns
+    -------
+    ndarray of bool, shape (N,)
+        True for an outlier block.
+    """
     d2a = np.asarray(d2, dtype=np.float64)
     s = robust_chi2_scale(d2a, dof) if scale is None else scale
     return np.asarray(d2a > chi2_gate(dof) * s)

@@ -2,16 +2,15 @@
 
 A process pool already runs one worker per core. OpenBLAS (behind numpy and SciPy) and OpenCV each start their own
 thread per core on top of that, in every worker: the threads only contend for the same cores, and OpenBLAS's spin
-while they wait (measured: an extraction with two workers on 2 cores 14% more CPU; the test suite's numerical tests
-about 30% more).
+while they wait, which costs CPU time (more than a tenth of an extraction's) and buys no speed.
 
 How the limit is set depends on how the worker starts:
 
 * a **spawned** worker (a fresh interpreter: the benchmarks' pools) calls :func:`single_threaded_worker` as its
   initialiser;
 * a **forked** worker (the extraction pool) must not touch OpenCV's thread pool: the child has a copy of the
-  parent's pool state but none of its threads, and ``cv2.setNumThreads`` there waits forever for them (seen: ``i4cal
-  demo`` hung in its extraction when the parent had rendered with OpenCV's threads). The parent forks its workers
+  parent's pool state but none of its threads, and ``cv2.setNumThreads`` there waits forever for them (a parent that
+  has rendered with OpenCV's threads before forking makes its children hang). The parent forks its workers
   inside :func:`forking_single_threaded` instead: the settings are lowered around the fork, the children inherit
   them, and the parent's own are restored.
 """
@@ -35,7 +34,13 @@ def single_threaded_worker() -> None:
 @contextlib.contextmanager
 def forking_single_threaded() -> Iterator[None]:
     """Processes forked inside the block run one BLAS/OpenMP and one OpenCV thread; this process's own settings are
-    restored when the block ends (while it runs, this process is single-threaded too)."""
+    restored when the block ends (while it runs, this process is single-threaded too).
+
+    Yields
+    ------
+    None
+        Control, inside the block.
+    """
     import cv2
     from threadpoolctl import threadpool_limits
 

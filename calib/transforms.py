@@ -15,6 +15,25 @@ Array = NDArray[np.float64]
 
 
 def as_vec3(x: ArrayLike, name: str) -> Array:
+    """A 3-vector as float64, checked.
+
+    Parameters
+    ----------
+    x : array_like, shape (3,)
+        The vector (any unit; kept).
+    name : str
+        Its name in the error message.
+
+    Returns
+    -------
+    ndarray, shape (3,)
+        ``x`` as float64.
+
+    Raises
+    ------
+    ValueError
+        If ``x`` is not of shape (3,).
+    """
     a = np.asarray(x, dtype=np.float64)
     if a.shape != (3,):
         raise ValueError(f"{name} must have shape (3,), got {a.shape}")
@@ -22,6 +41,25 @@ def as_vec3(x: ArrayLike, name: str) -> Array:
 
 
 def as_mat3(x: ArrayLike, name: str) -> Array:
+    """A 3x3 matrix as float64, checked.
+
+    Parameters
+    ----------
+    x : array_like, shape (3, 3)
+        The matrix (dimensionless for a rotation).
+    name : str
+        Its name in the error message.
+
+    Returns
+    -------
+    ndarray, shape (3, 3)
+        ``x`` as float64.
+
+    Raises
+    ------
+    ValueError
+        If ``x`` is not of shape (3, 3).
+    """
     a = np.asarray(x, dtype=np.float64)
     if a.shape != (3, 3):
         raise ValueError(f"{name} must have shape (3, 3), got {a.shape}")
@@ -29,7 +67,18 @@ def as_mat3(x: ArrayLike, name: str) -> Array:
 
 
 def rotvec_to_matrix(rv: ArrayLike) -> Array:
-    """Rotation matrices from rotation vectors, shape (..., 3) -> (..., 3, 3)."""
+    """Rotation matrices from rotation vectors, shape (..., 3) -> (..., 3, 3).
+
+    Parameters
+    ----------
+    rv : array_like, shape (..., 3)
+        Rotation vectors (axis times angle), radians.
+
+    Returns
+    -------
+    ndarray, shape (..., 3, 3)
+        The rotation matrices (dimensionless).
+    """
     r = np.asarray(rv, dtype=np.float64)
     return Rotation.from_rotvec(r.reshape(-1, 3)).as_matrix().reshape(*r.shape[:-1], 3, 3)
 
@@ -45,6 +94,16 @@ def matrix_to_rotvec(R: ArrayLike) -> Array:
     (SciPy's projection). SciPy tests every matrix for that itself, at several times the cost of the conversion;
     the test is made here once, vectorised, and the conversion then skips it (``assume_valid``: the same
     algorithm, bit for bit the same rotation vectors): fits evaluate this thousands of times per calibration.
+
+    Parameters
+    ----------
+    R : array_like, shape (..., 3, 3)
+        Rotation matrices (dimensionless).
+
+    Returns
+    -------
+    ndarray, shape (..., 3)
+        Rotation vectors (axis times angle), radians, angle in [0, pi].
     """
     m = np.asarray(R, dtype=np.float64).reshape(-1, 3, 3)
     off = m @ np.swapaxes(m, -1, -2)
@@ -61,6 +120,16 @@ def so3_left_jacobian(rv: ArrayLike) -> Array:
     """Left Jacobian of SO(3), shape (..., 3) -> (..., 3, 3): ``exp(rv + d) = exp(J_l(rv) d) exp(rv)`` to first order.
 
     ``J_l(phi) = I + (1 - cos a) / a^2 [phi]x + (a - sin a) / a^3 [phi]x^2`` with ``a = |phi|`` (series below 1e-4 rad).
+
+    Parameters
+    ----------
+    rv : array_like, shape (..., 3)
+        Rotation vectors ``phi``, radians.
+
+    Returns
+    -------
+    ndarray, shape (..., 3, 3)
+        ``J_l(phi)`` (dimensionless).
     """
     phi = np.asarray(rv, dtype=np.float64)
     a2 = np.sum(phi * phi, axis=-1)[..., None, None]
@@ -78,6 +147,16 @@ def so3_left_jacobian_inverse(rv: ArrayLike) -> Array:
 
     ``J_l^-1(phi) = I - [phi]x / 2 + (1 / a^2 - (1 + cos a) / (2 a sin a)) [phi]x^2`` (series below 1e-4 rad;
     valid for ``a < pi``).
+
+    Parameters
+    ----------
+    rv : array_like, shape (..., 3)
+        Rotation vectors ``phi``, radians, ``|phi| < pi``.
+
+    Returns
+    -------
+    ndarray, shape (..., 3, 3)
+        ``J_l(phi)^-1`` (dimensionless).
     """
     phi = np.asarray(rv, dtype=np.float64)
     a2 = np.sum(phi * phi, axis=-1)[..., None, None]
@@ -90,7 +169,18 @@ def so3_left_jacobian_inverse(rv: ArrayLike) -> Array:
 
 
 def rot_z(theta: ArrayLike) -> Array:
-    """Rotation about z by ``theta`` radians, shape (...,) -> (..., 3, 3)."""
+    """Rotation about z by ``theta`` radians, shape (...,) -> (..., 3, 3).
+
+    Parameters
+    ----------
+    theta : array_like, shape (...,)
+        Angles, radians.
+
+    Returns
+    -------
+    ndarray, shape (..., 3, 3)
+        The rotation matrices.
+    """
     th = np.asarray(theta, dtype=np.float64)
     c, s = np.cos(th), np.sin(th)
     R = np.zeros((*th.shape, 3, 3))
@@ -103,7 +193,23 @@ def rot_z(theta: ArrayLike) -> Array:
 
 
 def skew(v: ArrayLike) -> Array:
-    """Cross-product matrices ``[v]x`` (``[v]x w = v x w``), shape (..., 3) -> (..., 3, 3)."""
+    """Cross-product matrices ``[v]x`` (``[v]x w = v x w``), shape (..., 3) -> (..., 3, 3).
+
+    Parameters
+    ----------
+    v : array_like, shape (..., 3)
+        Vectors (any unit).
+
+    Returns
+    -------
+    ndarray, shape (..., 3, 3)
+        The skew-symmetric matrices, in the unit of ``v``.
+
+    Raises
+    ------
+    ValueError
+        If the last axis of ``v`` is not 3.
+    """
     v = np.asarray(v, dtype=np.float64)
     if v.shape[-1:] != (3,):
         raise ValueError(f"v must have shape (..., 3), got {v.shape}")
@@ -119,6 +225,21 @@ def cross(a: ArrayLike, b: ArrayLike) -> Array:
 
     The same products and differences as ``np.cross`` (bit for bit), without its axis bookkeeping: ~10x faster on
     single 3-vectors, which the per-rod and per-candidate geometry computes by the thousand.
+
+    Parameters
+    ----------
+    a, b : array_like, shape (..., 3)
+        The factors (any unit), broadcast against each other.
+
+    Returns
+    -------
+    ndarray, shape (..., 3)
+        ``a x b``, in the product of their units.
+
+    Raises
+    ------
+    ValueError
+        If either last axis is not 3.
     """
     x = np.asarray(a, dtype=np.float64)
     y = np.asarray(b, dtype=np.float64)
@@ -134,12 +255,37 @@ def cross(a: ArrayLike, b: ArrayLike) -> Array:
 
 
 def unit(v: ArrayLike, axis: int = -1) -> Array:
+    """Vectors scaled to unit norm along ``axis``.
+
+    Parameters
+    ----------
+    v : array_like, shape (..., K)
+        Non-zero vectors (any unit).
+    axis : int, optional
+        The axis holding the components (last by default).
+
+    Returns
+    -------
+    ndarray, same shape as ``v``
+        The unit vectors (dimensionless).
+    """
     a = np.asarray(v, dtype=np.float64)
     return a / np.linalg.norm(a, axis=axis, keepdims=True)
 
 
 def orthonormalize(R: ArrayLike) -> Array:
-    """Nearest rotation matrix (SVD)."""
+    """Nearest rotation matrix (SVD).
+
+    Parameters
+    ----------
+    R : array_like, shape (3, 3)
+        An almost-rotation (dimensionless).
+
+    Returns
+    -------
+    ndarray, shape (3, 3)
+        The proper rotation nearest to ``R`` in the Frobenius norm.
+    """
     U, _, Vt = np.linalg.svd(np.asarray(R, dtype=np.float64))
     M = U @ Vt
     if np.linalg.det(M) < 0:
@@ -174,7 +320,18 @@ def kabsch(to_vectors: ArrayLike, from_vectors: ArrayLike, weights: ArrayLike | 
 
 
 def kabsch_points(to_points: ArrayLike, from_points: ArrayLike) -> Array:
-    """Rotation ``R`` of the rigid map ``to = R from + t`` fitting two (N, 3) point sets in least squares."""
+    """Rotation ``R`` of the rigid map ``to = R from + t`` fitting two (N, 3) point sets in least squares.
+
+    Parameters
+    ----------
+    to_points, from_points : array_like, shape (N, 3)
+        Corresponding points (metres, or any common unit).
+
+    Returns
+    -------
+    ndarray, shape (3, 3)
+        The rotation ``to_from_from``; ``t`` is ``mean(to) - R mean(from)``.
+    """
     P = np.asarray(from_points, dtype=np.float64)
     Q = np.asarray(to_points, dtype=np.float64)
     return kabsch(Q - Q.mean(axis=0), P - P.mean(axis=0))
@@ -220,6 +377,20 @@ class Rigid:
 
     @classmethod
     def from_rotvec(cls, rotvec: ArrayLike, t: ArrayLike) -> Rigid:
+        """The transform of a rotation vector and a translation.
+
+        Parameters
+        ----------
+        rotvec : array_like, shape (3,)
+            Rotation vector, radians.
+        t : array_like, shape (3,)
+            Translation, metres.
+
+        Returns
+        -------
+        Rigid
+            ``p_a = exp([rotvec]x) p_b + t``.
+        """
         return cls(rotvec_to_matrix(as_vec3(rotvec, "rotvec")), as_vec3(t, "t"))
 
     def inverse(self) -> Rigid:
@@ -229,7 +400,18 @@ class Rigid:
         return Rigid(self.R @ other.R, self.R @ other.t + self.t)
 
     def apply(self, p: ArrayLike) -> Array:
-        """Map points of shape (..., 3)."""
+        """Map points of shape (..., 3).
+
+        Parameters
+        ----------
+        p : array_like, shape (..., 3)
+            Points in frame b, metres.
+
+        Returns
+        -------
+        ndarray, shape (..., 3)
+            The same points in frame a, metres.
+        """
         return np.asarray(p, dtype=np.float64) @ self.R.T + self.t
 
     def to_dict(self) -> dict[str, list]:
@@ -237,4 +419,16 @@ class Rigid:
 
     @classmethod
     def from_dict(cls, d: dict) -> Rigid:
+        """The transform of :meth:`to_dict`'s mapping.
+
+        Parameters
+        ----------
+        d : dict
+            ``{"R": 3x3 nested list (dimensionless), "t": 3-list (metres)}``.
+
+        Returns
+        -------
+        Rigid
+            The transform.
+        """
         return cls(np.asarray(d["R"], dtype=np.float64), np.asarray(d["t"], dtype=np.float64))

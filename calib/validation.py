@@ -26,7 +26,22 @@ from .parameters import I4Parameters
 
 
 def ee_points_from_board(obs: Observations, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """Camera-frame positions of the board point on the end-effector axis, shape (N, 3), metres."""
+    """Camera-frame positions of the board point on the end-effector axis, shape (N, 3), metres.
+
+    Parameters
+    ----------
+    obs : Observations
+        The observations; their ``rotation`` phase locates the axis point on the board (origin if fewer than 3).
+    R : ndarray, shape (N, 3, 3)
+        ``camera_from_board`` rotations of the frames (dimensionless).
+    t : ndarray, shape (N, 3)
+        ``camera_from_board`` translations, metres.
+
+    Returns
+    -------
+    ndarray, shape (N, 3)
+        The axis point in the camera frame, metres.
+    """
     rot = obs.arrays("rotation")
     rot = rot.subset(rot.has_board)
     p = rotation_axis_point(rot.board_R, rot.board_t) if len(rot) >= 3 else np.zeros(3)
@@ -41,7 +56,9 @@ def displacement_gaps(
     Parameters
     ----------
     obs : Observations
+        Encoder values (metres) and board poses of the frames.
     params : I4Parameters
+        The parameter set judged (metres).
     phases : tuple of str
         The consecutive poses compared.
     vision_scale : float
@@ -81,7 +98,21 @@ def displacement_gaps(
 
 
 def straightness(obs: Observations, params: I4Parameters) -> dict:
-    """RMS distance (mm) of the DKM positions of the ``line`` phase to their least-squares line."""
+    """RMS distance (mm) of the DKM positions of the ``line`` phase to their least-squares line.
+
+    Parameters
+    ----------
+    obs : Observations
+        Encoder values of the ``line`` phase, metres.
+    params : I4Parameters
+        The parameter set judged (metres).
+
+    Returns
+    -------
+    dict
+        ``{"rms_mm", "n", "length_mm"}``: RMS distance and line length in millimetres (None with fewer than 3
+        frames), the frame count.
+    """
     d = obs.arrays("line")
     if len(d) < 3:
         return {"rms_mm": None, "n": len(d), "length_mm": None}
@@ -107,7 +138,12 @@ VISION_SCALE_WARN = 0.005
 def vision_scale(obs: Observations, base_frame: BaseFrameResult | None = None) -> dict:
     """Vision's displacement per encoder metre from the translation phase (:mod:`calib.baseframe`).
 
-    ``base_frame``: the base frame already fitted from ``obs`` (fitted here when not given).
+    Parameters
+    ----------
+    obs : Observations
+        The observations, with their ``translation`` phase.
+    base_frame : BaseFrameResult, optional
+        The base frame already fitted from ``obs`` (fitted here when not given).
 
     Returns
     -------
@@ -139,7 +175,20 @@ def vision_scale(obs: Observations, base_frame: BaseFrameResult | None = None) -
 def validate(obs: Observations, params: I4Parameters, scale: dict | None = None) -> dict:
     """Both validation figures, on the fit poses and (when present) on separate validation poses.
 
-    ``scale``: :func:`vision_scale`'s answer (computed when not given), recorded as ``vision_scale``.
+    Parameters
+    ----------
+    obs : Observations
+        The observations.
+    params : I4Parameters
+        The parameter set judged (metres).
+    scale : dict, optional
+        :func:`vision_scale`'s answer (computed when not given), recorded as ``vision_scale``.
+
+    Returns
+    -------
+    dict
+        ``{"vision_scale", "gaps_poses", "gaps_validation", "straightness"}``: :func:`displacement_gaps` of each
+        phase and :func:`straightness` (millimetres), each ``{"error": message}`` when it cannot be computed.
     """
     scale = vision_scale(obs) if scale is None else scale
     out: dict = {"vision_scale": scale}
@@ -156,10 +205,32 @@ def validate(obs: Observations, params: I4Parameters, scale: dict | None = None)
 
 
 def recorded_vision_scale(validation: dict) -> dict | None:
-    """The :func:`vision_scale` a result's ``validation`` section recorded (every entry holds the same), or None."""
+    """The :func:`vision_scale` a result's ``validation`` section recorded (every entry holds the same), or None.
+
+    Parameters
+    ----------
+    validation : dict
+        A result's ``validation`` section (:func:`validate`'s answer).
+
+    Returns
+    -------
+    dict or None
+        ``{"scale", "std", "n_poses", "source"}`` (scale dimensionless), or None if none is recorded.
+    """
     return next((v["vision_scale"] for v in validation.values() if isinstance(v, dict) and v.get("vision_scale")), None)
 
 
 def vision_scale_ppm(scale: dict) -> str:
-    """A measured :func:`vision_scale` as "+1234 +/- 56 ppm" (its departure from 1 and its std)."""
+    """A measured :func:`vision_scale` as "+1234 +/- 56 ppm" (its departure from 1 and its std).
+
+    Parameters
+    ----------
+    scale : dict
+        :func:`vision_scale`'s answer, with a numeric ``std``.
+
+    Returns
+    -------
+    str
+        The departure and its std, parts per million.
+    """
     return f"{(scale['scale'] - 1.0) * 1e6:+.0f} +/- {scale['std'] * 1e6:.0f} ppm"

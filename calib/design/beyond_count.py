@@ -27,7 +27,20 @@ TREND_ROUNDS = 4
 
 def count_std(std: dict[str, dict[str, float]], methods: Iterable[str]) -> dict[str, np.ndarray]:
     """Per method of ``methods``, its std per combination (4,) from a prediction's ``std`` (method -> combination ->
-    m), m (inf where it has none)."""
+    m), m (inf where it has none).
+
+    Parameters
+    ----------
+    std : dict
+        A prediction's ``std``: method -> combination name -> metres.
+    methods : iterable of str
+        The methods wanted.
+
+    Returns
+    -------
+    dict of str to ndarray, shape (4,)
+        Per method, the std in :data:`~calib.parameters.COMBINATION_NAMES` order, metres (inf where missing).
+    """
     return {
         m: np.array([(std.get(m) or {}).get(c, np.inf) for c in COMBINATION_NAMES], dtype=np.float64) for m in methods
     }
@@ -59,7 +72,29 @@ def past_the_count_search(
     within ``max_time_s``); when they meet the target, the fewest between that do, bracketed, each count guessed by the
     trend of the predicted std over the count (:mod:`.count_trend`) through the bracket's ends. Returns the chosen
     count, the trend's summary (``count_trend``), why the target is missed ("" when met) and a note; None when no
-    more poses are allowed."""
+    more poses are allowed.
+
+    Parameters
+    ----------
+    cur : DesignedCount
+        The design at the count search's ``n_max``, missing the target.
+    design_at : callable
+        ``design_at(k)``: the design with ``k`` fit poses.
+    worst_of : callable
+        ``worst_of(prediction)``: the largest ratio of a predicted std to its target (dimensionless; <= 1 meets it).
+    targets : dict of str to ndarray, shape (4,)
+        Per method, the target std per combination, metres.
+    max_time_s : float or None
+        Motion time allowed, seconds (None: no limit).
+    most : int
+        The most fit poses the design takes.
+
+    Returns
+    -------
+    tuple of (DesignedCount, dict, str, str) or None
+        The chosen design, :func:`trend_summary`, why the target is missed ("" when met) and a note ("" when
+        none); None when no more poses than ``cur``'s are allowed.
+    """
 
     def most_within(c: DesignedCount) -> int:
         """The most poses within the time at ``c``'s motion time per pose (a longer tour takes less per pose)."""
@@ -120,7 +155,20 @@ def past_the_count_search(
 
 def trend_summary(trend: CountTrend, targets: dict[str, np.ndarray] | None) -> dict[str, Any]:
     """``count_trend`` of a design: the two counts, the floor std per method and combination (m), the count the
-    trend says meets the targets (None: none, or no targets)."""
+    trend says meets the targets (None: none, or no targets).
+
+    Parameters
+    ----------
+    trend : CountTrend
+        The trend of the predicted std over the count.
+    targets : dict of str to ndarray, shape (4,), optional
+        Per method, the target std per combination, metres.
+
+    Returns
+    -------
+    dict
+        ``{"n_fit": [n_lo, n_hi], "floor_std_m": {method: {combination: metres}}, "n_fit_needed": int or None}``.
+    """
     return {
         "n_fit": list(trend.n),
         "floor_std_m": {m: dict(zip(COMBINATION_NAMES, v.tolist(), strict=True)) for m, v in trend.floor_std().items()},

@@ -286,10 +286,9 @@ def targets_from_plan(
 
     As ``target_std_m`` with the ``"target"`` criterion, it asks for a plan at least as accurate as the reference on
     every combination (``i4cal plan design --better-than``): a D-optimal set can trade one combination for the
-    others, and did (the twin's designed 12 poses were predicted 0.55-0.64x the paper's 20 on three combinations and
-    0.88x on H-D, and measured 1.1x on H-D). The reference is predicted as the camera will measure it: without its
-    steps whose board is out of view (:func:`measured_plan`), which would make the target stricter than the
-    reference gives.
+    others (much better on three, no better on the fourth, e.g. H-D). The reference is predicted as the camera will
+    measure it: without its steps whose board is out of view (:func:`measured_plan`), which would make the target
+    stricter than the reference gives.
 
     Parameters
     ----------

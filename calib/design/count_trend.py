@@ -3,9 +3,9 @@
 Each fit pose adds about the same information, and the rest of a plan (the sweeps, the lock phases, the camera's
 calibration) a fixed part, so a combination's predicted variance over the count ``N`` of fit poses drawn from one
 candidate set follows ``var(N) = floor + slope / N``: ``floor`` the part no number of such poses reduces, ``slope / N``
-the part they average. Two predictions, at ``n_lo`` and ``n_hi`` poses, give both; on the real bench example
-(``deploy/bench-real.example.toml``, 300 candidates) the trend from 60 and 150 poses gives the combined L at 100
-poses as 0.0598 mm where the design's prediction is 0.0600 mm. Units: metres (std), m^2 (variance).
+the part they average. Two predictions, at ``n_lo`` and ``n_hi`` poses, give both; between them, the trend gives a
+count's std to within a few per cent of the design's own prediction at that count. Units: metres (std), m^2
+(variance).
 """
 
 from __future__ import annotations
@@ -51,7 +51,23 @@ class CountTrend:
         return {m: np.sqrt(v) for m, v in self.floor_var.items()}
 
     def std_at(self, n: int) -> dict[str, np.ndarray]:
-        """Per method (k,): the std the trend gives ``n`` fit poses, m."""
+        """Per method (k,): the std the trend gives ``n`` fit poses, m.
+
+        Parameters
+        ----------
+        n : int
+            Count of fit poses, >= 1.
+
+        Returns
+        -------
+        dict of str to ndarray, shape (k,)
+            Per method, the std per combination, metres.
+
+        Raises
+        ------
+        ValueError
+            If ``n < 1``.
+        """
         if n < 1:
             raise ValueError(f"n must be >= 1, got {n}")
         return {m: np.sqrt(self.floor_var[m] + self.slope[m] / n) for m in self.floor_var}
@@ -59,7 +75,18 @@ class CountTrend:
     def needed(self, targets: dict[str, np.ndarray]) -> int | None:
         """The fewest fit poses at which the trend puts every combination of every method in ``targets`` (m, (k,)
         each) at or under its target; None when a combination's floor is at or over its target (no count reaches
-        it)."""
+        it).
+
+        Parameters
+        ----------
+        targets : dict of str to ndarray, shape (k,)
+            Per method, the target std per combination, metres.
+
+        Returns
+        -------
+        int or None
+            The count of fit poses, or None when no count reaches a target.
+        """
         n = 1
         for m, t in targets.items():
             t2 = np.asarray(t, dtype=np.float64) ** 2
@@ -77,6 +104,23 @@ def fit_count_trend(n_lo: int, std_lo: dict[str, np.ndarray], n_hi: int, std_hi:
     A combination whose variance does not fall from ``n_lo`` to ``n_hi`` gets its variance at ``n_hi`` as its
     floor and no slope; a variance that falls faster than ``1 / N`` (the larger count also bought better poses)
     gets a floor of 0 and the slope through the ``n_hi`` point.
+
+    Parameters
+    ----------
+    n_lo, n_hi : int
+        The two counts of fit poses, ``1 <= n_lo < n_hi``.
+    std_lo, std_hi : dict of str to ndarray, shape (k,)
+        Per method (the same methods in both), the predicted std per combination at each count, metres.
+
+    Returns
+    -------
+    CountTrend
+        Floor (m^2) and slope (m^2 times poses) per method and combination.
+
+    Raises
+    ------
+    ValueError
+        Bad counts, different methods, or shapes that differ.
     """
     if not (1 <= n_lo < n_hi):
         raise ValueError(f"need 1 <= n_lo < n_hi, got {n_lo}, {n_hi}")

@@ -51,7 +51,21 @@ _BIN_MEANS = np.array([0.1, 0.3, 0.5, 0.7, 0.9])
 
 
 def design_camera(camera: CameraModel, names: tuple[str, ...]) -> CameraModel:
-    """``camera`` carrying the lens model's parameter names (what :func:`calib.camera.intrinsics_names` reads)."""
+    """``camera`` carrying the lens model's parameter names (what :func:`calib.camera.intrinsics_names` reads).
+
+    Parameters
+    ----------
+    camera : CameraModel
+        The camera (K in px).
+    names : tuple of str
+        The intrinsics calibrated (``fx``, ``fy``, ``cx``, ``cy``, ``k1`` ...).
+
+    Returns
+    -------
+    CameraModel
+        A copy whose ``extra["calibration"]["covariance_params"]`` is ``names``, its distortion padded with zeros to
+        the coefficients they name.
+    """
     extra = dict(camera.extra or {})
     extra["calibration"] = {**(extra.get("calibration") or {}), "covariance_params": list(names)}
     need = max([5 if "k3" in names else 4, camera.dist.size])
@@ -101,6 +115,18 @@ class RodSet:
         return len(self.k)
 
     def subset(self, keep: np.ndarray) -> RodSet:
+        """The rods selected by ``keep``, every array alike.
+
+        Parameters
+        ----------
+        keep : ndarray of bool, shape (M,), or of int
+            The rods kept (a boolean mask or indices).
+
+        Returns
+        -------
+        RodSet
+            The selected rods.
+        """
         return RodSet(**{f: getattr(self, f)[keep] for f in self.__dataclass_fields__})
 
 
@@ -122,6 +148,35 @@ def synthetic_rods(
     a TLS line through edge points ``step_px`` apart with residual std ``edge_px`` (the extraction's effective
     residual, including the correlation of neighbouring edges). A rod around the camera centre (no limb planes) is
     left out. Every rod of every frame is computed at once (array operations, no loop over rods).
+
+    Parameters
+    ----------
+    scene : Scene
+        The camera, its mounting and the rods' radius (metres).
+    params : I4Parameters
+        The geometry the frames are seen with (metres).
+    q : ndarray, shape (N, 4)
+        Encoder values of the frames, metres.
+    edge_px : float
+        Residual std of an edge point about its limb line, px (> 0).
+    step_px : float, optional
+        Spacing of the edge points along a limb, px.
+    edge_bias_px : float, optional
+        The extraction's allowance for a systematic edge offset, px.
+    min_length_px : float, optional
+        Shortest visible rod measured, px.
+    edge_bias_length_px : float, optional
+        Limb length over which the edge-bias allowance is averaged in ``cov_u_own``, px.
+
+    Returns
+    -------
+    RodSet
+        The M rods measured, in (frame, leg, rod) order.
+
+    Raises
+    ------
+    InputError
+        If ``edge_px`` is not finite and > 0.
     """
     from ..vision.rods.covariance import _direction_covariances_set
     from ..vision.rods.geometry import axis_point_seen_along
@@ -196,8 +251,8 @@ def synthetic_rods(
     inner = np.c_[cmid, np.ones(M)] @ Kinv.T
     # the axis point seen at the middle of the visible limbs, as the extraction reports it: the legs method pivots
     # each limb line's noise about its foot, and the 3-D middle sample (above) projects off the image middle by
-    # perspective, about 12% of the span on the twin's lock phases, which weighed the prediction's lock planes
-    # 1.6-1.9x the method's
+    # perspective (about 12% of the span on lock phases), which would weigh the prediction's lock planes unlike the
+    # method's
     P = axis_point_seen_along(P, uu, inner)
     cov_u, cov_u_own = _direction_covariances_set(
         K,
@@ -227,7 +282,18 @@ def synthetic_rods(
 
 
 def board_corners(scene: Scene) -> np.ndarray:
-    """The board's inner chessboard corners (board frame, z = 0), shape (C, 3), metres."""
+    """The board's inner chessboard corners (board frame, z = 0), shape (C, 3), metres.
+
+    Parameters
+    ----------
+    scene : Scene
+        The board's size and square (metres).
+
+    Returns
+    -------
+    ndarray, shape (C, 3)
+        The corners, row by row, metres.
+    """
     W, H = scene.board_size_m
     a = scene.board_square_m
     nx, ny = round(W / a), round(H / a)
@@ -290,7 +356,21 @@ def board_axis_angle_deg(scene: Scene, R: np.ndarray, t: np.ndarray) -> np.ndarr
     """How far the board's squares' edges lie from the pixel axes in the image, per pose, degrees in [0, 45].
 
     The angle of the board's x axis at its centre as the camera sees it, folded onto the nearest pixel axis
-    (the squares' other edges are at 90 degrees to it). ``R`` (N, 3, 3), ``t`` (N, 3): camera_from_board.
+    (the squares' other edges are at 90 degrees to it).
+
+    Parameters
+    ----------
+    scene : Scene
+        The camera and the board (metres).
+    R : ndarray, shape (N, 3, 3)
+        ``camera_from_board`` rotations.
+    t : ndarray, shape (N, 3)
+        ``camera_from_board`` translations, metres.
+
+    Returns
+    -------
+    ndarray, shape (N,)
+        The angle per pose, degrees in [0, 45].
     """
     R = np.asarray(R, dtype=np.float64).reshape(-1, 3, 3)
     t = np.asarray(t, dtype=np.float64).reshape(-1, 3)
@@ -309,8 +389,22 @@ def corner_noise_factor(angle_deg: np.ndarray, axis_ratio: float, axis_width_deg
 
     ``sqrt(1 + (axis_ratio^2 - 1) / (1 + (angle / axis_width)^2))``: squares whose edges run along the pixel rows
     and columns give sub-pixel corners ``axis_ratio`` times noisier (the edge's pixel phase is the same along it:
-    pixel locking). Measured on the image-level twin (docs/design.md): 0.045-0.065 px within 4 degrees of the
-    axes, 0.016-0.022 px beyond 20 degrees, at 0.55-0.75 m.
+    pixel locking). On rendered views at 0.55-0.75 m, corners within 4 degrees of the axes are about three times
+    noisier than beyond 20 degrees (docs/design.md).
+
+    Parameters
+    ----------
+    angle_deg : ndarray, shape (N,)
+        :func:`board_axis_angle_deg` of each view, degrees.
+    axis_ratio : float
+        Noise of a view along the axes over an oblique one's (dimensionless, >= 1; 1: no effect).
+    axis_width_deg : float
+        Angle at which the excess noise has halved in variance, degrees.
+
+    Returns
+    -------
+    ndarray, shape (N,)
+        The factor per view (dimensionless, >= 1).
     """
     a = np.asarray(angle_deg, dtype=np.float64)
     return np.sqrt(1.0 + (axis_ratio**2 - 1.0) / (1.0 + (a / axis_width_deg) ** 2))
@@ -330,6 +424,28 @@ def board_poses(
     Corner noise ``corner_px`` (px) for a view whose squares are oblique in the image, times
     :func:`corner_noise_factor` (``axis_ratio``, ``axis_width_deg``) by how close their edges run to the pixel
     axes; ``axis_ratio`` 1: the same noise in every view.
+
+    Parameters
+    ----------
+    scene : Scene
+        The camera, its mounting and the board (metres).
+    params : I4Parameters
+        The geometry the frames are seen with (metres).
+    q : ndarray, shape (N, 4)
+        Encoder values of the frames, metres.
+    corner_px : float
+        Corner noise of an oblique view, px.
+    names : tuple of str
+        The intrinsics whose effect ``d_intrinsics`` gives.
+    axis_ratio : float, optional
+        See :func:`corner_noise_factor` (dimensionless).
+    axis_width_deg : float, optional
+        See :func:`corner_noise_factor`, degrees.
+
+    Returns
+    -------
+    BoardPoses
+        Poses (metres), their (N, 6, 6) covariance (rad^2, m^2) and (N, 6, n) ``d_intrinsics``.
     """
     q = np.atleast_2d(np.asarray(q, dtype=np.float64))
     pts = board_corners(scene)
@@ -352,6 +468,27 @@ def calibration_covariance(scene: Scene, views: list[Rigid], corner_px: float, n
     times the factor for weights estimated from the views' residuals when it weights them (:mod:`calib.bundle`).
     With views of unequal noise the weighted fit's information is that of ``corner_px`` = the views' variances'
     harmonic mean, square-rooted.
+
+    Parameters
+    ----------
+    scene : Scene
+        The camera and the board (metres).
+    views : list of Rigid
+        ``camera_from_board`` poses of the calibration views (metres), at least 3.
+    corner_px : float
+        Corner noise, px.
+    names : tuple of str
+        The intrinsics calibrated.
+
+    Returns
+    -------
+    ndarray, shape (n, n)
+        Their covariance, in the squared units of each (px^2 for ``fx`` .. ``cy``, dimensionless for distortion).
+
+    Raises
+    ------
+    InputError
+        Fewer than 3 views (``field="views"``).
     """
     if len(views) < 3:
         raise InputError("a camera calibration needs at least 3 board views", field="views")

@@ -20,6 +20,18 @@ __all__ = ["board_pose_sensitivity", "end_effector_problem", "invert_information
 def invert_information(F: np.ndarray, what: str) -> np.ndarray:
     """The covariance of an information matrix ``F`` (k, k), inverted after scaling to unit diagonal.
 
+    Parameters
+    ----------
+    F : ndarray, shape (k, k)
+        Fisher information, in the inverse squared units of the unknowns (1/m^2, 1/rad^2).
+    what : str
+        The method, named in the error.
+
+    Returns
+    -------
+    ndarray, shape (k, k)
+        The covariance of the unknowns (m^2, rad^2, ...).
+
     Raises
     ------
     IdentifiabilityError
@@ -36,7 +48,26 @@ def invert_information(F: np.ndarray, what: str) -> np.ndarray:
 
 def board_pose_sensitivity(model: Any, x0: np.ndarray, R: np.ndarray, t: np.ndarray, h: float = 1e-7) -> np.ndarray:
     """The end-effector residuals' sensitivity to each board pose (N, 6, 6): rotation (left rotation vector, rad),
-    then position (m), by central differences of step ``h``."""
+    then position (m), by central differences of step ``h``.
+
+    Parameters
+    ----------
+    model : Any
+        The end-effector method's residual model (``model.residuals(x, R, t)``, whitened, dimensionless).
+    x0 : ndarray, shape (P,)
+        The unknowns the residuals are taken at (metres, radians).
+    R : ndarray, shape (N, 3, 3)
+        ``camera_from_board`` rotations of the fit poses.
+    t : ndarray, shape (N, 3)
+        ``camera_from_board`` translations, metres.
+    h : float, optional
+        Difference step (radians for the rotation, metres for the position).
+
+    Returns
+    -------
+    ndarray, shape (N, 6, 6)
+        Per pose, d(its 6 residuals) / d(board rotation (rad), board position (m)).
+    """
     G = np.zeros((len(R), 6, 6))
     for a in range(6):
         d = np.zeros(3)
@@ -54,7 +85,28 @@ def board_pose_sensitivity(model: Any, x0: np.ndarray, R: np.ndarray, t: np.ndar
 def end_effector_problem(nominal: I4Parameters, q_fit: np.ndarray, scene: Scene):
     """The end-effector method's residual model at the nominal geometry for fit poses ``q_fit`` (N, 4), m, seen by
     ``scene``: ``(model, x0, R, t)``, the model, its unknowns at nominal (the four combinations first), and the
-    board poses in the camera (N, 3, 3), (N, 3), m."""
+    board poses in the camera (N, 3, 3), (N, 3), m.
+
+    Parameters
+    ----------
+    nominal : I4Parameters
+        The geometry the model is taken at (metres).
+    q_fit : ndarray, shape (N, 4)
+        Encoder values of the fit poses, metres.
+    scene : Scene
+        The camera's and the board's mounting.
+
+    Returns
+    -------
+    model : end-effector residual model
+        The method's model at these poses.
+    x0 : ndarray, shape (16,)
+        Its unknowns at nominal, the four combinations (metres) first, then the mounting (metres, radians).
+    R : ndarray, shape (N, 3, 3)
+        ``camera_from_board`` rotations.
+    t : ndarray, shape (N, 3)
+        ``camera_from_board`` translations, metres.
+    """
     from ..methods.end_effector import EndEffectorModel
 
     q_fit = np.asarray(q_fit, dtype=np.float64).reshape(-1, 4)

@@ -88,7 +88,18 @@ class LegsCriterion:
 
     def pose_statistics(self, q: np.ndarray) -> np.ndarray:
         """Per fit pose (N, 3, 30) the additive statistic ``[J^T C^-1 J | J^T C^-1 C_own C^-1 J | J^T C^-1 R]`` (see the
-        module); zero for a pose without the four legs in view."""
+        module); zero for a pose without the four legs in view.
+
+        Parameters
+        ----------
+        q : ndarray, shape (N, 4)
+            Encoder values of the candidate fit poses, metres.
+
+        Returns
+        -------
+        ndarray, shape (N, 3, 30)
+            The per-pose statistic (in the units of ``(L, S, D)``, metres, and the 24 joint coordinates, metres).
+        """
         from ..methods.legs import LegsModel, pair_own_covariances
 
         q = np.asarray(q, dtype=np.float64).reshape(-1, 4)
@@ -144,7 +155,20 @@ class LegsCriterion:
     def cov4(self, stats: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Batched: summed statistics (..., 3, 30) -> the four combinations' covariance (..., 4, 4), m^2, and the log
         det of its inverse (-inf where ``A`` is singular, and the variances inf), as :func:`.optimize._cov4` gives them
-        for the other methods."""
+        for the other methods.
+
+        Parameters
+        ----------
+        stats : ndarray, shape (..., 3, 30)
+            Sums of :meth:`pose_statistics` over the poses of each selection.
+
+        Returns
+        -------
+        cov : ndarray, shape (..., 4, 4)
+            The four combinations' covariance, m^2 (inf variances where undetermined).
+        logdet : ndarray, shape (...)
+            Log det of its inverse (-inf where undetermined).
+        """
         A = stats[..., :3]
         M = stats[..., 3:6]
         B = stats[..., 6:]

@@ -45,10 +45,13 @@ def move_time(q_from: np.ndarray, q_to: np.ndarray, spec: MotionSpec) -> np.ndar
     ----------
     q_from, q_to : ndarray, shape (..., 4)
         Joint values, metres (broadcast against each other).
+    spec : MotionSpec
+        Speed (m/s) and acceleration (m/s^2) of the axes.
 
     Returns
     -------
     ndarray, shape (...)
+        Move durations, seconds.
     """
     d = np.abs(np.asarray(q_to, dtype=np.float64) - np.asarray(q_from, dtype=np.float64))
     v, a = spec.speed_m_s, spec.accel_m_s2

@@ -100,7 +100,24 @@ class DesignNoise:
 
     @classmethod
     def from_mapping(cls, data: dict[str, Any] | None) -> DesignNoise:
-        """From a dict with the same keys (e.g. an observations document's ``noise``); missing keys: default."""
+        """From a dict with the same keys (e.g. an observations document's ``noise``); missing keys: default.
+
+        Parameters
+        ----------
+        data : dict, optional
+            ``rod_direction_rad``, ``rod_point_m``, ``board_rotation_rad``, ``encoder_m`` (radians, metres) and
+            ``board_translation_m`` (3 values, or one for all axes, metres); None or missing entries: default.
+
+        Returns
+        -------
+        DesignNoise
+            The noise levels.
+
+        Raises
+        ------
+        InputError
+            A level not finite and > 0 (``encoder_m`` >= 0).
+        """
         if not data:
             return cls()
         base = cls()
@@ -125,7 +142,20 @@ class DesignNoise:
 
 def ratio_to_target(std_m: Any, target_m: Any) -> np.ndarray:
     """``std_m / target_m`` (float64, broadcast): a target as small as the API accepts (down to 5e-324 m) gives an
-    infinite ratio, as intended, without an overflow warning."""
+    infinite ratio, as intended, without an overflow warning.
+
+    Parameters
+    ----------
+    std_m : array_like
+        Predicted standard deviations, metres.
+    target_m : array_like
+        Target standard deviations, metres (> 0), broadcast against ``std_m``.
+
+    Returns
+    -------
+    ndarray
+        The ratios (dimensionless; <= 1 meets the target).
+    """
     with np.errstate(over="ignore", divide="ignore"):
         return np.asarray(std_m, dtype=np.float64) / target_m
 
@@ -133,7 +163,20 @@ def ratio_to_target(std_m: Any, target_m: Any) -> np.ndarray:
 def scaled_inverse(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Batched inverse of symmetric (..., p, p) matrices, scaled to unit diagonal first (information in m^-2 and
     rad^-2 side by side), and whether each is determined (its eigenvalues within 1e-13 of the largest, a positive
-    diagonal). Undetermined ones get a finite stand-in: the callers mark them (log det -inf, variances inf)."""
+    diagonal). Undetermined ones get a finite stand-in: the callers mark them (log det -inf, variances inf).
+
+    Parameters
+    ----------
+    F : ndarray, shape (..., p, p)
+        Symmetric information matrices (inverse squared units of the unknowns).
+
+    Returns
+    -------
+    inverse : ndarray, shape (..., p, p)
+        Their inverses (the covariances, squared units of the unknowns).
+    ok : ndarray of bool, shape (...)
+        Whether each is determined.
+    """
     d = np.sqrt(np.einsum("...ii->...i", F))
     good = np.all(d > 0, axis=-1)
     d = np.where(good[..., None], d, 1.0)
@@ -146,20 +189,61 @@ def scaled_inverse(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def mark_undetermined(C: np.ndarray, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Batched covariances (..., k, k) and the log det of their inverses, both marked where undetermined (``ok``
-    False, :func:`scaled_inverse`): variances inf, log det -inf."""
+    False, :func:`scaled_inverse`): variances inf, log det -inf.
+
+    Parameters
+    ----------
+    C : ndarray, shape (..., k, k)
+        Covariances (m^2 for the combinations).
+    ok : ndarray of bool, shape (...)
+        Whether each is determined.
+
+    Returns
+    -------
+    cov : ndarray, shape (..., k, k)
+        ``C``, all inf where undetermined.
+    logdet : ndarray, shape (...)
+        Log det of the inverse of ``C`` (the information), -inf where undetermined.
+    """
     sign, logdet = np.linalg.slogdet(C)
     ld = np.where(ok & (sign > 0), -logdet, -np.inf)
     return np.where(ok[..., None, None], C, np.inf), ld
 
 
 def phase_q(plan: Plan, *phases: str) -> np.ndarray:
-    """Joint values (N, 4) of a plan's steps in ``phases`` (metres; guided lines are left out)."""
+    """Joint values (N, 4) of a plan's steps in ``phases`` (metres; guided lines are left out).
+
+    Parameters
+    ----------
+    plan : Plan
+        The plan.
+    *phases : str
+        The phases wanted.
+
+    Returns
+    -------
+    ndarray, shape (N, 4)
+        Joint targets of those steps in plan order, metres.
+    """
     qs = [s.q for s in plan.steps if s.phase in phases and s.q is not None]
     return np.asarray(qs, dtype=np.float64).reshape(-1, 4)
 
 
 def schur(F: np.ndarray, k: int = 4) -> np.ndarray:
-    """Information on the first ``k`` unknowns with the others marginalised, ``F_aa - F_ab F_bb^+ F_ba``."""
+    """Information on the first ``k`` unknowns with the others marginalised, ``F_aa - F_ab F_bb^+ F_ba``.
+
+    Parameters
+    ----------
+    F : ndarray, shape (p, p)
+        Information matrix (inverse squared units of the unknowns).
+    k : int, optional
+        Number of unknowns kept (the first ones).
+
+    Returns
+    -------
+    ndarray, shape (k, k)
+        Their marginal information.
+    """
     if F.shape[0] == k:
         return F
     Fbb = F[k:, k:]
@@ -175,6 +259,27 @@ def base_frame_information(
     The board orientations of the rotation phase (the rotation axis z_B) and the board positions of the
     translation phase (the direction x_B); their reference orientation, angles and start position are
     marginalised. Units: rad^-2.
+
+    Parameters
+    ----------
+    nominal : I4Parameters
+        The geometry (metres; ``T_per_rad`` gives the rotation phase's angles).
+    q_rot, q_tra : ndarray, shape (N, 4)
+        Joint values of the rotation and translation phases, metres (at least 2 each).
+    camera_from_base_R : ndarray, shape (3, 3)
+        The camera's orientation (base axes in the camera frame).
+    noise : DesignNoise
+        Board pose noise (radians, metres).
+
+    Returns
+    -------
+    ndarray, shape (3, 3)
+        Information on ``w``, rad^-2.
+
+    Raises
+    ------
+    IdentifiabilityError
+        Fewer than 2 frames in a phase.
     """
     q_rot = np.asarray(q_rot, dtype=np.float64).reshape(-1, 4)
     q_tra = np.asarray(q_tra, dtype=np.float64).reshape(-1, 4)
@@ -236,7 +341,24 @@ def _combined_rods(
 def combined_pose_information(
     nominal: I4Parameters, q_fit: np.ndarray, camera_from_base_R: np.ndarray, noise: DesignNoise
 ) -> np.ndarray:
-    """GLS information (N, 7, 7) of each fit pose's rods on (four combinations, w), per m^2 and rad^2."""
+    """GLS information (N, 7, 7) of each fit pose's rods on (four combinations, w), per m^2 and rad^2.
+
+    Parameters
+    ----------
+    nominal : I4Parameters
+        The geometry (metres).
+    q_fit : ndarray, shape (N, 4)
+        Joint values of the fit poses, metres.
+    camera_from_base_R : ndarray, shape (3, 3)
+        The camera's orientation (base axes in the camera frame).
+    noise : DesignNoise
+        Rod direction noise (radians).
+
+    Returns
+    -------
+    ndarray, shape (N, 7, 7)
+        Per pose, information on the four combinations (m^-2) and ``w`` (rad^-2).
+    """
     q_fit = np.asarray(q_fit, dtype=np.float64).reshape(-1, 4)
     J, S, k = _combined_rods(nominal, q_fit, camera_from_base_R)
     Si = np.linalg.inv(S + 1e-30 * np.eye(2)) / noise.rod_direction_rad**2
@@ -259,12 +381,28 @@ def predict_combined(
 
     Parameters
     ----------
+    nominal : I4Parameters
+        The geometry the model is linearised at (metres).
     q_fit, q_rot, q_tra : ndarray, shape (N, 4)
         Joint values of the fit poses, the rotation and the translation phases (m).
     camera_from_base_R : ndarray, shape (3, 3)
         The camera's orientation (base axes in the camera frame).
+    noise : DesignNoise, optional
+        Noise levels (radians, metres); :class:`DesignNoise`'s defaults if None.
     weighting : {"gls", "frobenius"}
         The method's weighting (module docstring).
+
+    Returns
+    -------
+    ndarray, shape (4, 4)
+        Covariance of the four combinations, m^2.
+
+    Raises
+    ------
+    IdentifiabilityError
+        The plan does not determine the four combinations.
+    InputError
+        An unknown ``weighting``.
     """
     noise = noise or DesignNoise()
     Pw = np.zeros((7, 7))
@@ -288,7 +426,24 @@ def end_effector_pose_information(
     nominal: I4Parameters, q_fit: np.ndarray, scene: Scene, noise: DesignNoise | None = None
 ) -> np.ndarray:
     """GLS information (N, 16, 16) of each fit pose's board pose and encoders on the end-effector method's
-    unknowns (four combinations first; then the offsets, camera and board transforms and the board's scale)."""
+    unknowns (four combinations first; then the offsets, camera and board transforms and the board's scale).
+
+    Parameters
+    ----------
+    nominal : I4Parameters
+        The geometry the model is linearised at (metres).
+    q_fit : ndarray, shape (N, 4)
+        Joint values of the fit poses, metres.
+    scene : Scene
+        The camera's and the board's mounting.
+    noise : DesignNoise, optional
+        Board pose and encoder noise (radians, metres).
+
+    Returns
+    -------
+    ndarray, shape (N, 16, 16)
+        Per pose, information on the unknowns (inverse squared metres and radians).
+    """
     noise = noise or DesignNoise()
     model, x0, R, t = end_effector_problem(nominal, q_fit, scene)
     n = len(R)
@@ -308,7 +463,29 @@ def end_effector_pose_information(
 def predict_end_effector(
     nominal: I4Parameters, q_fit: np.ndarray, scene: Scene, noise: DesignNoise | None = None
 ) -> np.ndarray:
-    """Predicted covariance (4, 4) of the end-effector method's four combinations (m^2)."""
+    """Predicted covariance (4, 4) of the end-effector method's four combinations (m^2).
+
+    Parameters
+    ----------
+    nominal : I4Parameters
+        The geometry the model is linearised at (metres).
+    q_fit : ndarray, shape (N, 4)
+        Joint values of the fit poses, metres.
+    scene : Scene
+        The camera's and the board's mounting.
+    noise : DesignNoise, optional
+        Board pose and encoder noise (radians, metres).
+
+    Returns
+    -------
+    ndarray, shape (4, 4)
+        Covariance of the four combinations, m^2.
+
+    Raises
+    ------
+    IdentifiabilityError
+        The plan does not determine the four combinations.
+    """
     F = end_effector_pose_information(nominal, q_fit, scene, noise).sum(axis=0)
     return invert_information(F, "end-effector")[:4, :4]
 
@@ -334,10 +511,28 @@ def predict_legs(
 
     Parameters
     ----------
+    nominal : I4Parameters
+        The geometry the model is linearised at (metres).
     q_fit : ndarray, shape (N, 4)
         Fit poses (steps 3-4), metres.
     q_lock : list of 4 ndarrays, shape (N_i, 4)
         Frames of the ``lock-1`` .. ``lock-4`` phases (actuator i fixed), metres.
+    scene : Scene
+        The camera's mounting and the rods' geometry.
+    noise : DesignNoise, optional
+        Rod direction (radians) and point (metres) noise.
+
+    Returns
+    -------
+    cov7 : ndarray, shape (7, 7)
+        Covariance of the seven parameters, m^2.
+    cov4 : ndarray, shape (4, 4)
+        Covariance of the four combinations, m^2.
+
+    Raises
+    ------
+    IdentifiabilityError
+        Fewer than 2 frames in a lock phase.
     """
     from ..methods.legs import LegsModel, steps34_covariance
 
@@ -429,6 +624,32 @@ def predict_plan(
     uncertainty: :mod:`.predict_images`; ``weighting`` is then the method's own, GLS on the rods' ``cov_u``).
     A method the plan cannot feed (e.g. no ``lock-i`` phase for the legs method) is reported in ``errors``
     with the reason, not raised.
+
+    Parameters
+    ----------
+    plan : Plan
+        The plan.
+    nominal : I4Parameters
+        The geometry the models are linearised at (metres).
+    scene : Scene
+        The camera, its mounting and the board.
+    noise : DesignNoise or ImageNoise, optional
+        The noise model (see above); :class:`DesignNoise`'s defaults if None.
+    methods : tuple of str, optional
+        Methods predicted, among :data:`METHODS`.
+    weighting : {"gls", "frobenius"}, optional
+        The combined method's weighting with a :class:`DesignNoise`.
+
+    Returns
+    -------
+    Prediction
+        Standard deviations per method and combination (metres), covariances (m^2), the reasons of the methods
+        the plan cannot feed.
+
+    Raises
+    ------
+    InputError
+        An unknown method.
     """
     from .predict_images import ImageNoise
 

@@ -4,8 +4,8 @@ On images the methods weigh what the extraction measures by what it reports (rod
 scatter; boards: the PnP covariance) and carry the camera's intrinsics and a limb-edge bias common to every rod as
 nuisances (:mod:`calib.methods.combined`, :mod:`calib.methods.end_effector`, :mod:`calib.methods.legs`). The
 prediction rebuilds those measurements for the plan at the nominal geometry (:mod:`.imaging`) and computes the
-covariance each method reports, with the noise levels of :class:`ImageNoise` (measured on the image-level twin, or
-taken from a run):
+covariance each method reports, with the noise levels of :class:`ImageNoise` (the image-level twin's by default,
+or taken from a run):
 
 * **combined**: GLS information of every rod's two Jacobian entries over (four combinations, base-frame rotation w,
   the intrinsics' principal directions z, the two limb-edge biases), each rod weighted by ``rod_scale^2`` times its
@@ -80,13 +80,13 @@ class ImageNoise:
         as noisier than they are.
     rod_scale : float
         The rods' scatter over the prediction's synthetic ``cov_u_own`` (what the combined method weighs by): the
-        method's own scale over the extracted ``cov_u_own`` (``diagnostics.rod_errors.own_scale``, mean 0.88 over
-        32 rendered trials) times the extracted over the synthetic covariance's principal std (1.14 in median on
-        the test's rendered dataset): 1.0 (docs/design.md).
+        method's own scale over the extracted ``cov_u_own`` (``diagnostics.rod_errors.own_scale``, about 0.9 on
+        rendered images) times the extracted over the synthetic covariance's principal std (about 1.1): 1.0 by
+        default (docs/design.md).
     rod_pair_correlation, rod_distance_correlation : float
         The rods' error correlations as the combined method estimates them (``diagnostics.rod_errors``: a leg's
-        two rods in one frame; rods seen at nearby places, times exp(-distance / 100 px)); the defaults are their
-        means over 32 rendered trials (designed-12: 0.12 and 0.13; paper-20: 0.17 and 0.22). The prediction's
+        two rods in one frame; rods seen at nearby places, times exp(-distance / 100 px)); the defaults, 0.15 and
+        0.18, are typical of rendered images of designed and paper plans (docs/design.md). The prediction's
         covariance is the method's sandwich with them; the design's exchange leaves them out (per-pose
         information).
     corner_px : float
@@ -105,15 +105,13 @@ class ImageNoise:
         The legs method's residual chi-square per degree of freedom in its lock phases (step 1, the joints' planes)
         and in its fit poses (steps 3-4, the leg directions): the method scales its joints' and its leg directions'
         covariance by them, since the rods' errors exceed their edge scatter (frame to frame, a rod keeps part of its
-        error). The defaults are their means over 64 rendered trials of the image-level twin (designed-12 plans of
-        seeds 0 and 1, paper-20 of seed 1): 1.53 and 1.32 (docs/design.md). 1: the covariances as the noise model
-        gives them.
+        error). The defaults, 1.5 and 1.3, are their typical values on rendered images of the image-level twin
+        (docs/design.md). 1: the covariances as the noise model gives them.
     legs_rod_cov_ratio : float
         The extracted fit-pose rods' own covariances over the synthetic ones, as the legs method's steps 3-4 weigh
-        them (variance ratio of their leg-directions part before its chi-square level): 1.25-1.28 in median over
-        the trials of three rendered plans (seed-0 designed-12 and paper-20, seed-2 paper-20), the synthetic
-        ``cov_u``'s principal std being 1.10-1.14x smaller than the extracted (docs/design.md). The combined
-        prediction has it in ``rod_scale``.
+        them (variance ratio of their leg-directions part before its chi-square level): 1.26 by default, the
+        synthetic ``cov_u``'s principal std being about 1.1x smaller than the extracted on rendered images
+        (docs/design.md). The combined prediction has it in ``rod_scale``.
     legs_joint_depth_sys_m, legs_joint_depth_sys_leg_share : float
         The lock phases' joints' systematic error along their line of sight (m, RMS per joint) and the share of
         its variance common to a leg's two joints: the legs method's (``calib.methods.legs.constants``,
@@ -204,7 +202,22 @@ class ImageNoise:
                 )
 
     def board_poses(self, scene: Scene, nominal: I4Parameters, q: np.ndarray) -> BoardPoses:
-        """:func:`calib.design.imaging.board_poses` of frames ``q`` (N, 4) at these corner noise levels."""
+        """:func:`calib.design.imaging.board_poses` of frames ``q`` (N, 4) at these corner noise levels.
+
+        Parameters
+        ----------
+        scene : Scene
+            The camera, its mounting and the board (metres).
+        nominal : I4Parameters
+            The geometry the frames are seen with (metres).
+        q : ndarray, shape (N, 4)
+            Encoder values of the frames, metres.
+
+        Returns
+        -------
+        BoardPoses
+            Poses (metres), their (N, 6, 6) PnP covariance (rad^2, m^2) and ``d_intrinsics``.
+        """
         return board_poses(
             scene,
             nominal,
@@ -219,7 +232,20 @@ class ImageNoise:
         return None if self.intrinsics_cov is None else np.asarray(self.intrinsics_cov, dtype=np.float64)
 
     def with_intrinsics(self, cov: np.ndarray, names: tuple[str, ...] | None = None) -> ImageNoise:
-        """The same levels with the camera's covariance ``cov`` (over ``names``, default the current ones)."""
+        """The same levels with the camera's covariance ``cov`` (over ``names``, default the current ones).
+
+        Parameters
+        ----------
+        cov : ndarray, shape (n, n)
+            Covariance of the intrinsics (px^2 for fx, fy, cx, cy; dimensionless for distortion), symmetrised here.
+        names : tuple of str, optional
+            The intrinsics it is over (default: ``intrinsics_names``).
+
+        Returns
+        -------
+        ImageNoise
+            A copy carrying ``cov``.
+        """
         from dataclasses import replace
 
         c = np.asarray(cov, dtype=np.float64)
@@ -292,6 +318,31 @@ def base_frame_images(
     The rotation phase's board orientations turn about z_B (reference orientation and angles unknown), the
     translation phase's positions move along x_B (start unknown); the estimate's gain maps the board poses'
     change with the intrinsics (``d_intrinsics``) to w.
+
+    Parameters
+    ----------
+    nominal : I4Parameters
+        The geometry the frames are seen with (metres).
+    q_rot, q_tra : ndarray, shape (N, 4)
+        Joint values of the rotation and translation phases, metres (at least 2 each).
+    scene : Scene
+        The camera, its mounting and the board.
+    noise : ImageNoise
+        Corner noise (px) and the intrinsics' names.
+    steps : ndarray, shape (n_steps, n), optional
+        Intrinsics steps (rows, in the units of each intrinsic); none by default.
+
+    Returns
+    -------
+    info : ndarray, shape (3, 3)
+        Information on ``w``, rad^-2.
+    G : ndarray, shape (3, n_steps)
+        Change of ``w`` per intrinsics step, radians.
+
+    Raises
+    ------
+    IdentifiabilityError
+        Fewer than 2 frames in a phase.
     """
     q_rot = np.asarray(q_rot, dtype=np.float64).reshape(-1, 4)
     q_tra = np.asarray(q_tra, dtype=np.float64).reshape(-1, 4)
@@ -431,7 +482,31 @@ def combined_images_pose_information(
     G: np.ndarray,
     drop: set[tuple[int, int, int]] | None = None,
 ) -> np.ndarray:
-    """GLS information (N, p, p) of each fit pose's rods over (combinations, w, z, edge biases)."""
+    """GLS information (N, p, p) of each fit pose's rods over (combinations, w, z, edge biases).
+
+    Parameters
+    ----------
+    nominal : I4Parameters
+        The geometry the rods are seen with (metres).
+    q_fit : ndarray, shape (N, 4)
+        Joint values of the fit poses, metres.
+    scene : Scene
+        The camera, its mounting and the rods.
+    noise : ImageNoise
+        The extraction's noise levels (px).
+    steps : ndarray, shape (n_z, n)
+        The intrinsics' principal steps (:func:`combined_images_prior`).
+    G : ndarray, shape (3, n_z)
+        The base frame's rotation change per step, radians.
+    drop : set of (int, int, int), optional
+        Rods left out: (fit pose index, leg 0-3, rod 0-1).
+
+    Returns
+    -------
+    ndarray, shape (N, p, p)
+        Per pose, information on the combinations (m^-2), ``w`` (rad^-2) and the nuisances ``z`` and edge biases
+        (dimensionless, in units of their prior std).
+    """
     q_fit = np.asarray(q_fit, dtype=np.float64).reshape(-1, 4)
     J, S, k, _ = _combined_terms(nominal, q_fit, scene, noise, steps, G, drop)
     Si = np.linalg.inv(S + 1e-30 * np.eye(2))
@@ -445,7 +520,28 @@ def combined_images_prior(
     nominal: I4Parameters, q_rot: np.ndarray, q_tra: np.ndarray, scene: Scene, noise: ImageNoise
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The combined method's prior information (p, p) over (combinations, w, z, edge biases), the intrinsics'
-    principal steps (n_z, n) and the base frame's change with them G (3, n_z)."""
+    principal steps (n_z, n) and the base frame's change with them G (3, n_z).
+
+    Parameters
+    ----------
+    nominal : I4Parameters
+        The geometry the frames are seen with (metres).
+    q_rot, q_tra : ndarray, shape (N, 4)
+        Joint values of the rotation and translation phases, metres.
+    scene : Scene
+        The camera, its mounting and the board.
+    noise : ImageNoise
+        Corner noise (px), the camera's covariance and the edge-bias prior (px).
+
+    Returns
+    -------
+    P : ndarray, shape (p, p)
+        Prior information: ``w`` (rad^-2) from the base-frame phases, unit on ``z`` and the edge biases.
+    steps : ndarray, shape (n_z, n)
+        The intrinsics' principal steps (in the units of each intrinsic; none without a camera covariance).
+    G : ndarray, shape (3, n_z)
+        The base frame's rotation change per step, radians.
+    """
     steps = _steps(noise.covariance(), len(noise.intrinsics_names))
     Fw, G = base_frame_images(nominal, q_rot, q_tra, scene, noise, steps)
     n_edge = 2 if noise.edge_bias_prior_px > 0 else 0
@@ -467,7 +563,33 @@ def predict_combined_images(
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """Predicted covariance (4, 4) of the combined method's combinations on images (m^2), and the intrinsics'
     posterior covariance (n, n) after the rods (None without a camera covariance). ``drop``: rods left out (fit
-    pose index, leg 0-3, rod 0-1), e.g. those a run's fit rejected."""
+    pose index, leg 0-3, rod 0-1), e.g. those a run's fit rejected.
+
+    Parameters
+    ----------
+    nominal : I4Parameters
+        The geometry the model is linearised at (metres).
+    q_fit, q_rot, q_tra : ndarray, shape (N, 4)
+        Joint values of the fit poses and of the rotation and translation phases, metres.
+    scene : Scene
+        The camera, its mounting, the board and the rods.
+    noise : ImageNoise
+        The extraction's and the camera's noise levels.
+    drop : set of (int, int, int), optional
+        Rods left out.
+
+    Returns
+    -------
+    cov4 : ndarray, shape (4, 4)
+        Covariance of the four combinations, m^2.
+    posterior : ndarray, shape (n, n) or None
+        The intrinsics' posterior covariance (px^2 for fx, fy, cx, cy), None without a camera covariance.
+
+    Raises
+    ------
+    IdentifiabilityError
+        The plan does not determine the four combinations.
+    """
     C4, post, _edge = predict_combined_images_posteriors(nominal, q_fit, q_rot, q_tra, scene, noise, drop)
     return C4, post
 
@@ -482,7 +604,35 @@ def predict_combined_images_posteriors(
     drop: set[tuple[int, int, int]] | None = None,
 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """:func:`predict_combined_images` and the limb-edge bias's posterior covariance (2, 2), px^2 (None without the
-    edge-bias nuisances): what the legs method takes from the combined fit (``calib.methods.edge_bias``)."""
+    edge-bias nuisances): what the legs method takes from the combined fit (``calib.methods.edge_bias``).
+
+    Parameters
+    ----------
+    nominal : I4Parameters
+        The geometry the model is linearised at (metres).
+    q_fit, q_rot, q_tra : ndarray, shape (N, 4)
+        Joint values of the fit poses and of the rotation and translation phases, metres.
+    scene : Scene
+        The camera, its mounting, the board and the rods.
+    noise : ImageNoise
+        The extraction's and the camera's noise levels.
+    drop : set of (int, int, int), optional
+        Rods left out: (fit pose index, leg 0-3, rod 0-1).
+
+    Returns
+    -------
+    cov4 : ndarray, shape (4, 4)
+        Covariance of the four combinations, m^2.
+    posterior : ndarray, shape (n, n) or None
+        The intrinsics' posterior covariance, None without a camera covariance.
+    edge : ndarray, shape (2, 2) or None
+        The limb-edge biases' posterior covariance, px^2, None without edge-bias nuisances.
+
+    Raises
+    ------
+    IdentifiabilityError
+        The plan does not determine the four combinations.
+    """
     P, steps, G = combined_images_prior(nominal, q_rot, q_tra, scene, noise)
     q_fit = np.asarray(q_fit, dtype=np.float64).reshape(-1, 4)
     J, S, _k, Sig = _combined_terms(nominal, q_fit, scene, noise, steps, G, drop, correlated=True)
@@ -520,7 +670,24 @@ def end_effector_images_pose_information(
     nominal: I4Parameters, q_fit: np.ndarray, scene: Scene, noise: ImageNoise
 ) -> np.ndarray:
     """GLS information (N, 16, 16) of each fit pose's board pose (PnP covariance) and encoders on the end-effector
-    method's unknowns (the combinations first)."""
+    method's unknowns (the combinations first).
+
+    Parameters
+    ----------
+    nominal : I4Parameters
+        The geometry the model is linearised at (metres).
+    q_fit : ndarray, shape (N, 4)
+        Joint values of the fit poses, metres.
+    scene : Scene
+        The camera, its mounting and the board.
+    noise : ImageNoise
+        Corner noise (px) and encoder noise (metres).
+
+    Returns
+    -------
+    ndarray, shape (N, 16, 16)
+        Per pose, information on the unknowns (inverse squared metres and radians).
+    """
     J, _A, _bp, C = _ee_terms(nominal, np.asarray(q_fit, dtype=np.float64).reshape(-1, 4), scene, noise)
     return np.einsum("nai,nab,nbj->nij", J, np.linalg.inv(C), J)
 
@@ -534,7 +701,33 @@ def predict_end_effector_images(
 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """Predicted covariance (4, 4) of the end-effector method on images (m^2) and its parts
     (``board_poses_and_encoders``, ``intrinsics``). ``intrinsics_cov``: the camera's covariance the method uses
-    (the rods' posterior, as the extraction records it; default: the calibration's)."""
+    (the rods' posterior, as the extraction records it; default: the calibration's).
+
+    Parameters
+    ----------
+    nominal : I4Parameters
+        The geometry the model is linearised at (metres).
+    q_fit : ndarray, shape (N, 4)
+        Joint values of the fit poses, metres.
+    scene : Scene
+        The camera, its mounting and the board.
+    noise : ImageNoise
+        Corner noise (px), encoder noise (metres) and the camera's covariance.
+    intrinsics_cov : ndarray, shape (n, n), optional
+        The camera's covariance the method uses (px^2 for fx, fy, cx, cy).
+
+    Returns
+    -------
+    cov4 : ndarray, shape (4, 4)
+        Covariance of the four combinations, m^2.
+    parts : dict of str to ndarray, shape (4, 4)
+        Its parts (m^2), adding up to ``cov4``.
+
+    Raises
+    ------
+    IdentifiabilityError
+        The plan does not determine the four combinations.
+    """
     J, A, bp, C = _ee_terms(nominal, np.asarray(q_fit, dtype=np.float64).reshape(-1, 4), scene, noise)
     Ci = np.linalg.inv(C)
     F = np.einsum("nai,nab,nbj->ij", J, Ci, J)
@@ -578,8 +771,30 @@ class LegsLock:
 
 def legs_lock_joints(nominal: I4Parameters, q_lock: list[np.ndarray], scene: Scene, noise: ImageNoise) -> LegsLock:
     """Step 1 of the legs method on the lock phases ``q_lock`` (four arrays (n_i, 4) of actuator values, metres):
-    the joints and their covariance (:class:`LegsLock`). Raises IdentifiabilityError naming the phase and rod
-    when a rod is in view in fewer than 2 of its lock frames."""
+    the joints and their covariance (:class:`LegsLock`).
+
+    Parameters
+    ----------
+    nominal : I4Parameters
+        The geometry the frames are seen with (metres).
+    q_lock : list of 4 ndarrays, shape (n_i, 4)
+        Actuator values of the ``lock-1`` .. ``lock-4`` phases, metres.
+    scene : Scene
+        The camera, its mounting and the rods.
+    noise : ImageNoise
+        The extraction's noise levels (px).
+
+    Returns
+    -------
+    LegsLock
+        The joints (metres) and their covariance (m^2).
+
+    Raises
+    ------
+    IdentifiabilityError
+        A phase with fewer than 2 frames, or a rod in view in fewer than 2 of its lock frames (names the phase and
+        the rod).
+    """
     from ..methods.legs import PlaneObservation, joint_from_planes, limb_line_noise
 
     if len(q_lock) != 4 or any(len(np.atleast_2d(q)) < 2 for q in q_lock):
@@ -647,7 +862,24 @@ class LegsFitDirections:
 
 
 def legs_fit_directions(nominal: I4Parameters, q_fit: np.ndarray, scene: Scene, noise: ImageNoise) -> LegsFitDirections:
-    """The leg directions of the fit poses ``q_fit`` (N, 4) (actuator values, metres), :class:`LegsFitDirections`."""
+    """The leg directions of the fit poses ``q_fit`` (N, 4) (actuator values, metres), :class:`LegsFitDirections`.
+
+    Parameters
+    ----------
+    nominal : I4Parameters
+        The geometry the frames are seen with (metres).
+    q_fit : ndarray, shape (N, 4)
+        Actuator values of the fit poses, metres.
+    scene : Scene
+        The camera, its mounting and the rods.
+    noise : ImageNoise
+        The extraction's noise levels (px).
+
+    Returns
+    -------
+    LegsFitDirections
+        Rod and leg directions (dimensionless) and their covariances (rad^2), NaN where not seen.
+    """
     from ..methods.legs import pair_means
 
     q_fit = np.asarray(q_fit, dtype=np.float64).reshape(-1, 4)
@@ -684,7 +916,39 @@ def predict_legs_images(
     ``limb_edge_bias``, ``a_priori``).
     ``edge_cov_px2`` (2, 2): the limb-edge bias's covariance the method uses, the combined fit's measurement of it
     (:func:`predict_combined_images_posteriors`; the method's default); None: the allowance
-    (``edge_bias_prior_px`` per limb)."""
+    (``edge_bias_prior_px`` per limb).
+
+    Parameters
+    ----------
+    nominal : I4Parameters
+        The geometry the model is linearised at (metres).
+    q_fit : ndarray, shape (N, 4)
+        Actuator values of the fit poses, metres.
+    q_lock : list of 4 ndarrays, shape (n_i, 4)
+        Actuator values of the ``lock-1`` .. ``lock-4`` phases, metres.
+    scene : Scene
+        The camera, its mounting and the rods.
+    noise : ImageNoise
+        The extraction's and the camera's noise levels.
+    intrinsics_cov : ndarray, shape (n, n), optional
+        The camera's covariance the method uses (default: ``noise``'s).
+    edge_cov_px2 : ndarray, shape (2, 2), optional
+        The limb-edge biases' covariance, px^2.
+
+    Returns
+    -------
+    cov7 : ndarray, shape (7, 7)
+        Covariance of the seven parameters, m^2.
+    cov4 : ndarray, shape (4, 4)
+        Covariance of the four combinations, m^2.
+    parts : dict of str to ndarray, shape (7, 7)
+        The seven's parts (m^2), adding up to ``cov7``.
+
+    Raises
+    ------
+    IdentifiabilityError
+        The lock phases or the fit poses do not determine the parameters.
+    """
     from ..methods.legs import (
         IntrinsicsEffect,
         LegsModel,

@@ -124,6 +124,12 @@ def design_tradeoff(
 
     Parameters
     ----------
+    nominal : I4Parameters
+        The geometry the designs are made at (metres).
+    scene : Scene
+        The camera's and the board's mounting.
+    request : DesignRequest
+        What is asked (criterion, methods, target std in metres, candidates, ...); its ``n_fit`` is replaced.
     counts : sequence of int or str
         Fit-pose counts (:func:`parse_counts`).
     progress : callable, optional
