@@ -68,7 +68,21 @@ def pose_set_model(params: I4Parameters, q: np.ndarray) -> PoseSetModel:
     """The end-effector method's measurement model at encoder values ``q`` (N, 4), m: the board poses predicted through
     the DKM, per pose the rotation matrix's nine entries then the position (m), (N * 12,), as a function of the seven
     parameters then 12 nuisance unknowns: the camera's placement in the base frame (rotation vector, rad; position, m)
-    and the board's on the end-effector (the same)."""
+    and the board's on the end-effector (the same).
+
+    Parameters
+    ----------
+    params : I4Parameters
+        The geometry at which the model is linearised (its seven parameters start the vector).
+    q : array_like, shape (N, 4)
+        Encoder values of the poses, m.
+
+    Returns
+    -------
+    PoseSetModel
+        The prediction (N * 12,) (rotation entries, dimensionless; position, m) as a function of the 19-vector, with 12
+        nuisance unknowns.
+    """
     q = np.asarray(q, dtype=np.float64)
 
     def f(v: np.ndarray) -> np.ndarray:
@@ -131,20 +145,65 @@ class EndEffectorModel:
         self.theta_ref = theta_ref
 
     def jacobian(self, x: np.ndarray, h: float = 1e-7) -> np.ndarray:
-        """d residuals / d x, shape (N, 6, 16), by central differences of step ``h``."""
+        """d residuals / d x, shape (N, 6, 16), by central differences of step ``h``.
+
+        Parameters
+        ----------
+        x : ndarray, shape (16,)
+            The unknowns, :data:`_NAMES` order (m, rad; the board's scale dimensionless).
+        h : float
+            The central differences' step, in the unknowns' units.
+
+        Returns
+        -------
+        ndarray, shape (N, 6, 16)
+            d residual / d x (m or rad per unit of each unknown).
+        """
         n = self.R.shape[0]
         return central_jacobian(lambda v: self.residuals(v).ravel(), x, h).reshape(n, 6, -1)
 
     def pose_sensitivity(self, x: np.ndarray, h: float = 1e-7) -> np.ndarray:
         """d residuals_k / d (board pose error_k), shape (N, 6, 6): rotation (left, camera frame; rad) then
-        translation (m)."""
+        translation (m).
+
+        Parameters
+        ----------
+        x : ndarray, shape (16,)
+            The unknowns, :data:`_NAMES` order (m, rad; the board's scale dimensionless).
+        h : float
+            The central differences' step (rad, m).
+
+        Returns
+        -------
+        ndarray, shape (N, 6, 6)
+            d residual / d board-pose error (m or rad of residual per rad or m of pose error).
+        """
         return _pose_sensitivity(self, x, h)
 
     def ee_poses(
         self, x: np.ndarray, R: np.ndarray | None = None, t: np.ndarray | None = None
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The end-effector poses the board poses give: positions (N, 3), m, rotation angles (N,), rad, tilts (N, 2),
-        rad."""
+        rad.
+
+        Parameters
+        ----------
+        x : ndarray, shape (16,)
+            The unknowns, :data:`_NAMES` order (m, rad; the board's scale dimensionless).
+        R : ndarray, shape (N, 3, 3), optional
+            Board rotations in the camera frame (default: the model's).
+        t : ndarray, shape (N, 3), optional
+            Board positions in the camera frame, m (default: the model's).
+
+        Returns
+        -------
+        p : ndarray, shape (N, 3)
+            End-effector positions in the base frame, m.
+        theta : ndarray, shape (N,)
+            Rotation angles about z_B, rad, unwrapped near ``theta_ref``.
+        tilt : ndarray, shape (N, 2)
+            Tilt of the end-effector's z axis (x, y components; small angles, rad).
+        """
         R = self.R if R is None else R
         t = self.t if t is None else t
         R_bc = rotvec_to_matrix(x[6:9]) @ self.R_bc0
@@ -161,7 +220,22 @@ class EndEffectorModel:
 
     def residuals(self, x: np.ndarray, R: np.ndarray | None = None, t: np.ndarray | None = None) -> np.ndarray:
         """Per pose (N, 6): 4 IKM residuals (m), 2 tilt residuals (rad), for the unknowns ``x`` (16,) and the board
-        poses ``R``, ``t`` (default: the model's)."""
+        poses ``R``, ``t`` (default: the model's).
+
+        Parameters
+        ----------
+        x : ndarray, shape (16,)
+            The unknowns, :data:`_NAMES` order (m, rad; the board's scale dimensionless).
+        R : ndarray, shape (N, 3, 3), optional
+            Board rotations in the camera frame (default: the model's).
+        t : ndarray, shape (N, 3), optional
+            Board positions in the camera frame, m (default: the model's).
+
+        Returns
+        -------
+        ndarray, shape (N, 6)
+            IKM residuals (m) then tilt residuals (rad).
+        """
         L, c, s1, s3, o1, o3 = x[:6]
         p, theta, tilt = self.ee_poses(x, R, t)
         X, Y, Z = p.T
@@ -268,6 +342,22 @@ def initial_model(obs: Observations, data: PhaseArrays, phases: tuple[str, ...])
     the base frame (or Kabsch on the nominal positions), the translations by linear least squares and the offsets
     where the nominal pose says they are.
 
+    Parameters
+    ----------
+    obs : Observations
+        The observations (their base frame and nominal parameters).
+    data : PhaseArrays
+        The board poses and encoder values of the fit's frames.
+    phases : tuple of str
+        The phases the frames come from (for the base frame).
+
+    Returns
+    -------
+    model : EndEffectorModel
+        The model of the board poses.
+    x0 : ndarray, shape (16,)
+        The unknowns' start, :data:`_NAMES` order (m, rad; scale dimensionless).
+
     Raises
     ------
     IdentifiabilityError
@@ -324,6 +414,25 @@ def fit_passes(
     """The fit, re-weighted each pass: by each pose's own covariance (PnP) times one common factor measured from the
     residuals, or, without covariances, by a diagonal board-pose noise estimated from the residuals.
 
+    Parameters
+    ----------
+    wres : WeightedResiduals
+        The whitened residuals; their whitening is updated each pass.
+    x0 : ndarray, shape (16,)
+        The unknowns' start.
+    C_board : ndarray, shape (N, 6, 6), or None
+        Each board pose's covariance (left rotation, rad; t, m), or None.
+    cfg : EndEffectorSettings
+        The settings (encoder noise, passes).
+    on_iteration : IterationCallback or None
+        Called at each iteration of the fits, or None.
+
+    Returns
+    -------
+    _PassesOutcome
+        The unknowns (16,), evaluations, the board poses' noise (``Sigma_b`` (6, 6), rad^2 and m^2, or the factor
+        ``scale2``, dimensionless), whether the data are noise-free, scipy's last solution.
+
     Raises
     ------
     ConvergenceError
@@ -371,7 +480,31 @@ def reject_poses(
 ) -> np.ndarray:
     """Poses whose residual the model does not explain (a wrong board pose): a studentized chi-square test, one round
     from the fit with every pose, then one refit without them and with the factor re-measured (``wres`` and ``fit``
-    updated). Returns each pose's studentized chi-square (N,)."""
+    updated).
+
+    Parameters
+    ----------
+    wres : WeightedResiduals
+        The whitened residuals; ``keep`` and the whitening are updated.
+    fit : _PassesOutcome
+        The fit with every pose; updated by the refit.
+    C_board : ndarray, shape (N, 6, 6)
+        Each board pose's covariance (left rotation, rad; t, m).
+    encoder_std_m : float
+        Encoder noise, m.
+    on_iteration : IterationCallback or None
+        Called at each iteration of the refit, or None.
+
+    Returns
+    -------
+    ndarray, shape (N,)
+        Each pose's studentized chi-square (dimensionless).
+
+    Raises
+    ------
+    ConvergenceError
+        The refit did not converge.
+    """
     model, x = wres.model, fit.x
     n, p = model.R.shape[0], x.size
     chi2_pose = _studentized_chi2(central_jacobian(wres, x), wres(x), n)
@@ -513,6 +646,18 @@ def board_covariances(obs: Observations, arrays: PhaseArrays) -> np.ndarray | No
     The extraction gives ``board.cov`` for (rotation vector, t) from the PnP Jacobian; a change ``d`` of the
     rotation vector ``r`` is the left rotation ``J_l(r) d``. None when any pose of ``arrays`` lacks it or it is
     not a finite positive-definite 6x6 matrix (the geometric twin's numbers).
+
+    Parameters
+    ----------
+    obs : Observations
+        The observations holding the boards.
+    arrays : PhaseArrays
+        The phase's arrays (which frames).
+
+    Returns
+    -------
+    ndarray, shape (N, 6, 6), or None
+        Covariances, rad^2 (rotation block) and m^2 (translation block).
     """
     out = np.empty((len(arrays), 6, 6))
     for k, i in enumerate(arrays.index):

@@ -35,11 +35,22 @@ def intrinsics_prior(obs: Observations, refined: bool = True) -> tuple[CameraMod
     """The extraction's camera and the covariance (n, n) of its intrinsics, or None when unknown.
 
     Order: the camera's ``calibration.covariance_params`` (:func:`calib.camera.intrinsics_names`: the chosen lens
-    model's parameters, :data:`calib.camera.INTRINSICS_NAMES` for a camera calibrated before lens models were
-    chosen; px for fx, fy, cx, cy; dimensionless after). When the rods refined the camera
-    (``calibration.covariance_refined``, the combined fit's posterior), that covariance is returned with
-    ``refined`` (methods that do not use the rods); the calibration's own with ``refined=False`` (the combined
-    method, which uses the rods again).
+    model's parameters, :data:`calib.camera.INTRINSICS_NAMES` for a calibration that names no lens model; px for fx,
+    fy, cx, cy; dimensionless after). When the rods refined the camera (``calibration.covariance_refined``, the
+    combined fit's posterior), that covariance is returned with ``refined`` (methods that do not use the rods); the
+    calibration's own with ``refined=False`` (the combined method, which uses the rods again).
+
+    Parameters
+    ----------
+    obs : Observations
+        The observations whose extraction recorded the camera.
+    refined : bool
+        Return the rods' refined covariance when there is one.
+
+    Returns
+    -------
+    tuple of (CameraModel, ndarray of shape (n, n)) or None
+        The camera and its intrinsics' covariance (px^2 for fx, fy, cx, cy; dimensionless for the distortion).
     """
     extra = obs.document.model_extra or {}
     cam = (extra.get("extraction") or {}).get("camera") or {}
@@ -70,6 +81,16 @@ def calibration_offset(obs: Observations) -> Array | None:
     (``calibration.refined_by_rods.shift``); the calibration's own estimate is the camera minus that shift, and
     it, with the calibration's covariance, is the prior of a fit that uses the rods again. None when the camera
     was not refined.
+
+    Parameters
+    ----------
+    obs : Observations
+        The observations whose extraction recorded the camera.
+
+    Returns
+    -------
+    ndarray, shape (n,), or None
+        Minus the recorded shift, in ``covariance_params`` order (px for fx, fy, cx, cy; dimensionless after).
     """
     extra = obs.document.model_extra or {}
     calib = (((extra.get("extraction") or {}).get("camera") or {}).get("calibration")) or {}
@@ -81,18 +102,47 @@ def calibration_offset(obs: Observations) -> Array | None:
 
 
 def principal_steps(cov: Array, rel_tol: float = 1e-12) -> Array:
-    """One standard deviation along each principal direction of ``cov`` (p, p), shape (n, p)."""
+    """One standard deviation along each principal direction of ``cov`` (p, p), shape (n, p).
+
+    Parameters
+    ----------
+    cov : ndarray, shape (p, p)
+        A covariance (units of the parameters squared).
+    rel_tol : float
+        Eigenvalues below ``rel_tol`` times the largest are dropped (dimensionless).
+
+    Returns
+    -------
+    ndarray, shape (n, p)
+        One row per kept direction, in the parameters' units; n <= p.
+    """
     w, V = np.linalg.eigh(np.asarray(cov, dtype=np.float64))
     keep = w > rel_tol * max(float(w.max()), 1e-300)
     return (V[:, keep] * np.sqrt(w[keep])).T
 
 
 def perturbed_camera(camera: CameraModel, step: Array) -> CameraModel:
-    """``camera`` with its intrinsics (:func:`calib.camera.intrinsics_names`: fx, fy, cx, cy, k1, k2, p1, p2 unless
-    its calibration chose another lens model) moved by ``step`` (n,)."""
+    """``camera`` with its intrinsics moved by ``step``.
+
+    The intrinsics are :func:`calib.camera.intrinsics_names` (fx, fy, cx, cy, k1, k2, p1, p2 unless its calibration
+    chose another lens model); a camera that lists no parameters takes the first ``len(step)`` of
+    :data:`calib.camera.INTRINSICS_NAMES`.
+
+    Parameters
+    ----------
+    camera : CameraModel
+        The camera.
+    step : ndarray, shape (n,)
+        The change of each intrinsic (px for fx, fy, cx, cy; dimensionless after).
+
+    Returns
+    -------
+    CameraModel
+        The moved camera, with ``camera``'s extra.
+    """
     st = np.asarray(step, dtype=np.float64).reshape(-1)
     names = intrinsics_names(camera)
-    if st.size != len(names):  # a step over the historical eight on a camera that lists no parameters
+    if st.size != len(names):  # a camera that lists no parameters: the first len(step) of the eight
         names = INTRINSICS_NAMES[: st.size]
     out = moved_camera(camera, st, names)
     return CameraModel(out.K, out.dist, out.width, out.height, camera.extra)
@@ -121,8 +171,20 @@ def limb_planes_for(camera: CameraModel, limbs_px: Array, reference_h: Array) ->
 
 
 def planes_through(xn: Array, reference_h: Array) -> Array:
-    """Unit normals (M, 2, 3) of the planes through the camera centre and each limb's points ``xn``
-    (M, 2, P, 2) in normalized coordinates (total least squares line), signed like ``reference_h``."""
+    """Unit normals of the planes through the camera centre and each limb's points (total least squares line).
+
+    Parameters
+    ----------
+    xn : ndarray, shape (M, 2, P, 2)
+        Per rod and limb, the limb's points in normalized coordinates (dimensionless).
+    reference_h : ndarray, shape (M, 2, 3)
+        The planes as measured: each result is signed like its reference.
+
+    Returns
+    -------
+    ndarray, shape (M, 2, 3)
+        Unit plane normals.
+    """
     c = xn.mean(axis=2)
     d = xn - c[:, :, None, :]
     # normal: the smallest-variance direction of the 2x2 scatter [[a, b], [b, e]] (closed form): the
@@ -142,8 +204,23 @@ def planes_through(xn: Array, reference_h: Array) -> Array:
 
 
 def board_sensitivities(obs: Observations, arrays: PhaseArrays, n: int | None = None) -> Array | None:
-    """``d_intrinsics`` (N, 6, n) of the board poses of ``arrays`` (zeros where no board), or None if any lacks it
-    (or has another parameter count than ``n``; default: the first board's, i.e. the camera's lens model's)."""
+    """``d_intrinsics`` of the board poses of ``arrays`` (zeros where no board), or None if any lacks it.
+
+    Parameters
+    ----------
+    obs : Observations
+        The observations holding the boards.
+    arrays : PhaseArrays
+        The phase's arrays (which frames, which have a board).
+    n : int, optional
+        The intrinsics count each must have (default: the first board's, i.e. the camera's lens model's; 8 when no
+        board has one).
+
+    Returns
+    -------
+    ndarray, shape (N, 6, n), or None
+        Per pose, d (left rotation, rad; t, m) / d intrinsic; None when a board lacks it or has another count.
+    """
     if n is None:
         first = next(
             (
@@ -170,7 +247,22 @@ def board_sensitivities(obs: Observations, arrays: PhaseArrays, n: int | None = 
 
 
 def perturbed_boards(arrays: PhaseArrays, sens: Array, step: Array) -> PhaseArrays:
-    """The board poses of ``arrays`` as they would be measured with the intrinsics moved by ``step`` (n,)."""
+    """The board poses of ``arrays`` as they would be measured with the intrinsics moved by ``step`` (n,).
+
+    Parameters
+    ----------
+    arrays : PhaseArrays
+        The phase's arrays with the measured board poses.
+    sens : ndarray, shape (N, 6, n)
+        The boards' sensitivities (:func:`board_sensitivities`), rad and m per unit of each intrinsic.
+    step : ndarray, shape (n,)
+        The change of the intrinsics (px for fx, fy, cx, cy; dimensionless after).
+
+    Returns
+    -------
+    PhaseArrays
+        ``arrays`` with ``board_R`` (N, 3, 3) and ``board_t`` (N, 3), m, moved to first order.
+    """
     d = sens @ step  # (N, 6)
     R = np.einsum("nij,njk->nik", rotvec_to_matrix(d[:, :3]), arrays.board_R)
     return replace(arrays, board_R=R, board_t=arrays.board_t + d[:, 3:])
@@ -208,7 +300,18 @@ class LinearizedLimbs:
         self.dxn = np.asarray(d).reshape((len(d), *L.shape)) if d else np.zeros((0, *L.shape))
 
     def subset(self, keep: Array) -> LinearizedLimbs:
-        """The same for the rods ``keep`` (boolean mask or indices over M)."""
+        """The same for the rods ``keep`` (boolean mask or indices over M).
+
+        Parameters
+        ----------
+        keep : ndarray
+            Boolean mask (M,) or indices of the rods kept.
+
+        Returns
+        -------
+        LinearizedLimbs
+            The linearisation restricted to those rods.
+        """
         out = object.__new__(LinearizedLimbs)
         out.camera, out.steps = self.camera, self.steps
         out.px, out.xn0, out.dxn = self.px[keep], self.xn0[keep], self.dxn[:, keep]
@@ -216,7 +319,18 @@ class LinearizedLimbs:
         return out
 
     def points(self, z: Array) -> Array:
-        """Normalized coordinates (M, 2, P, 2) of the limb samples for the nuisance ``z`` (n,)."""
+        """Normalized coordinates (M, 2, P, 2) of the limb samples for the nuisance ``z`` (n,).
+
+        Parameters
+        ----------
+        z : ndarray, shape (n,)
+            The nuisance, in standard deviations along each principal direction (dimensionless).
+
+        Returns
+        -------
+        ndarray, shape (M, 2, P, 2)
+            Normalized coordinates (dimensionless).
+        """
         zz = np.asarray(z, dtype=np.float64)
         x = self.xn0 + np.tensordot(zz, self.dxn, axes=(0, 0))
         if not np.any(zz):
@@ -253,21 +367,47 @@ class LinearizedLimbs:
         return out
 
     def planes(self, z: Array, reference_h: Array) -> Array:
-        """Interpretation planes (M, 2, 3) for ``z``, signed like ``reference_h``."""
+        """Interpretation planes (M, 2, 3) for ``z``, signed like ``reference_h``.
+
+        Parameters
+        ----------
+        z : ndarray, shape (n,)
+            The nuisance, in standard deviations along each principal direction (dimensionless).
+        reference_h : ndarray, shape (M, 2, 3)
+            The planes as measured (signs; returned as is when there is no rod).
+
+        Returns
+        -------
+        ndarray, shape (M, 2, 3)
+            Unit plane normals.
+        """
         if self.shape[0] == 0:
             return np.asarray(reference_h, dtype=np.float64)
         return planes_through(self.points(z), reference_h)
 
 
 def outward_shift_normalized(camera: CameraModel, limbs_px: Array, step_px: float = 0.5) -> Array:
-    """Per limb sample, its move in normalized coordinates (M, 2, P, 2) when the limb's edge moves 1 px outward in
-    the (distorted) image, where the extraction measured it.
+    """Per limb sample, its move in normalized coordinates when the limb's edge moves 1 px outward in the (distorted)
+    image, where the extraction measured it.
 
-    ``limbs_px`` (M, 2, P, 2): per rod, its two limbs' samples in distorted pixels. Outward: along the normal of the
-    limb's line through its samples, away from the rod's other limb. An edge bias that is the same number of image
-    pixels everywhere (what an edge detector's response to a rod's profile gives) is not the same in normalized
-    coordinates: the undistortion magnifies it with the radius (central difference of the camera's own
-    undistortion over +/- ``step_px``).
+    Outward: along the normal of the limb's line through its samples, away from the rod's other limb. An edge bias
+    that is the same number of image pixels everywhere (what an edge detector's response to a rod's profile gives) is
+    not the same in normalized coordinates: the undistortion magnifies it with the radius (central difference of the
+    camera's own undistortion over +/- ``step_px``).
+
+    Parameters
+    ----------
+    camera : CameraModel
+        The camera the limbs were seen through.
+    limbs_px : ndarray, shape (M, 2, P, 2)
+        Per rod, its two limbs' samples in distorted pixels.
+    step_px : float
+        Half the central difference's step, px.
+
+    Returns
+    -------
+    ndarray, shape (M, 2, P, 2)
+        Move of each sample per pixel of outward edge shift, normalized coordinates per px.
     """
     L = np.asarray(limbs_px, dtype=np.float64)
     c = L.mean(axis=2)  # (M, 2, 2)
@@ -293,6 +433,16 @@ def lens_model_error(camera: CameraModel) -> tuple[Array, Array] | None:
     ``calibration.lens_model.residual_profile`` (:func:`calib.camera.radial_residual_profile`): bin radii (px from
     the principal point) and the systematic radial residual there (px, outward), the part of the board views'
     residuals the chosen lens model could not follow beyond their noise.
+
+    Parameters
+    ----------
+    camera : CameraModel
+        The camera whose ``extra`` holds its calibration.
+
+    Returns
+    -------
+    tuple of (ndarray, ndarray), each of shape (B,), or None
+        The bin radii (px) and the systematic radial residual there (px, outward).
     """
     prof = (((camera.extra or {}).get("calibration") or {}).get("lens_model") or {}).get("residual_profile") or {}
     r, e = prof.get("radius_px"), prof.get("systematic_px")
@@ -305,8 +455,23 @@ def lens_model_error(camera: CameraModel) -> tuple[Array, Array] | None:
 
 
 def correct_model_error(camera: CameraModel, pixels: Array, profile: tuple[Array, Array]) -> Array:
-    """Distorted pixels (..., 2) moved by minus the radial model error at their radius (linear interpolation of
-    ``profile``, :func:`lens_model_error`): where they would be seen were the lens exactly the model."""
+    """Distorted pixels moved by minus the radial model error at their radius: where they would be seen were the lens
+    exactly the model.
+
+    Parameters
+    ----------
+    camera : CameraModel
+        The camera (its principal point is the radii's centre).
+    pixels : ndarray, shape (..., 2)
+        Distorted pixel coordinates, px.
+    profile : tuple of (ndarray, ndarray), each of shape (B,)
+        Bin radii and systematic radial residual, px (:func:`lens_model_error`), linearly interpolated.
+
+    Returns
+    -------
+    ndarray, shape (..., 2)
+        The corrected pixels, px.
+    """
     px = np.asarray(pixels, dtype=np.float64)
     c = camera.K[:2, 2]
     d = px - c

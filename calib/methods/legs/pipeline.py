@@ -27,7 +27,21 @@ from .joints import _rod_field
 def pose_set_model(params: I4Parameters, q: np.ndarray) -> PoseSetModel:
     """The legs method's measurement model at encoder values ``q`` (N, 4), m: the joint centres A_i, B_i the rods
     determine, camera frame (m), (N * 8 * 3,), as a function of the seven parameters then 6 nuisance unknowns, the
-    camera's placement (rotation vector, rad; position, m)."""
+    camera's placement (rotation vector, rad; position, m).
+
+    Parameters
+    ----------
+    params : I4Parameters
+        The geometry at which the model is linearised (its seven parameters start the vector).
+    q : array_like, shape (N, 4)
+        Encoder values of the poses, m.
+
+    Returns
+    -------
+    PoseSetModel
+        The prediction (N * 8 * 3,), m, as a function of the 13-vector (seven parameters, m; rotation vector, rad;
+        position, m), with 6 nuisance unknowns.
+    """
     q = np.asarray(q, dtype=np.float64)
 
     def f(v: np.ndarray) -> np.ndarray:
@@ -60,8 +74,21 @@ def _step2_gram_jacobian(x: np.ndarray) -> np.ndarray:
 
 
 def fit_step2(V: np.ndarray, x0: np.ndarray, on_iteration: IterationCallback | None = None) -> np.ndarray:
-    """Step 2 (eq. 9): (q02, q03, q04, H), m, shape (4,), from ``V`` (3, 3), rows OA2, OA3, OA4 at zero encoder (m),
-    starting at ``x0`` (4,), m.
+    """Step 2 (eq. 9): (q02, q03, q04, H) from the Gram matrix of the joint centres' offsets at zero encoder.
+
+    Parameters
+    ----------
+    V : ndarray, shape (3, 3)
+        Rows OA2, OA3, OA4 at zero encoder, camera frame, m.
+    x0 : ndarray, shape (4,)
+        Starting (q02, q03, q04, H), m.
+    on_iteration : IterationCallback or None
+        Called at each iteration of the fit (progress), or None.
+
+    Returns
+    -------
+    ndarray, shape (4,)
+        (q02, q03, q04, H), m.
 
     Raises
     ------
@@ -133,13 +160,34 @@ class LegsModel:
         self.W: np.ndarray | None = None  # (N, 4, 4) whitening of each pose's equations, fixed once fitted
 
     def set_legs(self, has_leg: np.ndarray) -> None:
-        """Legs used per pose (N, 4) and the equations they allow (N, 4)."""
+        """Legs used per pose (N, 4) and the equations they allow (N, 4).
+
+        Parameters
+        ----------
+        has_leg : ndarray of bool, shape (N, 4)
+            The legs used in each fit pose; resets the whitening.
+        """
         self.has_leg = has_leg
         self.mask = np.stack([has_leg[:, a] & has_leg[:, b] for a, b in _EQ_LEGS], axis=1)
         self.W = None
 
     def frame(self, P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """x_B and A_i(q=0) in the camera frame from the 8 upper joint points (4, 2, 3)."""
+        """x_B and A_i(q=0) in the camera frame from the 8 upper joint points (4, 2, 3).
+
+        Parameters
+        ----------
+        P : ndarray, shape (4, 2, 3)
+            The upper joint points, two per leg, camera frame, m.
+
+        Returns
+        -------
+        x : ndarray, shape (3,)
+            The actuators' axis x_B, unit, camera frame.
+        A0 : ndarray, shape (4, 3)
+            Each A_i at zero encoder, camera frame, m.
+        A : ndarray, shape (4, 3)
+            Each A_i at its lock value, camera frame, m.
+        """
         A = P.mean(axis=1)
         nom = self.nominal
         s12 = np.sign(self.q_lock[1] + nom.q02 - self.q_lock[0])
@@ -161,6 +209,33 @@ class LegsModel:
 
         ``x2_init`` (q02, q03, q04, H) and ``theta_init`` (L, S, D) start steps 2 and 3-4 (default: nominal); the
         uncertainty's re-runs with slightly moved data start at the estimate.
+
+        Parameters
+        ----------
+        P : ndarray, shape (4, 2, 3)
+            The upper joint points, camera frame, m.
+        U : ndarray, shape (N, 4, 3)
+            The fit poses' leg directions, unit (NaN where unseen).
+        x2_init : ndarray, shape (4,), optional
+            Start of step 2, (q02, q03, q04, H), m.
+        on_iteration : IterationCallback or None
+            Called at each iteration of the fits, or None.
+        robust : bool
+            Steps 3-4 by :meth:`robust34` (Cauchy loss) instead of :meth:`steps34` (GLS).
+        theta_init : ndarray, shape (3,), optional
+            Start of steps 3-4, (L, S, D), m.
+
+        Returns
+        -------
+        ndarray, shape (7,)
+            (H, q02, q03, q04, S, D, L), m.
+
+        Raises
+        ------
+        ConvergenceError
+            Step 2 or steps 3-4 did not converge.
+        IdentifiabilityError
+            Too few poses see the legs steps 3-4 need.
         """
         nom = self.nominal
         x, A0, _ = self.frame(P)
@@ -174,25 +249,90 @@ class LegsModel:
 
     def geometry(self, P: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """For joints ``P`` (4, 2, 3) and leg directions ``U`` (N, 4, 3): A_i(q_i) per fit pose (N, 4, 3), the
-        directions oriented from A to B (N, 4, 3) and the base frame's y axis (3,), what the fit's equations take."""
+        directions oriented from A to B (N, 4, 3) and the base frame's y axis (3,), what the fit's equations take.
+
+        Parameters
+        ----------
+        P : ndarray, shape (4, 2, 3)
+            The upper joint points, camera frame, m.
+        U : ndarray, shape (N, 4, 3)
+            The fit poses' leg directions, unit.
+
+        Returns
+        -------
+        Aq : ndarray, shape (N, 4, 3)
+            A_i(q_i) per fit pose, camera frame, m.
+        Uo : ndarray, shape (N, 4, 3)
+            The leg directions oriented from A to B, unit.
+        y : ndarray, shape (3,)
+            The base frame's y axis, unit, camera frame.
+        """
         x, A0, _ = self.frame(P)
         Aq, Uo = self.oriented(x, A0, U)
         return Aq, Uo, self.y_axis(x, A0)
 
     @staticmethod
     def y_axis(x: np.ndarray, A0: np.ndarray) -> np.ndarray:
+        """The base frame's y axis: A_3 - A_1 at zero encoder made orthogonal to the actuators' axis.
+
+        Parameters
+        ----------
+        x : ndarray, shape (3,)
+            The actuators' axis, unit.
+        A0 : ndarray, shape (4, 3)
+            Each A_i at zero encoder, m.
+
+        Returns
+        -------
+        ndarray, shape (3,)
+            The y axis, unit.
+        """
         V1 = A0[2] - A0[0]
         return unit(V1 - (V1 @ x) * x)
 
     def oriented(self, x: np.ndarray, A0: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """A_i(q_i) per fit pose (N, 4, 3) and the leg directions oriented from A to B (N, 4, 3)."""
+        """A_i(q_i) per fit pose (N, 4, 3) and the leg directions oriented from A to B (N, 4, 3).
+
+        Parameters
+        ----------
+        x : ndarray, shape (3,)
+            The actuators' axis, unit.
+        A0 : ndarray, shape (4, 3)
+            Each A_i at zero encoder, m.
+        U : ndarray, shape (N, 4, 3)
+            The leg directions, unit, either sign.
+
+        Returns
+        -------
+        Aq : ndarray, shape (N, 4, 3)
+            A_i(q_i) per fit pose, m.
+        Uo : ndarray, shape (N, 4, 3)
+            The directions oriented towards the rods' points, unit.
+        """
         Aq = A0[None, :, :] + self.q_fit[:, :, None] * x[None, None, :]
         sgn = np.sign(np.einsum("nij,nij->ni", U, np.where(np.isnan(self.rod_p), 0.0, self.rod_p - Aq)))
         sgn[sgn == 0] = 1.0
         return Aq, U * sgn[..., None]
 
     def residuals(self, theta: np.ndarray, Aq: np.ndarray, Uo: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """The four equations of every pose (N, 4), zero where not available."""
+        """The four equations of every pose (N, 4), zero where not available.
+
+        Parameters
+        ----------
+        theta : ndarray, shape (3,)
+            (L, S, D), m.
+        Aq : ndarray, shape (N, 4, 3)
+            A_i(q_i) per fit pose, m.
+        Uo : ndarray, shape (N, 4, 3)
+            Leg directions oriented from A to B, unit.
+        y : ndarray, shape (3,)
+            The base frame's y axis, unit.
+
+        Returns
+        -------
+        ndarray, shape (N, 4)
+            Residuals of |B1 B2| - 2S, |B3 B4| - 2S, (B3 - B1).y - 2D, (B4 - B2).y - 2D, m.
+        """
         L, S, D = theta
         B = Aq + L * Uo
         R = np.stack(
@@ -207,7 +347,24 @@ class LegsModel:
         return np.where(self.mask, R, 0.0)
 
     def jacobian(self, theta: np.ndarray, Aq: np.ndarray, Uo: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """Derivatives (N, 4, 3) of :meth:`residuals` with respect to (L, S, D), zero where not available."""
+        """Derivatives (N, 4, 3) of :meth:`residuals` with respect to (L, S, D), zero where not available.
+
+        Parameters
+        ----------
+        theta : ndarray, shape (3,)
+            (L, S, D), m.
+        Aq : ndarray, shape (N, 4, 3)
+            A_i(q_i) per fit pose, m.
+        Uo : ndarray, shape (N, 4, 3)
+            Leg directions oriented from A to B, unit.
+        y : ndarray, shape (3,)
+            The base frame's y axis, unit.
+
+        Returns
+        -------
+        ndarray, shape (N, 4, 3)
+            d residual / d (L, S, D), dimensionless.
+        """
         L = theta[0]
         B = Aq + L * Uo
         n12 = unit(B[:, 0] - B[:, 1])
@@ -222,12 +379,46 @@ class LegsModel:
         return np.where(self.mask[:, :, None], J, 0.0)
 
     def whitened_jacobian(self, theta: np.ndarray, Aq: np.ndarray, Uo: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """Derivatives (N, 4, 3) of :meth:`whitened`."""
+        """Derivatives (N, 4, 3) of :meth:`whitened`.
+
+        Parameters
+        ----------
+        theta : ndarray, shape (3,)
+            (L, S, D), m.
+        Aq : ndarray, shape (N, 4, 3)
+            A_i(q_i) per fit pose, m.
+        Uo : ndarray, shape (N, 4, 3)
+            Leg directions oriented from A to B, unit.
+        y : ndarray, shape (3,)
+            The base frame's y axis, unit.
+
+        Returns
+        -------
+        ndarray, shape (N, 4, 3)
+            d whitened residual / d (L, S, D), 1/m (1/m per unit of relative weight).
+        """
         assert self.W is not None
         return np.einsum("nij,njp->nip", self.W, self.jacobian(theta, Aq, Uo, y))
 
     def covariances(self, theta: np.ndarray, Aq: np.ndarray, Uo: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """Covariance (N, 4, 4) of each pose's equations from its leg directions' (identity where unused)."""
+        """Covariance (N, 4, 4) of each pose's equations from its leg directions' (identity where unused).
+
+        Parameters
+        ----------
+        theta : ndarray, shape (3,)
+            (L, S, D), m.
+        Aq : ndarray, shape (N, 4, 3)
+            A_i(q_i) per fit pose, m.
+        Uo : ndarray, shape (N, 4, 3)
+            Leg directions oriented from A to B, unit.
+        y : ndarray, shape (3,)
+            The base frame's y axis, unit.
+
+        Returns
+        -------
+        ndarray, shape (N, 4, 4)
+            Covariance of each pose's four equations, m^2 (relative when the leg covariances are).
+        """
         L = theta[0]
         B = Aq + L * Uo
         n12 = unit(B[:, 0] - B[:, 1])
@@ -246,16 +437,54 @@ class LegsModel:
         return C
 
     def whitened(self, theta: np.ndarray, Aq: np.ndarray, Uo: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """The residuals of :meth:`residuals` whitened by the fixed whitening ``W``.
+
+        Parameters
+        ----------
+        theta : ndarray, shape (3,)
+            (L, S, D), m.
+        Aq : ndarray, shape (N, 4, 3)
+            A_i(q_i) per fit pose, m.
+        Uo : ndarray, shape (N, 4, 3)
+            Leg directions oriented from A to B, unit.
+        y : ndarray, shape (3,)
+            The base frame's y axis, unit.
+
+        Returns
+        -------
+        ndarray, shape (N, 4)
+            Whitened residuals, dimensionless (in standard deviations).
+        """
         assert self.W is not None
         return np.einsum("nij,nj->ni", self.W, self.residuals(theta, Aq, Uo, y))
 
     def robust34(self, x: np.ndarray, y: np.ndarray, A0: np.ndarray, U: np.ndarray, theta0: np.ndarray) -> np.ndarray:
-        """(L, S, D) that a few wild poses cannot drag: a Cauchy loss on each pose's whitened equations (weights at
-        ``theta0``), from ``theta0``, its scale the median pose's. For judging the poses: a leg taken for another
-        edge in a few poses pulls the least-squares fit along the valley (L, S, D) ~ (1, u_x, u_y) that only the
-        leg directions' variation pins (on a rendered trial to L 104 mm off with a 9.6 mm std, which the gating,
-        judging the poses by that fit, could not undo); the robust fit from the a priori values stays in the
-        right valley."""
+        """(L, S, D) that a few wild poses cannot drag: a Cauchy loss on each pose's whitened equations.
+
+        The weights are taken at ``theta0``, the fit starts there and the loss's scale is the median pose's. This fit
+        serves to judge the poses: a leg taken for another edge in a few poses pulls the least-squares fit along
+        the valley (L, S, D) ~ (1, u_x, u_y) that only the leg directions' variation pins, far enough (centimetres
+        in L) that a gating that judges the poses by that fit cannot undo it; the robust fit from the a priori values
+        stays in the right valley.
+
+        Parameters
+        ----------
+        x : ndarray, shape (3,)
+            The actuators' axis, unit.
+        y : ndarray, shape (3,)
+            The base frame's y axis, unit.
+        A0 : ndarray, shape (4, 3)
+            Each A_i at zero encoder, m.
+        U : ndarray, shape (N, 4, 3)
+            The leg directions, unit.
+        theta0 : ndarray, shape (3,)
+            Start and weighting point (L, S, D), m.
+
+        Returns
+        -------
+        ndarray, shape (3,)
+            (L, S, D), m; ``theta0`` when the robust fit fails.
+        """
         Aq, Uo = self.oriented(x, A0, U)
         theta = np.asarray(theta0, dtype=np.float64)
         self.W = np.linalg.cholesky(np.linalg.inv(self.covariances(theta, Aq, Uo, y))).transpose(0, 2, 1)
@@ -294,7 +523,35 @@ class LegsModel:
         theta0: np.ndarray,
         on_iteration: IterationCallback | None = None,
     ) -> np.ndarray:
-        """(L, S, D) by GLS; the whitening is computed (iterated) on the first call and then kept fixed."""
+        """(L, S, D) by GLS; the whitening is computed (iterated) on the first call and then kept fixed.
+
+        Parameters
+        ----------
+        x : ndarray, shape (3,)
+            The actuators' axis, unit.
+        y : ndarray, shape (3,)
+            The base frame's y axis, unit.
+        A0 : ndarray, shape (4, 3)
+            Each A_i at zero encoder, m.
+        U : ndarray, shape (N, 4, 3)
+            The leg directions, unit.
+        theta0 : ndarray, shape (3,)
+            Start (L, S, D), m.
+        on_iteration : IterationCallback or None
+            Called at each iteration of the fits, or None.
+
+        Returns
+        -------
+        ndarray, shape (3,)
+            (L, S, D), m.
+
+        Raises
+        ------
+        IdentifiabilityError
+            Fewer than 3 equations between the legs of a pair, or none between legs 1 and 3 (2 and 4).
+        ConvergenceError
+            A pass of the fit did not converge.
+        """
         if self.mask[:, :2].sum() < 3:
             raise IdentifiabilityError(
                 "legs step 3 needs both legs of a pair seen in at least 2 fit poses", parameter="L"
@@ -368,9 +625,25 @@ def pair_means(u: np.ndarray, has: np.ndarray, C: np.ndarray) -> tuple[np.ndarra
 
 
 def pair_own_covariances(u: np.ndarray, has: np.ndarray, C: np.ndarray, C_own: np.ndarray) -> np.ndarray:
-    """Per pose and leg, the own covariance (N, 4, 3, 3) of :func:`pair_means`'s direction: its two rods weighed by
-    their covariances ``C`` (N, 4, 2, 3, 3), their errors' covariances ``C_own`` (``cov_u_own``); NaN without a
-    rod."""
+    """Per pose and leg, the own covariance of :func:`pair_means`'s direction: its two rods weighed by their
+    covariances ``C``, their errors' covariances ``C_own`` (``cov_u_own``).
+
+    Parameters
+    ----------
+    u : ndarray, shape (N, 4, 2, 3)
+        Rod directions, unit (NaN where missing).
+    has : ndarray of bool, shape (N, 4, 2)
+        The rods measured.
+    C : ndarray, shape (N, 4, 2, 3, 3)
+        Rod direction covariances the mean weighs by, rad^2.
+    C_own : ndarray, shape (N, 4, 2, 3, 3)
+        The rods' own error covariances, rad^2.
+
+    Returns
+    -------
+    ndarray, shape (N, 4, 3, 3)
+        Each leg direction's own covariance, rad^2; NaN without a rod.
+    """
     dot = np.einsum("nlk,nlk->nl", u[:, :, 0], u[:, :, 1])
     sgn = np.where(np.isnan(dot), 1.0, np.sign(dot))
     out = np.full((*u.shape[:2], 3, 3), np.nan)
@@ -388,7 +661,20 @@ def pair_own_covariances(u: np.ndarray, has: np.ndarray, C: np.ndarray, C_own: n
 
 
 def rod_own_covariances(obs: Observations, data: PhaseArrays) -> np.ndarray | None:
-    """Every measured rod's ``cov_u_own`` (N, 4, 2, 3, 3), NaN where no rod; None when a measured rod lacks it."""
+    """Every measured rod's ``cov_u_own`` (N, 4, 2, 3, 3), NaN where no rod; None when a measured rod lacks it.
+
+    Parameters
+    ----------
+    obs : Observations
+        The observations the rods come from.
+    data : PhaseArrays
+        The phase's arrays (which rods were measured, in which frames).
+
+    Returns
+    -------
+    ndarray, shape (N, 4, 2, 3, 3), or None
+        The covariances, rad^2.
+    """
     C = np.full((len(data), 4, 2, 3, 3), np.nan)
     for k, leg, rod in zip(*np.nonzero(data.has_rod), strict=True):
         c = _rod_field(obs, data, k, leg, rod, "cov_u_own")
@@ -401,11 +687,36 @@ def rod_own_covariances(obs: Observations, data: PhaseArrays) -> np.ndarray | No
 def leg_directions(
     obs: Observations, data: PhaseArrays, direction_std_rad: float | None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool, list[dict[str, int]], np.ndarray]:
-    """Per pose and leg: direction (N,4,3), its covariance (N,4,3,3), a rod point (N,4,3), mask (N,4).
+    """Per pose and leg: direction, its covariance, a rod point and the mask of legs used.
 
-    Also whether the covariances are the rods' measured ones (``cov_u``; else ``sigma^2 (I - u u^T)``
-    with sigma ``direction_std_rad`` or 1, relative), the rod pairs rejected as disagreeing and the
-    rods' covariances (N, 4, 2, 3, 3).
+    Also whether the covariances are the rods' measured ones (``cov_u``; else ``sigma^2 (I - u u^T)`` with sigma
+    ``direction_std_rad`` or 1, relative), the rod pairs rejected as disagreeing and the rods' covariances.
+
+    Parameters
+    ----------
+    obs : Observations
+        The observations the rods come from.
+    data : PhaseArrays
+        The phase's arrays (rod directions and points, which rods were measured).
+    direction_std_rad : float or None
+        Rod direction std used when the rods carry no covariance, rad (None: 1, relative weights).
+
+    Returns
+    -------
+    U : ndarray, shape (N, 4, 3)
+        Leg directions, unit (NaN where unused).
+    CU : ndarray, shape (N, 4, 3, 3)
+        Their covariances, rad^2 (or relative).
+    pts : ndarray, shape (N, 4, 3)
+        A point on each leg's rods, camera frame, m.
+    has_leg : ndarray of bool, shape (N, 4)
+        The legs used.
+    measured : bool
+        Whether the covariances are the rods' measured ones.
+    rejected : list of dict
+        The rod pairs rejected as disagreeing, ``{"frame": int, "leg": 1..4}``.
+    C : ndarray, shape (N, 4, 2, 3, 3)
+        The rods' covariances, rad^2 (or relative).
     """
     N = len(data)
     u = data.rod_u
@@ -441,8 +752,24 @@ def leg_directions(
 
 
 def gate_poses(pipe: LegsModel, P: np.ndarray, U: np.ndarray, seven: np.ndarray) -> np.ndarray:
-    """Poses (bool, (N,)) whose whitened equations exceed their chi-square 99.9% quantile (robust scale), for joints
-    ``P`` (4, 2, 3), m, leg directions ``U`` (N, 4, 3) and the estimate ``seven`` (7,), PARAMETER_NAMES order, m."""
+    """Poses whose whitened equations exceed their chi-square 99.9% quantile (robust scale).
+
+    Parameters
+    ----------
+    pipe : LegsModel
+        The model, fitted (its whitening set).
+    P : ndarray, shape (4, 2, 3)
+        The upper joint points, camera frame, m.
+    U : ndarray, shape (N, 4, 3)
+        The leg directions, unit.
+    seven : ndarray, shape (7,)
+        The estimate, PARAMETER_NAMES order, m.
+
+    Returns
+    -------
+    ndarray of bool, shape (N,)
+        The outlying poses.
+    """
     Aq, Uo, y = pipe.geometry(P, U)
     d2 = np.sum(pipe.whitened(seven[[6, 4, 5]], Aq, Uo, y) ** 2, axis=1)
     m = pipe.mask.sum(axis=1)
@@ -458,8 +785,28 @@ def gate_poses(pipe: LegsModel, P: np.ndarray, U: np.ndarray, seven: np.ndarray)
 def steps34_covariance(
     pipe: LegsModel, P: np.ndarray, U: np.ndarray, seven: np.ndarray
 ) -> tuple[np.ndarray, float, int]:
-    """GLS covariance (3, 3) of (L, S, D), m^2, for unit-scaled weights, the chi-square and its dof, for joints ``P``
-    (4, 2, 3), m, leg directions ``U`` (N, 4, 3) and the estimate ``seven`` (7,), PARAMETER_NAMES order, m."""
+    """GLS covariance of (L, S, D) for unit-scaled weights, with the fit's chi-square and its degrees of freedom.
+
+    Parameters
+    ----------
+    pipe : LegsModel
+        The model, fitted (its whitening set).
+    P : ndarray, shape (4, 2, 3)
+        The upper joint points, camera frame, m.
+    U : ndarray, shape (N, 4, 3)
+        The leg directions, unit.
+    seven : ndarray, shape (7,)
+        The estimate, PARAMETER_NAMES order, m.
+
+    Returns
+    -------
+    cov : ndarray, shape (3, 3)
+        Covariance of (L, S, D), m^2.
+    chi2 : float
+        Sum of the squared whitened residuals, dimensionless.
+    dof : int
+        Equations used minus 3.
+    """
     Aq, Uo, y = pipe.geometry(P, U)
     theta = seven[[6, 4, 5]]
     J = central_jacobian(lambda t: pipe.whitened(t, Aq, Uo, y).ravel(), theta, h=1e-7)
