@@ -77,7 +77,20 @@ def model_ratios(combos: np.ndarray, q: np.ndarray) -> np.ndarray:
 def pose_set_model(params: I4Parameters, q: np.ndarray) -> PoseSetModel:
     """The combined method's measurement model at encoder values ``q`` (N, 4), m: the Jacobian entries (eq. 4) the
     legs give in the base frame, ``(u_iy/u_ix, u_iz/u_ix)`` per pose and leg, (N * 4 * 2,), as a function of the seven
-    parameters (no nuisance: the base frame is measured apart)."""
+    parameters (no nuisance: the base frame is measured apart).
+
+    Parameters
+    ----------
+    params : I4Parameters
+        The geometry at which the model is linearised (its seven parameters are the vector).
+    q : array_like, shape (N, 4)
+        Encoder values of the poses, m.
+
+    Returns
+    -------
+    PoseSetModel
+        The prediction (N * 4 * 2,), dimensionless, as a function of the seven parameters, m, no nuisance.
+    """
     q = np.asarray(q, dtype=np.float64)
 
     def f(v: np.ndarray) -> np.ndarray:
@@ -88,7 +101,18 @@ def pose_set_model(params: I4Parameters, q: np.ndarray) -> PoseSetModel:
 
 
 def ratio_gradient(u: np.ndarray) -> np.ndarray:
-    """The Jacobian entries' derivatives in the directions ``u`` (M, 3): d(u_y/u_x, u_z/u_x)/du, shape (M, 2, 3)."""
+    """The Jacobian entries' derivatives in the directions ``u`` (M, 3): d(u_y/u_x, u_z/u_x)/du, shape (M, 2, 3).
+
+    Parameters
+    ----------
+    u : ndarray, shape (M, 3)
+        Leg or rod directions, base frame, unit (u_x nonzero).
+
+    Returns
+    -------
+    ndarray, shape (M, 2, 3)
+        The derivatives (dimensionless per unit of direction).
+    """
     ux, uy, uz = u[:, 0], u[:, 1], u[:, 2]
     G = np.zeros((u.shape[0], 2, 3))
     G[:, 0, 0] = -uy / ux**2
@@ -748,7 +772,26 @@ class RodIntrinsicsModel:
     def build(
         cls, obs: Observations, data: PhaseArrays, prob: _Problem, bf: BaseFrameResult, edge_bias_std_px: float = 0.0
     ) -> RodIntrinsicsModel | None:
-        """None when the camera's uncertainty or a rod's limb samples are missing."""
+        """The model of the fit's rods, or None when the camera's uncertainty or a rod's limb samples are missing.
+
+        Parameters
+        ----------
+        obs : Observations
+            The observations (the extraction's camera and its covariance, the rods' limb samples).
+        data : PhaseArrays
+            The fit's frames.
+        prob : _Problem
+            The combined fit's problem (which rods).
+        bf : BaseFrameResult
+            The base frame, whose rotation's change with the intrinsics is ``G``.
+        edge_bias_std_px : float
+            Prior std of the limb-edge bias common to every rod, px (0: no edge-bias nuisance).
+
+        Returns
+        -------
+        RodIntrinsicsModel or None
+            The model.
+        """
         prior = intr.intrinsics_prior(obs, refined=False)  # the rods are used again here
         limbs = _rod_field(obs, data, prob, "limbs_px")
         H = _rod_field(obs, data, prob, "h")
@@ -774,6 +817,13 @@ class RodIntrinsicsModel:
         return cls(camera, steps, limbs, H, G, z0, edge_bias_std_px)
 
     def select(self, keep: np.ndarray) -> None:
+        """Keep only the rods ``keep`` (in place).
+
+        Parameters
+        ----------
+        keep : ndarray
+            Boolean mask (M,) or indices of the rods kept.
+        """
         self.limbs, self.H = self.limbs.subset(keep), self.H[keep]
         if self.edge_dxn is not None:
             self.edge_dxn = self.edge_dxn[keep]
@@ -787,7 +837,21 @@ class RodIntrinsicsModel:
         return xn + eps_px[None, :, None, None] * self.edge_dxn
 
     def directions(self, z: np.ndarray, reference: np.ndarray) -> np.ndarray:
-        """Rod directions (M, 3), camera frame, for the intrinsics moved by ``z``; signed like ``reference``."""
+        """Rod directions (M, 3), camera frame, for the intrinsics moved by ``z``; signed like ``reference``.
+
+        Parameters
+        ----------
+        z : ndarray, shape (n,)
+            The nuisance: intrinsics in standard deviations along their principal directions, then the edge bias
+            (px) when modelled.
+        reference : ndarray, shape (M, 3)
+            The measured directions (signs).
+
+        Returns
+        -------
+        ndarray, shape (M, 3)
+            Unit directions.
+        """
         key = np.asarray(z, dtype=np.float64).tobytes()
         if self._last is not None and self._last[0] == key and self._last[1].shape == reference.shape:
             return self._last[1]
@@ -799,16 +863,47 @@ class RodIntrinsicsModel:
         return u
 
     def rotation(self, z: np.ndarray) -> np.ndarray:
-        """The base frame's rotation change (3, 3) for ``z``, applied on the left."""
+        """The base frame's rotation change (3, 3) for ``z``, applied on the left.
+
+        Parameters
+        ----------
+        z : ndarray, shape (n,)
+            The nuisance (its first ``n_intr`` entries, in standard deviations, are used).
+
+        Returns
+        -------
+        ndarray, shape (3, 3)
+            A rotation matrix.
+        """
         return rotvec_to_matrix(self.G @ z[: self.n_intr])
 
     def model_error_shift(
         self, w: np.ndarray, z: np.ndarray, profile: tuple[np.ndarray, np.ndarray], R0: np.ndarray, joint: bool
     ) -> np.ndarray:
-        """Change (2M,) of the fit's raw residuals at the solution (base-frame refinement ``w``, nuisance ``z``)
-        when every rod's limb samples are corrected by the lens model's error ``profile``
-        (:func:`.intrinsics.lens_model_error`); the base frame is left as it is (the board poses move far less:
-        their corners lie within the views' radius, where the profile was measured)."""
+        """Change of the fit's raw residuals at the solution when every rod's limb samples are corrected by the lens
+        model's error ``profile`` (:func:`.intrinsics.lens_model_error`).
+
+        The base frame is left as it is (the board poses move far less: their corners lie within the views' radius,
+        where the profile was measured).
+
+        Parameters
+        ----------
+        w : ndarray, shape (3,)
+            The base frame's rotation refinement, rotation vector, rad.
+        z : ndarray, shape (n,)
+            The nuisance at the solution.
+        profile : tuple of (ndarray, ndarray), each of shape (B,)
+            Bin radii and systematic radial residual, px.
+        R0 : ndarray, shape (3, 3)
+            The base frame's rotation before refinement.
+        joint : bool
+            Whether ``w`` refines the rotation (the joint fit).
+
+        Returns
+        -------
+        ndarray, shape (2M,)
+            Change of the residuals (Jacobian entries, dimensionless).
+        """
         zi = z[: self.n_intr]
         cam = intr.perturbed_camera(self.camera, self.steps.T @ zi)
         ref = self.H

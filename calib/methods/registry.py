@@ -169,6 +169,18 @@ _plugin_modules: list[str] = []
 def register_method(spec: MethodSpec, *, replace: bool = False) -> MethodSpec:
     """Register ``spec`` (after the methods already registered); return it.
 
+    Parameters
+    ----------
+    spec : MethodSpec
+        The method: its name, fit function, model and options.
+    replace : bool
+        Replace a method of the same name instead of raising.
+
+    Returns
+    -------
+    MethodSpec
+        ``spec``.
+
     Raises
     ------
     InputError
@@ -186,7 +198,18 @@ def register_method(spec: MethodSpec, *, replace: bool = False) -> MethodSpec:
 
 
 def unregister_method(name: str) -> None:
-    """Remove a method registered by :func:`register_method` (built-in methods stay)."""
+    """Remove a method registered by :func:`register_method` (built-in methods stay).
+
+    Parameters
+    ----------
+    name : str
+        The method's name; an unknown name is ignored.
+
+    Raises
+    ------
+    InputError
+        ``name`` is a built-in method.
+    """
     with _lock:
         if name in _builtin_names:
             raise InputError(f"{name!r} is a built-in method", field="name")
@@ -197,19 +220,41 @@ def unregister_method(name: str) -> None:
 
 
 def methods() -> tuple[MethodSpec, ...]:
-    """Every registered method, in registration order (the built-in three first)."""
+    """Every registered method, in registration order (the built-in three first).
+
+    Returns
+    -------
+    tuple of MethodSpec
+        The registered methods.
+    """
     _ensure_loaded()
     with _lock:
         return tuple(_registry.values())
 
 
 def method_names() -> tuple[str, ...]:
-    """Names of the registered methods, in registration order."""
+    """Names of the registered methods, in registration order.
+
+    Returns
+    -------
+    tuple of str
+        The registered methods' names.
+    """
     return tuple(s.name for s in methods())
 
 
 def get_method(name: str) -> MethodSpec:
     """The spec of method ``name``.
+
+    Parameters
+    ----------
+    name : str
+        The method's name.
+
+    Returns
+    -------
+    MethodSpec
+        Its spec.
 
     Raises
     ------
@@ -224,14 +269,26 @@ def get_method(name: str) -> MethodSpec:
 
 
 def apply_order() -> tuple[str, ...]:
-    """Method names by preference for applying a result (``apply_rank``, then registration order)."""
+    """Method names by preference for applying a result (``apply_rank``, then registration order).
+
+    Returns
+    -------
+    tuple of str
+        The registered methods' names, the preferred first.
+    """
     specs = methods()
     order = sorted(range(len(specs)), key=lambda i: (specs[i].apply_rank, i))
     return tuple(specs[i].name for i in order)
 
 
 def plugin_modules() -> tuple[str, ...]:
-    """Modules that registered methods beyond the built-in ones (import them in another process to have them)."""
+    """Modules that registered methods beyond the built-in ones (import them in another process to have them).
+
+    Returns
+    -------
+    tuple of str
+        Dotted module names, in registration order.
+    """
     _ensure_loaded()
     with _lock:
         return tuple(_plugin_modules)
@@ -239,6 +296,11 @@ def plugin_modules() -> tuple[str, ...]:
 
 def load_modules(names: list[str] | tuple[str, ...]) -> None:
     """Import the modules ``names`` (each registers its methods when imported); already imported ones are skipped.
+
+    Parameters
+    ----------
+    names : list of str or tuple of str
+        Dotted module names (blank entries are skipped).
 
     Raises
     ------
@@ -360,6 +422,21 @@ def method_model(method: str, params: I4Parameters, q: np.ndarray) -> PoseSetMod
 def method_identifiability(method: str, params: I4Parameters, q: np.ndarray) -> dict:
     """Identifiability report of a registered method at a pose set (encoders q, (N, 4), m): its
     :attr:`MethodSpec.model` analysed by :func:`calib.identifiability.analyse`.
+
+    Parameters
+    ----------
+    method : str
+        A registered method's name.
+    params : I4Parameters
+        The geometry at which the model is linearised.
+    q : array_like, shape (N, 4)
+        Encoder values of the poses, m.
+
+    Returns
+    -------
+    dict
+        :func:`calib.identifiability.analyse`'s report, plus ``method``, ``n_poses`` and ``combination_values``
+        (the identifiable combinations at ``params``, m).
 
     Raises
     ------

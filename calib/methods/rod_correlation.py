@@ -61,7 +61,18 @@ class RodErrors:
     distance_shape: Array | None = None
 
     def covariance(self, own: Array) -> Array:
-        """The rods' error covariance (2M, 2M) in the fit's raw residuals."""
+        """The rods' error covariance (2M, 2M) in the fit's raw residuals.
+
+        Parameters
+        ----------
+        own : ndarray, shape (2M, 2M)
+            The rods' own error shapes, block diagonal (dimensionless).
+
+        Returns
+        -------
+        ndarray, shape (2M, 2M)
+            The covariance (Jacobian entries squared, dimensionless).
+        """
         S = own.copy()
         if self.pair_shape is not None and self.pair_rho > 0:
             S += self.pair_rho * self.pair_shape
@@ -80,8 +91,20 @@ class RodErrors:
 
 
 def rod_pairs(k: np.ndarray, leg: np.ndarray) -> list[tuple[int, int]]:
-    """Index pairs (a, b), a < b, of the two rods of one leg seen in the same frame, from each rod's frame ``k`` and
-    ``leg`` (M,)."""
+    """Index pairs (a, b), a < b, of the two rods of one leg seen in the same frame.
+
+    Parameters
+    ----------
+    k : ndarray of int, shape (M,)
+        Each rod's frame.
+    leg : ndarray of int, shape (M,)
+        Each rod's leg.
+
+    Returns
+    -------
+    list of tuple of (int, int)
+        The pairs, indices into the M rods.
+    """
     first: dict[tuple[int, int], int] = {}
     pairs = []
     for a, key in enumerate(zip(np.asarray(k).tolist(), np.asarray(leg).tolist(), strict=True)):
@@ -92,13 +115,34 @@ def rod_pairs(k: np.ndarray, leg: np.ndarray) -> list[tuple[int, int]]:
 
 
 def whitening(shape: np.ndarray) -> np.ndarray:
-    """Each rod's whitening ``Wh`` (M, 2, 2) of its own error ``shape`` (M, 2, 2): upper triangular, ``Wh^T Wh =
-    shape^-1``."""
+    """Each rod's whitening ``Wh`` of its own error ``shape``: upper triangular, ``Wh^T Wh = shape^-1``.
+
+    Parameters
+    ----------
+    shape : ndarray, shape (M, 2, 2)
+        Each rod's error shape (dimensionless).
+
+    Returns
+    -------
+    ndarray, shape (M, 2, 2)
+        The whitenings.
+    """
     return np.linalg.cholesky(np.linalg.inv(shape + 1e-30 * np.eye(2))).transpose(0, 2, 1)
 
 
 def block_diagonal(blocks: Array) -> Array:
-    """The (2M, 2M) block-diagonal matrix of M (2, 2) blocks."""
+    """The (2M, 2M) block-diagonal matrix of M (2, 2) blocks.
+
+    Parameters
+    ----------
+    blocks : ndarray, shape (M, 2, 2)
+        The blocks.
+
+    Returns
+    -------
+    ndarray, shape (2M, 2M)
+        The block-diagonal matrix.
+    """
     m = blocks.shape[0]
     out = np.zeros((2 * m, 2 * m))
     idx = np.arange(m)
@@ -139,9 +183,21 @@ def in_image_sensitivity(u_cam: Array, rays: Array, R_cb: Array, ratio_grad: Arr
 
 
 def pair_shape(pairs: list[tuple[int, int]], whitening_inverse: Array, m: int) -> Array:
-    """(2M, 2M) shape of a correlation between the whitened errors of each same-frame pair of a leg's rods.
+    """Shape of a correlation between the whitened errors of each same-frame pair of a leg's rods.
 
-    ``whitening_inverse`` (M, 2, 2) undoes each rod's whitening (its residual ``r = Lc w``).
+    Parameters
+    ----------
+    pairs : list of tuple of (int, int)
+        Same-frame pairs (:func:`rod_pairs`).
+    whitening_inverse : ndarray, shape (M, 2, 2)
+        Undoes each rod's whitening (its residual ``r = Lc w``).
+    m : int
+        The rod count M.
+
+    Returns
+    -------
+    ndarray, shape (2M, 2M)
+        The shape (dimensionless), zero outside the pairs' blocks.
     """
     out = np.zeros((2 * m, 2 * m))
     for a, b in pairs:
@@ -154,15 +210,26 @@ def pair_shape(pairs: list[tuple[int, int]], whitening_inverse: Array, m: int) -
 def distance_shape(
     rays: Array, focal_px: float, g: Array, pairs: list[tuple[int, int]], length_px: float = KERNEL_LENGTH_PX
 ) -> Array:
-    """(2M, 2M) shape ``exp(-d_ab / length) g_a g_b^T`` of the shared in-image error, off the diagonal and off the
-    same-frame pairs of a leg's rods (which :func:`pair_shape` covers).
+    """Shape ``exp(-d_ab / length) g_a g_b^T`` of the shared in-image error, off the diagonal and off the same-frame
+    pairs of a leg's rods (which :func:`pair_shape` covers).
 
     Parameters
     ----------
     rays : ndarray, shape (M, 3)
         Unit viewing rays to the rods' middles; ``d_ab`` is their angle times ``focal_px`` (px in the image).
+    focal_px : float
+        The camera's focal length, px.
     g : ndarray, shape (M, 2)
         :func:`in_image_sensitivity`.
+    pairs : list of tuple of (int, int)
+        Same-frame pairs of a leg's rods (:func:`rod_pairs`), left out.
+    length_px : float
+        The kernel's correlation length, px.
+
+    Returns
+    -------
+    ndarray, shape (2M, 2M)
+        The shape (dimensionless).
     """
     m = g.shape[0]
     d = focal_px * np.arccos(np.clip(rays @ rays.T, -1.0, 1.0))
@@ -174,11 +241,24 @@ def distance_shape(
 
 
 def positive_definite(own: Array, shapes: list[Array], rho: Array) -> Array:
-    """``rho`` (K,) shrunk (by 0.8 a step) until ``own + sum rho_j S_j`` is positive semi-definite (``own`` and each
-    ``S_j`` (2M, 2M), the rods' error shapes, dimensionless); the correlations (K,) returned.
+    """``rho`` shrunk (by 0.8 a step) until ``own + sum rho_j S_j`` is positive semi-definite.
 
     Each correlation alone keeps the covariance positive definite below 1; the two together, the distance kernel
     leaving out a leg's same-frame pairs, may not at strong correlations.
+
+    Parameters
+    ----------
+    own : ndarray, shape (2M, 2M)
+        The rods' own error shapes (dimensionless).
+    shapes : list of ndarray, each of shape (2M, 2M)
+        The correlation shapes ``S_j`` (dimensionless).
+    rho : ndarray, shape (K,)
+        The correlations, one per shape.
+
+    Returns
+    -------
+    ndarray, shape (K,)
+        The correlations kept.
     """
     if not shapes or not np.any(rho > 0):
         return rho
