@@ -170,6 +170,18 @@ def recommended_method(result: ResultDocument | dict[str, Any]) -> tuple[str, st
     """The method to export when none is asked for, and why: the verdict's (:func:`calib.verdict.verdict`, the
     rule the demo, ``calibrate``, the report and the dashboard state).
 
+    Parameters
+    ----------
+    result : ResultDocument or dict
+        The calibration result.
+
+    Returns
+    -------
+    method : str
+        The method's name.
+    reason : str
+        Why, as shown to the user (``"recommended: ..."``).
+
     Raises
     ------
     InputError
@@ -237,6 +249,18 @@ def _entry(result: ResultDocument, method: str) -> MethodEntry:
 def method_parameters(result: ResultDocument | dict[str, Any], method: str) -> I4Parameters:
     """The seven parameters method ``method`` of ``result`` stands for (what its own validation used):
     ``parameters_seven_completed``, else ``seven``, else its combinations completed with the nominal H, S, q03.
+
+    Parameters
+    ----------
+    result : ResultDocument or dict
+        The calibration result.
+    method : str
+        The method's name.
+
+    Returns
+    -------
+    I4Parameters
+        The seven parameters, m (``T_per_rad`` m/rad).
 
     Raises
     ------
@@ -372,6 +396,18 @@ def build_calibration(
 def load_calibration(data: Any, source: str | None = None) -> CalibrationDocument:
     """Validate a parsed ``i4cal.calibration/1`` document (JSON or YAML already read into a mapping).
 
+    Parameters
+    ----------
+    data : Any
+        The parsed document.
+    source : str, optional
+        The file it was read from, for the error messages.
+
+    Returns
+    -------
+    CalibrationDocument
+        The validated document.
+
     Raises
     ------
     InputError
@@ -401,7 +437,20 @@ def load_calibration(data: Any, source: str | None = None) -> CalibrationDocumen
 # -- the parity check ----------------------------------------------------------------------------------------------
 def plan_joints(plan: Plan, nominal: I4Parameters) -> np.ndarray:
     """The joint vectors a plan commands, shape (N, 4), m: every step's ``q``, a guided line's samples through the
-    nominal IKM (as the acquisition commands them)."""
+    nominal IKM (as the acquisition commands them).
+
+    Parameters
+    ----------
+    plan : Plan
+        The acquisition plan.
+    nominal : I4Parameters
+        The a priori geometry the acquisition's IKM uses.
+
+    Returns
+    -------
+    ndarray, shape (N, 4)
+        The joint vectors, m.
+    """
     rows = []
     for step in plan.steps:
         if step.line is not None:
@@ -523,6 +572,12 @@ def check_parity(
         Joint vectors, m (:func:`plan_joints`).
     tolerance_m : float
         The largest difference that passes, m.
+
+    Returns
+    -------
+    ParityReport
+        The largest differences of E (m), T (m) and the IKM's joints (m) between the two models, and whether each is
+        within ``tolerance_m``.
     """
     model = doc.to_parameters()
     Q = np.asarray(q, dtype=np.float64).reshape(-1, 4)

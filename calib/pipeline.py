@@ -41,7 +41,31 @@ def run_method(
     context: MethodContext | None = None,
 ) -> MethodResult:
     """Fit method ``name`` (:func:`calib.methods.registry.get_method`) to ``obs``; ``context``: what earlier methods
-    of the same run measured (its base frame and callback are replaced by these arguments)."""
+    of the same run measured (its base frame and callback are replaced by these arguments).
+
+    Parameters
+    ----------
+    name : str
+        A registered method's name.
+    obs : Observations
+        The observations.
+    base_frame : BaseFrameResult, optional
+        The base frame measured from the boards, when the method uses it.
+    on_iteration : IterationCallback, optional
+        Called at each iteration of the method's fits.
+    context : MethodContext, optional
+        What earlier methods of the same run measured.
+
+    Returns
+    -------
+    MethodResult
+        The method's result.
+
+    Raises
+    ------
+    InputError
+        No method ``name`` is registered.
+    """
     spec = get_method(name)
     ctx = MethodContext() if context is None else context
     return spec.fit(obs, dataclasses.replace(ctx, base_frame=base_frame, on_iteration=on_iteration))
@@ -56,7 +80,26 @@ def calibrate(
     on_iteration: IterationCallback | None = None,
 ) -> dict[str, Any]:
     """The result document of :func:`calibrate_document` as a mapping (``i4cal calibrate --json``: what is stored
-    and printed; numpy values as the methods gave them, :func:`to_jsonable` makes them JSON)."""
+    and printed; numpy values as the methods gave them, :func:`to_jsonable` makes them JSON).
+
+    Parameters
+    ----------
+    obs : Observations
+        The observations.
+    methods : iterable of str, optional
+        The methods to run (default: every registered one).
+    strict : bool
+        Raise the first method error instead of recording it in the document.
+    progress : callable, optional
+        Called as ``progress(method, state)`` with state ``"start"``/``"done"``/``"failed"``.
+    on_iteration : IterationCallback, optional
+        Called at each iteration of the methods' fits.
+
+    Returns
+    -------
+    dict
+        The ``i4cal.result/1`` document as a mapping.
+    """
     doc = calibrate_document(obs, methods, strict=strict, progress=progress, on_iteration=on_iteration)
     return doc.model_dump(exclude_unset=True)
 

@@ -117,7 +117,18 @@ class ValidationEntry(Record):
     straightness: Straightness | None = None
 
     def gaps(self, part: str) -> Gaps | None:
-        """``gaps_poses`` (``part="poses"``) or ``gaps_validation`` (``part="validation"``)."""
+        """``gaps_poses`` (``part="poses"``) or ``gaps_validation`` (``part="validation"``).
+
+        Parameters
+        ----------
+        part : str
+            ``"poses"`` or ``"validation"``.
+
+        Returns
+        -------
+        Gaps or None
+            The gaps of that part (m), None when not computed.
+        """
         return self.gaps_validation if part == "validation" else self.gaps_poses
 
 
@@ -292,6 +303,18 @@ class ResultDocument(Record):
     def from_dict(cls, data: Any, source: str | None = None) -> Self:
         """A parsed result document (a stored one of any age: keys it lacks are None or empty).
 
+        Parameters
+        ----------
+        data : Any
+            The parsed JSON (a mapping), or a :class:`ResultDocument` returned as is.
+        source : str, optional
+            The file it was read from, for the error messages.
+
+        Returns
+        -------
+        ResultDocument
+            The document.
+
         Raises
         ------
         InputError
@@ -313,6 +336,16 @@ class ResultDocument(Record):
         """``doc`` as a document to read: a :class:`ResultDocument` as is; a mapping may be a part of one (the keys a
         reader needs, such as ``methods`` and ``validation``): a missing ``format`` is this format's, a method entry
         without ``converged`` did not converge. For reading only (:meth:`from_dict` loads a whole document).
+
+        Parameters
+        ----------
+        doc : ResultDocument or mapping
+            A document, or a mapping of (some of) its keys.
+
+        Returns
+        -------
+        ResultDocument
+            The document to read.
 
         Raises
         ------
@@ -336,7 +369,20 @@ class ResultDocument(Record):
 
     def merge(self, part: ResultDocument, method: str) -> Self:
         """This document with ``method``'s entry, validation and truth errors from ``part`` (a document of the same
-        observations in which ``method`` ran), in place; returns ``self``."""
+        observations in which ``method`` ran), in place; returns ``self``.
+
+        Parameters
+        ----------
+        part : ResultDocument
+            A document of the same observations in which ``method`` ran.
+        method : str
+            The method whose entry is taken.
+
+        Returns
+        -------
+        ResultDocument
+            ``self``.
+        """
         self.methods[method] = part.methods[method]
         if method in part.validation:
             self.validation[method] = part.validation[method]
@@ -348,6 +394,18 @@ class ResultDocument(Record):
 
     # -- what the readers ask ---------------------------------------------------------------------------------------
     def entry(self, method: str) -> MethodEntry | None:
+        """The entry of ``method``, or None when it did not run.
+
+        Parameters
+        ----------
+        method : str
+            The method's name.
+
+        Returns
+        -------
+        MethodEntry or None
+            Its entry.
+        """
         return self.methods.get(method)
 
     def converged(self) -> Iterator[tuple[str, MethodEntry]]:
@@ -356,7 +414,18 @@ class ResultDocument(Record):
 
     def method_parameters(self, method: str) -> I4Parameters | None:
         """The seven parameters a converged method stands for (identified, or completed with the a priori ones) with
-        the a priori ``T_per_rad``; None when the method has no result or its values are incomplete."""
+        the a priori ``T_per_rad``; None when the method has no result or its values are incomplete.
+
+        Parameters
+        ----------
+        method : str
+            The method's name.
+
+        Returns
+        -------
+        I4Parameters or None
+            The parameters (m; ``T_per_rad`` m/rad).
+        """
         e = self.methods.get(method)
         seven = e.seven_or_completed if e is not None else None
         if e is None or not e.parameters or not seven:
@@ -367,7 +436,18 @@ class ResultDocument(Record):
             return None
 
     def truth_error(self, method: str) -> dict[str, Any] | None:
-        """Method minus truth per combination (and ``seven`` per parameter when identified), m; simulated only."""
+        """Method minus truth per combination (and ``seven`` per parameter when identified), m; simulated only.
+
+        Parameters
+        ----------
+        method : str
+            The method's name.
+
+        Returns
+        -------
+        dict or None
+            The errors, m; None when the run was not simulated or the method did not run.
+        """
         return (self.truth_errors or {}).get(method)
 
     def truth_combinations(self) -> dict[str, float] | None:
@@ -385,7 +465,18 @@ class ResultDocument(Record):
 
 def to_jsonable(x: Any) -> Any:
     """``x`` with numpy arrays and scalars turned into lists and Python numbers, tuples into lists, a model into its
-    JSON mapping (the rest unchanged: NaN stays NaN)."""
+    JSON mapping (the rest unchanged: NaN stays NaN).
+
+    Parameters
+    ----------
+    x : Any
+        A value of a result (numpy arrays and scalars, mappings, sequences, pydantic models).
+
+    Returns
+    -------
+    Any
+        The same value in JSON-ready Python types.
+    """
     if isinstance(x, BaseModel):
         return to_jsonable(x.model_dump(exclude_unset=True))
     if isinstance(x, dict):
