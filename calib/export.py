@@ -576,8 +576,8 @@ def check_parity(
     Returns
     -------
     ParityReport
-        The largest differences of E (m), T (m) and the IKM's joints (m) between the two models, and whether each is
-        within ``tolerance_m``.
+        The largest differences of the DKM, the IKM and the combinations between the two models over ``q`` (m), and
+        the joint vectors one model reaches and the other does not, against ``tolerance_m``.
     """
     model = doc.to_parameters()
     Q = np.asarray(q, dtype=np.float64).reshape(-1, 4)

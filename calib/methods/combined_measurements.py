@@ -39,7 +39,18 @@ class CombinedMeasurements:
 
     @classmethod
     def from_result(cls, result: MethodResult | dict[str, Any] | None) -> CombinedMeasurements:
-        """From a combined result (or its dict); a failed fit (None) measured nothing."""
+        """From a combined result (or its dict); a failed fit (None) measured nothing.
+
+        Parameters
+        ----------
+        result : MethodResult or dict or None
+            The combined method's result.
+
+        Returns
+        -------
+        CombinedMeasurements
+            The limb-edge bias and intrinsics it measured (each None when not measured).
+        """
         if result is None:
             return cls()
         return cls(MeasuredEdgeBias.from_result(result), MeasuredIntrinsics.from_result(result))

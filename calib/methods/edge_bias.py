@@ -39,7 +39,18 @@ class MeasuredEdgeBias:
 
     @classmethod
     def from_result(cls, result: MethodResult | dict[str, Any]) -> MeasuredEdgeBias | None:
-        """From a combined result (or its dict); None when it did not measure the bias."""
+        """From a combined result (or its dict); None when it did not measure the bias.
+
+        Parameters
+        ----------
+        result : MethodResult or dict
+            The combined method's result.
+
+        Returns
+        -------
+        MeasuredEdgeBias or None
+            The bias per limb (px) and its covariance (px^2).
+        """
         diag = result.get("diagnostics") if isinstance(result, dict) else result.diagnostics
         e = (diag or {}).get("limb_edge_bias")
         if not e or e.get("covariance_px2") is None:

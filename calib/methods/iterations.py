@@ -34,6 +34,11 @@ def trf_callback(on_iteration: IterationCallback | None, stage: str) -> Callable
         Receives ``{"stage", "iteration", "cost"}``.
     stage : str
         Name of this fit within the method.
+
+    Returns
+    -------
+    callable or None
+        The callback, None when ``on_iteration`` is None.
     """
     if on_iteration is None:
         return None

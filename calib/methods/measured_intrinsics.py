@@ -48,7 +48,18 @@ class MeasuredIntrinsics:
     @classmethod
     def from_result(cls, result: MethodResult | dict[str, Any]) -> MeasuredIntrinsics | None:
         """From a combined result (or its dict): its ``intrinsics_refinement`` and ``intrinsics_posterior_covariance``
-        (in the calibration's parameter order); None when it did not estimate the intrinsics."""
+        (in the calibration's parameter order); None when it did not estimate the intrinsics.
+
+        Parameters
+        ----------
+        result : MethodResult or dict
+            The combined method's result.
+
+        Returns
+        -------
+        MeasuredIntrinsics or None
+            The intrinsics' shift (px for fx, fy, cx, cy; dimensionless after) and its covariance.
+        """
         diag = (result.get("diagnostics") if isinstance(result, dict) else result.diagnostics) or {}
         shift, cov = diag.get("intrinsics_refinement"), diag.get("intrinsics_posterior_covariance")
         if not shift or cov is None:
@@ -57,7 +68,18 @@ class MeasuredIntrinsics:
         return cls(names, np.array([shift[k] for k in names]), np.asarray(cov))
 
     def along(self, names: tuple[str, ...] | list[str]) -> tuple[Array, Array] | None:
-        """The shift and covariance in the order ``names``; None when they are not this measurement's."""
+        """The shift and covariance in the order ``names``; None when they are not this measurement's.
+
+        Parameters
+        ----------
+        names : tuple of str or list of str
+            Intrinsics' names in the wanted order.
+
+        Returns
+        -------
+        tuple of (ndarray of shape (n,), ndarray of shape (n, n)) or None
+            The shift and its covariance, reordered.
+        """
         if tuple(names) != self.names:
             if sorted(names) != sorted(self.names):
                 return None

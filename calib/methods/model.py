@@ -47,22 +47,72 @@ class PoseSetModel:
         return np.concatenate([np.asarray(self.params.vector()), np.zeros(self.n_nuisance)])
 
     def predict(self, x: np.ndarray | None = None) -> np.ndarray:
-        """The predicted measurements (M,) for ``x`` (default :attr:`x0`)."""
+        """The predicted measurements (M,) for ``x`` (default :attr:`x0`).
+
+        Parameters
+        ----------
+        x : ndarray, shape (7 + n_nuisance,), optional
+            The seven parameters (m) then the nuisance unknowns.
+
+        Returns
+        -------
+        ndarray, shape (M,)
+            The measurements, in their units.
+        """
         return self.fun(self.x0 if x is None else np.asarray(x, dtype=np.float64))
 
     def residuals(self, measured: np.ndarray, x: np.ndarray | None = None) -> np.ndarray:
-        """Prediction minus ``measured`` (M,), in the measurements' units."""
+        """Prediction minus ``measured`` (M,), in the measurements' units.
+
+        Parameters
+        ----------
+        measured : ndarray, shape (M,)
+            The measurements (any shape that flattens to (M,)).
+        x : ndarray, shape (7 + n_nuisance,), optional
+            The seven parameters (m) then the nuisance unknowns (default :attr:`x0`).
+
+        Returns
+        -------
+        ndarray, shape (M,)
+            The residuals.
+        """
         return self.predict(x) - np.asarray(measured, dtype=np.float64).ravel()
 
     def jacobian(self, x: np.ndarray | None = None, h: float = JACOBIAN_STEP) -> np.ndarray:
-        """d prediction / d unknowns, shape (M, 7 + n_nuisance), by central differences of step ``h``."""
+        """d prediction / d unknowns, shape (M, 7 + n_nuisance), by central differences of step ``h``.
+
+        Parameters
+        ----------
+        x : ndarray, shape (7 + n_nuisance,), optional
+            The seven parameters (m) then the nuisance unknowns (default :attr:`x0`).
+        h : float
+            The central differences' step, in the unknowns' units.
+
+        Returns
+        -------
+        ndarray, shape (M, 7 + n_nuisance)
+            The Jacobian (measurement units per m, or per nuisance unit).
+        """
         return central_jacobian(self.fun, self.x0 if x is None else np.asarray(x, dtype=np.float64), h)
 
     def covariance(self, noise_std: float = 1.0, x: np.ndarray | None = None) -> np.ndarray:
         """Covariance (4, 4) of the four identifiable combinations (:data:`calib.parameters.COMBINATION_NAMES`), m^2,
         for independent measurement noise of std ``noise_std`` (the measurements' units): the nuisance unknowns
         projected out, ``noise_std^2 A (J^T J)^+ A^T`` with ``A`` = :data:`calib.parameters.SEVEN_TO_FOUR` (the
-        combinations are estimable whenever the pose set identifies them)."""
+        combinations are estimable whenever the pose set identifies them).
+
+        Parameters
+        ----------
+        noise_std : float
+            The measurements' noise std, in their units.
+        x : ndarray, shape (7 + n_nuisance,), optional
+            The linearisation point (default :attr:`x0`).
+
+        Returns
+        -------
+        ndarray, shape (4, 4)
+            The combinations' covariance, m^2.
+        """
         J = self.jacobian(x)
         J7 = J[:, :7]
         if self.n_nuisance:

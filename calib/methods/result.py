@@ -58,7 +58,18 @@ class MethodResult:
         return np.array([self.combinations_std[k] for k in COMBINATION_NAMES])
 
     def full_parameters(self, reference: I4Parameters) -> I4Parameters:
-        """Seven parameters: the identified ones, or the combinations completed with ``reference``."""
+        """Seven parameters: the identified ones, or the combinations completed with ``reference``.
+
+        Parameters
+        ----------
+        reference : I4Parameters
+            The a priori geometry (``T_per_rad``, and H, S, q03 when only the combinations were identified).
+
+        Returns
+        -------
+        I4Parameters
+            The seven parameters, m.
+        """
         if self.parameters is not None:
             return I4Parameters.from_mapping({**self.parameters, "T_per_rad": reference.T_per_rad})
         return I4Parameters.from_combinations(self.combinations, reference)
@@ -90,15 +101,55 @@ class MethodResult:
 
 
 def combos_dict(v: np.ndarray) -> dict[str, float]:
+    """The four combinations by name (:data:`calib.parameters.COMBINATION_NAMES`).
+
+    Parameters
+    ----------
+    v : ndarray, shape (4,)
+        The combinations, m.
+
+    Returns
+    -------
+    dict of str to float
+        Name to value, m.
+    """
     return {k: float(x) for k, x in zip(COMBINATION_NAMES, v, strict=True)}
 
 
 def std_dict(cov: np.ndarray) -> dict[str, float]:
+    """The four combinations' standard deviations by name, from their covariance.
+
+    Parameters
+    ----------
+    cov : ndarray, shape (4, 4)
+        The combinations' covariance, m^2.
+
+    Returns
+    -------
+    dict of str to float
+        Name to standard deviation, m (negative variances read as zero).
+    """
     return {k: float(np.sqrt(max(cov[i, i], 0.0))) for i, k in enumerate(COMBINATION_NAMES)}
 
 
 def check_excitation(J: np.ndarray, names: tuple[str, ...], rel_tol: float = 1e-9) -> None:
-    """Raise IdentifiabilityError naming the parameter a Jacobian does not excite."""
+    """Raise IdentifiabilityError naming the parameter a Jacobian does not excite.
+
+    Parameters
+    ----------
+    J : ndarray, shape (M, P)
+        A Jacobian, one column per unknown.
+    names : tuple of str
+        The unknowns' names, (P,).
+    rel_tol : float
+        Tolerance on the column-scaled Jacobian's smallest singular value relative to its largest (dimensionless).
+
+    Raises
+    ------
+    IdentifiabilityError
+        A column of ``J`` is zero, or the column-scaled ``J`` is (nearly) rank-deficient (the parameter named is the
+        one the weakest direction moves most).
+    """
     from ..errors import IdentifiabilityError
 
     scale = np.linalg.norm(J, axis=0)

@@ -62,7 +62,18 @@ class PlaneObservation:
     var: np.ndarray | None = None
 
     def variances(self, X: np.ndarray) -> np.ndarray:
-        """Variances (2,) of the two equations ``h_q . X - r`` at X (m^2; 1 without a noise model)."""
+        """Variances (2,) of the two equations ``h_q . X - r`` at X (m^2; 1 without a noise model).
+
+        Parameters
+        ----------
+        X : ndarray, shape (3,)
+            A point on the rod's axis, camera frame, m.
+
+        Returns
+        -------
+        ndarray, shape (2,)
+            The variances, m^2 (dimensionless ones without a noise model).
+        """
         if self.dh is None or self.var is None:
             return np.ones(2)
         g = self.dh @ X  # (2, 2)
@@ -70,10 +81,21 @@ class PlaneObservation:
 
 
 def planes_direction_covariance(h: np.ndarray, dh: np.ndarray, var: np.ndarray) -> np.ndarray:
-    """Covariance (3, 3) of ``u = normalize(h1 x h2)`` from independent perturbations of the two planes.
+    """Covariance of ``u = normalize(h1 x h2)`` from independent perturbations of the two planes.
 
-    ``h`` (2, 3): the planes' unit normals; ``dh`` (2, 2, 3): per plane, its change per unit of its
-    two noise parameters (angle, offset); ``var`` (2, 2): their variances.
+    Parameters
+    ----------
+    h : ndarray, shape (2, 3)
+        The planes' unit normals.
+    dh : ndarray, shape (2, 2, 3)
+        Per plane, its change per unit of its two noise parameters (angle, rad; offset, px).
+    var : ndarray, shape (2, 2)
+        Their variances (rad^2, px^2).
+
+    Returns
+    -------
+    ndarray, shape (3, 3)
+        The direction's covariance, rad^2.
     """
     m = cross(h[0], h[1])
     nm = float(np.linalg.norm(m))
@@ -113,9 +135,9 @@ def limb_line_noise(
     phase the rod barely moves against its background and light, so its edge bias does not vary between the frames:
     counted per frame it weighs the frames as if it averaged out, which inflates the joint's std along the rod
     (where the frames' independent noise decides) and says nothing of the bias itself, which the method propagates
-    apart (``std_breakdown.limb_edge_bias``). On the image-level twin (designed 12-pose plan, 17 trials) the lock
-    phases' plane residuals have chi-square per dof 0.30 (median) with the bias counted per frame, 1.5 without; the
-    joints' errors along their weakest direction were 0.37-0.57 of their std with it, 0.67-1.12 without.
+    apart (``std_breakdown.limb_edge_bias``). Left out, the lock phases' plane residuals have a chi-square per dof
+    near 1 and the joints' errors along their weakest direction match their std; counted per frame, both fall well
+    below (the std is overstated).
 
     Parameters
     ----------
@@ -131,6 +153,8 @@ def limb_line_noise(
         The rod direction's covariance.
     step_px, edge_bias_px : float
         The extraction's profile spacing and edge-bias allowance (px).
+    frame_bias : bool
+        Count the edge bias in each frame's variances (False: leave it out and scale the scatter to ``cov_u``).
 
     Returns
     -------
@@ -187,6 +211,8 @@ def joint_from_planes(obs: list[PlaneObservation], iterations: int = 4) -> tuple
     ----------
     obs : list of PlaneObservation
         At least 2 frames.
+    iterations : int
+        Re-weighting passes (the equations' variances depend on X).
 
     Returns
     -------
@@ -197,6 +223,11 @@ def joint_from_planes(obs: list[PlaneObservation], iterations: int = 4) -> tuple
         (times the chi-square scale when the variances are relative).
     d2 : ndarray, shape (M,)
         Each frame's two residuals squared, each divided by its variance, summed.
+
+    Raises
+    ------
+    IdentifiabilityError
+        The planes do not locate the point (the rod barely moved between the frames).
     """
     Hm = np.stack([o.h for o in obs])  # (M, 2, 3)
     r = np.array([o.r for o in obs])

@@ -537,6 +537,17 @@ def joints_part(
     -------
     cov_joints, cov_systematic : ndarray, shape (7, 7)
         m^2.
+
+    Parameters
+    ----------
+    fit : RepairedFit
+        Steps 2-4's model over the fit poses, with the used joints and their covariance ``covP`` (24, 24), m^2.
+    est : SevenFit
+        Steps 2-4's estimate (the re-runs start there).
+    use_planes : bool
+        Whether the joints come from image planes (then the systematic depth error is added).
+    joint_depth_sys_m : float
+        Std of the joints' systematic depth error, m.
     """
 
     def f(Pv: np.ndarray) -> np.ndarray:
@@ -786,7 +797,38 @@ def legs_result(
     prior: PriorOutcome,
     seven_data: np.ndarray,
 ) -> MethodResult:
-    """The :class:`MethodResult` of the stages' outputs (``seven_data``: the data's estimate before the prior)."""
+    """The :class:`MethodResult` of the stages' outputs (``seven_data``: the data's estimate before the prior).
+
+    Parameters
+    ----------
+    obs : Observations
+        The observations (the a priori geometry, the frames).
+    cfg : LegsSettings
+        The method's settings.
+    lock : LockPhases
+        The lock phases.
+    joints : Joints
+        Step 1's output.
+    dirs : FitDirections
+        The fit poses' leg directions.
+    fit : RepairedFit
+        Steps 2-4's model after the repair stage.
+    est : SevenFit
+        Steps 2-4's estimate.
+    dpart : DirectionsPart
+        The leg directions' part of the covariance, m^2.
+    cam : CameraPart
+        The camera's part of the covariance, m^2, and the corrected seven.
+    prior : PriorOutcome
+        The estimate after the a priori tolerance (m, m^2).
+    seven_data : ndarray, shape (7,)
+        The data's estimate before the prior, PARAMETER_NAMES order, m.
+
+    Returns
+    -------
+    MethodResult
+        The legs method's result.
+    """
     nom = obs.nominal
     seven, cov = prior.seven, prior.cov
     params = I4Parameters.from_mapping({**dict(zip(PARAMETER_NAMES, seven, strict=True)), "T_per_rad": nom.T_per_rad})

@@ -55,11 +55,33 @@ class JointRepair:
     left_out_of_fit_poses: bool = False  #: the rod's fit-pose directions are left out too (its leg's is its partner's)
 
     def apply(self, P: np.ndarray) -> np.ndarray:
-        """The used joints (4, 2, 3) from measured ones (4, 2, 3)."""
+        """The used joints (4, 2, 3) from measured ones (4, 2, 3).
+
+        Parameters
+        ----------
+        P : ndarray, shape (4, 2, 3)
+            The measured joints, camera frame, m.
+
+        Returns
+        -------
+        ndarray, shape (4, 2, 3)
+            The used joints, camera frame, m.
+        """
         return (self.T @ np.asarray(P).reshape(24)).reshape(4, 2, 3)
 
     def warning(self, deviation_mm: float) -> str:
-        """The result's warning, ``deviation_mm`` the leg's separation off the other legs' (the rod-pair check)."""
+        """The result's warning, ``deviation_mm`` the leg's separation off the other legs' (the rod-pair check).
+
+        Parameters
+        ----------
+        deviation_mm : float
+            The leg's joint separation minus the other legs' mean, mm (for display).
+
+        Returns
+        -------
+        str
+            The warning's text.
+        """
         text = (
             f"lock-{self.leg + 1}: the joint of rod {self.rod} disagrees with the other legs' rod spacing "
             f"({deviation_mm:.1f} mm); it is taken as its partner's plus that spacing (moved {self.moved_m * 1e3:.1f} "
@@ -87,6 +109,23 @@ def joint_repair_map(leg: int, rod: int) -> np.ndarray:
 
     The separation of a leg is ``P[k, 1] - P[k, 0]``; joint (leg, 1) becomes ``P[leg, 0] + mean separation``,
     joint (leg, 0) becomes ``P[leg, 1] - mean separation``. Every other joint is kept.
+
+    Parameters
+    ----------
+    leg : int
+        The leg, 0..3.
+    rod : int
+        The rod whose joint is replaced, 0 or 1.
+
+    Returns
+    -------
+    ndarray, shape (24, 24)
+        The map from the measured joints (flattened (4, 2, 3)) to the used ones, dimensionless.
+
+    Raises
+    ------
+    ValueError
+        ``leg`` or ``rod`` out of range.
     """
     if leg not in range(4) or rod not in (0, 1):
         raise ValueError(f"leg must be in 0..3 and rod 0 or 1, got leg={leg}, rod={rod}")
@@ -143,6 +182,11 @@ def repair_joint(
     chi2_max : float or None
         The largest chi-square per dof a repair may leave (None: no bound, for relative weights whose scale is
         unknown).
+
+    Returns
+    -------
+    JointRepair or None
+        The repair kept; None unless exactly one leg is flagged and a hypothesis passes both tests.
     """
     if len(flagged) != 1:
         return None

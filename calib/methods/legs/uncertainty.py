@@ -43,7 +43,23 @@ class IntrinsicsEffect:
 
     @classmethod
     def build(cls, obs: Observations, lock_data: list[PhaseArrays], data: PhaseArrays) -> IntrinsicsEffect | None:
-        """None when the camera's covariance or any rod's ``limbs_px`` or ``h`` is missing."""
+        """The effect of the intrinsics on the lock phases' and fit poses' rods, or None when the camera's covariance or
+        any rod's ``limbs_px`` or ``h`` is missing.
+
+        Parameters
+        ----------
+        obs : Observations
+            The observations (the extraction's camera and its covariance, the rods' fields).
+        lock_data : list of PhaseArrays
+            The four lock phases' frames.
+        data : PhaseArrays
+            The fit poses' frames.
+
+        Returns
+        -------
+        IntrinsicsEffect or None
+            The effect.
+        """
         try:
             prior = intr.intrinsics_prior(obs)
         except InputError:  # an extraction camera without its size: no calibration to carry
@@ -103,7 +119,21 @@ class IntrinsicsEffect:
     def lock_planes(
         self, z: np.ndarray, planes: list[list[list[PlaneObservation]]]
     ) -> list[list[list[PlaneObservation]]]:
-        """``planes`` (step 1, [4][2] lists) with every plane normal as measured for ``z``."""
+        """``planes`` (step 1, [4][2] lists) with every plane normal as measured for ``z``.
+
+        Parameters
+        ----------
+        z : ndarray, shape (n,) or (n + 2,)
+            Intrinsics in standard deviations along their principal directions, then optionally the limb-edge bias per
+            limb, px.
+        planes : list of list of list of PlaneObservation
+            Step 1's planes, per leg and rod, one per frame.
+
+        Returns
+        -------
+        list of list of list of PlaneObservation
+            The same with their normals moved.
+        """
         out = []
         for i in range(4):
             row = []
@@ -115,7 +145,21 @@ class IntrinsicsEffect:
         return out
 
     def rod_u(self, z: np.ndarray, rod_u: np.ndarray) -> np.ndarray:
-        """The fit phases' rod directions (N, 4, 2, 3) as measured for ``z``, signed like ``rod_u``."""
+        """The fit phases' rod directions (N, 4, 2, 3) as measured for ``z``, signed like ``rod_u``.
+
+        Parameters
+        ----------
+        z : ndarray, shape (n,) or (n + 2,)
+            Intrinsics in standard deviations along their principal directions, then optionally the limb-edge bias per
+            limb, px.
+        rod_u : ndarray, shape (N, 4, 2, 3)
+            The measured rod directions, unit.
+
+        Returns
+        -------
+        ndarray, shape (N, 4, 2, 3)
+            The directions, unit (the unused rods' as given).
+        """
         hz = self._planes(z, self.fit_limbs, self.fit_h)
         u = cross(hz[:, 0], hz[:, 1])
         u /= np.linalg.norm(u, axis=1, keepdims=True)
@@ -278,6 +322,30 @@ def with_prior(
 
     ``idx``: the parameters (indices into the seven) the data estimate; the others are the a priori values already
     (with ``prior_std_m``, in ``parts["a_priori"]``) and are left as they are. Default: all seven.
+
+    Parameters
+    ----------
+    seven : ndarray, shape (7,)
+        The data's estimate, PARAMETER_NAMES order, m.
+    cov : ndarray, shape (7, 7)
+        Its covariance, m^2.
+    parts : dict of str to ndarray (7, 7)
+        The covariance's named parts, m^2.
+    nom : I4Parameters
+        The a priori geometry.
+    prior_std_m : float
+        The a priori tolerance, m.
+    idx : ndarray of int, optional
+        The parameters the data estimate.
+
+    Returns
+    -------
+    seven : ndarray, shape (7,)
+        The posterior estimate, m.
+    cov : ndarray, shape (7, 7)
+        Its covariance, m^2.
+    parts : dict of str to ndarray (7, 7)
+        The parts mapped by A, with ``a_priori``, m^2.
     """
     idx = np.arange(7) if idx is None else np.asarray(idx)
     ix = np.ix_(idx, idx)
@@ -321,7 +389,13 @@ def combinations_null_space() -> np.ndarray:
     four combinations unchanged (the null space of :data:`calib.parameters.SEVEN_TO_FOUR`): H and D together; q03
     and q04 together; then q02 and q04 - q03 by twice what S moves (the base's and the plate's widths together),
     made orthogonal to the second. The kinematics, hence the fit poses, do not see them; only the lock phases'
-    joints do."""
+    joints do.
+
+    Returns
+    -------
+    ndarray, shape (7, 3)
+        Unit columns, dimensionless.
+    """
     idx = {n: i for i, n in enumerate(PARAMETER_NAMES)}
     raw = np.zeros((3, 7))
     raw[0, [idx["H"], idx["D"]]] = 1.0
@@ -354,6 +428,17 @@ def null_space_to_prior(
         Per null direction: ``direction`` (unit, per parameter), ``label``, ``data_estimate_m`` (the data's
         coordinate along it, relative to the nominal), ``data_std_m`` (what the data's covariance gave there),
         ``reason``.
+
+    Parameters
+    ----------
+    seven : ndarray, shape (7,)
+        The estimate, PARAMETER_NAMES order, m.
+    parts : dict of str to ndarray (7, 7)
+        The covariance's named parts, m^2.
+    nom : I4Parameters
+        The a priori geometry.
+    prior_std_m : float
+        The a priori tolerance, m.
     """
     N = combinations_null_space()
     P = N @ N.T
