@@ -937,7 +937,7 @@ def _whitened_d2(
 
     The base frame's rotation is a nuisance unknown of this fit with its prior, as in the joint fit (step 2): held
     at the board-only estimate, a rotation a few mrad off (within its std) gives the rods most sensitive to it large
-    residuals, which the gate took for outliers (7-23% of good rods on rendered trials: fewer rods, a larger noise
+    residuals, which the gate would take for outliers (a sizeable share of good rods: fewer rods, a larger noise
     scale and tail errors). The rods' noise level is not known yet; for the priors to weigh right, the data are
     divided by their robust level (:func:`calib.robust.robust_chi2_scale`, the median chi-square, outliers or not),
     estimated from the previous pass (3 passes; the first at level 1).

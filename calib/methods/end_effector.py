@@ -9,8 +9,8 @@ are kept), the camera rotation (3) and its y, z position (2), the board tilt on 
 end-effector are gauge freedoms that the offsets absorb and are held fixed. The board's scale is a 16th unknown:
 a printed board's scale is known to its print only (and the camera calibration, which fixes it by two of
 its points, cannot tell), and a scale error moves every board pose along its viewing ray by a different
-amount (on the twin up to 0.3%, which left the IKM residuals several times the PnP noise and the standard
-deviations 2-3x too large); the encoders fix it. Besides the four IKM residuals per pose, the pose's tilt
+amount (a few tenths of a percent leave the IKM residuals several times the PnP noise and the standard
+deviations two to three times too large); the encoders fix it. Besides the four IKM residuals per pose, the pose's tilt
 (the end-effector only turns about z_B) gives two more.
 
 Weighting and uncertainty: each pose's residuals are a linear function of its board-pose error
@@ -645,7 +645,7 @@ def board_covariances(obs: Observations, arrays: PhaseArrays) -> np.ndarray | No
 
     The extraction gives ``board.cov`` for (rotation vector, t) from the PnP Jacobian; a change ``d`` of the
     rotation vector ``r`` is the left rotation ``J_l(r) d``. None when any pose of ``arrays`` lacks it or it is
-    not a finite positive-definite 6x6 matrix (the geometric twin's numbers).
+    not a finite positive-definite 6x6 matrix (numbers with known noise, as the geometric simulator gives).
 
     Parameters
     ----------

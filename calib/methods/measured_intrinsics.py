@@ -3,8 +3,8 @@
 The extraction refines the camera by the rods once (:func:`calib.vision.extract.refined_camera`): one step of the
 combined fit linearized at the calibration's camera, with that fit's posterior as ``calibration.covariance_refined``.
 Where the calibration was far off (the lens's radial terms, which a camera phase that does not reach the image's
-corners leaves to the rods), one step is not the estimate: on the image-level twin the refined camera's error along
-the radial direction was 1.6-1.7x its reported std, 4-7x on the trials where the legs method's L erred most. The
+corners leaves to the rods), one step is not the estimate: the refined camera's error along the radial direction
+can be well above its reported std, and the legs method's L errs with it. The
 combined fit of the same observations, linearized at the refined camera, re-estimates the intrinsics (with the
 calibration as prior, not the refinement: ``calib.methods.intrinsics.calibration_offset``); the legs method re-measures
 its rods through them and takes their posterior as its intrinsics' uncertainty (``calibrate_legs(intrinsics=...)``).

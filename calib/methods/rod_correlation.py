@@ -4,10 +4,9 @@ Two rods' direction errors are not independent when the two are seen side by sid
 
 * the two rods of a leg in one frame share the frame and the narrow gap between them;
 * rods seen at nearby places of the image, in any frame, share the background behind them and the light on them,
-  which pull their limb edges the same way. Measured on the image-level twin (true camera and base frame, 50 trials
-  of the paper plan), the in-image direction errors of two rods of one leg in different frames correlate at about
-  0.3 when their midpoints are within 10 px, 0.16 at 35-50 px, 0.08 at 100-150 px, and not at all beyond 300 px:
-  an exponential of about 100 px.
+  which pull their limb edges the same way. On rendered views the in-image direction errors of two rods of one leg
+  in different frames correlate when their midpoints are close (a few tenths within 10 px) and less with distance,
+  not at all beyond a few hundred px: an exponential of about 100 px (:data:`KERNEL_LENGTH_PX`).
 
 Counted as independent, such errors average down over the poses far more than they do. The fit cannot tell them from
 the geometry it estimates: it absorbs most of a shared error, so the residuals show only its short-range part, and

@@ -3,12 +3,11 @@
 Levenberg-Marquardt with tolerances near machine precision (the combined fit asks for 1e-14, so that noise-free data
 give back the truth to 1e-8 m) can reach the minimum and then keep taking steps that lower the sum of squares in its
 eighth digit (the residuals carry rounding-level noise from the inner solves), until ``max_nfev`` stops it
-(``status`` 0). On one rendered trial of the image twin (seed 1, designed 12-pose plan, trial 35, one BLAS thread) the
-combined fit's joint stage reached its minimum within 80 evaluations and crawled on for 465 more; failing it there
-threw away a converged fit, and with it the camera's refinement by the rods and every method's second pass. What
-decides is the step that is left: one Gauss-Newton step from the stopping point would lower the sum of squares by
-``||J dx||^2``. At fits scipy calls converged that is 1e-8 to 1e-7 of the sum on the twin (the finite-difference
-Jacobian sees the same noise); at that trial's stopping point 1e-7.
+(``status`` 0), possibly hundreds of evaluations after it reached the minimum. Failing such a fit would throw away a
+converged fit, and with it the camera's refinement by the rods and every method's second pass. What decides is the
+step that is left: one Gauss-Newton step from the stopping point would lower the sum of squares by ``||J dx||^2``,
+at a fit scipy calls converged a share of the sum of order 1e-8 to 1e-7 (the finite-difference Jacobian sees the
+same rounding noise), and no more where such a fit stops at its minimum.
 """
 
 from __future__ import annotations
@@ -22,8 +21,8 @@ from ..errors import ConvergenceError
 from ..numdiff import central_jacobian
 
 #: a Gauss-Newton step that would lower the sum of squares by at most this share of it (and of 1) is no step: with
-#: whitened residuals a decrease d of the chi-square is a move of sqrt(d) standard deviations, at the combined fit's
-#: chi-square of 60-700 on the twin 0.008-0.03 std
+#: whitened residuals a decrease d of the chi-square is a move of sqrt(d) standard deviations, at chi-squares of tens
+#: to hundreds (the combined fit's) a few hundredths of a standard deviation at most
 STATIONARY_SHARE = 1e-6
 
 

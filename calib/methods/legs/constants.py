@@ -4,8 +4,7 @@ from __future__ import annotations
 
 _PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 #: Default std (m) of each of the seven parameters around the nominal geometry (:func:`calibrate_legs`'s prior): a
-#: bench built to its drawings within about +/-10 mm per length (the twin's default truth is 5.3 mm RMS and at most
-#: 8.4 mm from nominal; the accuracy benchmark draws its truths with 5.3 mm std)
+#: bench built to its drawings within about +/-10 mm per length (the simulator's truths lie within it)
 PRIOR_STD_M = 0.01
 #: The lock phases' joints' systematic error along their lines of sight (m, RMS per joint) for rods measured on images,
 #: and the share of its variance common to a leg's two joints. The rods' shading biases a rod's limb edges by an amount

@@ -1,10 +1,10 @@
 """One wrong upper joint, repaired from its partner and the other legs' rod spacing.
 
 A rod whose lock phase is measured wrong in the same way in every frame (a limb biased by something the extraction
-took for its edge; on the image-level twin, 6 of 50 trials of a designed 12-pose plan, joints 35-71 mm off with
-their covariance claiming 0.1-0.3 mm) gives a joint that the lock phase's own frames cannot question: they agree
-with each other. The rod-pair check (:func:`.uncertainty._pair_consistency`) sees it: the two joints of every leg
-are the same vector apart (the rods' spacing along x_B), and that leg's is not. Which of its two joints is wrong, the
+took for its edge: centimetres off while its covariance claims a fraction of a millimetre) gives a joint that the
+lock phase's own frames cannot question: they agree with each other. The rod-pair check
+(:func:`.uncertainty._pair_consistency`) sees it: the two joints of every leg are the same vector apart (the rods'
+spacing along x_B), and that leg's is not. Which of its two joints is wrong, the
 pair alone cannot say; the fit poses can: with the right joint, their leg directions fit steps 3-4 at their noise;
 with the wrong one, at tens to hundreds of times it.
 
@@ -27,17 +27,16 @@ from ...errors import ConvergenceError, IdentifiabilityError
 from ...robust import robust_chi2_scale
 from .pipeline import LegsModel
 
-#: a repair is kept when it divides the fit poses' robust chi-square per degree of freedom by at least this (clean
-#: trials of the twin: 1-2; with one joint 35-71 mm off: 26-380)
+#: a repair is kept when it divides the fit poses' robust chi-square per degree of freedom by at least this (right
+#: joints leave it near its noise level, a joint centimetres off multiplies it by tens to hundreds)
 REPAIR_GAIN = 4.0
 #: ... and when that chi-square per dof, with measured rod covariances (absolute weights), is at most this: a fit still
-#: far above its noise is no repair (clean image-twin trials: 0.4-4.5; a wrong rod's joint replaced by a still wrong
-#: one, on the geometric twin: 17.8)
+#: far above its noise (a wrong joint replaced by another wrong one) is no repair
 REPAIR_CHI2_MAX = 6.0
 #: a flagged leg's joints are repaired only when its rod-pair chi-square is this many times the check's gate: a joint
-#: tens of standard deviations off, what a rod taken for another edge gives (rods moved 40 mm on the geometric twin:
-#: 5700-98000 for a gate of 16); a leg just over the gate is only widened (a rendered paper-plan trial's leg at 20,
-#: its joints right, was repaired 5.8 mm off when any flagged leg was tried)
+#: tens of standard deviations off, what a rod taken for another edge gives (hundreds to thousands of times the gate);
+#: a leg just over the gate is only widened (its joints are usually right, and a repair tried on it can move a right
+#: joint)
 REPAIR_PAIR_FACTOR = 100.0
 
 

@@ -410,12 +410,10 @@ def null_space_to_prior(
     """The seven with their component along :func:`combinations_null_space` the a priori values', with the a priori
     tolerance ``prior_std_m`` as its std (``parts["a_priori"]``): the legs' image data do not pin these directions.
 
-    On the image-level twin the lock phases' joints carry an error common to every run along these directions (20
-    rendered trials of the accuracy study's plan: +5.5, +10.6 and +19.1 mm on average along the basis's three,
-    spread 0.4, 2.1 and 1.7 mm from trial to trial, against data std of 0.46, 2.2 and 1.7 mm; ``i4cal demo``'s
-    dataset +5.7, +11.4, +20.0 mm): the rods' shading, which offsets a rod's limb edges alike in every frame of a lock
-    phase (without it, with the true camera, +0.2, +0.9, +0.8 mm), and the camera calibration's error on top
-    (docs/model.md). The data's estimate along them is no better than the a priori value. With
+    Along these directions the lock phases' joints carry an error common to every run, several times the data's std
+    and millimetres to centimetres in size: the rods' shading, which offsets a rod's limb edges alike in every frame
+    of a lock phase, and the camera calibration's error on top (docs/model.md). The data's estimate along them is
+    therefore no better than the a priori value. With
     ``P = N N^T`` (N the basis): ``seven - P (seven - nominal)``, each part ``(I - P) C (I - P)``, plus
     ``prior_std_m^2 P``. The four combinations and their covariance are unchanged (``SEVEN_TO_FOUR P = 0``).
 
