@@ -842,8 +842,8 @@ class RodIntrinsicsModel:
         Parameters
         ----------
         z : ndarray, shape (n,)
-            The nuisance: intrinsics in standard deviations along their principal directions, then the edge bias
-            (px) when modelled.
+            The nuisance: intrinsics in standard deviations along their principal directions, then, when modelled,
+            the limb-edge bias per limb in standard deviations of its prior (``edge_std_px``).
         reference : ndarray, shape (M, 3)
             The measured directions (signs).
 

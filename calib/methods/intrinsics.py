@@ -125,8 +125,8 @@ def perturbed_camera(camera: CameraModel, step: Array) -> CameraModel:
     """``camera`` with its intrinsics moved by ``step``.
 
     The intrinsics are :func:`calib.camera.intrinsics_names` (fx, fy, cx, cy, k1, k2, p1, p2 unless its calibration
-    chose another lens model); a camera that lists no parameters takes the first ``len(step)`` of
-    :data:`calib.camera.INTRINSICS_NAMES`.
+    chose another lens model); a step of another length than the camera's list (a camera that lists no parameters)
+    moves the first ``len(step)`` of :data:`calib.camera.INTRINSICS_NAMES`.
 
     Parameters
     ----------

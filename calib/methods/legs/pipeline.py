@@ -395,7 +395,7 @@ class LegsModel:
         Returns
         -------
         ndarray, shape (N, 4, 3)
-            d whitened residual / d (L, S, D), 1/m (1/m per unit of relative weight).
+            d whitened residual / d (L, S, D), 1/m.
         """
         assert self.W is not None
         return np.einsum("nij,njp->nip", self.W, self.jacobian(theta, Aq, Uo, y))
