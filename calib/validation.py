@@ -204,22 +204,6 @@ def validate(obs: Observations, params: I4Parameters, scale: dict | None = None)
     return out
 
 
-def recorded_vision_scale(validation: dict) -> dict | None:
-    """The :func:`vision_scale` a result's ``validation`` section recorded (every entry holds the same), or None.
-
-    Parameters
-    ----------
-    validation : dict
-        A result's ``validation`` section (:func:`validate`'s answer).
-
-    Returns
-    -------
-    dict or None
-        ``{"scale", "std", "n_poses", "source"}`` (scale dimensionless), or None if none is recorded.
-    """
-    return next((v["vision_scale"] for v in validation.values() if isinstance(v, dict) and v.get("vision_scale")), None)
-
-
 def vision_scale_ppm(scale: dict) -> str:
     """A measured :func:`vision_scale` as "+1234 +/- 56 ppm" (its departure from 1 and its std).
 

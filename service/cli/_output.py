@@ -15,7 +15,8 @@ from rich.console import Console
 from rich.table import Table
 
 from calib.parameters import COMBINATION_NAMES, PARAMETER_NAMES
-from calib.validation import recorded_vision_scale, vision_scale_ppm
+from calib.resultdoc import ResultDocument
+from calib.validation import vision_scale_ppm
 from calib.verdict import UNCERTAINTY, Verdict, verdict
 
 #: width of a console that is not a terminal (a file, a pipe): wide enough for every table, no squeezing
@@ -64,37 +65,39 @@ def _fitting_tables(
     return out
 
 
-def _table1(doc: dict[str, Any], width: int) -> tuple[list[Table], list[str]]:
+def _table1(doc: ResultDocument, width: int) -> tuple[list[Table], list[str]]:
     """Table I (a priori and each method's four combinations ± 1 std) and the failed fits' reasons (one line each)."""
-    nom = doc["nominal_combinations"]
+    nom = doc.nominal_combinations
     cols: list[tuple[str, Sequence[str]]] = [("a priori", [_mm(nom[k], 2) for k in COMBINATION_NAMES])]
     failed = []
-    for name, e in doc["methods"].items():
-        if not e.get("parameters"):
-            failed.append(f"{name}: fit failed: {e.get('error') or e.get('message') or 'no parameters'}")
+    for name, e in doc.methods.items():
+        if not e.parameters or not e.std:
+            failed.append(f"{name}: fit failed: {e.error or e.message or 'no parameters'}")
             continue
-        head = name if e.get("converged") else f"{name} (not converged)"
-        cols.append((head, [f"{e['parameters'][k] * 1e3:.2f} ± {e['std'][k] * 1e3:.2f}" for k in COMBINATION_NAMES]))
+        head = name if e.converged else f"{name} (not converged)"
+        val, std = e.parameters, e.std
+        cols.append((head, [f"{_mm(val[k], 2)} ± {_mm(std[k], 2)}" for k in COMBINATION_NAMES]))
     tables = _fitting_tables(f"Table I - the four combinations (mm, {UNCERTAINTY})", COMBINATION_NAMES, cols, width)
-    truth = doc.get("truth_errors")
+    truth = doc.truth_errors
     if truth:
         tcols = [(name, [f"{te[k] * 1e3:+.3f}" for k in COMBINATION_NAMES]) for name, te in truth.items()]
         tables += _fitting_tables("errors against the simulator's truth (mm)", COMBINATION_NAMES, tcols, width)
     return tables, failed
 
 
-def _seven(doc: dict[str, Any], width: int) -> list[Table]:
+def _seven(doc: ResultDocument, width: int) -> list[Table]:
     """The seven parameters of the methods that identify them (the legs method), ± 1 std."""
-    cols: list[tuple[str, Sequence[str]]] = [("a priori", [_mm(doc["nominal"][k], 2) for k in PARAMETER_NAMES])]
-    for name, e in doc["methods"].items():
-        if e.get("seven") and e.get("seven_std"):
-            cols.append((name, [f"{e['seven'][k] * 1e3:.2f} ± {e['seven_std'][k] * 1e3:.2f}" for k in PARAMETER_NAMES]))
+    cols: list[tuple[str, Sequence[str]]] = [("a priori", [_mm(doc.nominal[k], 2) for k in PARAMETER_NAMES])]
+    for name, e in doc.methods.items():
+        seven, seven_std = e.seven, e.seven_std
+        if seven and seven_std:
+            cols.append((name, [f"{_mm(seven[k], 2)} ± {_mm(seven_std[k], 2)}" for k in PARAMETER_NAMES]))
     if len(cols) == 1:
         return []
     return _fitting_tables(f"the seven parameters (mm, {UNCERTAINTY})", PARAMETER_NAMES, cols, width)
 
 
-def _table2(doc: dict[str, Any]) -> Table:
+def _table2(doc: ResultDocument) -> Table:
     """Table II (displacement gaps, vision vs model) and Table III (straightness), one row per parameter set."""
     t = Table(
         title="Table II - displacement gaps (mm) / Table III - straightness (mm)",
@@ -109,15 +112,15 @@ def _table2(doc: dict[str, Any]) -> Table:
     def f(x: Any, fmt: str = ".3f") -> str:
         return "-" if x is None else format(x, fmt)
 
-    for name, v in doc["validation"].items():
-        gp, gv, st = v.get("gaps_poses", {}), v.get("gaps_validation", {}), v.get("straightness", {})
+    for name, v in doc.validation.items():
+        gp, gv, st = v.gaps_poses, v.gaps_validation, v.straightness
         t.add_row(
             name if name != "truth" else "true geometry",
-            f(gp.get("mean_mm"), "+.4f"),
-            f(gp.get("rms_mm")),
-            f(gv.get("mean_mm"), "+.4f"),
-            f(gv.get("rms_mm")),
-            f(st.get("rms_mm")),
+            f(gp and gp.mean_mm, "+.4f"),
+            f(gp and gp.rms_mm),
+            f(gv and gv.mean_mm, "+.4f"),
+            f(gv and gv.rms_mm),
+            f(st and st.rms_mm),
         )
     return t
 
@@ -126,26 +129,30 @@ def _table2(doc: dict[str, Any]) -> Table:
 SCALE_CHECK_ABOVE = 0.005
 
 
-def scale_line(doc: dict[str, Any]) -> str | None:
+def scale_line(doc: ResultDocument | dict[str, Any]) -> str | None:
     """The camera's length scale against the encoders, explained in one line (None: not measured)."""
-    sc = recorded_vision_scale(doc["validation"])
-    if not sc or sc.get("std") is None:
+    sc = ResultDocument.of(doc).vision_scale()
+    if sc is None or sc.std is None:
         return None
-    far = abs(float(sc.get("scale", 1.0)) - 1.0) > SCALE_CHECK_ABOVE
+    far = abs(float(1.0 if sc.scale is None else sc.scale) - 1.0) > SCALE_CHECK_ABOVE
     return (
-        f"camera length scale vs encoders (translation phase, {sc['n_poses']} poses): {vision_scale_ppm(sc)}; "
+        f"camera length scale vs encoders (translation phase, {sc.n_poses} poses): "
+        f"{vision_scale_ppm(sc.model_dump())}; "
         "Table II's gaps are divided by it"
         + (" (beyond 0.5%: check the board's square length in the bench file)" if far else "")
     )
 
 
-def print_result(doc: dict[str, Any], console: Console | None = None, result: str | None = None) -> Verdict:
+def print_result(
+    result_doc: ResultDocument | dict[str, Any], console: Console | None = None, result: str | None = None
+) -> Verdict:
     """Print Table I (a priori vs each method, ± 1 std), the seven parameters where identified, Table II (gaps) and
     Table III (straightness), then the verdict (which result to load and why, the next command); returns the
     verdict.
 
     ``result``: how the verdict's next command names the result (a result file); None: ``RESULT``.
     """
+    doc = ResultDocument.of(result_doc)
     con = console or make_console()
     width = con.width
     tables, failed = _table1(doc, width)
@@ -160,9 +167,9 @@ def print_result(doc: dict[str, Any], console: Console | None = None, result: st
     line = scale_line(doc)
     if line:
         con.print(line)
-        sc = recorded_vision_scale(doc["validation"]) or {}
-        if sc.get("warning"):
-            con.print(f"[yellow]warning:[/yellow] {sc['warning']}")
+        sc = doc.vision_scale()
+        if sc is not None and sc.warning:
+            con.print(f"[yellow]warning:[/yellow] {sc.warning}")
     v = verdict(doc, result or "RESULT")
     style = "bold green" if v.method else "bold red"
     lines = v.lines()
