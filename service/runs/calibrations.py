@@ -7,6 +7,7 @@ from datetime import UTC, datetime
 from sqlalchemy import select
 
 from calib.errors import InputError
+from calib.resultdoc import ResultDocument
 
 from ..db import Calibration, Database, Run
 from ..jobs import clean_json
@@ -27,18 +28,18 @@ def calibration_from_run(run: Run, method: str | None, default_bench: str | None
 
     if run.state != RunState.DONE or not run.result:
         raise RunConflictError(f"run is {run.state} without a result; nothing to apply")
-    methods = run.result.get("methods", {})
+    doc = ResultDocument.of(run.result)
     if method is None:
         from calib.verdict import verdict
 
-        chosen = verdict(run.result)
+        chosen = verdict(doc)
         if chosen.method is None:
             raise RunConflictError(f"{chosen.reason}; nothing to apply (name a method to apply one)")
         method = chosen.method
-    entry = methods.get(method)
+    entry = doc.methods.get(method)
     if entry is None:
         raise InputError(f"run has no result for method {method!r}", field="method")
-    if not entry.get("converged") or not entry.get("parameters"):
+    if not entry.converged or not entry.parameters:
         raise RunConflictError(f"method {method!r} did not converge in this run; nothing to apply")
     bench = run.bench or default_bench or "bench"
     payload = {
@@ -46,11 +47,11 @@ def calibration_from_run(run: Run, method: str | None, default_bench: str | None
         "run_id": run.id,
         "method": method,
         "software_version": __version__,
-        "combinations": entry["parameters"],
-        "combinations_std": entry.get("std"),
-        "parameters": entry.get("seven"),
-        "parameters_std": entry.get("seven_std"),
-        "nominal": run.result.get("nominal"),
+        "combinations": entry.parameters,
+        "combinations_std": entry.std,
+        "parameters": entry.seven,
+        "parameters_std": entry.seven_std,
+        "nominal": doc.nominal if "nominal" in run.result else None,
     }
     return Calibration(
         bench=bench,
