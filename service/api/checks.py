@@ -151,6 +151,15 @@ async def list_checks(
     return [check_out(r) for r in checks(request).list(limit, offset, bench)]
 
 
+@router.get("/schedule", responses=ERRORS)
+async def check_schedule(request: Request, _: Reader) -> dict[str, Any]:
+    """The scheduled checks (service setting ``check_schedule``): the schedule, when the next is due, a check
+    deferred while a run holds the bench, and what the scheduler did (``events``); ``{"schedule": null}`` without
+    one."""
+    sch = getattr(request.app.state, "check_scheduler", None)
+    return {"schedule": None} if sch is None else sch.status()
+
+
 def _get(cm: CheckManager, check_id: str):
     try:
         return cm.get(check_id)

@@ -77,6 +77,10 @@ class CheckManager:
                 q = q.where(Check.bench == bench)
             return list(s.scalars(q.limit(limit).offset(offset)))
 
+    def set_result(self, check_id: str, result: dict[str, Any]) -> None:
+        """Replace a finished check's document (a scheduled check's notification recorded in it)."""
+        self._update(check_id, result=result)
+
     def _update(self, check_id: str, **values: Any) -> None:
         with self.runs.db.session() as s:
             row = s.get(Check, check_id)
@@ -134,6 +138,7 @@ class CheckManager:
         plan: Any,
         plan_source: str = "given",
         settings: CheckSettings | None = None,
+        schedule: dict[str, Any] | None = None,
     ) -> Check:
         """Start checking ``in_force`` (an ``i4cal.calibration/1`` document) with ``plan`` (:meth:`prepare_plan`):
         the bench taken, the acquisition, fit and test in a task.
@@ -163,7 +168,7 @@ class CheckManager:
             s.add(row)
         self.runs.bench_holder = HOLDER_PREFIX + cid
         self.tasks[cid] = asyncio.get_running_loop().create_task(
-            self._execute(cid, plan, in_force, settings or CheckSettings()), name=f"check-{cid}"
+            self._execute(cid, plan, in_force, settings or CheckSettings(), schedule), name=f"check-{cid}"
         )
         return row
 
@@ -177,7 +182,9 @@ class CheckManager:
     def _holder(self) -> str:
         return self.holder() or ""
 
-    async def _execute(self, cid: str, plan: Any, in_force: Any, settings: CheckSettings) -> None:
+    async def _execute(
+        self, cid: str, plan: Any, in_force: Any, settings: CheckSettings, schedule: dict[str, Any] | None = None
+    ) -> None:
         from service import __version__
 
         bench = self.runs.bench
@@ -202,12 +209,21 @@ class CheckManager:
             doc = outcome.to_dict()
             doc["id"] = cid
             doc["dataset"] = f"checks/{cid}/dataset"
+            update = outcome.update_document
+            if schedule is not None:  # a scheduled check (service.checks.schedule): its action decides the update
+                doc["schedule"] = dict(schedule)
+                if schedule.get("action") == "record" and update is not None:
+                    update = None
+                    doc["update"] = {
+                        **doc["update"],
+                        "withheld": "the schedule's action is 'record': no update proposed",
+                    }
             self._update(
                 cid,
                 state="done",
                 verdict=outcome.verdict,
                 result=doc,
-                update=outcome.update_document,
+                update=update,
                 finished_at=datetime.now(UTC),
             )
         except (I4calError, OSError) as exc:
