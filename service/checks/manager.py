@@ -28,6 +28,18 @@ log = logging.getLogger(__name__)
 HOLDER_PREFIX = "check "
 
 
+def scheduled(doc: dict[str, Any], update: dict[str, Any] | None, schedule: dict[str, Any] | None):
+    """The update a check stores: a scheduled check's document (``doc``, changed in place) records its
+    ``schedule`` (trigger, action), and the action ``record`` withholds the proposed update (saying so)."""
+    if schedule is None:
+        return update
+    doc["schedule"] = dict(schedule)
+    if schedule.get("action") == "record" and update is not None:
+        doc["update"] = {**doc.get("update", {}), "withheld": "the schedule's action is 'record': no update proposed"}
+        return None
+    return update
+
+
 class CheckNotFoundError(LookupError):
     pass
 
@@ -38,6 +50,8 @@ class CheckManager:
     def __init__(self, runs: RunManager) -> None:
         self.runs = runs
         self.tasks: dict[str, asyncio.Task] = {}
+        #: why a running check holds the robot by itself (drivers.suspenders), by check id
+        self.suspended: dict[str, str] = {}
         self.recover()
 
     def recover(self) -> list[str]:
@@ -198,6 +212,7 @@ class CheckManager:
                 out,
                 settings,
                 camera_spec=dict(bench.camera_spec),
+                progress=lambda p: self._progress(cid, p),
                 software_version=__version__,
                 now=lambda: iso_utc(datetime.now(UTC)),
             )
@@ -209,15 +224,7 @@ class CheckManager:
             doc = outcome.to_dict()
             doc["id"] = cid
             doc["dataset"] = f"checks/{cid}/dataset"
-            update = outcome.update_document
-            if schedule is not None:  # a scheduled check (service.checks.schedule): its action decides the update
-                doc["schedule"] = dict(schedule)
-                if schedule.get("action") == "record" and update is not None:
-                    update = None
-                    doc["update"] = {
-                        **doc["update"],
-                        "withheld": "the schedule's action is 'record': no update proposed",
-                    }
+            update = scheduled(doc, outcome.update_document, schedule)
             self._update(
                 cid,
                 state="done",
@@ -237,8 +244,18 @@ class CheckManager:
             log.exception("check %s failed", cid)
             self._update(cid, state="failed", error=f"{type(exc).__name__}: {exc}", finished_at=datetime.now(UTC))
         finally:
+            self.suspended.pop(cid, None)
             if self.runs.bench_holder == HOLDER_PREFIX + cid:
                 self.runs.bench_holder = None
+
+    def _progress(self, cid: str, p: Any) -> None:
+        """The acquisition's progress: a suspension (drivers.suspenders) noted while it lasts."""
+        if p.state == "suspended":
+            if self.suspended.get(cid) != p.message:
+                log.warning("check %s suspended: %s", cid, p.message)
+            self.suspended[cid] = p.message
+        elif p.state == "running" and self.suspended.pop(cid, None):
+            log.info("check %s: %s", cid, p.message)
 
     async def wait(self, check_id: str) -> None:
         t = self.tasks.get(check_id)

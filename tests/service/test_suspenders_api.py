@@ -75,3 +75,39 @@ async def test_without_suspenders_the_dark_frames_are_recorded(tmp_path, sim):
     assert run["state"] == "done"
     assert not [e for e in events if e["type"] == "suspended"]
     assert sum(level < 0.02 for level in levels) == 4
+
+
+async def test_a_check_suspends_and_says_why_while_the_light_is_off(tmp_path, sim):
+    """A check acquires with the same suspenders: held while dark, its status says why, no dark frame written. (The
+    bench's frames are TinyRenderer's, without a board: the fit that follows fails, which this test does not need.)"""
+    from .test_check import _in_force
+
+    svc = await start_service(
+        make_settings(tmp_path, sim, bench_overrides={"suspenders": {"poll_s": 0.05, "clear_frames": 3}}), sim
+    )
+    c = svc.client
+    try:
+        from service.checks.plan import check_plan_for_bench
+
+        cfg = svc.app.state.manager.bench.config
+        doc = await asyncio.to_thread(_in_force, cfg)
+        # designed before the request (the service's plan cache): the request then starts at once
+        await asyncio.to_thread(check_plan_for_bench, cfg, 60.0, svc.settings.data_dir / "check-plans", 0, None)
+        sim.frames.faults.scene_after, sim.frames.faults.dark = 3, 4
+        r = await c.post(f"{API}/checks", json={"calibration": doc.model_dump(mode="json")}, headers=AUTH)
+        assert r.status_code == 202, r.text
+        cid = r.json()["id"]
+        why = None
+        async with asyncio.timeout(60):
+            while (check := (await c.get(f"{API}/checks/{cid}")).json())["state"] == "running":
+                why = why or check["suspended"]
+                await asyncio.sleep(0.005)
+        assert why is not None and why.startswith("brightness: the image is dark"), check
+        ds = Dataset.open(svc.settings.data_dir / "checks" / cid / "dataset")
+        levels = [mean_level(ds.load_image(i)) for i in range(len(ds.frames))]
+        steps = svc.app.state.checks.get(cid).plan["steps"]
+        assert len(levels) == len(steps) and sim.frames.faults.dark == 0  # the whole plan, the light back on
+        np.testing.assert_allclose(levels, LIT_LEVEL, atol=2 / 255)
+    finally:
+        await c.aclose()
+        await svc.stop()
