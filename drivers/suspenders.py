@@ -224,7 +224,8 @@ class Suspension:
                     good = self.clear_frames - 1  # the next frame, grabbed after the resume, must pass too
                     continue
                 dt = time.monotonic() - t0
-                report("cleared", f"suspension cleared after {dt:.1f} s ({self.reason})")
+                cleared, self.reason = self.reason, ""
+                report("cleared", f"suspension cleared after {dt:.1f} s ({cleared})")
                 self._accept(frame)
                 return frame
         finally:

@@ -216,7 +216,7 @@ class Stages:
                 a.suspended = p.message
                 a.paused = a.paused or bool(suspension and suspension.waits_for_user)  # POST .../resume resumes it
                 m.emit(run_id, "suspended", {"reason": p.message, "frame": p.done})
-            elif a.suspended and p.state == "running":
+            elif a.suspended and p.state == "running" and not (suspension and suspension.reason):
                 a.suspended, a.paused = "", False
                 m.emit(run_id, "suspension_cleared", {"message": p.message, "frame": p.done})
             if p.state == "running":
