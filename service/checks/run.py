@@ -110,7 +110,8 @@ async def acquire_check(
     cfg, plan, out: Path, progress: Callable[[Any], None] | None = None, camera_spec: dict[str, Any] | None = None
 ):
     """Acquire the check plan into ``out`` (a dataset v1 directory); the acquisition's result and its motion time
-    (s: the moves, command to in position, and the settle times; not the grabs and writes). ``camera_spec``: what
+    (s: ``motion``, the moves from the first pose on, command to in position, and the settle times, not the grabs
+    and writes; ``approach``, the move to the first pose). ``camera_spec``: what
     the dataset records of the camera (a service's camera file: ``service.runs.Bench.camera_spec``)."""
     from drivers.acquisition import acquisition_from_config, close_devices
 
@@ -120,8 +121,13 @@ async def acquire_check(
         res = await acq.run()
     finally:
         await close_devices(acq)
-    # the motion as measured: each pose's move (command to in position) and its settle time
-    return res, sum(moved - start for start, moved, _ in acq.timings) + acq.settle_s * len(acq.timings)
+    # the motion as measured: each pose's move (command to in position) and its settle time, the approach to the
+    # first pose (from wherever the robot was: home after a homing) apart
+    moves = [moved - start for start, moved, _ in acq.timings]
+    return res, {
+        "approach": moves[0] if moves else 0.0,
+        "motion": sum(moves[1:]) + acq.settle_s * len(moves),
+    }
 
 
 def fit_check(dataset_dir: Path, camera=None) -> tuple[dict[str, Any], Any]:
@@ -228,7 +234,7 @@ async def run_check(
 
     settings = settings or CheckSettings()
     t0 = time.monotonic()
-    res, motion_s = await acquire_check(cfg, plan, out, progress, camera_spec)
+    res, motion = await acquire_check(cfg, plan, out, progress, camera_spec)
     t1 = time.monotonic()
     entry, obs = await asyncio.to_thread(fit_check, Path(res.path), camera)
     outcome = evaluate_check(
@@ -237,6 +243,6 @@ async def run_check(
     if any(s.phase == "validation" for s in plan.steps):
         outcome.repeatability = repeat_figures(obs, plan)
     t2 = time.monotonic()
-    outcome.timing_s = {"acquisition": t1 - t0, "motion": motion_s, "result_after_last_frame": t2 - t1}
+    outcome.timing_s = {"acquisition": t1 - t0, **motion, "result_after_last_frame": t2 - t1}
     outcome.dataset = str(res.path)
     return outcome
