@@ -181,6 +181,8 @@ def _summary(all_rows: list[dict[str, Any]], ctx: dict[str, Any]) -> dict[str, A
         "result_after_last_frame_s_median": float(np.median([r["timing_s"]["result_after_last_frame"] for r in rows])),
         "acquisition_s_median": float(np.median([r["timing_s"]["acquisition"] for r in rows])),
         "motion_s_median": float(np.median([r["timing_s"]["motion"] for r in rows])),
+        "approach_s_median": float(np.median([r["timing_s"]["approach"] for r in rows])),
+        "result_cpu_s_median": float(np.median([r["timing_s"]["result_cpu"] for r in rows])),
     }
     if "named" in rows[0]:
         out["detected_naming_it"] = sum(r["named"] for r in rows) / n
@@ -276,9 +278,10 @@ def _run(args: argparse.Namespace) -> int:
         else:
             line += f", false alarms {s['drifted_rate']:.0%}"
         line += (
-            f"; motion {s['motion_s_median']:.1f} s, acquisition {s['acquisition_s_median']:.1f} s (median); result "
+            f"; motion {s['motion_s_median']:.1f} s (+ {s['approach_s_median']:.1f} s to the first pose), "
+            f"acquisition {s['acquisition_s_median']:.1f} s (median); result "
             f"{s['result_after_last_frame_s_median']:.1f} s (median), <= {s['result_after_last_frame_s_max']:.1f} s "
-            "after the last frame"
+            f"after the last frame ({s['result_cpu_s_median']:.1f} s of CPU, median)"
         )
         print(line, flush=True)
     figures["elapsed_s"] = time.monotonic() - t0

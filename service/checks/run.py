@@ -215,6 +215,14 @@ def evaluate_check(
     )
 
 
+def _cpu_s() -> float:
+    """CPU time (s) of this process and its finished children (extraction's worker processes)."""
+    import resource
+
+    ch = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.process_time() + ch.ru_utime + ch.ru_stime
+
+
 async def run_check(
     cfg,
     plan,
@@ -235,7 +243,7 @@ async def run_check(
     settings = settings or CheckSettings()
     t0 = time.monotonic()
     res, motion = await acquire_check(cfg, plan, out, progress, camera_spec)
-    t1 = time.monotonic()
+    t1, c1 = time.monotonic(), _cpu_s()
     entry, obs = await asyncio.to_thread(fit_check, Path(res.path), camera)
     outcome = evaluate_check(
         entry, in_force_doc, settings, software_version=software_version, date=now() if now else None
@@ -243,6 +251,11 @@ async def run_check(
     if any(s.phase == "validation" for s in plan.steps):
         outcome.repeatability = repeat_figures(obs, plan)
     t2 = time.monotonic()
-    outcome.timing_s = {"acquisition": t1 - t0, **motion, "result_after_last_frame": t2 - t1}
+    outcome.timing_s = {
+        "acquisition": t1 - t0,
+        **motion,
+        "result_after_last_frame": t2 - t1,
+        "result_cpu": _cpu_s() - c1,
+    }
     outcome.dataset = str(res.path)
     return outcome
