@@ -35,6 +35,7 @@ from .errors import AbortedError, DeviceError, DeviceTimeoutError, FrameError, P
 from .interfaces import Actuators, Camera, Frame, Operator
 from .operators import ConsoleOperator as ConsoleOperator  # where it was before: the console operator
 from .registermap import ALARM_WATCHDOG
+from .suspenders import Suspension
 
 log = logging.getLogger(__name__)
 
@@ -62,7 +63,7 @@ def plan_units(plan: Plan) -> list[Unit]:
 
 @dataclass
 class Progress:
-    state: str  # starting, running, paused, done, failed, aborted
+    state: str  # starting, running, paused, suspended (drivers.suspenders), done, failed, aborted
     done: int
     total: int
     phase: str = ""
@@ -145,6 +146,7 @@ class Acquisition:
         legs: LegsSpec | None = None,
         camera_spec: dict[str, Any] | None = None,
         extra: dict[str, Any] | None = None,
+        suspension: Suspension | None = None,
     ) -> None:
         self.plan = plan
         self.actuators = actuators
@@ -179,6 +181,7 @@ class Acquisition:
         self.line_still_m = 1e-5  # encoders before and after a frame agree within this (m)
         self.frame_reads = 3  # a pose's frame whose q fails its checks is read again, at most this many times
         self._pending: asyncio.Future | None = None
+        self.suspension = suspension  # drivers.suspenders: a pose's frame waits until the scene is fit to record
 
     # -- control ----------------------------------------------------------------------------------
     def pause(self) -> None:
@@ -541,6 +544,8 @@ class Acquisition:
         for attempt in range(1, self.frame_reads + 1):
             st = await self._read_status()
             frame = await self._grab()
+            if self.suspension is not None:  # held at this pose while the scene is unfit; a frame grabbed after
+                frame = await self.suspension.clear(frame, self._grab, self._suspended, self._go)
             q2 = np.asarray(await self.actuators.read_encoders(), dtype=float)
             problem = q_problem(st.positions, q2, target, tol_target, self.line_still_m)
             if not problem:
@@ -550,6 +555,9 @@ class Acquisition:
         raise ProtocolError(
             f"frame refused, not written: {problem}, in {self.frame_reads} readings (a stale or wrong encoder reading)"
         )
+
+    def _suspended(self, state: str, message: str) -> None:
+        self._emit("suspended" if state == "suspended" else "running", message)
 
     def _note_record_time(self, dt: float) -> None:
         self._record_s = dt if self._record_s is None else 0.7 * self._record_s + 0.3 * dt
@@ -655,6 +663,7 @@ def acquisition_from_config(
         grab_retries=cfg.camera.grab_retries,
         line_rate_hz=cfg.acquisition.line_rate_hz,
         home=cfg.actuators.home_on_connect,
+        suspension=Suspension.from_config(cfg.suspenders, kw.get("board")),
     )
     opts.update(kw)
     if getattr(

@@ -21,6 +21,8 @@ A bench file names its devices by URI; device code never asks whether it is simu
     uri = "console"                         # or sim://HOST:PORT (the simulated operator)
     [nominal]
     file = "nominal.json"                   # optional: the a priori geometry; default calib.parameters.NOMINAL
+    [suspenders]                            # optional: pause while the image is dark / the board unseen
+    enabled = true                          # (drivers.suspenders: every setting and its default)
 
 Each URI scheme has a factory in a registry (:func:`register_actuators_scheme`, :func:`register_camera_scheme`,
 :func:`register_operator_scheme`) that :func:`open_actuators`, :func:`open_camera` and :func:`open_operator` use; a
@@ -52,6 +54,7 @@ from calib.parameters import NOMINAL, I4Parameters
 
 from .interfaces import Actuators, Camera, Operator, SoftLimitsM
 from .registermap import RegisterMap
+from .suspenders import SuspendersConfig
 
 if TYPE_CHECKING:
     from calib.camera import CameraModel
@@ -219,6 +222,7 @@ class BenchConfig(BaseModel):
     operator: OperatorConfig = OperatorConfig()
     acquisition: AcquisitionConfig = AcquisitionConfig()
     nominal: NominalConfig = NominalConfig()
+    suspenders: SuspendersConfig = SuspendersConfig()
     source: str | None = Field(None, exclude=True)
 
     def soft_limits(self) -> SoftLimitsM:

@@ -33,6 +33,25 @@ STATIC = Path(__file__).resolve().parent / "static"
 log = logging.getLogger("i4cal.service")
 
 
+def _check_scheduler(app: FastAPI, settings: Settings, manager: RunManager):
+    """The scheduled checks (``settings.check_schedule``) started on the bench, None without a schedule or bench."""
+    if settings.check_schedule is None or manager.bench is None:
+        return None
+    from .api.calibration import current_document
+    from .checks.manager import CheckManager
+    from .checks.schedule import CheckScheduler
+
+    cm = app.state.checks = CheckManager(manager)
+
+    def in_force():
+        cal = manager.current_calibration()
+        return None if cal is None else (current_document(manager, cal), cal.id, cal.run_id)
+
+    scheduler = app.state.check_scheduler = CheckScheduler(cm, settings.check_schedule, in_force)
+    scheduler.start()
+    return scheduler
+
+
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
 
@@ -61,10 +80,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         if interrupted:
             log.warning("runs interrupted by the last stop (resume them): %s", ", ".join(interrupted))
         app.state.settings, app.state.db, app.state.manager = settings, db, manager
+        scheduler = _check_scheduler(app, settings, manager)
         try:
             yield
         finally:
             warm.cancel()
+            if scheduler is not None:
+                await scheduler.stop()
             await manager.shutdown()
             if bench is not None:
                 await bench.close()

@@ -13,6 +13,9 @@
     allowed_hosts = ["127.0.0.1", "localhost", "[::1]"]  # Host header values answered (+ host if one address)
     data_quota_bytes = 68719476736       # 64 GiB under data_dir at most (0: no quota); 507 beyond
     min_free_bytes = 1073741824          # 1 GiB always left free on the data disk; 507 beyond
+    [check_schedule]                     # optional: scheduled checks (docs/check.md)
+    every_hours = 24                     # and/or idle_minutes = 30
+    action = "propose"                   # record, propose, notify (with notify_url = "https://...")
 
 Environment: ``I4CAL_DATA_DIR``, ``I4CAL_PORT``, ``I4CAL_OPEN_READS``, ... (nested: ``I4CAL_PLAN_SIZES__N_FIT``).
 """
@@ -21,9 +24,9 @@ from __future__ import annotations
 
 import tomllib
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
-from pydantic import BaseModel, Field, field_validator
+from pydantic import BaseModel, Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
 from calib.errors import InputError
@@ -63,6 +66,32 @@ class PlanSizes(BaseModel):
     n_validation: int = Field(10, ge=1, le=2000)
     line_samples: int = Field(51, ge=3, le=5000)
     seed: int = 0
+
+
+class CheckSchedule(BaseModel):
+    """Scheduled checks (``[check_schedule]`` in the service's TOML; :mod:`service.checks.schedule`, docs/check.md)."""
+
+    every_hours: float | None = Field(None, gt=0, description="a check this long after the last scheduled one, h")
+    idle_minutes: float | None = Field(
+        None, gt=0, description="a check once no run has held the bench for this long (once per idle period), min"
+    )
+    action: Literal["record", "propose", "notify"] = Field(
+        "record",
+        description="record: store the check only; propose: store it with its proposed update; notify: as propose, "
+        "and POST its summary to notify_url",
+    )
+    notify_url: str | None = Field(None, description="the webhook the 'notify' action POSTs JSON to (http, https)")
+    max_seconds: float = Field(60.0, gt=0, description="motion budget of the designed check plan, s")
+    alpha: float = Field(0.05, gt=0, lt=0.5, description="false-alarm probability when nothing drifted")
+    poll_s: float = Field(30.0, gt=0, le=3600, description="how often the scheduler looks whether a check is due, s")
+
+    @model_validator(mode="after")
+    def _complete(self) -> CheckSchedule:
+        if self.every_hours is None and self.idle_minutes is None:
+            raise ValueError("check_schedule needs every_hours or idle_minutes")
+        if self.action == "notify" and not (self.notify_url or "").startswith(("http://", "https://")):
+            raise ValueError("the action 'notify' needs notify_url, an http:// or https:// URL")
+        return self
 
 
 class Settings(BaseSettings):
@@ -159,6 +188,9 @@ class Settings(BaseSettings):
         description="nice increment of the extraction and fit processes (the server keeps the CPU it needs to answer)",
     )
     plan_sizes: PlanSizes = PlanSizes()
+    check_schedule: CheckSchedule | None = Field(
+        None, description="scheduled checks of the current calibration (docs/check.md); none when absent"
+    )
     config_file: Path | None = Field(None, exclude=True)
 
     @classmethod

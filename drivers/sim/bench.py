@@ -78,6 +78,29 @@ class CameraFaults:
     timeouts: int = 0  # ignore this many GRAB requests (the client times out)
     corrupt: int = 0  # corrupt this many frames (payload no longer matches its CRC)
     render_errors: int = 0
+    #: the scene's faults (drivers.suspenders): after ``scene_after`` more frames served as they are, this many
+    #: frames come dark (the light switched off: 5% of the brightness) or occluded (a person in the view: the
+    #: image's centre covered, the board unseen)
+    dark: int = 0
+    occluded: int = 0
+    scene_after: int = 0
+
+    def scene(self, img: np.ndarray) -> np.ndarray:
+        """``img`` as the scene's faults show it (one frame served: the counters move on)."""
+        if not (self.dark or self.occluded):
+            return img
+        if self.scene_after > 0:
+            self.scene_after -= 1
+            return img
+        if self.dark > 0:
+            self.dark -= 1
+            img = (img.astype(np.float32) * 0.05).astype(img.dtype)
+        elif self.occluded > 0:
+            self.occluded -= 1
+            img = img.copy()
+            h, w = img.shape[:2]
+            img[h // 8 : h - h // 8, w // 8 : w - w // 8] = np.median(img)
+        return img
 
 
 class FrameServer:
@@ -150,6 +173,7 @@ class FrameServer:
                             self.faults.render_errors -= 1
                             raise RuntimeError("sensor readout error (injected)")
                         img, meta = await asyncio.to_thread(self.render_now)
+                        img = np.ascontiguousarray(self.faults.scene(img))
                         payload = img.tobytes()
                         hdr = {
                             "height": img.shape[0],

@@ -43,8 +43,36 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--drift-std", type=float, default=4.0, help="drift in predicted std of the check (default 4)")
     p.add_argument("--max-seconds", type=float, default=60.0, help="the check plan's motion budget (default 60 s)")
     p.add_argument("--seed", type=int, default=0, help="first seed of the trials")
+    p.add_argument(
+        "--speeds",
+        metavar="BENCH_FILE",
+        default=None,
+        help="design the check plan for this bench file's speeds, accelerations, settle times and soft limits, and "
+        "run the simulated axes at them (e.g. deploy/bench-real.example.toml): the check's motion as measured on "
+        "that bench (default: the simulated bench's)",
+    )
     p.add_argument("--json", metavar="PATH", default=None, help="also write the figures as JSON")
     p.set_defaults(handler=_run)
+
+
+def motion_overrides(path: str | None) -> dict[str, Any]:
+    """The bench file's motion settings (speed, acceleration, settle times, soft limits) as overrides of the
+    simulated bench's configuration (:meth:`drivers.sim.bench.SimBench.bench_config`); ``{}`` without a file."""
+    if path is None:
+        return {}
+    from drivers.config import load_bench
+
+    real = load_bench(path)
+    a = real.actuators
+    return {
+        "actuators": {
+            "speed_m_s": a.speed_m_s,
+            "accel_m_s2": a.accel_m_s2,
+            "settle_s": a.settle_s,
+            "limits": {"q_min": list(a.limits.q_min), "q_max": list(a.limits.q_max)},
+        },
+        "acquisition": {"line_rate_hz": 50.0, "settle_s": real.acquisition.settle_s},
+    }
 
 
 def _in_force_document(combos: dict[str, float], cov, truth, nominal) -> Any:
@@ -91,11 +119,23 @@ async def _trial(case: str, k: int, drift_m: float, ctx: dict[str, Any]) -> dict
     )
     from calib.errors import I4calError
 
-    sim = SimBench(port=0, seed=seed, drift_m=drift)
+    over = ctx["overrides"]
+    axes = None
+    if over:  # the simulated axes at the bench file's speeds: the check's motion takes what it would there
+        from drivers.sim.mechanism import AxisConfig
+
+        act = over["actuators"]
+        axes = AxisConfig(default_speed=act["speed_m_s"], accel=act["accel_m_s2"], home_speed=10.0)
+    sim = SimBench(port=0, seed=seed, drift_m=drift, axis_config=axes)
     await sim.start()
     try:
         cfg = sim.bench_config(
-            acquisition={"line_rate_hz": 50.0}, camera={"timeout_s": 10.0}, actuators={"timeout_s": 2.0}
+            **{
+                "acquisition": {"line_rate_hz": 50.0},
+                **over,
+                "camera": {"timeout_s": 10.0},
+                "actuators": {**over.get("actuators", {}), "timeout_s": 2.0},
+            }
         )
         with tempfile.TemporaryDirectory(prefix="i4cal-bench-check-") as tmp:
             out = await run_check(cfg, ctx["plan"], doc, Path(tmp) / "ds", camera=ctx["camera"])
@@ -138,6 +178,11 @@ def _summary(all_rows: list[dict[str, Any]], ctx: dict[str, Any]) -> dict[str, A
         "verdicts": {v: sum(r["verdict"] == v for r in rows) for v in ("holds", "drifted", "inconclusive")},
         "drifted_rate": sum(r["verdict"] == "drifted" for r in rows) / n,
         "result_after_last_frame_s_max": max(r["timing_s"]["result_after_last_frame"] for r in rows),
+        "result_after_last_frame_s_median": float(np.median([r["timing_s"]["result_after_last_frame"] for r in rows])),
+        "acquisition_s_median": float(np.median([r["timing_s"]["acquisition"] for r in rows])),
+        "motion_s_median": float(np.median([r["timing_s"]["motion"] for r in rows])),
+        "approach_s_median": float(np.median([r["timing_s"]["approach"] for r in rows])),
+        "result_cpu_s_median": float(np.median([r["timing_s"]["result_cpu"] for r in rows])),
     }
     if "named" in rows[0]:
         out["detected_naming_it"] = sum(r["named"] for r in rows) / n
@@ -165,7 +210,8 @@ def _context(args: argparse.Namespace) -> dict[str, Any]:
 
     probe = SimBench(port=0, renderer=object())
     probe.tcp_address, probe.frame_address = ("127.0.0.1", 1), ("127.0.0.1", 3)  # never connected: the design needs
-    cfg = probe.bench_config(acquisition={"line_rate_hz": 50.0})  # the geometry, limits and speeds only
+    overrides = motion_overrides(args.speeds)
+    cfg = probe.bench_config(**{"acquisition": {"line_rate_hz": 50.0}, **overrides})  # geometry, limits, speeds
     nominal = cfg.nominal_parameters()
     full = make_plan("full", nominal, seed=0, limits=cfg.calib_limits())
     pred_full = check_for_bench(cfg, full, None, ("combined",)).prediction
@@ -175,6 +221,7 @@ def _context(args: argparse.Namespace) -> dict[str, Any]:
     from drivers.sim.twin import BenchGeometry
 
     return {
+        "overrides": overrides,
         "seed": args.seed,
         "truth": BenchGeometry().truth,
         "nominal": nominal,
@@ -230,13 +277,23 @@ def _run(args: argparse.Namespace) -> int:
                 line += f", update RMS error / full std on {combo}: {s['update_rms_over_full_std'][combo]:.2f}"
         else:
             line += f", false alarms {s['drifted_rate']:.0%}"
-        line += f"; result <= {s['result_after_last_frame_s_max']:.1f} s after the last frame"
+        line += (
+            f"; motion {s['motion_s_median']:.1f} s (+ {s['approach_s_median']:.1f} s to the first pose), "
+            f"acquisition {s['acquisition_s_median']:.1f} s (median); result "
+            f"{s['result_after_last_frame_s_median']:.1f} s (median), <= {s['result_after_last_frame_s_max']:.1f} s "
+            f"after the last frame ({s['result_cpu_s_median']:.1f} s of CPU, median)"
+        )
         print(line, flush=True)
     figures["elapsed_s"] = time.monotonic() - t0
+    ratios = [v for s in figures["cases"].values() for v in (s.get("update_rms_over_full_std") or {}).values()]
+    if ratios:
+        print(f"updates: RMS error / a full recalibration's std at most {max(ratios):.2f} (1.5 asked)")
+    where = args.speeds or "the simulated bench"
     print(
-        f"check plan: {ctx['n_fit']} fit poses, {ctx['motion_s']:.1f} s of motion at the simulated bench's speeds; "
+        f"check plan: {ctx['n_fit']} fit poses, {ctx['motion_s']:.1f} s of motion predicted at the speeds of {where}; "
         f"{figures['elapsed_s']:.0f} s in all"
     )
+    figures["speeds"] = where
     if args.json:
         Path(args.json).write_text(json.dumps(figures, indent=1, default=float), encoding="utf-8")
     return 0

@@ -65,10 +65,15 @@ class CheckOut(BaseModel):
     update: dict[str, Any] | None = Field(None, description="the proposed update (i4cal.calibration/1), if any")
     applied_calibration_id: int | None = None
     error: str | None = None
+    suspended: str | None = Field(
+        None,
+        description="why the running check holds the robot by itself (dark image, board unseen); null: it does not",
+    )
 
 
-def check_out(row) -> CheckOut:
+def check_out(row, cm: CheckManager | None = None) -> CheckOut:
     return CheckOut(
+        suspended=(cm.suspended.get(row.id) or None) if cm is not None else None,
         id=row.id,
         state=row.state,
         verdict=row.verdict,
@@ -136,7 +141,7 @@ async def create_check(body: CheckCreate, request: Request, manager: Manager, _:
         raise conflict(str(exc)) from None
     except InputError as exc:
         raise unprocessable(exc) from None
-    return check_out(row)
+    return check_out(row, cm)
 
 
 @router.get("", response_model=list[CheckOut], responses=ERRORS)
@@ -148,7 +153,17 @@ async def list_checks(
     bench: Annotated[str | None, Query(max_length=64)] = None,
 ) -> list[CheckOut]:
     """Every check, newest first (``bench``: only that bench's)."""
-    return [check_out(r) for r in checks(request).list(limit, offset, bench)]
+    cm = checks(request)
+    return [check_out(r, cm) for r in cm.list(limit, offset, bench)]
+
+
+@router.get("/schedule", responses=ERRORS)
+async def check_schedule(request: Request, _: Reader) -> dict[str, Any]:
+    """The scheduled checks (service setting ``check_schedule``): the schedule, when the next is due, a check
+    deferred while a run holds the bench, and what the scheduler did (``events``); ``{"schedule": null}`` without
+    one."""
+    sch = getattr(request.app.state, "check_scheduler", None)
+    return {"schedule": None} if sch is None else sch.status()
 
 
 def _get(cm: CheckManager, check_id: str):
@@ -161,7 +176,8 @@ def _get(cm: CheckManager, check_id: str):
 @router.get("/{check_id}", response_model=CheckOut, responses={**ERRORS, 404: {"description": "no such check"}})
 async def get_check(check_id: CheckId, request: Request, _: Reader) -> CheckOut:
     """One check: its state, verdict, document and proposed update."""
-    return check_out(_get(checks(request), check_id))
+    cm = checks(request)
+    return check_out(_get(cm, check_id), cm)
 
 
 @router.post(

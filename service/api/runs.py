@@ -72,6 +72,9 @@ class Progress(BaseModel):
     total: int
     phase: str
     paused: bool = False
+    suspended: str | None = Field(
+        None, description="why the acquisition holds the robot by itself (dark image, board unseen); null: it does not"
+    )
     pose: list[float] | None = Field(None, description="joint targets of the pose being executed, m")
     last_frame: int | None = None
 
@@ -149,6 +152,7 @@ def run_out(manager: RunManager, run) -> RunOut:
             total=run.total or 0,
             phase=run.phase or "",
             paused=bool(a and a.paused),
+            suspended=(a.suspended or None) if a else None,
             pose=a.pose if a else None,
             last_frame=a.last_frame if a else None,
         ),

@@ -28,6 +28,18 @@ log = logging.getLogger(__name__)
 HOLDER_PREFIX = "check "
 
 
+def scheduled(doc: dict[str, Any], update: dict[str, Any] | None, schedule: dict[str, Any] | None):
+    """The update a check stores: a scheduled check's document (``doc``, changed in place) records its
+    ``schedule`` (trigger, action), and the action ``record`` withholds the proposed update (saying so)."""
+    if schedule is None:
+        return update
+    doc["schedule"] = dict(schedule)
+    if schedule.get("action") == "record" and update is not None:
+        doc["update"] = {**doc.get("update", {}), "withheld": "the schedule's action is 'record': no update proposed"}
+        return None
+    return update
+
+
 class CheckNotFoundError(LookupError):
     pass
 
@@ -38,6 +50,8 @@ class CheckManager:
     def __init__(self, runs: RunManager) -> None:
         self.runs = runs
         self.tasks: dict[str, asyncio.Task] = {}
+        #: why a running check holds the robot by itself (drivers.suspenders), by check id
+        self.suspended: dict[str, str] = {}
         self.recover()
 
     def recover(self) -> list[str]:
@@ -76,6 +90,10 @@ class CheckManager:
             if bench:
                 q = q.where(Check.bench == bench)
             return list(s.scalars(q.limit(limit).offset(offset)))
+
+    def set_result(self, check_id: str, result: dict[str, Any]) -> None:
+        """Replace a finished check's document (a scheduled check's notification recorded in it)."""
+        self._update(check_id, result=result)
 
     def _update(self, check_id: str, **values: Any) -> None:
         with self.runs.db.session() as s:
@@ -134,6 +152,7 @@ class CheckManager:
         plan: Any,
         plan_source: str = "given",
         settings: CheckSettings | None = None,
+        schedule: dict[str, Any] | None = None,
     ) -> Check:
         """Start checking ``in_force`` (an ``i4cal.calibration/1`` document) with ``plan`` (:meth:`prepare_plan`):
         the bench taken, the acquisition, fit and test in a task.
@@ -163,7 +182,7 @@ class CheckManager:
             s.add(row)
         self.runs.bench_holder = HOLDER_PREFIX + cid
         self.tasks[cid] = asyncio.get_running_loop().create_task(
-            self._execute(cid, plan, in_force, settings or CheckSettings()), name=f"check-{cid}"
+            self._execute(cid, plan, in_force, settings or CheckSettings(), schedule), name=f"check-{cid}"
         )
         return row
 
@@ -177,7 +196,9 @@ class CheckManager:
     def _holder(self) -> str:
         return self.holder() or ""
 
-    async def _execute(self, cid: str, plan: Any, in_force: Any, settings: CheckSettings) -> None:
+    async def _execute(
+        self, cid: str, plan: Any, in_force: Any, settings: CheckSettings, schedule: dict[str, Any] | None = None
+    ) -> None:
         from service import __version__
 
         bench = self.runs.bench
@@ -191,6 +212,7 @@ class CheckManager:
                 out,
                 settings,
                 camera_spec=dict(bench.camera_spec),
+                progress=lambda p: self._progress(cid, p),
                 software_version=__version__,
                 now=lambda: iso_utc(datetime.now(UTC)),
             )
@@ -202,12 +224,13 @@ class CheckManager:
             doc = outcome.to_dict()
             doc["id"] = cid
             doc["dataset"] = f"checks/{cid}/dataset"
+            update = scheduled(doc, outcome.update_document, schedule)
             self._update(
                 cid,
                 state="done",
                 verdict=outcome.verdict,
                 result=doc,
-                update=outcome.update_document,
+                update=update,
                 finished_at=datetime.now(UTC),
             )
         except (I4calError, OSError) as exc:
@@ -221,8 +244,18 @@ class CheckManager:
             log.exception("check %s failed", cid)
             self._update(cid, state="failed", error=f"{type(exc).__name__}: {exc}", finished_at=datetime.now(UTC))
         finally:
+            self.suspended.pop(cid, None)
             if self.runs.bench_holder == HOLDER_PREFIX + cid:
                 self.runs.bench_holder = None
+
+    def _progress(self, cid: str, p: Any) -> None:
+        """The acquisition's progress: a suspension (drivers.suspenders) noted while it lasts."""
+        if p.state == "suspended":
+            if self.suspended.get(cid) != p.message:
+                log.warning("check %s suspended: %s", cid, p.message)
+            self.suspended[cid] = p.message
+        elif p.state == "running" and self.suspended.pop(cid, None):
+            log.info("check %s: %s", cid, p.message)
 
     async def wait(self, check_id: str) -> None:
         t = self.tasks.get(check_id)

@@ -109,16 +109,25 @@ def predicted_check_std(cfg, plan, camera=None) -> dict[str, float] | None:
 async def acquire_check(
     cfg, plan, out: Path, progress: Callable[[Any], None] | None = None, camera_spec: dict[str, Any] | None = None
 ):
-    """Acquire the check plan into ``out`` (a dataset v1 directory); the acquisition's result. ``camera_spec``: what
+    """Acquire the check plan into ``out`` (a dataset v1 directory); the acquisition's result and its motion time
+    (s: ``motion``, the moves from the first pose on, command to in position, and the settle times, not the grabs
+    and writes; ``approach``, the move to the first pose). ``camera_spec``: what
     the dataset records of the camera (a service's camera file: ``service.runs.Bench.camera_spec``)."""
     from drivers.acquisition import acquisition_from_config, close_devices
 
     kw: dict[str, Any] = {"camera_spec": camera_spec} if camera_spec else {}
     acq = acquisition_from_config(plan, cfg, out, progress=progress, **kw)
     try:
-        return await acq.run()
+        res = await acq.run()
     finally:
         await close_devices(acq)
+    # the motion as measured: each pose's move (command to in position) and its settle time, the approach to the
+    # first pose (from wherever the robot was: home after a homing) apart
+    moves = [moved - start for start, moved, _ in acq.timings]
+    return res, {
+        "approach": moves[0] if moves else 0.0,
+        "motion": sum(moves[1:]) + acq.settle_s * len(moves),
+    }
 
 
 def fit_check(dataset_dir: Path, camera=None) -> tuple[dict[str, Any], Any]:
@@ -206,6 +215,14 @@ def evaluate_check(
     )
 
 
+def _cpu_s() -> float:
+    """CPU time (s) of this process and its finished children (extraction's worker processes)."""
+    import resource
+
+    ch = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.process_time() + ch.ru_utime + ch.ru_stime
+
+
 async def run_check(
     cfg,
     plan,
@@ -225,8 +242,8 @@ async def run_check(
 
     settings = settings or CheckSettings()
     t0 = time.monotonic()
-    res = await acquire_check(cfg, plan, out, progress, camera_spec)
-    t1 = time.monotonic()
+    res, motion = await acquire_check(cfg, plan, out, progress, camera_spec)
+    t1, c1 = time.monotonic(), _cpu_s()
     entry, obs = await asyncio.to_thread(fit_check, Path(res.path), camera)
     outcome = evaluate_check(
         entry, in_force_doc, settings, software_version=software_version, date=now() if now else None
@@ -234,6 +251,11 @@ async def run_check(
     if any(s.phase == "validation" for s in plan.steps):
         outcome.repeatability = repeat_figures(obs, plan)
     t2 = time.monotonic()
-    outcome.timing_s = {"acquisition": t1 - t0, "result_after_last_frame": t2 - t1}
+    outcome.timing_s = {
+        "acquisition": t1 - t0,
+        **motion,
+        "result_after_last_frame": t2 - t1,
+        "result_cpu": _cpu_s() - c1,
+    }
     outcome.dataset = str(res.path)
     return outcome

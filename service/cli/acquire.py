@@ -57,8 +57,10 @@ def _run(args: argparse.Namespace) -> int:
 
     def on_progress(p) -> None:
         bar.update(task, total=p.total, completed=p.done, phase=p.phase or p.state)
-        if p.state in ("paused", "failed", "aborted") and p.message:
+        if p.state in ("paused", "suspended", "failed", "aborted") and p.message:
             console.print(f"[yellow]{p.state}[/]: {p.message}")
+        elif p.message.startswith("suspension cleared"):  # drivers.suspenders: going on by itself
+            console.print(p.message)
 
     async def main() -> int:
         acq = acquisition_from_config(plan, cfg, Path(args.out), resume=args.resume, progress=on_progress)

@@ -256,7 +256,8 @@ def _print(doc: dict, con) -> None:
             con.print(f"[yellow]outlier[/]: frame {o['frame']} (pose {o['pose']}) {o['deviation_m'] * 1e3:.4f} mm off")
     tm = doc["timing_s"]
     con.print(
-        f"motion {doc['plan'].get('motion_time_s', 0):.1f} s planned, acquisition {tm.get('acquisition', 0):.1f} s, "
+        f"motion {doc['plan'].get('motion_time_s', 0):.1f} s planned, {tm.get('motion', 0):.1f} s measured, "
+        f"acquisition {tm.get('acquisition', 0):.1f} s, "
         f"result {tm.get('result_after_last_frame', 0):.1f} s after the last frame; dataset {doc['dataset']}"
     )
     con.print(f"next: {doc['next']}")

@@ -21,6 +21,8 @@ class ActiveRun:
     holds_bench: bool = False
     aborting: bool = False
     paused: bool = False
+    #: why the acquisition suspended itself (drivers.suspenders), "" when it is not
+    suspended: str = ""
     last_frame: int | None = None
     pose: list[float] | None = None
     started: float = field(default_factory=time.monotonic)

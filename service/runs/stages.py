@@ -211,6 +211,14 @@ class Stages:
             nxt = units[p.done] if p.done < len(units) else None
             a.pose = list(nxt.q) if nxt is not None and nxt.q is not None else None
             m.update(run_id, done=p.done, total=p.total, phase=p.phase or p.state)
+            suspension = getattr(a.acq, "suspension", None)
+            if p.state == "suspended":  # drivers.suspenders: held at the pose; why, in the event and the status
+                a.suspended = p.message
+                a.paused = a.paused or bool(suspension and suspension.waits_for_user)  # POST .../resume resumes it
+                m.emit(run_id, "suspended", {"reason": p.message, "frame": p.done})
+            elif a.suspended and p.state == "running" and not (suspension and suspension.reason):
+                a.suspended, a.paused = "", False
+                m.emit(run_id, "suspension_cleared", {"message": p.message, "frame": p.done})
             if p.state == "running":
                 for d in bench.devices.values():
                     d.ok()
