@@ -36,7 +36,7 @@ import os
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -345,6 +345,85 @@ def refined_camera(res: ExtractionResult, min_shift: float = 0.5) -> tuple[Camer
     return CameraModel(moved.K, moved.dist, moved.width, moved.height, extra), {"applied": True, **info}
 
 
+@dataclass
+class _Ticker:
+    """A pass's progress: frames done and the pass's total (both grow as stages are added), and the last count
+    reported (the end is reported once, whatever the stages reported)."""
+
+    progress: Progress | None
+    done: int = 0
+    total: int = 0
+    reported: int = -1
+
+    def report(self, done: int, tot: int) -> None:
+        self.reported = done
+        if self.progress is not None:
+            self.progress(done, tot)
+
+    @property
+    def callback(self) -> Progress | None:
+        """What the pool calls: None without a progress callback."""
+        return self.report if self.progress is not None else None
+
+    def finish(self) -> None:
+        if self.progress is not None and self.reported < self.total:
+            self.report(self.total, self.total)
+
+
+@dataclass
+class CameraStage:
+    """The camera a pass measures with: given, the dataset's, or calibrated from its ``camera`` phase.
+
+    Attributes
+    ----------
+    camera : CameraModel
+    intrinsics : IntrinsicsResult or None
+        When calibrated from the ``camera`` phase.
+    summary : dict
+        The summary's ``camera`` entry.
+    """
+
+    camera: CameraModel
+    intrinsics: IntrinsicsResult | None
+    summary: dict[str, Any]
+
+
+@dataclass
+class Placement:
+    """The coarse camera placement fitted to the board poses (:func:`.placement.fit_placement`).
+
+    Attributes
+    ----------
+    camera_from_base, ee_from_board : Rigid or None
+        None when there are too few board poses or the fit is inconsistent (``reason`` says).
+    rms_m : float or None
+        The board poses' residual RMS (m).
+    reason : str or None
+    """
+
+    camera_from_base: Rigid | None
+    ee_from_board: Rigid | None
+    rms_m: float | None
+    reason: str | None
+
+
+@dataclass
+class _Pass:
+    """What one pass over the dataset works with: the pool, the dataset, the settings, the frames measured (not the
+    ``camera`` phase), the workers' initialisation (root, camera, refined board points, min corners, rod settings,
+    keep images), the per-frame reasons and the progress."""
+
+    pool: _Pool
+    ds: Dataset
+    opts: ExtractOptions
+    obs_idx: list[int]
+    rs_dict: dict[str, Any]
+    per_frame: dict[int, list[str]]
+    ticker: _Ticker
+    on_frame: FrameCallback | None
+    init: tuple = ()
+
+
 def _extract(
     pool: _Pool,
     ds: Dataset,
@@ -359,39 +438,82 @@ def _extract(
 ) -> ExtractionResult:
     """One pass over the dataset. ``keep_images``: the workers keep the decoded images after the rods stage (a
     second pass follows); ``corners``: filled with each frame's ChArUco corners when empty, reused (the pose
-    only) when not."""
-    reported = [-1]  # the last count reported: the end is reported once, whatever the stages reported
-    if progress is not None:
-        user_progress = progress
+    only) when not.
 
-        def progress(done: int, tot: int) -> None:
-            reported[0] = done
-            user_progress(done, tot)
-
-    doc = ds.document
+    Stages: the camera (:func:`_camera_stage`), the boards (:func:`_board_stage`), the coarse placement
+    (:func:`_placement_stage`), the rods found from scratch without one (:func:`_detect_stage`), the rods measured
+    on the prediction (:func:`_rods_stage`) and again on its refit (:func:`_repredict_stage`), the observations
+    assembled (:func:`_assemble`).
+    """
     frames = ds.frames
-    cam_idx = [i for i, f in enumerate(frames) if f.phase == "camera"]
-    obs_idx = [i for i, f in enumerate(frames) if f.phase != "camera"]
     rs = opts.rods or RodSettings()
-    rs_dict = dict(rs.__dict__)
-    root = str(ds.root)
+    ps = _Pass(
+        pool,
+        ds,
+        opts,
+        [i for i, f in enumerate(frames) if f.phase != "camera"],
+        dict(rs.__dict__),
+        {},
+        _Ticker(progress),
+        on_frame,
+    )
+    cam = _camera_stage(ps, camera)
+    ps.init = (str(ds.root), cam.camera.to_dict(), _refined_points(ds, cam.camera), opts.min_corners, ps.rs_dict)
+    ps.init = (*ps.init, keep_images)
+    boards = _board_stage(ps, corners)
+    place = _placement_stage(ps, boards)
+    C, E = place.camera_from_base, place.ee_from_board
+    if predict_with is not None and predicted_from is not None and C is not None:
+        # an earlier pass's refit, moved with the camera frame (another camera moves the board poses, hence the
+        # coarse placement, by the same transform)
+        predict_with = replace(
+            predict_with, camera_from_base=C @ predicted_from.inverse() @ predict_with.camera_from_base
+        )
+    found: dict[int, Any] = {}
+    fallback = None
+    if C is None and opts.detect_fallback:  # no placement: the rods are found from scratch in each frame
+        found, fallback = _detect_stage(ps, cam.camera, boards)
+    rod_items = _rod_items(ps, boards, place, found, predict_with)
+    rods = dict(
+        ps.pool.run(
+            _task_rods, rod_items, ps.init, ps.ticker.callback, ps.ticker.done, ps.ticker.total, _rods_cb(ps, boards)
+        )
+    )
+    repredicted: dict[str, Any] | None = None
+    fit: Repredicted | None = None
+    if C is not None and E is not None and not found and opts.repredict_px is not None:
+        repredicted, fit = _repredict_stage(ps, cam.camera, boards, rods, rod_items, place, predict_with)
+    fit = fit or predict_with
+    if on_frame is not None:  # frames whose rods could not be looked for
+        for i in ps.obs_idx:
+            if i not in rods:
+                on_frame(frame_info(i, frames[i].phase, boards[i], {"reason": place.reason or "no prediction"}))
+    ps.ticker.finish()
+    return _assemble(ps, cam, boards, rods, place, fallback, repredicted, fit)
+
+
+def _camera_stage(ps: _Pass, camera: CameraModel | None) -> CameraStage:
+    """The camera given, else the dataset's, else calibrated from the ``camera`` phase's board views (their
+    rejections recorded in ``ps.per_frame``). Sets the pass's progress total (camera views, boards, rods)."""
+    doc, frames, opts = ps.ds.document, ps.ds.frames, ps.opts
+    cam_idx = [i for i, f in enumerate(frames) if f.phase == "camera"]
+    root = str(ps.ds.root)
     intr: IntrinsicsResult | None = None
-    refined = None
-    per_frame: dict[int, list[str]] = {}
     need_calib = camera is None and (doc.camera.K is None or doc.camera.dist is None)
-    total = (len(cam_idx) if need_calib else 0) + 2 * len(obs_idx)
-    done = 0
+    ps.ticker.total = (len(cam_idx) if need_calib else 0) + 2 * len(ps.obs_idx)
     if camera is None and not need_calib:
         camera = doc.camera.camera_model()  # with the camera file's calibration when the acquisition recorded one
     if need_calib:
         if not cam_idx:
             raise InputError(NO_INTRINSICS, file=root, field="camera")
-        det = pool.run(_task_detect, cam_idx, (root, None, None, opts.min_corners, rs_dict), progress, done, total)
-        done += len(cam_idx)
+        t = ps.ticker
+        init = (root, None, None, opts.min_corners, ps.rs_dict)
+        det = ps.pool.run(_task_detect, cam_idx, init, t.callback, t.done, t.total)
+        t.done += len(cam_idx)
         views = {}
         for i, r in det:
             if isinstance(r, str):
-                per_frame.setdefault(i, []).append(f"image: {r}")
+                ps.per_frame.setdefault(i, []).append(f"image: {r}")
             else:
                 views[i] = (np.asarray(r[0], dtype=int), np.asarray(r[1]).reshape(-1, 2), None)
         ids_all, pts = BoardDetector(doc.board).ids_all, BoardDetector(doc.board).points_nominal
@@ -403,87 +525,129 @@ def _extract(
             lens_model=opts.lens_model or (doc.camera.model_extra or {}).get("lens_model") or "auto",
         )
         for i, reason in intr.rejected.items():
-            per_frame.setdefault(i, []).append(f"camera view rejected: {reason}")
+            ps.per_frame.setdefault(i, []).append(f"camera view rejected: {reason}")
         camera = intr.camera
     assert camera is not None
-    # the camera's calibration carries the board geometry it refined (calibrateCameraRO) and how that
-    # geometry moves with the intrinsics (their correlation in the calibration)
+    return CameraStage(camera, intr, intr.summary() if intr else {"source": "given" if not need_calib else "dataset"})
+
+
+def _refined_points(ds: Dataset, camera: CameraModel) -> tuple[list, list, Any] | None:
+    """The board geometry the camera's calibration refined (calibrateCameraRO: ids, points (m), and how they move
+    with the intrinsics), when it has as many corners as the board; else None (the nominal geometry)."""
     bp = (camera.extra.get("calibration") or {}).get("board_points") or {}
-    if bp.get("ids") is not None and len(bp["ids"]) == BoardDetector(doc.board).ids_all.size:
-        refined = (list(bp["ids"]), list(bp["points_m"]), bp.get("d_intrinsics"))
-    init = (root, camera.to_dict(), refined, opts.min_corners, rs_dict, keep_images)
+    if bp.get("ids") is not None and len(bp["ids"]) == BoardDetector(ds.document.board).ids_all.size:
+        return (list(bp["ids"]), list(bp["points_m"]), bp.get("d_intrinsics"))
+    return None
+
+
+def _board_stage(ps: _Pass, corners: dict[int, list] | None) -> dict[int, dict[str, Any]]:
+    """Every measured frame's board: ``{"pose": ...}``, ``{"reason": ...}`` or ``{"image_error": ...}``. The corners
+    of an earlier pass (``corners`` not empty) are posed again with this camera; ``corners`` is filled."""
+    frames, obs_idx, t = ps.ds.frames, ps.obs_idx, ps.ticker
+    on_frame = ps.on_frame
     board_cb = None if on_frame is None else (lambda r: on_frame(frame_info(r[0], frames[r[0]].phase, r[1])))
     if corners:  # a second pass: the corners found in the first, posed with this camera
         again = [i for i in obs_idx if i in corners]
-        boards = dict(
-            pool.run(_task_board_pose, [(i, *corners[i]) for i in again], init, progress, done, total, board_cb)
-        )
+        items = [(i, *corners[i]) for i in again]
+        boards = dict(ps.pool.run(_task_board_pose, items, ps.init, t.callback, t.done, t.total, board_cb))
         rest = [i for i in obs_idx if i not in corners]
-        boards.update(pool.run(_task_board, rest, init, progress, done + len(again), total, board_cb))
+        boards.update(ps.pool.run(_task_board, rest, ps.init, t.callback, t.done + len(again), t.total, board_cb))
     else:
-        boards = dict(pool.run(_task_board, obs_idx, init, progress, done, total, board_cb))
+        boards = dict(ps.pool.run(_task_board, obs_idx, ps.init, t.callback, t.done, t.total, board_cb))
     if corners is not None:
         corners.update({i: b["corners"] for i, b in boards.items() if "corners" in b})
-    done += len(obs_idx)
-    good = [i for i in obs_idx if "pose" in boards[i]]
-    C = E = None
-    placement_rms = None
-    placement_reason = None
-    if len(good) >= opts.min_placement_frames:
-        qk = np.array([frames[i].q for i in good])
-        bR = np.array([boards[i]["pose"]["R"] for i in good])
-        bt = np.array([boards[i]["pose"]["t"] for i in good])
-        try:
-            height = float((doc.board.model_extra or {}).get("height_above_ee_m", 0.0))
-            C, E, placement_rms = fit_placement(qk, bR, bt, doc.nominal.parameters(), height)
-            if placement_rms > opts.max_placement_rms_m:
-                placement_reason = (
-                    f"coarse camera placement inconsistent: board residual RMS "
-                    f"{placement_rms * 1e3:.1f} mm > {opts.max_placement_rms_m * 1e3:.0f} mm "
-                    "(too few board poses, or too little motion among them)"
-                )
-                C = E = None
-        except (I4calError, np.linalg.LinAlgError, ValueError) as exc:
-            placement_reason = f"coarse camera placement failed: {exc}"
-    else:
-        placement_reason = (
-            f"no coarse camera placement: board poses in {len(good)} frames, need {opts.min_placement_frames}"
+    t.done += len(obs_idx)
+    return boards
+
+
+def _placement_stage(ps: _Pass, boards: dict[int, dict[str, Any]]) -> Placement:
+    """The coarse placement fitted to the board poses with the nominal model, or why there is none."""
+    doc, frames, opts = ps.ds.document, ps.ds.frames, ps.opts
+    good = [i for i in ps.obs_idx if "pose" in boards[i]]
+    if len(good) < opts.min_placement_frames:
+        return Placement(
+            None,
+            None,
+            None,
+            f"no coarse camera placement: board poses in {len(good)} frames, need {opts.min_placement_frames}",
         )
-    if predict_with is not None and predicted_from is not None and C is not None:
-        # an earlier pass's refit, moved with the camera frame (another camera moves the board poses, hence the
-        # coarse placement, by the same transform)
-        predict_with = replace(
-            predict_with, camera_from_base=C @ predicted_from.inverse() @ predict_with.camera_from_base
+    qk = np.array([frames[i].q for i in good])
+    bR = np.array([boards[i]["pose"]["R"] for i in good])
+    bt = np.array([boards[i]["pose"]["t"] for i in good])
+    try:
+        height = float((doc.board.model_extra or {}).get("height_above_ee_m", 0.0))
+        C, E, rms = fit_placement(qk, bR, bt, doc.nominal.parameters(), height)
+    except (I4calError, np.linalg.LinAlgError, ValueError) as exc:
+        return Placement(None, None, None, f"coarse camera placement failed: {exc}")
+    if rms > opts.max_placement_rms_m:
+        reason = (
+            f"coarse camera placement inconsistent: board residual RMS "
+            f"{rms * 1e3:.1f} mm > {opts.max_placement_rms_m * 1e3:.0f} mm "
+            "(too few board poses, or too little motion among them)"
         )
-    found: dict[int, Any] = {}
-    fallback = None
-    if C is None and opts.detect_fallback:  # no placement: the rods are found from scratch in each frame
-        dset = opts.detect or DetectSettings()
-        prior = opts.camera_prior.to_dict() if opts.camera_prior is not None else None
-        items: list[tuple] = [(i, prior, dict(dset.__dict__)) for i in obs_idx if "image_error" not in boards[i]]
-        total += len(items)
-        found = {i: d for i, d in pool.run(_task_find_rods, items, init, progress, done, total) if d is not None}
-        done += len(items)
-        found, placed, anchor = resolve_frames(
-            found,
-            camera,
-            doc.nominal.parameters(),
-            {i: frames[i].q for i in found},
-            doc.legs.rod_radius_m,
-            doc.legs.rod_spacing_m or 0.0,
-            opts.camera_prior,
-            dset,
-        )
-        fallback = {
-            "frames": len(found),
-            "associated": sum(d.ok for d in found.values()),
-            "ambiguous": sum(d.ambiguous for d in found.values()),
-            "anchor": anchor,
-            "camera_from_base": placed.to_dict() if placed is not None else None,
-        }
+        return Placement(None, None, rms, reason)
+    return Placement(C, E, rms, None)
+
+
+def _detect_stage(
+    ps: _Pass, camera: CameraModel, boards: dict[int, dict[str, Any]]
+) -> tuple[dict[int, Any], dict[str, Any]]:
+    """No placement: each frame's rods found and associated from scratch (:mod:`calib.vision.detect`), the frames
+    resolved together. Returns the detections by frame and the summary's ``placement.detected``."""
+    doc, frames, opts, t = ps.ds.document, ps.ds.frames, ps.opts, ps.ticker
+    dset = opts.detect or DetectSettings()
+    prior = opts.camera_prior.to_dict() if opts.camera_prior is not None else None
+    items: list[tuple] = [(i, prior, dict(dset.__dict__)) for i in ps.obs_idx if "image_error" not in boards[i]]
+    t.total += len(items)
+    found = {
+        i: d for i, d in ps.pool.run(_task_find_rods, items, ps.init, t.callback, t.done, t.total) if d is not None
+    }
+    t.done += len(items)
+    found, placed, anchor = resolve_frames(
+        found,
+        camera,
+        doc.nominal.parameters(),
+        {i: frames[i].q for i in found},
+        doc.legs.rod_radius_m,
+        doc.legs.rod_spacing_m or 0.0,
+        opts.camera_prior,
+        dset,
+    )
+    fallback = {
+        "frames": len(found),
+        "associated": sum(d.ok for d in found.values()),
+        "ambiguous": sum(d.ambiguous for d in found.values()),
+        "anchor": anchor,
+        "camera_from_base": placed.to_dict() if placed is not None else None,
+    }
+    return found, fallback
+
+
+def _nominal_board(ps: _Pass, i: int, place: Placement) -> dict[str, Any] | None:
+    """Frame ``i``'s board pose predicted by the nominal model and the coarse placement (an occluder where the board
+    was not measured), or None."""
+    C, E = place.camera_from_base, place.ee_from_board
+    if C is None or E is None:
+        return None
+    try:
+        nom = ps.ds.document.nominal.parameters()
+        nb = C @ Rigid(*base_from_ee(nom, dkm(nom, np.asarray(ps.ds.frames[i].q)))) @ E
+    except I4calError:
+        return None
+    return {"R": nb.R.tolist(), "t": nb.t.tolist()}
+
+
+def _rod_items(
+    ps: _Pass,
+    boards: dict[int, dict[str, Any]],
+    place: Placement,
+    found: dict[int, Any],
+    predict_with: Repredicted | None,
+) -> list[tuple]:
+    """The rods stage's tasks: (frame, camera_from_base, board occluder[, detection | None, seven parameters])."""
+    C = place.camera_from_base
     rod_items: list[tuple] = []
-    rods: dict[int, Any] = {}
-    for i in obs_idx:
+    for i in ps.obs_idx:
         if i in found:
             cfb = found[i].camera_from_base
             rod_items.append((i, cfb.to_dict() if cfb is not None else None, boards[i].get("pose"), found[i]))
@@ -491,121 +655,169 @@ def _extract(
         if "image_error" in boards[i] or C is None:
             continue
         b = boards[i].get("pose")
-        if b is None and E is not None:
-            try:
-                nom = doc.nominal.parameters()
-                nb = C @ Rigid(*base_from_ee(nom, dkm(nom, np.asarray(frames[i].q)))) @ E
-                b = {"R": nb.R.tolist(), "t": nb.t.tolist()}
-            except I4calError:
-                b = None
+        if b is None:
+            b = _nominal_board(ps, i, place)
         if predict_with is not None:  # the refit of an earlier pass
             rod_items.append((i, predict_with.camera_from_base.to_dict(), b, None, predict_with.parameters.vector()))
         else:
             rod_items.append((i, C.to_dict(), b))
-    rods_cb = (
-        None if on_frame is None else (lambda r: on_frame(frame_info(r[0], frames[r[0]].phase, boards[r[0]], r[1])))
+    return rod_items
+
+
+def _rods_cb(ps: _Pass, boards: dict[int, dict[str, Any]]) -> Callable[[Any], None] | None:
+    """The rods stage's per-frame report (``on_frame``), or None."""
+    on_frame, frames = ps.on_frame, ps.ds.frames
+    if on_frame is None:
+        return None
+    return lambda r: on_frame(frame_info(r[0], frames[r[0]].phase, boards[r[0]], r[1]))
+
+
+def _repredict_stage(
+    ps: _Pass,
+    camera: CameraModel,
+    boards: dict[int, dict[str, Any]],
+    rods: dict[int, Any],
+    rod_items: list[tuple],
+    place: Placement,
+    predict_with: Repredicted | None,
+) -> tuple[dict[str, Any], Repredicted | None]:
+    """The prediction refitted to the rods measured (:func:`_repredict`) and the frames it moved measured again on
+    it (``rods`` updated). Returns the summary's ``repredicted`` entry and the refit."""
+    assert place.camera_from_base is not None and place.ee_from_board is not None
+    t = ps.ticker
+    repredicted, redo, fit = _repredict(
+        ps.ds,
+        camera,
+        boards,
+        rods,
+        place.camera_from_base,
+        place.ee_from_board,
+        cast("float", ps.opts.repredict_px),
+        predict_with,
     )
-    rods = dict(pool.run(_task_rods, rod_items, init, progress, done, total, rods_cb))
-    repredicted: dict[str, Any] | None = None
-    fit: Repredicted | None = None
-    if C is not None and E is not None and not found and opts.repredict_px is not None:
-        repredicted, redo, fit = _repredict(ds, camera, boards, rods, C, E, opts.repredict_px, predict_with)
-        if fit is not None and redo:
-            total += len(redo)
-            items = [
-                (i, fit.camera_from_base.to_dict(), b, None, fit.parameters.vector())
-                for i, _cfb, b in (it[:3] for it in rod_items)
-                if i in redo
-            ]
-            rods.update(pool.run(_task_rods, items, init, progress, done + len(rod_items), total, rods_cb))
-        repredicted["first_prediction"] = "nominal" if predict_with is None else "an earlier pass's refit"
-    fit = fit or predict_with
-    if on_frame is not None:  # frames whose rods could not be looked for
-        for i in obs_idx:
-            if i not in rods:
-                on_frame(frame_info(i, frames[i].phase, boards[i], {"reason": placement_reason or "no prediction"}))
-    if progress and reported[0] < total:
-        progress(total, total)
-    # -- assemble --------------------------------------------------------------------------------
+    if fit is not None and redo:
+        t.total += len(redo)
+        items = [
+            (i, fit.camera_from_base.to_dict(), b, None, fit.parameters.vector())
+            for i, _cfb, b in (it[:3] for it in rod_items)
+            if i in redo
+        ]
+        rods.update(
+            ps.pool.run(_task_rods, items, ps.init, t.callback, t.done + len(rod_items), t.total, _rods_cb(ps, boards))
+        )
+    repredicted["first_prediction"] = "nominal" if predict_with is None else "an earlier pass's refit"
+    return repredicted, fit
+
+
+def _frame_record(
+    ps: _Pass,
+    i: int,
+    board_res: dict[str, Any],
+    r: dict[str, Any] | None,
+    placement_reason: str | None,
+    ph: dict[str, Any],
+) -> dict[str, Any]:
+    """Frame ``i``'s observations v1 record from its board and rods results; counts it in its phase's ``ph``."""
+    f = ps.ds.frames[i]
+    ph["frames"] += 1
+    ph["rods_total"] += 8
+    missing: dict[str, str] = {}
+    board = None
+    if "image_error" in board_res:
+        missing["image"] = board_res["image_error"]
+    elif "pose" in board_res:
+        board = board_res["pose"]
+        ph["board"] += 1
+        ph["corners_rejected"] += int(board.get("corners_rejected") or 0)
+    else:
+        missing["board"] = board_res["reason"]
+    legs = _frame_legs(r, missing, placement_reason, ph)
+    par = r["parallel_mrad"] if r is not None and "parallel_mrad" in r else {}
+    for k, v in missing.items():
+        kind = "board" if k == "board" else ("image" if k == "image" else "rod")
+        label = f"{kind}: {_short(v)}"
+        ph["missing"][label] = ph["missing"].get(label, 0) + 1
+        ps.per_frame.setdefault(i, []).append(f"{k}: {v}")
+    fr: dict[str, Any] = {
+        "phase": f.phase,
+        "q": list(f.q),
+        "board": board,
+        "legs": legs,
+        "missing": missing,
+        "image": f.image,
+        "dataset_frame": i,
+        "leg_parallel_mrad": par,
+    }
+    extra = f.model_extra or {}
+    if "truth" in extra:
+        fr["truth"] = extra["truth"]
+    return fr
+
+
+def _frame_legs(
+    r: dict[str, Any] | None, missing: dict[str, str], placement_reason: str | None, ph: dict[str, Any]
+) -> dict[str, list]:
+    """A frame's rods by leg (``{"1": [rod0, rod1], ...}``, None where missing, the reason in ``missing``)."""
+    legs: dict[str, list] = {str(k): [None, None] for k in range(1, 5)}
+    for leg, rod in ROD_KEYS:
+        key = rod_name(leg, rod)
+        if "image" in missing:
+            missing[key] = "image unreadable"
+        elif r is None:
+            missing[key] = placement_reason or "no prediction"
+        elif "reason" in r:
+            missing[key] = r["reason"]
+        else:
+            v = r["rods"][key]
+            if isinstance(v, str):
+                missing[key] = v
+            else:
+                legs[str(leg + 1)][rod] = v
+                ph["rods"] += 1
+    return legs
+
+
+def _assemble(
+    ps: _Pass,
+    cam: CameraStage,
+    boards: dict[int, dict[str, Any]],
+    rods: dict[int, Any],
+    place: Placement,
+    fallback: dict[str, Any] | None,
+    repredicted: dict[str, Any] | None,
+    fit: Repredicted | None,
+) -> ExtractionResult:
+    """The pass's observations v1 document, summary and result."""
+    doc = ps.ds.document
     out_frames = []
     phases: dict[str, dict[str, Any]] = {}
-    for i in obs_idx:
-        f = frames[i]
+    for i in ps.obs_idx:
         ph = phases.setdefault(
-            f.phase, {"frames": 0, "board": 0, "rods": 0, "rods_total": 0, "corners_rejected": 0, "missing": {}}
+            ps.ds.frames[i].phase,
+            {"frames": 0, "board": 0, "rods": 0, "rods_total": 0, "corners_rejected": 0, "missing": {}},
         )
-        ph["frames"] += 1
-        ph["rods_total"] += 8
-        missing: dict[str, str] = {}
-        b = boards[i]
-        board = None
-        if "image_error" in b:
-            missing["image"] = b["image_error"]
-        elif "pose" in b:
-            board = b["pose"]
-            ph["board"] += 1
-            ph["corners_rejected"] += int(board.get("corners_rejected") or 0)
-        else:
-            missing["board"] = b["reason"]
-        legs: dict[str, list] = {str(k): [None, None] for k in range(1, 5)}
-        r = rods.get(i)
-        par = {}
-        for leg, rod in ROD_KEYS:
-            key = rod_name(leg, rod)
-            if "image" in missing:
-                missing[key] = "image unreadable"
-            elif r is None:
-                missing[key] = placement_reason or "no prediction"
-            elif "reason" in r:
-                missing[key] = r["reason"]
-            else:
-                v = r["rods"][key]
-                if isinstance(v, str):
-                    missing[key] = v
-                else:
-                    legs[str(leg + 1)][rod] = v
-                    ph["rods"] += 1
-        if r is not None and "parallel_mrad" in r:
-            par = r["parallel_mrad"]
-        for k, v in missing.items():
-            kind = "board" if k == "board" else ("image" if k == "image" else "rod")
-            label = f"{kind}: {_short(v)}"
-            ph["missing"][label] = ph["missing"].get(label, 0) + 1
-            per_frame.setdefault(i, []).append(f"{k}: {v}")
-        fr: dict[str, Any] = {
-            "phase": f.phase,
-            "q": list(f.q),
-            "board": board,
-            "legs": legs,
-            "missing": missing,
-            "image": f.image,
-            "dataset_frame": i,
-            "leg_parallel_mrad": par,
-        }
-        extra = f.model_extra or {}
-        if "truth" in extra:
-            fr["truth"] = extra["truth"]
-        out_frames.append(fr)
+        out_frames.append(_frame_record(ps, i, boards[i], rods.get(i), place.reason, ph))
+    C, E = place.camera_from_base, place.ee_from_board
     summary = {
         "phases": phases,
-        "frames": {str(k): v for k, v in sorted(per_frame.items())},
-        "camera": intr.summary() if intr else {"source": "given" if not need_calib else "dataset"},
-        "placement": {"ok": C is not None, "rms_m": placement_rms, "reason": placement_reason, "detected": fallback},
+        "frames": {str(k): v for k, v in sorted(ps.per_frame.items())},
+        "camera": cam.summary,
+        "placement": {"ok": C is not None, "rms_m": place.rms_m, "reason": place.reason, "detected": fallback},
         "repredicted": repredicted,
     }
     extraction = {
-        "camera": camera.to_dict(),
+        "camera": cam.camera.to_dict(),
         "summary": summary,
         "camera_from_base_coarse": C.to_dict() if C else None,
         "ee_from_board_coarse": E.to_dict() if E else None,
-        "rod_settings": rs_dict,
-        "min_corners": opts.min_corners,
+        "rod_settings": ps.rs_dict,
+        "min_corners": ps.opts.min_corners,
     }
     obs = {"format": FORMAT, "nominal": doc.nominal.model_dump(), "frames": out_frames, "extraction": extraction}
     dextra = doc.model_extra or {}
     if "truth" in dextra:
         obs["truth"] = dextra["truth"]
-    return ExtractionResult(obs, summary, camera, intr, C, E, fit)
+    return ExtractionResult(obs, summary, cam.camera, cam.intrinsics, C, E, fit)
 
 
 def _refit_inputs(ds: Dataset, camera: CameraModel) -> tuple[I4Parameters, float, float, float]:
