@@ -21,7 +21,10 @@ Stages (each over a process pool when ``workers > 1``, with ``progress(done, tot
    ``ExtractOptions.repredict_px`` are measured again on the refitted prediction. On a bench some 15 mm
    off nominal the first prediction is 15-30 px off (the search band is 18 px): without this, rods are
    lost or taken for another edge pair. The refit only says where to look (``summary.repredicted``).
-6. Rods once more, when more than ``ExtractOptions.recover_lost_share`` of those looked for were lost in their search
+6. The camera refined by the rods (:func:`calib.vision.refine.refine_camera_by_rods`, a stage of its own run by
+   :func:`extract_dataset` after the first pass) when it carries its calibration's covariance; when it moved, every
+   frame measured again with it (the board corners and the refitted prediction of the first pass reused).
+7. Rods once more, when more than ``ExtractOptions.recover_lost_share`` of those looked for were lost in their search
    bands (:mod:`calib.vision.recover`): the prediction refitted robustly (each measured line its own rod, its leg's
    other rod or the gap between them; several starts) and every frame measured again, kept when it loses fewer rods
    (``summary.recovered``). A bench some 16 mm off nominal whose prediction falls between the rods of most legs.
@@ -60,6 +63,7 @@ from .pool import (
 )
 from .recover import STARTS as RECOVERY_STARTS
 from .recover import lost_in_search, measured_lines
+from .refine import CameraRefinement, refine_camera_by_rods
 from .repredict import MeasuredRod, Repredicted, prediction_shift_px, refit_prediction, rod_ends_camera
 from .rods import ROD_KEYS, RodSettings, rod_name
 
@@ -133,6 +137,8 @@ class ExtractionResult:
     ee_from_board: Rigid | None
     #: the rods' prediction refitted to the first pass (:mod:`calib.vision.repredict`), when used
     repredicted: Repredicted | None = None
+    #: the camera's refinement by the rods (:func:`.refine.refine_camera_by_rods`), when asked for
+    camera_refinement: CameraRefinement | None = None
 
 
 def _short(reason: str) -> str:
@@ -185,27 +191,51 @@ def extract_dataset(
 
     with _Pool(workers) as pool:
         corners: dict[int, list] = {}
+        # 1. the boards and rods measured with the camera given, the dataset's or calibrated
         res = _extract(pool, ds, camera, pass_progress, opts, on_frame, keep_images=opts.refine_camera, corners=corners)
         if opts.refine_camera:
-            refined, info = refined_camera(res, opts.refine_min_shift)
-            if refined is None:
-                res.summary["camera"]["refined_by_rods"] = info
-            else:
-                next_pass()
-                first = res
-                res = _extract(
-                    pool,
-                    ds,
-                    refined,
-                    pass_progress,
-                    opts,
-                    on_frame,
-                    corners=corners,
-                    predict_with=first.repredicted,
-                    predicted_from=first.camera_from_base,
-                )
-                _carry_over(ds, first, res, {**first.summary["camera"], "refined_by_rods": info})
+            # 2. the camera refined by those rods, 3. the frames measured again with it
+            refinement = refine_camera_by_rods(res.observations, res.camera, opts.refine_min_shift)
+            res = _measure_with_refined_camera(
+                pool, ds, res, refinement, opts, on_frame, corners, pass_progress, next_pass
+            )
+        # 4. the rods lost in their search bands recovered
         res = _recover(pool, ds, res, opts, on_frame, corners, pass_progress, next_pass)
+    return res
+
+
+def _measure_with_refined_camera(
+    pool: _Pool,
+    ds: Dataset,
+    first: ExtractionResult,
+    refinement: CameraRefinement,
+    opts: ExtractOptions,
+    on_frame: FrameCallback | None,
+    corners: dict[int, list],
+    progress: Progress,
+    next_pass: Callable[[], None],
+) -> ExtractionResult:
+    """The frames measured again with the refined camera, on the first pass's refitted prediction and board corners;
+    the first pass when the camera was not refined. The refinement is recorded in the summary
+    (``camera.refined_by_rods``) and kept in the result (``camera_refinement``)."""
+    if refinement.camera is None:
+        first.summary["camera"]["refined_by_rods"] = refinement.info
+        first.camera_refinement = refinement
+        return first
+    next_pass()
+    res = _extract(
+        pool,
+        ds,
+        refinement.camera,
+        progress,
+        opts,
+        on_frame,
+        corners=corners,
+        predict_with=first.repredicted,
+        predicted_from=first.camera_from_base,
+    )
+    _carry_over(ds, first, res, {**first.summary["camera"], "refined_by_rods": refinement.info})
+    res.camera_refinement = refinement
     return res
 
 
@@ -295,54 +325,16 @@ def _recover(
 
 
 def refined_camera(res: ExtractionResult, min_shift: float = 0.5) -> tuple[CameraModel | None, dict[str, Any]]:
-    """The camera refined by the rods of an extraction, or None with the reason.
-
-    The combined method (:func:`calib.methods.combined.calibrate_combined`) treats the intrinsics as
-    nuisance unknowns with the calibration's covariance as prior; the rods, many and spread over the
-    image, determine them several times better than the board views did (on the image twin the
-    intrinsics' error falls from ~1.3 to ~0.2 of their calibration std). The rods' measurement
-    itself depends on the camera (which edge points are fitted), so the frames are worth measuring
-    again with the refined camera: :func:`extract_dataset` does when the shift exceeds ``min_shift``
-    standard deviations (Mahalanobis). The refined camera keeps the calibration's covariance (the
-    combined method's prior when it uses the rods again), adds the fit's posterior one
-    (``calibration.covariance_refined``, for the methods that do not use the rods) and records the
-    shift under ``calibration.refined_by_rods``.
+    """The camera refined by the rods of an extraction, or None with the reason
+    (:func:`.refine.refine_camera_by_rods` on ``res``'s observations and camera).
 
     Returns
     -------
     (CameraModel or None, dict)
         The dict: ``applied``, ``shift`` (per intrinsic: px for fx, fy, cx, cy), ``mahalanobis`` or ``reason``.
     """
-    from ..camera import intrinsics_names
-    from ..methods.combined import calibrate_combined
-    from ..methods.intrinsics import perturbed_camera
-    from ..observations import Observations
-
-    calib = res.camera.extra.get("calibration") or {}
-    if calib.get("covariance") is None:
-        return None, {"applied": False, "reason": "the camera has no calibration covariance"}
-    try:
-        fit = calibrate_combined(Observations.from_dict(res.observations))
-    except I4calError as exc:
-        return None, {"applied": False, "reason": f"combined fit failed: {exc}"}
-    shift = fit.diagnostics.get("intrinsics_refinement")
-    if not shift:
-        return None, {"applied": False, "reason": "the observations carry no limb samples (limbs_px)"}
-    d = np.array([shift[k] for k in intrinsics_names(res.camera)])
-    m = float(np.sqrt(d @ np.linalg.solve(np.asarray(calib["covariance"], dtype=np.float64), d)))
-    info: dict[str, Any] = {"shift": shift, "mahalanobis": m}
-    if m < min_shift:
-        return None, {"applied": False, **info, "reason": f"shift {m:.2f} std < {min_shift}"}
-    moved = perturbed_camera(res.camera, d)
-    new_calib = {**calib, "refined_by_rods": info}
-    if fit.diagnostics.get("intrinsics_posterior_covariance") is not None:
-        new_calib["covariance_refined"] = fit.diagnostics["intrinsics_posterior_covariance"]
-    bp = calib.get("board_points") or {}
-    if bp.get("d_intrinsics") is not None:  # the board geometry moves with the intrinsics (their correlation)
-        pts = np.asarray(bp["points_m"], dtype=np.float64) + np.asarray(bp["d_intrinsics"], dtype=np.float64) @ d
-        new_calib["board_points"] = {**bp, "points_m": pts.tolist()}
-    extra = {**res.camera.extra, "calibration": new_calib}
-    return CameraModel(moved.K, moved.dist, moved.width, moved.height, extra), {"applied": True, **info}
+    r = refine_camera_by_rods(res.observations, res.camera, min_shift)
+    return r.camera, r.info
 
 
 @dataclass
