@@ -110,6 +110,11 @@ class ExtractOptions:
     #: prediction robustly and measure every frame again (kept when it loses fewer); None: never (nor with
     #: ``repredict_px=None``: one pass on the nominal prediction)
     recover_lost_share: float | None = 0.05
+    #: the rods' first pass, on the nominal prediction, measures every ``first_pass_every``-th frame (at least
+    #: ``first_pass_min_frames`` of them, else every frame): enough to refit the prediction, on which the other
+    #: frames are then measured once (and the sampled ones again where it moved by more than ``repredict_px``)
+    first_pass_every: int = 3
+    first_pass_min_frames: int = 24
 
 
 @dataclass
@@ -466,15 +471,17 @@ def _extract(
     if C is None and opts.detect_fallback:  # no placement: the rods are found from scratch in each frame
         found, fallback = _detect_stage(ps, cam.camera, boards)
     rod_items = _rod_items(ps, boards, place, found, predict_with)
+    refit = C is not None and E is not None and not found and opts.repredict_px is not None
+    first = _first_sample(rod_items, opts) if refit and predict_with is None else rod_items
     rods = dict(
         ps.pool.run(
-            _task_rods, rod_items, ps.init, ps.ticker.callback, ps.ticker.done, ps.ticker.total, _rods_cb(ps, boards)
+            _task_rods, first, ps.init, ps.ticker.callback, ps.ticker.done, ps.ticker.total, _rods_cb(ps, boards)
         )
     )
     repredicted: dict[str, Any] | None = None
     fit: Repredicted | None = None
-    if C is not None and E is not None and not found and opts.repredict_px is not None:
-        repredicted, fit = _repredict_stage(ps, cam.camera, boards, rods, rod_items, place, predict_with)
+    if refit:
+        repredicted, fit = _repredict_stage(ps, cam.camera, boards, rods, rod_items, len(first), place, predict_with)
     fit = fit or predict_with
     if on_frame is not None:  # frames whose rods could not be looked for
         for i in ps.obs_idx:
@@ -670,11 +677,14 @@ def _repredict_stage(
     boards: dict[int, dict[str, Any]],
     rods: dict[int, Any],
     rod_items: list[tuple],
+    n_first: int,
     place: Placement,
     predict_with: Repredicted | None,
 ) -> tuple[dict[str, Any], Repredicted | None]:
-    """The prediction refitted to the rods measured (:func:`_repredict`) and the frames it moved measured again on
-    it (``rods`` updated). Returns the summary's ``repredicted`` entry and the refit."""
+    """The prediction refitted to the rods measured (:func:`_repredict`), the frames it moved measured again on it
+    and the frames not measured yet (``rod_items`` beyond the ``n_first`` of the first sample) measured on it, else
+    on the first prediction when there is no refit (``rods`` updated). Returns the summary's ``repredicted`` entry
+    and the refit."""
     assert place.camera_from_base is not None and place.ee_from_board is not None
     t = ps.ticker
     repredicted, redo, fit = _repredict(
@@ -687,18 +697,31 @@ def _repredict_stage(
         cast("float", ps.opts.repredict_px),
         predict_with,
     )
-    if fit is not None and redo:
-        t.total += len(redo)
-        items = [
-            (i, fit.camera_from_base.to_dict(), b, None, fit.parameters.vector())
-            for i, _cfb, b in (it[:3] for it in rod_items)
-            if i in redo
-        ]
+    later = {it[0] for it in rod_items} - set(rods)  # not in the first sample: measured once, on the refit
+    items = [
+        it if fit is None else (it[0], fit.camera_from_base.to_dict(), it[2], None, fit.parameters.vector())
+        for it in rod_items
+        if it[0] in later or (fit is not None and it[0] in redo)
+    ]
+    if items:
+        t.total += len(items) - len(later)
         rods.update(
-            ps.pool.run(_task_rods, items, ps.init, t.callback, t.done + len(rod_items), t.total, _rods_cb(ps, boards))
+            ps.pool.run(_task_rods, items, ps.init, t.callback, t.done + n_first, t.total, _rods_cb(ps, boards))
         )
     repredicted["first_prediction"] = "nominal" if predict_with is None else "an earlier pass's refit"
+    if later:
+        repredicted["first_sample_frames"] = n_first
+        repredicted["frames_measured_on_the_refit_only"] = len(later) if fit is not None else 0
+        repredicted["applied"] = repredicted["applied"] or fit is not None
     return repredicted, fit
+
+
+def _first_sample(rod_items: list[tuple], opts: ExtractOptions) -> list[tuple]:
+    """The frames measured on the first (nominal) prediction, to refit it: every ``opts.first_pass_every``-th, or all
+    when that leaves fewer than ``opts.first_pass_min_frames``."""
+    every = max(1, int(opts.first_pass_every))
+    sample = rod_items[::every]
+    return sample if len(sample) >= opts.first_pass_min_frames else rod_items
 
 
 def _frame_record(
