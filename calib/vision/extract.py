@@ -194,7 +194,11 @@ def extract_dataset(
     def next_pass() -> None:
         base[0], base[1] = base[0] + base[1], 0
 
-    with _Pool(workers) as pool:
+    from threadpoolctl import threadpool_limits
+
+    # one BLAS thread in this process, as in the workers (calib.threads): the extraction's matrices are small, more
+    # threads only spin (a quarter more CPU with one worker, for the same result within float rounding)
+    with _Pool(workers) as pool, threadpool_limits(limits=1):
         corners: dict[int, list] = {}
         # 1. the boards and rods measured with the camera given, the dataset's or calibrated
         res = _extract(pool, ds, camera, pass_progress, opts, on_frame, keep_images=opts.refine_camera, corners=corners)
