@@ -22,8 +22,10 @@ Stages (each over a process pool when ``workers > 1``, with ``progress(done, tot
    off nominal the first prediction is 15-30 px off (the search band is 18 px): without this, rods are
    lost or taken for another edge pair. The refit only says where to look (``summary.repredicted``).
 6. The camera refined by the rods (:func:`calib.vision.refine.refine_camera_by_rods`, a stage of its own run by
-   :func:`extract_dataset` after the first pass) when it carries its calibration's covariance; when it moved, every
-   frame measured again with it (the board corners and the refitted prediction of the first pass reused).
+   :func:`extract_dataset` after the first pass) when it carries its calibration's covariance; then every frame is
+   measured again with it (the board corners and the refitted prediction of the first pass reused), and the first
+   pass measures on its refitted prediction only the frames the refinement uses (the ``poses`` phase). When the
+   camera did not move by ``ExtractOptions.refine_min_shift``, that second pass runs with the same camera.
 7. Rods once more, when more than ``ExtractOptions.recover_lost_share`` of those looked for were lost in their search
    bands (:mod:`calib.vision.recover`): the prediction refitted robustly (each measured line its own rod, its leg's
    other rod or the gap between them; several starts) and every frame measured again, kept when it loses fewer rods
@@ -63,11 +65,13 @@ from .pool import (
 )
 from .recover import STARTS as RECOVERY_STARTS
 from .recover import lost_in_search, measured_lines
-from .refine import CameraRefinement, refine_camera_by_rods
+from .refine import REFINEMENT_PHASES, CameraRefinement, can_refine, refine_camera_by_rods
 from .repredict import MeasuredRod, Repredicted, prediction_shift_px, refit_prediction, rod_ends_camera
 from .rods import ROD_KEYS, RodSettings, rod_name
 
 Progress = Callable[[int, int], None]
+#: the reason of a frame's rods in a first pass that leaves them to the second (:func:`_extract`'s ``for_refinement``)
+DEFERRED = "measured in the second pass, with the camera the rods refined"
 FrameCallback = Callable[[dict[str, Any]], None]
 
 
@@ -144,6 +148,8 @@ class ExtractionResult:
     repredicted: Repredicted | None = None
     #: the camera's refinement by the rods (:func:`.refine.refine_camera_by_rods`), when asked for
     camera_refinement: CameraRefinement | None = None
+    #: frames whose rods this pass left to the next one (measured only where the camera's refinement needs them)
+    deferred: int = 0
 
 
 def _short(reason: str) -> str:
@@ -201,7 +207,17 @@ def extract_dataset(
     with _Pool(workers) as pool, threadpool_limits(limits=1):
         corners: dict[int, list] = {}
         # 1. the boards and rods measured with the camera given, the dataset's or calibrated
-        res = _extract(pool, ds, camera, pass_progress, opts, on_frame, keep_images=opts.refine_camera, corners=corners)
+        res = _extract(
+            pool,
+            ds,
+            camera,
+            pass_progress,
+            opts,
+            on_frame,
+            keep_images=opts.refine_camera,
+            corners=corners,
+            for_refinement=opts.refine_camera,
+        )
         if opts.refine_camera:
             # 2. the camera refined by those rods, 3. the frames measured again with it
             refinement = refine_camera_by_rods(res.observations, res.camera, opts.refine_min_shift)
@@ -227,15 +243,16 @@ def _measure_with_refined_camera(
     """The frames measured again with the refined camera, on the first pass's refitted prediction and board corners;
     the first pass when the camera was not refined. The refinement is recorded in the summary
     (``camera.refined_by_rods``) and kept in the result (``camera_refinement``)."""
-    if refinement.camera is None:
+    if refinement.camera is None and not first.deferred:
         first.summary["camera"]["refined_by_rods"] = refinement.info
         first.camera_refinement = refinement
         return first
+    # the refined camera, or the same when the refinement was not applied and the first pass left frames to this one
     next_pass()
     res = _extract(
         pool,
         ds,
-        refinement.camera,
+        refinement.camera or first.camera,
         progress,
         opts,
         on_frame,
@@ -423,6 +440,10 @@ class _Pass:
     ticker: _Ticker
     on_frame: FrameCallback | None
     init: tuple = ()
+    #: the phases whose frames the rods stage measures on the refitted prediction (None: all); the others are left
+    #: for the next pass, which measures every frame again with the camera the rods refined
+    measure_phases: tuple[str, ...] | None = None
+    deferred: int = 0
 
 
 def _extract(
@@ -436,10 +457,13 @@ def _extract(
     corners: dict[int, list] | None = None,
     predict_with: Repredicted | None = None,
     predicted_from: Rigid | None = None,
+    for_refinement: bool = False,
 ) -> ExtractionResult:
     """One pass over the dataset. ``keep_images``: the workers keep the decoded images after the rods stage (a
     second pass follows); ``corners``: filled with each frame's ChArUco corners when empty, reused (the pose
-    only) when not.
+    only) when not. ``for_refinement``: a second pass follows in any case when the camera can be refined by the rods
+    (it carries its calibration's covariance): after the refit, only the frames of the phases the refinement uses
+    (:data:`.refine.REFINEMENT_PHASES`) are measured (``ExtractionResult.deferred`` counts the others).
 
     Stages: the camera (:func:`_camera_stage`), the boards (:func:`_board_stage`), the coarse placement
     (:func:`_placement_stage`), the rods found from scratch without one (:func:`_detect_stage`), the rods measured
@@ -459,6 +483,8 @@ def _extract(
         on_frame,
     )
     cam = _camera_stage(ps, camera)
+    if for_refinement and can_refine(cam.camera):
+        ps.measure_phases = REFINEMENT_PHASES
     ps.init = (str(ds.root), cam.camera.to_dict(), _refined_points(ds, cam.camera), opts.min_corners, ps.rs_dict)
     ps.init = (*ps.init, keep_images)
     boards = _board_stage(ps, corners)
@@ -702,6 +728,11 @@ def _repredict_stage(
         predict_with,
     )
     later = {it[0] for it in rod_items} - set(rods)  # not in the first sample: measured once, on the refit
+    if fit is not None and ps.measure_phases is not None:  # the others: by the next pass, with the refined camera
+        left = {i for i in later if ps.ds.frames[i].phase not in ps.measure_phases}
+        rods.update({i: {"reason": DEFERRED} for i in sorted(left)})
+        later -= left
+        ps.deferred = len(left)
     items = [
         it if fit is None else (it[0], fit.camera_from_base.to_dict(), it[2], None, fit.parameters.vector())
         for it in rod_items
@@ -836,7 +867,7 @@ def _assemble(
     dextra = doc.model_extra or {}
     if "truth" in dextra:
         obs["truth"] = dextra["truth"]
-    return ExtractionResult(obs, summary, cam.camera, cam.intrinsics, C, E, fit)
+    return ExtractionResult(obs, summary, cam.camera, cam.intrinsics, C, E, fit, deferred=ps.deferred)
 
 
 def _refit_inputs(ds: Dataset, camera: CameraModel) -> tuple[I4Parameters, float, float, float]:

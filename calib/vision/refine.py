@@ -21,6 +21,15 @@ if TYPE_CHECKING:
     from ..methods.result import MethodResult
 
 
+#: the phases whose rods the refinement uses (the combined fit's poses; the other phases give it their boards)
+REFINEMENT_PHASES: tuple[str, ...] = ("poses",)
+
+
+def can_refine(camera: CameraModel) -> bool:
+    """Whether the rods can refine this camera: it carries its calibration's covariance."""
+    return (camera.extra.get("calibration") or {}).get("covariance") is not None
+
+
 @dataclass
 class CameraRefinement:
     """What :func:`refine_camera_by_rods` found.
@@ -75,10 +84,10 @@ def refine_camera_by_rods(
     from ..observations import Observations
 
     calib = camera.extra.get("calibration") or {}
-    if calib.get("covariance") is None:
+    if not can_refine(camera):
         return CameraRefinement(None, {"applied": False, "reason": "the camera has no calibration covariance"})
     try:
-        fit = calibrate_combined(Observations.from_dict(observations))
+        fit = calibrate_combined(Observations.from_dict(observations), phases=REFINEMENT_PHASES)
     except I4calError as exc:
         return CameraRefinement(None, {"applied": False, "reason": f"combined fit failed: {exc}"})
     shift = fit.diagnostics.get("intrinsics_refinement")

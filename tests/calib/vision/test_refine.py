@@ -43,3 +43,33 @@ def test_a_camera_without_covariance_is_not_refined(small_dataset):  # noqa: F81
     assert res.camera_refinement is not None and not res.camera_refinement.applied
     assert res.camera_refinement.fit is None  # no fit run for nothing
     assert "no calibration covariance" in res.summary["camera"]["refined_by_rods"]["reason"]
+
+
+def test_frames_the_refinement_does_not_use_are_measured_once(small_dataset, monkeypatch):  # noqa: F811
+    """With a camera the rods can refine, the first pass measures on the refitted prediction only the frames the
+    refinement uses (the poses); the others are measured once, by the pass with the refined camera. The refinement
+    is the one a first pass measuring every frame finds."""
+    import calib.vision.extract as extract
+
+    root, _, cam = small_dataset
+    camera = _with_covariance(cam)
+    sample = {"first_pass_every": 3, "first_pass_min_frames": 4, "recover_lost_share": None}
+    measured: list[int] = []
+    task_rods = extract._task_rods
+
+    def counted(args: tuple) -> tuple:
+        measured.append(int(args[0]))
+        return task_rods(args)
+
+    monkeypatch.setattr(extract, "_task_rods", counted)
+    res = extract_dataset(root, camera=camera, workers=1, options=ExtractOptions(**sample))
+    monkeypatch.undo()
+    ref = res.camera_refinement
+    assert ref is not None and ref.applied
+    phase = {f["dataset_frame"]: f["phase"] for f in res.observations["frames"]}
+    first_sample = [i for i in sorted(phase) if i not in (8, 9)][::3]  # 8, 9: no image, no rods looked for
+    for i, ph in phase.items():
+        if ph != "poses" and i not in first_sample and i not in (8, 9):
+            assert measured.count(i) == 1, (i, ph, measured)
+    full = extract_dataset(root, camera=camera, workers=1, options=ExtractOptions(refine_camera=False, **sample))
+    assert refine_camera_by_rods(full.observations, full.camera).info == ref.info
