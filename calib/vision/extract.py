@@ -732,7 +732,11 @@ def _repredict_stage(
         left = {i for i in later if ps.ds.frames[i].phase not in ps.measure_phases}
         rods.update({i: {"reason": DEFERRED} for i in sorted(left)})
         later -= left
-        ps.deferred = len(left)
+        # the sampled frames of those phases keep their first measurement (the refinement does not use it)
+        kept = {i for i in redo if ps.ds.frames[i].phase not in ps.measure_phases}
+        redo = redo - kept
+        ps.deferred = len(left) + len(kept)
+        repredicted["frames_measured_again"] = len(redo)
     items = [
         it if fit is None else (it[0], fit.camera_from_base.to_dict(), it[2], None, fit.parameters.vector())
         for it in rod_items
