@@ -21,7 +21,12 @@ Stages (each over a process pool when ``workers > 1``, with ``progress(done, tot
    ``ExtractOptions.repredict_px`` are measured again on the refitted prediction. On a bench some 15 mm
    off nominal the first prediction is 15-30 px off (the search band is 18 px): without this, rods are
    lost or taken for another edge pair. The refit only says where to look (``summary.repredicted``).
-6. Rods once more, when more than ``ExtractOptions.recover_lost_share`` of those looked for were lost in their search
+6. The camera refined by the rods (:func:`calib.vision.refine.refine_camera_by_rods`, a stage of its own run by
+   :func:`extract_dataset` after the first pass) when it carries its calibration's covariance; then every frame is
+   measured again with it (the board corners and the refitted prediction of the first pass reused), and the first
+   pass measures on its refitted prediction only the frames the refinement uses (the ``poses`` phase). When the
+   camera did not move by ``ExtractOptions.refine_min_shift``, that second pass runs with the same camera.
+7. Rods once more, when more than ``ExtractOptions.recover_lost_share`` of those looked for were lost in their search
    bands (:mod:`calib.vision.recover`): the prediction refitted robustly (each measured line its own rod, its leg's
    other rod or the gap between them; several starts) and every frame measured again, kept when it loses fewer rods
    (``summary.recovered``). A bench some 16 mm off nominal whose prediction falls between the rods of most legs.
@@ -36,7 +41,7 @@ import os
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -60,10 +65,13 @@ from .pool import (
 )
 from .recover import STARTS as RECOVERY_STARTS
 from .recover import lost_in_search, measured_lines
+from .refine import REFINEMENT_PHASES, CameraRefinement, can_refine, refine_camera_by_rods
 from .repredict import MeasuredRod, Repredicted, prediction_shift_px, refit_prediction, rod_ends_camera
 from .rods import ROD_KEYS, RodSettings, rod_name
 
 Progress = Callable[[int, int], None]
+#: the reason of a frame's rods in a first pass that leaves them to the second (:func:`_extract`'s ``for_refinement``)
+DEFERRED = "measured in the second pass, with the camera the rods refined"
 FrameCallback = Callable[[dict[str, Any]], None]
 
 
@@ -106,6 +114,11 @@ class ExtractOptions:
     #: prediction robustly and measure every frame again (kept when it loses fewer); None: never (nor with
     #: ``repredict_px=None``: one pass on the nominal prediction)
     recover_lost_share: float | None = 0.05
+    #: the rods' first pass, on the nominal prediction, measures every ``first_pass_every``-th frame (at least
+    #: ``first_pass_min_frames`` of them, else every frame): enough to refit the prediction, on which the other
+    #: frames are then measured once (and the sampled ones again where it moved by more than ``repredict_px``)
+    first_pass_every: int = 3
+    first_pass_min_frames: int = 24
 
 
 @dataclass
@@ -133,6 +146,10 @@ class ExtractionResult:
     ee_from_board: Rigid | None
     #: the rods' prediction refitted to the first pass (:mod:`calib.vision.repredict`), when used
     repredicted: Repredicted | None = None
+    #: the camera's refinement by the rods (:func:`.refine.refine_camera_by_rods`), when asked for
+    camera_refinement: CameraRefinement | None = None
+    #: frames whose rods this pass left to the next one (measured only where the camera's refinement needs them)
+    deferred: int = 0
 
 
 def _short(reason: str) -> str:
@@ -183,29 +200,68 @@ def extract_dataset(
     def next_pass() -> None:
         base[0], base[1] = base[0] + base[1], 0
 
-    with _Pool(workers) as pool:
+    from threadpoolctl import threadpool_limits
+
+    # one BLAS thread in this process, as in the workers (calib.threads): the extraction's matrices are small, more
+    # threads only spin (a quarter more CPU with one worker, for the same result within float rounding)
+    with _Pool(workers) as pool, threadpool_limits(limits=1):
         corners: dict[int, list] = {}
-        res = _extract(pool, ds, camera, pass_progress, opts, on_frame, keep_images=opts.refine_camera, corners=corners)
+        # 1. the boards and rods measured with the camera given, the dataset's or calibrated
+        res = _extract(
+            pool,
+            ds,
+            camera,
+            pass_progress,
+            opts,
+            on_frame,
+            keep_images=opts.refine_camera,
+            corners=corners,
+            for_refinement=opts.refine_camera,
+        )
         if opts.refine_camera:
-            refined, info = refined_camera(res, opts.refine_min_shift)
-            if refined is None:
-                res.summary["camera"]["refined_by_rods"] = info
-            else:
-                next_pass()
-                first = res
-                res = _extract(
-                    pool,
-                    ds,
-                    refined,
-                    pass_progress,
-                    opts,
-                    on_frame,
-                    corners=corners,
-                    predict_with=first.repredicted,
-                    predicted_from=first.camera_from_base,
-                )
-                _carry_over(ds, first, res, {**first.summary["camera"], "refined_by_rods": info})
+            # 2. the camera refined by those rods, 3. the frames measured again with it
+            refinement = refine_camera_by_rods(res.observations, res.camera, opts.refine_min_shift)
+            res = _measure_with_refined_camera(
+                pool, ds, res, refinement, opts, on_frame, corners, pass_progress, next_pass
+            )
+        # 4. the rods lost in their search bands recovered
         res = _recover(pool, ds, res, opts, on_frame, corners, pass_progress, next_pass)
+    return res
+
+
+def _measure_with_refined_camera(
+    pool: _Pool,
+    ds: Dataset,
+    first: ExtractionResult,
+    refinement: CameraRefinement,
+    opts: ExtractOptions,
+    on_frame: FrameCallback | None,
+    corners: dict[int, list],
+    progress: Progress,
+    next_pass: Callable[[], None],
+) -> ExtractionResult:
+    """The frames measured again with the refined camera, on the first pass's refitted prediction and board corners;
+    the first pass when the camera was not refined. The refinement is recorded in the summary
+    (``camera.refined_by_rods``) and kept in the result (``camera_refinement``)."""
+    if refinement.camera is None and not first.deferred:
+        first.summary["camera"]["refined_by_rods"] = refinement.info
+        first.camera_refinement = refinement
+        return first
+    # the refined camera, or the same when the refinement was not applied and the first pass left frames to this one
+    next_pass()
+    res = _extract(
+        pool,
+        ds,
+        refinement.camera or first.camera,
+        progress,
+        opts,
+        on_frame,
+        corners=corners,
+        predict_with=first.repredicted,
+        predicted_from=first.camera_from_base,
+    )
+    _carry_over(ds, first, res, {**first.summary["camera"], "refined_by_rods": refinement.info})
+    res.camera_refinement = refinement
     return res
 
 
@@ -295,54 +351,99 @@ def _recover(
 
 
 def refined_camera(res: ExtractionResult, min_shift: float = 0.5) -> tuple[CameraModel | None, dict[str, Any]]:
-    """The camera refined by the rods of an extraction, or None with the reason.
-
-    The combined method (:func:`calib.methods.combined.calibrate_combined`) treats the intrinsics as
-    nuisance unknowns with the calibration's covariance as prior; the rods, many and spread over the
-    image, determine them several times better than the board views did (on the image twin the
-    intrinsics' error falls from ~1.3 to ~0.2 of their calibration std). The rods' measurement
-    itself depends on the camera (which edge points are fitted), so the frames are worth measuring
-    again with the refined camera: :func:`extract_dataset` does when the shift exceeds ``min_shift``
-    standard deviations (Mahalanobis). The refined camera keeps the calibration's covariance (the
-    combined method's prior when it uses the rods again), adds the fit's posterior one
-    (``calibration.covariance_refined``, for the methods that do not use the rods) and records the
-    shift under ``calibration.refined_by_rods``.
+    """The camera refined by the rods of an extraction, or None with the reason
+    (:func:`.refine.refine_camera_by_rods` on ``res``'s observations and camera).
 
     Returns
     -------
     (CameraModel or None, dict)
         The dict: ``applied``, ``shift`` (per intrinsic: px for fx, fy, cx, cy), ``mahalanobis`` or ``reason``.
     """
-    from ..camera import intrinsics_names
-    from ..methods.combined import calibrate_combined
-    from ..methods.intrinsics import perturbed_camera
-    from ..observations import Observations
+    r = refine_camera_by_rods(res.observations, res.camera, min_shift)
+    return r.camera, r.info
 
-    calib = res.camera.extra.get("calibration") or {}
-    if calib.get("covariance") is None:
-        return None, {"applied": False, "reason": "the camera has no calibration covariance"}
-    try:
-        fit = calibrate_combined(Observations.from_dict(res.observations))
-    except I4calError as exc:
-        return None, {"applied": False, "reason": f"combined fit failed: {exc}"}
-    shift = fit.diagnostics.get("intrinsics_refinement")
-    if not shift:
-        return None, {"applied": False, "reason": "the observations carry no limb samples (limbs_px)"}
-    d = np.array([shift[k] for k in intrinsics_names(res.camera)])
-    m = float(np.sqrt(d @ np.linalg.solve(np.asarray(calib["covariance"], dtype=np.float64), d)))
-    info: dict[str, Any] = {"shift": shift, "mahalanobis": m}
-    if m < min_shift:
-        return None, {"applied": False, **info, "reason": f"shift {m:.2f} std < {min_shift}"}
-    moved = perturbed_camera(res.camera, d)
-    new_calib = {**calib, "refined_by_rods": info}
-    if fit.diagnostics.get("intrinsics_posterior_covariance") is not None:
-        new_calib["covariance_refined"] = fit.diagnostics["intrinsics_posterior_covariance"]
-    bp = calib.get("board_points") or {}
-    if bp.get("d_intrinsics") is not None:  # the board geometry moves with the intrinsics (their correlation)
-        pts = np.asarray(bp["points_m"], dtype=np.float64) + np.asarray(bp["d_intrinsics"], dtype=np.float64) @ d
-        new_calib["board_points"] = {**bp, "points_m": pts.tolist()}
-    extra = {**res.camera.extra, "calibration": new_calib}
-    return CameraModel(moved.K, moved.dist, moved.width, moved.height, extra), {"applied": True, **info}
+
+@dataclass
+class _Ticker:
+    """A pass's progress: frames done and the pass's total (both grow as stages are added), and the last count
+    reported (the end is reported once, whatever the stages reported)."""
+
+    progress: Progress | None
+    done: int = 0
+    total: int = 0
+    reported: int = -1
+
+    def report(self, done: int, tot: int) -> None:
+        self.reported = done
+        if self.progress is not None:
+            self.progress(done, tot)
+
+    @property
+    def callback(self) -> Progress | None:
+        """What the pool calls: None without a progress callback."""
+        return self.report if self.progress is not None else None
+
+    def finish(self) -> None:
+        if self.progress is not None and self.reported < self.total:
+            self.report(self.total, self.total)
+
+
+@dataclass
+class CameraStage:
+    """The camera a pass measures with: given, the dataset's, or calibrated from its ``camera`` phase.
+
+    Attributes
+    ----------
+    camera : CameraModel
+    intrinsics : IntrinsicsResult or None
+        When calibrated from the ``camera`` phase.
+    summary : dict
+        The summary's ``camera`` entry.
+    """
+
+    camera: CameraModel
+    intrinsics: IntrinsicsResult | None
+    summary: dict[str, Any]
+
+
+@dataclass
+class Placement:
+    """The coarse camera placement fitted to the board poses (:func:`.placement.fit_placement`).
+
+    Attributes
+    ----------
+    camera_from_base, ee_from_board : Rigid or None
+        None when there are too few board poses or the fit is inconsistent (``reason`` says).
+    rms_m : float or None
+        The board poses' residual RMS (m).
+    reason : str or None
+    """
+
+    camera_from_base: Rigid | None
+    ee_from_board: Rigid | None
+    rms_m: float | None
+    reason: str | None
+
+
+@dataclass
+class _Pass:
+    """What one pass over the dataset works with: the pool, the dataset, the settings, the frames measured (not the
+    ``camera`` phase), the workers' initialisation (root, camera, refined board points, min corners, rod settings,
+    keep images), the per-frame reasons and the progress."""
+
+    pool: _Pool
+    ds: Dataset
+    opts: ExtractOptions
+    obs_idx: list[int]
+    rs_dict: dict[str, Any]
+    per_frame: dict[int, list[str]]
+    ticker: _Ticker
+    on_frame: FrameCallback | None
+    init: tuple = ()
+    #: the phases whose frames the rods stage measures on the refitted prediction (None: all); the others are left
+    #: for the next pass, which measures every frame again with the camera the rods refined
+    measure_phases: tuple[str, ...] | None = None
+    deferred: int = 0
 
 
 def _extract(
@@ -356,42 +457,92 @@ def _extract(
     corners: dict[int, list] | None = None,
     predict_with: Repredicted | None = None,
     predicted_from: Rigid | None = None,
+    for_refinement: bool = False,
 ) -> ExtractionResult:
     """One pass over the dataset. ``keep_images``: the workers keep the decoded images after the rods stage (a
     second pass follows); ``corners``: filled with each frame's ChArUco corners when empty, reused (the pose
-    only) when not."""
-    reported = [-1]  # the last count reported: the end is reported once, whatever the stages reported
-    if progress is not None:
-        user_progress = progress
+    only) when not. ``for_refinement``: a second pass follows in any case when the camera can be refined by the rods
+    (it carries its calibration's covariance): after the refit, only the frames of the phases the refinement uses
+    (:data:`.refine.REFINEMENT_PHASES`) are measured (``ExtractionResult.deferred`` counts the others).
 
-        def progress(done: int, tot: int) -> None:
-            reported[0] = done
-            user_progress(done, tot)
-
-    doc = ds.document
+    Stages: the camera (:func:`_camera_stage`), the boards (:func:`_board_stage`), the coarse placement
+    (:func:`_placement_stage`), the rods found from scratch without one (:func:`_detect_stage`), the rods measured
+    on the prediction (:func:`_rods_stage`) and again on its refit (:func:`_repredict_stage`), the observations
+    assembled (:func:`_assemble`).
+    """
     frames = ds.frames
-    cam_idx = [i for i, f in enumerate(frames) if f.phase == "camera"]
-    obs_idx = [i for i, f in enumerate(frames) if f.phase != "camera"]
     rs = opts.rods or RodSettings()
-    rs_dict = dict(rs.__dict__)
-    root = str(ds.root)
+    ps = _Pass(
+        pool,
+        ds,
+        opts,
+        [i for i, f in enumerate(frames) if f.phase != "camera"],
+        dict(rs.__dict__),
+        {},
+        _Ticker(progress),
+        on_frame,
+    )
+    cam = _camera_stage(ps, camera)
+    if for_refinement and can_refine(cam.camera):
+        ps.measure_phases = REFINEMENT_PHASES
+    ps.init = (str(ds.root), cam.camera.to_dict(), _refined_points(ds, cam.camera), opts.min_corners, ps.rs_dict)
+    ps.init = (*ps.init, keep_images)
+    boards = _board_stage(ps, corners)
+    place = _placement_stage(ps, boards)
+    C, E = place.camera_from_base, place.ee_from_board
+    if predict_with is not None and predicted_from is not None and C is not None:
+        # an earlier pass's refit, moved with the camera frame (another camera moves the board poses, hence the
+        # coarse placement, by the same transform)
+        predict_with = replace(
+            predict_with, camera_from_base=C @ predicted_from.inverse() @ predict_with.camera_from_base
+        )
+    found: dict[int, Any] = {}
+    fallback = None
+    if C is None and opts.detect_fallback:  # no placement: the rods are found from scratch in each frame
+        found, fallback = _detect_stage(ps, cam.camera, boards)
+    rod_items = _rod_items(ps, boards, place, found, predict_with)
+    refit = C is not None and E is not None and not found and opts.repredict_px is not None
+    first = _first_sample(rod_items, opts) if refit and predict_with is None else rod_items
+    rods = dict(
+        ps.pool.run(
+            _task_rods, first, ps.init, ps.ticker.callback, ps.ticker.done, ps.ticker.total, _rods_cb(ps, boards)
+        )
+    )
+    repredicted: dict[str, Any] | None = None
+    fit: Repredicted | None = None
+    if refit:
+        repredicted, fit = _repredict_stage(ps, cam.camera, boards, rods, rod_items, len(first), place, predict_with)
+    fit = fit or predict_with
+    if on_frame is not None:  # frames whose rods could not be looked for
+        for i in ps.obs_idx:
+            if i not in rods:
+                on_frame(frame_info(i, frames[i].phase, boards[i], {"reason": place.reason or "no prediction"}))
+    ps.ticker.finish()
+    return _assemble(ps, cam, boards, rods, place, fallback, repredicted, fit)
+
+
+def _camera_stage(ps: _Pass, camera: CameraModel | None) -> CameraStage:
+    """The camera given, else the dataset's, else calibrated from the ``camera`` phase's board views (their
+    rejections recorded in ``ps.per_frame``). Sets the pass's progress total (camera views, boards, rods)."""
+    doc, frames, opts = ps.ds.document, ps.ds.frames, ps.opts
+    cam_idx = [i for i, f in enumerate(frames) if f.phase == "camera"]
+    root = str(ps.ds.root)
     intr: IntrinsicsResult | None = None
-    refined = None
-    per_frame: dict[int, list[str]] = {}
     need_calib = camera is None and (doc.camera.K is None or doc.camera.dist is None)
-    total = (len(cam_idx) if need_calib else 0) + 2 * len(obs_idx)
-    done = 0
+    ps.ticker.total = (len(cam_idx) if need_calib else 0) + 2 * len(ps.obs_idx)
     if camera is None and not need_calib:
         camera = doc.camera.camera_model()  # with the camera file's calibration when the acquisition recorded one
     if need_calib:
         if not cam_idx:
             raise InputError(NO_INTRINSICS, file=root, field="camera")
-        det = pool.run(_task_detect, cam_idx, (root, None, None, opts.min_corners, rs_dict), progress, done, total)
-        done += len(cam_idx)
+        t = ps.ticker
+        init = (root, None, None, opts.min_corners, ps.rs_dict)
+        det = ps.pool.run(_task_detect, cam_idx, init, t.callback, t.done, t.total)
+        t.done += len(cam_idx)
         views = {}
         for i, r in det:
             if isinstance(r, str):
-                per_frame.setdefault(i, []).append(f"image: {r}")
+                ps.per_frame.setdefault(i, []).append(f"image: {r}")
             else:
                 views[i] = (np.asarray(r[0], dtype=int), np.asarray(r[1]).reshape(-1, 2), None)
         ids_all, pts = BoardDetector(doc.board).ids_all, BoardDetector(doc.board).points_nominal
@@ -403,87 +554,129 @@ def _extract(
             lens_model=opts.lens_model or (doc.camera.model_extra or {}).get("lens_model") or "auto",
         )
         for i, reason in intr.rejected.items():
-            per_frame.setdefault(i, []).append(f"camera view rejected: {reason}")
+            ps.per_frame.setdefault(i, []).append(f"camera view rejected: {reason}")
         camera = intr.camera
     assert camera is not None
-    # the camera's calibration carries the board geometry it refined (calibrateCameraRO) and how that
-    # geometry moves with the intrinsics (their correlation in the calibration)
+    return CameraStage(camera, intr, intr.summary() if intr else {"source": "given" if not need_calib else "dataset"})
+
+
+def _refined_points(ds: Dataset, camera: CameraModel) -> tuple[list, list, Any] | None:
+    """The board geometry the camera's calibration refined (calibrateCameraRO: ids, points (m), and how they move
+    with the intrinsics), when it has as many corners as the board; else None (the nominal geometry)."""
     bp = (camera.extra.get("calibration") or {}).get("board_points") or {}
-    if bp.get("ids") is not None and len(bp["ids"]) == BoardDetector(doc.board).ids_all.size:
-        refined = (list(bp["ids"]), list(bp["points_m"]), bp.get("d_intrinsics"))
-    init = (root, camera.to_dict(), refined, opts.min_corners, rs_dict, keep_images)
+    if bp.get("ids") is not None and len(bp["ids"]) == BoardDetector(ds.document.board).ids_all.size:
+        return (list(bp["ids"]), list(bp["points_m"]), bp.get("d_intrinsics"))
+    return None
+
+
+def _board_stage(ps: _Pass, corners: dict[int, list] | None) -> dict[int, dict[str, Any]]:
+    """Every measured frame's board: ``{"pose": ...}``, ``{"reason": ...}`` or ``{"image_error": ...}``. The corners
+    of an earlier pass (``corners`` not empty) are posed again with this camera; ``corners`` is filled."""
+    frames, obs_idx, t = ps.ds.frames, ps.obs_idx, ps.ticker
+    on_frame = ps.on_frame
     board_cb = None if on_frame is None else (lambda r: on_frame(frame_info(r[0], frames[r[0]].phase, r[1])))
     if corners:  # a second pass: the corners found in the first, posed with this camera
         again = [i for i in obs_idx if i in corners]
-        boards = dict(
-            pool.run(_task_board_pose, [(i, *corners[i]) for i in again], init, progress, done, total, board_cb)
-        )
+        items = [(i, *corners[i]) for i in again]
+        boards = dict(ps.pool.run(_task_board_pose, items, ps.init, t.callback, t.done, t.total, board_cb))
         rest = [i for i in obs_idx if i not in corners]
-        boards.update(pool.run(_task_board, rest, init, progress, done + len(again), total, board_cb))
+        boards.update(ps.pool.run(_task_board, rest, ps.init, t.callback, t.done + len(again), t.total, board_cb))
     else:
-        boards = dict(pool.run(_task_board, obs_idx, init, progress, done, total, board_cb))
+        boards = dict(ps.pool.run(_task_board, obs_idx, ps.init, t.callback, t.done, t.total, board_cb))
     if corners is not None:
         corners.update({i: b["corners"] for i, b in boards.items() if "corners" in b})
-    done += len(obs_idx)
-    good = [i for i in obs_idx if "pose" in boards[i]]
-    C = E = None
-    placement_rms = None
-    placement_reason = None
-    if len(good) >= opts.min_placement_frames:
-        qk = np.array([frames[i].q for i in good])
-        bR = np.array([boards[i]["pose"]["R"] for i in good])
-        bt = np.array([boards[i]["pose"]["t"] for i in good])
-        try:
-            height = float((doc.board.model_extra or {}).get("height_above_ee_m", 0.0))
-            C, E, placement_rms = fit_placement(qk, bR, bt, doc.nominal.parameters(), height)
-            if placement_rms > opts.max_placement_rms_m:
-                placement_reason = (
-                    f"coarse camera placement inconsistent: board residual RMS "
-                    f"{placement_rms * 1e3:.1f} mm > {opts.max_placement_rms_m * 1e3:.0f} mm "
-                    "(too few board poses, or too little motion among them)"
-                )
-                C = E = None
-        except (I4calError, np.linalg.LinAlgError, ValueError) as exc:
-            placement_reason = f"coarse camera placement failed: {exc}"
-    else:
-        placement_reason = (
-            f"no coarse camera placement: board poses in {len(good)} frames, need {opts.min_placement_frames}"
+    t.done += len(obs_idx)
+    return boards
+
+
+def _placement_stage(ps: _Pass, boards: dict[int, dict[str, Any]]) -> Placement:
+    """The coarse placement fitted to the board poses with the nominal model, or why there is none."""
+    doc, frames, opts = ps.ds.document, ps.ds.frames, ps.opts
+    good = [i for i in ps.obs_idx if "pose" in boards[i]]
+    if len(good) < opts.min_placement_frames:
+        return Placement(
+            None,
+            None,
+            None,
+            f"no coarse camera placement: board poses in {len(good)} frames, need {opts.min_placement_frames}",
         )
-    if predict_with is not None and predicted_from is not None and C is not None:
-        # an earlier pass's refit, moved with the camera frame (another camera moves the board poses, hence the
-        # coarse placement, by the same transform)
-        predict_with = replace(
-            predict_with, camera_from_base=C @ predicted_from.inverse() @ predict_with.camera_from_base
+    qk = np.array([frames[i].q for i in good])
+    bR = np.array([boards[i]["pose"]["R"] for i in good])
+    bt = np.array([boards[i]["pose"]["t"] for i in good])
+    try:
+        height = float((doc.board.model_extra or {}).get("height_above_ee_m", 0.0))
+        C, E, rms = fit_placement(qk, bR, bt, doc.nominal.parameters(), height)
+    except (I4calError, np.linalg.LinAlgError, ValueError) as exc:
+        return Placement(None, None, None, f"coarse camera placement failed: {exc}")
+    if rms > opts.max_placement_rms_m:
+        reason = (
+            f"coarse camera placement inconsistent: board residual RMS "
+            f"{rms * 1e3:.1f} mm > {opts.max_placement_rms_m * 1e3:.0f} mm "
+            "(too few board poses, or too little motion among them)"
         )
-    found: dict[int, Any] = {}
-    fallback = None
-    if C is None and opts.detect_fallback:  # no placement: the rods are found from scratch in each frame
-        dset = opts.detect or DetectSettings()
-        prior = opts.camera_prior.to_dict() if opts.camera_prior is not None else None
-        items: list[tuple] = [(i, prior, dict(dset.__dict__)) for i in obs_idx if "image_error" not in boards[i]]
-        total += len(items)
-        found = {i: d for i, d in pool.run(_task_find_rods, items, init, progress, done, total) if d is not None}
-        done += len(items)
-        found, placed, anchor = resolve_frames(
-            found,
-            camera,
-            doc.nominal.parameters(),
-            {i: frames[i].q for i in found},
-            doc.legs.rod_radius_m,
-            doc.legs.rod_spacing_m or 0.0,
-            opts.camera_prior,
-            dset,
-        )
-        fallback = {
-            "frames": len(found),
-            "associated": sum(d.ok for d in found.values()),
-            "ambiguous": sum(d.ambiguous for d in found.values()),
-            "anchor": anchor,
-            "camera_from_base": placed.to_dict() if placed is not None else None,
-        }
+        return Placement(None, None, rms, reason)
+    return Placement(C, E, rms, None)
+
+
+def _detect_stage(
+    ps: _Pass, camera: CameraModel, boards: dict[int, dict[str, Any]]
+) -> tuple[dict[int, Any], dict[str, Any]]:
+    """No placement: each frame's rods found and associated from scratch (:mod:`calib.vision.detect`), the frames
+    resolved together. Returns the detections by frame and the summary's ``placement.detected``."""
+    doc, frames, opts, t = ps.ds.document, ps.ds.frames, ps.opts, ps.ticker
+    dset = opts.detect or DetectSettings()
+    prior = opts.camera_prior.to_dict() if opts.camera_prior is not None else None
+    items: list[tuple] = [(i, prior, dict(dset.__dict__)) for i in ps.obs_idx if "image_error" not in boards[i]]
+    t.total += len(items)
+    found = {
+        i: d for i, d in ps.pool.run(_task_find_rods, items, ps.init, t.callback, t.done, t.total) if d is not None
+    }
+    t.done += len(items)
+    found, placed, anchor = resolve_frames(
+        found,
+        camera,
+        doc.nominal.parameters(),
+        {i: frames[i].q for i in found},
+        doc.legs.rod_radius_m,
+        doc.legs.rod_spacing_m or 0.0,
+        opts.camera_prior,
+        dset,
+    )
+    fallback = {
+        "frames": len(found),
+        "associated": sum(d.ok for d in found.values()),
+        "ambiguous": sum(d.ambiguous for d in found.values()),
+        "anchor": anchor,
+        "camera_from_base": placed.to_dict() if placed is not None else None,
+    }
+    return found, fallback
+
+
+def _nominal_board(ps: _Pass, i: int, place: Placement) -> dict[str, Any] | None:
+    """Frame ``i``'s board pose predicted by the nominal model and the coarse placement (an occluder where the board
+    was not measured), or None."""
+    C, E = place.camera_from_base, place.ee_from_board
+    if C is None or E is None:
+        return None
+    try:
+        nom = ps.ds.document.nominal.parameters()
+        nb = C @ Rigid(*base_from_ee(nom, dkm(nom, np.asarray(ps.ds.frames[i].q)))) @ E
+    except I4calError:
+        return None
+    return {"R": nb.R.tolist(), "t": nb.t.tolist()}
+
+
+def _rod_items(
+    ps: _Pass,
+    boards: dict[int, dict[str, Any]],
+    place: Placement,
+    found: dict[int, Any],
+    predict_with: Repredicted | None,
+) -> list[tuple]:
+    """The rods stage's tasks: (frame, camera_from_base, board occluder[, detection | None, seven parameters])."""
+    C = place.camera_from_base
     rod_items: list[tuple] = []
-    rods: dict[int, Any] = {}
-    for i in obs_idx:
+    for i in ps.obs_idx:
         if i in found:
             cfb = found[i].camera_from_base
             rod_items.append((i, cfb.to_dict() if cfb is not None else None, boards[i].get("pose"), found[i]))
@@ -491,121 +684,194 @@ def _extract(
         if "image_error" in boards[i] or C is None:
             continue
         b = boards[i].get("pose")
-        if b is None and E is not None:
-            try:
-                nom = doc.nominal.parameters()
-                nb = C @ Rigid(*base_from_ee(nom, dkm(nom, np.asarray(frames[i].q)))) @ E
-                b = {"R": nb.R.tolist(), "t": nb.t.tolist()}
-            except I4calError:
-                b = None
+        if b is None:
+            b = _nominal_board(ps, i, place)
         if predict_with is not None:  # the refit of an earlier pass
             rod_items.append((i, predict_with.camera_from_base.to_dict(), b, None, predict_with.parameters.vector()))
         else:
             rod_items.append((i, C.to_dict(), b))
-    rods_cb = (
-        None if on_frame is None else (lambda r: on_frame(frame_info(r[0], frames[r[0]].phase, boards[r[0]], r[1])))
+    return rod_items
+
+
+def _rods_cb(ps: _Pass, boards: dict[int, dict[str, Any]]) -> Callable[[Any], None] | None:
+    """The rods stage's per-frame report (``on_frame``), or None."""
+    on_frame, frames = ps.on_frame, ps.ds.frames
+    if on_frame is None:
+        return None
+    return lambda r: on_frame(frame_info(r[0], frames[r[0]].phase, boards[r[0]], r[1]))
+
+
+def _repredict_stage(
+    ps: _Pass,
+    camera: CameraModel,
+    boards: dict[int, dict[str, Any]],
+    rods: dict[int, Any],
+    rod_items: list[tuple],
+    n_first: int,
+    place: Placement,
+    predict_with: Repredicted | None,
+) -> tuple[dict[str, Any], Repredicted | None]:
+    """The prediction refitted to the rods measured (:func:`_repredict`), the frames it moved measured again on it
+    and the frames not measured yet (``rod_items`` beyond the ``n_first`` of the first sample) measured on it, else
+    on the first prediction when there is no refit (``rods`` updated). Returns the summary's ``repredicted`` entry
+    and the refit."""
+    assert place.camera_from_base is not None and place.ee_from_board is not None
+    t = ps.ticker
+    repredicted, redo, fit = _repredict(
+        ps.ds,
+        camera,
+        boards,
+        rods,
+        place.camera_from_base,
+        place.ee_from_board,
+        cast("float", ps.opts.repredict_px),
+        predict_with,
     )
-    rods = dict(pool.run(_task_rods, rod_items, init, progress, done, total, rods_cb))
-    repredicted: dict[str, Any] | None = None
-    fit: Repredicted | None = None
-    if C is not None and E is not None and not found and opts.repredict_px is not None:
-        repredicted, redo, fit = _repredict(ds, camera, boards, rods, C, E, opts.repredict_px, predict_with)
-        if fit is not None and redo:
-            total += len(redo)
-            items = [
-                (i, fit.camera_from_base.to_dict(), b, None, fit.parameters.vector())
-                for i, _cfb, b in (it[:3] for it in rod_items)
-                if i in redo
-            ]
-            rods.update(pool.run(_task_rods, items, init, progress, done + len(rod_items), total, rods_cb))
-        repredicted["first_prediction"] = "nominal" if predict_with is None else "an earlier pass's refit"
-    fit = fit or predict_with
-    if on_frame is not None:  # frames whose rods could not be looked for
-        for i in obs_idx:
-            if i not in rods:
-                on_frame(frame_info(i, frames[i].phase, boards[i], {"reason": placement_reason or "no prediction"}))
-    if progress and reported[0] < total:
-        progress(total, total)
-    # -- assemble --------------------------------------------------------------------------------
+    later = {it[0] for it in rod_items} - set(rods)  # not in the first sample: measured once, on the refit
+    if fit is not None and ps.measure_phases is not None:  # the others: by the next pass, with the refined camera
+        left = {i for i in later if ps.ds.frames[i].phase not in ps.measure_phases}
+        rods.update({i: {"reason": DEFERRED} for i in sorted(left)})
+        later -= left
+        # the sampled frames of those phases keep their first measurement (the refinement does not use it)
+        kept = {i for i in redo if ps.ds.frames[i].phase not in ps.measure_phases}
+        redo = redo - kept
+        ps.deferred = len(left) + len(kept)
+        repredicted["frames_measured_again"] = len(redo)
+    items = [
+        it if fit is None else (it[0], fit.camera_from_base.to_dict(), it[2], None, fit.parameters.vector())
+        for it in rod_items
+        if it[0] in later or (fit is not None and it[0] in redo)
+    ]
+    if items:
+        t.total += len(items) - len(later)
+        rods.update(
+            ps.pool.run(_task_rods, items, ps.init, t.callback, t.done + n_first, t.total, _rods_cb(ps, boards))
+        )
+    repredicted["first_prediction"] = "nominal" if predict_with is None else "an earlier pass's refit"
+    if later:
+        repredicted["first_sample_frames"] = n_first
+        repredicted["frames_measured_on_the_refit_only"] = len(later) if fit is not None else 0
+        repredicted["applied"] = repredicted["applied"] or fit is not None
+    return repredicted, fit
+
+
+def _first_sample(rod_items: list[tuple], opts: ExtractOptions) -> list[tuple]:
+    """The frames measured on the first (nominal) prediction, to refit it: every ``opts.first_pass_every``-th, or all
+    when that leaves fewer than ``opts.first_pass_min_frames``."""
+    every = max(1, int(opts.first_pass_every))
+    sample = rod_items[::every]
+    return sample if len(sample) >= opts.first_pass_min_frames else rod_items
+
+
+def _frame_record(
+    ps: _Pass,
+    i: int,
+    board_res: dict[str, Any],
+    r: dict[str, Any] | None,
+    placement_reason: str | None,
+    ph: dict[str, Any],
+) -> dict[str, Any]:
+    """Frame ``i``'s observations v1 record from its board and rods results; counts it in its phase's ``ph``."""
+    f = ps.ds.frames[i]
+    ph["frames"] += 1
+    ph["rods_total"] += 8
+    missing: dict[str, str] = {}
+    board = None
+    if "image_error" in board_res:
+        missing["image"] = board_res["image_error"]
+    elif "pose" in board_res:
+        board = board_res["pose"]
+        ph["board"] += 1
+        ph["corners_rejected"] += int(board.get("corners_rejected") or 0)
+    else:
+        missing["board"] = board_res["reason"]
+    legs = _frame_legs(r, missing, placement_reason, ph)
+    par = r["parallel_mrad"] if r is not None and "parallel_mrad" in r else {}
+    for k, v in missing.items():
+        kind = "board" if k == "board" else ("image" if k == "image" else "rod")
+        label = f"{kind}: {_short(v)}"
+        ph["missing"][label] = ph["missing"].get(label, 0) + 1
+        ps.per_frame.setdefault(i, []).append(f"{k}: {v}")
+    fr: dict[str, Any] = {
+        "phase": f.phase,
+        "q": list(f.q),
+        "board": board,
+        "legs": legs,
+        "missing": missing,
+        "image": f.image,
+        "dataset_frame": i,
+        "leg_parallel_mrad": par,
+    }
+    extra = f.model_extra or {}
+    if "truth" in extra:
+        fr["truth"] = extra["truth"]
+    return fr
+
+
+def _frame_legs(
+    r: dict[str, Any] | None, missing: dict[str, str], placement_reason: str | None, ph: dict[str, Any]
+) -> dict[str, list]:
+    """A frame's rods by leg (``{"1": [rod0, rod1], ...}``, None where missing, the reason in ``missing``)."""
+    legs: dict[str, list] = {str(k): [None, None] for k in range(1, 5)}
+    for leg, rod in ROD_KEYS:
+        key = rod_name(leg, rod)
+        if "image" in missing:
+            missing[key] = "image unreadable"
+        elif r is None:
+            missing[key] = placement_reason or "no prediction"
+        elif "reason" in r:
+            missing[key] = r["reason"]
+        else:
+            v = r["rods"][key]
+            if isinstance(v, str):
+                missing[key] = v
+            else:
+                legs[str(leg + 1)][rod] = v
+                ph["rods"] += 1
+    return legs
+
+
+def _assemble(
+    ps: _Pass,
+    cam: CameraStage,
+    boards: dict[int, dict[str, Any]],
+    rods: dict[int, Any],
+    place: Placement,
+    fallback: dict[str, Any] | None,
+    repredicted: dict[str, Any] | None,
+    fit: Repredicted | None,
+) -> ExtractionResult:
+    """The pass's observations v1 document, summary and result."""
+    doc = ps.ds.document
     out_frames = []
     phases: dict[str, dict[str, Any]] = {}
-    for i in obs_idx:
-        f = frames[i]
+    for i in ps.obs_idx:
         ph = phases.setdefault(
-            f.phase, {"frames": 0, "board": 0, "rods": 0, "rods_total": 0, "corners_rejected": 0, "missing": {}}
+            ps.ds.frames[i].phase,
+            {"frames": 0, "board": 0, "rods": 0, "rods_total": 0, "corners_rejected": 0, "missing": {}},
         )
-        ph["frames"] += 1
-        ph["rods_total"] += 8
-        missing: dict[str, str] = {}
-        b = boards[i]
-        board = None
-        if "image_error" in b:
-            missing["image"] = b["image_error"]
-        elif "pose" in b:
-            board = b["pose"]
-            ph["board"] += 1
-            ph["corners_rejected"] += int(board.get("corners_rejected") or 0)
-        else:
-            missing["board"] = b["reason"]
-        legs: dict[str, list] = {str(k): [None, None] for k in range(1, 5)}
-        r = rods.get(i)
-        par = {}
-        for leg, rod in ROD_KEYS:
-            key = rod_name(leg, rod)
-            if "image" in missing:
-                missing[key] = "image unreadable"
-            elif r is None:
-                missing[key] = placement_reason or "no prediction"
-            elif "reason" in r:
-                missing[key] = r["reason"]
-            else:
-                v = r["rods"][key]
-                if isinstance(v, str):
-                    missing[key] = v
-                else:
-                    legs[str(leg + 1)][rod] = v
-                    ph["rods"] += 1
-        if r is not None and "parallel_mrad" in r:
-            par = r["parallel_mrad"]
-        for k, v in missing.items():
-            kind = "board" if k == "board" else ("image" if k == "image" else "rod")
-            label = f"{kind}: {_short(v)}"
-            ph["missing"][label] = ph["missing"].get(label, 0) + 1
-            per_frame.setdefault(i, []).append(f"{k}: {v}")
-        fr: dict[str, Any] = {
-            "phase": f.phase,
-            "q": list(f.q),
-            "board": board,
-            "legs": legs,
-            "missing": missing,
-            "image": f.image,
-            "dataset_frame": i,
-            "leg_parallel_mrad": par,
-        }
-        extra = f.model_extra or {}
-        if "truth" in extra:
-            fr["truth"] = extra["truth"]
-        out_frames.append(fr)
+        out_frames.append(_frame_record(ps, i, boards[i], rods.get(i), place.reason, ph))
+    C, E = place.camera_from_base, place.ee_from_board
     summary = {
         "phases": phases,
-        "frames": {str(k): v for k, v in sorted(per_frame.items())},
-        "camera": intr.summary() if intr else {"source": "given" if not need_calib else "dataset"},
-        "placement": {"ok": C is not None, "rms_m": placement_rms, "reason": placement_reason, "detected": fallback},
+        "frames": {str(k): v for k, v in sorted(ps.per_frame.items())},
+        "camera": cam.summary,
+        "placement": {"ok": C is not None, "rms_m": place.rms_m, "reason": place.reason, "detected": fallback},
         "repredicted": repredicted,
     }
     extraction = {
-        "camera": camera.to_dict(),
+        "camera": cam.camera.to_dict(),
         "summary": summary,
         "camera_from_base_coarse": C.to_dict() if C else None,
         "ee_from_board_coarse": E.to_dict() if E else None,
-        "rod_settings": rs_dict,
-        "min_corners": opts.min_corners,
+        "rod_settings": ps.rs_dict,
+        "min_corners": ps.opts.min_corners,
     }
     obs = {"format": FORMAT, "nominal": doc.nominal.model_dump(), "frames": out_frames, "extraction": extraction}
     dextra = doc.model_extra or {}
     if "truth" in dextra:
         obs["truth"] = dextra["truth"]
-    return ExtractionResult(obs, summary, camera, intr, C, E, fit)
+    return ExtractionResult(obs, summary, cam.camera, cam.intrinsics, C, E, fit, deferred=ps.deferred)
 
 
 def _refit_inputs(ds: Dataset, camera: CameraModel) -> tuple[I4Parameters, float, float, float]:

@@ -5,6 +5,13 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from rich.console import Console
+
+    from calib.camera import CameraModel
+    from calib.vision.extract import ExtractionResult, ExtractOptions
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -65,45 +72,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-    from rich.table import Table
 
-    from calib.camera import LENS_MODEL_CHOICES, CameraModel
-    from calib.errors import InputError
+    from calib.camera import CameraModel
     from calib.observations import Observations
-    from calib.vision.extract import ExtractOptions, extract_dataset
 
     console = Console(stderr=True)
-    if args.lens_model is not None and args.lens_model not in LENS_MODEL_CHOICES:
-        raise InputError(
-            f"unknown lens model {args.lens_model!r}; lens models are {', '.join(LENS_MODEL_CHOICES)}",
-            field="--lens-model",
-        )
+    opts = _options(args)
     cam = CameraModel.load(args.camera) if args.camera else None
-    opts = ExtractOptions(
-        min_corners=args.min_corners,
-        refine_camera=args.refine_camera,
-        lens_model=args.lens_model,
-        repredict_px=ExtractOptions.repredict_px if args.repredict else None,
-        recover_lost_share=ExtractOptions.recover_lost_share if args.recover else None,
-    )
-    if args.quiet:
-        res = extract_dataset(args.dataset, camera=cam, workers=args.workers, options=opts)
-    else:
-        with Progress(
-            TextColumn("extract"),
-            BarColumn(),
-            MofNCompleteColumn(),
-            TimeRemainingColumn(),
-            console=console,
-            transient=True,
-        ) as bar:
-            task = bar.add_task("extract", total=None)
-
-            def progress(done: int, total: int) -> None:
-                bar.update(task, completed=done, total=total)
-
-            res = extract_dataset(args.dataset, camera=cam, workers=args.workers, progress=progress, options=opts)
+    res = _extract(args, cam, opts, console)
     obs = Observations.from_dict(res.observations, source=str(args.output))
     out = Path(args.output)
     tmp = out.with_name(out.name + ".tmp")
@@ -111,33 +87,91 @@ def run(args: argparse.Namespace) -> int:
     tmp.replace(out)
     if args.camera_out:
         res.camera.save(args.camera_out)
-    s = res.summary
     if res.intrinsics is not None:
-        i = res.intrinsics
-        sig = (i.camera.extra.get("calibration") or {}).get("view_sigma_px")
-        console.print(
-            f"intrinsics: calibrated from {len(i.per_view_rms_px)} views, RMS {i.rms_px:.3f} px, "
-            f"fx {res.camera.fx:.2f} +/- {i.std.get('fx', float('nan')):.2f} px, "
-            f"{len(i.rejected)} views rejected"
-            + (f"; views weighted by their corner noise ({min(sig):.3f}-{max(sig):.3f} px)" if sig else "")
+        _print_intrinsics(console, res, args.camera_out)
+    s = res.summary
+    _print_camera_refinement(console, s)
+    _print_repredicted(console, s)
+    _print_recovered(console, s)
+    _print_phases(console, s)
+    console.print(f"wrote {out} ({len(obs.frames)} frames)")
+    return 0
+
+
+def _options(args: argparse.Namespace) -> ExtractOptions:
+    """The extraction's settings from the command line (the lens model checked)."""
+    from calib.camera import LENS_MODEL_CHOICES
+    from calib.errors import InputError
+    from calib.vision.extract import ExtractOptions
+
+    if args.lens_model is not None and args.lens_model not in LENS_MODEL_CHOICES:
+        raise InputError(
+            f"unknown lens model {args.lens_model!r}; lens models are {', '.join(LENS_MODEL_CHOICES)}",
+            field="--lens-model",
         )
-        lm = i.lens_model or {}
-        if lm:
-            prof = lm.get("residual_profile") or {}
-            where = (
-                f"evidence in {args.camera_out} (calibration.lens_model)"
-                if args.camera_out
-                else "evidence: --camera-out FILE"
-            )
-            how = "chosen by BIC" if lm.get("requested") == "auto" else "given"
-            console.print(
-                f"lens model: {lm['chosen']} ({how} among {len(lm.get('candidates', []))}; radial model error up to "
-                f"{prof.get('max_systematic_px', 0.0):.3f} px); {where}",
-                highlight=False,
-                soft_wrap=True,  # a path is never cut across lines
-            )
-            for w in lm.get("warnings") or []:
-                console.print(f"warning: {w}")
+    return ExtractOptions(
+        min_corners=args.min_corners,
+        refine_camera=args.refine_camera,
+        lens_model=args.lens_model,
+        repredict_px=ExtractOptions.repredict_px if args.repredict else None,
+        recover_lost_share=ExtractOptions.recover_lost_share if args.recover else None,
+    )
+
+
+def _extract(
+    args: argparse.Namespace, cam: CameraModel | None, opts: ExtractOptions, console: Console
+) -> ExtractionResult:
+    """The extraction, with a progress bar unless ``--quiet``."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from calib.vision.extract import extract_dataset
+
+    if args.quiet:
+        return extract_dataset(args.dataset, camera=cam, workers=args.workers, options=opts)
+    with Progress(
+        TextColumn("extract"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeRemainingColumn(),
+        console=console,
+        transient=True,
+    ) as bar:
+        task = bar.add_task("extract", total=None)
+
+        def progress(done: int, total: int) -> None:
+            bar.update(task, completed=done, total=total)
+
+        return extract_dataset(args.dataset, camera=cam, workers=args.workers, progress=progress, options=opts)
+
+
+def _print_intrinsics(console: Console, res: ExtractionResult, camera_out: str | None) -> None:
+    """The camera calibrated from the ``camera`` phase: its fit and lens model."""
+    i = res.intrinsics
+    assert i is not None
+    sig = (i.camera.extra.get("calibration") or {}).get("view_sigma_px")
+    console.print(
+        f"intrinsics: calibrated from {len(i.per_view_rms_px)} views, RMS {i.rms_px:.3f} px, "
+        f"fx {res.camera.fx:.2f} +/- {i.std.get('fx', float('nan')):.2f} px, "
+        f"{len(i.rejected)} views rejected"
+        + (f"; views weighted by their corner noise ({min(sig):.3f}-{max(sig):.3f} px)" if sig else "")
+    )
+    lm = i.lens_model or {}
+    if not lm:
+        return
+    prof = lm.get("residual_profile") or {}
+    where = f"evidence in {camera_out} (calibration.lens_model)" if camera_out else "evidence: --camera-out FILE"
+    how = "chosen by BIC" if lm.get("requested") == "auto" else "given"
+    console.print(
+        f"lens model: {lm['chosen']} ({how} among {len(lm.get('candidates', []))}; radial model error up to "
+        f"{prof.get('max_systematic_px', 0.0):.3f} px); {where}",
+        highlight=False,
+        soft_wrap=True,  # a path is never cut across lines
+    )
+    for w in lm.get("warnings") or []:
+        console.print(f"warning: {w}")
+
+
+def _print_camera_refinement(console: Console, s: dict[str, Any]) -> None:
     ref = (s.get("camera") or {}).get("refined_by_rods") or {}
     if ref.get("applied"):
         sh = ref["shift"]
@@ -147,6 +181,9 @@ def run(args: argparse.Namespace) -> int:
         )
     elif ref:
         console.print(f"camera not refined: {ref.get('reason')}")
+
+
+def _print_repredicted(console: Console, s: dict[str, Any]) -> None:
     rp = s.get("repredicted") or {}
     rp0 = rp.get("first_camera_pass") or rp
     if rp0.get("median_px_before") is not None:
@@ -157,20 +194,31 @@ def run(args: argparse.Namespace) -> int:
         )
     elif rp0.get("reason"):
         console.print(f"rods' prediction not refitted: {rp0['reason']}")
+
+
+def _print_recovered(console: Console, s: dict[str, Any]) -> None:
     rec = s.get("recovered")
-    if rec:
-        kinds = ", ".join(f"{k} {v}" for k, v in ((rec.get("refit") or {}).get("lines_explained_as") or {}).items())
-        console.print(
-            f"rods lost in their search bands: {rec['lost_before']} of {rec['looked_for_before']} looked for (more "
-            f"than {rec['share']:.0%}): "
-            + (
-                f"prediction refitted robustly (lines explained as {kinds}"
-                f"; {rec['refit']['starts']} starts), every frame measured again: {rec['lost_after']} lost"
-                + ("" if rec["applied"] else f"; not kept: {rec['reason']}")
-                if rec.get("refit")
-                else f"not recovered: {rec['reason']}"
-            )
+    if not rec:
+        return
+    kinds = ", ".join(f"{k} {v}" for k, v in ((rec.get("refit") or {}).get("lines_explained_as") or {}).items())
+    console.print(
+        f"rods lost in their search bands: {rec['lost_before']} of {rec['looked_for_before']} looked for (more "
+        f"than {rec['share']:.0%}): "
+        + (
+            f"prediction refitted robustly (lines explained as {kinds}"
+            f"; {rec['refit']['starts']} starts), every frame measured again: {rec['lost_after']} lost"
+            + ("" if rec["applied"] else f"; not kept: {rec['reason']}")
+            if rec.get("refit")
+            else f"not recovered: {rec['reason']}"
         )
+    )
+
+
+def _print_phases(console: Console, s: dict[str, Any]) -> None:
+    """The coarse placement, the table of what was found per phase and the corners left out."""
+    from rich.console import Console
+    from rich.table import Table
+
     pl = s["placement"]
     console.print(
         "coarse camera placement: "
@@ -191,5 +239,3 @@ def run(args: argparse.Namespace) -> int:
             + ", ".join(f"{ph} {n}" for ph, n in out_corners.items())
             + ")"
         )
-    console.print(f"wrote {out} ({len(obs.frames)} frames)")
-    return 0

@@ -206,16 +206,45 @@ def associate(
     """Accepted hypotheses (legs -> rod candidates, placement), best first, and the best's rivals.
 
     A rival labels the rods differently and explains them about as well (see :func:`_rivals`).
+    Stages: rotation seeds (:func:`_rotation_seeds`), a quick linear placement of each
+    (:func:`_quick_placements`), the best few refined (:func:`_refined_hypotheses`), duplicates merged.
     """
     tops, u = _rod_model(nominal, q, spacing)
     if len(legs_c) < settings.min_legs:
         return [], []
+    seeds = _rotation_seeds(rods, legs_c, u, settings, prior)
+    fitter = _Fitter(rods, tops, u, radius, K)
+    quick = _quick_placements(fitter, seeds, legs_c, rods, radius)
+    hyps = _refined_hypotheses(fitter, quick, radius, settings, prior)
+    uniq = _unique(hyps)
+    if not uniq:
+        return [], []
+    return uniq, _rivals(uniq, fitter, radius, settings)
+
+
+#: a rotation seed: (Kabsch misfit in sigmas, leg -> candidate map, rotation base -> camera (3, 3))
+_Seed = tuple[float, tuple[int | None, ...], Array]
+#: a quick placement: (legs assigned, RMS px of the linear placement, Kabsch misfit, leg -> rod pair, x0 (6,))
+_Quick = tuple[int, float, float, dict[int, tuple[int, int]], Array]
+
+
+def _rotation_seeds(
+    rods: list[RodCandidate],
+    legs_c: list[LegCandidate],
+    u: Array,
+    settings: DetectSettings,
+    prior: Rigid | None,
+) -> list[_Seed]:
+    """Assignments of leg candidates to legs whose directions agree, each with its signs' Kabsch rotation.
+
+    ``u``: the model's leg directions (4, 3), base frame.
+    """
     D = np.array([lc.d for lc in legs_c])
     cand_ang = np.arccos(np.clip(np.abs(D @ D.T), 0.0, 1.0))
     model_ang = np.arccos(np.clip(np.abs(u @ u.T), 0.0, 1.0))
     sig = np.array([np.hypot(lc.sigma, settings.model_direction_rad) for lc in legs_c])
     tol = settings.pair_angle_tol_rad + 3.0 * (sig[:, None] + sig[None, :])
-    seeds = []
+    seeds: list[_Seed] = []
     for mp in _assignments(model_ang, cand_ang, len(legs_c), settings.min_legs, tol):
         legs = [lg for lg in range(4) if mp[lg] is not None]
         cand = cast("list[int]", [mp[lg] for lg in legs])  # legs: those mp assigns a candidate to
@@ -230,10 +259,14 @@ def associate(
             if prior is not None and _rotation_angle(R, prior.R) > settings.prior_tol_rad:
                 continue
             seeds.append((res, mp, R))
-    fitter = _Fitter(rods, tops, u, radius, K)
-    # every seed (and rod-order variant) gets its linear translation and a quick residual; the best
-    # few of each leg count are refined
-    quick: list[tuple[int, float, float, dict[int, tuple[int, int]], Array]] = []
+    return seeds
+
+
+def _quick_placements(
+    fitter: _Fitter, seeds: list[_Seed], legs_c: list[LegCandidate], rods: list[RodCandidate], radius: float
+) -> list[_Quick]:
+    """Every seed (and rod-order variant) with its linear translation and a quick residual, duplicates once."""
+    quick: list[_Quick] = []
     seen: set[tuple] = set()
     for res, mp, R in sorted(seeds, key=lambda x: x[0]):
         for lv in _rod_orders(mp, legs_c, rods, R[:, 0], fitter.Ki):
@@ -244,6 +277,14 @@ def associate(
             x0 = _initial(fitter, lv, R, radius)
             r0 = fitter.residuals(x0[None], *fitter.setup(lv))[0]
             quick.append((len(lv), float(np.sqrt(np.mean(r0**2))), res, lv, x0))
+    return quick
+
+
+def _refined_hypotheses(
+    fitter: _Fitter, quick: list[_Quick], radius: float, settings: DetectSettings, prior: Rigid | None
+) -> list[Hypothesis]:
+    """The best ``settings.max_hypotheses`` quick placements of each leg count refined and kept when they fit,
+    sorted by legs (most first) then RMS."""
     hyps: list[Hypothesis] = []
     for n in sorted({qk[0] for qk in quick}, reverse=True):
         group = sorted((qk for qk in quick if qk[0] == n), key=lambda qk: qk[1])
@@ -256,14 +297,17 @@ def associate(
             h.kabsch_misfit = res
             hyps.append(h)
     hyps.sort(key=lambda h: (-len(h.legs), h.rms_px))
-    uniq: list[Hypothesis] = []  # the same labels and about the same placement: one hypothesis
+    return hyps
+
+
+def _unique(hyps: list[Hypothesis]) -> list[Hypothesis]:
+    """The same labels and about the same placement: one hypothesis (the first)."""
+    uniq: list[Hypothesis] = []
     for h in hyps:
         if any(h.legs == g.legs and _rotation_angle(h.camera_from_base.R, g.camera_from_base.R) < 0.05 for g in uniq):
             continue
         uniq.append(h)
-    if not uniq:
-        return [], []
-    return uniq, _rivals(uniq, fitter, radius, settings)
+    return uniq
 
 
 def _rivals(hyps: list[Hypothesis], fitter: _Fitter, radius: float, settings: DetectSettings) -> list[Hypothesis]:

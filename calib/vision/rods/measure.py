@@ -429,14 +429,84 @@ def measure_rod(
     s = settings or RodSettings()
     rng = rng or np.random.default_rng(0)
     out = RodMeasurement(pred.leg, pred.rod)
-    K = camera.K
     box = ideal_bbox if ideal_bbox is not None else image_ideal_bbox(camera)
     seg = segment if segment is not None else _predicted_segment(camera, pred, radius, s.near_m, box)
     if isinstance(seg, str):
         out.reason = seg
         return out
-    n_dir = seg.n_dir
     proj = projector if projector is not None else _IdealToImage(camera)
+    vis = _visible_centres(camera, seg, s, box, proj, occluders)
+    if isinstance(vis, str):
+        out.reason = vis
+        return out
+    pairs = _limb_pairs(gray, camera, seg, s, proj, *vis)
+    if neighbours:
+        neighbours = _near_segments(
+            vis[1],
+            seg.t_dir,
+            seg.n_dir,
+            float(min(pairs.o1.min(), pairs.o2.min())),
+            float(max(pairs.o1.max(), pairs.o2.max())),
+            neighbours,
+            s.neighbour_px,
+        )
+    # one polarity per rod (brighter or darker than its surroundings): pairs of the other polarity
+    # are gaps between two bright things (e.g. the two rods of a leg), dropped
+    out.pairs_by_polarity = (int(np.count_nonzero(pairs.pol > 0)), int(np.count_nonzero(pairs.pol < 0)))
+    if polarity is None and s.polarity:
+        polarity = 1 if s.polarity > 0 else -1
+    out.polarity = polarity if polarity is not None else (1 if pairs.pol.sum() >= 0 else -1)
+    fits = _fit_limbs(pairs, out.polarity, vis[1], seg.n_dir, s, rng, neighbours)
+    if isinstance(fits, str):
+        out.reason = fits
+        return out
+    out.lines_px = fits.lines
+    out.rms_px = (fits.rms[0], fits.rms[1])
+    out.n_points = (fits.npts[0], fits.npts[1])
+    if max(fits.rms) > s.max_rms_px:
+        out.reason = f"limb edges too scattered (residual RMS {max(fits.rms):.2f} px > {s.max_rms_px} px)"
+        return out
+    reason = _axis_from_limbs(out, camera, pred, radius, s, proj, fits, vis[1], seg.n_dir)
+    if reason is not None:
+        out.reason = reason
+    return out
+
+
+@dataclass
+class _LimbPairs:
+    """The edge pairs found across a rod's profiles: profile index (N,), the pair's lower and higher edge (N,)
+    and its polarity (N,) (+1: brighter inside), and the predicted limb offsets o1, o2 (P,) of every profile
+    (ideal px along the segment's normal)."""
+
+    k: NDArray[np.intp]
+    x_lo: Array
+    x_hi: Array
+    pol: NDArray[np.intp]
+    o1: Array
+    o2: Array
+
+
+@dataclass
+class _LimbFits:
+    """The two limb lines of a rod (ideal px, ``a x + b y + c = 0``), their fits' (centre, direction, variance,
+    inlier points) for the covariance, residual RMS (px) and inlier counts."""
+
+    lines: list[Array]
+    fits: list[tuple[Array, Array, float, Array]]
+    rms: list[float]
+    npts: list[int]
+
+
+def _visible_centres(
+    camera: CameraModel,
+    seg: _Segment,
+    s: RodSettings,
+    box: Array,
+    proj: _IdealToImage,
+    occluders: list[Array] | None,
+) -> tuple[Array, Array] | str:
+    """The profiles' positions along the segment (P,) and centres (P, 2) (ideal px) inside the image and outside the
+    occluders, or why too few are."""
     ts = np.arange(0.0, seg.length, s.step_px)
     if ts.size > 1500:
         ts = np.linspace(0.0, seg.length, 1500)
@@ -457,15 +527,28 @@ def measure_rod(
     half = 0.5 * float(np.max(np.abs(seg.off1 - seg.off2)))
     for poly in occluders or []:
         # a profile is hidden when any part of its span is inside the polygon
-        inside &= ~_hidden(centres, (half + ROD_OCCLUDER_CLEARANCE_PX) * n_dir, (-1.0, 0.0, 1.0), poly)
+        inside &= ~_hidden(centres, (half + ROD_OCCLUDER_CLEARANCE_PX) * seg.n_dir, (-1.0, 0.0, 1.0), poly)
     if inside.sum() * s.step_px < s.min_length_px:
         vis = inside.sum() * s.step_px
-        out.reason = (
+        return (
             f"not enough of the rod visible ({vis:.0f} px of {seg.length:.0f} px predicted; "
             "outside the image or hidden by the board)"
         )
-        return out
-    ts, centres = ts[inside], centres[inside]
+    return ts[inside], centres[inside]
+
+
+def _limb_pairs(
+    gray: np.ndarray,
+    camera: CameraModel,
+    seg: _Segment,
+    s: RodSettings,
+    proj: _IdealToImage,
+    ts: Array,
+    centres: Array,
+) -> _LimbPairs:
+    """Profiles across the predicted limbs at ``centres`` (P, 2), their sub-pixel edges and the best edge pair of
+    each profile."""
+    n_dir = seg.n_dir
     o1, o2 = seg.limb_offsets(ts / seg.length)
     lo = np.minimum(o1, o2).min() - s.band_px
     hi = np.maximum(o1, o2).max() + s.band_px
@@ -487,32 +570,28 @@ def measure_rod(
     k, x_lo, x_hi, pol = _pair_edges(
         pi, lo + pos * ds, sg, 0.5 * (o1 + o2), np.abs(o2 - o1), s.band_px, s.width_tolerance
     )
-    if neighbours:
-        neighbours = _near_segments(
-            centres,
-            seg.t_dir,
-            n_dir,
-            float(min(o1.min(), o2.min())),
-            float(max(o1.max(), o2.max())),
-            neighbours,
-            s.neighbour_px,
-        )
-    # one polarity per rod (brighter or darker than its surroundings): pairs of the other polarity
-    # are gaps between two bright things (e.g. the two rods of a leg), dropped
-    out.pairs_by_polarity = (int(np.count_nonzero(pol > 0)), int(np.count_nonzero(pol < 0)))
-    if polarity is None and s.polarity:
-        polarity = 1 if s.polarity > 0 else -1
-    out.polarity = polarity if polarity is not None else (1 if pol.sum() >= 0 else -1)
+    return _LimbPairs(k, x_lo, x_hi, pol, o1, o2)
+
+
+def _fit_limbs(
+    pairs: _LimbPairs,
+    polarity: int,
+    centres: Array,
+    n_dir: Array,
+    s: RodSettings,
+    rng: np.random.Generator,
+    neighbours: list[tuple[Array, Array, float]] | None,
+) -> _LimbFits | str:
+    """The two limb lines fitted (RANSAC) to the pairs of this polarity, limb points near a neighbour dropped; or
+    why not."""
+    k, x_lo, x_hi, pol, o1, o2 = pairs.k, pairs.x_lo, pairs.x_hi, pairs.pol, pairs.o1, pairs.o2
     if k.size:
-        keep = pol == out.polarity
+        keep = pol == polarity
         k, x_lo, x_hi = k[keep], x_lo[keep], x_hi[keep]
     one_low = o1[k] < o2[k]
     edges = (np.where(one_low, x_lo, x_hi), np.where(one_low, x_hi, x_lo))
     pred_off = (o1[k], o2[k])
-    lines: list[Array] = []
-    fits = []
-    rms: list[float] = []
-    npts: list[int] = []
+    out = _LimbFits([], [], [], [])
     for x_e, x_p in zip(edges, pred_off, strict=True):
         pts = centres[k] + x_e[:, None] * n_dir[None]
         if neighbours:
@@ -523,27 +602,37 @@ def measure_rod(
                 clear &= _seg_distance(limb_pred, a_n, b_n) > hw + s.neighbour_px
             pts = pts[clear]
         if len(pts) < s.min_points:
-            out.reason = (
+            return (
                 f"too few limb edge points ({len(pts)} < {s.min_points}): rod not found in its "
                 "search band, or too close to another rod"
             )
-            return out
         line, inl = robust_line(pts, rng, s.ransac_iters, s.inlier_px)
         if not np.all(np.isfinite(line)) or inl.sum() < s.min_points:
-            out.reason = f"limb line fit failed ({int(inl.sum())} inliers of {len(pts)})"
-            return out
+            return f"limb line fit failed ({int(inl.sum())} inliers of {len(pts)})"
         r = pts[inl] @ line[:2] + line[2]
-        lines.append(line)
+        out.lines.append(line)
         c, td, s2 = _line_cov(pts[inl], line)
-        fits.append((c, td, s2, pts[inl]))
-        rms.append(float(np.sqrt(np.mean(r**2))))
-        npts.append(int(inl.sum()))
-    out.lines_px = lines
-    out.rms_px = (rms[0], rms[1])
-    out.n_points = (npts[0], npts[1])
-    if max(rms) > s.max_rms_px:
-        out.reason = f"limb edges too scattered (residual RMS {max(rms):.2f} px > {s.max_rms_px} px)"
-        return out
+        out.fits.append((c, td, s2, pts[inl]))
+        out.rms.append(float(np.sqrt(np.mean(r**2))))
+        out.npts.append(int(inl.sum()))
+    return out
+
+
+def _axis_from_limbs(
+    out: RodMeasurement,
+    camera: CameraModel,
+    pred: RodPrediction,
+    radius: float,
+    s: RodSettings,
+    proj: _IdealToImage,
+    fits: _LimbFits,
+    centres: Array,
+    n_dir: Array,
+) -> str | None:
+    """The rod's axis from its two limb lines (interpretation planes), set on ``out`` with its covariance and
+    limb samples; or why not (``out`` then keeps only the planes' angle)."""
+    K = camera.K
+    lines = fits.lines
     # interpretation-plane normals h = K^T l, signed so that a point between the two measured limbs
     # (near the middle of the visible part) is on their positive side
     cmid = centres[len(centres) // 2]
@@ -560,13 +649,11 @@ def measure_rod(
     ang = float(np.arccos(np.clip(abs(hs[0] @ hs[1]), -1.0, 1.0)))
     out.plane_angle_rad = ang
     if ang < s.min_plane_angle_rad:
-        out.reason = f"interpretation planes nearly parallel ({ang * 1e3:.2f} mrad): axis ill-defined"
-        return out
+        return f"interpretation planes nearly parallel ({ang * 1e3:.2f} mrad): axis ill-defined"
     try:
         u, X = axis_from_planes(hs[0], hs[1], radius)
     except ValueError as exc:
-        out.reason = str(exc)
-        return out
+        return str(exc)
     assert X is not None  # the radius is given: the axis point is solved for
     if u @ pred.u < 0:
         u = -u
@@ -578,9 +665,11 @@ def measure_rod(
     out.u = u
     out.point = X
     # the allowance whole (cov_u) and averaged along the limb (cov_u_own), the planes' derivatives computed once
-    out.cov_u, out.cov_u_own = _direction_covariance_set(K, fits, inner, s.edge_bias_px, (0.0, s.edge_bias_length_px))
-    out.limbs_px = _limb_samples(camera, fits, proj)
-    return out
+    out.cov_u, out.cov_u_own = _direction_covariance_set(
+        K, fits.fits, inner, s.edge_bias_px, (0.0, s.edge_bias_length_px)
+    )
+    out.limbs_px = _limb_samples(camera, fits.fits, proj)
+    return None
 
 
 def _limb_samples(
@@ -649,100 +738,53 @@ def measure_rods(
     """
     s = settings or RodSettings()
     img = gray.astype(np.float32) if gray.dtype != np.float32 else gray
-    rng = np.random.default_rng(seed)
     box = ideal_bbox if ideal_bbox is not None else image_ideal_bbox(camera)
-    proj = _IdealToImage(camera)
     segs = [_predicted_segment(camera, p, radius, s.near_m, box) for p in preds]
-    sil = [None if isinstance(g, str) else _silhouette(g) for g in segs]
-
-    def measure(
-        i: int, pred: RodPrediction, seg: _Segment | str | None = None, polarity: int | None = None
-    ) -> RodMeasurement:
-        nb = [x for j, x in enumerate(sil) if j != i and x is not None]
-        return measure_rod(
-            img,
-            camera,
-            pred,
-            radius,
-            s,
-            occluders,
-            rng,
-            box,
-            neighbours=nb,
-            segment=seg,
-            projector=proj,
-            polarity=polarity,
-        )
-
-    out = [measure(i, p, segs[i]) for i, p in enumerate(preds)]
+    fr = _FrameRods(
+        img,
+        camera,
+        list(preds),
+        radius,
+        s,
+        occluders,
+        np.random.default_rng(seed),
+        box,
+        _IdealToImage(camera),
+        segs,
+        [None if isinstance(g, str) else _silhouette(g) for g in segs],
+    )
+    out = [fr.measure(i, p, segs[i]) for i, p in enumerate(preds)]
     index = {(p.leg, p.rod): i for i, p in enumerate(preds)}
     # one polarity per frame (the rods share their material; see _frame_polarity): a rod measured with the
     # other one is measured again with the frame's
     frame_pol = _frame_polarity(out, s.polarity)
-    for i, m in enumerate(out):
-        if frame_pol and m.polarity == -frame_pol and m.pairs_by_polarity[0 if frame_pol > 0 else 1] > 0:
-            again = measure(i, preds[i], segs[i], frame_pol)
-            if again.ok:
-                out[i] = again
+    _remeasure_with_polarity(fr, out, frame_pol)
     for leg in range(4):
         i0, i1 = index.get((leg, 0)), index.get((leg, 1))
-        if i0 is None or i1 is None or not (out[i0].ok and out[i1].ok):
-            continue
-        spacing = float(np.linalg.norm(preds[i1].top - preds[i0].top))
-        if out[i0].polarity != out[i1].polarity:
-            # the two rods of a leg see the same background: one of them was measured on the gap between them
-            ref = frame_pol or (1 if sum(out[i0].pairs_by_polarity) >= sum(out[i1].pairs_by_polarity) else -1)
-            keep, redo = (i0, i1) if out[i0].polarity == ref else (i1, i0)
-            why = "measured on the gap between its leg's two rods (the other polarity)"
-        elif _line_distance(out[i0], out[i1]) <= 0.5 * spacing:
-            # the same rod twice: keep the one nearer its prediction
-            d0, d1 = (_line_distance_to_point(out[i], preds[i].top) for i in (i0, i1))
-            keep, redo = (i0, i1) if d0 <= d1 else (i1, i0)
-            why = "both rods of the leg matched the same rod image"
-        else:
-            continue
-        # measured again, predicted from the rod kept shifted by the rods' predicted spacing
-        shift = preds[redo].top - preds[keep].top
-        m = out[keep]
-        top = _foot(m, preds[keep].top) + shift
-        bottom = _foot(m, preds[keep].bottom) + shift
-        again = measure(redo, RodPrediction(preds[redo].leg, preds[redo].rod, top, bottom), polarity=m.polarity)
-        if again.ok and _line_distance(out[keep], again) > 0.5 * spacing:
-            out[redo] = again
-        else:
-            out[redo] = RodMeasurement(
-                preds[redo].leg, preds[redo].rod, reason=f"{why} and the other was not found beside it"
-            )
+        if i0 is not None and i1 is not None and out[i0].ok and out[i1].ok:
+            _separate_leg(fr, out, i0, i1, frame_pol)
     # still of the other polarity, its leg's other rod not measured: most likely the gap, the other rod's limb
     # hidden by this rod's prediction. Both rods measured again, predicted on either side of the gap.
     for leg in range(4):
         i0, i1 = index.get((leg, 0)), index.get((leg, 1))
-        if frame_pol == 0 or i0 is None or i1 is None:
-            continue
-        gap = [i for i in (i0, i1) if out[i].ok and out[i].polarity == -frame_pol]
-        if len(gap) != 1 or out[i0 if gap[0] == i1 else i1].ok:
-            continue
-        g_m = out[gap[0]]
-        spacing = float(np.linalg.norm(preds[i1].top - preds[i0].top))
-        mid_top, mid_bottom = 0.5 * (preds[i0].top + preds[i1].top), 0.5 * (preds[i0].bottom + preds[i1].bottom)
-        moved = {
-            i: RodPrediction(
-                leg,
-                preds[i].rod,
-                _foot(g_m, mid_top) + preds[i].top - mid_top,
-                _foot(g_m, mid_bottom) + preds[i].bottom - mid_bottom,
-            )
-            for i in (i0, i1)
-        }
-        for i, p in moved.items():
-            seg = _predicted_segment(camera, p, radius, s.near_m, box)
-            segs[i] = seg
-            sil[i] = None if isinstance(seg, str) else _silhouette(seg)
-        for i, p in moved.items():
-            again = measure(i, p, segs[i], frame_pol)
-            if again.ok and _line_distance(g_m, again) > 0.25 * spacing:
-                out[i] = again
+        if frame_pol != 0 and i0 is not None and i1 is not None:
+            _straddle_gap(fr, out, leg, i0, i1, frame_pol)
     # still of the other polarity: a wrong rod costs a calibration more than a missing one
+    return _drop_other_polarity(out, frame_pol)
+
+
+def _remeasure_with_polarity(fr: _FrameRods, out: list[RodMeasurement], frame_pol: int) -> None:
+    """Each rod measured with the other polarity than the frame's, which has pairs of the frame's: measured again
+    with the frame's, kept when found (``out`` updated)."""
+    for i, m in enumerate(out):
+        if frame_pol and m.polarity == -frame_pol and m.pairs_by_polarity[0 if frame_pol > 0 else 1] > 0:
+            again = fr.measure(i, fr.preds[i], fr.segs[i], frame_pol)
+            if again.ok:
+                out[i] = again
+
+
+def _drop_other_polarity(out: list[RodMeasurement], frame_pol: int) -> list[RodMeasurement]:
+    """The rods still measured with the other polarity than the frame's replaced by the reason."""
     for i, m in enumerate(out):
         if m.ok and frame_pol and m.polarity == -frame_pol:
             out[i] = RodMeasurement(
@@ -754,6 +796,108 @@ def measure_rods(
                 ),
             )
     return out
+
+
+@dataclass
+class _FrameRods:
+    """What the rods of one frame are measured with (:func:`measure_rods`): the image (float32), the camera, the
+    predictions, the rod radius (m), the settings, the occluders (ideal px), the frame's random generator (shared
+    by its rods, in measurement order), the image's ideal-pixel box, the projector, and each rod's predicted
+    segment and silhouette (updated when a rod is predicted again)."""
+
+    img: np.ndarray
+    camera: CameraModel
+    preds: list[RodPrediction]
+    radius: float
+    settings: RodSettings
+    occluders: list[Array] | None
+    rng: np.random.Generator
+    box: Array
+    proj: _IdealToImage
+    segs: list[_Segment | str]
+    sil: list[tuple[Array, Array, float] | None]
+
+    def measure(
+        self, i: int, pred: RodPrediction, seg: _Segment | str | None = None, polarity: int | None = None
+    ) -> RodMeasurement:
+        """Rod ``i`` measured on ``pred``, the other rods' silhouettes its neighbours."""
+        nb = [x for j, x in enumerate(self.sil) if j != i and x is not None]
+        return measure_rod(
+            self.img,
+            self.camera,
+            pred,
+            self.radius,
+            self.settings,
+            self.occluders,
+            self.rng,
+            self.box,
+            neighbours=nb,
+            segment=seg,
+            projector=self.proj,
+            polarity=polarity,
+        )
+
+
+def _separate_leg(fr: _FrameRods, out: list[RodMeasurement], i0: int, i1: int, frame_pol: int) -> None:
+    """A leg whose two measured rods are of different polarities (one on the gap between them) or the same rod
+    twice: the rod kept (the frame's polarity, resp. nearer its prediction) and the other measured again, predicted
+    from the kept one shifted by the rods' predicted spacing (``out`` updated)."""
+    preds = fr.preds
+    spacing = float(np.linalg.norm(preds[i1].top - preds[i0].top))
+    if out[i0].polarity != out[i1].polarity:
+        # the two rods of a leg see the same background: one of them was measured on the gap between them
+        ref = frame_pol or (1 if sum(out[i0].pairs_by_polarity) >= sum(out[i1].pairs_by_polarity) else -1)
+        keep, redo = (i0, i1) if out[i0].polarity == ref else (i1, i0)
+        why = "measured on the gap between its leg's two rods (the other polarity)"
+    elif _line_distance(out[i0], out[i1]) <= 0.5 * spacing:
+        # the same rod twice: keep the one nearer its prediction
+        d0, d1 = (_line_distance_to_point(out[i], preds[i].top) for i in (i0, i1))
+        keep, redo = (i0, i1) if d0 <= d1 else (i1, i0)
+        why = "both rods of the leg matched the same rod image"
+    else:
+        return
+    # measured again, predicted from the rod kept shifted by the rods' predicted spacing
+    shift = preds[redo].top - preds[keep].top
+    m = out[keep]
+    top = _foot(m, preds[keep].top) + shift
+    bottom = _foot(m, preds[keep].bottom) + shift
+    again = fr.measure(redo, RodPrediction(preds[redo].leg, preds[redo].rod, top, bottom), polarity=m.polarity)
+    if again.ok and _line_distance(out[keep], again) > 0.5 * spacing:
+        out[redo] = again
+    else:
+        out[redo] = RodMeasurement(
+            preds[redo].leg, preds[redo].rod, reason=f"{why} and the other was not found beside it"
+        )
+
+
+def _straddle_gap(fr: _FrameRods, out: list[RodMeasurement], leg: int, i0: int, i1: int, frame_pol: int) -> None:
+    """One rod of the leg measured with the other polarity than the frame's and the other rod not measured: both
+    measured again, predicted on either side of that gap (``out`` updated; ``fr``'s segments too)."""
+    preds = fr.preds
+    gap = [i for i in (i0, i1) if out[i].ok and out[i].polarity == -frame_pol]
+    if len(gap) != 1 or out[i0 if gap[0] == i1 else i1].ok:
+        return
+    g_m = out[gap[0]]
+    spacing = float(np.linalg.norm(preds[i1].top - preds[i0].top))
+    mid_top, mid_bottom = 0.5 * (preds[i0].top + preds[i1].top), 0.5 * (preds[i0].bottom + preds[i1].bottom)
+    moved = {
+        i: RodPrediction(
+            leg,
+            preds[i].rod,
+            _foot(g_m, mid_top) + preds[i].top - mid_top,
+            _foot(g_m, mid_bottom) + preds[i].bottom - mid_bottom,
+        )
+        for i in (i0, i1)
+    }
+    s = fr.settings
+    for i, p in moved.items():
+        seg = _predicted_segment(fr.camera, p, fr.radius, s.near_m, fr.box)
+        fr.segs[i] = seg
+        fr.sil[i] = None if isinstance(seg, str) else _silhouette(seg)
+    for i, p in moved.items():
+        again = fr.measure(i, p, fr.segs[i], frame_pol)
+        if again.ok and _line_distance(g_m, again) > 0.25 * spacing:
+            out[i] = again
 
 
 def _silhouette(seg: _Segment) -> tuple[Array, Array, float]:
