@@ -28,7 +28,7 @@ import calib
 CALIB = Path(calib.__file__).resolve().parent
 
 #: Files (relative to ``calib/``, POSIX separators; a trailing ``/`` names a whole folder) skipped for now.
-PENDING: frozenset[str] = frozenset({"vision/"})
+PENDING: frozenset[str] = frozenset()
 
 _SECTION = re.compile(r"^\s*(Parameters|Returns|Yields|Raises|Other Parameters)\s*\n\s*-{3,}\s*$", re.MULTILINE)
 _DATE = re.compile(r"\b(19|20)\d\d-[01]\d-[0-3]\d\b")
