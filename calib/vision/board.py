@@ -26,7 +26,23 @@ DEFAULT_MIN_CORNERS = 6
 
 
 def make_board(spec: BoardSpec) -> cv2.aruco.CharucoBoard:
-    """The OpenCV board described by ``spec`` (legacy layout when ``spec.legacy_pattern``)."""
+    """The OpenCV board described by ``spec`` (legacy layout when ``spec.legacy_pattern``).
+
+    Parameters
+    ----------
+    spec : BoardSpec
+        Squares, square and marker lengths (metres), ArUco dictionary name and layout.
+
+    Returns
+    -------
+    cv2.aruco.CharucoBoard
+        The board, lengths in metres.
+
+    Raises
+    ------
+    ValueError
+        ``spec.dictionary`` names no ArUco dictionary of OpenCV.
+    """
     name = spec.dictionary
     if not hasattr(cv2.aruco, name):
         raise ValueError(f"unknown ArUco dictionary {name!r}")
@@ -39,7 +55,20 @@ def make_board(spec: BoardSpec) -> cv2.aruco.CharucoBoard:
 
 
 def board_corners(spec: BoardSpec) -> tuple[NDArray[np.int_], Array]:
-    """All ChArUco corner ids (M,) and their nominal positions in the board frame (M, 3), metres."""
+    """All ChArUco corner ids (M,) and their nominal positions in the board frame (M, 3), metres.
+
+    Parameters
+    ----------
+    spec : BoardSpec
+        The board.
+
+    Returns
+    -------
+    ids : ndarray of int, shape (M,)
+        Corner ids ``0 .. M-1``.
+    points : ndarray, shape (M, 3)
+        Nominal corner positions in the board frame (metres, z = 0).
+    """
     pts = np.asarray(make_board(spec).getChessboardCorners(), dtype=np.float64).reshape(-1, 3)
     return np.arange(pts.shape[0]), pts
 
@@ -128,8 +157,19 @@ class BoardDetector:
     def use_refined_points(self, ids: NDArray[np.int_], points: Array, d_intrinsics: Array | None = None) -> None:
         """Use corner coordinates refined by intrinsic calibration (calibrateCameraRO) for poses.
 
-        ``d_intrinsics`` (M, 3, 8), optional: how the refined corners move with the intrinsics
-        (:func:`calib.camera.intrinsics_covariance`); the poses' ``d_intrinsics`` then include it.
+        Corners not in ``ids`` keep their nominal positions.
+
+        Parameters
+        ----------
+        ids : ndarray of int, shape (K,)
+            Ids of the refined corners.
+        points : ndarray, shape (K, 3)
+            Their refined positions in the board frame (metres).
+        d_intrinsics : ndarray, shape (K, 3, n_i), optional
+            How the refined corners move with the ``n_i`` intrinsics (metres per unit of each intrinsic:
+            px for fx, fy, cx, cy, dimensionless for the distortion coefficients;
+            :func:`calib.camera.intrinsics_covariance`); the poses' ``d_intrinsics`` then include it.
+            Default: the corners do not move with the intrinsics.
         """
         idx = np.asarray(ids, dtype=int)
         pts = self.points_nominal.copy()
@@ -143,7 +183,19 @@ class BoardDetector:
             self.points_d_intrinsics[idx] = dI.reshape(-1, 3, ni)
 
     def detect(self, image: np.ndarray) -> BoardDetection:
-        """Detect ChArUco corners (sub-pixel) in an 8/16-bit mono or colour image."""
+        """Detect ChArUco corners (sub-pixel) in an 8/16-bit mono or colour image.
+
+        Parameters
+        ----------
+        image : ndarray, shape (H, W) or (H, W, C), uint8 or uint16
+            The image as recorded (distorted pixels).
+
+        Returns
+        -------
+        BoardDetection
+            Corner ids (M,), their distorted pixel positions (M, 2) (px) and the count of markers found; empty
+            arrays when no corner is found.
+        """
         gray = to_gray8(image)
         ch_corners, ch_ids, _mk_corners, mk_ids = self.detector.detectBoard(gray)
         n_markers = 0 if mk_ids is None else len(mk_ids)
@@ -156,7 +208,24 @@ class BoardDetector:
         )
 
     def pose(self, detection: BoardDetection, camera: CameraModel) -> BoardPose | str:
-        """Pose from a detection, or the reason why there is none (a string)."""
+        """Pose from a detection, or the reason why there is none (a string).
+
+        Corners the pose cannot explain are removed first (:func:`reject_corners`).
+
+        Parameters
+        ----------
+        detection : BoardDetection
+            Corners found by :meth:`detect` (distorted px).
+        camera : CameraModel
+            Intrinsics (px) and distortion of the camera that took the image.
+
+        Returns
+        -------
+        BoardPose or str
+            ``camera_from_board`` (rotation (3, 3), translation (3,) in metres), the reprojection RMS (px), the
+            pose's covariance and its sensitivity to the intrinsics; or why there is no pose (too few corners,
+            no convergence, degenerate configuration, board behind the camera).
+        """
         n = detection.ids.size
         if n < self.min_corners:
             return (
@@ -212,11 +281,39 @@ class BoardDetector:
         )
 
     def measure(self, image: np.ndarray, camera: CameraModel) -> BoardPose | str:
-        """Detect then pose (or the reason)."""
+        """Detect then pose (or the reason).
+
+        Parameters
+        ----------
+        image : ndarray, shape (H, W) or (H, W, C), uint8 or uint16
+            The image as recorded (distorted pixels).
+        camera : CameraModel
+            The camera that took it.
+
+        Returns
+        -------
+        BoardPose or str
+            As :meth:`pose`.
+        """
         return self.pose(self.detect(image), camera)
 
     def outline_camera(self, R: Array, t: Array, margin_m: float = 0.012) -> Array:
-        """The board's outline (4 corners plus a margin) in the camera frame, shape (4, 3)."""
+        """The board's outline (4 corners plus a margin) in the camera frame, shape (4, 3).
+
+        Parameters
+        ----------
+        R : ndarray, shape (3, 3)
+            Rotation of ``camera_from_board``.
+        t : ndarray, shape (3,)
+            Translation of ``camera_from_board`` (metres).
+        margin_m : float
+            Margin added around the board on every side (metres).
+
+        Returns
+        -------
+        ndarray, shape (4, 3)
+            The outline's corners in the camera frame (metres), in order around the board.
+        """
         w, h = self.spec.size_m
         m = margin_m
         c = np.array([[-m, -m, 0.0], [w + m, -m, 0.0], [w + m, h + m, 0.0], [-m, h + m, 0.0]])
@@ -234,17 +331,31 @@ def reject_corners(
 
     A ChArUco corner next to an occluding edge (the legs pass in front of the board on an I4) or a glint is
     pulled by a pixel or more while the others scatter by a few hundredths: one such corner moves the pose by
-    several times its covariance (on the image-level twin, views with a rod across the board had corner RMS
-    0.3-1.7 px against 0.02-0.05 px). Each corner's studentized squared residual ``r^T (I - H_ii)^-1 r``
+    several times its covariance. Each corner's studentized squared residual ``r^T (I - H_ii)^-1 r``
     (``H_ii``: its 2x2 block of the pose's hat matrix) over the others' robust scale (median over
     ``chi2(2).median``, at least :data:`CORNER_FLOOR_PX`) is gated at chi-square(2)'s 99.9 % quantile; the worst
     beyond the gate goes, while more than ``min_corners`` remain.
 
+    Parameters
+    ----------
+    obj : ndarray, shape (n, 3)
+        The corners in the board frame (metres).
+    img : ndarray, shape (n, 2)
+        Their detected positions (distorted px).
+    camera : CameraModel
+        The camera that took the image.
+    rvec : ndarray, shape (3, 1)
+        Rotation vector of ``camera_from_board`` (radians), the starting pose.
+    tvec : ndarray, shape (3, 1)
+        Translation of ``camera_from_board`` (metres), the starting pose.
+    min_corners : int
+        No corner is removed once this many remain.
+
     Returns
     -------
     keep : ndarray of bool, shape (n,)
-    rvec, tvec : ndarray
-        The pose refined on the corners kept.
+    rvec, tvec : ndarray, shape (3, 1)
+        The pose refined on the corners kept (radians, metres).
     """
     keep = np.ones(len(obj), dtype=bool)
     gate = float(chi2_gate(2))
@@ -297,7 +408,17 @@ def _pose_sensitivity(Jp: Array, JI: Array, rvec: Array, R: Array) -> Array | No
 
 
 def to_gray8(image: np.ndarray) -> np.ndarray:
-    """An 8-bit single-channel view of an 8/16-bit mono or colour image."""
+    """An 8-bit single-channel view of an 8/16-bit mono or colour image.
+
+    Parameters
+    ----------
+    image : ndarray, shape (H, W) or (H, W, C)
+        Mono, BGR or BGRA; uint8, uint16 (the high byte is kept) or another type (clipped to 0-255).
+
+    Returns
+    -------
+    ndarray of uint8, shape (H, W)
+    """
     img = image
     if img.ndim == 3:
         if img.shape[2] == 4:

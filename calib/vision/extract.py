@@ -29,7 +29,8 @@ Stages (each over a process pool when ``workers > 1``, with ``progress(done, tot
 7. Rods once more, when more than ``ExtractOptions.recover_lost_share`` of those looked for were lost in their search
    bands (:mod:`calib.vision.recover`): the prediction refitted robustly (each measured line its own rod, its leg's
    other rod or the gap between them; several starts) and every frame measured again, kept when it loses fewer rods
-   (``summary.recovered``). A bench some 16 mm off nominal whose prediction falls between the rods of most legs.
+   (``summary.recovered``). This is for a bench so far off nominal that the prediction falls between the rods of
+   most legs, where the refit of stage 5 can settle on a wrong geometry.
 
 A frame whose image is missing or unreadable, a hidden board, a rod that leaves the image: each is
 reported per frame (``missing`` in the frame, ``summary`` per phase) and the rest goes on.
@@ -178,9 +179,17 @@ def extract_dataset(
         Processes (default: ``os.cpu_count()``); 1 runs in this process.
     progress : callable(done, total), optional
         Called after every frame of every stage (``total`` counts all stages).
+    options : ExtractOptions, optional
+        Settings of the stages (board corners, rods, placement, passes); default ``ExtractOptions()``.
     on_frame : callable(info), optional
         Called with what was found in each non-``camera`` frame, once after the board stage and once after the
         rods stage (:func:`frame_info`).
+
+    Returns
+    -------
+    ExtractionResult
+        The observations v1 document (board poses and rod axes in the camera frame, metres and radians), the
+        summary, the camera used (refined by the rods when that applied) and the coarse ``camera_from_base``.
 
     Raises
     ------
@@ -353,6 +362,14 @@ def _recover(
 def refined_camera(res: ExtractionResult, min_shift: float = 0.5) -> tuple[CameraModel | None, dict[str, Any]]:
     """The camera refined by the rods of an extraction, or None with the reason
     (:func:`.refine.refine_camera_by_rods` on ``res``'s observations and camera).
+
+    Parameters
+    ----------
+    res : ExtractionResult
+        An extraction: its observations and the camera they were measured with.
+    min_shift : float
+        The refinement is applied when the intrinsics move by at least this many standard deviations of the
+        calibration (Mahalanobis distance, dimensionless).
 
     Returns
     -------

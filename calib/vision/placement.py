@@ -23,8 +23,15 @@ def fit_placement(
     Parameters
     ----------
     q : ndarray, shape (N, 4)
+        Encoder values (metres), one row per frame.
     board_R : ndarray, shape (N, 3, 3)
+        Rotations of the measured ``camera_from_board_k``.
     board_t : ndarray, shape (N, 3)
+        Translations of the measured ``camera_from_board_k`` (metres).
+    nominal : I4Parameters
+        The nominal model (metres, radians).
+    board_height_m : float
+        Height of the board's origin above E along z_E (metres), held fixed.
 
     Returns
     -------

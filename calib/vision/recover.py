@@ -3,9 +3,10 @@
 A rod is *lost in its search* when it was predicted inside the image and in view but nothing there passed as it:
 too few or too scattered limb edges, a line of the wrong polarity (the gap between its leg's two rods), both rods of
 a leg on the same image. These depend on where the prediction put the band; a rod out of the image, seen end-on or
-hidden by the board does not. On the image twin a bench within a few millimetres of nominal loses at most one of its
-496-560 rods in its search; one 16 mm off nominal in D lost 202 of 560 (design benchmark, seed 4, trial 119) while the
-extraction's refit settled on a wrong geometry. :func:`calib.vision.extract.extract_dataset` then refits the
+hidden by the board does not. A bench within a few millimetres of nominal loses hardly any rod in its search; one so
+far off nominal that the prediction falls between a leg's rods loses a large share of them, and the first refit
+(:func:`calib.vision.repredict.refit_prediction` with each line its own rod) can settle on a wrong geometry. When
+more than ``ExtractOptions.recover_lost_share`` are lost, :func:`calib.vision.extract.extract_dataset` refits the
 prediction robustly (:func:`calib.vision.repredict.refit_prediction` with ``mixture`` and ``starts``) from the lines
 returned here and measures every frame again.
 """
@@ -61,6 +62,11 @@ def lost_in_search(observations: dict[str, Any]) -> tuple[int, int]:
 
 def measured_lines(observations: dict[str, Any]) -> tuple[np.ndarray, list[MeasuredRod], dict[int, Rigid]]:
     """The encoder values, measured rod axes and board poses of an observations v1 document's frames.
+
+    Parameters
+    ----------
+    observations : dict
+        An observations v1 document (:func:`calib.vision.extract.extract_dataset`).
 
     Returns
     -------

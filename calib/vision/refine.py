@@ -26,7 +26,18 @@ REFINEMENT_PHASES: tuple[str, ...] = ("poses",)
 
 
 def can_refine(camera: CameraModel) -> bool:
-    """Whether the rods can refine this camera: it carries its calibration's covariance."""
+    """Whether the rods can refine this camera: it carries its calibration's covariance.
+
+    Parameters
+    ----------
+    camera : CameraModel
+        The camera the rods were measured with.
+
+    Returns
+    -------
+    bool
+        True when ``camera.extra["calibration"]["covariance"]`` is present.
+    """
     return (camera.extra.get("calibration") or {}).get("covariance") is not None
 
 

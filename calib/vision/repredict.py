@@ -13,12 +13,10 @@ the calibration uses those measurements only. Its units: pixels (the camera's fo
 When the first prediction is off by about half the rods' image spacing, most of what the first pass measured is not
 the rod it was looking for: the leg's other rod, or the gap between the leg's two rods (a dark band as wide as a rod,
 taken for a rod of the other polarity, then the frame's polarity voted wrong). A fit that takes every line for its own
-rod then settles on a wrong geometry that explains those lines (measured on the design benchmark's seed-4 trial 119:
-D 16 mm off nominal, 190 of the 295 lines measured in the first pass were gaps, the refit 30-58 mm off the truth).
+rod then settles on a wrong geometry, tens of millimetres off, that explains those lines.
 :func:`refit_prediction` with ``mixture=True`` lets each line be any of the three (:data:`HYPOTHESES`: whichever the
 geometry explains best), and with ``starts`` tries that many more starting points drawn around the nominal model:
-the truth explains every line, a wrong geometry does not, and the lowest cost wins (on trial 119: within 5 mm of
-the truth, from 5 of 12 starts).
+the true geometry explains every line, a wrong one does not, and the lowest cost wins.
 """
 
 from __future__ import annotations
@@ -203,6 +201,7 @@ def refit_prediction(
     q : ndarray, shape (N, 4)
         Encoder values (metres) of the frames the measurements index.
     rods : list of MeasuredRod
+        Rod axes measured by the first pass (camera frame, metres), indexed into ``q``.
     boards : dict
         Frame index -> measured ``camera_from_board``.
     camera_from_base, ee_from_board : Rigid
@@ -210,6 +209,7 @@ def refit_prediction(
     f_px : float
         Focal length (px): angles to pixels.
     rod_spacing_m : float
+        Distance between the axes of a leg's two rods (metres).
     board_height_m : float
         Height of the board's origin above E (fixed, as in the coarse placement).
     prior_m : float
@@ -223,6 +223,8 @@ def refit_prediction(
     starts : int
         Further starting points: the nominal parameters plus a normal draw of std :data:`START_SPREAD_M` (seeded
         by ``seed``), each with ``camera_from_base`` and ``ee_from_board``; the fit of lowest cost is kept.
+    seed : int
+        Seed of the draw of the further starting points.
 
     Returns
     -------
@@ -290,10 +292,13 @@ def prediction_shift_px(
     Parameters
     ----------
     K : ndarray, shape (3, 3)
+        Camera matrix (px).
     size : (width, height)
         The image (px).
     first, second : tuple of ndarray, shape (N, 4, 2, 3) each
-        ``(top, bottom)`` rod ends in the camera frame (:func:`rod_ends_camera`).
+        ``(top, bottom)`` rod ends in the camera frame (metres; :func:`rod_ends_camera`).
+    near_m : float
+        Points of a rod closer to the camera than this depth (metres) are left out.
 
     Returns
     -------

@@ -53,7 +53,30 @@ def find_rods(
     radius: float,
     settings: DetectSettings,
 ) -> list[RodCandidate]:
-    """Pairs of lines that bound a rod (see the module docstring, step 3)."""
+    """Pairs of lines that bound a rod (see the module docstring, step 3).
+
+    Parameters
+    ----------
+    lines : list of Line2
+        Refined, merged edges (ideal px).
+    canvas : ndarray, shape (h, w), float32
+        The undistorted image (:func:`calib.vision.detect.lines.undistorted_canvas`).
+    scale : float
+        Canvas pixels per ideal pixel.
+    origin : ndarray, shape (2,)
+        Ideal pixel of canvas (0, 0) (px).
+    camera : CameraModel
+        Its focal length (px) turns the rod's diameter into image widths over ``settings.depth_range_m``.
+    radius : float
+        Rod radius (metres).
+    settings : DetectSettings
+        Thresholds of the detection.
+
+    Returns
+    -------
+    list of RodCandidate
+        Best score first; each line bounds at most one rod of each polarity.
+    """
     f = camera.focal_px
     wmin = 2 * radius * f / settings.depth_range_m[1]
     wmax = 2 * radius * f / settings.depth_range_m[0]
@@ -123,7 +146,23 @@ def find_rods(
 # ---------------------------------------------------------------------------------------------
 # 4. legs
 def find_legs(rods: list[RodCandidate], radius: float, spacing: float, settings: DetectSettings) -> list[LegCandidate]:
-    """Pairs of parallel rod candidates at the rod spacing (see the module docstring, step 4)."""
+    """Pairs of parallel rod candidates at the rod spacing (see the module docstring, step 4).
+
+    Parameters
+    ----------
+    rods : list of RodCandidate
+        From :func:`find_rods`.
+    radius : float
+        Rod radius (metres).
+    spacing : float
+        Distance between the axes of a leg's two rods (metres); only its ratio to the diameter is used.
+    settings : DetectSettings
+        Thresholds of the detection.
+
+    Returns
+    -------
+    list of LegCandidate
+    """
     out = []
     nominal_ratio = spacing / (2 * radius)
     lo, hi = settings.spacing_ratio_range

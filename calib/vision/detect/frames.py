@@ -275,6 +275,30 @@ def resolve(
 
     For a frame that was ambiguous alone, once other frames (or the bench's mounting) fix the
     placement; the image is not read again.
+
+    Parameters
+    ----------
+    detection : RodDetection
+        The frame's detection (:func:`detect_rods`).
+    camera : CameraModel
+        The camera that took the frame.
+    nominal : I4Parameters
+        The nominal model (metres, radians).
+    q : array_like, shape (4,)
+        Encoder values of the frame (metres).
+    rod_radius_m : float
+        Rod radius (metres).
+    rod_spacing_m : float
+        Distance between the axes of a leg's two rods (metres).
+    prior : Rigid
+        ``camera_from_base`` the placements must lie near (metres, radians).
+    settings : DetectSettings, optional
+        Default: ``DetectSettings()``.
+
+    Returns
+    -------
+    RodDetection
+        The detection with its association decided near ``prior`` (or the reason it is not).
     """
     s = settings or DetectSettings()
     return _decide(
@@ -296,6 +320,17 @@ def consensus_placement(placements: Sequence[Rigid], tol_rad: float = 0.1) -> Ri
 
     Its rotation is the chordal mean of the group's, its translation the median. None when there
     are no placements or when another, disjoint group is as large (frames disagree).
+
+    Parameters
+    ----------
+    placements : sequence of Rigid
+        Per frame, a ``camera_from_base`` (metres, radians).
+    tol_rad : float
+        Largest rotation angle between two placements of one group (radians).
+
+    Returns
+    -------
+    Rigid or None
     """
     if not placements:
         return None
@@ -326,8 +361,20 @@ def resolve_frames(
     ----------
     detections : mapping frame -> RodDetection
         From :func:`detect_rods` (with ``prior`` when there is one).
+    camera : CameraModel
+        The camera that took the frames.
+    nominal : I4Parameters
+        The nominal model (metres, radians).
     q : mapping frame -> array_like, shape (4,)
-        Encoder values.
+        Encoder values (metres).
+    rod_radius_m : float
+        Rod radius (metres).
+    rod_spacing_m : float
+        Distance between the axes of a leg's two rods (metres).
+    prior : Rigid, optional
+        A known ``camera_from_base`` (metres, radians); default: the frames' consensus.
+    settings : DetectSettings, optional
+        Default: ``DetectSettings()``.
 
     Returns
     -------
@@ -365,7 +412,29 @@ def measure_detected(
 ) -> list[RodMeasurement]:
     """Measure the rods a detection found (:func:`calib.vision.rods.measure_rods`), the others missing.
 
-    Returns eight measurements in ``ROD_KEYS`` order.
+    Parameters
+    ----------
+    gray : ndarray, shape (H, W), float32 or uint8
+        The (distorted) image, single channel.
+    camera : CameraModel
+        The camera that took it.
+    detection : RodDetection
+        The frame's detection; its associated rods carry the predictions measured.
+    radius : float
+        Rod radius (metres).
+    settings : RodSettings, optional
+        Default: ``RodSettings()``.
+    occluders : list of ndarray, shape (M, 2), optional
+        Convex polygons in ideal pixels that hide the rods (e.g. the board).
+    seed : int
+        Seed of the robust line fits' random sampling.
+    ideal_bbox : ndarray, shape (4,), optional
+        :func:`calib.vision.rods.image_ideal_bbox` of the camera (px; computed when not given).
+
+    Returns
+    -------
+    list of RodMeasurement
+        Eight measurements in ``ROD_KEYS`` order; a rod not associated carries the reason.
     """
     found = [p for p in detection.predictions if p is not None]
     meas = (

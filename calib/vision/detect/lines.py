@@ -46,6 +46,13 @@ def _canvas_maps(
 def undistorted_canvas(gray: np.ndarray, camera: CameraModel) -> tuple[np.ndarray, float, Array, np.ndarray]:
     """The image resampled to ideal pixels, scaled to the original area.
 
+    Parameters
+    ----------
+    gray : ndarray, shape (H, W)
+        The (distorted) image, single channel.
+    camera : CameraModel
+        Its intrinsics (px) and distortion.
+
     Returns
     -------
     canvas : ndarray, shape (h, w), float32
@@ -68,6 +75,19 @@ def detect_segments(
     canvas: np.ndarray, valid: np.ndarray, scale: float, origin: Array, settings: DetectSettings
 ) -> tuple[Array, Array, Array]:
     """LSD segments in ideal pixels with their polarity.
+
+    Parameters
+    ----------
+    canvas : ndarray, shape (h, w), float32
+        The undistorted image (:func:`undistorted_canvas`).
+    valid : ndarray of bool, shape (h, w)
+        Canvas pixels that see the image; segments outside are dropped.
+    scale : float
+        Canvas pixels per ideal pixel.
+    origin : ndarray, shape (2,)
+        Ideal pixel of canvas (0, 0) (px).
+    settings : DetectSettings
+        Thresholds of the detection.
 
     Returns
     -------
@@ -138,7 +158,24 @@ def _fit_line(points: Array, weights: Array) -> tuple[Array, float]:
 
 
 def merge_segments(seg: Array, contrast: Array, length: Array, settings: DetectSettings) -> list[Line2]:
-    """Merge collinear segments of the same polarity into lines (ideal px)."""
+    """Merge collinear segments of the same polarity into lines (ideal px).
+
+    Parameters
+    ----------
+    seg : ndarray, shape (N, 2, 2)
+        Segment end points (ideal px), brighter side on the left (:func:`detect_segments`).
+    contrast : ndarray, shape (N,)
+        Grey-level difference across each segment.
+    length : ndarray, shape (N,)
+        Segment lengths (ideal px).
+    settings : DetectSettings
+        Angle, offset and gap tolerances of a merge.
+
+    Returns
+    -------
+    list of Line2
+        The merged lines (ideal px).
+    """
     N = len(seg)
     if N == 0:
         return []
@@ -216,6 +253,26 @@ def refine_lines(
     the |gradient| peak of the line's polarity nearest to it, interpolated by a parabola, then a
     RANSAC + IRLS line fit (:func:`calib.vision.rods.robust_line`). Lines with too few edge points are
     dropped; the extent becomes that of the inliers.
+
+    Parameters
+    ----------
+    lines : list of Line2
+        Merged LSD lines (ideal px).
+    canvas : ndarray, shape (h, w), float32
+        The undistorted image (:func:`undistorted_canvas`).
+    scale : float
+        Canvas pixels per ideal pixel.
+    origin : ndarray, shape (2,)
+        Ideal pixel of canvas (0, 0) (px).
+    settings : DetectSettings
+        Profile step and band, minimum edge count, RANSAC settings.
+    rng : numpy.random.Generator
+        Random sampling of the RANSAC fits.
+
+    Returns
+    -------
+    list of Line2
+        The refined lines (ideal px), those with too few edge points dropped.
     """
     if not lines:
         return []
@@ -270,6 +327,18 @@ def merge_lines(lines: list[Line2], settings: DetectSettings) -> list[Line2]:
 
     Same tests as :func:`merge_segments` on the lines' end points; the joined line is fitted to the
     pieces' end points weighted by their lengths.
+
+    Parameters
+    ----------
+    lines : list of Line2
+        Refined lines (ideal px).
+    settings : DetectSettings
+        Angle, offset and gap tolerances of a merge.
+
+    Returns
+    -------
+    list of Line2
+        The joined lines (ideal px).
     """
     if len(lines) < 2:
         return lines

@@ -208,6 +208,35 @@ def associate(
     A rival labels the rods differently and explains them about as well (see :func:`_rivals`).
     Stages: rotation seeds (:func:`_rotation_seeds`), a quick linear placement of each
     (:func:`_quick_placements`), the best few refined (:func:`_refined_hypotheses`), duplicates merged.
+
+    Parameters
+    ----------
+    rods : list of RodCandidate
+        Rod candidates of the frame (ideal px).
+    legs_c : list of LegCandidate
+        Leg candidates among them.
+    nominal : I4Parameters
+        The nominal model (metres, radians).
+    q : ndarray, shape (4,)
+        Encoder values of the frame (metres).
+    radius : float
+        Rod radius (metres).
+    spacing : float
+        Distance between the axes of a leg's two rods (metres).
+    K : ndarray, shape (3, 3)
+        Camera matrix (px).
+    settings : DetectSettings
+        Tolerances and counts of the association.
+    prior : Rigid, optional
+        A known ``camera_from_base`` (metres, radians): hypotheses rotated farther than
+        ``settings.prior_tol_rad`` from it are dropped.
+
+    Returns
+    -------
+    accepted : list of Hypothesis
+        Best first.
+    rivals : list of Hypothesis
+        Hypotheses that label the rods differently from the best and fit about as well.
     """
     tops, u = _rod_model(nominal, q, spacing)
     if len(legs_c) < settings.min_legs:

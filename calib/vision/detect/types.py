@@ -59,6 +59,18 @@ class Line2:
     contrast: float  # grey levels across it
 
     def point(self, s: float) -> Array:
+        """The point of the line at abscissa ``s`` along ``t``.
+
+        Parameters
+        ----------
+        s : float
+            Position along the line's direction ``t`` (ideal px, ``s = t . x``).
+
+        Returns
+        -------
+        ndarray, shape (2,)
+            The point (ideal px).
+        """
         return -self.c * self.n + s * self.t
 
 

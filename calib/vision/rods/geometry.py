@@ -17,7 +17,20 @@ ROD_KEYS = [(leg, rod) for leg in range(4) for rod in range(2)]
 
 
 def rod_name(leg: int, rod: int) -> str:
-    """``leg{1..4}.rod{0,1}`` for 0-based leg index and rod index."""
+    """``leg{1..4}.rod{0,1}`` for 0-based leg index and rod index.
+
+    Parameters
+    ----------
+    leg : int
+        Leg index, 0 to 3.
+    rod : int
+        Rod index within the leg, 0 or 1.
+
+    Returns
+    -------
+    str
+        For example ``"leg1.rod0"``.
+    """
     return f"leg{leg + 1}.rod{rod}"
 
 
@@ -26,8 +39,26 @@ def rod_name(leg: int, rod: int) -> str:
 def limb_planes(point: ArrayLike, u: ArrayLike, radius: float) -> tuple[Array, Array]:
     """Unit normals of the two tangent planes through the camera centre (eq. 6), each shape (3,).
 
-    Signs: ``h . X = +radius`` for every axis point X. Raises ValueError when the camera centre is
-    inside the cylinder.
+    Signs: ``h . X = +radius`` for every axis point X.
+
+    Parameters
+    ----------
+    point : array_like, shape (3,)
+        A point of the rod's axis in the camera frame (metres).
+    u : array_like, shape (3,)
+        The axis direction (any length; normalised here).
+    radius : float
+        Rod radius (metres).
+
+    Returns
+    -------
+    h1, h2 : ndarray, shape (3,)
+        Unit normals (dimensionless) of the two planes.
+
+    Raises
+    ------
+    ValueError
+        The camera centre is inside the cylinder.
     """
     P = np.asarray(point, dtype=np.float64).reshape(3)
     uu = np.asarray(u, dtype=np.float64).reshape(3)

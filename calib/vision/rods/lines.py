@@ -57,7 +57,23 @@ def _tls_q(Q: Array, w: Array | None = None) -> tuple[float, float, float]:
 def robust_line(pts: Array, rng: np.random.Generator, iters: int, inlier_px: float) -> tuple[Array, NDArray[np.bool_]]:
     """RANSAC then IRLS (Tukey) total-least-squares line with a final 3-sigma rejection.
 
-    Returns the line (a, b, c) with unit normal and the inlier mask.
+    Parameters
+    ----------
+    pts : ndarray, shape (N, 2)
+        Edge points (px).
+    rng : numpy.random.Generator
+        Draws the RANSAC pairs.
+    iters : int
+        RANSAC draws.
+    inlier_px : float
+        RANSAC inlier distance (px).
+
+    Returns
+    -------
+    line : ndarray, shape (3,)
+        ``(a, b, c)`` with ``a x + b y + c = 0`` and unit normal ``(a, b)`` (``c`` in px); NaN when fewer than
+        two points agree.
+    inliers : ndarray of bool, shape (N,)
     """
     n = len(pts)
     best = None

@@ -30,18 +30,17 @@ def _edges_1d(
     off by up to 0.07 samples, depending on where the edge falls between samples), then a correction for the
     intensity slopes on either side of the edge: for a step of height A between linear ramps of slopes kL
     and kR seen through a Gaussian of variance s^2, the gradient peaks at ``x0 + (kR - kL) s^2 / A``; kL and
-    kR are read from g at ``side`` samples on each side of the located peak (interpolated: read at the
-    nearest samples instead, the Gaussian's tails there differ by an amount that changes with the edge's
-    place between samples, and so did the edge, by up to 0.08 samples), s^2 from the peak's curvature and
-    A = g_peak sqrt(2 pi) s. Without it, the shading of a rod next to its limb biases the edge by a few
-    tenths of a pixel, which the near-parallel limb lines amplify ~40x in the axis direction.
+    kR are read from g at ``side`` samples on each side of the located peak (interpolated: at the nearest
+    samples, the Gaussian's tails differ by an amount that changes with the edge's place between samples, and
+    so would the edge, by up to 0.08 samples), s^2 from the peak's curvature and A = g_peak sqrt(2 pi) s.
+    Without it, the shading of a rod next to its limb biases the edge by a few tenths of a pixel, which the
+    near-parallel limb lines amplify ~40x in the axis direction.
 
     ``valid`` (P, S): the samples inside the image (beyond it a profile reads the border's replicated pixels, which
-    pulled the last edges of a limb leaving the image by 0.2-4.5 px): a peak whose derivative kernel (``radius``
-    samples either side) reaches an invalid sample is dropped, one whose slope samples do is kept without the slope
-    correction. Dropping every edge whose slope samples leave the image instead cost the limbs' far ends: on 16
-    paired paper-plan trials the combined RMS error was 0.117, 0.037, 0.081, 0.079 mm that way, 0.100, 0.035,
-    0.070, 0.067 mm this way, with the same removal of the designed plans' H-D bias (-21.9 -> -7.9 um).
+    pull the last edges of a limb leaving the image by up to several pixels): a peak whose derivative kernel
+    (``radius`` samples either side) reaches an invalid sample is dropped, one whose slope samples do is kept without
+    the slope correction, so that the limbs keep their far ends (the edges there carry the most weight on the
+    axis direction).
 
     Returns (profile index, position in samples, signed gradient at the peak), float64 (g may be float32).
     """
@@ -408,14 +407,23 @@ def measure_rod(
         Predicted axis segment, camera frame.
     radius : float
         Rod radius, metres.
+    settings : RodSettings, optional
+        Default: ``RodSettings()``.
     occluders : list of ndarray, shape (M, 2)
         Convex polygons in ideal pixels that hide the rod (e.g. the board); profiles inside are dropped.
+    rng : numpy.random.Generator, optional
+        Random sampling of the robust line fits; default seeded with 0.
     ideal_bbox : ndarray, shape (4,), optional
         :func:`image_ideal_bbox` of the camera (computed when not given).
     neighbours : list of (a, b, half_width_px)
         The other rods' predicted axis segments in ideal pixels (a, b shape (2,)) and half-widths:
         a limb point closer to one of them than its half-width plus ``settings.neighbour_px`` is
         dropped (its edge is merged with or hidden by the other rod's).
+    segment : _Segment or str, optional
+        The rod's predicted visible segment in ideal pixels, or the reason it has none, when already computed
+        for the frame (:func:`measure_rods`); computed from ``pred`` when not given.
+    projector : _IdealToImage, optional
+        Ideal to image pixels of ``camera``, when already built for the frame; built when not given.
     polarity : {1, -1}, optional
         Keep only the edge pairs of this polarity (+1: a rod brighter than its surroundings); by default
         ``settings.polarity``, or when that is 0 the polarity of most of the rod's pairs.
@@ -708,7 +716,20 @@ def _quantiles5(x: Array) -> Array:
 
 
 def image_ideal_bbox(camera: CameraModel, margin_px: float = 2.0) -> Array:
-    """Bounding box (xmin, ymin, xmax, ymax) in ideal pixels of the whole image, with a margin."""
+    """Bounding box (xmin, ymin, xmax, ymax) in ideal pixels of the whole image, with a margin.
+
+    Parameters
+    ----------
+    camera : CameraModel
+        The camera whose image is bounded.
+    margin_px : float
+        Margin added on every side (ideal px).
+
+    Returns
+    -------
+    ndarray, shape (4,)
+        ``(xmin, ymin, xmax, ymax)`` (ideal px).
+    """
     b = camera.to_ideal_pixels(camera.normalized_bounds())
     return np.array(
         [b[:, 0].min() - margin_px, b[:, 1].min() - margin_px, b[:, 0].max() + margin_px, b[:, 1].max() + margin_px]
@@ -735,6 +756,30 @@ def measure_rods(
     other is measured again, predicted from it shifted by the rods' spacing. A rod left with the other
     polarity than the frame's is dropped (reason given): a rod against a background of the other
     brightness than the rest of the frame's is lost, never a gap measured as a rod.
+
+    Parameters
+    ----------
+    gray : ndarray, shape (H, W), float32 or uint8
+        The (distorted) image, single channel.
+    camera : CameraModel
+        The camera that took it.
+    preds : list of RodPrediction
+        Predicted axis segments (camera frame, metres), one per rod.
+    radius : float
+        Rod radius (metres).
+    settings : RodSettings, optional
+        Default: ``RodSettings()``.
+    occluders : list of ndarray, shape (M, 2), optional
+        Convex polygons in ideal pixels that hide the rods (e.g. the board); profiles inside are dropped.
+    seed : int
+        Seed of the robust line fits' random sampling.
+    ideal_bbox : ndarray, shape (4,), optional
+        :func:`image_ideal_bbox` of the camera (ideal px; computed when not given).
+
+    Returns
+    -------
+    list of RodMeasurement
+        One per prediction, in the order of ``preds``.
     """
     s = settings or RodSettings()
     img = gray.astype(np.float32) if gray.dtype != np.float32 else gray
@@ -941,7 +986,18 @@ def _line_distance(a: RodMeasurement, b: RodMeasurement) -> float:
 
 
 def leg_parallelism(meas: list[RodMeasurement]) -> dict[str, float]:
-    """Angle (rad) between the two rods of each leg where both were measured, keyed ``"1".."4"``."""
+    """Angle (rad) between the two rods of each leg where both were measured, keyed ``"1".."4"``.
+
+    Parameters
+    ----------
+    meas : list of RodMeasurement
+        A frame's rod measurements.
+
+    Returns
+    -------
+    dict of str to float
+        Leg number (``"1"`` to ``"4"``) -> angle between its rods' axes (radians, in [0, pi/2]).
+    """
     out = {}
     by = {(m.leg, m.rod): m for m in meas}
     for leg in range(4):

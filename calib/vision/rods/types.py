@@ -37,7 +37,26 @@ def predict_rods(
 ) -> list[RodPrediction]:
     """Predicted rod segments (8, in ``ROD_KEYS`` order) from the nominal model and encoder values.
 
-    Raises :class:`~calib.errors.UnreachableError` when the nominal model cannot close at ``q``.
+    Parameters
+    ----------
+    nominal : I4Parameters
+        The model predicted with (metres, radians).
+    q : array_like, shape (4,)
+        Encoder values of the frame (metres).
+    camera_from_base : Rigid
+        The camera's placement (metres, radians).
+    rod_spacing_m : float
+        Distance between the axes of a leg's two rods (metres).
+
+    Returns
+    -------
+    list of RodPrediction
+        Eight predictions, ends in the camera frame (metres).
+
+    Raises
+    ------
+    UnreachableError
+        The nominal model cannot close at ``q``.
     """
     top, bottom, _ = rod_ends_camera(
         nominal, np.asarray(q, dtype=np.float64).reshape(1, 4), camera_from_base, rod_spacing_m
@@ -52,7 +71,14 @@ def rod_ends_camera(
 
     Parameters
     ----------
+    params : I4Parameters
+        The model (metres, radians).
     q : ndarray, shape (N, 4)
+        Encoder values (metres), one row per frame.
+    camera_from_base : Rigid
+        The camera's placement (metres, radians).
+    rod_spacing_m : float
+        Distance between the axes of a leg's two rods (metres).
     pose : ndarray, shape (N, 4), optional
         The end-effector poses at ``q``, when already known (default: ``dkm(params, q)``).
 
