@@ -138,6 +138,11 @@ class Settings(BaseSettings):
         "clients use",
     )
     extraction_workers: int = Field(1, ge=1, le=64)
+    stream_extraction: bool = Field(
+        True,
+        description="measure each frame's board and rods while the bench moves to the next pose (a worker process "
+        "beside the acquisition); the extraction at the end takes what it measured",
+    )
     design_max_candidates: int = Field(
         1000,
         ge=20,

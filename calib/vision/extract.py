@@ -36,7 +36,7 @@ import os
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -62,6 +62,9 @@ from .recover import STARTS as RECOVERY_STARTS
 from .recover import lost_in_search, measured_lines
 from .repredict import MeasuredRod, Repredicted, prediction_shift_px, refit_prediction, rod_ends_camera
 from .rods import ROD_KEYS, RodSettings, rod_name
+
+if TYPE_CHECKING:
+    from .stream import StreamedFrames
 
 Progress = Callable[[int, int], None]
 FrameCallback = Callable[[dict[str, Any]], None]
@@ -147,6 +150,7 @@ def extract_dataset(
     progress: Progress | None = None,
     options: ExtractOptions | None = None,
     on_frame: FrameCallback | None = None,
+    streamed: StreamedFrames | None = None,
 ) -> ExtractionResult:
     """Extract observations v1 from a dataset v1 directory.
 
@@ -164,6 +168,9 @@ def extract_dataset(
     on_frame : callable(info), optional
         Called with what was found in each non-``camera`` frame, once after the board stage and once after the
         rods stage (:func:`frame_info`).
+    streamed : StreamedFrames, optional
+        Frames measured during the acquisition (:mod:`calib.vision.stream`): the passes take their boards and rods
+        from it where they hold the frame's answer, and measure the others.
 
     Raises
     ------
@@ -183,7 +190,8 @@ def extract_dataset(
     def next_pass() -> None:
         base[0], base[1] = base[0] + base[1], 0
 
-    with _Pool(workers) as pool:
+    # -- streaming hook: frames measured during the acquisition answer from the pool (calib.vision.stream) --
+    with _Pool(workers) if streamed is None else streamed.pool(workers, ds) as pool:
         corners: dict[int, list] = {}
         res = _extract(pool, ds, camera, pass_progress, opts, on_frame, keep_images=opts.refine_camera, corners=corners)
         if opts.refine_camera:

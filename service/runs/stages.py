@@ -25,6 +25,8 @@ from .lifecycle import IllegalTransitionError, RunEvent
 if TYPE_CHECKING:
     from pathlib import Path
 
+    from drivers.streaming import FrameStream
+
     from ..jobs import HeavyPool
     from ..settings import Settings
     from .bench import Bench
@@ -32,6 +34,9 @@ if TYPE_CHECKING:
     from .lifecycle import RunState
 
 log = logging.getLogger("i4cal.service")
+
+#: the longest the end of a run waits for the stream worker's last frames (s); beyond, extraction measures them
+STREAM_FINISH_TIMEOUT_S = 60.0
 
 
 class RunControl(Protocol):
@@ -85,10 +90,18 @@ class Stages:
             if todo.acquire:
                 stage = "acquisition"
                 ts = time.monotonic()
-                await self.acquire(run_id, a)
+                stream = self.start_stream(run_id, run) if todo.extract else None
+                try:
+                    await self.acquire(run_id, a, stream)
+                except BaseException:
+                    if stream is not None:
+                        stream.close()
+                    raise
                 stage_done("acquisition_s", ts)
                 m.release(a)
                 failpoints.hit("stage:acquired")
+                if stream is not None:
+                    a.streamed = await self.finish_stream(run_id, stream)
             run = m.get(run_id)
             if todo.extract:
                 stage = "extraction"
@@ -191,7 +204,50 @@ class Stages:
             log.warning("run %s: prediction not stored: %s", run_id, exc)
 
     # -- acquisition ---------------------------------------------------------------------------------
-    async def acquire(self, run_id: str, a: ActiveRun) -> None:
+    # -- streaming: each frame measured while the bench moves to the next pose ------------------------------
+    def start_stream(self, run_id: str, run: Run) -> FrameStream | None:
+        """The worker that measures each frame as the acquisition writes it (:mod:`drivers.streaming`); its reports
+        are the run's ``streamed`` events (batched). None when the service does not stream (``stream_extraction``)."""
+        from drivers.streaming import FrameStream
+
+        m = self.m
+        if not m.settings.stream_extraction:
+            return None
+        loop = asyncio.get_running_loop()
+
+        def on_event(kind: str, data: dict[str, Any]) -> None:  # the stream's reader thread
+            loop.call_soon_threadsafe(self._stream_event, run_id, kind, data)
+
+        return FrameStream(
+            m.dataset_path(run), m.run_dir(run) / "streamed.json", on_event=on_event, nice=m.settings.job_niceness
+        ).start()
+
+    def _stream_event(self, run_id: str, kind: str, data: dict[str, Any]) -> None:
+        m = self.m
+        if run_id not in m.active:
+            return
+        if kind == "frame":
+            m.bus.queue_live(run_id, "streamed", data)
+        elif kind == "failed":
+            m.bus.queue_live(run_id, "streamed", {**data, "failed": data["reason"]})
+        elif kind == "off":
+            m.emit(run_id, "streaming", {"state": "off", "reason": data["reason"]})
+
+    async def finish_stream(self, run_id: str, stream: FrameStream) -> str | None:
+        """Wait for the worker's last frames (seconds at most: it measured while the bench moved); the file of the
+        frames it measured, for the extraction."""
+        m = self.m
+        summary = await asyncio.to_thread(stream.finish, STREAM_FINISH_TIMEOUT_S)
+        with contextlib.suppress(Exception):
+            m.bus.flush_live(run_id)
+        data = {"state": "done", **(summary or {"measured": stream.measured, "submitted": stream.submitted})}
+        data.pop("file", None)
+        if summary is None:
+            data["reason"] = "the stream worker gave no result: every frame is measured now"
+        m.emit(run_id, "streaming", data)
+        return None if summary is None else summary.get("file")
+
+    async def acquire(self, run_id: str, a: ActiveRun, stream: FrameStream | None = None) -> None:
         from calib.plan import Plan
         from drivers.acquisition import AcquisitionError, acquisition_from_config, close_devices, plan_units
         from drivers.errors import FrameError
@@ -238,6 +294,7 @@ class Stages:
             progress=on_progress,
             camera_spec=dict(bench.camera_spec),
             extra={"service_run": run_id},
+            on_frame=None if stream is None else stream.submit,
         )
         if a.aborting:
             a.acq.abort()
@@ -278,6 +335,7 @@ class Stages:
                     "dataset": str(path),
                     "out": str(m.run_dir(run) / "observations.json"),
                     "workers": m.settings.extraction_workers,
+                    "streamed": a.streamed,
                 },
                 on_event,
                 nice=m.settings.job_niceness,
