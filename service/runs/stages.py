@@ -351,6 +351,7 @@ class Stages:
                 "phases": summary.get("phases", {}),
                 "frames_with_missing": len(summary.get("frames", {})),
                 "placement": summary.get("placement"),
+                "streamed": summary.get("streamed"),
             },
         )
         return summary
