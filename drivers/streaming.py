@@ -55,8 +55,19 @@ def _finite(x: Any) -> Any:
     return x
 
 
-def _stream_main(inq: Any, outq: Any, dataset: str, out: str, nice: int) -> None:
-    """The worker process: frame indices from ``inq`` until None, reports on ``outq``, the frames to ``out``."""
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _stream_main(inq: Any, outq: Any, dataset: str, out: str, nice: int, owner: int) -> None:
+    """The worker process: frame indices from ``inq`` until None, reports on ``outq``, the frames to ``out``. It
+    ends without writing when its ``owner`` process is gone (a service killed mid-run: nothing waits for it)."""
     from calib.errors import InputError
     from calib.threads import single_threaded_worker
     from calib.vision.stream import FrameStreamer
@@ -69,7 +80,12 @@ def _stream_main(inq: Any, outq: Any, dataset: str, out: str, nice: int) -> None
     off: str | None = None
     measured = submitted = 0
     while True:
-        i = inq.get()
+        try:
+            i = inq.get(timeout=1.0)
+        except queue_mod.Empty:
+            if not _alive(owner):
+                return
+            continue
         if i is None:
             break
         submitted += 1
@@ -161,7 +177,7 @@ class FrameStream:
         self.inq, self.outq = self.ctx.Queue(), self.ctx.Queue()
         self.process = self.ctx.Process(
             target=_stream_main,
-            args=(self.inq, self.outq, self.dataset, self.out, self.nice),
+            args=(self.inq, self.outq, self.dataset, self.out, self.nice, os.getpid()),
             name="i4cal-stream",
             daemon=True,
         )
