@@ -186,6 +186,20 @@ class FrameStream:
         self._reader.start()
         return self
 
+    def submit_recorded(self) -> int:
+        """Hand over the frames already in the dataset (a resumed acquisition's): measured while the bench moves to
+        the next pose like the others. Returns how many."""
+        from calib.dataset import Dataset
+        from calib.errors import InputError
+
+        try:
+            n = len(Dataset.open(self.dataset).frames)
+        except InputError:  # no dataset yet
+            return 0
+        for i in range(n):
+            self.submit(i)
+        return n
+
     def submit(self, index: int) -> None:
         """Hand frame ``index`` (written to the dataset) over to the worker; never waits for it."""
         if self.inq is None or self._done.is_set():

@@ -218,9 +218,11 @@ class Stages:
         def on_event(kind: str, data: dict[str, Any]) -> None:  # the stream's reader thread
             loop.call_soon_threadsafe(self._stream_event, run_id, kind, data)
 
-        return FrameStream(
+        stream = FrameStream(
             m.dataset_path(run), m.run_dir(run) / "streamed.json", on_event=on_event, nice=m.settings.job_niceness
         ).start()
+        stream.submit_recorded()  # a resumed run's frames already on disk
+        return stream
 
     def _stream_event(self, run_id: str, kind: str, data: dict[str, Any]) -> None:
         m = self.m
