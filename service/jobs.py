@@ -236,16 +236,21 @@ def fit_job(*, emit: Emit, observations: str, methods: list[str]) -> dict[str, A
                 "error": entry.get("error"),
             },
         )
-        if doc is None:
-            doc = part
-            continue
-        doc["methods"][method] = entry
-        if method in part["validation"]:
-            doc["validation"][method] = part["validation"][method]
-        for name, te in (part.get("truth_errors") or {}).items():
-            doc.setdefault("truth_errors", {})[name] = te
+        doc = part if doc is None else merge_method(doc, method, part)
     if doc is None:
         raise I4calError("no method to fit")
+    return doc
+
+
+def merge_method(doc: dict[str, Any], method: str, part: dict[str, Any]) -> dict[str, Any]:
+    """``doc`` (a result document) with ``method``'s entry, validation and truth errors from ``part`` (the result
+    document of that method alone: :func:`fit_job`). Each method's fit is its own ``calibrate(obs, [method])``: the
+    parts do not depend on one another, so they can be fitted in any order or at once."""
+    doc["methods"][method] = part["methods"][method]
+    if method in part["validation"]:
+        doc["validation"][method] = part["validation"][method]
+    for name, te in (part.get("truth_errors") or {}).items():
+        doc.setdefault("truth_errors", {})[name] = te
     return doc
 
 

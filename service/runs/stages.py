@@ -16,7 +16,7 @@ from calib.jsonio import write_json_atomic
 
 from .. import failpoints
 from ..db import Run
-from ..jobs import one_line, run_job
+from ..jobs import merge_method, one_line, run_job
 from ..timefmt import now_utc as _now
 from .active import ActiveRun
 from .disk import disk_full_reason, is_disk_full
@@ -359,31 +359,66 @@ class Stages:
         return summary
 
     async def calibrate(self, run_id: str, run: Run) -> dict[str, Any]:
-        """The methods one after the other in a child process (the fits hold the GIL); return the result."""
+        """The methods, each in its own child process (the fits hold the GIL), ``fit_workers`` at once; return the
+        merged result (the document of the methods one after the other: each method's fit is independent of the
+        others, :func:`service.jobs.merge_method`)."""
         m = self.m
         a = m.active[run_id]
-        n = len(run.methods)
+        methods = list(run.methods)
+        n = len(methods)
+        jobs = _Jobs()
+        a.job = jobs
+        done = [0]
+        gate = asyncio.Semaphore(max(1, min(m.settings.fit_workers, n)))
 
-        def on_event(kind: str, data: dict[str, Any]) -> None:
-            if m.active.get(run_id) is not a:
-                return
-            if kind == "iteration":
-                m.bus.queue_live(run_id, "iterations", data)
-            elif kind == "fit":
-                m.bus.flush_live(run_id)  # the iterations of a method come before its end
-                m.emit(run_id, "fit", data)
-                if data["state"] != "start":
-                    m.update(run_id, done=data["index"] + 1, total=n)
-                    m.emit(run_id, "progress", {"stage": "calibration", "done": data["index"] + 1, "total": n})
+        async def one(k: int, method: str) -> dict[str, Any]:
+            def on_event(kind: str, data: dict[str, Any]) -> None:
+                if m.active.get(run_id) is not a:
+                    return
+                if kind == "iteration":
+                    m.bus.queue_live(run_id, "iterations", data)
+                elif kind == "fit":
+                    m.bus.flush_live(run_id)  # the iterations of a method come before its end
+                    m.emit(run_id, "fit", {**data, "index": k, "count": n})
+                    if data["state"] != "start":
+                        done[0] += 1
+                        m.update(run_id, done=done[0], total=n)
+                        m.emit(run_id, "progress", {"stage": "calibration", "done": done[0], "total": n})
+
+            async with gate:
+                return await run_job(
+                    "fit",
+                    {"observations": str(m.run_dir(run) / "observations.json"), "methods": [method]},
+                    on_event,
+                    nice=m.settings.job_niceness,
+                    on_job=jobs.add,
+                )
 
         try:
-            return await run_job(
-                "fit",
-                {"observations": str(m.run_dir(run) / "observations.json"), "methods": list(run.methods)},
-                on_event,
-                nice=m.settings.job_niceness,
-                on_job=lambda j: setattr(a, "job", j),
-            )
+            parts = await asyncio.gather(*(one(k, method) for k, method in enumerate(methods)))
+        except BaseException:
+            jobs.kill()
+            raise
         finally:
             with contextlib.suppress(Exception):
                 m.bus.end_live(run_id)
+        if not parts:
+            raise I4calError("no method to fit")
+        doc = parts[0]
+        for method, part in zip(methods[1:], parts[1:], strict=True):
+            doc = merge_method(doc, method, part)
+        return doc
+
+
+class _Jobs:
+    """The fit processes of a run (:attr:`ActiveRun.job` while it calibrates): ``kill`` ends them all."""
+
+    def __init__(self) -> None:
+        self.jobs: list[Any] = []
+
+    def add(self, job: Any) -> None:
+        self.jobs.append(job)
+
+    def kill(self) -> None:
+        for j in self.jobs:
+            j.kill()
