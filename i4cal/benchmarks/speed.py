@@ -824,15 +824,15 @@ def result_after_motion(
         except Exception:
             sim.kill()
         shutil.rmtree(tmp, ignore_errors=True)
-    frames = [
-        e
-        for e in events
-        if e["type"] == "progress" and e["data"].get("stage") == "acquisition" and e["data"].get("state") == "running"
-    ]
-    total = frames[-1]["data"]["total"]
-    last = next(e for e in frames if e["data"]["done"] == total)
-    first = next(e for e in frames if e["data"]["done"] >= 1)
-    end = next(e for e in events if e["type"] == "state" and e["data"]["state"] == "done")
+    # the acquisition's progress events: the last frame's is the first that counts every frame written (the state
+    # "done" one: frames are written behind the next move, the run's end waits for the last write)
+    frames = [e for e in events if e["type"] == "progress" and e["data"].get("stage") == "acquisition"]
+    total = max(e["data"]["total"] for e in frames)
+    last = next((e for e in frames if e["data"]["done"] == total), None)
+    first = next((e for e in frames if e["data"]["done"] >= 1), None)
+    end = next((e for e in events if e["type"] == "state" and e["data"]["state"] == "done"), None)
+    if last is None or first is None or end is None:
+        raise I4calError(f"the run ({label}) has no last frame or end event: {[e['type'] for e in events][-20:]}")
     extraction = next((e["data"] for e in events if e["type"] == "extraction"), {})
     streamed_items = [it for e in events if e["type"] == "streamed" for it in e["data"]["items"]]
     return {
