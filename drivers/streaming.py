@@ -79,13 +79,21 @@ def _stream_main(inq: Any, outq: Any, dataset: str, out: str, nice: int, owner: 
     streamer = FrameStreamer(dataset)
     off: str | None = None
     measured = submitted = 0
+    idle = True  # between frames: frames measured on an older prediction are measured again on the latest
     while True:
         try:
-            i = inq.get(timeout=1.0)
+            i = inq.get_nowait() if idle else inq.get(timeout=1.0)
         except queue_mod.Empty:
             if not _alive(owner):
                 return
+            if idle:
+                try:
+                    idle = streamer.idle_step()
+                except Exception:  # the frame keeps its older measurement
+                    log.exception("measuring a frame again failed")
+                    idle = False
             continue
+        idle = True
         if i is None:
             break
         submitted += 1

@@ -7,10 +7,15 @@ During an acquisition, each frame written to the dataset can be measured while t
   same refined board points), so that the final extraction takes it as it is;
 * the eight rods on the nominal model's prediction, placed with the coarse camera placement
   (:func:`calib.vision.placement.fit_placement`) fitted to the board poses measured so far (from
-  ``ExtractOptions.min_placement_frames`` board poses on). The final extraction fits the placement to every frame's
-  board: a rod measured on a provisional placement is taken when its frame's prediction with the final placement
-  (or a later pass's refit) lies within :attr:`StreamedFrames.reuse_px` of the one it was measured on
-  (:func:`calib.vision.repredict.prediction_shift_px`), else measured again.
+  ``ExtractOptions.min_placement_frames`` board poses on): extraction's first pass;
+* the eight rods again on the prediction refitted to the rods and boards measured so far
+  (:func:`calib.vision.repredict.refit_prediction`, every :data:`REFIT_EVERY` frames): extraction's later pass, which
+  measures every frame again on a bench far from its nominal geometry;
+* between frames (nothing waiting), the frames measured on an older placement or refit, measured again on the latest.
+
+Each frame keeps its latest measurement of each kind. The final extraction fits the placement and the refit to every
+frame: a frame's rods are taken from the measurement whose prediction lies nearest the extraction's, when within
+:attr:`StreamedFrames.reuse_px` (:func:`calib.vision.repredict.prediction_shift_px`), else measured again.
 
 What is not measured during the acquisition (the frames before the placement exists, a frame the worker failed on,
 ``camera`` phase frames, a dataset without intrinsics) is measured by the extraction at the end, as without
@@ -35,8 +40,8 @@ from ..transforms import Rigid
 from . import pool as _pool
 from .board import BoardDetection, BoardDetector, to_gray8
 from .placement import fit_placement
-from .repredict import prediction_shift_px
-from .rods import RodSettings, image_ideal_bbox, leg_parallelism, measure_rods, predict_rods, rod_name
+from .repredict import MeasuredRod, Repredicted, prediction_shift_px, refit_prediction
+from .rods import ROD_KEYS, RodSettings, image_ideal_bbox, leg_parallelism, measure_rods, predict_rods, rod_name
 from .rods.types import ROD_BOARD_OCCLUDER_M, rod_ends_camera
 
 #: a rod measured on a provisional prediction is taken when the final prediction of its frame lies within this
@@ -44,8 +49,12 @@ from .rods.types import ROD_BOARD_OCCLUDER_M, rod_ends_camera
 #: own later pass measures a frame again (``ExtractOptions.repredict_px``, 3 px), well inside the rods' 18 px search
 #: band. 0: only rods measured on the very prediction are taken (the extraction's bytes, rods measured again)
 REUSE_PX = 1.5
-#: the provisional placement is fitted again after this many new board poses (and at each of the first ten)
-PLACEMENT_REFIT_EVERY = 4
+#: the rods' prediction is refitted to what was measured (:func:`calib.vision.repredict.refit_prediction`) once
+#: this many frames have rods, and again after as many more
+REFIT_EVERY = 10
+#: between frames, a frame is measured again when the latest placement or refit moves its prediction by more than
+#: this (px)
+REMEASURE_PX = 0.5
 
 
 def _canon(x: Any) -> str:
@@ -79,7 +88,9 @@ class StreamedFrames:
     boards : dict
         Frame index -> the board stage's result (``{"pose" | "reason", "corners"}`` or ``{"image_error"}``).
     rods : dict
-        Frame index -> ``{"cfb": camera_from_base (dict), "board": board pose dict or None, "result": rods result}``.
+        Frame index -> ``{kind: {"cfb": camera_from_base (dict), "seven": the seven parameters of the prediction
+        (None: nominal), "board": board pose dict or None, "result": rods result}}``, ``kind`` ``"nominal"`` (the
+        placement's prediction) or ``"refit"``.
     failed : dict
         Frame index -> why the worker could not measure it (measured at the end).
     reuse_px : float
@@ -183,35 +194,53 @@ class StreamedPool(_pool._Pool):
 
     def _rods_known(self, items: list) -> dict[int, Any]:
         """The rods items answered from the stream: ``(i, cfb, board[, None, seven])`` whose frame was measured with
-        the same board and a prediction within ``reuse_px``."""
+        the same board on a prediction within ``reuse_px`` (the nearest of its measurements)."""
         s = self.streamed
         doc = self.dataset.document
         nominal = doc.nominal.parameters()
         spacing = doc.legs.rod_spacing_m if doc.legs.rod_spacing_m is not None else 0.0
         cam = CameraModel.from_dict(s.camera)
-        cand = [
-            (k, it)
-            for k, it in enumerate(items)
-            if it[0] in s.rods
-            and not (len(it) > 3 and it[3] is not None)  # rods found from scratch (no placement): not streamed
-            and _canon(s.rods[it[0]]["board"]) == _canon(it[2])
-        ]
         out: dict[int, Any] = {}
-        for k, it in cand:
+        for k, it in enumerate(items):
             i = int(it[0])
-            q = np.asarray(self.dataset.frames[i].q, dtype=np.float64).reshape(1, 4)
-            params = nominal if len(it) < 5 or it[4] is None else I4Parameters.from_vector(it[4], nominal.T_per_rad)
-            try:
-                now = rod_ends_camera(params, q, Rigid.from_dict(it[1]), spacing)[:2]
-                then = rod_ends_camera(nominal, q, Rigid.from_dict(s.rods[i]["cfb"]), spacing)[:2]
-            except I4calError:
+            if i not in s.rods or (len(it) > 3 and it[3] is not None):  # rods found from scratch: not streamed
                 continue
-            if float(prediction_shift_px(cam.K, (cam.width, cam.height), then, now)[0]) <= s.reuse_px:
-                out[k] = (i, s.rods[i]["result"])
+            q = np.asarray(self.dataset.frames[i].q, dtype=np.float64).reshape(1, 4)
+            seven = None if len(it) < 5 else it[4]
+            best: tuple[float, Any] | None = None
+            for cand in s.rods[i].values():
+                if _canon(cand["board"]) != _canon(it[2]):
+                    continue
+                try:
+                    shift = _shift_px(cam, nominal, q, spacing, (it[1], seven), (cand["cfb"], cand.get("seven")))
+                except I4calError:
+                    continue
+                if shift <= s.reuse_px and (best is None or shift < best[0]):
+                    best = (shift, cand["result"])
+            if best is not None:
+                out[k] = (i, best[1])
             else:
                 s.used["rods_measured_again"] += 1
         s.used["rods"] += len(out)
         return out
+
+
+def _params(nominal: I4Parameters, seven: Any) -> I4Parameters:
+    return nominal if seven is None else I4Parameters.from_vector(np.asarray(seven), T_per_rad=nominal.T_per_rad)
+
+
+def _shift_px(
+    cam: CameraModel, nominal: I4Parameters, q: np.ndarray, spacing: float, a: tuple[Any, Any], b: tuple[Any, Any]
+) -> float:
+    """How far (ideal px) prediction ``b`` (``(camera_from_base dict or Rigid, seven or None)``) moves the rods of the
+    frame at ``q`` (shape (1, 4)) from prediction ``a``."""
+
+    def ends(p: tuple[Any, Any]) -> tuple[np.ndarray, np.ndarray]:
+        C = p[0] if isinstance(p[0], Rigid) else Rigid.from_dict(p[0])
+        top, bottom, _ = rod_ends_camera(_params(nominal, p[1]), q, C, spacing)
+        return top, bottom
+
+    return float(prediction_shift_px(cam.K, (cam.width, cam.height), ends(a), ends(b))[0])
 
 
 class FrameStreamer:
@@ -241,7 +270,12 @@ class FrameStreamer:
         self._good: list[int] = []  # frames with a board pose, in order
         self._placed_with = 0  # board poses the current placement was fitted to
         self._placement: Rigid | None = None
+        self._ee_from_board: Rigid | None = None
         self.placement_reason = "not fitted yet"
+        self._refit: Repredicted | None = None
+        self._refit_with = 0  # frames with rods the current refit was fitted to
+        self.refits = 0
+        self.remeasured = 0
 
     def _setup(self, ds: Dataset) -> StreamedFrames:
         doc = ds.document
@@ -310,11 +344,105 @@ class FrameStreamer:
         placement = self._provisional_placement(ds)
         if placement is None:
             return info
-        result = self._rods(ds, i, img, placement, board.get("pose"))
-        frames.rods[i] = {"cfb": placement.to_dict(), "board": board.get("pose"), "result": result}
+        result = self._measure(ds, i, img, "nominal", placement, None)
+        if self._refit is not None:
+            result = self._measure(ds, i, img, "refit", self._refit.camera_from_base, self._refit.parameters)
         found = result.get("rods") or {}
         info["rods"] = sum(not isinstance(v, str) for v in found.values())
+        self._maybe_refit(ds)
         return info
+
+    def _measure(
+        self, ds: Dataset, i: int, img: np.ndarray, kind: str, C: Rigid, params: I4Parameters | None
+    ) -> dict[str, Any]:
+        """Frame ``i``'s rods on the prediction (``C``, ``params``; None: nominal), kept as its ``kind``."""
+        assert self.frames is not None
+        board = self.frames.boards[i].get("pose")
+        result = self._rods(ds, i, img, C, board, params)
+        self.frames.rods.setdefault(i, {})[kind] = {
+            "cfb": C.to_dict(),
+            "seven": None if params is None else [float(v) for v in params.vector()],
+            "board": board,
+            "result": result,
+        }
+        return result
+
+    def _maybe_refit(self, ds: Dataset) -> None:
+        """The rods' prediction refitted to every frame's rods so far, every :data:`REFIT_EVERY` frames (as
+        extraction's :func:`calib.vision.repredict.refit_prediction`, started from the nominal model)."""
+        assert self.frames is not None and self._camera is not None
+        n = len(self.frames.rods)
+        if n < REFIT_EVERY or n - self._refit_with < REFIT_EVERY or self._ee_from_board is None:
+            return
+        doc = ds.document
+        idx = sorted(self.frames.rods)
+        q = np.array([ds.frames[i].q for i in idx], dtype=np.float64).reshape(-1, 4)
+        measured: list[MeasuredRod] = []
+        poses: dict[int, Rigid] = {}
+        for k, i in enumerate(idx):
+            pose = self.frames.boards[i].get("pose")
+            if pose is not None:
+                poses[k] = Rigid(np.asarray(pose["R"]), np.asarray(pose["t"]))
+            found = self.frames.rods[i]["nominal"]["result"].get("rods") or {}
+            for leg, rod in ROD_KEYS:
+                v = found.get(rod_name(leg, rod))
+                if isinstance(v, dict) and v.get("point") is not None:
+                    measured.append(MeasuredRod(k, leg, rod, np.asarray(v["point"]), np.asarray(v["u"])))
+        spacing = doc.legs.rod_spacing_m if doc.legs.rod_spacing_m is not None else 0.0
+        height = float((doc.board.model_extra or {}).get("height_above_ee_m", 0.0))
+        f_px = float(np.sqrt(self._camera.K[0, 0] * self._camera.K[1, 1]))
+        assert self._placement is not None
+        try:
+            C0, E0 = self._placement, self._ee_from_board
+            fit = refit_prediction(doc.nominal.parameters(), q, measured, poses, C0, E0, f_px, spacing, height)
+        except (I4calError, np.linalg.LinAlgError, ValueError):
+            fit = None
+        self._refit_with = n
+        if fit is not None:
+            self._refit, self.refits = fit, self.refits + 1
+
+    def idle_step(self) -> bool:
+        """Measure again one frame whose kept measurement's prediction is more than :data:`REMEASURE_PX` from the
+        latest placement's or refit's (between frames, nothing waiting). Returns whether there was one."""
+        if self.frames is None or self._camera is None:
+            return False
+        ds: Dataset | None = None
+        doc_nominal = None
+        for i in sorted(self.frames.rods, reverse=False):
+            kinds = self.frames.rods[i]
+            latest: list[tuple[str, Rigid | None, I4Parameters | None]] = [("nominal", self._placement, None)]
+            if self._refit is not None:
+                latest.append(("refit", self._refit.camera_from_base, self._refit.parameters))
+            for kind, C, params in latest:
+                if C is None:
+                    continue
+                if ds is None:
+                    ds = Dataset.open(self.root)
+                    doc_nominal = ds.document.nominal.parameters()
+                assert doc_nominal is not None
+                spacing = ds.document.legs.rod_spacing_m or 0.0
+                q = np.asarray(ds.frames[i].q, dtype=np.float64).reshape(1, 4)
+                cand = kinds.get(kind)
+                try:
+                    stale = (
+                        cand is None
+                        or _shift_px(
+                            self._camera,
+                            doc_nominal,
+                            q,
+                            spacing,
+                            (C, None if params is None else params.vector()),
+                            (cand["cfb"], cand.get("seven")),
+                        )
+                        > REMEASURE_PX
+                    )
+                except I4calError:
+                    stale = False
+                if stale:
+                    self._measure(ds, i, ds.load_image(i), kind, C, params)
+                    self.remeasured += 1
+                    return True
+        return False
 
     def _board(self, img: np.ndarray) -> dict[str, Any]:
         """The board stage's result for one image (as extraction's: corners, then the pose with this camera)."""
@@ -327,46 +455,48 @@ class FrameStreamer:
         return {"pose": res.to_dict(), "corners": corners}
 
     def _provisional_placement(self, ds: Dataset) -> Rigid | None:
-        """``camera_from_base`` fitted to the board poses so far (refitted as they come), None before enough."""
+        """``camera_from_base`` fitted to the board poses so far (fitted again at each new one), None before enough."""
         s, n = self.settings, len(self._good)
         if n < s.min_placement_frames:
             self.placement_reason = f"board poses in {n} frames, need {s.min_placement_frames}"
             return None
-        if self._placement is not None and n < 10 and n == self._placed_with:
+        if n == self._placed_with:
             return self._placement
-        if self._placement is None or n < 10 or n - self._placed_with >= PLACEMENT_REFIT_EVERY:
-            assert self.frames is not None
-            doc = ds.document
-            poses = [self.frames.boards[i]["pose"] for i in self._good]
-            try:
-                height = float((doc.board.model_extra or {}).get("height_above_ee_m", 0.0))
-                C, _E, rms = fit_placement(
-                    np.array([ds.frames[i].q for i in self._good]),
-                    np.array([p["R"] for p in poses]),
-                    np.array([p["t"] for p in poses]),
-                    doc.nominal.parameters(),
-                    height,
-                )
-            except (I4calError, np.linalg.LinAlgError, ValueError) as exc:
-                self.placement_reason = f"placement failed: {exc}"
-                return self._placement
-            self._placed_with = n
-            if rms > s.max_placement_rms_m:
-                self.placement_reason = f"placement inconsistent: RMS {rms * 1e3:.1f} mm"
-                self._placement = None
-            else:
-                self._placement = C
+        assert self.frames is not None
+        doc = ds.document
+        poses = [self.frames.boards[i]["pose"] for i in self._good]
+        try:
+            height = float((doc.board.model_extra or {}).get("height_above_ee_m", 0.0))
+            C, E, rms = fit_placement(
+                np.array([ds.frames[i].q for i in self._good]),
+                np.array([p["R"] for p in poses]),
+                np.array([p["t"] for p in poses]),
+                doc.nominal.parameters(),
+                height,
+            )
+        except (I4calError, np.linalg.LinAlgError, ValueError) as exc:
+            self.placement_reason = f"placement failed: {exc}"
+            return self._placement
+        self._placed_with = n
+        if rms > s.max_placement_rms_m:
+            self.placement_reason = f"placement inconsistent: RMS {rms * 1e3:.1f} mm"
+            self._placement = self._ee_from_board = None
+        else:
+            self._placement, self._ee_from_board = C, E
         return self._placement
 
-    def _rods(self, ds: Dataset, i: int, img: np.ndarray, C: Rigid, board: dict | None) -> dict[str, Any]:
-        """The rods stage's result for frame ``i`` on the nominal prediction placed with ``C`` (as extraction's)."""
+    def _rods(
+        self, ds: Dataset, i: int, img: np.ndarray, C: Rigid, board: dict | None, params: I4Parameters | None = None
+    ) -> dict[str, Any]:
+        """The rods stage's result for frame ``i`` on the prediction of ``params`` (None: the nominal model) placed
+        with ``C`` (as extraction's)."""
         assert self._camera is not None and self._det is not None and self.frames is not None
         cam, doc = self._camera, ds.document
         if img.ndim == 3:
             img = to_gray8(img) if img.dtype == np.uint8 else img[..., :3].mean(axis=2)
         spacing = doc.legs.rod_spacing_m if doc.legs.rod_spacing_m is not None else 0.0
         try:
-            preds = predict_rods(doc.nominal.parameters(), ds.frames[i].q, C, spacing)
+            preds = predict_rods(params or doc.nominal.parameters(), ds.frames[i].q, C, spacing)
         except I4calError as exc:
             return {"reason": f"no rod prediction: {exc}"}
         occ = []
