@@ -130,6 +130,8 @@ def _stream_main(inq: Any, outq: Any, dataset: str, out: str, nice: int, owner: 
                 "submitted": submitted,
                 "failed": {str(k): v for k, v in (frames.failed if frames else {}).items()},
                 "rods_frames": len(frames.rods) if frames else 0,
+                "refits": streamer.refits,
+                "measured_again": streamer.remeasured,
                 "off": off,
                 "file": out if frames is not None else None,
             },
