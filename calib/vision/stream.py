@@ -158,6 +158,7 @@ class StreamedPool(_pool._Pool):
         super().__init__(workers)
         self.streamed = streamed
         self.dataset = dataset
+        self._ends: dict[tuple[int, str], tuple[np.ndarray, np.ndarray]] = {}
 
     def run(
         self,
@@ -200,21 +201,29 @@ class StreamedPool(_pool._Pool):
         nominal = doc.nominal.parameters()
         spacing = doc.legs.rod_spacing_m if doc.legs.rod_spacing_m is not None else 0.0
         cam = CameraModel.from_dict(s.camera)
+        size = (cam.width, cam.height)
         out: dict[int, Any] = {}
         for k, it in enumerate(items):
             i = int(it[0])
             if i not in s.rods or (len(it) > 3 and it[3] is not None):  # rods found from scratch: not streamed
                 continue
             q = np.asarray(self.dataset.frames[i].q, dtype=np.float64).reshape(1, 4)
-            seven = None if len(it) < 5 else it[4]
+            board = _canon(it[2])
             best: tuple[float, Any] | None = None
-            for cand in s.rods[i].values():
-                if _canon(cand["board"]) != _canon(it[2]):
+            try:
+                now = _ends(nominal, q, spacing, it[1], None if len(it) < 5 else it[4])
+            except I4calError:
+                continue
+            for kind, cand in s.rods[i].items():
+                if _canon(cand["board"]) != board:
                     continue
-                try:
-                    shift = _shift_px(cam, nominal, q, spacing, (it[1], seven), (cand["cfb"], cand.get("seven")))
-                except I4calError:
-                    continue
+                key = (i, kind)
+                if key not in self._ends:  # the same measurement is looked up by every pass
+                    try:
+                        self._ends[key] = _ends(nominal, q, spacing, cand["cfb"], cand.get("seven"))
+                    except I4calError:
+                        continue
+                shift = float(prediction_shift_px(cam.K, size, now, self._ends[key])[0])
                 if shift <= s.reuse_px and (best is None or shift < best[0]):
                     best = (shift, cand["result"])
             if best is not None:
@@ -223,6 +232,14 @@ class StreamedPool(_pool._Pool):
                 s.used["rods_measured_again"] += 1
         s.used["rods"] += len(out)
         return out
+
+
+def _ends(nominal: I4Parameters, q: np.ndarray, spacing: float, cfb: Any, seven: Any) -> tuple[np.ndarray, np.ndarray]:
+    """The rod ends (camera frame, m) of the frame at ``q`` (shape (1, 4)) predicted by ``seven`` (None: nominal)
+    placed with ``cfb`` (a dict or a Rigid)."""
+    C = cfb if isinstance(cfb, Rigid) else Rigid.from_dict(cfb)
+    top, bottom, _ = rod_ends_camera(_params(nominal, seven), q, C, spacing)
+    return top, bottom
 
 
 def _params(nominal: I4Parameters, seven: Any) -> I4Parameters:
@@ -234,13 +251,8 @@ def _shift_px(
 ) -> float:
     """How far (ideal px) prediction ``b`` (``(camera_from_base dict or Rigid, seven or None)``) moves the rods of the
     frame at ``q`` (shape (1, 4)) from prediction ``a``."""
-
-    def ends(p: tuple[Any, Any]) -> tuple[np.ndarray, np.ndarray]:
-        C = p[0] if isinstance(p[0], Rigid) else Rigid.from_dict(p[0])
-        top, bottom, _ = rod_ends_camera(_params(nominal, p[1]), q, C, spacing)
-        return top, bottom
-
-    return float(prediction_shift_px(cam.K, (cam.width, cam.height), ends(a), ends(b))[0])
+    first, second = _ends(nominal, q, spacing, *a), _ends(nominal, q, spacing, *b)
+    return float(prediction_shift_px(cam.K, (cam.width, cam.height), first, second)[0])
 
 
 class FrameStreamer:
