@@ -34,3 +34,12 @@ def test_acquire_extract_writes_the_observations_measured_during_the_motion(sim_
         and len(doc["frames"]) == 8
         and all(f["board"] is not None for f in doc["frames"])
     )
+
+
+def test_observations_without_extract_is_refused_before_anything_moves(tmp_path, capsys):
+    from service.cli import main
+
+    rc = main(["acquire", "--bench", str(tmp_path / "none.toml"), "--out", str(tmp_path / "ds"), "--observations", "o"])
+    assert rc == 2
+    assert "--extract" in capsys.readouterr().err
+    assert not (tmp_path / "ds").exists()
