@@ -147,6 +147,7 @@ class Acquisition:
         camera_spec: dict[str, Any] | None = None,
         extra: dict[str, Any] | None = None,
         suspension: Suspension | None = None,
+        on_frame: Callable[[int], None] | None = None,
     ) -> None:
         self.plan = plan
         self.actuators = actuators
@@ -182,6 +183,9 @@ class Acquisition:
         self.frame_reads = 3  # a pose's frame whose q fails its checks is read again, at most this many times
         self._pending: asyncio.Future | None = None
         self.suspension = suspension  # drivers.suspenders: a pose's frame waits until the scene is fit to record
+        #: called with each frame's dataset index once it is written (in the writer thread): an observer that must
+        #: not wait (drivers.streaming.FrameStream.submit); one that raises is logged, the run goes on
+        self.on_frame = on_frame
 
     # -- control ----------------------------------------------------------------------------------
     def pause(self) -> None:
@@ -461,8 +465,13 @@ class Acquisition:
         if "q_true" in meta and "pose_true" in meta:
             extra["truth"] = {"q": list(meta["q_true"]), "pose": list(meta["pose_true"])}
         assert self._writer is not None  # created (run) before the first frame is grabbed
-        self._writer.add_frame(u.phase, q, img, **extra)
+        index = self._writer.add_frame(u.phase, q, img, **extra)
         self._done_now += 1
+        if self.on_frame is not None:
+            try:
+                self.on_frame(index)
+            except Exception:
+                log.exception("frame observer failed on frame %d", index)
 
     async def _write_behind(self, u: Unit, q: np.ndarray, frame: Frame, **extra: Any) -> None:
         """Write a frame in a worker thread while the next pose's move starts (frames stay in order: one

@@ -36,6 +36,8 @@ PRELOAD = [
     "cv2",
     "calib.pipeline",
     "calib.vision.extract",
+    "calib.vision.stream",
+    "drivers.streaming",
     "calib.design",
     "service.design",
     "service.report",
@@ -168,15 +170,17 @@ def check_frame_numbers(dataset: str | os.PathLike[str]) -> None:
             raise InputError(f"{f.t} is not a finite number", file="dataset.json", frame=i, field="t")
 
 
-def extract_job(*, emit: Emit, dataset: str, out: str, workers: int) -> dict[str, Any]:
+def extract_job(*, emit: Emit, dataset: str, out: str, workers: int, streamed: str | None = None) -> dict[str, Any]:
     """Extract ``dataset`` (dataset v1) into ``out`` (observations v1); return the extraction summary.
 
     Events: ``progress`` ``{"done", "total"}`` (at most 10/s) and ``frame`` (:func:`calib.vision.extract.frame_info`,
-    one per frame and stage).
+    one per frame and stage). ``streamed``: the file of the frames measured during the acquisition
+    (:mod:`drivers.streaming`), taken where they hold the frame's answer; the summary's ``streamed`` says how many.
     """
     from calib.jsonio import write_json_atomic
     from calib.observations import Observations
     from calib.vision.extract import extract_dataset
+    from drivers.streaming import load_streamed
 
     check_frame_numbers(dataset)
     last = [0.0]
@@ -188,13 +192,21 @@ def extract_job(*, emit: Emit, dataset: str, out: str, workers: int) -> dict[str
         last[0] = t
         emit("progress", {"done": done, "total": total})
 
+    frames = load_streamed(streamed)
     res = extract_dataset(
-        dataset, workers=workers, progress=progress, on_frame=lambda info: emit("frame", clean_json(info))
+        dataset,
+        workers=workers,
+        progress=progress,
+        on_frame=lambda info: emit("frame", clean_json(info)),
+        streamed=frames,
     )
     doc = clean_json(res.observations)
     Observations.from_dict(doc, dataset)  # a run fails here, naming the field, rather than in the fit
     write_json_atomic(out, doc, indent=None)
-    return clean_json(res.summary)
+    summary = clean_json(res.summary)
+    if frames is not None:
+        summary["streamed"] = {**frames.used, "failed": len(frames.failed)}
+    return summary
 
 
 def fit_job(*, emit: Emit, observations: str, methods: list[str]) -> dict[str, Any]:
@@ -228,6 +240,16 @@ def fit_job(*, emit: Emit, observations: str, methods: list[str]) -> dict[str, A
     if doc is None:
         raise I4calError("no method to fit")
     return clean_json(doc.to_dict())
+
+
+def merge_method(doc: dict[str, Any], method: str, part: dict[str, Any]) -> dict[str, Any]:
+    """``doc`` (a result document) with ``method``'s entry, validation and truth errors from ``part`` (the result
+    document of that method alone: :func:`fit_job`). Each method's fit is its own ``calibrate(obs, [method])``: the
+    parts do not depend on one another, so they can be fitted in any order or at once."""
+    from calib.resultdoc import ResultDocument
+
+    merged = ResultDocument.from_dict(doc).merge(ResultDocument.from_dict(part), method)
+    return clean_json(merged.to_dict())
 
 
 def _heavy_predict(noise: Any, *, config: Any, plan: Any, methods: tuple[str, ...], camera: Any) -> Any:

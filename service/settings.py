@@ -167,6 +167,18 @@ class Settings(BaseSettings):
         "clients use",
     )
     extraction_workers: int = Field(1, ge=1, le=64)
+    fit_workers: int = Field(
+        1,
+        ge=1,
+        le=64,
+        description="methods fitted at once at the end of a run, each in its own process (the fits are independent: "
+        "the same result); 2 on a 2-core bench PC stores the result sooner, the methods' fit events then interleave",
+    )
+    stream_extraction: bool = Field(
+        True,
+        description="measure each frame's board and rods while the bench moves to the next pose (a worker process "
+        "beside the acquisition); the extraction at the end takes what it measured",
+    )
     design_max_candidates: int = Field(
         1000,
         ge=20,

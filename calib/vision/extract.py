@@ -42,7 +42,7 @@ import os
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, cast
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -69,6 +69,9 @@ from .recover import lost_in_search, measured_lines
 from .refine import REFINEMENT_PHASES, CameraRefinement, can_refine, refine_camera_by_rods
 from .repredict import MeasuredRod, Repredicted, prediction_shift_px, refit_prediction, rod_ends_camera
 from .rods import ROD_KEYS, RodSettings, rod_name
+
+if TYPE_CHECKING:
+    from .stream import StreamedFrames
 
 Progress = Callable[[int, int], None]
 #: the reason of a frame's rods in a first pass that leaves them to the second (:func:`_extract`'s ``for_refinement``)
@@ -165,6 +168,7 @@ def extract_dataset(
     progress: Progress | None = None,
     options: ExtractOptions | None = None,
     on_frame: FrameCallback | None = None,
+    streamed: StreamedFrames | None = None,
 ) -> ExtractionResult:
     """Extract observations v1 from a dataset v1 directory.
 
@@ -184,6 +188,9 @@ def extract_dataset(
     on_frame : callable(info), optional
         Called with what was found in each non-``camera`` frame, once after the board stage and once after the
         rods stage (:func:`frame_info`).
+    streamed : StreamedFrames, optional
+        Frames measured during the acquisition (:mod:`calib.vision.stream`): the passes take their boards and rods
+        from it where they hold the frame's answer, and measure the others.
 
     Returns
     -------
@@ -212,8 +219,10 @@ def extract_dataset(
     from threadpoolctl import threadpool_limits
 
     # one BLAS thread in this process, as in the workers (calib.threads): the extraction's matrices are small, more
-    # threads only spin (a quarter more CPU with one worker, for the same result within float rounding)
-    with _Pool(workers) as pool, threadpool_limits(limits=1):
+    # threads only spin (a quarter more CPU with one worker, for the same result within float rounding).
+    # Streaming: frames measured during the acquisition answer from the pool (calib.vision.stream)
+    pool_cm = _Pool(workers) if streamed is None else streamed.pool(workers, ds)
+    with pool_cm as pool, threadpool_limits(limits=1):
         corners: dict[int, list] = {}
         # 1. the boards and rods measured with the camera given, the dataset's or calibrated
         res = _extract(

@@ -17,6 +17,11 @@ Sections (``--only a,b``; all by default), each with the target of the issue it 
 * ``service``: latency of ``GET /api/v1/runs/{id}`` while a run acquires, extracts and calibrates in
   ``i4cal serve`` (p50 / p99 ms; target p99 <= 50 ms); measured by ``benchmarks/bench_service.py`` of a
   source checkout.
+* ``result-after-motion``: a service run (``i4cal serve``, ``i4cal sim-bench`` in its own process, the twin's camera
+  file) of the paper's plan (``--service-plan``) at the speeds of ``deploy/bench-real.example.toml``, all three
+  methods: seconds from the run's last frame event to its stored result, with the frames measured during the motion
+  (``stream_extraction``, ``fit_workers = 2``; target <= 2 s) and without (the extraction and fits after the
+  motion, one fit at a time); ``--stream-runs off,on`` picks them.
 
 Figures in ms, s and MB (display units); a section that fails is reported and the others still run.
 """
@@ -27,31 +32,37 @@ import argparse
 import asyncio
 import datetime as dt
 import importlib.util
+import json
 import math
 import os
 import platform
 import resource
+import shutil
+import signal
 import statistics
+import subprocess
 import sys
 import tempfile
 import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import BaseModel, Field, computed_field
 
 from calib.errors import I4calError, InputError
 
 FORMAT = "i4cal.bench-speed/1"
-SECTIONS = ("extraction", "extract-calibrate", "fit", "acquisition", "modbus", "service")
+SECTIONS = ("extraction", "extract-calibrate", "fit", "acquisition", "modbus", "service", "result-after-motion")
 ALIASES = {
     "extract_calibrate": "extract-calibrate",
     "calibrate": "extract-calibrate",
     "memory": "extract-calibrate",
     "frame": "extraction",
     "acquire": "acquisition",
+    "stream": "result-after-motion",
+    "streaming": "result-after-motion",
 }
 FINAL_STATES = ("done", "failed", "aborted", "interrupted")
 
@@ -92,6 +103,10 @@ class SpeedOptions(BaseModel):
     fit_repeats: int = Field(5, ge=1, description="fits timed per method")
     service_plan: str = Field("paper", pattern="^(paper|reduced)$")
     service_hz: float = Field(20.0, gt=0, description="status polls per second during the service run")
+    stream_runs: list[Literal["on", "off"]] = Field(
+        default_factory=lambda: list[Literal["on", "off"]](["on", "off"]),
+        description="result-after-motion: the runs, streaming on and/or off",
+    )
     seed: int = 0
 
 
@@ -218,8 +233,9 @@ class ConstantRenderer:
 
 
 # -- extraction --------------------------------------------------------------------------------------
-def frame_times(n: int, step: Step = _no_step, seed: int = 0) -> list[float]:
-    """Board pose + eight rods on ``n`` rendered 1024x768 frames of the paper's plan, single process.
+def frame_times(n: int, step: Step = _no_step, seed: int = 0, floor: list[float] | None = None) -> list[float]:
+    """Board pose + eight rods on ``n`` rendered 1024x768 frames of the paper's plan, single process; ``floor``, when
+    given, receives OpenCV's ``detectBoard`` time on each of the same frames (:func:`opencv_board_times`).
 
     Returns
     -------
@@ -254,12 +270,46 @@ def frame_times(n: int, step: Step = _no_step, seed: int = 0) -> list[float]:
         preds = predict_rods(g.nominal, q, g.camera_from_base, g.rod_spacing_m)
         measure_rods(img, cam, preds, g.rod_radius_m, occluders=occ, ideal_bbox=box)
         times.append(time.perf_counter() - t0)
+    if floor is not None:  # the same frames, OpenCV alone
+        floor.extend(opencv_board_times([img for _, img in imgs], r.settings.board, step))
     return times
 
 
+def opencv_board_times(images: list[Any], board: Any, step: Step = _no_step) -> list[float]:
+    """OpenCV's own ``cv2.aruco.CharucoDetector.detectBoard`` on each image (the library's floor for a frame): the
+    detector :class:`calib.vision.board.BoardDetector` builds (its board, sub-pixel corner refinement, markers
+    refined), called alone: no pose, no rods.
+
+    Returns
+    -------
+    list of float
+        Seconds per frame.
+    """
+    from calib.vision.board import BoardDetector
+
+    detector = BoardDetector(board).detector
+    out = []
+    for k, img in enumerate(images):
+        step("extraction: OpenCV detectBoard per frame", k, len(images))
+        t0 = time.perf_counter()
+        detector.detectBoard(img)
+        out.append(time.perf_counter() - t0)
+    return out
+
+
 def bench_extraction(opts: SpeedOptions, step: Step = _no_step) -> tuple[list[Figure], dict[str, Any]]:
-    t = frame_times(opts.frames, step, seed=opts.seed)
+    floor: list[float] = []
+    t = frame_times(opts.frames, step, seed=opts.seed, floor=floor)
     ms = [x * 1e3 for x in t]
+    floor_ms = [x * 1e3 for x in floor]
+    cv_fig = Figure(
+        key="extraction_opencv_detect_board_median_ms",
+        section="extraction",
+        value=statistics.median(floor_ms),
+        unit="ms",
+        label="OpenCV CharucoDetector.detectBoard alone on the same frames (median; the library floor)",
+        detail=f"extraction / detectBoard: {statistics.median(ms) / statistics.median(floor_ms):.1f}x",
+    )
     fig = Figure(
         key="extraction_frame_median_ms",
         section="extraction",
@@ -269,7 +319,7 @@ def bench_extraction(opts: SpeedOptions, step: Step = _no_step) -> tuple[list[Fi
         target=20.0,
         detail=f"{len(ms)} frames, min {min(ms):.1f}, max {max(ms):.1f} ms",
     )
-    return [fig], {"frame_ms": ms}
+    return [fig, cv_fig], {"frame_ms": ms, "opencv_detect_board_ms": floor_ms}
 
 
 def _extract_calibrate_job(queue: Any, dataset: str, workers: int | None, start_method: str | None = None) -> None:
@@ -672,6 +722,162 @@ def bench_service(opts: SpeedOptions, step: Step = _no_step) -> tuple[list[Figur
     return figs, {"per_state": per_state, "plan": opts.service_plan}
 
 
+# -- result after the motion ------------------------------------------------------------------------------
+#: the real bench's example file, whose speeds the result-after-motion run uses
+REAL_BENCH_EXAMPLE = Path(__file__).resolve().parents[2] / "deploy" / "bench-real.example.toml"
+
+
+def real_bench_speeds(path: Path = REAL_BENCH_EXAMPLE) -> dict[str, float]:
+    """The motion settings of a bench file (``speed_m_s``, ``accel_m_s2``, ``poll_s``, ``settle_s``)."""
+    import tomllib
+
+    if not path.is_file():
+        raise I4calError(f"the real bench's example file is {path} of a source checkout (not found)")
+    doc = tomllib.loads(path.read_text(encoding="utf-8"))
+    act = doc.get("actuators", {})
+    return {
+        "speed_m_s": float(act["speed_m_s"]),
+        "accel_m_s2": float(act["accel_m_s2"]),
+        "poll_s": float(act.get("poll_s", 0.01)),
+        "settle_s": float(doc.get("acquisition", {}).get("settle_s", act.get("settle_s", 0.0))),
+    }
+
+
+def _event_s(ev: dict[str, Any]) -> float:
+    return dt.datetime.fromisoformat(ev["t"].replace("Z", "+00:00")).timestamp()
+
+
+def result_after_motion(
+    streaming: bool, paper_plan: bool = True, workers: int = 2, step: Step = _no_step
+) -> dict[str, Any]:
+    """One service run on the simulated bench at the real bench's example speeds, all three methods.
+
+    ``streaming``: frames measured during the motion (``stream_extraction``) and two fits at once (``fit_workers``);
+    else the extraction and the fits one after the other once the motion is over.
+
+    Returns
+    -------
+    dict
+        ``after_last_frame_s`` (from the last frame's ``progress`` event to the ``state: done`` event, whose result is
+        stored just before), ``motion_s`` (first to last frame event), ``frames``, ``timings`` (the run's stage times),
+        ``streamed`` (what the extraction took from the stream).
+    """
+    import httpx
+
+    mod = bench_service_module()
+    speeds = real_bench_speeds()
+    tmp = Path(tempfile.mkdtemp(prefix="i4cal-bench-"))
+    sim, bench_file, camera_file = mod.start_sim_bench(tmp)
+    text = bench_file.read_text()
+    text = text.replace("speed_m_s = 10.0", f"speed_m_s = {speeds['speed_m_s']}")
+    text = text.replace("accel_m_s2 = 1000.0", f"accel_m_s2 = {speeds['accel_m_s2']}")
+    text = text.replace("poll_s = 0.001", f"poll_s = {speeds['poll_s']}\nhome_timeout_s = 120.0")
+    text = text.replace("line_rate_hz = 50.0", f"settle_s = {speeds['settle_s']}")
+    bench_file.write_text(text)
+    port = mod.free_port()
+    sizes = (
+        "" if paper_plan else "[plan_sizes]\nn_base = 6\nn_fit = 10\nn_lock = 4\nn_validation = 4\nline_samples = 11\n"
+    )
+    cfg = tmp / "service.toml"
+    cfg.write_text(
+        f'data_dir = "{tmp / "data"}"\nport = {port}\nbench_file = "{bench_file}"\ncamera_file = "{camera_file}"\n'
+        f"extraction_workers = {workers}\nfit_workers = {2 if streaming else 1}\n"
+        f"stream_extraction = {'true' if streaming else 'false'}\n"
+        f'token_hashes = ["{mod.hash_token(mod.TOKEN)}"]\n{sizes}'
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "service", "serve", "--config", str(cfg), "--log-level", "warning"],
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+    label = "streaming" if streaming else "no streaming"
+    try:
+        with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=30) as c:
+            for _ in range(1200):
+                try:
+                    if c.get("/readyz").status_code == 200:
+                        break
+                except httpx.TransportError:
+                    pass
+                time.sleep(0.05)
+            r = c.post(
+                "/api/v1/runs",
+                json={"plan": "full", "methods": ["combined", "end-effector", "legs"]},
+                headers={"Authorization": f"Bearer {mod.TOKEN}"},
+            )
+            r.raise_for_status()
+            rid = r.json()["id"]
+            while True:
+                run = c.get(f"/api/v1/runs/{rid}").json()
+                step(
+                    f"result-after-motion ({label}): {run['state']}", run["progress"]["done"], run["progress"]["total"]
+                )
+                if run["state"] in FINAL_STATES:
+                    break
+                time.sleep(0.5)
+            if run["state"] != "done":
+                raise I4calError(f"the run ({label}) ended {run['state']}: {run.get('error')}")
+            events = []
+            with c.stream("GET", f"/api/v1/runs/{rid}/events", params={"follow": "false"}) as resp:
+                for line in resp.iter_lines():
+                    if line.startswith("data: "):
+                        events.append(json.loads(line[6:]))
+    finally:
+        proc.terminate()
+        proc.wait(30)
+        sim.send_signal(signal.SIGINT)
+        try:
+            sim.wait(10)
+        except Exception:
+            sim.kill()
+        shutil.rmtree(tmp, ignore_errors=True)
+    # the acquisition's progress events: the last frame's is the first that counts every frame written (the state
+    # "done" one: frames are written behind the next move, the run's end waits for the last write)
+    frames = [e for e in events if e["type"] == "progress" and e["data"].get("stage") == "acquisition"]
+    total = max(e["data"]["total"] for e in frames)
+    last = next((e for e in frames if e["data"]["done"] == total), None)
+    first = next((e for e in frames if e["data"]["done"] >= 1), None)
+    end = next((e for e in events if e["type"] == "state" and e["data"]["state"] == "done"), None)
+    if last is None or first is None or end is None:
+        raise I4calError(f"the run ({label}) has no last frame or end event: {[e['type'] for e in events][-20:]}")
+    extraction: dict[str, Any] = next((e["data"] for e in events if e["type"] == "extraction"), {})
+    streamed_items = [it for e in events if e["type"] == "streamed" for it in e["data"]["items"]]
+    return {
+        "after_last_frame_s": _event_s(end) - _event_s(last),
+        "motion_s": _event_s(last) - _event_s(first),
+        "frames": total,
+        "timings": run.get("timings"),
+        "streamed": extraction.get("streamed"),
+        "measured_during_motion": len(streamed_items),
+        "speeds": speeds,
+    }
+
+
+def bench_result_after_motion(opts: SpeedOptions, step: Step = _no_step) -> tuple[list[Figure], dict[str, Any]]:
+    figs: list[Figure] = []
+    details: dict[str, Any] = {}
+    for mode in opts.stream_runs:
+        on = mode == "on"
+        r = result_after_motion(on, opts.service_plan == "paper", opts.workers or 2, step)
+        details[mode] = r
+        sp = r["speeds"]
+        figs.append(
+            Figure(
+                key=f"result_after_last_frame_stream_{mode}_s",
+                section="result-after-motion",
+                unit="s",
+                value=r["after_last_frame_s"],
+                target=2.0 if on else None,
+                label=f"last frame event -> result stored, all methods, streaming {mode}",
+                detail=(
+                    f"{opts.service_plan} plan, {r['frames']} frames over {r['motion_s']:.0f} s of motion at "
+                    f"{sp['speed_m_s']} m/s, {sp['accel_m_s2']} m/s^2, settle {sp['settle_s']} s; "
+                    + (f"{r['measured_during_motion']} frames measured during it" if on else "fits one at a time")
+                ),
+            )
+        )
+    return figs, details
+
+
 BENCHES: dict[str, Callable[[SpeedOptions, Step], tuple[list[Figure], dict[str, Any]]]] = {
     "extraction": bench_extraction,
     "extract-calibrate": bench_extract_calibrate,
@@ -679,6 +885,7 @@ BENCHES: dict[str, Callable[[SpeedOptions, Step], tuple[list[Figure], dict[str, 
     "acquisition": bench_acquisition,
     "modbus": bench_modbus,
     "service": bench_service,
+    "result-after-motion": bench_result_after_motion,
 }
 
 
@@ -793,6 +1000,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--service-plan", choices=("paper", "reduced"), default="paper", help="plan of the service run (default paper)"
     )
+    p.add_argument(
+        "--stream-runs",
+        default="on,off",
+        metavar="LIST",
+        help="result-after-motion: the runs, streaming on and/or off (default on,off)",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quiet", action="store_true", help="no progress display")
     p.set_defaults(handler=run)
@@ -816,6 +1029,7 @@ def run(args: argparse.Namespace) -> int:
             reads=args.reads,
             fit_repeats=args.fit_repeats,
             service_plan=args.service_plan,
+            stream_runs=[x.strip() for x in args.stream_runs.split(",") if x.strip()],
             seed=args.seed,
         )
     except ValidationError as exc:

@@ -30,3 +30,5 @@ class ActiveRun:
     detections: dict[int, dict[str, Any]] = field(default_factory=dict)
     last_extracted: int | None = None
     job: Any = None  # service.jobs.Job: the extraction or fit process
+    #: the frames measured during the acquisition (drivers.streaming: the file the stream worker wrote), if any
+    streamed: str | None = None

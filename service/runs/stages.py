@@ -16,7 +16,7 @@ from calib.jsonio import write_json_atomic
 
 from .. import failpoints
 from ..db import Run
-from ..jobs import one_line, run_job
+from ..jobs import merge_method, one_line, run_job
 from ..timefmt import now_utc as _now
 from .active import ActiveRun
 from .disk import disk_full_reason, is_disk_full
@@ -25,6 +25,8 @@ from .lifecycle import IllegalTransitionError, RunEvent
 if TYPE_CHECKING:
     from pathlib import Path
 
+    from drivers.streaming import FrameStream
+
     from ..jobs import HeavyPool
     from ..settings import Settings
     from .bench import Bench
@@ -32,6 +34,9 @@ if TYPE_CHECKING:
     from .lifecycle import RunState
 
 log = logging.getLogger("i4cal.service")
+
+#: the longest the end of a run waits for the stream worker's last frames (s); beyond, extraction measures them
+STREAM_FINISH_TIMEOUT_S = 60.0
 
 
 class RunControl(Protocol):
@@ -85,10 +90,18 @@ class Stages:
             if todo.acquire:
                 stage = "acquisition"
                 ts = time.monotonic()
-                await self.acquire(run_id, a)
+                stream = self.start_stream(run_id, run) if todo.extract else None
+                try:
+                    await self.acquire(run_id, a, stream)
+                except BaseException:
+                    if stream is not None:
+                        stream.close()
+                    raise
                 stage_done("acquisition_s", ts)
                 m.release(a)
                 failpoints.hit("stage:acquired")
+                if stream is not None:
+                    a.streamed = await self.finish_stream(run_id, stream)
             run = m.get(run_id)
             if todo.extract:
                 stage = "extraction"
@@ -191,7 +204,52 @@ class Stages:
             log.warning("run %s: prediction not stored: %s", run_id, exc)
 
     # -- acquisition ---------------------------------------------------------------------------------
-    async def acquire(self, run_id: str, a: ActiveRun) -> None:
+    # -- streaming: each frame measured while the bench moves to the next pose ------------------------------
+    def start_stream(self, run_id: str, run: Run) -> FrameStream | None:
+        """The worker that measures each frame as the acquisition writes it (:mod:`drivers.streaming`); its reports
+        are the run's ``streamed`` events (batched). None when the service does not stream (``stream_extraction``)."""
+        from drivers.streaming import FrameStream
+
+        m = self.m
+        if not m.settings.stream_extraction:
+            return None
+        loop = asyncio.get_running_loop()
+
+        def on_event(kind: str, data: dict[str, Any]) -> None:  # the stream's reader thread
+            loop.call_soon_threadsafe(self._stream_event, run_id, kind, data)
+
+        stream = FrameStream(
+            m.dataset_path(run), m.run_dir(run) / "streamed.json", on_event=on_event, nice=m.settings.job_niceness
+        ).start()
+        stream.submit_recorded()  # a resumed run's frames already on disk
+        return stream
+
+    def _stream_event(self, run_id: str, kind: str, data: dict[str, Any]) -> None:
+        m = self.m
+        if run_id not in m.active:
+            return
+        if kind == "frame":
+            m.bus.queue_live(run_id, "streamed", data)
+        elif kind == "failed":
+            m.bus.queue_live(run_id, "streamed", {**data, "failed": data["reason"]})
+        elif kind == "off":
+            m.emit(run_id, "streaming", {"state": "off", "reason": data["reason"]})
+
+    async def finish_stream(self, run_id: str, stream: FrameStream) -> str | None:
+        """Wait for the worker's last frames (seconds at most: it measured while the bench moved); the file of the
+        frames it measured, for the extraction."""
+        m = self.m
+        summary = await asyncio.to_thread(stream.finish, STREAM_FINISH_TIMEOUT_S)
+        with contextlib.suppress(Exception):
+            m.bus.flush_live(run_id)
+        data = {"state": "done", **(summary or {"measured": stream.measured, "submitted": stream.submitted})}
+        data.pop("file", None)
+        if summary is None:
+            data["reason"] = "the stream worker gave no result: every frame is measured now"
+        m.emit(run_id, "streaming", data)
+        return None if summary is None else summary.get("file")
+
+    async def acquire(self, run_id: str, a: ActiveRun, stream: FrameStream | None = None) -> None:
         from calib.plan import Plan
         from drivers.acquisition import AcquisitionError, acquisition_from_config, close_devices, plan_units
         from drivers.errors import FrameError
@@ -246,6 +304,7 @@ class Stages:
             progress=on_progress,
             camera_spec=dict(bench.camera_spec),
             extra={"service_run": run_id},
+            on_frame=None if stream is None else stream.submit,
         )
         if a.aborting:
             a.acq.abort()
@@ -286,6 +345,7 @@ class Stages:
                     "dataset": str(path),
                     "out": str(m.run_dir(run) / "observations.json"),
                     "workers": m.settings.extraction_workers,
+                    "streamed": a.streamed,
                 },
                 on_event,
                 nice=m.settings.job_niceness,
@@ -301,36 +361,72 @@ class Stages:
                 "phases": summary.get("phases", {}),
                 "frames_with_missing": len(summary.get("frames", {})),
                 "placement": summary.get("placement"),
+                "streamed": summary.get("streamed"),
             },
         )
         return summary
 
     async def calibrate(self, run_id: str, run: Run) -> dict[str, Any]:
-        """The methods one after the other in a child process (the fits hold the GIL); return the result."""
+        """The methods, each in its own child process (the fits hold the GIL), ``fit_workers`` at once; return the
+        merged result (the document of the methods one after the other: each method's fit is independent of the
+        others, :func:`service.jobs.merge_method`)."""
         m = self.m
         a = m.active[run_id]
-        n = len(run.methods)
+        methods = list(run.methods)
+        n = len(methods)
+        jobs = _Jobs()
+        a.job = jobs
+        done = [0]
+        gate = asyncio.Semaphore(max(1, min(m.settings.fit_workers, n)))
 
-        def on_event(kind: str, data: dict[str, Any]) -> None:
-            if m.active.get(run_id) is not a:
-                return
-            if kind == "iteration":
-                m.bus.queue_live(run_id, "iterations", data)
-            elif kind == "fit":
-                m.bus.flush_live(run_id)  # the iterations of a method come before its end
-                m.emit(run_id, "fit", data)
-                if data["state"] != "start":
-                    m.update(run_id, done=data["index"] + 1, total=n)
-                    m.emit(run_id, "progress", {"stage": "calibration", "done": data["index"] + 1, "total": n})
+        async def one(k: int, method: str) -> dict[str, Any]:
+            def on_event(kind: str, data: dict[str, Any]) -> None:
+                if m.active.get(run_id) is not a:
+                    return
+                if kind == "iteration":
+                    m.bus.queue_live(run_id, "iterations", data)
+                elif kind == "fit":
+                    m.bus.flush_live(run_id)  # the iterations of a method come before its end
+                    m.emit(run_id, "fit", {**data, "index": k, "count": n})
+                    if data["state"] != "start":
+                        done[0] += 1
+                        m.update(run_id, done=done[0], total=n)
+                        m.emit(run_id, "progress", {"stage": "calibration", "done": done[0], "total": n})
+
+            async with gate:
+                return await run_job(
+                    "fit",
+                    {"observations": str(m.run_dir(run) / "observations.json"), "methods": [method]},
+                    on_event,
+                    nice=m.settings.job_niceness,
+                    on_job=jobs.add,
+                )
 
         try:
-            return await run_job(
-                "fit",
-                {"observations": str(m.run_dir(run) / "observations.json"), "methods": list(run.methods)},
-                on_event,
-                nice=m.settings.job_niceness,
-                on_job=lambda j: setattr(a, "job", j),
-            )
+            parts = await asyncio.gather(*(one(k, method) for k, method in enumerate(methods)))
+        except BaseException:
+            jobs.kill()
+            raise
         finally:
             with contextlib.suppress(Exception):
                 m.bus.end_live(run_id)
+        if not parts:
+            raise I4calError("no method to fit")
+        doc = parts[0]
+        for method, part in zip(methods[1:], parts[1:], strict=True):
+            doc = merge_method(doc, method, part)
+        return doc
+
+
+class _Jobs:
+    """The fit processes of a run (:attr:`ActiveRun.job` while it calibrates): ``kill`` ends them all."""
+
+    def __init__(self) -> None:
+        self.jobs: list[Any] = []
+
+    def add(self, job: Any) -> None:
+        self.jobs.append(job)
+
+    def kill(self) -> None:
+        for j in self.jobs:
+            j.kill()
