@@ -20,8 +20,8 @@ import numpy as np
 from rich.console import Console
 from rich.progress import Progress
 
-from calib.plan import make_plan
-from calib.transforms import Rigid, matrix_to_rotvec
+from calib.formats.plan import make_plan
+from calib.numerics.transforms import Rigid, matrix_to_rotvec
 from calib.vision.detect import detect_rods, measure_detected
 from drivers.sim.render import BenchRenderer, RenderSettings
 from drivers.sim.twin import BenchGeometry, GeometricTwin

@@ -22,8 +22,8 @@ import time
 from typing import Any
 
 import calib.vision.extract as ex
-from calib.observations import Observations
-from calib.pipeline import calibrate
+from calib.formats.observations import Observations
+from calib.identify.pipeline import calibrate
 
 
 def _cpu() -> tuple[float, float]:

@@ -7,7 +7,8 @@ Run:  python benchmarks/bench_intrinsics.py DATASET [--repeat 5]
   against the same fit seeded by the ``k1k2k3`` fit (the outlier test's, a shared start). OpenCV takes an initial
   guess with the released board only without its Schur-complement solver (``CALIB_DISABLE_SCHUR_COMPLEMENT``; with
   it, the guess fails an assertion), which is the first seeded column; the second is the seeded fit by
-  ``scipy.optimize.least_squares`` (``lm``) on :class:`calib.bundle.Bundle`. RSS in px^2 (they should agree).
+  ``scipy.optimize.least_squares`` (``lm``) on :class:`calib.camera.bundle.Bundle`. RSS in px^2 (they should
+  agree).
 """
 
 from __future__ import annotations
@@ -20,14 +21,15 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
-import calib.camera as cc
-from calib.bundle import DIST_INDEX, Bundle
-from calib.dataset import Dataset
+import calib.camera.intrinsics as cc
+from calib.camera.bundle import DIST_INDEX, Bundle
+from calib.formats.dataset import Dataset
 from calib.vision.board import BoardDetector
 
 
 def camera_views(path: str) -> tuple[dict[int, tuple[Any, Any, None]], tuple[int, int], Any, Any]:
-    """The dataset's camera-phase board detections as :func:`calib.camera.calibrate_intrinsics` takes them."""
+    """The dataset's camera-phase board detections as :func:`calib.camera.intrinsics.calibrate_intrinsics` takes
+    them."""
     ds = Dataset.open(path)
     det = BoardDetector(ds.document.board)
     views: dict[int, tuple[Any, Any, None]] = {}

@@ -8,7 +8,7 @@ minute per trial on one core) and its observations kept in ``DIR/seed{SEED}-tria
 (another version of the method) only calibrate. Per trial the legs method's seven parameters: error over the std it
 serves (``seven``, ``seven_std``), and the data's own estimate (``diagnostics.identifiability.data_estimate``) along
 the three directions of the seven that the four combinations do not see
-(:func:`calib.methods.legs.combinations_null_space`), with the data std there when the method reports it
+(:func:`calib.identify.legs.combinations_null_space`), with the data std there when the method reports it
 (``not_identified``). Lengths in metres in the JSON, mm in the table.
 """
 
@@ -22,9 +22,9 @@ from typing import Any
 
 import numpy as np
 
-from calib.methods.legs import calibrate_legs, combinations_null_space
-from calib.observations import Observations
-from calib.parameters import NOMINAL, PARAMETER_NAMES, I4Parameters
+from calib.formats.observations import Observations
+from calib.identify.legs import calibrate_legs, combinations_null_space
+from calib.model.parameters import NOMINAL, PARAMETER_NAMES, I4Parameters
 
 
 def observations(seed: int, k: int, obs_dir: Path) -> dict[str, Any]:
@@ -33,8 +33,8 @@ def observations(seed: int, k: int, obs_dir: Path) -> dict[str, Any]:
     if path.exists():
         return json.loads(path.read_text())
     from calib.vision.extract import extract_dataset
-    from drivers.sim.imaging import simulate_dataset
     from drivers.sim.render import RenderSettings
+    from drivers.sim.rendered_dataset import simulate_dataset
     from drivers.sim.twin import BenchGeometry
     from i4cal.benchmarks._accuracy_trial import _plan
     from i4cal.benchmarks.accuracy import AccuracyOptions, default_spread_m, draw_truth, plan_steps, trial_seed

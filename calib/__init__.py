@@ -4,8 +4,8 @@ Pure computation over numpy arrays: this package imports neither ``drivers`` nor
 """
 
 from .errors import ConvergenceError, I4calError, IdentifiabilityError, InputError, UnreachableError
-from .kinematics import dkm, ikm, jacobian, jacobian_ratios, joint_points, leg_directions
-from .parameters import COMBINATION_NAMES, NOMINAL, PARAMETER_NAMES, I4Parameters, identifiable_parameters
+from .model.kinematics import dkm, ikm, jacobian, jacobian_ratios, joint_points, leg_directions
+from .model.parameters import COMBINATION_NAMES, NOMINAL, PARAMETER_NAMES, I4Parameters, identifiable_parameters
 
 __all__ = [
     "COMBINATION_NAMES",

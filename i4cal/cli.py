@@ -11,9 +11,8 @@ import argparse
 import sys
 from collections.abc import Sequence
 
+from i4cal import bench_cli
 from service import cli as service_cli
-
-from . import bench_cli
 
 #: The ``register(subparsers)`` functions of the commands this layer adds to the service's.
 REGISTRARS: tuple[service_cli.Registrar, ...] = (bench_cli.register,)

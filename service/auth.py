@@ -19,7 +19,7 @@ from fastapi import Depends, HTTPException, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy import select, update
 
-from .db import Database, Token
+from service.db import Database, Token
 
 bearer = HTTPBearer(auto_error=False, description="a token from `i4cal token create`")
 

@@ -1,8 +1,9 @@
 """The camera's intrinsics from guided hand-held board views: the session behind ``i4cal camera calibrate`` and
 ``POST /api/v1/camera/calibrations`` (docs/camera.md).
 
-:func:`collect_views` asks the bench's operator (a :class:`drivers.interfaces.BoardPresenter`) for one placement
-after another, grabs and checks each view (:class:`calib.camera_views.ViewGuide`) until the views cover the image,
+:func:`collect_views` asks the bench's operator (a :class:`drivers.devices.interfaces.BoardPresenter`) for one placement
+after another, grabs and checks each view (:class:`calib.camera.views.ViewGuide`) until the views cover the
+image,
 the tilts and the distances; :func:`calibrate_views` calibrates them with the lens model chosen by the data and
 returns the camera file's model (``i4cal.camera/1``) with its evidence under ``acquired``.
 """
@@ -40,12 +41,12 @@ async def collect_views(
     I4calError
         ``max_grabs`` grabs made and something is still missing (named).
     """
-    from calib.camera_views import ViewGoals, ViewGuide
-    from calib.dataset import BoardSpec
+    from calib.camera.views import ViewGoals, ViewGuide
     from calib.errors import I4calError, InputError
+    from calib.formats.dataset import BoardSpec
     from calib.vision.board import BoardDetector
-    from drivers.config import open_camera, open_operator
-    from drivers.interfaces import BoardPresenter
+    from drivers.acquisition.config import open_camera, open_operator
+    from drivers.devices.interfaces import BoardPresenter
 
     operator = open_operator(cfg)
     if not isinstance(operator, BoardPresenter):
@@ -110,12 +111,14 @@ async def collect_views(
 
 
 def calibrate_views(session: Session, cfg, lens_model: str, bench_file: str | None = None):
-    """The intrinsics from a session's views (:func:`calib.camera.calibrate_intrinsics`, ``lens_model``: ``auto`` or
-    a model): the :class:`calib.camera.IntrinsicsResult` and the camera file's model, with ``acquired`` (the bench,
+    """The intrinsics from a session's views (:func:`calib.camera.intrinsics.calibrate_intrinsics`,
+    ``lens_model``: ``auto`` or
+    a model): the :class:`calib.camera.intrinsics.IntrinsicsResult` and the camera file's model, with
+    ``acquired`` (the bench,
     the board, the grabs, the views' coverage, the views the calibration left out, when, the software)."""
-    from calib.camera import CameraModel, calibrate_intrinsics
-
-    from . import __version__
+    from calib.camera.intrinsics import calibrate_intrinsics
+    from calib.formats.camera import CameraModel
+    from service import __version__
 
     guide = session.guide
     res = calibrate_intrinsics(guide.views(), session.image_size, guide.ids_all, guide.points, lens_model=lens_model)
@@ -138,7 +141,7 @@ def calibrate_views(session: Session, cfg, lens_model: str, bench_file: str | No
 
 def check_lens_model(name: str, option: str = "lens_model") -> str:
     """``name`` when it is ``auto`` or a lens model, else :class:`calib.errors.InputError` naming ``option``."""
-    from calib.camera import LENS_MODEL_CHOICES
+    from calib.camera.intrinsics import LENS_MODEL_CHOICES
     from calib.errors import InputError
 
     if name not in LENS_MODEL_CHOICES:

@@ -40,7 +40,8 @@ def parse_length(text: str | float, field: str = "target-std") -> float:
 def twin_scene(camera=None):
     """The camera, its mounting, the board and the rods of the simulated bench (calib.design.Scene).
 
-    ``camera``: a ``calib.camera.CameraModel`` (the bench's own: intrinsics, lens, image size, e.g. a camera file of
+    ``camera``: a ``calib.formats.camera.CameraModel`` (the bench's own: intrinsics, lens, image size, e.g. a
+    camera file of
     ``i4cal extract``) in place of the twin's, at the twin's mounting (a bench file's own mounting:
     :func:`bench_scene`).
     """
@@ -84,22 +85,23 @@ def is_simulated(cfg) -> bool:
 
 
 def bench_scene(cfg, camera=None) -> BenchScene:
-    """The scene of a bench configuration: ``camera`` (the bench's own: a ``calib.camera.CameraModel``, e.g. its
+    """The scene of a bench configuration: ``camera`` (the bench's own: a
+    ``calib.formats.camera.CameraModel``, e.g. its
     camera file) at the bench file's ``[camera.mounting]``; what is not given is the simulated bench's
     (:func:`twin_scene`), with a warning unless the bench's camera is the simulated one.
 
     Parameters
     ----------
-    cfg : drivers.config.BenchConfig
+    cfg : drivers.acquisition.config.BenchConfig
         The bench file (``camera.mounting``: position in m, rotation vector in rad, of the camera in the base frame).
-    camera : calib.camera.CameraModel, optional
+    camera : calib.formats.camera.CameraModel, optional
         The bench's camera (intrinsics, lens, image size); None: the simulated bench's.
 
     Returns
     -------
     BenchScene
     """
-    from calib.transforms import Rigid
+    from calib.numerics.transforms import Rigid
 
     scene = twin_scene(camera)
     sim = is_simulated(cfg)
@@ -130,7 +132,8 @@ def bench_scene(cfg, camera=None) -> BenchScene:
 
 
 #: corner noise (px) of the camera phase's board views in :func:`twin_image_noise`: what the weighted calibration
-#: (views weighted by their noise, calib.bundle) reports on the image-level twin's 30 rendered views is the bundle's
+#: (views weighted by their noise, calib.camera.bundle) reports on the image-level twin's 30 rendered views is
+#: the bundle's
 #: covariance at 0.037 (cx) to 0.056 (fx) px, 0.05 over the nine intrinsics (40 camera phases; the views' corner
 #: RMS is 0.10 px, but the weighted fit's information is that of its best views, 0.02-0.2 px)
 CALIBRATION_CORNER_PX = 0.05
@@ -159,8 +162,8 @@ def _calibration_covariance(views: int, seed: int, camera_json: str | None, name
     seed, camera and intrinsics: every run's prediction and every design of a service would compute it again."""
     import numpy as np
 
-    from calib.camera import CameraModel
     from calib.design import calibration_covariance
+    from calib.formats.camera import CameraModel
     from drivers.sim.render import BenchRenderer, RenderSettings
     from drivers.sim.twin import BenchGeometry
 
@@ -173,7 +176,7 @@ def _calibration_covariance(views: int, seed: int, camera_json: str | None, name
 
 
 def motion_spec(cfg) -> Any:
-    """Speeds, acceleration and settle times of a bench configuration (``drivers.config.BenchConfig``)."""
+    """Speeds, acceleration and settle times of a bench configuration (``drivers.acquisition.config.BenchConfig``)."""
     from calib.design import MotionSpec
 
     a = cfg.actuators
@@ -200,7 +203,7 @@ def _with_notes(result, notes: tuple[str, ...]):
     """``result`` (``calib.design.DesignResult``) with ``notes`` first among its notes and its plan's."""
     if not notes:
         return result
-    from calib.plan import Plan
+    from calib.formats.plan import Plan
 
     result.notes[:0] = notes
     design = dict((result.plan.model_extra or {}).get("design") or {})
@@ -214,7 +217,7 @@ def design_for_bench(cfg, request, noise=None, status=None, camera=None, draws_r
 
     Parameters
     ----------
-    cfg : drivers.config.BenchConfig
+    cfg : drivers.acquisition.config.BenchConfig
         The bench file: nominal geometry, soft limits (m), speeds (m/s), accelerations (m/s^2), settle times (s), the
         camera's mounting.
     request : calib.design.DesignRequest
@@ -224,7 +227,7 @@ def design_for_bench(cfg, request, noise=None, status=None, camera=None, draws_r
         uncertainty is on images.
     status : callable, optional
         Called with what the design is doing (``calib.design.design_plan``).
-    camera : calib.camera.CameraModel, optional
+    camera : calib.formats.camera.CameraModel, optional
         The bench's own camera (:func:`bench_scene`).
     draws_runner : callable, optional
         Where the candidate draws are designed (``Fanout.index_runner``, :mod:`service.fanout`).
@@ -270,15 +273,15 @@ def check_for_bench(cfg, plan, noise=None, methods=None, camera=None):
 
     Parameters
     ----------
-    cfg : drivers.config.BenchConfig
+    cfg : drivers.acquisition.config.BenchConfig
         The bench file.
-    plan : calib.plan.Plan
+    plan : calib.formats.plan.Plan
         The plan as it will run.
     noise : calib.design.DesignNoise or ImageNoise, optional
         As :func:`design_for_bench`'s.
     methods : tuple of str, optional
         Those of the design's (``calib.design.METHODS``) to predict; default all of them.
-    camera : calib.camera.CameraModel, optional
+    camera : calib.formats.camera.CameraModel, optional
         The bench's own camera (:func:`bench_scene`).
 
     Returns
@@ -301,7 +304,7 @@ def run_prediction(cfg, plan_doc: dict[str, Any], methods: list[str], camera=Non
     why, the motion time (s), the steps the camera will not see, the notes. None when no method of the run is
     predicted (e.g. a run that only records)."""
     from calib.design import METHODS
-    from calib.plan import Plan
+    from calib.formats.plan import Plan
 
     wanted = tuple(m for m in methods if m in METHODS)
     if not wanted:
@@ -345,7 +348,7 @@ def better_than_request(targets: dict[str, tuple[float, float, float, float]]) -
 def prediction_lines(pred, motion: dict[str, Any], breakdown: bool = False) -> list[str]:
     """The predicted std per method and combination (mm; with ``breakdown`` each source's under its method), the
     methods not predicted and why, and the motion time per phase: the lines a design and a plan's check share."""
-    from calib.parameters import COMBINATION_NAMES
+    from calib.model.parameters import COMBINATION_NAMES
 
     out = [f"{'predicted std (mm):':<29}" + " | ".join(f"{k:>13}" for k in COMBINATION_NAMES)]
     for m, std in pred.std.items():
@@ -429,7 +432,7 @@ def tradeoff_lines(rows, request) -> list[str]:
 
 def _tradeoff_tables(rows, request) -> list[str]:
     """Per method (the optimised ones first), the table of fit poses, motion time (min) and predicted std (mm)."""
-    from calib.parameters import COMBINATION_NAMES
+    from calib.model.parameters import COMBINATION_NAMES
 
     methods = list(dict.fromkeys([*request.methods, *(m for r in rows for m in r.std_m)]))
     out = []
@@ -446,7 +449,7 @@ def _tradeoff_tables(rows, request) -> list[str]:
 
 def _tradeoff_target_lines(rows, request) -> list[str]:
     """The target (mm; per method when they differ) with each count's worst ratio to it, and the time limit (min)."""
-    from calib.parameters import COMBINATION_NAMES
+    from calib.model.parameters import COMBINATION_NAMES
 
     out = []
     t = request.targets_by_method()

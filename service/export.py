@@ -1,4 +1,5 @@
-"""The calibration document (``i4cal.calibration/1``, :mod:`calib.export`) of a run or a result file, as JSON or
+"""The calibration document (``i4cal.calibration/1``, :mod:`calib.identify.export`) of a run or a result file, as JSON
+or
 YAML text: what ``i4cal export`` writes and ``GET /api/v1/runs/{id}/export`` and ``GET /api/v1/calibration/current``
 serve (docs/export.md)."""
 
@@ -11,11 +12,10 @@ from pathlib import Path
 from typing import Any, Literal
 
 from calib.errors import InputError
-from calib.export import CalibrationDocument, ExportContext, build_calibration, load_calibration
-from calib.plan import Plan
-from calib.resultdoc import RESULT_FORMAT, MethodEntry, ResultDocument
-
-from .timefmt import iso_utc
+from calib.formats.plan import Plan
+from calib.formats.resultdoc import RESULT_FORMAT, MethodEntry, ResultDocument
+from calib.identify.export import CalibrationDocument, ExportContext, build_calibration, load_calibration
+from service.timefmt import iso_utc
 
 Format = Literal["json", "yaml"]
 FORMATS: tuple[str, ...] = ("json", "yaml")
@@ -80,7 +80,7 @@ def dataset_hash(dataset_dir: Path | None) -> str | None:
     with _hash_lock:
         if key in _hash_cache:
             return _hash_cache[key]
-    from .report.analysis import dataset_sha256
+    from service.report.analysis import dataset_sha256
 
     digest = dataset_sha256(Path(dataset_dir))[0]
     with _hash_lock:
@@ -90,7 +90,7 @@ def dataset_hash(dataset_dir: Path | None) -> str | None:
 
 def result_sha256(result: ResultDocument | dict[str, Any]) -> str:
     """SHA-256 of a result document's JSON in canonical form (``service.report.analysis.json_sha256``)."""
-    from .report.analysis import json_sha256
+    from service.report.analysis import json_sha256
 
     return json_sha256(result.to_dict() if isinstance(result, ResultDocument) else result)
 

@@ -14,7 +14,7 @@ One engine for every study: ``i4cal bench accuracy``, ``i4cal bench design`` and
 * :func:`progress_display` shows tasks as they finish: a rich bar on a terminal, one plain line per finished
   task otherwise (a log file, CI).
 
-Every task runs with one BLAS and one OpenCV thread (:func:`calib.threads.single_threaded_worker`), in a worker
+Every task runs with one BLAS and one OpenCV thread (:func:`calib.numerics.threads.single_threaded_worker`), in a worker
 or in this process alike: a task's numbers do not depend on how many threads its libraries had. Each task must
 draw its random numbers from its own seed (derived from the study's seed and the task's index, never from the
 worker): then the numbers are identical whatever the worker count or engine.
@@ -127,7 +127,7 @@ def _single_threaded(fn: Callable[..., Any], *args: Any) -> Any:
     """``fn(*args)`` in a Dask worker process whose libraries run one thread (set at its first task)."""
     global _single_threaded_process
     if not _single_threaded_process:
-        from calib.threads import single_threaded_worker
+        from calib.numerics.threads import single_threaded_worker
 
         single_threaded_worker()
         _single_threaded_process = True
@@ -149,7 +149,7 @@ class _InProcess(cf.Executor):
     def run_next(self) -> bool:
         """Run the oldest waiting task (with one BLAS and one OpenCV thread, as in a worker; this process's own
         settings restored after it); False when none waits."""
-        from calib.threads import forking_single_threaded
+        from calib.numerics.threads import forking_single_threaded
 
         if not self._queue:
             return False

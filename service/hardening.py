@@ -37,7 +37,7 @@ from starlette.datastructures import Headers
 from starlette.middleware.trustedhost import TrustedHostMiddleware
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from .settings import Settings
+from service.settings import Settings
 
 #: The dashboard (``/dashboard``, ``/static``) and the API: scripts, styles, images, EventSource from this origin only.
 CSP_DEFAULT = (

@@ -34,10 +34,10 @@ PRELOAD = [
     "numpy",
     "scipy.optimize",
     "cv2",
-    "calib.pipeline",
+    "calib.identify.pipeline",
     "calib.vision.extract",
     "calib.vision.stream",
-    "drivers.streaming",
+    "drivers.acquisition.streaming",
     "calib.design",
     "service.design",
     "service.report",
@@ -101,12 +101,12 @@ def _child_main(
 ) -> None:
     """Entry point of a job child: run ``JOBS[target](emit=..., **kwargs)`` and send back the outcome.
 
-    ``method_modules``: the modules that registered methods in the server (:func:`calib.methods.registry.
+    ``method_modules``: the modules that registered methods in the server (:func:`calib.identify.registry.
     plugin_modules`), imported first so that the child knows the same methods. ``disk_full_flag``: the server's
     ``I4CAL_DISK_FULL`` (:mod:`service.failpoints`; None in production).
     """
     if disk_full_flag:
-        from . import failpoints
+        from service import failpoints
 
         failpoints.install(disk_full_flag)
     with contextlib.suppress(OSError):
@@ -123,7 +123,7 @@ def _child_main(
 
     try:
         if method_modules:
-            from calib.methods.registry import load_modules
+            from calib.identify.registry import load_modules
 
             load_modules(method_modules)
         result = JOBS[target](emit=emit, **kwargs)
@@ -159,7 +159,7 @@ def check_frame_numbers(dataset: str | os.PathLike[str]) -> None:
     InputError
         Names ``dataset.json``, the frame and the field (``q[1]``).
     """
-    from calib.dataset import Dataset
+    from calib.formats.dataset import Dataset
 
     ds = Dataset.open(dataset)
     for i, f in enumerate(ds.frames):
@@ -175,12 +175,13 @@ def extract_job(*, emit: Emit, dataset: str, out: str, workers: int, streamed: s
 
     Events: ``progress`` ``{"done", "total"}`` (at most 10/s) and ``frame`` (:func:`calib.vision.extract.frame_info`,
     one per frame and stage). ``streamed``: the file of the frames measured during the acquisition
-    (:mod:`drivers.streaming`), taken where they hold the frame's answer; the summary's ``streamed`` says how many.
+    (:mod:`drivers.acquisition.streaming`), taken where they hold the frame's answer; the summary's ``streamed`` says
+    how many.
     """
-    from calib.jsonio import write_json_atomic
-    from calib.observations import Observations
+    from calib.formats.observations import Observations
+    from calib.numerics.jsonio import write_json_atomic
     from calib.vision.extract import extract_dataset
-    from drivers.streaming import load_streamed
+    from drivers.acquisition.streaming import load_streamed
 
     check_frame_numbers(dataset)
     last = [0.0]
@@ -215,8 +216,8 @@ def fit_job(*, emit: Emit, observations: str, methods: list[str]) -> dict[str, A
     Events: ``fit`` ``{"method", "state": "start" | "done" | "failed", ...}`` and ``iteration``
     ``{"method", "stage", "iteration", "cost"}`` (every iteration of every fit).
     """
-    from calib.observations import Observations
-    from calib.pipeline import calibrate_document
+    from calib.formats.observations import Observations
+    from calib.identify.pipeline import calibrate_document
 
     obs = Observations.load(observations)
     doc = None
@@ -246,38 +247,38 @@ def merge_method(doc: dict[str, Any], method: str, part: dict[str, Any]) -> dict
     """``doc`` (a result document) with ``method``'s entry, validation and truth errors from ``part`` (the result
     document of that method alone: :func:`fit_job`). Each method's fit is its own ``calibrate(obs, [method])``: the
     parts do not depend on one another, so they can be fitted in any order or at once."""
-    from calib.resultdoc import ResultDocument
+    from calib.formats.resultdoc import ResultDocument
 
     merged = ResultDocument.from_dict(doc).merge(ResultDocument.from_dict(part), method)
     return clean_json(merged.to_dict())
 
 
 def _heavy_predict(noise: Any, *, config: Any, plan: Any, methods: tuple[str, ...], camera: Any) -> Any:
-    from .design import check_for_bench
+    from service.design import check_for_bench
 
     return check_for_bench(config, plan, noise, methods, camera)
 
 
 def _heavy_design(noise: Any, *, config: Any, request: Any, camera: Any) -> Any:
-    from .design import design_for_bench
+    from service.design import design_for_bench
 
     return design_for_bench(config, request, noise, camera=camera)
 
 
 def _heavy_tradeoff(noise: Any, *, config: Any, request: Any, counts: list[int], camera: Any) -> Any:
-    from .design import tradeoff_for_bench
+    from service.design import tradeoff_for_bench
 
     return tradeoff_for_bench(config, request, counts, noise, camera=camera)
 
 
 def _heavy_reference(noise: Any, *, config: Any, plan: Any, methods: tuple[str, ...], camera: Any) -> Any:
-    from .design import reference_targets
+    from service.design import reference_targets
 
     return reference_targets(config, plan, noise, methods, camera)
 
 
 def _heavy_run_prediction(noise: Any, *, config: Any, plan: dict[str, Any], methods: list[str], camera: Any) -> Any:
-    from .design import run_prediction
+    from service.design import run_prediction
 
     return run_prediction(config, plan, methods, camera, noise=noise)
 
@@ -285,7 +286,7 @@ def _heavy_run_prediction(noise: Any, *, config: Any, plan: dict[str, Any], meth
 def _heavy_report(noise: Any, *, data_dir: str, run: dict[str, Any], methods: list[str] | None) -> Any:
     from types import SimpleNamespace
 
-    from .report import build_report, inputs_from_run
+    from service.report import build_report, inputs_from_run
 
     return build_report(inputs_from_run(data_dir, SimpleNamespace(**run), methods))
 
@@ -316,7 +317,7 @@ def heavy_job(*, emit: Emit, task: str, noise: Any = None, camera: Any = None, *
     if task == "run_prediction" and not _predicts(kwargs["methods"]):
         return None, noise  # a run that only records, or with methods the design does not predict: no prediction
     if task in NOISE_TASKS and noise is None:
-        from .design import twin_image_noise
+        from service.design import twin_image_noise
 
         noise = twin_image_noise(camera=camera)
     if task != "report":
@@ -339,7 +340,7 @@ class Job:
         self.target = target
         self.on_event = on_event
         self._recv, self._send = _CTX.Pipe(duplex=False)
-        from calib.methods.registry import plugin_modules
+        from calib.identify.registry import plugin_modules
 
         self.process = _CTX.Process(
             target=_child_main,

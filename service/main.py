@@ -18,16 +18,16 @@ from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import FileResponse, HTMLResponse, RedirectResponse, Response
 from fastapi.staticfiles import StaticFiles
 
-from . import __version__
-from .api import api_router
-from .api.health import router as health_router
-from .api.plans import router as plans_router
-from .auth import Reader
-from .db import Database
-from .hardening import install as install_hardening
-from .metrics import CONTENT_TYPE, make_registry, render
-from .runs import Bench, RunManager
-from .settings import Settings
+from service import __version__
+from service.api import api_router
+from service.api.health import router as health_router
+from service.api.plans import router as plans_router
+from service.auth import Reader
+from service.db import Database
+from service.hardening import install as install_hardening
+from service.metrics import CONTENT_TYPE, make_registry, render
+from service.runs import Bench, RunManager
+from service.settings import Settings
 
 STATIC = Path(__file__).resolve().parent / "static"
 log = logging.getLogger("i4cal.service")
@@ -37,9 +37,9 @@ def _check_scheduler(app: FastAPI, settings: Settings, manager: RunManager):
     """The scheduled checks (``settings.check_schedule``) started on the bench, None without a schedule or bench."""
     if settings.check_schedule is None or manager.bench is None:
         return None
-    from .api.calibration import current_document
-    from .checks.manager import CheckManager
-    from .checks.schedule import CheckScheduler
+    from service.api.calibration import current_document
+    from service.checks.manager import CheckManager
+    from service.checks.schedule import CheckScheduler
 
     cm = app.state.checks = CheckManager(manager)
 
@@ -62,7 +62,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             (settings.data_dir / sub).mkdir(exist_ok=True)
         import asyncio
 
-        from .jobs import warm_up
+        from service.jobs import warm_up
 
         # the forkserver of the extraction and fit processes imports the heavy modules now, not during a run
         warm = asyncio.get_running_loop().run_in_executor(None, warm_up)

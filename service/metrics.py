@@ -8,7 +8,7 @@ Read at each scrape, nothing kept in the service that a restart would lose:
   calibration);
 * ``i4cal_frames_extracted_total``: frames the extraction went through, over every run (its summary's phases);
 * ``i4cal_modbus_*_total`` (requests, retries, timeouts, reconnects, stale, unrequested), ``i4cal_serial_*_total``:
-  the drivers' process-wide counters (:mod:`drivers.metrics`), since this service started;
+  the drivers' process-wide counters (:mod:`drivers.acquisition.metrics`), since this service started;
 * the last finished check's statistic (docs/check.md): ``i4cal_check_statistic`` (its largest ``|z|``),
   ``i4cal_check_threshold``, ``i4cal_check_z{combination}``, ``i4cal_check_change_meters{combination}``,
   ``i4cal_check_verdict{verdict}`` (1 for its verdict), ``i4cal_check_timestamp_seconds``; ``i4cal_checks{verdict}``:
@@ -29,7 +29,7 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Histo
 from prometheus_client.registry import Collector
 from sqlalchemy import select
 
-from .db import Check, Run
+from service.db import Check, Run
 
 CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
 #: Bucket bounds (s) of the run and stage duration histograms.
@@ -62,7 +62,7 @@ class RunCollector(Collector):
         return durations, frames
 
     def collect(self) -> Iterator[Metric]:
-        from .runs import STATES, TERMINAL_STATES
+        from service.runs import STATES, TERMINAL_STATES
 
         with self._lock, self.manager.db.session() as s:
             rows = s.execute(select(Run.id, Run.state)).all()
@@ -98,13 +98,13 @@ class RunCollector(Collector):
 
 
 class DriverCollector(Collector):
-    """The drivers' process-wide counters (:mod:`drivers.metrics`) as ``i4cal_<name>_total``."""
+    """The drivers' process-wide counters (:mod:`drivers.acquisition.metrics`) as ``i4cal_<name>_total``."""
 
     #: Always exported (0 until counted), so that a dashboard's query finds them.
     ALWAYS = ("modbus_requests", "modbus_retries", "modbus_timeouts", "modbus_reconnects")
 
     def collect(self) -> Iterator[Metric]:
-        from drivers.metrics import snapshot
+        from drivers.acquisition.metrics import snapshot
 
         counts = {**dict.fromkeys(self.ALWAYS, 0.0), **snapshot()}
         for name, value in sorted(counts.items()):

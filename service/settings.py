@@ -58,7 +58,7 @@ def default_data_dir() -> Path:
 
 
 class PlanSizes(BaseModel):
-    """Sizes of the named plans the service generates (``calib.plan.make_plan`` keywords)."""
+    """Sizes of the named plans the service generates (``calib.formats.plan.make_plan`` keywords)."""
 
     n_base: int = Field(10, ge=3, le=500)
     n_fit: int = Field(20, ge=3, le=2000)
@@ -116,7 +116,7 @@ class Settings(BaseSettings):
         description="this bench's name (default: the bench file's name); services sharing "
         "a database must have different names",
     )
-    bench_file: Path | None = Field(None, description="bench TOML (drivers.config)")
+    bench_file: Path | None = Field(None, description="bench TOML (drivers.acquisition.config)")
     bench: dict[str, Any] | None = Field(None, description="inline bench configuration (same fields as the TOML)")
     sim_bench: bool = Field(False, description="start a simulated bench (in its own process) and drive it")
     sim_port: int = Field(0, ge=0, le=65535, description="simulated bench base port (0: free ports)")

@@ -52,7 +52,7 @@ class SimBenchProcess:
     Attributes
     ----------
     config : dict
-        Its :class:`drivers.config.BenchConfig` as JSON (device URIs on loopback, fast simulated speeds).
+        Its :class:`drivers.acquisition.config.BenchConfig` as JSON (device URIs on loopback, fast simulated speeds).
     camera : dict or None
         ``{"K", "dist"}`` of the rendered camera (None with the fallback renderer).
     uris : dict
@@ -69,7 +69,7 @@ class SimBenchProcess:
         self.uris: dict[str, str] = {}
 
     def _start_blocking(self, timeout_s: float) -> None:
-        from .jobs import warm_up
+        from service.jobs import warm_up
 
         warm_up()
         self.process.start()

@@ -1,16 +1,16 @@
 """A toy identification method for tests/test_method_registry.py: "a-priori" returns the nominal parameters with
 their manufacturing tolerance as standard deviation (no fit). Importing this module registers it, in any process
-(the service's fit processes import it through :func:`calib.methods.registry.plugin_modules`, a CLI process through
+(the service's fit processes import it through :func:`calib.identify.registry.plugin_modules`, a CLI process through
 ``I4CAL_METHODS=tests._toy_method``)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from calib.methods.registry import MethodContext, MethodSpec, register_method
-from calib.methods.result import MethodResult, std_dict
-from calib.observations import Observations
-from calib.parameters import COMBINATION_NAMES, PARAMETER_NAMES
+from calib.formats.observations import Observations
+from calib.identify.registry import MethodContext, MethodSpec, register_method
+from calib.identify.result import MethodResult, std_dict
+from calib.model.parameters import COMBINATION_NAMES, PARAMETER_NAMES
 
 #: Manufacturing tolerance of each of the seven parameters (one standard deviation), metres.
 TOLERANCE_M = 5e-3

@@ -12,7 +12,7 @@ from pathlib import Path
 # OpenCV's own thread pools on top of it only contend for the same cores (OpenBLAS's threads spin while they wait:
 # ~30% more CPU for the same tests). Set before numpy and cv2 are first imported; a value already set is kept.
 # A test of what a user runs as they run it (the demo) removes them again from its subprocess's environment: the
-# workers' own limits must hold without them (calib/threads.py).
+# workers' own limits must hold without them (calib/numerics/threads.py).
 NUMERICS_THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENCV_FOR_THREADS_NUM")
 for _var in NUMERICS_THREAD_VARS:
     os.environ.setdefault(_var, "1")
@@ -20,9 +20,9 @@ for _var in NUMERICS_THREAD_VARS:
 import numpy as np
 import pytest
 
-from calib.observations import Observations
-from calib.parameters import NOMINAL
-from calib.plan import make_plan
+from calib.formats.observations import Observations
+from calib.formats.plan import make_plan
+from calib.model.parameters import NOMINAL
 from drivers.sim.twin import GeometricTwin, NoiseSpec
 
 
@@ -59,8 +59,8 @@ def _render_zip(tmp_path_factory) -> bytes:
     import io
     import zipfile
 
-    from calib.plan import make_plan
-    from drivers.sim.imaging import simulate_dataset
+    from calib.formats.plan import make_plan
+    from drivers.sim.rendered_dataset import simulate_dataset
     from drivers.sim.twin import BenchGeometry
 
     g = BenchGeometry()

@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 
 from calib.errors import InputError
-from calib.methods import registry
-from calib.methods.registry import MethodContext, MethodSpec, get_method, method_names, register_method
-from calib.observations import Observations
-from calib.pipeline import calibrate
+from calib.formats.observations import Observations
+from calib.identify import registry
+from calib.identify.pipeline import calibrate
+from calib.identify.registry import MethodContext, MethodSpec, get_method, method_names, register_method
 from tests.service.conftest import AUTH, service, sim, wait_state  # noqa: F401  (fixtures; rendered_zip: tests/conftest.py)
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -16,14 +16,7 @@ See docs/design.md.
 from .check import PlanCheck, check_plan, targets_from_plan
 from .imaging import calibration_covariance, synthetic_rods
 from .motion import MotionSpec, move_time, order_tour, plan_motion_time
-from .optimize import (
-    DesignRequest,
-    DesignResult,
-    design_plan,
-    design_score,
-    log_det_information,
-    select_poses,
-)
+from .optimize import DesignRequest, DesignResult, design_plan, design_score, log_det_information, select_poses
 from .predict import (
     METHODS,
     DesignNoise,

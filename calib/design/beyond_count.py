@@ -14,10 +14,10 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from ..parameters import COMBINATION_NAMES
-from ..plan import Plan
-from .count_trend import CountTrend, fit_count_trend
-from .predict import Prediction, ratio_to_target
+from calib.design.count_trend import CountTrend, fit_count_trend
+from calib.design.predict import Prediction, ratio_to_target
+from calib.formats.plan import Plan
+from calib.model.parameters import COMBINATION_NAMES
 
 __all__ = ["TREND_ROUNDS", "DesignedCount", "count_std", "past_the_count_search", "trend_summary"]
 
@@ -39,7 +39,7 @@ def count_std(std: dict[str, dict[str, float]], methods: Iterable[str]) -> dict[
     Returns
     -------
     dict of str to ndarray, shape (4,)
-        Per method, the std in :data:`~calib.parameters.COMBINATION_NAMES` order, metres (inf where missing).
+        Per method, the std in :data:`~calib.model.parameters.COMBINATION_NAMES` order, metres (inf where missing).
     """
     return {
         m: np.array([(std.get(m) or {}).get(c, np.inf) for c in COMBINATION_NAMES], dtype=np.float64) for m in methods

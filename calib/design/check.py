@@ -16,16 +16,16 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputError
-from ..kinematics import dkm
-from ..parameters import COMBINATION_NAMES, I4Parameters
-from ..plan import Plan
-from .imaging import board_corners
-from .motion import MotionSpec, plan_motion_time
-from .optimize import N_FIT_MOST, shading_note
-from .predict import METHODS, DesignNoise, Prediction, predict_plan
-from .predict_images import ImageNoise
-from .scene import Scene, _inside, visibility
+from calib.design.imaging import board_corners
+from calib.design.motion import MotionSpec, plan_motion_time
+from calib.design.optimize import N_FIT_MOST, shading_note
+from calib.design.predict import METHODS, DesignNoise, Prediction, predict_plan
+from calib.design.predict_images import ImageNoise
+from calib.design.scene import Scene, _inside, visibility
+from calib.errors import InputError
+from calib.formats.plan import Plan
+from calib.model.kinematics import dkm
+from calib.model.parameters import COMBINATION_NAMES, I4Parameters
 
 __all__ = [
     "BOARD_PHASES",

@@ -1,4 +1,4 @@
-"""A check's plan: the short plan that tests whether a calibration still holds (:mod:`calib.drift`).
+"""A check's plan: the short plan that tests whether a calibration still holds (:mod:`calib.check.drift`).
 
 A check fits the combined method to its own frames, so its plan has the three phases that method needs: the
 base-frame sweeps (``rotation``, ``translation``) and fit poses (``poses``). The fit poses are chosen by the same
@@ -12,14 +12,14 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..errors import InputError
-from ..parameters import I4Parameters
-from ..plan import Plan, SoftLimits, Step
-from .motion import MotionSpec, plan_motion_time
-from .optimize import DesignRequest, design_plan
-from .predict import DesignNoise
-from .predict_images import ImageNoise
-from .scene import Scene
+from calib.design.motion import MotionSpec, plan_motion_time
+from calib.design.optimize import DesignRequest, design_plan
+from calib.design.predict import DesignNoise
+from calib.design.predict_images import ImageNoise
+from calib.design.scene import Scene
+from calib.errors import InputError
+from calib.formats.plan import Plan, SoftLimits, Step
+from calib.model.parameters import I4Parameters
 
 __all__ = [
     "CHECK_COUNTS",
@@ -172,7 +172,8 @@ def design_check_plan(
 def with_repeats(plan: Plan, n: int) -> Plan:
     """``plan`` with its fit poses revisited: ``n - 1`` more tours of them as ``validation`` steps (the combined fit
     leaves them out), each tour starting one pose further on (every revisit comes from another pose), the first
-    taking two frames at each pose without moving between them (:mod:`calib.repeatability`: the measurement floor).
+    taking two frames at each pose without moving between them (:mod:`calib.check.repeatability`: the measurement
+    floor).
 
     Parameters
     ----------

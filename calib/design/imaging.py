@@ -14,7 +14,7 @@ methods weigh by:
   ``corner_px`` and its first-order change with the intrinsics (``d_intrinsics``);
 * the camera's calibration covariance when none is given (:func:`calibration_covariance`): the inverse
   information of the board views of the camera phase (corner noise ``corner_px``, each view's pose and the released
-  board points marginalised: what :func:`calib.camera.calibrate_intrinsics` reports).
+  board points marginalised: what :func:`calib.camera.intrinsics.calibrate_intrinsics` reports).
 
 Everything at the nominal geometry, metres and radians; pixels where named ``_px``.
 """
@@ -25,13 +25,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..bundle import MIN_VIEW_DOF, Bundle, bundle_covariance, view_dof
-from ..camera import CameraModel, moved_camera
-from ..errors import InputError
-from ..kinematics import dkm
-from ..parameters import I4Parameters
-from ..transforms import Rigid, matrix_to_rotvec, rotvec_to_matrix
-from .scene import Scene, rod_segments, visibility
+from calib.camera.bundle import MIN_VIEW_DOF, Bundle, bundle_covariance, view_dof
+from calib.camera.intrinsics import moved_camera
+from calib.design.scene import Scene, rod_segments, visibility
+from calib.errors import InputError
+from calib.formats.camera import CameraModel
+from calib.model.kinematics import dkm
+from calib.model.parameters import I4Parameters
+from calib.numerics.transforms import Rigid, matrix_to_rotvec, rotvec_to_matrix
 
 __all__ = [
     "BoardPoses",
@@ -51,7 +52,8 @@ _BIN_MEANS = np.array([0.1, 0.3, 0.5, 0.7, 0.9])
 
 
 def design_camera(camera: CameraModel, names: tuple[str, ...]) -> CameraModel:
-    """``camera`` carrying the lens model's parameter names (what :func:`calib.camera.intrinsics_names` reads).
+    """``camera`` carrying the lens model's parameter names (what
+    :func:`calib.camera.intrinsics.intrinsics_names` reads).
 
     Parameters
     ----------
@@ -178,8 +180,8 @@ def synthetic_rods(
     InputError
         If ``edge_px`` is not finite and > 0.
     """
-    from ..vision.rods.covariance import _direction_covariances_set
-    from ..vision.rods.geometry import axis_point_seen_along
+    from calib.vision.rods.covariance import _direction_covariances_set
+    from calib.vision.rods.cylinder import axis_point_seen_along
 
     q = np.atleast_2d(np.asarray(q, dtype=np.float64))
     if not (np.isfinite(edge_px) and edge_px > 0):
@@ -463,9 +465,11 @@ def board_poses(
 def calibration_covariance(scene: Scene, views: list[Rigid], corner_px: float, names: tuple[str, ...]) -> np.ndarray:
     """Covariance (n, n) of the intrinsics ``names`` calibrated from board ``views`` (camera_from_board poses).
 
-    What :func:`calib.camera.calibrate_intrinsics` reports for these views: the bundle's information (every view's
+    What :func:`calib.camera.intrinsics.calibrate_intrinsics` reports for these views: the bundle's information
+    (every view's
     pose and the released board points marginalised, OpenCV's gauge) with corner noise ``corner_px`` in every view,
-    times the factor for weights estimated from the views' residuals when it weights them (:mod:`calib.bundle`).
+    times the factor for weights estimated from the views' residuals when it weights them
+    (:mod:`calib.camera.bundle`).
     With views of unequal noise the weighted fit's information is that of ``corner_px`` = the views' variances'
     harmonic mean, square-rooted.
 

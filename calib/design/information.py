@@ -8,11 +8,11 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import IdentifiabilityError
-from ..kinematics import dkm
-from ..parameters import COMBINATION_NAMES, I4Parameters
-from ..transforms import rotvec_to_matrix
-from .scene import Scene
+from calib.design.scene import Scene
+from calib.errors import IdentifiabilityError
+from calib.model.kinematics import dkm
+from calib.model.parameters import COMBINATION_NAMES, I4Parameters
+from calib.numerics.transforms import rotvec_to_matrix
 
 __all__ = ["board_pose_sensitivity", "end_effector_problem", "invert_information"]
 
@@ -107,7 +107,7 @@ def end_effector_problem(nominal: I4Parameters, q_fit: np.ndarray, scene: Scene)
     t : ndarray, shape (N, 3)
         ``camera_from_board`` translations, metres.
     """
-    from ..methods.end_effector import EndEffectorModel
+    from calib.identify.end_effector import EndEffectorModel
 
     q_fit = np.asarray(q_fit, dtype=np.float64).reshape(-1, 4)
     pose = dkm(nominal, q_fit)

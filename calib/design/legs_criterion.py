@@ -1,6 +1,6 @@
 """The legs method's accuracy as a criterion for choosing fit poses: additive per-pose statistics.
 
-The legs method (:mod:`calib.methods.legs`) estimates ``(L, S, D)`` in its steps 3-4 by generalised least squares
+The legs method (:mod:`calib.identify.legs`) estimates ``(L, S, D)`` in its steps 3-4 by generalised least squares
 over the fit poses' leg directions, given the joints that step 1 finds in the lock phases. Its error has two parts
 that the fit poses change:
 
@@ -24,11 +24,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..numdiff import central_jacobian
-from ..parameters import SEVEN_TO_FOUR, I4Parameters
-from .predict import mark_undetermined, scaled_inverse
-from .predict_images import ImageNoise, legs_fit_directions, legs_lock_joints
-from .scene import Scene
+from calib.design.predict import mark_undetermined, scaled_inverse
+from calib.design.predict_images import ImageNoise, legs_fit_directions, legs_lock_joints
+from calib.design.scene import Scene
+from calib.model.parameters import SEVEN_TO_FOUR, I4Parameters
+from calib.numerics.numdiff import central_jacobian
 
 __all__ = ["LegsCriterion"]
 
@@ -56,7 +56,7 @@ class LegsCriterion:
     """
 
     def __init__(self, nominal: I4Parameters, q_lock: list[np.ndarray], scene: Scene, noise: ImageNoise) -> None:
-        from ..methods.legs import LegsModel, fit_step2, joint_depth_systematic
+        from calib.identify.legs import LegsModel, fit_step2, joint_depth_systematic
 
         self.nominal, self.scene, self.noise = nominal, scene, noise
         lk = legs_lock_joints(nominal, q_lock, scene, noise)
@@ -100,7 +100,7 @@ class LegsCriterion:
         ndarray, shape (N, 3, 30)
             The per-pose statistic (in the units of ``(L, S, D)``, metres, and the 24 joint coordinates, metres).
         """
-        from ..methods.legs import LegsModel, pair_own_covariances
+        from calib.identify.legs import LegsModel, pair_own_covariances
 
         q = np.asarray(q, dtype=np.float64).reshape(-1, 4)
         out = np.zeros((len(q), 3, _WIDTH))
@@ -142,7 +142,7 @@ class LegsCriterion:
 
     def _with_prior(self, cov7: np.ndarray) -> np.ndarray:
         """Batched (..., 7, 7): the method's a priori tolerance in the directions the data pin worse than it
-        (:func:`calib.methods.legs.uncertainty._with_prior`: data weighed by ``s^2 / (w + s^2)`` there)."""
+        (:func:`calib.identify.legs.uncertainty._with_prior`: data weighed by ``s^2 / (w + s^2)`` there)."""
         if not self.prior_var:
             return cov7
         w, V = np.linalg.eigh(0.5 * (cov7 + np.swapaxes(cov7, -1, -2)))

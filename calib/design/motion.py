@@ -13,9 +13,9 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputError
-from ..parameters import I4Parameters
-from ..plan import Plan, line_poses
+from calib.errors import InputError
+from calib.formats.plan import Plan, line_poses
+from calib.model.parameters import I4Parameters
 
 __all__ = ["MotionSpec", "move_time", "order_tour", "plan_motion_time"]
 
@@ -125,7 +125,7 @@ def plan_motion_time(plan: Plan, spec: MotionSpec, nominal: I4Parameters | None 
     dict
         ``{"total_s": float, "per_phase_s": {phase: float}}``, seconds.
     """
-    from ..kinematics import ikm
+    from calib.model.kinematics import ikm
 
     per: dict[str, float] = {}
     cur = None if spec.start_q is None else np.asarray(spec.start_q, dtype=np.float64)

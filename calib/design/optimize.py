@@ -1,6 +1,6 @@
 """Pose-set optimisation: choose the fit poses (and the base-frame sweeps' extents) before any motion.
 
-Candidates are poses drawn uniformly in the workspace box (:class:`calib.plan.Workspace`), reachable by the
+Candidates are poses drawn uniformly in the workspace box (:class:`calib.formats.plan.Workspace`), reachable by the
 nominal model, within the soft limits, and visible (:func:`.scene.visibility`: board and eight rods in view);
 the paper's own pose set for the same count is added as candidates too, so a designed set is never worse
 than it. Every fit pose's information on a method's unknowns is additive (:mod:`.predict`), so a pose set's
@@ -31,25 +31,10 @@ from typing import Any, Literal
 
 import numpy as np
 
-from ..errors import InputError
-from ..kinematics import ikm
-from ..parameters import COMBINATION_NAMES, I4Parameters
-from ..plan import (
-    Plan,
-    SoftLimits,
-    Step,
-    Workspace,
-    equal_translation,
-    guided_line,
-    lock_actuator,
-    pose_set,
-    random_poses,
-    rotation_sweep,
-)
-from .beyond_count import DesignedCount, count_std, past_the_count_search
-from .legs_criterion import LegsCriterion
-from .motion import MotionSpec, order_tour, plan_motion_time
-from .predict import (
+from calib.design.beyond_count import DesignedCount, count_std, past_the_count_search
+from calib.design.legs_criterion import LegsCriterion
+from calib.design.motion import MotionSpec, order_tour, plan_motion_time
+from calib.design.predict import (
     DesignNoise,
     Prediction,
     base_frame_information,
@@ -61,14 +46,29 @@ from .predict import (
     ratio_to_target,
     scaled_inverse,
 )
-from .predict_images import (
+from calib.design.predict_images import (
     ImageNoise,
     base_frame_images,
     combined_images_pose_information,
     combined_images_prior,
     end_effector_images_pose_information,
 )
-from .scene import Scene, visibility
+from calib.design.scene import Scene, visibility
+from calib.errors import InputError
+from calib.formats.plan import (
+    Plan,
+    SoftLimits,
+    Step,
+    Workspace,
+    equal_translation,
+    guided_line,
+    lock_actuator,
+    pose_set,
+    random_poses,
+    rotation_sweep,
+)
+from calib.model.kinematics import ikm
+from calib.model.parameters import COMBINATION_NAMES, I4Parameters
 
 __all__ = [
     "BenchSettings",
@@ -469,13 +469,13 @@ def locks_joints(method: str) -> bool:
     Parameters
     ----------
     method : str
-        A registered method's name (:mod:`calib.methods.registry`).
+        A registered method's name (:mod:`calib.identify.registry`).
 
     Returns
     -------
     bool
     """
-    from ..methods.registry import get_method
+    from calib.identify.registry import get_method
 
     return any(p.startswith("lock-") for p in get_method(method).required_phases)
 
@@ -487,13 +487,13 @@ def uses_sweeps(method: str) -> bool:
     Parameters
     ----------
     method : str
-        A registered method's name (:mod:`calib.methods.registry`).
+        A registered method's name (:mod:`calib.identify.registry`).
 
     Returns
     -------
     bool
     """
-    from ..methods.registry import get_method
+    from calib.identify.registry import get_method
 
     return {"rotation", "translation"} <= set(get_method(method).required_phases)
 
@@ -628,7 +628,7 @@ def _lock_steps(nominal, scene, limits, ws, n_lock: int, seed: int) -> list[Step
 
 def _line_steps(nominal, limits: SoftLimits, ws: Workspace, notes: list[str]) -> list[Step]:
     """The paper's 500 mm guided line through ``ws``'s centre, shortened until every sample is within the soft limits
-    (:func:`calib.plan.guided_line`); left out, and said, when not even 100 mm fits."""
+    (:func:`calib.formats.plan.guided_line`); left out, and said, when not even 100 mm fits."""
     try:
         steps = guided_line(nominal, ws=ws, limits=limits)
     except InputError:
@@ -1145,8 +1145,8 @@ def design_plan(
     Returns
     -------
     DesignResult
-        ``plan`` (a :class:`calib.plan.Plan` named ``designed``, its ``design`` field holding the summary)
-        that :func:`calib.plan.validate_plan` accepts for ``limits``.
+        ``plan`` (a :class:`calib.formats.plan.Plan` named ``designed``, its ``design`` field holding the summary)
+        that :func:`calib.formats.plan.validate_plan` accepts for ``limits``.
     """
     req = request or DesignRequest()
     bench = BenchSettings(

@@ -5,7 +5,7 @@ the plan's joint values, for measurement noise of known level (:class:`DesignNoi
 default, or the noise measured in a run). Units: metres and radians.
 
 * **combined** (:func:`predict_combined`): the base frame's rotation from the rotation and translation
-  phases (the board-only part of :func:`calib.bound.combined_fisher`: its information on the camera
+  phases (the board-only part of :func:`calib.identify.bound.combined_fisher`: its information on the camera
   rotation ``w``, the other board unknowns marginalised) is the prior of a fit of the rods' Jacobian entries
   ``(u_y/u_x, u_z/u_x)`` (eq. 8) over the four combinations and ``w``. ``weighting="gls"`` (each rod whitened
   by its direction noise, what the method does when rods carry their covariance, as extracted from images):
@@ -13,7 +13,7 @@ default, or the noise measured in a run). Units: metres and radians.
   ``"frobenius"`` (the paper's eq. 8, what the method does on rods without a covariance): the sandwich
   ``H^-1 (J^T S J / s^2 + P) H^-1`` with ``H = J^T J / s^2 + P``, S the rods' relative noise covariance.
 * **end-effector** (:func:`predict_end_effector`): the method's IKM residuals
-  (:class:`calib.methods.end_effector._Model`: four joint residuals and two tilt residuals per fit pose, 16
+  (:class:`calib.identify.end_effector._Model`: four joint residuals and two tilt residuals per fit pose, 16
   unknowns with the camera and board transforms and the board's scale), weighted by their covariance from
   the board-pose noise (rotation ``board_rotation_rad`` per axis, translation ``board_translation_m`` along
   the camera axes) and the encoders: the GLS covariance ``(sum_k J_k^T C_k^-1 J_k)^-1``.
@@ -37,17 +37,17 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..errors import IdentifiabilityError, InputError
-from ..kinematics import dkm
-from ..numdiff import central_jacobian
-from ..parameters import COMBINATION_NAMES, PARAMETER_NAMES, SEVEN_TO_FOUR, I4Parameters
-from ..plan import Plan
-from ..transforms import matrix_to_rotvec, rotvec_to_matrix, unit
-from .information import board_pose_sensitivity, end_effector_problem, invert_information
-from .scene import Scene, rod_segments
+from calib.design.information import board_pose_sensitivity, end_effector_problem, invert_information
+from calib.design.scene import Scene, rod_segments
+from calib.errors import IdentifiabilityError, InputError
+from calib.formats.plan import Plan
+from calib.model.kinematics import dkm
+from calib.model.parameters import COMBINATION_NAMES, PARAMETER_NAMES, SEVEN_TO_FOUR, I4Parameters
+from calib.numerics.numdiff import central_jacobian
+from calib.numerics.transforms import matrix_to_rotvec, rotvec_to_matrix, unit
 
 if TYPE_CHECKING:
-    from .predict_images import ImageNoise
+    from calib.design.predict_images import ImageNoise
 
 __all__ = [
     "METHODS",
@@ -310,12 +310,12 @@ def _combined_rods(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per rod observation (2 per leg and pose): Jacobian (M, 2, 7) of eq. 8's raw residuals over
     (combinations, w), their relative noise covariance (M, 2, 2) for unit direction noise, pose index (M,)."""
-    from ..methods.combined import model_ratios, ratio_gradient
+    from calib.identify.combined import model_ratios, ratio_gradient
 
     q_fit = np.asarray(q_fit, dtype=np.float64).reshape(-1, 4)
     R0 = np.asarray(camera_from_base_R, dtype=np.float64)
     xi0 = np.array([nominal.combinations()[k] for k in COMBINATION_NAMES])
-    from ..bound import leg_directions_reduced
+    from calib.identify.bound import leg_directions_reduced
 
     uB = leg_directions_reduced(xi0, q_fit)  # (N, 4, 3)
     u_cam = np.repeat((uB @ R0.T)[:, :, None, :], 2, axis=2).reshape(-1, 3)  # two rods per leg
@@ -534,7 +534,7 @@ def predict_legs(
     IdentifiabilityError
         Fewer than 2 frames in a lock phase.
     """
-    from ..methods.legs import LegsModel, steps34_covariance
+    from calib.identify.legs import LegsModel, steps34_covariance
 
     noise = noise or DesignNoise()
     if len(q_lock) != 4 or any(len(np.atleast_2d(q)) < 2 for q in q_lock):
@@ -651,7 +651,7 @@ def predict_plan(
     InputError
         An unknown method.
     """
-    from .predict_images import ImageNoise
+    from calib.design.predict_images import ImageNoise
 
     noise = noise or DesignNoise()
     if isinstance(noise, ImageNoise):
@@ -693,7 +693,11 @@ def _predict_plan_images(
     plan: Plan, nominal: I4Parameters, scene: Scene, noise: ImageNoise, methods: tuple[str, ...]
 ) -> Prediction:
     """:func:`predict_plan` with the image-level models (:mod:`.predict_images`)."""
-    from .predict_images import predict_combined_images_posteriors, predict_end_effector_images, predict_legs_images
+    from calib.design.predict_images import (
+        predict_combined_images_posteriors,
+        predict_end_effector_images,
+        predict_legs_images,
+    )
 
     out = Prediction(noise=noise.to_dict(), weighting="gls")
     q_fit = phase_q(plan, "poses")

@@ -2,7 +2,7 @@
 
 On images the methods weigh what the extraction measures by what it reports (rods: ``cov_u`` from the limb edges'
 scatter; boards: the PnP covariance) and carry the camera's intrinsics and a limb-edge bias common to every rod as
-nuisances (:mod:`calib.methods.combined`, :mod:`calib.methods.end_effector`, :mod:`calib.methods.legs`). The
+nuisances (:mod:`calib.identify.combined`, :mod:`calib.identify.end_effector`, :mod:`calib.identify.legs`). The
 prediction rebuilds those measurements for the plan at the nominal geometry (:mod:`.imaging`) and computes the
 covariance each method reports, with the noise levels of :class:`ImageNoise` (the image-level twin's by default,
 or taken from a run):
@@ -18,7 +18,7 @@ or taken from a run):
   pose's PnP covariance (corner noise ``corner_px``) and the encoders: ``(sum J^T C^-1 J)^-1``, plus the intrinsics'
   posterior propagated through the fit's gain (the method's ``_intrinsics_part``).
 * **legs**: step 1's joints from the lock phases' plane equations weighted by their limb lines' variances
-  (:func:`calib.methods.legs.limb_line_noise`, the method's own weighting), propagated through steps 2-4; the GLS
+  (:func:`calib.identify.legs.limb_line_noise`, the method's own weighting), propagated through steps 2-4; the GLS
   covariance of (L, S, D) from the fit poses' leg directions (two rods' ``cov_u`` combined); the intrinsics'
   posterior and the edge biases redone through the whole estimate (the method's ``IntrinsicsEffect``); then the
   a priori tolerance (``legs_prior_std_m``, the method's ``with_prior``), and the a priori values with that
@@ -36,15 +36,15 @@ from typing import Any
 
 import numpy as np
 
-from ..camera import INTRINSICS_NAMES
-from ..errors import IdentifiabilityError, InputError
-from ..methods.legs.constants import JOINT_DEPTH_SYS_LEG_SHARE, JOINT_DEPTH_SYS_M
-from ..numdiff import central_jacobian
-from ..parameters import COMBINATION_NAMES, SEVEN_TO_FOUR, I4Parameters
-from ..transforms import matrix_to_rotvec, rotvec_to_matrix
-from .imaging import BoardPoses, RodSet, board_poses, design_camera, synthetic_rods
-from .information import board_pose_sensitivity, end_effector_problem, invert_information
-from .scene import Scene
+from calib.camera.intrinsics import INTRINSICS_NAMES
+from calib.design.imaging import BoardPoses, RodSet, board_poses, design_camera, synthetic_rods
+from calib.design.information import board_pose_sensitivity, end_effector_problem, invert_information
+from calib.design.scene import Scene
+from calib.errors import IdentifiabilityError, InputError
+from calib.identify.legs.constants import JOINT_DEPTH_SYS_LEG_SHARE, JOINT_DEPTH_SYS_M
+from calib.model.parameters import COMBINATION_NAMES, SEVEN_TO_FOUR, I4Parameters
+from calib.numerics.numdiff import central_jacobian
+from calib.numerics.transforms import matrix_to_rotvec, rotvec_to_matrix
 
 __all__ = [
     "DEFAULT_INTRINSICS_NAMES",
@@ -76,7 +76,7 @@ class ImageNoise:
         Std of a limb edge point about its line (px): the extraction's edge residual RMS (``rms_px``; the benches'
         ``edge_noise_px_median``). The rods' ``cov_u`` adds the edge-bias allowance (``edge_bias_px``), which
         dominates it; the legs method's lock phases leave that allowance out and weigh their frames by this scatter
-        (:func:`calib.methods.legs.limb_line_noise`), so a larger value standing in for the bias would weigh them
+        (:func:`calib.identify.legs.limb_line_noise`), so a larger value standing in for the bias would weigh them
         as noisier than they are.
     rod_scale : float
         The rods' scatter over the prediction's synthetic ``cov_u_own`` (what the combined method weighs by): the
@@ -100,7 +100,7 @@ class ImageNoise:
     edge_bias_length_px : float
         The allowance's correlation length along a limb (``RodSettings.edge_bias_length_px``).
     edge_bias_prior_px : float
-        Prior std of the limb-edge bias common to every rod (``calib.methods.combined.EDGE_BIAS_STD_PX``).
+        Prior std of the limb-edge bias common to every rod (``calib.identify.combined.EDGE_BIAS_STD_PX``).
     legs_lock_chi2, legs_directions_chi2 : float
         The legs method's residual chi-square per degree of freedom in its lock phases (step 1, the joints' planes)
         and in its fit poses (steps 3-4, the leg directions): the method scales its joints' and its leg directions'
@@ -114,10 +114,10 @@ class ImageNoise:
         (docs/design.md). The combined prediction has it in ``rod_scale``.
     legs_joint_depth_sys_m, legs_joint_depth_sys_leg_share : float
         The lock phases' joints' systematic error along their line of sight (m, RMS per joint) and the share of
-        its variance common to a leg's two joints: the legs method's (``calib.methods.legs.constants``,
+        its variance common to a leg's two joints: the legs method's (``calib.identify.legs.constants``,
         ``joint_depth_systematic``; the rods' shading, the same in every frame of a lock phase). 0: left out.
     legs_prior_std_m : float or None
-        The legs method's a priori tolerance per parameter (``calib.methods.legs.PRIOR_STD_M``).
+        The legs method's a priori tolerance per parameter (``calib.identify.legs.PRIOR_STD_M``).
     intrinsics_names : tuple of str
         The lens model's parameters.
     intrinsics_cov : tuple of tuples, or None
@@ -286,7 +286,7 @@ class ImageNoise:
 
 
 def _steps(cov: np.ndarray | None, n: int) -> np.ndarray:
-    from ..methods.intrinsics import principal_steps
+    from calib.identify.intrinsics import principal_steps
 
     return np.zeros((0, n)) if cov is None else principal_steps(cov)
 
@@ -410,7 +410,7 @@ def _combined_terms(
     covariance (M, 2, 2) and the pose index (M,). ``drop``: rods left out, (fit pose index, leg 0-3, rod 0-1).
     ``correlated``: also the rods' whole error covariance (2M, 2M) with the method's correlations between rods
     (:func:`_rod_error_covariance`), else None."""
-    from ..methods.combined import RodIntrinsicsModel, model_ratios, ratio_gradient
+    from calib.identify.combined import RodIntrinsicsModel, model_ratios, ratio_gradient
 
     q_fit = np.asarray(q_fit, dtype=np.float64).reshape(-1, 4)
     R0 = scene.camera_from_base.R
@@ -450,10 +450,10 @@ def _rod_error_covariance(
     rods: RodSet, shape: np.ndarray, ratio_grad: np.ndarray, R_cb: np.ndarray, K: np.ndarray, noise: ImageNoise
 ) -> np.ndarray:
     """The rods' error covariance (2M, 2M) in the combined method's raw residuals, as the method models it
-    (:mod:`calib.methods.rod_correlation`): each rod's own ``shape`` (M, 2, 2), the whitened errors of a leg's two
+    (:mod:`calib.identify.rod_correlation`): each rod's own ``shape`` (M, 2, 2), the whitened errors of a leg's two
     rods in one frame correlated at ``noise.rod_pair_correlation``, the in-image errors of rods seen at nearby places
     at ``noise.rod_distance_correlation`` (times exp(-distance / 100 px)), all times ``noise.rod_scale^2``."""
-    from ..methods import rod_correlation as rc
+    from calib.identify import rod_correlation as rc
 
     m = len(rods)
     pairs = rc.rod_pairs(rods.k, rods.leg)
@@ -604,7 +604,7 @@ def predict_combined_images_posteriors(
     drop: set[tuple[int, int, int]] | None = None,
 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """:func:`predict_combined_images` and the limb-edge bias's posterior covariance (2, 2), px^2 (None without the
-    edge-bias nuisances): what the legs method takes from the combined fit (``calib.methods.edge_bias``).
+    edge-bias nuisances): what the legs method takes from the combined fit (``calib.identify.edge_bias``).
 
     Parameters
     ----------
@@ -752,7 +752,7 @@ class LegsLock:
     q_locked : ndarray, shape (4,)
         Each locked actuator's value (mean over its phase), metres.
     planes : list
-        Per leg and rod, the :class:`calib.methods.legs.PlaneObservation` of each lock frame.
+        Per leg and rod, the :class:`calib.identify.legs.PlaneObservation` of each lock frame.
     lock_fields : list
         Per leg and rod, the limb samples (distorted pixels) and interpretation planes, for redoing the planes
         with other intrinsics.
@@ -795,7 +795,7 @@ def legs_lock_joints(nominal: I4Parameters, q_lock: list[np.ndarray], scene: Sce
         A phase with fewer than 2 frames, or a rod in view in fewer than 2 of its lock frames (names the phase and
         the rod).
     """
-    from ..methods.legs import PlaneObservation, joint_from_planes, limb_line_noise
+    from calib.identify.legs import PlaneObservation, joint_from_planes, limb_line_noise
 
     if len(q_lock) != 4 or any(len(np.atleast_2d(q)) < 2 for q in q_lock):
         raise IdentifiabilityError("the legs method needs at least 2 frames in each of lock-1 .. lock-4")
@@ -880,7 +880,7 @@ def legs_fit_directions(nominal: I4Parameters, q_fit: np.ndarray, scene: Scene, 
     LegsFitDirections
         Rod and leg directions (dimensionless) and their covariances (rad^2), NaN where not seen.
     """
-    from ..methods.legs import pair_means
+    from calib.identify.legs import pair_means
 
     q_fit = np.asarray(q_fit, dtype=np.float64).reshape(-1, 4)
     N = len(q_fit)
@@ -949,7 +949,7 @@ def predict_legs_images(
     IdentifiabilityError
         The lock phases or the fit poses do not determine the parameters.
     """
-    from ..methods.legs import (
+    from calib.identify.legs import (
         IntrinsicsEffect,
         LegsModel,
         joint_depth_systematic,

@@ -21,11 +21,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..camera import CameraModel
-from ..kinematics import base_from_ee, dkm
-from ..parameters import I4Parameters
-from ..transforms import Rigid
-from ..vision.rods.types import rod_ends_camera
+from calib.formats.camera import CameraModel
+from calib.model.kinematics import base_from_ee, dkm
+from calib.model.parameters import I4Parameters
+from calib.numerics.transforms import Rigid
+from calib.vision.rods.types import rod_ends_camera
 
 __all__ = ["Scene", "VisibilityLimits", "board_outline", "rod_segments", "visibility"]
 

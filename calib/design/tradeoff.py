@@ -14,12 +14,12 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputError
-from ..parameters import COMBINATION_NAMES, I4Parameters
-from .beyond_count import count_std, trend_summary
-from .count_trend import fit_count_trend
-from .optimize import DesignRequest, DesignResult, design_plan, ratio_to_target
-from .scene import Scene
+from calib.design.beyond_count import count_std, trend_summary
+from calib.design.count_trend import fit_count_trend
+from calib.design.optimize import DesignRequest, DesignResult, design_plan, ratio_to_target
+from calib.design.scene import Scene
+from calib.errors import InputError
+from calib.model.parameters import COMBINATION_NAMES, I4Parameters
 
 __all__ = [
     "MAX_TRADEOFF_COUNTS",

@@ -1,4 +1,4 @@
-"""ChArUco board: construction from a :class:`~calib.dataset.BoardSpec`, detection and pose.
+"""ChArUco board: construction from a :class:`~calib.formats.dataset.BoardSpec`, detection and pose.
 
 Uses OpenCV >= 4.7's API: ``cv2.aruco.CharucoDetector``, ``board.matchImagePoints``, ``solvePnP``
 (IPPE/iterative) then ``solvePnPRefineLM``. The board frame is OpenCV's: origin at the board's
@@ -15,62 +15,16 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from ..camera import CameraModel, intrinsics_names, projection_columns
-from ..dataset import BoardSpec
-from ..robust import chi2_gate
+from calib.camera.charuco import board_corners, make_board
+from calib.camera.intrinsics import intrinsics_names, projection_columns
+from calib.formats.camera import CameraModel
+from calib.formats.dataset import BoardSpec
+from calib.numerics.robust import chi2_gate
 
 Array = NDArray[np.float64]
 
 #: Below this many ChArUco corners the board is reported missing.
 DEFAULT_MIN_CORNERS = 6
-
-
-def make_board(spec: BoardSpec) -> cv2.aruco.CharucoBoard:
-    """The OpenCV board described by ``spec`` (legacy layout when ``spec.legacy_pattern``).
-
-    Parameters
-    ----------
-    spec : BoardSpec
-        Squares, square and marker lengths (metres), ArUco dictionary name and layout.
-
-    Returns
-    -------
-    cv2.aruco.CharucoBoard
-        The board, lengths in metres.
-
-    Raises
-    ------
-    ValueError
-        ``spec.dictionary`` names no ArUco dictionary of OpenCV.
-    """
-    name = spec.dictionary
-    if not hasattr(cv2.aruco, name):
-        raise ValueError(f"unknown ArUco dictionary {name!r}")
-    dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
-    board = cv2.aruco.CharucoBoard(
-        (spec.squares_x, spec.squares_y), spec.square_length_m, spec.marker_length_m, dictionary
-    )
-    board.setLegacyPattern(bool(spec.legacy_pattern))
-    return board
-
-
-def board_corners(spec: BoardSpec) -> tuple[NDArray[np.int_], Array]:
-    """All ChArUco corner ids (M,) and their nominal positions in the board frame (M, 3), metres.
-
-    Parameters
-    ----------
-    spec : BoardSpec
-        The board.
-
-    Returns
-    -------
-    ids : ndarray of int, shape (M,)
-        Corner ids ``0 .. M-1``.
-    points : ndarray, shape (M, 3)
-        Nominal corner positions in the board frame (metres, z = 0).
-    """
-    pts = np.asarray(make_board(spec).getChessboardCorners(), dtype=np.float64).reshape(-1, 3)
-    return np.arange(pts.shape[0]), pts
 
 
 @dataclass
@@ -168,7 +122,7 @@ class BoardDetector:
         d_intrinsics : ndarray, shape (K, 3, n_i), optional
             How the refined corners move with the ``n_i`` intrinsics (metres per unit of each intrinsic:
             px for fx, fy, cx, cy, dimensionless for the distortion coefficients;
-            :func:`calib.camera.intrinsics_covariance`); the poses' ``d_intrinsics`` then include it.
+            :func:`calib.camera.intrinsics.intrinsics_covariance`); the poses' ``d_intrinsics`` then include it.
             Default: the corners do not move with the intrinsics.
         """
         idx = np.asarray(ids, dtype=int)

@@ -3,7 +3,7 @@
 Stages (each over a process pool when ``workers > 1``, with ``progress(done, total)`` callbacks):
 
 1. Intrinsics: given (argument), else from the dataset's ``camera`` (K, dist), else calibrated
-   from the ``camera`` phase with :func:`calib.camera.calibrate_intrinsics` (calibrateCameraRO);
+   from the ``camera`` phase with :func:`calib.camera.intrinsics.calibrate_intrinsics` (calibrateCameraRO);
    the refined board geometry is then used for every board pose.
 2. Board poses (ChArUco) for every non-``camera`` frame.
 3. Coarse camera placement: ``camera_from_base`` and ``ee_from_board`` fitted to all board poses
@@ -46,32 +46,26 @@ from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
-from ..camera import CameraModel, IntrinsicsResult, calibrate_intrinsics
-from ..dataset import Dataset
-from ..errors import I4calError, InputError
-from ..kinematics import base_from_ee, dkm
-from ..observations import FORMAT
-from ..parameters import I4Parameters
-from ..transforms import Rigid
-from .board import BoardDetector
-from .detect import DetectSettings, resolve_frames
-from .placement import fit_placement
-from .pool import (
-    _Pool,
-    _task_board,
-    _task_board_pose,
-    _task_detect,
-    _task_find_rods,
-    _task_rods,
-)
-from .recover import STARTS as RECOVERY_STARTS
-from .recover import lost_in_search, measured_lines
-from .refine import REFINEMENT_PHASES, CameraRefinement, can_refine, refine_camera_by_rods
-from .repredict import MeasuredRod, Repredicted, prediction_shift_px, refit_prediction, rod_ends_camera
-from .rods import ROD_KEYS, RodSettings, rod_name
+from calib.camera.intrinsics import IntrinsicsResult, calibrate_intrinsics
+from calib.errors import I4calError, InputError
+from calib.formats.camera import CameraModel
+from calib.formats.dataset import Dataset
+from calib.formats.observations import FORMAT
+from calib.model.kinematics import base_from_ee, dkm
+from calib.model.parameters import I4Parameters
+from calib.numerics.transforms import Rigid
+from calib.vision.board import BoardDetector
+from calib.vision.detect import DetectSettings, resolve_frames
+from calib.vision.handeye import fit_placement
+from calib.vision.pool import _Pool, _task_board, _task_board_pose, _task_detect, _task_find_rods, _task_rods
+from calib.vision.recover import STARTS as RECOVERY_STARTS
+from calib.vision.recover import lost_in_search, measured_lines
+from calib.vision.refine import REFINEMENT_PHASES, CameraRefinement, can_refine, refine_camera_by_rods
+from calib.vision.repredict import MeasuredRod, Repredicted, prediction_shift_px, refit_prediction, rod_ends_camera
+from calib.vision.rods import ROD_KEYS, RodSettings, rod_name
 
 if TYPE_CHECKING:
-    from .stream import StreamedFrames
+    from calib.vision.stream import StreamedFrames
 
 Progress = Callable[[int, int], None]
 #: the reason of a frame's rods in a first pass that leaves them to the second (:func:`_extract`'s ``for_refinement``)
@@ -110,8 +104,10 @@ class ExtractOptions:
     #: measured (:mod:`calib.vision.repredict`) and measure again the frames whose prediction moved by more than
     #: this (px); None: one pass, on the nominal model's prediction
     repredict_px: float | None = 3.0
-    #: the camera calibration's lens model (:data:`calib.camera.LENS_MODEL_CHOICES`): ``"auto"`` chooses it from
-    #: the ``camera`` phase's board views (:func:`calib.camera.calibrate_intrinsics`); None: the dataset's
+    #: the camera calibration's lens model (:data:`calib.camera.intrinsics.LENS_MODEL_CHOICES`): ``"auto"``
+    #: chooses it from
+    #: the ``camera`` phase's board views (:func:`calib.camera.intrinsics.calibrate_intrinsics`); None: the
+    #: dataset's
     #: ``camera.lens_model`` (the bench file's), else ``"auto"``; a given camera keeps its own
     lens_model: str | None = None
     #: when more than this share of the rods looked for are lost in their search bands (:mod:`.recover`), refit the
@@ -132,7 +128,7 @@ class ExtractionResult:
     Attributes
     ----------
     observations : dict
-        An observations v1 document (validates with :meth:`calib.observations.Observations.from_dict`).
+        An observations v1 document (validates with :meth:`calib.formats.observations.Observations.from_dict`).
     summary : dict
         ``{"phases": {phase: {...counts, "missing": {reason: count}}}, "frames": {index: [reasons]}, ...}``.
     camera : CameraModel
@@ -177,7 +173,7 @@ def extract_dataset(
     dataset : path or Dataset
     camera : CameraModel, optional
         Known intrinsics; default: the dataset's, else calibrated from its ``camera`` phase. A camera
-        calibrated by :func:`calib.camera.calibrate_intrinsics` carries the board corners it refined
+        calibrated by :func:`calib.camera.intrinsics.calibrate_intrinsics` carries the board corners it refined
         (``calibration.board_points``): they are used for the board poses when the board has as many corners.
     workers : int, optional
         Processes (default: ``os.cpu_count()``); 1 runs in this process.
@@ -218,7 +214,8 @@ def extract_dataset(
 
     from threadpoolctl import threadpool_limits
 
-    # one BLAS thread in this process, as in the workers (calib.threads): the extraction's matrices are small, more
+    # one BLAS thread in this process, as in the workers (calib.numerics.threads): the extraction's matrices are small,
+    # more
     # threads only spin (a quarter more CPU with one worker, for the same result within float rounding).
     # Streaming: frames measured during the acquisition answer from the pool (calib.vision.stream)
     pool_cm = _Pool(workers) if streamed is None else streamed.pool(workers, ds)

@@ -17,16 +17,16 @@ from typing import Any
 
 import numpy as np
 
-from ..camera import CameraModel
-from ..dataset import Dataset
-from ..errors import I4calError, InputError
-from ..parameters import I4Parameters
-from ..threads import forking_single_threaded, single_threaded_worker
-from ..transforms import Rigid
-from .board import BoardDetection, BoardDetector, to_gray8
-from .detect import DetectSettings, detect_rods, measure_detected
-from .rods import RodSettings, image_ideal_bbox, leg_parallelism, measure_rods, predict_rods, rod_name
-from .rods.types import ROD_BOARD_OCCLUDER_M
+from calib.errors import I4calError, InputError
+from calib.formats.camera import CameraModel
+from calib.formats.dataset import Dataset
+from calib.model.parameters import I4Parameters
+from calib.numerics.threads import forking_single_threaded, single_threaded_worker
+from calib.numerics.transforms import Rigid
+from calib.vision.board import BoardDetection, BoardDetector, to_gray8
+from calib.vision.detect import DetectSettings, detect_rods, measure_detected
+from calib.vision.rods import RodSettings, image_ideal_bbox, leg_parallelism, measure_rods, predict_rods, rod_name
+from calib.vision.rods.types import ROD_BOARD_OCCLUDER_M
 
 Progress = Callable[[int, int], None]
 
@@ -260,7 +260,7 @@ class _Pool:
             ctx = multiprocessing.get_context()
             fresh = ctx.get_start_method() != "fork"  # a new interpreter limits its own threads
             # the workers run one BLAS and one OpenCV thread each (the pool already uses the cores), set around
-            # the fork, never in the child (calib.threads)
+            # the fork, never in the child (calib.numerics.threads)
             with forking_single_threaded():
                 for _ in range(self.workers):
                     parent, child = ctx.Pipe()

@@ -17,9 +17,9 @@ from typing import Any
 
 import numpy as np
 
-from ..transforms import Rigid
-from .repredict import MeasuredRod
-from .rods import ROD_KEYS, rod_name
+from calib.numerics.transforms import Rigid
+from calib.vision.repredict import MeasuredRod
+from calib.vision.rods import ROD_KEYS, rod_name
 
 #: the robust refit's starting points besides the prediction's own (:func:`calib.vision.repredict.refit_prediction`)
 STARTS = 16

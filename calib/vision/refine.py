@@ -1,6 +1,6 @@
 """The camera refined by the rods: a stage between the rods' measurement and the identification.
 
-The combined method (:func:`calib.methods.combined.calibrate_combined`) treats the intrinsics as nuisance unknowns
+The combined method (:func:`calib.identify.combined.calibrate_combined`) treats the intrinsics as nuisance unknowns
 with the calibration's covariance as prior; the rods, many and spread over the image, determine them several times
 better than the board views did. The rods' measurement itself depends on the camera (which edge points are fitted),
 so :func:`calib.vision.extract.extract_dataset` measures the frames again with the refined camera when it moved by
@@ -14,11 +14,11 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..camera import CameraModel
-from ..errors import I4calError
+from calib.errors import I4calError
+from calib.formats.camera import CameraModel
 
 if TYPE_CHECKING:
-    from ..methods.result import MethodResult
+    from calib.identify.result import MethodResult
 
 
 #: the phases whose rods the refinement uses (the combined fit's poses; the other phases give it their boards)
@@ -89,10 +89,10 @@ def refine_camera_by_rods(
         the rods), records the shift under ``calibration.refined_by_rods`` and moves the calibration's refined
         board points with the intrinsics (their correlation, ``board_points.d_intrinsics``).
     """
-    from ..camera import intrinsics_names
-    from ..methods.combined import calibrate_combined
-    from ..methods.intrinsics import perturbed_camera
-    from ..observations import Observations
+    from calib.camera.intrinsics import intrinsics_names
+    from calib.formats.observations import Observations
+    from calib.identify.combined import calibrate_combined
+    from calib.identify.intrinsics import perturbed_camera
 
     calib = camera.extra.get("calibration") or {}
     if not can_refine(camera):

@@ -28,11 +28,11 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
-from ..errors import I4calError
-from ..kinematics import base_from_ee
-from ..parameters import PARAMETER_NAMES, I4Parameters
-from ..transforms import Rigid, matrix_to_rotvec, rotvec_to_matrix
-from .rods.types import rod_ends_camera
+from calib.errors import I4calError
+from calib.model.kinematics import base_from_ee
+from calib.model.parameters import PARAMETER_NAMES, I4Parameters
+from calib.numerics.transforms import Rigid, matrix_to_rotvec, rotvec_to_matrix
+from calib.vision.rods.types import rod_ends_camera
 
 Array = NDArray[np.float64]
 

@@ -1,12 +1,13 @@
 """Frames measured one by one as an acquisition records them, for the extraction at the end (``streamed=``).
 
 During an acquisition, each frame written to the dataset can be measured while the robot moves to the next pose
-(:class:`FrameStreamer`, fed one frame index at a time by a worker beside the acquisition: ``drivers.streaming``):
+(:class:`FrameStreamer`, fed one frame index at a time by a worker beside the acquisition:
+``drivers.acquisition.streaming``):
 
 * the board (ChArUco corners and pose) exactly as extraction's board stage measures it (same detector, same camera,
   same refined board points), so that the final extraction takes it as it is;
 * the eight rods on the nominal model's prediction, placed with the coarse camera placement
-  (:func:`calib.vision.placement.fit_placement`) fitted to the board poses measured so far (from
+  (:func:`calib.vision.handeye.fit_placement`) fitted to the board poses measured so far (from
   ``ExtractOptions.min_placement_frames`` board poses on): extraction's first pass;
 * the eight rods again on the prediction refitted to the rods and boards measured so far
   (:func:`calib.vision.repredict.refit_prediction`, every :data:`REFIT_EVERY` frames): extraction's later pass, which
@@ -32,17 +33,25 @@ from typing import Any
 
 import numpy as np
 
-from ..camera import CameraModel
-from ..dataset import Dataset
-from ..errors import I4calError, InputError
-from ..parameters import I4Parameters
-from ..transforms import Rigid
-from . import pool as _pool
-from .board import BoardDetection, BoardDetector, to_gray8
-from .placement import fit_placement
-from .repredict import MeasuredRod, Repredicted, prediction_shift_px, refit_prediction
-from .rods import ROD_KEYS, RodSettings, image_ideal_bbox, leg_parallelism, measure_rods, predict_rods, rod_name
-from .rods.types import ROD_BOARD_OCCLUDER_M, rod_ends_camera
+from calib.errors import I4calError, InputError
+from calib.formats.camera import CameraModel
+from calib.formats.dataset import Dataset
+from calib.model.parameters import I4Parameters
+from calib.numerics.transforms import Rigid
+from calib.vision import pool as _pool
+from calib.vision.board import BoardDetection, BoardDetector, to_gray8
+from calib.vision.handeye import fit_placement
+from calib.vision.repredict import MeasuredRod, Repredicted, prediction_shift_px, refit_prediction
+from calib.vision.rods import (
+    ROD_KEYS,
+    RodSettings,
+    image_ideal_bbox,
+    leg_parallelism,
+    measure_rods,
+    predict_rods,
+    rod_name,
+)
+from calib.vision.rods.types import ROD_BOARD_OCCLUDER_M, rod_ends_camera
 
 #: a rod measured on a provisional prediction is taken when the final prediction of its frame lies within this
 #: (ideal px, :func:`calib.vision.repredict.prediction_shift_px`) of it: half the shift beyond which extraction's

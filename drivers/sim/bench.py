@@ -18,7 +18,7 @@ Frame endpoint (loopback TCP, one request per line, any number per connection):
   starts guiding the free mechanism along the truly straight segment; ``ENDLINE\\n`` -> ``OK {}\\n``.
 * ``INFO\\n`` -> ``OK {"width", "height", "renderer"}\\n``.
 * ``BOARD {"centre", "fill", "tilt_deg", ...}\\n`` -> ``OK {"camera_from_board"}\\n``: the simulated operator holds
-  the calibration board up where asked (a :class:`calib.camera_views.BoardPlacement`, :mod:`drivers.sim.hand`);
+  the calibration board up where asked (a :class:`calib.camera.views.BoardPlacement`, :mod:`drivers.sim.hand`);
   until ``ENDBOARD\\n`` every ``GRAB`` shows that board alone (its true pose in the header, ``board_pose_true``).
 """
 
@@ -37,10 +37,10 @@ from typing import Any
 
 import numpy as np
 
-from ..registermap import DEFAULT_MAP, RegisterMap
-from .controller import SimController
-from .mechanism import AxisConfig, Mechanism
-from .twin import BenchGeometry
+from drivers.devices.registermap import DEFAULT_MAP, RegisterMap
+from drivers.sim.controller import SimController
+from drivers.sim.mechanism import AxisConfig, Mechanism
+from drivers.sim.twin import BenchGeometry
 
 log = logging.getLogger(__name__)
 
@@ -66,7 +66,7 @@ class FallbackRenderer:
 def default_renderer(geometry: BenchGeometry, seed: int = 0) -> Any:
     """The image-level twin's renderer when importable, else :class:`FallbackRenderer`."""
     try:
-        from .render import BenchRenderer
+        from drivers.sim.render import BenchRenderer
     except Exception as exc:  # not there yet, or broken: the bench still runs
         log.warning("drivers.sim.render unavailable (%s); using the fallback renderer", exc)
         return FallbackRenderer(geometry)
@@ -78,7 +78,8 @@ class CameraFaults:
     timeouts: int = 0  # ignore this many GRAB requests (the client times out)
     corrupt: int = 0  # corrupt this many frames (payload no longer matches its CRC)
     render_errors: int = 0
-    #: the scene's faults (drivers.suspenders): after ``scene_after`` more frames served as they are, this many
+    #: the scene's faults (drivers.acquisition.suspenders): after ``scene_after`` more frames served as they are, this
+    #: many
     #: frames come dark (the light switched off: 5% of the brightness) or occluded (a person in the view: the
     #: image's centre covered, the board unseen)
     dark: int = 0
@@ -201,7 +202,7 @@ class FrameServer:
                         self.mechanism.end_line()
                         writer.write(b"OK {}\n")
                     elif cmd == "BOARD":
-                        from .hand import held_board_pose
+                        from drivers.sim.hand import held_board_pose
 
                         self._boards += 1
                         rng = np.random.default_rng([self.seed, 4, self._boards])
@@ -251,8 +252,8 @@ class SimBench:
         self._undrifted = geometry or BenchGeometry()
         self.geometry = drifted(self._undrifted, drift_m or {})
         if initial_q is None:
-            from calib.kinematics import ikm
-            from calib.plan import Workspace
+            from calib.formats.plan import Workspace
+            from calib.model.kinematics import ikm
 
             initial_q = ikm(self.geometry.truth, Workspace().centre())
         self.mechanism = Mechanism(self.geometry, axis_config or fast_axis_config(), initial_q=initial_q, seed=seed)
@@ -322,8 +323,8 @@ class SimBench:
         return out
 
     def bench_config(self, **overrides: Any):
-        """A :class:`drivers.config.BenchConfig` pointing at this bench, with fast sim speeds."""
-        from ..config import BenchConfig
+        """A :class:`drivers.acquisition.config.BenchConfig` pointing at this bench, with fast sim speeds."""
+        from drivers.acquisition.config import BenchConfig
 
         data: dict[str, Any] = {
             "actuators": {

@@ -1,7 +1,7 @@
 """A simulated multi-axis controller (four axes for the I4) that is a real Modbus server (pymodbus 3.16 SimDevice
 actions): one axis per register-map axis, each driving the mechanism's axis of the same index.
 
-It serves a :class:`drivers.registermap.RegisterMap` (the default map unless told otherwise) over
+It serves a :class:`drivers.devices.registermap.RegisterMap` (the default map unless told otherwise) over
 TCP on loopback (``ModbusTcpServer``) or with RTU framing over a socket (``ModbusSerialServer`` with
 ``port="socket://127.0.0.1:P"``) or a pty. Every request runs the device action first: it brings the
 shared :class:`~drivers.sim.mechanism.Mechanism` up to date, refreshes the read-only registers
@@ -36,8 +36,8 @@ from pymodbus.constants import ExcCodes
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from ..registermap import ALARM_WATCHDOG, DEFAULT_MAP, RegisterMap
-from .mechanism import Mechanism
+from drivers.devices.registermap import ALARM_WATCHDOG, DEFAULT_MAP, RegisterMap
+from drivers.sim.mechanism import Mechanism
 
 log = logging.getLogger(__name__)
 
@@ -336,7 +336,7 @@ def _free_port(host: str = "127.0.0.1") -> int:
 
 
 class AsciiServer:
-    """The simulated controller's serial ASCII front end (protocol in :mod:`drivers.serial_ascii`), on a
+    """The simulated controller's serial ASCII front end (protocol in :mod:`drivers.devices.serial_ascii`), on a
     loopback TCP socket (a client opens it as the pyserial URL ``socket://127.0.0.1:P``)."""
 
     def __init__(self, mechanism: Mechanism) -> None:
@@ -358,7 +358,7 @@ class AsciiServer:
         return self._server.sockets[0].getsockname()[:2]
 
     def reply(self, line: str) -> str:
-        from ..registermap import ControlBits, StatusBits
+        from drivers.devices.registermap import ControlBits, StatusBits
 
         seq, _, rest = line.strip().partition(" ")
         if not seq.startswith("#"):

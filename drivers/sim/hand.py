@@ -1,6 +1,6 @@
 """The simulated operator's hand: holds the calibration board where it is asked, as a person would.
 
-A :class:`calib.camera_views.BoardPlacement` (as a dict: ``centre`` fractions of the image, ``fill`` of the image
+A :class:`calib.camera.views.BoardPlacement` (as a dict: ``centre`` fractions of the image, ``fill`` of the image
 width, ``tilt_deg`` about the image's horizontal and vertical axes) becomes a true board pose in the camera frame:
 the distance from the fill and the true focal length, the centre on the ray through the asked pixel, the tilts as
 asked; then a hand's imprecision (a few degrees, a few per cent, a turn about the optical axis) and, like a person
@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from calib.transforms import Rigid, rotvec_to_matrix
+from calib.numerics.transforms import Rigid, rotvec_to_matrix
 
 
 def _rot(axis: int, angle_rad: float) -> np.ndarray:

@@ -24,9 +24,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from calib.kinematics import dkm, ikm
-
-from .twin import BenchGeometry
+from calib.model.kinematics import dkm, ikm
+from drivers.sim.twin import BenchGeometry
 
 ALARM_DRIVE_FAULT = 0x10
 ALARM_NOT_HOMED = 0x20

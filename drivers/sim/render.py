@@ -26,14 +26,13 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from calib.camera import CameraModel
-from calib.dataset import BoardSpec
-from calib.transforms import Rigid
-from calib.vision.board import make_board
+from calib.camera.charuco import make_board
+from calib.formats.camera import CameraModel
+from calib.formats.dataset import BoardSpec
+from calib.numerics.transforms import Rigid
 from calib.vision.rods import limb_planes
-
-from ._memory import keep_freed_memory
-from .twin import BenchGeometry
+from drivers.sim._memory import keep_freed_memory
+from drivers.sim.twin import BenchGeometry
 
 keep_freed_memory()  # a frame's temporaries are reused, not page-faulted in again (drivers/sim/_memory.py)
 
@@ -367,7 +366,7 @@ class BenchRenderer:
     ) -> list[Rigid]:
         """``n`` board poses for intrinsic calibration: tilted up to ~40 deg, spread over the image
         (``RenderSettings.camera_view_spread``), every corner in view (``full``), drawn by rejection sampling."""
-        from calib.transforms import rotvec_to_matrix
+        from calib.numerics.transforms import rotvec_to_matrix
 
         W, H = self.settings.board.size_m
         m = self._margin_m

@@ -15,11 +15,11 @@ from typing import Any, cast
 
 import numpy as np
 
-from calib.kinematics import base_from_ee, dkm, ikm, joint_points
-from calib.observations import new_document
-from calib.parameters import NOMINAL, I4Parameters
-from calib.plan import Plan, line_poses, make_plan
-from calib.transforms import Rigid, rotvec_to_matrix, unit
+from calib.formats.observations import new_document
+from calib.formats.plan import Plan, line_poses, make_plan
+from calib.model.kinematics import base_from_ee, dkm, ikm, joint_points
+from calib.model.parameters import NOMINAL, I4Parameters
+from calib.numerics.transforms import Rigid, rotvec_to_matrix, unit
 
 #: The twin's default true geometry: nominal plus a few millimetres (metres).
 DEFAULT_TRUTH = NOMINAL.replace(H=0.4040, q02=1.3775, q03=0.0030, q04=1.3870, S=0.0575, D=0.0620, L=0.9965)

@@ -7,7 +7,7 @@ import statistics
 from collections import Counter
 from typing import Any
 
-from ._accuracy_trial import METHODS
+from i4cal.benchmarks._accuracy_trial import METHODS
 
 COMBINATIONS: tuple[str, ...] = ("L", "H-D", "S-q02/2", "S-(q04-q03)/2")
 EFFICIENCY_TARGET = 0.67  #: the combined method's bound RMS / error RMS at least this: near its Cramer-Rao bound
@@ -130,7 +130,7 @@ def summarize(trials: list[dict[str, Any]]) -> dict[str, Any]:
 
 def a_priori_errors(trials: list[dict[str, Any]]) -> dict[str, float | None]:
     """RMS over the trials of nominal - truth per combination (metres): what calibration has to remove."""
-    from calib.parameters import NOMINAL
+    from calib.model.parameters import NOMINAL
 
     nom = NOMINAL.combinations()
     truths = [t["truth_combinations"] for t in trials if t.get("truth_combinations")]

@@ -16,9 +16,9 @@ from typing import Any
 
 from pydantic import BaseModel, Field
 
-from calib.methods.registry import method_names
+from calib.identify.registry import method_names
 
-#: Methods of :func:`calib.pipeline.calibrate`, in the order of its result document (the registered methods).
+#: Methods of :func:`calib.identify.pipeline.calibrate`, in the order of its result document (the registered methods).
 METHODS: tuple[str, ...] = method_names()
 
 
@@ -58,7 +58,7 @@ def _finite(x: Any) -> float | None:
 
 
 def _plan(steps: list[dict[str, Any]], name: str) -> Any:
-    from calib.plan import Plan
+    from calib.formats.plan import Plan
 
     return Plan.model_validate({"name": name, "steps": steps})
 
@@ -73,8 +73,8 @@ def calibrate_camera(task: CameraTask) -> dict[str, Any]:
         ``true_camera`` (the renderer's), ``render_s``, ``extract_s``, ``cpu_s``, ``noise_sigma``, ``source``.
     """
     from calib.vision.extract import extract_dataset
-    from drivers.sim.imaging import simulate_dataset
     from drivers.sim.render import RenderSettings
+    from drivers.sim.rendered_dataset import simulate_dataset
     from drivers.sim.twin import BenchGeometry
 
     rs = RenderSettings(noise_sigma=task.noise_sigma)
@@ -129,7 +129,7 @@ def error_against_covariance(error: Any, covariance: Any) -> dict[str, Any] | No
 def _refined_honesty(res: Any, true: Any) -> dict[str, Any] | None:
     """The extraction's camera (refined by the rods) against the renderer's, in its ``covariance_refined``
     (:func:`error_against_covariance`); None when the rods did not refine it."""
-    from calib.camera import intrinsics_names, intrinsics_vector
+    from calib.camera.intrinsics import intrinsics_names, intrinsics_vector
 
     calib = res.camera.extra.get("calibration") or {}
     cov = calib.get("covariance_refined")
@@ -146,7 +146,7 @@ def _camera_record(res: Any, rs: Any) -> dict[str, Any]:
     fy, cx, cy [px], k1, k2, p1, p2, and ``refined_against_covariance``: the extraction's camera's error in its
     ``covariance_refined``, :func:`error_against_covariance`), ``lens_model`` (the lens model the calibration chose
     and its evidence)."""
-    from calib.camera import INTRINSICS_NAMES, intrinsics_vector
+    from calib.camera.intrinsics import INTRINSICS_NAMES, intrinsics_vector
 
     s = res.intrinsics.summary()
     cam, true = res.intrinsics.camera, rs.camera()  # the calibration's (the extraction's may be refined by the rods)
@@ -239,7 +239,7 @@ def noise_levels(method: str, diagnostics: dict[str, Any]) -> dict[str, float | 
 
 
 def trial_record(doc: dict[str, Any], observations: dict[str, Any]) -> dict[str, Any]:
-    """The numbers of one trial from its result document (:func:`calib.pipeline.calibrate`) and observations.
+    """The numbers of one trial from its result document (:func:`calib.identify.pipeline.calibrate`) and observations.
 
     Returns
     -------
@@ -253,7 +253,7 @@ def trial_record(doc: dict[str, Any], observations: dict[str, Any]) -> dict[str,
         ``gap_truth_rms_mm``; ``edge_noise_px``; ``rods_found`` and ``rods_total``, ``boards_found`` and ``frames``;
         ``extraction_recovered`` (:func:`calib.vision.extract.extract_dataset`'s ``summary["recovered"]``, or None).
     """
-    from calib.parameters import COMBINATION_NAMES
+    from calib.model.parameters import COMBINATION_NAMES
 
     truth_errors = doc.get("truth_errors") or {}
     validation = doc.get("validation") or {}
@@ -290,7 +290,7 @@ def method_record(
     ``entry`` is the method's entry of the result document, ``err`` its errors against the truth (metres, per
     combination and ``seven``; None when the result has none), ``validation`` the result's validation section.
     """
-    from calib.parameters import COMBINATION_NAMES
+    from calib.model.parameters import COMBINATION_NAMES
 
     std = entry.get("std") or {}
     errors = {k: _finite(err.get(k)) for k in COMBINATION_NAMES} if err else None
@@ -345,12 +345,12 @@ def run_trial(task: TrialTask) -> dict[str, Any]:
         ``extract_s``, ``calibrate_s`` (wall), ``cpu_s`` (CPU time of the whole trial: its cost on an idle core),
         ``error`` (None) and the fields of :func:`trial_record`.
     """
-    from calib.camera import CameraModel
-    from calib.observations import Observations
-    from calib.parameters import NOMINAL, I4Parameters
-    from calib.pipeline import calibrate
+    from calib.formats.camera import CameraModel
+    from calib.formats.observations import Observations
+    from calib.identify.pipeline import calibrate
+    from calib.model.parameters import NOMINAL, I4Parameters
     from calib.vision.extract import extract_dataset
-    from drivers.sim.imaging import simulate_dataset
+    from drivers.sim.rendered_dataset import simulate_dataset
     from drivers.sim.twin import BenchGeometry
 
     truth = I4Parameters.from_vector(task.truth, T_per_rad=NOMINAL.T_per_rad)

@@ -3,7 +3,7 @@
 Every trial draws a true geometry around the nominal one (each of the seven parameters with the standard
 deviation ``--spread-mm``; default the RMS of the twin's default truth's offsets from nominal, i.e. the few
 millimetres that separate the paper's a priori and identified values, Table I), renders the study's plan on it
-(``drivers.sim.imaging.simulate_dataset``: images, not numbers handed over), extracts the images with the
+(``drivers.sim.rendered_dataset.simulate_dataset``: images, not numbers handed over), extracts the images with the
 camera the study calibrated once from its own rendered camera phase (as a lab does), and calibrates them with
 the three methods. Trials are fanned out over Dask (:mod:`service.fanout`: a local cluster of ``--workers``
 processes, default all cores; ``--scheduler tcp://HOST:8786`` for a cluster of machines; ``--workers 1``: in this
@@ -46,9 +46,8 @@ from typing import TYPE_CHECKING, Any
 from pydantic import BaseModel, Field, field_validator
 
 from calib.errors import InputError
-
-from ._accuracy_report import print_accuracy, summarize
-from ._accuracy_trial import CameraTask, TrialTask, calibrate_camera, run_trial
+from i4cal.benchmarks._accuracy_report import print_accuracy, summarize
+from i4cal.benchmarks._accuracy_trial import CameraTask, TrialTask, calibrate_camera, run_trial
 
 if TYPE_CHECKING:
     from service.fanout import Fanout
@@ -80,7 +79,7 @@ def lens_dist(name: str) -> tuple[float, ...]:
     raise ValueError(f"unknown lens {name!r}; lenses are {', '.join(LENSES)} or k3=VALUE")
 
 
-#: The paper-sized plan (``calib.plan.make_plan`` defaults): what a trial renders unless reduced.
+#: The paper-sized plan (``calib.formats.plan.make_plan`` defaults): what a trial renders unless reduced.
 PAPER = {"n_base": 10, "n_fit": 20, "n_lock": 5, "n_validation": 10}
 QUICK: dict[str, Any] = {
     "trials": 3,
@@ -163,7 +162,7 @@ def default_spread_m() -> float:
     """RMS over the seven parameters of the twin's default truth's offsets from nominal (metres, ~5.3 mm)."""
     import numpy as np
 
-    from calib.parameters import NOMINAL
+    from calib.model.parameters import NOMINAL
     from drivers.sim.twin import DEFAULT_TRUTH
 
     d = np.asarray(DEFAULT_TRUTH.vector()) - np.asarray(NOMINAL.vector())
@@ -178,7 +177,7 @@ def draw_truth(seed: int, index: int, spread: float) -> list[float]:
     """The seven true parameters (metres) of trial ``index``: nominal + N(0, spread^2) each, seeded."""
     import numpy as np
 
-    from calib.parameters import NOMINAL
+    from calib.model.parameters import NOMINAL
 
     rng = np.random.default_rng(np.random.SeedSequence([seed, index, 1]))
     return (np.asarray(NOMINAL.vector()) + rng.normal(0.0, spread, 7)).tolist()
@@ -193,8 +192,8 @@ def trial_seed(seed: int, index: int) -> int:
 
 def plan_steps(opts: AccuracyOptions, n_fit: int) -> list[dict[str, Any]]:
     """Steps a trial renders: the full plan (study seed) without its guided line unless ``with_line``."""
-    from calib.parameters import NOMINAL
-    from calib.plan import make_plan
+    from calib.formats.plan import make_plan
+    from calib.model.parameters import NOMINAL
 
     plan = make_plan(
         "full",
@@ -209,7 +208,7 @@ def plan_steps(opts: AccuracyOptions, n_fit: int) -> list[dict[str, Any]]:
 
 
 def plan_counts(steps: list[dict[str, Any]]) -> dict[str, int]:
-    from calib.plan import Plan
+    from calib.formats.plan import Plan
 
     return Plan.model_validate({"name": "trial", "steps": steps}).count()
 
@@ -278,9 +277,8 @@ def study_points(opts: AccuracyOptions) -> list[Point]:
 def run_accuracy(opts: AccuracyOptions, on_progress: OnProgress | None = None) -> dict[str, Any]:
     """Run the study (cameras, then trials as soon as their camera is calibrated) and return the JSON document
     without ``command``/``argv`` (see the module docstring)."""
+    from i4cal.benchmarks.speed import machine_info
     from service.fanout import Fanout, FanoutSettings
-
-    from .speed import machine_info
 
     t_start = time.perf_counter()
     load_start = _load()
@@ -588,8 +586,8 @@ def options_from_args(args: argparse.Namespace) -> AccuracyOptions:
 def run(args: argparse.Namespace) -> int:
     from rich.console import Console
 
-    from calib.jsonio import write_json_atomic
-    from calib.pipeline import to_jsonable
+    from calib.identify.pipeline import to_jsonable
+    from calib.numerics.jsonio import write_json_atomic
     from service.fanout import progress_display
 
     opts = options_from_args(args)

@@ -3,7 +3,7 @@
 On the simulated bench (the image-level twin, in this process), each trial: a calibration in force drawn from what
 a full calibration of this bench knows (the true combinations plus a draw of the full plan's predicted combined
 covariance: a full run's estimate), the bench drifted (or not), one check (the bench's designed check plan,
-acquired, extracted, fitted, tested by ``calib.drift``). Cases: ``none`` (no drift: every ``drifted`` is a false
+acquired, extracted, fitted, tested by ``calib.check.drift``). Cases: ``none`` (no drift: every ``drifted`` is a false
 alarm), ``L`` (the legs grow), ``H-D`` (``D`` shrinks), ``q03`` (an encoder offset jumps: ``S-(q04-q03)/2`` moves),
 each drift ``--drift-std`` predicted std of the check's change on that combination. Reported per case: the verdicts,
 the detection rate naming the combination, the estimated change within 3 std of the truth, the update's error
@@ -60,7 +60,7 @@ def motion_overrides(path: str | None) -> dict[str, Any]:
     simulated bench's configuration (:meth:`drivers.sim.bench.SimBench.bench_config`); ``{}`` without a file."""
     if path is None:
         return {}
-    from drivers.config import load_bench
+    from drivers.acquisition.config import load_bench
 
     real = load_bench(path)
     a = real.actuators
@@ -77,8 +77,8 @@ def motion_overrides(path: str | None) -> dict[str, Any]:
 
 def _in_force_document(combos: dict[str, float], cov, truth, nominal) -> Any:
     """An ``i4cal.calibration/1`` document of ``combos`` with covariance ``cov`` (completed with the true H, S, q03)."""
-    from calib.export import COMPLETION_RULES, CalibrationDocument, Completion
-    from calib.parameters import COMBINATION_NAMES, I4Parameters
+    from calib.identify.export import COMPLETION_RULES, CalibrationDocument, Completion
+    from calib.model.parameters import COMBINATION_NAMES, I4Parameters
 
     params = I4Parameters.from_combinations(combos, truth)
     std = [math.sqrt(cov[i][i]) for i in range(4)]
@@ -104,7 +104,7 @@ def _in_force_document(combos: dict[str, float], cov, truth, nominal) -> Any:
 async def _trial(case: str, k: int, drift_m: float, ctx: dict[str, Any]) -> dict[str, Any]:
     import numpy as np
 
-    from calib.parameters import COMBINATION_NAMES
+    from calib.model.parameters import COMBINATION_NAMES
     from drivers.sim.bench import SimBench
     from service.checks.run import run_check
 
@@ -166,7 +166,7 @@ async def _trial(case: str, k: int, drift_m: float, ctx: dict[str, Any]) -> dict
 def _summary(all_rows: list[dict[str, Any]], ctx: dict[str, Any]) -> dict[str, Any]:
     import numpy as np
 
-    from calib.parameters import COMBINATION_NAMES
+    from calib.model.parameters import COMBINATION_NAMES
 
     rows = [r for r in all_rows if r["verdict"] != "failed"]
     if not rows:
@@ -201,7 +201,7 @@ def _summary(all_rows: list[dict[str, Any]], ctx: dict[str, Any]) -> dict[str, A
 def _context(args: argparse.Namespace) -> dict[str, Any]:
     import numpy as np
 
-    from calib.plan import make_plan
+    from calib.formats.plan import make_plan
     from drivers.sim.bench import SimBench
     from drivers.sim.render import RenderSettings
     from service.checks.plan import check_plan_for_bench

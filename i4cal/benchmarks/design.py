@@ -1,6 +1,7 @@
 """``i4cal bench design``: designed plans against the paper's plan at equal fit-pose counts, on the image-level twin.
 
-For every fit-pose count (``--counts``, default 8,12,20,30) two plans: the paper's (``calib.plan.make_plan("full")``)
+For every fit-pose count (``--counts``, default 8,12,20,30) two plans: the paper's
+(``calib.formats.plan.make_plan("full")``)
 and a designed one (``calib.design.design_plan`` for the combined method on images: the image-level prediction with
 :func:`service.design.twin_image_noise`, the twin's camera and mounting), designed to beat the paper's 20-pose plan
 on every combination (criterion ``"target"``, the targets that plan's predicted std: what ``i4cal plan design
@@ -17,7 +18,7 @@ prediction, i.e. noise levels calibrated by one reference run), and the motion t
 ``--speed``/``--accel``). The issue's check: the designed 12-pose plan's combined RMS error no larger than the
 paper's 20-pose plan's for every combination, and each method's prediction within 30% of its RMS error.
 ``--plans designed-12,paper-20`` runs only those plans; each plan's ``steps`` are the plan itself (its frames, as
-``calib.plan.Step``), its ``trials`` list every trial's errors and
+``calib.formats.plan.Step``), its ``trials`` list every trial's errors and
 reported std per method (and whether the method fell back to its a priori values or its data left a direction to
 the a priori tolerance); ``data_pinned`` has each method's RMS error and mean std over the other trials, with the
 counts left out, and ``checks.predicted_images_over_rms_data_pinned`` the prediction's ratio to that RMS.
@@ -85,8 +86,8 @@ def _plans(
         plan_motion_time,
         targets_from_plan,
     )
-    from calib.parameters import NOMINAL
-    from calib.plan import Plan, make_plan
+    from calib.formats.plan import Plan, make_plan
+    from calib.model.parameters import NOMINAL
     from service.design import twin_image_noise, twin_scene
 
     scene = twin_scene()
@@ -142,7 +143,7 @@ def _predictions(plan: Any, scene: Any, image_noise: Any) -> dict[str, Any]:
     """A plan's predicted std per method (metres): with the geometric twin's noise (``predicted_std_m``) and on
     images (``predicted_images_std_m``)."""
     from calib.design import predict_plan
-    from calib.parameters import NOMINAL
+    from calib.model.parameters import NOMINAL
 
     return {
         "predicted_std_m": predict_plan(plan, NOMINAL, scene).std,
@@ -159,7 +160,7 @@ def repredict(doc: dict[str, Any]) -> dict[str, Any]:
     """
     from datetime import UTC, datetime
 
-    from calib.plan import Plan
+    from calib.formats.plan import Plan
     from service.design import twin_image_noise, twin_scene
 
     scene = twin_scene()
@@ -190,7 +191,7 @@ def run_design_bench(opts: argparse.Namespace, progress=None) -> dict[str, Any]:
     for name, p in plans.items():
         p["records"] = [records[f"{name},k={k}"] for k in _trial_indices(opts)]
     _summarize_plans(plans)
-    from .speed import machine_info
+    from i4cal.benchmarks.speed import machine_info
 
     return {
         "format": FORMAT,
@@ -209,10 +210,9 @@ def _run_design_bench(
     opts: argparse.Namespace, fan: Any, progress: Any
 ) -> tuple[dict[str, dict[str, Any]], dict[str, dict[str, Any]]]:
     """:func:`run_design_bench`'s work on an open fan-out: the plans (their draws fanned out), then the trials."""
+    from i4cal.benchmarks._accuracy_trial import TrialTask, run_trial
+    from i4cal.benchmarks.accuracy import default_spread_m, draw_truth, trial_seed
     from service.fanout import finished_line
-
-    from ._accuracy_trial import TrialTask, run_trial
-    from .accuracy import default_spread_m, draw_truth, trial_seed
 
     def drawn(outcome: Any, done: int, total: int) -> None:
         if progress:
@@ -279,7 +279,7 @@ def _trial_indices(opts: argparse.Namespace) -> range:
 def _summarize_plans(plans: dict[str, dict[str, Any]]) -> None:
     """From each plan's full trial ``records``: its ``summary``, per-trial ``trials`` (each method's errors and
     reported std, metres, to look at the tails), ``data_pinned`` and ``predicted_run_std_m``."""
-    from ._accuracy_report import COMBINATIONS, METHODS, summarize
+    from i4cal.benchmarks._accuracy_report import COMBINATIONS, METHODS, summarize
 
     for p in plans.values():
         recs = p["records"]
@@ -383,7 +383,7 @@ def _rms(v: list[float]) -> float:
 
 def _ratios(pr: dict[str, Any], rms: dict[str, Any]) -> dict[str, float | None]:
     """Per combination, a predicted std over an RMS error (None where either is missing or zero)."""
-    from ._accuracy_report import COMBINATIONS
+    from i4cal.benchmarks._accuracy_report import COMBINATIONS
 
     return {c: (pr[c] / rms[c]) if pr.get(c) and rms.get(c) else None for c in COMBINATIONS}
 
@@ -477,7 +477,7 @@ def _std_over_rms_intervals(
     honest on this plan?). Each one listed outside also has the trials' mean error and its standard error (m): an
     RMS error the std does not cover may be a bias common to the plan's trials (a systematic error of its poses).
     """
-    from ._accuracy_report import COMBINATIONS, METHODS
+    from i4cal.benchmarks._accuracy_report import COMBINATIONS, METHODS
 
     intervals: dict[str, Any] = {}
     n, outside = 0, []
@@ -550,14 +550,14 @@ def _data_pinned(trials: list[dict[str, Any]]) -> dict[str, Any]:
     direction of the seven less well than the a priori tolerance (the rods of a leg hidden in most fit poses, say) is
     left out and counted: the method says so in a warning, with the tolerance in its std. A plan's predicted std is
     for runs whose data pin the estimate, as the plan was designed to."""
-    from ._accuracy_report import METHODS
+    from i4cal.benchmarks._accuracy_report import METHODS
 
     return {m: _data_pinned_method([t["methods"].get(m) or {} for t in trials]) for m in METHODS}
 
 
 def _data_pinned_method(rows: list[dict[str, Any]]) -> dict[str, Any]:
     """:func:`_data_pinned` for one method, from its record in each trial."""
-    from ._accuracy_report import COMBINATIONS
+    from i4cal.benchmarks._accuracy_report import COMBINATIONS
 
     ok = [r for r in rows if r.get("ok") and r.get("errors") and r.get("std")]
     kept = [r for r in ok if not r.get("a_priori_fallback") and not r.get("unpinned_directions")]
@@ -599,7 +599,7 @@ def _checks(plans: dict[str, dict[str, Any]]) -> dict[str, Any]:
 
 def _not_worse(a: dict[str, Any], b: dict[str, Any]) -> dict[str, bool | None]:
     """Per combination, whether the RMS error ``a`` is at most ``b`` (None where either is missing)."""
-    from ._accuracy_report import COMBINATIONS
+    from i4cal.benchmarks._accuracy_report import COMBINATIONS
 
     return {c: (a[c] <= b[c]) if a.get(c) is not None and b.get(c) is not None else None for c in COMBINATIONS}
 
@@ -624,7 +624,7 @@ def _not_worse_checks(plans: dict[str, dict[str, Any]]) -> dict[str, Any]:
 
 def _prediction_ratios(plans: dict[str, dict[str, Any]]) -> dict[str, Any]:
     """Per plan and method, the predicted std over the RMS error or the mean reported std, per combination."""
-    from ._accuracy_report import METHODS
+    from i4cal.benchmarks._accuracy_report import METHODS
 
     out: dict[str, Any] = {}
     for key, field, ref in (
@@ -655,7 +655,7 @@ def _per_method_within(plans: dict[str, dict[str, Any]]) -> dict[str, Any]:
     plan's poses there) is within here and listed in ``prediction_within_30pct``."""
     from scipy.stats import bootstrap
 
-    from ._accuracy_report import COMBINATIONS, METHODS
+    from i4cal.benchmarks._accuracy_report import COMBINATIONS, METHODS
 
     ratios: dict[str, Any] = {}
     n, outside = 0, []
@@ -712,7 +712,7 @@ def print_table(doc: dict[str, Any]) -> None:
 
 def _print_errors(plans: dict[str, Any]) -> None:
     """Per plan and method, per combination: RMS error / mean std / image prediction / prediction (mm)."""
-    from ._accuracy_report import COMBINATIONS, METHODS
+    from i4cal.benchmarks._accuracy_report import COMBINATIONS, METHODS
 
     print(f"{'plan':<12} {'motion':>7} {'method':<13} " + " ".join(f"{c:>27}" for c in COMBINATIONS))
     print(f"{'':<12} {'min':>7} {'':<13} " + " ".join(f"{'rms / std / pred_img / pred':>27}" for _ in COMBINATIONS))
@@ -734,7 +734,7 @@ def _print_errors(plans: dict[str, Any]) -> None:
 
 def _print_data_pinned(plans: dict[str, Any]) -> None:
     """The trials left out of the data-pinned statistics (:func:`_data_pinned`), per plan and method."""
-    from ._accuracy_report import COMBINATIONS
+    from i4cal.benchmarks._accuracy_report import COMBINATIONS
 
     for name, p in plans.items():
         dp = p.get("data_pinned") or {}
@@ -900,8 +900,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from calib.errors import InputError
-    from calib.jsonio import write_json_atomic
-    from calib.pipeline import to_jsonable
+    from calib.identify.pipeline import to_jsonable
+    from calib.numerics.jsonio import write_json_atomic
 
     if args.report:
         import json

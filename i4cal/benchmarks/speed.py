@@ -242,7 +242,7 @@ def frame_times(n: int, step: Step = _no_step, seed: int = 0, floor: list[float]
     list of float
         Seconds per frame (rendering excluded).
     """
-    from calib.plan import make_plan
+    from calib.formats.plan import make_plan
     from calib.vision.board import BoardDetector
     from calib.vision.rods import image_ideal_bbox, measure_rods, predict_rods
     from drivers.sim.render import BenchRenderer, RenderSettings
@@ -334,8 +334,8 @@ def _extract_calibrate_job(queue: Any, dataset: str, workers: int | None, start_
             import multiprocessing as mp
 
             mp.set_start_method(start_method, force=True)
-        from calib.observations import Observations
-        from calib.pipeline import calibrate
+        from calib.formats.observations import Observations
+        from calib.identify.pipeline import calibrate
         from calib.vision.extract import extract_dataset
 
         def progress(done: int, total: int) -> None:
@@ -423,7 +423,7 @@ def bench_extract_calibrate(opts: SpeedOptions, step: Step = _no_step) -> tuple[
             ds = Path(opts.dataset)
             details["dataset"] = str(ds)
         else:
-            from drivers.sim.imaging import simulate_dataset
+            from drivers.sim.rendered_dataset import simulate_dataset
 
             t0 = time.perf_counter()
             ds = simulate_dataset(
@@ -464,11 +464,11 @@ def bench_extract_calibrate(opts: SpeedOptions, step: Step = _no_step) -> tuple[
 # -- fits ----------------------------------------------------------------------------------------------
 def fit_times(repeats: int = 5, seed: int = 0, step: Step = _no_step) -> dict[str, list[float]]:
     """Seconds per fit of each method on the paper-sized observations of the geometric twin (default noise)."""
-    from calib.baseframe import base_frame_from_observations
-    from calib.observations import Observations
-    from calib.parameters import NOMINAL
-    from calib.pipeline import METHOD_NAMES, run_method
-    from calib.plan import make_plan
+    from calib.formats.observations import Observations
+    from calib.formats.plan import make_plan
+    from calib.identify.baseframe import base_frame_from_observations
+    from calib.identify.pipeline import METHOD_NAMES, run_method
+    from calib.model.parameters import NOMINAL
     from drivers.sim.twin import GeometricTwin
 
     obs = Observations.from_dict(GeometricTwin().observations(plan=make_plan("full", NOMINAL, seed=seed), seed=seed))
@@ -508,13 +508,14 @@ async def modbus_round_trips(reads: int = 1000, step: Step = _no_step) -> dict[s
     Returns
     -------
     dict
-        ``raw`` (a plain pymodbus client), ``driver`` (:class:`drivers.modbus.ModbusActuators`, checked replies),
+        ``raw`` (a plain pymodbus client), ``driver`` (:class:`drivers.devices.modbus.ModbusActuators`, checked
+        replies),
         ``status`` (the driver's status of the four axes: four reads).
     """
     from pymodbus.client import AsyncModbusTcpClient
 
-    from drivers.config import open_actuators
-    from drivers.modbus import ModbusActuators
+    from drivers.acquisition.config import open_actuators
+    from drivers.devices.modbus import ModbusActuators
     from drivers.sim.bench import SimBench, fast_axis_config
 
     out: dict[str, list[float]] = {"raw": [], "driver": [], "status": []}
@@ -602,9 +603,9 @@ async def acquisition_overheads(
     """
     import numpy as np
 
-    from calib.parameters import NOMINAL
-    from calib.plan import Plan, pose_set
-    from drivers.acquisition import acquisition_from_config, close_devices
+    from calib.formats.plan import Plan, pose_set
+    from calib.model.parameters import NOMINAL
+    from drivers.acquisition.acquire import acquisition_from_config, close_devices
     from drivers.sim.bench import SimBench, fast_axis_config
 
     cfgax = fast_axis_config()
@@ -1016,7 +1017,7 @@ def run(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
-    from calib.jsonio import write_json_atomic
+    from calib.numerics.jsonio import write_json_atomic
 
     sections = parse_sections(args.only)
     try:

@@ -2,7 +2,7 @@
 
 from fastapi import APIRouter
 
-from . import calibration, cameras, checks, datasets, devices, methods, runs
+from service.api import calibration, cameras, checks, datasets, devices, methods, runs
 
 api_router = APIRouter(prefix="/api/v1")
 api_router.include_router(runs.router)

@@ -11,13 +11,12 @@ from fastapi.responses import Response
 from pydantic import BaseModel, Field
 
 from calib.errors import InputError
-from calib.export import CalibrationDocument, ExportContext, build_calibration
-from calib.resultdoc import ResultDocument
-
-from ..auth import Reader
-from ..runs import RunNotFoundError
-from ..settings import BENCH_NAME_PATTERN
-from .deps import Manager, conflict, not_found
+from calib.formats.resultdoc import ResultDocument
+from calib.identify.export import CalibrationDocument, ExportContext, build_calibration
+from service.api.deps import Manager, conflict, not_found
+from service.auth import Reader
+from service.runs import RunNotFoundError
+from service.settings import BENCH_NAME_PATTERN
 
 router = APIRouter(prefix="/calibration", tags=["calibration"])
 
@@ -75,7 +74,7 @@ class CurrentCalibrationOut(CalibrationDocument):
 def current_document(manager, cal) -> CalibrationDocument:
     """The document of an applied calibration: from its run's result (covariance, identifiability, warnings,
     dataset hash), or, when the run's result is no longer stored, from the record alone (no covariance then)."""
-    from ..export import payload_result, run_document
+    from service.export import payload_result, run_document
 
     try:
         run = manager.get(cal.run_id)
@@ -112,7 +111,7 @@ async def current_calibration(
 ) -> Any:
     """The calibration a controller loads: the newest applied to ``bench`` (default: this service's bench), as an
     ``i4cal.calibration/1`` document with the record's keys."""
-    from ..export import dumps
+    from service.export import dumps
 
     cal = manager.current_calibration(bench)
     if cal is None:

@@ -11,11 +11,10 @@ from fastapi.responses import FileResponse
 from pydantic import BaseModel, Field
 
 from calib.errors import InputError
-
-from ..auth import Reader, Writer
-from ..runs import RunConflictError
-from ..runs.cameras import CameraCalibrationJob, CameraCalibrations
-from .deps import ID_PATTERN, Manager, RequestBody, conflict, not_found, unprocessable
+from service.api.deps import ID_PATTERN, Manager, RequestBody, conflict, not_found, unprocessable
+from service.auth import Reader, Writer
+from service.runs import RunConflictError
+from service.runs.cameras import CameraCalibrationJob, CameraCalibrations
 
 router = APIRouter(prefix="/camera/calibrations", tags=["camera"])
 JobId = Annotated[str, Path(pattern=ID_PATTERN, description="camera calibration id (32 hex digits)")]

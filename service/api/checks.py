@@ -10,12 +10,11 @@ from fastapi import APIRouter, Path, Query, Request, status
 from pydantic import BaseModel, Field
 
 from calib.errors import InputError
-
-from ..auth import Reader, Writer
-from ..checks.manager import CheckManager, CheckNotFoundError
-from ..runs import RunConflictError
-from .calibration import CalibrationOut, calibration_out, current_document
-from .deps import ID_PATTERN, Manager, RequestBody, conflict, not_found, unprocessable
+from service.api.calibration import CalibrationOut, calibration_out, current_document
+from service.api.deps import ID_PATTERN, Manager, RequestBody, conflict, not_found, unprocessable
+from service.auth import Reader, Writer
+from service.checks.manager import CheckManager, CheckNotFoundError
+from service.runs import RunConflictError
 
 router = APIRouter(prefix="/checks", tags=["checks"])
 CheckId = Annotated[str, Path(pattern=ID_PATTERN, description="check id (32 hex digits)")]
@@ -103,10 +102,9 @@ ERRORS: dict[int | str, dict[str, Any]] = {401: {"description": "no or wrong bea
 )
 async def create_check(body: CheckCreate, request: Request, manager: Manager, _: Writer) -> CheckOut:
     """Check the calibration in force: the plan validated before anything moves, then acquired, fitted, tested."""
-    from calib.export import load_calibration
-    from calib.plan import Plan
-
-    from ..checks.run import CheckSettings
+    from calib.formats.plan import Plan
+    from calib.identify.export import load_calibration
+    from service.checks.run import CheckSettings
 
     cm = checks(request)
     busy = cm.holder()

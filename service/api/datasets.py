@@ -19,16 +19,15 @@ from pydantic import BaseModel
 from sqlalchemy import select
 
 from calib.errors import I4calError
-
-from .. import failpoints
-from ..auth import Reader, Writer
-from ..db import DatasetRecord
-from ..hardening import json_file_problem
-from ..jobs import check_frame_numbers
-from ..runs import RunConflictError, new_id, now
-from ..runs.disk import StorageError, is_disk_full
-from .deps import DatasetId, Manager, SettingsDep, conflict, not_found
-from .runs import insufficient_storage
+from service import failpoints
+from service.api.deps import DatasetId, Manager, SettingsDep, conflict, not_found
+from service.api.runs import insufficient_storage
+from service.auth import Reader, Writer
+from service.db import DatasetRecord
+from service.hardening import json_file_problem
+from service.jobs import check_frame_numbers
+from service.runs import RunConflictError, new_id, now
+from service.runs.disk import StorageError, is_disk_full
 
 router = APIRouter(prefix="/datasets", tags=["datasets"])
 
@@ -272,7 +271,7 @@ def _find_root(dest: Path) -> Path:
 def _ingest(
     archive: Path, dest: Path, max_bytes: int, max_members: int, room_bytes: int | None = None
 ) -> tuple[str, int, int]:
-    from calib.dataset import Dataset
+    from calib.formats.dataset import Dataset
 
     unpack_archive(archive, dest, max_bytes=max_bytes, max_members=max_members, room_bytes=room_bytes)
     root = _find_root(dest)

@@ -8,9 +8,8 @@ from fastapi import Depends, HTTPException, Path, Request, status
 from pydantic import BaseModel, ConfigDict
 
 from calib.errors import InputError
-
-from ..runs import Bench, RunManager, RunNotFoundError
-from ..settings import Settings
+from service.runs import Bench, RunManager, RunNotFoundError
+from service.settings import Settings
 
 ID_PATTERN = r"^[0-9a-f]{32}$"
 

@@ -9,9 +9,9 @@ from fastapi import APIRouter, Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials
 from pydantic import BaseModel
 
-from ..auth import Reader, bearer, require_token
-from ..runs import RunConflictError
-from .deps import Manager, conflict
+from service.api.deps import Manager, conflict
+from service.auth import Reader, bearer, require_token
+from service.runs import RunConflictError
 
 router = APIRouter(prefix="/devices", tags=["devices"])
 

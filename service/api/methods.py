@@ -1,4 +1,4 @@
-"""Identification methods: the registry (:mod:`calib.methods.registry`) as the dashboard and clients read it.
+"""Identification methods: the registry (:mod:`calib.identify.registry`) as the dashboard and clients read it.
 
 :data:`MethodName` is the type of a method name in request bodies and queries: any method registered when the
 request arrives (validated then, so a method registered after the app was built is accepted); the OpenAPI schema
@@ -14,9 +14,8 @@ from pydantic import BaseModel, Field, GetCoreSchemaHandler, GetJsonSchemaHandle
 from pydantic.json_schema import JsonSchemaValue
 from pydantic_core import core_schema
 
-from calib.methods.registry import get_method, method_names, methods
-
-from ..auth import Reader
+from calib.identify.registry import get_method, method_names, methods
+from service.auth import Reader
 
 router = APIRouter(prefix="/methods", tags=["methods"])
 

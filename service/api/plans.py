@@ -11,10 +11,9 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from calib.design.tradeoff import MAX_TRADEOFF_COUNTS
 from calib.errors import I4calError, InputError
-
-from ..auth import Writer
-from ..jobs import JobError, PoolBusyError
-from .deps import Manager, RequestBody, SettingsDep, unprocessable
+from service.api.deps import Manager, RequestBody, SettingsDep, unprocessable
+from service.auth import Writer
+from service.jobs import JobError, PoolBusyError
 
 router = APIRouter(prefix="/api/v1/plans", tags=["plans"])
 
@@ -24,7 +23,7 @@ PlanName = Literal["full", "rotation-sweep", "equal-translation", "pose-set", "l
 def resolve_plan(spec: str | dict[str, Any] | None, manager: Any) -> Any:
     """The plan a request names (default ``full``, at this service's plan sizes) or holds inline, validated against
     the bench's soft limits and nominal model: the plan a run executes and a prediction is made for. Called in a
-    worker thread: a plan at its size bounds (``calib.plan.MAX_PLAN_FRAMES``) is checked without holding up the
+    worker thread: a plan at its size bounds (``calib.formats.plan.MAX_PLAN_FRAMES``) is checked without holding up the
     event loop.
 
     Raises
@@ -32,7 +31,7 @@ def resolve_plan(spec: str | dict[str, Any] | None, manager: Any) -> Any:
     HTTPException
         422 naming the field (e.g. ``["body", "plan", "steps", 3, "line", "samples"]``).
     """
-    from calib.plan import Plan, make_plan, validate_plan
+    from calib.formats.plan import Plan, make_plan, validate_plan
 
     bench = manager.bench
     if bench is None:
@@ -275,9 +274,8 @@ async def _designed(body: DesignBody, request: Request, manager: Any, settings: 
     """The heavy task ``task`` (``design`` or ``tradeoff``) for the body, in the heavy-request pool, one design at a
     time, and the ``DesignRequest`` the body became: the reference plan read and its targets predicted, input
     errors as 422 naming the field, 429 while another design runs or when the pool's queue is full."""
-    from calib.plan import Plan
-
-    from ..design import better_than_request
+    from calib.formats.plan import Plan
+    from service.design import better_than_request
 
     bench = manager.bench
     if bench is None:

@@ -17,20 +17,19 @@ from pydantic import BaseModel, ConfigDict, Field
 from starlette.background import BackgroundTask
 
 from calib.errors import InputError
-from calib.export import CalibrationDocument
-from calib.methods.registry import method_names
-from calib.resultdoc import ResultDocument
-from calib.verdict import verdict
-
-from ..auth import Reader, Writer
-from ..hardening import ParsedJSONRoute
-from ..runs import STATES, RunConflictError, RunManager
-from ..runs.disk import StorageError
-from ..settings import BENCH_NAME_PATTERN
-from .calibration import CalibrationOut, calibration_out
-from .deps import ID_PATTERN, Manager, RequestBody, RunId, conflict, get_run, not_found, unprocessable
-from .methods import MethodName
-from .plans import PlanName, heavy, resolve_plan
+from calib.formats.resultdoc import ResultDocument
+from calib.identify.export import CalibrationDocument
+from calib.identify.registry import method_names
+from calib.identify.verdict import verdict
+from service.api.calibration import CalibrationOut, calibration_out
+from service.api.deps import ID_PATTERN, Manager, RequestBody, RunId, conflict, get_run, not_found, unprocessable
+from service.api.methods import MethodName
+from service.api.plans import PlanName, heavy, resolve_plan
+from service.auth import Reader, Writer
+from service.hardening import ParsedJSONRoute
+from service.runs import STATES, RunConflictError, RunManager
+from service.runs.disk import StorageError
+from service.settings import BENCH_NAME_PATTERN
 
 #: ParsedJSONRoute: a request's JSON (an inline plan: up to ~1 MB at the plan's size bounds) is parsed once, in a
 #: worker thread, by the strict-JSON middleware (service/hardening.py), not again in the event loop
@@ -129,7 +128,8 @@ class RunOut(BaseModel):
     )
     verdict: dict[str, Any] | None = Field(
         None,
-        description="which method's result to load and why, the next command (calib.verdict; null: no result yet)",
+        description="which method's result to load and why, the next command (calib.identify.verdict; "
+        "null: no result yet)",
     )
 
 
@@ -402,7 +402,7 @@ async def delete_run(run_id: RunId, manager: Manager, _: Writer) -> Deleted:
 async def run_result(run_id: RunId, manager: Manager, _: Reader) -> dict[str, Any]:
     """Per method: the four combinations with standard deviations (``combinations``, ``combinations_std``; also as
     ``parameters``, ``std``), the seven parameters when identified (``seven``), residuals, identifiability,
-    validation (the JSON of ``i4cal calibrate --json``; :mod:`calib.resultdoc`)."""
+    validation (the JSON of ``i4cal calibrate --json``; :mod:`calib.formats.resultdoc`)."""
     run = get_run(manager, run_id)
     if run.result is None:
         raise conflict(f"run is {run.state}; no result")
@@ -456,7 +456,7 @@ async def export_run(
     format: Annotated[Literal["json", "yaml"], Query(description="json (default) or yaml")] = "json",
 ) -> Any:
     """The run's result as the document a robot controller loads (``i4cal.calibration/1``, ``i4cal export RUN``)."""
-    from ..export import dumps, run_document
+    from service.export import dumps, run_document
 
     run = get_run(manager, run_id)
     if run.result is None:
@@ -596,7 +596,7 @@ async def frame_image(
 def _render_frame(manager: RunManager, run, src: Path, index: str, annotate: bool, max_width: int) -> bytes | None:
     import cv2
 
-    from ..report.draw import annotated_frame, frame_camera
+    from service.report.draw import annotated_frame, frame_camera
 
     doc = json.loads((src / "dataset.json").read_text(encoding="utf-8"))
     frames = doc.get("frames", [])

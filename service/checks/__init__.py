@@ -1,5 +1,5 @@
 """Checks: does the calibration in force still hold? A short plan acquired on the bench, fitted, and tested against
-the calibration (``calib.drift``); the proposed update where it drifted (docs/check.md)."""
+the calibration (``calib.check.drift``); the proposed update where it drifted (docs/check.md)."""
 
 from .plan import check_plan_for_bench
 from .run import CheckOutcome, CheckSettings, evaluate_check, run_check

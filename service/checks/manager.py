@@ -15,12 +15,11 @@ from typing import Any
 from sqlalchemy import select
 
 from calib.errors import I4calError, InputError
-
-from ..db import Calibration, Check
-from ..runs import RunConflictError, RunManager
-from ..timefmt import iso_utc
-from .plan import check_plan_for_bench, require_check_phases
-from .run import CheckSettings, predicted_check_std, run_check
+from service.checks.plan import check_plan_for_bench, require_check_phases
+from service.checks.run import CheckSettings, predicted_check_std, run_check
+from service.db import Calibration, Check
+from service.runs import RunConflictError, RunManager
+from service.timefmt import iso_utc
 
 log = logging.getLogger(__name__)
 
@@ -50,7 +49,7 @@ class CheckManager:
     def __init__(self, runs: RunManager) -> None:
         self.runs = runs
         self.tasks: dict[str, asyncio.Task] = {}
-        #: why a running check holds the robot by itself (drivers.suspenders), by check id
+        #: why a running check holds the robot by itself (drivers.acquisition.suspenders), by check id
         self.suspended: dict[str, str] = {}
         self.recover()
 
@@ -111,7 +110,7 @@ class CheckManager:
         ------
         InputError, RunConflictError
         """
-        from calib.drift import in_force_estimate
+        from calib.check.drift import in_force_estimate
 
         if self.runs.bench is None:
             raise InputError("this service has no bench configured: nothing to check", field="bench")
@@ -124,7 +123,7 @@ class CheckManager:
         one (cached in the data directory), its fit poses revisited ``repeat`` times when given; validated against
         the bench's soft limits before anything moves."""
         from calib.design.drift_check import with_repeats
-        from calib.plan import validate_plan
+        from calib.formats.plan import validate_plan
 
         bench = self.runs.bench
         if bench is None:
@@ -249,7 +248,7 @@ class CheckManager:
                 self.runs.bench_holder = None
 
     def _progress(self, cid: str, p: Any) -> None:
-        """The acquisition's progress: a suspension (drivers.suspenders) noted while it lasts."""
+        """The acquisition's progress: a suspension (drivers.acquisition.suspenders) noted while it lasts."""
         if p.state == "suspended":
             if self.suspended.get(cid) != p.message:
                 log.warning("check %s suspended: %s", cid, p.message)
@@ -281,8 +280,7 @@ class CheckManager:
             that is not one of this service's calibrations (no run to descend from).
         """
         from service import __version__
-
-        from ..runs import calibrations
+        from service.runs import calibrations
 
         row = self.get(check_id)
         if row.state != "done":

@@ -50,11 +50,12 @@ def _design_key(cfg, request, camera=None) -> str:
 
 def check_plan_for_bench(cfg, budget_s: float = 60.0, cache_dir: Path | None = None, seed: int = 0, camera=None):
     """The bench's designed check plan and where it came from: ``(plan, n_fit, source)``, ``source`` being
-    ``"designed"`` or ``"cached: PATH"``. Designed with ``camera`` (a ``calib.camera.CameraModel``: a service's
+    ``"designed"`` or ``"cached: PATH"``. Designed with ``camera`` (a ``calib.formats.camera.CameraModel``: a
+    service's
     camera file), else the bench file's camera file, else the simulated bench's camera, at the bench's speeds,
     within ``budget_s`` seconds of motion."""
     from calib.design.drift_check import CheckPlanRequest, design_check_plan
-    from calib.plan import Plan
+    from calib.formats.plan import Plan
     from service.design import _bench_inputs
 
     request = CheckPlanRequest(budget_s=budget_s, seed=seed)

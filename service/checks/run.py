@@ -1,7 +1,7 @@
 """One check: the check plan acquired on the bench (the drivers' acquisition, the same motion safety as a run), its
 frames extracted and fitted by the combined method (the pipeline of ``i4cal acquire`` + ``i4cal calibrate``), the
-estimate tested against the calibration in force (:func:`calib.drift.check_drift`) and, where it drifted, the
-update proposed (:func:`calib.drift.update_from_check`) or refused with the reason."""
+estimate tested against the calibration in force (:func:`calib.check.drift.check_drift`) and, where it drifted, the
+update proposed (:func:`calib.check.drift.update_from_check`) or refused with the reason."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from calib.parameters import COMBINATION_NAMES
+from calib.model.parameters import COMBINATION_NAMES
 
 #: the format of a check's JSON document (``i4cal check --json``, ``GET /api/v1/checks/{id}``)
 CHECK_FORMAT = "i4cal.check/1"
@@ -26,7 +26,7 @@ class CheckSettings:
     Attributes
     ----------
     alpha : float
-        Family-wise false-alarm probability over the four combinations (:class:`calib.drift.DriftSettings`).
+        Family-wise false-alarm probability over the four combinations (:class:`calib.check.drift.DriftSettings`).
     max_check_std_m : float
         A combination the check pins worse than this (m) makes it inconclusive.
     """
@@ -35,7 +35,7 @@ class CheckSettings:
     max_check_std_m: float = 1e-3
 
     def drift(self):
-        from calib.drift import DriftSettings
+        from calib.check.drift import DriftSettings
 
         return DriftSettings(alpha=self.alpha, max_check_std_m=self.max_check_std_m)
 
@@ -63,7 +63,7 @@ class CheckOutcome:
     calibration: dict[str, Any] = field(default_factory=dict)
     #: the proposed update's ``i4cal.calibration/1`` document, when accepted
     update_document: dict[str, Any] | None = None
-    #: with revisited poses (``--repeat``): :meth:`calib.repeatability.Repeatability.to_dict`
+    #: with revisited poses (``--repeat``): :meth:`calib.check.repeatability.Repeatability.to_dict`
     repeatability: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
@@ -113,7 +113,7 @@ async def acquire_check(
     (s: ``motion``, the moves from the first pose on, command to in position, and the settle times, not the grabs
     and writes; ``approach``, the move to the first pose). ``camera_spec``: what
     the dataset records of the camera (a service's camera file: ``service.runs.Bench.camera_spec``)."""
-    from drivers.acquisition import acquisition_from_config, close_devices
+    from drivers.acquisition.acquire import acquisition_from_config, close_devices
 
     kw: dict[str, Any] = {"camera_spec": camera_spec} if camera_spec else {}
     acq = acquisition_from_config(plan, cfg, out, progress=progress, **kw)
@@ -133,8 +133,8 @@ async def acquire_check(
 def fit_check(dataset_dir: Path, camera=None) -> tuple[dict[str, Any], Any]:
     """The combined method's entry of the check's result document (extraction, then the fit), and the
     observations."""
-    from calib.observations import Observations
-    from calib.pipeline import calibrate, to_jsonable
+    from calib.formats.observations import Observations
+    from calib.identify.pipeline import calibrate, to_jsonable
     from calib.vision.extract import extract_dataset
 
     obs = Observations.from_dict(extract_dataset(dataset_dir, camera=camera).observations, source=str(dataset_dir))
@@ -147,7 +147,7 @@ def repeat_figures(obs, plan) -> dict[str, Any]:
     positions of the ``poses`` and ``validation`` frames grouped by the fit pose they were taken at."""
     import numpy as np
 
-    from calib.repeatability import repeat_groups, repeatability
+    from calib.check.repeatability import repeat_groups, repeatability
 
     poses_q = np.array([s.q for s in plan.steps if s.phase == "poses"])
     rows = [(i, f) for i, f in enumerate(obs.frames) if f.phase in ("poses", "validation") and f.board is not None]
@@ -171,7 +171,7 @@ def evaluate_check(
     ``i4cal.calibration/1`` document) and propose the update."""
     import numpy as np
 
-    from calib.drift import (
+    from calib.check.drift import (
         CombinationEstimate,
         check_drift,
         in_force_estimate,

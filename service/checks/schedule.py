@@ -17,11 +17,10 @@ from datetime import UTC, datetime
 from typing import Any
 
 from calib.errors import I4calError
-
-from ..runs import RunConflictError
-from ..settings import CheckSchedule
-from ..timefmt import iso_utc
-from .manager import HOLDER_PREFIX, CheckManager
+from service.checks.manager import HOLDER_PREFIX, CheckManager
+from service.runs import RunConflictError
+from service.settings import CheckSchedule
+from service.timefmt import iso_utc
 
 log = logging.getLogger(__name__)
 
@@ -102,7 +101,7 @@ class CheckScheduler:
             self._note("skipped", f"scheduled check ({trigger}) skipped: no calibration applied to this bench")
             return None
         doc, cal_id, run_id = current
-        from .run import CheckSettings
+        from service.checks.run import CheckSettings
 
         s = self.schedule
         try:

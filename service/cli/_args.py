@@ -132,7 +132,7 @@ def load_plan(spec: str, cfg, seed: int):
     from pathlib import Path
 
     from calib.errors import InputError
-    from calib.plan import PLAN_NAMES, Plan, make_plan
+    from calib.formats.plan import PLAN_NAMES, Plan, make_plan
 
     if spec in PLAN_NAMES:
         return make_plan(spec, cfg.nominal_parameters(), seed=seed, limits=cfg.calib_limits())

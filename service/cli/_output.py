@@ -2,7 +2,7 @@
 
 Every table fits the console's width (80 columns on a plain terminal): the methods are columns, and when they do not
 fit the table is split into several, each repeating the row names; names are never cut. Uncertainties are
-± 1 standard deviation everywhere (:data:`calib.verdict.UNCERTAINTY`).
+± 1 standard deviation everywhere (:data:`calib.identify.verdict.UNCERTAINTY`).
 """
 
 from __future__ import annotations
@@ -14,10 +14,10 @@ from rich import box
 from rich.console import Console
 from rich.table import Table
 
-from calib.parameters import COMBINATION_NAMES, PARAMETER_NAMES
-from calib.resultdoc import ResultDocument
-from calib.validation import vision_scale_ppm
-from calib.verdict import UNCERTAINTY, Verdict, verdict
+from calib.formats.resultdoc import ResultDocument
+from calib.identify.validation import vision_scale_ppm
+from calib.identify.verdict import UNCERTAINTY, Verdict, verdict
+from calib.model.parameters import COMBINATION_NAMES, PARAMETER_NAMES
 
 #: width of a console that is not a terminal (a file, a pipe): wide enough for every table, no squeezing
 FILE_WIDTH = 150

@@ -53,10 +53,9 @@ def _run(args: argparse.Namespace) -> int:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     from calib.errors import InputError
-    from drivers.acquisition import AcquisitionError, acquisition_from_config, close_devices
-    from drivers.config import load_bench
-
-    from ._args import load_plan
+    from drivers.acquisition.acquire import AcquisitionError, acquisition_from_config, close_devices
+    from drivers.acquisition.config import load_bench
+    from service.cli._args import load_plan
 
     if not args.extract and (args.observations is not None or args.workers is not None):
         raise InputError("--observations and --workers go with --extract", field="--extract")
@@ -79,7 +78,7 @@ def _run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     stream = None
     if args.extract:
-        from drivers.streaming import FrameStream
+        from drivers.acquisition.streaming import FrameStream
 
         def on_stream(kind: str, data: dict) -> None:
             if kind == "frame":
@@ -100,7 +99,7 @@ def _run(args: argparse.Namespace) -> int:
         bar.update(task, total=p.total, completed=p.done, phase=p.phase or p.state)
         if p.state in ("paused", "suspended", "failed", "aborted") and p.message:
             console.print(f"[yellow]{p.state}[/]: {p.message}")
-        elif p.message.startswith("suspension cleared"):  # drivers.suspenders: going on by itself
+        elif p.message.startswith("suspension cleared"):  # drivers.acquisition.suspenders: going on by itself
             console.print(p.message)
 
     async def main() -> int:
@@ -140,10 +139,10 @@ def _extract_after(args: argparse.Namespace, out: Path, stream, console) -> None
     """The extraction at the end, taking what the stream worker measured during the acquisition."""
     import time
 
-    from calib.jsonio import write_json_atomic
-    from calib.observations import Observations
+    from calib.formats.observations import Observations
+    from calib.numerics.jsonio import write_json_atomic
     from calib.vision.extract import extract_dataset
-    from drivers.streaming import load_streamed
+    from drivers.acquisition.streaming import load_streamed
     from service.jobs import clean_json
 
     t0 = time.monotonic()

@@ -8,9 +8,9 @@ import sys
 from pathlib import Path
 
 from calib.errors import InputError
-from calib.methods.registry import method_names
-from calib.observations import Observations
-from calib.pipeline import calibrate, to_jsonable
+from calib.formats.observations import Observations
+from calib.identify.pipeline import calibrate, to_jsonable
+from calib.identify.registry import method_names
 
 
 def load_observations(path: str, console=None, camera: str | None = None) -> Observations:
@@ -19,7 +19,7 @@ def load_observations(path: str, console=None, camera: str | None = None) -> Obs
     p = Path(path)
     if p.is_dir() or p.name == "dataset.json":
         try:
-            from calib.camera import CameraModel
+            from calib.formats.camera import CameraModel
             from calib.vision.extract import extract_dataset
         except ImportError as exc:  # pragma: no cover
             raise InputError(f"cannot extract a dataset here: {exc}", file=str(p)) from None
@@ -42,7 +42,7 @@ def check_output_file(path: str, option: str) -> None:
 def handler(args: argparse.Namespace) -> int:
     from rich.console import Console
 
-    from ._output import make_console, print_result
+    from service.cli._output import make_console, print_result
 
     methods = list(method_names()) if args.method == "all" else [args.method]
     if args.output:
@@ -86,7 +86,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "-m",
         default="all",
         choices=[*method_names(), "all"],
-        help="identification method (calib.methods.registry) or all (default)",
+        help="identification method (calib.identify.registry) or all (default)",
     )
     p.add_argument(
         "--camera",

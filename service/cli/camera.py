@@ -3,9 +3,10 @@
 The first step on a bench (the paper's ref. [19]): the I4 turns its board only about the vertical, which cannot fix
 the focal length, so the board is held up by hand. The bench's operator (``[operator] uri``: ``console``, a person
 pressing Enter; ``sim://``, the simulated bench's operator) is told where to hold it; each view is grabbed, detected
-and checked at once (:class:`calib.camera_views.ViewGuide`), and what is still missing is said in words (image
+and checked at once (:class:`calib.camera.views.ViewGuide`), and what is still missing is said in words (image
 corners, tilts, distances, count). Then the intrinsics are calibrated with the lens model chosen by the data
-(:func:`calib.camera.calibrate_intrinsics`), the result and its evidence printed and written as ``i4cal.camera/1``
+(:func:`calib.camera.intrinsics.calibrate_intrinsics`), the result and its evidence printed and written as
+``i4cal.camera/1``
 (docs/camera.md), which the bench file names (``[camera] intrinsics``) and every acquisition records.
 """
 
@@ -18,7 +19,7 @@ from typing import Any
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    from ._args import positive_int
+    from service.cli._args import positive_int
 
     p = subparsers.add_parser("camera", help="the camera's intrinsics: calibrate them from hand-held board views")
     sub = p.add_subparsers(dest="camera_command", metavar="SUBCOMMAND")
@@ -60,10 +61,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from rich.console import Console
 
-    from drivers.config import load_bench
-
-    from ..camera_session import calibrate_views, check_lens_model, collect_views
-    from .calibrate import check_output_file
+    from drivers.acquisition.config import load_bench
+    from service.camera_session import calibrate_views, check_lens_model, collect_views
+    from service.cli.calibrate import check_output_file
 
     check_output_file(args.output, "-o/--output")
     cfg = load_bench(args.bench)

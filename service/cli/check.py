@@ -72,10 +72,9 @@ def register(subparsers) -> None:
 
 def _inputs(args: argparse.Namespace):
     from calib.errors import InputError
-    from drivers.config import load_bench
+    from drivers.acquisition.config import load_bench
+    from service.cli.calibrate import check_output_file
     from service.export import loads
-
-    from .calibrate import check_output_file
 
     if not (math.isfinite(args.max_seconds) and 0 < args.max_seconds < 1e5):
         raise InputError(f"must be in (0, 1e5) seconds, got {args.max_seconds}", field="--max-seconds")
@@ -94,7 +93,7 @@ def _inputs(args: argparse.Namespace):
             f"cannot read the calibration: {exc.strerror}", file=str(path), field="--calibration"
         ) from None
     doc = loads(text, source=str(path))
-    from calib.drift import in_force_estimate
+    from calib.check.drift import in_force_estimate
 
     try:
         in_force_estimate(doc)
@@ -106,8 +105,7 @@ def _inputs(args: argparse.Namespace):
 def _plan(args: argparse.Namespace, cfg):
     from calib.design.drift_check import with_repeats
     from service.checks.plan import check_plan_for_bench, require_check_phases
-
-    from ._args import load_plan
+    from service.cli._args import load_plan
 
     if args.plan is not None:
         plan = load_plan(args.plan, cfg, args.seed)
@@ -124,16 +122,15 @@ def _plan(args: argparse.Namespace, cfg):
 
 
 def _run(args: argparse.Namespace) -> int:
-    from calib.camera import CameraModel
     from calib.design.motion import plan_motion_time
-    from calib.plan import validate_plan
+    from calib.formats.camera import CameraModel
+    from calib.formats.plan import validate_plan
     from service import __version__
     from service.checks.run import CheckSettings, predicted_check_std, run_check
+    from service.cli._output import make_console
     from service.design import motion_spec
     from service.export import dumps
     from service.timefmt import iso_utc
-
-    from ._output import make_console
 
     cfg, in_force = _inputs(args)
     camera = CameraModel.load(args.camera) if args.camera else None
@@ -168,7 +165,7 @@ def _run(args: argparse.Namespace) -> int:
     outcome.calibration = {"file": str(Path(args.calibration).resolve()), "run": in_force.run, "date": in_force.date}
     doc = outcome.to_dict()
     if args.update_out and outcome.update_document is not None:
-        from calib.export import CalibrationDocument
+        from calib.identify.export import CalibrationDocument
 
         fmt = "yaml" if Path(args.update_out).suffix.lower() in (".yaml", ".yml") else "json"
         Path(args.update_out).write_text(
@@ -204,7 +201,7 @@ def _next(args: argparse.Namespace, outcome) -> str:
 def _print(doc: dict, con) -> None:
     from rich.table import Table
 
-    from calib.parameters import COMBINATION_NAMES
+    from calib.model.parameters import COMBINATION_NAMES
 
     colour = {"holds": "green", "drifted": "red", "inconclusive": "yellow"}[doc["verdict"]]
     named = ", ".join(doc["drifted"]) if doc["drifted"] else ""

@@ -22,8 +22,8 @@ CAMERA_VIEWS = 30
 
 
 def _quick(args: argparse.Namespace, con) -> dict:
-    from calib.observations import Observations
-    from calib.pipeline import calibrate, to_jsonable
+    from calib.formats.observations import Observations
+    from calib.identify.pipeline import calibrate, to_jsonable
     from drivers.sim.twin import GeometricTwin
 
     con.print(
@@ -43,12 +43,13 @@ SMALL_PLAN: dict[str, Any] = {"n_base": 3, "n_fit": 5, "n_lock": 1, "n_validatio
 def _camera_phase(renderer, seed: int, views: int = CAMERA_VIEWS):
     """The intrinsics as a lab obtains them: ``views`` board views held in front of the simulated camera (the
     views ``simulate_dataset`` renders for ``seed``), calibrated with the board's corners released
-    (``calib.camera.calibrate_intrinsics``). The camera carries its covariance and the board's corners as the
+    (``calib.camera.intrinsics.calibrate_intrinsics``). The camera carries its covariance and the board's corners
+    as the
     calibration refined them: the simulated board is printed off its nominal corners (0.2 mm RMS), and poses of
     the nominal board would be off by it; the renderer's true intrinsics carry neither."""
     import numpy as np
 
-    from calib.camera import calibrate_intrinsics
+    from calib.camera.intrinsics import calibrate_intrinsics
     from calib.vision.board import BoardDetector
 
     det = BoardDetector(renderer.settings.board)
@@ -63,12 +64,11 @@ def _camera_phase(renderer, seed: int, views: int = CAMERA_VIEWS):
 
 
 async def _acquire(out: Path, seed: int, con, small: bool = False, temporary: bool = False):
-    from calib.plan import make_plan
-    from drivers.acquisition import acquire
+    from calib.formats.plan import make_plan
+    from drivers.acquisition.acquire import acquire
     from drivers.sim.bench import SimBench
     from drivers.sim.twin import GeometricTwin
-
-    from ._output import LongStep
+    from service.cli._output import LongStep
 
     async with SimBench(port=0, seed=seed) as bench:
         # the simulated camera renders each frame on request: 0.3 s on an idle core, several seconds on a busy
@@ -92,11 +92,10 @@ async def _acquire(out: Path, seed: int, con, small: bool = False, temporary: bo
 
 
 def _full(args: argparse.Namespace, con, base: Path) -> dict:
-    from calib.observations import Observations
-    from calib.pipeline import calibrate, to_jsonable
+    from calib.formats.observations import Observations
+    from calib.identify.pipeline import calibrate, to_jsonable
     from calib.vision.extract import extract_dataset
-
-    from ._output import LongStep
+    from service.cli._output import LongStep
 
     ds = base / "dataset"
     con.print(
@@ -120,7 +119,7 @@ def _full(args: argparse.Namespace, con, base: Path) -> dict:
 
 
 def handler(args: argparse.Namespace) -> int:
-    from ._output import make_console, print_result
+    from service.cli._output import make_console, print_result
 
     con = make_console()
     t0 = time.perf_counter()

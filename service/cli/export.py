@@ -11,8 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from calib.errors import I4calError, InputError
-
-from ._args import non_negative_float
+from service.cli._args import non_negative_float
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -90,9 +89,8 @@ def _format(args: argparse.Namespace) -> str:
 
 
 def _export(args: argparse.Namespace) -> int:
+    from service.cli.calibrate import check_output_file
     from service.export import dumps
-
-    from .calibrate import check_output_file
 
     check_output_file(args.output, "-o/--output")
     fmt = _format(args)
@@ -134,7 +132,7 @@ def _read_result(path: Path) -> dict[str, Any]:
 
 
 def _file_document(path: Path, method: str | None, dataset: Path | None):
-    from calib.export import build_calibration
+    from calib.identify.export import build_calibration
     from service.export import file_context
 
     if dataset is not None and not (dataset / "dataset.json").is_file():
@@ -170,7 +168,7 @@ def _server_get(args: argparse.Namespace, ident: str, what: str, params: dict | 
     """GET ``/runs/{id}{what}`` of ``--server`` for run ``ident`` (full id or unique prefix)."""
     import httpx
 
-    from .report import _check as http_check  # the same error wording as i4cal report --server
+    from service.cli.report import _check as http_check  # the same error wording as i4cal report --server
 
     base = args.server.rstrip("/") + "/api/v1"
     try:
@@ -187,9 +185,8 @@ def _server_get(args: argparse.Namespace, ident: str, what: str, params: dict | 
 
 
 def _server_run_id(c, base: str, server: str, ident: str) -> str:
+    from service.cli.report import _check as http_check
     from service.report import RunNotFoundError
-
-    from .report import _check as http_check
 
     if len(ident) == 32:
         return ident
@@ -212,8 +209,8 @@ def _fetch_export(args: argparse.Namespace, fmt: str) -> str:
 
 # -- check -------------------------------------------------------------------------------------------------------------
 def _run_check(args: argparse.Namespace) -> int:
-    from calib.export import REPRODUCE_TOL_M, check_parity, method_parameters, plan_joints
-    from calib.parameters import I4Parameters
+    from calib.identify.export import REPRODUCE_TOL_M, check_parity, method_parameters, plan_joints
+    from calib.model.parameters import I4Parameters
     from service.export import loads
 
     path = Path(args.check)
@@ -301,8 +298,8 @@ def _has_data_dir(args: argparse.Namespace) -> bool:
 
 
 def _plan(args: argparse.Namespace, doc, recorded) -> tuple[Any, str]:
-    from calib.parameters import I4Parameters
-    from calib.plan import PLAN_NAMES, Plan, make_plan
+    from calib.formats.plan import PLAN_NAMES, Plan, make_plan
+    from calib.model.parameters import I4Parameters
 
     if args.plan:
         if args.plan in PLAN_NAMES:

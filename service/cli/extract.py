@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from rich.console import Console
 
-    from calib.camera import CameraModel
+    from calib.formats.camera import CameraModel
     from calib.vision.extract import ExtractionResult, ExtractOptions
 
 
@@ -73,8 +73,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from rich.console import Console
 
-    from calib.camera import CameraModel
-    from calib.observations import Observations
+    from calib.formats.camera import CameraModel
+    from calib.formats.observations import Observations
 
     console = Console(stderr=True)
     opts = _options(args)
@@ -100,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _options(args: argparse.Namespace) -> ExtractOptions:
     """The extraction's settings from the command line (the lens model checked)."""
-    from calib.camera import LENS_MODEL_CHOICES
+    from calib.camera.intrinsics import LENS_MODEL_CHOICES
     from calib.errors import InputError
     from calib.vision.extract import ExtractOptions
 

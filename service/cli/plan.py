@@ -18,7 +18,7 @@ def _camera(path: str | None, cfg: Any = None):
     """``--camera``: the camera model of a camera file; without it, the bench file's own camera file (``[camera]
     intrinsics``, as ``acquire`` records it); else None (the simulated bench's camera), with a warning when the bench
     file names a camera file that does not exist yet."""
-    from calib.camera import CameraModel
+    from calib.formats.camera import CameraModel
 
     if path is not None:
         return CameraModel.load(path)
@@ -149,7 +149,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def _noise_from(path: str | None):
     """``--noise-from``: the noise levels of a JSON file (an observations file's ``noise`` or DesignNoise's keys)."""
     from calib.design import DesignNoise
-    from calib.jsonio import read_json
+    from calib.numerics.jsonio import read_json
 
     if not path:
         return None
@@ -170,12 +170,11 @@ def _methods(text: str, field: str) -> tuple[str, ...]:
 
 
 def _predict(args: argparse.Namespace) -> int:
-    from calib.pipeline import to_jsonable
-    from calib.plan import validate_plan
-    from drivers.config import load_bench
+    from calib.formats.plan import validate_plan
+    from calib.identify.pipeline import to_jsonable
+    from drivers.acquisition.config import load_bench
+    from service.cli._args import load_plan
     from service.design import check_for_bench, check_lines
-
-    from ._args import load_plan
 
     cfg = load_bench(args.bench)
     methods = _methods(args.methods, "--methods")
@@ -194,10 +193,10 @@ def _predict(args: argparse.Namespace) -> int:
 def _design(args: argparse.Namespace) -> int:
     from calib.design import DesignRequest
     from calib.errors import InputError
-    from calib.parameters import COMBINATION_NAMES
-    from calib.pipeline import to_jsonable
-    from calib.plan import Plan, validate_plan
-    from drivers.config import load_bench
+    from calib.formats.plan import Plan, validate_plan
+    from calib.identify.pipeline import to_jsonable
+    from calib.model.parameters import COMBINATION_NAMES
+    from drivers.acquisition.config import load_bench
     from service.design import (
         better_than_request,
         design_for_bench,
@@ -246,9 +245,8 @@ def _design(args: argparse.Namespace) -> int:
     )
     if args.tradeoff is not None:
         return _tradeoff(args, cfg, req, noise, camera)
+    from service.cli._output import LongStep, make_console
     from service.fanout import Fanout, finished_line, settings_from
-
-    from ._output import LongStep, make_console
 
     settings = settings_from(args.workers, args.scheduler)
     # a design takes seconds to minutes (up to 200 fit poses, several candidate draws): say what it is doing, on a
@@ -299,11 +297,10 @@ def _tradeoff(args: argparse.Namespace, cfg, req, noise, camera=None) -> int:
         tradeoff_trend,
     )
     from calib.errors import InputError
-    from calib.pipeline import to_jsonable
-    from calib.plan import validate_plan
+    from calib.formats.plan import validate_plan
+    from calib.identify.pipeline import to_jsonable
+    from service.cli._output import LongStep, make_console
     from service.design import tradeoff_for_bench, tradeoff_lines
-
-    from ._output import LongStep, make_console
 
     counts = parse_counts(args.tradeoff, "--tradeoff")
     with LongStep(make_console(stderr=True), "designing", total=len(counts)) as bar:

@@ -8,10 +8,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from calib.errors import I4calError, InputError
-from calib.methods.registry import method_names
+from calib.identify.registry import method_names
 
 if TYPE_CHECKING:
-    from ._output import LongStep
+    from service.cli._output import LongStep
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -98,7 +98,7 @@ class _StageProgress:
         if self.quiet:
             return
         if self.step is None:  # started by the first stage, so that a mistake in the inputs stays one line
-            from ._output import LongStep
+            from service.cli._output import LongStep
 
             self.step = LongStep(self.console, "report").__enter__()
         self.step.update(stage, done=done, total=total or None)

@@ -87,10 +87,9 @@ def _run(args: argparse.Namespace) -> int:
     if args.watchdog_s < 0:
         print("i4cal sim-bench: --watchdog-s must be >= 0 (0 = off)", file=sys.stderr)
         return 2
-    from calib.jsonio import write_json_atomic
+    from calib.numerics.jsonio import write_json_atomic
     from drivers.sim.bench import serve_forever
-
-    from .calibrate import check_output_file
+    from service.cli.calibrate import check_output_file
 
     if args.truth_out is not None:
         check_output_file(args.truth_out, "--truth-out")

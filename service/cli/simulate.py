@@ -31,18 +31,17 @@ def noise_from_args(args: argparse.Namespace):
 def handler(args: argparse.Namespace) -> int:
     from rich.console import Console
 
-    from calib.observations import Observations
-    from calib.plan import make_plan
+    from calib.formats.observations import Observations
+    from calib.formats.plan import make_plan
     from drivers.sim.twin import GeometricTwin
 
     con = Console(stderr=True)
     out = Path(args.out)
     plan_name = getattr(args, "plan", "full")
     if args.images:
-        from drivers.sim.imaging import simulate_dataset
+        from drivers.sim.rendered_dataset import simulate_dataset
         from drivers.sim.twin import BenchGeometry
-
-        from ._output import LongStep, make_console
+        from service.cli._output import LongStep, make_console
 
         plan = make_plan(plan_name, BenchGeometry().nominal, seed=args.seed) if plan_name != "full" else None
         with LongStep(make_console(stderr=True), "rendering frames") as bar:
@@ -92,9 +91,8 @@ def add_noise_args(p: argparse.ArgumentParser) -> None:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from calib.plan import PLAN_NAMES
-
-    from ._args import non_negative_int
+    from calib.formats.plan import PLAN_NAMES
+    from service.cli._args import non_negative_int
 
     p = sub.add_parser(
         "simulate",

@@ -35,7 +35,7 @@ def _disk_full_failpoint(db_file: str):
     database file, a statement that writes fails as SQLite's does on a full disk (``SQLITE_FULL``)."""
     import sqlite3
 
-    from .. import failpoints
+    from service import failpoints
 
     def before_cursor_execute(conn, cursor, statement, parameters, context, executemany) -> None:
         verb = statement.lstrip().split(None, 1)[0].upper() if statement.strip() else ""

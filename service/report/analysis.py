@@ -12,18 +12,18 @@ from typing import Any
 import numpy as np
 
 from calib.errors import I4calError
-from calib.kinematics import dkm, leg_directions
-from calib.methods.registry import method_names
-from calib.methods.registry import methods as registered_methods
-from calib.parameters import PARAMETER_NAMES, I4Parameters
-from calib.resultdoc import Diagnostics, ResultDocument
+from calib.formats.resultdoc import Diagnostics, ResultDocument
+from calib.identify.registry import method_names
+from calib.identify.registry import methods as registered_methods
+from calib.model.kinematics import dkm, leg_directions
+from calib.model.parameters import PARAMETER_NAMES, I4Parameters
 
 #: Phases whose poses get per-pose residuals (the fit set, then the separate validation poses).
 RESIDUAL_PHASES = ("poses", "validation")
 
 
 def method_order(present: Any = ()) -> list[str]:
-    """The registered methods (:mod:`calib.methods.registry`, in its order), then any other name in ``present`` (a
+    """The registered methods (:mod:`calib.identify.registry`, in its order), then any other name in ``present`` (a
     result document's methods made with a method this process does not know), in its order."""
     names = list(method_names())
     return names + [m for m in present if m not in names]
@@ -122,9 +122,9 @@ def leg_residuals(obs: Any, result: ResultDocument | dict[str, Any], method: str
 
     Parameters
     ----------
-    obs : calib.observations.Observations
+    obs : calib.formats.observations.Observations
     result : ResultDocument
-        The result document of :func:`calib.pipeline.calibrate_document`.
+        The result document of :func:`calib.identify.pipeline.calibrate_document`.
     """
     doc = ResultDocument.of(result)
     params = doc.method_parameters(method)

@@ -13,14 +13,13 @@ from typing import Any
 
 import numpy as np
 
-from calib.methods.combined import EDGE_BIAS_STD_PX
-from calib.parameters import COMBINATION_NAMES, PARAMETER_NAMES
-from calib.resultdoc import Gaps, MethodEntry, ResultDocument, Straightness
-from calib.validation import vision_scale_ppm
-from calib.verdict import UNCERTAINTY, verdict
-
-from . import plots
-from .analysis import (
+from calib.formats.resultdoc import Gaps, MethodEntry, ResultDocument, Straightness
+from calib.identify.combined import EDGE_BIAS_STD_PX
+from calib.identify.validation import vision_scale_ppm
+from calib.identify.verdict import UNCERTAINTY, verdict
+from calib.model.parameters import COMBINATION_NAMES, PARAMETER_NAMES
+from service.report import plots
+from service.report.analysis import (
     LegResiduals,
     conditions,
     dataset_sha256,
@@ -31,7 +30,7 @@ from .analysis import (
     reference_method,
     worst_poses,
 )
-from .html import Raw, bullet_list, esc, figure, kv_table, mm, num, page, section, table
+from service.report.html import Raw, bullet_list, esc, figure, kv_table, mm, num, page, section, table
 
 Progress = Callable[[int, int, str], None]
 
@@ -51,7 +50,8 @@ class ReportInputs:
     Attributes
     ----------
     result : ResultDocument or dict
-        The result document of :func:`calib.pipeline.calibrate_document` (or its JSON, ``i4cal calibrate --json``,
+        The result document of :func:`calib.identify.pipeline.calibrate_document` (or its JSON, ``i4cal calibrate
+        --json``,
         of any age), metres.
     observations : dict, optional
         The observations v1 document (with its ``extraction`` section when produced from images).
@@ -112,7 +112,7 @@ def build_report(inputs: ReportInputs, *, progress: Progress | None = None, max_
     obs = None
     residuals: dict[str, LegResiduals | None] = {}
     if obs_doc is not None:
-        from calib.observations import Observations
+        from calib.formats.observations import Observations
 
         obs = Observations.from_dict(obs_doc)
         residuals = {m: leg_residuals(obs, res, m) for m in methods}
@@ -169,7 +169,8 @@ def build_report(inputs: ReportInputs, *, progress: Progress | None = None, max_
 
 # -- sections -----------------------------------------------------------------------------------
 def _verdict(res: ResultDocument, inputs: ReportInputs) -> Raw:
-    """The first screen's answer: which method's result to load and why, and the next command (calib.verdict)."""
+    """The first screen's answer: which method's result to load and why, and the next command
+    (calib.identify.verdict)."""
     run_id = (inputs.run or {}).get("id")
     src = inputs.source or ""
     from_result_file = inputs.observations is None and inputs.dataset_dir is None and src.endswith(".json")
@@ -685,7 +686,7 @@ def _frames(
         )
     import cv2
 
-    from .draw import annotated_frame, frame_camera
+    from service.report.draw import annotated_frame, frame_camera
 
     cam = frame_camera(ds_doc, obs_doc)
     parts: list[Any] = [
@@ -721,9 +722,9 @@ def _frames(
 
 
 def _method_line(name: str) -> str:
-    """``label: description.`` of a registered method (:mod:`calib.methods.registry`); the bare name otherwise."""
+    """``label: description.`` of a registered method (:mod:`calib.identify.registry`); the bare name otherwise."""
     from calib.errors import InputError
-    from calib.methods.registry import get_method
+    from calib.identify.registry import get_method
 
     try:
         spec = get_method(name)

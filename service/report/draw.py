@@ -9,7 +9,7 @@ from typing import Any, cast
 import numpy as np
 from numpy.typing import NDArray
 
-from calib.camera import CameraModel
+from calib.formats.camera import CameraModel
 
 #: BGR colours of the overlay.
 BOARD_COLOUR = (0, 200, 0)

@@ -13,10 +13,9 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
-from calib.parameters import COMBINATION_NAMES
-from calib.resultdoc import Identifiability, ResultDocument
-
-from .analysis import LegResiduals
+from calib.formats.resultdoc import Identifiability, ResultDocument
+from calib.model.parameters import COMBINATION_NAMES
+from service.report.analysis import LegResiduals
 
 #: Colours of the rows that are not methods (a method's colour is its registry entry's).
 COLOURS = {
@@ -27,8 +26,8 @@ COLOURS = {
 
 
 def colour(name: str) -> str | None:
-    """Plot colour of ``name``: a registered method's (:mod:`calib.methods.registry`), or of a reference row."""
-    from calib.methods.registry import methods
+    """Plot colour of ``name``: a registered method's (:mod:`calib.identify.registry`), or of a reference row."""
+    from calib.identify.registry import methods
 
     for spec in methods():
         if spec.name == name:

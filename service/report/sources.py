@@ -10,9 +10,8 @@ from pathlib import Path
 from typing import Any
 
 from calib.errors import I4calError, InputError
-from calib.resultdoc import ResultDocument
-
-from .builder import ReportInputs
+from calib.formats.resultdoc import ResultDocument
+from service.report.builder import ReportInputs
 
 RUN_ID = re.compile(r"^[0-9a-f]{6,32}$")
 
@@ -82,8 +81,8 @@ def find_run(settings: Any, ident: str) -> Any:
     """
     from sqlalchemy import select
 
-    from ..db import Database
-    from ..db.models import Run
+    from service.db import Database
+    from service.db.models import Run
 
     url = settings.db_url
     if url.startswith("sqlite:///"):
@@ -158,8 +157,8 @@ def inputs_from_path(
         For a dataset: use the observations already extracted from it (:func:`existing_observations`) instead of
         extracting again.
     """
-    from calib.observations import Observations
-    from calib.pipeline import RESULT_FORMAT, calibrate_document, to_jsonable
+    from calib.formats.observations import Observations
+    from calib.identify.pipeline import RESULT_FORMAT, calibrate_document, to_jsonable
 
     p = Path(path)
     ds_dir = None

@@ -7,7 +7,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
-from .lifecycle import Remaining
+from service.runs.lifecycle import Remaining
 
 
 @dataclass
@@ -21,7 +21,7 @@ class ActiveRun:
     holds_bench: bool = False
     aborting: bool = False
     paused: bool = False
-    #: why the acquisition suspended itself (drivers.suspenders), "" when it is not
+    #: why the acquisition suspended itself (drivers.acquisition.suspenders), "" when it is not
     suspended: str = ""
     last_frame: int | None = None
     pose: list[float] | None = None
@@ -30,5 +30,6 @@ class ActiveRun:
     detections: dict[int, dict[str, Any]] = field(default_factory=dict)
     last_extracted: int | None = None
     job: Any = None  # service.jobs.Job: the extraction or fit process
-    #: the frames measured during the acquisition (drivers.streaming: the file the stream worker wrote), if any
+    #: the frames measured during the acquisition (drivers.acquisition.streaming: the file the stream worker wrote), if
+    #: any
     streamed: str | None = None

@@ -10,9 +10,8 @@ from datetime import datetime
 from typing import Any
 
 from calib.errors import I4calError, InputError
-
-from ..settings import Settings
-from ..timefmt import now_utc as now
+from service.settings import Settings
+from service.timefmt import now_utc as now
 
 
 @dataclass
@@ -37,7 +36,7 @@ class Bench:
         self, name: str, config: Any, *, sim: Any = None, camera_spec: dict | None = None, camera_model: Any = None
     ) -> None:
         self.name = name
-        self.config = config  # drivers.config.BenchConfig
+        self.config = config  # drivers.acquisition.config.BenchConfig
         self.sim = sim
         self.camera_spec = camera_spec or {}
         #: the camera file's model (``camera_file``: intrinsics, lens, image size), which the predictions use in
@@ -47,17 +46,17 @@ class Bench:
 
     @classmethod
     async def from_settings(cls, settings: Settings) -> Bench | None:
-        from drivers.config import BenchConfig, load_bench
+        from drivers.acquisition.config import BenchConfig, load_bench
 
         camera_spec: dict[str, Any] = {}
         cam = None
         if settings.camera_file:
-            from calib.camera import CameraModel
+            from calib.formats.camera import CameraModel
 
             cam = CameraModel.load(settings.camera_file)
             camera_spec = {"K": cam.K.tolist(), "dist": cam.dist.tolist()}
         if settings.sim_bench:
-            from ..simproc import SimBenchProcess
+            from service.simproc import SimBenchProcess
 
             # its own process, as hardware would be: its rendering does not compete with requests for the GIL
             sim = await SimBenchProcess(
@@ -78,7 +77,9 @@ class Bench:
         else:
             return None
         if cam is None:  # the bench file's own camera file ([camera] intrinsics): the predictions' camera too
-            known = cfg.camera_intrinsics()  # checked at start-up; every acquisition records it (drivers.acquisition)
+            known = (
+                cfg.camera_intrinsics()
+            )  # checked at start-up; every acquisition records it (drivers.acquisition.acquire)
             cam = known.camera if known is not None else None
         return cls(bench_name(settings, cfg), cfg, camera_spec=camera_spec, camera_model=cam)
 
@@ -89,8 +90,8 @@ class Bench:
     def preload(self) -> None:
         """Import the acquisition and the device backends now (blocking: in a thread at start-up), so that the first
         run does not import them in the event loop."""
-        import drivers.acquisition  # noqa: F401
-        from drivers.config import open_actuators, open_camera
+        import drivers.acquisition.acquire  # noqa: F401
+        from drivers.acquisition.config import open_actuators, open_camera
 
         with contextlib.suppress(I4calError):
             open_actuators(self.config)  # constructed, not connected: imports the backend's module
@@ -99,7 +100,7 @@ class Bench:
 
     async def probe(self, timeout_s: float = 3.0) -> None:
         """Connect to each device briefly and record its state (only while no run holds the bench)."""
-        from drivers.config import open_actuators, open_camera
+        from drivers.acquisition.config import open_actuators, open_camera
 
         act = open_actuators(self.config)
         try:
@@ -132,7 +133,7 @@ def bench_name(settings: Settings, cfg: Any) -> str:
     """
     import re
 
-    from ..settings import BENCH_NAME_PATTERN
+    from service.settings import BENCH_NAME_PATTERN
 
     name = settings.bench_name or str(getattr(cfg, "name", "") or "bench")
     if not re.fullmatch(BENCH_NAME_PATTERN, name):

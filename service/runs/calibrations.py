@@ -7,11 +7,10 @@ from datetime import UTC, datetime
 from sqlalchemy import select
 
 from calib.errors import InputError
-from calib.resultdoc import ResultDocument
-
-from ..db import Calibration, Database, Run
-from ..jobs import clean_json
-from .lifecycle import RunConflictError, RunState
+from calib.formats.resultdoc import ResultDocument
+from service.db import Calibration, Database, Run
+from service.jobs import clean_json
+from service.runs.lifecycle import RunConflictError, RunState
 
 
 def calibration_from_run(run: Run, method: str | None, default_bench: str | None) -> Calibration:
@@ -30,7 +29,7 @@ def calibration_from_run(run: Run, method: str | None, default_bench: str | None
         raise RunConflictError(f"run is {run.state} without a result; nothing to apply")
     doc = ResultDocument.of(run.result)
     if method is None:
-        from calib.verdict import verdict
+        from calib.identify.verdict import verdict
 
         chosen = verdict(doc)
         if chosen.method is None:

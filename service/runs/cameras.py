@@ -16,8 +16,8 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from ..timefmt import now_utc
-from .lifecycle import RunConflictError
+from service.runs.lifecycle import RunConflictError
+from service.timefmt import now_utc
 
 log = logging.getLogger(__name__)
 
@@ -62,7 +62,7 @@ class CameraCalibrations:
         InputError
             An unknown lens model.
         """
-        from ..camera_session import check_lens_model
+        from service.camera_session import check_lens_model
 
         bench = self.manager.bench
         if bench is None:
@@ -84,7 +84,7 @@ class CameraCalibrations:
     async def _run(self, job: CameraCalibrationJob) -> None:
         from rich.text import Text
 
-        from ..camera_session import calibrate_views, collect_views
+        from service.camera_session import calibrate_views, collect_views
 
         holder = f"camera calibration {job.id}"
         cfg = self.manager.bench.config

@@ -24,8 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from calib.errors import I4calError
-
-from .. import failpoints
+from service import failpoints
 
 #: Bytes per pixel assumed for a frame on disk: a 16-bit image, or an 8-bit one PNG could not compress.
 BYTES_PER_PIXEL = 2

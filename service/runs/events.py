@@ -14,9 +14,9 @@ from typing import Any
 
 from sqlalchemy import func, select, update
 
-from ..db import Database, Event, Run
-from ..jobs import clean_json
-from ..timefmt import iso_utc
+from service.db import Database, Event, Run
+from service.jobs import clean_json
+from service.timefmt import iso_utc
 
 #: Events a live subscriber (a Server-Sent Events stream) can be behind; beyond, it is told to reconnect (below).
 SUBSCRIBER_QUEUE_MAX = 10_000

@@ -25,18 +25,15 @@ from typing import Any, cast
 from sqlalchemy import CursorResult, and_, delete, or_, select, update
 
 from calib.errors import InputError
-
-from .. import failpoints
-from ..db import Calibration, Database, DatasetRecord, Event, Run
-from ..jobs import HEAVY_NICE_ABOVE_RUN, HeavyPool
-from ..settings import Settings
-from ..timefmt import now_utc as now
-from . import calibrations
-from .active import ActiveRun
-from .bench import Bench
-from .disk import DiskGuard, StorageError, data_usage_bytes, is_disk_full
-from .events import EventBus, Subscription
-from .lifecycle import (
+from service import failpoints
+from service.db import Calibration, Database, DatasetRecord, Event, Run
+from service.jobs import HEAVY_NICE_ABOVE_RUN, HeavyPool
+from service.runs import calibrations
+from service.runs.active import ActiveRun
+from service.runs.bench import Bench
+from service.runs.disk import DiskGuard, StorageError, data_usage_bytes, is_disk_full
+from service.runs.events import EventBus, Subscription
+from service.runs.lifecycle import (
     ACTIVE,
     FINAL,
     IllegalTransitionError,
@@ -48,7 +45,9 @@ from .lifecycle import (
     next_state,
     remaining_stages,
 )
-from .stages import Stages
+from service.runs.stages import Stages
+from service.settings import Settings
+from service.timefmt import now_utc as now
 
 log = logging.getLogger("i4cal.service")
 
@@ -258,7 +257,7 @@ class RunManager:
         offline = run.source_dataset is not None or run.plan is None
         plan_frames = 0
         if not offline:
-            from calib.plan import Plan
+            from calib.formats.plan import Plan
 
             plan_frames = len(plan_units(Plan.model_validate(run.plan)))
         return remaining_stages(
@@ -702,6 +701,6 @@ class RunManager:
 
 
 def plan_units(plan) -> list:
-    from drivers.acquisition import plan_units as pu
+    from drivers.acquisition.acquire import plan_units as pu
 
     return pu(plan)

@@ -12,26 +12,24 @@ import time
 from typing import TYPE_CHECKING, Any, Protocol
 
 from calib.errors import I4calError
-from calib.jsonio import write_json_atomic
-
-from .. import failpoints
-from ..db import Run
-from ..jobs import merge_method, one_line, run_job
-from ..timefmt import now_utc as _now
-from .active import ActiveRun
-from .disk import disk_full_reason, is_disk_full
-from .lifecycle import IllegalTransitionError, RunEvent
+from calib.numerics.jsonio import write_json_atomic
+from service import failpoints
+from service.db import Run
+from service.jobs import merge_method, one_line, run_job
+from service.runs.active import ActiveRun
+from service.runs.disk import disk_full_reason, is_disk_full
+from service.runs.lifecycle import IllegalTransitionError, RunEvent
+from service.timefmt import now_utc as _now
 
 if TYPE_CHECKING:
     from pathlib import Path
 
-    from drivers.streaming import FrameStream
-
-    from ..jobs import HeavyPool
-    from ..settings import Settings
-    from .bench import Bench
-    from .events import EventBus
-    from .lifecycle import RunState
+    from drivers.acquisition.streaming import FrameStream
+    from service.jobs import HeavyPool
+    from service.runs.bench import Bench
+    from service.runs.events import EventBus
+    from service.runs.lifecycle import RunState
+    from service.settings import Settings
 
 log = logging.getLogger("i4cal.service")
 
@@ -206,9 +204,10 @@ class Stages:
     # -- acquisition ---------------------------------------------------------------------------------
     # -- streaming: each frame measured while the bench moves to the next pose ------------------------------
     def start_stream(self, run_id: str, run: Run) -> FrameStream | None:
-        """The worker that measures each frame as the acquisition writes it (:mod:`drivers.streaming`); its reports
+        """The worker that measures each frame as the acquisition writes it (:mod:`drivers.acquisition.streaming`); its
+        reports
         are the run's ``streamed`` events (batched). None when the service does not stream (``stream_extraction``)."""
-        from drivers.streaming import FrameStream
+        from drivers.acquisition.streaming import FrameStream
 
         m = self.m
         if not m.settings.stream_extraction:
@@ -250,8 +249,8 @@ class Stages:
         return None if summary is None else summary.get("file")
 
     async def acquire(self, run_id: str, a: ActiveRun, stream: FrameStream | None = None) -> None:
-        from calib.plan import Plan
-        from drivers.acquisition import AcquisitionError, acquisition_from_config, close_devices, plan_units
+        from calib.formats.plan import Plan
+        from drivers.acquisition.acquire import AcquisitionError, acquisition_from_config, close_devices, plan_units
         from drivers.errors import FrameError
 
         m = self.m
@@ -270,7 +269,9 @@ class Stages:
             a.pose = list(nxt.q) if nxt is not None and nxt.q is not None else None
             m.update(run_id, done=p.done, total=p.total, phase=p.phase or p.state)
             suspension = getattr(a.acq, "suspension", None)
-            if p.state == "suspended":  # drivers.suspenders: held at the pose; why, in the event and the status
+            if (
+                p.state == "suspended"
+            ):  # drivers.acquisition.suspenders: held at the pose; why, in the event and the status
                 a.suspended = p.message
                 a.paused = a.paused or bool(suspension and suspension.waits_for_user)  # POST .../resume resumes it
                 m.emit(run_id, "suspended", {"reason": p.message, "frame": p.done})

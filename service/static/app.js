@@ -406,7 +406,7 @@ async function showResult(id) {
   showPredicted(id, res);
 }
 
-// which method's result to load and why, and the next command (the service's calib.verdict, as the CLI says it)
+// which method's result to load and why, and the next command (the service's calib.identify.verdict, as the CLI says it)
 async function showVerdict(id) {
   const box = $("#verdict");
   if (box.dataset.run !== id) { box.hidden = true; box.replaceChildren(); }  // never another run's verdict meanwhile

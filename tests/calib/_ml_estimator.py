@@ -1,22 +1,23 @@
-"""The maximum-likelihood estimator of the combined method's four parameters under :mod:`calib.bound`'s measurement
+"""The maximum-likelihood estimator of the combined method's four parameters under :mod:`calib.identify.bound`'s
+measurement
 model: the reference the bound is checked against (an efficient estimator at small noise), for the tests only."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from calib.bound import MeasurementNoise, leg_directions_reduced
-from calib.transforms import matrix_to_rotvec, rotvec_to_matrix
+from calib.identify.bound import MeasurementNoise, leg_directions_reduced
+from calib.numerics.transforms import matrix_to_rotvec, rotvec_to_matrix
 
 
 def ml_combined(obs, noise: MeasurementNoise, *, start=None, base_frame=None) -> np.ndarray:
     """Maximum-likelihood estimate of the four combinations under the bound's measurement model.
 
-    Fits every unknown of :func:`calib.bound.combined_fisher` jointly to all the rods of the fit poses and the
+    Fits every unknown of :func:`calib.identify.bound.combined_fisher` jointly to all the rods of the fit poses and the
     board poses of the rotation and translation phases, with the noise known. At small noise it is
     efficient: its spread is the bound (tests compare them). ``start`` is a MethodResult of the
     combined method used to initialise (computed when not given); ``base_frame`` the
-    :class:`calib.baseframe.BaseFrameResult` of ``obs`` it was computed with (estimated when not given).
+    :class:`calib.identify.baseframe.BaseFrameResult` of ``obs`` it was computed with (estimated when not given).
 
     Returns
     -------
@@ -24,8 +25,8 @@ def ml_combined(obs, noise: MeasurementNoise, *, start=None, base_frame=None) ->
     """
     from scipy.optimize import least_squares
 
-    from calib.baseframe import base_frame_from_observations
-    from calib.methods.combined import calibrate_combined
+    from calib.identify.baseframe import base_frame_from_observations
+    from calib.identify.combined import calibrate_combined
 
     bf = base_frame or base_frame_from_observations(obs)
     start = start or calibrate_combined(obs, base_frame=bf, weighting="gls")

@@ -1,10 +1,10 @@
 import numpy as np
 import pytest
 
-from calib.baseframe import base_frame_from_observations, estimate_base_frame, fit_rotation_axis
 from calib.errors import IdentifiabilityError
-from calib.observations import Observations
-from calib.transforms import matrix_to_rotvec, rot_z
+from calib.formats.observations import Observations
+from calib.identify.baseframe import base_frame_from_observations, estimate_base_frame, fit_rotation_axis
+from calib.numerics.transforms import matrix_to_rotvec, rot_z
 from drivers.sim.twin import GeometricTwin
 
 
@@ -31,7 +31,7 @@ def test_base_frame_covariance_matches_monte_carlo(paper_plan):
 def test_rotation_axis_sign_follows_T():
     z = np.array([0.1, -0.2, 0.97])
     z /= np.linalg.norm(z)
-    from calib.transforms import rotvec_to_matrix
+    from calib.numerics.transforms import rotvec_to_matrix
 
     T = np.linspace(-0.05, 0.05, 8)
     R = np.array([rotvec_to_matrix(z * t / 0.02) for t in T]) @ rot_z(0.3)
@@ -60,7 +60,7 @@ def test_start_from_a_previous_estimate_follows_a_moved_rig(noise_free_obs):
     frame: one linear step from the converged fit) follows a small rotation of the whole rig exactly."""
     from dataclasses import replace
 
-    from calib.transforms import rotvec_to_matrix
+    from calib.numerics.transforms import rotvec_to_matrix
 
     obs = noise_free_obs[0]
     rot, tra = obs.arrays("rotation"), obs.arrays("translation")
@@ -88,9 +88,9 @@ def test_start_from_a_previous_estimate_follows_a_moved_rig(noise_free_obs):
 def test_axis_fit_jacobian_is_the_derivative_of_its_residuals(weighted):
     """The rotation-axis fit is given its analytic Jacobian (SO(3) left Jacobians): it must be the residuals'
     derivative, whitened or not, away from the solution (large residuals) as well as near it."""
-    from calib.baseframe import _axis_jacobian, _axis_residuals
-    from calib.numdiff import central_jacobian
-    from calib.transforms import rotvec_to_matrix, unit
+    from calib.identify.baseframe import _axis_jacobian, _axis_residuals
+    from calib.numerics.numdiff import central_jacobian
+    from calib.numerics.transforms import rotvec_to_matrix, unit
 
     rng = np.random.default_rng(2)
     n = 8

@@ -3,14 +3,13 @@
 import numpy as np
 import pytest
 
-from calib.baseframe import base_frame_from_observations
-from calib.bound import MeasurementNoise, crlb_combined
-from calib.methods import calibrate_combined
-from calib.observations import Observations
-from calib.parameters import COMBINATION_NAMES
+from calib.formats.observations import Observations
+from calib.identify import calibrate_combined
+from calib.identify.baseframe import base_frame_from_observations
+from calib.identify.bound import MeasurementNoise, crlb_combined
+from calib.model.parameters import COMBINATION_NAMES
 from drivers.sim.twin import GeometricTwin, NoiseSpec
-
-from ._ml_estimator import ml_combined
+from tests.calib._ml_estimator import ml_combined
 
 K = 0.1  # small noise: the ML estimator is efficient there
 TWIN_NOISE = NoiseSpec(5e-4 * K, 0.0, 3e-4 * K, (1e-4 * K, 1e-4 * K, 3e-4 * K), 0.0)
@@ -48,8 +47,8 @@ def test_combined_method_is_near_efficient(trials):
 
 
 def test_bound_scales_with_noise_and_pose_count(paper_plan):
-    from calib.parameters import NOMINAL
-    from calib.plan import make_plan
+    from calib.formats.plan import make_plan
+    from calib.model.parameters import NOMINAL
 
     b1 = crlb_combined(NOMINAL, paper_plan, NOISE)["std"]
     b2 = crlb_combined(NOMINAL, paper_plan, MeasurementNoise(1e-3 * K, 6e-4 * K, (2e-4 * K, 2e-4 * K, 6e-4 * K)))["std"]

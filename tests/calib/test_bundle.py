@@ -1,4 +1,4 @@
-"""The calibration bundle (calib/bundle.py) on synthetic corners with known per-view noise.
+"""The calibration bundle (calib/camera/bundle.py) on synthetic corners with known per-view noise.
 
 * the unknowns' vector round-trips through ``with_vector``;
 * the Jacobian is the residuals' (central differences);
@@ -11,10 +11,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calib.bundle import Bundle, bundle_covariance, refine_weighted, view_dof
-from calib.numdiff import central_jacobian
-from calib.transforms import matrix_to_rotvec
-from calib.vision.board import board_corners
+from calib.camera.bundle import Bundle, bundle_covariance, refine_weighted, view_dof
+from calib.camera.charuco import board_corners
+from calib.numerics.numdiff import central_jacobian
+from calib.numerics.transforms import matrix_to_rotvec
 from drivers.sim.render import BenchRenderer, RenderSettings
 
 NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2")
@@ -70,7 +70,7 @@ def test_spd_inverse_of_a_nearly_singular_information_is_never_negative():
     """A lens model the views barely determine (OpenCV's rational one on the image twin's 30 views) gives an
     information matrix whose unknowns span many orders of scale and two near-collinear directions; ``np.linalg.inv``
     returned variances below zero there (a NaN std in the camera file)."""
-    from calib.bundle import spd_inverse
+    from calib.camera.bundle import spd_inverse
 
     rng = np.random.default_rng(3)
     n = 12

@@ -10,11 +10,12 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from calib.camera import CameraModel, calibrate_intrinsics
-from calib.camera_views import CORNERS, TILTS, ViewGoals, ViewGuide
-from calib.dataset import BoardSpec
-from calib.transforms import Rigid, rotvec_to_matrix
-from calib.vision.board import board_corners
+from calib.camera.charuco import board_corners
+from calib.camera.intrinsics import calibrate_intrinsics
+from calib.camera.views import CORNERS, TILTS, ViewGoals, ViewGuide
+from calib.formats.camera import CameraModel
+from calib.formats.dataset import BoardSpec
+from calib.numerics.transforms import Rigid, rotvec_to_matrix
 from drivers.sim.hand import held_board_pose
 
 K_TRUE = np.array([[774.2, 0.0, 515.3], [0.0, 774.2, 380.6], [0.0, 0.0, 1.0]])

@@ -19,12 +19,12 @@ import numpy as np
 import pytest
 from scipy.stats import binom
 
-from calib.baseframe import base_frame_from_observations
-from calib.methods import calibrate_combined
-from calib.observations import Observations
-from calib.parameters import COMBINATION_NAMES
-from calib.robust import GATE_QUANTILE
-from calib.transforms import rotvec_to_matrix
+from calib.formats.observations import Observations
+from calib.identify import calibrate_combined
+from calib.identify.baseframe import base_frame_from_observations
+from calib.model.parameters import COMBINATION_NAMES
+from calib.numerics.robust import GATE_QUANTILE
+from calib.numerics.transforms import rotvec_to_matrix
 from drivers.sim.twin import GeometricTwin, NoiseSpec
 
 S_IMG = 2e-5  # rad, rod direction across its image line (out of its interpretation plane)

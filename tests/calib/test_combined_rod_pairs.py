@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from calib.methods import calibrate_combined
-from calib.observations import Observations
-from calib.parameters import COMBINATION_NAMES
+from calib.formats.observations import Observations
+from calib.identify import calibrate_combined
+from calib.model.parameters import COMBINATION_NAMES
 from drivers.sim.twin import GeometricTwin, NoiseSpec
 
 S_IMG = 2e-5  # rad, across the rod's image line

@@ -12,7 +12,7 @@ import pytest
 from calib.design import DesignRequest, TradeoffRow, design_plan, predict_plan, tradeoff_trend
 from calib.design.count_trend import fit_count_trend
 from calib.design.optimize import N_FIT_MOST
-from calib.parameters import COMBINATION_NAMES, NOMINAL
+from calib.model.parameters import COMBINATION_NAMES, NOMINAL
 
 #: a design small enough for a test: no validation poses, no guided line, two frames per lock phase, 80 candidate
 #: poses (so that the most fit poses allowed are the visible ones, fewer than 200)

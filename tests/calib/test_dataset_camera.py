@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calib.dataset import BoardSpec, CameraSpec, DatasetWriter, LegsSpec
 from calib.errors import InputError
-from calib.parameters import NOMINAL
+from calib.formats.dataset import BoardSpec, CameraSpec, DatasetWriter, LegsSpec
+from calib.model.parameters import NOMINAL
 from calib.vision.extract import extract_dataset
 
 

@@ -1,12 +1,13 @@
-"""calib.dataset.DatasetWriter: one writer of ``dataset.json`` at a time. An acquisition writes its frames from a worker
+"""calib.formats.dataset.DatasetWriter: one writer of ``dataset.json`` at a time. An acquisition writes its frames from
+a worker
 thread while its own thread records the run's state; both rewrite the document through the same temporary file."""
 
 from __future__ import annotations
 
 import threading
 
-from calib.dataset import BoardSpec, CameraSpec, Dataset, DatasetWriter, LegsSpec
-from calib.parameters import NOMINAL
+from calib.formats.dataset import BoardSpec, CameraSpec, Dataset, DatasetWriter, LegsSpec
+from calib.model.parameters import NOMINAL
 
 
 def test_frames_and_state_written_from_two_threads(tmp_path):

@@ -17,10 +17,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calib.observations import Observations
-from calib.parameters import COMBINATION_NAMES, PARAMETER_NAMES, SEVEN_TO_FOUR
-from calib.pipeline import calibrate, to_jsonable
-from calib.plan import Plan
+from calib.formats.observations import Observations
+from calib.formats.plan import Plan
+from calib.identify.pipeline import calibrate, to_jsonable
+from calib.model.parameters import COMBINATION_NAMES, PARAMETER_NAMES, SEVEN_TO_FOUR
 
 ROOT = Path(__file__).resolve().parents[2]
 METHODS = ("combined", "end-effector", "legs")
@@ -31,7 +31,7 @@ def demo(tmp_path_factory) -> dict:
     """The demo's dataset, observations, calibration (JSON document) and ``plan predict``'s prediction for its plan."""
     import argparse
 
-    from drivers.config import load_bench
+    from drivers.acquisition.config import load_bench
     from service.cli._output import make_console
     from service.cli.demo import _full
     from service.design import check_for_bench

@@ -23,11 +23,11 @@ from calib.design import (
     predict_plan,
     visibility,
 )
-from calib.methods import calibrate_combined, calibrate_end_effector, calibrate_legs
-from calib.methods.legs import joint_from_planes
-from calib.observations import Observations
-from calib.parameters import COMBINATION_NAMES, NOMINAL
-from calib.plan import Plan, make_plan, validate_plan
+from calib.formats.observations import Observations
+from calib.formats.plan import Plan, make_plan, validate_plan
+from calib.identify import calibrate_combined, calibrate_end_effector, calibrate_legs
+from calib.identify.legs import joint_from_planes
+from calib.model.parameters import COMBINATION_NAMES, NOMINAL
 from drivers.sim.render import RenderSettings
 from drivers.sim.twin import BenchGeometry, GeometricTwin, NoiseSpec
 
@@ -156,7 +156,7 @@ def test_every_chosen_pose_keeps_the_board_and_the_rods_in_view(designed, scene)
 
 
 def _poses(q: np.ndarray) -> np.ndarray:
-    from calib.kinematics import dkm
+    from calib.model.kinematics import dkm
 
     return dkm(NOMINAL, q)
 
@@ -225,7 +225,7 @@ def test_plan_motion_time_counts_every_move():
 def test_tighter_soft_limits_shorten_the_line_and_the_plan_validates(scene):
     """With a real bench's limits (0-750 mm) the paper's 500 mm line leaves them: the design shortens it, and every
     step of the plan (line samples included) passes validate_plan for those limits."""
-    from calib.plan import SoftLimits
+    from calib.formats.plan import SoftLimits
 
     limits = SoftLimits(q_min=[0.0] * 4, q_max=[0.75] * 4)
     with pytest.raises(Exception, match="outside the soft limits"):
@@ -243,7 +243,7 @@ def rendered(scene, tmp_path_factory):
     import cv2
 
     from calib.vision.extract import extract_dataset
-    from drivers.sim.imaging import simulate_dataset
+    from drivers.sim.rendered_dataset import simulate_dataset
 
     cv2.setNumThreads(1)
     req = DesignRequest(n_fit=12, n_base=8, n_lock=4, n_validation=0, with_line=False, n_candidates=150, seed=0)
@@ -317,7 +317,7 @@ def test_synthetic_rods_are_the_extracted_ones(rendered, scene):
     # reports it (the limbs' image middle, not the 3-D middle of the visible axis) the synthetic offsets' variance
     # was 1.3x the extracted here (median ratio 0.755), 1.6-1.9x on the paper plan's lock phases; now 1.08. The
     # angles' ratio, 1.25 now, follows the extracted limbs' shorter spans (0.92 of the synthetic: 0.92^-3 = 1.28)
-    from calib.methods.legs import limb_line_noise
+    from calib.identify.legs import limb_line_noise
 
     K = scene.camera.K
     Kx = np.asarray(doc["extraction"]["camera"]["K"], dtype=np.float64)
@@ -480,7 +480,7 @@ def test_lock_phase_frames_are_weighed_by_their_own_noise(rendered):
     frame it claimed noise the residuals do not show (chi-square per dof 0.30, median of 17 rendered trials of a
     designed plan; 1.5 without it) and overstated the joints' std along the rods 2-2.7-fold. Median over the eight
     rods (a rod taken for another edge in some frames is far off either way)."""
-    from calib.methods.legs.joints import _plane_observations
+    from calib.identify.legs.joints import _plane_observations
 
     _plan, obs, _doc = rendered
     per_rod = []
@@ -537,7 +537,7 @@ def test_legs_prediction_carries_the_methods_chi_square_levels(rendered, scene):
 
 def test_image_prediction_of_a_plan_with_a_leg_seen_through_its_second_rod_only(scene):
     """A fit pose where one leg's first rod is out of the measured set (too short in the image) and its second is
-    measured: the legs method uses the one rod (``_pair_means``), and so must its prediction: a missing rod filled with
+    measured: the legs method uses the one rod (``pair_means``), and so must its prediction: a missing rod filled with
     a zero direction would zero the measured one in the intrinsics' effect and the prediction would raise on
     non-finite residuals."""
     from calib.design import ImageNoise, synthetic_rods
@@ -602,8 +602,8 @@ def test_joint_depth_systematic_is_along_the_lines_of_sight_shared_within_a_leg(
     a leg's two joints, none between legs. The legs method carries it as a part of its std (estimates unchanged) and
     so does its prediction; the other methods' predictions are unchanged."""
     from calib.design import ImageNoise
-    from calib.methods.legs import joint_depth_systematic
-    from calib.methods.legs.constants import JOINT_DEPTH_SYS_LEG_SHARE, JOINT_DEPTH_SYS_M
+    from calib.identify.legs import joint_depth_systematic
+    from calib.identify.legs.constants import JOINT_DEPTH_SYS_LEG_SHARE, JOINT_DEPTH_SYS_M
 
     rng = np.random.default_rng(11)
     P = rng.normal(size=(4, 2, 3)) * 0.1 + np.array([0.0, 0.0, 0.7])

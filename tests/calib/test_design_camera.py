@@ -9,7 +9,7 @@ import pytest
 
 from calib.design import DesignRequest, design_plan, phase_q, visibility
 from calib.errors import InputError
-from calib.parameters import NOMINAL
+from calib.model.parameters import NOMINAL
 
 REQ = DesignRequest(n_fit=4, n_lock=2, n_validation=0, with_line=False, n_candidates=60)
 

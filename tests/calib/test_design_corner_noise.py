@@ -15,7 +15,7 @@ import pytest
 from calib.design import ImageNoise
 from calib.design.imaging import board_axis_angle_deg, corner_noise_factor
 from calib.errors import InputError
-from calib.transforms import Rigid, rotvec_to_matrix
+from calib.numerics.transforms import Rigid, rotvec_to_matrix
 from calib.vision.board import BoardDetector
 from drivers.sim.render import BenchRenderer, RenderSettings
 from service.design import twin_scene

@@ -11,9 +11,9 @@ import pytest
 from calib.design.imaging import RodSet, synthetic_rods
 from calib.design.scene import Scene, rod_segments, visibility
 from calib.errors import InputError
-from calib.kinematics import dkm
-from calib.parameters import NOMINAL, I4Parameters
-from calib.plan import make_plan
+from calib.formats.plan import make_plan
+from calib.model.kinematics import dkm
+from calib.model.parameters import NOMINAL, I4Parameters
 from calib.vision.rods import _direction_covariance, limb_planes
 from calib.vision.rods.covariance import _direction_covariances
 from service.design import twin_scene

@@ -12,8 +12,8 @@ from calib.design import DesignNoise, DesignRequest, design_plan, phase_q, targe
 from calib.design.legs_criterion import LegsCriterion
 from calib.design.predict_images import predict_legs_images
 from calib.errors import InputError
-from calib.parameters import COMBINATION_NAMES, NOMINAL
-from calib.plan import Plan, make_plan
+from calib.formats.plan import Plan, make_plan
+from calib.model.parameters import COMBINATION_NAMES, NOMINAL
 
 
 @pytest.fixture(scope="module")

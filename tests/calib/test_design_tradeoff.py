@@ -19,8 +19,8 @@ from calib.design import (
     recommended_count,
 )
 from calib.errors import InputError
-from calib.parameters import COMBINATION_NAMES, NOMINAL
-from calib.plan import validate_plan
+from calib.formats.plan import validate_plan
+from calib.model.parameters import COMBINATION_NAMES, NOMINAL
 from tests.calib.test_design import twin_scene
 
 SMALL = {"n_lock": 2, "n_validation": 0, "with_line": False, "n_candidates": 100}

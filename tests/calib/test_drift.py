@@ -1,4 +1,4 @@
-"""The check's drift test and update (calib.drift), by seeded Monte-Carlo on Gaussian estimates: the false-alarm
+"""The check's drift test and update (calib.check.drift), by seeded Monte-Carlo on Gaussian estimates: the false-alarm
 rate is the family-wise alpha, a drift of 4 std on one combination is found and named, the update's std covers its
 error, and updates that must not be applied are refused."""
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.stats import norm
 
-from calib.drift import (
+from calib.check.drift import (
     CombinationEstimate,
     DriftSettings,
     check_drift,
@@ -16,7 +16,7 @@ from calib.drift import (
     update_from_check,
 )
 from calib.errors import InputError
-from calib.parameters import COMBINATION_NAMES
+from calib.model.parameters import COMBINATION_NAMES
 
 TRUTH_M = np.array([1.0, 0.35, -0.63, -0.63])
 _A = np.random.default_rng(0).normal(size=(4, 4))
@@ -147,8 +147,8 @@ def test_bad_input_names_the_field():
 
 
 def _document(values_m, cov):
-    from calib.export import COMPLETION_RULES, CalibrationDocument, Completion
-    from calib.parameters import NOMINAL, I4Parameters
+    from calib.identify.export import COMPLETION_RULES, CalibrationDocument, Completion
+    from calib.model.parameters import NOMINAL, I4Parameters
 
     combos = dict(zip(COMBINATION_NAMES, map(float, values_m), strict=True))
     p = I4Parameters.from_combinations(combos, NOMINAL)
@@ -172,8 +172,8 @@ def _document(values_m, cov):
 
 
 def test_the_update_document_reproduces_its_combinations_and_keeps_the_free_offsets():
-    from calib.drift import in_force_estimate, updated_calibration
-    from calib.export import REPRODUCE_TOL_M, load_calibration
+    from calib.check.drift import in_force_estimate, updated_calibration
+    from calib.identify.export import REPRODUCE_TOL_M, load_calibration
 
     doc = _document(TRUTH_M, IN_FORCE_COV)
     prior = in_force_estimate(doc)
@@ -195,7 +195,7 @@ def test_the_update_document_reproduces_its_combinations_and_keeps_the_free_offs
 
 
 def test_a_calibration_without_covariance_cannot_be_checked():
-    from calib.drift import in_force_estimate
+    from calib.check.drift import in_force_estimate
 
     with pytest.raises(InputError, match="covariance"):
         in_force_estimate(_document(TRUTH_M, None))

@@ -15,13 +15,13 @@ import pytest
 
 @pytest.mark.slow
 def test_edge_bias_estimate_follows_a_known_edge_offset(tmp_path):
-    from calib.methods.combined import calibrate_combined
-    from calib.observations import Observations
-    from calib.parameters import COMBINATION_NAMES, NOMINAL
-    from calib.plan import Plan, make_plan
+    from calib.formats.observations import Observations
+    from calib.formats.plan import Plan, make_plan
+    from calib.identify.combined import calibrate_combined
+    from calib.model.parameters import COMBINATION_NAMES, NOMINAL
     from calib.vision.extract import extract_dataset
-    from drivers.sim.imaging import simulate_dataset
     from drivers.sim.render import RenderSettings
+    from drivers.sim.rendered_dataset import simulate_dataset
 
     full = make_plan("full", NOMINAL, seed=0, n_base=6, n_fit=12, n_lock=2, n_validation=2)
     plan = Plan.model_validate(
@@ -76,12 +76,12 @@ def test_edge_bias_is_modelled_in_image_pixels(tmp_path):
     with the radius (k1 = -0.3 here). The same extracted dataset with its limb samples moved outward by a known
     number of pixels moves the estimate by that number. When the bias was a constant in normalized coordinates
     the estimate followed two thirds of it and the combinations moved by up to 0.8 of their std."""
-    from calib.methods.combined import calibrate_combined
-    from calib.observations import Observations
-    from calib.parameters import NOMINAL
-    from calib.plan import Plan, make_plan
+    from calib.formats.observations import Observations
+    from calib.formats.plan import Plan, make_plan
+    from calib.identify.combined import calibrate_combined
+    from calib.model.parameters import NOMINAL
     from calib.vision.extract import extract_dataset
-    from drivers.sim.imaging import simulate_dataset
+    from drivers.sim.rendered_dataset import simulate_dataset
 
     full = make_plan("full", NOMINAL, seed=0, n_base=6, n_fit=12, n_lock=2, n_validation=2)
     plan = Plan.model_validate(

@@ -9,11 +9,11 @@ covariances are optimistic by an unknown factor that the method must measure).
 import numpy as np
 import pytest
 
-from calib.methods import calibrate_end_effector
-from calib.methods.end_effector import _left_jacobian, board_covariances
-from calib.observations import Observations
-from calib.parameters import COMBINATION_NAMES
-from calib.transforms import matrix_to_rotvec, rotvec_to_matrix
+from calib.formats.observations import Observations
+from calib.identify import calibrate_end_effector
+from calib.identify.end_effector import _left_jacobian, board_covariances
+from calib.model.parameters import COMBINATION_NAMES
+from calib.numerics.transforms import matrix_to_rotvec, rotvec_to_matrix
 from drivers.sim.twin import GeometricTwin, NoiseSpec
 
 N_TRIALS = 40

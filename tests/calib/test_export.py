@@ -1,4 +1,5 @@
-"""The calibration document (i4cal.calibration/1, calib.export): built from a result of the three methods on the
+"""The calibration document (i4cal.calibration/1, calib.identify.export): built from a result of the three methods on
+the
 geometric twin, its seven parameters reproduce each method's combinations, its statuses follow the completion rule,
 it survives JSON, and the parity check passes for the result's own model and fails for any other."""
 
@@ -11,7 +12,8 @@ import numpy as np
 import pytest
 
 from calib.errors import InputError
-from calib.export import (
+from calib.formats.plan import make_plan
+from calib.identify.export import (
     COMPLETION_RULES,
     REPRODUCE_TOL_M,
     CalibrationDocument,
@@ -23,10 +25,9 @@ from calib.export import (
     plan_joints,
     recommended_method,
 )
-from calib.kinematics import dkm
-from calib.parameters import COMBINATION_NAMES, PARAMETER_NAMES, I4Parameters
-from calib.pipeline import calibrate, to_jsonable
-from calib.plan import make_plan
+from calib.identify.pipeline import calibrate, to_jsonable
+from calib.model.kinematics import dkm
+from calib.model.parameters import COMBINATION_NAMES, PARAMETER_NAMES, I4Parameters
 
 CTX = ExportContext(software_version="test", bench="bench-x", run="0" * 32, date="2026-01-01T00:00:00Z")
 
@@ -108,8 +109,8 @@ def test_legs_identifies_the_seven_or_says_which_fell_back_to_nominal(result):
 
 
 def test_recommended_method_rule(result):
-    """The export's default method is the verdict's (calib.verdict), the rule every front end states."""
-    from calib.verdict import verdict
+    """The export's default method is the verdict's (calib.identify.verdict), the rule every front end states."""
+    from calib.identify.verdict import verdict
 
     assert recommended_method(result)[0] == verdict(result).method == "combined"
     assert build_calibration(result, CTX).method == "combined"
@@ -187,7 +188,7 @@ def test_without_stored_seven_the_combinations_are_completed_with_nominal(result
 
 
 def _minimal() -> dict:
-    from calib.parameters import NOMINAL
+    from calib.model.parameters import NOMINAL
 
     return {
         "format": "i4cal.calibration/1",

@@ -1,8 +1,8 @@
 import numpy as np
 
-from calib.methods.registry import method_identifiability as identifiability
-from calib.parameters import NOMINAL
-from calib.plan import make_plan
+from calib.formats.plan import make_plan
+from calib.identify.registry import method_identifiability as identifiability
+from calib.model.parameters import NOMINAL
 
 
 def _q():

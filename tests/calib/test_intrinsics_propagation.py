@@ -2,7 +2,8 @@
 
 * the 8x8 covariance of (fx, fy, cx, cy, k1, k2, p1, p2) from the calibrateCameraRO bundle: for OpenCV's
   (unweighted) fit its diagonal equals OpenCV's standard deviations; for the calibration's fit (views weighted by
-  their noise, calib.bundle) the errors' Mahalanobis distance over seeded rendered camera phases averages the number
+  their noise, calib.camera.bundle) the errors' Mahalanobis distance over seeded rendered camera phases averages
+  the number
   of parameters (the covariance is honest, correlations included), and the intrinsics' errors are much smaller than
   the unweighted fit's;
 * a board pose's ``d_intrinsics`` predicts how the pose moves when the intrinsics do;
@@ -15,9 +16,9 @@ import cv2
 import numpy as np
 import pytest
 
-from calib.camera import calibrate_intrinsics, intrinsics_covariance
-from calib.methods import intrinsics as intr
-from calib.transforms import matrix_to_rotvec
+from calib.camera.intrinsics import calibrate_intrinsics, intrinsics_covariance
+from calib.identify import intrinsics as intr
+from calib.numerics.transforms import matrix_to_rotvec
 from calib.vision.board import BoardDetector
 from calib.vision.rods import limb_planes
 from drivers.sim.render import BenchRenderer, RenderSettings
@@ -61,7 +62,8 @@ def test_unweighted_covariance_is_opencvs():
 
 @pytest.mark.slow
 def test_weighted_calibration_is_honest_and_beats_the_unweighted_one():
-    """Views weighted by their noise (calib.bundle): honest covariance, smaller errors than OpenCV's plain fit.
+    """Views weighted by their noise (calib.camera.bundle): honest covariance, smaller errors than OpenCV's plain
+    fit.
 
     Over 24 seeded 20-view camera phases of the image-level twin (whose views' corner noise ranges 0.02-0.2 px RMS)
     the weighted fit's fx, fy, cx, cy errors are well below the plain fit's (measured over 48 phases: mean square

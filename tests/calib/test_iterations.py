@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from calib.methods.iterations import traced, trf_callback
-from calib.pipeline import calibrate
+from calib.identify.iterations import traced, trf_callback
+from calib.identify.pipeline import calibrate
 
 
 def _rosenbrock(x: np.ndarray) -> np.ndarray:

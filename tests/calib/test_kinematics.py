@@ -12,7 +12,7 @@ from calib import (
     joint_points,
     leg_directions,
 )
-from calib.plan import Workspace, random_poses
+from calib.formats.plan import Workspace, random_poses
 
 
 def _poses(n: int, seed: int = 0) -> np.ndarray:

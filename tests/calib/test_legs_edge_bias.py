@@ -2,7 +2,7 @@
 
 The legs method cannot tell a limb-edge bias common to every rod apart from its joints and the rod radius: as an
 allowance only (0.1 px per limb in its std) its estimate would move with the bias (on the twin about -0.7 mm of L per
-+0.1 px). It corrects every rod by the bias the combined fit measures on the same rods (``calib.methods.edge_bias``),
++0.1 px). It corrects every rod by the bias the combined fit measures on the same rods (``calib.identify.edge_bias``),
 with that measurement's covariance in its std. The same dataset (seed, truth, camera phase) rendered with every
 silhouette widened by -0.25 and +0.25 px (``RenderSettings.rod_edge_offset_px``) must then give the same combinations
 within their reported std.
@@ -16,13 +16,13 @@ import pytest
 
 @pytest.mark.slow
 def test_legs_estimate_does_not_follow_a_known_edge_offset(tmp_path):
-    from calib.methods.legs import calibrate_legs
-    from calib.observations import Observations
-    from calib.parameters import COMBINATION_NAMES, NOMINAL
-    from calib.plan import Plan, make_plan
+    from calib.formats.observations import Observations
+    from calib.formats.plan import Plan, make_plan
+    from calib.identify.legs import calibrate_legs
+    from calib.model.parameters import COMBINATION_NAMES, NOMINAL
     from calib.vision.extract import extract_dataset
-    from drivers.sim.imaging import simulate_dataset
     from drivers.sim.render import RenderSettings
+    from drivers.sim.rendered_dataset import simulate_dataset
 
     full = make_plan("full", NOMINAL, seed=0, n_base=6, n_fit=12, n_lock=4, n_validation=2)
     plan = Plan.model_validate(

@@ -1,7 +1,7 @@
 """The legs method with what image extraction measures: interpretation planes ``h`` and ``cov_u``.
 
 Observations of the geometric twin are given each rod's two limb planes (exact, or perturbed by
-the limb-line noise model of :func:`calib.methods.legs.limb_line_noise`: strongly anisotropic,
+the limb-line noise model of :func:`calib.identify.legs.limb_line_noise`: strongly anisotropic,
 the rod's depth far less precise than its image position), the direction covariance that noise
 implies, and the camera matrix, as the image extraction reports them.
 """
@@ -9,11 +9,11 @@ implies, and the camera matrix, as the image extraction reports them.
 import numpy as np
 import pytest
 
-from calib.methods import calibrate_legs
-from calib.methods.legs import limb_line_noise, planes_direction_covariance
-from calib.observations import Observations
-from calib.parameters import COMBINATION_NAMES, PARAMETER_NAMES
-from calib.transforms import unit
+from calib.formats.observations import Observations
+from calib.identify import calibrate_legs
+from calib.identify.legs import limb_line_noise, planes_direction_covariance
+from calib.model.parameters import COMBINATION_NAMES, PARAMETER_NAMES
+from calib.numerics.transforms import unit
 from calib.vision.rods import axis_from_planes, limb_planes
 from drivers.sim.twin import GeometricTwin, NoiseSpec
 
@@ -132,9 +132,9 @@ def test_leg_directions_part_is_the_own_errors_through_the_fits_gain(twin, paper
     is the GLS covariance and the expectation the equations' dof; at a quarter of it, a quarter of both."""
     from scipy.linalg import block_diag
 
-    from calib.methods.legs.joints import _plane_observations, _step1_planes
-    from calib.methods.legs.pipeline import _leg_directions, _LegsPipeline, _steps34_covariance, _steps34_sandwich
-    from calib.parameters import NOMINAL
+    from calib.identify.legs.joints import _plane_observations, _step1_planes
+    from calib.identify.legs.steps import LegsModel, leg_directions, steps34_covariance, steps34_sandwich
+    from calib.model.parameters import NOMINAL
 
     doc = with_planes(twin.observations(plan=paper_plan, seed=5), np.random.default_rng(5), bias=True)
     obs = Observations.from_dict(doc)
@@ -142,20 +142,20 @@ def test_leg_directions_part_is_the_own_errors_through_the_fits_gain(twin, paper
     planes = [[_plane_observations(obs, lock[i], i, j) for j in range(2)] for i in range(4)]
     P, covPij, *_ = _step1_planes(planes)  # type: ignore[arg-type]
     data = obs.arrays("poses")
-    U, CU, pts, has_leg, measured, _rej, _C = _leg_directions(obs, data, None)
+    U, CU, pts, has_leg, measured, _rej, _C = leg_directions(obs, data, None)
     assert measured
     Uf = np.where(has_leg[..., None], U, 0.0)
-    pipe = _LegsPipeline(np.array([lock[i].q[:, i].mean() for i in range(4)]), data.q, pts, has_leg, CU, NOMINAL)
+    pipe = LegsModel(np.array([lock[i].q[:, i].mean() for i in range(4)]), data.q, pts, has_leg, CU, NOMINAL)
     seven = pipe.run(P, Uf)
-    c34, chi, dof = _steps34_covariance(pipe, P, Uf, seven)
+    c34, chi, dof = steps34_covariance(pipe, P, Uf, seven)
     CUf = np.nan_to_num(CU)
     for k in (1.0, 0.25):
-        cov, chi_w, expected = _steps34_sandwich(pipe, P, Uf, seven, k * CUf, np.zeros((24, 24)))
+        cov, chi_w, expected = steps34_sandwich(pipe, P, Uf, seven, k * CUf, np.zeros((24, 24)))
         np.testing.assert_allclose(cov, k * c34, rtol=1e-6)
         assert chi_w == pytest.approx(chi, rel=1e-9) and expected == pytest.approx(k * dof, rel=1e-6), (expected, dof)
     # the joints' errors add to the expected chi-square (they are in the residuals, fixed in steps 3-4)
     covP = block_diag(*covPij.reshape(8, 3, 3))
-    assert _steps34_sandwich(pipe, P, Uf, seven, CUf, covP)[2] > dof
+    assert steps34_sandwich(pipe, P, Uf, seven, CUf, covP)[2] > dof
     r = calibrate_legs(obs, prior_std_m=None)
     assert "cov_u_own" in r.diagnostics["steps34_weighting"], r.diagnostics["steps34_weighting"]
     expected_per_dof = r.diagnostics["steps34_expected_chi2_per_dof"]

@@ -3,10 +3,10 @@ of a fit that is given its Jacobian (no difference steps to recognise the iterat
 
 import numpy as np
 
-from calib.methods.iterations import traced_jac
-from calib.methods.legs.pipeline import _LegsPipeline, _step2_gram, _step2_gram_jacobian
-from calib.numdiff import central_jacobian
-from calib.parameters import NOMINAL
+from calib.identify.iterations import traced_jac
+from calib.identify.legs.steps import LegsModel, _step2_gram, _step2_gram_jacobian
+from calib.model.parameters import NOMINAL
+from calib.numerics.numdiff import central_jacobian
 
 
 def test_step2_jacobian_is_the_derivative_of_the_gram_entries():
@@ -22,7 +22,7 @@ def test_steps34_jacobian_is_the_derivative_of_the_residuals_with_missing_legs()
     U = rng.normal(size=(n, 4, 3))
     U /= np.linalg.norm(U, axis=2, keepdims=True)
     has_leg = rng.random((n, 4)) > 0.2
-    pipe = _LegsPipeline(np.zeros(4), q_fit, np.full((n, 4, 3), np.nan), has_leg, np.zeros((n, 4, 3, 3)), NOMINAL)
+    pipe = LegsModel(np.zeros(4), q_fit, np.full((n, 4, 3), np.nan), has_leg, np.zeros((n, 4, 3, 3)), NOMINAL)
     Aq = rng.normal(scale=0.2, size=(n, 4, 3))
     y = np.array([0.0, 1.0, 0.0])
     theta = np.array([NOMINAL.L, NOMINAL.S, NOMINAL.D])

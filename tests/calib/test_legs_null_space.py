@@ -1,12 +1,12 @@
 """The directions of the seven parameters that the four combinations do not see, and the legs method's a priori
-values along them on images (:func:`calib.methods.legs.uncertainty._null_space_to_prior`)."""
+values along them on images (:func:`calib.identify.legs.uncertainty.null_space_to_prior`)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from calib.methods.legs import _null_space_to_prior, combinations_null_space
-from calib.parameters import NOMINAL, SEVEN_TO_FOUR
+from calib.identify.legs import combinations_null_space, null_space_to_prior
+from calib.model.parameters import NOMINAL, SEVEN_TO_FOUR
 
 
 def test_null_space_is_orthonormal_and_invisible_to_the_combinations():
@@ -28,7 +28,7 @@ def test_a_priori_along_the_null_space_keeps_the_combinations_and_their_covarian
     A = rng.normal(0.0, 1e-3, (7, 7))
     parts = {"joint_centres": A @ A.T, "leg_directions": 1e-7 * np.eye(7)}
     total = sum(parts.values())
-    out, cov, out_parts, dirs = _null_space_to_prior(seven, parts, NOMINAL, 0.01)
+    out, cov, out_parts, dirs = null_space_to_prior(seven, parts, NOMINAL, 0.01)
     # the combinations and their covariance are the data's
     assert np.allclose(SEVEN_TO_FOUR @ out, SEVEN_TO_FOUR @ seven, atol=1e-15)
     assert np.allclose(SEVEN_TO_FOUR @ cov @ SEVEN_TO_FOUR.T, SEVEN_TO_FOUR @ total @ SEVEN_TO_FOUR.T, rtol=1e-12)

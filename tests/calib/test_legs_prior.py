@@ -15,10 +15,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calib.methods import calibrate_legs
-from calib.observations import Observations
-from calib.parameters import COMBINATION_NAMES
-from calib.pipeline import calibrate
+from calib.formats.observations import Observations
+from calib.identify import calibrate_legs
+from calib.identify.pipeline import calibrate
+from calib.model.parameters import COMBINATION_NAMES
 
 
 def _corrupt_lock_rod(obs: Observations, shift_m: np.ndarray, leg: int = 2) -> Observations:
@@ -99,7 +99,7 @@ def test_fit_poses_contradicting_the_tolerance_keep_the_lock_phases_four(noisy_o
     seen on a bench whose S and D are 50 and 35 mm shorter). Step 2's four (H, q02, q03, q04) come from the lock
     phases alone and agree with the tolerance: they are kept, (L, S, D) are the a priori values, and the result
     carries more than the a priori (its std below the a priori's on the three combinations step 2 enters)."""
-    from calib.parameters import PARAMETER_NAMES
+    from calib.model.parameters import PARAMETER_NAMES
     from drivers.sim.twin import BenchGeometry, GeometricTwin
 
     obs, twin = noisy_obs

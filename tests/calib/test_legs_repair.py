@@ -1,4 +1,4 @@
-"""One wrong upper joint repaired from its partner and the other legs' rod spacing (calib.methods.legs.repair).
+"""One wrong upper joint repaired from its partner and the other legs' rod spacing (calib.identify.legs.repair).
 
 On the image-level twin, 6 of 50 trials of the designed 12-pose plan had one rod measured wrong the same way in every
 frame of its lock phase (one limb's edge residual 0.15-0.19 px against at most 0.10 on every other limb): its joint
@@ -12,14 +12,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calib.methods import calibrate_legs
-from calib.methods.legs.repair import joint_repair_map
-from calib.observations import Observations
-from calib.parameters import COMBINATION_NAMES
-from calib.transforms import unit
+from calib.formats.observations import Observations
+from calib.identify import calibrate_legs
+from calib.identify.legs.repair import joint_repair_map
+from calib.model.parameters import COMBINATION_NAMES
+from calib.numerics.transforms import unit
 from drivers.sim.twin import GeometricTwin, NoiseSpec
-
-from .test_legs_images import with_planes
+from tests.calib.test_legs_images import with_planes
 
 
 def _moved_rod(doc: dict, shift_m: np.ndarray, leg: int = 2, rod: int = 1) -> dict:
@@ -106,7 +105,7 @@ def test_a_rod_wrong_in_the_fit_poses_too_is_left_out_of_them(twin, paper_plan, 
     rep = r.diagnostics["joint_repaired"]
     assert rep is not None and (rep["leg"], rep["rod"], rep["left_out_of_fit_poses"]) == (2, 1, True), rep
     assert any("left out of the fit poses" in w for w in r.warnings), r.warnings
-    monkeypatch.setattr("calib.methods.legs.method.repair_joint", lambda *a, **k: None)
+    monkeypatch.setattr("calib.identify.legs.method.repair_joint", lambda *a, **k: None)
     unrepaired = calibrate_legs(obs)
     truth = twin.geometry.truth.combinations()
     for k in COMBINATION_NAMES:
@@ -139,11 +138,11 @@ def test_a_leg_just_over_the_gate_is_widened_not_repaired(tmp_path):
     When any flagged leg was tried for a repair, replacing rod 1's joint (5.8 mm) with the rod left out of the fit
     poses lowered their chi-square per dof from 2556 to 1.8 and was kept: L 3.5 mm off at 3.2 std. A repair is for a
     joint tens of standard deviations off (a rod taken for another edge); this leg's covariance is widened instead."""
-    from calib.parameters import NOMINAL, I4Parameters
-    from calib.plan import Plan, make_plan
+    from calib.formats.plan import Plan, make_plan
+    from calib.model.parameters import NOMINAL, I4Parameters
     from calib.vision.extract import extract_dataset
-    from drivers.sim.imaging import simulate_dataset
     from drivers.sim.render import RenderSettings
+    from drivers.sim.rendered_dataset import simulate_dataset
     from drivers.sim.twin import BenchGeometry
     from i4cal.benchmarks.accuracy import default_spread_m, draw_truth, trial_seed
 

@@ -10,12 +10,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calib.camera import CameraModel, calibrate_intrinsics, intrinsics_names, intrinsics_vector
-from calib.dataset import BoardSpec
+from calib.camera.charuco import board_corners
+from calib.camera.intrinsics import calibrate_intrinsics, intrinsics_names, intrinsics_vector
 from calib.errors import InputError
-from calib.methods import intrinsics as intr
-from calib.transforms import rotvec_to_matrix
-from calib.vision.board import board_corners
+from calib.formats.camera import CameraModel
+from calib.formats.dataset import BoardSpec
+from calib.identify import intrinsics as intr
+from calib.numerics.transforms import rotvec_to_matrix
 
 K = np.array([[774.2, 0.0, 515.3], [0.0, 774.2, 380.6], [0.0, 0.0, 1.0]])
 PLAIN = np.array([-0.30, 0.10, 1.5e-3, -1e-3, 0.0])
@@ -186,13 +187,13 @@ def test_combined_method_on_a_k3_lens_stays_within_its_std(tmp_path):
     """A rendered dataset (reduced plan) through a lens with k3 = -0.012: the camera phase's full-board views
     cannot see k3, the calibration keeps it (k1k2k3), the rods pin it, and the combined method's errors lie within
     3 of its reported standard deviations (with k3 fixed to 0 they reached 3.7-4.0 std on three of the four)."""
-    from calib.observations import Observations
-    from calib.parameters import COMBINATION_NAMES, NOMINAL
-    from calib.pipeline import calibrate
-    from calib.plan import Plan, make_plan
+    from calib.formats.observations import Observations
+    from calib.formats.plan import Plan, make_plan
+    from calib.identify.pipeline import calibrate
+    from calib.model.parameters import COMBINATION_NAMES, NOMINAL
     from calib.vision.extract import extract_dataset
-    from drivers.sim.imaging import simulate_dataset
     from drivers.sim.render import RenderSettings
+    from drivers.sim.rendered_dataset import simulate_dataset
 
     full = make_plan("full", NOMINAL, seed=0, n_base=6, n_fit=12, n_lock=3, n_validation=4)
     plan = Plan.model_validate({"name": "k3", "steps": [s.model_dump() for s in full.steps if s.phase != "line"]})

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from calib.methods.measured_intrinsics import MeasuredIntrinsics
+from calib.identify.measured_intrinsics import MeasuredIntrinsics
 
 NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 
@@ -45,11 +45,11 @@ def test_a_measurement_names_its_bad_shape_and_reorders_by_name():
 def rendered(tmp_path_factory):
     """A seeded dataset of the paper's plan (8 fit poses, 4 lock frames) whose 10-view camera phase leaves the lens's
     radial terms to the rods: its one-step refined camera is 36.7 in Mahalanobis distance of covariance_refined."""
-    from calib.observations import Observations
-    from calib.parameters import NOMINAL
-    from calib.plan import Plan, make_plan
+    from calib.formats.observations import Observations
+    from calib.formats.plan import Plan, make_plan
+    from calib.model.parameters import NOMINAL
     from calib.vision.extract import extract_dataset
-    from drivers.sim.imaging import simulate_dataset
+    from drivers.sim.rendered_dataset import simulate_dataset
 
     full = make_plan("full", NOMINAL, seed=0, n_base=6, n_fit=8, n_lock=4, n_validation=2)
     plan = Plan.model_validate(
@@ -61,8 +61,8 @@ def rendered(tmp_path_factory):
 
 
 def test_the_re_estimate_is_within_its_posterior_where_the_one_step_camera_is_not(rendered):
-    from calib.camera import intrinsics_names, intrinsics_vector
-    from calib.methods.combined import calibrate_combined
+    from calib.camera.intrinsics import intrinsics_names, intrinsics_vector
+    from calib.identify.combined import calibrate_combined
     from drivers.sim.render import RenderSettings
     from i4cal.benchmarks._accuracy_trial import error_against_covariance
 
@@ -81,8 +81,8 @@ def test_the_re_estimate_is_within_its_posterior_where_the_one_step_camera_is_no
 
 
 def test_the_legs_method_uses_the_re_estimate_and_without_a_shift_is_what_it_was(rendered):
-    from calib.methods.intrinsics import intrinsics_prior
-    from calib.methods.legs import calibrate_legs
+    from calib.identify.intrinsics import intrinsics_prior
+    from calib.identify.legs import calibrate_legs
 
     _, obs = rendered
     new = calibrate_legs(obs)
@@ -92,7 +92,7 @@ def test_the_legs_method_uses_the_re_estimate_and_without_a_shift_is_what_it_was
     assert new.combinations["L"] != old.combinations["L"]
     # a measurement that moves nothing, with the extraction's covariance: the method as it was
     camera, cov = intrinsics_prior(obs)
-    from calib.camera import intrinsics_names
+    from calib.camera.intrinsics import intrinsics_names
 
     same = calibrate_legs(obs, intrinsics=MeasuredIntrinsics(tuple(intrinsics_names(camera)), np.zeros(len(cov)), cov))
     for k in old.combinations:
@@ -103,9 +103,9 @@ def test_the_legs_method_uses_the_re_estimate_and_without_a_shift_is_what_it_was
 def test_the_legs_method_uses_the_combined_measurements_passed_in_without_a_fit_of_its_own(rendered, monkeypatch):
     """What the legs method takes from the combined fit (limb-edge bias, intrinsics) is passed in: given, it runs no
     combined fit and gives what it gives alone (where it runs that fit once itself)."""
-    import calib.methods.combined as combined
-    from calib.methods.combined_measurements import CombinedMeasurements
-    from calib.methods.legs import calibrate_legs
+    import calib.identify.combined as combined
+    from calib.identify.combined_measurements import CombinedMeasurements
+    from calib.identify.legs import calibrate_legs
 
     _, obs = rendered
     measured = CombinedMeasurements.from_result(combined.calibrate_combined(obs))

@@ -6,15 +6,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calib.methods.combined import CombinedSettings, calibrate_combined, model_ratios
-from calib.methods.combined_measurements import CombinedMeasurements
-from calib.methods.end_effector import EndEffectorSettings, calibrate_end_effector
-from calib.methods.legs import LegsSettings, calibrate_legs
-from calib.methods.model import PoseSetModel
-from calib.methods.registry import MethodSpec, method_identifiability, method_model
-from calib.numdiff import central_jacobian
-from calib.parameters import COMBINATION_NAMES, NOMINAL
-from calib.plan import make_plan
+from calib.formats.plan import make_plan
+from calib.identify.combined import CombinedSettings, calibrate_combined, model_ratios
+from calib.identify.combined_measurements import CombinedMeasurements
+from calib.identify.end_effector import EndEffectorSettings, calibrate_end_effector
+from calib.identify.legs import LegsSettings, calibrate_legs
+from calib.identify.pose_set_model import PoseSetModel
+from calib.identify.registry import MethodSpec, method_identifiability, method_model
+from calib.model.parameters import COMBINATION_NAMES, NOMINAL
+from calib.numerics.numdiff import central_jacobian
 
 
 def _q() -> np.ndarray:
@@ -90,7 +90,7 @@ def test_settings_objects_give_the_keyword_arguments_results(noise_free_obs):
 def test_the_legs_method_takes_the_combined_measurements_passed_in(noise_free_obs, monkeypatch):
     """Given the combined fit's measurements, the legs method runs no combined fit of its own (on observations whose
     rods carry no limb samples it never needs one)."""
-    import calib.methods.combined as combined
+    import calib.identify.combined as combined
 
     obs, _ = noise_free_obs
     alone = calibrate_legs(obs)

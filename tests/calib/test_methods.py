@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from calib.baseframe import base_frame_from_observations
 from calib.errors import IdentifiabilityError
-from calib.methods import calibrate_combined, calibrate_end_effector, calibrate_legs
-from calib.observations import Observations
-from calib.parameters import COMBINATION_NAMES, PARAMETER_NAMES
+from calib.formats.observations import Observations
+from calib.identify import calibrate_combined, calibrate_end_effector, calibrate_legs
+from calib.identify.baseframe import base_frame_from_observations
+from calib.model.parameters import COMBINATION_NAMES, PARAMETER_NAMES
 from drivers.sim.twin import GeometricTwin, NoiseSpec
 
 N_TRIALS = 60
@@ -181,8 +181,8 @@ def test_unlocked_actuator_is_refused(noise_free_obs):
 
 
 def test_outward_shift_moves_each_limb_away_from_the_other_in_the_image():
-    from calib.camera import CameraModel
-    from calib.methods.intrinsics import outward_shift_normalized
+    from calib.formats.camera import CameraModel
+    from calib.identify.intrinsics import outward_shift_normalized
 
     cam = CameraModel(
         np.array([[800.0, 0, 512], [0, 800.0, 384], [0, 0, 1]]), np.array([-0.3, 0.1, 0, 0, 0]), 1024, 768

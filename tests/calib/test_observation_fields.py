@@ -1,5 +1,6 @@
 """The vision -> methods contract: the rod and board fields the image extraction writes into observations v1 are
-declared, optional, typed fields of :class:`calib.observations.Rod` and :class:`~calib.observations.Board`.
+declared, optional, typed fields of :class:`calib.formats.observations.Rod` and
+:class:`~calib.formats.observations.Board`.
 
 The documents here are built by the geometric twin and given the extraction's fields through the extraction's own
 writers (:meth:`calib.vision.rods.RodMeasurement.to_dict`, :meth:`calib.vision.board.BoardPose.to_dict`) with
@@ -17,10 +18,10 @@ import numpy as np
 import pytest
 
 from calib.errors import InputError
-from calib.methods.end_effector import board_covariances
-from calib.methods.intrinsics import board_sensitivities
-from calib.methods.legs.joints import _rod_field
-from calib.observations import BOARD_FIELDS, ROD_FIELDS, Board, Observations, Rod
+from calib.formats.observations import BOARD_FIELDS, ROD_FIELDS, Board, Observations, Rod
+from calib.identify.end_effector import board_covariances
+from calib.identify.intrinsics import board_sensitivities
+from calib.identify.legs.joints import _rod_field
 from calib.vision.board import BoardPose
 from calib.vision.rods import RodMeasurement
 from drivers.sim.twin import GeometricTwin

@@ -4,7 +4,7 @@ from pathlib import Path
 import pytest
 
 from calib.errors import InputError
-from calib.observations import FORMAT, Observations, json_schema
+from calib.formats.observations import FORMAT, Observations, json_schema
 
 SCHEMA = Path(__file__).resolve().parents[2] / "calib" / "schemas" / "observations-v1.schema.json"
 

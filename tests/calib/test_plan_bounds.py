@@ -9,8 +9,16 @@ import numpy as np
 import pytest
 
 from calib.errors import InputError
-from calib.plan import MAX_LINE_SAMPLES, MAX_PLAN_FRAMES, MAX_PLAN_STEPS, Plan, SoftLimits, make_plan, validate_plan
-from calib.plan import _check_step as check_step
+from calib.formats.plan import (
+    MAX_LINE_SAMPLES,
+    MAX_PLAN_FRAMES,
+    MAX_PLAN_STEPS,
+    Plan,
+    SoftLimits,
+    make_plan,
+    validate_plan,
+)
+from calib.formats.plan import _check_step as check_step
 from drivers.sim.twin import BenchGeometry
 
 NOMINAL = BenchGeometry().nominal

@@ -10,9 +10,9 @@ import pytest
 from calib.design import MotionSpec, check_plan, plan_motion_time, predict_plan, targets_from_plan, visibility
 from calib.design.check import MAX_PREDICTED_FRAMES, MIN_BOARD_CORNERS
 from calib.errors import InputError
-from calib.kinematics import ikm
-from calib.parameters import NOMINAL
-from calib.plan import Plan, SoftLimits, Step, make_plan, random_poses, validate_plan
+from calib.formats.plan import Plan, SoftLimits, Step, make_plan, random_poses, validate_plan
+from calib.model.kinematics import ikm
+from calib.model.parameters import NOMINAL
 
 MOTION = MotionSpec(speed_m_s=0.05, accel_m_s2=0.5, settle_s=0.2)
 LIMITS = SoftLimits(q_min=[-0.1] * 4, q_max=[0.8] * 4)

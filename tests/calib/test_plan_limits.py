@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from calib.errors import InputError
-from calib.kinematics import ikm
-from calib.parameters import NOMINAL
-from calib.plan import MIN_LINE_LENGTH_M, SoftLimits, guided_line, line_poses, make_plan, validate_plan
+from calib.formats.plan import MIN_LINE_LENGTH_M, SoftLimits, guided_line, line_poses, make_plan, validate_plan
+from calib.model.kinematics import ikm
+from calib.model.parameters import NOMINAL
 
 #: the real bench example's limits (deploy/bench-real.example.toml): actuators from 0 to 750 mm
 REAL = SoftLimits(q_min=[0.0] * 4, q_max=[0.75] * 4)

@@ -1,4 +1,4 @@
-"""Repeatability and the measurement floor (calib.repeatability) on seeded synthetic revisits: the floor from the
+"""Repeatability and the measurement floor (calib.check.repeatability) on seeded synthetic revisits: the floor from the
 still pairs, the repeatability from the revisits, the robot's own from their difference, each within its chi-square
 bound; a revisit 1 mm off is flagged and no other; a revisit plan visits every fit pose n times from another pose."""
 
@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
+from calib.check.repeatability import repeat_groups, repeatability
 from calib.design.drift_check import with_repeats
 from calib.errors import InputError
-from calib.plan import Plan, Step
-from calib.repeatability import repeat_groups, repeatability
+from calib.formats.plan import Plan, Step
 
 ROBOT_AXIS_M, FLOOR_AXIS_M = 20e-6, 5e-6
 POSES, VISITS = 30, 4

@@ -1,13 +1,14 @@
-"""The result document's contract (calib/resultdoc.py): the combinations under clear names beside the format's first
+"""The result document's contract (calib/formats/resultdoc.py): the combinations under clear names beside the format's
+first
 ones, the document validates against its models, and the API publishes them as the result's response schema."""
 
 from __future__ import annotations
 
 import json
 
-from calib.parameters import COMBINATION_NAMES, PARAMETER_NAMES
-from calib.pipeline import calibrate, to_jsonable
-from calib.resultdoc import ResultDocument
+from calib.formats.resultdoc import ResultDocument
+from calib.identify.pipeline import calibrate, to_jsonable
+from calib.model.parameters import COMBINATION_NAMES, PARAMETER_NAMES
 
 
 def test_combinations_named_beside_the_first_names(noisy_obs):
@@ -26,7 +27,7 @@ def test_combinations_named_beside_the_first_names(noisy_obs):
 
 
 def test_a_failed_method_has_null_values_under_both_names(noisy_obs):
-    from calib.observations import Observations
+    from calib.formats.observations import Observations
 
     obs, _ = noisy_obs
     d = obs.document.model_dump(mode="json")

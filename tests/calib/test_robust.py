@@ -1,11 +1,11 @@
-"""Robust chi-square gating (calib/robust.py), shared by the end-effector and legs methods."""
+"""Robust chi-square gating (calib/numerics/robust.py), shared by the end-effector and legs methods."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from calib.robust import chi2_gate, chi2_outliers, robust_chi2_scale
+from calib.numerics.robust import chi2_gate, chi2_outliers, robust_chi2_scale
 
 
 def test_robust_scale_ignores_outliers_and_the_gate_finds_them() -> None:

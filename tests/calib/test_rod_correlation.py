@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from calib.methods import calibrate_combined
-from calib.methods import rod_correlation as rc
-from calib.observations import Observations
-from calib.parameters import COMBINATION_NAMES
+from calib.formats.observations import Observations
+from calib.identify import calibrate_combined
+from calib.identify import rod_correlation as rc
+from calib.model.parameters import COMBINATION_NAMES
 from tests.calib.test_combined_rod_pairs import twin_with_exact_rods
 
 FOCAL_PX = 774.0
@@ -176,7 +176,7 @@ def test_the_estimated_covariance_is_positive_semi_definite_at_strong_correlatio
         return np.linalg.eigvalsh(S / np.outer(d, d))[0]
 
     assert smallest(0.9, 0.9) < -0.1  # the case guarded against
-    rp, rd = rc._positive_definite(own, [pair, dist], np.array([0.9, 0.9]))
+    rp, rd = rc.positive_definite(own, [pair, dist], np.array([0.9, 0.9]))
     assert smallest(rp, rd) > -1e-9 and rp > 0.3 and rd > 0.3
     assert smallest(0.0, 0.9) > 0
-    np.testing.assert_array_equal(rc._positive_definite(own, [pair, dist], np.array([0.0, 0.9])), [0.0, 0.9])
+    np.testing.assert_array_equal(rc.positive_definite(own, [pair, dist], np.array([0.0, 0.9])), [0.0, 0.9])

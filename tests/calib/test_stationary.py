@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares as scipy_least_squares
 
-import calib.methods.combined as combined_module
+import calib.identify.combined as combined_module
 from calib.errors import ConvergenceError
-from calib.methods import calibrate_combined
-from calib.methods.stationary import STATIONARY_SHARE, check_converged, gauss_newton_decrease
-from calib.observations import Observations
+from calib.formats.observations import Observations
+from calib.identify import calibrate_combined
+from calib.identify.stationary import STATIONARY_SHARE, check_converged, gauss_newton_decrease
 from drivers.sim.twin import GeometricTwin
 
 RNG = np.random.default_rng(7)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calib.transforms import cross, kabsch, kabsch_points, matrix_to_rotvec, rotvec_to_matrix, tangent_basis
+from calib.numerics.transforms import cross, kabsch, kabsch_points, matrix_to_rotvec, rotvec_to_matrix, tangent_basis
 
 
 def test_kabsch_points_recovers_a_rigid_map() -> None:
@@ -75,7 +75,7 @@ def test_matrix_to_rotvec_is_scipys_conversion_bit_for_bit() -> None:
 def test_so3_left_jacobians_are_the_derivatives_of_exp_and_log(scale: float) -> None:
     """``exp(phi + d) = exp(J_l d) exp(phi)`` and ``log(exp(d) exp(phi)) = phi + J_l^-1 d`` to first order, from
     zero (the series) to near a half-turn."""
-    from calib.transforms import so3_left_jacobian, so3_left_jacobian_inverse
+    from calib.numerics.transforms import so3_left_jacobian, so3_left_jacobian_inverse
 
     phi = scale * np.array([0.36, -0.48, 0.8])
     E = rotvec_to_matrix(phi)

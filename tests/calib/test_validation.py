@@ -3,10 +3,10 @@ import copy
 import numpy as np
 import pytest
 
-from calib.baseframe import fit_translation_direction, translation_scale_std
-from calib.observations import Observations
-from calib.plan import Plan
-from calib.validation import displacement_gaps, straightness, validate, vision_scale
+from calib.formats.observations import Observations
+from calib.formats.plan import Plan
+from calib.identify.baseframe import fit_translation_direction, translation_scale_std
+from calib.identify.validation import displacement_gaps, straightness, validate, vision_scale
 from drivers.sim.twin import GeometricTwin, NoiseSpec
 
 

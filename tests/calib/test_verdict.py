@@ -1,10 +1,10 @@
-"""The verdict rule (calib.verdict): which method's result to load, why, and the next command."""
+"""The verdict rule (calib.identify.verdict): which method's result to load, why, and the next command."""
 
 from __future__ import annotations
 
 import pytest
 
-from calib.verdict import COMBINATIONS, UNCERTAINTY, verdict
+from calib.identify.verdict import COMBINATIONS, UNCERTAINTY, verdict
 
 ORDER = ("combined", "legs", "end-effector")
 
@@ -64,8 +64,8 @@ def test_no_method_better_than_the_a_priori_loads_nothing():
 
 
 def test_on_a_real_twin_calibration_the_floor_is_the_true_geometry():
-    from calib.observations import Observations
-    from calib.pipeline import calibrate, to_jsonable
+    from calib.formats.observations import Observations
+    from calib.identify.pipeline import calibrate, to_jsonable
     from drivers.sim.twin import GeometricTwin
 
     doc = to_jsonable(calibrate(Observations.from_dict(GeometricTwin().observations(seed=0))))

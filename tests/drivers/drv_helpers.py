@@ -6,8 +6,8 @@ import dataclasses
 
 import numpy as np
 
-from drivers.axes import AxisSettings
-from drivers.modbus import ModbusActuators, ModbusLinkSettings
+from drivers.devices.axes import AxisSettings
+from drivers.devices.modbus import ModbusActuators, ModbusLinkSettings
 from drivers.sim.bench import SimBench
 from drivers.sim.mechanism import AxisConfig
 

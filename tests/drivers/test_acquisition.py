@@ -9,13 +9,13 @@ import time
 import numpy as np
 import pytest
 
-from calib.dataset import Dataset
 from calib.errors import InputError
-from calib.kinematics import dkm
-from calib.parameters import NOMINAL
-from calib.plan import Plan, Step, make_plan
-from drivers.acquisition import Acquisition, AcquisitionError, acquire, plan_units
-from drivers.config import open_actuators, open_camera, open_operator
+from calib.formats.dataset import Dataset
+from calib.formats.plan import Plan, Step, make_plan
+from calib.model.kinematics import dkm
+from calib.model.parameters import NOMINAL
+from drivers.acquisition.acquire import Acquisition, AcquisitionError, acquire, plan_units
+from drivers.acquisition.config import open_actuators, open_camera, open_operator
 from drivers.errors import AbortedError
 from drivers.sim.mechanism import ALARM_DRIVE_FAULT
 
@@ -209,7 +209,7 @@ async def test_abort_waits_for_the_frame_being_written(bench, tmp_path, monkeypa
     temporary file (the state record could be lost)."""
     import threading
 
-    from calib.dataset import DatasetWriter
+    from calib.formats.dataset import DatasetWriter
 
     release, in_flight = threading.Event(), threading.Event()
     original = DatasetWriter.add_frame
@@ -262,7 +262,7 @@ async def test_existing_dataset_needs_resume(bench, tmp_path):
 
 async def test_bench_file_lens_model_reaches_the_dataset(bench, tmp_path):
     """A bench file's ``[camera] lens_model`` is written into the dataset's camera, which extraction follows."""
-    from drivers.acquisition import acquisition_from_config, close_devices
+    from drivers.acquisition.acquire import acquisition_from_config, close_devices
 
     cfg = bench.bench_config(acquisition={"line_rate_hz": 100.0}, camera={"lens_model": "rational"})
     plan = Plan(name="one", steps=[s for s in make_plan("full", NOMINAL).steps if s.phase == "poses"][:1])

@@ -12,16 +12,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calib.camera import CameraModel
-from calib.camera_views import ViewGuide
-from calib.dataset import Dataset
+from calib.camera.views import ViewGuide
 from calib.errors import InputError
-from calib.parameters import NOMINAL
-from calib.plan import Plan, make_plan
-from drivers.acquisition import acquire
-from drivers.config import load_bench
+from calib.formats.camera import CameraModel
+from calib.formats.dataset import Dataset
+from calib.formats.plan import Plan, make_plan
+from calib.model.parameters import NOMINAL
+from drivers.acquisition.acquire import acquire
+from drivers.acquisition.config import load_bench
+from drivers.acquisition.operators import ConsoleOperator
 from drivers.errors import AbortedError
-from drivers.operators import ConsoleOperator
 
 CALIBRATION = {"rms_px": 0.1, "covariance_params": ["fx", "fy"], "covariance": [[1.0, 0.9], [0.9, 1.0]]}
 

@@ -7,9 +7,9 @@ import asyncio
 import numpy as np
 import pytest
 
-from calib.dataset import BoardSpec, CameraSpec, DatasetWriter, LegsSpec
-from calib.parameters import NOMINAL
-from drivers.config import open_camera
+from calib.formats.dataset import BoardSpec, CameraSpec, DatasetWriter, LegsSpec
+from calib.model.parameters import NOMINAL
+from drivers.acquisition.config import open_camera
 from drivers.errors import DeviceConnectionError, DeviceError, DeviceTimeoutError, FrameError
 
 

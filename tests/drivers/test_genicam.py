@@ -30,7 +30,7 @@ import pytest
 pytest.importorskip("harvesters")
 genicam = pytest.importorskip("genicam")
 
-from drivers.config import open_camera  # noqa: E402
+from drivers.acquisition.config import open_camera  # noqa: E402
 from drivers.errors import DeviceConnectionError, DeviceTimeoutError  # noqa: E402
 
 VIKY = glob.glob(os.path.join(os.path.dirname(genicam.__file__), "viky.cti"))

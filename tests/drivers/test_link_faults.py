@@ -29,8 +29,8 @@ import numpy as np
 import pytest
 from drv_helpers import make_modbus
 
+from drivers.devices.modbus import ModbusActuators, ModbusLink, ModbusLinkSettings
 from drivers.errors import DeviceError
-from drivers.modbus import ModbusActuators, ModbusLink, ModbusLinkSettings
 from drivers.sim.faultproxy import FaultProxy, SerialGateway, cancel_and_wait
 
 Q_A = np.array([0.40, 0.41, 0.42, 0.43])
@@ -356,11 +356,11 @@ async def test_no_frame_off_the_truth(bench, tmp_path, transport):
     fails on a fault is resumed, as an operator would."""
     from test_acquisition import small_plan
 
-    from calib.dataset import Dataset
-    from calib.parameters import NOMINAL
-    from calib.plan import Plan
-    from drivers.acquisition import Acquisition, AcquisitionError
-    from drivers.config import open_camera
+    from calib.formats.dataset import Dataset
+    from calib.formats.plan import Plan
+    from calib.model.parameters import NOMINAL
+    from drivers.acquisition.acquire import Acquisition, AcquisitionError
+    from drivers.acquisition.config import open_camera
 
     p = small_plan()
     plan = Plan(name="faults", steps=[s for s in p.steps if s.line is None])

@@ -1,5 +1,5 @@
-"""The seam between the motion logic and a protocol: :class:`drivers.axes.AxisController` over any
-:class:`drivers.links.AxisLink`, and the URI scheme registry of :mod:`drivers.config`.
+"""The seam between the motion logic and a protocol: :class:`drivers.devices.axes.AxisController` over any
+:class:`drivers.devices.links.AxisLink`, and the URI scheme registry of :mod:`drivers.acquisition.config`.
 
 The link here is written in the test (axes in memory that move at the commanded speed): no hardware exists that
 speaks it, which is the point: the controller's safety behaviour (limits before any request, alarms, a confirmed
@@ -19,14 +19,20 @@ import numpy as np
 import pytest
 
 from calib.errors import InputError
-from drivers import config
-from drivers.axes import AxisController
-from drivers.config import BenchConfig, open_actuators, open_camera, open_operator, register_actuators_scheme
+from drivers.acquisition import config
+from drivers.acquisition.config import (
+    BenchConfig,
+    open_actuators,
+    open_camera,
+    open_operator,
+    register_actuators_scheme,
+)
+from drivers.devices.axes import AxisController
+from drivers.devices.interfaces import Actuators, AxisStatus
+from drivers.devices.links import Command
+from drivers.devices.modbus import ModbusActuators, ModbusLink, ModbusLinkSettings
+from drivers.devices.serial_ascii import SerialAsciiActuators, SerialAsciiLink
 from drivers.errors import AlarmError, DeviceError, LimitError, ProtocolError, StopNotConfirmedError
-from drivers.interfaces import Actuators, AxisStatus
-from drivers.links import Command
-from drivers.modbus import ModbusActuators, ModbusLink, ModbusLinkSettings
-from drivers.serial_ascii import SerialAsciiActuators, SerialAsciiLink
 
 
 class MemoryLink:
@@ -291,7 +297,7 @@ def test_opening_the_simulated_bench_imports_no_simulator():
     that never imports drivers.sim (a fresh interpreter: this one has imported it for the fixtures)."""
     code = (
         "import sys\n"
-        "from drivers.config import BenchConfig, open_actuators, open_camera, open_operator\n"
+        "from drivers.acquisition.config import BenchConfig, open_actuators, open_camera, open_operator\n"
         "cfg = BenchConfig.model_validate({'actuators': {'uri': 'modbus+rtu+tcp://127.0.0.1:5021'},"
         " 'camera': {'uri': 'sim://127.0.0.1:5022'}, 'operator': {'uri': 'sim://127.0.0.1:5022'}})\n"
         "devices = open_actuators(cfg), open_camera(cfg), open_operator(cfg)\n"

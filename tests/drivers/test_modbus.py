@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from drv_helpers import FAST, TinyRenderer, make_modbus
 
-from calib.parameters import NOMINAL
-from drivers.axes import AxisSettings
+from calib.model.parameters import NOMINAL
+from drivers.devices.axes import AxisSettings
+from drivers.devices.modbus import ModbusActuators, ModbusLinkSettings
+from drivers.devices.registermap import AxisAddress, RegisterMap
 from drivers.errors import AlarmError, DeviceConnectionError, DeviceTimeoutError, LimitError, ProtocolError
-from drivers.modbus import ModbusActuators, ModbusLinkSettings
-from drivers.registermap import AxisAddress, RegisterMap
 from drivers.sim.bench import SimBench
 from drivers.sim.faultproxy import FaultProxy
 from drivers.sim.mechanism import ALARM_DRIVE_FAULT

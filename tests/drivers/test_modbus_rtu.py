@@ -20,9 +20,9 @@ import numpy as np
 import pytest
 from drv_helpers import FAST, TinyRenderer, make_modbus
 
-from drivers.config import open_actuators
+from drivers.acquisition.config import open_actuators
+from drivers.devices.modbus import ModbusActuators
 from drivers.errors import DeviceTimeoutError, ProtocolError
-from drivers.modbus import ModbusActuators
 from drivers.sim.bench import SimBench
 
 Q_A = np.array([0.40, 0.41, 0.42, 0.43])

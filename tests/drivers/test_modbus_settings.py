@@ -1,7 +1,8 @@
 """The bench file's ``[actuators]`` section reaches the Modbus driver's two settings objects, key by key.
 
-``drivers.config.open_actuators`` builds :class:`drivers.modbus.ModbusLinkSettings` (how the link reaches the
-controller) and :class:`drivers.axes.AxisSettings` (how the axes move) from the section and the URI; nothing is
+``drivers.acquisition.config.open_actuators`` builds :class:`drivers.devices.modbus.ModbusLinkSettings` (how the link
+reaches the
+controller) and :class:`drivers.devices.axes.AxisSettings` (how the axes move) from the section and the URI; nothing is
 connected here (the driver is only built), so no server is needed.
 """
 
@@ -12,9 +13,9 @@ import dataclasses
 import pytest
 
 from calib.errors import InputError
-from drivers.axes import AxisSettings
-from drivers.config import BenchConfig, open_actuators
-from drivers.modbus import ModbusActuators, ModbusLinkSettings
+from drivers.acquisition.config import BenchConfig, open_actuators
+from drivers.devices.axes import AxisSettings
+from drivers.devices.modbus import ModbusActuators, ModbusLinkSettings
 
 #: every key of ``[actuators]`` the driver reads, off its default
 SECTION = {

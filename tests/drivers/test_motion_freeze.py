@@ -26,15 +26,15 @@ from drv_helpers import FAST, TinyRenderer, modbus_actuators
 from test_acquisition import small_plan
 from test_link_faults import PtyToTcp
 
-from calib.dataset import Dataset
-from calib.parameters import NOMINAL
-from calib.plan import Plan
-from drivers.acquisition import Acquisition, AcquisitionError
-from drivers.axes import AxisSettings
-from drivers.config import open_camera
-from drivers.links import SafetySettings
-from drivers.modbus import ModbusActuators, ModbusLinkSettings
-from drivers.registermap import RegisterMap
+from calib.formats.dataset import Dataset
+from calib.formats.plan import Plan
+from calib.model.parameters import NOMINAL
+from drivers.acquisition.acquire import Acquisition, AcquisitionError
+from drivers.acquisition.config import open_camera
+from drivers.devices.axes import AxisSettings
+from drivers.devices.links import SafetySettings
+from drivers.devices.modbus import ModbusActuators, ModbusLinkSettings
+from drivers.devices.registermap import RegisterMap
 from drivers.sim.bench import SimBench
 from drivers.sim.controller import FreezeFront, Request
 from drivers.sim.faultproxy import SerialGateway

@@ -18,11 +18,11 @@ import pytest
 from drv_helpers import make_modbus
 from test_acquisition import close, make_acq, small_plan
 
-from calib.plan import Plan
-from drivers.acquisition import AcquisitionError
+from calib.formats.plan import Plan
+from drivers.acquisition.acquire import AcquisitionError
+from drivers.devices.interfaces import ActuatorStatus
+from drivers.devices.registermap import ALARM_WATCHDOG
 from drivers.errors import ProtocolError
-from drivers.interfaces import ActuatorStatus
-from drivers.registermap import ALARM_WATCHDOG
 
 Q_A = np.array([0.40, 0.41, 0.42, 0.43])
 Q_FAR = np.array([0.70, 0.71, 0.72, 0.73])
@@ -132,7 +132,7 @@ async def test_a_frame_whose_q_disagrees_is_read_again(bench, tmp_path):
     finally:
         await close(acq)
     assert seen.faked == 1 and res.frames == 4
-    from calib.dataset import Dataset
+    from calib.formats.dataset import Dataset
 
     ds = Dataset.open(tmp_path / "ds")
     for f in ds.frames:
@@ -150,7 +150,7 @@ async def test_a_frame_whose_q_keeps_disagreeing_is_refused(bench, tmp_path):
     finally:
         await close(acq)
     assert "motion stopped" in str(ei.value)
-    from calib.dataset import Dataset
+    from calib.formats.dataset import Dataset
 
     ds = Dataset.open(tmp_path / "ds")
     assert len(ds.frames) == ei.value.frames_kept == 1
@@ -159,7 +159,7 @@ async def test_a_frame_whose_q_keeps_disagreeing_is_refused(bench, tmp_path):
 
 
 def test_bench_file_motion_safety_keys_reach_the_driver(bench):
-    from drivers.config import open_actuators
+    from drivers.acquisition.config import open_actuators
 
     cfg = bench.bench_config(
         actuators={

@@ -16,9 +16,9 @@ import pytest
 from drv_helpers import FAST, TinyRenderer, make_modbus
 from pymodbus.client import AsyncModbusTcpClient
 
-from drivers.acquisition import AcquisitionError
+from drivers.acquisition.acquire import AcquisitionError
+from drivers.devices.registermap import ALARM_TEXT, ALARM_WATCHDOG, RegisterMap
 from drivers.errors import ProtocolError, StopNotConfirmedError
-from drivers.registermap import ALARM_TEXT, ALARM_WATCHDOG, RegisterMap
 from drivers.sim.bench import SimBench
 
 Q_A = np.array([0.40, 0.41, 0.42, 0.43])

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from calib.dataset import Dataset
+from calib.formats.dataset import Dataset
 
 I4CAL = [sys.executable, "-c", "import sys; from service.cli import main; sys.exit(main())"]
 

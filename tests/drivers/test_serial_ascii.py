@@ -7,7 +7,7 @@ import asyncio
 import numpy as np
 import pytest
 
-from drivers.config import BenchConfig, open_actuators
+from drivers.acquisition.config import BenchConfig, open_actuators
 from drivers.errors import AlarmError, DeviceTimeoutError, LimitError
 from drivers.sim.controller import AsciiServer
 from drivers.sim.mechanism import ALARM_DRIVE_FAULT
@@ -94,8 +94,8 @@ async def test_ascii_move_lost_on_the_way_is_sent_again_once_proven_not_taken(be
 async def test_ascii_move_whose_fate_cannot_be_read_is_not_sent_again(bench, ascii_act):
     """No reply to the MOVE nor to the STAT? that follows: the move fails saying it may still execute (and, the
     controller silent, that the stop could not be confirmed either); the MOVE is not sent again."""
+    from drivers.devices.links import MotionNotConfirmedError
     from drivers.errors import StopNotConfirmedError
-    from drivers.links import MotionNotConfirmedError
 
     act, srv = ascii_act
     await act.home(timeout_s=5)

@@ -1,4 +1,5 @@
-"""The stream worker beside the acquisition (drivers.streaming): it never delays a motion or a grab, and a frame it
+"""The stream worker beside the acquisition (drivers.acquisition.streaming): it never delays a motion or a grab, and a
+frame it
 fails on is reported and measured at the end, not lost.
 
 A real acquisition on the simulated bench (Modbus TCP on loopback, rendered 1024x768 frames, the camera's
@@ -15,13 +16,13 @@ import time
 
 import pytest
 
-from calib.parameters import NOMINAL
-from calib.plan import Plan, pose_set
+from calib.formats.plan import Plan, pose_set
+from calib.model.parameters import NOMINAL
 from calib.vision import stream as stream_mod
 from calib.vision.extract import extract_dataset
-from drivers.acquisition import acquisition_from_config, close_devices
+from drivers.acquisition.acquire import acquisition_from_config, close_devices
+from drivers.acquisition.streaming import FrameStream, _finite, load_streamed
 from drivers.sim.bench import SimBench, fast_axis_config
-from drivers.streaming import FrameStream, _finite, load_streamed
 
 SLOW_S = 1.5  # the worker's time per frame: far longer than a pose takes on the fast simulated bench
 FAILS_ON = 2  # the frame the worker fails on

@@ -11,18 +11,18 @@ import asyncio
 import numpy as np
 import pytest
 
-from calib.plan import make_plan
-from drivers.interfaces import Frame
-from drivers.sim.bench import CameraFaults
-from drivers.sim.render import BenchRenderer, RenderSettings
-from drivers.sim.twin import BenchGeometry, GeometricTwin
-from drivers.suspenders import (
+from calib.formats.plan import make_plan
+from drivers.acquisition.suspenders import (
     BoardSuspender,
     BrightnessSuspender,
     SuspendedTooLongError,
     SuspendersConfig,
     Suspension,
 )
+from drivers.devices.interfaces import Frame
+from drivers.sim.bench import CameraFaults
+from drivers.sim.render import BenchRenderer, RenderSettings
+from drivers.sim.twin import BenchGeometry, GeometricTwin
 
 
 @pytest.fixture(scope="module")

@@ -13,7 +13,7 @@ import sys
 import numpy as np
 import pytest
 
-from calib.parameters import COMBINATION_NAMES, NOMINAL
+from calib.model.parameters import COMBINATION_NAMES, NOMINAL
 from i4cal.benchmarks._accuracy_report import summarize
 from i4cal.benchmarks._accuracy_trial import METHODS, TrialTask, run_trial
 from i4cal.benchmarks.accuracy import (

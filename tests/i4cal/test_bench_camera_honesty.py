@@ -12,7 +12,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from calib.camera import CameraModel, intrinsics_vector
+from calib.camera.intrinsics import intrinsics_vector
+from calib.formats.camera import CameraModel
 from i4cal.benchmarks._accuracy_trial import _refined_honesty, error_against_covariance
 from i4cal.benchmarks.design import _summarize_plans, camera_refined_summary, print_table
 

@@ -356,8 +356,8 @@ def test_repredict_recomputes_a_saved_benchs_predictions_and_keeps_its_trials(tm
     import json
 
     from calib.design import predict_plan
-    from calib.parameters import NOMINAL
-    from calib.plan import Plan, make_plan
+    from calib.formats.plan import Plan, make_plan
+    from calib.model.parameters import NOMINAL
     from i4cal.benchmarks.design import run
     from service.design import twin_image_noise, twin_scene
 

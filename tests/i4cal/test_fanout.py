@@ -160,7 +160,7 @@ def test_a_design_draw_that_failed_is_left_out_and_said_the_best_of_the_others_k
     """``design_plan``'s ``draws_runner`` hands back each draw's design or its error (here the runner itself stands for
     an engine whose worker died on draw 1: the two other draws are real designs)."""
     from calib.design import DesignRequest, design_plan, design_score
-    from calib.parameters import NOMINAL
+    from calib.model.parameters import NOMINAL
     from service.design import twin_scene
 
     scene = twin_scene()

@@ -5,12 +5,11 @@ from __future__ import annotations
 
 import json
 
-from calib.parameters import NOMINAL
-from calib.plan import Plan, pose_set
+from calib.formats.plan import Plan, pose_set
+from calib.model.parameters import NOMINAL
 from drivers.sim.render import BenchRenderer
 from drivers.sim.twin import BenchGeometry
-
-from .test_camera_path import _bench_file, _i4cal, sim_bench  # noqa: F401 (the fixture)
+from tests.service.test_camera_path import _bench_file, _i4cal, sim_bench  # noqa: F401 (the fixture)
 
 
 def test_acquire_extract_writes_the_observations_measured_during_the_motion(sim_bench, tmp_path):  # noqa: F811

@@ -321,7 +321,7 @@ async def test_full_run_real_images_results_apply(tmp_path):
 async def test_killed_service_restarts_interrupted_then_resumes(tmp_path, sim):
     """SIGKILL the service (a real process) mid-run: on restart the run is interrupted with its frames intact, and
     resuming it continues the acquisition to done."""
-    from calib.dataset import Dataset
+    from calib.formats.dataset import Dataset
     from tests.service.procs import ServiceProcess, free_port, write_config
 
     def moving() -> bool:

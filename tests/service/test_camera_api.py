@@ -13,8 +13,7 @@ import pytest
 from drivers.sim.bench import SimBench
 from drivers.sim.mechanism import AxisConfig
 from drivers.sim.render import RenderSettings
-
-from .conftest import AUTH, make_settings, start_service
+from tests.service.conftest import AUTH, make_settings, start_service
 
 API = "/api/v1/camera/calibrations"
 
@@ -76,7 +75,7 @@ async def test_a_console_operator_is_refused_with_what_to_run(tmp_path, rendered
 async def test_the_service_bench_takes_the_bench_files_camera_for_its_predictions(tmp_path):
     """A bench file naming a camera file ([camera] intrinsics): the service's predictions and designs use that camera
     (without a camera_file setting), as every acquisition records it."""
-    from calib.camera import CameraModel
+    from calib.formats.camera import CameraModel
     from service.runs.bench import Bench
     from service.settings import Settings
 

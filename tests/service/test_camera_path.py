@@ -16,9 +16,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calib.parameters import I4Parameters
-
-from ..drivers.test_processes import _free_base
+from calib.model.parameters import I4Parameters
+from tests.drivers.test_processes import _free_base
 
 I4CAL = [sys.executable, "-m", "i4cal"]
 

@@ -20,9 +20,9 @@ from pathlib import Path
 
 import pytest
 
-from calib.export import COMPLETION_RULES, CalibrationDocument, Completion, load_calibration
-from calib.parameters import COMBINATION_NAMES
-from drivers.config import load_bench
+from calib.identify.export import COMPLETION_RULES, CalibrationDocument, Completion, load_calibration
+from calib.model.parameters import COMBINATION_NAMES
+from drivers.acquisition.config import load_bench
 from drivers.sim.render import RenderSettings
 from drivers.sim.twin import BenchGeometry
 from tests.drivers.test_processes import _free_base
@@ -61,7 +61,7 @@ line_rate_hz = 50.0
 
 def _in_force(cfg) -> CalibrationDocument:
     """The true geometry, with the full plan's predicted combined covariance."""
-    from calib.plan import make_plan
+    from calib.formats.plan import make_plan
     from service.design import check_for_bench
 
     full = make_plan("full", cfg.nominal_parameters(), seed=0, limits=cfg.calib_limits())

@@ -14,8 +14,7 @@ import pytest
 from drivers.sim.bench import SimBench
 from drivers.sim.mechanism import AxisConfig
 from drivers.sim.render import RenderSettings
-
-from .conftest import AUTH, make_settings, start_service, wait_state
+from tests.service.conftest import AUTH, make_settings, start_service, wait_state
 
 API = "/api/v1"
 DRIFT_IN_STD = 6.0

@@ -20,9 +20,8 @@ import pytest
 from drivers.sim.bench import SimBench
 from drivers.sim.mechanism import AxisConfig
 from drivers.sim.render import RenderSettings
-
-from .conftest import AUTH, make_settings, start_service, wait_state
-from .test_check import _in_force
+from tests.service.conftest import AUTH, make_settings, start_service, wait_state
+from tests.service.test_check import _in_force
 
 API = "/api/v1"
 

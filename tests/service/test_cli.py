@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-from calib.parameters import COMBINATION_NAMES
+from calib.model.parameters import COMBINATION_NAMES
 from service.cli import main
 from tests.conftest import NUMERICS_THREAD_VARS
 

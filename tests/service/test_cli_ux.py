@@ -72,7 +72,7 @@ def test_the_camera_scale_line_says_what_it_is(result_doc):
 
 
 def test_calibrate_says_which_result_to_load_and_what_it_wrote(result_doc, tmp_path, capsys):
-    from calib.verdict import verdict
+    from calib.identify.verdict import verdict
 
     obs = result_doc[0]
     out = tmp_path / "r.json"
@@ -119,7 +119,7 @@ def test_a_negative_target_std_is_read_as_a_value_and_refused(capsys):
 
 
 def test_an_unknown_plan_name_lists_the_plan_names(capsys):
-    from calib.plan import PLAN_NAMES
+    from calib.formats.plan import PLAN_NAMES
 
     assert main(["plan", "predict", "fulll", "--bench", str(BENCH_SIM)]) == 2
     err = capsys.readouterr().err
@@ -194,7 +194,7 @@ def demo_dir(tmp_path_factory) -> Path:
 
 
 def test_the_demo_keeps_its_result_when_asked_and_names_it_in_the_next_command(demo_dir):
-    from calib.verdict import verdict
+    from calib.identify.verdict import verdict
 
     doc = json.loads((demo_dir / "result.json").read_text())
     v = verdict(doc, str(demo_dir / "result.json"))

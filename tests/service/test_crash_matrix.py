@@ -17,7 +17,7 @@ import time
 import httpx
 import pytest
 
-from calib.dataset import Dataset
+from calib.formats.dataset import Dataset
 from drivers.sim.bench import SimBench
 from tests.service.conftest import AUTH, read_events, wait_state
 from tests.service.procs import ServiceProcess, free_port, write_config

@@ -30,9 +30,9 @@ EVENT_T = datetime(2021, 3, 4, 5, 6, 7, tzinfo=UTC)
 
 def _results() -> tuple[dict, dict]:
     """A calibration with the three methods (the full plan), and one whose only fit (legs) fails (no lock phases)."""
-    from calib.observations import Observations
-    from calib.pipeline import calibrate, to_jsonable
-    from calib.plan import make_plan
+    from calib.formats.observations import Observations
+    from calib.formats.plan import make_plan
+    from calib.identify.pipeline import calibrate, to_jsonable
     from drivers.sim.twin import GeometricTwin
 
     twin = GeometricTwin()
@@ -157,7 +157,7 @@ async def test_finished_failed_fit_and_running_runs(tmp_path, sim):
                 await page.click(f"#runs tbody tr[data-id='{done_id}']")
                 await _until(page, f"document.querySelector('#results-panel').dataset.run === '{done_id}'")
                 await _until(page, "document.querySelector('#verdict').textContent.startsWith('verdict: load')")
-                from calib.verdict import verdict
+                from calib.identify.verdict import verdict
 
                 v = verdict(good, done_id)
                 assert await page.inner_text("#run-state") == "done"

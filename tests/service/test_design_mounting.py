@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from calib.design import phase_q, visibility
-from calib.plan import Plan
-from calib.transforms import Rigid, matrix_to_rotvec
-from drivers.config import load_bench
+from calib.formats.plan import Plan
+from calib.numerics.transforms import Rigid, matrix_to_rotvec
+from drivers.acquisition.config import load_bench
 from drivers.sim.twin import default_base_from_camera
 from service.cli import main
 from service.design import bench_scene, twin_scene

@@ -9,7 +9,7 @@ import os
 import numpy as np
 import pytest
 
-from calib.jsonio import write_json_atomic
+from calib.numerics.jsonio import write_json_atomic
 from service.db import Database
 
 
@@ -59,7 +59,7 @@ def test_write_json_atomic_syncs_the_directory_after_the_rename(tmp_path, io_log
 
 @pytest.mark.skipif(not os.path.isdir("/proc/self/fd"), reason="needs /proc to name the file descriptors")
 def test_dataset_writer_syncs_the_directories_of_its_renames(tmp_path, io_log):
-    from calib.dataset import BoardSpec, CameraSpec, DatasetWriter, LegsSpec
+    from calib.formats.dataset import BoardSpec, CameraSpec, DatasetWriter, LegsSpec
     from drivers.sim.twin import BenchGeometry
 
     w = DatasetWriter(

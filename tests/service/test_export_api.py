@@ -13,8 +13,8 @@ from datetime import datetime
 
 import yaml
 
-from calib.export import REPRODUCE_TOL_M, CalibrationDocument, load_calibration
-from calib.parameters import COMBINATION_NAMES, PARAMETER_NAMES
+from calib.identify.export import REPRODUCE_TOL_M, CalibrationDocument, load_calibration
+from calib.model.parameters import COMBINATION_NAMES, PARAMETER_NAMES
 from service.cli import main
 from service.report.analysis import dataset_sha256
 from tests.service.conftest import AUTH, wait_state

@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 import yaml
 
-from calib.export import REPRODUCE_TOL_M, load_calibration, plan_joints
-from calib.kinematics import dkm, ikm
-from calib.parameters import COMBINATION_NAMES, I4Parameters
-from calib.plan import make_plan
+from calib.formats.plan import make_plan
+from calib.identify.export import REPRODUCE_TOL_M, load_calibration, plan_joints
+from calib.model.kinematics import dkm, ikm
+from calib.model.parameters import COMBINATION_NAMES, I4Parameters
 from service.cli import main
 from service.report.analysis import json_sha256
 

@@ -16,8 +16,8 @@ import pytest
 from fastapi.routing import APIRoute
 
 from calib.errors import InputError
-from calib.plan import Plan, make_plan
-from drivers.config import load_bench
+from calib.formats.plan import Plan, make_plan
+from drivers.acquisition.config import load_bench
 from service.cli import main
 from tests.service.conftest import AUTH, make_settings, read_events, start_service, wait_state
 

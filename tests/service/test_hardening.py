@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from calib.plan import MAX_LINE_SAMPLES, MAX_PLAN_FRAMES, MAX_PLAN_STEPS, make_plan
+from calib.formats.plan import MAX_LINE_SAMPLES, MAX_PLAN_FRAMES, MAX_PLAN_STEPS, make_plan
 from service.api.datasets import CHUNK_BYTES, ArchiveError, ArchiveTooLargeError, unpack_archive
 from service.hardening import CSP_DOCS
 from tests.service.conftest import AUTH, make_settings, start_service
@@ -87,9 +87,9 @@ async def test_plan_validation_does_not_block_the_event_loop(service, monkeypatc
     """While a plan is validated, /healthz answers at once. The validation is made slow on purpose (a wrapper that
     sleeps 1.5 s around the real one: what a slow validation does to the loop, deterministic on a busy machine);
     run in the handler, as before, it held every other request for its whole duration."""
-    import calib.plan
+    import calib.formats.plan
 
-    real = calib.plan.validate_plan
+    real = calib.formats.plan.validate_plan
     seen: dict[str, object] = {}
 
     def slow_validate(*a, **kw):
@@ -97,7 +97,7 @@ async def test_plan_validation_does_not_block_the_event_loop(service, monkeypatc
         time.sleep(1.5)
         return real(*a, **kw)
 
-    monkeypatch.setattr(calib.plan, "validate_plan", slow_validate)
+    monkeypatch.setattr(calib.formats.plan, "validate_plan", slow_validate)
     c = service.client
     steps = _valid_steps(service, 200)
     steps[-1] = {**steps[-1], "q": [*steps[-1]["q"][:3], 5.0]}

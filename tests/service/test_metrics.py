@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
-import drivers.metrics
+import drivers.acquisition.metrics
 from service.runs import STATES
 from tests.service.conftest import AUTH, wait_state
 
@@ -70,8 +70,8 @@ async def test_driver_counters_exported(service):
     before = await scrape(c)
     for name in ("requests", "retries", "timeouts", "reconnects"):
         assert (f"i4cal_modbus_{name}_total", ()) in before
-    drivers.metrics.inc("modbus_retries", 2)
-    stats = drivers.metrics.CountingStats("modbus", {"timeouts": 0})
+    drivers.acquisition.metrics.inc("modbus_retries", 2)
+    stats = drivers.acquisition.metrics.CountingStats("modbus", {"timeouts": 0})
     stats["timeouts"] += 1
     stats["timeouts"] += 1
     after = await scrape(c)
@@ -79,7 +79,7 @@ async def test_driver_counters_exported(service):
     assert after[("i4cal_modbus_timeouts_total", ())] == before[("i4cal_modbus_timeouts_total", ())] + 2
     assert stats == {"timeouts": 2}
     with pytest.raises(ValueError, match="only grows"):
-        drivers.metrics.inc("modbus_retries", -1)
+        drivers.acquisition.metrics.inc("modbus_retries", -1)
 
 
 async def test_modbus_requests_of_a_run_are_counted(service):

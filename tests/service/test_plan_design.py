@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calib.dataset import Dataset
 from calib.errors import InputError
-from calib.parameters import NOMINAL
-from calib.plan import Plan, SoftLimits, validate_plan
+from calib.formats.dataset import Dataset
+from calib.formats.plan import Plan, SoftLimits, validate_plan
+from calib.model.parameters import NOMINAL
 from service.cli import main
 from service.design import parse_length
 from tests.service.conftest import AUTH, wait_state
@@ -105,7 +105,7 @@ def test_cli_design_lock_frames_buy_the_legs_joints(capsys):
 
 
 def _paper_plan(path: Path, n_fit: int = 12) -> Plan:
-    from calib.plan import make_plan
+    from calib.formats.plan import make_plan
 
     plan = make_plan("full", NOMINAL, seed=0, n_fit=n_fit)
     plan = Plan(name="routine", steps=[s for s in plan.steps if s.phase != "line"])
@@ -460,7 +460,7 @@ async def test_an_abandoned_tradeoff_is_killed_with_its_process_and_frees_the_po
     import os
 
     from calib.design import DesignRequest
-    from drivers.config import load_bench
+    from drivers.acquisition.config import load_bench
     from service.jobs import HeavyPool, warm_up
 
     await asyncio.to_thread(warm_up)

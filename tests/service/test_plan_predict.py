@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 
 from calib.design import visibility
-from calib.kinematics import ikm
-from calib.parameters import NOMINAL
-from calib.plan import Plan, SoftLimits, Step, make_plan, random_poses
+from calib.formats.plan import Plan, SoftLimits, Step, make_plan, random_poses
+from calib.model.kinematics import ikm
+from calib.model.parameters import NOMINAL
 from service.cli import main
 from service.design import twin_scene
 from tests.service.conftest import AUTH, wait_state

@@ -20,9 +20,9 @@ import cv2
 import numpy as np
 import pytest
 
-from calib.parameters import COMBINATION_NAMES
-from calib.plan import make_plan
-from drivers.sim.imaging import simulate_dataset
+from calib.formats.plan import make_plan
+from calib.model.parameters import COMBINATION_NAMES
+from drivers.sim.rendered_dataset import simulate_dataset
 from drivers.sim.twin import BenchGeometry
 from service.cli import main
 from service.report import ReportInputs, build_report, inputs_from_path

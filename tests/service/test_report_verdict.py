@@ -1,4 +1,5 @@
-"""The report's first screen says which result to load and why (calib.verdict), in the uncertainty convention of
+"""The report's first screen says which result to load and why (calib.identify.verdict), in the uncertainty convention
+of
 the command line and the dashboard (± 1 std, U (k = 2) beside it), with the combinations spelled as everywhere."""
 
 from __future__ import annotations
@@ -10,15 +11,15 @@ import pytest
 
 @pytest.fixture(scope="module")
 def result() -> dict:
-    from calib.observations import Observations
-    from calib.pipeline import calibrate, to_jsonable
+    from calib.formats.observations import Observations
+    from calib.identify.pipeline import calibrate, to_jsonable
     from drivers.sim.twin import GeometricTwin
 
     return to_jsonable(calibrate(Observations.from_dict(GeometricTwin().observations(seed=1))))
 
 
 def test_the_first_screen_gives_the_verdict_and_the_next_command(result):
-    from calib.verdict import verdict
+    from calib.identify.verdict import verdict
     from service.report import build_report
     from service.report.builder import ReportInputs
 

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import asyncio
 
-from calib.dataset import Dataset
-from calib.plan import Plan
-from drivers.acquisition import plan_units
+from calib.formats.dataset import Dataset
+from calib.formats.plan import Plan
+from drivers.acquisition.acquire import plan_units
 from tests.service.conftest import AUTH, make_settings, read_events, start_service, wait_state
 from tests.service.held import HELD_GRAB, hold_camera
 

@@ -13,10 +13,10 @@ from typing import Any
 
 import pytest
 
-from calib.export import ExportContext, build_calibration
-from calib.parameters import COMBINATION_NAMES
-from calib.resultdoc import ResultDocument
-from calib.verdict import verdict
+from calib.formats.resultdoc import ResultDocument
+from calib.identify.export import ExportContext, build_calibration
+from calib.identify.verdict import verdict
+from calib.model.parameters import COMBINATION_NAMES
 
 DATA = Path(__file__).parent / "data"
 FILES = ("result_twin_seed1.json", "result_legs_failed.json")

@@ -10,10 +10,9 @@ import asyncio
 
 import numpy as np
 
-from calib.dataset import Dataset
-from drivers.suspenders import mean_level
-
-from .conftest import AUTH, make_settings, read_events, start_service, wait_state
+from calib.formats.dataset import Dataset
+from drivers.acquisition.suspenders import mean_level
+from tests.service.conftest import AUTH, make_settings, read_events, start_service, wait_state
 
 API = "/api/v1"
 #: TinyRenderer's frames are a flat grey of 40/255; a dark frame is 5% of that
@@ -80,7 +79,7 @@ async def test_without_suspenders_the_dark_frames_are_recorded(tmp_path, sim):
 async def test_a_check_suspends_and_says_why_while_the_light_is_off(tmp_path, sim):
     """A check acquires with the same suspenders: held while dark, its status says why, no dark frame written. (The
     bench's frames are TinyRenderer's, without a board: the fit that follows fails, which this test does not need.)"""
-    from .test_check import _in_force
+    from tests.service.test_check import _in_force
 
     svc = await start_service(
         make_settings(tmp_path, sim, bench_overrides={"suspenders": {"poll_s": 0.05, "clear_frames": 3}}), sim

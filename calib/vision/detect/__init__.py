@@ -42,11 +42,11 @@ rods are 1-2 cm (10-25 px) off even at the fitted placement, the detected lines 
 
 from __future__ import annotations
 
+from .association import associate
 from .candidates import find_legs, find_rods
 from .frames import consensus_placement, detect_rods, measure_detected, resolve, resolve_frames
-from .lines import detect_segments, merge_lines, merge_segments, refine_lines, undistorted_canvas
-from .placement import associate
-from .types import DetectSettings, Hypothesis, LegCandidate, Line2, RodCandidate, RodDetection
+from .hypotheses import DetectSettings, Hypothesis, LegCandidate, Line2, RodCandidate, RodDetection
+from .segments import detect_segments, merge_lines, merge_segments, refine_lines, undistorted_canvas
 
 __all__ = [
     "DetectSettings",

@@ -8,10 +8,10 @@ from typing import cast
 import numpy as np
 from numpy.typing import NDArray
 
-from ...camera import CameraModel
-from ...transforms import cross
-from .geometry import _line_point, _plane, _ray, _sample, _to_canvas
-from .types import DetectSettings, LegCandidate, Line2, RodCandidate
+from calib.formats.camera import CameraModel
+from calib.numerics.transforms import cross
+from calib.vision.detect.hypotheses import DetectSettings, LegCandidate, Line2, RodCandidate
+from calib.vision.detect.rays import _line_point, _plane, _ray, _sample, _to_canvas
 
 Array = NDArray[np.float64]
 
@@ -60,7 +60,7 @@ def find_rods(
     lines : list of Line2
         Refined, merged edges (ideal px).
     canvas : ndarray, shape (h, w), float32
-        The undistorted image (:func:`calib.vision.detect.lines.undistorted_canvas`).
+        The undistorted image (:func:`calib.vision.detect.segments.undistorted_canvas`).
     scale : float
         Canvas pixels per ideal pixel.
     origin : ndarray, shape (2,)

@@ -11,25 +11,17 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ...camera import CameraModel
-from ...errors import I4calError
-from ...kinematics import dkm
-from ...parameters import I4Parameters
-from ...transforms import Rigid
-from ..rods import (
-    ROD_KEYS,
-    RodMeasurement,
-    RodPrediction,
-    RodSettings,
-    measure_rods,
-    predict_rods,
-    rod_name,
-)
-from .candidates import find_legs, find_rods
-from .geometry import _rotation_angle
-from .lines import detect_segments, merge_lines, merge_segments, refine_lines, undistorted_canvas
-from .placement import _differences, associate
-from .types import DetectSettings, Hypothesis, LegCandidate, RodCandidate, RodDetection
+from calib.errors import I4calError
+from calib.formats.camera import CameraModel
+from calib.model.kinematics import dkm
+from calib.model.parameters import I4Parameters
+from calib.numerics.transforms import Rigid
+from calib.vision.detect.association import _differences, associate
+from calib.vision.detect.candidates import find_legs, find_rods
+from calib.vision.detect.hypotheses import DetectSettings, Hypothesis, LegCandidate, RodCandidate, RodDetection
+from calib.vision.detect.rays import _rotation_angle
+from calib.vision.detect.segments import detect_segments, merge_lines, merge_segments, refine_lines, undistorted_canvas
+from calib.vision.rods import ROD_KEYS, RodMeasurement, RodPrediction, RodSettings, measure_rods, predict_rods, rod_name
 
 Array = NDArray[np.float64]
 

@@ -25,8 +25,8 @@ Extraction, per rod and per frame (see docs/vision.md):
 from __future__ import annotations
 
 from .covariance import _direction_covariance  # noqa: F401  (calib.design predicts with the extraction's own covariance)
-from .geometry import ROD_KEYS, axis_from_planes, limb_planes, rod_name
-from .lines import robust_line
+from .cylinder import ROD_KEYS, axis_from_planes, limb_planes, rod_name
+from .linefit import robust_line
 from .measure import image_ideal_bbox, leg_parallelism, measure_rod, measure_rods
 from .types import RodMeasurement, RodPrediction, RodSettings, predict_rods
 

@@ -11,11 +11,11 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from ...camera import CameraModel
-from .covariance import _direction_covariance_set, _line_cov
-from .geometry import _CORR, axis_from_planes, axis_point_seen_along, limb_planes
-from .lines import robust_line
-from .types import ROD_OCCLUDER_CLEARANCE_PX, RodMeasurement, RodPrediction, RodSettings
+from calib.formats.camera import CameraModel
+from calib.vision.rods.covariance import _direction_covariance_set, _line_cov
+from calib.vision.rods.cylinder import _CORR, axis_from_planes, axis_point_seen_along, limb_planes
+from calib.vision.rods.linefit import robust_line
+from calib.vision.rods.types import ROD_OCCLUDER_CLEARANCE_PX, RodMeasurement, RodPrediction, RodSettings
 
 Array = NDArray[np.float64]
 
@@ -124,7 +124,7 @@ def _hidden(centres: Array, shift: Array, ks: tuple[float, ...], poly: Array) ->
 class _IdealToImage:
     """Ideal (undistorted) pixels -> distorted image pixels of one camera, the constants computed once.
 
-    The model is :meth:`calib.camera.CameraModel.distort_normalized` (OpenCV's: radial, rational,
+    The model is :meth:`calib.formats.camera.CameraModel.distort_normalized` (OpenCV's: radial, rational,
     tangential, thin prism). :meth:`grid` evaluates it in float32 on a profile grid (error ~1e-4 px,
     below the 1/32 px resolution of ``cv2.remap``'s bilinear weights).
     """
@@ -687,7 +687,7 @@ def _limb_samples(
     along it, taken in ideal pixels (where the limb is straight, so that a mean lies on it) and then to the image.
 
     They follow the edge points, not the line this camera fitted: a method that redoes the limb's plane through
-    other intrinsics (:func:`calib.methods.intrinsics.limb_planes_for`) then gets the line those intrinsics would
+    other intrinsics (:func:`calib.identify.intrinsics.limb_planes_for`) then gets the line those intrinsics would
     have fitted to the edge points, to first order. Points of the fitted line carried the extraction camera's
     distortion: undistorted by other intrinsics they bend by the two distortions' difference over the whole limb,
     which tilts a rod's recomputed direction in depth the same way on every rod in that part of the image.

@@ -9,9 +9,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ...kinematics import dkm, joint_points
-from ...parameters import I4Parameters
-from ...transforms import Rigid
+from calib.model.kinematics import dkm, joint_points
+from calib.model.parameters import I4Parameters
+from calib.numerics.transforms import Rigid
 
 Array = NDArray[np.float64]
 

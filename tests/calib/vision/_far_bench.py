@@ -6,10 +6,10 @@ from typing import Any
 
 import numpy as np
 
-from calib.kinematics import dkm
-from calib.parameters import NOMINAL, I4Parameters
-from calib.plan import Plan, make_plan
-from calib.transforms import Rigid, rot_z
+from calib.formats.plan import Plan, make_plan
+from calib.model.kinematics import dkm
+from calib.model.parameters import NOMINAL, I4Parameters
+from calib.numerics.transforms import Rigid, rot_z
 from calib.vision.repredict import rod_ends_camera
 from drivers.sim.twin import BenchGeometry
 

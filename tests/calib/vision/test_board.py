@@ -10,9 +10,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calib.camera import CameraModel
-from calib.dataset import BoardSpec
-from calib.transforms import rotvec_to_matrix
+from calib.formats.camera import CameraModel
+from calib.formats.dataset import BoardSpec
+from calib.numerics.transforms import rotvec_to_matrix
 from calib.vision.board import CORNER_FLOOR_PX, BoardDetection, BoardDetector
 
 K = np.array([[774.2, 0.0, 515.3], [0.0, 774.2, 380.6], [0.0, 0.0, 1.0]])

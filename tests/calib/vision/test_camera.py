@@ -8,11 +8,12 @@ import numpy as np
 import pytest
 from threadpoolctl import threadpool_limits
 
-from calib.camera import CameraModel, calibrate_intrinsics
-from calib.dataset import BoardSpec
+from calib.camera.charuco import board_corners
+from calib.camera.intrinsics import calibrate_intrinsics
 from calib.errors import InputError
-from calib.transforms import rotvec_to_matrix
-from calib.vision.board import board_corners
+from calib.formats.camera import CameraModel
+from calib.formats.dataset import BoardSpec
+from calib.numerics.transforms import rotvec_to_matrix
 
 K = np.array([[774.2, 0.0, 515.3], [0.0, 774.2, 380.6], [0.0, 0.0, 1.0]])
 DIST = np.array([-0.30, 0.10, 4e-4, -3e-4, 0.0])
@@ -119,7 +120,7 @@ def _calibration_bytes(res):
 
 
 def test_the_stages_called_one_by_one_give_what_calibrate_intrinsics_gives():
-    from calib import camera as cm
+    from calib.camera import intrinsics as cm
 
     ids, pts = board_corners(BoardSpec())
     views = _views(12, np.random.default_rng(6), 0.05, pts)
@@ -137,7 +138,7 @@ def test_the_stages_called_one_by_one_give_what_calibrate_intrinsics_gives():
 
 
 def test_a_settings_object_and_keywords_agree_and_an_unknown_setting_is_named():
-    from calib.camera import IntrinsicsSettings
+    from calib.camera.intrinsics import IntrinsicsSettings
 
     ids, pts = board_corners(BoardSpec())
     views = _views(8, np.random.default_rng(7), 0.05, pts)

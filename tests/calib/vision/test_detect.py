@@ -16,11 +16,11 @@ import cv2
 import numpy as np
 import pytest
 
-from calib.camera import CameraModel
-from calib.dataset import CameraSpec, DatasetWriter, LegsSpec
-from calib.kinematics import dkm, ikm
-from calib.plan import make_plan
-from calib.transforms import Rigid
+from calib.formats.camera import CameraModel
+from calib.formats.dataset import CameraSpec, DatasetWriter, LegsSpec
+from calib.formats.plan import make_plan
+from calib.model.kinematics import dkm, ikm
+from calib.numerics.transforms import Rigid
 from calib.vision.detect import detect_rods, measure_detected
 from calib.vision.extract import ExtractOptions, extract_dataset
 from calib.vision.rods import ROD_KEYS, rod_name

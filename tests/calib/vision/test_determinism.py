@@ -18,8 +18,8 @@ from pathlib import Path
 
 import pytest
 
-from calib.plan import Plan, make_plan
-from drivers.sim.imaging import simulate_dataset
+from calib.formats.plan import Plan, make_plan
+from drivers.sim.rendered_dataset import simulate_dataset
 from drivers.sim.twin import BenchGeometry
 from service.cli import main
 

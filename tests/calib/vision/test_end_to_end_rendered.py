@@ -13,14 +13,15 @@ import json
 import numpy as np
 import pytest
 
-from calib.baseframe import base_frame_from_observations
-from calib.camera import INTRINSICS_NAMES, CameraModel, intrinsics_names, intrinsics_vector
-from calib.observations import Observations
-from calib.parameters import COMBINATION_NAMES
-from calib.pipeline import calibrate
-from calib.transforms import Rigid, matrix_to_rotvec
+from calib.camera.intrinsics import INTRINSICS_NAMES, intrinsics_names, intrinsics_vector
+from calib.formats.camera import CameraModel
+from calib.formats.observations import Observations
+from calib.identify.baseframe import base_frame_from_observations
+from calib.identify.pipeline import calibrate
+from calib.model.parameters import COMBINATION_NAMES
+from calib.numerics.transforms import Rigid, matrix_to_rotvec
 from calib.vision.extract import extract_dataset
-from drivers.sim.imaging import simulate_dataset
+from drivers.sim.rendered_dataset import simulate_dataset
 from drivers.sim.twin import BenchGeometry
 
 

@@ -9,10 +9,10 @@ import cv2
 import numpy as np
 import pytest
 
-from calib.camera import CameraModel
-from calib.dataset import CameraSpec, Dataset, DatasetWriter, LegsSpec
-from calib.observations import Observations
-from calib.plan import Plan, make_plan
+from calib.formats.camera import CameraModel
+from calib.formats.dataset import CameraSpec, Dataset, DatasetWriter, LegsSpec
+from calib.formats.observations import Observations
+from calib.formats.plan import Plan, make_plan
 from calib.vision.extract import extract_dataset
 from drivers.sim.render import BenchRenderer, RenderSettings
 from drivers.sim.twin import BenchGeometry, GeometricTwin
@@ -172,16 +172,16 @@ def test_camera_model_from_dataset_spec_matches(small_dataset):
 def test_shipped_dataset_schema_matches_the_models():
     from pathlib import Path
 
-    from calib.dataset import dataset_json_schema
+    from calib.formats.dataset import dataset_json_schema
 
-    shipped = Path(__file__).resolve().parents[3] / "calib/schemas/dataset-v1.schema.json"
+    shipped = Path(__file__).resolve().parents[3] / "calib/formats/schemas/dataset-v1.schema.json"
     assert json.loads(shipped.read_text()) == dataset_json_schema()
 
 
 def test_cli_extract_says_the_camera_views_were_weighted(tmp_path, capsys):
     """A dataset with a camera phase: the printout gives the views' corner-noise range the calibration weighted by."""
-    from calib.plan import make_plan
-    from drivers.sim.imaging import simulate_dataset
+    from calib.formats.plan import make_plan
+    from drivers.sim.rendered_dataset import simulate_dataset
     from service.cli import main
 
     plan = make_plan("rotation-sweep", BenchGeometry().nominal, n_base=2)
@@ -196,7 +196,7 @@ def test_cli_extract_says_the_camera_views_were_weighted(tmp_path, capsys):
 
 def _pose_set_with_true_camera(tmp_path, n_fit: int, seed: int):
     """A rendered pose set (no camera phase) whose dataset carries the renderer's true intrinsics."""
-    from drivers.sim.imaging import simulate_dataset
+    from drivers.sim.rendered_dataset import simulate_dataset
 
     g = BenchGeometry()
     root = simulate_dataset(

@@ -41,9 +41,9 @@ def test_a_second_pass_reuses_the_first_pass_corners_and_images(small_dataset): 
     in the images the workers kept: the same observations as a fresh extraction with that camera."""
     import numpy as np
 
-    from calib.camera import CameraModel
-    from calib.dataset import Dataset
-    from calib.methods.intrinsics import perturbed_camera
+    from calib.formats.camera import CameraModel
+    from calib.formats.dataset import Dataset
+    from calib.identify.intrinsics import perturbed_camera
 
     root, _, _ = small_dataset
     ds = Dataset.open(root)

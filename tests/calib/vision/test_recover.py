@@ -14,15 +14,14 @@ import json
 import numpy as np
 import pytest
 
-from calib.parameters import NOMINAL, I4Parameters
-from calib.transforms import Rigid
-from calib.vision.placement import fit_placement
+from calib.model.parameters import NOMINAL, I4Parameters
+from calib.numerics.transforms import Rigid
+from calib.vision.handeye import fit_placement
 from calib.vision.recover import lost_in_search, measured_lines
 from calib.vision.repredict import HYPOTHESES, MeasuredRod, refit_prediction, rod_ends_camera
-from drivers.sim.imaging import simulate_dataset
+from drivers.sim.rendered_dataset import simulate_dataset
 from drivers.sim.twin import BenchGeometry
-
-from ._far_bench import exact_boards, far_plan, lost_and_far
+from tests.calib.vision._far_bench import exact_boards, far_plan, lost_and_far
 
 #: i4cal.benchmarks.accuracy.draw_truth(4, 119, default spread), metres
 TRUTH = I4Parameters.from_vector(

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from calib.camera import INTRINSICS_NAMES, CameraModel
+from calib.camera.intrinsics import INTRINSICS_NAMES
+from calib.formats.camera import CameraModel
 from calib.vision.extract import ExtractOptions, extract_dataset
 from calib.vision.refine import refine_camera_by_rods
 from tests.calib.vision.test_extract import small_dataset  # noqa: F401  (the rendered, partly damaged dataset)

@@ -14,8 +14,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calib.plan import make_plan
-from calib.transforms import matrix_to_rotvec
+from calib.formats.plan import make_plan
+from calib.numerics.transforms import matrix_to_rotvec
 from calib.vision.board import BoardDetector
 from calib.vision.rods import measure_rods, predict_rods
 from drivers.sim.render import BenchRenderer, RenderSettings

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 from scipy.special import erf
 
-from calib.camera import CameraModel
+from calib.formats.camera import CameraModel
 from calib.vision.rods import limb_planes
 from calib.vision.rods.measure import _edges_1d, _gauss_deriv_kernel, measure_rod
 from calib.vision.rods.types import RodPrediction, RodSettings

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calib.camera import CameraModel
-from calib.methods import intrinsics as intr
+from calib.formats.camera import CameraModel
+from calib.identify import intrinsics as intr
 from calib.vision.rods import axis_from_planes, limb_planes, robust_line
 from calib.vision.rods.measure import _limb_samples
 from drivers.sim.render import RenderSettings

@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from calib.camera import CameraModel
+from calib.formats.camera import CameraModel
 from calib.vision.rods import RodPrediction, RodSettings, measure_rods
 
 Z_M, RADIUS_M, SPACING_M = 0.6, 0.008, 0.032  # the gap between two rods is as wide as a rod

@@ -11,13 +11,13 @@ import json
 import numpy as np
 import pytest
 
-from calib.observations import Observations
-from calib.plan import Plan, make_plan
+from calib.formats.observations import Observations
+from calib.formats.plan import Plan, make_plan
 from calib.vision.extract import extract_dataset
 from calib.vision.stream import FrameStreamer, StreamedFrames
-from drivers.sim.imaging import simulate_dataset
+from drivers.acquisition.streaming import _finite
+from drivers.sim.rendered_dataset import simulate_dataset
 from drivers.sim.twin import BenchGeometry
-from drivers.streaming import _finite
 
 
 def _bytes(res) -> str:
@@ -81,7 +81,7 @@ def test_streamed_rods_within_reuse_give_the_same_observations_and_fit(dataset, 
     assert [sorted(f["missing"]) for f in a] == [sorted(f["missing"]) for f in b]  # the same rods found
     # the combined fit of both agrees within its own standard deviation: the rods measured on a prediction within
     # reuse_px differ from those measured on the final one by about their own noise (profiles placed elsewhere)
-    from calib.pipeline import calibrate
+    from calib.identify.pipeline import calibrate
 
     fa = calibrate(Observations.from_dict(plain.observations), ["combined"])["methods"]["combined"]
     fb = calibrate(Observations.from_dict(res.observations), ["combined"])["methods"]["combined"]

@@ -12,7 +12,7 @@ import sys
 import numpy as np
 import pytest
 
-from calib.kinematics import dkm
+from calib.model.kinematics import dkm
 from drivers.sim.bench import SimBench, drifted
 from drivers.sim.twin import BenchGeometry
 from tests.drivers.test_processes import _free_base

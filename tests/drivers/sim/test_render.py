@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calib.plan import make_plan
+from calib.formats.plan import make_plan
 from drivers.sim.render import BenchRenderer, RenderSettings
 from drivers.sim.twin import BenchGeometry, GeometricTwin
 

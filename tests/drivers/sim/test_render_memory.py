@@ -10,7 +10,7 @@ import sys
 SCRIPT = """
 import resource
 import numpy as np
-from calib.kinematics import dkm
+from calib.model.kinematics import dkm
 from drivers.sim.render import BenchRenderer
 from drivers.sim.twin import BenchGeometry
 

@@ -1,0 +1,1 @@
+"""The camera's intrinsics: lens models and their choice, bundle refinement, board views."""

@@ -1,0 +1,1 @@
+"""The online check: drift test and update from a short check, repeatability."""

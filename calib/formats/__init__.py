@@ -1,0 +1,1 @@
+"""The formats on disk: plan, dataset, observations, result document, calibration export; their schemas."""

@@ -1,0 +1,1 @@
+"""Shared numerics: transforms, robust losses, numerical differentiation, threads, JSON I/O."""

@@ -1,0 +1,1 @@
+"""Executing a plan: the acquisition, the bench file, operators, metrics, suspenders, the stream worker."""

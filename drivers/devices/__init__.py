@@ -1,0 +1,1 @@
+"""The devices: interfaces (Protocols), links, Modbus, serial ASCII, axes, register map, cameras."""
