@@ -83,7 +83,7 @@ def _coloured_pixels(img: np.ndarray) -> int:
 
 def test_report_holds_the_result_and_is_self_contained(built, dataset):
     inputs, html, _ = built
-    res = inputs.result
+    res = inputs.result.to_dict()
     for m in METHODS:
         e = res["methods"][m]
         assert e["converged"], (m, e.get("error"))
@@ -189,7 +189,7 @@ def test_cli_report_from_observations_with_frames(built, dataset, tmp_path):
         main(["report", str(obs), "--dataset", str(dataset), "-o", str(out), "--methods", "combined", "--quiet"]) == 0
     )
     text = out.read_text(encoding="utf-8")
-    comb = inputs.result["methods"]["combined"]
+    comb = inputs.result.to_dict()["methods"]["combined"]
     for k in COMBINATION_NAMES:  # the same observations calibrate to the same values
         assert f"{comb['parameters'][k] * 1e3:.4f}" in text
     assert "Method: legs" not in text and "Method: combined" in text
@@ -266,7 +266,7 @@ def test_report_sets_the_runs_prediction_beside_the_reported_std(built):
         return sec[: sec.index("</section>")]
 
     assert "Not available: the report was not made from a run on the bench" in predicted(html)
-    std = inputs.result["methods"]["combined"]["std"]
+    std = inputs.result.to_dict()["methods"]["combined"]["std"]
     pred = {"combined": {k: 2 * v for k, v in std.items()}, "legs": {k: 1.0 for k in COMBINATION_NAMES}}
     doc = build_report(
         dataclasses.replace(inputs, prediction={"predicted_std_m": pred, "motion_time_s": 300.0}, methods=["combined"]),
