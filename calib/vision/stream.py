@@ -117,7 +117,13 @@ class StreamedFrames:
     used: dict[str, int] = field(default_factory=lambda: {"boards": 0, "rods": 0, "rods_measured_again": 0})
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-able (floats keep every bit through Python's ``json``)."""
+        """The frames as JSON values (floats keep every bit through Python's ``json``).
+
+        Returns
+        -------
+        dict
+            ``camera``, ``refined``, the measured boards and rods per frame (px, metres, radians as measured).
+        """
         return {
             "camera": self.camera,
             "refined": self.refined,
@@ -131,6 +137,17 @@ class StreamedFrames:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> StreamedFrames:
+        """The frames :meth:`to_dict` wrote.
+
+        Parameters
+        ----------
+        d : dict
+            :meth:`to_dict`'s answer (read back from JSON).
+
+        Returns
+        -------
+        StreamedFrames
+        """
         return cls(
             camera=d["camera"],
             refined=d.get("refined"),
@@ -143,8 +160,17 @@ class StreamedFrames:
         )
 
     def matches(self, init_args: tuple) -> bool:
-        """Whether the extraction pool's worker settings (``(root, camera, refined, min_corners, rod_settings,
-        keep)``) are those the frames were measured with."""
+        """Whether the extraction pool's worker settings are those the frames were measured with.
+
+        Parameters
+        ----------
+        init_args : tuple
+            The pool's worker settings ``(root, camera, refined, min_corners, rod_settings, keep)``.
+
+        Returns
+        -------
+        bool
+        """
         _root, camera, refined, min_corners, rod_settings = init_args[:5]
         return (
             _canon(camera) == _canon(self.camera)
@@ -154,7 +180,19 @@ class StreamedFrames:
         )
 
     def pool(self, workers: int, dataset: Dataset) -> StreamedPool:
-        """The extraction's pool (:class:`calib.vision.pool._Pool`) answering from these frames."""
+        """The extraction's pool (:class:`calib.vision.pool._Pool`) answering from these frames.
+
+        Parameters
+        ----------
+        workers : int
+            Worker processes for what the frames do not answer.
+        dataset : Dataset
+            The dataset being extracted.
+
+        Returns
+        -------
+        StreamedPool
+        """
         return StreamedPool(workers, self, dataset)
 
 
@@ -179,6 +217,29 @@ class StreamedPool(_pool._Pool):
         total: int,
         each: Callable[[Any], None] | None = None,
     ) -> list:
+        """The pool's :meth:`calib.vision.pool._Pool.run`, answering boards and rods from the streamed frames where
+        they hold the answer to the task's request (same camera and settings, prediction within ``reuse_px``).
+
+        Parameters
+        ----------
+        fn : callable
+            The task (``_task_board``, ``_task_rods``; any other runs in the pool).
+        items : list
+            The task's items.
+        init_args : tuple
+            The workers' settings.
+        progress : callable(done, total), optional
+            Progress over the whole extraction.
+        offset, total : int
+            Items done before this stage, and in all.
+        each : callable(result), optional
+            Called with each result as it comes.
+
+        Returns
+        -------
+        list
+            ``(frame index, answer)`` per item.
+        """
         s = self.streamed
         if fn not in (_pool._task_board, _pool._task_rods) or not s.matches(init_args):
             return super().run(fn, items, init_args, progress, offset, total, each)
@@ -334,6 +395,11 @@ class FrameStreamer:
     def add(self, i: int) -> dict[str, Any]:
         """Measure frame ``i`` (written to the dataset): its board, then its rods when a placement exists.
 
+        Parameters
+        ----------
+        i : int
+            The frame's index in the dataset.
+
         Returns
         -------
         dict
@@ -424,7 +490,13 @@ class FrameStreamer:
 
     def idle_step(self) -> bool:
         """Measure again one frame whose kept measurement's prediction is more than :data:`REMEASURE_PX` from the
-        latest placement's or refit's (between frames, nothing waiting). Returns whether there was one."""
+        latest placement's or refit's (between frames, nothing waiting).
+
+        Returns
+        -------
+        bool
+            Whether there was one.
+        """
         if self.frames is None or self._camera is None:
             return False
         ds: Dataset | None = None

@@ -748,26 +748,10 @@ def _event_s(ev: dict[str, Any]) -> float:
     return dt.datetime.fromisoformat(ev["t"].replace("Z", "+00:00")).timestamp()
 
 
-def result_after_motion(
-    streaming: bool, paper_plan: bool = True, workers: int = 2, step: Step = _no_step
-) -> dict[str, Any]:
-    """One service run on the simulated bench at the real bench's example speeds, all three methods.
-
-    ``streaming``: frames measured during the motion (``stream_extraction``) and two fits at once (``fit_workers``);
-    else the extraction and the fits one after the other once the motion is over.
-
-    Returns
-    -------
-    dict
-        ``after_last_frame_s`` (from the last frame's ``progress`` event to the ``state: done`` event, whose result is
-        stored just before), ``motion_s`` (first to last frame event), ``frames``, ``timings`` (the run's stage times),
-        ``streamed`` (what the extraction took from the stream).
-    """
-    import httpx
-
-    mod = bench_service_module()
+def _after_motion_config(tmp: Path, mod: Any, streaming: bool, paper_plan: bool, workers: int) -> tuple[Any, Path, int]:
+    """The simulated bench at the real bench's example speeds and a service configuration for it: ``(sim process,
+    service.toml, port)``."""
     speeds = real_bench_speeds()
-    tmp = Path(tempfile.mkdtemp(prefix="i4cal-bench-"))
     sim, bench_file, camera_file = mod.start_sim_bench(tmp)
     text = bench_file.read_text()
     text = text.replace("speed_m_s = 10.0", f"speed_m_s = {speeds['speed_m_s']}")
@@ -786,53 +770,58 @@ def result_after_motion(
         f"stream_extraction = {'true' if streaming else 'false'}\n"
         f'token_hashes = ["{mod.hash_token(mod.TOKEN)}"]\n{sizes}'
     )
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "service", "serve", "--config", str(cfg), "--log-level", "warning"],
-        env={**os.environ, "PYTHONUNBUFFERED": "1"},
-    )
-    label = "streaming" if streaming else "no streaming"
-    try:
-        with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=30) as c:
-            for _ in range(1200):
-                try:
-                    if c.get("/readyz").status_code == 200:
-                        break
-                except httpx.TransportError:
-                    pass
-                time.sleep(0.05)
-            r = c.post(
-                "/api/v1/runs",
-                json={"plan": "full", "methods": ["combined", "end-effector", "legs"]},
-                headers={"Authorization": f"Bearer {mod.TOKEN}"},
-            )
-            r.raise_for_status()
-            rid = r.json()["id"]
-            while True:
-                run = c.get(f"/api/v1/runs/{rid}").json()
-                step(
-                    f"result-after-motion ({label}): {run['state']}", run["progress"]["done"], run["progress"]["total"]
-                )
-                if run["state"] in FINAL_STATES:
+    return sim, cfg, port
+
+
+def _run_to_the_end(port: int, mod: Any, label: str, step: Step) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """A full-plan run of all three methods on the service at ``port``, followed to its end: ``(run, events)``."""
+    import httpx
+
+    with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=30) as c:
+        for _ in range(1200):
+            try:
+                if c.get("/readyz").status_code == 200:
                     break
-                time.sleep(0.5)
-            if run["state"] != "done":
-                raise I4calError(f"the run ({label}) ended {run['state']}: {run.get('error')}")
-            events = []
-            with c.stream("GET", f"/api/v1/runs/{rid}/events", params={"follow": "false"}) as resp:
-                for line in resp.iter_lines():
-                    if line.startswith("data: "):
-                        events.append(json.loads(line[6:]))
-    finally:
-        proc.terminate()
-        proc.wait(30)
-        sim.send_signal(signal.SIGINT)
-        try:
-            sim.wait(10)
-        except Exception:
-            sim.kill()
-        shutil.rmtree(tmp, ignore_errors=True)
-    # the acquisition's progress events: the last frame's is the first that counts every frame written (the state
-    # "done" one: frames are written behind the next move, the run's end waits for the last write)
+            except httpx.TransportError:
+                pass
+            time.sleep(0.05)
+        r = c.post(
+            "/api/v1/runs",
+            json={"plan": "full", "methods": ["combined", "end-effector", "legs"]},
+            headers={"Authorization": f"Bearer {mod.TOKEN}"},
+        )
+        r.raise_for_status()
+        rid = r.json()["id"]
+        while True:
+            run = c.get(f"/api/v1/runs/{rid}").json()
+            step(f"result-after-motion ({label}): {run['state']}", run["progress"]["done"], run["progress"]["total"])
+            if run["state"] in FINAL_STATES:
+                break
+            time.sleep(0.5)
+        if run["state"] != "done":
+            raise I4calError(f"the run ({label}) ended {run['state']}: {run.get('error')}")
+        events = []
+        with c.stream("GET", f"/api/v1/runs/{rid}/events", params={"follow": "false"}) as resp:
+            for line in resp.iter_lines():
+                if line.startswith("data: "):
+                    events.append(json.loads(line[6:]))
+    return run, events
+
+
+def _stop(proc: subprocess.Popen, sim: Any, tmp: Path) -> None:
+    proc.terminate()
+    proc.wait(30)
+    sim.send_signal(signal.SIGINT)
+    try:
+        sim.wait(10)
+    except Exception:
+        sim.kill()
+    shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _after_motion_timings(run: dict[str, Any], events: list[dict[str, Any]], label: str) -> dict[str, Any]:
+    """The times of a finished run from its events: the last frame's progress event is the first that counts every
+    frame written (frames are written behind the next move, the run's end waits for the last write)."""
     frames = [e for e in events if e["type"] == "progress" and e["data"].get("stage") == "acquisition"]
     total = max(e["data"]["total"] for e in frames)
     last = next((e for e in frames if e["data"]["done"] == total), None)
@@ -849,8 +838,37 @@ def result_after_motion(
         "timings": run.get("timings"),
         "streamed": extraction.get("streamed"),
         "measured_during_motion": len(streamed_items),
-        "speeds": speeds,
     }
+
+
+def result_after_motion(
+    streaming: bool, paper_plan: bool = True, workers: int = 2, step: Step = _no_step
+) -> dict[str, Any]:
+    """One service run on the simulated bench at the real bench's example speeds, all three methods.
+
+    ``streaming``: frames measured during the motion (``stream_extraction``) and two fits at once (``fit_workers``);
+    else the extraction and the fits one after the other once the motion is over.
+
+    Returns
+    -------
+    dict
+        ``after_last_frame_s`` (from the last frame's ``progress`` event to the ``state: done`` event, whose result is
+        stored just before), ``motion_s`` (first to last frame event), ``frames``, ``timings`` (the run's stage times),
+        ``streamed`` (what the extraction took from the stream), ``speeds``.
+    """
+    mod = bench_service_module()
+    tmp = Path(tempfile.mkdtemp(prefix="i4cal-bench-"))
+    sim, cfg, port = _after_motion_config(tmp, mod, streaming, paper_plan, workers)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "service", "serve", "--config", str(cfg), "--log-level", "warning"],
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+    label = "streaming" if streaming else "no streaming"
+    try:
+        run, events = _run_to_the_end(port, mod, label, step)
+    finally:
+        _stop(proc, sim, tmp)
+    return {**_after_motion_timings(run, events, label), "speeds": real_bench_speeds()}
 
 
 def bench_result_after_motion(opts: SpeedOptions, step: Step = _no_step) -> tuple[list[Figure], dict[str, Any]]:

@@ -6,7 +6,7 @@ import pytest
 from calib.errors import InputError
 from calib.formats.observations import FORMAT, Observations, json_schema
 
-SCHEMA = Path(__file__).resolve().parents[2] / "calib" / "schemas" / "observations-v1.schema.json"
+SCHEMA = Path(__file__).resolve().parents[2] / "calib" / "formats" / "schemas" / "observations-v1.schema.json"
 
 
 def test_shipped_schema_is_current():
