@@ -80,7 +80,7 @@ def intrinsics_prior(obs: Observations, refined: bool = True) -> tuple[CameraMod
 def calibration_offset(obs: Observations) -> Array | None:
     """The calibration's intrinsics minus the extraction camera's, shape (n,), when the rods refined that camera.
 
-    A camera refined by the rods (:func:`calib.vision.extract.refined_camera`) records the shift it was moved by
+    A camera refined by the rods (:func:`calib.vision.refine.refine_camera_by_rods`) records the shift it was moved by
     (``calibration.refined_by_rods.shift``); the calibration's own estimate is the camera minus that shift, and
     it, with the calibration's covariance, is the prior of a fit that uses the rods again. None when the camera
     was not refined.

@@ -1,6 +1,6 @@
 """The camera's intrinsics as the combined fit re-estimates them from the rods, for the methods that only carry them.
 
-The extraction refines the camera by the rods once (:func:`calib.vision.extract.refined_camera`): one step of the
+The extraction refines the camera by the rods once (:func:`calib.vision.refine.refine_camera_by_rods`): one step of the
 combined fit linearized at the calibration's camera, with that fit's posterior as ``calibration.covariance_refined``.
 Where the calibration was far off (the lens's radial terms, which a camera phase that does not reach the image's
 corners leaves to the rods), one step is not the estimate: the refined camera's error along the radial direction

@@ -365,27 +365,6 @@ def _recover(
     return again
 
 
-def refined_camera(res: ExtractionResult, min_shift: float = 0.5) -> tuple[CameraModel | None, dict[str, Any]]:
-    """The camera refined by the rods of an extraction, or None with the reason
-    (:func:`.refine.refine_camera_by_rods` on ``res``'s observations and camera).
-
-    Parameters
-    ----------
-    res : ExtractionResult
-        An extraction: its observations and the camera they were measured with.
-    min_shift : float
-        The refinement is applied when the intrinsics move by at least this many standard deviations of the
-        calibration (Mahalanobis distance, dimensionless).
-
-    Returns
-    -------
-    (CameraModel or None, dict)
-        The dict: ``applied``, ``shift`` (per intrinsic: px for fx, fy, cx, cy), ``mahalanobis`` or ``reason``.
-    """
-    r = refine_camera_by_rods(res.observations, res.camera, min_shift)
-    return r.camera, r.info
-
-
 @dataclass
 class _Ticker:
     """A pass's progress: frames done and the pass's total (both grow as stages are added), and the last count

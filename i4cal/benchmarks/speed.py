@@ -47,7 +47,7 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, cast
 
 from pydantic import BaseModel, Field, computed_field
 
@@ -104,7 +104,7 @@ class SpeedOptions(BaseModel):
     service_plan: str = Field("paper", pattern="^(paper|reduced)$")
     service_hz: float = Field(20.0, gt=0, description="status polls per second during the service run")
     stream_runs: list[Literal["on", "off"]] = Field(
-        default_factory=lambda: list[Literal["on", "off"]](["on", "off"]),
+        default_factory=lambda: cast(list[Literal["on", "off"]], ["on", "off"]),
         description="result-after-motion: the runs, streaming on and/or off",
     )
     seed: int = 0
@@ -748,10 +748,11 @@ def _event_s(ev: dict[str, Any]) -> float:
     return dt.datetime.fromisoformat(ev["t"].replace("Z", "+00:00")).timestamp()
 
 
-def _after_motion_config(tmp: Path, mod: Any, streaming: bool, paper_plan: bool, workers: int) -> tuple[Any, Path, int]:
-    """The simulated bench at the real bench's example speeds and a service configuration for it: ``(sim process,
-    service.toml, port)``."""
-    speeds = real_bench_speeds()
+def _after_motion_config(
+    tmp: Path, mod: Any, speeds: dict[str, float], streaming: bool, paper_plan: bool, workers: int
+) -> tuple[Any, Path, int]:
+    """The simulated bench at ``speeds`` (:func:`real_bench_speeds`) and a service configuration for it: ``(sim
+    process, service.toml, port)``."""
     sim, bench_file, camera_file = mod.start_sim_bench(tmp)
     text = bench_file.read_text()
     text = text.replace("speed_m_s = 10.0", f"speed_m_s = {speeds['speed_m_s']}")
@@ -858,7 +859,8 @@ def result_after_motion(
     """
     mod = bench_service_module()
     tmp = Path(tempfile.mkdtemp(prefix="i4cal-bench-"))
-    sim, cfg, port = _after_motion_config(tmp, mod, streaming, paper_plan, workers)
+    speeds = real_bench_speeds()
+    sim, cfg, port = _after_motion_config(tmp, mod, speeds, streaming, paper_plan, workers)
     proc = subprocess.Popen(
         [sys.executable, "-m", "service", "serve", "--config", str(cfg), "--log-level", "warning"],
         env={**os.environ, "PYTHONUNBUFFERED": "1"},
@@ -868,7 +870,7 @@ def result_after_motion(
         run, events = _run_to_the_end(port, mod, label, step)
     finally:
         _stop(proc, sim, tmp)
-    return {**_after_motion_timings(run, events, label), "speeds": real_bench_speeds()}
+    return {**_after_motion_timings(run, events, label), "speeds": speeds}
 
 
 def bench_result_after_motion(opts: SpeedOptions, step: Step = _no_step) -> tuple[list[Figure], dict[str, Any]]:
