@@ -44,9 +44,13 @@ async def test_methods_fitted_at_once_give_the_sequential_result(tmp_path, sim, 
     fits = [(e["data"]["method"], e["data"]["state"], e["data"]["index"]) for e in evs if e["type"] == "fit"]
     assert sorted(fits) == sorted((m, s, k) for k, m in enumerate(METHODS) for s in ("start", "done"))
     starts = [f[0] for f in fits if f[1] == "start"]
-    # two at once: the second method started before the first ended
-    first_done = next(i for i, f in enumerate(fits) if f[1] == "done")
-    assert len([f for f in fits[:first_done] if f[1] == "start"]) == 2, fits
+    # two at once, never more: at some point two fits had started and not ended (one after the other: never two; a
+    # child reports its start after its imports, so which two overlap depends on the machine's load)
+    running, most = 0, 0
+    for _method, state, _k in fits:
+        running += 1 if state == "start" else -1
+        most = max(most, running)
+    assert most == 2, fits
     assert sorted(starts[:2]) == sorted(METHODS[:2])  # in the order given, as places free up
     progress = [e["data"]["done"] for e in evs if e["type"] == "progress" and e["data"].get("stage") == "calibration"]
     assert progress == [1, 2, 3]
