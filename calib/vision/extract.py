@@ -24,8 +24,10 @@ Stages (each over a process pool when ``workers > 1``, with ``progress(done, tot
 6. The camera refined by the rods (:func:`calib.vision.refine.refine_camera_by_rods`, a stage of its own run by
    :func:`extract_dataset` after the first pass) when it carries its calibration's covariance; then every frame is
    measured again with it (the board corners and the refitted prediction of the first pass reused), and the first
-   pass measures on its refitted prediction only the frames the refinement uses (the ``poses`` phase). When the
-   camera did not move by ``ExtractOptions.refine_min_shift``, that second pass runs with the same camera.
+   pass measures on its refitted prediction only the frames the refinement uses (the ``poses`` phase); the second
+   pass re-expresses those for the refined camera from the edge points the first pass found
+   (:mod:`calib.vision.rods.reexpress`: their images not measured again). When the camera did not move by
+   ``ExtractOptions.refine_min_shift``, that second pass runs with the same camera.
 7. Rods once more, when more than ``ExtractOptions.recover_lost_share`` of those looked for were lost in their search
    bands (:mod:`calib.vision.recover`): the prediction refitted robustly (each measured line its own rod, its leg's
    other rod or the gap between them; several starts) and every frame measured again, kept when it loses fewer rods
@@ -40,7 +42,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
 
@@ -63,6 +65,7 @@ from calib.vision.recover import lost_in_search, measured_lines
 from calib.vision.refine import REFINEMENT_PHASES, CameraRefinement, can_refine, refine_camera_by_rods
 from calib.vision.repredict import MeasuredRod, Repredicted, prediction_shift_px, refit_prediction, rod_ends_camera
 from calib.vision.rods import ROD_KEYS, RodSettings, rod_name
+from calib.vision.rods.reexpress import reexpress_frame
 
 if TYPE_CHECKING:
     from calib.vision.stream import StreamedFrames
@@ -150,6 +153,10 @@ class ExtractionResult:
     camera_refinement: CameraRefinement | None = None
     #: frames whose rods this pass left to the next one (measured only where the camera's refinement needs them)
     deferred: int = 0
+    #: the rods stage's results of the frames measured on this pass's final prediction (each with its measured rods
+    #: and their edge points, ``"measured"``): the next pass re-expresses them for its camera
+    #: (:mod:`calib.vision.rods.reexpress`) instead of measuring them again
+    rods: dict[int, Any] | None = None
 
 
 def _short(reason: str) -> str:
@@ -274,6 +281,7 @@ def _measure_with_refined_camera(
         corners=corners,
         predict_with=first.repredicted,
         predicted_from=first.camera_from_base,
+        reexpress=first.rods,
     )
     _carry_over(ds, first, res, {**first.summary["camera"], "refined_by_rods": refinement.info})
     res.camera_refinement = refinement
@@ -446,6 +454,8 @@ class _Pass:
     #: for the next pass, which measures every frame again with the camera the rods refined
     measure_phases: tuple[str, ...] | None = None
     deferred: int = 0
+    #: the frames whose rods were measured (or re-expressed) on the pass's final prediction
+    on_final: set[int] = field(default_factory=set)
 
 
 def _extract(
@@ -460,12 +470,15 @@ def _extract(
     predict_with: Repredicted | None = None,
     predicted_from: Rigid | None = None,
     for_refinement: bool = False,
+    reexpress: dict[int, Any] | None = None,
 ) -> ExtractionResult:
     """One pass over the dataset. ``keep_images``: the workers keep the decoded images after the rods stage (a
     second pass follows); ``corners``: filled with each frame's ChArUco corners when empty, reused (the pose
     only) when not. ``for_refinement``: a second pass follows in any case when the camera can be refined by the rods
     (it carries its calibration's covariance): after the refit, only the frames of the phases the refinement uses
     (:data:`.refine.REFINEMENT_PHASES`) are measured (``ExtractionResult.deferred`` counts the others).
+    ``reexpress``: an earlier pass's rods results on its final prediction (``ExtractionResult.rods``), re-expressed
+    for this pass's camera instead of measured again (:func:`_reexpress_stage`).
 
     Stages: the camera (:func:`_camera_stage`), the boards (:func:`_board_stage`), the coarse placement
     (:func:`_placement_stage`), the rods found from scratch without one (:func:`_detect_stage`), the rods measured
@@ -505,11 +518,21 @@ def _extract(
     rod_items = _rod_items(ps, boards, place, found, predict_with)
     refit = C is not None and E is not None and not found and opts.repredict_px is not None
     first = _first_sample(rod_items, opts) if refit and predict_with is None else rod_items
-    rods = dict(
+    rods = _reexpress_stage(ps, cam.camera, boards, first, reexpress) if reexpress else {}
+    measure = [it for it in first if it[0] not in rods]
+    rods.update(
         ps.pool.run(
-            _task_rods, first, ps.init, ps.ticker.callback, ps.ticker.done, ps.ticker.total, _rods_cb(ps, boards)
+            _task_rods,
+            measure,
+            ps.init,
+            ps.ticker.callback,
+            ps.ticker.done + len(rods),
+            ps.ticker.total,
+            _rods_cb(ps, boards),
         )
     )
+    if not refit or predict_with is not None:  # measured on the pass's final prediction (unless the refit moves it)
+        ps.on_final.update(rods)
     repredicted: dict[str, Any] | None = None
     fit: Repredicted | None = None
     if refit:
@@ -703,6 +726,32 @@ def _rods_cb(ps: _Pass, boards: dict[int, dict[str, Any]]) -> Callable[[Any], No
     return lambda r: on_frame(frame_info(r[0], frames[r[0]].phase, boards[r[0]], r[1]))
 
 
+def _reexpress_stage(
+    ps: _Pass,
+    camera: CameraModel,
+    boards: dict[int, dict[str, Any]],
+    items: list[tuple],
+    earlier: dict[int, Any],
+) -> dict[int, Any]:
+    """The rods of the frames in ``items`` re-expressed for ``camera`` from an earlier pass's results (their edge
+    points, :func:`calib.vision.rods.reexpress.reexpress_frame`) where it has them; the other frames are left out,
+    for the rods stage to measure."""
+    radius = ps.ds.document.legs.rod_radius_m
+    settings = ps.opts.rods or RodSettings()
+    cb = _rods_cb(ps, boards)
+    out: dict[int, Any] = {}
+    for it in items:
+        r = earlier.get(it[0])
+        if r is None or "measured" not in r:
+            continue
+        out[it[0]] = reexpress_frame(r, r["measured"], camera, radius, settings)
+        if cb is not None:
+            cb((it[0], out[it[0]]))
+        if ps.ticker.callback is not None:
+            ps.ticker.callback(ps.ticker.done + len(out), ps.ticker.total)
+    return out
+
+
 def _repredict_stage(
     ps: _Pass,
     camera: CameraModel,
@@ -729,6 +778,7 @@ def _repredict_stage(
         cast("float", ps.opts.repredict_px),
         predict_with,
     )
+    moved = set(redo)
     later = {it[0] for it in rod_items} - set(rods)  # not in the first sample: measured once, on the refit
     if fit is not None and ps.measure_phases is not None:  # the others: by the next pass, with the refined camera
         left = {i for i in later if ps.ds.frames[i].phase not in ps.measure_phases}
@@ -749,6 +799,12 @@ def _repredict_stage(
         rods.update(
             ps.pool.run(_task_rods, items, ps.init, t.callback, t.done + n_first, t.total, _rods_cb(ps, boards))
         )
+    if fit is None:  # the first prediction is the final one
+        ps.on_final.update(rods)
+    else:  # the frames it did not move and those measured on it
+        ps.on_final.update(i for i in rods if i not in moved)
+        ps.on_final.difference_update(moved)
+        ps.on_final.update(it[0] for it in items)
     repredicted["first_prediction"] = "nominal" if predict_with is None else "an earlier pass's refit"
     if later:
         repredicted["first_sample_frames"] = n_first
@@ -873,7 +929,8 @@ def _assemble(
     dextra = doc.model_extra or {}
     if "truth" in dextra:
         obs["truth"] = dextra["truth"]
-    return ExtractionResult(obs, summary, cam.camera, cam.intrinsics, C, E, fit, deferred=ps.deferred)
+    final = {i: r for i, r in rods.items() if i in ps.on_final and "measured" in r}
+    return ExtractionResult(obs, summary, cam.camera, cam.intrinsics, C, E, fit, deferred=ps.deferred, rods=final)
 
 
 def _refit_inputs(ds: Dataset, camera: CameraModel) -> tuple[I4Parameters, float, float, float]:

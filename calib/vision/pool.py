@@ -178,7 +178,8 @@ def _task_rods(args: tuple) -> tuple[int, Any]:
         )
     rods = {rod_name(m.leg, m.rod): (m.to_dict() if m.ok else m.reason) for m in ms}
     par = {k: v * 1e3 for k, v in leg_parallelism(ms).items()}
-    return i, {"rods": rods, "parallel_mrad": par}
+    # the measured rods with their edge points: a later pass re-expresses them for another camera
+    return i, {"rods": rods, "parallel_mrad": par, "measured": [m for m in ms if m.ok]}
 
 
 def _worker_main(conn: Connection, init_args: tuple, cache_bytes: int, fresh: bool = False) -> None:

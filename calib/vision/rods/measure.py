@@ -477,6 +477,9 @@ def measure_rod(
     reason = _axis_from_limbs(out, camera, pred, radius, s, proj, fits, vis[1], seg.n_dir)
     if reason is not None:
         out.reason = reason
+    else:  # the raw measurement, for another camera (calib.vision.rods.reexpress)
+        out.edges_px = (proj.points(fits.fits[0][3]), proj.points(fits.fits[1][3]))
+        out.middle_px = proj.points(vis[1][len(vis[1]) // 2][None])[0]
     return out
 
 

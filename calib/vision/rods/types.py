@@ -159,6 +159,11 @@ class RodMeasurement:
     #: (quantiles 0, 1/4, 1/2, 3/4, 1 along it), in distorted pixels: the raw measurement, from which
     #: the limb planes can be recomputed for other intrinsics (uncertainty propagation)
     limbs_px: Array | None = None
+    #: the two limbs' inlier edge points (N_i, 2) and the middle of the visible part (2,), distorted image pixels:
+    #: they do not depend on the camera, so the rod can be re-expressed for other intrinsics
+    #: (:func:`calib.vision.rods.reexpress.reexpress_rod`) without measuring the image again; not serialized
+    edges_px: tuple[Array, Array] | None = None
+    middle_px: Array | None = None
     #: +1 when the rod was measured as brighter than its surroundings, -1 darker, 0 not decided
     polarity: int = 0
     #: edge pairs found across the profiles (bright rod, dark rod), before one polarity is kept

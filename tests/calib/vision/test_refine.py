@@ -74,3 +74,32 @@ def test_frames_the_refinement_does_not_use_are_measured_once(small_dataset, mon
             assert measured.count(i) == 1, (i, ph, measured)
     full = extract_dataset(root, camera=camera, workers=1, options=ExtractOptions(refine_camera=False, **sample))
     assert refine_camera_by_rods(full.observations, full.camera).info == ref.info
+
+
+def test_the_second_pass_reexpresses_the_frames_the_first_measured(small_dataset, monkeypatch):  # noqa: F811
+    """The frames the first pass measured on its refitted prediction (the poses) are re-expressed for the refined
+    camera from their edge points, not measured again: each image's rods are measured once on the refit."""
+    import calib.vision.extract as extract
+
+    root, _, cam = small_dataset
+    camera = _with_covariance(cam)
+    sample = {"first_pass_every": 3, "first_pass_min_frames": 4, "recover_lost_share": None}
+    measured: list[int] = []
+    task_rods = extract._task_rods
+
+    def counted(args: tuple) -> tuple:
+        measured.append(int(args[0]))
+        return task_rods(args)
+
+    monkeypatch.setattr(extract, "_task_rods", counted)
+    res = extract_dataset(root, camera=camera, workers=1, options=ExtractOptions(**sample))
+    monkeypatch.undo()
+    assert res.camera_refinement is not None and res.camera_refinement.applied
+    phase = {f["dataset_frame"]: f["phase"] for f in res.observations["frames"]}
+    first_sample = [i for i in sorted(phase) if i not in (8, 9)][::3]
+    poses = [i for i, ph in phase.items() if ph == "poses" and i not in first_sample and i not in (8, 9)]
+    assert poses
+    for i in poses:
+        assert measured.count(i) == 1, (i, measured)
+        frame = next(f for f in res.observations["frames"] if f["dataset_frame"] == i)
+        assert any(r is not None for leg in frame["legs"].values() for r in leg)  # its rods are there

@@ -1,0 +1,148 @@
+"""A measured rod re-expressed for another camera, from its edge points, without measuring the image again.
+
+A rod's measurement (:func:`calib.vision.rods.measure.measure_rod`) finds each limb's edge points in the image and
+fits a line to them in ideal (undistorted) pixels, where the limb is straight. Which edge points are found does not
+depend on the intrinsics within the search band (a few pixels of camera change against an 18 px band), but the ideal
+pixels do. So when the camera is refined by the rods (:mod:`calib.vision.refine`), each rod's inlier edge points
+(kept in distorted image pixels, :attr:`RodMeasurement.edges_px`) are undistorted with the refined camera, each
+limb's total-least-squares line is fitted to them again, and the axis, its covariance and the limb samples follow
+as in the measurement (:func:`calib.vision.rods.measure._axis_from_limbs`): the answer a measurement with that camera
+gives, for a fraction of its cost.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from calib.formats.camera import CameraModel
+
+from .covariance import _line_cov
+from .cylinder import ROD_KEYS, rod_name
+from .linefit import _tls_q
+from .measure import _axis_from_limbs, _IdealToImage, _LimbFits, leg_parallelism
+from .types import RodMeasurement, RodPrediction, RodSettings
+
+Array = NDArray[np.float64]
+
+
+def _ideal(camera: CameraModel, pixels: Array) -> Array:
+    """Distorted image pixels (N, 2) -> ideal pixels (N, 2) of ``camera``."""
+    return camera.to_ideal_pixels(camera.undistort_points(pixels))
+
+
+def _limb_line(pts: Array) -> Array:
+    """The total-least-squares line ``(a, b, c)`` (unit normal, px) through ideal pixels (N, 2), as the
+    measurement's last fit (:func:`calib.vision.rods.linefit.robust_line`) computes it."""
+    o = pts.sum(0) / len(pts)
+    Q = np.ones((len(pts), 3))
+    Q[:, :2] = pts - o
+    a, b, c0 = _tls_q(Q)
+    return np.array([a, b, c0 - (a * float(o[0]) + b * float(o[1]))])
+
+
+def reexpress_rod(
+    measured: RodMeasurement,
+    camera: CameraModel,
+    radius: float,
+    settings: RodSettings | None = None,
+    projector: _IdealToImage | None = None,
+) -> RodMeasurement:
+    """A measured rod's axis for ``camera``, from its edge points.
+
+    Parameters
+    ----------
+    measured : RodMeasurement
+        A rod measured with another camera, with its edge points (``edges_px``, ``middle_px``, distorted px) and
+        its axis direction ``u`` (camera frame; the re-expressed axis is oriented the same way).
+    camera : CameraModel
+        The camera to express it for.
+    radius : float
+        Rod radius (m).
+    settings : RodSettings, optional
+        Default ``RodSettings()`` (``max_rms_px``, ``min_points``, ``min_plane_angle_rad``, the edge-bias allowance).
+    projector : _IdealToImage, optional
+        Ideal to image pixels of ``camera``, when already built for the frame.
+
+    Returns
+    -------
+    RodMeasurement
+        ``u``, ``point``, ``h``, ``cov_u``, ``cov_u_own``, ``limbs_px``, quality figures for ``camera`` and the same
+        edge points; or ``reason`` when the limbs no longer make an axis (their residual beyond ``max_rms_px``,
+        nearly parallel planes).
+
+    Raises
+    ------
+    ValueError
+        ``measured`` carries no edge points or no direction.
+    """
+    if measured.edges_px is None or measured.middle_px is None or measured.u is None:
+        raise ValueError(f"rod {rod_name(measured.leg, measured.rod)} has no edge points to re-express")
+    s = settings or RodSettings()
+    proj = projector if projector is not None else _IdealToImage(camera)
+    out = RodMeasurement(measured.leg, measured.rod, polarity=measured.polarity)
+    out.pairs_by_polarity = measured.pairs_by_polarity
+    out.edges_px, out.middle_px = measured.edges_px, measured.middle_px
+    fits = _LimbFits([], [], [], [])
+    for raw in measured.edges_px:
+        pts = _ideal(camera, raw)
+        line = _limb_line(pts)
+        r = pts @ line[:2] + line[2]
+        fits.lines.append(line)
+        fits.fits.append((*_line_cov(pts, line), pts))
+        fits.rms.append(float(np.sqrt(np.mean(r**2))))
+        fits.npts.append(len(pts))
+    out.lines_px = fits.lines
+    out.rms_px = (fits.rms[0], fits.rms[1])
+    out.n_points = (fits.npts[0], fits.npts[1])
+    if max(fits.rms) > s.max_rms_px:
+        out.reason = f"limb edges too scattered (residual RMS {max(fits.rms):.2f} px > {s.max_rms_px} px)"
+        return out
+    middle = _ideal(camera, measured.middle_px[None])
+    # the direction only orients the axis (u . pred.u > 0): a prediction along the measured axis
+    pred = RodPrediction(measured.leg, measured.rod, np.zeros(3), np.asarray(measured.u, dtype=np.float64))
+    reason = _axis_from_limbs(out, camera, pred, radius, s, proj, fits, middle, fits.lines[0][:2])
+    if reason is not None:
+        out.reason = reason
+    return out
+
+
+def reexpress_frame(
+    rods: dict[str, Any], measured: list[RodMeasurement], camera: CameraModel, radius: float, settings: RodSettings
+) -> dict[str, Any]:
+    """A frame's rods stage result re-expressed for ``camera`` (:func:`reexpress_rod` on each rod measured).
+
+    Parameters
+    ----------
+    rods : dict
+        The rods stage's result of the frame (``{"rods": {name: dict | reason}, "parallel_mrad": {...}}``).
+    measured : list of RodMeasurement
+        The frame's measured rods with their edge points (the stage's ``measured``).
+    camera : CameraModel
+    radius : float
+        Rod radius (m).
+    settings : RodSettings
+
+    Returns
+    -------
+    dict
+        The same layout for ``camera``: a rod not measured keeps its reason; ``measured`` holds the re-expressed
+        rods (for a later re-expression).
+    """
+    proj = _IdealToImage(camera)
+    by = {(m.leg, m.rod): m for m in measured}
+    out_rods: dict[str, Any] = {}
+    again: list[RodMeasurement] = []
+    for leg, rod in ROD_KEYS:
+        name = rod_name(leg, rod)
+        m = by.get((leg, rod))
+        if m is None or not m.ok or m.edges_px is None:
+            out_rods[name] = rods["rods"][name]
+            continue
+        r = reexpress_rod(m, camera, radius, settings, proj)
+        out_rods[name] = r.to_dict() if r.ok else r.reason
+        again.append(r)
+    par = {k: v * 1e3 for k, v in leg_parallelism(again).items()}
+    return {"rods": out_rods, "parallel_mrad": par, "measured": again}
