@@ -154,7 +154,7 @@ class ExtractionResult:
     #: frames whose rods this pass left to the next one (measured only where the camera's refinement needs them)
     deferred: int = 0
     #: the rods stage's results of the frames measured on this pass's final prediction (each with its measured rods
-    #: and their edge points, ``"measured"``): the next pass re-expresses them for its camera
+    #: and their edge points, ``"edges"``): the next pass re-expresses them for its camera
     #: (:mod:`calib.vision.rods.reexpress`) instead of measuring them again
     rods: dict[int, Any] | None = None
 
@@ -238,7 +238,8 @@ def extract_dataset(
             on_frame,
             keep_images=opts.refine_camera,
             corners=corners,
-            for_refinement=opts.refine_camera,
+            # streaming measured every frame already: the refined camera's pass re-expresses them all
+            for_refinement=opts.refine_camera and streamed is None,
         )
         if opts.refine_camera:
             # 2. the camera refined by those rods, 3. the frames measured again with it
@@ -742,9 +743,9 @@ def _reexpress_stage(
     out: dict[int, Any] = {}
     for it in items:
         r = earlier.get(it[0])
-        if r is None or "measured" not in r:
+        if r is None or not r.get("edges"):
             continue
-        out[it[0]] = reexpress_frame(r, r["measured"], camera, radius, settings)
+        out[it[0]] = reexpress_frame(r, camera, radius, settings)
         if cb is not None:
             cb((it[0], out[it[0]]))
         if ps.ticker.callback is not None:
@@ -929,7 +930,7 @@ def _assemble(
     dextra = doc.model_extra or {}
     if "truth" in dextra:
         obs["truth"] = dextra["truth"]
-    final = {i: r for i, r in rods.items() if i in ps.on_final and "measured" in r}
+    final = {i: r for i, r in rods.items() if i in ps.on_final and r.get("edges")}
     return ExtractionResult(obs, summary, cam.camera, cam.intrinsics, C, E, fit, deferred=ps.deferred, rods=final)
 
 

@@ -26,7 +26,7 @@ from calib.numerics.transforms import Rigid
 from calib.vision.board import BoardDetection, BoardDetector, to_gray8
 from calib.vision.detect import DetectSettings, detect_rods, measure_detected
 from calib.vision.rods import RodSettings, image_ideal_bbox, leg_parallelism, measure_rods, predict_rods, rod_name
-from calib.vision.rods.types import ROD_BOARD_OCCLUDER_M
+from calib.vision.rods.types import ROD_BOARD_OCCLUDER_M, RodMeasurement
 
 Progress = Callable[[int, int], None]
 
@@ -176,10 +176,21 @@ def _task_rods(args: tuple) -> tuple[int, Any]:
         ms = measure_detected(
             img.astype(np.float32), cam, found, doc.legs.rod_radius_m, _W["rs"], occ, seed=i, ideal_bbox=_W["bbox"]
         )
+    return i, rods_result(ms)
+
+
+def rods_result(ms: list[RodMeasurement]) -> dict[str, Any]:
+    """A frame's rods stage result: ``{"rods": {name: dict | reason}, "parallel_mrad": {leg: mrad}, "edges": {name:
+    (limb 0 (N0, 2), limb 1 (N1, 2), middle (2,))}}``, the edges (distorted px) of the rods measured, from which a
+    later pass re-expresses them for another camera (:func:`calib.vision.rods.reexpress.reexpress_frame`)."""
     rods = {rod_name(m.leg, m.rod): (m.to_dict() if m.ok else m.reason) for m in ms}
     par = {k: v * 1e3 for k, v in leg_parallelism(ms).items()}
-    # the measured rods with their edge points: a later pass re-expresses them for another camera
-    return i, {"rods": rods, "parallel_mrad": par, "measured": [m for m in ms if m.ok]}
+    edges = {
+        rod_name(m.leg, m.rod): (m.edges_px[0], m.edges_px[1], m.middle_px)
+        for m in ms
+        if m.ok and m.edges_px is not None and m.middle_px is not None
+    }
+    return {"rods": rods, "parallel_mrad": par, "edges": edges}
 
 
 def _worker_main(conn: Connection, init_args: tuple, cache_bytes: int, fresh: bool = False) -> None:

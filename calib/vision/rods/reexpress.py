@@ -110,39 +110,45 @@ def reexpress_rod(
 
 
 def reexpress_frame(
-    rods: dict[str, Any], measured: list[RodMeasurement], camera: CameraModel, radius: float, settings: RodSettings
+    result: dict[str, Any], camera: CameraModel, radius: float, settings: RodSettings | None = None
 ) -> dict[str, Any]:
-    """A frame's rods stage result re-expressed for ``camera`` (:func:`reexpress_rod` on each rod measured).
+    """A frame's rods stage result re-expressed for ``camera`` (:func:`reexpress_rod` on each rod with edge points).
 
     Parameters
     ----------
-    rods : dict
-        The rods stage's result of the frame (``{"rods": {name: dict | reason}, "parallel_mrad": {...}}``).
-    measured : list of RodMeasurement
-        The frame's measured rods with their edge points (the stage's ``measured``).
+    result : dict
+        The rods stage's result of the frame (:func:`calib.vision.pool.rods_result`): ``{"rods": {name: dict |
+        reason}, "parallel_mrad": {...}, "edges": {name: (limb 0 (N0, 2), limb 1 (N1, 2), middle (2,))}}`` (edges in
+        distorted px; lists as read back from JSON are taken too).
     camera : CameraModel
     radius : float
         Rod radius (m).
-    settings : RodSettings
+    settings : RodSettings, optional
 
     Returns
     -------
     dict
-        The same layout for ``camera``: a rod not measured keeps its reason; ``measured`` holds the re-expressed
-        rods (for a later re-expression).
+        The same layout for ``camera``: a rod without edge points keeps its entry (its reason when not measured); a
+        rod whose limbs no longer make an axis gets the reason; ``edges`` kept for a later re-expression.
     """
     proj = _IdealToImage(camera)
-    by = {(m.leg, m.rod): m for m in measured}
+    edges = result.get("edges") or {}
     out_rods: dict[str, Any] = {}
     again: list[RodMeasurement] = []
     for leg, rod in ROD_KEYS:
         name = rod_name(leg, rod)
-        m = by.get((leg, rod))
-        if m is None or not m.ok or m.edges_px is None:
-            out_rods[name] = rods["rods"][name]
+        entry = result["rods"][name]
+        e = edges.get(name)
+        if e is None or not isinstance(entry, dict):
+            out_rods[name] = entry
             continue
+        m = RodMeasurement(leg, rod, u=np.asarray(entry["u"], dtype=np.float64))
+        m.edges_px = (np.asarray(e[0], dtype=np.float64), np.asarray(e[1], dtype=np.float64))
+        m.middle_px = np.asarray(e[2], dtype=np.float64)
         r = reexpress_rod(m, camera, radius, settings, proj)
         out_rods[name] = r.to_dict() if r.ok else r.reason
-        again.append(r)
+        if r.ok:
+            again.append(r)
     par = {k: v * 1e3 for k, v in leg_parallelism(again).items()}
-    return {"rods": out_rods, "parallel_mrad": par, "measured": again}
+    kept = {n: e for n, e in edges.items() if isinstance(out_rods.get(n), dict)}
+    return {"rods": out_rods, "parallel_mrad": par, "edges": kept}

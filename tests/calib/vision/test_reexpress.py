@@ -8,13 +8,16 @@ the camera change itself moves the direction by more than that.
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
 from calib.formats.camera import CameraModel
 from calib.formats.plan import make_plan
 from calib.vision.board import BoardDetector
-from calib.vision.rods import RodPrediction, RodSettings, measure_rods, predict_rods, rod_name
+from calib.vision.pool import rods_result
+from calib.vision.rods import RodPrediction, measure_rods, predict_rods, rod_name
 from calib.vision.rods.reexpress import reexpress_frame, reexpress_rod
 from drivers.sim.render import BenchRenderer, RenderSettings
 from drivers.sim.twin import BenchGeometry, GeometricTwin
@@ -108,20 +111,24 @@ def test_with_another_camera_it_is_what_measuring_with_it_gives(frames):
 def test_a_frame_keeps_the_rods_it_did_not_measure(frames):
     out, cam, other, radius = frames
     every = _measure(out[0], cam, radius)
+    result = rods_result(every)
     ms = [m for m in every if m.ok]
-    assert len(ms) >= 4
+    assert len(ms) >= 4 and set(result["edges"]) == {rod_name(m.leg, m.rod) for m in ms}
     lost = rod_name(ms[0].leg, ms[0].rod)
-    rods = {"rods": {rod_name(m.leg, m.rod): m.to_dict() if m.ok else m.reason for m in every}}
-    rods["rods"][lost] = "hidden by the board"
-    res = reexpress_frame(rods, ms[1:], other, radius, RodSettings())
+    result["rods"][lost] = "hidden by the board"  # as if not measured
+    del result["edges"][lost]
+    # as the stream hands it over: read back from JSON
+    res = reexpress_frame(json.loads(json.dumps(result, default=lambda o: o.tolist())), other, radius)
     assert res["rods"][lost] == "hidden by the board"
     assert sum(isinstance(v, dict) for v in res["rods"].values()) == len(ms) - 1
     for m in every:
         if not m.ok:
             assert res["rods"][rod_name(m.leg, m.rod)] == m.reason
     for m in ms[1:]:  # re-expressed, not copied
-        assert res["rods"][rod_name(m.leg, m.rod)]["u"] != m.to_dict()["u"]
-    assert all(r.edges_px is not None for r in res["measured"])  # it can be re-expressed once more
+        r = reexpress_rod(m, other, radius)
+        np.testing.assert_allclose(res["rods"][rod_name(m.leg, m.rod)]["u"], r.u, atol=1e-12)
+        assert not np.allclose(r.u, m.u, atol=1e-9)
+    assert set(res["edges"]) == set(result["edges"])  # it can be re-expressed once more
 
 
 def test_a_rod_without_edge_points_is_refused(frames):

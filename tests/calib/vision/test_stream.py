@@ -112,3 +112,57 @@ def test_a_frame_missing_from_the_stream_is_measured_at_the_end(dataset, streame
     res = extract_dataset(dataset, workers=1, streamed=frames)
     assert frames.used["boards"] == len(plain.observations["frames"]) - 1
     assert _bytes(res) == _bytes(plain)
+
+
+def test_with_a_camera_the_rods_refine_the_stream_is_reexpressed_not_measured_again(dataset, tmp_path, monkeypatch):
+    """A camera file with its calibration's covariance: the rods refine the camera at the end, and the frames the
+    stream measured are re-expressed for it from their edge points (calib.vision.rods.reexpress) instead of measured
+    again; the result agrees with the extraction without streaming within the fit's standard deviation."""
+    import shutil
+
+    import calib.vision.pool as pool
+    from calib.camera.intrinsics import INTRINSICS_NAMES
+
+    root = tmp_path / "ds"
+    shutil.copytree(dataset, root)
+    doc = json.loads((root / "dataset.json").read_text())
+    K = np.asarray(doc["camera"]["K"]) + np.array([[1.5, 0, -1.5], [0, 1.5, 1.5], [0, 0, 0]])  # a few std off
+    std = np.array([0.5, 0.5, 0.5, 0.5, 1e-3, 1e-3, 1e-4, 1e-4])
+    doc["camera"]["K"] = K.tolist()
+    doc["camera"]["intrinsics"] = {
+        "calibration": {"covariance_params": list(INTRINSICS_NAMES), "covariance": np.diag(std**2).tolist()}
+    }
+    (root / "dataset.json").write_text(json.dumps(doc))
+    fs = FrameStreamer(str(root))
+    for i in range(len(doc["frames"])):
+        fs.add(i)
+        while fs.idle_step():
+            pass
+    assert fs.frames is not None
+    frames = StreamedFrames.from_dict(json.loads(json.dumps(fs.frames.to_dict(), default=lambda o: o.tolist())))
+    measured: list[int] = []
+    measure_rods = pool.measure_rods
+
+    def counted(img, camera, preds, *a, **k):
+        measured.append(1)
+        return measure_rods(img, camera, preds, *a, **k)
+
+    monkeypatch.setattr(pool, "measure_rods", counted)
+    res = extract_dataset(root, workers=1, streamed=frames)
+    at_end = len(measured)
+    monkeypatch.undo()
+    assert res.camera_refinement is not None and res.camera_refinement.applied
+    n = len(res.observations["frames"])
+    # the frames before the stream's placement (2), and a few whose prediction the refined camera moved
+    assert at_end <= 4, (at_end, n, frames.used)
+    plain = extract_dataset(root, workers=1)
+    a, b = plain.observations["frames"], res.observations["frames"]
+    assert [sorted(f["missing"]) for f in a] == [sorted(f["missing"]) for f in b]
+    from calib.identify.pipeline import calibrate
+
+    fa = calibrate(Observations.from_dict(plain.observations), ["combined"])["methods"]["combined"]
+    fb = calibrate(Observations.from_dict(res.observations), ["combined"])["methods"]["combined"]
+    keys = sorted(fa["std"])
+    pa, pb = np.array([fa["parameters"][k] for k in keys]), np.array([fb["parameters"][k] for k in keys])
+    sd = np.array([fa["std"][k] for k in keys])
+    assert np.all(np.abs(pa - pb) <= 2 * sd), (pa - pb) / sd
