@@ -17,11 +17,11 @@ Sections (``--only a,b``; all by default), each with the target of the issue it 
 * ``service``: latency of ``GET /api/v1/runs/{id}`` while a run acquires, extracts and calibrates in
   ``i4cal serve`` (p50 / p99 ms; target p99 <= 50 ms); measured by ``benchmarks/bench_service.py`` of a
   source checkout.
-* ``result-after-motion``: a service run (``i4cal serve``, ``i4cal sim-bench`` in its own process, the twin's camera
-  file) of the paper's plan (``--service-plan``) at the speeds of ``deploy/bench-real.example.toml``, all three
-  methods: seconds from the run's last frame event to its stored result, with the frames measured during the motion
-  (``stream_extraction``, ``fit_workers = 2``; target <= 2 s) and without (the extraction and fits after the
-  motion, one fit at a time); ``--stream-runs off,on`` picks them.
+* ``result-after-motion``: a service run (``i4cal serve``, ``i4cal sim-bench`` in its own process, a camera file made
+  by ``i4cal camera calibrate`` on it, which the rods refine) of the paper's plan (``--service-plan``) at the speeds
+  of ``deploy/bench-real.example.toml``, all three methods: seconds from the run's last frame event to its stored
+  result, with the frames measured during the motion (``stream_extraction``, ``fit_workers = 2``; target <= 2 s) and
+  without (the extraction and fits after the motion, one fit at a time); ``--stream-runs off,on`` picks them.
 
 Figures in ms, s and MB (display units); a section that fails is reported and the others still run.
 """
@@ -752,8 +752,15 @@ def _after_motion_config(
     tmp: Path, mod: Any, speeds: dict[str, float], streaming: bool, paper_plan: bool, workers: int
 ) -> tuple[Any, Path, int]:
     """The simulated bench at ``speeds`` (:func:`real_bench_speeds`) and a service configuration for it: ``(sim
-    process, service.toml, port)``."""
-    sim, bench_file, camera_file = mod.start_sim_bench(tmp)
+    process, service.toml, port)``. The camera file is made as a user makes it, ``i4cal camera calibrate`` on the
+    bench: it carries its calibration's covariance, so the extraction refines the camera by the rods."""
+    sim, bench_file, _ = mod.start_sim_bench(tmp)
+    camera_file = tmp / "camera-calibrated.json"
+    subprocess.run(
+        [sys.executable, "-m", "service", "camera", "calibrate", "--bench", str(bench_file), "-o", str(camera_file)],
+        check=True,
+        capture_output=True,
+    )
     text = bench_file.read_text()
     text = text.replace("speed_m_s = 10.0", f"speed_m_s = {speeds['speed_m_s']}")
     text = text.replace("accel_m_s2 = 1000.0", f"accel_m_s2 = {speeds['accel_m_s2']}")
@@ -890,7 +897,8 @@ def bench_result_after_motion(opts: SpeedOptions, step: Step = _no_step) -> tupl
                 target=2.0 if on else None,
                 label=f"last frame event -> result stored, all methods, streaming {mode}",
                 detail=(
-                    f"{opts.service_plan} plan, {r['frames']} frames over {r['motion_s']:.0f} s of motion at "
+                    f"{opts.service_plan} plan, camera file from `i4cal camera calibrate`, {r['frames']} frames over "
+                    f"{r['motion_s']:.0f} s of motion at "
                     f"{sp['speed_m_s']} m/s, {sp['accel_m_s2']} m/s^2, settle {sp['settle_s']} s; "
                     + (f"{r['measured_during_motion']} frames measured during it" if on else "fits one at a time")
                 ),
