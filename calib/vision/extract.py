@@ -59,13 +59,20 @@ from calib.numerics.transforms import Rigid
 from calib.vision.board import BoardDetector
 from calib.vision.detect import DetectSettings, resolve_frames
 from calib.vision.handeye import fit_placement
-from calib.vision.pool import _Pool, _task_board, _task_board_pose, _task_detect, _task_find_rods, _task_rods
+from calib.vision.pool import (
+    _Pool,
+    _task_board,
+    _task_board_pose,
+    _task_detect,
+    _task_find_rods,
+    _task_reexpress,
+    _task_rods,
+)
 from calib.vision.recover import STARTS as RECOVERY_STARTS
 from calib.vision.recover import lost_in_search, measured_lines
 from calib.vision.refine import REFINEMENT_PHASES, CameraRefinement, can_refine, refine_camera_by_rods
 from calib.vision.repredict import MeasuredRod, Repredicted, prediction_shift_px, refit_prediction, rod_ends_camera
 from calib.vision.rods import ROD_KEYS, RodSettings, rod_name
-from calib.vision.rods.reexpress import reexpress_frame
 
 if TYPE_CHECKING:
     from calib.vision.stream import StreamedFrames
@@ -457,6 +464,9 @@ class _Pass:
     deferred: int = 0
     #: the frames whose rods were measured (or re-expressed) on the pass's final prediction
     on_final: set[int] = field(default_factory=set)
+    #: frames whose rods the pass measured in their images (each time), and re-expressed from an earlier pass
+    measured: int = 0
+    reexpressed: int = 0
 
 
 def _extract(
@@ -519,8 +529,9 @@ def _extract(
     rod_items = _rod_items(ps, boards, place, found, predict_with)
     refit = C is not None and E is not None and not found and opts.repredict_px is not None
     first = _first_sample(rod_items, opts) if refit and predict_with is None else rod_items
-    rods = _reexpress_stage(ps, cam.camera, boards, first, reexpress) if reexpress else {}
+    rods = _reexpress_stage(ps, boards, first, reexpress) if reexpress else {}
     measure = [it for it in first if it[0] not in rods]
+    ps.reexpressed, ps.measured = len(rods), len(measure)
     rods.update(
         ps.pool.run(
             _task_rods,
@@ -729,27 +740,20 @@ def _rods_cb(ps: _Pass, boards: dict[int, dict[str, Any]]) -> Callable[[Any], No
 
 def _reexpress_stage(
     ps: _Pass,
-    camera: CameraModel,
     boards: dict[int, dict[str, Any]],
     items: list[tuple],
     earlier: dict[int, Any],
 ) -> dict[int, Any]:
-    """The rods of the frames in ``items`` re-expressed for ``camera`` from an earlier pass's results (their edge
-    points, :func:`calib.vision.rods.reexpress.reexpress_frame`) where it has them; the other frames are left out,
-    for the rods stage to measure."""
-    radius = ps.ds.document.legs.rod_radius_m
-    settings = ps.opts.rods or RodSettings()
-    cb = _rods_cb(ps, boards)
+    """The rods of the frames in ``items`` re-expressed for the pass's camera from an earlier pass's results (their
+    edge points, :func:`calib.vision.rods.reexpress.reexpress_frame`, over the pool) where it has them; the other frames
+    are left out, for the rods stage to measure."""
+    t = ps.ticker
+    todo = [(it[0], earlier[it[0]]) for it in items if (earlier.get(it[0]) or {}).get("edges")]
+    done = ps.pool.run(_task_reexpress, todo, ps.init, t.callback, t.done, t.total, _rods_cb(ps, boards))
     out: dict[int, Any] = {}
-    for it in items:
-        r = earlier.get(it[0])
-        if r is None or not r.get("edges"):
-            continue
-        out[it[0]] = reexpress_frame(r, camera, radius, settings)
-        if cb is not None:
-            cb((it[0], out[it[0]]))
-        if ps.ticker.callback is not None:
-            ps.ticker.callback(ps.ticker.done + len(out), ps.ticker.total)
+    for i, r in done:
+        kept = {n: e for n, e in earlier[i]["edges"].items() if isinstance(r["rods"].get(n), dict)}
+        out[i] = {**r, "edges": kept}
     return out
 
 
@@ -796,6 +800,7 @@ def _repredict_stage(
         if it[0] in later or (fit is not None and it[0] in redo)
     ]
     if items:
+        ps.measured += len(items)
         t.total += len(items) - len(later)
         rods.update(
             ps.pool.run(_task_rods, items, ps.init, t.callback, t.done + n_first, t.total, _rods_cb(ps, boards))
@@ -917,6 +922,7 @@ def _assemble(
         "camera": cam.summary,
         "placement": {"ok": C is not None, "rms_m": place.rms_m, "reason": place.reason, "detected": fallback},
         "repredicted": repredicted,
+        "rods_frames": {"measured": ps.measured, "reexpressed": ps.reexpressed},
     }
     extraction = {
         "camera": cam.camera.to_dict(),

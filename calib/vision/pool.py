@@ -26,6 +26,7 @@ from calib.numerics.transforms import Rigid
 from calib.vision.board import BoardDetection, BoardDetector, to_gray8
 from calib.vision.detect import DetectSettings, detect_rods, measure_detected
 from calib.vision.rods import RodSettings, image_ideal_bbox, leg_parallelism, measure_rods, predict_rods, rod_name
+from calib.vision.rods.reexpress import reexpress_frame
 from calib.vision.rods.types import ROD_BOARD_OCCLUDER_M, RodMeasurement
 
 Progress = Callable[[int, int], None]
@@ -177,6 +178,15 @@ def _task_rods(args: tuple) -> tuple[int, Any]:
             img.astype(np.float32), cam, found, doc.legs.rod_radius_m, _W["rs"], occ, seed=i, ideal_bbox=_W["bbox"]
         )
     return i, rods_result(ms)
+
+
+def _task_reexpress(args: tuple[int, dict[str, Any]]) -> tuple[int, Any]:
+    """A frame's rods result re-expressed for this pass's camera (:func:`calib.vision.rods.reexpress.reexpress_frame`),
+    returned without its edges (the caller has them)."""
+    i, result = args
+    out = reexpress_frame(result, _W["cam"], _W["ds"].document.legs.rod_radius_m, _W["rs"])
+    out.pop("edges", None)
+    return i, out
 
 
 def rods_result(ms: list[RodMeasurement]) -> dict[str, Any]:

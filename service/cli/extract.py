@@ -175,9 +175,11 @@ def _print_camera_refinement(console: Console, s: dict[str, Any]) -> None:
     ref = (s.get("camera") or {}).get("refined_by_rods") or {}
     if ref.get("applied"):
         sh = ref["shift"]
+        n = s.get("rods_frames") or {}
+        again = f"rods of {n['reexpressed']} frames re-expressed for it, {n['measured']} frames measured" if n else ""
         console.print(
             f"camera refined by the rods ({ref['mahalanobis']:.1f} std: fx {sh['fx']:+.2f}, "
-            f"cx {sh['cx']:+.2f}, cy {sh['cy']:+.2f} px, k1 {sh['k1']:+.4f}); frames measured again"
+            f"cx {sh['cx']:+.2f}, cy {sh['cy']:+.2f} px, k1 {sh['k1']:+.4f}); {again}"
         )
     elif ref:
         console.print(f"camera not refined: {ref.get('reason')}")

@@ -99,6 +99,8 @@ def test_the_second_pass_reexpresses_the_frames_the_first_measured(small_dataset
     first_sample = [i for i in sorted(phase) if i not in (8, 9)][::3]
     poses = [i for i, ph in phase.items() if ph == "poses" and i not in first_sample and i not in (8, 9)]
     assert poses
+    counts = res.summary["rods_frames"]  # what the refined camera's pass did, said in the summary
+    assert counts["reexpressed"] >= len(poses) and counts["measured"] + counts["reexpressed"] >= len(phase) - 2
     for i in poses:
         assert measured.count(i) == 1, (i, measured)
         frame = next(f for f in res.observations["frames"] if f["dataset_frame"] == i)
