@@ -29,7 +29,7 @@ from calib.formats.observations import LegKey, Observations, PhaseArrays
 from calib.identify import intrinsics as intr
 from calib.identify import rod_correlation as rc
 from calib.identify.baseframe import BaseFrameResult, base_frame_from_observations, estimate_base_frame
-from calib.identify.iterations import IterationCallback, traced
+from calib.identify.iterations import IterationCallback, traced_jac
 from calib.identify.pose_set_model import PoseSetModel
 from calib.identify.result import MethodResult, check_excitation, combos_dict, std_dict
 from calib.identify.stationary import check_converged
@@ -71,6 +71,75 @@ def model_ratios(combos: np.ndarray, q: np.ndarray) -> np.ndarray:
     for i, (f, yoff) in enumerate(((f1, Y + c), (f1, Y + c), (f3, Y - c), (f3, Y - c))):
         out[:, i, 0] = yoff / (_SX[i] * f)
         out[:, i, 1] = Z / (_SX[i] * f)
+    return out
+
+
+def model_ratios_jacobian(combos: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Derivatives of :func:`model_ratios` with the four combinations (closed form).
+
+    Parameters
+    ----------
+    combos : ndarray, shape (4,)
+        ``(L, H-D, S-q02/2, S-(q04-q03)/2)`` in metres.
+    q : ndarray, shape (N, 4)
+        Encoder values, m.
+
+    Returns
+    -------
+    ndarray, shape (N, 4, 2, 4)
+        Per pose and leg, d(u_y/u_x, u_z/u_x) / d combination (1/m).
+    """
+    L, c = float(combos[0]), float(combos[1])
+    Y, Z, f1, f3 = pose_from_joints_reduced(combos, q)
+    a, b = 2.0 * f1, 2.0 * f3
+    n = q.shape[0]
+    zero, one = np.zeros(n), np.ones(n)
+    # per combination (L, c, s1, s3): dY, da, db, then dZ from Z^2 = L^2 - c^2 - Y^2 - (a^2 + b^2) / 8
+    dY = np.stack([zero, -Y / c, a / (4.0 * c), -b / (4.0 * c)], axis=-1)  # (N, 4)
+    da = np.stack([zero, zero, -2.0 * one, zero], axis=-1)
+    db = np.stack([zero, zero, zero, -2.0 * one], axis=-1)
+    dzsq = np.stack([2.0 * L * one, -2.0 * c * one, zero, zero], axis=-1) - 2.0 * Y[:, None] * dY
+    dzsq -= (a[:, None] * da + b[:, None] * db) / 4.0
+    safe = np.where(Z < 0, Z, -1.0)
+    dZ = np.where((Z < 0)[:, None], dzsq / (2.0 * safe[:, None]), 0.0)
+    dc = np.array([0.0, 1.0, 0.0, 0.0])
+    out = np.empty((n, 4, 2, 4))
+    left, right = (f1, da / 2.0, Y + c, dY + dc), (f3, db / 2.0, Y - c, dY - dc)  # legs 1-2 and 3-4
+    legs = (left, left, right, right)
+    for i, (f, df, yoff, dyoff) in enumerate(legs):
+        out[:, i, 0] = (dyoff * f[:, None] - yoff[:, None] * df) / (_SX[i] * f[:, None] ** 2)
+        out[:, i, 1] = (dZ * f[:, None] - Z[:, None] * df) / (_SX[i] * f[:, None] ** 2)
+    return out
+
+
+def rotvec_derivatives(w: np.ndarray) -> np.ndarray:
+    """The derivatives of ``exp([w]x)`` (:func:`~calib.numerics.transforms.rotvec_to_matrix`) with each entry of the
+    rotation vector ``w``: ``[J_l(w) e_j]x exp([w]x)``, ``J_l`` the left Jacobian of SO(3).
+
+    Parameters
+    ----------
+    w : ndarray, shape (3,)
+        Rotation vector, rad.
+
+    Returns
+    -------
+    ndarray, shape (3, 3, 3)
+        ``d R / d w_j`` for j = 0, 1, 2 (per rad).
+    """
+    w = np.asarray(w, dtype=np.float64)
+    th2 = float(w @ w)
+    W = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    if th2 < 1e-12:  # series: (1 - cos t)/t^2 ~ 1/2 - t^2/24, (t - sin t)/t^3 ~ 1/6 - t^2/120
+        A, B = 0.5 - th2 / 24.0, 1.0 / 6.0 - th2 / 120.0
+    else:
+        th = np.sqrt(th2)
+        A, B = (1.0 - np.cos(th)) / th2, (th - np.sin(th)) / (th2 * th)
+    Jl = np.eye(3) + A * W + B * (W @ W)
+    R = rotvec_to_matrix(w)
+    out = np.empty((3, 3, 3))
+    for j in range(3):
+        v = Jl[:, j]
+        out[j] = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]]) @ R
     return out
 
 
@@ -122,6 +191,37 @@ def ratio_gradient(u: np.ndarray) -> np.ndarray:
     return G
 
 
+def raw_jacobian(prob: _Problem, v: np.ndarray, R0: np.ndarray, joint: bool) -> np.ndarray:
+    """Derivatives (2M, 4 + nw + nz) of eq. 8's unweighted residuals ``model - measured`` with the unknowns ``v``:
+    the combinations (4, m), the base frame's rotation refinement ``w`` (3 when ``joint``, else none; rad, applied
+    on the left of ``R0``) and the nuisance ``z`` (nz).
+
+    Parameters
+    ----------
+    prob : _Problem
+        The rods.
+    v : ndarray, shape (4 + nw + nz,)
+        The unknowns.
+    R0 : ndarray, shape (3, 3)
+        The base frame's rotation ``w`` refines.
+    joint : bool
+        Whether ``v`` holds ``w``.
+
+    Returns
+    -------
+    ndarray, shape (2M, 4 + nw + nz)
+        Dimensionless per m (combinations), per rad (``w``) and per standard deviation (``z``).
+    """
+    nw = 3 if joint else 0
+    w, z = v[4 : 4 + nw], v[4 + nw :]
+    if joint:
+        R, dR = rotvec_to_matrix(w) @ R0, rotvec_derivatives(w) @ R0
+    else:
+        R, dR = R0, np.zeros((0, 3, 3))
+    Jm = prob.measured_jacobian(R, dR, z)
+    return np.concatenate([prob.model_jacobian(v[:4]), -Jm], axis=2).reshape(-1, v.size)
+
+
 class _Problem:
     """Residuals of eq. 8 for the rods observed in the fit poses."""
 
@@ -162,6 +262,23 @@ class _Problem:
     def model(self, combos: np.ndarray, q: np.ndarray | None = None) -> np.ndarray:
         r = model_ratios(combos, self.q if q is None else q)
         return r[self.k, self.leg]
+
+    def model_jacobian(self, combos: np.ndarray) -> np.ndarray:
+        """Derivatives (M, 2, 4) of :meth:`model` with the combinations (1/m)."""
+        return model_ratios_jacobian(combos, self.q)[self.k, self.leg]
+
+    def measured_jacobian(self, R_cb: np.ndarray, dR_cb: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """Derivatives (M, 2, k + nz) of :meth:`measured` with the unknowns ``R_cb`` moves with (``dR_cb`` (k, 3, 3),
+        its derivatives) and then with the nuisance ``z`` (nz,)."""
+        u, R = self.u_cam, R_cb
+        dB = [u @ dR_cb]  # (k, M, 3): d(u @ R) per unknown
+        if z.size and self.intrinsics is not None:
+            A = self.intrinsics.rotation(z)
+            u, du = self.intrinsics.directions_jacobian(z, self.u_cam)
+            dB = [u @ A @ dR_cb, du @ (A @ R_cb) + u @ (self.intrinsics.rotation_jacobian(z) @ R_cb)]
+            R = A @ R_cb
+        G = ratio_gradient(u @ R)  # (M, 2, 3)
+        return np.einsum("mij,kmj->mik", G, np.concatenate(dB))
 
     def residuals(self, combos: np.ndarray) -> np.ndarray:
         return (self.model(combos) - self.measured()).ravel()
@@ -253,6 +370,24 @@ class _Eq8:
     def eq8(self, v: np.ndarray) -> np.ndarray:
         """Weighted residuals (2m,)."""
         return np.einsum("mij,mj->mi", self.Wh, self.raw(v).reshape(self.m, 2)).ravel()
+
+    def raw_jacobian(self, v: np.ndarray) -> np.ndarray:
+        """Derivatives (2m, 4 + nw + nz) of :meth:`raw` with ``v`` (closed form)."""
+        return raw_jacobian(self.prob, v, self.R0, self.joint)
+
+    def eq8_jacobian(self, v: np.ndarray) -> np.ndarray:
+        """Derivatives (2m, 4 + nw + nz) of :meth:`eq8` with ``v``."""
+        J = self.raw_jacobian(v).reshape(self.m, 2, -1)
+        return np.einsum("mij,mjk->mik", self.Wh, J).reshape(2 * self.m, -1)
+
+    def priors_jacobian(self) -> np.ndarray:
+        """Derivatives (nw + nz, 4 + nw + nz) of :meth:`priors` (constant)."""
+        nw, nz = self.nw, self.z0.size
+        out = np.zeros((nw + nz, 4 + nw + nz))
+        if self.joint:
+            out[:nw, 4 : 4 + nw] = self.Lw
+        out[nw:, 4 + nw :] = np.eye(nz)
+        return out
 
     def priors(self, v: np.ndarray) -> np.ndarray:
         _xi, w, z = self.split(v)
@@ -478,9 +613,13 @@ def fit_eq8(problem: _Eq8, x0: np.ndarray, on_iteration: IterationCallback | Non
         v[free] = vf
         return np.concatenate([problem.eq8(v), v[4 + nw :] - problem.z0])
 
-    sol = least_squares(
-        traced(stage1, on_iteration, "eq8"), x[free], method="lm", xtol=1e-14, ftol=1e-14, gtol=1e-14, max_nfev=500
-    )
+    def stage1_jac(vf: np.ndarray) -> np.ndarray:
+        v = x.copy()
+        v[free] = vf
+        return np.concatenate([problem.eq8_jacobian(v), problem.priors_jacobian()[nw:]])[:, free]
+
+    fun, jac = traced_jac(stage1, stage1_jac, on_iteration, "eq8")
+    sol = least_squares(fun, x[free], jac=jac, method="lm", xtol=1e-14, ftol=1e-14, gtol=1e-14, max_nfev=500)
     # out of evaluations at its minimum (crawling on rounding noise) is converged; anywhere else it is not
     note = check_converged(sol, stage1, "combined fit")
     stopped_stationary = [note] if note else []
@@ -502,9 +641,14 @@ def fit_eq8(problem: _Eq8, x0: np.ndarray, on_iteration: IterationCallback | Non
             def full(v: np.ndarray, sc: float = sc) -> np.ndarray:
                 return np.concatenate([sc * problem.eq8(v), problem.priors(v)])
 
+            def full_jac(v: np.ndarray, sc: float = sc) -> np.ndarray:
+                return np.concatenate([sc * problem.eq8_jacobian(v), problem.priors_jacobian()])
+
+            fun, jac = traced_jac(full, full_jac, on_iteration, f"joint-{npass + 1}")
             sol = least_squares(
-                traced(full, on_iteration, f"joint-{npass + 1}"),
+                fun,
                 x,
+                jac=jac,
                 method="lm",
                 xtol=1e-14,
                 ftol=1e-14,
@@ -552,7 +696,7 @@ def combined_covariance(obs: Observations, rods: _Rods, problem: _Eq8, fit: _Eq8
     Wh, shape, joint, R0 = problem.Wh, problem.shape, problem.joint, problem.R0
     _xi, w, z = problem.split(x)
     Wfull = rc.block_diagonal(np.einsum("mji,mjk->mik", Wh, Wh))  # each rod's weight Wh^T Wh
-    Jr = central_jacobian(problem.raw, x)  # unweighted, (2m, 4 + nw + nz)
+    Jr = problem.raw_jacobian(x)  # unweighted, (2m, 4 + nw + nz), closed form
     Pw = np.zeros((x.size, x.size))
     if joint:
         Pw[4 : 4 + nw, 4 : 4 + nw] = problem.Lw.T @ problem.Lw
@@ -767,6 +911,7 @@ class RodIntrinsicsModel:
         #: undistortion magnifies a pixel with the radius)
         self.edge_dxn = intr.outward_shift_normalized(camera, limbs) if self.n_edge else None
         self._last: tuple[bytes, np.ndarray] | None = None  # the numeric Jacobians move z in few columns
+        self._last_points: tuple[bytes, np.ndarray] | None = None
 
     @classmethod
     def build(
@@ -827,7 +972,7 @@ class RodIntrinsicsModel:
         self.limbs, self.H = self.limbs.subset(keep), self.H[keep]
         if self.edge_dxn is not None:
             self.edge_dxn = self.edge_dxn[keep]
-        self._last = None
+        self._last = self._last_points = None
 
     def _edge_moved(self, xn: np.ndarray, z: np.ndarray) -> np.ndarray:
         """Limb samples' normalized coordinates (M, 2, P, 2) moved by the edge-bias nuisance (px, outward)."""
@@ -855,12 +1000,71 @@ class RodIntrinsicsModel:
         key = np.asarray(z, dtype=np.float64).tobytes()
         if self._last is not None and self._last[0] == key and self._last[1].shape == reference.shape:
             return self._last[1]
-        h = intr.planes_through(self._edge_moved(self.limbs.points(z[: self.n_intr]), z), self.H)
+        h = intr.planes_through(self._edge_moved(self._points(z), z), self.H)
         u = cross(h[:, 0], h[:, 1])
         u /= np.linalg.norm(u, axis=1, keepdims=True)
         u *= np.sign(np.sum(u * reference, axis=1))[:, None]
         self._last = (key, u)
         return u
+
+    def _points(self, z: np.ndarray) -> np.ndarray:
+        """The limb samples' normalized coordinates (M, 2, P, 2) for the intrinsics' part of ``z`` (the last one
+        kept: a fit asks for its residuals and then its Jacobian at the same point)."""
+        key = np.asarray(z[: self.n_intr], dtype=np.float64).tobytes()
+        if self._last_points is None or self._last_points[0] != key:
+            self._last_points = (key, self.limbs.points(z[: self.n_intr]))
+        return self._last_points[1]
+
+    def directions_jacobian(self, z: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`directions` and their derivatives with ``z`` (first order, closed form).
+
+        Parameters
+        ----------
+        z : ndarray, shape (n,)
+            The nuisance (see :meth:`directions`).
+        reference : ndarray, shape (M, 3)
+            The measured directions (signs).
+
+        Returns
+        -------
+        u : ndarray, shape (M, 3)
+            Unit directions, as :meth:`directions` gives them.
+        du : ndarray, shape (n, M, 3)
+            Their derivatives per unit of each entry of ``z``.
+        """
+        xi = self._points(z)
+        moves = [self.limbs.points_jacobian(z[: self.n_intr], xi)]
+        if self.n_edge and self.edge_dxn is not None:
+            edge = np.zeros((self.n_edge, *xi.shape))
+            for limb in range(self.n_edge):
+                edge[limb, :, limb] = self.edge_std_px * self.edge_dxn[:, limb]
+            moves.append(edge)
+        h, dh = intr.planes_through_jacobian(self._edge_moved(xi, z), np.concatenate(moves), self.H)
+        n3 = cross(h[:, 0], h[:, 1])
+        norm = np.linalg.norm(n3, axis=1, keepdims=True)
+        u = n3 / norm
+        u *= np.sign(np.sum(u * reference, axis=1))[:, None]
+        dn3 = cross(dh[:, :, 0], h[None, :, 1]) + cross(h[None, :, 0], dh[:, :, 1])
+        sign = np.sign(np.sum(n3 * u, axis=1))[None, :, None]
+        du = sign * (dn3 - (n3 / norm)[None] * np.sum((n3 / norm)[None] * dn3, axis=-1, keepdims=True)) / norm[None]
+        return self.directions(z, reference), du
+
+    def rotation_jacobian(self, z: np.ndarray) -> np.ndarray:
+        """Derivatives of :meth:`rotation` with each entry of ``z``, shape (n, 3, 3) (zero for the edge biases).
+
+        Parameters
+        ----------
+        z : ndarray, shape (n,)
+            The nuisance.
+
+        Returns
+        -------
+        ndarray, shape (n, 3, 3)
+            ``d rotation / d z_j`` (per standard deviation).
+        """
+        out = np.zeros((z.size, 3, 3))
+        out[: self.n_intr] = np.einsum("kab,kj->jab", rotvec_derivatives(self.G @ z[: self.n_intr]), self.G)
+        return out
 
     def rotation(self, z: np.ndarray) -> np.ndarray:
         """The base frame's rotation change (3, 3) for ``z``, applied on the left.
@@ -984,6 +1188,9 @@ def _whitened_d2(
         return (prob.model(v[:4]) - prob.measured(R, v[4 + nw :])).reshape(-1, 2)
 
     v = np.concatenate([x0[:4], np.zeros(nw), x0[4:]])
+    prior_jac = np.zeros((nw + z0.size, v.size))  # the priors' rows: constant
+    prior_jac[:nw, 4 : 4 + nw] = Lw
+    prior_jac[nw:, 4 + nw :] = np.eye(z0.size)
     level = 1.0  # the data's noise level (std factor), re-estimated after each pass
     passes = 3 if joint else 1
     if start is not None and start[0].shape == v.shape:
@@ -998,7 +1205,12 @@ def _whitened_d2(
             eq8 = np.einsum("mij,mj->mi", Wh, raw(v)).ravel() / level
             return np.concatenate([eq8, Lw @ v[4 : 4 + nw], v[4 + nw :] - z0])
 
-        sol = least_squares(traced(res, on_iteration, stage), v, method="lm", xtol=1e-8, ftol=1e-8, max_nfev=200)
+        def jac(v: np.ndarray, level: float = level) -> np.ndarray:
+            J = raw_jacobian(prob, v, R0, joint).reshape(Wh.shape[0], 2, -1)
+            return np.concatenate([np.einsum("mij,mjk->mik", Wh, J).reshape(-1, v.size) / level, prior_jac])
+
+        fun, jacobian = traced_jac(res, jac, on_iteration, stage)
+        sol = least_squares(fun, v, jac=jacobian, method="lm", xtol=1e-8, ftol=1e-8, max_nfev=200)
         v = sol.x
         r = raw(v)
         d2 = np.einsum("mi,mij,mj->m", r, Cinv, r)

@@ -207,6 +207,55 @@ def planes_through(xn: Array, reference_h: Array) -> Array:
     return h * np.sign(np.sum(h * reference_h, axis=-1, keepdims=True))
 
 
+def planes_through_jacobian(xn: Array, dxn: Array, reference_h: Array) -> tuple[Array, Array]:
+    """:func:`planes_through` and its derivatives along given moves of the points (first order, exact).
+
+    The line's normal is the scatter's smallest-variance eigenvector; it turns towards the line's direction by
+    ``t^T dS n / (lambda_min - lambda_max)`` (eigenvector perturbation); the plane's normal then follows the line's
+    normal and centroid through its normalisation.
+
+    Parameters
+    ----------
+    xn : ndarray, shape (M, 2, P, 2)
+        Per rod and limb, the limb's points in normalized coordinates (dimensionless).
+    dxn : ndarray, shape (n, M, 2, P, 2)
+        ``n`` moves of those points (per unit of each of ``n`` unknowns).
+    reference_h : ndarray, shape (M, 2, 3)
+        The planes as measured: each result is signed like its reference.
+
+    Returns
+    -------
+    h : ndarray, shape (M, 2, 3)
+        Unit plane normals, as :func:`planes_through` gives them.
+    dh : ndarray, shape (n, M, 2, 3)
+        Their derivatives per unit of each unknown.
+    """
+    h = planes_through(xn, reference_h)
+    c = xn.mean(axis=2)
+    d = xn - c[:, :, None, :]
+    a = np.einsum("mlp,mlp->ml", d[..., 0], d[..., 0])
+    b = np.einsum("mlp,mlp->ml", d[..., 0], d[..., 1])
+    e = np.einsum("mlp,mlp->ml", d[..., 1], d[..., 1])
+    root = np.hypot(0.5 * (a - e), b)
+    gap = -2.0 * root  # lambda_min - lambda_max
+    # the line's unit normal and direction, recovered from h (same sign as h: h = s [n, -n.c] / |.|)
+    nn = h[..., :2] / np.linalg.norm(h[..., :2], axis=-1, keepdims=True)
+    tt = np.stack([-nn[..., 1], nn[..., 0]], axis=-1)
+    dc = dxn.mean(axis=3)  # (n, M, 2, 2)
+    td = np.einsum("mlpi,mli->mlp", d, tt)
+    nd = np.einsum("mlpi,mli->mlp", d, nn)
+    tdx = np.einsum("kmlpi,mli->kmlp", dxn, tt)
+    ndx = np.einsum("kmlpi,mli->kmlp", dxn, nn)
+    tSn = np.einsum("kmlp,mlp->kml", tdx, nd) + np.einsum("mlp,kmlp->kml", td, ndx)
+    dn = tt[None] * (tSn / gap[None])[..., None]  # (n, M, 2, 2)
+    scale = np.linalg.norm(np.concatenate([nn, -np.sum(nn * c, axis=-1, keepdims=True)], axis=-1), axis=-1)
+    dhp = np.concatenate(
+        [dn, -(np.sum(dn * c[None], axis=-1, keepdims=True) + np.sum(nn[None] * dc, axis=-1, keepdims=True))], axis=-1
+    )
+    dh = (dhp - h[None] * np.sum(h[None] * dhp, axis=-1, keepdims=True)) / scale[None, ..., None]
+    return h, dh
+
+
 def board_sensitivities(obs: Observations, arrays: PhaseArrays, n: int | None = None) -> Array | None:
     """``d_intrinsics`` of the board poses of ``arrays`` (zeros where no board), or None if any lacks it.
 
@@ -369,6 +418,71 @@ class LinearizedLimbs:
             flat[bad] = cam.undistort_points(flat_px[bad])
             out = flat.reshape(out.shape)
         return out
+
+    def points_jacobian(self, z: Array, xn: Array) -> Array:
+        """Derivatives (n, M, 2, P, 2) of :meth:`points` with the nuisance ``z``, at its points ``xn``.
+
+        The undistorted points solve ``distort(xn; intrinsics) = px``: by the implicit function theorem they move
+        by ``-(d distort / d xn)^-1 (d distort / d intrinsics)`` along each intrinsic (closed form for fx, fy, cx,
+        cy, k1..k6, p1, p2: OpenCV's rational model), mapped through ``steps``.
+
+        Parameters
+        ----------
+        z : ndarray, shape (n,)
+            The nuisance, in standard deviations along each principal direction (dimensionless).
+        xn : ndarray, shape (M, 2, P, 2)
+            ``points(z)``: the limb samples' normalized coordinates there.
+
+        Returns
+        -------
+        ndarray, shape (n, M, 2, P, 2)
+            Normalized coordinates per standard deviation along each principal direction.
+        """
+        zz = np.asarray(z, dtype=np.float64)
+        cam = perturbed_camera(self.camera, self.steps.T @ zz)
+        names = intrinsics_names(self.camera)
+        if self.steps.shape[1] != len(names):  # as perturbed_camera moves them
+            names = INTRINSICS_NAMES[: self.steps.shape[1]]
+        K, d = cam.K, np.zeros(8)
+        d[: min(8, cam.dist.size)] = cam.dist[:8]
+        k1, k2, p1, p2, k3, k4, k5, k6 = d
+        x, y = xn[..., 0], xn[..., 1]
+        r2 = x * x + y * y
+        num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+        radial = num / den
+        dr = ((k1 + r2 * (2 * k2 + 3 * k3 * r2)) * den - num * (k4 + r2 * (2 * k5 + 3 * k6 * r2))) / den**2
+        # the distortion's Jacobian in the normalized coordinates (symmetric) and its inverse
+        a = radial + 2 * x * x * dr + 2 * p1 * y + 6 * p2 * x
+        b = 2 * x * y * dr + 2 * p1 * x + 2 * p2 * y
+        c = radial + 2 * y * y * dr + 6 * p1 * y + 2 * p2 * x
+        det = a * c - b * b
+        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        fx, skew, fy = K[0, 0], K[0, 1], K[1, 1]
+        one, zero = np.ones_like(x), np.zeros_like(x)
+        # per intrinsic, the change of the distorted normalized point (xd, yd) at fixed xn that the moved pixel
+        # mapping asks for: minus d(distort)/d(theta) in normalized units
+        partial = {
+            "fx": (xd / fx, zero),
+            "fy": (-skew * yd / (fx * fy), yd / fy),
+            "cx": (one / fx, zero),
+            "cy": (-skew * one / (fx * fy), one / fy),
+            "k1": (x * r2 / den, y * r2 / den),
+            "k2": (x * r2**2 / den, y * r2**2 / den),
+            "k3": (x * r2**3 / den, y * r2**3 / den),
+            "k4": (-x * radial * r2 / den, -y * radial * r2 / den),
+            "k5": (-x * radial * r2**2 / den, -y * radial * r2**2 / den),
+            "k6": (-x * radial * r2**3 / den, -y * radial * r2**3 / den),
+            "p1": (2 * x * y, r2 + 2 * y * y),
+            "p2": (r2 + 2 * x * x, 2 * x * y),
+        }
+        gx = np.stack([partial[n][0] for n in names])  # (p, M, 2, P)
+        gy = np.stack([partial[n][1] for n in names])
+        dx = -(c * gx - b * gy) / det  # (p, ...): -J^-1 g
+        dy = -(a * gy - b * gx) / det
+        dth = np.stack([dx, dy], axis=-1)  # (p, M, 2, P, 2)
+        return np.tensordot(self.steps, dth, axes=(1, 0))
 
     def planes(self, z: Array, reference_h: Array) -> Array:
         """Interpretation planes (M, 2, 3) for ``z``, signed like ``reference_h``.

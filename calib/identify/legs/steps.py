@@ -614,14 +614,45 @@ def pair_means(u: np.ndarray, has: np.ndarray, C: np.ndarray) -> tuple[np.ndarra
     U = np.full((N, 4, 3), np.nan)
     CU = np.full((N, 4, 3, 3), np.nan)
     pair_d2 = np.full((N, 4), np.nan)
-    for k in range(N):
-        for leg in range(4):
-            if has[k, leg].all():
-                U[k, leg], CU[k, leg], pair_d2[k, leg] = _gls_pair(u[k, leg], C[k, leg])
-            elif has[k, leg].any():
-                j = int(np.argmax(has[k, leg]))
-                U[k, leg], CU[k, leg] = unit(u[k, leg, j]), C[k, leg, j]
+    both = has.all(axis=-1)
+    if both.any():  # every pair at once
+        U[both], CU[both], pair_d2[both] = _gls_pairs(u[both], C[both])
+    one = has.any(axis=-1) & ~both
+    if one.any():
+        j = np.argmax(has[one], axis=-1)
+        U[one], CU[one] = unit(u[one][np.arange(j.size), j]), C[one][np.arange(j.size), j]
     return U, CU, pair_d2
+
+
+def _gls_pairs(u: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_gls_pair` over P pairs at once: directions (P, 2, 3), covariances (P, 2, 3, 3).
+
+    Parameters
+    ----------
+    u : ndarray, shape (P, 2, 3)
+        Each pair's two aligned unit directions.
+    C : ndarray, shape (P, 2, 3, 3)
+        Their covariances, rad^2.
+
+    Returns
+    -------
+    mean : ndarray, shape (P, 3)
+        The covariance-weighted means, unit.
+    cov : ndarray, shape (P, 3, 3)
+        Their covariances, rad^2.
+    d2 : ndarray, shape (P,)
+        Each pair's disagreement, chi-square with 2 dof.
+    """
+    m = unit(u[:, 0] + u[:, 1])
+    T = tangent_basis(m)  # (P, 3, 2) tangent basis at each mean
+    e = u @ T  # (P, 2, 2) tangent coordinates
+    Ct = np.einsum("pai,pkab,pbj->pkij", T, C, T) + 1e-18 * np.eye(2)
+    Wi = np.linalg.inv(Ct)
+    Cm = np.linalg.inv(Wi.sum(axis=1))
+    em = np.einsum("pij,pj->pi", Cm, np.einsum("pkij,pkj->pi", Wi, e))
+    de = e[:, 0] - e[:, 1]
+    d2 = np.einsum("pi,pi->p", de, np.linalg.solve(Ct[:, 0] + Ct[:, 1], de[..., None])[..., 0])
+    return unit(m + np.einsum("pij,pj->pi", T, em)), T @ Cm @ T.transpose(0, 2, 1), d2
 
 
 def pair_own_covariances(u: np.ndarray, has: np.ndarray, C: np.ndarray, C_own: np.ndarray) -> np.ndarray:
