@@ -21,7 +21,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from calib.errors import InputError
-from calib.numerics.jsonio import fsync_dir
+from calib.numerics.jsonio import dumps_readable, fsync_dir
 
 if TYPE_CHECKING:
     from calib.formats.camera import CameraModel
@@ -369,7 +369,7 @@ class DatasetWriter:
             return index
 
     def _flush(self) -> None:
-        _atomic_write_bytes(self.root / "dataset.json", json.dumps(self._doc, indent=1).encode())
+        _atomic_write_bytes(self.root / "dataset.json", dumps_readable(self._doc).encode())
 
     def close(self) -> None:
         with self._lock:

@@ -468,7 +468,7 @@ class Observations:
         path : str or Path
             The destination file.
         """
-        write_json_atomic(path, self.to_dict())
+        write_json_atomic(path, self.to_dict(), readable=True)
 
     # -- views ------------------------------------------------------------------------------
     @property

@@ -23,7 +23,7 @@ from calib.formats.dataset import Dataset
 from calib.model.parameters import I4Parameters
 from calib.numerics.threads import forking_single_threaded, single_threaded_worker
 from calib.numerics.transforms import Rigid
-from calib.vision.board import BoardDetection, BoardDetector, to_gray8
+from calib.vision.board import BoardDetection, BoardDetector, BoardTracker, to_gray8
 from calib.vision.detect import DetectSettings, detect_rods, measure_detected
 from calib.vision.rods import RodSettings, image_ideal_bbox, leg_parallelism, measure_rods, predict_rods, rod_name
 from calib.vision.rods.reexpress import reexpress_frame
@@ -53,6 +53,8 @@ def _init_worker(
         _W.update(root=root, ds=Dataset.open(root), images={}, cached=0)
     ds = _W["ds"]
     _W["det"] = BoardDetector(ds.document.board, min_corners)
+    # the board stages' frames come in order: each searched first where this worker's previous frame had the board
+    _W["track"] = BoardTracker(_W["det"])
     if refined is not None:
         _W["det"].use_refined_points(
             np.asarray(refined[0]), np.asarray(refined[1]), None if refined[2] is None else np.asarray(refined[2])
@@ -95,7 +97,7 @@ def _task_detect(i: int) -> tuple[int, Any]:
         img = _load(i, keep=False)
     except InputError as exc:
         return i, exc.reason
-    d = _W["det"].detect(img)
+    d = _W["track"].detect(img)
     return i, (d.ids.tolist(), d.pixels.tolist())
 
 
@@ -104,7 +106,7 @@ def _task_board(i: int) -> tuple[int, Any]:
         img = _load(i, keep=True)
     except InputError as exc:
         return i, {"image_error": exc.reason}
-    det = _W["det"].detect(img)
+    det = _W["track"].detect(img)
     return _board_result(i, det)
 
 

@@ -40,7 +40,7 @@ from calib.formats.dataset import Dataset
 from calib.model.parameters import I4Parameters
 from calib.numerics.transforms import Rigid
 from calib.vision import pool as _pool
-from calib.vision.board import BoardDetection, BoardDetector, to_gray8
+from calib.vision.board import BoardDetection, BoardDetector, BoardTracker, to_gray8
 from calib.vision.handeye import fit_placement
 from calib.vision.repredict import MeasuredRod, Repredicted, prediction_shift_px, refit_prediction
 from calib.vision.rods import (
@@ -380,6 +380,7 @@ class FrameStreamer:
         self.frames: StreamedFrames | None = None
         self._camera: CameraModel | None = None
         self._det: BoardDetector | None = None
+        self._track: BoardTracker | None = None  # frames arrive in order: each searched where the last had the board
         self._bbox: np.ndarray | None = None
         self._good: list[int] = []  # frames with a board pose, in order
         self._placed_with = 0  # board poses the current placement was fitted to
@@ -415,6 +416,7 @@ class FrameStreamer:
             )
         rs = s.rods or RodSettings()
         self._camera, self._det, self._bbox = camera, det, image_ideal_bbox(camera)
+        self._track = BoardTracker(det)
         self.frames = StreamedFrames(
             camera=camera.to_dict(),
             refined=refined,
@@ -571,8 +573,8 @@ class FrameStreamer:
 
     def _board(self, img: np.ndarray) -> dict[str, Any]:
         """The board stage's result for one image (as extraction's: corners, then the pose with this camera)."""
-        assert self._det is not None and self._camera is not None
-        det: BoardDetection = self._det.detect(img)
+        assert self._det is not None and self._track is not None and self._camera is not None
+        det: BoardDetection = self._track.detect(img)
         res = self._det.pose(det, self._camera)
         corners = [det.ids.tolist(), det.pixels.tolist(), det.n_markers]
         if isinstance(res, str):

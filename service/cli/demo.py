@@ -94,6 +94,7 @@ async def _acquire(out: Path, seed: int, con, small: bool = False, temporary: bo
 def _full(args: argparse.Namespace, con, base: Path) -> dict:
     from calib.formats.observations import Observations
     from calib.identify.pipeline import calibrate, to_jsonable
+    from calib.numerics.jsonio import dumps_readable
     from calib.vision.extract import extract_dataset
     from service.cli._output import LongStep
 
@@ -110,7 +111,7 @@ def _full(args: argparse.Namespace, con, base: Path) -> dict:
         res = extract_dataset(ds, camera=camera, progress=lambda d, t: bar.update(done=d, total=t))
     obs_doc = res.observations
     obs = Observations.from_dict(obs_doc)
-    (base / "observations.json").write_text(json.dumps(obs_doc, indent=1))
+    (base / "observations.json").write_text(dumps_readable(obs_doc))
     found = sum(1 for f in obs.frames if f.board is not None)
     where = f"; observations in {base / 'observations.json'}" if args.out else ""
     con.print(f"   {len(obs.frames)} frames, {found} board poses{where}")

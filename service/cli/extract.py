@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -75,6 +74,7 @@ def run(args: argparse.Namespace) -> int:
 
     from calib.formats.camera import CameraModel
     from calib.formats.observations import Observations
+    from calib.numerics.jsonio import dumps_readable
 
     console = Console(stderr=True)
     opts = _options(args)
@@ -83,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
     obs = Observations.from_dict(res.observations, source=str(args.output))
     out = Path(args.output)
     tmp = out.with_name(out.name + ".tmp")
-    tmp.write_text(json.dumps(obs.to_dict(), indent=1), encoding="utf-8")
+    tmp.write_text(dumps_readable(obs.to_dict()), encoding="utf-8")  # the C encoder: indent=1 is pure Python
     tmp.replace(out)
     if args.camera_out:
         res.camera.save(args.camera_out)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +32,7 @@ def handler(args: argparse.Namespace) -> int:
 
     from calib.formats.observations import Observations
     from calib.formats.plan import make_plan
+    from calib.numerics.jsonio import dumps_readable
     from drivers.sim.twin import GeometricTwin
 
     con = Console(stderr=True)
@@ -63,7 +63,7 @@ def handler(args: argparse.Namespace) -> int:
     doc = twin.observations(plan=plan, seed=args.seed)
     Observations.from_dict(doc)  # validate what we write
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(doc, indent=1), encoding="utf-8")
+    out.write_text(dumps_readable(doc), encoding="utf-8")
     counts: dict[str, int] = {}  # frames per phase
     for f in doc["frames"]:
         counts[f["phase"]] = counts.get(f["phase"], 0) + 1
