@@ -105,3 +105,18 @@ def test_the_second_pass_reexpresses_the_frames_the_first_measured(small_dataset
         assert measured.count(i) == 1, (i, measured)
         frame = next(f for f in res.observations["frames"] if f["dataset_frame"] == i)
         assert any(r is not None for leg in frame["legs"].values() for r in leg)  # its rods are there
+
+
+def test_the_first_sample_is_spread_evenly_with_its_minimum():
+    """One frame in ``first_pass_every``, at least ``first_pass_min_frames`` spread over the frames, all of them only
+    when there are no more (a 60-frame dataset sampled 24 frames, not all 60)."""
+    from calib.vision.extract import _first_sample
+
+    items = [(i,) for i in range(60)]
+    picked = [it[0] for it in _first_sample(items, ExtractOptions(first_pass_every=5, first_pass_min_frames=24))]
+    assert len(picked) == 24 and picked[0] == 0 and picked[-1] == 59
+    gaps = np.diff(picked)
+    assert gaps.min() >= 2 and gaps.max() <= 3  # evenly spread
+    paper = [it[0] for it in _first_sample([(i,) for i in range(121)], ExtractOptions())]
+    assert paper == list(range(0, 121, 5))  # 25 frames, one in 5
+    assert len(_first_sample(items[:20], ExtractOptions())) == 20  # no more frames than the minimum: all
