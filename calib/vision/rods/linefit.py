@@ -54,6 +54,27 @@ def _tls_q(Q: Array, w: Array | None = None) -> tuple[float, float, float]:
     return a, b, -(a * float(mx) + b * float(my))
 
 
+#: residuals per block of :func:`_inlier_counts`: its (points, draws) float64 temporaries stay below the allocator's
+#: threshold for fresh pages from the system (128 kB), which a temporary of every draw and point of a limb crosses
+_BLOCK = 12000
+
+
+def _inlier_counts(pts: Array, nx: Array, ny: Array, c: Array, inlier_px: float) -> NDArray[np.intp]:
+    """For each RANSAC line ``nx x + ny y + c = 0`` (K,), how many points (N, 2) lie within ``inlier_px`` of it.
+
+    The residuals ``x nx + y ny + c`` are the same numbers however the points are blocked.
+    """
+    counts = np.zeros(c.size, dtype=np.intp)
+    step = max(8, _BLOCK // max(c.size, 1))
+    for b in range(0, len(pts), step):
+        q = pts[b : b + step]
+        r = np.multiply.outer(q[:, 0], nx)
+        r += np.multiply.outer(q[:, 1], ny)
+        r += c
+        counts += np.count_nonzero(np.abs(r, out=r) < inlier_px, axis=0)
+    return counts
+
+
 def robust_line(pts: Array, rng: np.random.Generator, iters: int, inlier_px: float) -> tuple[Array, NDArray[np.bool_]]:
     """RANSAC then IRLS (Tukey) total-least-squares line with a final 3-sigma rejection.
 
@@ -88,7 +109,7 @@ def robust_line(pts: Array, rng: np.random.Generator, iters: int, inlier_px: flo
         nx, ny = -d[good, 1] / ln[good], d[good, 0] / ln[good]
         c = -(nx * p[good, 0] + ny * p[good, 1])
         if c.size:
-            counts = np.count_nonzero(np.abs(np.outer(pts[:, 0], nx) + np.outer(pts[:, 1], ny) + c) < inlier_px, axis=0)
+            counts = _inlier_counts(pts, nx, ny, c, inlier_px)
             k = int(np.argmax(counts))
             best_count = int(counts[k])
             best = (float(nx[k]), float(ny[k]), float(c[k]))

@@ -44,48 +44,95 @@ def _edges_1d(
 
     Returns (profile index, position in samples, signed gradient at the peak), float64 (g may be float32).
     """
+    pk = _peaks(g, min_contrast, side, valid, radius)
+    return _kept(pk, *_subpixel(pk.si, pk.win, side))
+
+
+@dataclass
+class _Peaks:
+    """The local maxima of |g| in gradient profiles (:func:`_peaks`): profile index (N,) and sample (N,) of each,
+    the profile's samples about it (N, 2 side + 3) (from ``side + 1`` before to ``side + 1`` after), which of them
+    to drop (N,) and which to keep without the slope correction (N,), both None when all samples are valid."""
+
+    pi: NDArray[np.intp]
+    si: NDArray[np.intp]
+    win: NDArray[np.floating]
+    drop: NDArray[np.bool_] | None
+    flat: NDArray[np.bool_] | None
+
+
+def _peaks(
+    g: NDArray[np.floating], min_contrast: float, side: int, valid: NDArray[np.bool_] | None, radius: int
+) -> _Peaks:
+    """The first stage of :func:`_edges_1d`: its peaks found, the samples its interpolation reads gathered."""
     a = np.abs(g)
     mid = a[:, 1:-1]
-    peak = (mid > a[:, :-2]) & (mid >= a[:, 2:]) & (mid > min_contrast)
+    peak = mid > min_contrast
+    peak &= mid > a[:, :-2]
+    peak &= mid >= a[:, 2:]
     # the slope samples (side + 1 about the peak, for the interpolation) must lie within the profile
     peak[:, :side] = False
     peak[:, mid.shape[1] - side :] = False
-    pi, si = np.nonzero(peak)
-    si = si + 1
+    n = g.shape[1]
+    pi, si = np.divmod(np.flatnonzero(peak), mid.shape[1])  # row-major, as np.nonzero
+    si += 1
+    at = pi * n + si  # in the flattened profiles
+    win = np.ravel(g).take(at[:, None] + np.arange(-side - 1, side + 2))
+    drop = flat = None
+    if valid is not None and not valid.all():  # (all valid: nothing dropped, every correction kept)
+        # samples beyond the image (the border's replicated pixels): a peak whose derivative kernel reaches them is
+        # dropped; one whose slope samples do is kept without the slope correction
+        drop = np.zeros(pi.size, dtype=bool)
+        flat = np.zeros(pi.size, dtype=bool)
+        row_ok: NDArray[np.bool_] = np.all(valid, axis=1)
+        sel = np.flatnonzero(~row_ok[pi])  # the peaks of profiles with invalid samples
+        reach = max(radius, side) + 1
+        col = si[sel, None] + np.arange(-reach, reach + 1)
+        bad = ~np.ravel(valid).take(pi[sel, None] * n + np.clip(col, 0, n - 1)) & (col >= 0) & (col < n)
+        drop[sel] = bad[:, reach - radius - 1 : reach + radius + 2].any(axis=1)
+        flat[sel] = bad[:, reach - side - 1 : reach + side + 2].any(axis=1)
+    return _Peaks(pi, si, win, drop, flat)
+
+
+def _subpixel(si: NDArray[np.intp], win: NDArray[np.floating], side: int) -> tuple[Array, Array, Array]:
+    """The second stage of :func:`_edges_1d`, on the peaks of any number of profiles: each peak's position (samples,
+    without the slope correction), the slope correction (samples) and the signed gradient, float64, from its samples
+    ``win`` (N, 2 side + 3)."""
     f64 = np.float64
-    y0, y1, y2 = a[pi, si - 1].astype(f64), a[pi, si].astype(f64), a[pi, si + 1].astype(f64)
+    c = side + 1  # the peak's column in win
+    gp = win[:, c].astype(f64)
+    y0, y1, y2 = np.abs(win[:, c - 1]).astype(f64), np.abs(gp), np.abs(win[:, c + 1]).astype(f64)
     tiny = 1e-6 * y1
     l0, l1, l2 = np.log(np.maximum(y0, tiny)), np.log(y1), np.log(np.maximum(y2, tiny))
     den = l0 - 2 * l1 + l2  # -1 / s^2 for a Gaussian
     safe = np.where(den < -1e-12, den, -1e-12)
     off = np.clip(0.5 * (l0 - l2) / safe, -0.5, 0.5)
     s2 = np.clip(-1.0 / safe, 0.3, 60.0)
-    gp = g[pi, si].astype(f64)
     amp = np.sign(gp) * np.exp(l1 - 0.5 * off * off * safe) * np.sqrt(2 * np.pi * s2)  # the step's height
-    n = g.shape[1]
+    rows = np.arange(len(si))
+    base = si - c  # the sample at win's column 0
 
     def at(x: Array) -> Array:
-        i0 = np.clip(np.floor(x).astype(np.intp), 0, n - 2)
+        # linear interpolation of g at x (samples); x lies within the window (the peaks keep side + 1 samples from
+        # either end of their profile)
+        i0 = np.floor(x).astype(np.intp)
         fr = np.clip(x - i0, 0.0, 1.0)
-        return (1.0 - fr) * g[pi, i0].astype(f64) + fr * g[pi, i0 + 1].astype(f64)
+        j = i0 - base
+        return (1.0 - fr) * win[rows, j].astype(f64) + fr * win[rows, j + 1].astype(f64)
 
     x0 = si + off
     kL, kR = at(x0 - side), at(x0 + side)
     corr = np.clip((kR - kL) * s2 / amp, -0.5, 0.5) * _CORR
-    keep = np.ones(pi.size, dtype=bool)
-    if valid is not None:
-        # samples beyond the image (the border's replicated pixels): a peak whose derivative kernel reaches them is
-        # dropped; one whose slope samples do is kept without the slope correction
-        bad = np.concatenate([np.zeros((g.shape[0], 1), dtype=np.intp), np.cumsum(~valid, axis=1)], axis=1)
+    return x0, corr, gp
 
-        def n_bad(lo: NDArray[np.intp], hi: NDArray[np.intp]) -> NDArray[np.intp]:
-            lo = np.clip(lo, 0, n)
-            hi = np.clip(hi, 0, n)
-            return bad[pi, hi] - bad[pi, lo]
 
-        keep = n_bad(si - radius - 1, si + radius + 2) == 0
-        corr = np.where(n_bad(si - side - 1, si + side + 2) == 0, corr, 0.0)
-    return pi[keep], (x0 - corr)[keep], gp[keep]
+def _kept(pk: _Peaks, x0: Array, corr: Array, gp: Array) -> tuple[NDArray[np.intp], Array, Array]:
+    """:func:`_edges_1d`'s result from its peaks and their :func:`_subpixel` positions: the peaks reading invalid
+    samples dropped, or kept without the slope correction."""
+    if pk.drop is None or pk.flat is None:
+        return pk.pi, x0 - corr, gp
+    keep = ~pk.drop
+    return pk.pi[keep], (x0 - np.where(pk.flat, 0.0, corr))[keep], gp[keep]
 
 
 def _gauss_deriv_kernel(sigma: float) -> Array:
@@ -107,13 +154,14 @@ def _hidden(centres: Array, shift: Array, ks: tuple[float, ...], poly: Array) ->
     """Whether any of the points ``centres + k * shift`` (k in ks) is inside the convex polygon ``poly``.
 
     Same test as :func:`_inside_convex` on each shifted set, with the edge cross products computed once
-    (they are affine in the shift).
+    (they are affine in the shift). ``shift``: shape (2,), or (N, 2) one per centre.
     """
     d = np.roll(poly, -1, axis=0) - poly
     base = d[None, :, 0] * (centres[:, None, 1] - poly[None, :, 1]) - d[None, :, 1] * (
         centres[:, None, 0] - poly[None, :, 0]
     )
-    dv = d[:, 0] * shift[1] - d[:, 1] * shift[0]
+    sh = np.atleast_2d(shift)
+    dv = d[None, :, 0] * sh[:, 1:2] - d[None, :, 1] * sh[:, 0:1]
     out = np.zeros(len(centres), dtype=bool)
     for k in ks:
         cr = base + k * dv
@@ -165,6 +213,26 @@ class _IdealToImage:
         o = offs.astype(f32)
         x = xc[:, 0:1].astype(f32) + o[None] * f32(nn[0])
         y = xc[:, 1:2].astype(f32) + o[None] * f32(nn[1])
+        return self._distort_f32(x, y)
+
+    def grid_rows(
+        self, xc: NDArray[np.float32], nn: NDArray[np.float32], offs: NDArray[np.float32]
+    ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """:meth:`grid` of the profiles of several rods stacked in rows, element for element the same numbers.
+
+        ``xc`` (P, 2): each profile's centre in normalized coordinates (``centres @ A.T + b`` of its rod, as float32),
+        ``nn`` (P, 2): its rod's normal in normalized coordinates (``A @ n_dir``, float32), ``offs`` (P, S): its
+        sample offsets (ideal px, float32). Returns the x, y maps (P, S), float32.
+        """
+        x = xc[:, 0:1] + offs * nn[:, 0:1]
+        y = xc[:, 1:2] + offs * nn[:, 1:2]
+        return self._distort_f32(x, y)
+
+    def _distort_f32(
+        self, x: NDArray[np.float32], y: NDArray[np.float32]
+    ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """Normalized coordinates (float32 arrays) -> distorted pixels (x, y maps), float32."""
+        f32 = np.float32
         k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = (f32(v) for v in self.d[:12])
         xy = x * y
         x2 = x * x
@@ -238,6 +306,10 @@ class _Segment:
     length: float  #: px
     off1: Array  #: limb 1 offset along n at the start and the end (px), shape (2,)
     off2: Array  #: limb 2 offset along n at the start and the end (px), shape (2,)
+    #: its profiles' positions and centres (:func:`_visible_centres`) or why too few are, and their edge pairs
+    #: (:func:`_limb_pairs`), when measured already with the rest of the frame's rods (:func:`_profile_frame`)
+    vis: tuple[Array, Array] | str | None = None
+    pairs: _LimbPairs | None = None
 
     def limb_offsets(self, frac: Array) -> tuple[Array, Array]:
         o1 = self.off1[0] + frac * (self.off1[1] - self.off1[0])
@@ -371,8 +443,9 @@ def _pair_edges(
     )
     # best pair per profile: sort by (profile, -score) and take the first of each profile
     order = np.lexsort((-score, k))
+    ko = k[order]
     first = np.ones(order.size, dtype=bool)
-    first[1:] = k[order][1:] != k[order][:-1]
+    first[1:] = ko[1:] != ko[:-1]
     best = order[first]
     i_b, j_b = ii[best], jj[best]
     lo_is_i = xo[i_b] < xo[j_b]
@@ -443,11 +516,11 @@ def measure_rod(
         out.reason = seg
         return out
     proj = projector if projector is not None else _IdealToImage(camera)
-    vis = _visible_centres(camera, seg, s, box, proj, occluders)
+    vis = seg.vis if seg.vis is not None else _visible_centres(camera, seg, s, box, proj, occluders)
     if isinstance(vis, str):
         out.reason = vis
         return out
-    pairs = _limb_pairs(gray, camera, seg, s, proj, *vis)
+    pairs = seg.pairs if seg.pairs is not None else _limb_pairs(gray, camera, seg, s, proj, *vis)
     if neighbours:
         neighbours = _near_segments(
             vis[1],
@@ -515,10 +588,35 @@ def _visible_centres(
 ) -> tuple[Array, Array] | str:
     """The profiles' positions along the segment (P,) and centres (P, 2) (ideal px) inside the image and outside the
     occluders, or why too few are."""
+    ts, centres = _profile_positions(seg, s)
+    inside = _visible(camera, centres, (_clearance(seg) * seg.n_dir)[None], s, box, proj, occluders)
+    return _visible_or_why(seg, s, ts, centres, inside)
+
+
+def _profile_positions(seg: _Segment, s: RodSettings) -> tuple[Array, Array]:
+    """The profiles' positions along the segment (P,) and their centres (P, 2) (ideal px), visible or not."""
     ts = np.arange(0.0, seg.length, s.step_px)
     if ts.size > 1500:
         ts = np.linspace(0.0, seg.length, 1500)
-    centres = seg.a[None] + ts[:, None] * seg.t_dir[None]
+    return ts, seg.a[None] + ts[:, None] * seg.t_dir[None]
+
+
+def _clearance(seg: _Segment) -> float:
+    """How far (px) from a profile's centre an occluder hides it: the rod's half width plus the clearance."""
+    return 0.5 * float(np.max(np.abs(seg.off1 - seg.off2))) + ROD_OCCLUDER_CLEARANCE_PX
+
+
+def _visible(
+    camera: CameraModel,
+    centres: Array,
+    shift: Array,
+    s: RodSettings,
+    box: Array,
+    proj: _IdealToImage,
+    occluders: list[Array] | None,
+) -> NDArray[np.bool_]:
+    """Which profile centres (N, 2) (ideal px) are inside the image and whose span (``centre +- shift``, shift (1, 2)
+    or (N, 2), ideal px) is outside the occluders, shape (N,)."""
     # keep centres inside the image (after distortion; the ideal-pixel box guards against the
     # distortion polynomial's fold-back far outside the field of view) and outside occluders
     dpx = proj.points(centres)
@@ -532,14 +630,20 @@ def _visible_centres(
         & (centres[:, 1] >= box[1])
         & (centres[:, 1] <= box[3])
     )
-    half = 0.5 * float(np.max(np.abs(seg.off1 - seg.off2)))
     for poly in occluders or []:
         # a profile is hidden when any part of its span is inside the polygon
-        inside &= ~_hidden(centres, (half + ROD_OCCLUDER_CLEARANCE_PX) * seg.n_dir, (-1.0, 0.0, 1.0), poly)
-    if inside.sum() * s.step_px < s.min_length_px:
-        vis = inside.sum() * s.step_px
+        inside &= ~_hidden(centres, shift, (-1.0, 0.0, 1.0), poly)
+    return inside
+
+
+def _visible_or_why(
+    seg: _Segment, s: RodSettings, ts: Array, centres: Array, inside: NDArray[np.bool_]
+) -> tuple[Array, Array] | str:
+    """The visible profiles' positions (P,) and centres (P, 2), or why too few are."""
+    n_in = int(np.count_nonzero(inside))
+    if n_in * s.step_px < s.min_length_px:
         return (
-            f"not enough of the rod visible ({vis:.0f} px of {seg.length:.0f} px predicted; "
+            f"not enough of the rod visible ({n_in * s.step_px:.0f} px of {seg.length:.0f} px predicted; "
             "outside the image or hidden by the board)"
         )
     return ts[inside], centres[inside]
@@ -556,6 +660,35 @@ def _limb_pairs(
 ) -> _LimbPairs:
     """Profiles across the predicted limbs at ``centres`` (P, 2), their sub-pixel edges and the best edge pair of
     each profile."""
+    pr = _gradient_profiles(gray, camera, seg, s, proj, ts, centres)
+    pi, pos, sg = _edges_1d(pr.g, s.min_contrast, pr.side, pr.inside, pr.radius)  # pi ascending (row-major scan)
+    k, x_lo, x_hi, pol = _pair_edges(
+        pi, pr.lo + pos * s.sample_px, sg, 0.5 * (pr.o1 + pr.o2), np.abs(pr.o2 - pr.o1), s.band_px, s.width_tolerance
+    )
+    return _LimbPairs(k, x_lo, x_hi, pol, pr.o1, pr.o2)
+
+
+@dataclass
+class _Profiles:
+    """A rod's gradient profiles across its predicted limbs (:func:`_gradient_profiles`): the gradient (P, S) (grey
+    levels per px, float32), which samples are inside the image (P, S), the first sample's offset (ideal px along the
+    segment's normal), the predicted limb offsets o1, o2 (P,) (ideal px), and the edge search's slope and kernel
+    half-widths (samples)."""
+
+    g: NDArray[np.float32]
+    inside: NDArray[np.bool_]
+    lo: float
+    o1: Array
+    o2: Array
+    side: int
+    radius: int
+
+
+def _gradient_profiles(
+    gray: np.ndarray, camera: CameraModel, seg: _Segment, s: RodSettings, proj: _IdealToImage, ts: Array, centres: Array
+) -> _Profiles:
+    """The profiles across the predicted limbs at the positions ``ts`` (P,) along the segment (centres (P, 2), ideal
+    px), differentiated."""
     n_dir = seg.n_dir
     o1, o2 = seg.limb_offsets(ts / seg.length)
     lo = np.minimum(o1, o2).min() - s.band_px
@@ -572,13 +705,81 @@ def _limb_pairs(
         cv2.filter2D(prof, cv2.CV_32F, ker[None, ::-1].astype(np.float32), borderType=cv2.BORDER_REPLICATE),
     )
     g *= np.float32(1.0 / ds)  # grey levels per pixel
-    side = max(2, round(3.0 / ds))
     inside_img = (mx >= 0) & (mx <= camera.width - 1) & (my >= 0) & (my <= camera.height - 1)
-    pi, pos, sg = _edges_1d(g, s.min_contrast, side, inside_img, len(ker) // 2)  # pi ascending (row-major scan)
-    k, x_lo, x_hi, pol = _pair_edges(
-        pi, lo + pos * ds, sg, 0.5 * (o1 + o2), np.abs(o2 - o1), s.band_px, s.width_tolerance
-    )
-    return _LimbPairs(k, x_lo, x_hi, pol, o1, o2)
+    return _Profiles(g, inside_img, float(lo), o1, o2, max(2, round(3.0 / ds)), len(ker) // 2)
+
+
+def _profile_frame(
+    gray: np.ndarray,
+    camera: CameraModel,
+    segs: list[_Segment | str],
+    s: RodSettings,
+    box: Array,
+    proj: _IdealToImage,
+    occluders: list[Array] | None,
+) -> None:
+    """:func:`_visible_centres` and :func:`_limb_pairs` of every rod of a frame set on its segment (``vis``,
+    ``pairs``), the same numbers computed for all rods at once where that pays (:func:`_frame_pairs`)."""
+    rods = [g for g in segs if not isinstance(g, str)]
+    if not rods:
+        return
+    pos = [_profile_positions(g, s) for g in rods]
+    centres = np.concatenate([c for _, c in pos])
+    counts = np.array([len(t) for t, _ in pos])
+    shift = np.repeat(np.array([_clearance(g) * g.n_dir for g in rods]), counts, axis=0)
+    inside = np.split(_visible(camera, centres, shift, s, box, proj, occluders), np.cumsum(counts)[:-1])
+    seen: list[tuple[_Segment, Array, Array]] = []
+    for g, (ts, c), ins in zip(rods, pos, inside, strict=True):
+        g.vis = _visible_or_why(g, s, ts, c, ins)
+        if not isinstance(g.vis, str):
+            seen.append((g, *g.vis))
+    if seen:
+        for g, pairs in zip((x[0] for x in seen), _frame_pairs(gray, camera, seen, s, proj), strict=True):
+            g.pairs = pairs
+
+
+def _frame_pairs(
+    gray: np.ndarray,
+    camera: CameraModel,
+    seen: list[tuple[_Segment, Array, Array]],
+    s: RodSettings,
+    proj: _IdealToImage,
+) -> list[_LimbPairs]:
+    """:func:`_limb_pairs` of several rods (segment, visible profiles' positions (P,) and centres (P, 2)) at once,
+    the same numbers: each rod's profiles sampled, filtered and searched for peaks on their own (small arrays, in
+    cache), the peaks' sub-pixel positions and the edge pairs of all rods together."""
+    prs, pks = [], []
+    for g, ts, c in seen:
+        pr = _gradient_profiles(gray, camera, g, s, proj, ts, c)
+        prs.append(pr)
+        pks.append(_peaks(pr.g, s.min_contrast, pr.side, pr.inside, pr.radius))
+    counts = np.array([len(pr.o1) for pr in prs])
+    rows = np.concatenate([[0], np.cumsum(counts)])
+    pi = np.concatenate([pk.pi + rows[r] for r, pk in enumerate(pks)])
+    si = np.concatenate([pk.si for pk in pks])
+    x0, corr, sg = _subpixel(si, np.concatenate([pk.win for pk in pks]), prs[0].side)
+    if any(pk.drop is not None for pk in pks):  # (see _kept)
+        drop = np.concatenate([np.zeros(len(pk.si), dtype=bool) if pk.drop is None else pk.drop for pk in pks])
+        flat = np.concatenate([np.zeros(len(pk.si), dtype=bool) if pk.flat is None else pk.flat for pk in pks])
+        keep = ~drop
+        pi, x0, corr, sg = pi[keep], x0[keep], np.where(flat, 0.0, corr)[keep], sg[keep]
+    pos = x0 - corr
+    lo = np.repeat(np.array([pr.lo for pr in prs]), counts)
+    pc = np.concatenate([0.5 * (pr.o1 + pr.o2) for pr in prs])
+    pw = np.concatenate([np.abs(pr.o2 - pr.o1) for pr in prs])
+    k, x_lo, x_hi, pol = _pair_edges(pi, lo[pi] + pos * s.sample_px, sg, pc, pw, s.band_px, s.width_tolerance)
+    cut = np.searchsorted(k, rows)
+    return [
+        _LimbPairs(
+            k[cut[r] : cut[r + 1]] - rows[r],
+            x_lo[cut[r] : cut[r + 1]],
+            x_hi[cut[r] : cut[r + 1]],
+            pol[cut[r] : cut[r + 1]],
+            pr.o1,
+            pr.o2,
+        )
+        for r, pr in enumerate(prs)
+    ]
 
 
 def _fit_limbs(
@@ -785,6 +986,8 @@ def measure_rods(
     img = gray.astype(np.float32) if gray.dtype != np.float32 else gray
     box = ideal_bbox if ideal_bbox is not None else image_ideal_bbox(camera)
     segs = [_predicted_segment(camera, p, radius, s.near_m, box) for p in preds]
+    proj = _IdealToImage(camera)
+    _profile_frame(img, camera, segs, s, box, proj, occluders)
     fr = _FrameRods(
         img,
         camera,
@@ -794,7 +997,7 @@ def measure_rods(
         occluders,
         np.random.default_rng(seed),
         box,
-        _IdealToImage(camera),
+        proj,
         segs,
         [None if isinstance(g, str) else _silhouette(g) for g in segs],
     )
