@@ -4,7 +4,8 @@ limb lines, every rod of a frame, and the two rods of a leg compared.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import itertools
+from dataclasses import dataclass, field
 from typing import cast
 
 import cv2
@@ -12,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calib.formats.camera import CameraModel
-from calib.vision.rods.covariance import _direction_covariance_set, _line_cov
+from calib.vision.rods.covariance import _direction_covariance_set, _line_cov, _line_stats  # noqa: F401
 from calib.vision.rods.cylinder import _CORR, axis_from_planes, axis_point_seen_along, limb_planes
 from calib.vision.rods.linefit import robust_line
 from calib.vision.rods.types import ROD_OCCLUDER_CLEARANCE_PX, RodMeasurement, RodPrediction, RodSettings
@@ -576,6 +577,8 @@ class _LimbFits:
     fits: list[tuple[Array, Array, float, Array]]
     rms: list[float]
     npts: list[int]
+    #: per limb, its inlier points' positions along the line about their centroid (px), when known
+    ts: list[Array] = field(default_factory=list)
 
 
 def _visible_centres(
@@ -816,14 +819,17 @@ def _fit_limbs(
                 "search band, or too close to another rod"
             )
         line, inl = robust_line(pts, rng, s.ransac_iters, s.inlier_px)
-        if not np.all(np.isfinite(line)) or inl.sum() < s.min_points:
-            return f"limb line fit failed ({int(inl.sum())} inliers of {len(pts)})"
-        r = pts[inl] @ line[:2] + line[2]
+        n_in = int(np.count_nonzero(inl))
+        if not np.all(np.isfinite(line)) or n_in < s.min_points:
+            return f"limb line fit failed ({n_in} inliers of {len(pts)})"
+        p_in = pts[inl]
+        r = p_in @ line[:2] + line[2]
         out.lines.append(line)
-        c, td, s2 = _line_cov(pts[inl], line)
-        out.fits.append((c, td, s2, pts[inl]))
-        out.rms.append(float(np.sqrt(np.mean(r**2))))
-        out.npts.append(int(inl.sum()))
+        c, td, s2, t = _line_stats(p_in, line, r)  # (_line_cov)
+        out.fits.append((c, td, s2, p_in))
+        out.ts.append(t)
+        out.rms.append(float(np.sqrt(np.add.reduce(r * r) / n_in)))  # RMS of r (np.mean's numbers)
+        out.npts.append(n_in)
     return out
 
 
@@ -875,14 +881,17 @@ def _axis_from_limbs(
     out.point = X
     # the allowance whole (cov_u) and averaged along the limb (cov_u_own), the planes' derivatives computed once
     out.cov_u, out.cov_u_own = _direction_covariance_set(
-        K, fits.fits, inner, s.edge_bias_px, (0.0, s.edge_bias_length_px)
+        K, fits.fits, inner, s.edge_bias_px, (0.0, s.edge_bias_length_px), fits.ts or None
     )
-    out.limbs_px = _limb_samples(camera, fits.fits, proj)
+    out.limbs_px = _limb_samples(camera, fits.fits, proj, fits.ts or None)
     return None
 
 
 def _limb_samples(
-    camera: CameraModel, fits: list[tuple[Array, Array, float, Array]], projector: _IdealToImage | None = None
+    camera: CameraModel,
+    fits: list[tuple[Array, Array, float, Array]],
+    projector: _IdealToImage | None = None,
+    ts: list[Array] | None = None,
 ) -> Array:
     """Five points per limb, distorted pixels (2, 5, 2): the means of its edge points in five bins of equal count
     along it, taken in ideal pixels (where the limb is straight, so that a mean lies on it) and then to the image.
@@ -897,8 +906,12 @@ def _limb_samples(
     out = np.empty((len(fits), 5, 2))
     for i, (c, td, _s2, pts) in enumerate(fits):
         if len(pts) >= 5:
-            order = np.argsort((pts - c) @ td, kind="stable")
-            means = np.array([b.mean(axis=0) for b in np.array_split(pts[order], 5)])
+            # (ts: each fit's (pts - c) @ td when known)
+            order = np.argsort((pts - c) @ td if ts is None else ts[i], kind="stable")
+            srt = pts[order]
+            q, extra = divmod(len(pts), 5)  # np.array_split's bins: the first ``extra`` one longer
+            ends = np.cumsum([0] + [q + 1] * extra + [q] * (5 - extra))
+            means = np.array([np.add.reduce(srt[a:b], axis=0) / (b - a) for a, b in itertools.pairwise(ends)])
         else:  # fewer points than bins (never with RodSettings.min_points >= 5): points of the fitted line
             means = c[None] + _quantiles5(np.sort((pts - c) @ td))[:, None] * td[None]
         out[i] = proj.points(means)
