@@ -4,6 +4,7 @@ limb lines, every rod of a frame, and the two rods of a leg compared.
 
 from __future__ import annotations
 
+import functools
 import itertools
 from dataclasses import dataclass, field
 from typing import cast
@@ -136,11 +137,15 @@ def _kept(pk: _Peaks, x0: Array, corr: Array, gp: Array) -> tuple[NDArray[np.int
     return pk.pi[keep], (x0 - np.where(pk.flat, 0.0, corr))[keep], gp[keep]
 
 
+@functools.lru_cache(maxsize=8)
 def _gauss_deriv_kernel(sigma: float) -> Array:
+    """The derivative-of-Gaussian kernel of scale ``sigma`` (samples), shape (2 r + 1,), normalised by ``sum |x k|``
+    (read-only: computed once per scale)."""
     r = max(2, int(np.ceil(3 * sigma)))
     x = np.arange(-r, r + 1, dtype=np.float64)
     k = -x * np.exp(-0.5 * (x / sigma) ** 2)
     k /= np.sum(np.abs(x * k))
+    k.setflags(write=False)
     return k
 
 
@@ -239,6 +244,7 @@ class _IdealToImage:
         x2 = x * x
         y2 = y * y
         r2 = x2 + y2
+        tmp = np.empty_like(xy)  # the terms below computed in place: the same operations on the same numbers
         rad = k3 * r2
         rad += k2
         rad *= r2
@@ -251,11 +257,17 @@ class _IdealToImage:
             with np.errstate(divide="ignore", invalid="ignore"):
                 rad /= f32(1) + r2 * (k4 + r2 * (k5 + r2 * k6))
         xd = x * rad
-        xd += f32(2) * p1 * xy
-        xd += p2 * (r2 + f32(2) * x2)
+        xd += np.multiply(xy, f32(2) * p1, out=tmp)  # 2 p1 xy
+        x2 *= f32(2)
+        x2 += r2
+        x2 *= p2
+        xd += x2  # p2 (r2 + 2 x^2)
         yd = y * rad
-        yd += p1 * (r2 + f32(2) * y2)
-        yd += f32(2) * p2 * xy
+        y2 *= f32(2)
+        y2 += r2
+        y2 *= p1
+        yd += y2  # p1 (r2 + 2 y^2)
+        yd += np.multiply(xy, f32(2) * p2, out=tmp)  # 2 p2 xy
         if self.prism:
             r4 = r2 * r2
             xd += s1 * r2 + s2 * r4
@@ -674,12 +686,12 @@ def _limb_pairs(
 @dataclass
 class _Profiles:
     """A rod's gradient profiles across its predicted limbs (:func:`_gradient_profiles`): the gradient (P, S) (grey
-    levels per px, float32), which samples are inside the image (P, S), the first sample's offset (ideal px along the
-    segment's normal), the predicted limb offsets o1, o2 (P,) (ideal px), and the edge search's slope and kernel
-    half-widths (samples)."""
+    levels per px, float32), which samples are inside the image (P, S; None: all of them), the first sample's offset
+    (ideal px along the segment's normal), the predicted limb offsets o1, o2 (P,) (ideal px), and the edge search's
+    slope and kernel half-widths (samples)."""
 
     g: NDArray[np.float32]
-    inside: NDArray[np.bool_]
+    inside: NDArray[np.bool_] | None
     lo: float
     o1: Array
     o2: Array
@@ -708,7 +720,9 @@ def _gradient_profiles(
         cv2.filter2D(prof, cv2.CV_32F, ker[None, ::-1].astype(np.float32), borderType=cv2.BORDER_REPLICATE),
     )
     g *= np.float32(1.0 / ds)  # grey levels per pixel
-    inside_img = (mx >= 0) & (mx <= camera.width - 1) & (my >= 0) & (my <= camera.height - 1)
+    inside_img = None  # every sample inside the image
+    if not (mx.min() >= 0 and mx.max() <= camera.width - 1 and my.min() >= 0 and my.max() <= camera.height - 1):
+        inside_img = (mx >= 0) & (mx <= camera.width - 1) & (my >= 0) & (my <= camera.height - 1)
     return _Profiles(g, inside_img, float(lo), o1, o2, max(2, round(3.0 / ds)), len(ker) // 2)
 
 
