@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 
 from calib.formats.camera import CameraModel
 from calib.vision.rods.covariance import _direction_covariance_set, _line_cov, _line_stats  # noqa: F401
-from calib.vision.rods.cylinder import _CORR, axis_from_planes, axis_point_seen_along, limb_planes
+from calib.vision.rods.cylinder import _CORR, axis_from_planes, axis_point_seen_along, limb_planes, norm3
 from calib.vision.rods.linefit import robust_line
 from calib.vision.rods.types import ROD_OCCLUDER_CLEARANCE_PX, RodMeasurement, RodPrediction, RodSettings
 
@@ -368,16 +368,16 @@ def _predicted_segment(
     if t1 <= t0:
         return "rod predicted outside the image"
     a2, b2 = a2 + t0 * d2, a2 + t1 * d2
-    length = float(np.linalg.norm(b2 - a2))
+    length = norm3(b2 - a2)
     if length < 1e-6:
         return "predicted rod seen end-on"
     t_dir = (b2 - a2) / length
     n_dir = np.array([-t_dir[1], t_dir[0]])
-    Kit = np.linalg.inv(K).T
+    Kit = _inv_t(K)
 
     def limb_offset(h: Array, c: Array) -> float:
         lp = Kit @ h  # the limb line in ideal pixels
-        lp = lp / np.linalg.norm(lp[:2])
+        lp = lp / norm3(lp[:2])
         den = lp[:2] @ n_dir
         return float(-(lp[:2] @ c + lp[2]) / den) if abs(den) > 1e-9 else np.nan
 
@@ -386,6 +386,17 @@ def _predicted_segment(
     if not (np.all(np.isfinite(off1)) and np.all(np.isfinite(off2))):
         return "degenerate predicted limb lines"
     return _Segment(a2, t_dir, n_dir, length, off1, off2)
+
+
+def _inv_t(K: Array) -> Array:
+    """``np.linalg.inv(K).T`` of a camera matrix (3, 3), computed once per matrix (in the same memory layout, which
+    the products with it follow to the last bit)."""
+    return _inv_t_of(K.tobytes()).copy(order="K")
+
+
+@functools.lru_cache(maxsize=16)
+def _inv_t_of(k: bytes) -> Array:
+    return cast("Array", np.linalg.inv(np.frombuffer(k, dtype=np.float64).reshape(3, 3)).T)
 
 
 def _seg_distance(pts: Array, a: Array, b: Array) -> Array:
