@@ -40,7 +40,18 @@ def rod_name(leg: int, rod: int) -> str:
 # geometry
 def norm3(v: Array) -> float:
     """Euclidean norm of a 1-D float64 vector: ``np.linalg.norm(v)``'s number (the square root of ``v.dot(v)``),
-    without its overhead."""
+    without its overhead.
+
+    Parameters
+    ----------
+    v : ndarray, shape (N,)
+        The vector (any unit).
+
+    Returns
+    -------
+    float
+        Its norm (the vector's unit).
+    """
     return math.sqrt(v.dot(v))
 
 

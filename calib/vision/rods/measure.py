@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calib.formats.camera import CameraModel
-from calib.vision.rods.covariance import _direction_covariance_set, _line_cov, _line_stats  # noqa: F401
+from calib.vision.rods.covariance import _direction_covariance_set, _line_cov, _line_stats  # noqa: F401 (_line_cov)
 from calib.vision.rods.cylinder import _CORR, axis_from_planes, axis_point_seen_along, limb_planes, norm3
 from calib.vision.rods.linefit import robust_line
 from calib.vision.rods.types import ROD_OCCLUDER_CLEARANCE_PX, RodMeasurement, RodPrediction, RodSettings
@@ -219,19 +219,6 @@ class _IdealToImage:
         o = offs.astype(f32)
         x = xc[:, 0:1].astype(f32) + o[None] * f32(nn[0])
         y = xc[:, 1:2].astype(f32) + o[None] * f32(nn[1])
-        return self._distort_f32(x, y)
-
-    def grid_rows(
-        self, xc: NDArray[np.float32], nn: NDArray[np.float32], offs: NDArray[np.float32]
-    ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-        """:meth:`grid` of the profiles of several rods stacked in rows, element for element the same numbers.
-
-        ``xc`` (P, 2): each profile's centre in normalized coordinates (``centres @ A.T + b`` of its rod, as float32),
-        ``nn`` (P, 2): its rod's normal in normalized coordinates (``A @ n_dir``, float32), ``offs`` (P, S): its
-        sample offsets (ideal px, float32). Returns the x, y maps (P, S), float32.
-        """
-        x = xc[:, 0:1] + offs * nn[:, 0:1]
-        y = xc[:, 1:2] + offs * nn[:, 1:2]
         return self._distort_f32(x, y)
 
     def _distort_f32(
