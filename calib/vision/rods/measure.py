@@ -199,6 +199,17 @@ class _IdealToImage:
         xn = uv @ self.A.T + self.b
         if self.rational or self.prism:
             return self.camera.distort_normalized(xn)
+        return self._distort64(xn)
+
+    def points_of(self, uvs: list[Array]) -> Array:
+        """:meth:`points` of several arrays of ideal pixels (each (N_i, 2)), concatenated: the same numbers (each
+        array's normalized coordinates from its own matrix product, the distortion applied to all at once)."""
+        if self.rational or self.prism:
+            return np.concatenate([self.points(uv) for uv in uvs])
+        return self._distort64(np.concatenate([uv @ self.A.T + self.b for uv in uvs]))
+
+    def _distort64(self, xn: Array) -> Array:
+        """Normalized coordinates (N, 2) -> distorted pixels (N, 2), float64 (radial k1 k2 k3 and tangential)."""
         k1, k2, p1, p2, k3 = self.d[:5]
         x, y = xn[:, 0], xn[:, 1]
         r2 = x * x + y * y
@@ -816,11 +827,12 @@ def _fit_limbs(
     edges = (np.where(one_low, x_lo, x_hi), np.where(one_low, x_hi, x_lo))
     pred_off = (o1[k], o2[k])
     out = _LimbFits([], [], [], [])
+    ck = centres[k]
     for x_e, x_p in zip(edges, pred_off, strict=True):
-        pts = centres[k] + x_e[:, None] * n_dir[None]
+        pts = ck + x_e[:, None] * n_dir[None]
         if neighbours:
             # drop limb points whose edge may merge with another rod's silhouette
-            limb_pred = centres[k] + x_p[:, None] * n_dir[None]
+            limb_pred = ck + x_p[:, None] * n_dir[None]
             clear = np.ones(len(pts), dtype=bool)
             for a_n, b_n, hw in neighbours:
                 clear &= _seg_distance(limb_pred, a_n, b_n) > hw + s.neighbour_px
@@ -915,7 +927,7 @@ def _limb_samples(
     which tilts a rod's recomputed direction in depth the same way on every rod in that part of the image.
     """
     proj = projector if projector is not None else _IdealToImage(camera)
-    out = np.empty((len(fits), 5, 2))
+    bins = []
     for i, (c, td, _s2, pts) in enumerate(fits):
         if len(pts) >= 5:
             # (ts: each fit's (pts - c) @ td when known)
@@ -926,8 +938,8 @@ def _limb_samples(
             means = np.array([np.add.reduce(srt[a:b], axis=0) / (b - a) for a, b in itertools.pairwise(ends)])
         else:  # fewer points than bins (never with RodSettings.min_points >= 5): points of the fitted line
             means = c[None] + _quantiles5(np.sort((pts - c) @ td))[:, None] * td[None]
-        out[i] = proj.points(means)
-    return out
+        bins.append(means)
+    return proj.points_of(bins).reshape(len(fits), 5, 2) if bins else np.empty((0, 5, 2))
 
 
 def _quantiles5(x: Array) -> Array:
