@@ -25,20 +25,27 @@ def _line_cov(pts: Array, line: Array, max_lag: int = 12) -> tuple[Array, Array,
     the residual variance times the long-run factor ``1 + 2 sum_k w_k rho_k`` (autocorrelation of the
     residuals ordered along the line, Bartlett weights, lags up to ``max_lag``), floored at 1.
     """
-    c = pts.mean(0)
-    t_dir = np.array([line[1], -line[0]])
-    r = pts @ line[:2] + line[2]
+    c, t_dir, s2, _t = _line_stats(pts, line, pts @ line[:2] + line[2], max_lag)
+    return c, t_dir, s2
+
+
+def _line_stats(pts: Array, line: Array, r: Array, max_lag: int = 12) -> tuple[Array, Array, float, Array]:
+    """:func:`_line_cov` given the points' residuals ``r`` (N,) (``pts @ line[:2] + line[2]``), and the points'
+    positions along the line about the centroid (N,) (px), which the covariance and the limb samples read too."""
     n = len(r)
+    c = np.add.reduce(pts, axis=0) / n  # pts.mean(0)
+    t_dir = np.array([line[1], -line[0]])
     s2 = float(r @ r) / max(n - 2, 1)
-    rr = r[np.argsort((pts - c) @ t_dir)]
-    rr = rr - rr.mean()
+    t = (pts - c) @ t_dir
+    rr = r[np.argsort(t)]
+    rr = rr - np.add.reduce(rr) / n
     v0 = float(rr @ rr)
     factor = 1.0
     if v0 > 0:
         L = min(max_lag, n // 4)
         for k in range(1, L + 1):
             factor += 2.0 * (1.0 - k / (L + 1)) * float(rr[:-k] @ rr[k:]) / v0
-    return c, t_dir, s2 * max(factor, 1.0)
+    return c, t_dir, s2 * max(factor, 1.0), t
 
 
 def edge_bias_factor(span_px: Array | float, length_px: float) -> Array:
@@ -97,20 +104,23 @@ def _direction_covariance_set(
     inner: Array,
     edge_bias_px: float,
     lengths_px: tuple[float, ...],
+    ts: list[Array] | None = None,
 ) -> list[Array]:
     """:func:`_direction_covariance` for each of the allowance's correlation lengths ``lengths_px``, the limb planes'
-    derivatives computed once."""
+    derivatives computed once (``ts``: each fit's ``(pts - c) @ td`` when known)."""
     spans, parts = [], []
-    for c, td, s2, pts in fits:
-        t = (pts - c) @ td
+    for j, (c, td, s2, pts) in enumerate(fits):
+        t = (pts - c) @ td if ts is None else ts[j]
         spans.append(max(float(t.max() - t.min()), 1.0))
         parts.append((s2 / max(float(t @ t), 1e-9), s2 / len(pts)))
     J = _direction_jacobian(K, fits, inner)
     out = []
     for length in lengths_px:
+        edge_bias_factor(1.0, length)  # (validates the length)
         var = []
         for span, (v_ang, v_sh) in zip(spans, parts, strict=True):
-            b2 = edge_bias_px**2 * float(edge_bias_factor(span, length))
+            # edge_bias_factor(span, length), span >= 1
+            b2 = edge_bias_px**2 * (1.0 if length == 0 else min(1.0, length / span))
             var += [v_ang + b2 / span**2, v_sh + 0.25 * b2]
         out.append(J @ np.diag(var) @ J.T)
     return out
@@ -119,32 +129,41 @@ def _direction_covariance_set(
 def _direction_jacobian(K: Array, fits: list[tuple[Array, Array, float, Array]], inner: Array) -> Array:
     """d u / d (angle, offset of limb 0, angle, offset of limb 1), (3, 4), by central differences."""
     # all 9 parameter sets (nominal, then +/- each of the 4) at once
+    step, cs_sn = _JAC_STEP, _JAC_CS_SN
+    hs = []
+    lines = np.empty((9, 3))
+    for j, (c, td, _s2, _pts) in enumerate(fits):
+        cs, sn, sh = cs_sn[j]
+        dx = cs * td[0] - sn * td[1]  # (9,): the direction turned by each set's angle
+        dy = sn * td[0] + cs * td[1]
+        lines[:, 0] = -dy
+        lines[:, 1] = dx
+        lines[:, 2] = dy * c[0] - dx * c[1] - sh
+        h = lines @ K  # rows: (K^T l)^T
+        h /= np.sqrt(np.add.reduce(h * h, axis=1, keepdims=True))  # np.linalg.norm(h, axis=1, keepdims=True)
+        hs.append(h * np.where(h @ inner > 0, 1.0, -1.0)[:, None])
+    a, b = hs
+    u = np.empty((9, 3))  # h1 x h2, row by row
+    u[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    u[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    u[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    u /= np.sqrt(np.add.reduce(u * u, axis=1, keepdims=True))
+    u *= np.where(u @ u[0] > 0, 1.0, -1.0)[:, None]
+    return ((u[1::2] - u[2::2]) / (2.0 * step[:, None])).T  # (3, 4)
+
+
+def _jacobian_sets() -> tuple[Array, list[tuple[Array, Array, Array]]]:
+    """:func:`_direction_jacobian`'s steps (4,) and, per limb, the cosines, sines and shifts (each (9,)) of its 9
+    parameter sets (nominal, then +/- each of the 4 parameters)."""
     step = np.array([1e-6, 1e-3, 1e-6, 1e-3])
     P = np.zeros((9, 4))
     for k in range(4):
         P[1 + 2 * k, k] = step[k]
         P[2 + 2 * k, k] = -step[k]
-    hs = []
-    for j, (c, td, _s2, _pts) in enumerate(fits):
-        ang, sh = P[:, 2 * j], P[:, 2 * j + 1]
-        cs, sn = np.cos(ang), np.sin(ang)
-        d = np.stack([cs * td[0] - sn * td[1], sn * td[0] + cs * td[1]], axis=1)  # (9, 2)
-        lines = np.stack([-d[:, 1], d[:, 0], d[:, 1] * c[0] - d[:, 0] * c[1] - sh], axis=1)
-        h = lines @ K  # rows: (K^T l)^T
-        h /= np.linalg.norm(h, axis=1, keepdims=True)
-        hs.append(h * np.where(h @ inner > 0, 1.0, -1.0)[:, None])
-    a, b = hs
-    u = np.stack(
-        [
-            a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1],
-            a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
-            a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0],
-        ],
-        axis=1,
-    )  # h1 x h2, row by row
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    u *= np.where(u @ u[0] > 0, 1.0, -1.0)[:, None]
-    return ((u[1::2] - u[2::2]) / (2.0 * step[:, None])).T  # (3, 4)
+    return step, [(np.cos(P[:, 2 * j]), np.sin(P[:, 2 * j]), P[:, 2 * j + 1].copy()) for j in range(2)]
+
+
+_JAC_STEP, _JAC_CS_SN = _jacobian_sets()
 
 
 def _direction_covariances(

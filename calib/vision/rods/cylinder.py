@@ -4,6 +4,8 @@ planes, the rods' names.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -36,6 +38,23 @@ def rod_name(leg: int, rod: int) -> str:
 
 # ---------------------------------------------------------------------------------------------
 # geometry
+def norm3(v: Array) -> float:
+    """Euclidean norm of a 1-D float64 vector: ``np.linalg.norm(v)``'s number (the square root of ``v.dot(v)``),
+    without its overhead.
+
+    Parameters
+    ----------
+    v : ndarray, shape (N,)
+        The vector (any unit).
+
+    Returns
+    -------
+    float
+        Its norm (the vector's unit).
+    """
+    return math.sqrt(v.dot(v))
+
+
 def limb_planes(point: ArrayLike, u: ArrayLike, radius: float) -> tuple[Array, Array]:
     """Unit normals of the two tangent planes through the camera centre (eq. 6), each shape (3,).
 
@@ -62,9 +81,9 @@ def limb_planes(point: ArrayLike, u: ArrayLike, radius: float) -> tuple[Array, A
     """
     P = np.asarray(point, dtype=np.float64).reshape(3)
     uu = np.asarray(u, dtype=np.float64).reshape(3)
-    uu = uu / np.linalg.norm(uu)
+    uu = uu / norm3(uu)
     p = P - (P @ uu) * uu
-    d = float(np.linalg.norm(p))
+    d = norm3(p)
     if d <= radius:
         raise ValueError(f"camera centre inside the cylinder (distance {d:.4g} m <= radius {radius:.4g} m)")
     e1 = p / d
@@ -93,10 +112,10 @@ def axis_from_planes(h1: ArrayLike, h2: ArrayLike, radius: float | None) -> tupl
     """
     a = np.asarray(h1, dtype=np.float64).reshape(3)
     b = np.asarray(h2, dtype=np.float64).reshape(3)
-    a = a / np.linalg.norm(a)
-    b = b / np.linalg.norm(b)
+    a = a / norm3(a)
+    b = b / norm3(b)
     u = cross(a, b)
-    n = np.linalg.norm(u)
+    n = norm3(u)
     if n < 1e-12:
         raise ValueError("interpretation planes are parallel: no axis")
     u = u / n

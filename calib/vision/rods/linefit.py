@@ -43,15 +43,36 @@ def _tls_q(Q: Array, w: Array | None = None) -> tuple[float, float, float]:
     The weighted moments come from one matrix product; the points being centred, removing the mean from them
     costs no precision.
     """
-    M = Q.T @ Q if w is None else (Q * w[:, None]).T @ Q
-    s0 = M[2, 2]
-    mx, my = M[0, 2] / s0, M[1, 2] / s0
-    sxx = M[0, 0] - s0 * mx * mx
-    syy = M[1, 1] - s0 * my * my
-    sxy = M[0, 1] - s0 * mx * my
-    theta = 0.5 * math.atan2(2.0 * float(sxy), float(sxx - syy))
+    M = (Q.T @ Q if w is None else (Q * w[:, None]).T @ Q).tolist()  # the moments as floats: same arithmetic, faster
+    s0 = M[2][2]
+    mx, my = M[0][2] / s0, M[1][2] / s0
+    sxx = M[0][0] - s0 * mx * mx
+    syy = M[1][1] - s0 * my * my
+    sxy = M[0][1] - s0 * mx * my
+    theta = 0.5 * math.atan2(2.0 * sxy, sxx - syy)
     a, b = -math.sin(theta), math.cos(theta)
-    return a, b, -(a * float(mx) + b * float(my))
+    return a, b, -(a * mx + b * my)
+
+
+#: residuals per block of :func:`_inlier_counts`: its (points, draws) float64 temporaries stay below the allocator's
+#: threshold for fresh pages from the system (128 kB), which a temporary of every draw and point of a limb crosses
+_BLOCK = 12000
+
+
+def _inlier_counts(pts: Array, nx: Array, ny: Array, c: Array, inlier_px: float) -> NDArray[np.intp]:
+    """For each RANSAC line ``nx x + ny y + c = 0`` (K,), how many points (N, 2) lie within ``inlier_px`` of it.
+
+    The residuals ``x nx + y ny + c`` are the same numbers however the points are blocked.
+    """
+    counts = np.zeros(c.size, dtype=np.intp)
+    step = max(8, _BLOCK // max(c.size, 1))
+    for b in range(0, len(pts), step):
+        q = pts[b : b + step]
+        r = np.multiply.outer(q[:, 0], nx)
+        r += np.multiply.outer(q[:, 1], ny)
+        r += c
+        counts += np.count_nonzero(np.abs(r, out=r) < inlier_px, axis=0)
+    return counts
 
 
 def robust_line(pts: Array, rng: np.random.Generator, iters: int, inlier_px: float) -> tuple[Array, NDArray[np.bool_]]:
@@ -85,10 +106,12 @@ def robust_line(pts: Array, rng: np.random.Generator, iters: int, inlier_px: flo
         d = pts[i[:, 1]] - p
         ln = np.hypot(d[:, 0], d[:, 1])
         good = ln > 1e-9
-        nx, ny = -d[good, 1] / ln[good], d[good, 0] / ln[good]
-        c = -(nx * p[good, 0] + ny * p[good, 1])
+        if not good.all():  # (two points at the same place: no line)
+            p, d, ln = p[good], d[good], ln[good]
+        nx, ny = -d[:, 1] / ln, d[:, 0] / ln
+        c = -(nx * p[:, 0] + ny * p[:, 1])
         if c.size:
-            counts = np.count_nonzero(np.abs(np.outer(pts[:, 0], nx) + np.outer(pts[:, 1], ny) + c) < inlier_px, axis=0)
+            counts = _inlier_counts(pts, nx, ny, c, inlier_px)
             k = int(np.argmax(counts))
             best_count = int(counts[k])
             best = (float(nx[k]), float(ny[k]), float(c[k]))
@@ -111,7 +134,7 @@ def robust_line(pts: Array, rng: np.random.Generator, iters: int, inlier_px: flo
         t *= t
         np.subtract(1.0, t, out=t)
         t *= t  # Tukey's biweight (1 - (r / cut)^2)^2, 0 beyond the cut
-        t[~keep] = 0.0
+        t *= keep
         a, b, c0 = _tls_q(Q, t)
     r = np.abs(Q @ np.array([a, b, c0]))
     near = r < 3 * inlier_px

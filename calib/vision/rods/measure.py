@@ -4,7 +4,9 @@ limb lines, every rod of a frame, and the two rods of a leg compared.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import functools
+import itertools
+from dataclasses import dataclass, field
 from typing import cast
 
 import cv2
@@ -12,8 +14,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calib.formats.camera import CameraModel
-from calib.vision.rods.covariance import _direction_covariance_set, _line_cov
-from calib.vision.rods.cylinder import _CORR, axis_from_planes, axis_point_seen_along, limb_planes
+from calib.vision.rods.covariance import _direction_covariance_set, _line_cov, _line_stats  # noqa: F401 (_line_cov)
+from calib.vision.rods.cylinder import _CORR, axis_from_planes, axis_point_seen_along, limb_planes, norm3
 from calib.vision.rods.linefit import robust_line
 from calib.vision.rods.types import ROD_OCCLUDER_CLEARANCE_PX, RodMeasurement, RodPrediction, RodSettings
 
@@ -44,55 +46,106 @@ def _edges_1d(
 
     Returns (profile index, position in samples, signed gradient at the peak), float64 (g may be float32).
     """
+    pk = _peaks(g, min_contrast, side, valid, radius)
+    return _kept(pk, *_subpixel(pk.si, pk.win, side))
+
+
+@dataclass
+class _Peaks:
+    """The local maxima of |g| in gradient profiles (:func:`_peaks`): profile index (N,) and sample (N,) of each,
+    the profile's samples about it (N, 2 side + 3) (from ``side + 1`` before to ``side + 1`` after), which of them
+    to drop (N,) and which to keep without the slope correction (N,), both None when all samples are valid."""
+
+    pi: NDArray[np.intp]
+    si: NDArray[np.intp]
+    win: NDArray[np.floating]
+    drop: NDArray[np.bool_] | None
+    flat: NDArray[np.bool_] | None
+
+
+def _peaks(
+    g: NDArray[np.floating], min_contrast: float, side: int, valid: NDArray[np.bool_] | None, radius: int
+) -> _Peaks:
+    """The first stage of :func:`_edges_1d`: its peaks found, the samples its interpolation reads gathered."""
     a = np.abs(g)
     mid = a[:, 1:-1]
-    peak = (mid > a[:, :-2]) & (mid >= a[:, 2:]) & (mid > min_contrast)
+    peak = mid > min_contrast
+    peak &= mid > a[:, :-2]
+    peak &= mid >= a[:, 2:]
     # the slope samples (side + 1 about the peak, for the interpolation) must lie within the profile
     peak[:, :side] = False
     peak[:, mid.shape[1] - side :] = False
-    pi, si = np.nonzero(peak)
-    si = si + 1
+    n = g.shape[1]
+    pi, si = np.divmod(np.flatnonzero(peak), mid.shape[1])  # row-major, as np.nonzero
+    si += 1
+    at = pi * n + si  # in the flattened profiles
+    win = np.ravel(g).take(at[:, None] + np.arange(-side - 1, side + 2))
+    drop = flat = None
+    if valid is not None and not valid.all():  # (all valid: nothing dropped, every correction kept)
+        # samples beyond the image (the border's replicated pixels): a peak whose derivative kernel reaches them is
+        # dropped; one whose slope samples do is kept without the slope correction
+        drop = np.zeros(pi.size, dtype=bool)
+        flat = np.zeros(pi.size, dtype=bool)
+        row_ok: NDArray[np.bool_] = np.all(valid, axis=1)
+        sel = np.flatnonzero(~row_ok[pi])  # the peaks of profiles with invalid samples
+        reach = max(radius, side) + 1
+        col = si[sel, None] + np.arange(-reach, reach + 1)
+        bad = ~np.ravel(valid).take(pi[sel, None] * n + np.clip(col, 0, n - 1)) & (col >= 0) & (col < n)
+        drop[sel] = bad[:, reach - radius - 1 : reach + radius + 2].any(axis=1)
+        flat[sel] = bad[:, reach - side - 1 : reach + side + 2].any(axis=1)
+    return _Peaks(pi, si, win, drop, flat)
+
+
+def _subpixel(si: NDArray[np.intp], win: NDArray[np.floating], side: int) -> tuple[Array, Array, Array]:
+    """The second stage of :func:`_edges_1d`, on the peaks of any number of profiles: each peak's position (samples,
+    without the slope correction), the slope correction (samples) and the signed gradient, float64, from its samples
+    ``win`` (N, 2 side + 3)."""
     f64 = np.float64
-    y0, y1, y2 = a[pi, si - 1].astype(f64), a[pi, si].astype(f64), a[pi, si + 1].astype(f64)
+    c = side + 1  # the peak's column in win
+    gp = win[:, c].astype(f64)
+    y0, y1, y2 = np.abs(win[:, c - 1]).astype(f64), np.abs(gp), np.abs(win[:, c + 1]).astype(f64)
     tiny = 1e-6 * y1
     l0, l1, l2 = np.log(np.maximum(y0, tiny)), np.log(y1), np.log(np.maximum(y2, tiny))
     den = l0 - 2 * l1 + l2  # -1 / s^2 for a Gaussian
     safe = np.where(den < -1e-12, den, -1e-12)
     off = np.clip(0.5 * (l0 - l2) / safe, -0.5, 0.5)
     s2 = np.clip(-1.0 / safe, 0.3, 60.0)
-    gp = g[pi, si].astype(f64)
     amp = np.sign(gp) * np.exp(l1 - 0.5 * off * off * safe) * np.sqrt(2 * np.pi * s2)  # the step's height
-    n = g.shape[1]
+    rows = np.arange(len(si))
+    base = si - c  # the sample at win's column 0
 
     def at(x: Array) -> Array:
-        i0 = np.clip(np.floor(x).astype(np.intp), 0, n - 2)
+        # linear interpolation of g at x (samples); x lies within the window (the peaks keep side + 1 samples from
+        # either end of their profile)
+        i0 = np.floor(x).astype(np.intp)
         fr = np.clip(x - i0, 0.0, 1.0)
-        return (1.0 - fr) * g[pi, i0].astype(f64) + fr * g[pi, i0 + 1].astype(f64)
+        j = i0 - base
+        return (1.0 - fr) * win[rows, j].astype(f64) + fr * win[rows, j + 1].astype(f64)
 
     x0 = si + off
     kL, kR = at(x0 - side), at(x0 + side)
     corr = np.clip((kR - kL) * s2 / amp, -0.5, 0.5) * _CORR
-    keep = np.ones(pi.size, dtype=bool)
-    if valid is not None:
-        # samples beyond the image (the border's replicated pixels): a peak whose derivative kernel reaches them is
-        # dropped; one whose slope samples do is kept without the slope correction
-        bad = np.concatenate([np.zeros((g.shape[0], 1), dtype=np.intp), np.cumsum(~valid, axis=1)], axis=1)
-
-        def n_bad(lo: NDArray[np.intp], hi: NDArray[np.intp]) -> NDArray[np.intp]:
-            lo = np.clip(lo, 0, n)
-            hi = np.clip(hi, 0, n)
-            return bad[pi, hi] - bad[pi, lo]
-
-        keep = n_bad(si - radius - 1, si + radius + 2) == 0
-        corr = np.where(n_bad(si - side - 1, si + side + 2) == 0, corr, 0.0)
-    return pi[keep], (x0 - corr)[keep], gp[keep]
+    return x0, corr, gp
 
 
+def _kept(pk: _Peaks, x0: Array, corr: Array, gp: Array) -> tuple[NDArray[np.intp], Array, Array]:
+    """:func:`_edges_1d`'s result from its peaks and their :func:`_subpixel` positions: the peaks reading invalid
+    samples dropped, or kept without the slope correction."""
+    if pk.drop is None or pk.flat is None:
+        return pk.pi, x0 - corr, gp
+    keep = ~pk.drop
+    return pk.pi[keep], (x0 - np.where(pk.flat, 0.0, corr))[keep], gp[keep]
+
+
+@functools.lru_cache(maxsize=8)
 def _gauss_deriv_kernel(sigma: float) -> Array:
+    """The derivative-of-Gaussian kernel of scale ``sigma`` (samples), shape (2 r + 1,), normalised by ``sum |x k|``
+    (read-only: computed once per scale)."""
     r = max(2, int(np.ceil(3 * sigma)))
     x = np.arange(-r, r + 1, dtype=np.float64)
     k = -x * np.exp(-0.5 * (x / sigma) ** 2)
     k /= np.sum(np.abs(x * k))
+    k.setflags(write=False)
     return k
 
 
@@ -107,13 +160,14 @@ def _hidden(centres: Array, shift: Array, ks: tuple[float, ...], poly: Array) ->
     """Whether any of the points ``centres + k * shift`` (k in ks) is inside the convex polygon ``poly``.
 
     Same test as :func:`_inside_convex` on each shifted set, with the edge cross products computed once
-    (they are affine in the shift).
+    (they are affine in the shift). ``shift``: shape (2,), or (N, 2) one per centre.
     """
     d = np.roll(poly, -1, axis=0) - poly
     base = d[None, :, 0] * (centres[:, None, 1] - poly[None, :, 1]) - d[None, :, 1] * (
         centres[:, None, 0] - poly[None, :, 0]
     )
-    dv = d[:, 0] * shift[1] - d[:, 1] * shift[0]
+    sh = np.atleast_2d(shift)
+    dv = d[None, :, 0] * sh[:, 1:2] - d[None, :, 1] * sh[:, 0:1]
     out = np.zeros(len(centres), dtype=bool)
     for k in ks:
         cr = base + k * dv
@@ -145,6 +199,17 @@ class _IdealToImage:
         xn = uv @ self.A.T + self.b
         if self.rational or self.prism:
             return self.camera.distort_normalized(xn)
+        return self._distort64(xn)
+
+    def points_of(self, uvs: list[Array]) -> Array:
+        """:meth:`points` of several arrays of ideal pixels (each (N_i, 2)), concatenated: the same numbers (each
+        array's normalized coordinates from its own matrix product, the distortion applied to all at once)."""
+        if self.rational or self.prism:
+            return np.concatenate([self.points(uv) for uv in uvs])
+        return self._distort64(np.concatenate([uv @ self.A.T + self.b for uv in uvs]))
+
+    def _distort64(self, xn: Array) -> Array:
+        """Normalized coordinates (N, 2) -> distorted pixels (N, 2), float64 (radial k1 k2 k3 and tangential)."""
         k1, k2, p1, p2, k3 = self.d[:5]
         x, y = xn[:, 0], xn[:, 1]
         r2 = x * x + y * y
@@ -165,11 +230,19 @@ class _IdealToImage:
         o = offs.astype(f32)
         x = xc[:, 0:1].astype(f32) + o[None] * f32(nn[0])
         y = xc[:, 1:2].astype(f32) + o[None] * f32(nn[1])
+        return self._distort_f32(x, y)
+
+    def _distort_f32(
+        self, x: NDArray[np.float32], y: NDArray[np.float32]
+    ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """Normalized coordinates (float32 arrays) -> distorted pixels (x, y maps), float32."""
+        f32 = np.float32
         k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = (f32(v) for v in self.d[:12])
         xy = x * y
         x2 = x * x
         y2 = y * y
         r2 = x2 + y2
+        tmp = np.empty_like(xy)  # the terms below computed in place: the same operations on the same numbers
         rad = k3 * r2
         rad += k2
         rad *= r2
@@ -182,11 +255,17 @@ class _IdealToImage:
             with np.errstate(divide="ignore", invalid="ignore"):
                 rad /= f32(1) + r2 * (k4 + r2 * (k5 + r2 * k6))
         xd = x * rad
-        xd += f32(2) * p1 * xy
-        xd += p2 * (r2 + f32(2) * x2)
+        xd += np.multiply(xy, f32(2) * p1, out=tmp)  # 2 p1 xy
+        x2 *= f32(2)
+        x2 += r2
+        x2 *= p2
+        xd += x2  # p2 (r2 + 2 x^2)
         yd = y * rad
-        yd += p1 * (r2 + f32(2) * y2)
-        yd += f32(2) * p2 * xy
+        y2 *= f32(2)
+        y2 += r2
+        y2 *= p1
+        yd += y2  # p1 (r2 + 2 y^2)
+        yd += np.multiply(xy, f32(2) * p2, out=tmp)  # 2 p2 xy
         if self.prism:
             r4 = r2 * r2
             xd += s1 * r2 + s2 * r4
@@ -238,6 +317,10 @@ class _Segment:
     length: float  #: px
     off1: Array  #: limb 1 offset along n at the start and the end (px), shape (2,)
     off2: Array  #: limb 2 offset along n at the start and the end (px), shape (2,)
+    #: its profiles' positions and centres (:func:`_visible_centres`) or why too few are, and their edge pairs
+    #: (:func:`_limb_pairs`), when measured already with the rest of the frame's rods (:func:`_profile_frame`)
+    vis: tuple[Array, Array] | str | None = None
+    pairs: _LimbPairs | None = None
 
     def limb_offsets(self, frac: Array) -> tuple[Array, Array]:
         o1 = self.off1[0] + frac * (self.off1[1] - self.off1[0])
@@ -283,16 +366,16 @@ def _predicted_segment(
     if t1 <= t0:
         return "rod predicted outside the image"
     a2, b2 = a2 + t0 * d2, a2 + t1 * d2
-    length = float(np.linalg.norm(b2 - a2))
+    length = norm3(b2 - a2)
     if length < 1e-6:
         return "predicted rod seen end-on"
     t_dir = (b2 - a2) / length
     n_dir = np.array([-t_dir[1], t_dir[0]])
-    Kit = np.linalg.inv(K).T
+    Kit = _inv_t(K)
 
     def limb_offset(h: Array, c: Array) -> float:
         lp = Kit @ h  # the limb line in ideal pixels
-        lp = lp / np.linalg.norm(lp[:2])
+        lp = lp / norm3(lp[:2])
         den = lp[:2] @ n_dir
         return float(-(lp[:2] @ c + lp[2]) / den) if abs(den) > 1e-9 else np.nan
 
@@ -301,6 +384,17 @@ def _predicted_segment(
     if not (np.all(np.isfinite(off1)) and np.all(np.isfinite(off2))):
         return "degenerate predicted limb lines"
     return _Segment(a2, t_dir, n_dir, length, off1, off2)
+
+
+def _inv_t(K: Array) -> Array:
+    """``np.linalg.inv(K).T`` of a camera matrix (3, 3), computed once per matrix (in the same memory layout, which
+    the products with it follow to the last bit)."""
+    return _inv_t_of(K.tobytes()).copy(order="K")
+
+
+@functools.lru_cache(maxsize=16)
+def _inv_t_of(k: bytes) -> Array:
+    return cast("Array", np.linalg.inv(np.frombuffer(k, dtype=np.float64).reshape(3, 3)).T)
 
 
 def _seg_distance(pts: Array, a: Array, b: Array) -> Array:
@@ -371,8 +465,9 @@ def _pair_edges(
     )
     # best pair per profile: sort by (profile, -score) and take the first of each profile
     order = np.lexsort((-score, k))
+    ko = k[order]
     first = np.ones(order.size, dtype=bool)
-    first[1:] = k[order][1:] != k[order][:-1]
+    first[1:] = ko[1:] != ko[:-1]
     best = order[first]
     i_b, j_b = ii[best], jj[best]
     lo_is_i = xo[i_b] < xo[j_b]
@@ -443,11 +538,11 @@ def measure_rod(
         out.reason = seg
         return out
     proj = projector if projector is not None else _IdealToImage(camera)
-    vis = _visible_centres(camera, seg, s, box, proj, occluders)
+    vis = seg.vis if seg.vis is not None else _visible_centres(camera, seg, s, box, proj, occluders)
     if isinstance(vis, str):
         out.reason = vis
         return out
-    pairs = _limb_pairs(gray, camera, seg, s, proj, *vis)
+    pairs = seg.pairs if seg.pairs is not None else _limb_pairs(gray, camera, seg, s, proj, *vis)
     if neighbours:
         neighbours = _near_segments(
             vis[1],
@@ -506,6 +601,8 @@ class _LimbFits:
     fits: list[tuple[Array, Array, float, Array]]
     rms: list[float]
     npts: list[int]
+    #: per limb, its inlier points' positions along the line about their centroid (px), when known
+    ts: list[Array] = field(default_factory=list)
 
 
 def _visible_centres(
@@ -518,10 +615,35 @@ def _visible_centres(
 ) -> tuple[Array, Array] | str:
     """The profiles' positions along the segment (P,) and centres (P, 2) (ideal px) inside the image and outside the
     occluders, or why too few are."""
+    ts, centres = _profile_positions(seg, s)
+    inside = _visible(camera, centres, (_clearance(seg) * seg.n_dir)[None], s, box, proj, occluders)
+    return _visible_or_why(seg, s, ts, centres, inside)
+
+
+def _profile_positions(seg: _Segment, s: RodSettings) -> tuple[Array, Array]:
+    """The profiles' positions along the segment (P,) and their centres (P, 2) (ideal px), visible or not."""
     ts = np.arange(0.0, seg.length, s.step_px)
     if ts.size > 1500:
         ts = np.linspace(0.0, seg.length, 1500)
-    centres = seg.a[None] + ts[:, None] * seg.t_dir[None]
+    return ts, seg.a[None] + ts[:, None] * seg.t_dir[None]
+
+
+def _clearance(seg: _Segment) -> float:
+    """How far (px) from a profile's centre an occluder hides it: the rod's half width plus the clearance."""
+    return 0.5 * float(np.max(np.abs(seg.off1 - seg.off2))) + ROD_OCCLUDER_CLEARANCE_PX
+
+
+def _visible(
+    camera: CameraModel,
+    centres: Array,
+    shift: Array,
+    s: RodSettings,
+    box: Array,
+    proj: _IdealToImage,
+    occluders: list[Array] | None,
+) -> NDArray[np.bool_]:
+    """Which profile centres (N, 2) (ideal px) are inside the image and whose span (``centre +- shift``, shift (1, 2)
+    or (N, 2), ideal px) is outside the occluders, shape (N,)."""
     # keep centres inside the image (after distortion; the ideal-pixel box guards against the
     # distortion polynomial's fold-back far outside the field of view) and outside occluders
     dpx = proj.points(centres)
@@ -535,14 +657,20 @@ def _visible_centres(
         & (centres[:, 1] >= box[1])
         & (centres[:, 1] <= box[3])
     )
-    half = 0.5 * float(np.max(np.abs(seg.off1 - seg.off2)))
     for poly in occluders or []:
         # a profile is hidden when any part of its span is inside the polygon
-        inside &= ~_hidden(centres, (half + ROD_OCCLUDER_CLEARANCE_PX) * seg.n_dir, (-1.0, 0.0, 1.0), poly)
-    if inside.sum() * s.step_px < s.min_length_px:
-        vis = inside.sum() * s.step_px
+        inside &= ~_hidden(centres, shift, (-1.0, 0.0, 1.0), poly)
+    return inside
+
+
+def _visible_or_why(
+    seg: _Segment, s: RodSettings, ts: Array, centres: Array, inside: NDArray[np.bool_]
+) -> tuple[Array, Array] | str:
+    """The visible profiles' positions (P,) and centres (P, 2), or why too few are."""
+    n_in = int(np.count_nonzero(inside))
+    if n_in * s.step_px < s.min_length_px:
         return (
-            f"not enough of the rod visible ({vis:.0f} px of {seg.length:.0f} px predicted; "
+            f"not enough of the rod visible ({n_in * s.step_px:.0f} px of {seg.length:.0f} px predicted; "
             "outside the image or hidden by the board)"
         )
     return ts[inside], centres[inside]
@@ -559,6 +687,35 @@ def _limb_pairs(
 ) -> _LimbPairs:
     """Profiles across the predicted limbs at ``centres`` (P, 2), their sub-pixel edges and the best edge pair of
     each profile."""
+    pr = _gradient_profiles(gray, camera, seg, s, proj, ts, centres)
+    pi, pos, sg = _edges_1d(pr.g, s.min_contrast, pr.side, pr.inside, pr.radius)  # pi ascending (row-major scan)
+    k, x_lo, x_hi, pol = _pair_edges(
+        pi, pr.lo + pos * s.sample_px, sg, 0.5 * (pr.o1 + pr.o2), np.abs(pr.o2 - pr.o1), s.band_px, s.width_tolerance
+    )
+    return _LimbPairs(k, x_lo, x_hi, pol, pr.o1, pr.o2)
+
+
+@dataclass
+class _Profiles:
+    """A rod's gradient profiles across its predicted limbs (:func:`_gradient_profiles`): the gradient (P, S) (grey
+    levels per px, float32), which samples are inside the image (P, S; None: all of them), the first sample's offset
+    (ideal px along the segment's normal), the predicted limb offsets o1, o2 (P,) (ideal px), and the edge search's
+    slope and kernel half-widths (samples)."""
+
+    g: NDArray[np.float32]
+    inside: NDArray[np.bool_] | None
+    lo: float
+    o1: Array
+    o2: Array
+    side: int
+    radius: int
+
+
+def _gradient_profiles(
+    gray: np.ndarray, camera: CameraModel, seg: _Segment, s: RodSettings, proj: _IdealToImage, ts: Array, centres: Array
+) -> _Profiles:
+    """The profiles across the predicted limbs at the positions ``ts`` (P,) along the segment (centres (P, 2), ideal
+    px), differentiated."""
     n_dir = seg.n_dir
     o1, o2 = seg.limb_offsets(ts / seg.length)
     lo = np.minimum(o1, o2).min() - s.band_px
@@ -575,13 +732,83 @@ def _limb_pairs(
         cv2.filter2D(prof, cv2.CV_32F, ker[None, ::-1].astype(np.float32), borderType=cv2.BORDER_REPLICATE),
     )
     g *= np.float32(1.0 / ds)  # grey levels per pixel
-    side = max(2, round(3.0 / ds))
-    inside_img = (mx >= 0) & (mx <= camera.width - 1) & (my >= 0) & (my <= camera.height - 1)
-    pi, pos, sg = _edges_1d(g, s.min_contrast, side, inside_img, len(ker) // 2)  # pi ascending (row-major scan)
-    k, x_lo, x_hi, pol = _pair_edges(
-        pi, lo + pos * ds, sg, 0.5 * (o1 + o2), np.abs(o2 - o1), s.band_px, s.width_tolerance
-    )
-    return _LimbPairs(k, x_lo, x_hi, pol, o1, o2)
+    inside_img = None  # every sample inside the image
+    if not (mx.min() >= 0 and mx.max() <= camera.width - 1 and my.min() >= 0 and my.max() <= camera.height - 1):
+        inside_img = (mx >= 0) & (mx <= camera.width - 1) & (my >= 0) & (my <= camera.height - 1)
+    return _Profiles(g, inside_img, float(lo), o1, o2, max(2, round(3.0 / ds)), len(ker) // 2)
+
+
+def _profile_frame(
+    gray: np.ndarray,
+    camera: CameraModel,
+    segs: list[_Segment | str],
+    s: RodSettings,
+    box: Array,
+    proj: _IdealToImage,
+    occluders: list[Array] | None,
+) -> None:
+    """:func:`_visible_centres` and :func:`_limb_pairs` of every rod of a frame set on its segment (``vis``,
+    ``pairs``), the same numbers computed for all rods at once where that pays (:func:`_frame_pairs`)."""
+    rods = [g for g in segs if not isinstance(g, str)]
+    if not rods:
+        return
+    pos = [_profile_positions(g, s) for g in rods]
+    centres = np.concatenate([c for _, c in pos])
+    counts = np.array([len(t) for t, _ in pos])
+    shift = np.repeat(np.array([_clearance(g) * g.n_dir for g in rods]), counts, axis=0)
+    inside = np.split(_visible(camera, centres, shift, s, box, proj, occluders), np.cumsum(counts)[:-1])
+    seen: list[tuple[_Segment, Array, Array]] = []
+    for g, (ts, c), ins in zip(rods, pos, inside, strict=True):
+        g.vis = _visible_or_why(g, s, ts, c, ins)
+        if not isinstance(g.vis, str):
+            seen.append((g, *g.vis))
+    if seen:
+        for g, pairs in zip((x[0] for x in seen), _frame_pairs(gray, camera, seen, s, proj), strict=True):
+            g.pairs = pairs
+
+
+def _frame_pairs(
+    gray: np.ndarray,
+    camera: CameraModel,
+    seen: list[tuple[_Segment, Array, Array]],
+    s: RodSettings,
+    proj: _IdealToImage,
+) -> list[_LimbPairs]:
+    """:func:`_limb_pairs` of several rods (segment, visible profiles' positions (P,) and centres (P, 2)) at once,
+    the same numbers: each rod's profiles sampled, filtered and searched for peaks on their own (small arrays, in
+    cache), the peaks' sub-pixel positions and the edge pairs of all rods together."""
+    prs, pks = [], []
+    for g, ts, c in seen:
+        pr = _gradient_profiles(gray, camera, g, s, proj, ts, c)
+        prs.append(pr)
+        pks.append(_peaks(pr.g, s.min_contrast, pr.side, pr.inside, pr.radius))
+    counts = np.array([len(pr.o1) for pr in prs])
+    rows = np.concatenate([[0], np.cumsum(counts)])
+    pi = np.concatenate([pk.pi + rows[r] for r, pk in enumerate(pks)])
+    si = np.concatenate([pk.si for pk in pks])
+    x0, corr, sg = _subpixel(si, np.concatenate([pk.win for pk in pks]), prs[0].side)
+    if any(pk.drop is not None for pk in pks):  # (see _kept)
+        drop = np.concatenate([np.zeros(len(pk.si), dtype=bool) if pk.drop is None else pk.drop for pk in pks])
+        flat = np.concatenate([np.zeros(len(pk.si), dtype=bool) if pk.flat is None else pk.flat for pk in pks])
+        keep = ~drop
+        pi, x0, corr, sg = pi[keep], x0[keep], np.where(flat, 0.0, corr)[keep], sg[keep]
+    pos = x0 - corr
+    lo = np.repeat(np.array([pr.lo for pr in prs]), counts)
+    pc = np.concatenate([0.5 * (pr.o1 + pr.o2) for pr in prs])
+    pw = np.concatenate([np.abs(pr.o2 - pr.o1) for pr in prs])
+    k, x_lo, x_hi, pol = _pair_edges(pi, lo[pi] + pos * s.sample_px, sg, pc, pw, s.band_px, s.width_tolerance)
+    cut = np.searchsorted(k, rows)
+    return [
+        _LimbPairs(
+            k[cut[r] : cut[r + 1]] - rows[r],
+            x_lo[cut[r] : cut[r + 1]],
+            x_hi[cut[r] : cut[r + 1]],
+            pol[cut[r] : cut[r + 1]],
+            pr.o1,
+            pr.o2,
+        )
+        for r, pr in enumerate(prs)
+    ]
 
 
 def _fit_limbs(
@@ -603,11 +830,12 @@ def _fit_limbs(
     edges = (np.where(one_low, x_lo, x_hi), np.where(one_low, x_hi, x_lo))
     pred_off = (o1[k], o2[k])
     out = _LimbFits([], [], [], [])
+    ck = centres[k]
     for x_e, x_p in zip(edges, pred_off, strict=True):
-        pts = centres[k] + x_e[:, None] * n_dir[None]
+        pts = ck + x_e[:, None] * n_dir[None]
         if neighbours:
             # drop limb points whose edge may merge with another rod's silhouette
-            limb_pred = centres[k] + x_p[:, None] * n_dir[None]
+            limb_pred = ck + x_p[:, None] * n_dir[None]
             clear = np.ones(len(pts), dtype=bool)
             for a_n, b_n, hw in neighbours:
                 clear &= _seg_distance(limb_pred, a_n, b_n) > hw + s.neighbour_px
@@ -618,14 +846,17 @@ def _fit_limbs(
                 "search band, or too close to another rod"
             )
         line, inl = robust_line(pts, rng, s.ransac_iters, s.inlier_px)
-        if not np.all(np.isfinite(line)) or inl.sum() < s.min_points:
-            return f"limb line fit failed ({int(inl.sum())} inliers of {len(pts)})"
-        r = pts[inl] @ line[:2] + line[2]
+        n_in = int(np.count_nonzero(inl))
+        if not np.all(np.isfinite(line)) or n_in < s.min_points:
+            return f"limb line fit failed ({n_in} inliers of {len(pts)})"
+        p_in = pts[inl]
+        r = p_in @ line[:2] + line[2]
         out.lines.append(line)
-        c, td, s2 = _line_cov(pts[inl], line)
-        out.fits.append((c, td, s2, pts[inl]))
-        out.rms.append(float(np.sqrt(np.mean(r**2))))
-        out.npts.append(int(inl.sum()))
+        c, td, s2, t = _line_stats(p_in, line, r)  # (_line_cov)
+        out.fits.append((c, td, s2, p_in))
+        out.ts.append(t)
+        out.rms.append(float(np.sqrt(np.add.reduce(r * r) / n_in)))  # RMS of r (np.mean's numbers)
+        out.npts.append(n_in)
     return out
 
 
@@ -677,14 +908,17 @@ def _axis_from_limbs(
     out.point = X
     # the allowance whole (cov_u) and averaged along the limb (cov_u_own), the planes' derivatives computed once
     out.cov_u, out.cov_u_own = _direction_covariance_set(
-        K, fits.fits, inner, s.edge_bias_px, (0.0, s.edge_bias_length_px)
+        K, fits.fits, inner, s.edge_bias_px, (0.0, s.edge_bias_length_px), fits.ts or None
     )
-    out.limbs_px = _limb_samples(camera, fits.fits, proj)
+    out.limbs_px = _limb_samples(camera, fits.fits, proj, fits.ts or None)
     return None
 
 
 def _limb_samples(
-    camera: CameraModel, fits: list[tuple[Array, Array, float, Array]], projector: _IdealToImage | None = None
+    camera: CameraModel,
+    fits: list[tuple[Array, Array, float, Array]],
+    projector: _IdealToImage | None = None,
+    ts: list[Array] | None = None,
 ) -> Array:
     """Five points per limb, distorted pixels (2, 5, 2): the means of its edge points in five bins of equal count
     along it, taken in ideal pixels (where the limb is straight, so that a mean lies on it) and then to the image.
@@ -696,15 +930,19 @@ def _limb_samples(
     which tilts a rod's recomputed direction in depth the same way on every rod in that part of the image.
     """
     proj = projector if projector is not None else _IdealToImage(camera)
-    out = np.empty((len(fits), 5, 2))
+    bins = []
     for i, (c, td, _s2, pts) in enumerate(fits):
         if len(pts) >= 5:
-            order = np.argsort((pts - c) @ td, kind="stable")
-            means = np.array([b.mean(axis=0) for b in np.array_split(pts[order], 5)])
+            # (ts: each fit's (pts - c) @ td when known)
+            order = np.argsort((pts - c) @ td if ts is None else ts[i], kind="stable")
+            srt = pts[order]
+            q, extra = divmod(len(pts), 5)  # np.array_split's bins: the first ``extra`` one longer
+            ends = np.cumsum([0] + [q + 1] * extra + [q] * (5 - extra))
+            means = np.array([np.add.reduce(srt[a:b], axis=0) / (b - a) for a, b in itertools.pairwise(ends)])
         else:  # fewer points than bins (never with RodSettings.min_points >= 5): points of the fitted line
             means = c[None] + _quantiles5(np.sort((pts - c) @ td))[:, None] * td[None]
-        out[i] = proj.points(means)
-    return out
+        bins.append(means)
+    return proj.points_of(bins).reshape(len(fits), 5, 2) if bins else np.empty((0, 5, 2))
 
 
 def _quantiles5(x: Array) -> Array:
@@ -788,6 +1026,8 @@ def measure_rods(
     img = gray.astype(np.float32) if gray.dtype != np.float32 else gray
     box = ideal_bbox if ideal_bbox is not None else image_ideal_bbox(camera)
     segs = [_predicted_segment(camera, p, radius, s.near_m, box) for p in preds]
+    proj = _IdealToImage(camera)
+    _profile_frame(img, camera, segs, s, box, proj, occluders)
     fr = _FrameRods(
         img,
         camera,
@@ -797,7 +1037,7 @@ def measure_rods(
         occluders,
         np.random.default_rng(seed),
         box,
-        _IdealToImage(camera),
+        proj,
         segs,
         [None if isinstance(g, str) else _silhouette(g) for g in segs],
     )
