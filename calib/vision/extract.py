@@ -40,8 +40,9 @@ reported per frame (``missing`` in the frame, ``summary`` per phase) and the res
 
 from __future__ import annotations
 
+import contextlib
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
@@ -235,7 +236,7 @@ def extract_dataset(
     # threads only spin (a quarter more CPU with one worker, for the same result within float rounding).
     # Streaming: frames measured during the acquisition answer from the pool (calib.vision.stream)
     pool_cm = _Pool(workers) if streamed is None else streamed.pool(workers, ds)
-    with pool_cm as pool, threadpool_limits(limits=1):
+    with pool_cm as pool, threadpool_limits(limits=1), _opencv_threads(1 if workers == 1 else None):
         corners: dict[int, list] = {}
         # 1. the boards and rods measured with the camera given, the dataset's or calibrated
         res = _extract(
@@ -259,6 +260,23 @@ def extract_dataset(
         # 4. the rods lost in their search bands recovered
         res = _recover(pool, ds, res, opts, on_frame, corners, pass_progress, next_pass)
     return res
+
+
+@contextlib.contextmanager
+def _opencv_threads(n: int | None) -> Iterator[None]:
+    """OpenCV runs ``n`` threads inside the block (None: as it is); its setting is restored after. One worker is
+    this process alone: one OpenCV thread, as each worker of a pool runs."""
+    if n is None:
+        yield
+        return
+    import cv2
+
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(n)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(before)
 
 
 def _measure_with_refined_camera(

@@ -25,7 +25,13 @@ import pkgutil
 import sys
 from collections.abc import Callable, Iterable, Sequence
 
-from calib.errors import I4calError
+# One BLAS/OpenMP thread unless the user set otherwise, before numpy loads: the project's matrices are small, and a
+# second thread only spins (0.3 s of CPU at import alone on 2 cores); the extraction's and the studies' parallelism
+# is in processes (docs/benchmarks.md)
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+from calib.errors import I4calError  # noqa: E402  (after the threads' settings)
 
 #: A function that adds sub-commands: ``register(subparsers)`` (``subparsers``: the command line's
 #: ``argparse._SubParsersAction``), as each command module of this package defines one.
