@@ -549,20 +549,7 @@ def _extract(
     rod_items = _rod_items(ps, boards, place, found, predict_with)
     refit = C is not None and E is not None and not found and opts.repredict_px is not None
     first = _first_sample(rod_items, opts) if refit and predict_with is None else rod_items
-    rods = _reexpress_stage(ps, boards, first, reexpress) if reexpress else {}
-    measure = [it for it in first if it[0] not in rods]
-    ps.reexpressed, ps.measured = len(rods), len(measure)
-    rods.update(
-        ps.pool.run(
-            _task_rods,
-            measure,
-            ps.init,
-            ps.ticker.callback,
-            ps.ticker.done + len(rods),
-            ps.ticker.total,
-            _rods_cb(ps, boards),
-        )
-    )
+    rods = _rods_stage(ps, boards, first, reexpress)
     if not refit or predict_with is not None:  # measured on the pass's final prediction (unless the refit moves it)
         ps.on_final.update(rods)
     repredicted: dict[str, Any] | None = None
@@ -756,6 +743,21 @@ def _rods_cb(ps: _Pass, boards: dict[int, dict[str, Any]]) -> Callable[[Any], No
     if on_frame is None:
         return None
     return lambda r: on_frame(frame_info(r[0], frames[r[0]].phase, boards[r[0]], r[1]))
+
+
+def _rods_stage(
+    ps: _Pass, boards: dict[int, dict[str, Any]], items: list[tuple], reexpress: dict[int, Any] | None
+) -> dict[int, Any]:
+    """The rods of the frames in ``items``: re-expressed from an earlier pass's results where it has them
+    (:func:`_reexpress_stage`), measured in the images otherwise (:func:`calib.vision.pool._task_rods`)."""
+    rods = _reexpress_stage(ps, boards, items, reexpress) if reexpress else {}
+    measure = [it for it in items if it[0] not in rods]
+    ps.reexpressed, ps.measured = len(rods), len(measure)
+    t = ps.ticker
+    rods.update(
+        ps.pool.run(_task_rods, measure, ps.init, t.callback, t.done + len(rods), t.total, _rods_cb(ps, boards))
+    )
+    return rods
 
 
 def _reexpress_stage(

@@ -192,9 +192,20 @@ def _task_reexpress(args: tuple[int, dict[str, Any]]) -> tuple[int, Any]:
 
 
 def rods_result(ms: list[RodMeasurement]) -> dict[str, Any]:
-    """A frame's rods stage result: ``{"rods": {name: dict | reason}, "parallel_mrad": {leg: mrad}, "edges": {name:
-    (limb 0 (N0, 2), limb 1 (N1, 2), middle (2,))}}``, the edges (distorted px) of the rods measured, from which a
-    later pass re-expresses them for another camera (:func:`calib.vision.rods.reexpress.reexpress_frame`)."""
+    """A frame's rods stage result from its measured rods.
+
+    Parameters
+    ----------
+    ms : list of RodMeasurement
+        The frame's rods as :func:`calib.vision.rods.measure_rods` measured them.
+
+    Returns
+    -------
+    dict
+        ``{"rods": {name: dict | reason}, "parallel_mrad": {leg: angle between its rods, mrad}, "edges": {name:
+        (limb 0 (N0, 2), limb 1 (N1, 2), middle (2,))}}``: the edge points (distorted px) of the rods measured, from
+        which a later pass re-expresses them for another camera (:func:`calib.vision.rods.reexpress.reexpress_frame`).
+    """
     rods = {rod_name(m.leg, m.rod): (m.to_dict() if m.ok else m.reason) for m in ms}
     par = {k: v * 1e3 for k, v in leg_parallelism(ms).items()}
     edges = {
