@@ -248,8 +248,11 @@ def extract_dataset(
             on_frame,
             keep_images=opts.refine_camera,
             corners=corners,
-            # streaming measured every frame already: the refined camera's pass re-expresses them all
+            # streaming measured every frame already, on the nominal prediction and on a refit: the first pass refits
+            # to all of them (as the stream did, so that its refitted measurements are taken), and the refined
+            # camera's pass re-expresses them all
             for_refinement=opts.refine_camera and streamed is None,
+            sample=streamed is None,
         )
         if opts.refine_camera:
             # 2. the camera refined by those rods, 3. the frames measured again with it
@@ -502,14 +505,17 @@ def _extract(
     predicted_from: Rigid | None = None,
     for_refinement: bool = False,
     reexpress: dict[int, Any] | None = None,
+    sample: bool = True,
 ) -> ExtractionResult:
     """One pass over the dataset. ``keep_images``: the workers keep the decoded images after the rods stage (a
     second pass follows); ``corners``: filled with each frame's ChArUco corners when empty, reused (the pose
     only) when not. ``for_refinement``: a second pass follows in any case when the camera can be refined by the rods
     (it carries its calibration's covariance): after the refit, only the frames of the phases the refinement uses
     (:data:`.refine.REFINEMENT_PHASES`) are measured (``ExtractionResult.deferred`` counts the others).
-    ``reexpress``: an earlier pass's rods results on its final prediction (``ExtractionResult.rods``), re-expressed
-    for this pass's camera instead of measured again (:func:`_reexpress_stage`).
+    ``sample``: the rods' first pass on the nominal prediction measures a sample of the frames
+    (:func:`_first_sample`), else all of them. ``reexpress``: an earlier pass's rods results on its final prediction
+    (``ExtractionResult.rods``), re-expressed for this pass's camera instead of measured again
+    (:func:`_reexpress_stage`).
 
     Stages: the camera (:func:`_camera_stage`), the boards (:func:`_board_stage`), the coarse placement
     (:func:`_placement_stage`), the rods found from scratch without one (:func:`_detect_stage`), the rods measured
@@ -548,7 +554,7 @@ def _extract(
         found, fallback = _detect_stage(ps, cam.camera, boards)
     rod_items = _rod_items(ps, boards, place, found, predict_with)
     refit = C is not None and E is not None and not found and opts.repredict_px is not None
-    first = _first_sample(rod_items, opts) if refit and predict_with is None else rod_items
+    first = _first_sample(rod_items, opts) if refit and predict_with is None and sample else rod_items
     rods = _rods_stage(ps, boards, first, reexpress)
     if not refit or predict_with is not None:  # measured on the pass's final prediction (unless the refit moves it)
         ps.on_final.update(rods)

@@ -166,3 +166,24 @@ def test_with_a_camera_the_rods_refine_the_stream_is_reexpressed_not_measured_ag
     pa, pb = np.array([fa["parameters"][k] for k in keys]), np.array([fb["parameters"][k] for k in keys])
     sd = np.array([fa["std"][k] for k in keys])
     assert np.all(np.abs(pa - pb) <= 2 * sd), (pa - pb) / sd
+
+
+def test_a_streamed_extraction_refits_to_every_frame_and_takes_every_rod(dataset):
+    """With the frames streamed (the worker idle long enough to measure each frame on its latest refit), the first
+    pass takes every frame's rods on the nominal prediction (they cost nothing) and refits to all of them, as the
+    stream did: its refit is then the stream's, and every rod measured on the stream's refit is taken. A sample (
+    2 frames here) would refit elsewhere, and frames would be measured again at the end."""
+    from calib.vision.extract import ExtractOptions
+
+    fs = FrameStreamer(str(dataset))
+    for i in range(len(json.loads((dataset / "dataset.json").read_text())["frames"])):
+        fs.add(i)
+        while fs.idle_step():
+            pass
+    assert fs.frames is not None
+    frames = StreamedFrames.from_dict(json.loads(json.dumps(fs.frames.to_dict(), default=lambda o: o.tolist())))
+    opts = ExtractOptions(first_pass_every=13, first_pass_min_frames=2)
+    res = extract_dataset(dataset, workers=1, streamed=frames, options=opts)
+    assert frames.used["rods_measured_again"] == 0, frames.used
+    n = len(res.observations["frames"])
+    assert frames.used["rods"] >= n - 2, frames.used  # all but the frames before the stream's placement
