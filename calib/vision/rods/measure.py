@@ -563,11 +563,8 @@ def measure_rod(
     if isinstance(fits, str):
         out.reason = fits
         return out
-    out.lines_px = fits.lines
-    out.rms_px = (fits.rms[0], fits.rms[1])
-    out.n_points = (fits.npts[0], fits.npts[1])
-    if max(fits.rms) > s.max_rms_px:
-        out.reason = f"limb edges too scattered (residual RMS {max(fits.rms):.2f} px > {s.max_rms_px} px)"
+    out.reason = _limb_quality(out, fits, s)
+    if out.reason is not None:
         return out
     reason = _axis_from_limbs(out, camera, pred, radius, s, proj, fits, vis[1], seg.n_dir)
     if reason is not None:
@@ -858,6 +855,17 @@ def _fit_limbs(
         out.rms.append(float(np.sqrt(np.add.reduce(r * r) / n_in)))  # RMS of r (np.mean's numbers)
         out.npts.append(n_in)
     return out
+
+
+def _limb_quality(out: RodMeasurement, fits: _LimbFits, s: RodSettings) -> str | None:
+    """The limb lines and their quality figures set on ``out``; why the rod is rejected (its limb edges scattered
+    beyond ``s.max_rms_px``), else None."""
+    out.lines_px = fits.lines
+    out.rms_px = (fits.rms[0], fits.rms[1])
+    out.n_points = (fits.npts[0], fits.npts[1])
+    if max(fits.rms) > s.max_rms_px:
+        return f"limb edges too scattered (residual RMS {max(fits.rms):.2f} px > {s.max_rms_px} px)"
+    return None
 
 
 def _axis_from_limbs(

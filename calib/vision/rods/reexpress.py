@@ -22,7 +22,7 @@ from calib.formats.camera import CameraModel
 from .covariance import _line_cov
 from .cylinder import ROD_KEYS, rod_name
 from .linefit import _tls_q
-from .measure import _axis_from_limbs, _IdealToImage, _LimbFits, leg_parallelism
+from .measure import _axis_from_limbs, _IdealToImage, _limb_quality, _LimbFits, leg_parallelism
 from .types import RodMeasurement, RodPrediction, RodSettings
 
 Array = NDArray[np.float64]
@@ -94,11 +94,8 @@ def reexpress_rod(
         fits.fits.append((*_line_cov(pts, line), pts))
         fits.rms.append(float(np.sqrt(np.mean(r**2))))
         fits.npts.append(len(pts))
-    out.lines_px = fits.lines
-    out.rms_px = (fits.rms[0], fits.rms[1])
-    out.n_points = (fits.npts[0], fits.npts[1])
-    if max(fits.rms) > s.max_rms_px:
-        out.reason = f"limb edges too scattered (residual RMS {max(fits.rms):.2f} px > {s.max_rms_px} px)"
+    out.reason = _limb_quality(out, fits, s)
+    if out.reason is not None:
         return out
     middle = _ideal(camera, measured.middle_px[None])
     # the direction only orients the axis (u . pred.u > 0): a prediction along the measured axis

@@ -19,6 +19,21 @@ def _with_covariance(cam: CameraModel) -> CameraModel:
     return CameraModel(K, cam.dist, cam.width, cam.height, {"calibration": cal})
 
 
+def _count_rods_tasks(monkeypatch) -> list[int]:
+    """The frames whose rods the extraction measures in their images, in order (each ``_task_rods`` call)."""
+    import calib.vision.extract as extract
+
+    measured: list[int] = []
+    task_rods = extract._task_rods
+
+    def counted(args: tuple) -> tuple:
+        measured.append(int(args[0]))
+        return task_rods(args)
+
+    monkeypatch.setattr(extract, "_task_rods", counted)
+    return measured
+
+
 def test_the_refinement_is_the_stage_run_on_the_first_pass(small_dataset):  # noqa: F811
     root, _, cam = small_dataset
     camera = _with_covariance(cam)
@@ -50,19 +65,10 @@ def test_frames_the_refinement_does_not_use_are_measured_once(small_dataset, mon
     """With a camera the rods can refine, the first pass measures on the refitted prediction only the frames the
     refinement uses (the poses); the others are measured once, by the pass with the refined camera. The refinement
     is the one a first pass measuring every frame finds."""
-    import calib.vision.extract as extract
-
     root, _, cam = small_dataset
     camera = _with_covariance(cam)
     sample = {"first_pass_every": 3, "first_pass_min_frames": 4, "recover_lost_share": None}
-    measured: list[int] = []
-    task_rods = extract._task_rods
-
-    def counted(args: tuple) -> tuple:
-        measured.append(int(args[0]))
-        return task_rods(args)
-
-    monkeypatch.setattr(extract, "_task_rods", counted)
+    measured = _count_rods_tasks(monkeypatch)
     res = extract_dataset(root, camera=camera, workers=1, options=ExtractOptions(**sample))
     monkeypatch.undo()
     ref = res.camera_refinement
@@ -79,19 +85,10 @@ def test_frames_the_refinement_does_not_use_are_measured_once(small_dataset, mon
 def test_the_second_pass_reexpresses_the_frames_the_first_measured(small_dataset, monkeypatch):  # noqa: F811
     """The frames the first pass measured on its refitted prediction (the poses) are re-expressed for the refined
     camera from their edge points, not measured again: each image's rods are measured once on the refit."""
-    import calib.vision.extract as extract
-
     root, _, cam = small_dataset
     camera = _with_covariance(cam)
     sample = {"first_pass_every": 3, "first_pass_min_frames": 4, "recover_lost_share": None}
-    measured: list[int] = []
-    task_rods = extract._task_rods
-
-    def counted(args: tuple) -> tuple:
-        measured.append(int(args[0]))
-        return task_rods(args)
-
-    monkeypatch.setattr(extract, "_task_rods", counted)
+    measured = _count_rods_tasks(monkeypatch)
     res = extract_dataset(root, camera=camera, workers=1, options=ExtractOptions(**sample))
     monkeypatch.undo()
     assert res.camera_refinement is not None and res.camera_refinement.applied
