@@ -24,10 +24,10 @@ Stages (each over a process pool when ``workers > 1``, with ``progress(done, tot
 6. The camera refined by the rods (:func:`calib.vision.refine.refine_camera_by_rods`, a stage of its own run by
    :func:`extract_dataset` after the first pass) when it carries its calibration's covariance; then every frame is
    measured again with it (the board corners and the refitted prediction of the first pass reused), and the first
-   pass measures on its refitted prediction only the frames the refinement uses (the ``poses`` phase); the second
-   pass re-expresses those for the refined camera from the edge points the first pass found
-   (:mod:`calib.vision.rods.reexpress`: their images not measured again). When the camera did not move by
-   ``ExtractOptions.refine_min_shift``, that second pass runs with the same camera.
+   pass measures on its refitted prediction only the frames the refinement uses (the ``poses`` phase). With the frames
+   streamed during the acquisition, the second pass re-expresses them for the refined camera from the edge points the
+   stream found (:mod:`calib.vision.rods.reexpress`: their images not measured again). When the camera did not move
+   by ``ExtractOptions.refine_min_shift``, that second pass runs with the same camera.
 7. Rods once more, when more than ``ExtractOptions.recover_lost_share`` of those looked for were lost in their search
    bands (:mod:`calib.vision.recover`): the prediction refitted robustly (each measured line its own rod, its leg's
    other rod or the gap between them; several starts) and every frame measured again, kept when it loses fewer rods
@@ -257,6 +257,11 @@ def extract_dataset(
         if opts.refine_camera:
             # 2. the camera refined by those rods, 3. the frames measured again with it
             refinement = refine_camera_by_rods(res.observations, res.camera, opts.refine_min_shift)
+            if streamed is None:
+                # measured here, the frames are measured again with the refined camera (the fit poses' limb-line
+                # scatter then matches the design's prediction: tests/calib/test_design.py); streamed, every frame is
+                # re-expressed for it from its edge points, which keeps the result seconds after the motion
+                res.rods = None
             res = _measure_with_refined_camera(
                 pool, ds, res, refinement, opts, on_frame, corners, pass_progress, next_pass
             )

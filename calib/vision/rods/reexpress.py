@@ -43,6 +43,22 @@ def _limb_line(pts: Array) -> Array:
     return np.array([a, b, c0 - (a * float(o[0]) + b * float(o[1]))])
 
 
+def _limb_fit(pts: Array, inlier_px: float) -> tuple[Array, Array]:
+    """The limb's line through its edge points (ideal px of the new camera) with the measurement's last rejection
+    (:func:`calib.vision.rods.linefit.robust_line`: beyond 3 robust std of the residuals, at least 0.3 px, the line
+    fitted again): in the new camera's straighter (or more bent) image of the limb, the points its line no longer
+    fits are dropped as a measurement with that camera drops them. Returns the points kept and the line."""
+    line = _limb_line(pts)
+    r = np.abs(pts @ line[:2] + line[2])
+    near = r < 3.0 * inlier_px
+    cut = max(3.0 * 1.4826 * float(np.median(r[near])) if near.any() else inlier_px, 0.3)
+    keep = r < cut
+    if np.count_nonzero(keep) >= 2 and not keep.all():
+        pts = pts[keep]
+        line = _limb_line(pts)
+    return pts, line
+
+
 def reexpress_rod(
     measured: RodMeasurement,
     camera: CameraModel,
@@ -87,8 +103,7 @@ def reexpress_rod(
     out.edges_px, out.middle_px = measured.edges_px, measured.middle_px
     fits = _LimbFits([], [], [], [])
     for raw in measured.edges_px:
-        pts = _ideal(camera, raw)
-        line = _limb_line(pts)
+        pts, line = _limb_fit(_ideal(camera, raw), s.inlier_px)
         r = pts @ line[:2] + line[2]
         fits.lines.append(line)
         fits.fits.append((*_line_cov(pts, line), pts))

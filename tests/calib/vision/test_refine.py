@@ -82,28 +82,6 @@ def test_frames_the_refinement_does_not_use_are_measured_once(small_dataset, mon
     assert refine_camera_by_rods(full.observations, full.camera).info == ref.info
 
 
-def test_the_second_pass_reexpresses_the_frames_the_first_measured(small_dataset, monkeypatch):  # noqa: F811
-    """The frames the first pass measured on its refitted prediction (the poses) are re-expressed for the refined
-    camera from their edge points, not measured again: each image's rods are measured once on the refit."""
-    root, _, cam = small_dataset
-    camera = _with_covariance(cam)
-    sample = {"first_pass_every": 3, "first_pass_min_frames": 4, "recover_lost_share": None}
-    measured = _count_rods_tasks(monkeypatch)
-    res = extract_dataset(root, camera=camera, workers=1, options=ExtractOptions(**sample))
-    monkeypatch.undo()
-    assert res.camera_refinement is not None and res.camera_refinement.applied
-    phase = {f["dataset_frame"]: f["phase"] for f in res.observations["frames"]}
-    first_sample = [i for i in sorted(phase) if i not in (8, 9)][::3]
-    poses = [i for i, ph in phase.items() if ph == "poses" and i not in first_sample and i not in (8, 9)]
-    assert poses
-    counts = res.summary["rods_frames"]  # what the refined camera's pass did, said in the summary
-    assert counts["reexpressed"] >= len(poses) and counts["measured"] + counts["reexpressed"] >= len(phase) - 2
-    for i in poses:
-        assert measured.count(i) == 1, (i, measured)
-        frame = next(f for f in res.observations["frames"] if f["dataset_frame"] == i)
-        assert any(r is not None for leg in frame["legs"].values() for r in leg)  # its rods are there
-
-
 def test_the_first_sample_is_spread_evenly_with_its_minimum():
     """One frame in ``first_pass_every``, at least ``first_pass_min_frames`` spread over the frames, all of them only
     when there are no more (a 60-frame dataset sampled 24 frames, not all 60)."""
