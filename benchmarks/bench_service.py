@@ -145,6 +145,25 @@ def start_sim_bench(tmp: Path) -> tuple[subprocess.Popen, Path, Path]:
     return sim, bench, camera
 
 
+def start_full_run(c: httpx.Client, ready_s: float = 60.0) -> str:
+    """Wait for the service behind ``c`` to be ready (``/readyz``, up to ``ready_s``), start a run of the full plan
+    with the three methods and return its id."""
+    for _ in range(int(ready_s / 0.05)):
+        try:
+            if c.get("/readyz").status_code == 200:
+                break
+        except httpx.TransportError:
+            pass
+        time.sleep(0.05)
+    r = c.post(
+        "/api/v1/runs",
+        json={"plan": "full", "methods": ["combined", "end-effector", "legs"]},
+        headers={"Authorization": f"Bearer {TOKEN}"},
+    )
+    r.raise_for_status()
+    return str(r.json()["id"])
+
+
 def measure(
     paper_plan: bool = False,
     workers: int = 2,
@@ -184,19 +203,7 @@ def measure(
     lat: dict[str, dict[str, list[float]]] = {}
     try:
         with httpx.Client(base_url=url, timeout=10) as c:
-            for _ in range(600):
-                try:
-                    if c.get("/readyz").status_code == 200:
-                        break
-                except httpx.TransportError:
-                    time.sleep(0.05)
-            r = c.post(
-                "/api/v1/runs",
-                json={"plan": "full", "methods": ["combined", "end-effector", "legs"]},
-                headers={"Authorization": f"Bearer {TOKEN}"},
-            )
-            r.raise_for_status()
-            rid = r.json()["id"]
+            rid = start_full_run(c)
             stop = threading.Event()
             answers: dict[int, int] = {}
             loaders = [

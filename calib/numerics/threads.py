@@ -51,3 +51,17 @@ def forking_single_threaded() -> Iterator[None]:
             yield
         finally:
             cv2.setNumThreads(n_cv)
+
+
+@contextlib.contextmanager
+def single_threaded() -> Iterator[None]:
+    """This process runs one BLAS/OpenMP and one OpenCV thread inside the block (an extraction with one worker, which
+    is this process alone, as each worker of a pool runs); its own settings are restored when the block ends.
+
+    Yields
+    ------
+    None
+        Control, inside the block.
+    """
+    with forking_single_threaded():  # the same limits; nothing is forked here
+        yield

@@ -40,9 +40,8 @@ reported per frame (``missing`` in the frame, ``summary`` per phase) and the res
 
 from __future__ import annotations
 
-import contextlib
 import os
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
@@ -56,6 +55,7 @@ from calib.formats.dataset import Dataset
 from calib.formats.observations import FORMAT
 from calib.model.kinematics import base_from_ee, dkm
 from calib.model.parameters import I4Parameters
+from calib.numerics.threads import single_threaded
 from calib.numerics.transforms import Rigid
 from calib.vision.board import BoardDetector
 from calib.vision.detect import DetectSettings, resolve_frames
@@ -236,7 +236,9 @@ def extract_dataset(
     # threads only spin (a quarter more CPU with one worker, for the same result within float rounding).
     # Streaming: frames measured during the acquisition answer from the pool (calib.vision.stream)
     pool_cm = _Pool(workers) if streamed is None else streamed.pool(workers, ds)
-    with pool_cm as pool, threadpool_limits(limits=1), _opencv_threads(1 if workers == 1 else None):
+    # one worker is this process alone: one OpenCV thread too, as each worker of a pool runs
+    limits = single_threaded() if workers == 1 else threadpool_limits(limits=1)
+    with pool_cm as pool, limits:
         corners: dict[int, list] = {}
         # 1. the boards and rods measured with the camera given, the dataset's or calibrated
         res = _extract(
@@ -257,34 +259,15 @@ def extract_dataset(
         if opts.refine_camera:
             # 2. the camera refined by those rods, 3. the frames measured again with it
             refinement = refine_camera_by_rods(res.observations, res.camera, opts.refine_min_shift)
-            if streamed is None:
-                # measured here, the frames are measured again with the refined camera (the fit poses' limb-line
-                # scatter then matches the design's prediction: tests/calib/test_design.py); streamed, every frame is
-                # re-expressed for it from its edge points, which keeps the result seconds after the motion
-                res.rods = None
+            # streamed, every frame is re-expressed for it from its edge points, which keeps the result seconds after
+            # the motion; measured here, the frames are measured again with it (the fit poses' limb-line scatter then
+            # matches the design's prediction: tests/calib/test_design.py)
             res = _measure_with_refined_camera(
-                pool, ds, res, refinement, opts, on_frame, corners, pass_progress, next_pass
+                pool, ds, res, refinement, opts, on_frame, corners, pass_progress, next_pass, streamed is not None
             )
         # 4. the rods lost in their search bands recovered
         res = _recover(pool, ds, res, opts, on_frame, corners, pass_progress, next_pass)
     return res
-
-
-@contextlib.contextmanager
-def _opencv_threads(n: int | None) -> Iterator[None]:
-    """OpenCV runs ``n`` threads inside the block (None: as it is); its setting is restored after. One worker is
-    this process alone: one OpenCV thread, as each worker of a pool runs."""
-    if n is None:
-        yield
-        return
-    import cv2
-
-    before = cv2.getNumThreads()
-    cv2.setNumThreads(n)
-    try:
-        yield
-    finally:
-        cv2.setNumThreads(before)
 
 
 def _measure_with_refined_camera(
@@ -297,8 +280,10 @@ def _measure_with_refined_camera(
     corners: dict[int, list],
     progress: Progress,
     next_pass: Callable[[], None],
+    reexpress: bool = False,
 ) -> ExtractionResult:
-    """The frames measured again with the refined camera, on the first pass's refitted prediction and board corners;
+    """The frames measured again with the refined camera, on the first pass's refitted prediction and board corners
+    (``reexpress``: the first pass's rods re-expressed for it where they carry their edge points, the rest measured);
     the first pass when the camera was not refined. The refinement is recorded in the summary
     (``camera.refined_by_rods``) and kept in the result (``camera_refinement``)."""
     if refinement.camera is None and not first.deferred:
@@ -317,7 +302,7 @@ def _measure_with_refined_camera(
         corners=corners,
         predict_with=first.repredicted,
         predicted_from=first.camera_from_base,
-        reexpress=first.rods,
+        reexpress=first.rods if reexpress else None,
     )
     _carry_over(ds, first, res, {**first.summary["camera"], "refined_by_rods": refinement.info})
     res.camera_refinement = refinement

@@ -786,20 +786,7 @@ def _run_to_the_end(port: int, mod: Any, label: str, step: Step) -> tuple[dict[s
     import httpx
 
     with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=30) as c:
-        for _ in range(1200):
-            try:
-                if c.get("/readyz").status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            time.sleep(0.05)
-        r = c.post(
-            "/api/v1/runs",
-            json={"plan": "full", "methods": ["combined", "end-effector", "legs"]},
-            headers={"Authorization": f"Bearer {mod.TOKEN}"},
-        )
-        r.raise_for_status()
-        rid = r.json()["id"]
+        rid = mod.start_full_run(c)
         while True:
             run = c.get(f"/api/v1/runs/{rid}").json()
             step(f"result-after-motion ({label}): {run['state']}", run["progress"]["done"], run["progress"]["total"])

@@ -21,7 +21,7 @@ from calib.formats.camera import CameraModel
 
 from .covariance import _line_cov
 from .cylinder import ROD_KEYS, rod_name
-from .linefit import _tls_q
+from .linefit import _tls
 from .measure import _axis_from_limbs, _IdealToImage, _limb_quality, _LimbFits, leg_parallelism
 from .types import RodMeasurement, RodPrediction, RodSettings
 
@@ -33,29 +33,19 @@ def _ideal(camera: CameraModel, pixels: Array) -> Array:
     return camera.to_ideal_pixels(camera.undistort_points(pixels))
 
 
-def _limb_line(pts: Array) -> Array:
-    """The total-least-squares line ``(a, b, c)`` (unit normal, px) through ideal pixels (N, 2), as the
-    measurement's last fit (:func:`calib.vision.rods.linefit.robust_line`) computes it."""
-    o = pts.sum(0) / len(pts)
-    Q = np.ones((len(pts), 3))
-    Q[:, :2] = pts - o
-    a, b, c0 = _tls_q(Q)
-    return np.array([a, b, c0 - (a * float(o[0]) + b * float(o[1]))])
-
-
 def _limb_fit(pts: Array, inlier_px: float) -> tuple[Array, Array]:
     """The limb's line through its edge points (ideal px of the new camera) with the measurement's last rejection
     (:func:`calib.vision.rods.linefit.robust_line`: beyond 3 robust std of the residuals, at least 0.3 px, the line
     fitted again): in the new camera's straighter (or more bent) image of the limb, the points its line no longer
     fits are dropped as a measurement with that camera drops them. Returns the points kept and the line."""
-    line = _limb_line(pts)
+    line = np.array(_tls(pts))
     r = np.abs(pts @ line[:2] + line[2])
     near = r < 3.0 * inlier_px
     cut = max(3.0 * 1.4826 * float(np.median(r[near])) if near.any() else inlier_px, 0.3)
     keep = r < cut
     if np.count_nonzero(keep) >= 2 and not keep.all():
         pts = pts[keep]
-        line = _limb_line(pts)
+        line = np.array(_tls(pts))
     return pts, line
 
 

@@ -86,21 +86,14 @@ def test_a_first_pass_on_a_sample_of_frames_keeps_every_rod(tmp_path, monkeypatc
     """The far bench's first pass on the nominal prediction measures every third frame; the refit from that sample
     brings the prediction onto every rod: each frame's rods are measured once on it (the sampled ones again), fewer
     measurements than a full first pass and every rod found within its own covariance's 99.9% bound of the truth."""
-    import calib.vision.extract as extract
+    from tests.calib.vision.test_refine import _count_rods_tasks
 
     g = BenchGeometry(truth=TRUTH)
     root = simulate_dataset(tmp_path / "ds", seed=3, geometry=g, plan=far_plan(), n_camera_views=0)
     doc = json.loads((root / "dataset.json").read_text())
     doc["camera"]["K"], doc["camera"]["dist"] = doc["truth"]["K"], doc["truth"]["dist"]
     (root / "dataset.json").write_text(json.dumps(doc))
-    measured: list[int] = []
-    task_rods = extract._task_rods
-
-    def counted(args: tuple) -> tuple:
-        measured.append(int(args[0]))
-        return task_rods(args)
-
-    monkeypatch.setattr(extract, "_task_rods", counted)
+    measured = _count_rods_tasks(monkeypatch)
     opts = ExtractOptions(first_pass_every=3, first_pass_min_frames=8, recover_lost_share=None)
     res = extract_dataset(root, workers=1, options=opts)
     lost, far = lost_and_far(res.observations, TRUTH, g)
