@@ -386,15 +386,17 @@ class Stages:
                     return
                 if kind == "iteration":
                     m.bus.queue_live(run_id, "iterations", data)
-                elif kind == "fit":
+                elif kind == "fit" and data["state"] != "start":  # its start: said when its place was given
                     m.bus.flush_live(run_id)  # the iterations of a method come before its end
                     m.emit(run_id, "fit", {**data, "index": k, "count": n})
-                    if data["state"] != "start":
-                        done[0] += 1
-                        m.update(run_id, done=done[0], total=n)
-                        m.emit(run_id, "progress", {"stage": "calibration", "done": done[0], "total": n})
+                    done[0] += 1
+                    m.update(run_id, done=done[0], total=n)
+                    m.emit(run_id, "progress", {"stage": "calibration", "done": done[0], "total": n})
 
             async with gate:
+                # the fit starts when it has a place (its process is launched now): a fit short next to a process's
+                # start-up must not look as if the fits ran one after the other
+                m.emit(run_id, "fit", {"method": method, "state": "start", "index": k, "count": n})
                 return await run_job(
                     "fit",
                     {"observations": str(m.run_dir(run) / "observations.json"), "methods": [method]},

@@ -44,8 +44,8 @@ async def test_methods_fitted_at_once_give_the_sequential_result(tmp_path, sim, 
     fits = [(e["data"]["method"], e["data"]["state"], e["data"]["index"]) for e in evs if e["type"] == "fit"]
     assert sorted(fits) == sorted((m, s, k) for k, m in enumerate(METHODS) for s in ("start", "done"))
     starts = [f[0] for f in fits if f[1] == "start"]
-    # two at once, never more: at some point two fits had started and not ended (one after the other: never two; a
-    # child reports its start after its imports, so which two overlap depends on the machine's load)
+    # two at once, never more: at some point two fits had started (been given a place) and not ended (one after the
+    # other: never two)
     running, most = 0, 0
     for _method, state, _k in fits:
         running += 1 if state == "start" else -1
