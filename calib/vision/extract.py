@@ -64,6 +64,7 @@ from calib.vision.pool import (
     _Pool,
     _task_board,
     _task_board_pose,
+    _task_corners,
     _task_detect,
     _task_find_rods,
     _task_reexpress,
@@ -524,7 +525,7 @@ def _extract(
         _Ticker(progress),
         on_frame,
     )
-    cam = _camera_stage(ps, camera)
+    cam = _camera_stage(ps, camera, prefetch_boards=not corners)
     if for_refinement and can_refine(cam.camera):
         ps.measure_phases = REFINEMENT_PHASES
     ps.init = (str(ds.root), cam.camera.to_dict(), _refined_points(ds, cam.camera), opts.min_corners, ps.rs_dict)
@@ -561,9 +562,11 @@ def _extract(
     return _assemble(ps, cam, boards, rods, place, fallback, repredicted, fit)
 
 
-def _camera_stage(ps: _Pass, camera: CameraModel | None) -> CameraStage:
+def _camera_stage(ps: _Pass, camera: CameraModel | None, prefetch_boards: bool = False) -> CameraStage:
     """The camera given, else the dataset's, else calibrated from the ``camera`` phase's board views (their
-    rejections recorded in ``ps.per_frame``). Sets the pass's progress total (camera views, boards, rods)."""
+    rejections recorded in ``ps.per_frame``). Sets the pass's progress total (camera views, boards, rods).
+    ``prefetch_boards``: while this process calibrates the camera, the workers detect the other frames' boards (the
+    detection does not depend on the camera), which :func:`_board_stage` then poses."""
     doc, frames, opts = ps.ds.document, ps.ds.frames, ps.opts
     cam_idx = [i for i, f in enumerate(frames) if f.phase == "camera"]
     root = str(ps.ds.root)
@@ -585,6 +588,8 @@ def _camera_stage(ps: _Pass, camera: CameraModel | None) -> CameraStage:
                 ps.per_frame.setdefault(i, []).append(f"image: {r}")
             else:
                 views[i] = (np.asarray(r[0], dtype=int), np.asarray(r[1]).reshape(-1, 2), None)
+        if prefetch_boards:
+            ps.pool.prefetch(_task_corners, ps.obs_idx, init)
         ids_all, pts = BoardDetector(doc.board).ids_all, BoardDetector(doc.board).points_nominal
         intr = calibrate_intrinsics(
             views,

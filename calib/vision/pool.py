@@ -50,7 +50,7 @@ def _init_worker(
     keep_images: bool = False,
 ) -> None:
     if _W.get("root") != root:  # a new dataset (the same one is kept from stage to stage, with its images)
-        _W.update(root=root, ds=Dataset.open(root), images={}, cached=0)
+        _W.update(root=root, ds=Dataset.open(root), images={}, cached=0, corners={})
     ds = _W["ds"]
     _W["det"] = BoardDetector(ds.document.board, min_corners)
     # the board stages' frames come in order: each searched first where this worker's previous frame had the board
@@ -101,12 +101,26 @@ def _task_detect(i: int) -> tuple[int, Any]:
     return i, (d.ids.tolist(), d.pixels.tolist())
 
 
-def _task_board(i: int) -> tuple[int, Any]:
+def _task_corners(i: int) -> int:
+    """Frame ``i``'s board detected ahead of its pose (:meth:`_Pool.prefetch`, while the camera is calibrated: the
+    detection does not depend on the camera), kept in this worker with the decoded image for :func:`_task_board`.
+    An unreadable image is left to that task to report."""
     try:
         img = _load(i, keep=True)
-    except InputError as exc:
-        return i, {"image_error": exc.reason}
-    det = _W["track"].detect(img)
+    except InputError:
+        return i
+    _W["corners"][i] = _W["track"].detect(img)
+    return i
+
+
+def _task_board(i: int) -> tuple[int, Any]:
+    det = _W["corners"].pop(i, None)  # detected ahead (_task_corners)
+    if det is None:
+        try:
+            img = _load(i, keep=True)
+        except InputError as exc:
+            return i, {"image_error": exc.reason}
+        det = _W["track"].detect(img)
     return _board_result(i, det)
 
 
@@ -260,6 +274,7 @@ class _Pool:
         self.conns: list[Connection] = []
         self.init: tuple | None = None
         self.home: dict[int, int] = {}  # frame index -> worker holding its image
+        self.pending: list[int] = []  # per worker: answers of prefetched tasks not read yet
 
     def __enter__(self) -> _Pool:
         return self
@@ -275,7 +290,7 @@ class _Pool:
                 p.join()
         for c in self.conns:
             c.close()
-        self.procs, self.conns = [], []
+        self.procs, self.conns, self.pending = [], [], []
         _clear_worker()  # the in-process path's images and dataset
 
     def _call(self, w: int, msg: tuple) -> None:
@@ -290,7 +305,15 @@ class _Pool:
             raise r
         return r
 
+    def _drain(self) -> None:
+        """The prefetched tasks' answers read (waiting for them), so that the next answers are the next calls'."""
+        for w, n in enumerate(self.pending):
+            for _ in range(n):
+                self._answer(w)
+        self.pending = [0] * len(self.procs)
+
     def _configure(self, init_args: tuple) -> None:
+        self._drain()
         if not self.procs:
             ctx = multiprocessing.get_context()
             fresh = ctx.get_start_method() != "fork"  # a new interpreter limits its own threads
@@ -308,12 +331,28 @@ class _Pool:
                     child.close()
                     self.procs.append(p)
                     self.conns.append(parent)
+            self.pending = [0] * len(self.procs)
         elif init_args != self.init:
             for w in range(len(self.procs)):
                 self._call(w, ("init", init_args))
             for w in range(len(self.procs)):
                 self._answer(w)
         self.init = init_args
+
+    def prefetch(self, fn: Callable[[int], int], frames: list[int], init_args: tuple) -> None:
+        """``fn(frame)`` for each of ``frames`` sent to the workers now, their answers read by the next call: the
+        workers run them while this process does something else (the camera's calibration), each keeping what it
+        found for a later stage (:func:`_task_corners`). Frames are handed out as :meth:`run` hands them out (in
+        order, each to the worker holding its image). Nothing is done with one worker (no process runs beside this
+        one) or fewer than 4 frames."""
+        if self.workers <= 1 or len(frames) < 4:
+            return
+        self._configure(init_args)
+        n = len(self.procs)
+        for k, i in enumerate(frames):
+            w = self.home.setdefault(i, k % n)
+            self._call(w, ("task", fn, i))
+            self.pending[w] += 1
 
     def run(
         self,

@@ -9,6 +9,7 @@ import pytest
 import calib.vision.extract as extract
 import calib.vision.pool as pool_module
 from calib.vision.extract import extract_dataset
+from tests.calib.vision.test_determinism import calibrated_dataset  # noqa: F401  (with camera views)
 from tests.calib.vision.test_extract import small_dataset  # noqa: F401  (the rendered, partly damaged dataset)
 
 
@@ -122,3 +123,46 @@ def test_pool_workers_run_one_numerics_thread_each(small_dataset):  # noqa: F811
     for blas, cv in got["workers"]:
         assert blas and all(n == 1 for n in blas) and cv == 1, (blas, cv)
     assert got["parent_cv_threads"] == 2
+
+
+def test_the_workers_detect_the_boards_while_this_process_calibrates_the_camera(
+    calibrated_dataset,  # noqa: F811
+    monkeypatch,
+    tmp_path,
+):
+    """With 2 workers the robot frames' boards are detected while this process fits the intrinsics, not after it:
+    the fit starts only once a worker has decoded a robot frame (a file both processes write to; the workers are
+    forked after the patches), which the code that detected the boards after the fit never does (30 s, then the
+    assertion fails). That the observations do not change is test_determinism's one- and two-worker bytes."""
+    import time
+
+    from calib.formats.dataset import Dataset
+
+    log = tmp_path / "decoded"
+    log.touch()
+    load_image = Dataset.load_image
+
+    def logged_load(self, index):
+        with open(log, "a") as f:
+            f.write(f"{index}\n")
+        return load_image(self, index)
+
+    monkeypatch.setattr(Dataset, "load_image", logged_load)
+    robot = {i for i, f in enumerate(Dataset.open(calibrated_dataset).frames) if f.phase != "camera"}
+    decoded_before_fit: list[set[int]] = []
+    fit = extract.calibrate_intrinsics
+
+    def waiting_fit(*args, **kwargs):
+        deadline = time.monotonic() + 30.0
+        got: set[int] = set()
+        while not got and time.monotonic() < deadline:
+            got = {int(x) for x in log.read_text().split()} & robot
+            time.sleep(0.01)
+        decoded_before_fit.append(got)
+        return fit(*args, **kwargs)
+
+    monkeypatch.setattr(extract, "calibrate_intrinsics", waiting_fit)
+    res = extract_dataset(calibrated_dataset, workers=2, options=extract.ExtractOptions(refine_camera=False))
+    assert decoded_before_fit and decoded_before_fit[0], "no robot frame decoded while the camera was calibrated"
+    assert res.summary["camera"]["n_views"] >= 5
+    assert sum(f["board"] is not None for f in res.observations["frames"]) == len(robot)
