@@ -826,7 +826,8 @@ def fit_lens_candidates(
 
     Each from OpenCV's own guess, or with ``start`` those of :data:`SHARED_START_MODELS` from that fit
     (:func:`fit_lens_model`), the models with fewer terms first. A fit from ``start`` that did not reach the minimum
-    OpenCV's own guess leads to is fitted again from that guess (:func:`at_the_start_s_minimum`).
+    OpenCV's own guess leads to (:func:`at_the_start_s_minimum`), or a start OpenCV refuses, is fitted again from that
+    guess.
 
     Parameters
     ----------
@@ -848,11 +849,19 @@ def fit_lens_candidates(
     for name in sorted(candidates, key=lambda n: len(LENS_MODELS[n])):  # a nested model before those containing it
         if name in fits:
             continue
-        fit = fit_lens_model(board, name, start=start) if start is not None and name in SHARED_START_MODELS else None
+        fit = _fit_from(start, board, name) if start is not None and name in SHARED_START_MODELS else None
         if fit is None or not at_the_start_s_minimum(fit, start, fits, board):
             fit = fit_lens_model(board, name)
         fits[name] = fit
     return {name: fits[name] for name in candidates}
+
+
+def _fit_from(start: LensFit, board: BoardViews, model: str) -> LensFit | None:
+    """``model`` fitted from ``start``, None when OpenCV refuses the start (a principal point outside the image)."""
+    try:
+        return fit_lens_model(board, model, start=start)
+    except cv2.error:
+        return None
 
 
 def at_the_start_s_minimum(

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import cv2
 import numpy as np
 import pytest
 
@@ -112,6 +113,20 @@ def test_a_candidate_a_start_leads_to_another_minimum_is_fitted_from_opencvs_gue
             kept = first if model == "k1k2k3" else from_wrong if model in cc.SHARED_START_MODELS else own
         assert np.array_equal(fits[model].K, kept.K) and np.array_equal(fits[model].dist, kept.dist), model
         assert _in_std(fits[model], own) < SAME_MINIMUM_STD_FRACTION, model
+
+
+def test_a_start_opencv_refuses_leaves_every_candidate_to_opencvs_guess(rendered):
+    """A principal point outside the image: OpenCV raises for the start; the candidates are fitted from its guess."""
+    _, _, _, board, first = rendered
+    K = first.K.copy()
+    K[0, 2] = -50.0
+    outside = replace(first, K=K)
+    with pytest.raises(cv2.error, match="Principal point"):
+        cc.fit_lens_model(board, "k1k2", start=outside)
+    fits = cc.fit_lens_candidates(board, list(cc.LENS_MODELS), {"k1k2k3": first}, start=outside)
+    for model in cc.LENS_MODELS:
+        own = first if model == "k1k2k3" else cc.fit_lens_model(board, model)
+        assert np.array_equal(fits[model].K, own.K) and np.array_equal(fits[model].dist, own.dist), model
 
 
 def test_the_calibration_from_the_shared_start_chooses_the_same_lens_model(rendered):
