@@ -3,10 +3,11 @@
 Run:  python benchmarks/bench_intrinsics.py DATASET [--repeat 5]
 
 * CPU per ``calibrate_intrinsics(lens_model="auto")`` call on the dataset's camera-phase views, and per stage.
-* Per candidate lens model: ``cv2.calibrateCameraROExtended`` from OpenCV's own start (what the calibration does)
+* Per candidate lens model: ``cv2.calibrateCameraROExtended`` from OpenCV's own start (the rational models' path)
   against the same fit seeded by the ``k1k2k3`` fit (the outlier test's, a shared start). OpenCV takes an initial
   guess with the released board only without its Schur-complement solver (``CALIB_DISABLE_SCHUR_COMPLEMENT``; with
-  it, the guess fails an assertion), which is the first seeded column; the second is the seeded fit by
+  it, the guess fails an assertion), which is the first seeded column (``fit_lens_model(..., start=)``, steps solved
+  by LU: what the calibration does for the models without k4-k6); the second is the seeded fit by
   ``scipy.optimize.least_squares`` (``lm``) on :class:`calib.camera.bundle.Bundle`. RSS in px^2 (they should
   agree).
 """
@@ -17,12 +18,11 @@ import argparse
 import time
 from typing import Any
 
-import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
 import calib.camera.intrinsics as cc
-from calib.camera.bundle import DIST_INDEX, Bundle
+from calib.camera.bundle import Bundle
 from calib.formats.dataset import Dataset
 from calib.vision.board import BoardDetector
 
@@ -40,20 +40,11 @@ def camera_views(path: str) -> tuple[dict[int, tuple[Any, Any, None]], tuple[int
     return views, (ds.document.camera.width, ds.document.camera.height), det.ids_all, det.points_nominal
 
 
-def _seed_dist(start: cc.LensFit, model: str) -> np.ndarray:
-    """``start``'s distortion with the coefficients ``model`` lacks set to zero (8 long for the rational models)."""
-    d = np.zeros(8 if "k4" in cc.LENS_MODELS[model] else 5)
-    for name in cc.LENS_MODELS[model]:
-        if DIST_INDEX[name] < start.dist.size:
-            d[DIST_INDEX[name]] = start.dist[DIST_INDEX[name]]
-    return d
-
-
 def seeded_scipy_fit(board: cc.BoardViews, start: cc.LensFit, model: str) -> tuple[float, float]:
     """CPU s and RSS (px^2) of ``model`` fitted from ``start`` by ``least_squares(method="lm")`` on the bundle."""
     b = Bundle.of(
         start.K,
-        _seed_dist(start, model),
+        cc.start_distortion(start, model),
         start.board_points,
         [board.image_points[k] for k in start.keys],
         list(start.rvecs),
@@ -75,17 +66,11 @@ def seeded_scipy_fit(board: cc.BoardViews, start: cc.LensFit, model: str) -> tup
 
 
 def seeded_fit(board: cc.BoardViews, start: cc.LensFit, model: str) -> tuple[float, float]:
-    """CPU s and RSS (px^2) of ``model`` fitted by OpenCV from ``start`` (without its Schur solver)."""
-    d = _seed_dist(start, model)
-    objp = [board.points.astype(np.float32).reshape(-1, 1, 3) for _ in board.keys]
-    imgp = [board.image_points[k].astype(np.float32).reshape(-1, 1, 2) for k in board.keys]
-    flags = cc._lens_flags(model) | cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_DISABLE_SCHUR_COMPLEMENT
+    """CPU s and RSS (px^2) of ``model`` fitted by OpenCV from ``start`` (``fit_lens_model``'s ``start``: without its
+    Schur solver, LU steps)."""
     t0 = time.process_time()
-    with cc.opencv_single_thread():
-        r = cv2.calibrateCameraROExtended(  # type: ignore[call-overload]
-            objp, imgp, board.image_size, board.fixed_point, start.K.copy(), d, flags=flags, criteria=cc._RO_CRITERIA
-        )
-    return time.process_time() - t0, float(r[0]) ** 2 * board.n_residuals() / 2
+    fit = cc.fit_lens_model(board, model, start=start)
+    return time.process_time() - t0, fit.rms_px**2 * board.n_residuals() / 2
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -384,6 +384,10 @@ class IntrinsicsSettings:
         Refine the chosen model's bundle with each view weighted by its own noise (:func:`refine_intrinsics`).
     max_outlier_passes : int
         At most this many outlier views are rejected, one per pass (the worst first).
+    shared_start : bool
+        With ``auto``, fit the candidates of :data:`SHARED_START_MODELS` from the outlier test's ``k1k2k3`` fit
+        (:func:`fit_lens_candidates`' ``start``) rather than each from OpenCV's own guess: the same minima, in less
+        CPU. False: every candidate from OpenCV's own guess.
     """
 
     min_views: int = 5
@@ -394,6 +398,7 @@ class IntrinsicsSettings:
     lens_model: str | None = None
     weight_views: bool = True
     max_outlier_passes: int = 5
+    shared_start: bool = True
 
     @property
     def requested_model(self) -> str:
@@ -592,8 +597,18 @@ _STD_NAMES = (
     "tau_x",
     "tau_y",
 )
+#: ``calibrateCameraROExtended``'s iteration limit (:func:`fit_lens_model`)
+RO_MAX_ITERATIONS = 200
 #: ``calibrateCameraROExtended``'s stopping rule: iterations, relative step
-_RO_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
+_RO_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, RO_MAX_ITERATIONS, 1e-12)
+#: the lens models :func:`fit_lens_candidates` fits from a shared start: those without OpenCV's rational denominator.
+#: From a start, the rational models' k4-k6 (all but collinear with k1-k3) make the solver that takes a start crawl
+#: (on some view sets twice the CPU of OpenCV's own guess in its Schur-complement solver) and stop at other minima,
+#: lower or higher; the others reach their minimum from it in a third to two thirds of the CPU.
+SHARED_START_MODELS = tuple(m for m in LENS_MODELS if "k4" not in LENS_MODELS[m])
+#: a candidate fitted from a shared start is kept only when its RMS exceeds no nested model's by more than this
+#: fraction (a model with more terms cannot fit worse at its minimum; more means it stopped at another one)
+NESTED_RMS_TOLERANCE = 1e-9
 
 
 def select_board_views(
@@ -653,8 +668,44 @@ def select_board_views(
     return BoardViews(np.sort(ids_all), obj, keep, rejected, fixed, (int(image_size[0]), int(image_size[1])))
 
 
-def fit_lens_model(board: BoardViews, model: str, keys: list[int] | None = None) -> LensFit:
-    """Fit one lens model to the views with ``cv2.calibrateCameraROExtended`` (OpenCV's own initial guess).
+def start_distortion(start: LensFit, model: str) -> Array:
+    """``start``'s distortion coefficients as a start for ``model``: those ``model`` estimates, the others zero.
+
+    Parameters
+    ----------
+    start : LensFit
+        The fit started from.
+    model : str
+        A key of :data:`LENS_MODELS`.
+
+    Returns
+    -------
+    ndarray, shape (5,) or (8,)
+        OpenCV's distortion vector (8 long for the rational models); dimensionless.
+    """
+    d = np.zeros(8 if "k4" in LENS_MODELS[model] else 5)
+    for name in LENS_MODELS[model]:
+        i = DIST_INDEX[name]
+        if i < start.dist.size:
+            d[i] = start.dist[i]
+    return d
+
+
+def fit_lens_model(
+    board: BoardViews,
+    model: str,
+    keys: list[int] | None = None,
+    start: LensFit | None = None,
+    max_iterations: int = RO_MAX_ITERATIONS,
+) -> LensFit:
+    """Fit one lens model to the views with ``cv2.calibrateCameraROExtended``.
+
+    Without ``start``, from OpenCV's own initial guess. With ``start`` (``cv2.CALIB_USE_INTRINSIC_GUESS``), from its
+    camera matrix and the distortion coefficients ``model`` shares with it (:func:`start_distortion`); the views'
+    poses OpenCV computes from that camera, the released board starts nominal (OpenCV takes no start for either).
+    OpenCV 4.14's Schur-complement solver refuses a guess with the released board (an assertion), so such a fit runs
+    in its other solver (``cv2.CALIB_DISABLE_SCHUR_COMPLEMENT``), its steps solved by LU (``cv2.CALIB_USE_LU``;
+    by SVD, OpenCV's default there, each iteration costs 3-5 times more).
 
     Single-threaded (:func:`opencv_single_thread`): bit-reproducible.
 
@@ -666,6 +717,11 @@ def fit_lens_model(board: BoardViews, model: str, keys: list[int] | None = None)
         A key of :data:`LENS_MODELS`.
     keys : list of int, optional
         The views to fit (default: every kept view of ``board``).
+    start : LensFit, optional
+        A fit to start from (K in pixels, its principal point inside the image), of any lens model.
+    max_iterations : int
+        Levenberg-Marquardt iterations allowed (the fit also stops when a step moves the unknowns by less than
+        1e-12 of themselves).
 
     Returns
     -------
@@ -674,11 +730,20 @@ def fit_lens_model(board: BoardViews, model: str, keys: list[int] | None = None)
     keys = board.keys if keys is None else list(keys)
     objp = [board.points.astype(np.float32).reshape(-1, 1, 3) for _ in keys]
     imgp = [board.image_points[k].astype(np.float32).reshape(-1, 1, 2) for k in keys]
+    flags = _lens_flags(model)
+    # OpenCV's stubs do not allow None for the initial camera matrix and distortion, which the function takes (no
+    # initial guess)
+    K0: Any = None
+    d0: Any = None
+    if start is not None:
+        K0, d0 = start.K.copy(), start_distortion(start, model)
+        flags |= cv2.CALIB_USE_INTRINSIC_GUESS
+        if board.fixed_point >= 0:
+            flags |= cv2.CALIB_DISABLE_SCHUR_COMPLEMENT | cv2.CALIB_USE_LU
+    criteria = (_RO_CRITERIA[0], int(max_iterations), _RO_CRITERIA[2])
     with opencv_single_thread():  # bit-reproducible: OpenCV's threads change the result in the last digits
-        # OpenCV's stubs do not allow None for the initial camera matrix and distortion, which the function
-        # takes (no initial guess)
-        r = cv2.calibrateCameraROExtended(  # type: ignore[call-overload]
-            objp, imgp, board.image_size, board.fixed_point, None, None, flags=_lens_flags(model), criteria=_RO_CRITERIA
+        r: Any = cv2.calibrateCameraROExtended(
+            objp, imgp, board.image_size, board.fixed_point, K0, d0, flags=flags, criteria=criteria
         )
     new_obj = r[5]
     refined = new_obj is not None and np.size(new_obj)
@@ -754,8 +819,15 @@ def _require_views(n_kept: int, n_rejected: int, min_views: int) -> None:
         )
 
 
-def fit_lens_candidates(board: BoardViews, candidates: list[str], fitted: Mapping[str, LensFit]) -> dict[str, LensFit]:
+def fit_lens_candidates(
+    board: BoardViews, candidates: list[str], fitted: Mapping[str, LensFit], start: LensFit | None = None
+) -> dict[str, LensFit]:
     """Every candidate lens model fitted to the same views (those already ``fitted`` reused).
+
+    Each from OpenCV's own guess, or with ``start`` those of :data:`SHARED_START_MODELS` from that fit
+    (:func:`fit_lens_model`), the models with fewer terms first. A fit from ``start`` that did not reach the minimum
+    OpenCV's own guess leads to (:func:`at_the_start_s_minimum`), or a start OpenCV refuses, is fitted again from that
+    guess.
 
     Parameters
     ----------
@@ -765,13 +837,76 @@ def fit_lens_candidates(board: BoardViews, candidates: list[str], fitted: Mappin
         Keys of :data:`LENS_MODELS`.
     fitted : mapping of str to LensFit
         Fits to ``board``'s views already made (the outlier test's).
+    start : LensFit, optional
+        The shared start: a fit to ``board``'s views (the outlier test's).
 
     Returns
     -------
     dict of str to LensFit
         Per candidate, in ``candidates``' order.
     """
-    return {name: fitted[name] if name in fitted else fit_lens_model(board, name) for name in candidates}
+    fits = dict(fitted)
+    for name in sorted(candidates, key=lambda n: len(LENS_MODELS[n])):  # a nested model before those containing it
+        if name in fits:
+            continue
+        fit = _fit_from(start, board, name) if start is not None and name in SHARED_START_MODELS else None
+        if fit is None or not at_the_start_s_minimum(fit, start, fits, board):
+            fit = fit_lens_model(board, name)
+        fits[name] = fit
+    return {name: fits[name] for name in candidates}
+
+
+def _fit_from(start: LensFit, board: BoardViews, model: str) -> LensFit | None:
+    """``model`` fitted from ``start``, None when OpenCV refuses the start (a principal point outside the image)."""
+    try:
+        return fit_lens_model(board, model, start=start)
+    except cv2.error:
+        return None
+
+
+def at_the_start_s_minimum(
+    fit: LensFit, start: LensFit | None, others: Mapping[str, LensFit], board: BoardViews
+) -> bool:
+    """Whether a fit from ``start`` reached the minimum its model has near ``start``'s (not another one).
+
+    It must be finite, fit no worse than any of ``others`` whose terms its model contains (by more than
+    :data:`NESTED_RMS_TOLERANCE`), and its residual sum of squares must not exceed ``start``'s by more than dropping
+    ``start``'s terms its model lacks can explain: ``s^2 (2 W + 10)``, ``W = sum (c / std_c)^2`` over the dropped
+    coefficients (the Wald statistic from OpenCV's standard deviations; the quadratic prediction of the rise is
+    ``s^2 W``, within 25% of the fitted rise on rendered and synthetic views), ``s^2`` ``start``'s residual
+    variance; no rise at all when it drops none.
+
+    Parameters
+    ----------
+    fit : LensFit
+        The fit from ``start``.
+    start : LensFit or None
+        The fit it started from, to the same views (None: only the first two tests).
+    others : mapping of str to LensFit
+        Other candidates fitted to the same views.
+    board : BoardViews
+        The views fitted.
+
+    Returns
+    -------
+    bool
+    """
+    terms = set(LENS_MODELS[fit.model])
+    nested = [o.rms_px for o in others.values() if set(LENS_MODELS[o.model]) <= terms]
+    if not fit.finite() or any(fit.rms_px > r * (1.0 + NESTED_RMS_TOLERANCE) for r in nested):
+        return False
+    if start is None:
+        return True
+    n_points = board.n_residuals() // 2
+    rss, rss0 = fit.rms_px**2 * n_points, start.rms_px**2 * n_points
+    dropped = [DIST_INDEX[t] for t in LENS_MODELS[start.model] if t not in terms]
+    if not dropped:
+        return rss <= rss0 * (1.0 + NESTED_RMS_TOLERANCE) ** 2
+    n_unknowns = len(lens_model_params(start.model)) + 6 * len(start.keys) + board.n_board_unknowns()
+    s2 = rss0 / max(board.n_residuals() - n_unknowns, 1)
+    std = start.std_intrinsics[[4 + i for i in dropped]]
+    wald = float(np.sum((start.dist[dropped] / np.where(std > 0, std, np.inf)) ** 2))
+    return rss <= rss0 + s2 * (2.0 * wald + 10.0)
 
 
 def lens_model_evidence(fit: LensFit, board: BoardViews) -> dict[str, Any]:
@@ -1062,7 +1197,8 @@ def calibrate_intrinsics(
        ``max(outlier_factor * median, outlier_floor_px)`` rejected, the worst first (fitted with ``k1k2k3`` when
        the model is ``auto``).
     3. :func:`fit_lens_candidates`: each candidate lens model fitted to the same views (one with a given model,
-       every one of :data:`LENS_MODELS` with ``auto``).
+       every one of :data:`LENS_MODELS` with ``auto``; with ``shared_start``, those of :data:`SHARED_START_MODELS`
+       from the outlier test's fit).
     4. :func:`choose_lens_model`: with ``auto``, the lowest Bayesian information criterion
        ``BIC = n ln(RSS / n) + k ln(n)`` (n: residual coordinates, k: every unknown of the bundle -- intrinsics,
        6 per view, the released board points; only the distortion count differs between candidates), with the
@@ -1134,7 +1270,7 @@ def _calibrate(
     first = "k1k2k3" if model == "auto" else model
     board, first_fit = reject_outlier_views(board, first, opts)
     candidates = list(LENS_MODELS) if model == "auto" else [model]
-    fits = fit_lens_candidates(board, candidates, {first: first_fit})
+    fits = fit_lens_candidates(board, candidates, {first: first_fit}, first_fit if opts.shared_start else None)
     choice = choose_lens_model(model, fits, board)
     refined = refine_intrinsics(fits[choice.chosen], board, opts.weight_views)
     return intrinsics_result(board, choice, refined, model)

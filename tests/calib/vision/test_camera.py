@@ -129,7 +129,7 @@ def test_the_stages_called_one_by_one_give_what_calibrate_intrinsics_gives():
     with threadpool_limits(limits=1):
         board = cm.select_board_views(views, ids, pts, (1024, 768), settings.refine_object)
         board, first = cm.reject_outlier_views(board, "k1k2k3", settings)
-        fits = cm.fit_lens_candidates(board, list(cm.LENS_MODELS), {"k1k2k3": first})
+        fits = cm.fit_lens_candidates(board, list(cm.LENS_MODELS), {"k1k2k3": first}, start=first)
         choice = cm.choose_lens_model("auto", fits, board)
         refined = cm.refine_intrinsics(fits[choice.chosen], board, settings.weight_views)
         staged = cm.intrinsics_result(board, choice, refined, "auto")
