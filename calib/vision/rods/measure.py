@@ -14,7 +14,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calib.formats.camera import CameraModel
-from calib.vision.rods.covariance import _direction_covariance_set, _line_cov, _line_stats  # noqa: F401 (_line_cov)
+from calib.numerics.transforms import cross
+from calib.vision.rods.covariance import (  # noqa: F401 (_line_cov)
+    _direction_covariance_set,
+    _direction_covariance_sets,
+    _line_cov,
+    _line_stats,
+)
 from calib.vision.rods.cylinder import _CORR, axis_from_planes, axis_point_seen_along, limb_planes, norm3
 from calib.vision.rods.linefit import robust_line
 from calib.vision.rods.types import ROD_OCCLUDER_CLEARANCE_PX, RodMeasurement, RodPrediction, RodSettings
@@ -531,13 +537,57 @@ def measure_rod(
     """
     s = settings or RodSettings()
     rng = rng or np.random.default_rng(0)
-    out = RodMeasurement(pred.leg, pred.rod)
     box = ideal_bbox if ideal_bbox is not None else image_ideal_bbox(camera)
+    proj = projector if projector is not None else _IdealToImage(camera)
+    job = _rod_job(gray, camera, pred, radius, s, occluders, box, neighbours, segment, proj, polarity)
+    if isinstance(job, RodMeasurement):
+        return job
+    fits = _fit_limb_points(job.pts, s, rng)
+    if isinstance(fits, str):
+        job.out.reason = fits
+        return job.out
+    job.out.reason = _limb_quality(job.out, fits, s)
+    if job.out.reason is not None:
+        return job.out
+    job.fits = fits
+    _axes_from_limbs([job], camera, radius, s, proj)
+    return job.out
+
+
+@dataclass
+class _RodJob:
+    """One rod between the stages of its measurement (:func:`_rod_job`, the limb fits, :func:`_axes_from_limbs`):
+    its measurement so far, prediction, visible profile centres (P, 2) and segment normal (2,) (ideal px), its two
+    limbs' edge points (N_i, 2) (ideal px, neighbours' limb points dropped), and its limb fits once fitted."""
+
+    out: RodMeasurement
+    pred: RodPrediction
+    centres: Array
+    n_dir: Array
+    pts: tuple[Array, Array]
+    fits: _LimbFits | None = None
+
+
+def _rod_job(
+    gray: np.ndarray,
+    camera: CameraModel,
+    pred: RodPrediction,
+    radius: float,
+    s: RodSettings,
+    occluders: list[Array] | None,
+    box: Array,
+    neighbours: list[tuple[Array, Array, float]] | None,
+    segment: _Segment | str | None,
+    proj: _IdealToImage,
+    polarity: int | None,
+) -> _RodJob | RodMeasurement:
+    """The stages of :func:`measure_rod` before the limb fits (its arguments): the rod's edge pairs, polarity and
+    limb points; or the measurement with the reason why the rod has none."""
+    out = RodMeasurement(pred.leg, pred.rod)
     seg = segment if segment is not None else _predicted_segment(camera, pred, radius, s.near_m, box)
     if isinstance(seg, str):
         out.reason = seg
         return out
-    proj = projector if projector is not None else _IdealToImage(camera)
     vis = seg.vis if seg.vis is not None else _visible_centres(camera, seg, s, box, proj, occluders)
     if isinstance(vis, str):
         out.reason = vis
@@ -559,20 +609,8 @@ def measure_rod(
     if polarity is None and s.polarity:
         polarity = 1 if s.polarity > 0 else -1
     out.polarity = polarity if polarity is not None else (1 if pairs.pol.sum() >= 0 else -1)
-    fits = _fit_limbs(pairs, out.polarity, vis[1], seg.n_dir, s, rng, neighbours)
-    if isinstance(fits, str):
-        out.reason = fits
-        return out
-    out.reason = _limb_quality(out, fits, s)
-    if out.reason is not None:
-        return out
-    reason = _axis_from_limbs(out, camera, pred, radius, s, proj, fits, vis[1], seg.n_dir)
-    if reason is not None:
-        out.reason = reason
-    else:  # the raw measurement, for another camera (calib.vision.rods.reexpress)
-        out.edges_px = (proj.points(fits.fits[0][3]), proj.points(fits.fits[1][3]))
-        out.middle_px = proj.points(vis[1][len(vis[1]) // 2][None])[0]
-    return out
+    pts = _limb_points(pairs, out.polarity, vis[1], seg.n_dir, s, neighbours)
+    return _RodJob(out, pred, vis[1], seg.n_dir, pts)
 
 
 @dataclass
@@ -819,6 +857,19 @@ def _fit_limbs(
 ) -> _LimbFits | str:
     """The two limb lines fitted (RANSAC) to the pairs of this polarity, limb points near a neighbour dropped; or
     why not."""
+    return _fit_limb_points(_limb_points(pairs, polarity, centres, n_dir, s, neighbours), s, rng)
+
+
+def _limb_points(
+    pairs: _LimbPairs,
+    polarity: int,
+    centres: Array,
+    n_dir: Array,
+    s: RodSettings,
+    neighbours: list[tuple[Array, Array, float]] | None,
+) -> tuple[Array, Array]:
+    """The two limbs' edge points (N_i, 2) (ideal px) of the pairs of this polarity, points near a neighbour
+    dropped."""
     k, x_lo, x_hi, pol, o1, o2 = pairs.k, pairs.x_lo, pairs.x_hi, pairs.pol, pairs.o1, pairs.o2
     if k.size:
         keep = pol == polarity
@@ -826,8 +877,8 @@ def _fit_limbs(
     one_low = o1[k] < o2[k]
     edges = (np.where(one_low, x_lo, x_hi), np.where(one_low, x_hi, x_lo))
     pred_off = (o1[k], o2[k])
-    out = _LimbFits([], [], [], [])
     ck = centres[k]
+    out = []
     for x_e, x_p in zip(edges, pred_off, strict=True):
         pts = ck + x_e[:, None] * n_dir[None]
         if neighbours:
@@ -837,24 +888,47 @@ def _fit_limbs(
             for a_n, b_n, hw in neighbours:
                 clear &= _seg_distance(limb_pred, a_n, b_n) > hw + s.neighbour_px
             pts = pts[clear]
+        out.append(pts)
+    return out[0], out[1]
+
+
+def _too_few(n: int, s: RodSettings) -> str:
+    """Why a limb of ``n`` edge points is not fitted."""
+    return (
+        f"too few limb edge points ({n} < {s.min_points}): rod not found in its search band, or too close to "
+        "another rod"
+    )
+
+
+def _fit_limb_points(pts2: tuple[Array, Array], s: RodSettings, rng: np.random.Generator) -> _LimbFits | str:
+    """The two limb lines fitted (:func:`robust_line`) to the limbs' edge points (N_i, 2) (ideal px), in turn; or
+    why not (the second limb not fitted when the first is not)."""
+    out = _LimbFits([], [], [], [])
+    for pts in pts2:
         if len(pts) < s.min_points:
-            return (
-                f"too few limb edge points ({len(pts)} < {s.min_points}): rod not found in its "
-                "search band, or too close to another rod"
-            )
+            return _too_few(len(pts), s)
         line, inl = robust_line(pts, rng, s.ransac_iters, s.inlier_px)
-        n_in = int(np.count_nonzero(inl))
-        if not np.all(np.isfinite(line)) or n_in < s.min_points:
-            return f"limb line fit failed ({n_in} inliers of {len(pts)})"
-        p_in = pts[inl]
-        r = p_in @ line[:2] + line[2]
-        out.lines.append(line)
-        c, td, s2, t = _line_stats(p_in, line, r)  # (_line_cov)
-        out.fits.append((c, td, s2, p_in))
-        out.ts.append(t)
-        out.rms.append(float(np.sqrt(np.add.reduce(r * r) / n_in)))  # RMS of r (np.mean's numbers)
-        out.npts.append(n_in)
+        reason = _add_limb_fit(out, pts, line, inl, s)
+        if reason is not None:
+            return reason
     return out
+
+
+def _add_limb_fit(out: _LimbFits, pts: Array, line: Array, inl: NDArray[np.bool_], s: RodSettings) -> str | None:
+    """The limb line ``line`` (3,) fitted to ``pts`` (N, 2) (ideal px) with inliers ``inl`` (N,) appended to
+    ``out`` with its statistics; or why the fit failed."""
+    n_in = int(np.count_nonzero(inl))
+    if not np.all(np.isfinite(line)) or n_in < s.min_points:
+        return f"limb line fit failed ({n_in} inliers of {len(pts)})"
+    p_in = pts[inl]
+    r = p_in @ line[:2] + line[2]
+    out.lines.append(line)
+    c, td, s2, t = _line_stats(p_in, line, r)  # (_line_cov)
+    out.fits.append((c, td, s2, p_in))
+    out.ts.append(t)
+    out.rms.append(float(np.sqrt(np.add.reduce(r * r) / n_in)))  # RMS of r (np.mean's numbers)
+    out.npts.append(n_in)
+    return None
 
 
 def _limb_quality(out: RodMeasurement, fits: _LimbFits, s: RodSettings) -> str | None:
@@ -922,6 +996,136 @@ def _axis_from_limbs(
     return None
 
 
+def _axes_from_limbs(
+    jobs: list[_RodJob], camera: CameraModel, radius: float, s: RodSettings, proj: _IdealToImage
+) -> None:
+    """:func:`_axis_from_limbs` of M rods with limb fits at once, and their raw edges (``edges_px``, ``middle_px``),
+    set on each job's measurement (or the reason); the same numbers bit for bit (each rod's products those of the
+    per-rod function, stacked).
+
+    Parameters
+    ----------
+    jobs : list of _RodJob
+        M rods whose limb fits passed :func:`_limb_quality` (``fits`` set).
+    camera : CameraModel
+        The camera (its K, px).
+    radius : float
+        Rod radius (m).
+    s : RodSettings
+        The settings (minimum plane angle, edge-bias allowance).
+    proj : _IdealToImage
+        Ideal to image pixels of ``camera``.
+    """
+    if not jobs:
+        return
+    fits = [cast("_LimbFits", j.fits) for j in jobs]
+    inner, hs, ang = _planes_stack(camera, proj, fits, jobs)
+    axes = []
+    for r, j in enumerate(jobs):
+        j.out.plane_angle_rad = float(ang[r])
+        if ang[r] < s.min_plane_angle_rad:
+            j.out.reason = f"interpretation planes nearly parallel ({ang[r] * 1e3:.2f} mrad): axis ill-defined"
+        else:
+            axes.append(r)
+    if not axes:
+        return
+    sel = np.array(axes)
+    u, X, parallel = _axes_stack(hs[sel], radius, np.array([jobs[r].pred.u for r in axes]))
+    X = axis_point_seen_along(X, u, inner[sel])
+    done = [r for r, bad in zip(axes, parallel, strict=True) if not bad]
+    for r, bad in zip(axes, parallel, strict=True):
+        if bad:
+            jobs[r].out.reason = "interpretation planes are parallel: no axis"
+    if not done:
+        return
+    keep = np.array([k for k, bad in enumerate(parallel) if not bad])
+    done_fits = [fits[r] for r in done]
+    # the allowance whole (cov_u) and averaged along the limb (cov_u_own), the planes' derivatives computed once
+    cov, cov_own = _direction_covariance_sets(
+        camera.K,
+        [f.fits for f in done_fits],
+        inner[sel[keep]],
+        s.edge_bias_px,
+        (0.0, s.edge_bias_length_px),
+        [f.ts for f in done_fits],
+    )
+    samples = _limb_samples_stack(done_fits, proj)
+    edges = _edges_stack([jobs[r] for r in done], proj)
+    for k, r in enumerate(done):
+        out = jobs[r].out
+        out.h = (hs[r, 0], hs[r, 1])
+        out.u = u[keep[k]]
+        out.point = X[keep[k]]
+        out.cov_u, out.cov_u_own = cov[k], cov_own[k]
+        out.limbs_px = samples[k]
+        # the raw measurement, for another camera (calib.vision.rods.reexpress)
+        out.edges_px, out.middle_px = edges[k]
+
+
+def _planes_stack(
+    camera: CameraModel, proj: _IdealToImage, fits: list[_LimbFits], jobs: list[_RodJob]
+) -> tuple[Array, Array, Array]:
+    """The interpretation planes of M rods' limb lines, as :func:`_axis_from_limbs` computes them: a direction
+    between them (M, 3), their unit normals (M, 2, 3), signed towards it, and the angle between them (M,) (rad)."""
+    K = camera.K
+    lines = np.array([f.lines for f in fits]).reshape(len(fits), 2, 3)
+    n_dir = np.array([j.n_dir for j in jobs])
+    cmid = np.array([j.centres[len(j.centres) // 2] for j in jobs])
+    ab = lines[:, :, :2]
+    den = np.matmul(ab[:, :, None, :], n_dir[:, None, :, None])[:, :, 0, 0]  # line[:2] @ n_dir, (M, 2)
+    num = np.matmul(ab[:, :, None, :], cmid[:, None, :, None])[:, :, 0, 0] + lines[:, :, 2]
+    big = np.abs(den) > 1e-9
+    xs = np.where(big, -num / np.where(big, den, 1.0), 0.0)
+    mid = np.ones((len(fits), 3))
+    mid[:, :2] = cmid + (0.5 * (xs[:, 0] + xs[:, 1]))[:, None] * n_dir
+    inner = np.matmul(proj.Kinv, mid[:, :, None])[:, :, 0]
+    h = np.matmul(K.T, lines[..., None])[..., 0]  # (M, 2, 3)
+    h = h / np.sqrt(np.matmul(h[..., None, :], h[..., None])[..., 0])  # np.linalg.norm's numbers
+    side = np.matmul(h, inner[:, :, None])[..., 0]  # (M, 2)
+    h = np.where((side > 0)[..., None], h, -h)
+    cos = np.matmul(h[:, 0, None, :], h[:, 1, :, None])[:, 0, 0]
+    return inner, h, np.arccos(np.clip(np.abs(cos), -1.0, 1.0))
+
+
+def _axes_stack(hs: Array, radius: float, pred_u: Array) -> tuple[Array, Array, NDArray[np.bool_]]:
+    """:func:`axis_from_planes` of M rods' plane normals (M, 2, 3) with the radius (m), each direction signed along
+    its prediction's ``pred_u`` (M, 3): unit directions (M, 3), axis points (M, 3) (m) and which rods' planes are
+    parallel (M,) (their direction and point then meaningless); the same numbers bit for bit."""
+
+    def unit(v: Array) -> tuple[Array, Array]:
+        n = np.sqrt(np.matmul(v[:, None, :], v[:, :, None])[:, 0])  # norm3's numbers, (M, 1)
+        return v / n, n[:, 0]
+
+    a, _ = unit(hs[:, 0])
+    b, _ = unit(hs[:, 1])
+    u, n = unit(cross(a, b))
+    parallel = n < 1e-12
+    mats = np.stack([a, b, u], axis=1)
+    mats[parallel] = np.eye(3)
+    X = np.linalg.solve(mats, np.broadcast_to(np.array([radius, radius, 0.0])[:, None], (len(hs), 3, 1)))[..., 0]
+    flip = np.matmul(u[:, None, :], pred_u[:, :, None])[:, 0, 0] < 0
+    return np.where(flip[:, None], -u, u), X, parallel
+
+
+def _limb_samples_stack(fits: list[_LimbFits], proj: _IdealToImage) -> Array:
+    """:func:`_limb_samples` of M rods (M, 2, 5, 2) (distorted px), the same numbers."""
+    bins = [_limb_bins(f.fits, f.ts or None) for f in fits]
+    return proj.points_of([b for rod in bins for b in rod]).reshape(len(fits), 2, 5, 2)
+
+
+def _edges_stack(jobs: list[_RodJob], proj: _IdealToImage) -> list[tuple[tuple[Array, Array], Array]]:
+    """Each rod's two limbs' inlier edge points and the middle of its visible part, distorted px (the raw
+    measurement, :attr:`RodMeasurement.edges_px` and ``middle_px``), the same numbers as :meth:`_IdealToImage.points`
+    of each."""
+    parts: list[Array] = []
+    for j in jobs:
+        f = cast("_LimbFits", j.fits)
+        parts += [f.fits[0][3], f.fits[1][3], j.centres[len(j.centres) // 2][None]]
+    cut = np.cumsum([len(p) for p in parts])[:-1]
+    px = np.split(proj.points_of(parts), cut)
+    return [((px[3 * r], px[3 * r + 1]), px[3 * r + 2][0]) for r in range(len(jobs))]
+
+
 def _limb_samples(
     camera: CameraModel,
     fits: list[tuple[Array, Array, float, Array]],
@@ -938,6 +1142,12 @@ def _limb_samples(
     which tilts a rod's recomputed direction in depth the same way on every rod in that part of the image.
     """
     proj = projector if projector is not None else _IdealToImage(camera)
+    bins = _limb_bins(fits, ts)
+    return proj.points_of(bins).reshape(len(fits), 5, 2) if bins else np.empty((0, 5, 2))
+
+
+def _limb_bins(fits: list[tuple[Array, Array, float, Array]], ts: list[Array] | None) -> list[Array]:
+    """:func:`_limb_samples` in ideal pixels: per limb, the means of its edge points in five bins (5, 2)."""
     bins = []
     for i, (c, td, _s2, pts) in enumerate(fits):
         if len(pts) >= 5:
@@ -950,7 +1160,7 @@ def _limb_samples(
         else:  # fewer points than bins (never with RodSettings.min_points >= 5): points of the fitted line
             means = c[None] + _quantiles5(np.sort((pts - c) @ td))[:, None] * td[None]
         bins.append(means)
-    return proj.points_of(bins).reshape(len(fits), 5, 2) if bins else np.empty((0, 5, 2))
+    return bins
 
 
 def _quantiles5(x: Array) -> Array:
@@ -1049,7 +1259,7 @@ def measure_rods(
         segs,
         [None if isinstance(g, str) else _silhouette(g) for g in segs],
     )
-    out = [fr.measure(i, p, segs[i]) for i, p in enumerate(preds)]
+    out = _measure_frame(fr)
     index = {(p.leg, p.rod): i for i, p in enumerate(preds)}
     # one polarity per frame (the rods share their material; see _frame_polarity): a rod measured with the
     # other one is measured again with the frame's
@@ -1067,6 +1277,26 @@ def measure_rods(
             _straddle_gap(fr, out, leg, i0, i1, frame_pol)
     # still of the other polarity: a wrong rod costs a calibration more than a missing one
     return _drop_other_polarity(out, frame_pol)
+
+
+def _measure_frame(fr: _FrameRods) -> list[RodMeasurement]:
+    """Every rod of the frame measured on its prediction (:meth:`_FrameRods.measure` in turn, the same numbers and
+    the same draws from the frame's generator), each stage run for all rods at once: the edge points of each rod,
+    the limb fits in measurement order, then the axes of all rods fitted (:func:`_axes_from_limbs`)."""
+    s = fr.settings
+    jobs = [fr.job(i, p, fr.segs[i]) for i, p in enumerate(fr.preds)]
+    live = [j for j in jobs if isinstance(j, _RodJob)]
+    ready = []
+    for j, fits in zip(live, [_fit_limb_points(j.pts, s, fr.rng) for j in live], strict=True):
+        if isinstance(fits, str):
+            j.out.reason = fits
+            continue
+        j.out.reason = _limb_quality(j.out, fits, s)
+        if j.out.reason is None:
+            j.fits = fits
+            ready.append(j)
+    _axes_from_limbs(ready, fr.camera, fr.radius, s, fr.proj)
+    return [j.out if isinstance(j, _RodJob) else j for j in jobs]
 
 
 def _remeasure_with_polarity(fr: _FrameRods, out: list[RodMeasurement], frame_pol: int) -> None:
@@ -1117,7 +1347,6 @@ class _FrameRods:
         self, i: int, pred: RodPrediction, seg: _Segment | str | None = None, polarity: int | None = None
     ) -> RodMeasurement:
         """Rod ``i`` measured on ``pred``, the other rods' silhouettes its neighbours."""
-        nb = [x for j, x in enumerate(self.sil) if j != i and x is not None]
         return measure_rod(
             self.img,
             self.camera,
@@ -1127,11 +1356,32 @@ class _FrameRods:
             self.occluders,
             self.rng,
             self.box,
-            neighbours=nb,
+            neighbours=self._neighbours(i),
             segment=seg,
             projector=self.proj,
             polarity=polarity,
         )
+
+    def job(self, i: int, pred: RodPrediction, seg: _Segment | str | None = None) -> _RodJob | RodMeasurement:
+        """:meth:`measure`'s stages before the limb fits (:func:`_rod_job`)."""
+        s = self.settings
+        return _rod_job(
+            self.img,
+            self.camera,
+            pred,
+            self.radius,
+            s,
+            self.occluders,
+            self.box,
+            self._neighbours(i),
+            seg,
+            self.proj,
+            None,
+        )
+
+    def _neighbours(self, i: int) -> list[tuple[Array, Array, float]]:
+        """The other rods' silhouettes (:func:`_silhouette`)."""
+        return [x for j, x in enumerate(self.sil) if j != i and x is not None]
 
 
 def _separate_leg(fr: _FrameRods, out: list[RodMeasurement], i0: int, i1: int, frame_pol: int) -> None:
