@@ -22,7 +22,7 @@ from calib.vision.rods.covariance import (  # noqa: F401 (_line_cov)
     _line_stats,
 )
 from calib.vision.rods.cylinder import _CORR, axis_from_planes, axis_point_seen_along, limb_planes, norm3
-from calib.vision.rods.linefit import robust_line
+from calib.vision.rods.linefit import ransac_start, refine_lines
 from calib.vision.rods.types import ROD_OCCLUDER_CLEARANCE_PX, RodMeasurement, RodPrediction, RodSettings
 
 Array = NDArray[np.float64]
@@ -907,10 +907,49 @@ def _fit_limb_points(pts2: tuple[Array, Array], s: RodSettings, rng: np.random.G
     for pts in pts2:
         if len(pts) < s.min_points:
             return _too_few(len(pts), s)
-        line, inl = robust_line(pts, rng, s.ransac_iters, s.inlier_px)
+        start = ransac_start(pts, rng, s.ransac_iters, s.inlier_px)
+        line, inl = refine_lines([pts], [start], s.inlier_px)[0]
         reason = _add_limb_fit(out, pts, line, inl, s)
         if reason is not None:
             return reason
+    return out
+
+
+def _fit_limbs_frame(pts: list[tuple[Array, Array]], s: RodSettings, rng: np.random.Generator) -> list[_LimbFits | str]:
+    """The two limb lines of each rod of a frame (each rod's two limbs' edge points (N_i, 2), ideal px; ``rng`` the
+    frame's generator), or why not: :func:`_fit_limb_points` of the rods in turn, with the same draws from ``rng``,
+    each limb's RANSAC start then refined with the others' (:func:`refine_lines`).
+
+    The starts are drawn in measurement order as if every first limb's fit succeeded; a rod whose first limb then
+    fails has drawn for its second limb, which the rod-by-rod fits do not: the generator is then put back and the
+    rods fitted in turn (rare: a first limb with enough points whose fit keeps too few of them).
+    """
+    state = rng.bit_generator.state
+    sets: list[Array] = []
+    starts = []
+    for p2 in pts:
+        for limb in p2 if len(p2[0]) >= s.min_points else ():
+            if len(limb) >= s.min_points:
+                sets.append(limb)
+                starts.append(ransac_start(limb, rng, s.ransac_iters, s.inlier_px))
+    refined = iter(refine_lines(sets, starts, s.inlier_px))
+    out: list[_LimbFits | str] = []
+    for p2 in pts:
+        fits = _LimbFits([], [], [], [])
+        res: _LimbFits | str = fits
+        for j, limb in enumerate(p2):
+            if len(limb) < s.min_points:
+                res = _too_few(len(limb), s)
+                break
+            line, inl = next(refined)
+            reason = _add_limb_fit(fits, limb, line, inl, s)
+            if reason is not None:
+                if j == 0 and len(p2[1]) >= s.min_points:  # its second limb drew: fitted rod by rod
+                    rng.bit_generator.state = state
+                    return [_fit_limb_points(x, s, rng) for x in pts]
+                res = reason
+                break
+        out.append(res)
     return out
 
 
@@ -1287,7 +1326,7 @@ def _measure_frame(fr: _FrameRods) -> list[RodMeasurement]:
     jobs = [fr.job(i, p, fr.segs[i]) for i, p in enumerate(fr.preds)]
     live = [j for j in jobs if isinstance(j, _RodJob)]
     ready = []
-    for j, fits in zip(live, [_fit_limb_points(j.pts, s, fr.rng) for j in live], strict=True):
+    for j, fits in zip(live, _fit_limbs_frame([j.pts for j in live], s, fr.rng), strict=True):
         if isinstance(fits, str):
             j.out.reason = fits
             continue
