@@ -358,3 +358,51 @@ def _direction_jacobian_stack(K: Array, c: Array, td: Array, inner: Array) -> Ar
     u /= np.sqrt(np.add.reduce(u * u, axis=2, keepdims=True))
     u *= np.where(np.matmul(u, u[:, 0, :, None])[..., 0] > 0, 1.0, -1.0)[..., None]
     return ((u[:, 1::2] - u[:, 2::2]) / (2.0 * step[:, None])).transpose(0, 2, 1)  # (M, 3, 4)
+
+
+def _line_stats_sets(
+    pts: list[Array], lines: list[Array], max_lag: int = 12
+) -> list[tuple[Array, Array, float, Array, float]]:
+    """:func:`_line_stats` of several lines at once (each line's points (N_l, 2), px, and line (3,)), with each line's
+    residual RMS (px): per line (centroid (2,), unit direction (2,), s2 (px^2), positions along the line (N_l,),
+    RMS).
+
+    The same statistics; every sum is taken point by point in order, each line's on its own (its points one column
+    of an array, L' >= 2 columns: a column's sum is then a sum row by row, whatever the other columns), so that a
+    line's numbers do not depend on the lines computed with it. They differ from :func:`_line_stats`'s (BLAS dot
+    products, pairwise sums) by rounding.
+    """
+    if not pts:
+        return []
+    cols = max(len(pts), 2)
+    size = np.array([len(p) for p in pts] + [1] * (cols - len(pts)))
+    rows = np.arange(int(size.max()))[:, None]
+    valid = rows < size  # (N, L')
+    P = np.zeros((len(rows), cols, 2))
+    for j, p in enumerate(pts):
+        P[: len(p), j] = p
+    abc = np.zeros((cols, 3))
+    abc[: len(lines)] = lines
+    x, y = P[..., 0], P[..., 1]
+    r = np.where(valid, x * abc[:, 0] + y * abc[:, 1] + abc[:, 2], 0.0)
+    c = np.add.reduce(P, axis=0) / size[:, None]  # (L', 2), pts.mean(0)'s numbers
+    rss = np.add.reduce(r * r, axis=0)
+    s2 = rss / np.maximum(size - 2, 1)
+    t = (x - c[:, 0]) * abc[:, 1] + (y - c[:, 1]) * -abc[:, 0]  # (pts - c) @ t_dir, t_dir = (b, -a)
+    rr = np.take_along_axis(r, np.argsort(np.where(valid, t, np.inf), axis=0, kind="stable"), axis=0)
+    rr = np.where(valid, rr - np.add.reduce(rr, axis=0) / size, 0.0)
+    v0 = np.add.reduce(rr * rr, axis=0)
+    lag = np.minimum(max_lag, size // 4)
+    factor = np.ones(cols)
+    v0_pos = np.where(v0 > 0, v0, 1.0)
+    for k in range(1, max_lag + 1):
+        if k >= len(rows):
+            break
+        d = np.add.reduce(rr[:-k] * rr[k:], axis=0)
+        factor += np.where((k <= lag) & (v0 > 0), 2.0 * (1.0 - k / (lag + 1)) * d / v0_pos, 0.0)
+    s2 = s2 * np.maximum(factor, 1.0)
+    rms = np.sqrt(rss / size)
+    return [
+        (c[j], np.array([abc[j, 1], -abc[j, 0]]), float(s2[j]), t[: len(p), j].copy(), float(rms[j]))
+        for j, p in enumerate(pts)
+    ]

@@ -20,6 +20,7 @@ from calib.vision.rods.covariance import (  # noqa: F401 (_line_cov)
     _direction_covariance_sets,
     _line_cov,
     _line_stats,
+    _line_stats_sets,
 )
 from calib.vision.rods.cylinder import _CORR, axis_from_planes, axis_point_seen_along, limb_planes, norm3
 from calib.vision.rods.linefit import ransac_start, refine_lines
@@ -304,13 +305,15 @@ def _near_segments(
     o = centres @ n_dir
     t_lo, t_hi = float(t.min()), float(t.max())
     o_lo, o_hi = float(o.min()) + o_lo, float(o.max()) + o_hi
-    out = []
-    for a_n, b_n, hw in neighbours:
-        ta, tb, oa, ob = float(a_n @ t_dir), float(b_n @ t_dir), float(a_n @ n_dir), float(b_n @ n_dir)
-        gap = max(min(ta, tb) - t_hi, t_lo - max(ta, tb), min(oa, ob) - o_hi, o_lo - max(oa, ob))
-        if gap <= hw + margin_px:
-            out.append((a_n, b_n, hw))
-    return out
+    if not neighbours:
+        return []
+    ends = np.array([(a_n, b_n) for a_n, b_n, _ in neighbours])  # (K, 2, 2)
+    # each end's a @ t_dir and a @ n_dir, (K, 2): the two products and their sum
+    te = ends[..., 0] * t_dir[0] + ends[..., 1] * t_dir[1]
+    oe = ends[..., 0] * n_dir[0] + ends[..., 1] * n_dir[1]
+    gap = np.maximum.reduce([te.min(1) - t_hi, t_lo - te.max(1), oe.min(1) - o_hi, o_lo - oe.max(1)])
+    hw = np.array([nb[2] for nb in neighbours])
+    return [nb for nb, near in zip(neighbours, (gap <= hw + margin_px).tolist(), strict=True) if near]
 
 
 @dataclass
@@ -878,18 +881,27 @@ def _limb_points(
     edges = (np.where(one_low, x_lo, x_hi), np.where(one_low, x_hi, x_lo))
     pred_off = (o1[k], o2[k])
     ck = centres[k]
-    out = []
-    for x_e, x_p in zip(edges, pred_off, strict=True):
-        pts = ck + x_e[:, None] * n_dir[None]
-        if neighbours:
-            # drop limb points whose edge may merge with another rod's silhouette
-            limb_pred = ck + x_p[:, None] * n_dir[None]
-            clear = np.ones(len(pts), dtype=bool)
-            for a_n, b_n, hw in neighbours:
-                clear &= _seg_distance(limb_pred, a_n, b_n) > hw + s.neighbour_px
-            pts = pts[clear]
-        out.append(pts)
-    return out[0], out[1]
+    pts = [ck + x_e[:, None] * n_dir[None] for x_e in edges]
+    if not neighbours:
+        return pts[0], pts[1]
+    # drop limb points whose edge may merge with another rod's silhouette (both limbs' predicted points at once)
+    limb_pred = np.concatenate([ck + x_p[:, None] * n_dir[None] for x_p in pred_off])
+    clear = _clear_of(limb_pred, neighbours, s.neighbour_px)
+    return pts[0][clear[: len(ck)]], pts[1][clear[len(ck) :]]
+
+
+def _clear_of(pts: Array, neighbours: list[tuple[Array, Array, float]], margin_px: float) -> NDArray[np.bool_]:
+    """Which points (N, 2) (ideal px) are farther than each neighbour's half-width plus ``margin_px`` from its
+    segment (a, b) (:func:`_seg_distance`'s numbers, all neighbours at once), shape (N,)."""
+    a = np.array([nb[0] for nb in neighbours])  # (K, 2)
+    d = np.array([nb[1] for nb in neighbours]) - a
+    L2 = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]  # d @ d
+    rel = pts[None] - a[:, None]  # (K, N, 2)
+    t = np.matmul(rel, d[:, :, None])[..., 0] / np.where(L2 > 0, L2, 1.0)[:, None]
+    t = np.where((L2 > 0)[:, None], np.clip(t, 0.0, 1.0), 0.0)
+    dist = np.linalg.norm(pts[None] - (a[:, None] + t[..., None] * d[:, None]), axis=2)
+    hw = np.array([nb[2] for nb in neighbours])
+    return np.all(dist > (hw + margin_px)[:, None], axis=0)
 
 
 def _too_few(n: int, s: RodSettings) -> str:
@@ -901,18 +913,19 @@ def _too_few(n: int, s: RodSettings) -> str:
 
 
 def _fit_limb_points(pts2: tuple[Array, Array], s: RodSettings, rng: np.random.Generator) -> _LimbFits | str:
-    """The two limb lines fitted (:func:`robust_line`) to the limbs' edge points (N_i, 2) (ideal px), in turn; or
-    why not (the second limb not fitted when the first is not)."""
-    out = _LimbFits([], [], [], [])
+    """The two limb lines fitted (RANSAC, then refined: :func:`refine_lines`) to the limbs' edge points (N_i, 2)
+    (ideal px), in turn; or why not (the second limb not fitted when the first is not)."""
+    found = []
     for pts in pts2:
         if len(pts) < s.min_points:
             return _too_few(len(pts), s)
         start = ransac_start(pts, rng, s.ransac_iters, s.inlier_px)
         line, inl = refine_lines([pts], [start], s.inlier_px)[0]
-        reason = _add_limb_fit(out, pts, line, inl, s)
+        reason = _limb_fit_failed(pts, line, inl, s)
         if reason is not None:
             return reason
-    return out
+        found.append((pts[inl], line))
+    return _limb_fits([found])[0]
 
 
 def _fit_limbs_frame(pts: list[tuple[Array, Array]], s: RodSettings, rng: np.random.Generator) -> list[_LimbFits | str]:
@@ -933,41 +946,51 @@ def _fit_limbs_frame(pts: list[tuple[Array, Array]], s: RodSettings, rng: np.ran
                 sets.append(limb)
                 starts.append(ransac_start(limb, rng, s.ransac_iters, s.inlier_px))
     refined = iter(refine_lines(sets, starts, s.inlier_px))
-    out: list[_LimbFits | str] = []
+    out: list[list[tuple[Array, Array]] | str] = []
     for p2 in pts:
-        fits = _LimbFits([], [], [], [])
-        res: _LimbFits | str = fits
+        res: list[tuple[Array, Array]] | str = []
         for j, limb in enumerate(p2):
             if len(limb) < s.min_points:
                 res = _too_few(len(limb), s)
                 break
             line, inl = next(refined)
-            reason = _add_limb_fit(fits, limb, line, inl, s)
+            reason = _limb_fit_failed(limb, line, inl, s)
             if reason is not None:
                 if j == 0 and len(p2[1]) >= s.min_points:  # its second limb drew: fitted rod by rod
                     rng.bit_generator.state = state
                     return [_fit_limb_points(x, s, rng) for x in pts]
                 res = reason
                 break
+            cast("list", res).append((limb[inl], line))
         out.append(res)
-    return out
+    fitted = iter(_limb_fits([x for x in out if not isinstance(x, str)]))
+    return [x if isinstance(x, str) else next(fitted) for x in out]
 
 
-def _add_limb_fit(out: _LimbFits, pts: Array, line: Array, inl: NDArray[np.bool_], s: RodSettings) -> str | None:
-    """The limb line ``line`` (3,) fitted to ``pts`` (N, 2) (ideal px) with inliers ``inl`` (N,) appended to
-    ``out`` with its statistics; or why the fit failed."""
+def _limb_fit_failed(pts: Array, line: Array, inl: NDArray[np.bool_], s: RodSettings) -> str | None:
+    """Why the limb line ``line`` (3,) fitted to ``pts`` (N, 2) with inliers ``inl`` (N,) is not kept, or None."""
     n_in = int(np.count_nonzero(inl))
     if not np.all(np.isfinite(line)) or n_in < s.min_points:
         return f"limb line fit failed ({n_in} inliers of {len(pts)})"
-    p_in = pts[inl]
-    r = p_in @ line[:2] + line[2]
-    out.lines.append(line)
-    c, td, s2, t = _line_stats(p_in, line, r)  # (_line_cov)
-    out.fits.append((c, td, s2, p_in))
-    out.ts.append(t)
-    out.rms.append(float(np.sqrt(np.add.reduce(r * r) / n_in)))  # RMS of r (np.mean's numbers)
-    out.npts.append(n_in)
     return None
+
+
+def _limb_fits(rods: list[list[tuple[Array, Array]]]) -> list[_LimbFits]:
+    """Each rod's two limb lines (their inlier points (N, 2), ideal px, and line (3,)) with their statistics
+    (:func:`_line_stats_sets`, all limbs at once)."""
+    stats = iter(_line_stats_sets([p for rod in rods for p, _ in rod], [ln for rod in rods for _, ln in rod]))
+    out = []
+    for rod in rods:
+        fits = _LimbFits([], [], [], [])
+        for p_in, line in rod:
+            c, td, s2, t, rms = next(stats)
+            fits.lines.append(line)
+            fits.fits.append((c, td, s2, p_in))
+            fits.ts.append(t)
+            fits.rms.append(rms)
+            fits.npts.append(len(p_in))
+        out.append(fits)
+    return out
 
 
 def _limb_quality(out: RodMeasurement, fits: _LimbFits, s: RodSettings) -> str | None:
@@ -1147,9 +1170,31 @@ def _axes_stack(hs: Array, radius: float, pred_u: Array) -> tuple[Array, Array, 
 
 
 def _limb_samples_stack(fits: list[_LimbFits], proj: _IdealToImage) -> Array:
-    """:func:`_limb_samples` of M rods (M, 2, 5, 2) (distorted px), the same numbers."""
-    bins = [_limb_bins(f.fits, f.ts or None) for f in fits]
-    return proj.points_of([b for rod in bins for b in rod]).reshape(len(fits), 2, 5, 2)
+    """:func:`_limb_samples` of M rods (M, 2, 5, 2) (distorted px), the same numbers: the bins' sums of all limbs in
+    one reduction (each bin's points added in order, as the per-limb sums add them)."""
+    limbs = [(fit, f.ts[i] if f.ts else None) for f in fits for i, fit in enumerate(f.fits)]
+    if any(len(fit[3]) < 5 for fit, _ in limbs):  # (never with RodSettings.min_points >= 5)
+        bins = [b for f in fits for b in _limb_bins(f.fits, f.ts or None)]
+        return proj.points_of(bins).reshape(len(fits), 2, 5, 2)
+    srt: list[Array] = []
+    starts: list[int] = []
+    sizes: list[int] = []
+    off = 0
+    for (c, td, _s2, pts), t in limbs:
+        srt.append(pts[np.argsort((pts - c) @ td if t is None else t, kind="stable")])
+        q, extra = divmod(len(pts), 5)  # np.array_split's bins: the first ``extra`` one longer
+        size = [q + 1] * extra + [q] * (5 - extra)
+        starts += [off + sum(size[:k]) for k in range(5)]
+        sizes += size
+        off += len(pts)
+    # the bins side by side, one per column (zeros below a bin's points): summed row by row, as each bin alone is
+    n_bin = np.array(sizes)
+    rows = np.arange(int(n_bin.max()))[:, None]
+    pts = np.concatenate([*srt, np.zeros((1, 2))])
+    idx = np.where(rows < n_bin, np.array(starts) + rows, len(pts) - 1)
+    sums = np.add.reduce(pts[idx].reshape(len(rows), -1), axis=0).reshape(-1, 2)
+    means = sums / n_bin.astype(np.float64)[:, None]
+    return proj.points_of(list(means.reshape(-1, 5, 2))).reshape(len(fits), 2, 5, 2)
 
 
 def _edges_stack(jobs: list[_RodJob], proj: _IdealToImage) -> list[tuple[tuple[Array, Array], Array]]:
