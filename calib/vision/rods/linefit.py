@@ -277,17 +277,23 @@ class _SetFit:
     which entries are points."""
 
     def __init__(self, pts: list[Array]) -> None:
-        n = max(len(p) for p in pts)
+        size = np.array([len(p) for p in pts])
         cols = max(len(pts), 2)
-        self.x = np.zeros((n, cols))
-        self.y = np.zeros((n, cols))
-        self.valid = np.zeros((n, cols), dtype=bool)
         self.o = np.array([p.sum(0) / len(p) for p in pts])
-        for j, p in enumerate(pts):
-            self.x[: len(p), j] = p[:, 0] - self.o[j, 0]
-            self.y[: len(p), j] = p[:, 1] - self.o[j, 1]
-            self.valid[: len(p), j] = True
+        col = np.repeat(np.arange(len(pts)), size)
+        row = np.arange(int(size.sum())) - np.repeat(np.cumsum(size) - size, size)
+        q = np.concatenate(pts) - self.o[col]
+        self.x = np.zeros((int(size.max()), cols))
+        self.y = np.zeros_like(self.x)
+        self.valid = np.zeros(self.x.shape, dtype=bool)
+        self.x[row, col] = q[:, 0]
+        self.y[row, col] = q[:, 1]
+        self.valid[row, col] = True
         self.sets = len(pts)
+        # the moments' factors (N, 6, L'): 1, x, y, x^2, y^2, x y
+        self.f = np.stack(
+            [np.ones_like(self.x), self.x, self.y, self.x * self.x, self.y * self.y, self.x * self.y], axis=1
+        )
 
     def padded(self, abc: Array) -> Array:
         """Lines (L, 3) with rows of (0, 1, 0) up to L'."""
@@ -302,30 +308,27 @@ class _SetFit:
     def tls(self, w: Array, abc: Array) -> Array:
         """:func:`_tls_q` of each set with weights ``w`` (N, L') (0 outside the set), (L', 3); a set of zero
         weight (and the padding) keeps its line of ``abc`` (L', 3)."""
-        wx = w * self.x
-        wy = w * self.y
-        # the moments (6, L'), summed row by row
-        m = np.add.reduce(np.stack([w, wx, wy, wx * self.x, wy * self.y, wx * self.y]), axis=1)
-        out = abc.copy()
+        m = np.add.reduce(w[:, None] * self.f, axis=0)  # the moments (6, L'), summed row by row
+        out = abc.tolist()
         for j, (s0, sx, sy, sxx, syy, sxy) in enumerate(m[:, : self.sets].T.tolist()):
             if s0 == 0.0:
                 continue
             mx, my = sx / s0, sy / s0
             theta = 0.5 * math.atan2(2.0 * (sxy - s0 * mx * my), (sxx - s0 * mx * mx) - (syy - s0 * my * my))
             a, b = -math.sin(theta), math.cos(theta)
-            out[j] = (a, b, -(a * mx + b * my))
-        return out
+            out[j] = [a, b, -(a * mx + b * my)]
+        return np.array(out)
 
 
 def _column_medians(v: Array, member: NDArray[np.bool_]) -> Array:
     """The median (``np.median``'s number) of each column of ``v`` (N, L') over its ``member`` entries, shape (L',)
     (a column without members: inf)."""
-    m = np.count_nonzero(member, axis=0)
-    srt = np.sort(np.where(member, v, np.inf), axis=0)
+    m = np.add.reduce(member, axis=0, dtype=np.intp)
+    srt = np.sort(np.where(member, v, np.inf).T, axis=1)  # (L', N): each column's values sorted
     h = m // 2
     cols = np.arange(v.shape[1])
-    hi = srt[np.minimum(h, v.shape[0] - 1), cols]
-    lo = srt[np.maximum(h - 1, 0), cols]
+    hi = srt[cols, np.minimum(h, v.shape[0] - 1)]
+    lo = srt[cols, np.maximum(h - 1, 0)]
     return np.where(m % 2 == 1, hi, (lo + hi) / 2)
 
 

@@ -287,16 +287,39 @@ class _IdealToImage:
         return mx, yd
 
 
+@dataclass
+class _Neighbours:
+    """Other rods' predicted axis segments in ideal pixels, ends ``a``, ``b`` (K, 2), and half-widths ``hw`` (K,)
+    (px): what a rod's limb points must keep clear of."""
+
+    a: Array
+    b: Array
+    hw: Array
+
+    @classmethod
+    def of(cls, neighbours: list[tuple[Array, Array, float]]) -> _Neighbours:
+        """From (a, b, half-width) tuples (:func:`_silhouette`)."""
+        return cls(
+            np.array([nb[0] for nb in neighbours]).reshape(-1, 2),
+            np.array([nb[1] for nb in neighbours]).reshape(-1, 2),
+            np.array([nb[2] for nb in neighbours], dtype=np.float64),
+        )
+
+    def subset(self, keep: NDArray[np.bool_]) -> _Neighbours:
+        """The neighbours where ``keep`` (K,)."""
+        return _Neighbours(self.a[keep], self.b[keep], self.hw[keep])
+
+
 def _near_segments(
     centres: Array,
     t_dir: Array,
     n_dir: Array,
     o_lo: float,
     o_hi: float,
-    neighbours: list[tuple[Array, Array, float]],
+    neighbours: _Neighbours,
     margin_px: float,
-) -> list[tuple[Array, Array, float]]:
-    """The neighbours (a, b, half-width) that may come closer than half-width + margin to the band.
+) -> _Neighbours:
+    """The neighbours that may come closer than half-width + margin to the band.
 
     The band is the points ``centres[p] + o n_dir`` with o in [o_lo, o_hi]; a neighbour segment separated
     from it by more than that along t_dir or n_dir (a lower bound of the distance) cannot.
@@ -305,15 +328,12 @@ def _near_segments(
     o = centres @ n_dir
     t_lo, t_hi = float(t.min()), float(t.max())
     o_lo, o_hi = float(o.min()) + o_lo, float(o.max()) + o_hi
-    if not neighbours:
-        return []
-    ends = np.array([(a_n, b_n) for a_n, b_n, _ in neighbours])  # (K, 2, 2)
+    ends = np.stack([neighbours.a, neighbours.b], axis=1)  # (K, 2, 2)
     # each end's a @ t_dir and a @ n_dir, (K, 2): the two products and their sum
     te = ends[..., 0] * t_dir[0] + ends[..., 1] * t_dir[1]
     oe = ends[..., 0] * n_dir[0] + ends[..., 1] * n_dir[1]
     gap = np.maximum.reduce([te.min(1) - t_hi, t_lo - te.max(1), oe.min(1) - o_hi, o_lo - oe.max(1)])
-    hw = np.array([nb[2] for nb in neighbours])
-    return [nb for nb, near in zip(neighbours, (gap <= hw + margin_px).tolist(), strict=True) if near]
+    return neighbours.subset(gap <= neighbours.hw + margin_px)
 
 
 @dataclass
@@ -495,7 +515,7 @@ def measure_rod(
     occluders: list[Array] | None = None,
     rng: np.random.Generator | None = None,
     ideal_bbox: Array | None = None,
-    neighbours: list[tuple[Array, Array, float]] | None = None,
+    neighbours: list[tuple[Array, Array, float]] | _Neighbours | None = None,
     segment: _Segment | str | None = None,
     projector: _IdealToImage | None = None,
     polarity: int | None = None,
@@ -522,7 +542,7 @@ def measure_rod(
     neighbours : list of (a, b, half_width_px)
         The other rods' predicted axis segments in ideal pixels (a, b shape (2,)) and half-widths:
         a limb point closer to one of them than its half-width plus ``settings.neighbour_px`` is
-        dropped (its edge is merged with or hidden by the other rod's).
+        dropped (its edge is merged with or hidden by the other rod's). Or the same as a :class:`_Neighbours`.
     segment : _Segment or str, optional
         The rod's predicted visible segment in ideal pixels, or the reason it has none, when already computed
         for the frame (:func:`measure_rods`); computed from ``pred`` when not given.
@@ -579,7 +599,7 @@ def _rod_job(
     s: RodSettings,
     occluders: list[Array] | None,
     box: Array,
-    neighbours: list[tuple[Array, Array, float]] | None,
+    neighbours: _Neighbours | list[tuple[Array, Array, float]] | None,
     segment: _Segment | str | None,
     proj: _IdealToImage,
     polarity: int | None,
@@ -596,7 +616,9 @@ def _rod_job(
         out.reason = vis
         return out
     pairs = seg.pairs if seg.pairs is not None else _limb_pairs(gray, camera, seg, s, proj, *vis)
-    if neighbours:
+    if isinstance(neighbours, list):
+        neighbours = _Neighbours.of(neighbours)
+    if neighbours is not None and len(neighbours.hw):
         neighbours = _near_segments(
             vis[1],
             seg.t_dir,
@@ -856,7 +878,7 @@ def _fit_limbs(
     n_dir: Array,
     s: RodSettings,
     rng: np.random.Generator,
-    neighbours: list[tuple[Array, Array, float]] | None,
+    neighbours: _Neighbours | list[tuple[Array, Array, float]] | None,
 ) -> _LimbFits | str:
     """The two limb lines fitted (RANSAC) to the pairs of this polarity, limb points near a neighbour dropped; or
     why not."""
@@ -869,7 +891,7 @@ def _limb_points(
     centres: Array,
     n_dir: Array,
     s: RodSettings,
-    neighbours: list[tuple[Array, Array, float]] | None,
+    neighbours: _Neighbours | list[tuple[Array, Array, float]] | None,
 ) -> tuple[Array, Array]:
     """The two limbs' edge points (N_i, 2) (ideal px) of the pairs of this polarity, points near a neighbour
     dropped."""
@@ -882,7 +904,9 @@ def _limb_points(
     pred_off = (o1[k], o2[k])
     ck = centres[k]
     pts = [ck + x_e[:, None] * n_dir[None] for x_e in edges]
-    if not neighbours:
+    if isinstance(neighbours, list):
+        neighbours = _Neighbours.of(neighbours)
+    if neighbours is None or not len(neighbours.hw):
         return pts[0], pts[1]
     # drop limb points whose edge may merge with another rod's silhouette (both limbs' predicted points at once)
     limb_pred = np.concatenate([ck + x_p[:, None] * n_dir[None] for x_p in pred_off])
@@ -890,18 +914,17 @@ def _limb_points(
     return pts[0][clear[: len(ck)]], pts[1][clear[len(ck) :]]
 
 
-def _clear_of(pts: Array, neighbours: list[tuple[Array, Array, float]], margin_px: float) -> NDArray[np.bool_]:
+def _clear_of(pts: Array, neighbours: _Neighbours, margin_px: float) -> NDArray[np.bool_]:
     """Which points (N, 2) (ideal px) are farther than each neighbour's half-width plus ``margin_px`` from its
-    segment (a, b) (:func:`_seg_distance`'s numbers, all neighbours at once), shape (N,)."""
-    a = np.array([nb[0] for nb in neighbours])  # (K, 2)
-    d = np.array([nb[1] for nb in neighbours]) - a
+    segment (:func:`_seg_distance`'s numbers, all neighbours at once), shape (N,)."""
+    a = neighbours.a
+    d = neighbours.b - a
     L2 = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]  # d @ d
     rel = pts[None] - a[:, None]  # (K, N, 2)
     t = np.matmul(rel, d[:, :, None])[..., 0] / np.where(L2 > 0, L2, 1.0)[:, None]
     t = np.where((L2 > 0)[:, None], np.clip(t, 0.0, 1.0), 0.0)
     dist = np.linalg.norm(pts[None] - (a[:, None] + t[..., None] * d[:, None]), axis=2)
-    hw = np.array([nb[2] for nb in neighbours])
-    return np.all(dist > (hw + margin_px)[:, None], axis=0)
+    return np.all(dist > (neighbours.hw + margin_px)[:, None], axis=0)
 
 
 def _too_few(n: int, s: RodSettings) -> str:
@@ -1426,6 +1449,8 @@ class _FrameRods:
     proj: _IdealToImage
     segs: list[_Segment | str]
     sil: list[tuple[Array, Array, float] | None]
+    #: the rows of ``sil`` that are silhouettes and their arrays, once built (None: to build)
+    nb: tuple[NDArray[np.intp], _Neighbours] | None = None
 
     def measure(
         self, i: int, pred: RodPrediction, seg: _Segment | str | None = None, polarity: int | None = None
@@ -1463,9 +1488,13 @@ class _FrameRods:
             None,
         )
 
-    def _neighbours(self, i: int) -> list[tuple[Array, Array, float]]:
+    def _neighbours(self, i: int) -> _Neighbours:
         """The other rods' silhouettes (:func:`_silhouette`)."""
-        return [x for j, x in enumerate(self.sil) if j != i and x is not None]
+        if self.nb is None:  # (built once for the silhouettes, again when one changes)
+            rows = [j for j, x in enumerate(self.sil) if x is not None]
+            self.nb = (np.array(rows, dtype=np.intp), _Neighbours.of([x for x in self.sil if x is not None]))
+        rows_arr, nb = self.nb
+        return nb.subset(rows_arr != i)
 
 
 def _separate_leg(fr: _FrameRods, out: list[RodMeasurement], i0: int, i1: int, frame_pol: int) -> None:
@@ -1524,6 +1553,7 @@ def _straddle_gap(fr: _FrameRods, out: list[RodMeasurement], leg: int, i0: int, 
         seg = _predicted_segment(fr.camera, p, fr.radius, s.near_m, fr.box)
         fr.segs[i] = seg
         fr.sil[i] = None if isinstance(seg, str) else _silhouette(seg)
+        fr.nb = None
     for i, p in moved.items():
         again = fr.measure(i, p, fr.segs[i], frame_pol)
         if again.ok and _line_distance(g_m, again) > 0.25 * spacing:
