@@ -20,7 +20,6 @@ from calib.vision.rods.covariance import (  # noqa: F401 (_line_cov)
     _direction_covariance_sets,
     _line_cov,
     _line_stats,
-    _line_stats_sets,
 )
 from calib.vision.rods.cylinder import _CORR, axis_from_planes, axis_point_seen_along, limb_planes, norm3
 from calib.vision.rods.linefit import ransac_start, refine_lines
@@ -1000,17 +999,17 @@ def _limb_fit_failed(pts: Array, line: Array, inl: NDArray[np.bool_], s: RodSett
 
 def _limb_fits(rods: list[list[tuple[Array, Array]]]) -> list[_LimbFits]:
     """Each rod's two limb lines (their inlier points (N, 2), ideal px, and line (3,)) with their statistics
-    (:func:`_line_stats_sets`, all limbs at once)."""
-    stats = iter(_line_stats_sets([p for rod in rods for p, _ in rod], [ln for rod in rods for _, ln in rod]))
+    (:func:`_line_stats`, residual RMS)."""
     out = []
     for rod in rods:
         fits = _LimbFits([], [], [], [])
         for p_in, line in rod:
-            c, td, s2, t, rms = next(stats)
+            r = p_in @ line[:2] + line[2]
+            c, td, s2, t = _line_stats(p_in, line, r)  # (_line_cov)
             fits.lines.append(line)
             fits.fits.append((c, td, s2, p_in))
             fits.ts.append(t)
-            fits.rms.append(rms)
+            fits.rms.append(float(np.sqrt(np.add.reduce(r * r) / len(p_in))))  # RMS of r (np.mean's numbers)
             fits.npts.append(len(p_in))
         out.append(fits)
     return out
