@@ -67,12 +67,13 @@ def _inlier_counts(pts: Array, nx: Array, ny: Array, c: Array, inlier_px: float)
     """
     counts = np.zeros(c.size, dtype=np.intp)
     step = max(8, _BLOCK // max(c.size, 1))
+    cc = c[:, None]
     for b in range(0, len(pts), step):
         q = pts[b : b + step]
-        r = np.multiply.outer(q[:, 0], nx)
-        r += np.multiply.outer(q[:, 1], ny)
-        r += c
-        counts += np.count_nonzero(np.abs(r, out=r) < inlier_px, axis=0)
+        r = np.multiply.outer(nx, q[:, 0])  # (K, n): lines along the rows, each row's points contiguous
+        r += np.multiply.outer(ny, q[:, 1])
+        r += cc
+        counts += np.add.reduce(np.abs(r, out=r) < inlier_px, axis=1, dtype=np.intp)
     return counts
 
 
