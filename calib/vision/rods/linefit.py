@@ -212,11 +212,12 @@ def ransac_start(
 def refine_lines(
     pts: list[Array], starts: list[RansacStart], inlier_px: float
 ) -> list[tuple[Array, NDArray[np.bool_]]]:
-    """:func:`refine_line` of several point sets at once, each from its RANSAC start.
+    """:func:`refine_line` of several point sets at once, each from its RANSAC start: the same lines and inliers,
+    bit for bit.
 
-    The same iterations and cuts as :func:`refine_line`; the moments are summed point by point in order, each set's
-    on its own (:class:`_SetFit`), so that a set's line does not depend on the other sets fitted with it; they
-    differ from :func:`refine_line`'s (a BLAS product) by rounding.
+    The residuals of all sets come from one stacked product (each set's the matrix-vector product
+    :func:`refine_line` computes), the medians, cuts and weights from array operations over all sets; each set's
+    moments are its own product, as in :func:`_tls_q`.
 
     Parameters
     ----------
@@ -240,11 +241,10 @@ def refine_lines(
         return out
     fit = _SetFit([pts[j] for j in use])
     abc = fit.padded(np.array([cast("tuple[float, float, float]", starts[j].line) for j in use]))
-    abc[: fit.sets, 2] = (
-        abc[: fit.sets, 2] + abc[: fit.sets, 0] * fit.o[:, 0] + abc[: fit.sets, 1] * fit.o[:, 1]
-    )  # centred
+    # the start in centred coordinates: c0 + a o_x + b o_y
+    abc[: fit.sets, 2] = abc[: fit.sets, 2] + abc[: fit.sets, 0] * fit.o[:, 0] + abc[: fit.sets, 1] * fit.o[:, 1]
     inl = (np.abs(fit.residuals(abc)) < inlier_px) & fit.valid
-    abc = fit.tls(inl.astype(np.float64), abc)
+    abc = fit.tls(abc, inl)
     active = fit.valid.any(axis=0)
     for _ in range(4):
         r = fit.residuals(abc)
@@ -258,12 +258,12 @@ def refine_lines(
         np.subtract(1.0, t, out=t)
         t *= t  # Tukey's biweight (1 - (r / cut)^2)^2, 0 beyond the cut
         t *= keep
-        abc = np.where(active[:, None], fit.tls(t, abc), abc)
+        abc = fit.tls(abc, None, t, active)
     r = np.abs(fit.residuals(abc))
     near = (r < 3 * inlier_px) & fit.valid
     cut = np.where(near.any(axis=0), 3.0 * 1.4826 * _column_medians(r, near), inlier_px)
     inl = (r < np.maximum(cut, 0.3)) & fit.valid
-    abc = np.where((np.count_nonzero(inl, axis=0) >= 2)[:, None], fit.tls(inl.astype(np.float64), abc), abc)
+    abc = fit.tls(abc, inl, None, np.count_nonzero(inl, axis=0) >= 2)
     for k, j in enumerate(use):
         a, b, c0 = abc[k].tolist()
         line = np.array([a, b, c0 - (a * float(fit.o[k, 0]) + b * float(fit.o[k, 1]))])
@@ -272,53 +272,50 @@ def refine_lines(
 
 
 class _SetFit:
-    """Point sets (N_l, 2) (px) laid out for :func:`refine_lines`: each centred on its mean, ``o`` (L, 2), its
-    centred coordinates a column of ``x``, ``y`` (N, L') (N the largest set's size; L' = max(L, 2) columns, so that
-    a column's sum is a sum row by row whatever the other columns; entries beyond a set 0) and ``valid`` (N, L')
-    which entries are points."""
+    """Point sets (N_l, 2) (px) laid out for :func:`refine_lines`: each centred on its mean, ``o`` (L, 2), as
+    :func:`refine_line` centres it (``q`` its homogeneous centred points (N_l, 3)); ``stack`` (L', N, 3) the same
+    points padded with zeros to the largest set (L' = max(L, 2) sets), ``valid`` (N, L') which entries are points."""
 
     def __init__(self, pts: list[Array]) -> None:
-        size = np.array([len(p) for p in pts])
-        cols = max(len(pts), 2)
-        self.o = np.array([p.sum(0) / len(p) for p in pts])
-        col = np.repeat(np.arange(len(pts)), size)
-        row = np.arange(int(size.sum())) - np.repeat(np.cumsum(size) - size, size)
-        q = np.concatenate(pts) - self.o[col]
-        self.x = np.zeros((int(size.max()), cols))
-        self.y = np.zeros_like(self.x)
-        self.valid = np.zeros(self.x.shape, dtype=bool)
-        self.x[row, col] = q[:, 0]
-        self.y[row, col] = q[:, 1]
-        self.valid[row, col] = True
+        size = [len(p) for p in pts]
         self.sets = len(pts)
-        # the moments' factors (N, 6, L'): 1, x, y, x^2, y^2, x y
-        self.f = np.stack(
-            [np.ones_like(self.x), self.x, self.y, self.x * self.x, self.y * self.y, self.x * self.y], axis=1
-        )
+        self.o = np.array([p.sum(0) / len(p) for p in pts])
+        self.q = []
+        self.stack = np.zeros((max(self.sets, 2), max(size), 3))
+        for j, p in enumerate(pts):
+            q = np.ones((len(p), 3))
+            q[:, :2] = p - self.o[j]
+            self.q.append(q)
+            self.stack[j, : len(p)] = q
+        self.valid = np.arange(max(size))[:, None] < np.array(size + [0] * (len(self.stack) - self.sets))
 
     def padded(self, abc: Array) -> Array:
         """Lines (L, 3) with rows of (0, 1, 0) up to L'."""
-        out = np.tile([0.0, 1.0, 0.0], (self.x.shape[1], 1))
+        out = np.tile([0.0, 1.0, 0.0], (len(self.stack), 1))
         out[: len(abc)] = abc
         return out
 
     def residuals(self, abc: Array) -> Array:
-        """Each point's residual (N, L') against its set's line ``a x + b y + c = 0`` (abc (L', 3), centred px)."""
-        return self.x * abc[:, 0] + self.y * abc[:, 1] + abc[:, 2]
+        """Each point's residual (N, L') against its set's line ``a x + b y + c = 0`` (abc (L', 3), centred px): each
+        set's product ``q @ (a, b, c)``, stacked (padding rows 0 + c)."""
+        return np.matmul(self.stack, abc[:, :, None])[..., 0].T
 
-    def tls(self, w: Array, abc: Array) -> Array:
-        """:func:`_tls_q` of each set with weights ``w`` (N, L') (0 outside the set), (L', 3); a set of zero
-        weight (and the padding) keeps its line of ``abc`` (L', 3)."""
-        m = np.add.reduce(w[:, None] * self.f, axis=0)  # the moments (6, L'), summed row by row
-        out = abc.tolist()
-        for j, (s0, sx, sy, sxx, syy, sxy) in enumerate(m[:, : self.sets].T.tolist()):
-            if s0 == 0.0:
+    def tls(
+        self,
+        abc: Array,
+        member: NDArray[np.bool_] | None,
+        w: Array | None = None,
+        which: NDArray[np.bool_] | None = None,
+    ) -> Array:
+        """:func:`_tls_q` of each set (those of ``which`` (L',), all by default): of its ``member`` points (N, L'),
+        or of all its points with weights ``w`` (N, L'); the other sets keep their line of ``abc`` (L', 3)."""
+        out = abc.copy()
+        for j, q in enumerate(self.q):
+            if which is not None and not which[j]:
                 continue
-            mx, my = sx / s0, sy / s0
-            theta = 0.5 * math.atan2(2.0 * (sxy - s0 * mx * my), (sxx - s0 * mx * mx) - (syy - s0 * my * my))
-            a, b = -math.sin(theta), math.cos(theta)
-            out[j] = [a, b, -(a * mx + b * my)]
-        return np.array(out)
+            n = len(q)
+            out[j] = _tls_q(q[member[:n, j]]) if member is not None else _tls_q(q, cast("Array", w)[:n, j])
+        return out
 
 
 def _column_medians(v: Array, member: NDArray[np.bool_]) -> Array:

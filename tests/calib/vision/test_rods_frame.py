@@ -244,8 +244,8 @@ def test_frame_limb_fits_draw_as_the_rods_in_turn(first_fails):
 
 
 def test_refine_lines_each_set_alone_or_together():
-    """A set's refined line and inliers do not depend on the sets refined with it (the per-rod and frame paths share
-    them), and agree with robust_line's to rounding (1e-9 px on c, the same inliers)."""
+    """A set's refined line and inliers are robust_line's, bit for bit, whether refined alone or with other sets
+    (the per-rod and frame paths share them)."""
     rng = np.random.default_rng(2)
     sets = [_limb(rng, n, k) for n, k in ((60, 5), (200, 30), (25, 0), (90, 40))]
     starts = [ransac_start(p, np.random.default_rng(j), 150, 1.0) for j, p in enumerate(sets)]
@@ -254,5 +254,5 @@ def test_refine_lines_each_set_alone_or_together():
         line, inl = refine_lines([p], [starts[j]], 1.0)[0]
         assert np.array_equal(line, together[j][0]) and np.array_equal(inl, together[j][1])
         ref, ref_inl = robust_line(p, np.random.default_rng(j), 150, 1.0)
-        assert np.array_equal(inl, ref_inl)
-        assert np.allclose(line, ref, rtol=0.0, atol=1e-9)
+        assert np.array_equal(inl, ref_inl) and np.array_equal(line, ref)
+        assert 0 < np.count_nonzero(inl) < len(p) or j == 2  # outliers dropped (the third set has none)
