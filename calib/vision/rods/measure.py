@@ -425,14 +425,6 @@ def _inv_t_of(k: bytes) -> Array:
     return cast("Array", np.linalg.inv(np.frombuffer(k, dtype=np.float64).reshape(3, 3)).T)
 
 
-def _seg_distance(pts: Array, a: Array, b: Array) -> Array:
-    """Distance (px) from points (N, 2) to the segment a-b, shape (N,)."""
-    d = b - a
-    L2 = float(d @ d)
-    t = np.clip(((pts - a) @ d) / L2, 0.0, 1.0) if L2 > 0 else np.zeros(len(pts))
-    return np.linalg.norm(pts - (a[None] + t[:, None] * d[None]), axis=1)
-
-
 def _pair_edges(
     pi: NDArray[np.int_], xo: Array, gs: Array, pc: Array, pw: Array, band_px: float, width_tol: float
 ) -> tuple[NDArray[np.int_], Array, Array, NDArray[np.int_]]:
@@ -870,20 +862,6 @@ def _frame_pairs(
     ]
 
 
-def _fit_limbs(
-    pairs: _LimbPairs,
-    polarity: int,
-    centres: Array,
-    n_dir: Array,
-    s: RodSettings,
-    rng: np.random.Generator,
-    neighbours: _Neighbours | list[tuple[Array, Array, float]] | None,
-) -> _LimbFits | str:
-    """The two limb lines fitted (RANSAC) to the pairs of this polarity, limb points near a neighbour dropped; or
-    why not."""
-    return _fit_limb_points(_limb_points(pairs, polarity, centres, n_dir, s, neighbours), s, rng)
-
-
 def _limb_points(
     pairs: _LimbPairs,
     polarity: int,
@@ -915,7 +893,7 @@ def _limb_points(
 
 def _clear_of(pts: Array, neighbours: _Neighbours, margin_px: float) -> NDArray[np.bool_]:
     """Which points (N, 2) (ideal px) are farther than each neighbour's half-width plus ``margin_px`` from its
-    segment (:func:`_seg_distance`'s numbers, all neighbours at once), shape (N,)."""
+    segment (each point's distance to the segment's nearest point), all neighbours at once, shape (N,)."""
     a = neighbours.a
     d = neighbours.b - a
     L2 = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]  # d @ d
