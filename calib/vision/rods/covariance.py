@@ -274,3 +274,87 @@ def _direction_jacobians(K: Array, c: Array, td: Array, inner: Array) -> Array:
     u /= np.linalg.norm(u, axis=-1, keepdims=True)
     u *= np.where(np.einsum("mpi,mi->mp", u, u[:, 0]) > 0, 1.0, -1.0)[..., None]
     return (u[:, 1::2] - u[:, 2::2]) / (2.0 * step[:, None])  # (M, 4, 3)
+
+
+def _direction_covariance_sets(
+    K: Array,
+    fits: list[list[tuple[Array, Array, float, Array]]],
+    inner: Array,
+    edge_bias_px: float,
+    lengths_px: tuple[float, ...],
+    ts: list[list[Array]],
+) -> list[Array]:
+    """:func:`_direction_covariance_set` of M rods at once, the same numbers bit for bit.
+
+    Each rod's variances come from the same scalar arithmetic, and its derivatives and covariance from the same
+    products (:func:`_direction_jacobian_stack`), stacked: numpy's stacked matrix products compute each rod's slice
+    as the single product does.
+
+    Parameters
+    ----------
+    K : ndarray, shape (3, 3)
+        Camera matrix (px).
+    fits : list of M lists of 2 (centroid (2,), unit direction (2,), sigma^2 (px^2), points (N, 2))
+        Each rod's two limb fits (ideal px).
+    inner : ndarray, shape (M, 3)
+        Per rod, a direction on the axis' side of both interpretation planes.
+    edge_bias_px : float
+        End-to-end standard deviation of the edge bias along a limb (px).
+    lengths_px : tuple of float
+        The allowance's correlation lengths (px; :func:`edge_bias_factor`).
+    ts : list of M lists of 2 ndarrays, shape (N,)
+        Each fit's ``(pts - c) @ td`` (px).
+
+    Returns
+    -------
+    list of ndarray, shape (M, 3, 3)
+        Per length, each rod's covariance of its unit axis direction.
+    """
+    m = len(fits)
+    var = np.zeros((len(lengths_px), m, 4, 4))
+    for r, (rod, rod_ts) in enumerate(zip(fits, ts, strict=True)):
+        spans, parts = [], []
+        for (_c, _td, s2, pts), t in zip(rod, rod_ts, strict=True):
+            spans.append(max(float(t.max() - t.min()), 1.0))
+            parts.append((s2 / max(float(t @ t), 1e-9), s2 / len(pts)))
+        for k, length in enumerate(lengths_px):
+            v = []
+            for span, (v_ang, v_sh) in zip(spans, parts, strict=True):
+                b2 = edge_bias_px**2 * (1.0 if length == 0 else min(1.0, length / span))
+                v += [v_ang + b2 / span**2, v_sh + 0.25 * b2]
+            var[k, r] = np.diag(v)
+    for length in lengths_px:
+        edge_bias_factor(1.0, length)  # (validates the length)
+    c = np.array([[f[0] for f in rod] for rod in fits]).reshape(m, 2, 2)
+    td = np.array([[f[1] for f in rod] for rod in fits]).reshape(m, 2, 2)
+    J = _direction_jacobian_stack(K, c, td, inner)
+    Jt = J.transpose(0, 2, 1)
+    return [np.matmul(np.matmul(J, var[k]), Jt) for k in range(len(lengths_px))]
+
+
+def _direction_jacobian_stack(K: Array, c: Array, td: Array, inner: Array) -> Array:
+    """:func:`_direction_jacobian` of M rods (limb centroids and directions (M, 2, 2), ideal px; ``inner`` (M, 3)),
+    (M, 3, 4), the same numbers bit for bit (the same operations, the products stacked)."""
+    step, cs_sn = _JAC_STEP, _JAC_CS_SN
+    m = len(c)
+    hs = []
+    lines = np.empty((m, 9, 3))
+    for j in range(2):
+        cs, sn, sh = cs_sn[j]
+        tx, ty = td[:, j, 0, None], td[:, j, 1, None]
+        dx = cs * tx - sn * ty  # (M, 9)
+        dy = sn * tx + cs * ty
+        lines[..., 0] = -dy
+        lines[..., 1] = dx
+        lines[..., 2] = dy * c[:, j, 0, None] - dx * c[:, j, 1, None] - sh
+        h = np.matmul(lines, K)
+        h /= np.sqrt(np.add.reduce(h * h, axis=2, keepdims=True))
+        hs.append(h * np.where(np.matmul(h, inner[:, :, None])[..., 0] > 0, 1.0, -1.0)[..., None])
+    a, b = hs
+    u = np.empty((m, 9, 3))
+    u[..., 0] = a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1]
+    u[..., 1] = a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2]
+    u[..., 2] = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+    u /= np.sqrt(np.add.reduce(u * u, axis=2, keepdims=True))
+    u *= np.where(np.matmul(u, u[:, 0, :, None])[..., 0] > 0, 1.0, -1.0)[..., None]
+    return ((u[:, 1::2] - u[:, 2::2]) / (2.0 * step[:, None])).transpose(0, 2, 1)  # (M, 3, 4)

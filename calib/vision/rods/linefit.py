@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import NamedTuple, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -67,12 +67,13 @@ def _inlier_counts(pts: Array, nx: Array, ny: Array, c: Array, inlier_px: float)
     """
     counts = np.zeros(c.size, dtype=np.intp)
     step = max(8, _BLOCK // max(c.size, 1))
+    cc = c[:, None]
     for b in range(0, len(pts), step):
         q = pts[b : b + step]
-        r = np.multiply.outer(q[:, 0], nx)
-        r += np.multiply.outer(q[:, 1], ny)
-        r += c
-        counts += np.count_nonzero(np.abs(r, out=r) < inlier_px, axis=0)
+        r = np.multiply.outer(nx, q[:, 0])  # (K, n): lines along the rows, each row's points contiguous
+        r += np.multiply.outer(ny, q[:, 1])
+        r += cc
+        counts += np.add.reduce(np.abs(r, out=r) < inlier_px, axis=1, dtype=np.intp)
     return counts
 
 
@@ -125,15 +126,51 @@ def candidates_needed(share: float, confidence: float) -> float:
     return math.log1p(-confidence) / math.log1p(-w2)
 
 
+def draw_pairs(n: int, rng: np.random.Generator, iters: int) -> NDArray[np.int64] | None:
+    """The point pairs :func:`ransac_start` draws for ``n`` points: ``rng.integers(0, n, size=(iters, 2))``, or
+    None (nothing drawn) when n < 2.
+
+    Parameters
+    ----------
+    n : int
+        Number of points.
+    rng : numpy.random.Generator
+        The generator drawn from.
+    iters : int
+        Pairs drawn.
+
+    Returns
+    -------
+    ndarray of int, shape (iters, 2), or None
+        Point indices.
+    """
+    return rng.integers(0, n, size=(iters, 2)) if n >= 2 else None
+
+
+def _candidates(pts: Array, i: NDArray[np.int64]) -> tuple[Array, Array, Array]:
+    """The candidate lines ``nx x + ny y + c = 0`` (each (K,), unit normal, c in px) through the drawn pairs ``i``
+    (iters, 2) of points (N, 2) (px), pairs of one point or of two points at the same place dropped."""
+    i = i[i[:, 0] != i[:, 1]]
+    p = pts[i[:, 0]]
+    d = pts[i[:, 1]] - p
+    ln = np.hypot(d[:, 0], d[:, 1])
+    good = ln > 1e-9
+    if not good.all():  # (two points at the same place: no line)
+        p, d, ln = p[good], d[good], ln[good]
+    nx, ny = -d[:, 1] / ln, d[:, 0] / ln
+    return nx, ny, -(nx * p[:, 0] + ny * p[:, 1])
+
+
 def ransac_start(
     pts: Array, rng: np.random.Generator, iters: int, inlier_px: float, confidence: float = RANSAC_CONFIDENCE
 ) -> RansacStart:
     """The 2-point RANSAC line with the most inliers, scored in blocks until the termination rule is met.
 
-    All ``iters`` pairs are drawn up front (the generator's consumption does not depend on when the scoring stops);
-    the first ``_MIN_SCORED`` candidates are scored, then ``_SCORE_STEP`` at a time until :func:`candidates_needed`
-    for the best inlier share so far are scored (the standard RANSAC termination rule), ``iters`` at most. Ties go to
-    the first candidate drawn, so with ``confidence=1.0`` the result is that of scoring every candidate at once.
+    All ``iters`` pairs are drawn up front (:func:`draw_pairs`: the generator's consumption does not depend on when
+    the scoring stops); the first ``_MIN_SCORED`` candidates are scored, then ``_SCORE_STEP`` at a time until
+    :func:`candidates_needed` for the best inlier share so far are scored (the standard RANSAC termination rule),
+    ``iters`` at most. Ties go to the first candidate drawn, so with ``confidence=1.0`` the result is that of scoring
+    every candidate at once.
 
     Parameters
     ----------
@@ -153,18 +190,10 @@ def ransac_start(
     RansacStart
     """
     n = len(pts)
-    if n < 2:
+    i = draw_pairs(n, rng, iters)
+    if i is None:
         return RansacStart(None, -1, 0, 0)
-    i = rng.integers(0, n, size=(iters, 2))
-    i = i[i[:, 0] != i[:, 1]]
-    p = pts[i[:, 0]]
-    d = pts[i[:, 1]] - p
-    ln = np.hypot(d[:, 0], d[:, 1])
-    good = ln > 1e-9
-    if not good.all():  # (two points at the same place: no line)
-        p, d, ln = p[good], d[good], ln[good]
-    nx, ny = -d[:, 1] / ln, d[:, 0] / ln
-    c = -(nx * p[:, 0] + ny * p[:, 1])
+    nx, ny, c = _candidates(pts, i)
     best_k, best_count, scored = -1, -1, 0
     while scored < c.size:
         end = min(scored + (_SCORE_STEP if scored else _MIN_SCORED), c.size)
@@ -178,6 +207,127 @@ def ransac_start(
     if best_k < 0:
         return RansacStart(None, -1, 0, 0)
     return RansacStart((float(nx[best_k]), float(ny[best_k]), float(c[best_k])), best_count, scored, int(c.size))
+
+
+def refine_lines(
+    pts: list[Array], starts: list[RansacStart], inlier_px: float
+) -> list[tuple[Array, NDArray[np.bool_]]]:
+    """:func:`refine_line` of several point sets at once, each from its RANSAC start: the same lines and inliers,
+    bit for bit.
+
+    The residuals of all sets come from one stacked product (each set's the matrix-vector product
+    :func:`refine_line` computes), the medians, cuts and weights from array operations over all sets; each set's
+    moments are its own product, as in :func:`_tls_q`.
+
+    Parameters
+    ----------
+    pts : list of ndarray, shape (N_l, 2)
+        Edge points (px).
+    starts : list of RansacStart
+        Each set's RANSAC start (:func:`ransac_start`).
+    inlier_px : float
+        RANSAC inlier distance (px).
+
+    Returns
+    -------
+    list of (line (3,), inliers (N_l,) bool)
+        As :func:`robust_line`'s.
+    """
+    out: list[tuple[Array, NDArray[np.bool_]]] = [
+        (np.array([np.nan, np.nan, np.nan]), np.zeros(len(p), dtype=bool)) for p in pts
+    ]
+    use = [j for j, st in enumerate(starts) if st.line is not None and st.n_inliers >= 2]
+    if not use:
+        return out
+    fit = _SetFit([pts[j] for j in use])
+    abc = fit.padded(np.array([cast("tuple[float, float, float]", starts[j].line) for j in use]))
+    # the start in centred coordinates: c0 + a o_x + b o_y
+    abc[: fit.sets, 2] = abc[: fit.sets, 2] + abc[: fit.sets, 0] * fit.o[:, 0] + abc[: fit.sets, 1] * fit.o[:, 1]
+    inl = (np.abs(fit.residuals(abc)) < inlier_px) & fit.valid
+    abc = fit.tls(abc, inl)
+    active = fit.valid.any(axis=0)
+    for _ in range(4):
+        r = fit.residuals(abc)
+        cut = 4.685 * np.maximum(1.4826 * _column_medians(np.abs(r), inl), 0.05)
+        t = r / cut
+        keep = (np.abs(t) < 1.0) & fit.valid
+        active &= np.count_nonzero(keep, axis=0) >= 2  # a set whose weights vanish keeps its line from then on
+        if not active.any():
+            break
+        t *= t
+        np.subtract(1.0, t, out=t)
+        t *= t  # Tukey's biweight (1 - (r / cut)^2)^2, 0 beyond the cut
+        t *= keep
+        abc = fit.tls(abc, None, t, active)
+    r = np.abs(fit.residuals(abc))
+    near = (r < 3 * inlier_px) & fit.valid
+    cut = np.where(near.any(axis=0), 3.0 * 1.4826 * _column_medians(r, near), inlier_px)
+    inl = (r < np.maximum(cut, 0.3)) & fit.valid
+    abc = fit.tls(abc, inl, None, np.count_nonzero(inl, axis=0) >= 2)
+    for k, j in enumerate(use):
+        a, b, c0 = abc[k].tolist()
+        line = np.array([a, b, c0 - (a * float(fit.o[k, 0]) + b * float(fit.o[k, 1]))])
+        out[j] = (line, inl[: len(pts[j]), k].copy())
+    return out
+
+
+class _SetFit:
+    """Point sets (N_l, 2) (px) laid out for :func:`refine_lines`: each centred on its mean, ``o`` (L, 2), as
+    :func:`refine_line` centres it (``q`` its homogeneous centred points (N_l, 3)); ``stack`` (L', N, 3) the same
+    points padded with zeros to the largest set (L' = max(L, 2) sets), ``valid`` (N, L') which entries are points."""
+
+    def __init__(self, pts: list[Array]) -> None:
+        size = [len(p) for p in pts]
+        self.sets = len(pts)
+        self.o = np.array([p.sum(0) / len(p) for p in pts])
+        self.q = []
+        self.stack = np.zeros((max(self.sets, 2), max(size), 3))
+        for j, p in enumerate(pts):
+            q = np.ones((len(p), 3))
+            q[:, :2] = p - self.o[j]
+            self.q.append(q)
+            self.stack[j, : len(p)] = q
+        self.valid = np.arange(max(size))[:, None] < np.array(size + [0] * (len(self.stack) - self.sets))
+
+    def padded(self, abc: Array) -> Array:
+        """Lines (L, 3) with rows of (0, 1, 0) up to L'."""
+        out = np.tile([0.0, 1.0, 0.0], (len(self.stack), 1))
+        out[: len(abc)] = abc
+        return out
+
+    def residuals(self, abc: Array) -> Array:
+        """Each point's residual (N, L') against its set's line ``a x + b y + c = 0`` (abc (L', 3), centred px): each
+        set's product ``q @ (a, b, c)``, stacked (padding rows 0 + c)."""
+        return np.matmul(self.stack, abc[:, :, None])[..., 0].T
+
+    def tls(
+        self,
+        abc: Array,
+        member: NDArray[np.bool_] | None,
+        w: Array | None = None,
+        which: NDArray[np.bool_] | None = None,
+    ) -> Array:
+        """:func:`_tls_q` of each set (those of ``which`` (L',), all by default): of its ``member`` points (N, L'),
+        or of all its points with weights ``w`` (N, L'); the other sets keep their line of ``abc`` (L', 3)."""
+        out = abc.copy()
+        for j, q in enumerate(self.q):
+            if which is not None and not which[j]:
+                continue
+            n = len(q)
+            out[j] = _tls_q(q[member[:n, j]]) if member is not None else _tls_q(q, cast("Array", w)[:n, j])
+        return out
+
+
+def _column_medians(v: Array, member: NDArray[np.bool_]) -> Array:
+    """The median (``np.median``'s number) of each column of ``v`` (N, L') over its ``member`` entries, shape (L',)
+    (a column without members: inf)."""
+    m = np.add.reduce(member, axis=0, dtype=np.intp)
+    srt = np.sort(np.where(member, v, np.inf).T, axis=1)  # (L', N): each column's values sorted
+    h = m // 2
+    cols = np.arange(v.shape[1])
+    hi = srt[cols, np.minimum(h, v.shape[0] - 1)]
+    lo = srt[cols, np.maximum(h - 1, 0)]
+    return np.where(m % 2 == 1, hi, (lo + hi) / 2)
 
 
 def robust_line(
@@ -205,8 +355,28 @@ def robust_line(
         two points agree.
     inliers : ndarray of bool, shape (N,)
     """
+    return refine_line(pts, ransac_start(pts, rng, iters, inlier_px, confidence), inlier_px)
+
+
+def refine_line(pts: Array, start: RansacStart, inlier_px: float) -> tuple[Array, NDArray[np.bool_]]:
+    """:func:`robust_line` from its RANSAC start: IRLS (Tukey) total least squares, then the final 3-sigma cut.
+
+    Parameters
+    ----------
+    pts : ndarray, shape (N, 2)
+        Edge points (px).
+    start : RansacStart
+        The RANSAC start (:func:`ransac_start` or :func:`ransac_starts`).
+    inlier_px : float
+        RANSAC inlier distance (px).
+
+    Returns
+    -------
+    line : ndarray, shape (3,)
+        As :func:`robust_line`'s.
+    inliers : ndarray of bool, shape (N,)
+    """
     n = len(pts)
-    start = ransac_start(pts, rng, iters, inlier_px, confidence)
     best, best_count = start.line, start.n_inliers
     if best is None or best_count < 2:
         return np.array([np.nan, np.nan, np.nan]), np.zeros(n, dtype=bool)

@@ -14,9 +14,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calib.formats.camera import CameraModel
-from calib.vision.rods.covariance import _direction_covariance_set, _line_cov, _line_stats  # noqa: F401 (_line_cov)
+from calib.numerics.transforms import cross
+from calib.vision.rods.covariance import (  # noqa: F401 (_line_cov)
+    _direction_covariance_set,
+    _direction_covariance_sets,
+    _line_cov,
+    _line_stats,
+)
 from calib.vision.rods.cylinder import _CORR, axis_from_planes, axis_point_seen_along, limb_planes, norm3
-from calib.vision.rods.linefit import robust_line
+from calib.vision.rods.linefit import ransac_start, refine_lines
 from calib.vision.rods.types import ROD_OCCLUDER_CLEARANCE_PX, RodMeasurement, RodPrediction, RodSettings
 
 Array = NDArray[np.float64]
@@ -280,16 +286,39 @@ class _IdealToImage:
         return mx, yd
 
 
+@dataclass
+class _Neighbours:
+    """Other rods' predicted axis segments in ideal pixels, ends ``a``, ``b`` (K, 2), and half-widths ``hw`` (K,)
+    (px): what a rod's limb points must keep clear of."""
+
+    a: Array
+    b: Array
+    hw: Array
+
+    @classmethod
+    def of(cls, neighbours: list[tuple[Array, Array, float]]) -> _Neighbours:
+        """From (a, b, half-width) tuples (:func:`_silhouette`)."""
+        return cls(
+            np.array([nb[0] for nb in neighbours]).reshape(-1, 2),
+            np.array([nb[1] for nb in neighbours]).reshape(-1, 2),
+            np.array([nb[2] for nb in neighbours], dtype=np.float64),
+        )
+
+    def subset(self, keep: NDArray[np.bool_]) -> _Neighbours:
+        """The neighbours where ``keep`` (K,)."""
+        return _Neighbours(self.a[keep], self.b[keep], self.hw[keep])
+
+
 def _near_segments(
     centres: Array,
     t_dir: Array,
     n_dir: Array,
     o_lo: float,
     o_hi: float,
-    neighbours: list[tuple[Array, Array, float]],
+    neighbours: _Neighbours,
     margin_px: float,
-) -> list[tuple[Array, Array, float]]:
-    """The neighbours (a, b, half-width) that may come closer than half-width + margin to the band.
+) -> _Neighbours:
+    """The neighbours that may come closer than half-width + margin to the band.
 
     The band is the points ``centres[p] + o n_dir`` with o in [o_lo, o_hi]; a neighbour segment separated
     from it by more than that along t_dir or n_dir (a lower bound of the distance) cannot.
@@ -298,13 +327,12 @@ def _near_segments(
     o = centres @ n_dir
     t_lo, t_hi = float(t.min()), float(t.max())
     o_lo, o_hi = float(o.min()) + o_lo, float(o.max()) + o_hi
-    out = []
-    for a_n, b_n, hw in neighbours:
-        ta, tb, oa, ob = float(a_n @ t_dir), float(b_n @ t_dir), float(a_n @ n_dir), float(b_n @ n_dir)
-        gap = max(min(ta, tb) - t_hi, t_lo - max(ta, tb), min(oa, ob) - o_hi, o_lo - max(oa, ob))
-        if gap <= hw + margin_px:
-            out.append((a_n, b_n, hw))
-    return out
+    ends = np.stack([neighbours.a, neighbours.b], axis=1)  # (K, 2, 2)
+    # each end's a @ t_dir and a @ n_dir, (K, 2): the two products and their sum
+    te = ends[..., 0] * t_dir[0] + ends[..., 1] * t_dir[1]
+    oe = ends[..., 0] * n_dir[0] + ends[..., 1] * n_dir[1]
+    gap = np.maximum.reduce([te.min(1) - t_hi, t_lo - te.max(1), oe.min(1) - o_hi, o_lo - oe.max(1)])
+    return neighbours.subset(gap <= neighbours.hw + margin_px)
 
 
 @dataclass
@@ -397,14 +425,6 @@ def _inv_t_of(k: bytes) -> Array:
     return cast("Array", np.linalg.inv(np.frombuffer(k, dtype=np.float64).reshape(3, 3)).T)
 
 
-def _seg_distance(pts: Array, a: Array, b: Array) -> Array:
-    """Distance (px) from points (N, 2) to the segment a-b, shape (N,)."""
-    d = b - a
-    L2 = float(d @ d)
-    t = np.clip(((pts - a) @ d) / L2, 0.0, 1.0) if L2 > 0 else np.zeros(len(pts))
-    return np.linalg.norm(pts - (a[None] + t[:, None] * d[None]), axis=1)
-
-
 def _pair_edges(
     pi: NDArray[np.int_], xo: Array, gs: Array, pc: Array, pw: Array, band_px: float, width_tol: float
 ) -> tuple[NDArray[np.int_], Array, Array, NDArray[np.int_]]:
@@ -486,7 +506,7 @@ def measure_rod(
     occluders: list[Array] | None = None,
     rng: np.random.Generator | None = None,
     ideal_bbox: Array | None = None,
-    neighbours: list[tuple[Array, Array, float]] | None = None,
+    neighbours: list[tuple[Array, Array, float]] | _Neighbours | None = None,
     segment: _Segment | str | None = None,
     projector: _IdealToImage | None = None,
     polarity: int | None = None,
@@ -513,7 +533,7 @@ def measure_rod(
     neighbours : list of (a, b, half_width_px)
         The other rods' predicted axis segments in ideal pixels (a, b shape (2,)) and half-widths:
         a limb point closer to one of them than its half-width plus ``settings.neighbour_px`` is
-        dropped (its edge is merged with or hidden by the other rod's).
+        dropped (its edge is merged with or hidden by the other rod's). Or the same as a :class:`_Neighbours`.
     segment : _Segment or str, optional
         The rod's predicted visible segment in ideal pixels, or the reason it has none, when already computed
         for the frame (:func:`measure_rods`); computed from ``pred`` when not given.
@@ -531,19 +551,65 @@ def measure_rod(
     """
     s = settings or RodSettings()
     rng = rng or np.random.default_rng(0)
-    out = RodMeasurement(pred.leg, pred.rod)
     box = ideal_bbox if ideal_bbox is not None else image_ideal_bbox(camera)
+    proj = projector if projector is not None else _IdealToImage(camera)
+    job = _rod_job(gray, camera, pred, radius, s, occluders, box, neighbours, segment, proj, polarity)
+    if isinstance(job, RodMeasurement):
+        return job
+    fits = _fit_limb_points(job.pts, s, rng)
+    if isinstance(fits, str):
+        job.out.reason = fits
+        return job.out
+    job.out.reason = _limb_quality(job.out, fits, s)
+    if job.out.reason is not None:
+        return job.out
+    job.fits = fits
+    _axes_from_limbs([job], camera, radius, s, proj)
+    return job.out
+
+
+@dataclass
+class _RodJob:
+    """One rod between the stages of its measurement (:func:`_rod_job`, the limb fits, :func:`_axes_from_limbs`):
+    its measurement so far, prediction, visible profile centres (P, 2) and segment normal (2,) (ideal px), its two
+    limbs' edge points (N_i, 2) (ideal px, neighbours' limb points dropped), and its limb fits once fitted."""
+
+    out: RodMeasurement
+    pred: RodPrediction
+    centres: Array
+    n_dir: Array
+    pts: tuple[Array, Array]
+    fits: _LimbFits | None = None
+
+
+def _rod_job(
+    gray: np.ndarray,
+    camera: CameraModel,
+    pred: RodPrediction,
+    radius: float,
+    s: RodSettings,
+    occluders: list[Array] | None,
+    box: Array,
+    neighbours: _Neighbours | list[tuple[Array, Array, float]] | None,
+    segment: _Segment | str | None,
+    proj: _IdealToImage,
+    polarity: int | None,
+) -> _RodJob | RodMeasurement:
+    """The stages of :func:`measure_rod` before the limb fits (its arguments): the rod's edge pairs, polarity and
+    limb points; or the measurement with the reason why the rod has none."""
+    out = RodMeasurement(pred.leg, pred.rod)
     seg = segment if segment is not None else _predicted_segment(camera, pred, radius, s.near_m, box)
     if isinstance(seg, str):
         out.reason = seg
         return out
-    proj = projector if projector is not None else _IdealToImage(camera)
     vis = seg.vis if seg.vis is not None else _visible_centres(camera, seg, s, box, proj, occluders)
     if isinstance(vis, str):
         out.reason = vis
         return out
     pairs = seg.pairs if seg.pairs is not None else _limb_pairs(gray, camera, seg, s, proj, *vis)
-    if neighbours:
+    if isinstance(neighbours, list):
+        neighbours = _Neighbours.of(neighbours)
+    if neighbours is not None and len(neighbours.hw):
         neighbours = _near_segments(
             vis[1],
             seg.t_dir,
@@ -559,20 +625,8 @@ def measure_rod(
     if polarity is None and s.polarity:
         polarity = 1 if s.polarity > 0 else -1
     out.polarity = polarity if polarity is not None else (1 if pairs.pol.sum() >= 0 else -1)
-    fits = _fit_limbs(pairs, out.polarity, vis[1], seg.n_dir, s, rng, neighbours)
-    if isinstance(fits, str):
-        out.reason = fits
-        return out
-    out.reason = _limb_quality(out, fits, s)
-    if out.reason is not None:
-        return out
-    reason = _axis_from_limbs(out, camera, pred, radius, s, proj, fits, vis[1], seg.n_dir)
-    if reason is not None:
-        out.reason = reason
-    else:  # the raw measurement, for another camera (calib.vision.rods.reexpress)
-        out.edges_px = (proj.points(fits.fits[0][3]), proj.points(fits.fits[1][3]))
-        out.middle_px = proj.points(vis[1][len(vis[1]) // 2][None])[0]
-    return out
+    pts = _limb_points(pairs, out.polarity, vis[1], seg.n_dir, s, neighbours)
+    return _RodJob(out, pred, vis[1], seg.n_dir, pts)
 
 
 @dataclass
@@ -808,17 +862,16 @@ def _frame_pairs(
     ]
 
 
-def _fit_limbs(
+def _limb_points(
     pairs: _LimbPairs,
     polarity: int,
     centres: Array,
     n_dir: Array,
     s: RodSettings,
-    rng: np.random.Generator,
-    neighbours: list[tuple[Array, Array, float]] | None,
-) -> _LimbFits | str:
-    """The two limb lines fitted (RANSAC) to the pairs of this polarity, limb points near a neighbour dropped; or
-    why not."""
+    neighbours: _Neighbours | list[tuple[Array, Array, float]] | None,
+) -> tuple[Array, Array]:
+    """The two limbs' edge points (N_i, 2) (ideal px) of the pairs of this polarity, points near a neighbour
+    dropped."""
     k, x_lo, x_hi, pol, o1, o2 = pairs.k, pairs.x_lo, pairs.x_hi, pairs.pol, pairs.o1, pairs.o2
     if k.size:
         keep = pol == polarity
@@ -826,34 +879,117 @@ def _fit_limbs(
     one_low = o1[k] < o2[k]
     edges = (np.where(one_low, x_lo, x_hi), np.where(one_low, x_hi, x_lo))
     pred_off = (o1[k], o2[k])
-    out = _LimbFits([], [], [], [])
     ck = centres[k]
-    for x_e, x_p in zip(edges, pred_off, strict=True):
-        pts = ck + x_e[:, None] * n_dir[None]
-        if neighbours:
-            # drop limb points whose edge may merge with another rod's silhouette
-            limb_pred = ck + x_p[:, None] * n_dir[None]
-            clear = np.ones(len(pts), dtype=bool)
-            for a_n, b_n, hw in neighbours:
-                clear &= _seg_distance(limb_pred, a_n, b_n) > hw + s.neighbour_px
-            pts = pts[clear]
+    pts = [ck + x_e[:, None] * n_dir[None] for x_e in edges]
+    if isinstance(neighbours, list):
+        neighbours = _Neighbours.of(neighbours)
+    if neighbours is None or not len(neighbours.hw):
+        return pts[0], pts[1]
+    # drop limb points whose edge may merge with another rod's silhouette (both limbs' predicted points at once)
+    limb_pred = np.concatenate([ck + x_p[:, None] * n_dir[None] for x_p in pred_off])
+    clear = _clear_of(limb_pred, neighbours, s.neighbour_px)
+    return pts[0][clear[: len(ck)]], pts[1][clear[len(ck) :]]
+
+
+def _clear_of(pts: Array, neighbours: _Neighbours, margin_px: float) -> NDArray[np.bool_]:
+    """Which points (N, 2) (ideal px) are farther than each neighbour's half-width plus ``margin_px`` from its
+    segment (each point's distance to the segment's nearest point), all neighbours at once, shape (N,)."""
+    a = neighbours.a
+    d = neighbours.b - a
+    L2 = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]  # d @ d
+    rel = pts[None] - a[:, None]  # (K, N, 2)
+    t = np.matmul(rel, d[:, :, None])[..., 0] / np.where(L2 > 0, L2, 1.0)[:, None]
+    t = np.where((L2 > 0)[:, None], np.clip(t, 0.0, 1.0), 0.0)
+    dist = np.linalg.norm(pts[None] - (a[:, None] + t[..., None] * d[:, None]), axis=2)
+    return np.all(dist > (neighbours.hw + margin_px)[:, None], axis=0)
+
+
+def _too_few(n: int, s: RodSettings) -> str:
+    """Why a limb of ``n`` edge points is not fitted."""
+    return (
+        f"too few limb edge points ({n} < {s.min_points}): rod not found in its search band, or too close to "
+        "another rod"
+    )
+
+
+def _fit_limb_points(pts2: tuple[Array, Array], s: RodSettings, rng: np.random.Generator) -> _LimbFits | str:
+    """The two limb lines fitted (RANSAC, then refined: :func:`refine_lines`) to the limbs' edge points (N_i, 2)
+    (ideal px), in turn; or why not (the second limb not fitted when the first is not)."""
+    found = []
+    for pts in pts2:
         if len(pts) < s.min_points:
-            return (
-                f"too few limb edge points ({len(pts)} < {s.min_points}): rod not found in its "
-                "search band, or too close to another rod"
-            )
-        line, inl = robust_line(pts, rng, s.ransac_iters, s.inlier_px)
-        n_in = int(np.count_nonzero(inl))
-        if not np.all(np.isfinite(line)) or n_in < s.min_points:
-            return f"limb line fit failed ({n_in} inliers of {len(pts)})"
-        p_in = pts[inl]
-        r = p_in @ line[:2] + line[2]
-        out.lines.append(line)
-        c, td, s2, t = _line_stats(p_in, line, r)  # (_line_cov)
-        out.fits.append((c, td, s2, p_in))
-        out.ts.append(t)
-        out.rms.append(float(np.sqrt(np.add.reduce(r * r) / n_in)))  # RMS of r (np.mean's numbers)
-        out.npts.append(n_in)
+            return _too_few(len(pts), s)
+        start = ransac_start(pts, rng, s.ransac_iters, s.inlier_px)
+        line, inl = refine_lines([pts], [start], s.inlier_px)[0]
+        reason = _limb_fit_failed(pts, line, inl, s)
+        if reason is not None:
+            return reason
+        found.append((pts[inl], line))
+    return _limb_fits([found])[0]
+
+
+def _fit_limbs_frame(pts: list[tuple[Array, Array]], s: RodSettings, rng: np.random.Generator) -> list[_LimbFits | str]:
+    """The two limb lines of each rod of a frame (each rod's two limbs' edge points (N_i, 2), ideal px; ``rng`` the
+    frame's generator), or why not: :func:`_fit_limb_points` of the rods in turn, with the same draws from ``rng``,
+    each limb's RANSAC start then refined with the others' (:func:`refine_lines`).
+
+    The starts are drawn in measurement order as if every first limb's fit succeeded; a rod whose first limb then
+    fails has drawn for its second limb, which the rod-by-rod fits do not: the generator is then put back and the
+    rods fitted in turn (rare: a first limb with enough points whose fit keeps too few of them).
+    """
+    state = rng.bit_generator.state
+    sets: list[Array] = []
+    starts = []
+    for p2 in pts:
+        for limb in p2 if len(p2[0]) >= s.min_points else ():
+            if len(limb) >= s.min_points:
+                sets.append(limb)
+                starts.append(ransac_start(limb, rng, s.ransac_iters, s.inlier_px))
+    refined = iter(refine_lines(sets, starts, s.inlier_px))
+    out: list[list[tuple[Array, Array]] | str] = []
+    for p2 in pts:
+        res: list[tuple[Array, Array]] | str = []
+        for j, limb in enumerate(p2):
+            if len(limb) < s.min_points:
+                res = _too_few(len(limb), s)
+                break
+            line, inl = next(refined)
+            reason = _limb_fit_failed(limb, line, inl, s)
+            if reason is not None:
+                if j == 0 and len(p2[1]) >= s.min_points:  # its second limb drew: fitted rod by rod
+                    rng.bit_generator.state = state
+                    return [_fit_limb_points(x, s, rng) for x in pts]
+                res = reason
+                break
+            cast("list", res).append((limb[inl], line))
+        out.append(res)
+    fitted = iter(_limb_fits([x for x in out if not isinstance(x, str)]))
+    return [x if isinstance(x, str) else next(fitted) for x in out]
+
+
+def _limb_fit_failed(pts: Array, line: Array, inl: NDArray[np.bool_], s: RodSettings) -> str | None:
+    """Why the limb line ``line`` (3,) fitted to ``pts`` (N, 2) with inliers ``inl`` (N,) is not kept, or None."""
+    n_in = int(np.count_nonzero(inl))
+    if not np.all(np.isfinite(line)) or n_in < s.min_points:
+        return f"limb line fit failed ({n_in} inliers of {len(pts)})"
+    return None
+
+
+def _limb_fits(rods: list[list[tuple[Array, Array]]]) -> list[_LimbFits]:
+    """Each rod's two limb lines (their inlier points (N, 2), ideal px, and line (3,)) with their statistics
+    (:func:`_line_stats`, residual RMS)."""
+    out = []
+    for rod in rods:
+        fits = _LimbFits([], [], [], [])
+        for p_in, line in rod:
+            r = p_in @ line[:2] + line[2]
+            c, td, s2, t = _line_stats(p_in, line, r)  # (_line_cov)
+            fits.lines.append(line)
+            fits.fits.append((c, td, s2, p_in))
+            fits.ts.append(t)
+            fits.rms.append(float(np.sqrt(np.add.reduce(r * r) / len(p_in))))  # RMS of r (np.mean's numbers)
+            fits.npts.append(len(p_in))
+        out.append(fits)
     return out
 
 
@@ -922,6 +1058,158 @@ def _axis_from_limbs(
     return None
 
 
+def _axes_from_limbs(
+    jobs: list[_RodJob], camera: CameraModel, radius: float, s: RodSettings, proj: _IdealToImage
+) -> None:
+    """:func:`_axis_from_limbs` of M rods with limb fits at once, and their raw edges (``edges_px``, ``middle_px``),
+    set on each job's measurement (or the reason); the same numbers bit for bit (each rod's products those of the
+    per-rod function, stacked).
+
+    Parameters
+    ----------
+    jobs : list of _RodJob
+        M rods whose limb fits passed :func:`_limb_quality` (``fits`` set).
+    camera : CameraModel
+        The camera (its K, px).
+    radius : float
+        Rod radius (m).
+    s : RodSettings
+        The settings (minimum plane angle, edge-bias allowance).
+    proj : _IdealToImage
+        Ideal to image pixels of ``camera``.
+    """
+    if not jobs:
+        return
+    fits = [cast("_LimbFits", j.fits) for j in jobs]
+    inner, hs, ang = _planes_stack(camera, proj, fits, jobs)
+    axes = []
+    for r, j in enumerate(jobs):
+        j.out.plane_angle_rad = float(ang[r])
+        if ang[r] < s.min_plane_angle_rad:
+            j.out.reason = f"interpretation planes nearly parallel ({ang[r] * 1e3:.2f} mrad): axis ill-defined"
+        else:
+            axes.append(r)
+    if not axes:
+        return
+    sel = np.array(axes)
+    u, X, parallel = _axes_stack(hs[sel], radius, np.array([jobs[r].pred.u for r in axes]))
+    X = axis_point_seen_along(X, u, inner[sel])
+    done = [r for r, bad in zip(axes, parallel, strict=True) if not bad]
+    for r, bad in zip(axes, parallel, strict=True):
+        if bad:
+            jobs[r].out.reason = "interpretation planes are parallel: no axis"
+    if not done:
+        return
+    keep = np.array([k for k, bad in enumerate(parallel) if not bad])
+    done_fits = [fits[r] for r in done]
+    # the allowance whole (cov_u) and averaged along the limb (cov_u_own), the planes' derivatives computed once
+    cov, cov_own = _direction_covariance_sets(
+        camera.K,
+        [f.fits for f in done_fits],
+        inner[sel[keep]],
+        s.edge_bias_px,
+        (0.0, s.edge_bias_length_px),
+        [f.ts for f in done_fits],
+    )
+    samples = _limb_samples_stack(done_fits, proj)
+    edges = _edges_stack([jobs[r] for r in done], proj)
+    for k, r in enumerate(done):
+        out = jobs[r].out
+        out.h = (hs[r, 0], hs[r, 1])
+        out.u = u[keep[k]]
+        out.point = X[keep[k]]
+        out.cov_u, out.cov_u_own = cov[k], cov_own[k]
+        out.limbs_px = samples[k]
+        # the raw measurement, for another camera (calib.vision.rods.reexpress)
+        out.edges_px, out.middle_px = edges[k]
+
+
+def _planes_stack(
+    camera: CameraModel, proj: _IdealToImage, fits: list[_LimbFits], jobs: list[_RodJob]
+) -> tuple[Array, Array, Array]:
+    """The interpretation planes of M rods' limb lines, as :func:`_axis_from_limbs` computes them: a direction
+    between them (M, 3), their unit normals (M, 2, 3), signed towards it, and the angle between them (M,) (rad)."""
+    K = camera.K
+    lines = np.array([f.lines for f in fits]).reshape(len(fits), 2, 3)
+    n_dir = np.array([j.n_dir for j in jobs])
+    cmid = np.array([j.centres[len(j.centres) // 2] for j in jobs])
+    ab = lines[:, :, :2]
+    den = np.matmul(ab[:, :, None, :], n_dir[:, None, :, None])[:, :, 0, 0]  # line[:2] @ n_dir, (M, 2)
+    num = np.matmul(ab[:, :, None, :], cmid[:, None, :, None])[:, :, 0, 0] + lines[:, :, 2]
+    big = np.abs(den) > 1e-9
+    xs = np.where(big, -num / np.where(big, den, 1.0), 0.0)
+    mid = np.ones((len(fits), 3))
+    mid[:, :2] = cmid + (0.5 * (xs[:, 0] + xs[:, 1]))[:, None] * n_dir
+    inner = np.matmul(proj.Kinv, mid[:, :, None])[:, :, 0]
+    h = np.matmul(K.T, lines[..., None])[..., 0]  # (M, 2, 3)
+    h = h / np.sqrt(np.matmul(h[..., None, :], h[..., None])[..., 0])  # np.linalg.norm's numbers
+    side = np.matmul(h, inner[:, :, None])[..., 0]  # (M, 2)
+    h = np.where((side > 0)[..., None], h, -h)
+    cos = np.matmul(h[:, 0, None, :], h[:, 1, :, None])[:, 0, 0]
+    return inner, h, np.arccos(np.clip(np.abs(cos), -1.0, 1.0))
+
+
+def _axes_stack(hs: Array, radius: float, pred_u: Array) -> tuple[Array, Array, NDArray[np.bool_]]:
+    """:func:`axis_from_planes` of M rods' plane normals (M, 2, 3) with the radius (m), each direction signed along
+    its prediction's ``pred_u`` (M, 3): unit directions (M, 3), axis points (M, 3) (m) and which rods' planes are
+    parallel (M,) (their direction and point then meaningless); the same numbers bit for bit."""
+
+    def unit(v: Array) -> tuple[Array, Array]:
+        n = np.sqrt(np.matmul(v[:, None, :], v[:, :, None])[:, 0])  # norm3's numbers, (M, 1)
+        return v / n, n[:, 0]
+
+    a, _ = unit(hs[:, 0])
+    b, _ = unit(hs[:, 1])
+    u, n = unit(cross(a, b))
+    parallel = n < 1e-12
+    mats = np.stack([a, b, u], axis=1)
+    mats[parallel] = np.eye(3)
+    X = np.linalg.solve(mats, np.broadcast_to(np.array([radius, radius, 0.0])[:, None], (len(hs), 3, 1)))[..., 0]
+    flip = np.matmul(u[:, None, :], pred_u[:, :, None])[:, 0, 0] < 0
+    return np.where(flip[:, None], -u, u), X, parallel
+
+
+def _limb_samples_stack(fits: list[_LimbFits], proj: _IdealToImage) -> Array:
+    """:func:`_limb_samples` of M rods (M, 2, 5, 2) (distorted px), the same numbers: the bins' sums of all limbs in
+    one reduction (each bin's points added in order, as the per-limb sums add them)."""
+    limbs = [(fit, f.ts[i] if f.ts else None) for f in fits for i, fit in enumerate(f.fits)]
+    if any(len(fit[3]) < 5 for fit, _ in limbs):  # (never with RodSettings.min_points >= 5)
+        bins = [b for f in fits for b in _limb_bins(f.fits, f.ts or None)]
+        return proj.points_of(bins).reshape(len(fits), 2, 5, 2)
+    srt: list[Array] = []
+    starts: list[int] = []
+    sizes: list[int] = []
+    off = 0
+    for (c, td, _s2, pts), t in limbs:
+        srt.append(pts[np.argsort((pts - c) @ td if t is None else t, kind="stable")])
+        q, extra = divmod(len(pts), 5)  # np.array_split's bins: the first ``extra`` one longer
+        size = [q + 1] * extra + [q] * (5 - extra)
+        starts += [off + sum(size[:k]) for k in range(5)]
+        sizes += size
+        off += len(pts)
+    # the bins side by side, one per column (zeros below a bin's points): summed row by row, as each bin alone is
+    n_bin = np.array(sizes)
+    rows = np.arange(int(n_bin.max()))[:, None]
+    pts = np.concatenate([*srt, np.zeros((1, 2))])
+    idx = np.where(rows < n_bin, np.array(starts) + rows, len(pts) - 1)
+    sums = np.add.reduce(pts[idx].reshape(len(rows), -1), axis=0).reshape(-1, 2)
+    means = sums / n_bin.astype(np.float64)[:, None]
+    return proj.points_of(list(means.reshape(-1, 5, 2))).reshape(len(fits), 2, 5, 2)
+
+
+def _edges_stack(jobs: list[_RodJob], proj: _IdealToImage) -> list[tuple[tuple[Array, Array], Array]]:
+    """Each rod's two limbs' inlier edge points and the middle of its visible part, distorted px (the raw
+    measurement, :attr:`RodMeasurement.edges_px` and ``middle_px``), the same numbers as :meth:`_IdealToImage.points`
+    of each."""
+    parts: list[Array] = []
+    for j in jobs:
+        f = cast("_LimbFits", j.fits)
+        parts += [f.fits[0][3], f.fits[1][3], j.centres[len(j.centres) // 2][None]]
+    cut = np.cumsum([len(p) for p in parts])[:-1]
+    px = np.split(proj.points_of(parts), cut)
+    return [((px[3 * r], px[3 * r + 1]), px[3 * r + 2][0]) for r in range(len(jobs))]
+
+
 def _limb_samples(
     camera: CameraModel,
     fits: list[tuple[Array, Array, float, Array]],
@@ -938,6 +1226,12 @@ def _limb_samples(
     which tilts a rod's recomputed direction in depth the same way on every rod in that part of the image.
     """
     proj = projector if projector is not None else _IdealToImage(camera)
+    bins = _limb_bins(fits, ts)
+    return proj.points_of(bins).reshape(len(fits), 5, 2) if bins else np.empty((0, 5, 2))
+
+
+def _limb_bins(fits: list[tuple[Array, Array, float, Array]], ts: list[Array] | None) -> list[Array]:
+    """:func:`_limb_samples` in ideal pixels: per limb, the means of its edge points in five bins (5, 2)."""
     bins = []
     for i, (c, td, _s2, pts) in enumerate(fits):
         if len(pts) >= 5:
@@ -950,7 +1244,7 @@ def _limb_samples(
         else:  # fewer points than bins (never with RodSettings.min_points >= 5): points of the fitted line
             means = c[None] + _quantiles5(np.sort((pts - c) @ td))[:, None] * td[None]
         bins.append(means)
-    return proj.points_of(bins).reshape(len(fits), 5, 2) if bins else np.empty((0, 5, 2))
+    return bins
 
 
 def _quantiles5(x: Array) -> Array:
@@ -1049,7 +1343,7 @@ def measure_rods(
         segs,
         [None if isinstance(g, str) else _silhouette(g) for g in segs],
     )
-    out = [fr.measure(i, p, segs[i]) for i, p in enumerate(preds)]
+    out = _measure_frame(fr)
     index = {(p.leg, p.rod): i for i, p in enumerate(preds)}
     # one polarity per frame (the rods share their material; see _frame_polarity): a rod measured with the
     # other one is measured again with the frame's
@@ -1067,6 +1361,26 @@ def measure_rods(
             _straddle_gap(fr, out, leg, i0, i1, frame_pol)
     # still of the other polarity: a wrong rod costs a calibration more than a missing one
     return _drop_other_polarity(out, frame_pol)
+
+
+def _measure_frame(fr: _FrameRods) -> list[RodMeasurement]:
+    """Every rod of the frame measured on its prediction (:meth:`_FrameRods.measure` in turn, the same numbers and
+    the same draws from the frame's generator), each stage run for all rods at once: the edge points of each rod,
+    the limb fits in measurement order, then the axes of all rods fitted (:func:`_axes_from_limbs`)."""
+    s = fr.settings
+    jobs = [fr.job(i, p, fr.segs[i]) for i, p in enumerate(fr.preds)]
+    live = [j for j in jobs if isinstance(j, _RodJob)]
+    ready = []
+    for j, fits in zip(live, _fit_limbs_frame([j.pts for j in live], s, fr.rng), strict=True):
+        if isinstance(fits, str):
+            j.out.reason = fits
+            continue
+        j.out.reason = _limb_quality(j.out, fits, s)
+        if j.out.reason is None:
+            j.fits = fits
+            ready.append(j)
+    _axes_from_limbs(ready, fr.camera, fr.radius, s, fr.proj)
+    return [j.out if isinstance(j, _RodJob) else j for j in jobs]
 
 
 def _remeasure_with_polarity(fr: _FrameRods, out: list[RodMeasurement], frame_pol: int) -> None:
@@ -1112,12 +1426,13 @@ class _FrameRods:
     proj: _IdealToImage
     segs: list[_Segment | str]
     sil: list[tuple[Array, Array, float] | None]
+    #: the rows of ``sil`` that are silhouettes and their arrays, once built (None: to build)
+    nb: tuple[NDArray[np.intp], _Neighbours] | None = None
 
     def measure(
         self, i: int, pred: RodPrediction, seg: _Segment | str | None = None, polarity: int | None = None
     ) -> RodMeasurement:
         """Rod ``i`` measured on ``pred``, the other rods' silhouettes its neighbours."""
-        nb = [x for j, x in enumerate(self.sil) if j != i and x is not None]
         return measure_rod(
             self.img,
             self.camera,
@@ -1127,11 +1442,36 @@ class _FrameRods:
             self.occluders,
             self.rng,
             self.box,
-            neighbours=nb,
+            neighbours=self._neighbours(i),
             segment=seg,
             projector=self.proj,
             polarity=polarity,
         )
+
+    def job(self, i: int, pred: RodPrediction, seg: _Segment | str | None = None) -> _RodJob | RodMeasurement:
+        """:meth:`measure`'s stages before the limb fits (:func:`_rod_job`)."""
+        s = self.settings
+        return _rod_job(
+            self.img,
+            self.camera,
+            pred,
+            self.radius,
+            s,
+            self.occluders,
+            self.box,
+            self._neighbours(i),
+            seg,
+            self.proj,
+            None,
+        )
+
+    def _neighbours(self, i: int) -> _Neighbours:
+        """The other rods' silhouettes (:func:`_silhouette`)."""
+        if self.nb is None:  # (built once for the silhouettes, again when one changes)
+            rows = [j for j, x in enumerate(self.sil) if x is not None]
+            self.nb = (np.array(rows, dtype=np.intp), _Neighbours.of([x for x in self.sil if x is not None]))
+        rows_arr, nb = self.nb
+        return nb.subset(rows_arr != i)
 
 
 def _separate_leg(fr: _FrameRods, out: list[RodMeasurement], i0: int, i1: int, frame_pol: int) -> None:
@@ -1190,6 +1530,7 @@ def _straddle_gap(fr: _FrameRods, out: list[RodMeasurement], leg: int, i0: int, 
         seg = _predicted_segment(fr.camera, p, fr.radius, s.near_m, fr.box)
         fr.segs[i] = seg
         fr.sil[i] = None if isinstance(seg, str) else _silhouette(seg)
+        fr.nb = None
     for i, p in moved.items():
         again = fr.measure(i, p, fr.segs[i], frame_pol)
         if again.ok and _line_distance(g_m, again) > 0.25 * spacing:
