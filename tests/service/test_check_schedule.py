@@ -82,14 +82,14 @@ async def test_a_scheduled_check_waits_for_the_run_then_runs_and_notifies(tmp_pa
         sim,
         camera_file=tmp_path / "camera.json",
         check_schedule=schedule,
-        bench_overrides={"actuators": {"speed_m_s": 0.05, "accel_m_s2": 1.0}},  # a run that holds the bench a while
+        bench_overrides={"actuators": {"speed_m_s": 0.5, "accel_m_s2": 10.0}},  # the full plan holds the bench a while
     )
     svc = await start_service(settings, sim)
     c = svc.client
     try:
         skipped = await _events(c, "skipped")
         assert "no calibration applied" in skipped[0]["message"]
-        r = await c.post(f"{API}/runs", json={"plan": "pose-set", "methods": []}, headers=AUTH)
+        r = await c.post(f"{API}/runs", json={"plan": "full", "methods": []}, headers=AUTH)
         assert r.status_code == 202, r.text
         rid = r.json()["id"]
         m = svc.app.state.manager
