@@ -565,7 +565,7 @@ def _extract(
 def _camera_stage(ps: _Pass, camera: CameraModel | None, prefetch_boards: bool = False) -> CameraStage:
     """The camera given, else the dataset's, else calibrated from the ``camera`` phase's board views (their
     rejections recorded in ``ps.per_frame``). Sets the pass's progress total (camera views, boards, rods).
-    ``prefetch_boards``: while this process calibrates the camera, the workers detect the other frames' boards (the
+    ``prefetch_boards``: while one worker calibrates the camera, the others detect the other frames' boards (the
     detection does not depend on the camera), which :func:`_board_stage` then poses."""
     doc, frames, opts = ps.ds.document, ps.ds.frames, ps.opts
     cam_idx = [i for i, f in enumerate(frames) if f.phase == "camera"]
@@ -588,21 +588,28 @@ def _camera_stage(ps: _Pass, camera: CameraModel | None, prefetch_boards: bool =
                 ps.per_frame.setdefault(i, []).append(f"image: {r}")
             else:
                 views[i] = (np.asarray(r[0], dtype=int), np.asarray(r[1]).reshape(-1, 2), None)
-        if prefetch_boards:
-            ps.pool.prefetch(_task_corners, ps.obs_idx, init)
         ids_all, pts = BoardDetector(doc.board).ids_all, BoardDetector(doc.board).points_nominal
-        intr = calibrate_intrinsics(
+        fit_args = (
             views,
             (doc.camera.width, doc.camera.height),
             ids_all,
             pts,
-            lens_model=opts.lens_model or (doc.camera.model_extra or {}).get("lens_model") or "auto",
+            opts.lens_model or (doc.camera.model_extra or {}).get("lens_model") or "auto",
         )
+        boards_beside = ps.obs_idx if prefetch_boards else []
+        intr = ps.pool.run_beside(_calibrate_camera, fit_args, _task_corners, boards_beside, init)
         for i, reason in intr.rejected.items():
             ps.per_frame.setdefault(i, []).append(f"camera view rejected: {reason}")
         camera = intr.camera
     assert camera is not None
     return CameraStage(camera, intr, intr.summary() if intr else {"source": "given" if not need_calib else "dataset"})
+
+
+def _calibrate_camera(args: tuple) -> IntrinsicsResult:
+    """:func:`calib.camera.intrinsics.calibrate_intrinsics` of ``(views, image size, board ids, board points, lens
+    model)``: a task a worker runs while the others detect the boards (:meth:`calib.vision.pool._Pool.run_beside`)."""
+    views, size, ids_all, points, lens_model = args
+    return calibrate_intrinsics(views, size, ids_all, points, lens_model=lens_model)
 
 
 def _refined_points(ds: Dataset, camera: CameraModel) -> tuple[list, list, Any] | None:

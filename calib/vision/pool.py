@@ -274,7 +274,6 @@ class _Pool:
         self.conns: list[Connection] = []
         self.init: tuple | None = None
         self.home: dict[int, int] = {}  # frame index -> worker holding its image
-        self.pending: list[int] = []  # per worker: answers of prefetched tasks not read yet
 
     def __enter__(self) -> _Pool:
         return self
@@ -290,7 +289,7 @@ class _Pool:
                 p.join()
         for c in self.conns:
             c.close()
-        self.procs, self.conns, self.pending = [], [], []
+        self.procs, self.conns = [], []
         _clear_worker()  # the in-process path's images and dataset
 
     def _call(self, w: int, msg: tuple) -> None:
@@ -305,15 +304,7 @@ class _Pool:
             raise r
         return r
 
-    def _drain(self) -> None:
-        """The prefetched tasks' answers read (waiting for them), so that the next answers are the next calls'."""
-        for w, n in enumerate(self.pending):
-            for _ in range(n):
-                self._answer(w)
-        self.pending = [0] * len(self.procs)
-
     def _configure(self, init_args: tuple) -> None:
-        self._drain()
         if not self.procs:
             ctx = multiprocessing.get_context()
             fresh = ctx.get_start_method() != "fork"  # a new interpreter limits its own threads
@@ -331,7 +322,6 @@ class _Pool:
                     child.close()
                     self.procs.append(p)
                     self.conns.append(parent)
-            self.pending = [0] * len(self.procs)
         elif init_args != self.init:
             for w in range(len(self.procs)):
                 self._call(w, ("init", init_args))
@@ -339,20 +329,52 @@ class _Pool:
                 self._answer(w)
         self.init = init_args
 
-    def prefetch(self, fn: Callable[[int], int], frames: list[int], init_args: tuple) -> None:
-        """``fn(frame)`` for each of ``frames`` sent to the workers now, their answers read by the next call: the
-        workers run them while this process does something else (the camera's calibration), each keeping what it
-        found for a later stage (:func:`_task_corners`). Frames are handed out as :meth:`run` hands them out (in
-        order, each to the worker holding its image). Nothing is done with one worker (no process runs beside this
-        one) or fewer than 4 frames."""
+    def run_beside(
+        self, side: Callable[[Any], Any], side_arg: Any, fn: Callable[[int], int], frames: list[int], init_args: tuple
+    ) -> Any:
+        """``side(side_arg)`` on one worker while the others run ``fn(frame)`` for ``frames``, and that one too once
+        it is done: returns ``side``'s result. ``fn`` keeps what it finds in the worker for a later stage
+        (:func:`_task_corners`; its answers are dropped), which the frames are then sent to (:attr:`home`). With
+        one worker (or fewer than 4 frames), ``side`` runs in this process and the frames are left to that stage.
+
+        Used for the camera's calibration, which the boards' detection does not depend on: on 2 cores the two
+        fill the cores without a third process contending for them.
+        """
         if self.workers <= 1 or len(frames) < 4:
-            return
+            return side(side_arg)
         self._configure(init_args)
-        n = len(self.procs)
-        for k, i in enumerate(frames):
-            w = self.home.setdefault(i, k % n)
-            self._call(w, ("task", fn, i))
-            self.pending[w] += 1
+        todo = deque(frames)
+        busy: dict[int, int | None] = {0: None}  # worker -> frame, None: the side task
+        self._call(0, ("task", side, side_arg))
+
+        def submit(w: int) -> None:
+            if todo:
+                i = todo.popleft()
+                self._call(w, ("task", fn, i))
+                self.home[i] = w
+                busy[w] = i
+
+        for w in range(1, len(self.procs)):
+            submit(w)
+        result: Any = None
+        failure: BaseException | None = None
+        while busy:
+            for c in mp_wait([self.conns[w] for w in busy]):
+                w = self.conns.index(c)  # type: ignore[arg-type]
+                was = busy.pop(w)
+                try:
+                    r = self._answer(w)
+                except I4calError as exc:  # the side task's (an unreadable frame is fn's to skip): raised below
+                    failure = exc
+                    todo.clear()
+                    continue
+                if was is None:
+                    result = r
+                if failure is None:
+                    submit(w)
+        if failure is not None:
+            raise failure
+        return result
 
     def run(
         self,

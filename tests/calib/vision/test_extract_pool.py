@@ -125,44 +125,44 @@ def test_pool_workers_run_one_numerics_thread_each(small_dataset):  # noqa: F811
     assert got["parent_cv_threads"] == 2
 
 
-def test_the_workers_detect_the_boards_while_this_process_calibrates_the_camera(
+def test_the_workers_detect_the_boards_while_the_camera_is_calibrated(
     calibrated_dataset,  # noqa: F811
     monkeypatch,
     tmp_path,
 ):
-    """With 2 workers the robot frames' boards are detected while this process fits the intrinsics, not after it:
-    the fit starts only once a worker has decoded a robot frame (a file both processes write to; the workers are
-    forked after the patches), which the code that detected the boards after the fit never does (30 s, then the
-    assertion fails). That the observations do not change is test_determinism's one- and two-worker bytes."""
+    """With 2 workers the robot frames' boards are detected while the intrinsics are fitted, not after the fit: the
+    fit (wherever it runs: a worker, forked after the patches, or this process) starts only once a robot frame has
+    been decoded, which a file every process writes to shows; the code that detected the boards after the fit never
+    gets there (30 s, then the fit reports it). That the observations do not change is test_determinism's one- and
+    two-worker bytes."""
     import time
 
     from calib.formats.dataset import Dataset
 
-    log = tmp_path / "decoded"
-    log.touch()
+    decoded, seen = tmp_path / "decoded", tmp_path / "seen"
+    decoded.touch()
     load_image = Dataset.load_image
 
     def logged_load(self, index):
-        with open(log, "a") as f:
+        with open(decoded, "a") as f:
             f.write(f"{index}\n")
         return load_image(self, index)
 
     monkeypatch.setattr(Dataset, "load_image", logged_load)
     robot = {i for i, f in enumerate(Dataset.open(calibrated_dataset).frames) if f.phase != "camera"}
-    decoded_before_fit: list[set[int]] = []
     fit = extract.calibrate_intrinsics
 
     def waiting_fit(*args, **kwargs):
         deadline = time.monotonic() + 30.0
         got: set[int] = set()
         while not got and time.monotonic() < deadline:
-            got = {int(x) for x in log.read_text().split()} & robot
+            got = {int(x) for x in decoded.read_text().split()} & robot
             time.sleep(0.01)
-        decoded_before_fit.append(got)
+        seen.write_text(" ".join(map(str, sorted(got))))
         return fit(*args, **kwargs)
 
     monkeypatch.setattr(extract, "calibrate_intrinsics", waiting_fit)
     res = extract_dataset(calibrated_dataset, workers=2, options=extract.ExtractOptions(refine_camera=False))
-    assert decoded_before_fit and decoded_before_fit[0], "no robot frame decoded while the camera was calibrated"
+    assert seen.exists() and seen.read_text().split(), "no robot frame decoded while the camera was calibrated"
     assert res.summary["camera"]["n_views"] >= 5
     assert sum(f["board"] is not None for f in res.observations["frames"]) == len(robot)
