@@ -166,3 +166,24 @@ def test_the_workers_detect_the_boards_while_the_camera_is_calibrated(
     assert seen.exists() and seen.read_text().split(), "no robot frame decoded while the camera was calibrated"
     assert res.summary["camera"]["n_views"] >= 5
     assert sum(f["board"] is not None for f in res.observations["frames"]) == len(robot)
+
+
+def _refuse(_arg):
+    from calib.errors import InputError
+
+    raise InputError("too few views", field="camera")
+
+
+def test_a_calibration_that_fails_beside_the_boards_is_raised_and_the_pool_goes_on(small_dataset):  # noqa: F811
+    """The side task's error reaches the caller once the frames in flight are answered; the pool's next stage then
+    gets its own answers (none of the dropped ones)."""
+    from calib.errors import InputError
+
+    root, _, _ = small_dataset
+    init = (str(root), None, None, 6, None)
+    with extract._Pool(2) as pool:
+        with pytest.raises(InputError, match="too few views"):
+            pool.run_beside(_refuse, None, pool_module._task_corners, [0, 1, 2, 3, 4, 5, 6], init)
+        got = pool.run(pool_module._task_detect, [0, 1, 2, 3, 4], init, None, 0, 5)
+    assert [i for i, _ in got] == [0, 1, 2, 3, 4]
+    assert all(isinstance(r, tuple) and len(r) == 2 for _, r in got)
