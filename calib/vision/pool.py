@@ -102,7 +102,7 @@ def _task_detect(i: int) -> tuple[int, Any]:
 
 
 def _task_corners(i: int) -> int:
-    """Frame ``i``'s board detected ahead of its pose (:meth:`_Pool.prefetch`, while the camera is calibrated: the
+    """Frame ``i``'s board detected ahead of its pose (:meth:`_Pool.run_beside`, while the camera is calibrated: the
     detection does not depend on the camera), kept in this worker with the decoded image for :func:`_task_board`.
     An unreadable image is left to that task to report."""
     try:

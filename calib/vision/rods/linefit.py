@@ -366,7 +366,7 @@ def refine_line(pts: Array, start: RansacStart, inlier_px: float) -> tuple[Array
     pts : ndarray, shape (N, 2)
         Edge points (px).
     start : RansacStart
-        The RANSAC start (:func:`ransac_start` or :func:`ransac_starts`).
+        The RANSAC start (:func:`ransac_start`).
     inlier_px : float
         RANSAC inlier distance (px).
 

@@ -21,7 +21,7 @@ from calib.vision.rods.covariance import (  # noqa: F401 (_line_cov)
     _line_cov,
     _line_stats,
 )
-from calib.vision.rods.cylinder import _CORR, axis_from_planes, axis_point_seen_along, limb_planes, norm3
+from calib.vision.rods.cylinder import _CORR, axis_point_seen_along, limb_planes, norm3
 from calib.vision.rods.linefit import ransac_start, refine_lines
 from calib.vision.rods.types import ROD_OCCLUDER_CLEARANCE_PX, RodMeasurement, RodPrediction, RodSettings
 
@@ -1004,66 +1004,13 @@ def _limb_quality(out: RodMeasurement, fits: _LimbFits, s: RodSettings) -> str |
     return None
 
 
-def _axis_from_limbs(
-    out: RodMeasurement,
-    camera: CameraModel,
-    pred: RodPrediction,
-    radius: float,
-    s: RodSettings,
-    proj: _IdealToImage,
-    fits: _LimbFits,
-    centres: Array,
-    n_dir: Array,
-) -> str | None:
-    """The rod's axis from its two limb lines (interpretation planes), set on ``out`` with its covariance and
-    limb samples; or why not (``out`` then keeps only the planes' angle)."""
-    K = camera.K
-    lines = fits.lines
-    # interpretation-plane normals h = K^T l, signed so that a point between the two measured limbs
-    # (near the middle of the visible part) is on their positive side
-    cmid = centres[len(centres) // 2]
-    xs = []
-    for line in lines:
-        den = line[:2] @ n_dir
-        xs.append(-(cmid @ line[:2] + line[2]) / den if abs(den) > 1e-9 else 0.0)
-    inner = proj.Kinv @ np.append(cmid + 0.5 * (xs[0] + xs[1]) * n_dir, 1.0)
-    hs = []
-    for line in lines:
-        h = K.T @ line
-        h = h / np.linalg.norm(h)
-        hs.append(h if h @ inner > 0 else -h)
-    ang = float(np.arccos(np.clip(abs(hs[0] @ hs[1]), -1.0, 1.0)))
-    out.plane_angle_rad = ang
-    if ang < s.min_plane_angle_rad:
-        return f"interpretation planes nearly parallel ({ang * 1e3:.2f} mrad): axis ill-defined"
-    try:
-        u, X = axis_from_planes(hs[0], hs[1], radius)
-    except ValueError as exc:
-        return str(exc)
-    assert X is not None  # the radius is given: the axis point is solved for
-    if u @ pred.u < 0:
-        u = -u
-    # report the axis point seen at the middle of the visible part, not the point nearest the camera centre,
-    # which for a rod seen obliquely lies far outside the image and carries the direction's error multiplied by
-    # that distance
-    X = axis_point_seen_along(X, u, inner)
-    out.h = (hs[0], hs[1])
-    out.u = u
-    out.point = X
-    # the allowance whole (cov_u) and averaged along the limb (cov_u_own), the planes' derivatives computed once
-    out.cov_u, out.cov_u_own = _direction_covariance_set(
-        K, fits.fits, inner, s.edge_bias_px, (0.0, s.edge_bias_length_px), fits.ts or None
-    )
-    out.limbs_px = _limb_samples(camera, fits.fits, proj, fits.ts or None)
-    return None
-
-
 def _axes_from_limbs(
-    jobs: list[_RodJob], camera: CameraModel, radius: float, s: RodSettings, proj: _IdealToImage
+    jobs: list[_RodJob], camera: CameraModel, radius: float, s: RodSettings, proj: _IdealToImage, edges: bool = True
 ) -> None:
-    """:func:`_axis_from_limbs` of M rods with limb fits at once, and their raw edges (``edges_px``, ``middle_px``),
-    set on each job's measurement (or the reason); the same numbers bit for bit (each rod's products those of the
-    per-rod function, stacked).
+    """The axes of M rods with limb fits, from their two limb lines (interpretation planes), set on each job's
+    measurement with their covariances and limb samples, and (``edges``) their raw edges (``edges_px``,
+    ``middle_px``); or why not (the measurement then keeps only the planes' angle). Each rod's products are those of
+    one rod alone, stacked: the same numbers bit for bit whatever M.
 
     Parameters
     ----------
@@ -1077,6 +1024,8 @@ def _axes_from_limbs(
         The settings (minimum plane angle, edge-bias allowance).
     proj : _IdealToImage
         Ideal to image pixels of ``camera``.
+    edges : bool
+        Set ``edges_px`` and ``middle_px`` from the jobs' edge points (a re-expression keeps the measured ones).
     """
     if not jobs:
         return
@@ -1112,7 +1061,7 @@ def _axes_from_limbs(
         [f.ts for f in done_fits],
     )
     samples = _limb_samples_stack(done_fits, proj)
-    edges = _edges_stack([jobs[r] for r in done], proj)
+    raw = _edges_stack([jobs[r] for r in done], proj) if edges else None
     for k, r in enumerate(done):
         out = jobs[r].out
         out.h = (hs[r, 0], hs[r, 1])
@@ -1120,15 +1069,16 @@ def _axes_from_limbs(
         out.point = X[keep[k]]
         out.cov_u, out.cov_u_own = cov[k], cov_own[k]
         out.limbs_px = samples[k]
-        # the raw measurement, for another camera (calib.vision.rods.reexpress)
-        out.edges_px, out.middle_px = edges[k]
+        if raw is not None:  # the raw measurement, for another camera (calib.vision.rods.reexpress)
+            out.edges_px, out.middle_px = raw[k]
 
 
 def _planes_stack(
     camera: CameraModel, proj: _IdealToImage, fits: list[_LimbFits], jobs: list[_RodJob]
 ) -> tuple[Array, Array, Array]:
-    """The interpretation planes of M rods' limb lines, as :func:`_axis_from_limbs` computes them: a direction
-    between them (M, 3), their unit normals (M, 2, 3), signed towards it, and the angle between them (M,) (rad)."""
+    """The interpretation planes of M rods' limb lines (h = K^T l, signed so that a point between the two limbs, near
+    the middle of the visible part, is on their positive side): that direction between them (M, 3), their unit
+    normals (M, 2, 3) and the angle between them (M,) (rad)."""
     K = camera.K
     lines = np.array([f.lines for f in fits]).reshape(len(fits), 2, 3)
     n_dir = np.array([j.n_dir for j in jobs])

@@ -6,7 +6,7 @@ depend on the intrinsics within the search band (a few pixels of camera change a
 pixels do. So when the camera is refined by the rods (:mod:`calib.vision.refine`), each rod's inlier edge points
 (kept in distorted image pixels, :attr:`RodMeasurement.edges_px`) are undistorted with the refined camera, each
 limb's total-least-squares line is fitted to them again, and the axis, its covariance and the limb samples follow
-as in the measurement (:func:`calib.vision.rods.measure._axis_from_limbs`): the answer a measurement with that camera
+as in the measurement (:func:`calib.vision.rods.measure._axes_from_limbs`): the answer a measurement with that camera
 gives, for a fraction of its cost.
 """
 
@@ -19,10 +19,9 @@ from numpy.typing import NDArray
 
 from calib.formats.camera import CameraModel
 
-from .covariance import _line_cov
 from .cylinder import ROD_KEYS, rod_name
 from .linefit import _tls
-from .measure import _axis_from_limbs, _IdealToImage, _limb_quality, _LimbFits, leg_parallelism
+from .measure import _axes_from_limbs, _IdealToImage, _limb_fits, _limb_quality, _RodJob, leg_parallelism
 from .types import RodMeasurement, RodPrediction, RodSettings
 
 Array = NDArray[np.float64]
@@ -91,23 +90,16 @@ def reexpress_rod(
     out = RodMeasurement(measured.leg, measured.rod, polarity=measured.polarity)
     out.pairs_by_polarity = measured.pairs_by_polarity
     out.edges_px, out.middle_px = measured.edges_px, measured.middle_px
-    fits = _LimbFits([], [], [], [])
-    for raw in measured.edges_px:
-        pts, line = _limb_fit(_ideal(camera, raw), s.inlier_px)
-        r = pts @ line[:2] + line[2]
-        fits.lines.append(line)
-        fits.fits.append((*_line_cov(pts, line), pts))
-        fits.rms.append(float(np.sqrt(np.mean(r**2))))
-        fits.npts.append(len(pts))
+    limbs = [_limb_fit(_ideal(camera, raw), s.inlier_px) for raw in measured.edges_px]
+    fits = _limb_fits([limbs])[0]
     out.reason = _limb_quality(out, fits, s)
     if out.reason is not None:
         return out
     middle = _ideal(camera, measured.middle_px[None])
     # the direction only orients the axis (u . pred.u > 0): a prediction along the measured axis
     pred = RodPrediction(measured.leg, measured.rod, np.zeros(3), np.asarray(measured.u, dtype=np.float64))
-    reason = _axis_from_limbs(out, camera, pred, radius, s, proj, fits, middle, fits.lines[0][:2])
-    if reason is not None:
-        out.reason = reason
+    pts = (limbs[0][0], limbs[1][0])
+    _axes_from_limbs([_RodJob(out, pred, middle, fits.lines[0][:2], pts, fits)], camera, radius, s, proj, edges=False)
     return out
 
 
