@@ -468,6 +468,23 @@ class BoardViews:
         """
         return (3 * self.points.shape[0] - 7) if self.fixed_point >= 0 else 0
 
+    def n_unknowns(self, model: str, n_views: int) -> int:
+        """Every unknown of a bundle fit of ``model`` to ``n_views`` of these views: the intrinsics, 6 per view and
+        the released board points.
+
+        Parameters
+        ----------
+        model : str
+            A key of :data:`LENS_MODELS`.
+        n_views : int
+            Views fitted.
+
+        Returns
+        -------
+        int
+        """
+        return len(lens_model_params(model)) + 6 * n_views + self.n_board_unknowns()
+
 
 @dataclass(frozen=True)
 class LensFit:
@@ -902,8 +919,7 @@ def at_the_start_s_minimum(
     dropped = [DIST_INDEX[t] for t in LENS_MODELS[start.model] if t not in terms]
     if not dropped:
         return rss <= rss0 * (1.0 + NESTED_RMS_TOLERANCE) ** 2
-    n_unknowns = len(lens_model_params(start.model)) + 6 * len(start.keys) + board.n_board_unknowns()
-    s2 = rss0 / max(board.n_residuals() - n_unknowns, 1)
+    s2 = rss0 / max(board.n_residuals() - board.n_unknowns(start.model, len(start.keys)), 1)
     std = start.std_intrinsics[[4 + i for i in dropped]]
     wald = float(np.sum((start.dist[dropped] / np.where(std > 0, std, np.inf)) ** 2))
     return rss <= rss0 + s2 * (2.0 * wald + 10.0)
@@ -935,7 +951,7 @@ def lens_model_evidence(fit: LensFit, board: BoardViews) -> dict[str, Any]:
         rss += float(np.sum((proj.reshape(-1, 2) - board.image_points[k]) ** 2))
     n_res = board.n_residuals()
     n_int = len(lens_model_params(fit.model))
-    k_all = n_int + 6 * len(fit.keys) + board.n_board_unknowns()
+    k_all = board.n_unknowns(fit.model, len(fit.keys))
     bic = n_res * np.log(max(rss, 1e-300) / n_res) + k_all * np.log(n_res)
     return {
         "model": fit.model,
