@@ -15,12 +15,7 @@ from numpy.typing import NDArray
 
 from calib.formats.camera import CameraModel
 from calib.numerics.transforms import cross
-from calib.vision.rods.covariance import (  # noqa: F401 (_line_cov)
-    _direction_covariance_set,
-    _direction_covariance_sets,
-    _line_cov,
-    _line_stats,
-)
+from calib.vision.rods.covariance import _direction_covariance_sets, _line_stats
 from calib.vision.rods.cylinder import _CORR, axis_point_seen_along, limb_planes, norm3
 from calib.vision.rods.linefit import ransac_start, refine_lines
 from calib.vision.rods.types import ROD_OCCLUDER_CLEARANCE_PX, RodMeasurement, RodPrediction, RodSettings
