@@ -23,6 +23,8 @@ if TYPE_CHECKING:
 
 #: the phases whose rods the refinement uses (the combined fit's poses; the other phases give it their boards)
 REFINEMENT_PHASES: tuple[str, ...] = ("poses",)
+#: the phases whose board poses give the combined fit its base frame
+BASE_FRAME_PHASES: tuple[str, ...] = ("rotation", "translation")
 
 
 def can_refine(camera: CameraModel) -> bool:
@@ -98,7 +100,7 @@ def refine_camera_by_rods(
     if not can_refine(camera):
         return CameraRefinement(None, {"applied": False, "reason": "the camera has no calibration covariance"})
     try:
-        fit = calibrate_combined(Observations.from_dict(observations), phases=REFINEMENT_PHASES)
+        fit = calibrate_combined(Observations.from_dict(_fit_frames(observations)), phases=REFINEMENT_PHASES)
     except I4calError as exc:
         return CameraRefinement(None, {"applied": False, "reason": f"combined fit failed: {exc}"})
     shift = fit.diagnostics.get("intrinsics_refinement")
@@ -123,3 +125,10 @@ def refine_camera_by_rods(
     return CameraRefinement(
         CameraModel(moved.K, moved.dist, moved.width, moved.height, extra), {"applied": True, **info}, fit
     )
+
+
+def _fit_frames(observations: dict[str, Any]) -> dict[str, Any]:
+    """The observations document with only the frames the refinement's fit reads (the base frame's phases and
+    :data:`REFINEMENT_PHASES`): the others' records are not validated for nothing."""
+    keep = (*BASE_FRAME_PHASES, *REFINEMENT_PHASES)
+    return {**observations, "frames": [f for f in observations["frames"] if f.get("phase") in keep]}
