@@ -228,7 +228,8 @@ async function select(id) {
   resetFrame();
   liveError("");
   let run;
-  try { run = await api("GET", "/runs/" + id); } catch (e) { liveError(`run ${id.slice(0, 8)}: ${e.message}`); return; }
+  try { run = await api("GET", "/runs/" + id); } catch (e) { if (id === selected) liveError(`run ${id.slice(0, 8)}: ${e.message}`); return; }
+  if (id !== selected) return;  // another run was selected while this one's answer came: it is not shown over it
   showRun(run);
   $("#detail").textContent = "";
   source = new RunEvents(id, onEvent);
@@ -320,7 +321,7 @@ function onEvent(id, ev) {
   const L = (text) => log(text, ev.t);
   if (ev.type === "state") {
     L("state: " + d.state + (d.error ? " — " + d.error : ""));
-    api("GET", "/runs/" + id).then(showRun);
+    api("GET", "/runs/" + id).then((run) => { if (id === selected) showRun(run); });
     if (d.state === "done") showResult(id);
     refreshRuns();
   } else if (ev.type === "progress") {
@@ -473,8 +474,13 @@ $("#download").addEventListener("click", (ev) => {
 
 for (const action of ["pause", "resume", "abort"]) {
   $("#" + action).addEventListener("click", async () => {
-    if (!selected) return;
-    try { showRun(await api("POST", `/runs/${selected}/${action}`)); say(action + " accepted"); } catch (e) { say(e.message, true); }
+    const id = selected;
+    if (!id) return;
+    try {
+      const run = await api("POST", `/runs/${id}/${action}`);
+      if (id === selected) showRun(run);
+      say(`${action} accepted (run ${id.slice(0, 8)})`);
+    } catch (e) { say(e.message, true); }
   });
 }
 

@@ -244,3 +244,57 @@ async def test_a_refused_token_is_said_in_the_live_view(tmp_path, sim):
     finally:
         await svc.client.aclose()
         await svc.stop()
+
+
+async def test_a_late_answer_for_a_run_left_is_not_shown_over_the_one_selected(tmp_path, sim):
+    """The user selects a run, then another before the first one's details arrive (a slow network, a busy service):
+    when they do, the page keeps showing the run selected last (its state badge, its results), not the one left."""
+    good, failed = _results()
+    svc = await start_service(make_settings(tmp_path, sim, open_reads=False), sim)
+    try:
+        done_id = _write_run(svc, good, ["combined", "end-effector", "legs"], "finished")
+        failed_id = _write_run(svc, failed, ["legs"], "only fit failed")
+        async with playwright_api.async_playwright() as p:
+            browser = await p.chromium.launch(
+                executable_path=CHROMIUM,
+                headless=True,
+                args=["--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage"],
+            )
+            try:
+                page = await browser.new_page(bypass_csp=True)
+                errors: list[str] = []
+                page.on("pageerror", lambda e: errors.append(str(e)))
+                answered = asyncio.Event()
+
+                async def slow(route):  # the finished run's details answer 1.5 s late
+                    await asyncio.sleep(1.5)
+                    await route.continue_()
+                    answered.set()
+
+                await page.route(f"**{API}/runs/{done_id}", slow)
+                await page.goto(svc.url + "/dashboard")
+                # (not awaited: the page goes on while the answer is on its way)
+                await page.evaluate(f"document.querySelector('#token').value = {TOKEN!r}; select({done_id!r}); 0")
+                await page.evaluate(f"select({failed_id!r}); 0")
+                await _until(page, "document.querySelector('#verdict').hidden === false")
+                await _until(page, "document.querySelector('#run-state').textContent === 'done · no fit converged'")
+                # every text the state badge takes from now on (a flash of the other run's state counts)
+                await page.evaluate(
+                    "window.badges = []; new MutationObserver(() => badges.push("
+                    "document.querySelector('#run-state').textContent)).observe("
+                    "document.querySelector('#run-state'), {childList: true, characterData: true, subtree: true});"
+                )
+                await asyncio.wait_for(answered.wait(), 10)
+                await asyncio.sleep(1.0)  # the late answer handled by the page, and what it would have started
+                badges = await page.evaluate("badges")
+                assert set(badges) <= {"done · no fit converged"}, badges
+                assert await page.inner_text("#run-state") == "done · no fit converged"
+                assert await page.evaluate("selected") == failed_id
+                assert await page.get_attribute("#results-panel", "data-run") == failed_id
+                assert (await page.inner_text("#verdict")).startswith("verdict: nothing to load")
+                assert not errors, errors
+            finally:
+                await browser.close()
+    finally:
+        await svc.client.aclose()
+        await svc.stop()
