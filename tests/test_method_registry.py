@@ -7,7 +7,6 @@ from __future__ import annotations
 import importlib
 import json
 import os
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -20,6 +19,7 @@ from calib.formats.observations import Observations
 from calib.identify import registry
 from calib.identify.pipeline import calibrate
 from calib.identify.registry import MethodContext, MethodSpec, get_method, method_names, register_method
+from tests.browser import CHROMIUM, NO_CHROMIUM, headless_chromium
 from tests.service.conftest import AUTH, service, sim, wait_state  # noqa: F401  (fixtures; rendered_zip: tests/conftest.py)
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -178,33 +178,24 @@ async def test_toy_method_in_the_api_and_the_fit_process(toy, service, obs_path,
     ]
 
 
-CHROMIUM = os.environ.get("I4CAL_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
-
-
-@pytest.mark.skipif(CHROMIUM is None, reason="no chromium: run deploy/install-test-system-deps.sh")
+@pytest.mark.skipif(CHROMIUM is None, reason=NO_CHROMIUM)
 async def test_toy_method_in_the_dashboard(toy, service):  # noqa: F811
-    playwright_api = pytest.importorskip("playwright.async_api")
-    async with playwright_api.async_playwright() as p:
-        browser = await p.chromium.launch(
-            executable_path=CHROMIUM, headless=True, args=["--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage"]
-        )
-        try:
-            page = await browser.new_page()
-            errors: list[str] = []
-            page.on("pageerror", lambda e: errors.append(str(e)))
-            await page.goto(service.url + "/dashboard")
-            await page.wait_for_selector("#methods[data-loaded='true']")
-            boxes = page.locator("#methods input[type=checkbox]")
-            assert await boxes.evaluate_all("els => els.map(e => e.value)") == [
-                "combined",
-                "end-effector",
-                "legs",
-                "a-priori",
-            ]
-            assert "A priori (toy, no fit)" in await page.inner_text("#methods")
-            assert not errors, errors
-        finally:
-            await browser.close()
+    pytest.importorskip("playwright.async_api")
+    async with headless_chromium() as browser:
+        page = await browser.new_page()
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        await page.goto(service.url + "/dashboard")
+        await page.wait_for_selector("#methods[data-loaded='true']")
+        boxes = page.locator("#methods input[type=checkbox]")
+        assert await boxes.evaluate_all("els => els.map(e => e.value)") == [
+            "combined",
+            "end-effector",
+            "legs",
+            "a-priori",
+        ]
+        assert "A priori (toy, no fit)" in await page.inner_text("#methods")
+        assert not errors, errors
 
 
 def test_method_context_is_what_the_pipeline_hands_over(toy, obs_path):

@@ -4,14 +4,12 @@ the API's operations."""
 
 from __future__ import annotations
 
-import os
 import re
-import shutil
 from urllib.parse import urlparse
 
 import pytest
 
-CHROMIUM = os.environ.get("I4CAL_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
+from tests.browser import CHROMIUM, NO_CHROMIUM, headless_chromium
 
 
 async def test_docs_page_names_only_local_assets(service):
@@ -27,9 +25,9 @@ async def test_docs_page_names_only_local_assets(service):
     assert css.status_code == 200 and css.headers["content-type"].startswith("text/css")
 
 
-@pytest.mark.skipif(CHROMIUM is None, reason="no chromium: run deploy/install-test-system-deps.sh")
+@pytest.mark.skipif(CHROMIUM is None, reason=NO_CHROMIUM)
 async def test_docs_render_with_the_network_cut_off(service):
-    playwright_api = pytest.importorskip("playwright.async_api")
+    pytest.importorskip("playwright.async_api")
     host = urlparse(service.url).netloc
     blocked: list[str] = []
 
@@ -40,21 +38,15 @@ async def test_docs_render_with_the_network_cut_off(service):
             blocked.append(route.request.url)
             await route.abort()
 
-    async with playwright_api.async_playwright() as p:
-        browser = await p.chromium.launch(
-            executable_path=CHROMIUM, headless=True, args=["--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage"]
-        )
-        try:
-            page = await browser.new_page()
-            errors: list[str] = []
-            page.on("pageerror", lambda e: errors.append(str(e)))
-            await page.route("**/*", only_the_service)
-            await page.goto(service.url + "/api/v1/docs")
-            await page.wait_for_selector(".swagger-ui .info .title", timeout=30_000)
-            assert "i4cal service" in await page.inner_text(".swagger-ui .info .title")
-            await page.wait_for_selector(".opblock-summary-path[data-path='/api/v1/runs']", timeout=30_000)
-            assert await page.locator(".opblock").count() > 10
-            assert not blocked, blocked
-            assert not errors, errors
-        finally:
-            await browser.close()
+    async with headless_chromium() as browser:
+        page = await browser.new_page()
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        await page.route("**/*", only_the_service)
+        await page.goto(service.url + "/api/v1/docs")
+        await page.wait_for_selector(".swagger-ui .info .title", timeout=30_000)
+        assert "i4cal service" in await page.inner_text(".swagger-ui .info .title")
+        await page.wait_for_selector(".opblock-summary-path[data-path='/api/v1/runs']", timeout=30_000)
+        assert await page.locator(".opblock").count() > 10
+        assert not blocked, blocked
+        assert not errors, errors

@@ -7,19 +7,17 @@ Needs ``chromium`` and the ``playwright`` package (as test_dashboard.py); skippe
 from __future__ import annotations
 
 import asyncio
-import os
 import re
-import shutil
 from datetime import datetime
 from zoneinfo import ZoneInfo
 
 import pytest
 
+from tests.browser import CHROMIUM, NO_CHROMIUM, headless_chromium
 from tests.service.conftest import TOKEN
 
-playwright_api = pytest.importorskip("playwright.async_api")
-CHROMIUM = os.environ.get("I4CAL_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
-pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="no chromium: run deploy/install-test-system-deps.sh")
+pytest.importorskip("playwright.async_api")
+pytestmark = pytest.mark.skipif(CHROMIUM is None, reason=NO_CHROMIUM)
 
 API = "/api/v1"
 #: collects every CSP violation the page reports (an init script: injected by the browser, not by the page)
@@ -38,42 +36,36 @@ async def _until(page, expr: str, timeout: float = 30.0):
 
 
 async def test_dashboard_and_docs_under_their_csp(service):
-    async with playwright_api.async_playwright() as p:
-        browser = await p.chromium.launch(
-            executable_path=CHROMIUM, headless=True, args=["--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage"]
-        )
-        try:
-            ctx = await browser.new_context(timezone_id="Europe/Paris", locale="en-GB")
-            await ctx.add_init_script(WATCH)
-            page = await ctx.new_page()
-            errors: list[str] = []
-            page.on("pageerror", lambda e: errors.append(str(e)))
-            await page.goto(service.url + "/dashboard")
-            await _until(page, "document.querySelector('#methods').dataset.loaded === 'true'")
-            await page.fill("#token", TOKEN)
-            await page.dispatch_event("#token", "change")
-            await page.select_option("#plan", "rotation-sweep")
-            await page.evaluate("document.querySelectorAll('#methods input').forEach((i) => { i.checked = false; })")
-            await page.click("#start")
-            await _until(page, "document.querySelector('#message').textContent.includes('started')")
-            await _until(page, "document.querySelector('#live-panel').dataset.state === 'done'", 60)
-            await _until(page, "document.querySelector('#frame').naturalWidth > 0")  # img-src 'self'
-            run = (await service.client.get(f"{API}/runs")).json()[0]
-            created = datetime.fromisoformat(run["created_at"]).astimezone(ZoneInfo("Europe/Paris"))
-            await page.evaluate("refreshRuns()")
-            cell = await page.inner_text("#runs tbody tr td:nth-child(6)")
-            # the browser writes the hour without a leading zero ("0:01:52" just after midnight): compare the numbers
-            shown = re.search(r"(\d{1,2}):(\d{2}):(\d{2})", cell)
-            assert shown is not None and "CET" in cell, (cell, run["created_at"])
-            hms = tuple(int(g) for g in shown.groups())
-            assert hms == (created.hour, created.minute, created.second), (cell, run["created_at"])
-            assert await page.evaluate("window.__csp") == []
-            assert not errors, errors
+    async with headless_chromium() as browser:
+        ctx = await browser.new_context(timezone_id="Europe/Paris", locale="en-GB")
+        await ctx.add_init_script(WATCH)
+        page = await ctx.new_page()
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        await page.goto(service.url + "/dashboard")
+        await _until(page, "document.querySelector('#methods').dataset.loaded === 'true'")
+        await page.fill("#token", TOKEN)
+        await page.dispatch_event("#token", "change")
+        await page.select_option("#plan", "rotation-sweep")
+        await page.evaluate("document.querySelectorAll('#methods input').forEach((i) => { i.checked = false; })")
+        await page.click("#start")
+        await _until(page, "document.querySelector('#message').textContent.includes('started')")
+        await _until(page, "document.querySelector('#live-panel').dataset.state === 'done'", 60)
+        await _until(page, "document.querySelector('#frame').naturalWidth > 0")  # img-src 'self'
+        run = (await service.client.get(f"{API}/runs")).json()[0]
+        created = datetime.fromisoformat(run["created_at"]).astimezone(ZoneInfo("Europe/Paris"))
+        await page.evaluate("refreshRuns()")
+        cell = await page.inner_text("#runs tbody tr td:nth-child(6)")
+        # the browser writes the hour without a leading zero ("0:01:52" just after midnight): compare the numbers
+        shown = re.search(r"(\d{1,2}):(\d{2}):(\d{2})", cell)
+        assert shown is not None and "CET" in cell, (cell, run["created_at"])
+        hms = tuple(int(g) for g in shown.groups())
+        assert hms == (created.hour, created.minute, created.second), (cell, run["created_at"])
+        assert await page.evaluate("window.__csp") == []
+        assert not errors, errors
 
-            docs = await ctx.new_page()
-            await docs.goto(service.url + f"{API}/docs")
-            await docs.wait_for_selector(".swagger-ui .info .title", timeout=30_000)
-            await docs.wait_for_selector(".opblock-summary-path", timeout=30_000)  # the spec loaded and rendered
-            assert await docs.evaluate("window.__csp") == []
-        finally:
-            await browser.close()
+        docs = await ctx.new_page()
+        await docs.goto(service.url + f"{API}/docs")
+        await docs.wait_for_selector(".swagger-ui .info .title", timeout=30_000)
+        await docs.wait_for_selector(".opblock-summary-path", timeout=30_000)  # the spec loaded and rendered
+        assert await docs.evaluate("window.__csp") == []

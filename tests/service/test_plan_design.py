@@ -17,6 +17,7 @@ from calib.formats.plan import Plan, SoftLimits, validate_plan
 from calib.model.parameters import NOMINAL
 from service.cli import main
 from service.design import parse_length
+from tests.browser import CHROMIUM, NO_CHROMIUM, headless_chromium
 from tests.service.conftest import AUTH, wait_state
 
 API = "/api/v1"
@@ -346,87 +347,78 @@ async def test_api_bounds_its_inputs(service):
 
 async def test_dashboard_designs_and_starts_a_plan(service):
     """The dashboard's design panel in headless chromium: design, see the predicted std, start the designed plan."""
-    import os
-    import shutil
 
-    pw = pytest.importorskip("playwright.async_api")
-    chromium = os.environ.get("I4CAL_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
-    if chromium is None:
-        pytest.skip("no chromium: run deploy/install-test-system-deps.sh")
+    pytest.importorskip("playwright.async_api")
+    if CHROMIUM is None:
+        pytest.skip(NO_CHROMIUM)
     from tests.service.conftest import TOKEN
 
-    async with pw.async_playwright() as p:
-        browser = await p.chromium.launch(
-            executable_path=chromium, headless=True, args=["--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage"]
+    async with headless_chromium() as browser:
+        page = await browser.new_page(bypass_csp=True)
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        await page.goto(service.url + "/dashboard")
+        await page.fill("#token", TOKEN)
+        await page.dispatch_event("#token", "change")
+        await page.fill("#design-nfit", "4")
+        await page.fill("#design-lock", "3")
+        await page.click("#design")
+        await page.wait_for_function(
+            "document.querySelector('#design-table').textContent.includes('S-(q04-q03)/2')", timeout=120_000
         )
-        try:
-            page = await browser.new_page(bypass_csp=True)
-            errors: list[str] = []
-            page.on("pageerror", lambda e: errors.append(str(e)))
-            await page.goto(service.url + "/dashboard")
-            await page.fill("#token", TOKEN)
-            await page.dispatch_event("#token", "change")
-            await page.fill("#design-nfit", "4")
-            await page.fill("#design-lock", "3")
-            await page.click("#design")
-            await page.wait_for_function(
-                "document.querySelector('#design-table').textContent.includes('S-(q04-q03)/2')", timeout=120_000
-            )
-            table = await page.text_content("#design-table")
-            summary = await page.text_content("#design-summary")
-            assert "4 fit poses" in summary and "motion" in summary and "lock-1 3" in summary, summary
-            assert table.count("\u00b1") == 0 and len(await page.query_selector_all("#design-table tr")) >= 4
-            # under the legs method, the sources of its error: the lock phases' shading among them
-            assert "of which lock phases: shading (systematic)" in table, table
-            assert len(await page.query_selector_all("#design-table tr.part")) >= 4
-            assert "designed for combined" in summary and "legs" not in summary, summary
-            # designed for the legs method too: the request says so, the summary too
-            await page.check("#design-legs")
-            await page.click("#design")
-            await page.wait_for_function(
-                "document.querySelector('#design-summary').textContent.includes('designed for combined and legs')",
-                timeout=120_000,
-            )
-            # the design's notes under its summary: here what a design for the legs method leans on
-            notes = await page.text_content("#design-notes")
-            assert "designed for the legs method: the poses are those its predicted std is smallest for" in notes, notes
-            await page.uncheck("#design-legs")
-            await page.click("#design-start")
-            await page.wait_for_function(
-                "document.querySelector('#message').textContent.includes('started designed run')", timeout=30_000
-            )
-            run_id = (await service.client.get(f"{API}/runs", headers=AUTH)).json()[0]["id"]
-            assert (await page.text_content("#message")).endswith(f"started designed run {run_id[:8]}")
-            r = await service.client.get(f"{API}/runs/{run_id}", headers=AUTH)
-            assert r.status_code == 200 and r.json()["plan"] == "designed"
-            # accuracy against bench time: a row per count, the more poses the smaller the combined std; a target
-            # between them recommends the larger, and "use" puts its count in the form
-            await page.fill("#tradeoff-counts", "4, 10")
-            await page.click("#tradeoff")
-            await page.wait_for_function(
-                "document.querySelectorAll('#tradeoff-table .use-count').length === 2", timeout=120_000
-            )
-            rows = await page.eval_on_selector_all(
-                "#tradeoff-table tr", "(trs) => trs.slice(1).map((tr) => [...tr.cells].map((c) => c.textContent))"
-            )
-            assert [row[0] for row in rows] == ["4", "10"], rows
-            worst = [max(float(v) for v in row[2:6]) for row in rows]
-            assert worst[1] < worst[0], rows
-            await page.fill("#design-target", f"{(worst[0] * worst[1]) ** 0.5:.4f}")
-            await page.click("#tradeoff")
-            await page.wait_for_function(
-                "document.querySelector('#tradeoff-table').textContent.includes('(recommended)')", timeout=120_000
-            )
-            summary = await page.text_content("#tradeoff-summary")
-            assert "recommended: 10 fit poses (the fewest fit poses that meet the target)" in summary, summary
-            # and past the largest count, where more poses level off (the trend through 4 and 10)
-            assert "with more fit poses (trend from 4 to 10): combined levels off near L " in summary, summary
-            assert len(await page.query_selector_all("#tradeoff-table tr.recommended")) == 1
-            await page.click("#tradeoff-table tr.recommended .use-count")
-            assert await page.input_value("#design-nfit") == "10"
-            assert not errors, errors
-        finally:
-            await browser.close()
+        table = await page.text_content("#design-table")
+        summary = await page.text_content("#design-summary")
+        assert "4 fit poses" in summary and "motion" in summary and "lock-1 3" in summary, summary
+        assert table.count("\u00b1") == 0 and len(await page.query_selector_all("#design-table tr")) >= 4
+        # under the legs method, the sources of its error: the lock phases' shading among them
+        assert "of which lock phases: shading (systematic)" in table, table
+        assert len(await page.query_selector_all("#design-table tr.part")) >= 4
+        assert "designed for combined" in summary and "legs" not in summary, summary
+        # designed for the legs method too: the request says so, the summary too
+        await page.check("#design-legs")
+        await page.click("#design")
+        await page.wait_for_function(
+            "document.querySelector('#design-summary').textContent.includes('designed for combined and legs')",
+            timeout=120_000,
+        )
+        # the design's notes under its summary: here what a design for the legs method leans on
+        notes = await page.text_content("#design-notes")
+        assert "designed for the legs method: the poses are those its predicted std is smallest for" in notes, notes
+        await page.uncheck("#design-legs")
+        await page.click("#design-start")
+        await page.wait_for_function(
+            "document.querySelector('#message').textContent.includes('started designed run')", timeout=30_000
+        )
+        run_id = (await service.client.get(f"{API}/runs", headers=AUTH)).json()[0]["id"]
+        assert (await page.text_content("#message")).endswith(f"started designed run {run_id[:8]}")
+        r = await service.client.get(f"{API}/runs/{run_id}", headers=AUTH)
+        assert r.status_code == 200 and r.json()["plan"] == "designed"
+        # accuracy against bench time: a row per count, the more poses the smaller the combined std; a target
+        # between them recommends the larger, and "use" puts its count in the form
+        await page.fill("#tradeoff-counts", "4, 10")
+        await page.click("#tradeoff")
+        await page.wait_for_function(
+            "document.querySelectorAll('#tradeoff-table .use-count').length === 2", timeout=120_000
+        )
+        rows = await page.eval_on_selector_all(
+            "#tradeoff-table tr", "(trs) => trs.slice(1).map((tr) => [...tr.cells].map((c) => c.textContent))"
+        )
+        assert [row[0] for row in rows] == ["4", "10"], rows
+        worst = [max(float(v) for v in row[2:6]) for row in rows]
+        assert worst[1] < worst[0], rows
+        await page.fill("#design-target", f"{(worst[0] * worst[1]) ** 0.5:.4f}")
+        await page.click("#tradeoff")
+        await page.wait_for_function(
+            "document.querySelector('#tradeoff-table').textContent.includes('(recommended)')", timeout=120_000
+        )
+        summary = await page.text_content("#tradeoff-summary")
+        assert "recommended: 10 fit poses (the fewest fit poses that meet the target)" in summary, summary
+        # and past the largest count, where more poses level off (the trend through 4 and 10)
+        assert "with more fit poses (trend from 4 to 10): combined levels off near L " in summary, summary
+        assert len(await page.query_selector_all("#tradeoff-table tr.recommended")) == 1
+        await page.click("#tradeoff-table tr.recommended .use-count")
+        assert await page.input_value("#design-nfit") == "10"
+        assert not errors, errors
 
 
 def test_bench_design_compares_plans_of_equal_fit_counts():

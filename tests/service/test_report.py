@@ -7,9 +7,7 @@ import asyncio
 import base64
 import io
 import json
-import os
 import re
-import shutil
 import subprocess
 import sys
 import zipfile
@@ -27,11 +25,11 @@ from drivers.sim.twin import BenchGeometry
 from service.cli import main
 from service.report import ReportInputs, build_report, inputs_from_path
 from service.report.analysis import dataset_sha256
+from tests.browser import CHROMIUM, NO_CHROMIUM, headless_chromium
 from tests.service.conftest import AUTH, wait_state
 
 API = "/api/v1"
 METHODS = ["combined", "end-effector", "legs"]
-CHROMIUM = os.environ.get("I4CAL_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
 
 
 @pytest.fixture(scope="module")
@@ -132,50 +130,42 @@ def test_report_holds_the_result_and_is_self_contained(built, dataset):
 
 
 def test_report_opens_in_a_real_browser(built):
-    playwright_api = pytest.importorskip("playwright.async_api")
+    pytest.importorskip("playwright.async_api")
     if CHROMIUM is None:
-        pytest.skip("no chromium: run deploy/install-test-system-deps.sh")
+        pytest.skip(NO_CHROMIUM)
     path = built[2]
 
     async def check() -> None:
-        async with playwright_api.async_playwright() as pw:
-            browser = await pw.chromium.launch(
-                executable_path=CHROMIUM,
-                headless=True,
-                args=["--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage"],
-            )
-            try:
-                page = await browser.new_page(viewport={"width": 1280, "height": 900})
-                requests: list[str] = []
-                page.on("request", lambda r: requests.append(r.url))
-                errors: list[str] = []
-                page.on("pageerror", lambda e: errors.append(str(e)))
-                await page.goto(path.as_uri())
-                await page.wait_for_load_state("load")
-                assert "calibration report" in (await page.title())
-                imgs = page.locator("img")
-                n = await imgs.count()
-                assert n == 8  # 5 plots, 3 frames
-                for i in range(n):
-                    img = imgs.nth(i)
-                    await img.scroll_into_view_if_needed()
-                    assert await img.evaluate("i => i.decode().then(() => i.complete && i.naturalWidth)") >= 400
-                    assert await img.is_visible()
-                tables = page.locator("table")
-                assert await tables.count() >= 10
-                for i in range(await tables.count()):
-                    assert await tables.nth(i).is_visible()
-                t1 = await page.locator("table", has_text="Table I - identifiable parameters").inner_text()
-                for word in ("a priori", "combined", "end-effector", "legs", "truth", "S-(q04-q03)/2", "±"):
-                    assert word in t1
-                # what the browser shows of the first plot is a readable picture, not an empty box
-                shot = await page.locator("figure img").first.screenshot()
-                img = cv2.imdecode(np.frombuffer(shot, np.uint8), cv2.IMREAD_COLOR)
-                assert img.shape[1] >= 400 and img.std() > 20 and _coloured_pixels(img) > 300
-                assert not errors, errors
-                assert all(u.startswith(("file:", "data:")) for u in requests), requests
-            finally:
-                await browser.close()
+        async with headless_chromium() as browser:
+            page = await browser.new_page(viewport={"width": 1280, "height": 900})
+            requests: list[str] = []
+            page.on("request", lambda r: requests.append(r.url))
+            errors: list[str] = []
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            await page.goto(path.as_uri())
+            await page.wait_for_load_state("load")
+            assert "calibration report" in (await page.title())
+            imgs = page.locator("img")
+            n = await imgs.count()
+            assert n == 8  # 5 plots, 3 frames
+            for i in range(n):
+                img = imgs.nth(i)
+                await img.scroll_into_view_if_needed()
+                assert await img.evaluate("i => i.decode().then(() => i.complete && i.naturalWidth)") >= 400
+                assert await img.is_visible()
+            tables = page.locator("table")
+            assert await tables.count() >= 10
+            for i in range(await tables.count()):
+                assert await tables.nth(i).is_visible()
+            t1 = await page.locator("table", has_text="Table I - identifiable parameters").inner_text()
+            for word in ("a priori", "combined", "end-effector", "legs", "truth", "S-(q04-q03)/2", "±"):
+                assert word in t1
+            # what the browser shows of the first plot is a readable picture, not an empty box
+            shot = await page.locator("figure img").first.screenshot()
+            img = cv2.imdecode(np.frombuffer(shot, np.uint8), cv2.IMREAD_COLOR)
+            assert img.shape[1] >= 400 and img.std() > 20 and _coloured_pixels(img) > 300
+            assert not errors, errors
+            assert all(u.startswith(("file:", "data:")) for u in requests), requests
 
     asyncio.run(check())
 

@@ -1,0 +1,29 @@
+"""A real headless chromium for the browser tests: Debian's (deploy/install-test-system-deps.sh), driven by the
+``playwright`` package's bundled driver (no browser download). ``I4CAL_CHROMIUM`` names another executable."""
+
+from __future__ import annotations
+
+import os
+import shutil
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from typing import Any
+
+#: the chromium executable, or None (the browser tests are then skipped, saying how to install it)
+CHROMIUM = os.environ.get("I4CAL_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
+NO_CHROMIUM = "no chromium: run deploy/install-test-system-deps.sh"
+
+
+@asynccontextmanager
+async def headless_chromium() -> AsyncIterator[Any]:
+    """A launched headless chromium (a ``playwright.async_api.Browser``), closed on the way out."""
+    from playwright.async_api import async_playwright
+
+    async with async_playwright() as p:
+        browser = await p.chromium.launch(
+            executable_path=CHROMIUM, headless=True, args=["--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage"]
+        )
+        try:
+            yield browser
+        finally:
+            await browser.close()
