@@ -8,11 +8,11 @@ import time
 from pathlib import Path
 
 # One thread per numerical library in every test process and the processes it starts (services, extraction workers
-# and the browser inherit the environment): pytest-xdist already runs one worker per core, and OpenBLAS's or
-# OpenCV's own thread pools on top of it only contend for the same cores (OpenBLAS's threads spin while they wait:
-# ~30% more CPU for the same tests). Set before numpy and cv2 are first imported; a value already set is kept.
-# A test of what a user runs as they run it (the demo) removes them again from its subprocess's environment: the
-# workers' own limits must hold without them (calib/numerics/threads.py).
+# and the browser inherit the environment): pytest-xdist already runs a worker per core (and one more), and
+# OpenBLAS's or OpenCV's own thread pools on top of it only contend for the same cores (OpenBLAS's threads spin
+# while they wait: ~30% more CPU for the same tests). Set before numpy and cv2 are first imported; a value already
+# set is kept. A test of what a user runs as they run it (the demo) removes them again from its subprocess's
+# environment: the workers' own limits must hold without them (calib/numerics/threads.py).
 NUMERICS_THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENCV_FOR_THREADS_NUM")
 for _var in NUMERICS_THREAD_VARS:
     os.environ.setdefault(_var, "1")
@@ -89,6 +89,13 @@ def _render_zip(tmp_path_factory) -> bytes:
 #: ``tests/cpu_costs.json``, written from a CPU report (below). A test missing from it counts as cheap; a stale file
 #: costs speed only, never a result.
 COSTS_FILE = Path(__file__).with_name("cpu_costs.json")
+
+
+def pytest_xdist_auto_num_workers(config):
+    """``-n auto``: one worker more than the cores. Many tests wait on their own processes (a service, a simulated
+    bench's motion, a browser, extraction workers) while their worker's core idles; the extra worker fills those waits
+    (on 2 idle cores: 524-558 s with 2 workers, 491-494 s with 3, 486 s with 4)."""
+    return (os.cpu_count() or 1) + 1
 
 
 def _scope(nodeid: str) -> str:
