@@ -95,66 +95,15 @@ def _direction_covariance(
     ~1/(plane angle) times less precise than its image component: the covariance is strongly
     anisotropic, which the combined method's GLS weighting uses.
     """
-    return _direction_covariance_set(K, fits, inner, edge_bias_px, (edge_bias_length_px,))[0]
-
-
-def _direction_covariance_set(
-    K: Array,
-    fits: list[tuple[Array, Array, float, Array]],
-    inner: Array,
-    edge_bias_px: float,
-    lengths_px: tuple[float, ...],
-    ts: list[Array] | None = None,
-) -> list[Array]:
-    """:func:`_direction_covariance` for each of the allowance's correlation lengths ``lengths_px``, the limb planes'
-    derivatives computed once (``ts``: each fit's ``(pts - c) @ td`` when known)."""
-    spans, parts = [], []
-    for j, (c, td, s2, pts) in enumerate(fits):
-        t = (pts - c) @ td if ts is None else ts[j]
-        spans.append(max(float(t.max() - t.min()), 1.0))
-        parts.append((s2 / max(float(t @ t), 1e-9), s2 / len(pts)))
-    J = _direction_jacobian(K, fits, inner)
-    out = []
-    for length in lengths_px:
-        edge_bias_factor(1.0, length)  # (validates the length)
-        var = []
-        for span, (v_ang, v_sh) in zip(spans, parts, strict=True):
-            # edge_bias_factor(span, length), span >= 1
-            b2 = edge_bias_px**2 * (1.0 if length == 0 else min(1.0, length / span))
-            var += [v_ang + b2 / span**2, v_sh + 0.25 * b2]
-        out.append(J @ np.diag(var) @ J.T)
-    return out
-
-
-def _direction_jacobian(K: Array, fits: list[tuple[Array, Array, float, Array]], inner: Array) -> Array:
-    """d u / d (angle, offset of limb 0, angle, offset of limb 1), (3, 4), by central differences."""
-    # all 9 parameter sets (nominal, then +/- each of the 4) at once
-    step, cs_sn = _JAC_STEP, _JAC_CS_SN
-    hs = []
-    lines = np.empty((9, 3))
-    for j, (c, td, _s2, _pts) in enumerate(fits):
-        cs, sn, sh = cs_sn[j]
-        dx = cs * td[0] - sn * td[1]  # (9,): the direction turned by each set's angle
-        dy = sn * td[0] + cs * td[1]
-        lines[:, 0] = -dy
-        lines[:, 1] = dx
-        lines[:, 2] = dy * c[0] - dx * c[1] - sh
-        h = lines @ K  # rows: (K^T l)^T
-        h /= np.sqrt(np.add.reduce(h * h, axis=1, keepdims=True))  # np.linalg.norm(h, axis=1, keepdims=True)
-        hs.append(h * np.where(h @ inner > 0, 1.0, -1.0)[:, None])
-    a, b = hs
-    u = np.empty((9, 3))  # h1 x h2, row by row
-    u[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
-    u[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
-    u[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
-    u /= np.sqrt(np.add.reduce(u * u, axis=1, keepdims=True))
-    u *= np.where(u @ u[0] > 0, 1.0, -1.0)[:, None]
-    return ((u[1::2] - u[2::2]) / (2.0 * step[:, None])).T  # (3, 4)
+    ts = [[(pts - c) @ td for c, td, _s2, pts in fits]]
+    return _direction_covariance_sets(K, [fits], np.asarray(inner)[None], edge_bias_px, (edge_bias_length_px,), ts)[0][
+        0
+    ]
 
 
 def _jacobian_sets() -> tuple[Array, list[tuple[Array, Array, Array]]]:
-    """:func:`_direction_jacobian`'s steps (4,) and, per limb, the cosines, sines and shifts (each (9,)) of its 9
-    parameter sets (nominal, then +/- each of the 4 parameters)."""
+    """:func:`_direction_jacobian_stack`'s steps (4,) and, per limb, the cosines, sines and shifts (each (9,)) of its
+    9 parameter sets (nominal, then +/- each of the 4 parameters)."""
     step = np.array([1e-6, 1e-3, 1e-6, 1e-3])
     P = np.zeros((9, 4))
     for k in range(4):
@@ -232,7 +181,7 @@ def _direction_covariances_set(
     td = np.asarray(directions, dtype=np.float64)
     s2 = np.asarray(s2, dtype=np.float64)
     span = np.maximum(np.asarray(t_span, dtype=np.float64), 1.0)
-    J = _direction_jacobians(K, c, td, inner)
+    J = np.ascontiguousarray(_direction_jacobian_stack(K, c, td, inner).transpose(0, 2, 1))  # (M, 4, 3)
     noise_ang = s2 / np.maximum(np.asarray(t_sumsq, dtype=np.float64), 1e-9)
     noise_sh = s2 / np.asarray(n_points, dtype=np.float64)
     out = []
@@ -245,37 +194,6 @@ def _direction_covariances_set(
     return out
 
 
-def _direction_jacobians(K: Array, c: Array, td: Array, inner: Array) -> Array:
-    """:func:`_direction_jacobian` of M rods at once (limb centroids and directions (M, 2, 2)), (M, 4, 3)."""
-    step = np.array([1e-6, 1e-3, 1e-6, 1e-3])
-    P = np.zeros((9, 4))
-    for k in range(4):
-        P[1 + 2 * k, k] = step[k]
-        P[2 + 2 * k, k] = -step[k]
-    hs = []
-    for j in range(2):
-        ang, sh = P[:, 2 * j], P[:, 2 * j + 1]  # (9,)
-        cs, sn = np.cos(ang), np.sin(ang)
-        tx, ty = td[:, j, 0, None], td[:, j, 1, None]  # (M, 1)
-        dx, dy = cs * tx - sn * ty, sn * tx + cs * ty  # (M, 9)
-        lines = np.stack([-dy, dx, dy * c[:, j, 0, None] - dx * c[:, j, 1, None] - sh], axis=-1)  # (M, 9, 3)
-        h = lines @ K
-        h /= np.linalg.norm(h, axis=-1, keepdims=True)
-        hs.append(h * np.where(np.einsum("mpi,mi->mp", h, inner) > 0, 1.0, -1.0)[..., None])
-    a, b = hs
-    u = np.stack(
-        [
-            a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
-            a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
-            a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0],
-        ],
-        axis=-1,
-    )  # (M, 9, 3)
-    u /= np.linalg.norm(u, axis=-1, keepdims=True)
-    u *= np.where(np.einsum("mpi,mi->mp", u, u[:, 0]) > 0, 1.0, -1.0)[..., None]
-    return (u[:, 1::2] - u[:, 2::2]) / (2.0 * step[:, None])  # (M, 4, 3)
-
-
 def _direction_covariance_sets(
     K: Array,
     fits: list[list[tuple[Array, Array, float, Array]]],
@@ -284,7 +202,8 @@ def _direction_covariance_sets(
     lengths_px: tuple[float, ...],
     ts: list[list[Array]],
 ) -> list[Array]:
-    """:func:`_direction_covariance_set` of M rods at once, the same numbers bit for bit.
+    """:func:`_direction_covariance` of M rods at once, for each of the allowance's correlation lengths: each rod's
+    slice the numbers the rod alone gets, bit for bit (the function of one rod is this one with M = 1).
 
     Each rod's variances come from the same scalar arithmetic, and its derivatives and covariance from the same
     products (:func:`_direction_jacobian_stack`), stacked: numpy's stacked matrix products compute each rod's slice
@@ -333,8 +252,9 @@ def _direction_covariance_sets(
 
 
 def _direction_jacobian_stack(K: Array, c: Array, td: Array, inner: Array) -> Array:
-    """:func:`_direction_jacobian` of M rods (limb centroids and directions (M, 2, 2), ideal px; ``inner`` (M, 3)),
-    (M, 3, 4), the same numbers bit for bit (the same operations, the products stacked)."""
+    """d u / d (angle, offset of limb 0, angle, offset of limb 1) of M rods (limb centroids and directions (M, 2, 2),
+    ideal px; ``inner`` (M, 3), a direction on the axis' side of both limb planes), (M, 3, 4), by central
+    differences: each rod's slice the numbers the rod alone gets (the products stacked)."""
     step, cs_sn = _JAC_STEP, _JAC_CS_SN
     m = len(c)
     hs = []
