@@ -1,8 +1,7 @@
-"""``python -m i4cal``: the ``i4cal`` command line (:func:`i4cal.cli.main`: the service's commands and ``bench``)."""
+"""``python -m i4cal``: the ``i4cal`` command line (:func:`i4cal.cli.run_program`: the service's commands and
+``bench``)."""
 
-import sys
-
-from i4cal.cli import main
+from i4cal.cli import run_program
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_program()

@@ -18,12 +18,14 @@ per record); the default is WARNING.
 from __future__ import annotations
 
 import argparse
+import gc
 import importlib
 import logging
 import os
 import pkgutil
 import sys
 from collections.abc import Callable, Iterable, Sequence
+from typing import NoReturn
 
 # One BLAS/OpenMP thread unless the user set otherwise, before numpy loads: the project's matrices are small, and a
 # second thread only spins (0.3 s of CPU at import alone on 2 cores); the extraction's and the studies' parallelism
@@ -115,11 +117,17 @@ def configure_logging(verbose: int = 0, level: str | None = None) -> None:
     )
 
 
-def main(argv: Sequence[str] | None = None, extra_registrars: Iterable[Registrar] = ()) -> int:
+def main(
+    argv: Sequence[str] | None = None, extra_registrars: Iterable[Registrar] = (), *, program: bool = False
+) -> int:
     """Run the command line on ``argv`` (default ``sys.argv[1:]``) with the commands ``extra_registrars`` add
-    (:func:`build_parser`); the exit code."""
+    (:func:`build_parser`); the exit code. ``program``: the process ends with the command (:func:`run_program`)."""
     parser = build_parser(extra_registrars)
     args = parser.parse_args(argv)
+    if program:
+        # the modules' objects live until the exit: out of the cyclic collector's walks, in this process and in the
+        # extraction's forked workers (gc.freeze; docs/benchmarks.md)
+        gc.freeze()
     configure_logging(args.cli_verbose, args.cli_log_level)
     if not getattr(args, "handler", None):
         parser.print_help()
@@ -142,5 +150,19 @@ def main(argv: Sequence[str] | None = None, extra_registrars: Iterable[Registrar
         return 130
 
 
+def run_program(extra_registrars: Iterable[Registrar] = ()) -> NoReturn:
+    """The command line as a program (``python -m service.cli``, the ``i4cal`` script): :func:`main` on
+    ``sys.argv[1:]``, then exit with its code.
+
+    What is alive when the command returns lives until the exit: it is frozen out of the cyclic garbage collector
+    (``gc.freeze``), whose walk over every object at the interpreter's shutdown costs 0.1-0.2 s of CPU and wall
+    time after each command (docs/benchmarks.md). In-process callers (the tests) call :func:`main`, which leaves
+    the collector alone.
+    """
+    code = main(extra_registrars=extra_registrars, program=True)
+    gc.freeze()
+    sys.exit(code)
+
+
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    run_program()

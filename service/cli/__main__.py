@@ -1,5 +1,3 @@
-import sys
+from service.cli import run_program
 
-from service.cli import main
-
-sys.exit(main())
+run_program()
