@@ -580,24 +580,21 @@ def _camera_stage(ps: _Pass, camera: CameraModel | None, prefetch_boards: bool =
             raise InputError(NO_INTRINSICS, file=root, field="camera")
         t = ps.ticker
         init = (root, None, None, opts.min_corners, ps.rs_dict)
-        det = ps.pool.run(_task_detect, cam_idx, init, t.callback, t.done, t.total)
-        t.done += len(cam_idx)
-        views = {}
-        for i, r in det:
-            if isinstance(r, str):
-                ps.per_frame.setdefault(i, []).append(f"image: {r}")
-            else:
-                views[i] = (np.asarray(r[0], dtype=int), np.asarray(r[1]).reshape(-1, 2), None)
-        ids_all, pts = BoardDetector(doc.board).ids_all, BoardDetector(doc.board).points_nominal
+        board = BoardDetector(doc.board)
         fit_args = (
-            views,
+            cam_idx,
             (doc.camera.width, doc.camera.height),
-            ids_all,
-            pts,
+            board.ids_all,
+            board.points_nominal,
             opts.lens_model or (doc.camera.model_extra or {}).get("lens_model") or "auto",
         )
         boards_beside = ps.obs_idx if prefetch_boards else []
-        intr = ps.pool.run_beside(_calibrate_camera, fit_args, _task_corners, boards_beside, init)
+        det, intr = ps.pool.run_beside(_detect_and_calibrate, fit_args, _task_corners, boards_beside, init)
+        t.done += len(cam_idx)
+        t.report(t.done, t.total)
+        for i, r in det:
+            if isinstance(r, str):
+                ps.per_frame.setdefault(i, []).append(f"image: {r}")
         for i, reason in intr.rejected.items():
             ps.per_frame.setdefault(i, []).append(f"camera view rejected: {reason}")
         camera = intr.camera
@@ -605,11 +602,19 @@ def _camera_stage(ps: _Pass, camera: CameraModel | None, prefetch_boards: bool =
     return CameraStage(camera, intr, intr.summary() if intr else {"source": "given" if not need_calib else "dataset"})
 
 
-def _calibrate_camera(args: tuple) -> IntrinsicsResult:
-    """:func:`calib.camera.intrinsics.calibrate_intrinsics` of ``(views, image size, board ids, board points, lens
-    model)``: a task a worker runs while the others detect the boards (:meth:`calib.vision.pool._Pool.run_beside`)."""
-    views, size, ids_all, points, lens_model = args
-    return calibrate_intrinsics(views, size, ids_all, points, lens_model=lens_model)
+def _detect_and_calibrate(args: tuple) -> tuple[list[tuple[int, Any]], IntrinsicsResult]:
+    """The ``camera`` phase's board views detected (:func:`.pool._task_detect`: corners, or why none) and the camera
+    calibrated from those found (:func:`calib.camera.intrinsics.calibrate_intrinsics`), from ``(view frames, image
+    size, board ids, board points, lens model)``: one task, which a worker runs while the others detect the other
+    frames' boards (:meth:`calib.vision.pool._Pool.run_beside`). Returns each view's detection and the calibration."""
+    cam_idx, size, ids_all, points, lens_model = args
+    det = [_task_detect(i) for i in cam_idx]
+    views = {
+        i: (np.asarray(r[0], dtype=int), np.asarray(r[1]).reshape(-1, 2), None)
+        for i, r in det
+        if not isinstance(r, str)
+    }
+    return det, calibrate_intrinsics(views, size, ids_all, points, lens_model=lens_model)
 
 
 def _refined_points(ds: Dataset, camera: CameraModel) -> tuple[list, list, Any] | None:

@@ -341,6 +341,7 @@ class _Pool:
         fill the cores without a third process contending for them.
         """
         if self.workers <= 1 or len(frames) < 4:
+            _init_worker(*init_args)  # side's tasks run in this process (as run's do with one worker)
             return side(side_arg)
         self._configure(init_args)
         todo = deque(frames)
