@@ -529,12 +529,14 @@ class Acquisition:
 
     async def _pose(self, u: Unit) -> None:
         t_start = time.perf_counter()
+        arrived = None  # the encoders as the move's last poll read them, in position
         if u.q is not None:
-            await self.actuators.move(np.asarray(u.q))
+            arrived = np.asarray(await self.actuators.move(np.asarray(u.q)), dtype=float)
         t_moved = time.perf_counter()
         if self.settle_s:
             await asyncio.sleep(self.settle_s)
-        q, frame = await self._checked_frame(u)
+            arrived = None  # read again after the wait
+        q, frame = await self._checked_frame(u, arrived)
         await self._write_behind(u, q, frame, q_target=list(u.q) if u.q is not None else None)
         t_end = time.perf_counter()
         self.timings.append((t_start, t_moved, t_end))
@@ -551,24 +553,26 @@ class Acquisition:
             raise AlarmError(alarm_message(ax, code), code=code, axis=ax)
         return st
 
-    async def _checked_frame(self, u: Unit) -> tuple[np.ndarray, Frame]:
+    async def _checked_frame(self, u: Unit, arrived: np.ndarray | None = None) -> tuple[np.ndarray, Frame]:
         """A pose's frame and the q it records: the encoders read, the frame grabbed, the encoders read again. The q
         is kept only when both readings agree (``line_still_m``) and lie at the commanded target (the actuators'
         ``in_position_m``): a stale reading that got past the link's guards is not written. Read again up to
         ``frame_reads`` times, then the frame is refused (:class:`~drivers.errors.ProtocolError`: the run fails on
-        it, saying so)."""
+        it, saying so). ``arrived``: the encoders the move has just read in position (m, shape (n,)), the first
+        reading before the grab (no settling wait since): a link that limits how often an axis is read spends no
+        read on it."""
         target = np.asarray(u.q, dtype=float) if u.q is not None else None
         tol_target = float(getattr(self.actuators, "in_position_m", 2e-5))
         problem = ""
         for attempt in range(1, self.frame_reads + 1):
-            st = await self._read_status()
+            q1 = arrived if attempt == 1 and arrived is not None else (await self._read_status()).positions
             frame = await self._grab()
             if self.suspension is not None:  # held at this pose while the scene is unfit; a frame grabbed after
                 frame = await self.suspension.clear(frame, self._grab, self._suspended, self._go)
             q2 = np.asarray(await self.actuators.read_encoders(), dtype=float)
-            problem = q_problem(st.positions, q2, target, tol_target, self.line_still_m)
+            problem = q_problem(q1, q2, target, tol_target, self.line_still_m)
             if not problem:
-                return st.positions, frame
+                return q1, frame
             log.warning("pose %d: %s (reading %d); read again", u.index + 1, problem, attempt)
             self._emit("running", f"pose {u.index + 1}/{len(self.units)}: {problem}; read again", u.phase)
         raise ProtocolError(

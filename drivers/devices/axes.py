@@ -482,7 +482,7 @@ class AxisController:
             def arrived(s: ActuatorStatus) -> bool:
                 return s.in_position and bool(np.all(np.abs(s.positions - target) <= self.in_position_m))
 
-            st = await self._wait(arrived, timeout, "move")
+            st = await self._wait(arrived, timeout, "move", arrival_s=_move_time(dist, speeds, self.accel_m_s2))
             if self.settle_s > 0:
                 await asyncio.sleep(self.settle_s)
                 st = await self.status()
@@ -492,9 +492,18 @@ class AxisController:
             await self._cleanup_stop(exc)
             raise
 
-    async def _wait(self, done: Callable[[ActuatorStatus], bool], timeout_s: float, what: str) -> ActuatorStatus:
+    async def _wait(
+        self, done: Callable[[ActuatorStatus], bool], timeout_s: float, what: str, arrival_s: float = 0.0
+    ) -> ActuatorStatus:
+        """Poll every ``poll_s``, and no faster than the link sustains (its optional ``poll_interval_s``: polled
+        faster, its guards would make the readings after the move wait), until ``done``; stopped on timeout.
+        ``arrival_s``: when the move should end (s from now, the commanded profile's): at the link's pace the polls
+        are timed so that one falls then, not up to an interval later."""
         t_end = time.monotonic() + timeout_s
+        pace = float(getattr(self.link, "poll_interval_s", 0.0))
+        t_arrival = time.monotonic() + arrival_s
         while True:
+            t_poll = time.monotonic()
             st = await self.status()
             self._raise_alarms(st)
             if done(st):
@@ -504,7 +513,30 @@ class AxisController:
                     f"{what} did not complete within {timeout_s:.2f} s; axes at "
                     f"{np.round(st.positions * 1e3, 3).tolist()} mm; stopped"
                 )
-            await asyncio.sleep(self.poll_s)
+            await asyncio.sleep(max(0.0, next_poll(t_poll, self.poll_s, pace, t_arrival) - time.monotonic()))
+
+
+def next_poll(t_poll: float, poll_s: float, pace_s: float, t_arrival: float) -> float:
+    """When (s, the clock of ``t_poll``) to poll a move next, after a poll at ``t_poll``: ``poll_s`` later, and no
+    sooner than ``pace_s`` (the link's ``poll_interval_s``). Before the expected arrival ``t_arrival`` (with a
+    pace) the polls are shifted so that one falls on it: the first after ``t_poll`` is the latest of
+    ``t_arrival - k pace_s`` (k = 0, 1, ...) at least a pace after ``t_poll``."""
+    t_next = t_poll + max(poll_s, pace_s)
+    if pace_s > 0 and t_next < t_arrival:
+        t_next = t_arrival - math.floor((t_arrival - t_next) / pace_s) * pace_s
+    return t_next
+
+
+def _move_time(distance_m: np.ndarray, speeds_m_s: np.ndarray, accel_m_s2: float) -> float:
+    """How long (s) the slowest axis of a move takes on its commanded trapezoidal profile (triangular when it never
+    reaches its speed): ``distance_m`` and ``speeds_m_s`` shape (n,)."""
+    a = max(float(accel_m_s2), 1e-9)
+    t = [
+        d / v + v / a if d >= v * v / a else 2.0 * math.sqrt(d / a)
+        for d, v in zip(distance_m, speeds_m_s, strict=True)
+        if d > 0 and v > 0
+    ]
+    return max(t, default=0.0)
 
 
 #: a drive may run this much faster than commanded (its speed loop's overshoot) before a reading is refused

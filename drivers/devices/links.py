@@ -77,7 +77,9 @@ class AxisLink(Protocol):
 
 # Optional, read with ``getattr`` by the axis controller: ``motion_in_doubt`` (bool), ``True`` while a motion command
 # that got no reply may still be executed by the controller (its connection was lost before its fate was read back):
-# the controller stops every axis, confirmed, before it reports or moves again, and then clears it.
+# the controller stops every axis, confirmed, before it reports or moves again, and then clears it. And
+# ``poll_interval_s`` (float): the axis controller polls a move no faster (a link whose guards limit how often an axis
+# can be read: :attr:`drivers.devices.modbus.ModbusLink.poll_interval_s`).
 
 
 @dataclass(frozen=True)

@@ -212,6 +212,26 @@ class ModbusLink:
         )
 
     @property
+    def poll_interval_s(self) -> float:
+        """The shortest interval (s) between two polls of every axis that the duplicate-window guard sustains with
+        room to spare: a unit's reads take its read windows (one shape each) for ``duplicate_window_s`` each, so a
+        poll of its axes every ``duplicate_window_s x axes / (windows - 3 x axes)`` leaves a free window for each of
+        the three readings that follow a move at once (the frame's reading before and after its grab, the next
+        move's check). Polled faster, a move's last polls take every window and those readings wait for one to
+        free (up to the whole window); with too few windows for that (``vary_reads = false``, many axes on a unit)
+        the polls are spread over the windows there are. The axis controller polls no faster
+        (:meth:`drivers.devices.axes.AxisController._wait`)."""
+        m = self.map
+        per_unit: dict[int, int] = {}
+        for i in range(self.n_axes):
+            unit = m.addr(i, "status")[0]
+            per_unit[unit] = per_unit.get(unit, 0) + 1
+        windows = min(len(w) for w in self._windows) if self.vary_reads else 1
+        axes = max(per_unit.values(), default=1)
+        spare = windows - 3 * axes
+        return self.safety.duplicate_window_s * axes / (spare if spare > 0 else windows)
+
+    @property
     def endpoint(self) -> str:
         if self.transport == "rtu":
             return f"{self.serial_port} (RTU, {self.baudrate} Bd)"

@@ -97,9 +97,10 @@ def frames_plan() -> Plan:
 
 
 class StaleStatus:
-    """The acquisition's actuators, except that the value of its k-th ``status()`` call (and ``times - 1`` more)
-    reads axis 2 ``offset_m`` off: a stale reading past the link's guards, which cannot be made on the wire on
-    purpose. The driver's own calls (inside a move) are untouched."""
+    """The acquisition's actuators, except that its k-th reading (and ``times - 1`` more) reads axis 2 ``offset_m``
+    off: a stale reading past the link's guards, which cannot be made on the wire on purpose. The acquisition's
+    readings are its ``status()`` calls and the encoders a move returns (read in position by the move's last poll:
+    a pose's first reading before its grab). The driver's own calls inside a move are untouched."""
 
     def __init__(self, act, k: int, offset_m: float, times: int) -> None:
         self._act, self.k, self.offset_m, self.times = act, k, offset_m, times
@@ -108,15 +109,26 @@ class StaleStatus:
     def __getattr__(self, name: str):
         return getattr(self._act, name)
 
-    async def status(self) -> ActuatorStatus:
-        st = await self._act.status()
+    def _stale(self) -> bool:
         self.n += 1
         if self.k <= self.n < self.k + self.times:
             self.faked += 1
+            return True
+        return False
+
+    async def status(self) -> ActuatorStatus:
+        st = await self._act.status()
+        if self._stale():
             axes = list(st.axes)
             axes[1] = dataclasses.replace(axes[1], position_m=axes[1].position_m + self.offset_m)
             return ActuatorStatus(tuple(axes))
         return st
+
+    async def move(self, q, *args, **kwargs) -> np.ndarray:
+        positions = np.array(await self._act.move(q, *args, **kwargs), dtype=float)
+        if self._stale():
+            positions[1] += self.offset_m
+        return positions
 
 
 async def test_a_frame_whose_q_disagrees_is_read_again(bench, tmp_path):
