@@ -19,20 +19,21 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from calib.errors import InputError
-from calib.formats.dataset import BoardSpec, CameraSpec, Dataset, DatasetWriter, LegsSpec
+from calib.formats.dataset import CameraSpec, Dataset, DatasetWriter
 from calib.formats.plan import Plan, SoftLimits, line_poses, validate_plan
 from calib.model.kinematics import ikm
 from calib.model.parameters import NOMINAL, I4Parameters
 from drivers.acquisition.operators import (
     ConsoleOperator as ConsoleOperator,  # where it was before: the console operator
 )
+from drivers.acquisition.settings import AcquisitionSettings, DatasetHeader
 from drivers.acquisition.suspenders import Suspension
 from drivers.devices.interfaces import Actuators, Camera, Frame, Operator
 from drivers.devices.registermap import ALARM_WATCHDOG
@@ -131,7 +132,14 @@ class AcquisitionError(DeviceError):
 
 
 class Acquisition:
-    """Runs ``plan`` on ``actuators`` + ``camera`` into the dataset directory ``out``."""
+    """Runs ``plan`` on ``actuators`` + ``camera`` into the dataset directory ``out``.
+
+    ``settings``: how it moves, grabs and checks each frame; ``header``: what the dataset records of the bench
+    (:mod:`drivers.acquisition.settings`); ``nominal`` and ``limits``: the model and soft limits every pose is
+    checked against before anything moves; ``operator``: who does the guided line; ``suspension``: what holds a
+    pose's frame while the scene is unfit; ``resume``: go on with the frames of an existing dataset; ``progress``
+    and ``on_frame``: observers of the run and of each frame written (neither may wait).
+    """
 
     def __init__(
         self,
@@ -140,41 +148,27 @@ class Acquisition:
         camera: Camera,
         out: str | Path,
         *,
-        operator: Operator | None = None,
+        settings: AcquisitionSettings | None = None,
+        header: DatasetHeader | None = None,
         nominal: I4Parameters = NOMINAL,
         limits: SoftLimits | None = None,
+        operator: Operator | None = None,
+        suspension: Suspension | None = None,
         resume: bool = False,
         progress: Callable[[Progress], None] | None = None,
-        settle_s: float = 0.0,
-        grab_timeout_s: float = 2.0,
-        grab_retries: int = 1,
-        line_rate_hz: float | None = None,
-        home: bool = True,
-        board: BoardSpec | None = None,
-        legs: LegsSpec | None = None,
-        camera_spec: dict[str, Any] | None = None,
-        extra: dict[str, Any] | None = None,
-        suspension: Suspension | None = None,
         on_frame: Callable[[int], None] | None = None,
     ) -> None:
         self.plan = plan
         self.actuators = actuators
         self.camera = camera
-        self.operator = operator
         self.out = Path(out)
+        self.settings = settings or AcquisitionSettings()
+        self.header = header or DatasetHeader()
         self.nominal = nominal
         self.limits = limits or SoftLimits()
+        self.operator = operator
         self.resume_run = resume
         self.progress_cb = progress
-        self.settle_s = settle_s
-        self.grab_timeout_s = grab_timeout_s
-        self.grab_retries = grab_retries
-        self.line_rate_hz = line_rate_hz
-        self.home = home
-        self.board = board or BoardSpec()
-        self.legs = legs or LegsSpec(rod_radius_m=0.008, rods_per_leg=2, rod_spacing_m=0.06)
-        self.camera_spec = camera_spec or {}
-        self.extra = extra or {}
         self.units = plan_units(plan)
         self._go = asyncio.Event()
         self._go.set()
@@ -187,8 +181,6 @@ class Acquisition:
         self.overheads: list[float] = []
         self.timings: list[tuple[float, float, float]] = []  # (start, in position, written) per pose
         self._record_s: float | None = None  # running estimate of one grab + write
-        self.line_still_m = 1e-5  # encoders before and after a frame agree within this (m)
-        self.frame_reads = 3  # a pose's frame whose q fails its checks is read again, at most this many times
         self._pending: asyncio.Future | None = None
         self.suspension = (
             suspension  # drivers.acquisition.suspenders: a pose's frame waits until the scene is fit to record
@@ -329,7 +321,7 @@ class Acquisition:
             )
         if any(a.free for a in st.axes):
             await self.actuators.set_free(False)
-        if self.home and not st.homed:
+        if self.settings.home and not st.homed:
             self._emit("starting", "homing")
             await self.actuators.home()
         t_grab = time.perf_counter()
@@ -428,7 +420,7 @@ class Acquisition:
             raise InputError(
                 f"dataset was recorded with plan {stored.get('name')!r}, not {self.plan.name!r}", file=str(self.out)
             )
-        known = self.camera_spec.get("intrinsics")
+        known = self.header.camera.get("intrinsics")
         had = (ds.document.camera.model_extra or {}).get("intrinsics")
         if isinstance(known, dict) and (not isinstance(had, dict) or had.get("sha256") != known.get("sha256")):
             raise InputError(
@@ -449,7 +441,7 @@ class Acquisition:
 
     def _create_dataset(self, first: Frame) -> None:
         h, w = first.image.shape[:2]
-        known = self.camera_spec.get("intrinsics")
+        known = self.header.camera.get("intrinsics")
         if isinstance(known, dict) and (known.get("width"), known.get("height")) != (w, h):
             raise InputError(
                 f"the camera file was calibrated on {known.get('width')}x{known.get('height')} images, the camera "
@@ -457,14 +449,14 @@ class Acquisition:
                 "of the plan was moved to",
                 file=str(known.get("file")),
             )
-        cam = CameraSpec(width=w, height=h, **self.camera_spec)
+        cam = CameraSpec(width=w, height=h, **self.header.camera)
         self._writer = DatasetWriter(
             self.out,
             camera=cam,
-            board=self.board,
-            legs=self.legs,
+            board=self.header.board,
+            legs=self.header.legs,
             nominal=self.nominal.as_dict(),
-            extra={"plan": self.plan.model_dump(mode="json", exclude_none=True), **self.extra},
+            extra={"plan": self.plan.model_dump(mode="json", exclude_none=True), **self.header.extra},
         )
 
     def _write(self, u: Unit, q: np.ndarray, frame: Frame, **extra: Any) -> None:
@@ -518,9 +510,9 @@ class Acquisition:
     # -- steps ------------------------------------------------------------------------------------
     async def _grab(self) -> Frame:
         last: Exception | None = None
-        for _ in range(self.grab_retries + 1):
+        for _ in range(self.settings.grab_retries + 1):
             try:
-                return await self.camera.grab(self.grab_timeout_s)
+                return await self.camera.grab(self.settings.grab_timeout_s)
             except (DeviceTimeoutError, FrameError) as exc:
                 last = exc
                 log.warning("grab failed (%s); retrying", exc)
@@ -533,8 +525,8 @@ class Acquisition:
         if u.q is not None:
             arrived = np.asarray(await self.actuators.move(np.asarray(u.q)), dtype=float)
         t_moved = time.perf_counter()
-        if self.settle_s:
-            await asyncio.sleep(self.settle_s)
+        if self.settings.settle_s:
+            await asyncio.sleep(self.settings.settle_s)
             arrived = None  # read again after the wait
         q, frame = await self._checked_frame(u, arrived)
         await self._write_behind(u, q, frame, q_target=list(u.q) if u.q is not None else None)
@@ -564,19 +556,20 @@ class Acquisition:
         target = np.asarray(u.q, dtype=float) if u.q is not None else None
         tol_target = float(getattr(self.actuators, "in_position_m", 2e-5))
         problem = ""
-        for attempt in range(1, self.frame_reads + 1):
+        for attempt in range(1, self.settings.frame_reads + 1):
             q1 = arrived if attempt == 1 and arrived is not None else (await self._read_status()).positions
             frame = await self._grab()
             if self.suspension is not None:  # held at this pose while the scene is unfit; a frame grabbed after
                 frame = await self.suspension.clear(frame, self._grab, self._suspended, self._go)
             q2 = np.asarray(await self.actuators.read_encoders(), dtype=float)
-            problem = q_problem(q1, q2, target, tol_target, self.line_still_m)
+            problem = q_problem(q1, q2, target, tol_target, self.settings.line_still_m)
             if not problem:
                 return q1, frame
             log.warning("pose %d: %s (reading %d); read again", u.index + 1, problem, attempt)
             self._emit("running", f"pose {u.index + 1}/{len(self.units)}: {problem}; read again", u.phase)
         raise ProtocolError(
-            f"frame refused, not written: {problem}, in {self.frame_reads} readings (a stale or wrong encoder reading)"
+            f"frame refused, not written: {problem}, in {self.settings.frame_reads} readings "
+            "(a stale or wrong encoder reading)"
         )
 
     def _suspended(self, state: str, message: str) -> None:
@@ -598,7 +591,7 @@ class Acquisition:
         line = step.line
         assert line is not None  # called for a guided line's step only (run)
         k0 = u0.line_sample or 0
-        rate = self.line_rate(self.line_rate_hz or line.rate_hz)
+        rate = self.line_rate(self.settings.line_rate_hz or line.rate_hz)
         poses = line_poses(line)
         if self.operator is None:
             raise DeviceError("a guided line needs an operator (bench [operator] uri)")
@@ -636,13 +629,13 @@ class Acquisition:
                         q2 = await self.actuators.read_encoders()
                         t_prev = time.monotonic()
                         spread = float(np.max(np.abs(q2 - st.positions)))
-                        if spread <= self.line_still_m:
+                        if spread <= self.settings.line_still_m:
                             break
                     else:
                         raise FrameError(
                             f"line sample {k}: frame refused, not written: the encoders read {spread * 1e3:.3f} mm "
                             "apart before and after the grab, in 3 readings "
-                            f"(more than {self.line_still_m * 1e3:.3f} mm)"
+                            f"(more than {self.settings.line_still_m * 1e3:.3f} mm)"
                         )
                     # in a worker thread like a pose's frame: PNG encoding and the fsync'd dataset.json must not
                     # stall the event loop (the service answers requests from it)
@@ -667,44 +660,43 @@ class Acquisition:
 
 def acquisition_from_config(
     plan: Plan,
-    bench_config,
+    bench_config: Any,
     out: str | Path,
     *,
     resume: bool = False,
     progress: Callable[[Progress], None] | None = None,
-    **kw: Any,
+    header: DatasetHeader | None = None,
+    on_frame: Callable[[int], None] | None = None,
 ) -> Acquisition:
-    """An :class:`Acquisition` on the bench's devices (opened by URI) with the bench file's settings."""
+    """An :class:`Acquisition` on the bench's devices (opened by URI) with the bench file's settings. ``header``:
+    what the dataset records besides the bench file's camera fields (its lens model, its camera file's
+    intrinsics), which are added to it."""
     from drivers.acquisition.config import open_actuators, open_camera, open_operator
 
     cfg = bench_config
-    opts: dict[str, Any] = dict(
-        nominal=cfg.nominal_parameters(),
-        limits=cfg.calib_limits(),
-        settle_s=cfg.acquisition.settle_s,
-        grab_timeout_s=cfg.camera.timeout_s,
-        grab_retries=cfg.camera.grab_retries,
-        line_rate_hz=cfg.acquisition.line_rate_hz,
-        home=cfg.actuators.home_on_connect,
-        suspension=Suspension.from_config(cfg.suspenders, kw.get("board")),
-    )
-    opts.update(kw)
+    header = header or DatasetHeader()
+    camera = dict(header.camera)
     if getattr(
         cfg.camera, "lens_model", None
     ):  # the bench file fixes the calibration's lens model: the dataset says so
-        opts["camera_spec"] = {**(opts.get("camera_spec") or {}), "lens_model": cfg.camera.lens_model}
+        camera["lens_model"] = cfg.camera.lens_model
     known = cfg.camera_intrinsics()  # read and checked before anything moves
     if known is not None:  # the bench file names the camera's intrinsics: every dataset carries them
-        opts["camera_spec"] = {**(opts.get("camera_spec") or {}), **intrinsics_spec(known)}
+        camera.update(intrinsics_spec(known))
     return Acquisition(
         plan,
         open_actuators(cfg),
         open_camera(cfg),
         Path(out),
+        settings=AcquisitionSettings.from_config(cfg),
+        header=replace(header, camera=camera),
+        nominal=cfg.nominal_parameters(),
+        limits=cfg.calib_limits(),
         operator=open_operator(cfg),
+        suspension=Suspension.from_config(cfg.suspenders, header.board),
         resume=resume,
         progress=progress,
-        **opts,
+        on_frame=on_frame,
     )
 
 
@@ -738,15 +730,16 @@ async def close_devices(acq: Acquisition) -> None:
 
 async def acquire(
     plan: Plan,
-    bench_config,
+    bench_config: Any,
     out: str | Path,
     *,
     resume: bool = False,
     progress: Callable[[Progress], None] | None = None,
-    **kw: Any,
+    header: DatasetHeader | None = None,
 ) -> RunResult:
-    """Open the bench's devices (by URI), run ``plan`` into ``out`` and close the devices."""
-    acq = acquisition_from_config(plan, bench_config, out, resume=resume, progress=progress, **kw)
+    """Open the bench's devices (by URI), run ``plan`` into ``out`` and close the devices
+    (:func:`acquisition_from_config`)."""
+    acq = acquisition_from_config(plan, bench_config, out, resume=resume, progress=progress, header=header)
     try:
         return await acq.run()
     finally:

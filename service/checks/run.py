@@ -114,9 +114,9 @@ async def acquire_check(
     and writes; ``approach``, the move to the first pose). ``camera_spec``: what
     the dataset records of the camera (a service's camera file: ``service.runs.Bench.camera_spec``)."""
     from drivers.acquisition.acquire import acquisition_from_config, close_devices
+    from drivers.acquisition.settings import DatasetHeader
 
-    kw: dict[str, Any] = {"camera_spec": camera_spec} if camera_spec else {}
-    acq = acquisition_from_config(plan, cfg, out, progress=progress, **kw)
+    acq = acquisition_from_config(plan, cfg, out, progress=progress, header=DatasetHeader(camera=camera_spec or {}))
     try:
         res = await acq.run()
     finally:
@@ -126,7 +126,7 @@ async def acquire_check(
     moves = [moved - start for start, moved, _ in acq.timings]
     return res, {
         "approach": moves[0] if moves else 0.0,
-        "motion": sum(moves[1:]) + acq.settle_s * len(moves),
+        "motion": sum(moves[1:]) + acq.settings.settle_s * len(moves),
     }
 
 

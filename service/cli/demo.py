@@ -66,6 +66,7 @@ def _camera_phase(renderer, seed: int, views: int = CAMERA_VIEWS):
 async def _acquire(out: Path, seed: int, con, small: bool = False, temporary: bool = False):
     from calib.formats.plan import make_plan
     from drivers.acquisition.acquire import acquire
+    from drivers.acquisition.settings import DatasetHeader
     from drivers.sim.bench import SimBench
     from drivers.sim.twin import GeometricTwin
     from service.cli._output import LongStep
@@ -86,7 +87,9 @@ async def _acquire(out: Path, seed: int, con, small: bool = False, temporary: bo
             def progress(p) -> None:
                 bar.update(done=p.done, total=p.total)
 
-            res = await acquire(plan, cfg, out, progress=progress, camera_spec=spec, extra={"truth": truth})
+            res = await acquire(
+                plan, cfg, out, progress=progress, header=DatasetHeader(camera=spec, extra={"truth": truth})
+            )
         con.print(f"   {res.frames} frames written" + (" (to a temporary directory)" if temporary else f" to {out}"))
         return cam
 

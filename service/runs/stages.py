@@ -251,6 +251,7 @@ class Stages:
     async def acquire(self, run_id: str, a: ActiveRun, stream: FrameStream | None = None) -> None:
         from calib.formats.plan import Plan
         from drivers.acquisition.acquire import AcquisitionError, acquisition_from_config, close_devices, plan_units
+        from drivers.acquisition.settings import DatasetHeader
         from drivers.errors import FrameError
 
         m = self.m
@@ -303,8 +304,7 @@ class Stages:
             out,
             resume=out.joinpath("dataset.json").exists(),
             progress=on_progress,
-            camera_spec=dict(bench.camera_spec),
-            extra={"service_run": run_id},
+            header=DatasetHeader(camera=dict(bench.camera_spec), extra={"service_run": run_id}),
             on_frame=None if stream is None else stream.submit,
         )
         if a.aborting:

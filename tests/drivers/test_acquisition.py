@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import itertools
 import time
 
@@ -16,6 +17,7 @@ from calib.model.kinematics import dkm
 from calib.model.parameters import NOMINAL
 from drivers.acquisition.acquire import Acquisition, AcquisitionError, acquire, plan_units
 from drivers.acquisition.config import open_actuators, open_camera, open_operator
+from drivers.acquisition.settings import AcquisitionSettings
 from drivers.errors import AbortedError
 from drivers.sim.mechanism import ALARM_DRIVE_FAULT
 
@@ -28,15 +30,14 @@ def small_plan() -> Plan:
 
 
 def make_acq(bench, plan, out, **kw):
+    """An acquisition on the bench's devices; ``kw``: :class:`AcquisitionSettings` fields (a short grab timeout, the
+    line at 100 Hz unless given) and :class:`Acquisition` keywords."""
     cfg = bench.bench_config(acquisition={"line_rate_hz": 100.0})
-    opts = dict(
-        operator=open_operator(cfg),
-        nominal=NOMINAL,
-        limits=cfg.calib_limits(),
-        grab_timeout_s=0.3,
-        grab_retries=1,
-        line_rate_hz=100.0,
+    fields = {f.name for f in dataclasses.fields(AcquisitionSettings)}
+    settings = AcquisitionSettings(
+        **{"grab_timeout_s": 0.3, "grab_retries": 1, "line_rate_hz": 100.0, **{k: kw.pop(k) for k in fields & set(kw)}}
     )
+    opts = dict(operator=open_operator(cfg), nominal=NOMINAL, limits=cfg.calib_limits(), settings=settings)
     opts.update(kw)
     return Acquisition(plan, open_actuators(cfg), open_camera(cfg), out, **opts)
 

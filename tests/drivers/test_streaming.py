@@ -21,6 +21,7 @@ from calib.model.parameters import NOMINAL
 from calib.vision import stream as stream_mod
 from calib.vision.extract import extract_dataset
 from drivers.acquisition.acquire import acquisition_from_config, close_devices
+from drivers.acquisition.settings import DatasetHeader
 from drivers.acquisition.streaming import FrameStream, _finite, load_streamed
 from drivers.sim.bench import SimBench, fast_axis_config
 
@@ -50,7 +51,7 @@ def _run(tmp_path, with_stream: bool) -> dict:
                 plan,
                 b.bench_config(),
                 ds,
-                camera_spec={"K": cam.K.tolist(), "dist": cam.dist.tolist()},
+                header=DatasetHeader(camera={"K": cam.K.tolist(), "dist": cam.dist.tolist()}),
                 on_frame=None if stream is None else stream.submit,
             )
             try:
