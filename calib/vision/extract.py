@@ -94,6 +94,14 @@ NO_INTRINSICS = (
 )
 
 
+#: the phases whose rods something reads (docs/observations.md): the methods (``poses``, the lock phases) and the
+#: report's leg residuals (``poses``, ``validation``); the others' frames need their boards (``rotation``,
+#: ``translation``) or their encoders only (``line``)
+ROD_PHASES: tuple[str, ...] = ("poses", "lock-1", "lock-2", "lock-3", "lock-4", "validation")
+#: why a frame of another phase carries no rods (its ``missing["rods"]``)
+RODS_NOT_READ = "not measured: no method reads the rods of this phase (extract --rod-phases all measures them)"
+
+
 @dataclass
 class ExtractOptions:
     """Settings of :func:`extract_dataset`."""
@@ -133,6 +141,10 @@ class ExtractOptions:
     #: than ``repredict_px``)
     first_pass_every: int = 5
     first_pass_min_frames: int = 24
+    #: the phases whose rods the observations carry (None: every phase): the rods of the others' frames are
+    #: measured only where the first pass samples them to refit the prediction, and left out of the observations
+    #: (``missing["rods"]``: :data:`RODS_NOT_READ`)
+    rod_phases: tuple[str, ...] | None = ROD_PHASES
 
 
 @dataclass
@@ -482,6 +494,11 @@ class _Pass:
     measured: int = 0
     reexpressed: int = 0
 
+    def rods_read(self, i: int) -> bool:
+        """Whether frame ``i``'s rods go into the observations (its phase in ``opts.rod_phases``)."""
+        phases = self.opts.rod_phases
+        return phases is None or self.ds.frames[i].phase in phases
+
 
 def _extract(
     pool: _Pool,
@@ -545,7 +562,10 @@ def _extract(
         found, fallback = _detect_stage(ps, cam.camera, boards)
     rod_items = _rod_items(ps, boards, place, found, predict_with)
     refit = C is not None and E is not None and not found and opts.repredict_px is not None
-    first = _first_sample(rod_items, opts) if refit and predict_with is None and sample else rod_items
+    if refit and predict_with is None:  # the first pass: its rods refit the prediction, whatever their phase
+        first = _first_sample(rod_items, opts) if sample else rod_items
+    else:  # measured for the observations only
+        first = [it for it in rod_items if ps.rods_read(it[0])]
     rods = _rods_stage(ps, boards, first, reexpress)
     if not refit or predict_with is not None:  # measured on the pass's final prediction (unless the refit moves it)
         ps.on_final.update(rods)
@@ -818,8 +838,10 @@ def _repredict_stage(
         cast("float", ps.opts.repredict_px),
         predict_with,
     )
+    redo = {i for i in redo if ps.rods_read(i)}  # a frame whose rods only refit the prediction is not measured again
     moved = set(redo)
-    later = {it[0] for it in rod_items} - set(rods)  # not in the first sample: measured once, on the refit
+    # not in the first sample: measured once, on the refit (the frames whose rods go into the observations)
+    later = {it[0] for it in rod_items if ps.rods_read(it[0])} - set(rods)
     if fit is not None and ps.measure_phases is not None:  # the others: by the next pass, with the refined camera
         left = {i for i in later if ps.ds.frames[i].phase not in ps.measure_phases}
         rods.update({i: {"reason": DEFERRED} for i in sorted(left)})
@@ -875,7 +897,8 @@ def _frame_record(
     """Frame ``i``'s observations v1 record from its board and rods results; counts it in its phase's ``ph``."""
     f = ps.ds.frames[i]
     ph["frames"] += 1
-    ph["rods_total"] += 8
+    read = ps.rods_read(i)
+    ph["rods_total"] += 8 if read else 0
     missing: dict[str, str] = {}
     board = None
     if "image_error" in board_res:
@@ -886,13 +909,19 @@ def _frame_record(
         ph["corners_rejected"] += int(board.get("corners_rejected") or 0)
     else:
         missing["board"] = board_res["reason"]
-    legs = _frame_legs(r, missing, placement_reason, ph)
-    par = r["parallel_mrad"] if r is not None and "parallel_mrad" in r else {}
+    if read:
+        legs = _frame_legs(r, missing, placement_reason, ph)
+        par = r["parallel_mrad"] if r is not None and "parallel_mrad" in r else {}
+    else:  # (a first-pass measurement, on a prediction and camera not final, is not kept)
+        legs, par = {str(k): [None, None] for k in range(1, 5)}, {}
+        ph["rods_not_read"] += 8
     for k, v in missing.items():
         kind = "board" if k == "board" else ("image" if k == "image" else "rod")
         label = f"{kind}: {_short(v)}"
         ph["missing"][label] = ph["missing"].get(label, 0) + 1
         ps.per_frame.setdefault(i, []).append(f"{k}: {v}")
+    if not read:  # said in the frame, not counted as missing
+        missing["rods"] = RODS_NOT_READ
     fr: dict[str, Any] = {
         "phase": f.phase,
         "q": list(f.q),
@@ -949,7 +978,15 @@ def _assemble(
     for i in ps.obs_idx:
         ph = phases.setdefault(
             ps.ds.frames[i].phase,
-            {"frames": 0, "board": 0, "rods": 0, "rods_total": 0, "corners_rejected": 0, "missing": {}},
+            {
+                "frames": 0,
+                "board": 0,
+                "rods": 0,
+                "rods_total": 0,
+                "rods_not_read": 0,
+                "corners_rejected": 0,
+                "missing": {},
+            },
         )
         out_frames.append(_frame_record(ps, i, boards[i], rods.get(i), place.reason, ph))
     C, E = place.camera_from_base, place.ee_from_board
@@ -973,7 +1010,7 @@ def _assemble(
     dextra = doc.model_extra or {}
     if "truth" in dextra:
         obs["truth"] = dextra["truth"]
-    final = {i: r for i, r in rods.items() if i in ps.on_final and r.get("edges")}
+    final = {i: r for i, r in rods.items() if i in ps.on_final and r.get("edges") and ps.rods_read(i)}
     return ExtractionResult(obs, summary, cam.camera, cam.intrinsics, C, E, fit, deferred=ps.deferred, rods=final)
 
 

@@ -65,6 +65,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "k1k2, k1k2k3, rational, or one of them with -radial (no tangential terms); default: the dataset's "
         "(the bench file's camera.lens_model), else auto",
     )
+    p.add_argument(
+        "--rod-phases",
+        default=None,
+        metavar="PHASES",
+        help="the phases whose rods the observations carry: comma-separated phase names, or all; default: those a "
+        "method or the report reads (poses, lock-1..lock-4, validation); the others' frames keep their boards",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=run)
 
@@ -110,12 +117,33 @@ def _options(args: argparse.Namespace) -> ExtractOptions:
             field="--lens-model",
         )
     return ExtractOptions(
+        rod_phases=_rod_phases(args.rod_phases),
         min_corners=args.min_corners,
         refine_camera=args.refine_camera,
         lens_model=args.lens_model,
         repredict_px=ExtractOptions.repredict_px if args.repredict else None,
         recover_lost_share=ExtractOptions.recover_lost_share if args.recover else None,
     )
+
+
+def _rod_phases(value: str | None) -> tuple[str, ...] | None:
+    """``--rod-phases``: None (all), the default phases, or those named (each checked)."""
+    from calib.errors import InputError
+    from calib.formats.observations import PHASES
+    from calib.vision.extract import ROD_PHASES
+
+    if value is None:
+        return ROD_PHASES
+    if value.strip() == "all":
+        return None
+    names = tuple(n.strip() for n in value.split(",") if n.strip())
+    unknown = [n for n in names if n not in PHASES]
+    if unknown or not names:
+        raise InputError(
+            f"unknown phase {', '.join(unknown) or repr(value)}; phases are {', '.join(PHASES)}, or all",
+            field="--rod-phases",
+        )
+    return names
 
 
 def _extract(
@@ -231,7 +259,8 @@ def _print_phases(console: Console, s: dict[str, Any]) -> None:
         t.add_column(col)
     for ph, c in s["phases"].items():
         miss = "; ".join(f"{k} x{v}" for k, v in sorted(c["missing"].items(), key=lambda kv: -kv[1]))
-        t.add_row(ph, str(c["frames"]), f"{c['board']}/{c['frames']}", f"{c['rods']}/{c['rods_total']}", miss or "-")
+        rods = f"{c['rods']}/{c['rods_total']}" if c["rods_total"] or not c.get("rods_not_read") else "not read"
+        t.add_row(ph, str(c["frames"]), f"{c['board']}/{c['frames']}", rods, miss or "-")
     Console().print(t)
     out_corners = {ph: c["corners_rejected"] for ph, c in s["phases"].items() if c.get("corners_rejected")}
     if out_corners:
