@@ -574,9 +574,11 @@ def _extract(
     if refit:
         repredicted, fit = _repredict_stage(ps, cam.camera, boards, rods, rod_items, len(first), place, predict_with)
     fit = fit or predict_with
-    if on_frame is not None:  # frames whose rods could not be looked for
+    if on_frame is not None:  # frames whose rods are not read, or could not be looked for
         for i in ps.obs_idx:
-            if i not in rods:
+            if not ps.rods_read(i):
+                on_frame(frame_info(i, frames[i].phase, boards[i], {"not_read": True}))
+            elif i not in rods:
                 on_frame(frame_info(i, frames[i].phase, boards[i], {"reason": place.reason or "no prediction"}))
     ps.ticker.finish()
     return _assemble(ps, cam, boards, rods, place, fallback, repredicted, fit)
@@ -775,7 +777,8 @@ def _rods_cb(ps: _Pass, boards: dict[int, dict[str, Any]]) -> Callable[[Any], No
     on_frame, frames = ps.on_frame, ps.ds.frames
     if on_frame is None:
         return None
-    return lambda r: on_frame(frame_info(r[0], frames[r[0]].phase, boards[r[0]], r[1]))
+    # a frame whose rods are not read is reported once, at the pass's end (_extract)
+    return lambda r: on_frame(frame_info(r[0], frames[r[0]].phase, boards[r[0]], r[1])) if ps.rods_read(r[0]) else None
 
 
 def _rods_stage(
@@ -839,6 +842,8 @@ def _repredict_stage(
         predict_with,
     )
     redo = {i for i in redo if ps.rods_read(i)}  # a frame whose rods only refit the prediction is not measured again
+    if "frames_measured_again" in repredicted:
+        repredicted["frames_measured_again"] = len(redo)
     moved = set(redo)
     # not in the first sample: measured once, on the refit (the frames whose rods go into the observations)
     later = {it[0] for it in rod_items if ps.rods_read(it[0])} - set(rods)
@@ -1088,14 +1093,16 @@ def frame_info(i: int, phase: str, board: dict[str, Any], rods: dict[str, Any] |
     board : dict
         The board stage's result: ``{"pose": {...}}``, ``{"reason": str}`` or ``{"image_error": str}``.
     rods : dict, optional
-        The rods stage's result (``{"rods": {name: dict | reason}, ...}`` or ``{"reason" | "image_error": str}``);
-        None after the board stage.
+        The rods stage's result (``{"rods": {name: dict | reason}, ...}`` or ``{"reason" | "image_error": str}``;
+        ``{"not_read": True}`` for a frame of a phase whose rods the observations do not carry); None after the
+        board stage.
 
     Returns
     -------
     dict
         ``{"frame", "phase", "stage": "board" | "rods", "board": bool, "corners", "rms_px", "rods": int | None,
-        "rods_total": 8, "missing": {what: reason}, "detections": {"board": {"R", "t"} | None, "legs": {...}}}``;
+        "rods_total": 8 (0 when not read), "missing": {what: reason}, "detections": {"board": {"R", "t"} | None,
+        "legs": {...}}}``;
         ``detections`` has the observations v1 frame layout (camera frame, metres).
     """
     pose = board.get("pose")
@@ -1106,7 +1113,11 @@ def frame_info(i: int, phase: str, board: dict[str, Any], rods: dict[str, Any] |
         missing["board"] = board.get("reason", "board not found")
     legs: dict[str, list] = {str(k): [None, None] for k in range(1, 5)}
     found = None
-    if rods is not None:
+    total = len(ROD_KEYS)
+    if rods is not None and rods.get("not_read"):  # a phase whose rods nothing reads (ExtractOptions.rod_phases)
+        found, total = 0, 0
+        missing["rods"] = RODS_NOT_READ
+    elif rods is not None:
         found = 0
         for leg, rod in ROD_KEYS:
             key = rod_name(leg, rod)
@@ -1127,7 +1138,7 @@ def frame_info(i: int, phase: str, board: dict[str, Any], rods: dict[str, Any] |
         "corners": None if pose is None else pose.get("n_corners"),
         "rms_px": None if pose is None else pose.get("rms_px"),
         "rods": found,
-        "rods_total": len(ROD_KEYS),
+        "rods_total": total,
         "missing": missing,
         "detections": {"board": None if pose is None else {"R": pose["R"], "t": pose["t"]}, "legs": legs},
     }

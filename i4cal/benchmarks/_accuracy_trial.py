@@ -17,6 +17,7 @@ from typing import Any
 from pydantic import BaseModel, Field
 
 from calib.identify.registry import method_names
+from calib.vision.extract import RODS_NOT_READ
 
 #: Methods of :func:`calib.identify.pipeline.calibrate`, in the order of its result document (the registered methods).
 METHODS: tuple[str, ...] = method_names()
@@ -250,7 +251,8 @@ def trial_record(doc: dict[str, Any], observations: dict[str, Any]) -> dict[str,
         directions of the seven its data left to the a priori tolerance), ``noise_levels`` (:func:`noise_levels`);
         ``bound_std`` (the combined method's
         Cramer-Rao bound, metres, None when the result has none); ``gap_a_priori_rms_mm``,
-        ``gap_truth_rms_mm``; ``edge_noise_px``; ``rods_found`` and ``rods_total``, ``boards_found`` and ``frames``;
+        ``gap_truth_rms_mm``; ``edge_noise_px``; ``rods_found`` and ``rods_total`` (the rods looked for: those of
+        the frames whose rods are read), ``boards_found`` and ``frames``;
         ``extraction_recovered`` (:func:`calib.vision.extract.extract_dataset`'s ``summary["recovered"]``, or None).
     """
     from calib.model.parameters import COMBINATION_NAMES
@@ -275,7 +277,7 @@ def trial_record(doc: dict[str, Any], observations: dict[str, Any]) -> dict[str,
         "frames": len(frames),
         "boards_found": sum(1 for fr in frames if fr.get("board")),
         "rods_found": _rods_found(frames),
-        "rods_total": 8 * len(frames),
+        "rods_total": 8 * sum(1 for fr in frames if (fr.get("missing") or {}).get("rods") != RODS_NOT_READ),
         # the extraction's second look when too many rods were lost in their search bands (calib.vision.recover):
         # None when it was not needed
         "extraction_recovered": _recovered(observations),

@@ -663,7 +663,9 @@ def _extraction_rows(summ: dict) -> list[list[str]]:
                 ph,
                 str(c.get("frames")),
                 f"{c.get('board')}/{c.get('frames')}",
-                f"{c.get('rods')}/{c.get('rods_total')}",
+                f"{c.get('rods')}/{c.get('rods_total')}"
+                if c.get("rods_total") or not c.get("rods_not_read")
+                else "not read",
                 miss or "-",
             ]
         )

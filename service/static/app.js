@@ -333,7 +333,7 @@ function onEvent(id, ev) {
       loadFrame(id);
     }
   } else if (ev.type === "extraction") {
-    L("extraction: " + Object.entries(d.phases || {}).map(([p, c]) => `${p} board ${c.board}/${c.frames} rods ${c.rods}/${c.rods_total}`).join("; "));
+    L("extraction: " + Object.entries(d.phases || {}).map(([p, c]) => `${p} board ${c.board}/${c.frames} rods ${c.rods_total || !c.rods_not_read ? `${c.rods}/${c.rods_total}` : "not read"}`).join("; "));
     loadFrame(id);
   } else if (ev.type === "frames") {
     // per-frame extraction results, batched (at most a few events per second)

@@ -12,6 +12,7 @@ import itertools
 import os
 from datetime import datetime
 
+from calib.vision.extract import ROD_PHASES
 from service.runs import LIVE_INTERVAL_S
 from tests.service.conftest import AUTH, make_settings, read_events, start_service, wait_state
 
@@ -72,7 +73,9 @@ async def test_offline_run_streams_frames_and_fit_iterations(tmp_path, sim, rend
         assert sorted(it["frame"] for it in rods_items) == sorted(obs_frames)
         assert sum(it["board"] for it in rods_items) > len(rods_items) // 2
         assert all(it["corners"] >= 6 for it in rods_items if it["board"])
-        assert sum(it["rods"] for it in rods_items) > 4 * len(rods_items)
+        read = [it for it in rods_items if it["phase"] in ROD_PHASES]  # the others' rods are not read: 0 of 0
+        assert read and sum(it["rods"] for it in read) > 4 * len(read)
+        assert all(it["rods"] == it["rods_total"] == 0 for it in rods_items if it["phase"] not in ROD_PHASES)
         assert all("detections" not in it for it in items)  # kept in memory for the live frame, not stored
         # what the events said per frame is what the observations say
         listed = {f["index"]: f for f in (await c.get(f"{API}/runs/{rid}/frames")).json()}

@@ -10,6 +10,7 @@ from calib.formats.plan import Plan, make_plan
 from calib.model.kinematics import dkm
 from calib.model.parameters import NOMINAL, I4Parameters
 from calib.numerics.transforms import Rigid, rot_z
+from calib.vision.extract import RODS_NOT_READ
 from calib.vision.repredict import rod_ends_camera
 from drivers.sim.twin import BenchGeometry
 
@@ -33,9 +34,12 @@ def exact_boards(g: BenchGeometry, q: np.ndarray) -> dict[int, Rigid]:
 
 def lost_and_far(observations: dict[str, Any], truth: I4Parameters, g: BenchGeometry) -> tuple[int, int]:
     """Rods lost (neither found nor out of the image / behind the board) and rods found whose direction is beyond
-    its own covariance's 99.9% bound (chi-square, 2 degrees of freedom) from the truth's."""
+    its own covariance's 99.9% bound (chi-square, 2 degrees of freedom) from the truth's; the frames of a phase whose
+    rods are not read (:data:`calib.vision.extract.ROD_PHASES`) left out."""
     lost = far = 0
     for f in observations["frames"]:
+        if f["missing"].get("rods") == RODS_NOT_READ:
+            continue
         q = np.asarray(f["truth"]["q"])
         top, bottom, _ = rod_ends_camera(truth, q[None], g.camera_from_base, g.rod_spacing_m)
         for i in range(4):

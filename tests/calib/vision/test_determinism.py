@@ -36,7 +36,12 @@ def _files(root: Path) -> dict[str, str]:
 def _extract(dataset: Path, out: Path, workers: int) -> bytes:
     env = {**os.environ, "PYTHONHASHSEED": str(workers)}  # a different hash seed per run: no set-order dependence
     res = subprocess.run(
-        [sys.executable, "-m", "i4cal", "extract", str(dataset), "-o", str(out), "--workers", str(workers), "--quiet"],
+        # every phase's rods: the more frames measured twice, the more chances for a difference to show
+        [
+            sys.executable,
+            *("-m", "i4cal", "extract", str(dataset), "-o", str(out), "--workers", str(workers), "--quiet"),
+            *("--rod-phases", "all"),
+        ],
         capture_output=True,
         text=True,
         env=env,

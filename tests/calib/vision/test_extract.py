@@ -13,7 +13,7 @@ from calib.formats.camera import CameraModel
 from calib.formats.dataset import CameraSpec, Dataset, DatasetWriter, LegsSpec
 from calib.formats.observations import Observations
 from calib.formats.plan import Plan, make_plan
-from calib.vision.extract import extract_dataset
+from calib.vision.extract import RODS_NOT_READ, ExtractOptions, extract_dataset
 from drivers.sim.render import BenchRenderer, RenderSettings
 from drivers.sim.twin import BenchGeometry, GeometricTwin
 
@@ -76,10 +76,15 @@ def test_extract_reports_per_frame_reasons_and_processes_the_rest(small_dataset)
     assert sum(r is not None for leg in fr[10]["legs"].values() for r in leg) >= 6
     assert fr[11]["legs"]["1"] == [None, None]
     assert "leg1.rod0" in fr[11]["missing"] and "leg1.rod1" in fr[11]["missing"]
-    # every other frame: board and most rods
+    # every other frame (rotation, translation): its board; its rods are not read (ExtractOptions.rod_phases) ...
     for i in range(8):
         assert fr[i]["board"] is not None
-        assert sum(r is not None for leg in fr[i]["legs"].values() for r in leg) >= 6
+        assert all(r is None for leg in fr[i]["legs"].values() for r in leg)
+        assert fr[i]["missing"] == {"rods": RODS_NOT_READ}
+    # ... unless asked: then most of them
+    every = extract_dataset(root, workers=1, options=ExtractOptions(rod_phases=None)).observations["frames"]
+    for i in range(8):
+        assert sum(r is not None for leg in every[i]["legs"].values() for r in leg) >= 6
     s = res.summary
     assert s["phases"]["rotation"]["frames"] == 5 and s["phases"]["poses"]["frames"] == 4
     assert s["phases"]["poses"]["missing"]["image: image file missing"] == 1

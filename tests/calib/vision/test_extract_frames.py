@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from calib.vision.extract import extract_dataset
+from calib.vision.extract import ROD_PHASES, ExtractOptions, extract_dataset
 from tests.calib.vision.test_extract import small_dataset  # noqa: F401  (the rendered, partly damaged dataset)
 
 
@@ -12,7 +12,8 @@ from tests.calib.vision.test_extract import small_dataset  # noqa: F401  (the re
 def test_on_frame_reports_agree_with_the_observations(small_dataset, workers):  # noqa: F811
     root, _, _ = small_dataset
     infos: list[dict] = []
-    res = extract_dataset(root, workers=workers, on_frame=infos.append)
+    # one pass (the damaged frames lose more than 5% of the rods looked for: no second look, which reports again)
+    res = extract_dataset(root, workers=workers, on_frame=infos.append, options=ExtractOptions(recover_lost_share=None))
     frames = res.observations["frames"]
     by_stage = {st: {i["frame"]: i for i in infos if i["stage"] == st} for st in ("board", "rods")}
     # a frame measured again on the rods' refitted prediction is reported again (its last report counts)
@@ -31,7 +32,7 @@ def test_on_frame_reports_agree_with_the_observations(small_dataset, workers):  
             assert r["corners"] >= 6 and 0 < r["rms_px"] < 2
             assert r["detections"]["board"]["t"] == f["board"]["t"]
         n_rods = sum(x is not None for leg in f["legs"].values() for x in leg)
-        assert r["rods"] == n_rods and r["rods_total"] == 8
+        assert r["rods"] == n_rods and r["rods_total"] == (8 if f["phase"] in ROD_PHASES else 0)
         assert r["detections"]["legs"] == f["legs"]
         assert set(r["missing"]) == set(f["missing"]), f["dataset_frame"]
     assert "image" in by_stage["rods"][8]["missing"] and by_stage["rods"][8]["rods"] == 0
