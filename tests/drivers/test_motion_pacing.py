@@ -81,16 +81,21 @@ def _poses() -> Plan:
     return Plan(name="poses", steps=[s for s in small_plan().steps if s.line is None][:3])
 
 
-async def test_the_first_reading_of_a_frame_is_the_moves_arrival(bench, tmp_path):
-    acq = make_acq(bench, _poses(), tmp_path / "ds")
+async def _calls_of_a_run(bench, out, **kw) -> str:
+    """Run three poses; the acquisition's moves, readings and grabs, in order (comma-separated)."""
+    acq = make_acq(bench, _poses(), out, **kw)
     calls = _recorder(acq)
     try:
         res = await acq.run()
     finally:
         await close(acq)
     assert res.frames == 3
-    seq = ",".join(c for c in calls if c in ("move", "status", "grab", "read_encoders"))
-    assert seq.count("move,grab,read_encoders") == 3, calls  # no reading between the move and the grab
+    return ",".join(c for c in calls if c in ("move", "status", "grab", "read_encoders"))
+
+
+async def test_the_first_reading_of_a_frame_is_the_moves_arrival(bench, tmp_path):
+    seq = await _calls_of_a_run(bench, tmp_path / "ds")
+    assert seq.count("move,grab,read_encoders") == 3, seq  # no reading between the move and the grab
     from calib.formats.dataset import Dataset
 
     for f in Dataset.open(tmp_path / "ds").frames:  # the q written is the true one
@@ -98,12 +103,5 @@ async def test_the_first_reading_of_a_frame_is_the_moves_arrival(bench, tmp_path
 
 
 async def test_after_a_settling_wait_the_frame_reads_again(bench, tmp_path):
-    acq = make_acq(bench, _poses(), tmp_path / "ds", settle_s=0.01)
-    calls = _recorder(acq)
-    try:
-        res = await acq.run()
-    finally:
-        await close(acq)
-    assert res.frames == 3
-    seq = ",".join(c for c in calls if c in ("move", "status", "grab", "read_encoders"))
-    assert seq.count("move,status,grab,read_encoders") == 3, calls
+    seq = await _calls_of_a_run(bench, tmp_path / "ds", settle_s=0.01)
+    assert seq.count("move,status,grab,read_encoders") == 3, seq
