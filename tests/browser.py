@@ -27,3 +27,16 @@ async def headless_chromium() -> AsyncIterator[Any]:
             yield browser
         finally:
             await browser.close()
+
+
+def page_errors(page: Any) -> list[str]:
+    """The uncaught script errors of ``page`` (a playwright ``Page``), collected as they come."""
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    return errors
+
+
+async def enter_token(page: Any, token: str) -> None:
+    """Type the API token into the dashboard's field as a user does (the page reads it on ``change``)."""
+    await page.fill("#token", token)
+    await page.dispatch_event("#token", "change")

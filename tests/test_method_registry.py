@@ -19,7 +19,7 @@ from calib.formats.observations import Observations
 from calib.identify import registry
 from calib.identify.pipeline import calibrate
 from calib.identify.registry import MethodContext, MethodSpec, get_method, method_names, register_method
-from tests.browser import CHROMIUM, NO_CHROMIUM, headless_chromium
+from tests.browser import CHROMIUM, NO_CHROMIUM, headless_chromium, page_errors
 from tests.service.conftest import AUTH, service, sim, wait_state  # noqa: F401  (fixtures; rendered_zip: tests/conftest.py)
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -183,8 +183,7 @@ async def test_toy_method_in_the_dashboard(toy, service):  # noqa: F811
     pytest.importorskip("playwright.async_api")
     async with headless_chromium() as browser:
         page = await browser.new_page()
-        errors: list[str] = []
-        page.on("pageerror", lambda e: errors.append(str(e)))
+        errors = page_errors(page)
         await page.goto(service.url + "/dashboard")
         await page.wait_for_selector("#methods[data-loaded='true']")
         boxes = page.locator("#methods input[type=checkbox]")

@@ -9,7 +9,7 @@ from urllib.parse import urlparse
 
 import pytest
 
-from tests.browser import CHROMIUM, NO_CHROMIUM, headless_chromium
+from tests.browser import CHROMIUM, NO_CHROMIUM, headless_chromium, page_errors
 
 
 async def test_docs_page_names_only_local_assets(service):
@@ -40,8 +40,7 @@ async def test_docs_render_with_the_network_cut_off(service):
 
     async with headless_chromium() as browser:
         page = await browser.new_page()
-        errors: list[str] = []
-        page.on("pageerror", lambda e: errors.append(str(e)))
+        errors = page_errors(page)
         await page.route("**/*", only_the_service)
         await page.goto(service.url + "/api/v1/docs")
         await page.wait_for_selector(".swagger-ui .info .title", timeout=30_000)

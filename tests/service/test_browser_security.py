@@ -13,7 +13,7 @@ from zoneinfo import ZoneInfo
 
 import pytest
 
-from tests.browser import CHROMIUM, NO_CHROMIUM, headless_chromium
+from tests.browser import CHROMIUM, NO_CHROMIUM, enter_token, headless_chromium, page_errors
 from tests.service.conftest import TOKEN
 
 pytest.importorskip("playwright.async_api")
@@ -40,12 +40,10 @@ async def test_dashboard_and_docs_under_their_csp(service):
         ctx = await browser.new_context(timezone_id="Europe/Paris", locale="en-GB")
         await ctx.add_init_script(WATCH)
         page = await ctx.new_page()
-        errors: list[str] = []
-        page.on("pageerror", lambda e: errors.append(str(e)))
+        errors = page_errors(page)
         await page.goto(service.url + "/dashboard")
         await _until(page, "document.querySelector('#methods').dataset.loaded === 'true'")
-        await page.fill("#token", TOKEN)
-        await page.dispatch_event("#token", "change")
+        await enter_token(page, TOKEN)
         await page.select_option("#plan", "rotation-sweep")
         await page.evaluate("document.querySelectorAll('#methods input').forEach((i) => { i.checked = false; })")
         await page.click("#start")

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import pytest
 
-from tests.browser import CHROMIUM, NO_CHROMIUM, headless_chromium
+from tests.browser import CHROMIUM, NO_CHROMIUM, enter_token, headless_chromium, page_errors
 from tests.service.conftest import TOKEN, make_settings, start_service
 
 pytest.importorskip("playwright.async_api")
@@ -27,16 +27,14 @@ async def test_dashboard_starts_a_run_and_shows_results(tmp_path):
                 # the wait_for_function strings below are evaluated by the page: its CSP (no 'unsafe-eval') would
                 # refuse them; the page under its own CSP is checked by test_browser_security.py
                 page = await browser.new_page(bypass_csp=True)
-                errors: list[str] = []
-                page.on("pageerror", lambda e: errors.append(str(e)))
+                errors = page_errors(page)
                 await page.goto(svc.url + "/")
                 assert await page.title() == "i4cal — bench dashboard"
                 # without a token the start is refused, and the page says so
                 await page.select_option("#plan", "full")
                 await page.click("#start")
                 await page.wait_for_function("document.querySelector('#message').textContent.includes('401')")
-                await page.fill("#token", TOKEN)
-                await page.dispatch_event("#token", "change")
+                await enter_token(page, TOKEN)
                 # before it runs: what the chosen plan will buy (POST /plans/predict)
                 await page.wait_for_function(
                     "document.querySelector('#plan-prediction').textContent.includes('full: predicted std (mm)')",

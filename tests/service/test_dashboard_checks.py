@@ -13,7 +13,7 @@ from datetime import UTC, datetime, timedelta
 
 import pytest
 
-from tests.browser import CHROMIUM, NO_CHROMIUM, headless_chromium
+from tests.browser import CHROMIUM, NO_CHROMIUM, enter_token, headless_chromium, page_errors
 from tests.service.conftest import TOKEN, make_settings, start_service
 
 pytest.importorskip("playwright.async_api")
@@ -79,13 +79,11 @@ async def test_the_checks_panel_plots_each_combinations_drift_against_its_band(t
         async with headless_chromium() as browser:
             # wait_for_function strings are evaluated by the page: its CSP (no 'unsafe-eval') would refuse them
             page = await browser.new_page(viewport={"width": 1280, "height": 1600}, bypass_csp=True)
-            errors: list[str] = []
-            page.on("pageerror", lambda e: errors.append(str(e)))
+            errors = page_errors(page)
             await page.goto(svc.url + "/dashboard")
             # closed reads, no token: the panel says why it is empty
             await _until(page, "document.querySelector('#checks-message').textContent.includes('401')")
-            await page.fill("#token", TOKEN)
-            await page.dispatch_event("#token", "change")
+            await enter_token(page, TOKEN)
             await _until(page, "document.querySelectorAll('#checks tbody tr').length === 3")
             await _until(page, "document.querySelectorAll('#drift-plots svg.drift-plot').length === 4")
 

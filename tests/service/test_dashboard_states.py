@@ -16,7 +16,7 @@ from datetime import UTC, datetime, timedelta
 
 import pytest
 
-from tests.browser import CHROMIUM, NO_CHROMIUM, headless_chromium
+from tests.browser import CHROMIUM, NO_CHROMIUM, enter_token, headless_chromium, page_errors
 from tests.service.conftest import AUTH, TOKEN, make_settings, start_service
 
 pytest.importorskip("playwright.async_api")
@@ -95,13 +95,11 @@ async def test_finished_failed_fit_and_running_runs(tmp_path, sim):
                 viewport={"width": 1280, "height": 1600}, accept_downloads=True, bypass_csp=True
             )
             page = await ctx.new_page()
-            errors: list[str] = []
-            page.on("pageerror", lambda e: errors.append(str(e)))
+            errors = page_errors(page)
             await page.goto(svc.url + "/dashboard")
             # closed reads, no token yet: the page says why it shows nothing
             await _until(page, "document.querySelector('#message').textContent.includes('401')")
-            await page.fill("#token", TOKEN)
-            await page.dispatch_event("#token", "change")
+            await enter_token(page, TOKEN)
             await page.evaluate("refreshRuns(); refreshDevices();")
             await _until(page, "document.querySelectorAll('#runs tbody tr').length === 2")
             # the devices before any run: not "unknown"
@@ -237,8 +235,7 @@ async def test_a_late_answer_for_a_run_left_is_not_shown_over_the_one_selected(t
         failed_id = _write_run(svc, failed, ["legs"], "only fit failed")
         async with headless_chromium() as browser:
             page = await browser.new_page(bypass_csp=True)
-            errors: list[str] = []
-            page.on("pageerror", lambda e: errors.append(str(e)))
+            errors = page_errors(page)
             answered = asyncio.Event()
 
             async def slow(route):  # the finished run's details answer 1.5 s late

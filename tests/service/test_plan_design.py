@@ -17,7 +17,7 @@ from calib.formats.plan import Plan, SoftLimits, validate_plan
 from calib.model.parameters import NOMINAL
 from service.cli import main
 from service.design import parse_length
-from tests.browser import CHROMIUM, NO_CHROMIUM, headless_chromium
+from tests.browser import CHROMIUM, NO_CHROMIUM, enter_token, headless_chromium, page_errors
 from tests.service.conftest import AUTH, wait_state
 
 API = "/api/v1"
@@ -355,11 +355,9 @@ async def test_dashboard_designs_and_starts_a_plan(service):
 
     async with headless_chromium() as browser:
         page = await browser.new_page(bypass_csp=True)
-        errors: list[str] = []
-        page.on("pageerror", lambda e: errors.append(str(e)))
+        errors = page_errors(page)
         await page.goto(service.url + "/dashboard")
-        await page.fill("#token", TOKEN)
-        await page.dispatch_event("#token", "change")
+        await enter_token(page, TOKEN)
         await page.fill("#design-nfit", "4")
         await page.fill("#design-lock", "3")
         await page.click("#design")

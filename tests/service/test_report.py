@@ -25,7 +25,7 @@ from drivers.sim.twin import BenchGeometry
 from service.cli import main
 from service.report import ReportInputs, build_report, inputs_from_path
 from service.report.analysis import dataset_sha256
-from tests.browser import CHROMIUM, NO_CHROMIUM, headless_chromium
+from tests.browser import CHROMIUM, NO_CHROMIUM, headless_chromium, page_errors
 from tests.service.conftest import AUTH, wait_state
 
 API = "/api/v1"
@@ -140,8 +140,7 @@ def test_report_opens_in_a_real_browser(built):
             page = await browser.new_page(viewport={"width": 1280, "height": 900})
             requests: list[str] = []
             page.on("request", lambda r: requests.append(r.url))
-            errors: list[str] = []
-            page.on("pageerror", lambda e: errors.append(str(e)))
+            errors = page_errors(page)
             await page.goto(path.as_uri())
             await page.wait_for_load_state("load")
             assert "calibration report" in (await page.title())
