@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from calib.design.motion import MotionSpec, move_time
 from calib.errors import UnreachableError
 from calib.model.kinematics import dkm
 from calib.model.parameters import I4Parameters
@@ -482,7 +483,9 @@ class AxisController:
             def arrived(s: ActuatorStatus) -> bool:
                 return s.in_position and bool(np.all(np.abs(s.positions - target) <= self.in_position_m))
 
-            st = await self._wait(arrived, timeout, "move", arrival_s=_move_time(dist, speeds, self.accel_m_s2))
+            # the axis of the longest travel, at the full speed, is the last to arrive (the others' speeds scale)
+            arrival = float(move_time(st.positions, target, MotionSpec(speed_m_s=v, accel_m_s2=self.accel_m_s2)))
+            st = await self._wait(arrived, timeout, "move", arrival_s=arrival)
             if self.settle_s > 0:
                 await asyncio.sleep(self.settle_s)
                 st = await self.status()
@@ -525,18 +528,6 @@ def next_poll(t_poll: float, poll_s: float, pace_s: float, t_arrival: float) -> 
     if pace_s > 0 and t_next < t_arrival:
         t_next = t_arrival - math.floor((t_arrival - t_next) / pace_s) * pace_s
     return t_next
-
-
-def _move_time(distance_m: np.ndarray, speeds_m_s: np.ndarray, accel_m_s2: float) -> float:
-    """How long (s) the slowest axis of a move takes on its commanded trapezoidal profile (triangular when it never
-    reaches its speed): ``distance_m`` and ``speeds_m_s`` shape (n,)."""
-    a = max(float(accel_m_s2), 1e-9)
-    t = [
-        d / v + v / a if d >= v * v / a else 2.0 * math.sqrt(d / a)
-        for d, v in zip(distance_m, speeds_m_s, strict=True)
-        if d > 0 and v > 0
-    ]
-    return max(t, default=0.0)
 
 
 #: a drive may run this much faster than commanded (its speed loop's overshoot) before a reading is refused
